@@ -1,0 +1,161 @@
+//! Writing bags: [`BagWriter`] turns [`ParticleFrame`]s (or CDR bytes from a transport) into an
+//! MCAP file that `ros2 bag`, Foxglove and `mcap-ros2-support` read.
+//!
+//! One channel per topic, created on first use, all sharing one schema
+//! (`minflow_msgs/msg/ParticleFrame`, `ros2msg`, [`crate::msgs::schema_text`]); message
+//! encoding `cdr`; channel metadata `offered_qos_profiles` = the default ROS 2 QoS in rosbag2's
+//! YAML; profile `ros2`; zstd chunks of 1 MiB. `log_time` = `publish_time` = the frame's stamp
+//! in ns; `sequence` counts messages per channel from 0. Output is deterministic: the same
+//! frames give byte-identical files (the header's library string carries versions only, and
+//! zstd runs single-threaded). Used by `simulate` and the `record` node.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use mcap::records::MessageHeader;
+
+use super::{BagError, DEFAULT_QOS_YAML, MESSAGE_ENCODING, PROFILE, QOS_KEY, SCHEMA_ENCODING};
+use crate::msgs::{self, ParticleFrame};
+
+/// Uncompressed size at which a chunk is closed (as mcap's default).
+const CHUNK_BYTES: u64 = 1024 * 1024;
+
+/// Writes ParticleFrames to one MCAP bag. Call [`BagWriter::finish`] to write the summary and
+/// footer and to see errors; a writer dropped without it still tries to finish the file.
+pub struct BagWriter {
+    path: PathBuf,
+    writer: mcap::Writer<BufWriter<File>>,
+    schema_id: u16,
+    /// topic -> (channel id, messages written on it)
+    channels: BTreeMap<String, (u16, u32)>,
+    scratch: Vec<u8>,
+}
+
+impl BagWriter {
+    /// Creates (or truncates) the bag at `path` and writes the MCAP header.
+    pub fn create(path: impl AsRef<Path>) -> Result<Self, BagError> {
+        let path = path.as_ref().to_path_buf();
+        let file = File::create(&path).map_err(|e| BagError::io(&path, "creating bag", e))?;
+        let options = mcap::WriteOptions::new()
+            .profile(PROFILE)
+            .library(format!(
+                "minflow/{} mcap-rust/{}",
+                env!("CARGO_PKG_VERSION"),
+                mcap::VERSION
+            ))
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_threads(0)
+            .chunk_size(Some(CHUNK_BYTES));
+        let mcap_err = |source| BagError::Mcap {
+            path: path.clone(),
+            source,
+        };
+        let mut writer = options.create(BufWriter::new(file)).map_err(mcap_err)?;
+        let schema_id = writer
+            .add_schema(
+                msgs::TYPE_NAME,
+                SCHEMA_ENCODING,
+                msgs::schema_text().as_bytes(),
+            )
+            .map_err(mcap_err)?;
+        Ok(Self {
+            path,
+            writer,
+            schema_id,
+            channels: BTreeMap::new(),
+            scratch: Vec::new(),
+        })
+    }
+
+    /// The bag's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Validates `frame` and writes it on `topic` with `log_time` = `publish_time` = its stamp.
+    /// A frame that fails [`ParticleFrame::validate`] or has a negative stamp is an error.
+    pub fn write(&mut self, topic: &str, frame: &ParticleFrame) -> Result<(), BagError> {
+        let index = self.channels.get(topic).map_or(0, |&(_, n)| u64::from(n));
+        frame.validate().map_err(|source| BagError::Invalid {
+            path: self.path.clone(),
+            topic: topic.to_owned(),
+            index,
+            source,
+        })?;
+        let Some(stamp_ns) = frame.header.stamp.as_unsigned_nanos() else {
+            return Err(BagError::Write {
+                path: self.path.clone(),
+                topic: topic.to_owned(),
+                index,
+                what: format!(
+                    "negative stamp {:?} cannot be an MCAP log time",
+                    frame.header.stamp
+                ),
+            });
+        };
+        let mut scratch = std::mem::take(&mut self.scratch);
+        msgs::encode_into(frame, &mut scratch);
+        let result = self.write_raw(topic, stamp_ns, &scratch);
+        self.scratch = scratch;
+        result
+    }
+
+    /// Writes already-encoded CDR bytes on `topic` at `stamp_ns` (log and publish time), as a
+    /// recorder does with what a transport delivered. The bytes are not checked.
+    pub fn write_raw(&mut self, topic: &str, stamp_ns: u64, cdr: &[u8]) -> Result<(), BagError> {
+        let (channel_id, sequence) = self.channel(topic)?;
+        self.writer
+            .write_to_known_channel(
+                &MessageHeader {
+                    channel_id,
+                    sequence,
+                    log_time: stamp_ns,
+                    publish_time: stamp_ns,
+                },
+                cdr,
+            )
+            .map_err(|source| BagError::Mcap {
+                path: self.path.clone(),
+                source,
+            })
+    }
+
+    /// Returns the channel id for `topic` (adding the channel on first use) and the sequence
+    /// number of the next message on it.
+    fn channel(&mut self, topic: &str) -> Result<(u16, u32), BagError> {
+        if let Some((id, count)) = self.channels.get_mut(topic) {
+            let sequence = *count;
+            *count = count.wrapping_add(1);
+            return Ok((*id, sequence));
+        }
+        let metadata = BTreeMap::from([(QOS_KEY.to_owned(), DEFAULT_QOS_YAML.to_owned())]);
+        let id = self
+            .writer
+            .add_channel(self.schema_id, topic, MESSAGE_ENCODING, &metadata)
+            .map_err(|source| BagError::Mcap {
+                path: self.path.clone(),
+                source,
+            })?;
+        self.channels.insert(topic.to_owned(), (id, 1));
+        Ok((id, 0))
+    }
+
+    /// Writes the last chunk, the summary and the footer, and flushes the file.
+    pub fn finish(mut self) -> Result<(), BagError> {
+        let path = self.path.clone();
+        self.writer.finish().map_err(|source| BagError::Mcap {
+            path: path.clone(),
+            source,
+        })?;
+        let mut file = self.writer.into_inner();
+        file.flush()
+            .map_err(|e| BagError::io(&path, "flushing bag", e))?;
+        let file = file
+            .into_inner()
+            .map_err(|e| BagError::io(&path, "flushing bag", e.into_error()))?;
+        file.sync_all()
+            .map_err(|e| BagError::io(&path, "syncing bag", e))
+    }
+}

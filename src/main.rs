@@ -1,0 +1,19 @@
+//! The `minflow` binary: parses the command line, runs the subcommand, and maps the
+//! outcome to an exit code (0 ok, 1 error, 2 usage, 3 finished but data was lost, such as
+//! a truncated bag). Results go to stdout, logs and progress bars to stderr.
+
+use clap::Parser;
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    let cli = minflow::cli::Cli::parse();
+    minflow::cli::init_logging(cli.verbose);
+    match minflow::cli::run(cli) {
+        Ok(minflow::cli::Outcome::Done) => ExitCode::SUCCESS,
+        Ok(minflow::cli::Outcome::DataLost) => ExitCode::from(3),
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,192 @@
+//! The four materials of the ground truth and their constitutive update: given a particle's
+//! updated deformation gradient `F` (and plastic volume ratio `Jp`), apply plasticity and
+//! return the Kirchhoff stress `tau` (domain units: rho = 1, so stress is energy per area).
+//!
+//! Models follow Taichi's mpm99 example and `../shared/MPM.md`: fixed-corotated elasticity
+//! `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation), liquid with
+//! zero shear modulus and `F` reset to `sqrt(J) I`, snow with singular values clamped to
+//! `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)), 0.1, 5)`.
+
+use super::linalg::{self, Mat2};
+use serde::{Deserialize, Serialize};
+
+/// Material id as carried in `ParticleFrame.material`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[repr(u8)]
+pub enum Material {
+    /// 0: weakly compressible liquid (mu = 0).
+    Liquid = 0,
+    /// 1: elastic jelly, fixed-corotated, hardening 0.3.
+    Jelly = 1,
+    /// 2: snow, fixed-corotated with plasticity and hardening.
+    Snow = 2,
+    /// 3: rope, a thin line of the elastic model, hardening 0.5.
+    Rope = 3,
+}
+
+impl Material {
+    /// All materials in id order.
+    pub const ALL: [Material; 4] = [
+        Material::Liquid,
+        Material::Jelly,
+        Material::Snow,
+        Material::Rope,
+    ];
+
+    /// The id stored in frames (0..=3).
+    pub fn id(self) -> u8 {
+        self as u8
+    }
+
+    /// Parses an id; `None` for unknown ids.
+    pub fn from_id(id: u8) -> Option<Self> {
+        Self::ALL.get(id as usize).copied()
+    }
+
+    /// Lower-case name, as used in scene ids and scene files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Material::Liquid => "liquid",
+            Material::Jelly => "jelly",
+            Material::Snow => "snow",
+            Material::Rope => "rope",
+        }
+    }
+}
+
+/// Lamé parameters and snow plasticity limits, shared by every material of a scene.
+///
+/// Defaults: `E0 = 400`, `nu = 0.2` (mu0 = 166.7, lambda0 = 111.1), as in mpm99 and MPM.md.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Elasticity {
+    /// Young's modulus E0 before hardening.
+    pub youngs_modulus: f32,
+    /// Poisson's ratio.
+    pub poisson_ratio: f32,
+}
+
+impl Default for Elasticity {
+    fn default() -> Self {
+        Self {
+            youngs_modulus: 400.0,
+            poisson_ratio: 0.2,
+        }
+    }
+}
+
+impl Elasticity {
+    /// `(mu0, lambda0)` from E and nu.
+    pub fn lame(&self) -> (f32, f32) {
+        let e = self.youngs_modulus;
+        let nu = self.poisson_ratio;
+        (
+            e / (2.0 * (1.0 + nu)),
+            e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+        )
+    }
+}
+
+/// Snow's singular-value clamp (MPM.md): compression and stretch limits.
+const SNOW_MIN: f32 = 1.0 - 2.5e-2;
+const SNOW_MAX: f32 = 1.0 + 4.5e-3;
+
+/// Plastic projection after `F <- (I + dt C) F` (done in G2P, as in Hu et al. 2018):
+/// liquid resets `F` to `sqrt(J) I`; snow clamps its singular values to
+/// `[1 - 2.5e-2, 1 + 4.5e-3]` and moves the clamped-off volume change into `jp`.
+/// Jelly and rope are purely elastic and left unchanged.
+#[inline(always)]
+pub fn project(material: u8, f: &mut Mat2, jp: &mut f32) {
+    match material {
+        0 => {
+            let sj = linalg::det(f).max(0.0).sqrt();
+            *f = [sj, 0.0, 0.0, sj];
+        }
+        2 => {
+            let (u, sig, v) = linalg::svd(f);
+            let s0 = sig[0].clamp(SNOW_MIN, SNOW_MAX);
+            let s1 = sig[1].clamp(SNOW_MIN, SNOW_MAX);
+            *jp *= (sig[0] / s0) * (sig[1] / s1);
+            let us = [u[0] * s0, u[1] * s1, u[2] * s0, u[3] * s1];
+            *f = linalg::mul_bt(&us, &v);
+        }
+        _ => {}
+    }
+}
+
+/// Hardening factor h scaling mu0 and lambda0 (MPM.md table): liquid 1, jelly 0.3,
+/// snow `clamp(exp(10 (1 - Jp)), 0.1, 5)`, rope 0.5.
+#[inline(always)]
+pub fn hardening(material: u8, jp: f32) -> f32 {
+    match material {
+        0 => 1.0,
+        1 => 0.3,
+        2 => (10.0 * (1.0 - jp)).exp().clamp(0.1, 5.0),
+        _ => 0.5,
+    }
+}
+
+/// Kirchhoff stress of a projected state, and the stiffness `k` that bounds the stable
+/// substep (see `Solver::substep`).
+///
+/// Liquid: `tau = p(J) I` with [`liquid_pressure`] (mu = 0), `k = dp/dJ`, at least lambda0.
+/// Solids: fixed-corotated `2 mu (F - R) F^T + lambda J (J - 1) I` with `R = U V^T` the polar
+/// rotation (after projection snow's singular values are positive, so the polar rotation
+/// equals the signed-SVD `U V^T`), `(mu, lambda) = h (mu0, lambda0)`, `k = lambda + 2 mu`;
+/// snow reports `k = 0`: its elastic strain is capped by the plastic clamp, so its stress
+/// stays bounded and cannot run away (hardened snow would otherwise split most substeps).
+#[inline(always)]
+pub fn kirchhoff_stress(material: u8, f: &Mat2, jp: f32, mu0: f32, lambda0: f32) -> (Mat2, f32) {
+    let j = linalg::det(f);
+    if material == 0 {
+        let p = liquid_pressure(j, lambda0);
+        return ([p, 0.0, 0.0, p], lambda0 * (2.0 * j - 1.0).max(1.0));
+    }
+    let h = hardening(material, jp);
+    let (mu, la) = (mu0 * h, lambda0 * h);
+    let k = if material == 2 { 0.0 } else { la + 2.0 * mu };
+    (corotated(f, &linalg::polar_rotation(f), j, mu, la), k)
+}
+
+/// Liquid Kirchhoff pressure term: `lambda J (J - 1)` (mpm99, MPM.md) for `J >= 0.5`.
+///
+/// Below `J = 0.5` that expression loses stiffness (its magnitude falls back to 0 at
+/// `J = 0`), so a particle squeezed past half its volume collapses to `J = 0`: seen in
+/// `multi` scenes where snow (hardened up to 5x) presses liquid into the floor. There we
+/// continue it monotonically and C1: `-lambda / 4 - lambda (0.5 - J)^2`. Only that
+/// unphysical regime (over 50 % compression) differs from mpm99.
+#[inline(always)]
+pub fn liquid_pressure(j: f32, lambda0: f32) -> f32 {
+    if j >= 0.5 {
+        lambda0 * j * (j - 1.0)
+    } else {
+        let d = 0.5 - j;
+        -lambda0 * (0.25 + d * d)
+    }
+}
+
+/// `2 mu (F - R) F^T + lambda J (J - 1) I`.
+#[inline(always)]
+fn corotated(f: &Mat2, r: &Mat2, j: f32, mu: f32, la: f32) -> Mat2 {
+    let d = [f[0] - r[0], f[1] - r[1], f[2] - r[2], f[3] - r[3]];
+    let dft = linalg::mul_bt(&d, f);
+    let p = la * j * (j - 1.0);
+    [
+        2.0 * mu * dft[0] + p,
+        2.0 * mu * dft[1],
+        2.0 * mu * dft[2],
+        2.0 * mu * dft[3] + p,
+    ]
+}
+
+/// Elastic energy density `psi(F)` per unit reference volume for energy diagnostics:
+/// `mu ||F - R||^2 + lambda / 2 (J - 1)^2` (fixed-corotated; liquid has mu = 0).
+pub fn energy_density(material: u8, f: &Mat2, jp: f32, mu0: f32, lambda0: f32) -> f64 {
+    let h = hardening(material, jp);
+    let mu = if material == 0 { 0.0 } else { mu0 * h };
+    let la = lambda0 * h;
+    let r = linalg::polar_rotation(f);
+    let dev: f32 = f.iter().zip(&r).map(|(a, b)| (a - b) * (a - b)).sum();
+    let j = linalg::det(f) - 1.0;
+    (mu * dev) as f64 + 0.5 * (la as f64) * (j as f64) * (j as f64)
+}

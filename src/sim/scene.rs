@@ -1,0 +1,230 @@
+//! A scene: the bodies that make up the initial particle state plus the numerical settings
+//! (grid, dt, substeps, frames, gravity). Scenes come from the generated families
+//! ([`crate::sim::families`]) or from a TOML scene file (`minflow simulate --scene-file`).
+//!
+//! Every body is given by its centre `position` and its extent `size` (domain units):
+//! a rectangle fills the box, a disk is the ellipse inscribed in it, a line runs along the
+//! box's diagonal from `position - size / 2` to `position + size / 2` (so `size = [0.4, 0]`
+//! is a horizontal rope 0.4 long). Rectangles and disks are sampled uniformly at random
+//! from the scene's seed; lines are evenly spaced. Sampling is deterministic.
+
+use super::material::{Elasticity, Material};
+use super::mpm::{Particles, Solver, SolverConfig};
+use super::SimError;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// Shape of a body.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Shape {
+    /// Axis-aligned rectangle filling `size`.
+    Rectangle,
+    /// Ellipse inscribed in `size` (a disk when both sides are equal).
+    Disk,
+    /// Evenly spaced particles along the diagonal of `size` (rope).
+    Line,
+}
+
+/// One body of a scene.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Body {
+    /// Shape.
+    pub shape: Shape,
+    /// Material.
+    pub material: Material,
+    /// Centre, domain units.
+    pub position: [f32; 2],
+    /// Extent `[width, height]`, domain units.
+    pub size: [f32; 2],
+    /// Initial velocity, domain units per time unit.
+    #[serde(default)]
+    pub velocity: [f32; 2],
+    /// Initial angular velocity about the centre, radians per time unit.
+    #[serde(default)]
+    pub spin: f32,
+    /// Number of particles.
+    pub count: usize,
+}
+
+/// A complete scene description.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Scene id written into every frame, e.g. `multi/rope+snow/007`.
+    pub name: String,
+    /// Grid nodes per side (64 for `multi`, 128 for `fluid`).
+    #[serde(default = "default_grid")]
+    pub grid: usize,
+    /// Substep length, time units.
+    #[serde(default = "default_dt")]
+    pub dt: f32,
+    /// Substeps per saved frame.
+    #[serde(default = "default_substeps")]
+    pub substeps: u32,
+    /// Saved frames, counting frame 0 (the initial state).
+    pub frames: u32,
+    /// Gravity, domain units per time unit squared.
+    #[serde(default = "default_gravity")]
+    pub gravity: [f32; 2],
+    /// E0 and nu.
+    #[serde(default)]
+    pub elasticity: Elasticity,
+    /// Seed of the particle sampling.
+    #[serde(default)]
+    pub seed: u64,
+    /// The bodies, in particle order.
+    #[serde(rename = "body")]
+    pub bodies: Vec<Body>,
+}
+
+fn default_grid() -> usize {
+    64
+}
+fn default_dt() -> f32 {
+    8e-4
+}
+fn default_substeps() -> u32 {
+    20
+}
+fn default_gravity() -> [f32; 2] {
+    [0.0, -9.8]
+}
+
+/// The particles of one body: its index range in [`Particles`] and its shape.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BodySpan {
+    /// Particle indices.
+    pub range: Range<usize>,
+    /// Shape (lines are checked for rope gaps).
+    pub shape: Shape,
+    /// Material.
+    pub material: Material,
+}
+
+impl Scene {
+    /// Parses a TOML scene file's text and validates it.
+    pub fn from_toml(text: &str) -> Result<Self, SimError> {
+        let scene: Scene = toml::from_str(text).map_err(|e| SimError::SceneFile(e.to_string()))?;
+        scene.validate()?;
+        Ok(scene)
+    }
+
+    /// Time between saved frames, `dt * substeps`, in time units.
+    pub fn frame_dt(&self) -> f32 {
+        self.dt * self.substeps as f32
+    }
+
+    /// Total particle count N.
+    pub fn particle_count(&self) -> usize {
+        self.bodies.iter().map(|b| b.count).sum()
+    }
+
+    /// Checks ranges: grid, dt, counts, bodies inside `[dx, 1 - 2 dx]`, rope spacing
+    /// `<= dx / 4` (MPM.md), at most 1,000,000 particles.
+    pub fn validate(&self) -> Result<(), SimError> {
+        let bad = |what: String| Err(SimError::Invalid(format!("scene {}: {what}", self.name)));
+        if !(8..=4096).contains(&self.grid) {
+            return bad(format!("grid {} outside 8..=4096", self.grid));
+        }
+        if !(self.dt.is_finite() && self.dt > 0.0) || self.substeps == 0 || self.frames == 0 {
+            return bad("dt, substeps and frames must be positive".into());
+        }
+        if self.bodies.is_empty() || self.particle_count() > 1_000_000 {
+            return bad(format!(
+                "{} particles (1..=1000000 allowed)",
+                self.particle_count()
+            ));
+        }
+        let dx = 1.0 / self.grid as f32;
+        for (k, b) in self.bodies.iter().enumerate() {
+            let half = [b.size[0].abs() / 2.0, b.size[1].abs() / 2.0];
+            let lo = [b.position[0] - half[0], b.position[1] - half[1]];
+            let hi = [b.position[0] + half[0], b.position[1] + half[1]];
+            let finite = b
+                .position
+                .iter()
+                .chain(&b.size)
+                .chain(&b.velocity)
+                .all(|v| v.is_finite());
+            if !finite || !b.spin.is_finite() || b.count == 0 {
+                return bad(format!("body {k}: needs finite values and count >= 1"));
+            }
+            if lo.iter().chain(&hi).any(|&c| c < dx || c > 1.0 - 2.0 * dx) {
+                return bad(format!(
+                    "body {k}: extends outside [dx, 1 - 2 dx] = [{dx}, {}]",
+                    1.0 - 2.0 * dx
+                ));
+            }
+            if b.shape == Shape::Line && b.count > 1 {
+                let gap = b.size[0].hypot(b.size[1]) / (b.count - 1) as f32;
+                if gap > dx / 4.0 * 1.0001 {
+                    return bad(format!(
+                        "body {k}: line spacing {gap} > dx / 4; use more particles"
+                    ));
+                }
+            } else if b.shape != Shape::Line && (b.size[0] <= 0.0 || b.size[1] <= 0.0) {
+                return bad(format!("body {k}: rectangle and disk need a positive size"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Samples the initial particles (deterministic in `seed`), body by body.
+    pub fn particles(&self) -> (Particles, Vec<BodySpan>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        let mut ps = Particles::default();
+        let mut spans = Vec::with_capacity(self.bodies.len());
+        for b in &self.bodies {
+            let start = ps.len();
+            let half = [b.size[0] / 2.0, b.size[1] / 2.0];
+            let mut pushed = 0;
+            while pushed < b.count {
+                let (ox, oy) = match b.shape {
+                    Shape::Line => {
+                        let t = if b.count == 1 {
+                            0.5
+                        } else {
+                            pushed as f32 / (b.count - 1) as f32
+                        };
+                        ((t - 0.5) * b.size[0], (t - 0.5) * b.size[1])
+                    }
+                    Shape::Rectangle | Shape::Disk => {
+                        let u: f32 = rng.random_range(-1.0..1.0);
+                        let w: f32 = rng.random_range(-1.0..1.0);
+                        if b.shape == Shape::Disk && u * u + w * w > 1.0 {
+                            continue;
+                        }
+                        (u * half[0], w * half[1])
+                    }
+                };
+                let v = [b.velocity[0] - b.spin * oy, b.velocity[1] + b.spin * ox];
+                ps.push([b.position[0] + ox, b.position[1] + oy], v, b.material.id());
+                pushed += 1;
+            }
+            spans.push(BodySpan {
+                range: start..ps.len(),
+                shape: b.shape,
+                material: b.material,
+            });
+        }
+        (ps, spans)
+    }
+
+    /// Builds the solver at frame 0 (validates first).
+    pub fn solver(&self) -> Result<(Solver, Vec<BodySpan>), SimError> {
+        self.validate()?;
+        let (ps, spans) = self.particles();
+        let config = SolverConfig {
+            grid: self.grid,
+            dt: self.dt,
+            gravity: self.gravity,
+            elasticity: self.elasticity,
+            max_cfl: super::mpm::DEFAULT_MAX_CFL,
+        };
+        Ok((Solver::new(config, ps)?, spans))
+    }
+}

@@ -1,0 +1,296 @@
+//! Bags that are wrong in one way each: a foreign schema on the requested topic, frames whose
+//! arrays disagree, NaN positions, undecodable CDR, random bytes, an empty file, corrupted
+//! bytes. Each gives an error (never a panic) whose text names the file, the topic and the
+//! message index where they apply; `bag check` finds frame-index gaps and changed particle
+//! counts; `bag_paths` expands folders.
+
+use std::collections::BTreeMap;
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use mcap::records::MessageHeader;
+use minflow::bag::{self, BagError, BagWriter, ReadOptions};
+use minflow::msgs::{self, Header, ParticleFrame, Time};
+
+const TOPIC: &str = "/mpm/frames";
+
+fn frame(scene: &str, k: u32, n: usize) -> ParticleFrame {
+    ParticleFrame {
+        header: Header {
+            stamp: Time::from_nanos(u64::from(k) * 16_000_000),
+            frame_id: "world".into(),
+        },
+        scene: scene.into(),
+        frame_index: k,
+        dt: 0.016,
+        position: (0..2 * n).map(|i| i as f32 / (2 * n) as f32).collect(),
+        velocity: vec![0.25; 2 * n],
+        material: (0..n).map(|i| (i % 4) as u8).collect(),
+    }
+}
+
+/// Writes CDR payloads on `TOPIC` with `BagWriter::write_raw` (no validation).
+fn write_raw_bag(path: &Path, payloads: &[Vec<u8>]) {
+    let mut w = BagWriter::create(path).expect("create");
+    for (k, p) in payloads.iter().enumerate() {
+        w.write_raw(TOPIC, k as u64 * 16_000_000, p).expect("write");
+    }
+    w.finish().expect("finish");
+}
+
+/// Asserts the error text names the file, the topic and (when given) the message index.
+fn assert_names(err: &BagError, path: &Path, index: Option<u64>) {
+    let text = err.to_string();
+    assert!(
+        text.contains(&path.display().to_string()),
+        "no path in: {text}"
+    );
+    assert!(text.contains(TOPIC), "no topic in: {text}");
+    if let Some(i) = index {
+        assert!(
+            text.contains(&format!("message {i}")),
+            "no index in: {text}"
+        );
+    }
+}
+
+#[test]
+fn foreign_schema_on_the_requested_topic_is_an_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("foreign.mcap");
+    let mut w = mcap::Writer::new(Cursor::new(Vec::new())).expect("writer");
+    let schema = w
+        .add_schema("other_msgs/msg/Thing", "ros2msg", b"int32 x")
+        .expect("schema");
+    let channel = w
+        .add_channel(schema, TOPIC, "cdr", &BTreeMap::new())
+        .expect("channel");
+    let header = MessageHeader {
+        channel_id: channel,
+        sequence: 0,
+        log_time: 0,
+        publish_time: 0,
+    };
+    w.write_to_known_channel(&header, &[0, 1, 0, 0, 7, 0, 0, 0])
+        .expect("write");
+    w.finish().expect("finish");
+    std::fs::write(&path, w.into_inner().into_inner()).expect("file");
+
+    let err = bag::read_frames(&path, Some(TOPIC)).unwrap_err();
+    assert!(matches!(err, BagError::ForeignSchema { .. }), "{err}");
+    assert_names(&err, &path, None);
+    assert!(err.to_string().contains("other_msgs/msg/Thing"), "{err}");
+    // Not asked for by topic: skipped and counted.
+    let outcome = bag::read_frames(&path, None).expect("read");
+    assert_eq!((outcome.frames.len(), outcome.skipped), (0, 1));
+}
+
+#[test]
+fn bad_frames_name_file_topic_and_index() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let good: Vec<Vec<u8>> = (0..2).map(|k| msgs::encode(&frame("s", k, 10))).collect();
+    let mut mismatched = frame("s", 2, 10);
+    mismatched.velocity.truncate(17); // 2N = 20 expected
+    let mut nan = frame("s", 2, 10);
+    nan.position[5] = f32::NAN;
+    let mut cut = msgs::encode(&frame("s", 2, 10));
+    cut.truncate(50);
+    let cases = [
+        (
+            "lengths",
+            msgs::encode(&mismatched),
+            "velocity has 17 values, expected 20",
+        ),
+        ("nan", msgs::encode(&nan), "position[5] is NaN"),
+        ("cdr", cut, "CDR: "),
+    ];
+    for (name, bad, needle) in cases {
+        let path = dir.path().join(format!("{name}.mcap"));
+        let payloads = [good.clone(), vec![bad, good[0].clone()]].concat();
+        write_raw_bag(&path, &payloads);
+        let err = bag::read_frames(&path, None).unwrap_err();
+        assert!(err.is_message_error(), "{name}: {err}");
+        assert_names(&err, &path, Some(2));
+        assert!(err.to_string().contains(needle), "{name}: {err}");
+        // Lenient reading counts and skips it.
+        let options = ReadOptions {
+            topic: None,
+            lenient: true,
+        };
+        let outcome = bag::read_frames_with(&path, &options).expect("lenient");
+        assert_eq!((outcome.frames.len(), outcome.invalid), (3, 1), "{name}");
+    }
+}
+
+#[test]
+fn writer_rejects_invalid_frames() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("w.mcap");
+    let mut w = BagWriter::create(&path).expect("create");
+    w.write(TOPIC, &frame("s", 0, 4)).expect("valid frame");
+    let mut nan = frame("s", 1, 4);
+    nan.velocity[0] = f32::INFINITY;
+    let err = w.write(TOPIC, &nan).unwrap_err();
+    assert_names(&err, &path, Some(1));
+    w.finish().expect("finish");
+}
+
+#[test]
+fn random_bytes_and_empty_files_are_not_bags() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let empty = dir.path().join("empty.mcap");
+    std::fs::write(&empty, b"").expect("write");
+    let err = bag::read_frames(&empty, None).unwrap_err();
+    assert!(
+        matches!(err, BagError::NotMcap { .. }) && err.to_string().contains("empty"),
+        "{err}"
+    );
+    assert!(err.to_string().contains(&empty.display().to_string()));
+
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    let mut random = |n: usize| -> Vec<u8> {
+        (0..n)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state as u8
+            })
+            .collect()
+    };
+    let noise = dir.path().join("noise.mcap");
+    std::fs::write(&noise, random(10_000)).expect("write");
+    let err = bag::read_frames(&noise, None).unwrap_err();
+    assert!(matches!(err, BagError::NotMcap { .. }), "{err}");
+    assert!(err.to_string().contains(&noise.display().to_string()));
+    assert!(bag::info(&[&noise]).is_err());
+
+    // Noise after a valid magic, and a real bag with random bytes overwritten: never a panic.
+    let good = dir.path().join("good.mcap");
+    let frames: Vec<_> = (0..6).map(|k| frame("s", k, 500)).collect();
+    let mut w = BagWriter::create(&good).expect("create");
+    frames
+        .iter()
+        .for_each(|f| w.write(TOPIC, f).expect("write"));
+    w.finish().expect("finish");
+    let bytes = std::fs::read(&good).expect("read");
+    for round in 0..200 {
+        let mut bad = if round == 0 {
+            [mcap::MAGIC, &random(5000)].concat()
+        } else {
+            bytes.clone()
+        };
+        let spots = random(8);
+        for pair in spots.chunks(2) {
+            let at = (usize::from(pair[0]) << 8 | usize::from(pair[1])) * 31 % bad.len();
+            bad[at] = random(1)[0];
+        }
+        let path = dir.path().join("bad.mcap");
+        std::fs::write(&path, &bad).expect("write");
+        if let Ok(outcome) = bag::read_frames(&path, None) {
+            // Chunk CRCs are checked before a chunk's messages are used, so what survives is
+            // exactly a prefix of what was written.
+            let got: Vec<_> = outcome.frames.into_iter().map(|(_, _, f)| f).collect();
+            assert!(
+                got.len() <= frames.len() && got == frames[..got.len()],
+                "round {round}"
+            );
+        }
+        let _ = bag::info(&[&path]);
+        let _ = bag::check(&[path]);
+    }
+}
+
+#[test]
+fn check_finds_gaps_and_changed_particle_counts() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("seq.mcap");
+    let mut w = BagWriter::create(&path).expect("create");
+    for k in [0, 1, 3] {
+        w.write(TOPIC, &frame("gappy", k, 8)).expect("write");
+    }
+    for (k, n) in [(0, 8), (1, 8), (2, 9)] {
+        w.write(TOPIC, &frame("growing", k, n)).expect("write");
+    }
+    w.finish().expect("finish");
+    let report = bag::check(&[&path]).expect("check");
+    assert!(!report.is_ok());
+    assert_eq!((report.messages, report.scenes), (6, 2));
+    let text = report.to_string();
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.contains("\"gappy\"") && p.contains("gap")),
+        "{text}"
+    );
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.contains("particle count changed from 8 to 9")),
+        "{text}"
+    );
+    assert_eq!(report.problem_count, 2, "{text}");
+
+    // A foreign schema on /mpm/frames and a changed dt are problems too.
+    let other = dir.path().join("other.mcap");
+    let mut w = mcap::Writer::new(Cursor::new(Vec::new())).expect("writer");
+    let schema = w
+        .add_schema("other_msgs/msg/Thing", "ros2msg", b"int32 x")
+        .expect("schema");
+    let channel = w
+        .add_channel(schema, TOPIC, "cdr", &BTreeMap::new())
+        .expect("channel");
+    let header = MessageHeader {
+        channel_id: channel,
+        sequence: 0,
+        log_time: 0,
+        publish_time: 0,
+    };
+    w.write_to_known_channel(&header, &[0, 1, 0, 0, 7, 0, 0, 0])
+        .expect("write");
+    w.finish().expect("finish");
+    std::fs::write(&other, w.into_inner().into_inner()).expect("file");
+    let report = bag::check(&[&other]).expect("check");
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.contains("other_msgs/msg/Thing")),
+        "{report}"
+    );
+    let dt = dir.path().join("dt.mcap");
+    let mut w = BagWriter::create(&dt).expect("create");
+    for k in 0..3 {
+        let mut f = frame("dt", k, 4);
+        f.dt = if k == 2 { 0.032 } else { 0.016 };
+        w.write(TOPIC, &f).expect("write");
+    }
+    w.finish().expect("finish");
+    let report = bag::check(&[&dt]).expect("check");
+    assert_eq!(report.problem_count, 1, "{report}");
+    assert!(
+        report.problems[0].contains("dt changed from 0.016 to 0.032"),
+        "{report}"
+    );
+}
+
+#[test]
+fn bag_paths_expands_folders_sorted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for name in ["b.mcap", "a.mcap", "notes.txt"] {
+        std::fs::write(dir.path().join(name), b"").expect("write");
+    }
+    let paths = bag::bag_paths(&[dir.path().to_path_buf()]).expect("paths");
+    let names: Vec<_> = paths
+        .iter()
+        .filter_map(|p| p.file_name()?.to_str())
+        .collect();
+    assert_eq!(names, ["a.mcap", "b.mcap"]);
+    let missing = bag::bag_paths(&[PathBuf::from("/no/such/bags")]).unwrap_err();
+    assert!(missing.to_string().contains("/no/such/bags"), "{missing}");
+    let empty = tempfile::tempdir().expect("tempdir");
+    let none = bag::bag_paths(&[empty.path().to_path_buf()]).unwrap_err();
+    assert!(matches!(none, BagError::NoBags { .. }), "{none}");
+}
