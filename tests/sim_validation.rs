@@ -193,6 +193,7 @@ fn elastic_disks_rebound() {
         }
     }
     let ratio = ratio.expect("the disks collided and separated");
+    println!("rebound speed ratio {ratio:.3}");
     assert!((0.7..=0.9).contains(&ratio), "rebound speed ratio {ratio}");
 }
 

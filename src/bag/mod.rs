@@ -3,23 +3,25 @@
 //! encoding `cdr`, channel metadata `offered_qos_profiles`, zstd chunks, `log_time` =
 //! `publish_time` = the frame's stamp in ns.
 //!
-//! [`mod@write`] creates bags (`simulate`, `record`), [`read`] streams frames out of any bag that
-//! follows the format, whoever wrote it, and survives truncated files (`train`, `replay`,
-//! `eval`), [`inspect`] implements `minflow bag info` and `minflow bag check`, and [`bag_paths`]
-//! expands a dataset (a folder of bags) into files. Every failure is one [`BagError`] that names
-//! the file and, where it applies, the topic and the message index.
+//! [`mod@write`] creates bags (`simulate`, `record`); [`read`] streams the messages of any bag
+//! that follows the format, whoever wrote it, and survives truncated files; [`frames`] decodes
+//! them into frames (`train`, `replay`, `eval`); [`inspect`] implements `minflow bag info` and
+//! [`mod@check`] `minflow bag check`; and [`bag_paths`] expands a dataset (a folder of bags) into
+//! files. Every failure is one [`BagError`] that names the file and, where it applies, the topic
+//! and the message index.
 
+pub mod check;
+pub mod frames;
 pub mod inspect;
 pub mod read;
 pub mod write;
 
 use std::path::{Path, PathBuf};
 
-pub use inspect::{check, info, BagInfo, CheckReport};
-pub use read::{
-    decode_checked, read_frames, read_frames_with, BagMessage, BagReader, Frames, RawMessage,
-    ReadOptions, ReadOutcome, Truncation,
-};
+pub use check::{check, CheckReport};
+pub use frames::{read_frames, read_frames_with, BagMessage, Frames, ReadOptions, ReadOutcome};
+pub use inspect::{info, BagInfo};
+pub use read::{decode_checked, BagReader, RawMessage, Truncation};
 pub use write::BagWriter;
 
 use crate::msgs::{CdrError, FrameError};

@@ -26,7 +26,7 @@ pub struct DemoArgs {
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
-    let bundled = bag::bag_paths(&[args.bags.clone()])
+    let bundled = bag::bag_paths(std::slice::from_ref(&args.bags))
         .with_context(|| format!("finding the bundled bags in {}", args.bags.display()))?;
     let info = bag::info(&bundled).context("reading the bundled bags")?;
     println!("== bundled bags ({}) ==", args.bags.display());

@@ -195,7 +195,7 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         b.size[0]
             * b.size[1]
             * if b.shape == Shape::Disk {
-                0.785_398_2
+                std::f32::consts::FRAC_PI_4
             } else {
                 1.0
             }

@@ -4,7 +4,7 @@
 //!
 //! Models follow Taichi's mpm99 example and `../shared/MPM.md`: fixed-corotated elasticity
 //! `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation), liquid with
-//! zero shear modulus and `F` reset to `sqrt(J) I`, snow with singular values clamped to
+//! zero shear modulus and `F` reset to a matrix of determinant J, snow with singular values clamped to
 //! `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)), 0.1, 5)`.
 
 use super::linalg::{self, Mat2};
@@ -92,15 +92,17 @@ const SNOW_MIN: f32 = 1.0 - 2.5e-2;
 const SNOW_MAX: f32 = 1.0 + 4.5e-3;
 
 /// Plastic projection after `F <- (I + dt C) F` (done in G2P, as in Hu et al. 2018):
-/// liquid resets `F` to `sqrt(J) I`; snow clamps its singular values to
+/// liquid resets `F` to `diag(J, 1)` (mpm99's `sqrt(J) I` has the same determinant, the only
+/// part of F its stress uses); snow clamps its singular values to
 /// `[1 - 2.5e-2, 1 + 4.5e-3]` and moves the clamped-off volume change into `jp`.
 /// Jelly and rope are purely elastic and left unchanged.
 #[inline(always)]
 pub fn project(material: u8, f: &mut Mat2, jp: &mut f32) {
     match material {
         0 => {
-            let sj = linalg::det(f).max(0.0).sqrt();
-            *f = [sj, 0.0, 0.0, sj];
+            // mpm99 resets F to sqrt(J) I; only J = det F enters the liquid's stress, so
+            // diag(J, 1) is equivalent and needs no square root.
+            *f = [linalg::det(f), 0.0, 0.0, 1.0];
         }
         2 => {
             let (u, sig, v) = linalg::svd(f);

@@ -26,14 +26,18 @@ pub struct SolverConfig {
     pub gravity: [f32; 2],
     /// Material constants (E0, nu).
     pub elasticity: Elasticity,
-    /// Largest allowed CFL number `max |v| dt / dx` and deformation increment
-    /// `dt max |C|_F`; a substep that would exceed it is split into equal parts (see
-    /// [`Solver::substep`]). `f32::INFINITY` disables splitting.
+    /// Largest allowed CFL number `max |v| dt / dx`; a substep that would exceed it is split
+    /// into equal parts (see [`Solver::substep`]). `f32::INFINITY` disables splitting.
     pub max_cfl: f32,
 }
 
-/// Default [`SolverConfig::max_cfl`]: splitting is rare in the generated scenes (a fast
-/// particle hitting a wall) and never happens in free flight below `0.25 dx / dt`.
+/// Largest velocity-gradient increment `dt |C|_F` per substep. Beyond it the pressure of a
+/// fast-compressed liquid lags its strain and overshoots (scenes blew up without it).
+pub const MAX_STRAIN_STEP: f32 = 0.25;
+
+/// Default [`SolverConfig::max_cfl`]: a particle moves at most a quarter cell per substep
+/// (speeds up to 4.9 at dt = 8e-4 on the 64^2 grid). The appendix's eq. 3 allows 0.9, but at
+/// 0.5 ropes tore (neighbour gaps > dx) and one rope+liquid scene ran away after frame 170.
 pub const DEFAULT_MAX_CFL: f32 = 0.25;
 
 /// Particle state, structure of arrays; all vectors have length N.
@@ -95,8 +99,8 @@ pub struct Solver {
     pub substeps_done: u64,
     /// Extra partial substeps taken because the CFL limit split a substep.
     pub splits: u64,
-    /// `max |v|`, `max |C|_F` and `max k phi` (stiffness times own-mass share) over particles
-    /// after the last G2P.
+    /// `max |v|`, `max |C|_F` and `max k phi` (stiffness times own-mass share) over
+    /// particles after the last G2P.
     last_max: [f32; 3],
     /// Particle-substeps that ended outside the interpolation band `[0.5 dx, 1 - 1.5 dx)`
     /// (there the stencil's base node is clamped and the weights are wrong; the sanity
@@ -168,16 +172,21 @@ impl Solver {
     /// Advances one substep of `config.dt`: clear the grid, P2G, grid update, G2P (which
     /// also updates and projects F, as in Hu et al. 2018, section 5).
     ///
-    /// If the last G2P left `max |v| dt / dx` or `dt max |C|_F` above `config.max_cfl`, the
-    /// substep is taken as `k` equal parts of `dt / k` (the CFL condition of the paper's
-    /// appendix A, eq. 3): with the paper's dt = 8e-4 a lone particle hitting a wall at
-    /// speed ~8 otherwise inverts (`det(I + dt C) < 0`). Frames stay exactly `substeps * dt`
-    /// apart and the run stays deterministic.
+    /// The substep is taken as `k` equal parts of `dt / k` when the last G2P left
+    /// - the CFL number `max |v| dt / dx` above `config.max_cfl` (the paper's appendix A,
+    ///   eq. 3), or the strain increment `dt max |C|_F` above [`MAX_STRAIN_STEP`], or
+    /// - the elastic stability bound violated: a particle of stiffness `k` (see
+    ///   [`material::kirchhoff_stress`]) holding a share `phi` of its nodes' mass feeds its
+    ///   stress back through P2G/G2P like an oscillator of `(omega dt)^2 = 8 k phi dt^2 / dx^2`,
+    ///   stable below 4. A liquid droplet alone on its nodes (phi = 1) with `J > 1.4` breaks
+    ///   it at the paper's dt = 8e-4 on the 64^2 grid and blows up; bulk material never does.
+    ///
+    /// Frames stay exactly `substeps * dt` apart and the run stays deterministic.
     pub fn substep(&mut self) {
         let dt = self.config.dt;
         let dx = self.dx();
         let [vmax, cmax, kphi] = self.last_max;
-        let cfl = (vmax * dt / dx).max(cmax * dt) / self.config.max_cfl;
+        let cfl = (vmax * dt / dx / self.config.max_cfl).max(cmax * dt / MAX_STRAIN_STEP);
         // Elastic stability: an oscillator of gain 8 k phi dt^2 / dx^2 (a particle alone on
         // its nodes has phi = 1) is stable below 4; keep it under 4 * 0.7.
         let stiff = (2.0 * kphi * dt * dt / (dx * dx) / 0.7).sqrt();

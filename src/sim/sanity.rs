@@ -48,7 +48,7 @@ pub fn check(solver: &Solver, bodies: &[BodySpan]) -> Result<(), Violation> {
         }
         if ps.material[p] == 0 {
             let j = linalg::det(&ps.f[p]);
-            if !(j > 0.0) {
+            if j.is_nan() || j <= 0.0 {
                 return fail(p, format!("liquid J = {j} <= 0"));
             }
         }
