@@ -7,5 +7,8 @@
 
 pub mod bag;
 pub mod cli;
+pub mod data;
+pub mod model;
 pub mod msgs;
 pub mod sim;
+pub mod train;

@@ -1,0 +1,238 @@
+//! Training samples: windows of T consecutive frames of one trajectory as input and the frame
+//! after them as target, batched.
+//!
+//! A window `(traj, start)` uses frames `start .. start + T` of trajectory `traj` as input and
+//! frame `start + T` as target; it never leaves its trajectory, and a trajectory is a gap-free
+//! segment, so no window spans missing frames. A trajectory of F frames gives `F - T` windows.
+//! A [`Batch`] carries the scaled inputs `[B, T, N, 5]` (x, y, vx, vy, m) and targets
+//! `[B, N, 4]`, plus the physical last input frame and target (domain units, domain units per
+//! time unit) for integration and metrics, `dt` (time units) and the materials.
+//!
+//! Order: without a seed, windows in (trajectory, start) order; with one, shuffled by
+//! `ChaCha8Rng` seeded from (seed, epoch), so a resumed run sees the same order for the same
+//! epoch. All windows of a batch have the same particle count N: windows are grouped by N (in
+//! ascending N), each group is cut into batches (its last one may be partial), and with a seed
+//! the batches of all groups are shuffled together. Used by `minflow train`.
+
+use std::collections::BTreeMap;
+use std::ops::Range;
+
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::{DataError, Scaler, Trajectory};
+
+/// One batch of windows, all with the same particle count N. Arrays are row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batch {
+    /// B, windows in this batch.
+    pub b: usize,
+    /// T, input frames per window.
+    pub t: usize,
+    /// N, particles per frame.
+    pub n: usize,
+    /// `[B, T, N, 5]`: scaled x, y, vx, vy, m of the input frames.
+    pub inputs: Vec<f32>,
+    /// `[B, N, 4]`: scaled x, y, vx, vy of the frame after the inputs.
+    pub targets: Vec<f32>,
+    /// `[B, N, 4]`: physical x, y, vx, vy of the last input frame.
+    pub last: Vec<f32>,
+    /// `[B, N, 4]`: physical x, y, vx, vy of the target frame.
+    pub target_phys: Vec<f32>,
+    /// `[B]`: frame spacing of each window's trajectory, time units.
+    pub dt: Vec<f32>,
+    /// `[B, N]`: material ids.
+    pub material: Vec<u8>,
+    /// `[B]`: (trajectory id, offset of the first input frame in that trajectory).
+    pub ids: Vec<(u32, u32)>,
+}
+
+/// Every window of a set of trajectories, and the batches made from them. (`Debug` prints
+/// counts, not values.)
+#[derive(Clone)]
+pub struct WindowIndex {
+    trajs: Vec<Trajectory>,
+    /// The id each trajectory carries in [`Batch::ids`].
+    ids: Vec<u32>,
+    scaler: Scaler,
+    t: usize,
+    /// (position in `trajs`, start).
+    windows: Vec<(u32, u32)>,
+}
+
+impl std::fmt::Debug for WindowIndex {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WindowIndex")
+            .field("trajectories", &self.trajs.len())
+            .field("t", &self.t)
+            .field("windows", &self.windows.len())
+            .field("scaler", &self.scaler)
+            .finish()
+    }
+}
+
+impl WindowIndex {
+    /// Lists the windows of `t` input frames of `trajs`; a trajectory's id in batches is its
+    /// position in `trajs`. `t = 0` is an error.
+    pub fn new(trajs: Vec<Trajectory>, t: usize, scaler: Scaler) -> Result<Self, DataError> {
+        let ids = (0..trajs.len() as u32).collect();
+        Self::with_ids(trajs, ids, t, scaler)
+    }
+
+    /// As [`WindowIndex::new`], with the trajectory ids to report in batches.
+    pub(crate) fn with_ids(
+        trajs: Vec<Trajectory>,
+        ids: Vec<u32>,
+        t: usize,
+        scaler: Scaler,
+    ) -> Result<Self, DataError> {
+        if t == 0 {
+            return Err(DataError::config("window length T", "must be at least 1"));
+        }
+        let mut windows = Vec::new();
+        for (i, traj) in trajs.iter().enumerate() {
+            windows.extend((0..traj.windows(t) as u32).map(|s| (i as u32, s)));
+        }
+        Ok(Self {
+            trajs,
+            ids,
+            scaler,
+            t,
+            windows,
+        })
+    }
+
+    /// Number of windows.
+    pub fn len(&self) -> usize {
+        self.windows.len()
+    }
+
+    /// Whether there are no windows (every trajectory has T frames or fewer).
+    pub fn is_empty(&self) -> bool {
+        self.windows.is_empty()
+    }
+
+    /// T, input frames per window.
+    pub fn t(&self) -> usize {
+        self.t
+    }
+
+    /// The scaler batches are scaled with.
+    pub fn scaler(&self) -> &Scaler {
+        &self.scaler
+    }
+
+    /// The trajectories.
+    pub fn trajectories(&self) -> &[Trajectory] {
+        &self.trajs
+    }
+
+    /// Every window as (trajectory id, start), in index order.
+    pub fn window_ids(&self) -> Vec<(u32, u32)> {
+        self.windows
+            .iter()
+            .map(|&(i, s)| (self.ids[i as usize], s))
+            .collect()
+    }
+
+    /// The distinct particle counts of the windows, ascending. A model tied to one N (the
+    /// `global` decoder) should refuse to train when this is not exactly its N.
+    pub fn particle_counts(&self) -> Vec<usize> {
+        self.groups().into_keys().collect()
+    }
+
+    /// Batches in one epoch for `batch_size` (each N group's last batch may be partial).
+    pub fn num_batches(&self, batch_size: usize) -> usize {
+        let size = batch_size.max(1);
+        self.groups().values().map(|g| g.len().div_ceil(size)).sum()
+    }
+
+    /// The batches of one epoch; see the module doc for the order. A `batch_size` of 0 is
+    /// taken as 1.
+    pub fn batches(
+        &self,
+        batch_size: usize,
+        shuffle_seed: Option<u64>,
+        epoch: u64,
+    ) -> impl Iterator<Item = Batch> + '_ {
+        let plan = self.plan(batch_size, shuffle_seed.map(|s| rng(s, epoch, 0)));
+        plan.into_iter().map(move |windows| self.batch(&windows))
+    }
+
+    /// Window positions grouped by N, in index order.
+    fn groups(&self) -> BTreeMap<usize, Vec<u32>> {
+        let mut groups: BTreeMap<usize, Vec<u32>> = BTreeMap::new();
+        for (w, &(i, _)) in self.windows.iter().enumerate() {
+            let n = self.trajs[i as usize].n;
+            groups.entry(n).or_default().push(w as u32);
+        }
+        groups
+    }
+
+    /// The batches of one epoch as lists of window positions: shuffled with `rng` when given,
+    /// grouped by N, cut into batches, and the batches shuffled when there are several groups.
+    pub(crate) fn plan(&self, batch_size: usize, mut rng: Option<ChaCha8Rng>) -> Vec<Vec<u32>> {
+        if batch_size == 0 {
+            tracing::warn!("batch size 0 taken as 1");
+        }
+        let size = batch_size.max(1);
+        let mut groups = self.groups();
+        let mut plan = Vec::with_capacity(self.num_batches(size));
+        for windows in groups.values_mut() {
+            if let Some(rng) = rng.as_mut() {
+                windows.shuffle(rng);
+            }
+            plan.extend(windows.chunks(size).map(<[u32]>::to_vec));
+        }
+        if let (Some(rng), true) = (rng.as_mut(), groups.len() > 1) {
+            plan.shuffle(rng);
+        }
+        plan
+    }
+
+    /// The batch of the windows at positions `windows` (all of one N).
+    pub(crate) fn batch(&self, windows: &[u32]) -> Batch {
+        let (t, b) = (self.t, windows.len());
+        let n = windows
+            .first()
+            .map_or(0, |&w| self.trajs[self.windows[w as usize].0 as usize].n);
+        let mut batch = Batch {
+            b,
+            t,
+            n,
+            inputs: Vec::with_capacity(b * t * n * 5),
+            targets: Vec::with_capacity(b * n * 4),
+            last: Vec::with_capacity(b * n * 4),
+            target_phys: Vec::with_capacity(b * n * 4),
+            dt: Vec::with_capacity(b),
+            material: Vec::with_capacity(b * n),
+            ids: Vec::with_capacity(b),
+        };
+        for &w in windows {
+            let (i, start) = self.windows[w as usize];
+            let traj = &self.trajs[i as usize];
+            debug_assert_eq!(traj.n, n, "a batch mixes particle counts");
+            let Range { start: s, end: e } = start as usize..start as usize + t;
+            for k in s..e {
+                self.scaler
+                    .scale_into(traj.state(k), &traj.material, &mut batch.inputs);
+            }
+            self.scaler
+                .scale_state_into(traj.state(e), &mut batch.targets);
+            batch.last.extend_from_slice(traj.state(e - 1));
+            batch.target_phys.extend_from_slice(traj.state(e));
+            batch.dt.push(traj.dt);
+            batch.material.extend_from_slice(&traj.material);
+            batch.ids.push((self.ids[i as usize], start));
+        }
+        batch
+    }
+}
+
+/// The shuffling generator for (seed, epoch); `salt` separates independent uses of one seed.
+pub(crate) fn rng(seed: u64, epoch: u64, salt: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    rng.set_stream(epoch);
+    rng
+}

@@ -1,0 +1,221 @@
+//! minGRU and minLSTM (Feng et al. 2024, "Were RNNs All We Needed?"; reference code
+//! BorealisAI/minRNNs, models/minRNNs.py): recurrent layers whose gates depend on the input
+//! only, so a whole window trains at once with the log-space parallel scan of Heinsen (2023),
+//! while inference steps one frame at a time carrying the hidden state.
+//!
+//! minGRU:  `h_t = (1 - z_t) h_{t-1} + z_t g(h~_t)`, `z_t = sigmoid(W_z x_t)`, `h~_t = W_h x_t`
+//! minLSTM: `h_t = f'_t h_{t-1} + i'_t g(h~_t)`, `f' = f / (f + i)`, `i' = i / (f + i)`,
+//!          `f_t = sigmoid(W_f x_t)`, `i_t = sigmoid(W_i x_t)`
+//! with `g(x) = x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise (keeps h positive, so the scan
+//! can run on `log h`), then `out_t = W_o h_t` (the reference's `to_out`).
+//! A missing initial state means `h_0 = 0`. Used by [`crate::model::temporal`].
+
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::{relu, sigmoid};
+use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
+
+/// `g(x)`: `x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise.
+pub fn g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
+    let pos = x.clone().greater_equal_elem(0.0);
+    sigmoid(x.clone()).mask_where(pos, x + 0.5)
+}
+
+/// `log g(x)`: `log(x + 0.5)` for `x >= 0`, `-softplus(-x)` otherwise.
+pub fn log_g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
+    let pos = x.clone().greater_equal_elem(0.0);
+    let neg = softplus(-x.clone()).neg();
+    neg.mask_where(pos, (relu(x) + 0.5).log())
+}
+
+/// Numerically stable `log(1 + exp(x))` (burn's `softplus` overflows for large x).
+pub fn softplus<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
+    relu(x.clone()) + x.abs().neg().exp().log1p()
+}
+
+/// `log(exp(a) + exp(b))`, stable.
+fn log_add_exp<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>) -> Tensor<B, D> {
+    let hi = a.clone().max_pair(b.clone());
+    let diff = (a - b).abs().neg();
+    hi + diff.exp().log1p()
+}
+
+/// Stand-in for `log 0` in padded scan positions (finite, so gradients stay finite).
+const LOG_ZERO: f32 = -1e30;
+
+/// The log-space scan for `h_t = a_t h_{t-1} + b_t` (`h_0 = 0`): returns `log h_t`.
+///
+/// Heinsen (2023) writes it as `log h_t = a*_t + logcumsumexp(log b - a*)_t` with
+/// `a*_t = sum_{s <= t} log a_s`; in f32 that subtracts offsets that grow with t (|a*| ~ 180
+/// after 256 steps, losing ~1e-5). Here the same prefix is computed by a Hillis-Steele scan
+/// over pairs `(log a, log b)` with the associative operator
+/// `(a1, b1) o (a2, b2) = (a1 + a2, logaddexp(b1 + a2, b2))`: `ceil(log2 T)` parallel passes,
+/// no cancellation, and the result agrees with the step-by-step recurrence to ~1e-6.
+///
+/// # Shapes
+/// - `log_coeffs` (log a), `log_values` (log b): `[B, T, H]` -> `log h`: `[B, T, H]`
+pub fn scan_log<B: Backend>(log_coeffs: Tensor<B, 3>, log_values: Tensor<B, 3>) -> Tensor<B, 3> {
+    let [b, t, h] = log_values.dims();
+    let device = log_values.device();
+    let (mut la, mut lb) = (log_coeffs, log_values);
+    let mut shift = 1;
+    while shift < t {
+        // The element `shift` steps back, or the identity (a = 1, b = 0) before the start.
+        let prev_a = Tensor::cat(
+            vec![
+                Tensor::zeros([b, shift, h], &device),
+                la.clone().narrow(1, 0, t - shift),
+            ],
+            1,
+        );
+        let prev_b = Tensor::cat(
+            vec![
+                Tensor::full([b, shift, h], LOG_ZERO, &device),
+                lb.clone().narrow(1, 0, t - shift),
+            ],
+            1,
+        );
+        lb = log_add_exp(prev_b + la.clone(), lb);
+        la = prev_a + la;
+        shift *= 2;
+    }
+    lb
+}
+
+/// Prepends `log h_0` (a value with coefficient 1) and scans; returns the `T` new steps.
+fn scan_with_state<B: Backend>(
+    log_coeffs: Tensor<B, 3>,
+    log_values: Tensor<B, 3>,
+    h0: Option<Tensor<B, 2>>,
+) -> Tensor<B, 3> {
+    let Some(h0) = h0 else {
+        return scan_log(log_coeffs, log_values).exp();
+    };
+    let [b, t, h] = log_values.dims();
+    let log_h0 = h0.log().reshape([b, 1, h]);
+    let zeros = Tensor::zeros([b, 1, h], &log_coeffs.device());
+    let coeffs = Tensor::cat(vec![zeros, log_coeffs], 1);
+    let values = Tensor::cat(vec![log_h0, log_values], 1);
+    scan_log(coeffs, values).narrow(1, 1, t).exp()
+}
+
+/// Last time step of `[B, T, H]` as `[B, H]`.
+pub(crate) fn last_step<B: Backend>(x: Tensor<B, 3>) -> Tensor<B, 2> {
+    let [b, t, h] = x.dims();
+    x.narrow(1, t - 1, 1).reshape([b, h])
+}
+
+/// A minGRU layer of width `hidden`.
+#[derive(Module, Debug)]
+pub struct MinGru<B: Backend> {
+    /// `x -> [h~, z pre-activation]`, `[d_in, 2 hidden]`.
+    pub to_hidden_and_gate: Linear<B>,
+    /// `h -> out`, `[hidden, d_out]`.
+    pub to_out: Linear<B>,
+    hidden: usize,
+}
+
+impl<B: Backend> MinGru<B> {
+    /// New layer `d_in -> hidden -> d_out`.
+    pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
+        Self {
+            to_hidden_and_gate: LinearConfig::new(d_in, 2 * hidden).init(device),
+            to_out: LinearConfig::new(hidden, d_out).init(device),
+            hidden,
+        }
+    }
+
+    /// Whole window at once (log-space scan).
+    ///
+    /// # Shapes
+    /// - `x`: `[B, T, d_in]`, `h0`: `[B, hidden]` (positive) or `None` (zeros)
+    /// - returns `([B, T, d_out], h_T: [B, hidden])`
+    pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        h0: Option<Tensor<B, 2>>,
+    ) -> (Tensor<B, 3>, Tensor<B, 2>) {
+        let hg = self.to_hidden_and_gate.forward(x);
+        let hidden = hg.clone().narrow(2, 0, self.hidden);
+        let gate = hg.narrow(2, self.hidden, self.hidden);
+        let log_coeffs = softplus(gate.clone()).neg();
+        let log_z = softplus(gate.neg()).neg();
+        let log_values = log_z + log_g(hidden);
+        let h = scan_with_state(log_coeffs, log_values, h0);
+        let last = last_step(h.clone());
+        (self.to_out.forward(h), last)
+    }
+
+    /// One step.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, d_in]`, `h`: `[B, hidden]` or `None` -> `([B, d_out], [B, hidden])`
+    pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
+        let hg = self.to_hidden_and_gate.forward(x);
+        let tilde = g(hg.clone().narrow(1, 0, self.hidden));
+        let z = sigmoid(hg.narrow(1, self.hidden, self.hidden));
+        let next = match h {
+            Some(h) => (z.clone().neg() + 1.0) * h + z * tilde,
+            None => z * tilde,
+        };
+        (self.to_out.forward(next.clone()), next)
+    }
+}
+
+/// A minLSTM layer of width `hidden` (with the reference's coefficient normalisation).
+#[derive(Module, Debug)]
+pub struct MinLstm<B: Backend> {
+    /// `x -> [h~, f pre-activation, i pre-activation]`, `[d_in, 3 hidden]`.
+    pub to_hidden_and_gates: Linear<B>,
+    /// `h -> out`, `[hidden, d_out]`.
+    pub to_out: Linear<B>,
+    hidden: usize,
+}
+
+impl<B: Backend> MinLstm<B> {
+    /// New layer `d_in -> hidden -> d_out`.
+    pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
+        Self {
+            to_hidden_and_gates: LinearConfig::new(d_in, 3 * hidden).init(device),
+            to_out: LinearConfig::new(hidden, d_out).init(device),
+            hidden,
+        }
+    }
+
+    /// Whole window at once (log-space scan). Shapes as [`MinGru::forward`].
+    pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        h0: Option<Tensor<B, 2>>,
+    ) -> (Tensor<B, 3>, Tensor<B, 2>) {
+        let hfi = self.to_hidden_and_gates.forward(x);
+        let n = self.hidden;
+        let hidden = hfi.clone().narrow(2, 0, n);
+        let f = hfi.clone().narrow(2, n, n);
+        let i = hfi.narrow(2, 2 * n, n);
+        // log f' = -softplus(d), log i' = -softplus(-d), d = softplus(-f) - softplus(-i).
+        let diff = softplus(f.neg()) - softplus(i.neg());
+        let log_coeffs = softplus(diff.clone()).neg();
+        let log_values = softplus(diff.neg()).neg() + log_g(hidden);
+        let h = scan_with_state(log_coeffs, log_values, h0);
+        let last = last_step(h.clone());
+        (self.to_out.forward(h), last)
+    }
+
+    /// One step. Shapes as [`MinGru::step`].
+    pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
+        let hfi = self.to_hidden_and_gates.forward(x);
+        let n = self.hidden;
+        let tilde = g(hfi.clone().narrow(1, 0, n));
+        let f = sigmoid(hfi.clone().narrow(1, n, n));
+        let i = sigmoid(hfi.narrow(1, 2 * n, n));
+        let norm = f.clone() + i.clone();
+        let (f, i) = (f / norm.clone(), i / norm);
+        let next = match h {
+            Some(h) => f * h + i * tilde,
+            None => i * tilde,
+        };
+        (self.to_out.forward(next.clone()), next)
+    }
+}

@@ -1,0 +1,90 @@
+//! The resumable checkpoint of a training run: `OUT/checkpoint/` holds the model and the
+//! optimizer state (burn named MessagePack, full precision) and `history.json` (every epoch
+//! so far). It is written to `checkpoint.tmp/` and swapped in with renames, so a run killed
+//! at any moment leaves either the previous or the new checkpoint, never a torn one.
+
+use super::{EpochRecord, TrainError};
+use crate::model::store::StoreError;
+use crate::model::{Model, ModelConfig};
+use burn::module::Module;
+use burn::optim::Optimizer;
+use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
+use burn::tensor::backend::AutodiffBackend;
+use std::path::Path;
+
+fn err(path: &Path, what: impl ToString) -> TrainError {
+    TrainError::Store(StoreError::Io {
+        path: path.to_path_buf(),
+        what: what.to_string(),
+    })
+}
+
+/// Writes the checkpoint of the epoch just finished.
+pub fn save<B: AutodiffBackend, O: Optimizer<Model<B>, B>>(
+    out: &Path,
+    model: &Model<B>,
+    optim: &O,
+    history: &[EpochRecord],
+) -> Result<(), TrainError> {
+    let tmp = out.join("checkpoint.tmp");
+    let dir = out.join("checkpoint");
+    let old = out.join("checkpoint.old");
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| err(&tmp, e))?;
+    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
+    model
+        .clone()
+        .save_file(tmp.join("model"), &recorder)
+        .map_err(|e| err(&tmp, e))?;
+    Recorder::<B>::record(&recorder, optim.to_record(), tmp.join("optim"))
+        .map_err(|e| err(&tmp, e))?;
+    let json = serde_json::to_string_pretty(history).map_err(|e| err(&tmp, e))?;
+    std::fs::write(tmp.join("history.json"), json).map_err(|e| err(&tmp, e))?;
+    let _ = std::fs::remove_dir_all(&old);
+    if dir.exists() {
+        std::fs::rename(&dir, &old).map_err(|e| err(&dir, e))?;
+    }
+    std::fs::rename(&tmp, &dir).map_err(|e| err(&tmp, e))?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
+}
+
+/// A checkpoint read back.
+pub struct Resumed<B: AutodiffBackend, R> {
+    /// Weights after the last finished epoch.
+    pub model: Model<B>,
+    /// Optimizer state.
+    pub optim: R,
+    /// Every finished epoch.
+    pub history: Vec<EpochRecord>,
+}
+
+/// Reads `OUT/checkpoint` (or `checkpoint.old` if a swap was interrupted); `None` if there
+/// is none.
+pub fn load<B: AutodiffBackend, O: Optimizer<Model<B>, B>>(
+    out: &Path,
+    config: &ModelConfig,
+    device: &B::Device,
+    _optim: &O,
+) -> Result<Option<Resumed<B, O::Record>>, TrainError> {
+    let dir = [out.join("checkpoint"), out.join("checkpoint.old")]
+        .into_iter()
+        .find(|d| d.join("history.json").exists());
+    let Some(dir) = dir else {
+        return Ok(None);
+    };
+    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
+    let model = config
+        .init::<B>(device)
+        .load_file(dir.join("model"), &recorder, device)
+        .map_err(|e| err(&dir, e))?;
+    let optim: O::Record =
+        Recorder::<B>::load(&recorder, dir.join("optim"), device).map_err(|e| err(&dir, e))?;
+    let text = std::fs::read_to_string(dir.join("history.json")).map_err(|e| err(&dir, e))?;
+    let history = serde_json::from_str(&text).map_err(|e| err(&dir, e))?;
+    Ok(Some(Resumed {
+        model,
+        optim,
+        history,
+    }))
+}

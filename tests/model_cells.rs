@@ -1,0 +1,211 @@
+//! The model's building blocks against references: minGRU and minLSTM parallel scans equal
+//! their step-by-step recurrences (outputs and gradients, windows of 1, 2, 17 and 256, with
+//! and without a carried state); GRU and LSTM match steps computed by hand; the encoder's
+//! pool-then-project rewrite equals the plain encoder.
+
+use burn::backend::{Autodiff, NdArray};
+use burn::module::Param;
+use burn::nn::Linear;
+use burn::tensor::{Distribution, Tensor, TensorData};
+use minflow::model::encoder::{Encoder, LastActivation, Pooling};
+use minflow::model::minrnn::{MinGru, MinLstm};
+use minflow::model::rnn::{Gru, Lstm};
+
+type B = Autodiff<NdArray<f32>>;
+
+fn max_diff<const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>) -> f32 {
+    let a: Vec<f32> = a.into_data().to_vec().unwrap();
+    let b: Vec<f32> = b.into_data().to_vec().unwrap();
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+/// Runs `step` over the window and stacks the outputs.
+fn stepped<F>(x: Tensor<B, 3>, h0: Option<Tensor<B, 2>>, step: F) -> (Tensor<B, 3>, Tensor<B, 2>)
+where
+    F: Fn(Tensor<B, 2>, Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>),
+{
+    let [b, t, d] = x.dims();
+    let mut h = h0;
+    let mut outs = Vec::new();
+    for k in 0..t {
+        let (o, next) = step(x.clone().narrow(1, k, 1).reshape([b, d]), h);
+        outs.push(o);
+        h = Some(next);
+    }
+    (Tensor::stack(outs, 1), h.unwrap())
+}
+
+fn check_scan(kind: &str, t: usize, with_state: bool) {
+    let device = Default::default();
+    let (b, d, h) = (3, 5, 7);
+    let x =
+        Tensor::<B, 3>::random([b, t, d], Distribution::Normal(0.0, 1.5), &device).require_grad();
+    let h0 = with_state
+        .then(|| Tensor::<B, 2>::random([b, h], Distribution::Uniform(0.1, 2.0), &device));
+    let weights = Tensor::<B, 3>::random([b, t, d], Distribution::Normal(0.0, 1.0), &device);
+    let (par, seq, gp, gs, gw_par, gw_seq) = match kind {
+        "mingru" => {
+            let m = MinGru::<B>::new(d, h, d, &device);
+            let (p, _) = m.forward(x.clone(), h0.clone());
+            let (s, _) = stepped(x.clone(), h0.clone(), |xk, hk| m.step(xk, hk));
+            let gp = (p.clone() * weights.clone()).sum().backward();
+            let gs = (s.clone() * weights.clone()).sum().backward();
+            let w = &m.to_hidden_and_gate.weight;
+            (
+                p,
+                s,
+                x.grad(&gp).unwrap(),
+                x.grad(&gs).unwrap(),
+                w.grad(&gp).unwrap(),
+                w.grad(&gs).unwrap(),
+            )
+        }
+        _ => {
+            let m = MinLstm::<B>::new(d, h, d, &device);
+            let (p, _) = m.forward(x.clone(), h0.clone());
+            let (s, _) = stepped(x.clone(), h0.clone(), |xk, hk| m.step(xk, hk));
+            let gp = (p.clone() * weights.clone()).sum().backward();
+            let gs = (s.clone() * weights.clone()).sum().backward();
+            let w = &m.to_hidden_and_gates.weight;
+            (
+                p,
+                s,
+                x.grad(&gp).unwrap(),
+                x.grad(&gs).unwrap(),
+                w.grad(&gp).unwrap(),
+                w.grad(&gs).unwrap(),
+            )
+        }
+    };
+    let out = max_diff(par, seq);
+    assert!(
+        out <= 1e-5,
+        "{kind} T={t} state={with_state}: outputs differ by {out}"
+    );
+    let dx = max_diff(Tensor::<B, 3>::from_inner(gp), Tensor::from_inner(gs));
+    assert!(dx <= 1e-5, "{kind} T={t}: input gradients differ by {dx}");
+    let dw = max_diff(
+        Tensor::<B, 2>::from_inner(gw_par),
+        Tensor::from_inner(gw_seq),
+    );
+    // Weight gradients sum over B x T terms; compare relative to their size.
+    assert!(
+        dw <= 1e-5 * (t as f32).max(1.0),
+        "{kind} T={t}: weight gradients differ by {dw}"
+    );
+}
+
+#[test]
+fn mingru_parallel_scan_equals_recurrence() {
+    for t in [1, 2, 17, 256] {
+        check_scan("mingru", t, false);
+        check_scan("mingru", t, true);
+    }
+}
+
+#[test]
+fn minlstm_parallel_scan_equals_recurrence() {
+    for t in [1, 2, 17, 256] {
+        check_scan("minlstm", t, false);
+        check_scan("minlstm", t, true);
+    }
+}
+
+fn set(linear: &mut Linear<B>, weight: &[f32], rows: usize, cols: usize, bias: Option<&[f32]>) {
+    let device = Default::default();
+    linear.weight = Param::from_tensor(Tensor::from_data(
+        TensorData::new(weight.to_vec(), [rows, cols]),
+        &device,
+    ));
+    linear.bias = bias.map(|b| {
+        Param::from_tensor(Tensor::from_data(
+            TensorData::new(b.to_vec(), [b.len()]),
+            &device,
+        ))
+    });
+}
+
+fn sigmoid(x: f64) -> f64 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// GRU with width 1, input 1: weights chosen by hand, one step from h = 0.5 at x = 2.
+#[test]
+fn gru_matches_a_step_by_hand() {
+    let device = Default::default();
+    let mut gru = Gru::<B>::new(1, 1, &device);
+    // x -> [z, r, h~]: W = [0.5, -1.0, 0.25], b = [0.1, 0.2, -0.3]
+    set(
+        &mut gru.input,
+        &[0.5, -1.0, 0.25],
+        1,
+        3,
+        Some(&[0.1, 0.2, -0.3]),
+    );
+    // h -> [z, r]: U = [0.3, 0.7]; r h -> h~: U_h = 2.0
+    set(&mut gru.recurrent_gates, &[0.3, 0.7], 1, 2, None);
+    set(&mut gru.recurrent_candidate, &[2.0], 1, 1, None);
+    let (x, h) = (2.0f64, 0.5f64);
+    let z = sigmoid(0.5 * x + 0.1 + 0.3 * h); // sigmoid(1.25)
+    let r = sigmoid(-1.0 * x + 0.2 + 0.7 * h); // sigmoid(-1.45)
+    let cand = (0.25 * x - 0.3 + 2.0 * r * h).tanh();
+    let expected = (1.0 - z) * h + z * cand;
+    let got = gru.step(
+        Tensor::from_data([[x as f32]], &device),
+        Some(Tensor::from_data([[h as f32]], &device)),
+    );
+    let got: Vec<f32> = got.into_data().to_vec().unwrap();
+    assert!(
+        (got[0] as f64 - expected).abs() < 1e-6,
+        "{got:?} vs {expected}"
+    );
+}
+
+/// LSTM with width 1, input 1: one step from (h, c) = (0.5, -0.25) at x = 1.5.
+#[test]
+fn lstm_matches_a_step_by_hand() {
+    let device = Default::default();
+    let mut lstm = Lstm::<B>::new(1, 1, &device);
+    // x -> [i, f, o, c~]
+    set(
+        &mut lstm.input,
+        &[0.4, -0.6, 1.0, 0.8],
+        1,
+        4,
+        Some(&[0.0, 1.0, -0.5, 0.1]),
+    );
+    set(&mut lstm.recurrent, &[0.2, 0.3, -0.4, 0.5], 1, 4, None);
+    let (x, h, c) = (1.5f64, 0.5f64, -0.25f64);
+    let i = sigmoid(0.4 * x + 0.2 * h);
+    let f = sigmoid(-0.6 * x + 1.0 + 0.3 * h);
+    let o = sigmoid(1.0 * x - 0.5 - 0.4 * h);
+    let cand = (0.8 * x + 0.1 + 0.5 * h).tanh();
+    let c_next = f * c + i * cand;
+    let h_next = o * c_next.tanh();
+    let state = minflow::model::rnn::LstmState {
+        h: Tensor::from_data([[h as f32]], &device),
+        c: Tensor::from_data([[c as f32]], &device),
+    };
+    let out = lstm.step(Tensor::from_data([[x as f32]], &device), Some(state));
+    let got_h: Vec<f32> = out.h.into_data().to_vec().unwrap();
+    let got_c: Vec<f32> = out.c.into_data().to_vec().unwrap();
+    assert!((got_h[0] as f64 - h_next).abs() < 1e-6 && (got_c[0] as f64 - c_next).abs() < 1e-6);
+}
+
+/// With no final activation and mean pooling, projecting after pooling equals the plain
+/// encoder (the ~200x cheaper path).
+#[test]
+fn pool_then_project_equals_plain_encoder() {
+    let device = Default::default();
+    let enc = Encoder::<B>::new(5, 32, 48, LastActivation::None, Pooling::Mean, &device);
+    assert!(enc.project_after_pool);
+    let x = Tensor::<B, 3>::random([4, 300, 5], Distribution::Uniform(0.0, 1.0), &device);
+    let d = max_diff(enc.forward(x.clone()), enc.forward_unfused(x));
+    assert!(d <= 1e-5, "differ by {d}");
+    let elu = Encoder::<B>::new(5, 32, 48, LastActivation::Elu, Pooling::Mean, &device);
+    assert!(!elu.project_after_pool);
+}
