@@ -10,5 +10,6 @@ pub mod cli;
 pub mod data;
 pub mod model;
 pub mod msgs;
+pub mod plot;
 pub mod sim;
 pub mod train;

@@ -15,6 +15,8 @@ use std::time::Instant;
 pub enum BenchCommand {
     /// Simulator speed: ms per saved frame, one thread and all threads.
     Sim(SimBenchArgs),
+    /// Training speed per core (the paper's Table 4): parameters, s/epoch, us/sample, memory.
+    Train(super::bench_train::TrainBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -33,6 +35,7 @@ pub struct SimBenchArgs {
 pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
     match cmd {
         BenchCommand::Sim(args) => sim(args),
+        BenchCommand::Train(args) => super::bench_train::run(args),
     }
 }
 

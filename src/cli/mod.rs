@@ -4,8 +4,10 @@
 
 mod bag;
 mod bench;
+mod bench_train;
 mod demo;
 mod simulate;
+pub mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -28,6 +30,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Generate ground-truth scenes with MLS-MPM and write one MCAP bag per scene.
     Simulate(simulate::SimulateArgs),
+    /// Train a surrogate (mlp | lstm | gru | minlstm | mingru) on bags.
+    Train(train::TrainArgs),
     /// Inspect and validate MCAP bags of ParticleFrames.
     #[command(subcommand)]
     Bag(bag::BagCommand),
@@ -51,6 +55,7 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Demo(args) => demo::run(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Bag(cmd) => bag::run(cmd),
+        Command::Train(args) => train::run(args),
         Command::Bench(cmd) => bench::run(cmd),
     }
 }
@@ -81,4 +86,30 @@ pub(crate) fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
     bar.set_style(style);
     bar.set_message(what.to_string());
     bar
+}
+
+/// Train and validation loss per epoch as a PNG (log scale).
+pub(crate) fn loss_plot(
+    path: &std::path::Path,
+    history: &[crate::train::EpochRecord],
+) -> anyhow::Result<()> {
+    use crate::plot::{line_chart, Series};
+    let series = [
+        Series {
+            name: "train".into(),
+            points: history
+                .iter()
+                .map(|r| (r.epoch as f64, r.train_loss))
+                .collect(),
+        },
+        Series {
+            name: "validation".into(),
+            points: history
+                .iter()
+                .map(|r| (r.epoch as f64, r.val_loss))
+                .collect(),
+        },
+    ];
+    line_chart(path, "loss", "epoch", "loss", &series, true, (800, 500))?;
+    Ok(())
 }

@@ -155,6 +155,27 @@ pub fn evaluate<B: burn::tensor::backend::Backend>(
     }
 }
 
+/// Sees training progress (progress bars, logs, tests); every method has a default.
+pub trait Observer {
+    /// Called after each optimizer step: `done` of `total` batches this epoch, the batch's
+    /// mean loss and the epoch's samples per second so far.
+    fn batch(
+        &mut self,
+        _epoch: usize,
+        _done: usize,
+        _total: usize,
+        _loss: f64,
+        _samples_per_sec: f64,
+    ) {
+    }
+    /// Called after each epoch with its record.
+    fn epoch(&mut self, _record: &EpochRecord, _history: &[EpochRecord]) {}
+}
+
+/// An observer that does nothing.
+pub struct Quiet;
+impl Observer for Quiet {}
+
 /// A training run over in-memory windows.
 pub struct Trainer<B: AutodiffBackend> {
     /// Network hyper-parameters.
@@ -178,7 +199,7 @@ impl<B: AutodiffBackend> Trainer<B> {
     }
 
     /// Trains on `train`, validating on `val`; resumes from `out/checkpoint` when `resume`.
-    /// `on_epoch` sees each finished epoch (progress output, tests).
+    /// `on_epoch` sees each finished epoch with the number of batches per epoch.
     pub fn fit(
         &self,
         train: &WindowIndex,
@@ -186,6 +207,31 @@ impl<B: AutodiffBackend> Trainer<B> {
         scaler: &Scaler,
         resume: bool,
         mut on_epoch: impl FnMut(&EpochRecord, usize),
+    ) -> Result<Vec<EpochRecord>, TrainError> {
+        struct Adapter<'a, F: FnMut(&EpochRecord, usize)>(&'a mut F, usize);
+        impl<F: FnMut(&EpochRecord, usize)> Observer for Adapter<'_, F> {
+            fn epoch(&mut self, record: &EpochRecord, _: &[EpochRecord]) {
+                (self.0)(record, self.1)
+            }
+        }
+        let batches = train.num_batches(self.opts.batch_size.max(1));
+        self.fit_observed(
+            train,
+            val,
+            scaler,
+            resume,
+            &mut Adapter(&mut on_epoch, batches),
+        )
+    }
+
+    /// [`Trainer::fit`] reporting to an [`Observer`] (per batch and per epoch).
+    pub fn fit_observed(
+        &self,
+        train: &WindowIndex,
+        val: Option<&WindowIndex>,
+        scaler: &Scaler,
+        resume: bool,
+        observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError> {
         let counts = train.particle_counts();
         if self.config.decoder == crate::model::DecoderKind::Global
@@ -241,6 +287,7 @@ impl<B: AutodiffBackend> Trainer<B> {
             );
             let started = Instant::now();
             let (mut sum, mut seen) = (0.0f64, 0usize);
+            let total = train.num_batches(self.opts.batch_size.max(1));
             for (k, batch) in train
                 .batches(
                     self.opts.batch_size.max(1),
@@ -282,6 +329,8 @@ impl<B: AutodiffBackend> Trainer<B> {
                 }
                 seen += batch.b;
                 model = optim.step(self.opts.lr, model, accumulator.grads());
+                let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                observer.batch(epoch + 1, k + 1, total, sum / seen as f64, rate);
             }
             let seconds = started.elapsed().as_secs_f64();
             let train_loss = sum / seen.max(1) as f64;
@@ -312,7 +361,7 @@ impl<B: AutodiffBackend> Trainer<B> {
             }
             history.push(record.clone());
             checkpoint::save(&self.out, &model, &optim, &history)?;
-            on_epoch(&record, train.num_batches(self.opts.batch_size.max(1)));
+            observer.epoch(&record, &history);
         }
         Ok(history)
     }

@@ -1,0 +1,245 @@
+//! `minflow train --data DIR --model mingru --out runs/NAME`: loads trajectories from bags,
+//! splits them 80:10:10 by scene (seeded), fits the scaler on the training scenes, trains
+//! with a progress bar per epoch, and leaves in the run folder: `model.json` + `model.mpk`
+//! (best epoch), `checkpoint/` (last epoch, for `--resume`), `metrics.csv`, `loss.png`,
+//! `split.json` and `train.json` (the options). CPU (burn ndarray) backend.
+
+use super::Outcome;
+use crate::data::{self, Part, Scaler, Split, WindowIndex};
+use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
+use crate::train::{EpochRecord, Observer, TrainOptions, Trainer};
+use anyhow::{bail, Context};
+use burn::backend::{Autodiff, NdArray};
+use clap::Args;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// The CPU training backend.
+pub type CpuTrain = Autodiff<NdArray<f32>>;
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Bags or folders of bags.
+    #[arg(long, required = true, num_args = 1..)]
+    pub data: Vec<PathBuf>,
+    /// Core: mlp | lstm | gru | minlstm | mingru.
+    #[arg(long, default_value = "mingru")]
+    pub model: String,
+    /// Run folder.
+    #[arg(short, long)]
+    pub out: PathBuf,
+    /// Epochs (at most; early stopping may end sooner).
+    #[arg(long, default_value_t = 30)]
+    pub epochs: usize,
+    /// Effective batch size (windows per optimizer step).
+    #[arg(long, default_value_t = 16)]
+    pub batch_size: usize,
+    /// Windows per forward pass; gradients accumulate up to --batch-size.
+    #[arg(long, default_value_t = 16)]
+    pub micro_batch: usize,
+    /// Input frames per sample T.
+    #[arg(long, default_value_t = 2)]
+    pub window: usize,
+    /// Seed of the split, the weights, the data order and dropout.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Stop after this many epochs without a better validation loss (0: never).
+    #[arg(long, default_value_t = 5)]
+    pub patience: usize,
+    /// Latent and core width W (the paper: 1250).
+    #[arg(long, default_value_t = 1250)]
+    pub width: usize,
+    /// Encoder hidden width (the paper: 256).
+    #[arg(long, default_value_t = 256)]
+    pub encoder_hidden: usize,
+    /// Activation after the encoder's last Linear: elu (the paper's text) | none (with mean
+    /// pooling the encoder is then ~200x cheaper, exactly).
+    #[arg(long, default_value = "none")]
+    pub encoder_last_activation: String,
+    /// Pooling over particles: mean | max | mean-max.
+    #[arg(long, default_value = "mean")]
+    pub pooling: String,
+    /// Recurrent layers.
+    #[arg(long, default_value_t = 2)]
+    pub layers: usize,
+    /// Dropout after each recurrent layer.
+    #[arg(long, default_value_t = 0.1)]
+    pub dropout: f64,
+    /// Decoder: global (the paper's, fixed N) | pointwise (any N).
+    #[arg(long, default_value = "global")]
+    pub decoder: String,
+    /// Density-map grid G for the loss.
+    #[arg(long, default_value_t = 32)]
+    pub density_grid: usize,
+    /// Weight of the density-map loss.
+    #[arg(long, default_value_t = 0.1)]
+    pub density_weight: f32,
+    /// Topic to read frames from.
+    #[arg(long, default_value = crate::bag::FRAMES_TOPIC)]
+    pub topic: String,
+    /// Continue a killed run from OUT/checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+}
+
+impl TrainArgs {
+    /// The network configuration these flags describe, for `particles` particles.
+    pub fn model_config(&self, particles: usize) -> anyhow::Result<ModelConfig> {
+        let core = CoreKind::parse(&self.model).with_context(|| {
+            format!(
+                "unknown --model {:?} (mlp | lstm | gru | minlstm | mingru)",
+                self.model
+            )
+        })?;
+        let last = match self.encoder_last_activation.as_str() {
+            "elu" => LastActivation::Elu,
+            "none" => LastActivation::None,
+            other => bail!("unknown --encoder-last-activation {other:?} (elu | none)"),
+        };
+        let pooling = match self.pooling.as_str() {
+            "mean" => Pooling::Mean,
+            "max" => Pooling::Max,
+            "mean-max" => Pooling::MeanMax,
+            other => bail!("unknown --pooling {other:?} (mean | max | mean-max)"),
+        };
+        let decoder = match self.decoder.as_str() {
+            "global" => DecoderKind::Global,
+            "pointwise" => DecoderKind::Pointwise,
+            other => bail!("unknown --decoder {other:?} (global | pointwise)"),
+        };
+        if self.window == 0 || self.batch_size == 0 || self.micro_batch == 0 {
+            bail!("--window, --batch-size and --micro-batch must be at least 1");
+        }
+        Ok(ModelConfig::new(core, particles)
+            .with_window(self.window)
+            .with_width(self.width)
+            .with_encoder_hidden(self.encoder_hidden)
+            .with_encoder_last_activation(last)
+            .with_pooling(pooling)
+            .with_layers(self.layers)
+            .with_dropout(self.dropout)
+            .with_decoder(decoder))
+    }
+
+    /// The optimisation settings these flags describe.
+    pub fn options(&self) -> TrainOptions {
+        TrainOptions {
+            epochs: self.epochs,
+            batch_size: self.batch_size,
+            micro_batch: self.micro_batch.min(self.batch_size),
+            lr: self.lr,
+            seed: self.seed,
+            patience: self.patience,
+            density_grid: self.density_grid,
+            density_weight: self.density_weight,
+        }
+    }
+}
+
+/// Progress bar per epoch, one log line per epoch, metrics.csv and loss.png kept current.
+struct Progress {
+    out: PathBuf,
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Observer for Progress {
+    fn batch(&mut self, epoch: usize, done: usize, total: usize, loss: f64, rate: f64) {
+        let bar = self
+            .bar
+            .get_or_insert_with(|| super::progress(total as u64, &format!("epoch {epoch}")));
+        bar.set_position(done as u64);
+        bar.set_message(format!("epoch {epoch} loss {loss:.3e} {rate:.1}/s"));
+    }
+
+    fn epoch(&mut self, r: &EpochRecord, history: &[EpochRecord]) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+        eprintln!(
+            "epoch {:>3}  train {:.4e}  val {:.4e}  {:.1} s  {:.1} samples/s",
+            r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
+        );
+        if let Err(err) = write_metrics(&self.out, history) {
+            tracing::warn!("writing metrics: {err:#}");
+        }
+    }
+}
+
+/// Rewrites `metrics.csv` (and `loss.png`) from the whole history.
+fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
+    let path = out.join("metrics.csv");
+    let mut f =
+        std::fs::File::create(&path).with_context(|| format!("writing {}", path.display()))?;
+    writeln!(f, "epoch,train_loss,val_loss,seconds,samples_per_sec")?;
+    for r in history {
+        writeln!(
+            f,
+            "{},{},{},{:.3},{:.3}",
+            r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
+        )?;
+    }
+    super::loss_plot(&out.join("loss.png"), history)
+}
+
+pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
+    let (trajs, report) =
+        data::load(&args.data, Some(&args.topic)).context("loading trajectories")?;
+    for gap in &report.gaps {
+        tracing::warn!("{gap}");
+    }
+    let scenes: Vec<String> = trajs.iter().map(|t| t.scene.clone()).collect();
+    let split = Split::new(&scenes, args.seed);
+    let (train, val, test) = split.partition(trajs);
+    if train.is_empty() {
+        bail!("no training scenes in {:?}", args.data);
+    }
+    let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
+    let particles = train[0].n;
+    let config = args.model_config(particles)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    std::fs::write(
+        args.out.join("split.json"),
+        serde_json::to_string_pretty(&split)?,
+    )?;
+    std::fs::write(
+        args.out.join("train.json"),
+        serde_json::to_string_pretty(&args.options())?,
+    )?;
+    eprintln!(
+        "{} scenes: {} train, {} val, {} test ({}); core {}, N = {particles}, T = {}",
+        scenes.len(),
+        split.scenes(Part::Train).len(),
+        split.scenes(Part::Val).len(),
+        split.scenes(Part::Test).len(),
+        args.out.join("split.json").display(),
+        config.core.name(),
+        config.window
+    );
+    let _ = test;
+    let train_index = WindowIndex::new(train, args.window, scaler.clone())?;
+    let val_index = WindowIndex::new(val, args.window, scaler.clone())?;
+    let trainer =
+        Trainer::<CpuTrain>::new(config, args.options(), args.out.clone(), Default::default());
+    let mut progress = Progress {
+        out: args.out.clone(),
+        bar: None,
+    };
+    let val = (!val_index.is_empty()).then_some(&val_index);
+    let history = trainer.fit_observed(&train_index, val, &scaler, args.resume, &mut progress)?;
+    let best = history
+        .iter()
+        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss));
+    if let Some(best) = best {
+        println!(
+            "best epoch {} val loss {:.4e} -> {}",
+            best.epoch,
+            best.val_loss,
+            args.out.join("model.json").display()
+        );
+    }
+    Ok(Outcome::Done)
+}
