@@ -3,6 +3,11 @@
 //! a truncated bag). Results go to stdout, logs and progress bars to stderr.
 
 use clap::Parser;
+
+/// mimalloc reuses freed large buffers instead of returning them to the kernel, so the
+/// model's per-step activations stop page-faulting (see `bench train`).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
