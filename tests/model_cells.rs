@@ -151,7 +151,7 @@ fn gru_matches_a_step_by_hand() {
     set(&mut gru.recurrent_candidate, &[2.0], 1, 1, None);
     let (x, h) = (2.0f64, 0.5f64);
     let z = sigmoid(0.5 * x + 0.1 + 0.3 * h); // sigmoid(1.25)
-    let r = sigmoid(-1.0 * x + 0.2 + 0.7 * h); // sigmoid(-1.45)
+    let r = sigmoid(-x + 0.2 + 0.7 * h); // sigmoid(-1.45)
     let cand = (0.25 * x - 0.3 + 2.0 * r * h).tanh();
     let expected = (1.0 - z) * h + z * cand;
     let got = gru.step(

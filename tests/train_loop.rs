@@ -17,7 +17,7 @@ use train_support::{integrator_trajectory, options, tiny, trajectory, B};
 fn every_core_overfits_four_frames() {
     let traj = integrator_trajectory(32, 4);
     let scaler = Scaler::fit(&[&traj]);
-    let index = WindowIndex::new(vec![traj], 2, scaler.clone()).unwrap();
+    let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
     assert_eq!(index.len(), 2);
     for core in CoreKind::ALL {
         let dir = tempfile::tempdir().unwrap();
@@ -51,7 +51,7 @@ fn every_core_overfits_four_frames() {
 fn particle_count_mismatch_is_a_clear_error() {
     let traj = trajectory(20, 4);
     let scaler = Scaler::fit(&[&traj]);
-    let index = WindowIndex::new(vec![traj], 2, scaler.clone()).unwrap();
+    let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let err = Trainer::<B>::new(
         tiny(CoreKind::MinGru, 32),
@@ -60,8 +60,7 @@ fn particle_count_mismatch_is_a_clear_error() {
         Default::default(),
     )
     .fit(&index, None, &scaler, false, |_, _| {})
-    .err()
-    .expect("N mismatch must fail");
+    .expect_err("N mismatch must fail");
     assert!(
         err.to_string().contains("N = 32") && err.to_string().contains("[20]"),
         "{err}"
@@ -72,7 +71,7 @@ fn particle_count_mismatch_is_a_clear_error() {
 fn stateful_step_equals_training_forward() {
     let traj = trajectory(32, 5);
     let scaler = Scaler::fit(&[&traj]);
-    let index = WindowIndex::new(vec![traj.clone()], 2, scaler.clone()).unwrap();
+    let index = WindowIndex::new(vec![traj.clone()], 2, scaler).unwrap();
     for core in CoreKind::ALL {
         let dir = tempfile::tempdir().unwrap();
         Trainer::<B>::new(

@@ -33,7 +33,7 @@ use train_support::{options, tiny, trajectory, B};
 fn resumed_run_equals_uninterrupted_run() {
     let traj = trajectory(32, 6);
     let scaler = Scaler::fit(&[&traj]);
-    let index = WindowIndex::new(vec![traj], 2, scaler.clone()).unwrap();
+    let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
     let config = || tiny(CoreKind::MinGru, 32).with_dropout(0.2);
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let full = Trainer::<B>::new(config(), options(4), a.path().into(), Default::default())

@@ -8,7 +8,7 @@ use super::train::CpuTrain;
 use super::Outcome;
 use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::{CoreKind, LastActivation, ModelConfig};
-use crate::train::{Quiet, TrainOptions, Trainer};
+use crate::train::{TrainOptions, Trainer};
 use burn::module::Module;
 use clap::Args;
 
@@ -102,7 +102,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
     for &t in &args.windows {
         let traj = synthetic(args.particles, args.samples + t);
         let scaler = Scaler::fit(&[&traj]);
-        let index = WindowIndex::new(vec![traj], t, scaler.clone())?;
+        let index = WindowIndex::new(vec![traj], t, scaler)?;
         let mut times = std::collections::BTreeMap::new();
         for name in &args.cores {
             let core =
@@ -125,9 +125,13 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
             };
             let dir = tempfile::tempdir()?;
             peak_mib(true);
-            let history =
-                Trainer::<CpuTrain>::new(config, opts, dir.path().into(), Default::default())
-                    .fit_observed(&index, None, &scaler, false, &mut Quiet)?;
+            let history = Trainer::<CpuTrain>::new(
+                config,
+                opts,
+                dir.path().into(),
+                Default::default(),
+            )
+            .fit(&index, None, &scaler, false, |_, _| {})?;
             let peak = peak_mib(false).unwrap_or(f64::NAN);
             let mean = history.iter().map(|r| r.seconds).sum::<f64>() / history.len() as f64;
             let max = history.iter().map(|r| r.seconds).fold(0.0, f64::max);

@@ -2,12 +2,13 @@
 //! splits them 80:10:10 by scene (seeded), fits the scaler on the training scenes, trains
 //! with a progress bar per epoch, and leaves in the run folder: `model.json` + `model.mpk`
 //! (best epoch), `checkpoint/` (last epoch, for `--resume`), `metrics.csv`, `loss.png`,
-//! `split.json` and `train.json` (the options). CPU (burn ndarray) backend.
+//! `split.json` and `train.json` (the options). CPU (burn ndarray) backend. A dataset of more
+//! than `--max-resident-frames` frames is streamed from the bags each epoch.
 
 use super::Outcome;
-use crate::data::{self, Part, Scaler, Split, WindowIndex};
+use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
-use crate::train::{EpochRecord, Observer, TrainOptions, Trainer};
+use crate::train::{BatchSource, EpochRecord, Observer, TrainOptions, Trainer};
 use anyhow::{bail, Context};
 use burn::backend::{Autodiff, NdArray};
 use clap::Args;
@@ -83,6 +84,10 @@ pub struct TrainArgs {
     /// Continue a killed run from OUT/checkpoint.
     #[arg(long)]
     pub resume: bool,
+    /// Frames held in memory at most; a larger dataset is streamed from the bags in chunks
+    /// each epoch (a frame of 2,500 particles is 40 kB).
+    #[arg(long, default_value_t = 50_000)]
+    pub max_resident_frames: usize,
 }
 
 impl TrainArgs {
@@ -185,19 +190,22 @@ fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
 }
 
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
-    let (trajs, report) =
-        data::load(&args.data, Some(&args.topic)).context("loading trajectories")?;
-    for gap in &report.gaps {
-        tracing::warn!("{gap}");
-    }
-    let scenes: Vec<String> = trajs.iter().map(|t| t.scene.clone()).collect();
+    let topic = Some(args.topic.as_str());
+    let infos = data::scan(&args.data, topic).context("reading the bags")?;
+    let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = Split::new(&scenes, args.seed);
-    let (train, val, test) = split.partition(trajs);
-    if train.is_empty() {
+    let in_part = |part: Part| -> Vec<SceneInfo> {
+        infos
+            .iter()
+            .filter(|s| split.part_of(&s.scene) == Some(part))
+            .cloned()
+            .collect()
+    };
+    let (train_infos, val_infos) = (in_part(Part::Train), in_part(Part::Val));
+    let Some(first) = train_infos.first() else {
         bail!("no training scenes in {:?}", args.data);
-    }
-    let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
-    let particles = train[0].n;
+    };
+    let particles = first.n;
     let config = args.model_config(particles)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
@@ -209,27 +217,46 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         args.out.join("train.json"),
         serde_json::to_string_pretty(&args.options())?,
     )?;
+    let total: usize = infos.iter().map(|s| s.frames).sum();
+    let streamed = total > args.max_resident_frames;
     eprintln!(
-        "{} scenes: {} train, {} val, {} test ({}); core {}, N = {particles}, T = {}",
+        "{} scenes, {total} frames: {} train, {} val, {} test ({}){}; core {}, N = {particles}, T = {}",
         scenes.len(),
         split.scenes(Part::Train).len(),
         split.scenes(Part::Val).len(),
         split.scenes(Part::Test).len(),
         args.out.join("split.json").display(),
+        if streamed { ", streamed from the bags" } else { "" },
         config.core.name(),
         config.window
     );
-    let _ = test;
-    let train_index = WindowIndex::new(train, args.window, scaler.clone())?;
-    let val_index = WindowIndex::new(val, args.window, scaler.clone())?;
     let trainer =
         Trainer::<CpuTrain>::new(config, args.options(), args.out.clone(), Default::default());
     let mut progress = Progress {
         out: args.out.clone(),
         bar: None,
     };
-    let val = (!val_index.is_empty()).then_some(&val_index);
-    let history = trainer.fit_observed(&train_index, val, &scaler, args.resume, &mut progress)?;
+    let history = if streamed {
+        let budget = args.max_resident_frames;
+        let scaler = StreamingLoader::fit_scaler(train_infos.clone(), topic, budget)?;
+        let mut train = StreamingLoader::new(train_infos, topic, args.window, scaler, budget)?;
+        let mut val = StreamingLoader::new(val_infos, topic, args.window, scaler, budget)?;
+        let val = (!val.is_empty()).then_some(&mut val as &mut dyn BatchSource);
+        trainer.fit_observed(&mut train, val, &scaler, args.resume, &mut progress)?
+    } else {
+        let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
+        for gap in &report.gaps {
+            tracing::warn!("{gap}");
+        }
+        let (train, val, _test) = split.partition(trajs);
+        let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
+        let train_index = WindowIndex::new(train, args.window, scaler)?;
+        let val_index = WindowIndex::new(val, args.window, scaler)?;
+        let mut train_ref = &train_index;
+        let mut val_ref = &val_index;
+        let val = (!val_index.is_empty()).then_some(&mut val_ref as &mut dyn BatchSource);
+        trainer.fit_observed(&mut train_ref, val, &scaler, args.resume, &mut progress)?
+    };
     let best = history
         .iter()
         .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss));

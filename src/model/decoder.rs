@@ -33,6 +33,8 @@ pub struct PointwiseMlp<B: Backend> {
 }
 
 /// The decoder.
+// One instance per model: variant sizes do not matter, and burn's derive wants plain fields.
+#[allow(clippy::large_enum_variant)]
 #[derive(Module, Debug)]
 pub enum Decoder<B: Backend> {
     /// `Linear W -> N x 2`.

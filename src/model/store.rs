@@ -159,7 +159,7 @@ impl<B: Backend> Surrogate<B> {
         state: State<B>,
     ) -> Result<(Vec<f32>, State<B>), StoreError> {
         let b = dt.len();
-        let n = if b == 0 { 0 } else { material.len() / b };
+        let n = material.len().checked_div(b).unwrap_or(0);
         if b == 0 || frames.len() != b * n * 4 || material.len() != b * n {
             return Err(StoreError::Shape(format!(
                 "step: {} state values, {} materials for {b} frames",

@@ -43,7 +43,7 @@ pub(super) fn bounds<'a>(
     let x = widen(
         min_max(points.clone().map(|p| p.0)),
         0.0,
-        |v| linear_pad(v),
+        linear_pad,
         0.0..1.0,
     );
     let y = if log_y {

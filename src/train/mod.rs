@@ -8,6 +8,9 @@
 
 pub mod checkpoint;
 pub mod loss;
+pub mod source;
+
+pub use source::BatchSource;
 
 use crate::data::{Batch, Scaler, WindowIndex};
 use crate::model::store::{self, ModelMeta};
@@ -35,6 +38,9 @@ pub enum TrainError {
     /// Data and model disagree.
     #[error("{0}")]
     Mismatch(String),
+    /// Reading the training data failed.
+    #[error(transparent)]
+    Data(#[from] crate::data::DataError),
     /// Saving or loading failed.
     #[error(transparent)]
     Store(#[from] store::StoreError),
@@ -128,13 +134,14 @@ fn positions<B: burn::tensor::backend::Backend>(
 /// Mean loss of `model` over `index` (no gradients, no dropout).
 pub fn evaluate<B: burn::tensor::backend::Backend>(
     model: &Model<B>,
-    index: &WindowIndex,
+    index: &mut dyn BatchSource,
     scaling: &Scaling,
     opts: &TrainOptions,
     device: &B::Device,
-) -> f64 {
+) -> Result<f64, TrainError> {
     let (mut sum, mut count) = (0.0, 0usize);
-    for batch in index.batches(opts.micro_batch.max(1), None, 0) {
+    for batch in index.batches(opts.micro_batch.max(1), None, 0)? {
+        let batch = batch?;
         let s = slice::<B>(&batch, 0, batch.b, device);
         let pred = model.forward(s.inputs, s.dt, scaling);
         let parts = loss::loss(
@@ -148,11 +155,11 @@ pub fn evaluate<B: burn::tensor::backend::Backend>(
         sum += parts.total.into_scalar().elem::<f64>() * batch.b as f64;
         count += batch.b;
     }
-    if count == 0 {
+    Ok(if count == 0 {
         f64::NAN
     } else {
         sum / count as f64
-    }
+    })
 }
 
 /// Sees training progress (progress bars, logs, tests); every method has a default.
@@ -215,20 +222,23 @@ impl<B: AutodiffBackend> Trainer<B> {
             }
         }
         let batches = train.num_batches(self.opts.batch_size.max(1));
+        let mut train = train;
+        let mut val = val;
         self.fit_observed(
-            train,
-            val,
+            &mut train,
+            val.as_mut().map(|v| v as &mut dyn BatchSource),
             scaler,
             resume,
             &mut Adapter(&mut on_epoch, batches),
         )
     }
 
-    /// [`Trainer::fit`] reporting to an [`Observer`] (per batch and per epoch).
+    /// [`Trainer::fit`] over any [`BatchSource`] (in memory or streamed from the bags),
+    /// reporting to an [`Observer`] (per batch and per epoch).
     pub fn fit_observed(
         &self,
-        train: &WindowIndex,
-        val: Option<&WindowIndex>,
+        train: &mut dyn BatchSource,
+        mut val: Option<&mut dyn BatchSource>,
         scaler: &Scaler,
         resume: bool,
         observer: &mut dyn Observer,
@@ -244,7 +254,7 @@ impl<B: AutodiffBackend> Trainer<B> {
         }
         let scaling = ModelMeta {
             config: self.config.clone(),
-            scaler: scaler.clone(),
+            scaler: *scaler,
             epoch: 0,
             val_loss: 0.0,
         }
@@ -293,9 +303,10 @@ impl<B: AutodiffBackend> Trainer<B> {
                     self.opts.batch_size.max(1),
                     Some(self.opts.seed),
                     epoch as u64,
-                )
+                )?
                 .enumerate()
             {
+                let batch = batch?;
                 let mut accumulator = GradientsAccumulator::new();
                 let micro = self.opts.micro_batch.clamp(1, batch.b);
                 let mut start = 0;
@@ -335,8 +346,10 @@ impl<B: AutodiffBackend> Trainer<B> {
             let seconds = started.elapsed().as_secs_f64();
             let train_loss = sum / seen.max(1) as f64;
             let valid = model.valid();
-            let val_loss = match val {
-                Some(v) if !v.is_empty() => evaluate(&valid, v, &scaling, &self.opts, &self.device),
+            let val_loss = match val.as_mut() {
+                Some(v) if v.windows() > 0 => {
+                    evaluate(&valid, &mut **v, &scaling, &self.opts, &self.device)?
+                }
                 _ => train_loss,
             };
             let record = EpochRecord {
@@ -351,7 +364,7 @@ impl<B: AutodiffBackend> Trainer<B> {
                 since_best = 0;
                 let meta = ModelMeta {
                     config: self.config.clone(),
-                    scaler: scaler.clone(),
+                    scaler: *scaler,
                     epoch: epoch + 1,
                     val_loss,
                 };

@@ -1,0 +1,102 @@
+//! `minflow train` end to end on the bundled bags with a tiny network: the run folder holds
+//! the model, the checkpoint, metrics.csv (one row per epoch), a decodable loss.png, the
+//! split and the options; `--resume` continues to more epochs; a dataset larger than
+//! `--max-resident-frames` is streamed; bad flags fail clearly.
+
+use std::path::Path;
+use std::process::Command;
+
+fn train(out: &Path, extra: &[&str]) -> std::process::Output {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let mut args = vec![
+        "train",
+        "--data",
+        bags,
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "48",
+        "--encoder-hidden",
+        "16",
+    ];
+    args.extend_from_slice(extra);
+    Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(&args)
+        .output()
+        .unwrap()
+}
+
+fn epochs(out: &Path) -> usize {
+    std::fs::read_to_string(out.join("metrics.csv"))
+        .unwrap()
+        .lines()
+        .count()
+        - 1
+}
+
+#[test]
+fn train_writes_a_complete_run_folder_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = train(dir.path(), &["--epochs", "2", "--model", "minlstm"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for file in [
+        "model.json",
+        "model.mpk",
+        "checkpoint/model.mpk",
+        "checkpoint/optim.mpk",
+        "split.json",
+        "train.json",
+        "loss.png",
+    ] {
+        assert!(dir.path().join(file).exists(), "missing {file}");
+    }
+    assert_eq!(epochs(dir.path()), 2);
+    let meta = std::fs::read_to_string(dir.path().join("model.json")).unwrap();
+    assert!(
+        meta.contains("MinLstm") && meta.contains("\"particles\": 2500"),
+        "{meta}"
+    );
+    let png = std::fs::File::open(dir.path().join("loss.png")).unwrap();
+    let info = png::Decoder::new(std::io::BufReader::new(png))
+        .read_info()
+        .unwrap();
+    assert_eq!((info.info().width, info.info().height), (800, 500));
+    // Resume to 4 epochs: 2 more rows, the first two unchanged.
+    let before = std::fs::read_to_string(dir.path().join("metrics.csv")).unwrap();
+    let o = train(
+        dir.path(),
+        &["--epochs", "4", "--model", "minlstm", "--resume"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let after = std::fs::read_to_string(dir.path().join("metrics.csv")).unwrap();
+    assert_eq!(epochs(dir.path()), 4);
+    let first_two = |s: &str| {
+        s.lines()
+            .take(3)
+            .map(|l| l.split(',').take(3).collect::<Vec<_>>().join(","))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(first_two(&before), first_two(&after));
+}
+
+#[test]
+fn large_datasets_are_streamed() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = train(
+        dir.path(),
+        &["--epochs", "1", "--max-resident-frames", "60"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("streamed from the bags"));
+    assert_eq!(epochs(dir.path()), 1);
+}
+
+#[test]
+fn bad_flags_fail_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = train(dir.path(), &["--model", "transformer"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("unknown --model"));
+    let o = train(dir.path(), &["--batch-size", "0"]);
+    assert_eq!(o.status.code(), Some(1));
+}
