@@ -209,3 +209,31 @@ fn pool_then_project_equals_plain_encoder() {
     let elu = Encoder::<B>::new(5, 32, 48, LastActivation::Elu, Pooling::Mean, &device);
     assert!(!elu.project_after_pool);
 }
+
+/// The fused ELU (one pass forward, output-only backward) equals burn's composed ELU, values
+/// and gradients, on both the autodiff and the plain CPU backend.
+#[test]
+fn fused_elu_equals_composed_elu() {
+    let device = Default::default();
+    let x = Tensor::<B, 3>::random([3, 50, 7], Distribution::Uniform(-4.0, 4.0), &device)
+        .require_grad();
+    let w = Tensor::<B, 3>::random([3, 50, 7], Distribution::Normal(0.0, 1.0), &device);
+    let fused = minflow::model::elu::elu(x.clone());
+    let composed = burn::tensor::activation::elu(x.clone(), 1.0);
+    assert!(max_diff(fused.clone(), composed.clone()) <= 1e-6);
+    let gf = x.grad(&(fused * w.clone()).sum().backward()).unwrap();
+    let gc = x.grad(&(composed * w).sum().backward()).unwrap();
+    let d = max_diff(Tensor::<B, 3>::from_inner(gf), Tensor::from_inner(gc));
+    assert!(d <= 1e-6, "gradients differ by {d}");
+    let plain =
+        Tensor::<NdArray<f32>, 2>::random([64, 9], Distribution::Uniform(-3.0, 3.0), &device);
+    let a: Vec<f32> = minflow::model::elu::elu(plain.clone())
+        .into_data()
+        .to_vec()
+        .unwrap();
+    let b: Vec<f32> = burn::tensor::activation::elu(plain, 1.0)
+        .into_data()
+        .to_vec()
+        .unwrap();
+    assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() <= 1e-6));
+}

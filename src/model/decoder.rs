@@ -5,10 +5,10 @@
 //! first Linear is split into a per-particle and a per-frame part, which is exactly equal).
 //! Used by [`crate::model::Model`].
 
+use super::elu::{elu, FusedElu};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
-use burn::tensor::activation::elu;
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
@@ -43,7 +43,7 @@ pub enum Decoder<B: Backend> {
     Pointwise(PointwiseMlp<B>),
 }
 
-impl<B: Backend> Decoder<B> {
+impl<B: FusedElu> Decoder<B> {
     /// New decoder for `particles` particles (global) or any count (pointwise).
     pub fn new(
         kind: DecoderKind,
@@ -80,7 +80,7 @@ impl<B: Backend> Decoder<B> {
                 let per_frame = mlp.latent.forward(latent);
                 let [_, hidden] = per_frame.dims();
                 let per_frame = per_frame.reshape([b, 1, hidden]);
-                let h = elu(mlp.features.forward(features) + per_frame, 1.0);
+                let h = elu(mlp.features.forward(features) + per_frame);
                 mlp.out.forward(h)
             }
         }

@@ -8,6 +8,7 @@
 //! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
 
 pub mod decoder;
+pub mod elu;
 pub mod encoder;
 pub mod minrnn;
 pub mod rnn;
@@ -15,6 +16,7 @@ pub mod store;
 pub mod temporal;
 
 pub use decoder::{Decoder, DecoderKind};
+pub use elu::FusedElu;
 pub use encoder::{Encoder, LastActivation, Pooling};
 pub use temporal::{Core, CoreKind, LayerState};
 
@@ -64,7 +66,7 @@ pub struct ModelConfig {
 
 impl ModelConfig {
     /// Builds the network with fresh weights.
-    pub fn init<B: Backend>(&self, device: &B::Device) -> Model<B> {
+    pub fn init<B: FusedElu>(&self, device: &B::Device) -> Model<B> {
         let encoder = Encoder::new(
             self.features,
             self.encoder_hidden,
@@ -132,7 +134,7 @@ pub struct Model<B: Backend> {
     pub decoder: Decoder<B>,
 }
 
-impl<B: Backend> Model<B> {
+impl<B: FusedElu> Model<B> {
     /// Encodes each frame of a window.
     ///
     /// # Shapes

@@ -6,7 +6,7 @@
 //! `model.mpk` (weights, burn's named MessagePack, full precision). `minflow train` writes
 //! them (the best epoch); its resumable checkpoint lives in `checkpoint/` beside them.
 
-use super::{LayerState, Model, ModelConfig, Scaling};
+use super::{FusedElu, LayerState, Model, ModelConfig, Scaling};
 use crate::data::Scaler;
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
@@ -66,7 +66,7 @@ fn io(path: &Path, what: impl ToString) -> StoreError {
 }
 
 /// Writes `model.json` + `model.mpk` into `dir` (via temporary names, renamed at the end).
-pub fn save<B: Backend>(dir: &Path, model: &Model<B>, meta: &ModelMeta) -> Result<(), StoreError> {
+pub fn save<B: FusedElu>(dir: &Path, model: &Model<B>, meta: &ModelMeta) -> Result<(), StoreError> {
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     // The recorder appends `.mpk`, replacing any extension: `model-tmp` -> `model-tmp.mpk`.
@@ -83,7 +83,7 @@ pub fn save<B: Backend>(dir: &Path, model: &Model<B>, meta: &ModelMeta) -> Resul
 }
 
 /// Reads `model.json` and the weights from `dir`.
-pub fn load<B: Backend>(
+pub fn load<B: FusedElu>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Model<B>, ModelMeta), StoreError> {
@@ -115,7 +115,7 @@ pub struct State<B: Backend> {
     pub frames: usize,
 }
 
-impl<B: Backend> Surrogate<B> {
+impl<B: FusedElu> Surrogate<B> {
     /// Loads a run folder.
     pub fn load(dir: &Path, device: &B::Device) -> Result<Self, StoreError> {
         let (model, meta) = load(dir, device)?;

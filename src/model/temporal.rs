@@ -3,12 +3,12 @@
 //! ELU) on the last time step. `mlp` replaces the recurrent layers by per-step Linear + ELU
 //! layers and is stateless (the paper's MLP baseline). Used by [`crate::model::Model`].
 
+use super::elu::{elu, FusedElu};
 use super::minrnn::{last_step, MinGru, MinLstm};
 use super::rnn::{Gru, Lstm, LstmState};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, Linear, LinearConfig};
-use burn::tensor::activation::elu;
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
@@ -92,7 +92,7 @@ pub struct Core<B: Backend> {
     dropout: Dropout,
 }
 
-impl<B: Backend> Core<B> {
+impl<B: FusedElu> Core<B> {
     /// A stack of `layers` layers `d_in -> width -> ... -> width`, dropout `p`.
     pub fn new(
         kind: CoreKind,
@@ -139,7 +139,7 @@ impl<B: Backend> Core<B> {
         let mut next = Vec::with_capacity(self.layers.len());
         for (layer, state) in self.layers.iter().zip(states) {
             let (out, s) = match (layer, state) {
-                (Layer::Mlp(l), _) => (elu(l.forward(x), 1.0), LayerState::None),
+                (Layer::Mlp(l), _) => (elu(l.forward(x)), LayerState::None),
                 (Layer::Gru(l), s) => {
                     let (o, h) = l.forward(x, hidden(s));
                     (o, LayerState::Hidden(h))
@@ -160,7 +160,7 @@ impl<B: Backend> Core<B> {
             x = self.dropout.forward(out);
             next.push(s);
         }
-        (elu(self.mlp.forward(last_step(x)), 1.0), next)
+        (elu(self.mlp.forward(last_step(x))), next)
     }
 
     /// One frame (step-by-step inference).
@@ -176,7 +176,7 @@ impl<B: Backend> Core<B> {
         let mut next = Vec::with_capacity(self.layers.len());
         for (layer, state) in self.layers.iter().zip(states) {
             let (out, s) = match (layer, state) {
-                (Layer::Mlp(l), _) => (elu(l.forward(x), 1.0), LayerState::None),
+                (Layer::Mlp(l), _) => (elu(l.forward(x)), LayerState::None),
                 (Layer::Gru(l), s) => {
                     let h = l.step(x, hidden(s));
                     (h.clone(), LayerState::Hidden(h))
@@ -197,7 +197,7 @@ impl<B: Backend> Core<B> {
             x = self.dropout.forward(out);
             next.push(s);
         }
-        (elu(self.mlp.forward(x), 1.0), next)
+        (elu(self.mlp.forward(x)), next)
     }
 }
 

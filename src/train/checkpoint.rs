@@ -61,7 +61,7 @@ pub struct Resumed<B: AutodiffBackend, R> {
 
 /// Reads `OUT/checkpoint` (or `checkpoint.old` if a swap was interrupted); `None` if there
 /// is none.
-pub fn load<B: AutodiffBackend, O: Optimizer<Model<B>, B>>(
+pub fn load<B: AutodiffBackend + crate::model::FusedElu, O: Optimizer<Model<B>, B>>(
     out: &Path,
     config: &ModelConfig,
     device: &B::Device,

@@ -132,7 +132,7 @@ fn positions<B: burn::tensor::backend::Backend>(
 }
 
 /// Mean loss of `model` over `index` (no gradients, no dropout).
-pub fn evaluate<B: burn::tensor::backend::Backend>(
+pub fn evaluate<B: crate::model::FusedElu>(
     model: &Model<B>,
     index: &mut dyn BatchSource,
     scaling: &Scaling,
@@ -194,7 +194,10 @@ pub struct Trainer<B: AutodiffBackend> {
     device: B::Device,
 }
 
-impl<B: AutodiffBackend> Trainer<B> {
+impl<B: AutodiffBackend + crate::model::FusedElu> Trainer<B>
+where
+    B::InnerBackend: crate::model::FusedElu,
+{
     /// A trainer writing to `out`.
     pub fn new(config: ModelConfig, opts: TrainOptions, out: PathBuf, device: B::Device) -> Self {
         Self {
