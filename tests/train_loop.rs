@@ -116,3 +116,36 @@ fn stateful_step_equals_training_forward() {
         }
     }
 }
+
+/// A loss that turns NaN or infinite stops training with an error naming epoch and batch.
+#[test]
+fn non_finite_loss_is_a_clear_error() {
+    let traj = trajectory(32, 8);
+    let scaler = Scaler::fit(&[&traj]);
+    let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let opts = TrainOptions {
+        lr: 1e30,
+        batch_size: 1,
+        micro_batch: 1,
+        ..options(20)
+    };
+    let err = Trainer::<B>::new(
+        tiny(CoreKind::Gru, 32),
+        opts,
+        dir.path().into(),
+        Default::default(),
+    )
+    .fit(&index, None, &scaler, false, |_, _| {})
+    .err()
+    .expect("lr 1e30 must blow up");
+    let text = err.to_string();
+    assert!(
+        matches!(err, minflow::train::TrainError::NonFinite { .. }),
+        "{text}"
+    );
+    assert!(
+        text.contains("non-finite loss") && text.contains("epoch") && text.contains("batch"),
+        "{text}"
+    );
+}
