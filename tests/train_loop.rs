@@ -137,8 +137,7 @@ fn non_finite_loss_is_a_clear_error() {
         Default::default(),
     )
     .fit(&index, None, &scaler, false, |_, _| {})
-    .err()
-    .expect("lr 1e30 must blow up");
+    .expect_err("lr 1e30 must blow up");
     let text = err.to_string();
     assert!(
         matches!(err, minflow::train::TrainError::NonFinite { .. }),

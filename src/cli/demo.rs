@@ -4,9 +4,8 @@
 //! stages (train, node, eval) extend this command.
 
 use super::Outcome;
-use crate::bag::{self, BagWriter, FRAMES_TOPIC};
+use crate::bag::{self, FRAMES_TOPIC};
 use crate::sim::families::{self, Family};
-use crate::sim::SceneRun;
 use anyhow::Context;
 use clap::Args;
 use std::path::PathBuf;
@@ -50,17 +49,11 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     for (family, id) in [(Family::Multi, 6), (Family::Fluid, 5)] {
         let mut scene = families::scene(family, id, 0);
         scene.frames = scene.frames.min(args.frames.max(1));
-        let path = args.out.join(super::simulate::bag_name(&scene.name));
         let name = scene.name.clone();
         let frames = scene.frames;
         let bar = super::progress(frames as u64, "frames");
         let start = Instant::now();
-        let mut writer = BagWriter::create(&path)?;
-        for frame in SceneRun::new(scene)? {
-            writer.write(FRAMES_TOPIC, &frame?)?;
-            bar.inc(1);
-        }
-        writer.finish()?;
+        let path = super::simulate::write_scene(scene, &args.out, FRAMES_TOPIC, &bar)?;
         bar.finish_and_clear();
         let ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
         // Real time = 62.5 frames per time unit, i.e. 16 ms per frame.

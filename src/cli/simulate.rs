@@ -125,7 +125,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
 }
 
 /// Simulates one scene into `out/NAME.mcap` (via `.part`, renamed when complete).
-fn write_scene(
+pub(super) fn write_scene(
     scene: Scene,
     out: &Path,
     topic: &str,

@@ -116,7 +116,8 @@ impl Scaling {
         }
     }
 
-    fn tensors<B: Backend>(&self, device: &B::Device) -> (Tensor<B, 3>, Tensor<B, 3>) {
+    /// `(min, range)` of (x, y, vx, vy) as `[1, 1, 4]` tensors, for `phys = scaled * range + min`.
+    pub fn tensors<B: Backend>(&self, device: &B::Device) -> (Tensor<B, 3>, Tensor<B, 3>) {
         let min = Tensor::from_data(TensorData::new(self.min[..4].to_vec(), [1, 1, 4]), device);
         let range = Tensor::from_data(TensorData::new(self.range[..4].to_vec(), [1, 1, 4]), device);
         (min, range)

@@ -173,13 +173,9 @@ impl<B: FusedElu> Surrogate<B> {
                 "model was trained for N = {expected} particles, frame has {n}"
             )));
         }
+        // The training batches' own scaling (data::Scaler), so inputs match training exactly.
         let mut feats = Vec::with_capacity(b * n * 5);
-        for (p, row) in frames.chunks_exact(4).enumerate() {
-            for (f, &v) in row.iter().enumerate() {
-                feats.push((v - self.scaling.min[f]) / self.scaling.range[f]);
-            }
-            feats.push((material[p] as f32 - self.scaling.min[4]) / self.scaling.range[4]);
-        }
+        self.meta.scaler.scale_into(frames, material, &mut feats);
         let x = Tensor::<B, 3>::from_data(TensorData::new(feats, [b, n, 5]), &self.device);
         let dt_t = Tensor::<B, 1>::from_data(TensorData::new(dt.to_vec(), [b]), &self.device);
         let (out, layers) = self.model.step(x, dt_t, state.layers, &self.scaling);
@@ -187,11 +183,7 @@ impl<B: FusedElu> Surrogate<B> {
             .into_data()
             .to_vec()
             .map_err(|e| StoreError::Shape(format!("{e:?}")))?;
-        for row in out.chunks_exact_mut(4) {
-            for (f, v) in row.iter_mut().enumerate() {
-                *v = *v * self.scaling.range[f] + self.scaling.min[f];
-            }
-        }
+        self.meta.scaler.unscale_rows(&mut out, 4);
         Ok((
             out,
             State {

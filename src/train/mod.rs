@@ -119,16 +119,8 @@ fn positions<B: burn::tensor::backend::Backend>(
     pred: Tensor<B, 3>,
     scaling: &Scaling,
 ) -> Tensor<B, 3> {
-    let device = pred.device();
-    let min = Tensor::<B, 3>::from_data(
-        TensorData::new(scaling.min[..2].to_vec(), [1, 1, 2]),
-        &device,
-    );
-    let range = Tensor::<B, 3>::from_data(
-        TensorData::new(scaling.range[..2].to_vec(), [1, 1, 2]),
-        &device,
-    );
-    pred.narrow(2, 0, 2) * range + min
+    let (min, range) = scaling.tensors::<B>(&pred.device());
+    (pred * range + min).narrow(2, 0, 2)
 }
 
 /// Mean loss of `model` over `index` (no gradients, no dropout).
