@@ -8,8 +8,11 @@
 pub mod bag;
 pub mod cli;
 pub mod data;
+pub mod eval;
 pub mod model;
 pub mod msgs;
+pub mod node;
 pub mod plot;
 pub mod sim;
 pub mod train;
+pub mod transport;

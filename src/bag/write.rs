@@ -142,6 +142,22 @@ impl BagWriter {
         Ok((id, 0))
     }
 
+    /// Closes the current chunk and pushes everything written so far to the OS, so a process
+    /// killed afterwards (SIGKILL, power loss aside) leaves a bag that readers can stream up
+    /// to this point. The recorder calls it periodically; smaller chunks compress a little
+    /// worse.
+    pub fn flush(&mut self) -> Result<(), BagError> {
+        self.writer.flush().map_err(|source| BagError::Mcap {
+            path: self.path.clone(),
+            source,
+        })
+    }
+
+    /// Bytes written to the file so far (chunks closed by [`BagWriter::flush`] or by size).
+    pub fn bytes_written(&self) -> u64 {
+        std::fs::metadata(&self.path).map_or(0, |m| m.len())
+    }
+
     /// Writes the last chunk, the summary and the footer, and flushes the file.
     pub fn finish(mut self) -> Result<(), BagError> {
         let path = self.path.clone();

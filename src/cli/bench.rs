@@ -17,6 +17,8 @@ pub enum BenchCommand {
     Sim(SimBenchArgs),
     /// Training speed per core (the paper's Table 4): parameters, s/epoch, us/sample, memory.
     Train(super::bench_train::TrainBenchArgs),
+    /// Transport latency between two processes (p50/p99/max) and burst throughput.
+    Transport(super::bench_transport::TransportBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -36,6 +38,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
     match cmd {
         BenchCommand::Sim(args) => sim(args),
         BenchCommand::Train(args) => super::bench_train::run(args),
+        BenchCommand::Transport(args) => super::bench_transport::run(args),
     }
 }
 

@@ -53,7 +53,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
         let frames = scene.frames;
         let bar = super::progress(frames as u64, "frames");
         let start = Instant::now();
-        let path = super::simulate::write_scene(scene, &args.out, FRAMES_TOPIC, &bar)?;
+        let path = super::simulate::write_scene(scene, &args.out, FRAMES_TOPIC, &bar, &|_| Ok(()))?;
         bar.finish_and_clear();
         let ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
         // Real time = 62.5 frames per time unit, i.e. 16 ms per frame.

@@ -5,7 +5,12 @@
 mod bag;
 mod bench;
 mod bench_train;
+mod bench_transport;
 mod demo;
+mod record;
+mod replay;
+pub mod eval;
+mod report;
 mod simulate;
 pub mod train;
 
@@ -32,6 +37,15 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Train a surrogate (mlp | lstm | gru | minlstm | mingru) on bags.
     Train(train::TrainArgs),
+    /// Rollout metrics, tables, curves and renders of models and baselines (or of a bag of
+    /// recorded predictions) against the ground truth.
+    Eval(eval::EvalArgs),
+    /// The paper's experiment end to end: train the five cores, evaluate, time, REPORT.md.
+    Report(report::ReportArgs),
+    /// Play bags of frames on a topic over zenoh, iceoryx2 or ROS 2 (like `ros2 bag play`).
+    Replay(replay::ReplayArgs),
+    /// Record topics into MCAP bags (like `ros2 bag record`).
+    Record(record::RecordArgs),
     /// Inspect and validate MCAP bags of ParticleFrames.
     #[command(subcommand)]
     Bag(bag::BagCommand),
@@ -55,16 +69,22 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Demo(args) => demo::run(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Bag(cmd) => bag::run(cmd),
+        Command::Replay(args) => replay::run(args),
+        Command::Record(args) => record::run(args),
         Command::Train(args) => train::run(args),
+        Command::Eval(args) => eval::run(args),
+        Command::Report(args) => report::run(args),
         Command::Bench(cmd) => bench::run(cmd),
     }
 }
 
 /// Logs to stderr; `RUST_LOG` wins over `-v`.
 pub fn init_logging(verbose: u8) {
+    // The middleware crates are chatty at info (every session open/close, scouting);
+    // their warnings still show.
     let default = match verbose {
-        0 => "info",
-        1 => "debug",
+        0 => "info,zenoh=warn,rustdds=warn,ros2_client=warn",
+        1 => "debug,zenoh=info,rustdds=info,ros2_client=info",
         _ => "trace",
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()

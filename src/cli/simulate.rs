@@ -8,6 +8,10 @@ use crate::bag::{BagWriter, FRAMES_TOPIC};
 use crate::sim::families::{self, Family};
 use crate::sim::run::SceneRun;
 use crate::sim::Scene;
+use crate::msgs::ParticleFrame;
+use crate::transport::{wait_for_subscribers, Counters, FramePublisher, TransportOptions};
+use std::sync::Mutex;
+use std::time::Duration;
 use anyhow::{bail, Context};
 use clap::Args;
 use rayon::prelude::*;
@@ -36,9 +40,21 @@ pub struct SimulateArgs {
     /// Scenes simulated at once (default: all cores).
     #[arg(short, long)]
     jobs: Option<usize>,
-    /// Topic the frames are written on.
+    /// Topic the frames are written (and published) on.
     #[arg(long, default_value = FRAMES_TOPIC)]
     topic: String,
+    /// Also publish every frame live on `--topic` while simulating.
+    #[arg(long)]
+    publish: bool,
+    #[command(flatten)]
+    transport: TransportOptions,
+    /// With --publish: pace each scene at its simulation clock times this factor (1 = real
+    /// time, 62.5 frames per second); 0 publishes frames as fast as they are simulated.
+    #[arg(long, default_value_t = 1.0)]
+    rate: f64,
+    /// With --publish: wait for this many subscribers before simulating.
+    #[arg(long, default_value_t = 1)]
+    wait_for_subscribers: usize,
 }
 
 /// Parses `A..B`, `A..=B`, `a,b,c` or `a` into ids.
@@ -97,17 +113,26 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
         .num_threads(args.jobs.unwrap_or(0))
         .build()
         .context("starting worker threads")?;
+    let live = if args.publish { Some(Live::open(&args)?) } else { None };
     let results: Vec<(String, anyhow::Result<PathBuf>)> = pool.install(|| {
         scenes
             .into_par_iter()
             .map(|scene| {
                 let name = scene.name.clone();
-                let res = write_scene(scene, &args.out, &args.topic, &bar);
+                let started = std::time::Instant::now();
+                let publish = |frame: &ParticleFrame| match &live {
+                    Some(live) => live.publish(frame, started),
+                    None => Ok(()),
+                };
+                let res = write_scene(scene, &args.out, &args.topic, &bar, &publish);
                 (name, res)
             })
             .collect()
     });
     bar.finish_and_clear();
+    if let Some(live) = live {
+        live.finish();
+    }
     let mut failed = 0;
     for (name, res) in &results {
         match res {
@@ -124,12 +149,59 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
     Ok(Outcome::Done)
 }
 
-/// Simulates one scene into `out/NAME.mcap` (via `.part`, renamed when complete).
+/// Live publishing for `simulate --publish`: one publisher shared by the scene threads.
+struct Live {
+    publisher: Mutex<Box<dyn FramePublisher>>,
+    _session: Box<dyn crate::transport::Transport>,
+    rate: f64,
+    counters: Counters,
+}
+
+impl Live {
+    fn open(args: &SimulateArgs) -> anyhow::Result<Self> {
+        anyhow::ensure!(args.rate >= 0.0 && args.rate.is_finite(), "--rate must be >= 0");
+        let session = crate::transport::open(&args.transport)?;
+        let publisher = session.publisher(&args.topic)?;
+        if args.wait_for_subscribers > 0 {
+            tracing::info!("waiting for {} subscriber(s) on {}", args.wait_for_subscribers, args.topic);
+            let timeout = Duration::from_secs(60);
+            if !wait_for_subscribers(publisher.as_ref(), args.wait_for_subscribers, timeout) {
+                bail!("no subscriber on {} within {timeout:?} (use --wait-for-subscribers 0)", args.topic);
+            }
+        }
+        Ok(Live { publisher: Mutex::new(publisher), _session: session, rate: args.rate, counters: Counters::default() })
+    }
+
+    /// Publishes `frame` of a scene whose simulation started at `started`, paced by its
+    /// stamp (frame 0 goes out at once).
+    fn publish(&self, frame: &ParticleFrame, started: std::time::Instant) -> anyhow::Result<()> {
+        if self.rate > 0.0 {
+            let due = started + Duration::from_secs_f64(frame.header.stamp.as_secs_f64() / self.rate);
+            if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let mut publisher = self.publisher.lock().expect("publisher lock poisoned");
+        publisher.publish(frame)?;
+        self.counters.published();
+        Ok(())
+    }
+
+    fn finish(self) {
+        let mut publisher = self.publisher.into_inner().expect("publisher lock poisoned");
+        publisher.flush(Duration::from_secs(5));
+        eprintln!("simulate: published {}", self.counters.get());
+    }
+}
+
+/// Simulates one scene into `out/NAME.mcap` (via `.part`, renamed when complete), calling
+/// `on_frame` with every frame after it is written (live publishing).
 pub(super) fn write_scene(
     scene: Scene,
     out: &Path,
     topic: &str,
     bar: &indicatif::ProgressBar,
+    on_frame: &(dyn Fn(&ParticleFrame) -> anyhow::Result<()> + Sync),
 ) -> anyhow::Result<PathBuf> {
     let path = out.join(bag_name(&scene.name));
     let part = path.with_extension("mcap.part");
@@ -138,6 +210,7 @@ pub(super) fn write_scene(
     for frame in run {
         let frame = frame?;
         writer.write(topic, &frame)?;
+        on_frame(&frame)?;
         bar.inc(1);
     }
     writer.finish()?;

@@ -178,6 +178,30 @@ pub fn panels(
     })
 }
 
+/// Writes `text` onto an 8-bit RGB image buffer of `size` = (width, height) pixels with its
+/// top-left corner at `pos` (pixels), in the embedded font, `px` pixels high, in `colour`
+/// (RGB). Text past the edges is clipped. Used by `minflow eval`'s particle renders.
+pub fn draw_text(
+    pixels: &mut [u8],
+    size: (u32, u32),
+    text: &str,
+    pos: (i32, i32),
+    px: f64,
+    colour: (u8, u8, u8),
+) -> Result<(), String> {
+    if !font_registered() {
+        return Err("the embedded font DejaVuSans.ttf could not be loaded".into());
+    }
+    let backend = BitMapBackend::<RGBPixel>::with_buffer_and_format(pixels, size)
+        .map_err(|e| e.to_string())?;
+    let root = backend.into_drawing_area();
+    let colour = RGBColor(colour.0, colour.1, colour.2);
+    let style = TextStyle::from((FONT_FAMILY, px).into_font()).color(&colour);
+    root.draw_text(text, &style, pos)
+        .map_err(|e| e.to_string())?;
+    root.present().map_err(|e| e.to_string())
+}
+
 /// The in-memory drawing area every chart is drawn on.
 type Root<'a> = DrawingArea<BitMapBackend<'a, RGBPixel>, plotters::coord::Shift>;
 

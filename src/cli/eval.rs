@@ -1,0 +1,268 @@
+//! `minflow eval`: rollout metrics of trained models and the two baselines on ground-truth
+//! bags (`--model DIR... --data DIR`), or of a recorded bag of predicted frames
+//! (`--pred BAG --truth BAG|DIR`), written as tables, curves and renders into `--out` (see
+//! [`crate::eval`]); the main table is printed on stdout.
+//!
+//! Scaling rule (one for every mode and for the baselines): the first `--model`'s stored
+//! scaler when a model is given, otherwise a scaler fitted on the training split of the
+//! ground-truth data (the seeded 80:10:10 split of `minflow train`, `--seed`). Direct
+//! evaluation rolls out the scenes of `--split` (test by default) of that same split.
+//! Exit code 3 when predicted frames were missing or a bag was truncated.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::Args;
+
+use super::Outcome;
+use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
+use crate::data::{self, Part, Scaler, Split};
+use crate::eval::{
+    self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReplayOptions,
+    RolloutOptions,
+};
+use crate::model::store::ModelMeta;
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Run folder of a trained model (`minflow train --out`); repeat for several models.
+    #[arg(long = "model", value_name = "DIR")]
+    pub models: Vec<PathBuf>,
+    /// Ground-truth bags or folders of bags: roll every model out on them.
+    #[arg(long, num_args = 1.., conflicts_with = "pred")]
+    pub data: Vec<PathBuf>,
+    /// Which scenes of the seeded 80:10:10 split to roll out: test | val | train | all.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Seed of the split (use the one the models were trained with).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Steps predicted per rollout H (the paper's avg20 / f20: 20).
+    #[arg(long, default_value_t = 20)]
+    pub horizon: usize,
+    /// Rollouts per trajectory from evenly spaced start frames (1: from the first frame).
+    #[arg(long, default_value_t = 1)]
+    pub starts: usize,
+    /// Seed frames before the first prediction when no model is given (else the largest
+    /// model window T).
+    #[arg(long, default_value_t = 2)]
+    pub window: usize,
+    /// Topic of the ground-truth frames.
+    #[arg(long, default_value = FRAMES_TOPIC)]
+    pub topic: String,
+    /// Bags of predicted frames (recorded from a surrogate node) to score.
+    #[arg(long, num_args = 1.., requires = "truth")]
+    pub pred: Vec<PathBuf>,
+    /// Ground-truth bags or folders for --pred.
+    #[arg(long, num_args = 1..)]
+    pub truth: Vec<PathBuf>,
+    /// Topic of the predicted frames in --pred.
+    #[arg(long, default_value = PREDICTED_TOPIC)]
+    pub pred_topic: String,
+    /// Column name of --pred in the tables.
+    #[arg(long, default_value = "pred")]
+    pub name: String,
+    /// --pred holds one-step predictions of every replayed frame: baselines predict one step
+    /// from the truth too (default: a closed-loop rollout, baselines roll out as well).
+    #[arg(long)]
+    pub one_step: bool,
+    /// Output folder (tables, curves, renders).
+    #[arg(short, long, default_value = "eval")]
+    pub out: PathBuf,
+    /// Density-map grid G of the density-error diagnostic.
+    #[arg(long, default_value_t = 32)]
+    pub density_grid: usize,
+    /// Skip the particle renders (PNG grid and GIF per scene).
+    #[arg(long)]
+    pub no_render: bool,
+}
+
+/// Parses `--split`.
+pub(crate) fn parse_split(s: &str) -> anyhow::Result<Option<Part>> {
+    Ok(match s {
+        "test" => Some(Part::Test),
+        "val" => Some(Part::Val),
+        "train" => Some(Part::Train),
+        "all" => None,
+        other => bail!("unknown --split {other:?} (test | val | train | all)"),
+    })
+}
+
+/// Column names for run folders: the folder name, made unique.
+pub(crate) fn model_names(dirs: &[PathBuf]) -> Vec<String> {
+    let mut names: Vec<String> = Vec::new();
+    for dir in dirs {
+        let base = dir
+            .file_name()
+            .map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into_owned());
+        let mut name = base.clone();
+        let mut i = 2;
+        while names.contains(&name) || name == "persist" || name == "constvel" {
+            name = format!("{base}#{i}");
+            i += 1;
+        }
+        names.push(name);
+    }
+    names
+}
+
+/// The scaler by the rule of the module doc, and where it comes from.
+pub(crate) fn scaler_for(
+    models: &[PathBuf],
+    data: &[PathBuf],
+    topic: &str,
+    seed: u64,
+) -> anyhow::Result<(Scaler, String)> {
+    if let Some(dir) = models.first() {
+        let path = dir.join("model.json");
+        let text =
+            std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let meta: ModelMeta =
+            serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        return Ok((
+            meta.scaler,
+            format!("scaled with the scaler stored in {}", dir.display()),
+        ));
+    }
+    let infos = data::scan(data, Some(topic)).context("reading the ground-truth bags")?;
+    let split = Split::new(infos.iter().map(|s| &s.scene), seed);
+    let (train, _) = data::load_scenes(data, Some(topic), &split.train)
+        .context("loading the training scenes to fit the scaler")?;
+    let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
+    Ok((
+        scaler,
+        format!(
+            "scaled with a scaler fitted on the {} training scenes of the data (split seed {seed})",
+            split.train.len()
+        ),
+    ))
+}
+
+/// Direct evaluation: loads the models and the scenes of `part`, rolls everything out.
+/// Returns the evaluation and the number of model columns.
+pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
+    let part = parse_split(&args.split)?;
+    let names = model_names(&args.models);
+    let mut models = Vec::new();
+    for (dir, name) in args.models.iter().zip(&names) {
+        models.push(ModelPredictor::load(dir, name.clone())?);
+    }
+    let topic = args.topic.as_str();
+    let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
+    let split = Split::new(infos.iter().map(|s| &s.scene), args.seed);
+    for dir in &args.models {
+        warn_if_split_differs(dir, &split);
+    }
+    let scenes: Vec<String> = match part {
+        Some(p) => split.scenes(p).to_vec(),
+        None => infos.iter().map(|s| s.scene.clone()).collect(),
+    };
+    if scenes.is_empty() {
+        bail!(
+            "no {} scenes among the {} scenes of {:?} (split seed {}; with fewer than 3 scenes all are training scenes); try --split all",
+            args.split,
+            infos.len(),
+            args.data,
+            args.seed
+        );
+    }
+    let (scaler, source) = scaler_for(&args.models, &args.data, topic, args.seed)?;
+    let (trajs, report) =
+        data::load_scenes(&args.data, Some(topic), &scenes).context("loading the scenes")?;
+    for gap in &report.gaps {
+        tracing::warn!("{gap}");
+    }
+    let mut predictors: Vec<&dyn Predictor> = models.iter().map(|m| m as &dyn Predictor).collect();
+    predictors.extend([&Persist as &dyn Predictor, &ConstVel]);
+    let opts = RolloutOptions {
+        horizon: args.horizon,
+        starts: args.starts,
+        window: args.window,
+        density_grid: args.density_grid,
+        snapshots: !args.no_render,
+    };
+    let bar = super::progress(0, "rollouts");
+    let eval = eval::evaluate(&trajs, &predictors, &scaler, &source, &opts, &bar)?;
+    bar.finish_and_clear();
+    Ok((eval, models.len()))
+}
+
+/// Warns when a run folder's `split.json` puts other scenes in the test part.
+fn warn_if_split_differs(dir: &Path, split: &Split) {
+    let Ok(text) = std::fs::read_to_string(dir.join("split.json")) else {
+        return;
+    };
+    if let Ok(theirs) = serde_json::from_str::<Split>(&text) {
+        if theirs.test != split.test {
+            tracing::warn!(
+                "{}: the model's test scenes {:?} differ from this split's {:?} (check --seed and --data)",
+                dir.display(),
+                theirs.test,
+                split.test
+            );
+        }
+    }
+}
+
+/// Replay evaluation of `--pred` against `--truth`.
+fn replay(args: &EvalArgs) -> anyhow::Result<(Evaluation, bool)> {
+    let preds = eval::read_predictions(&args.pred, Some(&args.pred_topic))
+        .context("reading the predicted frames")?;
+    let scenes: Vec<String> = preds.scenes.keys().cloned().collect();
+    let (truth, report) = data::load_scenes(&args.truth, Some(&args.topic), &scenes)
+        .context("reading the ground truth")?;
+    let (scaler, source) = scaler_for(&args.models, &args.truth, &args.topic, args.seed)?;
+    let opts = ReplayOptions {
+        horizon: args.horizon,
+        one_step: args.one_step,
+        density_grid: args.density_grid,
+        snapshots: !args.no_render,
+    };
+    let baselines: [&dyn Predictor; 2] = [&Persist, &ConstVel];
+    let eval = eval::score_predictions(
+        &preds, &args.name, &truth, &baselines, &scaler, &source, &opts,
+    )?;
+    let lost = !preds.truncated.is_empty() || !report.truncated.is_empty();
+    Ok((eval, lost))
+}
+
+pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
+    let (eval, models, lost) = match (args.pred.is_empty(), args.data.is_empty()) {
+        (true, false) => {
+            let (eval, models) = direct(&args)?;
+            (eval, models, false)
+        }
+        (false, true) => {
+            let (eval, lost) = replay(&args)?;
+            (eval, 1, lost)
+        }
+        _ => bail!("give either --data (with --model DIR...) or --pred BAG --truth BAG|DIR"),
+    };
+    let bar = super::progress(0, "renders");
+    let title = if args.pred.is_empty() {
+        "minflow eval: rollouts"
+    } else {
+        "minflow eval: recorded predictions"
+    };
+    let files = output::write_all(&args.out, &eval, models, title, &bar)?;
+    bar.finish_and_clear();
+    print!("{}", eval::table::markdown(&eval));
+    for note in &eval.notes {
+        eprintln!("note: {note}");
+    }
+    eprintln!(
+        "{} ({}); {} files in {}",
+        eval.scaler_source,
+        args.split,
+        files.len(),
+        args.out.display()
+    );
+    if eval.missing() > 0 || lost {
+        eprintln!(
+            "{} predicted frames missing (excluded from the scores)",
+            eval.missing()
+        );
+        return Ok(Outcome::DataLost);
+    }
+    Ok(Outcome::Done)
+}

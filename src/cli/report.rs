@@ -1,0 +1,360 @@
+//! `minflow report --data DIR --out DIR`: the paper's experiment end to end on one dataset.
+//! Trains the five cores (mlp, lstm, gru, minlstm, mingru) with one configuration (`minflow
+//! train`, into `OUT/runs/<core>`), evaluates them beside the baselines on the test scenes
+//! (`minflow eval`, into `OUT/eval`), measures training speed from the runs themselves
+//! (seconds per epoch and microseconds per sample, the paper's Table 4), and writes
+//! `OUT/REPORT.md`: the machine (CPU model, cores), the configuration and seed, Tables 2
+//! (fluid scenes), 3 (multi-material scenes) and 4, the detailed metrics and the figures.
+//! Flags shorten it (`--epochs`, `--width`, `--encoder-hidden`, `--cores`) for a quick run
+//! on the bundled bags; `--reuse` keeps runs that already have a model.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use burn::module::Module;
+use clap::{Args, Parser};
+
+use super::eval::{direct, EvalArgs};
+use super::train::TrainArgs;
+use super::Outcome;
+use crate::eval::{output, table, CpuInfer, Evaluation};
+use crate::model::store::ModelMeta;
+
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// Ground-truth bags or folders of bags.
+    #[arg(long, required = true, num_args = 1..)]
+    pub data: Vec<PathBuf>,
+    /// Output folder: REPORT.md, runs/<core>, eval/.
+    #[arg(short, long, default_value = "report")]
+    pub out: PathBuf,
+    /// Cores to train and compare.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "mlp,lstm,gru,minlstm,mingru"
+    )]
+    pub cores: Vec<String>,
+    /// Epochs per core (at most; early stopping may end sooner).
+    #[arg(long, default_value_t = 30)]
+    pub epochs: usize,
+    /// Latent and core width W (the paper: 1250).
+    #[arg(long, default_value_t = 1250)]
+    pub width: usize,
+    /// Encoder hidden width (the paper: 256).
+    #[arg(long, default_value_t = 256)]
+    pub encoder_hidden: usize,
+    /// Effective batch size.
+    #[arg(long, default_value_t = 16)]
+    pub batch_size: usize,
+    /// Windows per forward pass.
+    #[arg(long, default_value_t = 16)]
+    pub micro_batch: usize,
+    /// Input frames per sample T.
+    #[arg(long, default_value_t = 2)]
+    pub window: usize,
+    /// Seed of the split, the weights, the data order and dropout.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Early-stopping patience (0: never stop early).
+    #[arg(long, default_value_t = 5)]
+    pub patience: usize,
+    /// Activation after the encoder's last Linear: none | elu (the paper's text).
+    #[arg(long, default_value = "none")]
+    pub encoder_last_activation: String,
+    /// Steps per rollout H.
+    #[arg(long, default_value_t = 20)]
+    pub horizon: usize,
+    /// Rollouts per test trajectory (evenly spaced start frames).
+    #[arg(long, default_value_t = 1)]
+    pub starts: usize,
+    /// Scenes to evaluate: test | val | train | all.
+    #[arg(long, default_value = "test")]
+    pub eval_split: String,
+    /// Keep runs that already hold a model.json instead of training again.
+    #[arg(long)]
+    pub reuse: bool,
+}
+
+/// Parses a subcommand's flags with its own defaults (so the report runs exactly what the
+/// printed command line would).
+fn parse<T: Args>(argv: &[String]) -> anyhow::Result<T> {
+    #[derive(Parser)]
+    struct Wrap<T: Args> {
+        #[command(flatten)]
+        inner: T,
+    }
+    Ok(Wrap::<T>::try_parse_from(argv)?.inner)
+}
+
+fn path(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// One run's training record from its `metrics.csv` and `model.json`.
+struct Speed {
+    core: String,
+    params: usize,
+    epochs: usize,
+    total_s: f64,
+    us_per_sample: f64,
+    best_epoch: usize,
+    best_val: f64,
+}
+
+fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
+    let csv = dir.join("metrics.csv");
+    let text = std::fs::read_to_string(&csv).with_context(|| format!("reading {}", csv.display()))?;
+    let (mut epochs, mut total, mut rate) = (0usize, 0.0f64, 0.0f64);
+    for line in text.lines().skip(1) {
+        let f: Vec<f64> = line.split(',').filter_map(|v| v.parse().ok()).collect();
+        if f.len() >= 5 {
+            epochs += 1;
+            total += f[3];
+            rate += f[4];
+        }
+    }
+    let meta_path = dir.join("model.json");
+    let meta: ModelMeta = serde_json::from_str(
+        &std::fs::read_to_string(&meta_path)
+            .with_context(|| format!("reading {}", meta_path.display()))?,
+    )?;
+    let params = meta.config.init::<CpuInfer>(&Default::default()).num_params();
+    let rate = rate / epochs.max(1) as f64;
+    Ok(Speed {
+        core: core.to_owned(),
+        params,
+        epochs,
+        total_s: total,
+        us_per_sample: if rate > 0.0 { 1e6 / rate } else { f64::NAN },
+        best_epoch: meta.epoch,
+        best_val: meta.val_loss,
+    })
+}
+
+/// CPU model name and logical core count.
+fn machine() -> (String, usize) {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (model, cores)
+}
+
+pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
+    if args.cores.is_empty() {
+        bail!("--cores is empty");
+    }
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", path(&args.out)))?;
+    let data: Vec<String> = args.data.iter().map(|p| path(p)).collect();
+    let runs = args.out.join("runs");
+    let mut train_argv = Vec::new();
+    let mut dirs = Vec::new();
+    for core in &args.cores {
+        let dir = runs.join(core);
+        let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
+        argv.extend(data.iter().cloned());
+        for (flag, value) in [
+            ("--model", core.clone()),
+            ("--out", path(&dir)),
+            ("--epochs", args.epochs.to_string()),
+            ("--width", args.width.to_string()),
+            ("--encoder-hidden", args.encoder_hidden.to_string()),
+            ("--batch-size", args.batch_size.to_string()),
+            ("--micro-batch", args.micro_batch.to_string()),
+            ("--window", args.window.to_string()),
+            ("--seed", args.seed.to_string()),
+            ("--patience", args.patience.to_string()),
+            ("--encoder-last-activation", args.encoder_last_activation.clone()),
+        ] {
+            argv.extend([flag.to_owned(), value]);
+        }
+        let train: TrainArgs = parse(&argv)?;
+        if args.reuse && dir.join("model.json").exists() {
+            eprintln!("{core}: reusing {}", path(&dir));
+        } else {
+            eprintln!("== training {core} -> {}", path(&dir));
+            let start = Instant::now();
+            super::train::run(train).with_context(|| format!("training {core}"))?;
+            eprintln!("{core}: trained in {:.1} s", start.elapsed().as_secs_f64());
+        }
+        train_argv.push(argv);
+        dirs.push(dir);
+    }
+    let eval_dir = args.out.join("eval");
+    let mut argv: Vec<String> = vec!["eval".into()];
+    for dir in &dirs {
+        argv.extend(["--model".into(), path(dir)]);
+    }
+    argv.push("--data".into());
+    argv.extend(data.iter().cloned());
+    for (flag, value) in [
+        ("--split", args.eval_split.clone()),
+        ("--seed", args.seed.to_string()),
+        ("--horizon", args.horizon.to_string()),
+        ("--starts", args.starts.to_string()),
+        ("--out", path(&eval_dir)),
+    ] {
+        argv.extend([flag.to_owned(), value]);
+    }
+    let eval_args: EvalArgs = parse(&argv)?;
+    eprintln!("== evaluating {} models", dirs.len());
+    let (eval, models) = direct(&eval_args)?;
+    let bar = super::progress(0, "renders");
+    output::write_all(&eval_dir, &eval, models, "minflow report: evaluation", &bar)?;
+    bar.finish_and_clear();
+    let speeds: Vec<Speed> = args
+        .cores
+        .iter()
+        .zip(&dirs)
+        .map(|(c, d)| speed(c, d))
+        .collect::<anyhow::Result<_>>()?;
+    let text = report_text(&args, &train_argv, &argv, &eval, &speeds);
+    let out = args.out.join("REPORT.md");
+    std::fs::write(&out, &text).with_context(|| format!("writing {}", path(&out)))?;
+    print!("{}", table::markdown(&eval));
+    println!("report: {}", path(&out));
+    Ok(Outcome::Done)
+}
+
+/// Table 4: training speed per core, then the classic/minimal ratios.
+fn speed_table(speeds: &[Speed]) -> String {
+    let mut s = String::from(
+        "| core | parameters | epochs | total training s | s / epoch | us / sample | best epoch | best val loss |\n\
+         | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n",
+    );
+    for r in speeds {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.1} | {:.2} | {:.0} | {} | {:.4e} |",
+            r.core,
+            r.params,
+            r.epochs,
+            r.total_s,
+            r.total_s / r.epochs.max(1) as f64,
+            r.us_per_sample,
+            r.best_epoch,
+            r.best_val
+        );
+    }
+    let per_epoch = |name: &str| {
+        speeds
+            .iter()
+            .find(|r| r.core == name)
+            .map(|r| r.total_s / r.epochs.max(1) as f64)
+    };
+    for (classic, minimal) in [("lstm", "minlstm"), ("gru", "mingru")] {
+        if let (Some(a), Some(b)) = (per_epoch(classic), per_epoch(minimal)) {
+            let _ = writeln!(s, "\n{classic} / {minimal} time per epoch: {:.2}x", a / b);
+        }
+    }
+    s
+}
+
+/// The Markdown of REPORT.md.
+fn report_text(
+    args: &ReportArgs,
+    train_argv: &[Vec<String>],
+    eval_argv: &[String],
+    eval: &Evaluation,
+    speeds: &[Speed],
+) -> String {
+    let (cpu, cores) = machine();
+    let mut s = String::from("# minflow report\n\n");
+    let _ = writeln!(
+        s,
+        "The experiment of Dharma et al. (ICCS 2025), \"MinRNNs for Lagrangian-Based \
+         Simulations of Transient Flow Problems\", reproduced on `{}`: the cores {} trained \
+         with one configuration, rolled out on the {} scenes beside the `persist` and \
+         `constvel` baselines, and their training speed measured.\n",
+        args.data.iter().map(|p| path(p)).collect::<Vec<_>>().join(" "),
+        args.cores.join(", "),
+        args.eval_split
+    );
+    let _ = writeln!(
+        s,
+        "## Machine and configuration\n\n- CPU: {cpu}, {cores} logical cores ({} rayon \
+         threads); burn ndarray backend (f32), minflow {}\n- seed: {} (split 80:10:10 by \
+         scene, weights, data order, dropout)\n- training: epochs {}, W {}, encoder hidden {}, \
+         final encoder activation {}, batch {} (micro-batch {}), T {}, patience {}\n- \
+         evaluation: horizon {}, {} start(s) per trajectory; {}\n",
+        rayon::current_num_threads(),
+        env!("CARGO_PKG_VERSION"),
+        args.seed,
+        args.epochs,
+        args.width,
+        args.encoder_hidden,
+        args.encoder_last_activation,
+        args.batch_size,
+        args.micro_batch,
+        args.window,
+        args.patience,
+        args.horizon,
+        args.starts,
+        eval.scaler_source
+    );
+    let h = eval.horizon;
+    let families = [
+        ("Table 2: fluid scenes", "fluid/"),
+        ("Table 3: multi-material scenes", "multi/"),
+    ];
+    for (title, prefix) in families {
+        let sub = eval.subset(|sc| sc.starts_with(prefix));
+        let _ = writeln!(
+            s,
+            "## {title}\n\nMSE over scaled (x, y, vx, vy): mean over steps 1..{h} (avg{h}) and \
+             at step {h} (f{h}); lowest of each row and block in bold.\n"
+        );
+        if sub.scenes.is_empty() {
+            let _ = writeln!(s, "No {prefix} scenes among the evaluated scenes.\n");
+        } else {
+            let _ = writeln!(s, "{}", table::markdown(&sub));
+        }
+    }
+    let others = eval.subset(|sc| !families.iter().any(|(_, p)| sc.starts_with(p)));
+    if !others.scenes.is_empty() {
+        let _ = writeln!(s, "## Other scenes\n\n{}", table::markdown(&others));
+    }
+    let _ = writeln!(
+        s,
+        "## Table 4: training speed\n\nMeasured during the runs above (`metrics.csv`): total \
+         training time is the sum of the epochs' training time (validation and checkpoints \
+         excluded), s / epoch its mean, us / sample the inverse of the mean training \
+         throughput.\n\n{}",
+        speed_table(speeds)
+    );
+    let _ = writeln!(s, "## All scenes, details\n\n{}", table::markdown(eval));
+    let _ = writeln!(s, "{}", table::details(eval));
+    s.push_str("## Figures\n\nPer-scene MSE curves (Figures 4, 8, 9):\n\n![MSE curves](eval/mse_curves.png)\n\n");
+    s.push_str("Ground truth beside each model (Figures 1, 7; GIF: every step):\n\n");
+    for scene in eval.scenes.iter().filter(|sc| sc.snapshots.is_some()) {
+        let stem = crate::eval::render::file_stem(&scene.scene);
+        let _ = writeln!(
+            s,
+            "- `{}`: ![{0}](eval/render_{stem}.png) [animation](eval/render_{stem}.gif)",
+            scene.scene
+        );
+    }
+    s.push_str("\nTraining loss curves: ");
+    let links: Vec<String> = args
+        .cores
+        .iter()
+        .map(|c| format!("[{c}](runs/{c}/loss.png)"))
+        .collect();
+    s.push_str(&links.join(", "));
+    s.push_str("\n\n## Reproduce\n\n```sh\n");
+    for argv in train_argv {
+        let _ = writeln!(s, "minflow {}", argv.join(" "));
+    }
+    let _ = writeln!(s, "minflow {}", eval_argv.join(" "));
+    s.push_str("```\n");
+    s
+}

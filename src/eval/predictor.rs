@@ -1,0 +1,161 @@
+//! What `eval` rolls out: the [`Predictor`] trait and its implementations, the two trivial
+//! baselines DESIGN.md ("Metrics") requires beside every model, [`Persist`] (copy the last
+//! frame) and [`ConstVel`] (`x' = x + v dt`, `v' = v`), and [`ModelPredictor`], a trained
+//! run folder on burn's CPU backend ([`Surrogate`], scaling inside).
+//!
+//! Every predictor sees a ground-truth [`Trajectory`] and the offset `first` of the first
+//! frame to predict; it may read only the frames before `first` (its seed: the last
+//! [`Predictor::window`] frames) and returns `steps` predicted physical `[N, 4]` frames,
+//! frame `first + k - 1` of the trajectory for step `k`. (Tests build an oracle that reads the
+//! truth through the same trait.) Used by [`super::rollout`] and [`super::replay`].
+
+use std::path::Path;
+
+use burn::backend::NdArray;
+
+use super::EvalError;
+use crate::data::Trajectory;
+use crate::model::store::Surrogate;
+
+/// The CPU inference backend.
+pub type CpuInfer = NdArray<f32>;
+
+/// Something that predicts frames autoregressively from ground-truth seed frames.
+pub trait Predictor {
+    /// Column name in tables and legends.
+    fn name(&self) -> &str;
+
+    /// Seed frames it reads before `first` (the model's T; 1 for the baselines).
+    fn window(&self) -> usize;
+
+    /// `steps` predicted `[N, 4]` physical frames for trajectory offsets `first..first+steps`,
+    /// seeded with the truth frames `first - window..first`. `first >= window` is the
+    /// caller's duty.
+    fn rollout(
+        &self,
+        traj: &Trajectory,
+        first: usize,
+        steps: usize,
+    ) -> Result<Vec<Vec<f32>>, EvalError>;
+}
+
+/// Baseline: every predicted frame is the last seed frame.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Persist;
+
+impl Predictor for Persist {
+    fn name(&self) -> &str {
+        "persist"
+    }
+
+    fn window(&self) -> usize {
+        1
+    }
+
+    fn rollout(
+        &self,
+        traj: &Trajectory,
+        first: usize,
+        steps: usize,
+    ) -> Result<Vec<Vec<f32>>, EvalError> {
+        let last = traj.state(first - 1);
+        Ok(vec![last.to_vec(); steps])
+    }
+}
+
+/// Baseline: constant velocity from the last seed frame, `x_k = x + k v dt`, `v_k = v`
+/// (iterated in f32 exactly as `x' = x + v dt` step by step).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ConstVel;
+
+impl Predictor for ConstVel {
+    fn name(&self) -> &str {
+        "constvel"
+    }
+
+    fn window(&self) -> usize {
+        1
+    }
+
+    fn rollout(
+        &self,
+        traj: &Trajectory,
+        first: usize,
+        steps: usize,
+    ) -> Result<Vec<Vec<f32>>, EvalError> {
+        let mut state = traj.state(first - 1).to_vec();
+        let dt = traj.dt;
+        let mut out = Vec::with_capacity(steps);
+        for _ in 0..steps {
+            for r in state.chunks_exact_mut(4) {
+                r[0] += r[2] * dt;
+                r[1] += r[3] * dt;
+            }
+            out.push(state.clone());
+        }
+        Ok(out)
+    }
+}
+
+/// A trained model (a `minflow train` run folder) on the CPU backend.
+pub struct ModelPredictor {
+    name: String,
+    surrogate: Surrogate<CpuInfer>,
+}
+
+impl ModelPredictor {
+    /// Loads the run folder `dir` (`model.json` + `model.mpk`); the column is called `name`.
+    pub fn load(dir: &Path, name: impl Into<String>) -> Result<Self, EvalError> {
+        let surrogate =
+            Surrogate::load(dir, &Default::default()).map_err(|e| EvalError::Model {
+                dir: dir.to_path_buf(),
+                what: e.to_string(),
+            })?;
+        Ok(Self {
+            name: name.into(),
+            surrogate,
+        })
+    }
+
+    /// Wraps an already loaded model.
+    pub fn new(surrogate: Surrogate<CpuInfer>, name: impl Into<String>) -> Self {
+        Self {
+            name: name.into(),
+            surrogate,
+        }
+    }
+
+    /// The model (its [`crate::model::store::ModelMeta`] holds the scaler and the config).
+    pub fn surrogate(&self) -> &Surrogate<CpuInfer> {
+        &self.surrogate
+    }
+}
+
+impl Predictor for ModelPredictor {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn window(&self) -> usize {
+        self.surrogate.meta().config.window
+    }
+
+    fn rollout(
+        &self,
+        traj: &Trajectory,
+        first: usize,
+        steps: usize,
+    ) -> Result<Vec<Vec<f32>>, EvalError> {
+        let t = self.window();
+        let seed: Vec<Vec<f32>> = (first - t..first)
+            .map(|k| traj.state(k).to_vec())
+            .collect();
+        self.surrogate
+            .rollout(&seed, &traj.material, traj.dt, steps)
+            .map_err(|e| EvalError::Rollout {
+                predictor: self.name.clone(),
+                scene: traj.scene.clone(),
+                what: e.to_string(),
+            })
+    }
+}

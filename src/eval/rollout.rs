@@ -1,0 +1,194 @@
+//! Direct evaluation (DESIGN.md, "Metrics"): every predictor rolled out autoregressively from
+//! ground-truth seed frames of each trajectory, and each predicted frame scored against the
+//! truth.
+//!
+//! Input: trajectories (usually the test split), predictors, the [`Scaler`] and
+//! [`RolloutOptions`]. A rollout starts at offset `s` of a trajectory: its seed is frames
+//! `s..s + W` (W = the largest window of the predictors, so all of them predict the same
+//! frames; a predictor with a smaller T reads the last T of them) and it predicts frames
+//! `s + W .. s + W + H`, step `k` being frame `s + W + k - 1`. With `starts = 1` there is
+//! one rollout per trajectory, from its first frame (the paper's protocol); with K starts,
+//! K offsets evenly spaced over `0 ..= F - W - H` ([`start_offsets`]). A trajectory shorter
+//! than `W + H` frames is rolled out as far as it goes (noted); a scene split into segments
+//! at a gap gets the rollouts of every segment. Output: one [`Evaluation`], per scene the
+//! per-step metrics averaged over its rollouts. Used by `minflow eval --data` and `report`.
+
+use std::collections::BTreeMap;
+
+use super::{
+    frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums,
+};
+use crate::data::{Scaler, Trajectory};
+
+/// Settings of [`evaluate`].
+#[derive(Debug, Clone)]
+pub struct RolloutOptions {
+    /// Steps predicted per rollout, H (the paper: 20).
+    pub horizon: usize,
+    /// Start frames per trajectory (1: from the first frame only).
+    pub starts: usize,
+    /// Seed frames W before the first prediction, at least every predictor's window (the
+    /// largest is used when this is smaller).
+    pub window: usize,
+    /// Density-map grid G for the density error (0: skip).
+    pub density_grid: usize,
+    /// Keep the first rollout's frames of each scene for the renders.
+    pub snapshots: bool,
+}
+
+impl Default for RolloutOptions {
+    fn default() -> Self {
+        Self {
+            horizon: 20,
+            starts: 1,
+            window: 2,
+            density_grid: 32,
+            snapshots: true,
+        }
+    }
+}
+
+/// The start offsets of `starts` rollouts over a trajectory of `frames` frames with `window`
+/// seed frames and `horizon` steps: evenly spaced over `0 ..= frames - window - horizon`,
+/// rounded, duplicates removed; `[0]` when the trajectory is too short for more than one
+/// full rollout, empty when it has no frame to predict.
+pub fn start_offsets(frames: usize, window: usize, horizon: usize, starts: usize) -> Vec<usize> {
+    if frames <= window {
+        return Vec::new();
+    }
+    let last = frames.saturating_sub(window + horizon);
+    if starts <= 1 || last == 0 {
+        return vec![0];
+    }
+    let mut out: Vec<usize> = (0..starts)
+        .map(|i| ((i as f64) * last as f64 / (starts - 1) as f64).round() as usize)
+        .collect();
+    out.dedup();
+    out
+}
+
+/// Rolls out every predictor on every trajectory and scores each step (see the module doc).
+/// `progress` is advanced by one per (rollout, predictor). Errors when a model refuses a
+/// trajectory or when no trajectory has a frame to predict.
+pub fn evaluate(
+    trajs: &[Trajectory],
+    predictors: &[&dyn Predictor],
+    scaler: &Scaler,
+    scaler_source: &str,
+    opts: &RolloutOptions,
+    progress: &indicatif::ProgressBar,
+) -> Result<Evaluation, EvalError> {
+    let h = opts.horizon.max(1);
+    let w = predictors
+        .iter()
+        .map(|p| p.window())
+        .chain([opts.window, 1])
+        .max()
+        .unwrap_or(1);
+    let mut notes = Vec::new();
+    let mut plan = Vec::new();
+    for traj in trajs {
+        let offsets = start_offsets(traj.frames, w, h, opts.starts);
+        if offsets.is_empty() {
+            notes.push(format!(
+                "scene {:?} (frames {}..{}): {} frames, too short for {w} seed frames; skipped",
+                traj.scene,
+                traj.start_index,
+                traj.start_index as usize + traj.frames,
+                traj.frames
+            ));
+            continue;
+        }
+        let steps = h.min(traj.frames - w);
+        if steps < h {
+            notes.push(format!(
+                "scene {:?} (frames {}..{}): only {steps} of {h} steps after {w} seed frames",
+                traj.scene,
+                traj.start_index,
+                traj.start_index as usize + traj.frames
+            ));
+        }
+        plan.extend(offsets.into_iter().map(|s| (traj, s, steps)));
+    }
+    if plan.is_empty() {
+        return Err(EvalError::Empty(format!(
+            "no trajectory has more than {w} frames"
+        )));
+    }
+    progress.set_length((plan.len() * predictors.len()) as u64);
+    let mut scenes: BTreeMap<String, (SceneResult, Vec<StepSums>)> = BTreeMap::new();
+    for (traj, start, steps) in plan {
+        let first = start + w;
+        let (result, sums) = scenes.entry(traj.scene.clone()).or_insert_with(|| {
+            let result = SceneResult {
+                scene: traj.scene.clone(),
+                missing: vec![0; predictors.len()],
+                ..SceneResult::default()
+            };
+            (result, vec![StepSums::new(h); predictors.len()])
+        });
+        result.rollouts += 1;
+        let keep = opts.snapshots && result.snapshots.is_none();
+        let mut snap = keep.then(|| Snapshots {
+            material: traj.material.clone(),
+            truth: (0..=h)
+                .map(|k| (k <= steps).then(|| traj.state(first + k - 1).to_vec()))
+                .collect(),
+            preds: Vec::new(),
+        });
+        for (p, predictor) in predictors.iter().enumerate() {
+            let frames = predictor.rollout(traj, first, steps)?;
+            for (k, pred) in frames.iter().enumerate().take(steps) {
+                let truth = traj.state(first + k);
+                check_len(traj, first + k, pred.len(), predictor.name())?;
+                sums[p].steps[k].push(frame_metrics(
+                    pred,
+                    truth,
+                    &traj.material,
+                    scaler,
+                    opts.density_grid,
+                ));
+            }
+            if let Some(snap) = snap.as_mut() {
+                let mut row = vec![Some(traj.state(first - 1).to_vec())];
+                row.extend(frames.into_iter().map(Some));
+                row.resize(h + 1, None);
+                snap.preds.push(row);
+            }
+            progress.inc(1);
+        }
+        if snap.is_some() {
+            result.snapshots = snap;
+        }
+    }
+    let scenes = scenes
+        .into_values()
+        .map(|(mut result, sums)| {
+            result.curves = sums.iter().map(StepSums::curve).collect();
+            result
+        })
+        .collect();
+    Ok(Evaluation {
+        predictors: predictors.iter().map(|p| p.name().to_owned()).collect(),
+        horizon: h,
+        scaler: *scaler,
+        scaler_source: scaler_source.to_owned(),
+        scenes,
+        notes,
+    })
+}
+
+/// A predicted frame must have the trajectory's `[N, 4]` shape.
+fn check_len(traj: &Trajectory, offset: usize, len: usize, who: &str) -> Result<(), EvalError> {
+    if len == traj.n * 4 {
+        return Ok(());
+    }
+    Err(EvalError::Mismatch {
+        scene: traj.scene.clone(),
+        frame: traj.frame_index(offset),
+        what: format!(
+            "{who} predicted {len} values, the truth has {} particles x 4",
+            traj.n
+        ),
+    })
+}

@@ -1,0 +1,344 @@
+//! The recorder (`minflow record`, like `ros2 bag record`): subscribes to topics and writes
+//! every valid frame that arrives into MCAP bags in an output folder, rosbag2-style:
+//! `OUT/OUT_0.mcap`, `OUT/OUT_1.mcap`, ... (split by `--max-bag-size` / `--max-bag-duration`)
+//! and `OUT/metadata.yaml` (rosbag2's bag information, so `ros2 bag info OUT` and `ros2 bag
+//! play OUT` work on the folder).
+//!
+//! Nothing received is lost to a clean stop: on SIGINT/SIGTERM the subscriptions are
+//! dropped, every frame already received is written and the bag is finished. Against
+//! SIGKILL, the current chunk is closed and flushed every `flush_interval`, so a killed
+//! recorder leaves a bag readable up to its last flushed chunk. A payload that is not a
+//! valid frame is counted as malformed and logged (first one per topic, then every 100th),
+//! never written. Messages keep the frame's stamp as log and publish time (DESIGN.md,
+//! "Bags"), and their bytes as they travelled where the transport carries CDR.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{channel, RecvTimeoutError};
+use std::time::{Duration, Instant};
+
+use crate::bag::{BagError, BagWriter, DEFAULT_QOS_YAML, MESSAGE_ENCODING};
+use crate::msgs::TYPE_NAME;
+use crate::transport::{Counters, Transport, TransportError};
+
+/// What to record and when to split or stop.
+#[derive(Debug, Clone)]
+pub struct RecordOptions {
+    /// ROS 2 topic names to subscribe to.
+    pub topics: Vec<String>,
+    /// Output folder (created; must not hold bags already).
+    pub out: PathBuf,
+    /// Start a new file once the current one reaches this many bytes.
+    pub max_bag_size: Option<u64>,
+    /// Start a new file after this much wall time.
+    pub max_bag_duration: Option<Duration>,
+    /// Stop after this much wall time.
+    pub duration: Option<Duration>,
+    /// Stop after this many frames written.
+    pub count: Option<u64>,
+    /// Close and flush the current chunk this often (bounds what SIGKILL can lose).
+    pub flush_interval: Duration,
+}
+
+/// What a recording wrote.
+#[derive(Debug, Clone, Default)]
+pub struct RecordReport {
+    /// Frames written, all files.
+    pub written: u64,
+    /// Payloads that were not valid frames (not written).
+    pub malformed: u64,
+    /// Bag files written, in order.
+    pub files: Vec<PathBuf>,
+    /// Frames written per topic.
+    pub per_topic: BTreeMap<String, u64>,
+}
+
+/// Errors that stop a recording.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    /// Writing a bag failed.
+    #[error(transparent)]
+    Bag(#[from] BagError),
+    /// Subscribing failed.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    /// The output folder is unusable.
+    #[error("output folder {path}: {reason}")]
+    Out { path: PathBuf, reason: String },
+}
+
+/// One bag file being written.
+struct OpenBag {
+    writer: BagWriter,
+    opened: Instant,
+    /// Uncompressed bytes written since the last flush (the file size lags until then).
+    pending: u64,
+    info: FileInfo,
+}
+
+/// Per-file numbers for metadata.yaml.
+#[derive(Debug, Clone, Default)]
+struct FileInfo {
+    path: PathBuf,
+    first_ns: Option<u64>,
+    last_ns: u64,
+    count: u64,
+    per_topic: BTreeMap<String, u64>,
+}
+
+impl FileInfo {
+    fn add(&mut self, topic: &str, stamp_ns: u64) {
+        self.first_ns = Some(self.first_ns.map_or(stamp_ns, |f| f.min(stamp_ns)));
+        self.last_ns = self.last_ns.max(stamp_ns);
+        self.count += 1;
+        *self.per_topic.entry(topic.to_owned()).or_default() += 1;
+    }
+}
+
+/// The rosbag2 base name of an output folder: its last component.
+fn base_name(out: &Path) -> String {
+    out.file_name().map_or_else(|| "rosbag2".to_owned(), |n| n.to_string_lossy().into_owned())
+}
+
+/// Records until `stop`, `--duration` or `--count`. `progress` is called with the frames
+/// written so far after each one.
+///
+/// # Errors
+/// [`RecordError`]: the folder holds bags already, a subscription or a write failed.
+pub fn record(
+    options: &RecordOptions,
+    transport: &dyn Transport,
+    counters: &Counters,
+    stop: &AtomicBool,
+    mut progress: impl FnMut(u64),
+) -> Result<RecordReport, RecordError> {
+    let out = &options.out;
+    let out_err = |reason: String| RecordError::Out { path: out.clone(), reason };
+    std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
+    let has_bags = std::fs::read_dir(out)
+        .map_err(|e| out_err(e.to_string()))?
+        .filter_map(Result::ok)
+        .any(|e| e.path().extension().is_some_and(|x| x == "mcap"));
+    if has_bags {
+        return Err(out_err("holds .mcap files already; choose a new folder".into()));
+    }
+    let (tx, rx) = channel();
+    let mut subscriptions = Vec::new();
+    for topic in &options.topics {
+        subscriptions.push(transport.subscribe(topic, tx.clone())?);
+    }
+    drop(tx);
+    tracing::info!("recording {} over {} into {}", options.topics.join(" "), transport.kind(), out.display());
+
+    let base = base_name(out);
+    let mut report = RecordReport::default();
+    let mut infos: Vec<FileInfo> = Vec::new();
+    let mut bag: Option<OpenBag> = None;
+    let started = Instant::now();
+    let mut last_flush = Instant::now();
+    let mut malformed_per_topic: BTreeMap<String, u64> = BTreeMap::new();
+    let mut done = false;
+    loop {
+        let stop_now = stop.load(Ordering::Relaxed)
+            || options.duration.is_some_and(|d| started.elapsed() >= d)
+            || options.count.is_some_and(|n| report.written >= n);
+        if stop_now && !done {
+            // Stop receiving, then write what already arrived.
+            done = true;
+            subscriptions.clear();
+        }
+        let sample = if done {
+            match rx.try_recv() {
+                Ok(s) => s,
+                Err(_) => break,
+            }
+        } else {
+            match rx.recv_timeout(Duration::from_millis(50)) {
+                Ok(s) => s,
+                Err(RecvTimeoutError::Timeout) => {
+                    flush_if_due(&mut bag, &mut last_flush, options.flush_interval)?;
+                    continue;
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        };
+        counters.received();
+        if options.count.is_some_and(|n| report.written >= n) {
+            continue;
+        }
+        let validated = sample.cdr().and_then(|bytes| {
+            let frame = crate::msgs::decode(&bytes).map_err(|e| e.to_string())?;
+            let stamp = frame.header.stamp.as_unsigned_nanos().ok_or("negative stamp")?;
+            Ok((bytes, stamp))
+        });
+        let (bytes, stamp_ns) = match validated {
+            Ok(v) => v,
+            Err(reason) => {
+                counters.malformed();
+                report.malformed += 1;
+                let n = malformed_per_topic.entry(sample.topic.clone()).or_default();
+                *n += 1;
+                if *n == 1 || *n % 100 == 0 {
+                    tracing::warn!("{}: malformed frame #{n} not recorded: {reason}", sample.topic);
+                }
+                continue;
+            }
+        };
+        let split = bag.as_ref().is_some_and(|b| {
+            options.max_bag_size.is_some_and(|max| b.writer.bytes_written() + b.pending >= max)
+                || options.max_bag_duration.is_some_and(|d| b.opened.elapsed() >= d)
+        });
+        if split {
+            let done_bag = bag.take().expect("checked above");
+            infos.push(close(done_bag, &mut report)?);
+        }
+        let open = match &mut bag {
+            Some(b) => b,
+            None => {
+                let path = out.join(format!("{base}_{}.mcap", infos.len()));
+                tracing::info!("writing {}", path.display());
+                bag.insert(OpenBag {
+                    writer: BagWriter::create(&path)?,
+                    opened: Instant::now(),
+                    pending: 0,
+                    info: FileInfo { path, ..FileInfo::default() },
+                })
+            }
+        };
+        open.writer.write_raw(&sample.topic, stamp_ns, &bytes)?;
+        open.pending += bytes.len() as u64;
+        open.info.add(&sample.topic, stamp_ns);
+        report.written += 1;
+        *report.per_topic.entry(sample.topic.clone()).or_default() += 1;
+        progress(report.written);
+        flush_if_due(&mut bag, &mut last_flush, options.flush_interval)?;
+    }
+    drop(subscriptions);
+    if let Some(b) = bag.take() {
+        infos.push(close(b, &mut report)?);
+    }
+    write_metadata(out, &infos).map_err(|e| out_err(format!("metadata.yaml: {e}")))?;
+    Ok(report)
+}
+
+fn flush_if_due(bag: &mut Option<OpenBag>, last: &mut Instant, every: Duration) -> Result<(), RecordError> {
+    if last.elapsed() < every {
+        return Ok(());
+    }
+    *last = Instant::now();
+    if let Some(b) = bag {
+        if b.pending > 0 {
+            b.writer.flush()?;
+            b.pending = 0;
+        }
+    }
+    Ok(())
+}
+
+fn close(bag: OpenBag, report: &mut RecordReport) -> Result<FileInfo, RecordError> {
+    bag.writer.finish()?;
+    report.files.push(bag.info.path.clone());
+    Ok(bag.info)
+}
+
+/// rosbag2's `metadata.yaml` (bag information, version 5 as written by Humble).
+#[derive(serde::Serialize)]
+struct Metadata {
+    rosbag2_bagfile_information: BagInformation,
+}
+
+#[derive(serde::Serialize)]
+struct BagInformation {
+    version: u32,
+    storage_identifier: &'static str,
+    duration: Nanoseconds,
+    starting_time: SinceEpoch,
+    message_count: u64,
+    topics_with_message_count: Vec<TopicCount>,
+    compression_format: &'static str,
+    compression_mode: &'static str,
+    relative_file_paths: Vec<String>,
+    files: Vec<FileEntry>,
+}
+
+#[derive(serde::Serialize)]
+struct Nanoseconds {
+    nanoseconds: u64,
+}
+
+#[derive(serde::Serialize)]
+struct SinceEpoch {
+    nanoseconds_since_epoch: u64,
+}
+
+#[derive(serde::Serialize)]
+struct TopicCount {
+    topic_metadata: TopicMetadata,
+    message_count: u64,
+}
+
+#[derive(serde::Serialize)]
+struct TopicMetadata {
+    name: String,
+    #[serde(rename = "type")]
+    type_name: &'static str,
+    serialization_format: &'static str,
+    offered_qos_profiles: &'static str,
+}
+
+#[derive(serde::Serialize)]
+struct FileEntry {
+    path: String,
+    starting_time: SinceEpoch,
+    duration: Nanoseconds,
+    message_count: u64,
+}
+
+fn write_metadata(out: &Path, files: &[FileInfo]) -> anyhow::Result<()> {
+    let first = files.iter().filter_map(|f| f.first_ns).min().unwrap_or(0);
+    let last = files.iter().map(|f| f.last_ns).max().unwrap_or(0);
+    let mut topics: BTreeMap<&str, u64> = BTreeMap::new();
+    for f in files {
+        for (t, n) in &f.per_topic {
+            *topics.entry(t).or_default() += n;
+        }
+    }
+    let name = |f: &FileInfo| f.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let meta = Metadata {
+        rosbag2_bagfile_information: BagInformation {
+            version: 5,
+            storage_identifier: "mcap",
+            duration: Nanoseconds { nanoseconds: last.saturating_sub(first) },
+            starting_time: SinceEpoch { nanoseconds_since_epoch: first },
+            message_count: files.iter().map(|f| f.count).sum(),
+            topics_with_message_count: topics
+                .into_iter()
+                .map(|(t, n)| TopicCount {
+                    topic_metadata: TopicMetadata {
+                        name: t.to_owned(),
+                        type_name: TYPE_NAME,
+                        serialization_format: MESSAGE_ENCODING,
+                        offered_qos_profiles: DEFAULT_QOS_YAML,
+                    },
+                    message_count: n,
+                })
+                .collect(),
+            compression_format: "",
+            compression_mode: "",
+            relative_file_paths: files.iter().map(name).collect(),
+            files: files
+                .iter()
+                .map(|f| FileEntry {
+                    path: name(f),
+                    starting_time: SinceEpoch { nanoseconds_since_epoch: f.first_ns.unwrap_or(0) },
+                    duration: Nanoseconds { nanoseconds: f.last_ns.saturating_sub(f.first_ns.unwrap_or(0)) },
+                    message_count: f.count,
+                })
+                .collect(),
+        },
+    };
+    let text = serde_yaml_ng::to_string(&meta)?;
+    std::fs::write(out.join("metadata.yaml"), text)?;
+    Ok(())
+}

@@ -1,0 +1,269 @@
+//! Transports: one small interface to publish and subscribe `ParticleFrame`s on a named
+//! topic, with three real implementations (DESIGN.md, "Topics and transports").
+//!
+//! - [`zenoh`](self::zenoh): key = topic without the leading slash, payload = the CDR bytes
+//!   (the zenoh-bridge-ros2dds mapping); embedded peer session by default, or a standard
+//!   zenoh JSON5 config file.
+//! - [`iceoryx2`](self::iceoryx2): zero-copy shared memory, a `#[repr(C)]` user header and a
+//!   slice of `#[repr(C)]` particles; stale resources of dead nodes are removed on open.
+//! - [`ros2`](self::ros2): ROS 2 over DDS with `ros2-client` (`rt/mpm/frames`,
+//!   `minflow_msgs::msg::dds_::ParticleFrame_`, default ROS 2 QoS, `ROS_DOMAIN_ID`), and the
+//!   same crate's rmw_zenoh-compatible backend as `ros2-zenoh`.
+//!
+//! Every subscription delivers [`Sample`]s into a channel owned by the caller, from the
+//! transport's own I/O thread: the caller's thread never runs transport code, and a slow
+//! consumer never blocks a publisher.
+
+pub mod counters;
+pub mod iceoryx2;
+pub mod ros2;
+pub mod zenoh;
+
+use std::path::PathBuf;
+use std::sync::mpsc::Sender;
+use std::time::{Duration, Instant};
+
+use crate::msgs::{cdr, ParticleFrame};
+
+pub use counters::Counters;
+
+/// Which middleware carries the frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TransportKind {
+    /// zenoh 1.x: key = topic without the leading '/', payload = CDR bytes.
+    Zenoh,
+    /// iceoryx2 zero-copy shared memory (same host only).
+    Iceoryx2,
+    /// ROS 2 over DDS (RTPS) with ros2-client; honours ROS_DOMAIN_ID.
+    Ros2,
+    /// ROS 2 over rmw_zenoh's wire protocol (ros2-client's zenoh backend).
+    Ros2Zenoh,
+}
+
+impl std::fmt::Display for TransportKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            TransportKind::Zenoh => "zenoh",
+            TransportKind::Iceoryx2 => "iceoryx2",
+            TransportKind::Ros2 => "ros2",
+            TransportKind::Ros2Zenoh => "ros2-zenoh",
+        })
+    }
+}
+
+/// Options shared by every node that opens a transport (the `--transport` flag group).
+#[derive(Debug, Clone, clap::Args)]
+pub struct TransportOptions {
+    /// Middleware to use.
+    #[arg(long, value_enum, default_value_t = TransportKind::Zenoh)]
+    pub transport: TransportKind,
+    /// A standard zenoh JSON5 config file (routers, endpoints, scouting, TLS, access
+    /// control, shared memory); without it, an embedded peer session that needs no router.
+    #[arg(long, value_name = "FILE")]
+    pub zenoh_config: Option<PathBuf>,
+}
+
+impl TransportOptions {
+    /// Options for `kind` with the default zenoh session.
+    pub fn new(kind: TransportKind) -> Self {
+        TransportOptions { transport: kind, zenoh_config: None }
+    }
+}
+
+/// Errors of opening a transport, declaring a publisher/subscriber or sending.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// The middleware could not be opened (session, node or context creation).
+    #[error("cannot open {transport}: {reason}")]
+    Open { transport: TransportKind, reason: String },
+    /// A publisher or subscriber could not be declared on `topic`.
+    #[error("cannot declare {what} on {topic} over {transport}: {reason}")]
+    Declare { transport: TransportKind, what: &'static str, topic: String, reason: String },
+    /// Sending one frame failed.
+    #[error("cannot publish on {topic} over {transport}: {reason}")]
+    Publish { transport: TransportKind, topic: String, reason: String },
+    /// The frame cannot be carried by this transport (for example a scene id longer than
+    /// iceoryx2's 63-byte header field, or more particles than the service allows).
+    #[error("frame not representable on {transport}: {reason}")]
+    Unrepresentable { transport: TransportKind, reason: String },
+    /// The topic is not a valid ROS 2 topic name (`/a/b`, no trailing '/').
+    #[error("invalid topic {0:?}: expected an absolute ROS 2 name such as /mpm/frames")]
+    Topic(String),
+}
+
+/// What arrived on a subscription.
+#[derive(Debug, Clone)]
+pub enum Payload {
+    /// Serialized bytes as they travelled (zenoh, ROS 2): CDR with encapsulation header.
+    Cdr(Vec<u8>),
+    /// A frame rebuilt from a zero-copy sample (iceoryx2).
+    Frame(ParticleFrame),
+    /// Something arrived that is not a valid frame; the reason says why.
+    Malformed(String),
+}
+
+/// One received message with the topic it came on and when it arrived.
+#[derive(Debug, Clone)]
+pub struct Sample {
+    /// ROS 2 topic name (`/mpm/frames`).
+    pub topic: String,
+    /// The message.
+    pub payload: Payload,
+    /// Arrival time on the transport's I/O thread (for latency measurements).
+    pub received: Instant,
+}
+
+impl Sample {
+    /// The frame, decoding CDR if needed.
+    ///
+    /// # Errors
+    /// The reason a payload is malformed (CDR decode error, failed validation).
+    pub fn frame(&self) -> Result<ParticleFrame, String> {
+        let frame = match &self.payload {
+            Payload::Cdr(bytes) => cdr::decode(bytes).map_err(|e| e.to_string())?,
+            Payload::Frame(frame) => frame.clone(),
+            Payload::Malformed(reason) => return Err(reason.clone()),
+        };
+        frame.validate().map_err(|e| e.to_string())?;
+        Ok(frame)
+    }
+
+    /// The CDR bytes of the message, encoding a zero-copy frame if needed; validated.
+    ///
+    /// # Errors
+    /// As [`Sample::frame`].
+    pub fn cdr(&self) -> Result<Vec<u8>, String> {
+        match &self.payload {
+            Payload::Cdr(bytes) => {
+                let frame = cdr::decode(bytes).map_err(|e| e.to_string())?;
+                frame.validate().map_err(|e| e.to_string())?;
+                Ok(bytes.clone())
+            }
+            _ => self.frame().map(|f| cdr::encode(&f)),
+        }
+    }
+}
+
+/// A publisher of frames on one topic.
+pub trait FramePublisher: Send {
+    /// Publishes one frame.
+    ///
+    /// # Errors
+    /// [`TransportError::Publish`] or [`TransportError::Unrepresentable`].
+    fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError>;
+
+    /// Publishes a frame given as its CDR bytes (replay: the bag's bytes go out unchanged
+    /// where the transport carries CDR). The default decodes and calls [`publish`].
+    ///
+    /// [`publish`]: FramePublisher::publish
+    ///
+    /// # Errors
+    /// As [`publish`](FramePublisher::publish); malformed bytes give `Unrepresentable`.
+    fn publish_cdr(&mut self, bytes: &[u8], frame: &ParticleFrame) -> Result<(), TransportError> {
+        let _ = bytes;
+        self.publish(frame)
+    }
+
+    /// Waits (at most `timeout`) until what was published has been delivered to the matched
+    /// subscribers as far as the middleware can tell (DDS: acknowledged by reliable readers;
+    /// zenoh: the session's queues drained). Call before dropping a publisher whose last
+    /// messages matter. The default returns at once.
+    fn flush(&mut self, timeout: Duration) {
+        let _ = timeout;
+    }
+
+    /// Number of subscribers currently matched (a lower bound where the middleware only
+    /// tells whether any is matched: zenoh gives 0 or 1).
+    fn subscriber_count(&self) -> usize;
+}
+
+/// Keeps a subscription alive; dropping it stops delivery and joins its thread.
+pub trait Subscription: Send {}
+
+/// An open middleware session: the factory of publishers and subscriptions.
+pub trait Transport: Send + Sync {
+    /// Which middleware this is.
+    fn kind(&self) -> TransportKind;
+
+    /// Declares a publisher on `topic` (a ROS 2 name such as `/mpm/frames`).
+    ///
+    /// # Errors
+    /// [`TransportError::Declare`] or [`TransportError::Topic`].
+    fn publisher(&self, topic: &str) -> Result<Box<dyn FramePublisher>, TransportError>;
+
+    /// Subscribes to `topic`; every message is sent to `sink` from the transport's I/O
+    /// thread, in arrival order. Delivery stops when the returned handle is dropped or the
+    /// receiver is gone.
+    ///
+    /// # Errors
+    /// [`TransportError::Declare`] or [`TransportError::Topic`].
+    fn subscribe(
+        &self,
+        topic: &str,
+        sink: Sender<Sample>,
+    ) -> Result<Box<dyn Subscription>, TransportError>;
+}
+
+/// Opens the middleware named by `options`.
+///
+/// # Errors
+/// [`TransportError::Open`] with the middleware's own message.
+pub fn open(options: &TransportOptions) -> Result<Box<dyn Transport>, TransportError> {
+    match options.transport {
+        TransportKind::Zenoh => Ok(Box::new(zenoh::ZenohTransport::open(options.zenoh_config.as_deref())?)),
+        TransportKind::Iceoryx2 => Ok(Box::new(iceoryx2::IceoryxTransport::open()?)),
+        TransportKind::Ros2 => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Dds)?)),
+        TransportKind::Ros2Zenoh => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Zenoh)?)),
+    }
+}
+
+/// Checks a ROS 2 topic name (absolute, segments of `[A-Za-z0-9_]`, no trailing '/') and
+/// returns it without the leading slash: the zenoh key and iceoryx2 service name.
+///
+/// # Errors
+/// [`TransportError::Topic`].
+pub fn topic_key(topic: &str) -> Result<&str, TransportError> {
+    let key = topic.strip_prefix('/').ok_or_else(|| TransportError::Topic(topic.to_owned()))?;
+    let ok = !key.is_empty()
+        && key.split('/').all(|seg| {
+            !seg.is_empty()
+                && seg.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                && !seg.starts_with(|c: char| c.is_ascii_digit())
+        });
+    if ok {
+        Ok(key)
+    } else {
+        Err(TransportError::Topic(topic.to_owned()))
+    }
+}
+
+/// Waits until `publisher` has at least `n` subscribers, or `timeout` passes.
+/// Returns whether the count was reached.
+pub fn wait_for_subscribers(publisher: &dyn FramePublisher, n: usize, timeout: Duration) -> bool {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if publisher.subscriber_count() >= n {
+            return true;
+        }
+        if Instant::now() >= deadline {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn topic_names() {
+        assert_eq!(topic_key("/mpm/frames").unwrap(), "mpm/frames");
+        assert!(topic_key("mpm/frames").is_err());
+        assert!(topic_key("/mpm/").is_err());
+        assert!(topic_key("/mpm//frames").is_err());
+        assert!(topic_key("/mpm/fr ames").is_err());
+        assert!(topic_key("/1mpm").is_err());
+    }
+}
