@@ -93,11 +93,17 @@ fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
         );
         let mut frames = 0;
         while let Some(frame) = decoder.read_next_frame().unwrap() {
-            assert_eq!((u32::from(frame.width), u32::from(frame.height)), gif_size(2));
+            assert_eq!(
+                (u32::from(frame.width), u32::from(frame.height)),
+                gif_size(2)
+            );
             frames += 1;
         }
         assert_eq!(frames, 21, "steps 0..=20");
     }
     let md = std::fs::read_to_string(dir.path().join("table.md")).unwrap();
-    assert!(md.contains("| `test/drift/000` |") && md.contains("| **Average** |"), "{md}");
+    assert!(
+        md.contains("| `test/drift/000` |") && md.contains("| **Average** |"),
+        "{md}"
+    );
 }

@@ -115,18 +115,38 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
 
     // Direct evaluation.
     let direct = tmp.path().join("direct");
-    let o = minflow(&["eval", "--model", s(&model), "--data", s(&bags), "--out", s(&direct)]);
+    let o = minflow(&[
+        "eval",
+        "--model",
+        s(&model),
+        "--data",
+        s(&bags),
+        "--out",
+        s(&direct),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(stdout.contains("| Scene |") && stdout.contains("avg20 tiny"), "{stdout}");
+    assert!(
+        stdout.contains("| Scene |") && stdout.contains("avg20 tiny"),
+        "{stdout}"
+    );
 
     // The same rollouts, written offline to a bag and scored as recorded predictions.
     let pred = tmp.path().join("pred.mcap");
     let scenes = predictions_bag(&model, &pred, &[]);
     let replay = tmp.path().join("replay");
     let o = minflow(&[
-        "eval", "--pred", s(&pred), "--truth", s(&bags), "--model", s(&model), "--name", "tiny",
-        "--out", s(&replay),
+        "eval",
+        "--pred",
+        s(&pred),
+        "--truth",
+        s(&bags),
+        "--model",
+        s(&model),
+        "--name",
+        "tiny",
+        "--out",
+        s(&replay),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for file in ["table.csv", "metrics.csv"] {
@@ -141,14 +161,26 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
     predictions_bag(&model, &gappy, &[3, 7, 20]);
     let out = tmp.path().join("gappy");
     let o = minflow(&[
-        "eval", "--pred", s(&gappy), "--truth", s(&bags), "--model", s(&model), "--name", "tiny",
-        "--out", s(&out), "--no-render",
+        "eval",
+        "--pred",
+        s(&gappy),
+        "--truth",
+        s(&bags),
+        "--model",
+        s(&model),
+        "--name",
+        "tiny",
+        "--out",
+        s(&out),
+        "--no-render",
     ]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(3), "{stderr}");
     for scene in &scenes {
         assert!(
-            stderr.contains(&format!("scene {scene:?}: 3 of 20 predicted frames missing")),
+            stderr.contains(&format!(
+                "scene {scene:?}: 3 of 20 predicted frames missing"
+            )),
             "{stderr}"
         );
     }
@@ -171,8 +203,15 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
     let row: Vec<&str> = table.lines().nth(1).unwrap().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
     let avg: f64 = row[col("avg20_tiny")].parse().unwrap();
-    assert!((avg - expected).abs() <= 1e-12 * expected, "{avg} vs {expected}");
-    assert_eq!(row[col("f20_tiny")], "", "f20 of a missing frame is not scored");
+    assert!(
+        (avg - expected).abs() <= 1e-12 * expected,
+        "{avg} vs {expected}"
+    );
+    assert_eq!(
+        row[col("f20_tiny")],
+        "",
+        "f20 of a missing frame is not scored"
+    );
     // The baselines are untouched by the gaps.
     let full_table = read(&replay.join("table.csv"));
     let full_row: Vec<&str> = full_table.lines().nth(1).unwrap().split(',').collect();
@@ -186,10 +225,24 @@ fn bad_invocations_fail_clearly() {
     let o = minflow(&["eval", "--out", s(tmp.path())]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("give either --data"));
-    let o = minflow(&["eval", "--data", s(&bags()), "--split", "nope", "--out", s(tmp.path())]);
+    let o = minflow(&[
+        "eval",
+        "--data",
+        s(&bags()),
+        "--split",
+        "nope",
+        "--out",
+        s(tmp.path()),
+    ]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown --split"));
-    let o = minflow(&["eval", "--model", s(&tmp.path().join("none")), "--data", s(&bags())]);
+    let o = minflow(&[
+        "eval",
+        "--model",
+        s(&tmp.path().join("none")),
+        "--data",
+        s(&bags()),
+    ]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("loading model"));
 }

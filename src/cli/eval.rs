@@ -92,9 +92,10 @@ pub(crate) fn parse_split(s: &str) -> anyhow::Result<Option<Part>> {
 pub(crate) fn model_names(dirs: &[PathBuf]) -> Vec<String> {
     let mut names: Vec<String> = Vec::new();
     for dir in dirs {
-        let base = dir
-            .file_name()
-            .map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into_owned());
+        let base = dir.file_name().map_or_else(
+            || dir.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
         let mut name = base.clone();
         let mut i = 2;
         while names.contains(&name) || name == "persist" || name == "constvel" {
@@ -115,8 +116,8 @@ pub(crate) fn scaler_for(
 ) -> anyhow::Result<(Scaler, String)> {
     if let Some(dir) = models.first() {
         let path = dir.join("model.json");
-        let text =
-            std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
         let meta: ModelMeta =
             serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         return Ok((
@@ -250,10 +251,14 @@ pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
     for note in &eval.notes {
         eprintln!("note: {note}");
     }
+    let scenes = if args.pred.is_empty() {
+        format!("{} scenes of the {} split", eval.scenes.len(), args.split)
+    } else {
+        format!("{} predicted scenes", eval.scenes.len())
+    };
     eprintln!(
-        "{} ({}); {} files in {}",
+        "{scenes}, {}; {} files in {}",
         eval.scaler_source,
-        args.split,
         files.len(),
         args.out.display()
     );

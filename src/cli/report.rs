@@ -106,7 +106,8 @@ struct Speed {
 
 fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
     let csv = dir.join("metrics.csv");
-    let text = std::fs::read_to_string(&csv).with_context(|| format!("reading {}", csv.display()))?;
+    let text =
+        std::fs::read_to_string(&csv).with_context(|| format!("reading {}", csv.display()))?;
     let (mut epochs, mut total, mut rate) = (0usize, 0.0f64, 0.0f64);
     for line in text.lines().skip(1) {
         let f: Vec<f64> = line.split(',').filter_map(|v| v.parse().ok()).collect();
@@ -121,7 +122,10 @@ fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
         &std::fs::read_to_string(&meta_path)
             .with_context(|| format!("reading {}", meta_path.display()))?,
     )?;
-    let params = meta.config.init::<CpuInfer>(&Default::default()).num_params();
+    let params = meta
+        .config
+        .init::<CpuInfer>(&Default::default())
+        .num_params();
     let rate = rate / epochs.max(1) as f64;
     Ok(Speed {
         core: core.to_owned(),
@@ -173,7 +177,10 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
             ("--window", args.window.to_string()),
             ("--seed", args.seed.to_string()),
             ("--patience", args.patience.to_string()),
-            ("--encoder-last-activation", args.encoder_last_activation.clone()),
+            (
+                "--encoder-last-activation",
+                args.encoder_last_activation.clone(),
+            ),
         ] {
             argv.extend([flag.to_owned(), value]);
         }
@@ -275,7 +282,11 @@ fn report_text(
          Simulations of Transient Flow Problems\", reproduced on `{}`: the cores {} trained \
          with one configuration, rolled out on the {} scenes beside the `persist` and \
          `constvel` baselines, and their training speed measured.\n",
-        args.data.iter().map(|p| path(p)).collect::<Vec<_>>().join(" "),
+        args.data
+            .iter()
+            .map(|p| path(p))
+            .collect::<Vec<_>>()
+            .join(" "),
         args.cores.join(", "),
         args.eval_split
     );

@@ -184,8 +184,16 @@ impl Evaluation {
     pub fn averages(&self) -> Vec<(Option<FrameMetrics>, Option<FrameMetrics>)> {
         (0..self.predictors.len())
             .map(|p| {
-                let avgs: Vec<_> = self.scenes.iter().filter_map(|s| s.curves[p].avg()).collect();
-                let lasts: Vec<_> = self.scenes.iter().filter_map(|s| s.curves[p].last()).collect();
+                let avgs: Vec<_> = self
+                    .scenes
+                    .iter()
+                    .filter_map(|s| s.curves[p].avg())
+                    .collect();
+                let lasts: Vec<_> = self
+                    .scenes
+                    .iter()
+                    .filter_map(|s| s.curves[p].last())
+                    .collect();
                 (FrameMetrics::mean(&avgs), FrameMetrics::mean(&lasts))
             })
             .collect()

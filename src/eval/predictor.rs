@@ -147,9 +147,7 @@ impl Predictor for ModelPredictor {
         steps: usize,
     ) -> Result<Vec<Vec<f32>>, EvalError> {
         let t = self.window();
-        let seed: Vec<Vec<f32>> = (first - t..first)
-            .map(|k| traj.state(k).to_vec())
-            .collect();
+        let seed: Vec<Vec<f32>> = (first - t..first).map(|k| traj.state(k).to_vec()).collect();
         self.surrogate
             .rollout(&seed, &traj.material, traj.dt, steps)
             .map_err(|e| EvalError::Rollout {

@@ -30,8 +30,12 @@ pub const LABEL_W: u32 = 110;
 pub const HEADER: u32 = 28;
 /// Particle colours (RGB) by material id: liquid blue, jelly red-orange, snow light grey,
 /// rope green.
-pub const MATERIAL_COLOURS: [(u8, u8, u8); 4] =
-    [(66, 135, 245), (240, 90, 40), (225, 228, 235), (110, 200, 70)];
+pub const MATERIAL_COLOURS: [(u8, u8, u8); 4] = [
+    (66, 135, 245),
+    (240, 90, 40),
+    (225, 228, 235),
+    (110, 200, 70),
+];
 const BACKGROUND: (u8, u8, u8) = (14, 14, 18);
 const PANEL: (u8, u8, u8) = (30, 32, 40);
 const BORDER: (u8, u8, u8) = (90, 92, 104);
@@ -161,7 +165,8 @@ pub fn render_grid(
     let e = |what: String| out_err(path, what);
     for (j, step) in grid_steps(h).into_iter().enumerate() {
         let x = LABEL_W + j as u32 * CELL;
-        c.text(&format!("step {step}"), (x + 70, 6), 16.0).map_err(e)?;
+        c.text(&format!("step {step}"), (x + 70, 6), 16.0)
+            .map_err(e)?;
     }
     for (i, (label, frames)) in rows.iter().enumerate() {
         let y = HEADER + i as u32 * CELL;

@@ -19,9 +19,7 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use super::{
-    frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums,
-};
+use super::{frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums};
 use crate::bag::{bag_paths, BagError, BagReader, Truncation};
 use crate::data::{Scaler, Trajectory};
 
@@ -48,10 +46,7 @@ pub struct Predictions {
 /// Reads the predicted frames on `topic` (every ParticleFrame channel when `None`) of the
 /// bags in `inputs` (files, folders, patterns). Errors on unreadable bags and on frames whose
 /// particle count or materials change within a scene; a truncated bag gives what was read.
-pub fn read_predictions(
-    inputs: &[PathBuf],
-    topic: Option<&str>,
-) -> Result<Predictions, EvalError> {
+pub fn read_predictions(inputs: &[PathBuf], topic: Option<&str>) -> Result<Predictions, EvalError> {
     let mut out = Predictions::default();
     let mut read = 0usize;
     for path in bag_paths(inputs)? {
@@ -154,7 +149,9 @@ pub fn score_predictions(
     for t in truth {
         by_scene
             .entry(t.scene.as_str())
-            .or_insert_with(|| Truth { segments: Vec::new() })
+            .or_insert_with(|| Truth {
+                segments: Vec::new(),
+            })
             .segments
             .push(t);
     }
@@ -215,9 +212,8 @@ pub fn score_predictions(
                 result.unmatched += usize::from(pred.is_some());
                 continue;
             };
-            let score = |p: &[f32]| {
-                frame_metrics(p, truth_frame, material, scaler, opts.density_grid)
-            };
+            let score =
+                |p: &[f32]| frame_metrics(p, truth_frame, material, scaler, opts.density_grid);
             match pred {
                 Some(p) => sums[0].steps[k - 1].push(score(p)),
                 None => result.missing[0] += 1,

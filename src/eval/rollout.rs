@@ -15,9 +15,7 @@
 
 use std::collections::BTreeMap;
 
-use super::{
-    frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums,
-};
+use super::{frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums};
 use crate::data::{Scaler, Trajectory};
 
 /// Settings of [`evaluate`].

@@ -27,16 +27,28 @@ fn rows(eval: &Evaluation, metric: &dyn Fn(&FrameMetrics) -> f64) -> Vec<Row> {
         .map(|s| {
             (
                 s.scene.clone(),
-                s.curves.iter().map(|c| c.avg().map(|m| metric(&m))).collect(),
-                s.curves.iter().map(|c| c.last().map(|m| metric(&m))).collect(),
+                s.curves
+                    .iter()
+                    .map(|c| c.avg().map(|m| metric(&m)))
+                    .collect(),
+                s.curves
+                    .iter()
+                    .map(|c| c.last().map(|m| metric(&m)))
+                    .collect(),
             )
         })
         .collect();
     let averages = eval.averages();
     out.push((
         "Average".into(),
-        averages.iter().map(|(a, _)| a.map(|m| metric(&m))).collect(),
-        averages.iter().map(|(_, f)| f.map(|m| metric(&m))).collect(),
+        averages
+            .iter()
+            .map(|(a, _)| a.map(|m| metric(&m)))
+            .collect(),
+        averages
+            .iter()
+            .map(|(_, f)| f.map(|m| metric(&m)))
+            .collect(),
     ));
     out
 }
