@@ -205,3 +205,60 @@ fn start_offsets_are_evenly_spaced() {
     assert_eq!(start_offsets(10, 2, 20, 4), vec![0]);
     assert!(start_offsets(2, 2, 20, 1).is_empty());
 }
+
+#[test]
+fn recorded_one_step_predictions_get_one_step_baselines() {
+    use minflow::eval::replay::ScenePredictions;
+    use minflow::eval::{score_predictions, Predictions, ReplayOptions};
+    let mut t = three_frames();
+    // A fourth frame.
+    t.states
+        .extend_from_slice(&[0.5, 0.2, 0.3, -0.1, 0.5, 0.7, 0.05, 0.1]);
+    t.frames = 4;
+    // Perfect predictions of frames 2 and 3.
+    let mut preds = Predictions::default();
+    preds.scenes.insert(
+        t.scene.clone(),
+        ScenePredictions {
+            material: t.material.clone(),
+            frames: [(2, t.state(2).to_vec()), (3, t.state(3).to_vec())].into(),
+            duplicates: 0,
+        },
+    );
+    let baselines: [&dyn Predictor; 1] = [&Persist];
+    let score = |one_step| {
+        let opts = ReplayOptions {
+            horizon: 2,
+            one_step,
+            density_grid: 0,
+            snapshots: false,
+        };
+        score_predictions(
+            &preds,
+            "pred",
+            &[t.clone()],
+            &baselines,
+            &scaler(),
+            "s",
+            &opts,
+        )
+        .unwrap()
+    };
+    let direct = |pred: usize, truth: usize| {
+        frame_metrics(t.state(pred), t.state(truth), &t.material, &scaler(), 0).mse
+    };
+    for one_step in [false, true] {
+        let eval = score(one_step);
+        let scene = &eval.scenes[0];
+        assert_eq!(scene.missing, [0, 0]);
+        assert_eq!(
+            scene.curves[0].avg().unwrap().mse,
+            0.0,
+            "the oracle scores 0"
+        );
+        // Step 1 is predicted from frame 1 either way; step 2 from frame 1 (rollout) or 2.
+        close(scene.curves[1].steps[0].unwrap().mse, direct(1, 2));
+        let seed = if one_step { 2 } else { 1 };
+        close(scene.curves[1].steps[1].unwrap().mse, direct(seed, 3));
+    }
+}

@@ -220,6 +220,33 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
 }
 
 #[test]
+fn without_a_model_the_baselines_use_a_scaler_fitted_on_the_training_split() {
+    let tmp = tempfile::tempdir().unwrap();
+    let o = minflow(&[
+        "eval",
+        "--data",
+        s(&bags()),
+        "--split",
+        "all",
+        "--no-render",
+        "--out",
+        s(tmp.path()),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("fitted on the 4 training scenes of the data (split seed 0)"),
+        "{stderr}"
+    );
+    let table = read(&tmp.path().join("table.csv"));
+    assert_eq!(
+        table.lines().next().unwrap(),
+        "scene,avg20_persist,avg20_constvel,f20_persist,f20_constvel"
+    );
+    assert_eq!(table.lines().count(), 1 + 6 + 1, "6 scenes and the average");
+}
+
+#[test]
 fn bad_invocations_fail_clearly() {
     let tmp = tempfile::tempdir().unwrap();
     let o = minflow(&["eval", "--out", s(tmp.path())]);

@@ -16,7 +16,7 @@ use clap::Args;
 
 use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
-use crate::data::{self, Part, Scaler, Split};
+use crate::data::{self, Part, Scaler, Split, StreamingLoader};
 use crate::eval::{
     self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReplayOptions,
     RolloutOptions,
@@ -127,9 +127,19 @@ pub(crate) fn scaler_for(
     }
     let infos = data::scan(data, Some(topic)).context("reading the ground-truth bags")?;
     let split = Split::new(infos.iter().map(|s| &s.scene), seed);
-    let (train, _) = data::load_scenes(data, Some(topic), &split.train)
-        .context("loading the training scenes to fit the scaler")?;
-    let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
+    let train: Vec<_> = infos
+        .into_iter()
+        .filter(|s| split.part_of(&s.scene) == Some(Part::Train))
+        .collect();
+    // Streamed chunk by chunk, so a paper-sized training split need not fit in memory.
+    let budget = train
+        .iter()
+        .map(|s| s.frames)
+        .max()
+        .unwrap_or(1)
+        .max(50_000);
+    let scaler = StreamingLoader::fit_scaler(train, Some(topic), budget)
+        .context("fitting the scaler on the training scenes")?;
     Ok((
         scaler,
         format!(

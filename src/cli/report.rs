@@ -280,8 +280,8 @@ fn report_text(
         s,
         "The experiment of Dharma et al. (ICCS 2025), \"MinRNNs for Lagrangian-Based \
          Simulations of Transient Flow Problems\", reproduced on `{}`: the cores {} trained \
-         with one configuration, rolled out on the {} scenes beside the `persist` and \
-         `constvel` baselines, and their training speed measured.\n",
+         with one configuration, rolled out on the scenes of the `{}` split beside the \
+         `persist` and `constvel` baselines, and their training speed measured.\n",
         args.data
             .iter()
             .map(|p| path(p))
@@ -312,6 +312,14 @@ fn report_text(
         args.starts,
         eval.scaler_source
     );
+    if args.eval_split != "test" {
+        let _ = writeln!(
+            s,
+            "**Note:** the evaluated scenes (`--eval-split {}`) are not only held-out test \
+             scenes, so the tables below are not a generalisation result.\n",
+            args.eval_split
+        );
+    }
     let h = eval.horizon;
     let families = [
         ("Table 2: fluid scenes", "fluid/"),

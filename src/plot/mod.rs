@@ -6,6 +6,8 @@
 //! charts look the same on every machine. Used by `minflow train` for the loss curve and by
 //! `minflow eval` for per-scene MSE curves.
 //!
+//! [`draw_text`] writes labels onto RGB images (`minflow eval`'s particle renders).
+//!
 //! Non-finite points, points beyond ±1e300 and, on a log y axis, points with y <= 0 (or below
 //! 1e-300) are skipped; a chart with nothing left to draw still gets its axes, on a default
 //! range. Every failure is one [`PlotError`] that names the file.

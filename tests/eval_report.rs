@@ -1,0 +1,91 @@
+//! `minflow report` (issue 4) end to end on the bundled bags with two tiny cores and one
+//! epoch: REPORT.md states the machine, the configuration and the seed and holds Tables 2,
+//! 3 and 4 and the figures it links to; `--reuse` skips training.
+
+use std::process::Command;
+
+#[test]
+fn report_trains_evaluates_and_writes_report_md() {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("report");
+    let args = [
+        "report",
+        "--data",
+        bags,
+        "--out",
+        out.to_str().unwrap(),
+        "--cores",
+        "mlp,mingru",
+        "--epochs",
+        "1",
+        "--width",
+        "24",
+        "--encoder-hidden",
+        "8",
+        "--eval-split",
+        "all",
+        "--seed",
+        "3",
+    ];
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report = std::fs::read_to_string(out.join("REPORT.md")).unwrap();
+    for needle in [
+        "logical cores",
+        "- seed: 3",
+        "## Table 2: fluid scenes",
+        "## Table 3: multi-material scenes",
+        "## Table 4: training speed",
+        "| `fluid/circle/000` |",
+        "| `multi/rope+snow/001` |",
+        "| mingru |",
+        "avg20 mlp",
+        "f20 constvel",
+        "not only held-out test",
+        "minflow train --data",
+    ] {
+        assert!(report.contains(needle), "missing {needle:?} in\n{report}");
+    }
+    for file in [
+        "eval/mse_curves.png",
+        "eval/table.csv",
+        "eval/render_fluid_circle_000.gif",
+        "runs/mingru/model.json",
+        "runs/mlp/loss.png",
+    ] {
+        assert!(out.join(file).exists(), "missing {file}");
+    }
+    // Table 4 has one row per core with one epoch each.
+    let rows: Vec<&str> = report
+        .lines()
+        .filter(|l| l.starts_with("| mlp |") || l.starts_with("| mingru |"))
+        .filter(|l| l.split('|').count() == 10)
+        .collect();
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    assert!(rows
+        .iter()
+        .all(|r| r.split('|').nth(3).unwrap().trim() == "1"));
+
+    // Rerun with --reuse: nothing is trained again (metrics.csv untouched).
+    let before = std::fs::metadata(out.join("runs/mlp/metrics.csv"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    let mut again: Vec<&str> = args.to_vec();
+    again.push("--reuse");
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(&again)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("mlp: reusing"));
+    let after = std::fs::metadata(out.join("runs/mlp/metrics.csv"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    assert_eq!(before, after);
+}
