@@ -217,7 +217,8 @@ pub fn details(eval: &Evaluation) -> String {
         s,
         "\nPhysics diagnostics ({avg}, mean over scenes): kinetic-energy error |KE - KE*| \
          (KE = 1/2 mean |v|^2), centre-of-mass error (domain units), density-map MSE \
-         (32 x 32 tent splat, mean 1), particles outside the unit square per frame:\n"
+         (G x G tent splat, `--density-grid`, default 32; mean 1), particles outside the \
+         unit square per frame:\n"
     );
     s.push_str("| predictor | KE error | CoM error | density error | outside |\n");
     s.push_str("| --- | ---: | ---: | ---: | ---: |\n");
