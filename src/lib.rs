@@ -9,6 +9,7 @@ pub mod bag;
 pub mod cli;
 pub mod data;
 pub mod eval;
+pub mod launch;
 pub mod model;
 pub mod msgs;
 pub mod node;

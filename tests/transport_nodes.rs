@@ -180,7 +180,7 @@ fn recorder_terminated_leaves_a_complete_bag() {
 
 #[test]
 fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
-    use minflow::transport::{self, TransportKind, TransportOptions};
+    use minflow::transport::{self, Transport};
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("malformed");
@@ -192,7 +192,7 @@ fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
         use zenoh::Wait;
         session.session().declare_publisher(key).wait().unwrap()
     };
-    let mut frames = transport::open(&TransportOptions::new(TransportKind::Zenoh)).unwrap().publisher(&topic).unwrap();
+    let mut frames = session.publisher(&topic).unwrap();
     assert!(transport::wait_for_subscribers(frames.as_ref(), 1, Duration::from_secs(30)));
     std::thread::sleep(Duration::from_millis(500));
     let good = raw_messages(&source_bag(), Some(FRAMES_TOPIC));

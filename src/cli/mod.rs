@@ -7,6 +7,8 @@ mod bench;
 mod bench_train;
 mod bench_transport;
 mod demo;
+mod launch;
+mod node;
 mod record;
 mod replay;
 pub mod eval;
@@ -46,6 +48,10 @@ enum Command {
     Replay(replay::ReplayArgs),
     /// Record topics into MCAP bags (like `ros2 bag record`).
     Record(record::RecordArgs),
+    /// The surrogate node: predicts the next frame of every scene it receives.
+    Node(node::NodeArgs),
+    /// Start the nodes of a launch file (launch_configs/*.yaml) and supervise them.
+    Launch(launch::LaunchArgs),
     /// Inspect and validate MCAP bags of ParticleFrames.
     #[command(subcommand)]
     Bag(bag::BagCommand),
@@ -71,6 +77,8 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Bag(cmd) => bag::run(cmd),
         Command::Replay(args) => replay::run(args),
         Command::Record(args) => record::run(args),
+        Command::Node(args) => node::run(args),
+        Command::Launch(args) => launch::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Report(args) => report::run(args),

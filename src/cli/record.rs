@@ -35,6 +35,12 @@ pub struct RecordArgs {
     /// Close and flush the current chunk every this many seconds (what SIGKILL can lose).
     #[arg(long, default_value_t = 1.0)]
     flush_interval: f64,
+    /// Stop after this many seconds without a message (counted from the first one).
+    #[arg(long)]
+    idle_exit: Option<f64>,
+    /// Delete the bags (and metadata.yaml) already in the output folder.
+    #[arg(long)]
+    overwrite: bool,
     /// Log the counters every this many seconds.
     #[arg(long)]
     stats_interval: Option<f64>,
@@ -50,6 +56,8 @@ pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
         duration: args.duration.map(secs),
         count: args.count,
         flush_interval: secs(args.flush_interval),
+        overwrite: args.overwrite,
+        idle_exit: args.idle_exit.map(secs),
     };
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;

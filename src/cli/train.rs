@@ -72,6 +72,10 @@ pub struct TrainArgs {
     /// Decoder: global (the paper's, fixed N) | pointwise (any N).
     #[arg(long, default_value = "global")]
     pub decoder: String,
+    /// Initial decoder output layer: zero (an untrained model is the constant-velocity
+    /// baseline) | random (burn's default Kaiming-uniform, as in the paper's PyTorch code).
+    #[arg(long, default_value = "zero")]
+    pub decoder_init: String,
     /// Density-map grid G for the loss.
     #[arg(long, default_value_t = 32)]
     pub density_grid: usize,
@@ -115,6 +119,11 @@ impl TrainArgs {
             "pointwise" => DecoderKind::Pointwise,
             other => bail!("unknown --decoder {other:?} (global | pointwise)"),
         };
+        let zero_init = match self.decoder_init.as_str() {
+            "zero" => true,
+            "random" => false,
+            other => bail!("unknown --decoder-init {other:?} (zero | random)"),
+        };
         if self.window == 0 || self.batch_size == 0 || self.micro_batch == 0 {
             bail!("--window, --batch-size and --micro-batch must be at least 1");
         }
@@ -126,7 +135,8 @@ impl TrainArgs {
             .with_pooling(pooling)
             .with_layers(self.layers)
             .with_dropout(self.dropout)
-            .with_decoder(decoder))
+            .with_decoder(decoder)
+            .with_decoder_zero_init(zero_init))
     }
 
     /// The optimisation settings these flags describe.

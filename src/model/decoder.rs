@@ -8,7 +8,7 @@
 use super::elu::{elu, FusedElu};
 use burn::config::Config;
 use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
+use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
@@ -44,25 +44,33 @@ pub enum Decoder<B: Backend> {
 }
 
 impl<B: FusedElu> Decoder<B> {
-    /// New decoder for `particles` particles (global) or any count (pointwise).
+    /// New decoder for `particles` particles (global) or any count (pointwise); with
+    /// `zero_init` the output layer starts at zero (dv = 0).
     pub fn new(
         kind: DecoderKind,
         width: usize,
         features: usize,
         particles: usize,
         hidden: usize,
+        zero_init: bool,
         device: &B::Device,
     ) -> Self {
-        match kind {
-            DecoderKind::Global => {
-                Decoder::Global(LinearConfig::new(width, particles * 2).init(device))
+        let last = |d_in: usize, d_out: usize| {
+            let config = LinearConfig::new(d_in, d_out);
+            if zero_init {
+                config.with_initializer(Initializer::Zeros).init(device)
+            } else {
+                config.init(device)
             }
+        };
+        match kind {
+            DecoderKind::Global => Decoder::Global(last(width, particles * 2)),
             DecoderKind::Pointwise => Decoder::Pointwise(PointwiseMlp {
                 features: LinearConfig::new(features, hidden).init(device),
                 latent: LinearConfig::new(width, hidden)
                     .with_bias(false)
                     .init(device),
-                out: LinearConfig::new(hidden, 2).init(device),
+                out: last(hidden, 2),
             }),
         }
     }

@@ -62,6 +62,12 @@ pub struct ModelConfig {
     /// Pointwise decoder hidden width.
     #[config(default = 128)]
     pub decoder_hidden: usize,
+    /// Start the decoder's output layer at zero, so an untrained model predicts dv = 0 (the
+    /// constant-velocity baseline) and training starts from there instead of from random
+    /// velocity changes (zero-initialised last layers as in Goyal et al. 2017, "Accurate,
+    /// Large Minibatch SGD", section 5.1, for residual branches).
+    #[config(default = false)]
+    pub decoder_zero_init: bool,
 }
 
 impl ModelConfig {
@@ -92,6 +98,7 @@ impl ModelConfig {
                 self.features,
                 self.particles,
                 self.decoder_hidden,
+                self.decoder_zero_init,
                 device,
             ),
         }

@@ -11,6 +11,7 @@
 //! frames: `simulate`, `bag`, `train`, `replay`, `record`, `surrogate`, `eval`.
 
 pub mod cdr;
+pub mod status;
 
 pub use cdr::{decode, encode, encode_into, CdrError};
 
@@ -51,7 +52,7 @@ pub fn schema_text() -> String {
 }
 
 /// `builtin_interfaces/Time`: seconds plus nanoseconds (nanosec in `0..1e9`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default, serde::Serialize, serde::Deserialize)]
 pub struct Time {
     /// Whole seconds (may be negative).
     pub sec: i32,

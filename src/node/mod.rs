@@ -5,6 +5,7 @@
 
 pub mod record;
 pub mod replay;
+pub mod surrogate;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};

@@ -39,6 +39,10 @@ pub struct RecordOptions {
     pub count: Option<u64>,
     /// Close and flush the current chunk this often (bounds what SIGKILL can lose).
     pub flush_interval: Duration,
+    /// Delete bags and metadata.yaml already in the output folder instead of refusing.
+    pub overwrite: bool,
+    /// Stop once this long passed without a message, after the first one.
+    pub idle_exit: Option<Duration>,
 }
 
 /// What a recording wrote.
@@ -116,12 +120,21 @@ pub fn record(
     let out = &options.out;
     let out_err = |reason: String| RecordError::Out { path: out.clone(), reason };
     std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
+    if options.overwrite {
+        for entry in std::fs::read_dir(out).map_err(|e| out_err(e.to_string()))?.filter_map(Result::ok) {
+            let path = entry.path();
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            if name.ends_with(".mcap") || name == "metadata.yaml" {
+                std::fs::remove_file(&path).map_err(|e| out_err(format!("removing {}: {e}", path.display())))?;
+            }
+        }
+    }
     let has_bags = std::fs::read_dir(out)
         .map_err(|e| out_err(e.to_string()))?
         .filter_map(Result::ok)
         .any(|e| e.path().extension().is_some_and(|x| x == "mcap"));
     if has_bags {
-        return Err(out_err("holds .mcap files already; choose a new folder".into()));
+        return Err(out_err("holds .mcap files already; choose a new folder or --overwrite".into()));
     }
     let (tx, rx) = channel();
     let mut subscriptions = Vec::new();
@@ -139,8 +152,11 @@ pub fn record(
     let mut last_flush = Instant::now();
     let mut malformed_per_topic: BTreeMap<String, u64> = BTreeMap::new();
     let mut done = false;
+    let mut last_message: Option<Instant> = None;
     loop {
-        let stop_now = stop.load(Ordering::Relaxed)
+        let idle = options.idle_exit.is_some_and(|d| last_message.is_some_and(|t| t.elapsed() >= d));
+        let stop_now = idle
+            || stop.load(Ordering::Relaxed)
             || options.duration.is_some_and(|d| started.elapsed() >= d)
             || options.count.is_some_and(|n| report.written >= n);
         if stop_now && !done {
@@ -164,6 +180,7 @@ pub fn record(
             }
         };
         counters.received();
+        last_message = Some(Instant::now());
         if options.count.is_some_and(|n| report.written >= n) {
             continue;
         }

@@ -22,7 +22,11 @@ use std::time::{Duration, Instant};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
-use super::{topic_key, FramePublisher, Payload, Sample, Subscription, Transport, TransportError, TransportKind};
+use super::{
+    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport, TransportError,
+    TransportKind,
+};
+use crate::msgs::status::{decode_status, encode_status, SurrogateStatus};
 use crate::msgs::{Header, ParticleFrame, Time};
 
 const KIND: TransportKind = TransportKind::Iceoryx2;
@@ -294,6 +298,101 @@ impl Transport for IceoryxTransport {
             })
             .map_err(|e| err(e.to_string()))?;
         Ok(Box::new(IceoryxSubscription { stop, thread: Some(thread) }))
+    }
+
+    fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
+        let service = self.status_service(topic, "status publisher")?;
+        let publisher = service
+            .publisher_builder()
+            .initial_max_slice_len(512)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .map_err(|e| TransportError::Declare {
+                transport: KIND,
+                what: "status publisher",
+                topic: topic.to_owned(),
+                reason: format!("{e:?}"),
+            })?;
+        Ok(Box::new(IceoryxStatusPublisher { topic: topic.to_owned(), _service: service, publisher }))
+    }
+
+    fn subscribe_status(
+        &self,
+        topic: &str,
+        sink: Sender<SurrogateStatus>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
+        let service = self.status_service(topic, "status subscriber")?;
+        let subscriber = service.subscriber_builder().create().map_err(|e| TransportError::Declare {
+            transport: KIND,
+            what: "status subscriber",
+            topic: topic.to_owned(),
+            reason: format!("{e:?}"),
+        })?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let stopping = Arc::clone(&stop);
+        let name = topic.to_owned();
+        let thread = std::thread::Builder::new()
+            .name(format!("iox2 {topic}"))
+            .spawn(move || {
+                let _service = service;
+                // Status is a 1 Hz report: polling every 20 ms is plenty.
+                while !stopping.load(Ordering::Relaxed) {
+                    while let Ok(Some(sample)) = subscriber.receive() {
+                        match decode_status(sample.payload()) {
+                            Ok(status) => {
+                                if sink.send(status).is_err() {
+                                    return;
+                                }
+                            }
+                            Err(reason) => tracing::warn!("{name}: undecodable status: {reason}"),
+                        }
+                    }
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+            })
+            .map_err(|e| TransportError::Declare {
+                transport: KIND,
+                what: "status subscriber",
+                topic: topic.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Box::new(IceoryxSubscription { stop, thread: Some(thread) }))
+    }
+}
+
+/// Status reports travel as their CDR bytes in a `[u8]` slice service named like the topic.
+struct IceoryxStatusPublisher {
+    topic: String,
+    _service: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>,
+    publisher: iceoryx2::port::publisher::Publisher<Svc, [u8], ()>,
+}
+
+impl StatusPublisher for IceoryxStatusPublisher {
+    fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
+        let err = |reason: String| TransportError::Publish { transport: KIND, topic: self.topic.clone(), reason };
+        let bytes = encode_status(status);
+        let sample = self.publisher.loan_slice_uninit(bytes.len()).map_err(|e| err(format!("loan: {e:?}")))?;
+        let sample = sample.write_from_slice(&bytes);
+        sample.send().map_err(|e| err(format!("send: {e:?}")))?;
+        Ok(())
+    }
+}
+
+impl IceoryxTransport {
+    fn status_service(
+        &self,
+        topic: &str,
+        what: &'static str,
+    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>, TransportError> {
+        let err = |reason: String| TransportError::Declare { transport: KIND, what, topic: topic.to_owned(), reason };
+        let name: ServiceName = topic_key(topic)?.try_into().map_err(|e| err(format!("service name: {e:?}")))?;
+        self.node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .history_size(1)
+            .subscriber_max_buffer_size(8)
+            .open_or_create()
+            .map_err(|e| err(format!("{e:?}")))
     }
 }
 

@@ -23,6 +23,7 @@ use std::path::PathBuf;
 use std::sync::mpsc::Sender;
 use std::time::{Duration, Instant};
 
+use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{cdr, ParticleFrame};
 
 pub use counters::Counters;
@@ -178,6 +179,15 @@ pub trait FramePublisher: Send {
     fn subscriber_count(&self) -> usize;
 }
 
+/// A publisher of [`SurrogateStatus`] reports (`/surrogate/status`).
+pub trait StatusPublisher: Send {
+    /// Publishes one report.
+    ///
+    /// # Errors
+    /// [`TransportError::Publish`].
+    fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError>;
+}
+
 /// Keeps a subscription alive; dropping it stops delivery and joins its thread.
 pub trait Subscription: Send {}
 
@@ -203,6 +213,37 @@ pub trait Transport: Send + Sync {
         topic: &str,
         sink: Sender<Sample>,
     ) -> Result<Box<dyn Subscription>, TransportError>;
+
+    /// Declares a publisher of status reports on `topic`.
+    ///
+    /// # Errors
+    /// [`TransportError::Declare`]; the default says the transport has none.
+    fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
+        Err(TransportError::Declare {
+            transport: self.kind(),
+            what: "status publisher",
+            topic: topic.to_owned(),
+            reason: "not supported by this transport".into(),
+        })
+    }
+
+    /// Subscribes to status reports on `topic`; undecodable ones are logged and skipped.
+    ///
+    /// # Errors
+    /// [`TransportError::Declare`]; the default says the transport has none.
+    fn subscribe_status(
+        &self,
+        topic: &str,
+        sink: Sender<SurrogateStatus>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
+        let _ = sink;
+        Err(TransportError::Declare {
+            transport: self.kind(),
+            what: "status subscriber",
+            topic: topic.to_owned(),
+            reason: "not supported by this transport".into(),
+        })
+    }
 }
 
 /// Opens the middleware named by `options`.

@@ -52,7 +52,10 @@ use ros2_client::qos::{History, QosProfile, Reliability, WhenFull};
 use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, ReadError};
 use serde::{Deserialize, Serialize};
 
-use super::{topic_key, FramePublisher, Payload, Sample, Subscription, Transport, TransportError, TransportKind};
+use super::{
+    topic_key, FramePublisher, Payload, Sample, Subscription, Transport, TransportError,
+    TransportKind,
+};
 use crate::msgs::{cdr, Header, ParticleFrame, Time};
 
 /// ROS 2 package of the message type (`minflow_msgs/msg/ParticleFrame`).
@@ -65,7 +68,9 @@ pub const MESSAGE: &str = "ParticleFrame";
 /// infinite lease. A reliable `publish` waits up to 100 ms when the send window is full
 /// (RustDDS's `max_blocking_time`, the DDS default), then fails.
 pub const QOS: QosProfile = QosProfile::publisher_default()
-    .reliability(Reliability::Reliable { when_full: WhenFull::Wait(Duration::from_millis(100)) })
+    .reliability(Reliability::Reliable {
+        when_full: WhenFull::Wait(Duration::from_millis(100)),
+    })
     .history(History::KeepLast { depth: 10 });
 
 /// The highest `ROS_DOMAIN_ID` ROS 2 accepts (DDS's UDP port mapping: 7400 + 250 x domain
@@ -100,7 +105,9 @@ impl Backend {
 pub fn domain_id_from_env() -> Result<u16, String> {
     match std::env::var("ROS_DOMAIN_ID") {
         Err(std::env::VarError::NotPresent) => Ok(0),
-        Err(std::env::VarError::NotUnicode(v)) => Err(format!("ROS_DOMAIN_ID={v:?} is not a number")),
+        Err(std::env::VarError::NotUnicode(v)) => {
+            Err(format!("ROS_DOMAIN_ID={v:?} is not a number"))
+        }
         Ok(v) => parse_domain_id(&v),
     }
 }
@@ -111,7 +118,9 @@ fn parse_domain_id(v: &str) -> Result<u16, String> {
     }
     match v.trim().parse::<u16>() {
         Ok(id) if id <= MAX_DOMAIN_ID => Ok(id),
-        _ => Err(format!("ROS_DOMAIN_ID={v:?} is not a domain id (an integer 0..={MAX_DOMAIN_ID})")),
+        _ => Err(format!(
+            "ROS_DOMAIN_ID={v:?} is not a domain id (an integer 0..={MAX_DOMAIN_ID})"
+        )),
     }
 }
 
@@ -135,7 +144,9 @@ fn node_name() -> NodeName {
 fn node_options() -> NodeOptions {
     // No /rosout writer and no parameter services: fewer DDS endpoints to discover, so peers
     // match our publishers sooner. The node is still announced on ros_discovery_info.
-    NodeOptions::new().enable_rosout(false).start_parameter_services(false)
+    NodeOptions::new()
+        .enable_rosout(false)
+        .start_parameter_services(false)
 }
 
 // --- wire type -------------------------------------------------------------------------------
@@ -174,7 +185,10 @@ impl From<ParticleFrame> for WireFrame {
     fn from(f: ParticleFrame) -> Self {
         WireFrame {
             header: WireHeader {
-                stamp: WireTime { sec: f.header.stamp.sec, nanosec: f.header.stamp.nanosec },
+                stamp: WireTime {
+                    sec: f.header.stamp.sec,
+                    nanosec: f.header.stamp.nanosec,
+                },
                 frame_id: f.header.frame_id,
             },
             scene: f.scene,
@@ -191,7 +205,10 @@ impl From<WireFrame> for ParticleFrame {
     fn from(w: WireFrame) -> Self {
         ParticleFrame {
             header: Header {
-                stamp: Time { sec: w.header.stamp.sec, nanosec: w.header.stamp.nanosec },
+                stamp: Time {
+                    sec: w.header.stamp.sec,
+                    nanosec: w.header.stamp.nanosec,
+                },
                 frame_id: w.header.frame_id,
             },
             scene: w.scene,
@@ -265,13 +282,20 @@ impl Ros2Transport {
     /// zenoh config).
     pub fn open(backend: Backend) -> Result<Self, TransportError> {
         let kind = backend.kind();
-        let open_err = |reason: String| TransportError::Open { transport: kind, reason };
+        let open_err = |reason: String| TransportError::Open {
+            transport: kind,
+            reason,
+        };
         let domain_id = domain_id_from_env().map_err(open_err)?;
         let node = match backend {
             Backend::Dds => NodeRef::Dds(Arc::new(open_dds(domain_id).map_err(open_err)?)),
             Backend::Zenoh => NodeRef::Zenoh(Arc::new(open_zenoh(domain_id).map_err(open_err)?)),
         };
-        Ok(Ros2Transport { backend, domain_id, node })
+        Ok(Ros2Transport {
+            backend,
+            domain_id,
+            node,
+        })
     }
 
     /// The backend this transport runs on.
@@ -289,8 +313,12 @@ fn open_dds(domain_id: u16) -> Result<DdsNode, String> {
     use ros2_client::dds::{Context, ContextOptions};
     let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
         .map_err(|e| format!("DDS participant in domain {domain_id}: {e}"))?;
-    let mut node = context.new_node(node_name(), node_options()).map_err(|e| format!("ROS 2 node: {e}"))?;
-    let spinner = node.spinner().map_err(|e| format!("ROS 2 node spinner: {e}"))?;
+    let mut node = context
+        .new_node(node_name(), node_options())
+        .map_err(|e| format!("ROS 2 node: {e}"))?;
+    let spinner = node
+        .spinner()
+        .map_err(|e| format!("ROS 2 node spinner: {e}"))?;
     let thread = std::thread::Builder::new()
         .name("ros2-spinner".into())
         .spawn(move || {
@@ -299,7 +327,10 @@ fn open_dds(domain_id: u16) -> Result<DdsNode, String> {
             }
         })
         .map_err(|e| format!("spinner thread: {e}"))?;
-    Ok(DdsNode { node: Mutex::new(Some(node)), spinner: Some(thread) })
+    Ok(DdsNode {
+        node: Mutex::new(Some(node)),
+        spinner: Some(thread),
+    })
 }
 
 /// `rmw_zenoh`'s default session config (`DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5`, Jazzy):
@@ -314,10 +345,16 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
         ("scouting/multicast/enabled", "false"),
         ("scouting/gossip/enabled", "true"),
     ] {
-        config.insert_json5(key, value).map_err(|e| format!("zenoh config {key}: {e}"))?;
+        config
+            .insert_json5(key, value)
+            .map_err(|e| format!("zenoh config {key}: {e}"))?;
     }
     if let Ok(overrides) = std::env::var("ZENOH_CONFIG_OVERRIDE") {
-        for entry in overrides.split(';').map(str::trim).filter(|s| !s.is_empty()) {
+        for entry in overrides
+            .split(';')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+        {
             let (key, value) = entry
                 .split_once('=')
                 .ok_or_else(|| format!("ZENOH_CONFIG_OVERRIDE entry {entry:?} is not key=value"))?;
@@ -338,7 +375,9 @@ fn open_zenoh(domain_id: u16) -> Result<ZenohNode, String> {
         options = options.zenoh_config(rmw_zenoh_default_config()?);
     }
     let context = Context::with_options(options).map_err(|e| format!("zenoh session: {e}"))?;
-    let node = context.new_node(node_name(), node_options()).map_err(|e| format!("ROS 2 node: {e}"))?;
+    let node = context
+        .new_node(node_name(), node_options())
+        .map_err(|e| format!("ROS 2 node: {e}"))?;
     Ok(ZenohNode { node })
 }
 
@@ -363,7 +402,11 @@ impl Transport for Ros2Transport {
                         node.create_publisher::<WireFrame>(&t, Some(QOS))
                     })
                     .map_err(|e| declare_err(e.to_string()))?;
-                Ok(Box::new(DdsPublisher { topic: topic.to_owned(), publisher, node: Arc::clone(dds) }))
+                Ok(Box::new(DdsPublisher {
+                    topic: topic.to_owned(),
+                    publisher,
+                    node: Arc::clone(dds),
+                }))
             }
             NodeRef::Zenoh(z) => {
                 let t = z.node.create_topic(&name, type_name(), &QOS);
@@ -371,12 +414,20 @@ impl Transport for Ros2Transport {
                     .node
                     .create_publisher::<WireFrame>(&t, Some(QOS))
                     .map_err(|e| declare_err(e.to_string()))?;
-                Ok(Box::new(ZenohPublisher { topic: topic.to_owned(), publisher, node: Arc::clone(z) }))
+                Ok(Box::new(ZenohPublisher {
+                    topic: topic.to_owned(),
+                    publisher,
+                    node: Arc::clone(z),
+                }))
             }
         }
     }
 
-    fn subscribe(&self, topic: &str, sink: Sender<Sample>) -> Result<Box<dyn Subscription>, TransportError> {
+    fn subscribe(
+        &self,
+        topic: &str,
+        sink: Sender<Sample>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
         let name = ros_name(topic)?;
         let kind = self.backend.kind();
         let topic_owned = topic.to_owned();
@@ -421,13 +472,23 @@ impl Transport for Ros2Transport {
                 topic: topic.to_owned(),
                 reason: format!("delivery thread: {e}"),
             })?;
-        let created = ready_rx.recv().unwrap_or_else(|_| Err("delivery thread ended".into()));
-        let handle = SubscriptionHandle { stop: Some(stop_tx), thread: Some(thread) };
+        let created = ready_rx
+            .recv()
+            .unwrap_or_else(|_| Err("delivery thread ended".into()));
+        let handle = SubscriptionHandle {
+            stop: Some(stop_tx),
+            thread: Some(thread),
+        };
         match created {
             Ok(()) => Ok(Box::new(handle)),
             Err(reason) => {
                 drop(handle);
-                Err(TransportError::Declare { transport: kind, what: "subscription", topic: topic.to_owned(), reason })
+                Err(TransportError::Declare {
+                    transport: kind,
+                    what: "subscription",
+                    topic: topic.to_owned(),
+                    reason,
+                })
             }
         }
     }
@@ -449,7 +510,9 @@ where
             None | Some(Err(ReadError::Closed)) => return,
             Some(Ok(wire)) => Payload::Cdr(cdr::encode(&ParticleFrame::from(wire))),
             Some(Err(ReadError::Deserialization { reason })) => Payload::Malformed(reason),
-            Some(Err(ReadError::Malformed)) => Payload::Malformed("malformed sample metadata".into()),
+            Some(Err(ReadError::Malformed)) => {
+                Payload::Malformed("malformed sample metadata".into())
+            }
             Some(Err(e)) => {
                 // Not about one sample (a middleware hiccup): report it, back off briefly.
                 tracing::warn!("{topic}: ROS 2 read error: {e}");
@@ -457,7 +520,11 @@ where
                 continue;
             }
         };
-        let sample = Sample { topic: topic.clone(), payload, received: Instant::now() };
+        let sample = Sample {
+            topic: topic.clone(),
+            payload,
+            received: Instant::now(),
+        };
         if sink.send(sample).is_err() {
             return;
         }
@@ -493,17 +560,27 @@ struct DdsPublisher {
 
 impl FramePublisher for DdsPublisher {
     fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
-        self.publisher.publish(WireFrame::from(frame.clone())).map_err(|e| TransportError::Publish {
-            transport: TransportKind::Ros2,
-            topic: self.topic.clone(),
-            reason: e.to_string(),
-        })
+        self.publisher
+            .publish(WireFrame::from(frame.clone()))
+            .map_err(|e| TransportError::Publish {
+                transport: TransportKind::Ros2,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
     }
 
-    /// Matched DDS subscriptions (remote readers matched by SEDP with compatible QoS), as
-    /// tracked by the node's spinner.
+    /// Matched DDS subscriptions (readers matched through SEDP with compatible QoS), as
+    /// tracked by the node's spinner (`Publisher::get_subscription_count`).
     fn subscriber_count(&self) -> usize {
-        self.node.with(|node| self.publisher.get_subscription_count(node))
+        self.node.with(|node| {
+            // ros2-client logs an error for a writer that has never been matched, so ask only
+            // once discovery has seen a reader on the topic at all.
+            if node.subscription_count(&self.topic) == 0 {
+                0
+            } else {
+                self.publisher.get_subscription_count(node)
+            }
+        })
     }
 }
 
@@ -515,11 +592,13 @@ struct ZenohPublisher {
 
 impl FramePublisher for ZenohPublisher {
     fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
-        self.publisher.publish(WireFrame::from(frame.clone())).map_err(|e| TransportError::Publish {
-            transport: TransportKind::Ros2Zenoh,
-            topic: self.topic.clone(),
-            reason: e.to_string(),
-        })
+        self.publisher
+            .publish(WireFrame::from(frame.clone()))
+            .map_err(|e| TransportError::Publish {
+                transport: TransportKind::Ros2Zenoh,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
     }
 
     /// Subscriptions on the topic in the ROS graph (rmw_zenoh liveliness tokens).
@@ -537,7 +616,13 @@ mod tests {
 
     fn frame(n: usize, scene: &str) -> ParticleFrame {
         ParticleFrame {
-            header: Header { stamp: Time { sec: -3, nanosec: 123_456_789 }, frame_id: "world".into() },
+            header: Header {
+                stamp: Time {
+                    sec: -3,
+                    nanosec: 123_456_789,
+                },
+                frame_id: "world".into(),
+            },
             scene: scene.into(),
             frame_index: 77,
             dt: 0.0025,
@@ -560,14 +645,18 @@ mod tests {
             )
             .unwrap();
             assert_eq!(&expected[4..], &body[..], "n={n} scene={scene:?}");
-            let rep = <CDRSerializerAdapter<WireFrame> as SerializerAdapter<WireFrame>>::output_encoding();
+            let rep =
+                <CDRSerializerAdapter<WireFrame> as SerializerAdapter<WireFrame>>::output_encoding(
+                );
             assert_eq!(rep, RepresentationIdentifier::CDR_LE);
             assert_eq!(rep.to_bytes(), [expected[0], expected[1]]);
             assert_eq!(&expected[2..4], &[0, 0]);
 
-            let (back, _) =
-                deserialize_from_cdr_with_rep_id::<WireFrame>(&expected[4..], RepresentationIdentifier::CDR_LE)
-                    .unwrap();
+            let (back, _) = deserialize_from_cdr_with_rep_id::<WireFrame>(
+                &expected[4..],
+                RepresentationIdentifier::CDR_LE,
+            )
+            .unwrap();
             assert_eq!(ParticleFrame::from(back), f);
         }
     }
@@ -576,7 +665,10 @@ mod tests {
     fn truncated_cdr_is_an_error() {
         let bytes = cdr::encode(&frame(10, "s"));
         for cut in [0, 3, 9, 20, bytes.len() - 1] {
-            let r = deserialize_from_cdr_with_rep_id::<WireFrame>(&bytes[4..cut.max(4)], RepresentationIdentifier::CDR_LE);
+            let r = deserialize_from_cdr_with_rep_id::<WireFrame>(
+                &bytes[4..cut.max(4)],
+                RepresentationIdentifier::CDR_LE,
+            );
             assert!(r.is_err(), "cut at {cut}");
         }
     }
@@ -584,9 +676,22 @@ mod tests {
     #[test]
     fn ros2_name_mangling() {
         let node = NodeName::new("/", "n").unwrap();
-        assert_eq!(ros_name("/mpm/frames").unwrap().to_dds_name("rt", &node, ""), "rt/mpm/frames");
-        assert_eq!(ros_name("/surrogate/frames").unwrap().to_dds_name("rt", &node, ""), "rt/surrogate/frames");
-        assert_eq!(ros_name("/frames").unwrap().to_dds_name("rt", &node, ""), "rt/frames");
+        assert_eq!(
+            ros_name("/mpm/frames")
+                .unwrap()
+                .to_dds_name("rt", &node, ""),
+            "rt/mpm/frames"
+        );
+        assert_eq!(
+            ros_name("/surrogate/frames")
+                .unwrap()
+                .to_dds_name("rt", &node, ""),
+            "rt/surrogate/frames"
+        );
+        assert_eq!(
+            ros_name("/frames").unwrap().to_dds_name("rt", &node, ""),
+            "rt/frames"
+        );
         assert_eq!(type_name().dds_msg_type(), crate::msgs::DDS_TYPE_NAME);
         assert!(ros_name("mpm/frames").is_err());
         assert!(ros_name("/mpm/").is_err());
@@ -609,6 +714,9 @@ mod tests {
         assert_eq!(QOS.durability, Durability::Volatile);
         assert_eq!(QOS.history, History::KeepLast { depth: 10 });
         assert_eq!(QOS.liveliness, Liveliness::Automatic);
-        assert_eq!((QOS.deadline, QOS.lifespan, QOS.liveliness_lease), (None, None, None));
+        assert_eq!(
+            (QOS.deadline, QOS.lifespan, QOS.liveliness_lease),
+            (None, None, None)
+        );
     }
 }

@@ -24,7 +24,11 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
-use super::{topic_key, FramePublisher, Payload, Sample, Subscription, Transport, TransportError, TransportKind};
+use super::{
+    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport, TransportError,
+    TransportKind,
+};
+use crate::msgs::status::{decode_status, encode_status, SurrogateStatus};
 use crate::msgs::{cdr, ParticleFrame};
 
 const KIND: TransportKind = TransportKind::Zenoh;
@@ -140,7 +144,59 @@ impl Transport for ZenohTransport {
             .declare_token(format!("{}/{id}", liveliness_prefix(&key)))
             .wait()
             .map_err(|e| declare_err(e.to_string()))?;
-        Ok(Box::new(ZenohSubscription { _subscriber: subscriber, _token: token }))
+        Ok(Box::new(ZenohSubscription { _subscriber: subscriber, _token: Some(token) }))
+    }
+
+    fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
+        let key = topic_key(topic)?.to_owned();
+        let publisher = self.session.declare_publisher(key).wait().map_err(|e| TransportError::Declare {
+            transport: KIND,
+            what: "status publisher",
+            topic: topic.to_owned(),
+            reason: e.to_string(),
+        })?;
+        Ok(Box::new(ZenohStatusPublisher { topic: topic.to_owned(), publisher }))
+    }
+
+    fn subscribe_status(
+        &self,
+        topic: &str,
+        sink: Sender<SurrogateStatus>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
+        let key = topic_key(topic)?.to_owned();
+        let name = topic.to_owned();
+        let subscriber = self
+            .session
+            .declare_subscriber(key)
+            .callback(move |sample| match decode_status(&sample.payload().to_bytes()) {
+                Ok(status) => {
+                    let _ = sink.send(status);
+                }
+                Err(reason) => tracing::warn!("{name}: undecodable status: {reason}"),
+            })
+            .wait()
+            .map_err(|e| TransportError::Declare {
+                transport: KIND,
+                what: "status subscriber",
+                topic: topic.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Box::new(ZenohSubscription { _subscriber: subscriber, _token: None }))
+    }
+}
+
+struct ZenohStatusPublisher {
+    topic: String,
+    publisher: zenoh::pubsub::Publisher<'static>,
+}
+
+impl StatusPublisher for ZenohStatusPublisher {
+    fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
+        self.publisher.put(encode_status(status)).wait().map_err(|e| TransportError::Publish {
+            transport: KIND,
+            topic: self.topic.clone(),
+            reason: e.to_string(),
+        })
     }
 }
 
@@ -183,7 +239,7 @@ impl FramePublisher for ZenohPublisher {
 
 struct ZenohSubscription {
     _subscriber: zenoh::pubsub::Subscriber<()>,
-    _token: zenoh::liveliness::LivelinessToken,
+    _token: Option<zenoh::liveliness::LivelinessToken>,
 }
 
 impl Subscription for ZenohSubscription {}

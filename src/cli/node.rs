@@ -1,0 +1,91 @@
+//! `minflow node`: the surrogate node (live next-frame prediction over zenoh, iceoryx2 or
+//! ROS 2). Logic in [`crate::node::surrogate`].
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+
+use super::Outcome;
+use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
+use crate::model::store::Surrogate;
+use crate::msgs::status::STATUS_TOPIC;
+use crate::node::surrogate::{self, NodeOptions, OnGap};
+use crate::node::shutdown_flag;
+use crate::transport::{self, TransportOptions};
+
+#[derive(Debug, Args)]
+pub struct NodeArgs {
+    /// Run folder of a trained model (`minflow train --out`).
+    #[arg(long)]
+    model: PathBuf,
+    #[command(flatten)]
+    transport: TransportOptions,
+    /// Input topic: ground-truth frames.
+    #[arg(long = "in", default_value = FRAMES_TOPIC)]
+    input: String,
+    /// Output topic: predicted next frames.
+    #[arg(long = "out", default_value = PREDICTED_TOPIC)]
+    output: String,
+    /// Status topic (counters and last error, once per second); "none" to disable.
+    #[arg(long, default_value = STATUS_TOPIC)]
+    status: String,
+    /// Node name in logs and status reports.
+    #[arg(long, default_value = "surrogate")]
+    name: String,
+    /// On a gap or out-of-order frame: reset the scene's hidden state, or skip old frames.
+    #[arg(long, value_enum, default_value_t = OnGap::Reset)]
+    on_gap: OnGap,
+    /// Seconds without frames after which a scene's state is reset and dropped.
+    #[arg(long, default_value_t = 10.0)]
+    idle_timeout: f64,
+    /// Most scene states kept (least recently seen dropped first).
+    #[arg(long, default_value_t = 1024)]
+    max_scenes: usize,
+    /// Pending frames per scene before the oldest is dropped.
+    #[arg(long, default_value_t = 8)]
+    queue_depth: usize,
+    /// Closed loop: after the first T frames of a scene, publish K predicted frames.
+    #[arg(long, value_name = "K")]
+    rollout: Option<usize>,
+    /// Closed-loop pacing factor (1 = the scene's own frame rate); 0 = as fast as possible.
+    #[arg(long, default_value_t = 0.0)]
+    rate: f64,
+    /// Exit after publishing this many predicted frames.
+    #[arg(long)]
+    max_published: Option<u64>,
+    /// Subscribe to the input only once the output topic has this many subscribers.
+    #[arg(long, default_value_t = 0)]
+    wait_for_subscribers: usize,
+    /// Log the counters every this many seconds.
+    #[arg(long)]
+    stats_interval: Option<f64>,
+}
+
+pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
+    type B = burn::backend::NdArray<f32>;
+    let device = Default::default();
+    let model = Surrogate::<B>::load(&args.model, &device)
+        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let options = NodeOptions {
+        name: args.name,
+        input: args.input,
+        output: args.output,
+        status: (args.status != "none").then_some(args.status),
+        on_gap: args.on_gap,
+        idle_timeout: Duration::from_secs_f64(args.idle_timeout.max(0.0)),
+        max_scenes: args.max_scenes,
+        queue_depth: args.queue_depth,
+        rollout: args.rollout,
+        rate: args.rate,
+        max_published: args.max_published,
+        wait_for_subscribers: args.wait_for_subscribers,
+        stats_interval: args.stats_interval.map(|s| Duration::from_secs_f64(s.max(0.1))),
+    };
+    let stop = shutdown_flag();
+    let session = transport::open(&args.transport)?;
+    let report = surrogate::run(&options, &model, session.as_ref(), &stop)?;
+    eprintln!("{}", surrogate::summary(&report));
+    Ok(Outcome::Done)
+}
