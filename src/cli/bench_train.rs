@@ -1,15 +1,22 @@
 //! `minflow bench train`: the paper's Table 4 on this machine, in one run: for each core,
 //! trainable parameters, seconds per epoch (mean and max), microseconds per sample and peak
-//! resident memory, on one fixed synthetic dataset, at each window length T; then the
-//! ratios LSTM/minLSTM and GRU/minGRU (how much faster the minimal cores train).
-//! Peak memory is the process's VmHWM, reset before each core (Linux `clear_refs`).
+//! memory, on one fixed synthetic dataset, at each window length T; then the ratios
+//! LSTM/minLSTM and GRU/minGRU (how much faster the minimal cores train).
+//! `--device` picks the backend. Peak memory is the process's VmHWM on the CPU (reset before
+//! each core, Linux `clear_refs`) and the largest pool cubecl holds on the GPU (sampled after
+//! each epoch, freed before each core). `--warmup-epochs` run first and are left out of the
+//! means (JIT compilation and autotuning on the GPU); their time is its own column. `wait %`
+//! is the share of the epoch the host spent waiting for the device (near 100: device-bound;
+//! low: bound by issuing the work).
 
+use super::device::DeviceArgs;
 use super::train::CpuTrain;
 use super::Outcome;
 use crate::data::{Scaler, Trajectory, WindowIndex};
-use crate::model::{CoreKind, LastActivation, ModelConfig};
+use crate::model::{CoreKind, FusedElu, LastActivation, ModelConfig};
 use crate::train::{TrainOptions, Trainer};
 use burn::module::Module;
+use burn::tensor::backend::AutodiffBackend;
 use clap::Args;
 
 #[derive(Debug, Args)]
@@ -45,6 +52,11 @@ pub struct TrainBenchArgs {
     /// Encoder's last activation: none (pool-then-project, cheap) | elu (the paper's).
     #[arg(long, default_value = "none")]
     encoder_last_activation: String,
+    /// Epochs run before the measured ones and left out of the means (warm-up).
+    #[arg(long, default_value_t = 0)]
+    warmup_epochs: usize,
+    #[command(flatten)]
+    device: DeviceArgs,
 }
 
 /// A deterministic synthetic trajectory of `frames` frames.
@@ -85,19 +97,50 @@ fn peak_mib(reset: bool) -> Option<f64> {
 }
 
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
+    match args.device.parse()?.single("bench train")? {
+        None => bench::<CpuTrain>(&args, Default::default(), "host", &|reset| peak_mib(reset)),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device, reserved_bytes, CudaTrain};
+            let device = device(id);
+            let peak = |reset: bool| {
+                if reset {
+                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
+                }
+                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
+            };
+            bench::<CudaTrain>(&args, device.clone(), "GPU pool", &peak)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => anyhow::bail!("built without CUDA"),
+    }
+}
+
+/// The table on backend `B`; `peak(reset)` reads the memory column (and resets it).
+fn bench<B: AutodiffBackend + FusedElu>(
+    args: &TrainBenchArgs,
+    device: B::Device,
+    memory: &str,
+    peak: &dyn Fn(bool) -> Option<f64>,
+) -> anyhow::Result<Outcome>
+where
+    B::InnerBackend: FusedElu,
+{
     let last = if args.encoder_last_activation == "elu" {
         LastActivation::Elu
     } else {
         LastActivation::None
     };
     println!(
-        "N = {}, W = {}, encoder 5 -> {} -> {} ({:?}), micro-batch {}, {} samples/epoch, {} epochs, {} threads",
-        args.particles, args.width, args.encoder_hidden, args.width, last, args.micro_batch, args.samples, args.epochs,
+        "N = {}, W = {}, encoder 5 -> {} -> {} ({:?}), micro-batch {}, {} samples/epoch, {} epochs (+{} warm-up), {}, {} threads",
+        args.particles, args.width, args.encoder_hidden, args.width, last, args.micro_batch,
+        args.samples, args.epochs, args.warmup_epochs, B::name(&device),
         rayon::current_num_threads()
     );
     println!(
-        "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>9}",
-        "core", "T", "params", "s/epoch", "max s", "us/sample", "peak MiB"
+        "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7} {:>9}",
+        "core", "T", "params", "s/epoch", "max s", "us/sample", "samples/s", "warm-up s", "wait %",
+        "peak MiB"
     );
     for &t in &args.windows {
         let traj = synthetic(args.particles, args.samples + t);
@@ -114,7 +157,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
                 .with_encoder_last_activation(last);
             let params = config.init::<CpuTrain>(&Default::default()).num_params();
             let opts = TrainOptions {
-                epochs: args.epochs,
+                epochs: args.warmup_epochs + args.epochs,
                 batch_size: args.micro_batch,
                 micro_batch: args.micro_batch,
                 lr: 1e-3,
@@ -124,28 +167,31 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
                 density_weight: 0.1,
             };
             let dir = tempfile::tempdir()?;
-            peak_mib(true);
-            let history = Trainer::<CpuTrain>::new(
-                config,
-                opts,
-                dir.path().into(),
-                Default::default(),
-            )
-            .fit(&index, None, &scaler, false, |_, _| {})?;
-            let peak = peak_mib(false).unwrap_or(f64::NAN);
-            let mean = history.iter().map(|r| r.seconds).sum::<f64>() / history.len() as f64;
-            let max = history.iter().map(|r| r.seconds).fold(0.0, f64::max);
+            let mut high = peak(true).unwrap_or(0.0);
+            let history = Trainer::<B>::new(config, opts, dir.path().into(), device.clone())
+                .fit(&index, None, &scaler, false, |_, _| {
+                    high = high.max(peak(false).unwrap_or(f64::NAN));
+                })?;
+            let (warm, timed) = history.split_at(args.warmup_epochs.min(history.len()));
+            let warmup: f64 = warm.iter().map(|r| r.seconds).sum();
+            let n = timed.len().max(1) as f64;
+            let mean = timed.iter().map(|r| r.seconds).sum::<f64>() / n;
+            let max = timed.iter().map(|r| r.seconds).fold(0.0, f64::max);
+            let wait = timed.iter().map(|r| r.wait_seconds).sum::<f64>() / n;
             let us = mean * 1e6 / index.len() as f64;
             times.insert(core.name(), mean);
             println!(
-                "{:<8} {:>3} {:>11} {:>10.2} {:>10.2} {:>10.0} {:>9.0}",
+                "{:<8} {:>3} {:>11} {:>10.3} {:>10.3} {:>10.0} {:>10.0} {:>10.2} {:>7.0} {:>9.0}",
                 core.name(),
                 t,
                 params,
                 mean,
                 max,
                 us,
-                peak
+                index.len() as f64 / mean,
+                warmup,
+                100.0 * wait / mean.max(1e-12),
+                high
             );
         }
         for (classic, minimal) in [("lstm", "minlstm"), ("gru", "mingru")] {
@@ -157,5 +203,6 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
             }
         }
     }
+    println!("peak MiB: {memory} memory");
     Ok(Outcome::Done)
 }

@@ -75,6 +75,8 @@ pub struct EvalArgs {
     /// Skip the particle renders (PNG grid and GIF per scene).
     #[arg(long)]
     pub no_render: bool,
+    #[command(flatten)]
+    pub device: super::device::DeviceArgs,
 }
 
 /// Parses `--split`.
@@ -154,9 +156,10 @@ pub(crate) fn scaler_for(
 pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
     let part = parse_split(&args.split)?;
     let names = model_names(&args.models);
-    let mut models = Vec::new();
+    let device = args.device.parse()?.single("eval")?;
+    let mut models: Vec<Box<dyn Predictor>> = Vec::new();
     for (dir, name) in args.models.iter().zip(&names) {
-        models.push(ModelPredictor::load(dir, name.clone())?);
+        models.push(load_model(dir, name, device)?);
     }
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
@@ -183,7 +186,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
     for gap in &report.gaps {
         tracing::warn!("{gap}");
     }
-    let mut predictors: Vec<&dyn Predictor> = models.iter().map(|m| m as &dyn Predictor).collect();
+    let mut predictors: Vec<&dyn Predictor> = models.iter().map(|m| m.as_ref()).collect();
     predictors.extend([&Persist as &dyn Predictor, &ConstVel]);
     let opts = RolloutOptions {
         horizon: args.horizon,
@@ -196,6 +199,20 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
     let eval = eval::evaluate(&trajs, &predictors, &scaler, &source, &opts, &bar)?;
     bar.finish_and_clear();
     Ok((eval, models.len()))
+}
+
+/// A run folder's model on the CPU (`None`) or on CUDA GPU `cuda`.
+fn load_model(dir: &Path, name: &str, cuda: Option<usize>) -> anyhow::Result<Box<dyn Predictor>> {
+    Ok(match cuda {
+        None => Box::new(ModelPredictor::load(dir, name)?),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device, CudaInfer};
+            Box::new(ModelPredictor::<CudaInfer>::load_on(dir, name, &device(id))?)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => bail!("built without CUDA"),
+    })
 }
 
 /// Warns when a run folder's `split.json` puts other scenes in the test part.

@@ -7,6 +7,7 @@ mod bench;
 mod bench_train;
 mod bench_transport;
 mod demo;
+pub mod device;
 mod launch;
 mod node;
 mod record;
@@ -58,6 +59,48 @@ enum Command {
     /// Benchmarks that print a table.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+}
+
+/// `minflow-cuda`: the subset of `minflow` a GPU machine needs (`simulate`, `train`, `eval`,
+/// `bench train`), the same flags, without the transports, so that its stripped binary is small
+/// enough to carry to the machine (docs/cuda.md). Built with `--features cuda`.
+#[derive(Debug, Parser)]
+#[command(name = "minflow-cuda", version, about, long_about = None)]
+pub struct TrainCli {
+    /// More log output on stderr (-v debug, -vv trace); RUST_LOG overrides.
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    command: TrainCommand,
+}
+
+#[derive(Debug, Subcommand)]
+enum TrainCommand {
+    /// Generate ground-truth scenes (as `minflow simulate`, without `--publish`).
+    Simulate(simulate::SimulateArgs),
+    /// Train a surrogate (as `minflow train`).
+    Train(train::TrainArgs),
+    /// Rollout metrics (as `minflow eval`).
+    Eval(eval::EvalArgs),
+    /// Benchmarks that print a table.
+    #[command(subcommand)]
+    Bench(TrainBenchCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum TrainBenchCommand {
+    /// Training speed per core (as `minflow bench train`).
+    Train(bench_train::TrainBenchArgs),
+}
+
+/// Runs a parsed [`TrainCli`] command.
+pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
+    match cli.command {
+        TrainCommand::Simulate(args) => simulate::run_offline(args),
+        TrainCommand::Train(args) => train::run(args),
+        TrainCommand::Eval(args) => eval::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench_train::run(args),
+    }
 }
 
 /// How a command finished.

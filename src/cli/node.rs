@@ -1,5 +1,5 @@
 //! `minflow node`: the surrogate node (live next-frame prediction over zenoh, iceoryx2 or
-//! ROS 2). Logic in [`crate::node::surrogate`].
+//! ROS 2). Logic in [`crate::node::surrogate`]. The model runs on `--device` (CPU or one GPU).
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -10,6 +10,7 @@ use clap::Args;
 use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::model::store::Surrogate;
+use crate::model::FusedElu;
 use crate::msgs::status::STATUS_TOPIC;
 use crate::node::surrogate::{self, NodeOptions, OnGap};
 use crate::node::shutdown_flag;
@@ -61,11 +62,25 @@ pub struct NodeArgs {
     /// Log the counters every this many seconds.
     #[arg(long)]
     stats_interval: Option<f64>,
+    #[command(flatten)]
+    device: super::device::DeviceArgs,
 }
 
 pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
-    type B = burn::backend::NdArray<f32>;
-    let device = Default::default();
+    match args.device.parse()?.single("node")? {
+        None => serve::<burn::backend::NdArray<f32>>(args, Default::default()),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device, CudaInfer};
+            serve::<CudaInfer>(args, device(id))
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => anyhow::bail!("built without CUDA"),
+    }
+}
+
+/// Loads the model onto `device` of backend `B` and serves until stopped.
+fn serve<B: FusedElu>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let options = NodeOptions {

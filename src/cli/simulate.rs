@@ -79,6 +79,19 @@ pub fn bag_name(scene: &str) -> String {
 }
 
 pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
+    simulate(args, Live::open)
+}
+
+/// `run` without `--publish`, for `minflow-cuda`: no transport is linked in.
+pub(super) fn run_offline(args: SimulateArgs) -> anyhow::Result<Outcome> {
+    simulate(args, |_| bail!("--publish needs the full minflow binary"))
+}
+
+/// Simulates the scenes `args` names; `open` starts live publishing for `--publish`.
+fn simulate(
+    args: SimulateArgs,
+    open: impl Fn(&SimulateArgs) -> anyhow::Result<Live>,
+) -> anyhow::Result<Outcome> {
     let mut scenes: Vec<Scene> = Vec::new();
     if args.scene_file.is_empty() {
         let family: Family = args.family.parse()?;
@@ -113,7 +126,7 @@ pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
         .num_threads(args.jobs.unwrap_or(0))
         .build()
         .context("starting worker threads")?;
-    let live = if args.publish { Some(Live::open(&args)?) } else { None };
+    let live = if args.publish { Some(open(&args)?) } else { None };
     let results: Vec<(String, anyhow::Result<PathBuf>)> = pool.install(|| {
         scenes
             .into_par_iter()

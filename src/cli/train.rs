@@ -2,15 +2,18 @@
 //! splits them 80:10:10 by scene (seeded), fits the scaler on the training scenes, trains
 //! with a progress bar per epoch, and leaves in the run folder: `model.json` + `model.mpk`
 //! (best epoch), `checkpoint/` (last epoch, for `--resume`), `metrics.csv`, `loss.png`,
-//! `split.json` and `train.json` (the options). CPU (burn ndarray) backend. A dataset of more
-//! than `--max-resident-frames` frames is streamed from the bags each epoch.
+//! `split.json` and `train.json` (the options). `--device` picks the backend: the CPU (burn
+//! ndarray, default) or a GPU (burn CUDA, feature `cuda`). A dataset of more than
+//! `--max-resident-frames` frames is streamed from the bags each epoch.
 
+use super::device::{Device, DeviceArgs};
 use super::Outcome;
 use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
-use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
-use crate::train::{BatchSource, EpochRecord, Observer, TrainOptions, Trainer};
+use crate::model::{CoreKind, DecoderKind, FusedElu, LastActivation, ModelConfig, Pooling};
+use crate::train::{BatchSource, EpochRecord, Observer, TrainError, TrainOptions, Trainer};
 use anyhow::{bail, Context};
 use burn::backend::{Autodiff, NdArray};
+use burn::tensor::backend::AutodiffBackend;
 use clap::Args;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -85,6 +88,8 @@ pub struct TrainArgs {
     /// Topic to read frames from.
     #[arg(long, default_value = crate::bag::FRAMES_TOPIC)]
     pub topic: String,
+    #[command(flatten)]
+    pub device: DeviceArgs,
     /// Continue a killed run from OUT/checkpoint.
     #[arg(long)]
     pub resume: bool,
@@ -200,6 +205,7 @@ fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
 }
 
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
+    let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
     let infos = data::scan(&args.data, topic).context("reading the bags")?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
@@ -240,8 +246,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         config.core.name(),
         config.window
     );
-    let trainer =
-        Trainer::<CpuTrain>::new(config, args.options(), args.out.clone(), Default::default());
+    let fit = |train: &mut dyn BatchSource,
+               val: Option<&mut dyn BatchSource>,
+               scaler: &Scaler,
+               progress: &mut Progress| {
+        let (opts, out) = (args.options(), args.out.clone());
+        fit_on(&device, config.clone(), opts, out, train, val, scaler, args.resume, progress)
+    };
     let mut progress = Progress {
         out: args.out.clone(),
         bar: None,
@@ -252,7 +263,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         let mut train = StreamingLoader::new(train_infos, topic, args.window, scaler, budget)?;
         let mut val = StreamingLoader::new(val_infos, topic, args.window, scaler, budget)?;
         let val = (!val.is_empty()).then_some(&mut val as &mut dyn BatchSource);
-        trainer.fit_observed(&mut train, val, &scaler, args.resume, &mut progress)?
+        fit(&mut train, val, &scaler, &mut progress)?
     } else {
         let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
         for gap in &report.gaps {
@@ -265,7 +276,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         let mut train_ref = &train_index;
         let mut val_ref = &val_index;
         let val = (!val_index.is_empty()).then_some(&mut val_ref as &mut dyn BatchSource);
-        trainer.fit_observed(&mut train_ref, val, &scaler, args.resume, &mut progress)?
+        fit(&mut train_ref, val, &scaler, &mut progress)?
     };
     let best = history
         .iter()
@@ -279,4 +290,49 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         );
     }
     Ok(Outcome::Done)
+}
+
+/// Trains on `device`: the CPU backend, or burn's CUDA backend (one GPU; several train
+/// data-parallel).
+#[allow(clippy::too_many_arguments)]
+fn fit_on(
+    device: &Device,
+    config: ModelConfig,
+    opts: TrainOptions,
+    out: PathBuf,
+    train: &mut dyn BatchSource,
+    val: Option<&mut dyn BatchSource>,
+    scaler: &Scaler,
+    resume: bool,
+    observer: &mut dyn Observer,
+) -> anyhow::Result<Vec<EpochRecord>> {
+    fn on<B: AutodiffBackend + FusedElu>(
+        device: B::Device,
+        args: (ModelConfig, TrainOptions, PathBuf),
+        train: &mut dyn BatchSource,
+        val: Option<&mut dyn BatchSource>,
+        scaler: &Scaler,
+        resume: bool,
+        observer: &mut dyn Observer,
+    ) -> Result<Vec<EpochRecord>, TrainError>
+    where
+        B::InnerBackend: FusedElu,
+    {
+        let (config, opts, out) = args;
+        Trainer::<B>::new(config, opts, out, device).fit_observed(train, val, scaler, resume, observer)
+    }
+    let args = (config, opts, out);
+    let history = match device {
+        Device::Cpu => on::<CpuTrain>(Default::default(), args, train, val, scaler, resume, observer)?,
+        #[cfg(feature = "cuda")]
+        Device::Cuda(ids) if ids.len() == 1 => {
+            use super::device::cuda::{device, CudaTrain};
+            on::<CudaTrain>(device(ids[0]), args, train, val, scaler, resume, observer)?
+        }
+        Device::Cuda(ids) => bail!(
+            "data-parallel training on {} GPUs is not implemented yet; use one --device cuda:N",
+            ids.len()
+        ),
+    };
+    Ok(history)
 }

@@ -8,6 +8,8 @@
 //! [`Predictor::window`] frames) and returns `steps` predicted physical `[N, 4]` frames,
 //! frame `first + k - 1` of the trajectory for step `k`. (Tests build an oracle that reads the
 //! truth through the same trait.) Used by [`super::rollout`] and [`super::replay`].
+//! [`ModelPredictor`] runs on the CPU by default; `load_on` puts it on any backend (the
+//! `--device` of `minflow eval`).
 
 use std::path::Path;
 
@@ -16,6 +18,7 @@ use burn::backend::NdArray;
 use super::EvalError;
 use crate::data::Trajectory;
 use crate::model::store::Surrogate;
+use crate::model::FusedElu;
 
 /// The CPU inference backend.
 pub type CpuInfer = NdArray<f32>;
@@ -97,20 +100,32 @@ impl Predictor for ConstVel {
     }
 }
 
-/// A trained model (a `minflow train` run folder) on the CPU backend.
-pub struct ModelPredictor {
+/// A trained model (a `minflow train` run folder), on the CPU backend unless loaded with
+/// [`ModelPredictor::load_on`].
+pub struct ModelPredictor<B: FusedElu = CpuInfer> {
     name: String,
-    surrogate: Surrogate<CpuInfer>,
+    surrogate: Surrogate<B>,
 }
 
-impl ModelPredictor {
-    /// Loads the run folder `dir` (`model.json` + `model.mpk`); the column is called `name`.
+impl ModelPredictor<CpuInfer> {
+    /// Loads the run folder `dir` (`model.json` + `model.mpk`) onto the CPU; the column is
+    /// called `name`.
     pub fn load(dir: &Path, name: impl Into<String>) -> Result<Self, EvalError> {
-        let surrogate =
-            Surrogate::load(dir, &Default::default()).map_err(|e| EvalError::Model {
-                dir: dir.to_path_buf(),
-                what: e.to_string(),
-            })?;
+        Self::load_on(dir, name, &Default::default())
+    }
+}
+
+impl<B: FusedElu> ModelPredictor<B> {
+    /// [`ModelPredictor::load`] onto `device` of backend `B`.
+    pub fn load_on(
+        dir: &Path,
+        name: impl Into<String>,
+        device: &B::Device,
+    ) -> Result<Self, EvalError> {
+        let surrogate = Surrogate::load(dir, device).map_err(|e| EvalError::Model {
+            dir: dir.to_path_buf(),
+            what: e.to_string(),
+        })?;
         Ok(Self {
             name: name.into(),
             surrogate,
@@ -118,7 +133,7 @@ impl ModelPredictor {
     }
 
     /// Wraps an already loaded model.
-    pub fn new(surrogate: Surrogate<CpuInfer>, name: impl Into<String>) -> Self {
+    pub fn new(surrogate: Surrogate<B>, name: impl Into<String>) -> Self {
         Self {
             name: name.into(),
             surrogate,
@@ -126,12 +141,12 @@ impl ModelPredictor {
     }
 
     /// The model (its [`crate::model::store::ModelMeta`] holds the scaler and the config).
-    pub fn surrogate(&self) -> &Surrogate<CpuInfer> {
+    pub fn surrogate(&self) -> &Surrogate<B> {
         &self.surrogate
     }
 }
 
-impl Predictor for ModelPredictor {
+impl<B: FusedElu> Predictor for ModelPredictor<B> {
     fn name(&self) -> &str {
         &self.name
     }

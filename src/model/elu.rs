@@ -6,7 +6,8 @@
 //!
 //! [`FusedElu`] has composed default methods, so any backend can opt in with an empty impl;
 //! `NdArray<f32>` overrides them with single-pass loops (parallel over chunks), and
-//! `Autodiff<B>` records one backward node. Used by the encoder, the core's MLPs and the
+//! `Autodiff<B>` records one backward node. burn's CUDA backend (feature `cuda`) takes the
+//! composed defaults: its fusion layer compiles the element-wise chain into one kernel. Used by the encoder, the core's MLPs and the
 //! pointwise decoder.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -100,6 +101,10 @@ impl FusedElu for NdArray<f32> {
         NdArray::<f32>::float_reshape(y.into_primitive().tensor(), shape)
     }
 }
+
+/// CUDA (feature `cuda`): the composed defaults, fused into one kernel by burn's fusion layer.
+#[cfg(feature = "cuda")]
+impl FusedElu for burn::backend::Cuda<f32, i32> {}
 
 impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
     fn elu_forward(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -235,7 +235,7 @@ pub fn run<B: FusedElu>(
         };
         for sample in first.into_iter().chain(rx.try_iter()) {
             report.received += 1;
-            let frame = match sample.frame() {
+            let frame = match sample.decode() {
                 Ok(f) => f,
                 Err(reason) => {
                     report.malformed += 1;
@@ -243,7 +243,7 @@ pub fn run<B: FusedElu>(
                     continue;
                 }
             };
-            if let Err(reason) = check_frame(&frame, model_n) {
+            if let Err(reason) = check_frame(&frame, model_n).and_then(|()| frame.validate().map_err(|e| e.to_string())) {
                 report.rejected += 1;
                 note(&mut report, &frame.scene.clone(), reason);
                 continue;

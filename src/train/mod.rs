@@ -4,6 +4,11 @@
 //! checkpoint (model + optimizer + state) written atomically every epoch so a killed run
 //! resumes where it stopped, bit for bit (the backend RNG and the data order are reseeded
 //! from (seed, epoch)). The best epoch's model is kept as `model.json` + `model.mpk`.
+//! Backend-generic: the initial weights are always drawn on the CPU backend from the seed and
+//! then moved to the training device, so a CUDA run starts from the same weights as a CPU
+//! run. Batches are assembled on a helper thread one ahead of the device, and the loss is
+//! read back once per optimizer step (after the step is queued), so an accelerator is not
+//! left waiting on the host between micro-batches.
 //! Used by `minflow train` and `minflow bench train`.
 
 pub mod checkpoint;
@@ -15,12 +20,14 @@ pub use source::BatchSource;
 use crate::data::{Batch, Scaler, WindowIndex};
 use crate::model::store::{self, ModelMeta};
 use crate::model::{Model, ModelConfig, Scaling};
-use burn::module::AutodiffModule;
+use burn::backend::NdArray;
+use burn::module::{AutodiffModule, Module};
 use burn::optim::{AdamConfig, GradientsAccumulator, GradientsParams, Optimizer};
-use burn::tensor::backend::AutodiffBackend;
+use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
+use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{ElementConversion, Tensor, TensorData};
 use std::path::PathBuf;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// Errors of a training run.
 #[derive(Debug, thiserror::Error)]
@@ -80,38 +87,116 @@ pub struct EpochRecord {
     pub seconds: f64,
     /// Training windows per second.
     pub samples_per_sec: f64,
+    /// Seconds of `seconds` the training loop waited for host batches (assembly runs on a
+    /// helper thread; this is what it did not hide).
+    #[serde(default)]
+    pub data_seconds: f64,
+    /// Seconds of `seconds` the host waited for the device to finish queued work (reading
+    /// the loss back once per step): near `seconds` when the device is the bottleneck, near
+    /// 0 when issuing the work (kernel launches, autodiff bookkeeping) is.
+    #[serde(default)]
+    pub wait_seconds: f64,
 }
 
-/// Tensors of a batch slice `[start, start + len)`.
-struct Slice<B: burn::tensor::backend::Backend> {
+/// Host data of a batch slice `[start, start + len)`, ready to upload.
+struct HostSlice {
+    len: usize,
+    t: usize,
+    n: usize,
+    inputs: Vec<f32>,
+    targets: Vec<f32>,
+    target_pos: Vec<f32>,
+    dt: Vec<f32>,
+}
+
+/// Tensors of a batch slice.
+struct Slice<B: Backend> {
     inputs: Tensor<B, 4>,
     targets: Tensor<B, 3>,
     target_pos: Tensor<B, 3>,
     dt: Tensor<B, 1>,
 }
 
-fn slice<B: burn::tensor::backend::Backend>(
-    batch: &Batch,
-    start: usize,
-    len: usize,
-    device: &B::Device,
-) -> Slice<B> {
-    let (t, n) = (batch.t, batch.n);
-    let inputs = batch.inputs[start * t * n * 5..(start + len) * t * n * 5].to_vec();
-    let targets = batch.targets[start * n * 4..(start + len) * n * 4].to_vec();
-    let pos: Vec<f32> = batch.target_phys[start * n * 4..(start + len) * n * 4]
-        .chunks_exact(4)
-        .flat_map(|r| [r[0], r[1]])
-        .collect();
-    Slice {
-        inputs: Tensor::from_data(TensorData::new(inputs, [len, t, n, 5]), device),
-        targets: Tensor::from_data(TensorData::new(targets, [len, n, 4]), device),
-        target_pos: Tensor::from_data(TensorData::new(pos, [len, n, 2]), device),
-        dt: Tensor::from_data(
-            TensorData::new(batch.dt[start..start + len].to_vec(), [len]),
-            device,
-        ),
+/// Cuts `batch` into micro-batches of at most `micro` windows (host side).
+fn host_slices(batch: Batch, micro: usize) -> Vec<HostSlice> {
+    let (t, n, b) = (batch.t, batch.n, batch.b);
+    let micro = micro.clamp(1, b.max(1));
+    let mut out = Vec::with_capacity(b.div_ceil(micro));
+    let mut start = 0;
+    while start < b {
+        let len = micro.min(b - start);
+        let target_pos = batch.target_phys[start * n * 4..(start + len) * n * 4]
+            .chunks_exact(4)
+            .flat_map(|r| [r[0], r[1]])
+            .collect();
+        let (inputs, targets) = if len == b {
+            (batch.inputs.clone(), batch.targets.clone())
+        } else {
+            (
+                batch.inputs[start * t * n * 5..(start + len) * t * n * 5].to_vec(),
+                batch.targets[start * n * 4..(start + len) * n * 4].to_vec(),
+            )
+        };
+        out.push(HostSlice {
+            len,
+            t,
+            n,
+            inputs,
+            targets,
+            target_pos,
+            dt: batch.dt[start..start + len].to_vec(),
+        });
+        start += len;
     }
+    out
+}
+
+impl HostSlice {
+    fn upload<B: Backend>(self, device: &B::Device) -> Slice<B> {
+        let (len, t, n) = (self.len, self.t, self.n);
+        Slice {
+            inputs: Tensor::from_data(TensorData::new(self.inputs, [len, t, n, 5]), device),
+            targets: Tensor::from_data(TensorData::new(self.targets, [len, n, 4]), device),
+            target_pos: Tensor::from_data(TensorData::new(self.target_pos, [len, n, 2]), device),
+            dt: Tensor::from_data(TensorData::new(self.dt, [len]), device),
+        }
+    }
+}
+
+fn slice<B: Backend>(batch: &Batch, start: usize, len: usize, device: &B::Device) -> Slice<B> {
+    let (t, n) = (batch.t, batch.n);
+    HostSlice {
+        len,
+        t,
+        n,
+        inputs: batch.inputs[start * t * n * 5..(start + len) * t * n * 5].to_vec(),
+        targets: batch.targets[start * n * 4..(start + len) * n * 4].to_vec(),
+        target_pos: batch.target_phys[start * n * 4..(start + len) * n * 4]
+            .chunks_exact(4)
+            .flat_map(|r| [r[0], r[1]])
+            .collect(),
+        dt: batch.dt[start..start + len].to_vec(),
+    }
+    .upload(device)
+}
+
+/// Fresh weights from `seed`, drawn on the CPU backend whatever `B` is and moved to `device`
+/// through an f32 record, so runs on different backends start from identical weights. (For
+/// `B` on ndarray these are the weights `config.init::<B>` draws after seeding.)
+pub fn initial_model<B: crate::model::FusedElu>(
+    config: &ModelConfig,
+    seed: u64,
+    device: &B::Device,
+) -> Result<Model<B>, TrainError> {
+    let cpu = Default::default();
+    NdArray::<f32>::seed(&cpu, seed);
+    let drawn: Model<NdArray<f32>> = config.init(&cpu);
+    let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
+    let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
+        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
+    let record = Recorder::<B>::load(&recorder, bytes, device)
+        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
+    Ok(config.init::<B>(device).load_record(record))
 }
 
 /// Predicted positions in domain units from a scaled prediction `[B, N, 4]`.
@@ -255,7 +340,7 @@ where
         }
         .scaling();
         B::seed(&self.device, self.opts.seed);
-        let mut model: Model<B> = self.config.init(&self.device);
+        let mut model: Model<B> = initial_model(&self.config, self.opts.seed, &self.device)?;
         let mut optim = AdamConfig::new().with_epsilon(1e-8).init::<B, Model<B>>();
         let mut history = Vec::new();
         let mut start_epoch = 0;
@@ -291,53 +376,82 @@ where
                     .wrapping_add(epoch as u64),
             );
             let started = Instant::now();
-            let (mut sum, mut seen) = (0.0f64, 0usize);
             let total = train.num_batches(self.opts.batch_size.max(1));
-            for (k, batch) in train
-                .batches(
-                    self.opts.batch_size.max(1),
-                    Some(self.opts.seed),
-                    epoch as u64,
-                )?
-                .enumerate()
-            {
-                let batch = batch?;
-                let mut accumulator = GradientsAccumulator::new();
-                let micro = self.opts.micro_batch.clamp(1, batch.b);
-                let mut start = 0;
-                while start < batch.b {
-                    let len = micro.min(batch.b - start);
-                    let s = slice::<B>(&batch, start, len, &self.device);
-                    let pred = model.forward(s.inputs, s.dt, &scaling);
-                    let parts = loss::loss(
-                        pred.clone(),
-                        s.targets,
-                        positions(pred, &scaling),
-                        s.target_pos,
-                        self.opts.density_grid,
-                        self.opts.density_weight,
-                    );
-                    let value: f32 = parts.total.clone().into_scalar().elem();
+            let batches = train.batches(
+                self.opts.batch_size.max(1),
+                Some(self.opts.seed),
+                epoch as u64,
+            )?;
+            let micro = self.opts.micro_batch;
+            // The model moves into the step loop and back out (`optim.step` consumes it, so
+            // the parameters are updated in place when nothing else holds them).
+            let mut slot = Some(model);
+            let (sum, seen, data_wait, device_wait) = std::thread::scope(|scope| {
+                // Host batches are assembled (and cut into micro-batches) one ahead.
+                let (tx, rx) = std::sync::mpsc::sync_channel(1);
+                scope.spawn(move || {
+                    for batch in batches {
+                        let item = batch.map(|b| (b.b, host_slices(b, micro)));
+                        if tx.send(item).is_err() {
+                            break;
+                        }
+                    }
+                });
+                let (mut sum, mut seen) = (0.0f64, 0usize);
+                let (mut data_wait, mut device_wait) = (Duration::ZERO, Duration::ZERO);
+                let mut k = 0;
+                loop {
+                    let waited = Instant::now();
+                    let Ok(item) = rx.recv() else { break };
+                    data_wait += waited.elapsed();
+                    let (b, slices) = item?;
+                    let model = slot.take().expect("the model is put back after every step");
+                    let mut accumulator = GradientsAccumulator::new();
+                    let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
+                    for host in slices {
+                        let len = host.len;
+                        let s = host.upload::<B>(&self.device);
+                        let pred = model.forward(s.inputs, s.dt, &scaling);
+                        let parts = loss::loss(
+                            pred.clone(),
+                            s.targets,
+                            positions(pred, &scaling),
+                            s.target_pos,
+                            self.opts.density_grid,
+                            self.opts.density_weight,
+                        );
+                        let weighted = parts.total.clone().inner().mul_scalar(len as f32);
+                        batch_loss = Some(match batch_loss {
+                            Some(acc) => acc + weighted,
+                            None => weighted,
+                        });
+                        let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
+                        accumulator.accumulate(&model, GradientsParams::from_grads(grads, &model));
+                    }
+                    slot = Some(optim.step(self.opts.lr, model, accumulator.grads()));
+                    // One read per step, after the step is queued: the host waits here for
+                    // the device to finish it.
+                    let waited = Instant::now();
+                    let value: f64 = batch_loss
+                        .map_or(0.0, |l| l.into_scalar().elem::<f64>())
+                        / b.max(1) as f64;
+                    device_wait += waited.elapsed();
                     if !value.is_finite() {
                         return Err(TrainError::NonFinite {
                             epoch: epoch + 1,
                             batch: k,
-                            loss: value,
+                            loss: value as f32,
                         });
                     }
-                    sum += value as f64 * len as f64;
-                    let grads = parts
-                        .total
-                        .mul_scalar(len as f32 / batch.b as f32)
-                        .backward();
-                    accumulator.accumulate(&model, GradientsParams::from_grads(grads, &model));
-                    start += len;
+                    sum += value * b as f64;
+                    seen += b;
+                    k += 1;
+                    let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                    observer.batch(epoch + 1, k, total, sum / seen as f64, rate);
                 }
-                seen += batch.b;
-                model = optim.step(self.opts.lr, model, accumulator.grads());
-                let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-                observer.batch(epoch + 1, k + 1, total, sum / seen as f64, rate);
-            }
+                Ok((sum, seen, data_wait, device_wait))
+            })?;
+            model = slot.expect("the model is put back after every step");
             let seconds = started.elapsed().as_secs_f64();
             let train_loss = sum / seen.max(1) as f64;
             let valid = model.valid();
@@ -353,6 +467,8 @@ where
                 val_loss,
                 seconds,
                 samples_per_sec: seen as f64 / seconds.max(1e-9),
+                data_seconds: data_wait.as_secs_f64(),
+                wait_seconds: device_wait.as_secs_f64(),
             };
             if val_loss < best {
                 best = val_loss;

@@ -6,7 +6,7 @@
 use crate::data::{Batch, DataError, StreamingLoader, WindowIndex};
 
 /// The batches of one epoch.
-pub type Batches<'a> = Box<dyn Iterator<Item = Result<Batch, DataError>> + 'a>;
+pub type Batches<'a> = Box<dyn Iterator<Item = Result<Batch, DataError>> + Send + 'a>;
 
 /// A source of training or validation batches.
 pub trait BatchSource {

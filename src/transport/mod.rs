@@ -130,6 +130,19 @@ impl Sample {
         Ok(frame)
     }
 
+    /// The frame as it arrived, decoded but not validated (lengths, finiteness and material
+    /// ids unchecked: see [`ParticleFrame::validate`]).
+    ///
+    /// # Errors
+    /// The reason the payload does not decode.
+    pub fn decode(&self) -> Result<ParticleFrame, String> {
+        match &self.payload {
+            Payload::Cdr(bytes) => cdr::decode(bytes).map_err(|e| e.to_string()),
+            Payload::Frame(frame) => Ok(frame.clone()),
+            Payload::Malformed(reason) => Err(reason.clone()),
+        }
+    }
+
     /// The CDR bytes of the message, encoding a zero-copy frame if needed; validated.
     ///
     /// # Errors

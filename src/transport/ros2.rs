@@ -53,9 +53,10 @@ use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, ReadError};
 use serde::{Deserialize, Serialize};
 
 use super::{
-    topic_key, FramePublisher, Payload, Sample, Subscription, Transport, TransportError,
-    TransportKind,
+    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport,
+    TransportError, TransportKind,
 };
+use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{cdr, Header, ParticleFrame, Time};
 
 /// ROS 2 package of the message type (`minflow_msgs/msg/ParticleFrame`).
@@ -423,6 +424,47 @@ impl Transport for Ros2Transport {
         }
     }
 
+    /// `minflow_msgs/msg/SurrogateStatus` on the topic (DDS type
+    /// `minflow_msgs::msg::dds_::SurrogateStatus_`), default ROS 2 QoS.
+    fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
+        let name = ros_name(topic)?;
+        let kind = self.backend.kind();
+        let declare_err = |reason: String| TransportError::Declare {
+            transport: kind,
+            what: "status publisher",
+            topic: topic.to_owned(),
+            reason,
+        };
+        let type_name = MessageTypeName::new(PACKAGE, "SurrogateStatus");
+        match &self.node {
+            NodeRef::Dds(dds) => {
+                let publisher = dds
+                    .with(|node| {
+                        let t = node.create_topic(&name, type_name, &QOS)?;
+                        node.create_publisher::<SurrogateStatus>(&t, Some(QOS))
+                    })
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(Ros2StatusPublisher {
+                    topic: topic.to_owned(),
+                    kind,
+                    send: Box::new(move |s| publisher.publish(s.clone()).map_err(|e| e.to_string())),
+                }))
+            }
+            NodeRef::Zenoh(z) => {
+                let t = z.node.create_topic(&name, type_name, &QOS);
+                let publisher = z
+                    .node
+                    .create_publisher::<SurrogateStatus>(&t, Some(QOS))
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(Ros2StatusPublisher {
+                    topic: topic.to_owned(),
+                    kind,
+                    send: Box::new(move |s| publisher.publish(s.clone()).map_err(|e| e.to_string())),
+                }))
+            }
+        }
+    }
+
     fn subscribe(
         &self,
         topic: &str,
@@ -551,6 +593,24 @@ impl Drop for SubscriptionHandle {
 impl Subscription for SubscriptionHandle {}
 
 // --- publishers ------------------------------------------------------------------------------
+
+type SendStatus = Box<dyn FnMut(&SurrogateStatus) -> Result<(), String> + Send>;
+
+struct Ros2StatusPublisher {
+    topic: String,
+    kind: TransportKind,
+    send: SendStatus,
+}
+
+impl StatusPublisher for Ros2StatusPublisher {
+    fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
+        (self.send)(status).map_err(|reason| TransportError::Publish {
+            transport: self.kind,
+            topic: self.topic.clone(),
+            reason,
+        })
+    }
+}
 
 struct DdsPublisher {
     topic: String,

@@ -1,0 +1,23 @@
+//! The `minflow-cuda` binary (feature `cuda`): `minflow`'s `simulate`, `train`, `eval`, `bench train`
+//! alone, so that a stripped build with burn's CUDA backend stays small enough to carry to a
+//! GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
+
+use clap::Parser;
+use std::process::ExitCode;
+
+/// As in `minflow`: mimalloc reuses freed large host buffers.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+fn main() -> ExitCode {
+    let cli = minflow::cli::TrainCli::parse();
+    minflow::cli::init_logging(cli.verbose);
+    match minflow::cli::run_train(cli) {
+        Ok(minflow::cli::Outcome::Done) => ExitCode::SUCCESS,
+        Ok(minflow::cli::Outcome::DataLost) => ExitCode::from(3),
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,131 @@
+//! `--device`: where a command runs its model, shared by `train`, `eval`, `bench train` and
+//! `node` (each flattens [`DeviceArgs`]). `cpu` is burn's ndarray backend (the default, always
+//! built); `cuda` or `cuda:N` is burn's CUDA backend on GPU N, in a build with the `cuda`
+//! feature (docs/cuda.md); `cuda:0,cuda:1,...` lists several GPUs for data-parallel training
+//! (`train` only). Also the backend types of each device and the CUDA memory query the
+//! training benchmark reports.
+
+use anyhow::bail;
+use clap::Args;
+
+/// The `--device` flag.
+#[derive(Debug, Clone, Args)]
+pub struct DeviceArgs {
+    /// Where the model runs: cpu | cuda | cuda:N | cuda:0,cuda:1 (data-parallel training;
+    /// train only). CUDA needs a build with `--features cuda` (docs/cuda.md).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+/// A parsed `--device`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Device {
+    /// burn's ndarray backend, f32.
+    Cpu,
+    /// burn's CUDA backend, f32, on these GPU ordinals (at least one, no repeats).
+    Cuda(Vec<usize>),
+}
+
+impl DeviceArgs {
+    /// Validates the flag (a CUDA device in a build without the feature is an error).
+    pub fn parse(&self) -> anyhow::Result<Device> {
+        parse(&self.device)
+    }
+}
+
+impl Device {
+    /// The single CUDA ordinal of a command that runs on one device (`None` for the CPU);
+    /// an error naming `command` for a list.
+    pub fn single(&self, command: &str) -> anyhow::Result<Option<usize>> {
+        match self {
+            Device::Cpu => Ok(None),
+            Device::Cuda(ids) if ids.len() == 1 => Ok(Some(ids[0])),
+            Device::Cuda(ids) => {
+                bail!("`{command}` runs on one device; got {} CUDA devices", ids.len())
+            }
+        }
+    }
+}
+
+/// Parses `cpu`, `cuda`, `cuda:N` or a comma-separated list of CUDA devices.
+pub fn parse(text: &str) -> anyhow::Result<Device> {
+    let text = text.trim();
+    if text == "cpu" {
+        return Ok(Device::Cpu);
+    }
+    let mut ids = Vec::new();
+    for part in text.split(',').map(str::trim) {
+        let id = match part.strip_prefix("cuda") {
+            Some("") => 0,
+            Some(rest) => match rest.strip_prefix(':').map(str::parse::<usize>) {
+                Some(Ok(id)) => id,
+                _ => bail!("--device {text:?}: expected cuda:N with N a GPU ordinal, got {part:?}"),
+            },
+            None => bail!("--device {text:?}: expected cpu, cuda, cuda:N or cuda:0,cuda:1"),
+        };
+        if ids.contains(&id) {
+            bail!("--device {text:?}: cuda:{id} given twice");
+        }
+        ids.push(id);
+    }
+    if !cfg!(feature = "cuda") {
+        bail!(
+            "--device {text}: this minflow was built without CUDA; rebuild with \
+             `cargo build --release --features cuda` (docs/cuda.md)"
+        );
+    }
+    Ok(Device::Cuda(ids))
+}
+
+/// burn's CUDA backend (feature `cuda`): backend types, devices, memory.
+#[cfg(feature = "cuda")]
+pub mod cuda {
+    use burn::cubecl::Runtime;
+
+    /// Inference backend: burn's CUDA backend (with fusion), f32.
+    pub type CudaInfer = burn::backend::Cuda<f32, i32>;
+    /// Training backend.
+    pub type CudaTrain = burn::backend::Autodiff<CudaInfer>;
+    /// A GPU.
+    pub type CudaDevice = burn::backend::cuda::CudaDevice;
+
+    /// GPU `index`.
+    pub fn device(index: usize) -> CudaDevice {
+        CudaDevice { index }
+    }
+
+    /// Bytes that cubecl's memory pool holds on `device` (it keeps freed pages for reuse,
+    /// so after a step this is the step's high-water mark, rounded up to pages).
+    pub fn reserved_bytes(device: &CudaDevice) -> Option<u64> {
+        burn::cubecl::cuda::CudaRuntime::client(device)
+            .memory_usage()
+            .ok()
+            .map(|u| u.bytes_reserved)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_cpu_and_rejects_junk() {
+        assert_eq!(parse("cpu").unwrap(), Device::Cpu);
+        assert!(parse("gpu").is_err());
+        assert!(parse("cuda:x").is_err());
+        assert!(parse("cuda:0,cuda:0").is_err());
+    }
+
+    #[test]
+    fn parses_cuda_lists_only_with_the_feature() {
+        let parsed = parse("cuda:0, cuda:1");
+        if cfg!(feature = "cuda") {
+            assert_eq!(parsed.unwrap(), Device::Cuda(vec![0, 1]));
+            assert_eq!(parse("cuda").unwrap(), Device::Cuda(vec![0]));
+            assert!(parse("cuda:0,cuda:1").unwrap().single("eval").is_err());
+        } else {
+            let err = parsed.unwrap_err().to_string();
+            assert!(err.contains("--features cuda"), "{err}");
+        }
+    }
+}

@@ -1,0 +1,269 @@
+//! The surrogate node as a separate process on every transport: its one-step predictions of
+//! a replayed bag equal the offline stateful predictions of the same model within 1e-5, with
+//! two scenes interleaved frame by frame (so they also equal each scene predicted alone);
+//! bad frames (wrong N, NaN, material 9, truncated CDR) are counted on /surrogate/status
+//! while the good scene interleaved with them is still predicted correctly; `launch` of the
+//! replay evaluation ends with exit code 0 and a table, and killing a required node stops
+//! the rest with a non-zero exit.
+
+mod transport_support;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use burn::backend::NdArray;
+use minflow::bag::{read_frames, FRAMES_TOPIC};
+use minflow::model::store::Surrogate;
+use minflow::msgs::ParticleFrame;
+use transport_support::*;
+
+const SCENES: [&str; 2] = ["bags/multi_rope+snow_001.mcap", "bags/multi_liquid+snow_000.mcap"];
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// A small minGRU trained for one epoch on the bundled bags (once per test binary).
+fn model() -> PathBuf {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("mingru");
+        let o = Node::spawn(
+            "train",
+            &[
+                "train", "--data", repo("bags").to_str().unwrap(), "--model", "mingru", "--epochs", "1",
+                "--width", "48", "--encoder-hidden", "16", "--out", out.to_str().unwrap(),
+            ],
+        )
+        .wait(Duration::from_secs(300));
+        ok(&o, "train");
+        dir
+    })
+    .path()
+    .join("mingru")
+}
+
+/// Offline stateful one-step predictions of every frame of `bag`'s scene, keyed by the
+/// predicted frame_index.
+fn offline(bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
+    let device = Default::default();
+    let s = Surrogate::<NdArray<f32>>::load(&model(), &device).unwrap();
+    let frames: Vec<ParticleFrame> = read_frames(bag, None).unwrap().frames.into_iter().map(|m| m.2).collect();
+    let mut state = s.init_state();
+    let mut out = BTreeMap::new();
+    for f in &frames {
+        let rows: Vec<f32> = (0..f.len())
+            .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+            .collect();
+        let (next, st) = s.step(&rows, &f.material, &[f.dt], state).unwrap();
+        state = st;
+        out.insert(f.frame_index + 1, next);
+    }
+    (frames[0].scene.clone(), out)
+}
+
+fn rows_of(f: &ParticleFrame) -> Vec<f32> {
+    (0..f.len())
+        .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+        .collect()
+}
+
+/// Compares recorded predictions with the offline ones; returns how many were compared.
+fn assert_matches_offline(pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usize {
+    let mut want: BTreeMap<String, BTreeMap<u32, Vec<f32>>> = BTreeMap::new();
+    for b in bags {
+        let (scene, preds) = offline(b);
+        want.insert(scene, preds);
+    }
+    let mut compared = 0;
+    for bytes in raw_messages(pred_dir, Some(topic)) {
+        let f = minflow::msgs::decode(&bytes).unwrap();
+        let expect = &want[&f.scene][&f.frame_index];
+        let got = rows_of(&f);
+        let worst = got.iter().zip(expect).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(worst <= 1e-5, "{} frame {}: max |diff| {worst}", f.scene, f.frame_index);
+        compared += 1;
+    }
+    compared
+}
+
+/// replay (two bags, interleaved by log time) -> node -> record, over `transport`.
+fn node_matches_offline(transport: &str) {
+    let model = model();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pred");
+    let input = unique_topic(&format!("{transport}_in"));
+    let output = unique_topic(&format!("{transport}_out"));
+    let bags: Vec<PathBuf> = SCENES.iter().map(|s| repo(s)).collect();
+    let expected = 2 * 25;
+    let recorder = Node::spawn(
+        "record",
+        &["record", "--transport", transport, "--topic", &output, "-o", out.to_str().unwrap(), "--count", &expected.to_string()],
+    );
+    let node = Node::spawn(
+        "node",
+        &[
+            "node", "--model", model.to_str().unwrap(), "--transport", transport, "--in", &input, "--out", &output,
+            "--wait-for-subscribers", "1", "--status", "none",
+        ],
+    );
+    let mut replay = vec!["replay", "--transport", transport, "--topic", &input];
+    replay.extend(bags.iter().map(|b| b.to_str().unwrap()));
+    ok(&Node::spawn("replay", &replay).wait(Duration::from_secs(120)), "replay");
+    let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
+    node.signal("INT");
+    let node_err = ok(&node.wait(Duration::from_secs(30)), "node");
+    let n = assert_matches_offline(&out, &output, &bags);
+    assert_eq!(n, expected, "predictions recorded\nrecord: {rec}\nnode: {node_err}");
+}
+
+#[test]
+fn zenoh_node_equals_offline_stateful_predictions() {
+    node_matches_offline("zenoh");
+}
+
+#[test]
+fn iceoryx2_node_equals_offline_stateful_predictions() {
+    node_matches_offline("iceoryx2");
+}
+
+#[test]
+fn ros2_node_equals_offline_stateful_predictions() {
+    node_matches_offline("ros2");
+}
+
+#[test]
+fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
+    use minflow::transport::zenoh::ZenohTransport;
+    use minflow::transport::Transport;
+    let model = model();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pred");
+    let input = unique_topic("bad_in");
+    let output = unique_topic("bad_out");
+    let status_topic = unique_topic("bad_status");
+    let recorder = Node::spawn("record", &["record", "--topic", &output, "-o", out.to_str().unwrap(), "--count", "25"]);
+    let node = Node::spawn(
+        "node",
+        &["node", "--model", model.to_str().unwrap(), "--in", &input, "--out", &output, "--status", &status_topic, "--wait-for-subscribers", "1"],
+    );
+    let session = ZenohTransport::open(None).unwrap();
+    let (tx, statuses) = std::sync::mpsc::channel();
+    let _status = session.subscribe_status(&status_topic, tx).unwrap();
+    let mut frames = session.publisher(&input).unwrap();
+    assert!(minflow::transport::wait_for_subscribers(frames.as_ref(), 1, Duration::from_secs(60)));
+    let raw = {
+        use zenoh::Wait;
+        session.session().declare_publisher(input.trim_start_matches('/').to_owned()).wait().unwrap()
+    };
+    let good = bag_frames(&repo(SCENES[0]));
+    for (k, f) in good.iter().enumerate() {
+        frames.publish(f).unwrap();
+        // One bad frame of another scene after each of the first four good ones.
+        let mut bad = f.clone();
+        bad.scene = "bad/scene".into();
+        match k {
+            0 => {
+                bad.position.truncate(200);
+                bad.velocity.truncate(200);
+                bad.material.truncate(100);
+                frames.publish(&bad).unwrap();
+            }
+            1 => {
+                bad.velocity[7] = f32::NAN;
+                frames.publish(&bad).unwrap();
+            }
+            2 => {
+                bad.material[3] = 9;
+                frames.publish(&bad).unwrap();
+            }
+            3 => {
+                let bytes = minflow::msgs::encode(&bad);
+                use zenoh::Wait;
+                raw.put(bytes[..bytes.len() / 3].to_vec()).wait().unwrap();
+            }
+            _ => {}
+        }
+        std::thread::sleep(Duration::from_millis(16));
+    }
+    ok(&recorder.wait(Duration::from_secs(120)), "record");
+    // The good scene: all 25 predictions, equal to the offline ones.
+    assert_eq!(assert_matches_offline(&out, &output, &[repo(SCENES[0])]), 25);
+    // The status reports 3 rejected and 1 malformed frame within a few seconds.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let mut last = None;
+    while std::time::Instant::now() < deadline {
+        if let Ok(s) = statuses.recv_timeout(Duration::from_millis(500)) {
+            let done = s.rejected == 3 && s.malformed == 1;
+            last = Some(s);
+            if done {
+                break;
+            }
+        }
+    }
+    let s = last.expect("status reports arrive");
+    assert_eq!((s.rejected, s.malformed, s.published), (3, 1, 25), "{s:?}");
+    assert!(!s.last_error.is_empty());
+    node.signal("INT");
+    ok(&node.wait(Duration::from_secs(30)), "node");
+}
+
+fn bag_frames(bag: &Path) -> Vec<ParticleFrame> {
+    read_frames(bag, Some(FRAMES_TOPIC)).unwrap().frames.into_iter().map(|m| m.2).collect()
+}
+
+#[test]
+fn launch_replay_eval_prints_the_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("re");
+    let o = Node::spawn(
+        "launch",
+        &[
+            "launch", repo("launch_configs/replay_eval.yaml").to_str().unwrap(),
+            &format!("model:={}", model().display()),
+            &format!("bags:={}", repo("bags").display()),
+            &format!("out:={}", out.display()),
+            "horizon:=10",
+        ],
+    )
+    .wait(Duration::from_secs(300));
+    let err = ok(&o, "launch replay_eval");
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("| **Average** |"), "no table in stdout:\n{table}\n{err}");
+    assert!(table.contains("constvel") && table.contains("persist"));
+    assert!(out.join("eval").join("table.md").is_file());
+}
+
+#[test]
+fn killing_a_required_node_stops_the_launch_with_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("l.yaml");
+    let topic = unique_topic("launch_kill");
+    std::fs::write(
+        &file,
+        format!(
+            "launch:\n  - node: {{name: surrogate, exec: node, required: true, args: [--model, {}, --in, {topic}, --status, none]}}\n  - node: {{name: recorder, exec: record, args: [--topic, {topic}, -o, {}]}}\n",
+            model().display(),
+            dir.path().join("rec").display()
+        ),
+    )
+    .unwrap();
+    let launch = Node::spawn("launch", &["launch", file.to_str().unwrap()]);
+    // Find the surrogate's pid in the launch log, then kill it.
+    std::thread::sleep(Duration::from_secs(3));
+    let pid = std::process::Command::new("pgrep")
+        .args(["-f", &format!("minflow node .*--in {topic}")])
+        .output()
+        .unwrap();
+    let pids = String::from_utf8_lossy(&pid.stdout);
+    let pid = pids.lines().next().expect("the surrogate node runs").trim().to_owned();
+    assert!(std::process::Command::new("kill").args(["-KILL", &pid]).status().unwrap().success());
+    let o = launch.wait(Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(err.contains("stopping all nodes"), "{err}");
+    assert!(err.contains("recorder exited"), "the recorder was stopped too:\n{err}");
+}
