@@ -19,6 +19,8 @@ pub enum BenchCommand {
     Train(super::bench_train::TrainBenchArgs),
     /// Transport latency between two processes (p50/p99/max) and burst throughput.
     Transport(super::bench_transport::TransportBenchArgs),
+    /// Surrogate node latency and throughput per core and transport (two processes).
+    Node(super::bench_node::NodeBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -39,6 +41,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
         BenchCommand::Sim(args) => sim(args),
         BenchCommand::Train(args) => super::bench_train::run(args),
         BenchCommand::Transport(args) => super::bench_transport::run(args),
+        BenchCommand::Node(args) => super::bench_node::run(args),
     }
 }
 

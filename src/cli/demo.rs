@@ -1,76 +1,99 @@
-//! `minflow demo`: the main job on a fresh machine. For now (ground truth only): summarise
-//! the bundled bags in `bags/`, simulate one `multi` and one `fluid` scene into `--out`,
-//! validate everything with `bag check`, and print the simulator's speed on them. Later
-//! stages (train, node, eval) extend this command.
+//! `minflow demo`: the main job on a fresh machine (README, first line). On the bundled bags
+//! in `bags/`: trains a small minGRU if `--model` holds no model yet, then launches
+//! `launch_configs/replay_eval.yaml` over zenoh with an embedded peer (replay -> surrogate
+//! node in closed loop -> recorder -> `eval --pred --truth`) and prints the replay
+//! evaluation table with the `persist` and `constvel` baselines.
 
 use super::Outcome;
-use crate::bag::{self, FRAMES_TOPIC};
-use crate::sim::families::{self, Family};
-use anyhow::Context;
+use crate::bag;
+use crate::node::shutdown_flag;
+use anyhow::{bail, Context};
 use clap::Args;
 use std::path::PathBuf;
+use std::process::Command;
 use std::time::Instant;
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Folder of bundled bags to summarise.
+    /// Bundled ground-truth bags.
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
-    /// Where the freshly simulated scenes go.
-    #[arg(short, long, default_value = "data/demo")]
+    /// Run folder of the model; trained here first if it holds no model.
+    #[arg(long, default_value = "runs/demo-mingru")]
+    model: PathBuf,
+    /// Output folder of the replay evaluation.
+    #[arg(short, long, default_value = "runs/demo")]
     out: PathBuf,
-    /// Frames per simulated scene.
-    #[arg(long, default_value_t = 200)]
-    frames: u32,
+    /// Transport of the replay evaluation.
+    #[arg(long, default_value = "zenoh")]
+    transport: String,
+    /// Frames the node predicts per scene in closed loop.
+    #[arg(long, default_value_t = 20)]
+    horizon: u32,
+    /// Training epochs when a model is trained.
+    #[arg(long, default_value_t = 15)]
+    epochs: u32,
+    /// Retrain even if the model exists.
+    #[arg(long)]
+    retrain: bool,
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
+    let start = Instant::now();
     let bundled = bag::bag_paths(std::slice::from_ref(&args.bags))
         .with_context(|| format!("finding the bundled bags in {}", args.bags.display()))?;
     let info = bag::info(&bundled).context("reading the bundled bags")?;
     println!("== bundled bags ({}) ==", args.bags.display());
     for f in &info.files {
         let scenes: Vec<&str> = f.scenes.keys().map(String::as_str).collect();
-        println!(
-            "{:<40} {:>5} frames  {}",
-            f.path.display(),
-            f.messages,
-            scenes.join(", ")
-        );
+        println!("{:<40} {:>5} frames  {}", f.path.display(), f.messages, scenes.join(", "));
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    println!("\n== simulating (MLS-MPM, one thread per scene) ==");
+    let exe = std::env::current_exe().context("locating the minflow binary")?;
+    if args.retrain || !args.model.join("model.json").is_file() {
+        println!("\n== training a small minGRU on {} ({} epochs at most) ==", args.bags.display(), args.epochs);
+        let status = Command::new(&exe)
+            .args(["train", "--model", "mingru", "--width", "256", "--encoder-hidden", "64"])
+            .args(["--epochs", &args.epochs.to_string(), "--patience", "5"])
+            .arg("--data")
+            .arg(&args.bags)
+            .arg("--out")
+            .arg(&args.model)
+            .status()
+            .context("running minflow train")?;
+        if !status.success() {
+            bail!("training failed ({status})");
+        }
+    } else {
+        println!("\n== model: {} (exists; --retrain to train again) ==", args.model.display());
+    }
     println!(
-        "{:<24} {:>6} {:>10} {:>10}  bag",
-        "scene", "frames", "ms/frame", "realtime"
+        "\n== launch replay_eval over {}: replay {} -> surrogate node (closed loop, {} frames) -> record -> eval ==",
+        args.transport,
+        args.bags.display(),
+        args.horizon
     );
-    let mut written = Vec::new();
-    for (family, id) in [(Family::Multi, 6), (Family::Fluid, 5)] {
-        let mut scene = families::scene(family, id, 0);
-        scene.frames = scene.frames.min(args.frames.max(1));
-        let name = scene.name.clone();
-        let frames = scene.frames;
-        let bar = super::progress(frames as u64, "frames");
-        let start = Instant::now();
-        let path = super::simulate::write_scene(scene, &args.out, FRAMES_TOPIC, &bar, &|_| Ok(()))?;
-        bar.finish_and_clear();
-        let ms = start.elapsed().as_secs_f64() * 1e3 / frames as f64;
-        // Real time = 62.5 frames per time unit, i.e. 16 ms per frame.
-        println!(
-            "{name:<24} {frames:>6} {ms:>10.2} {:>9.1}x  {}",
-            16.0 / ms,
-            path.display()
-        );
-        written.push(path);
+    let file = crate::launch::bundled("replay_eval");
+    let overrides = [
+        ("model", args.model.display().to_string()),
+        ("bags", args.bags.display().to_string()),
+        ("transport", args.transport.clone()),
+        ("horizon", args.horizon.to_string()),
+        ("out", args.out.display().to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_owned(), v))
+    .collect();
+    let nodes = crate::launch::load(&file, &overrides)?;
+    let stop = shutdown_flag();
+    let results = crate::launch::run(&nodes, &exe, &stop)?;
+    if let Some(failed) = results.iter().find(|r| !r.status.is_some_and(|s| s.success())) {
+        bail!("the replay evaluation failed at node {}", failed.name);
     }
-    println!("\n== bag check ==");
-    let mut ok = true;
-    for (what, files) in [("bundled", &bundled), ("simulated", &written)] {
-        let report = bag::check(files).with_context(|| format!("checking the {what} bags"))?;
-        print!("{what}: {report}");
-        ok &= report.is_ok();
-    }
-    anyhow::ensure!(ok, "bag check found problems");
+    println!(
+        "\nDone in {:.0} s. Predictions: {}/pred, tables and plots: {}/eval (table.md, mse_curves.png, render_*.png/gif).",
+        start.elapsed().as_secs_f64(),
+        args.out.display(),
+        args.out.display()
+    );
     Ok(Outcome::Done)
 }

@@ -4,6 +4,7 @@
 
 mod bag;
 mod bench;
+mod bench_node;
 mod bench_train;
 mod bench_transport;
 mod demo;

@@ -340,9 +340,14 @@ pub fn parse_overrides(items: &[String]) -> anyhow::Result<BTreeMap<String, Stri
         .collect()
 }
 
-/// Where the bundled launch files live (for `launch NAME` without a path).
+/// A bundled launch file by name (`launch NAME`): `launch_configs/NAME.yaml` under the
+/// current folder, else in the source tree minflow was built from.
 pub fn bundled(name: &str) -> PathBuf {
     let file = if name.ends_with(".yaml") { name.to_owned() } else { format!("{name}.yaml") };
+    let here = Path::new("launch_configs").join(&file);
+    if here.is_file() {
+        return here;
+    }
     Path::new(env!("CARGO_MANIFEST_DIR")).join("launch_configs").join(file)
 }
 

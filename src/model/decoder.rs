@@ -5,7 +5,7 @@
 //! first Linear is split into a per-particle and a per-frame part, which is exactly equal).
 //! Used by [`crate::model::Model`].
 
-use super::elu::{elu, FusedElu};
+use super::elu::{elu, linear, FusedElu};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -83,13 +83,13 @@ impl<B: FusedElu> Decoder<B> {
     pub fn forward(&self, latent: Tensor<B, 2>, features: Tensor<B, 3>) -> Tensor<B, 3> {
         let [b, n, _] = features.dims();
         match self {
-            Decoder::Global(l) => l.forward(latent).reshape([b, n, 2]),
+            Decoder::Global(l) => linear(l, latent).reshape([b, n, 2]),
             Decoder::Pointwise(mlp) => {
-                let per_frame = mlp.latent.forward(latent);
+                let per_frame = linear(&mlp.latent, latent);
                 let [_, hidden] = per_frame.dims();
                 let per_frame = per_frame.reshape([b, 1, hidden]);
                 let h = elu(mlp.features.forward(features) + per_frame);
-                mlp.out.forward(h)
+                linear(&mlp.out, h)
             }
         }
     }

@@ -16,6 +16,8 @@ use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
+use super::elu::{linear, FusedElu};
+
 /// `g(x)`: `x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise.
 pub fn g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
     let pos = x.clone().greater_equal_elem(0.0);
@@ -116,7 +118,7 @@ pub struct MinGru<B: Backend> {
     hidden: usize,
 }
 
-impl<B: Backend> MinGru<B> {
+impl<B: FusedElu> MinGru<B> {
     /// New layer `d_in -> hidden -> d_out`.
     pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
         Self {
@@ -136,7 +138,7 @@ impl<B: Backend> MinGru<B> {
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,
     ) -> (Tensor<B, 3>, Tensor<B, 2>) {
-        let hg = self.to_hidden_and_gate.forward(x);
+        let hg = linear(&self.to_hidden_and_gate, x);
         let hidden = hg.clone().narrow(2, 0, self.hidden);
         let gate = hg.narrow(2, self.hidden, self.hidden);
         let log_coeffs = softplus(gate.clone()).neg();
@@ -144,7 +146,7 @@ impl<B: Backend> MinGru<B> {
         let log_values = log_z + log_g(hidden);
         let h = scan_with_state(log_coeffs, log_values, h0);
         let last = last_step(h.clone());
-        (self.to_out.forward(h), last)
+        (linear(&self.to_out, h), last)
     }
 
     /// One step.
@@ -152,14 +154,14 @@ impl<B: Backend> MinGru<B> {
     /// # Shapes
     /// - `x`: `[B, d_in]`, `h`: `[B, hidden]` or `None` -> `([B, d_out], [B, hidden])`
     pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
-        let hg = self.to_hidden_and_gate.forward(x);
+        let hg = linear(&self.to_hidden_and_gate, x);
         let tilde = g(hg.clone().narrow(1, 0, self.hidden));
         let z = sigmoid(hg.narrow(1, self.hidden, self.hidden));
         let next = match h {
             Some(h) => (z.clone().neg() + 1.0) * h + z * tilde,
             None => z * tilde,
         };
-        (self.to_out.forward(next.clone()), next)
+        (linear(&self.to_out, next.clone()), next)
     }
 }
 
@@ -173,7 +175,7 @@ pub struct MinLstm<B: Backend> {
     hidden: usize,
 }
 
-impl<B: Backend> MinLstm<B> {
+impl<B: FusedElu> MinLstm<B> {
     /// New layer `d_in -> hidden -> d_out`.
     pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
         Self {
@@ -189,7 +191,7 @@ impl<B: Backend> MinLstm<B> {
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,
     ) -> (Tensor<B, 3>, Tensor<B, 2>) {
-        let hfi = self.to_hidden_and_gates.forward(x);
+        let hfi = linear(&self.to_hidden_and_gates, x);
         let n = self.hidden;
         let hidden = hfi.clone().narrow(2, 0, n);
         let f = hfi.clone().narrow(2, n, n);
@@ -200,12 +202,12 @@ impl<B: Backend> MinLstm<B> {
         let log_values = softplus(diff.neg()).neg() + log_g(hidden);
         let h = scan_with_state(log_coeffs, log_values, h0);
         let last = last_step(h.clone());
-        (self.to_out.forward(h), last)
+        (linear(&self.to_out, h), last)
     }
 
     /// One step. Shapes as [`MinGru::step`].
     pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
-        let hfi = self.to_hidden_and_gates.forward(x);
+        let hfi = linear(&self.to_hidden_and_gates, x);
         let n = self.hidden;
         let tilde = g(hfi.clone().narrow(1, 0, n));
         let f = sigmoid(hfi.clone().narrow(1, n, n));
@@ -216,6 +218,6 @@ impl<B: Backend> MinLstm<B> {
             Some(h) => f * h + i * tilde,
             None => i * tilde,
         };
-        (self.to_out.forward(next.clone()), next)
+        (linear(&self.to_out, next.clone()), next)
     }
 }

@@ -15,6 +15,8 @@ use burn::tensor::activation::{sigmoid, tanh};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
+use super::elu::{linear, FusedElu};
+
 /// A GRU layer of width `hidden`.
 #[derive(Module, Debug)]
 pub struct Gru<B: Backend> {
@@ -27,7 +29,7 @@ pub struct Gru<B: Backend> {
     hidden: usize,
 }
 
-impl<B: Backend> Gru<B> {
+impl<B: FusedElu> Gru<B> {
     /// New layer `d_in -> hidden`.
     pub fn new(d_in: usize, hidden: usize, device: &B::Device) -> Self {
         let no_bias = |i, o| LinearConfig::new(i, o).with_bias(false).init(device);
@@ -42,10 +44,10 @@ impl<B: Backend> Gru<B> {
     /// One step from pre-computed input projections `xp` (`[B, 3 hidden]`).
     fn cell(&self, xp: Tensor<B, 2>, h: Tensor<B, 2>) -> Tensor<B, 2> {
         let n = self.hidden;
-        let gates = self.recurrent_gates.forward(h.clone());
+        let gates = linear(&self.recurrent_gates, h.clone());
         let z = sigmoid(xp.clone().narrow(1, 0, n) + gates.clone().narrow(1, 0, n));
         let r = sigmoid(xp.clone().narrow(1, n, n) + gates.narrow(1, n, n));
-        let cand = tanh(xp.narrow(1, 2 * n, n) + self.recurrent_candidate.forward(r * h.clone()));
+        let cand = tanh(xp.narrow(1, 2 * n, n) + linear(&self.recurrent_candidate, r * h.clone()));
         (z.clone().neg() + 1.0) * h + z * cand
     }
 
@@ -59,7 +61,7 @@ impl<B: Backend> Gru<B> {
         h0: Option<Tensor<B, 2>>,
     ) -> (Tensor<B, 3>, Tensor<B, 2>) {
         let [b, t, _] = x.dims();
-        let xp = self.input.forward(x); // [b, t, 3h]
+        let xp = linear(&self.input, x); // [b, t, 3h]
         let mut h = h0.unwrap_or_else(|| Tensor::zeros([b, self.hidden], &xp.device()));
         let mut outs = Vec::with_capacity(t);
         for k in 0..t {
@@ -73,7 +75,7 @@ impl<B: Backend> Gru<B> {
     /// One step: `x`: `[B, d_in]` -> `h'`: `[B, hidden]`.
     pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> Tensor<B, 2> {
         let [b, _] = x.dims();
-        let xp = self.input.forward(x);
+        let xp = linear(&self.input, x);
         let h = h.unwrap_or_else(|| Tensor::zeros([b, self.hidden], &xp.device()));
         self.cell(xp, h)
     }
@@ -98,7 +100,7 @@ pub struct Lstm<B: Backend> {
     hidden: usize,
 }
 
-impl<B: Backend> Lstm<B> {
+impl<B: FusedElu> Lstm<B> {
     /// New layer `d_in -> hidden`.
     pub fn new(d_in: usize, hidden: usize, device: &B::Device) -> Self {
         Self {
@@ -112,7 +114,7 @@ impl<B: Backend> Lstm<B> {
 
     fn cell(&self, xp: Tensor<B, 2>, s: LstmState<B>) -> LstmState<B> {
         let n = self.hidden;
-        let pre = xp + self.recurrent.forward(s.h);
+        let pre = xp + linear(&self.recurrent, s.h);
         let i = sigmoid(pre.clone().narrow(1, 0, n));
         let f = sigmoid(pre.clone().narrow(1, n, n));
         let o = sigmoid(pre.clone().narrow(1, 2 * n, n));
@@ -141,7 +143,7 @@ impl<B: Backend> Lstm<B> {
         s0: Option<LstmState<B>>,
     ) -> (Tensor<B, 3>, LstmState<B>) {
         let [b, t, _] = x.dims();
-        let xp = self.input.forward(x); // [b, t, 4h]
+        let xp = linear(&self.input, x); // [b, t, 4h]
         let mut s = s0.unwrap_or_else(|| self.zeros(b, &xp.device()));
         let mut outs = Vec::with_capacity(t);
         for k in 0..t {
@@ -155,7 +157,7 @@ impl<B: Backend> Lstm<B> {
     /// One step: `x`: `[B, d_in]`.
     pub fn step(&self, x: Tensor<B, 2>, s: Option<LstmState<B>>) -> LstmState<B> {
         let [b, _] = x.dims();
-        let xp = self.input.forward(x);
+        let xp = linear(&self.input, x);
         let s = s.unwrap_or_else(|| self.zeros(b, &xp.device()));
         self.cell(xp, s)
     }

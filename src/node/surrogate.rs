@@ -288,7 +288,7 @@ pub fn run<B: FusedElu>(
         let older = entry.last_index.is_some_and(|last| frame.frame_index <= last);
         let idle_too_long = entry.last_seen.elapsed() > options.idle_timeout;
         entry.last_seen = Instant::now();
-        let restart = frame.frame_index == 0 || entry.state.is_none() || idle_too_long;
+        let restart = frame.frame_index == 0 || entry.last_index.is_none() || idle_too_long;
         if options.rollout.is_some() && entry.rolled_out && !restart {
             continue;
         }

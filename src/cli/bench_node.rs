@@ -1,0 +1,224 @@
+//! `minflow bench node`: the surrogate node's latency and throughput per core type and
+//! transport, between processes on loopback. For each core, an untrained model at the
+//! paper's sizes (2,500 particles, encoder 5 -> 256 -> 1250, two layers of 1250, global
+//! decoder; weights do not change the cost) is saved; then, per transport, a `minflow node`
+//! process is started and this process publishes the frames of a bundled bag at 62.5 Hz
+//! (one scene, consecutive frame indices, so the hidden state carries on) and receives the
+//! predictions. Printed per row: the model's own step time in this process (p50, p99), the
+//! publish-to-prediction latency through the node (p50, p99; two transport hops plus the
+//! model), what the transport adds over the model (p50 difference over the model's p50),
+//! and the sustained frames per second of a burst (predictions received per second while
+//! frames are published as fast as the transport accepts them; the node drops the oldest
+//! pending frames it cannot keep up with).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::mpsc::channel;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::{bail, Context};
+use burn::backend::NdArray;
+use clap::Args;
+
+use super::Outcome;
+use crate::bag::{read_frames, FRAMES_TOPIC};
+use crate::data::{self, Scaler};
+use crate::model::store::{save, ModelMeta, Surrogate};
+use crate::model::temporal::CoreKind;
+use crate::model::{LastActivation, ModelConfig};
+use crate::msgs::{ParticleFrame, Time};
+use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
+
+#[derive(Debug, Args)]
+pub struct NodeBenchArgs {
+    /// Cores to measure (comma-separated): mlp, lstm, gru, minlstm, mingru.
+    #[arg(long, default_value = "mingru,minlstm,gru,lstm,mlp")]
+    cores: String,
+    /// Transports (repeatable; default zenoh, iceoryx2, ros2).
+    #[arg(long = "transport", value_enum)]
+    transports: Vec<TransportKind>,
+    /// Frames published at 62.5 Hz per row.
+    #[arg(long, default_value_t = 300)]
+    frames: u32,
+    /// Frames of the burst per row.
+    #[arg(long, default_value_t = 200)]
+    burst: u32,
+    /// Encoder's last activation: none (mean pooling lets the second Linear run after
+    /// pooling, ~200x cheaper, exactly) | elu (the paper's text, ~1.6 GFLOP per frame).
+    #[arg(long, default_value = "none")]
+    encoder_last_activation: String,
+    /// Bag whose frames are published.
+    #[arg(long, default_value = "bags/multi_rope+snow_001.mcap")]
+    bag: PathBuf,
+}
+
+fn wall_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+fn pct(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+fn rows(f: &ParticleFrame) -> Vec<f32> {
+    (0..f.len())
+        .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+        .collect()
+}
+
+/// Saves an untrained paper-sized model for `core` into `dir`.
+fn make_model(dir: &Path, core: CoreKind, last: LastActivation, scaler: &Scaler) -> anyhow::Result<()> {
+    type B = NdArray<f32>;
+    let config = ModelConfig::new(core, 2500).with_encoder_last_activation(last).with_decoder_zero_init(false);
+    let model = config.init::<B>(&Default::default());
+    let meta = ModelMeta { config, scaler: scaler.clone(), epoch: 0, val_loss: 0.0 };
+    save(dir, &model, &meta)?;
+    Ok(())
+}
+
+pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
+    let last = match args.encoder_last_activation.as_str() {
+        "none" => LastActivation::None,
+        "elu" => LastActivation::Elu,
+        other => bail!("unknown --encoder-last-activation {other:?} (none | elu)"),
+    };
+    let transports = if args.transports.is_empty() {
+        vec![TransportKind::Zenoh, TransportKind::Iceoryx2, TransportKind::Ros2]
+    } else {
+        args.transports.clone()
+    };
+    let frames: Vec<ParticleFrame> = read_frames(&args.bag, Some(FRAMES_TOPIC))
+        .with_context(|| format!("reading {}", args.bag.display()))?
+        .frames
+        .into_iter()
+        .map(|m| m.2)
+        .collect();
+    anyhow::ensure!(frames.len() >= 2 && frames[0].len() == 2500, "{} must hold 2,500-particle frames", args.bag.display());
+    let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
+    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
+    let exe = std::env::current_exe().context("locating the minflow binary")?;
+    let tmp = tempfile::tempdir()?;
+    let mut table = Vec::new();
+    for name in args.cores.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let core = CoreKind::parse(name).with_context(|| format!("unknown core {name:?}"))?;
+        let dir = tmp.path().join(name);
+        make_model(&dir, core, last, &scaler)?;
+        // The model's own step time, in this process.
+        let surrogate = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())?;
+        let mut state = surrogate.init_state();
+        let mut model_us = Vec::new();
+        for i in 0..60 {
+            let f = &frames[i % frames.len()];
+            let t = Instant::now();
+            let (_, s) = surrogate.step(&rows(f), &f.material, &[f.dt], state)?;
+            state = s;
+            if i >= 10 {
+                model_us.push(t.elapsed().as_secs_f64() * 1e6);
+            }
+        }
+        model_us.sort_by(f64::total_cmp);
+        drop(surrogate);
+        for &kind in &transports {
+            eprintln!("bench node: {name} over {kind} ...");
+            let input = format!("/minflow_bench_{}/in", std::process::id());
+            let output = format!("/minflow_bench_{}/out", std::process::id());
+            let session = transport::open(&TransportOptions::new(kind))?;
+            let (tx, rx) = channel();
+            let _sub = session.subscribe(&output, tx)?;
+            let mut publisher = session.publisher(&input)?;
+            let mut node = Command::new(&exe)
+                .args(["node", "--model"])
+                .arg(&dir)
+                .args(["--transport", &kind.to_string(), "--in", &input, "--out", &output, "--status", "none"])
+                .args(["--queue-depth", "4", "--on-gap", "skip"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()?;
+            if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(60)) {
+                let _ = node.kill();
+                bail!("{kind}: the node did not subscribe within 60 s");
+            }
+            std::thread::sleep(Duration::from_millis(500));
+            let period = Duration::from_secs_f64(0.016);
+            let mut sent = std::collections::HashMap::new();
+            let mut latency = Vec::new();
+            let start = Instant::now();
+            let mut index = 0u32;
+            let drain = |latency: &mut Vec<f64>, sent: &std::collections::HashMap<u32, u64>| {
+                for s in rx.try_iter() {
+                    if let Ok(f) = s.decode() {
+                        if let Some(t0) = sent.get(&(f.frame_index - 1)) {
+                            let arrived = wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
+                            latency.push(arrived.saturating_sub(*t0) as f64 / 1e3);
+                        }
+                    }
+                }
+            };
+            for i in 0..args.frames {
+                let due = start + period * i;
+                while Instant::now() < due {
+                    drain(&mut latency, &sent);
+                    std::thread::sleep(Duration::from_micros(200));
+                }
+                let mut f = frames[(i as usize) % frames.len()].clone();
+                f.frame_index = index;
+                f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
+                sent.insert(index, wall_ns());
+                publisher.publish(&f)?;
+                index += 1;
+            }
+            let settle = Instant::now() + Duration::from_secs(2);
+            while Instant::now() < settle && latency.len() < args.frames as usize {
+                drain(&mut latency, &sent);
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            let received = latency.len();
+            // Burst: as fast as the transport accepts.
+            let burst_start = Instant::now();
+            for _ in 0..args.burst {
+                let mut f = frames[(index as usize) % frames.len()].clone();
+                f.frame_index = index;
+                publisher.publish(&f)?;
+                index += 1;
+            }
+            let mut got = 0usize;
+            let mut last = burst_start;
+            let quiet = Duration::from_millis(1500);
+            loop {
+                match rx.recv_timeout(quiet) {
+                    Ok(_) => {
+                        got += 1;
+                        last = Instant::now();
+                    }
+                    Err(_) => break,
+                }
+            }
+            let burst_fps = got as f64 / (last - burst_start).as_secs_f64().max(1e-9);
+            let _ = node.kill();
+            let _ = node.wait();
+            latency.sort_by(f64::total_cmp);
+            table.push((name.to_owned(), kind, pct(&model_us, 0.5), pct(&model_us, 0.99), received, pct(&latency, 0.5), pct(&latency, 0.99), burst_fps));
+        }
+    }
+    println!(
+        "\nSurrogate node, paper-sized model (N = 2,500, W = 1,250, encoder last activation {}), {} frames at 62.5 Hz, burst of {}:",
+        args.encoder_last_activation, args.frames, args.burst
+    );
+    println!("| core | transport | model p50 ms | model p99 ms | predictions | e2e p50 ms | e2e p99 ms | transport adds (p50) | burst predictions/s |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for (core, kind, m50, m99, received, e50, e99, fps) in &table {
+        println!(
+            "| {core} | {kind} | {:.2} | {:.2} | {received}/{} | {:.2} | {:.2} | {:+.0} % | {fps:.0} |",
+            m50 / 1e3,
+            m99 / 1e3,
+            args.frames,
+            e50 / 1e3,
+            e99 / 1e3,
+            (e50 - m50) / m50 * 100.0,
+        );
+    }
+    Ok(Outcome::Done)
+}
