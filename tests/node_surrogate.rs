@@ -19,7 +19,10 @@ use minflow::model::store::Surrogate;
 use minflow::msgs::ParticleFrame;
 use transport_support::*;
 
-const SCENES: [&str; 2] = ["bags/multi_rope+snow_001.mcap", "bags/multi_liquid+snow_000.mcap"];
+const SCENES: [&str; 2] = [
+    "bags/multi_rope+snow_001.mcap",
+    "bags/multi_liquid+snow_000.mcap",
+];
 
 fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -34,8 +37,19 @@ fn model() -> PathBuf {
         let o = Node::spawn(
             "train",
             &[
-                "train", "--data", repo("bags").to_str().unwrap(), "--model", "mingru", "--epochs", "1",
-                "--width", "48", "--encoder-hidden", "16", "--out", out.to_str().unwrap(),
+                "train",
+                "--data",
+                repo("bags").to_str().unwrap(),
+                "--model",
+                "mingru",
+                "--epochs",
+                "1",
+                "--width",
+                "48",
+                "--encoder-hidden",
+                "16",
+                "--out",
+                out.to_str().unwrap(),
             ],
         )
         .wait(Duration::from_secs(300));
@@ -51,12 +65,24 @@ fn model() -> PathBuf {
 fn offline(bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
     let device = Default::default();
     let s = Surrogate::<NdArray<f32>>::load(&model(), &device).unwrap();
-    let frames: Vec<ParticleFrame> = read_frames(bag, None).unwrap().frames.into_iter().map(|m| m.2).collect();
+    let frames: Vec<ParticleFrame> = read_frames(bag, None)
+        .unwrap()
+        .frames
+        .into_iter()
+        .map(|m| m.2)
+        .collect();
     let mut state = s.init_state();
     let mut out = BTreeMap::new();
     for f in &frames {
         let rows: Vec<f32> = (0..f.len())
-            .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+            .flat_map(|i| {
+                [
+                    f.position[2 * i],
+                    f.position[2 * i + 1],
+                    f.velocity[2 * i],
+                    f.velocity[2 * i + 1],
+                ]
+            })
             .collect();
         let (next, st) = s.step(&rows, &f.material, &[f.dt], state).unwrap();
         state = st;
@@ -67,7 +93,14 @@ fn offline(bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
 
 fn rows_of(f: &ParticleFrame) -> Vec<f32> {
     (0..f.len())
-        .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+        .flat_map(|i| {
+            [
+                f.position[2 * i],
+                f.position[2 * i + 1],
+                f.velocity[2 * i],
+                f.velocity[2 * i + 1],
+            ]
+        })
         .collect()
 }
 
@@ -83,8 +116,17 @@ fn assert_matches_offline(pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usi
         let f = minflow::msgs::decode(&bytes).unwrap();
         let expect = &want[&f.scene][&f.frame_index];
         let got = rows_of(&f);
-        let worst = got.iter().zip(expect).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
-        assert!(worst <= 1e-5, "{} frame {}: max |diff| {worst}", f.scene, f.frame_index);
+        let worst = got
+            .iter()
+            .zip(expect)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(
+            worst <= 1e-5,
+            "{} frame {}: max |diff| {worst}",
+            f.scene,
+            f.frame_index
+        );
         compared += 1;
     }
     compared
@@ -101,23 +143,50 @@ fn node_matches_offline(transport: &str) {
     let expected = 2 * 25;
     let recorder = Node::spawn(
         "record",
-        &["record", "--transport", transport, "--topic", &output, "-o", out.to_str().unwrap(), "--count", &expected.to_string()],
+        &[
+            "record",
+            "--transport",
+            transport,
+            "--topic",
+            &output,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            &expected.to_string(),
+        ],
     );
     let node = Node::spawn(
         "node",
         &[
-            "node", "--model", model.to_str().unwrap(), "--transport", transport, "--in", &input, "--out", &output,
-            "--wait-for-subscribers", "1", "--status", "none",
+            "node",
+            "--model",
+            model.to_str().unwrap(),
+            "--transport",
+            transport,
+            "--in",
+            &input,
+            "--out",
+            &output,
+            "--wait-for-subscribers",
+            "1",
+            "--status",
+            "none",
         ],
     );
     let mut replay = vec!["replay", "--transport", transport, "--topic", &input];
     replay.extend(bags.iter().map(|b| b.to_str().unwrap()));
-    ok(&Node::spawn("replay", &replay).wait(Duration::from_secs(120)), "replay");
+    ok(
+        &Node::spawn("replay", &replay).wait(Duration::from_secs(120)),
+        "replay",
+    );
     let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
     node.signal("INT");
     let node_err = ok(&node.wait(Duration::from_secs(30)), "node");
     let n = assert_matches_offline(&out, &output, &bags);
-    assert_eq!(n, expected, "predictions recorded\nrecord: {rec}\nnode: {node_err}");
+    assert_eq!(
+        n, expected,
+        "predictions recorded\nrecord: {rec}\nnode: {node_err}"
+    );
 }
 
 #[test]
@@ -145,19 +214,50 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
     let input = unique_topic("bad_in");
     let output = unique_topic("bad_out");
     let status_topic = unique_topic("bad_status");
-    let recorder = Node::spawn("record", &["record", "--topic", &output, "-o", out.to_str().unwrap(), "--count", "25"]);
+    let recorder = Node::spawn(
+        "record",
+        &[
+            "record",
+            "--topic",
+            &output,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            "25",
+        ],
+    );
     let node = Node::spawn(
         "node",
-        &["node", "--model", model.to_str().unwrap(), "--in", &input, "--out", &output, "--status", &status_topic, "--wait-for-subscribers", "1"],
+        &[
+            "node",
+            "--model",
+            model.to_str().unwrap(),
+            "--in",
+            &input,
+            "--out",
+            &output,
+            "--status",
+            &status_topic,
+            "--wait-for-subscribers",
+            "1",
+        ],
     );
     let session = ZenohTransport::open(None).unwrap();
     let (tx, statuses) = std::sync::mpsc::channel();
     let _status = session.subscribe_status(&status_topic, tx).unwrap();
     let mut frames = session.publisher(&input).unwrap();
-    assert!(minflow::transport::wait_for_subscribers(frames.as_ref(), 1, Duration::from_secs(60)));
+    assert!(minflow::transport::wait_for_subscribers(
+        frames.as_ref(),
+        1,
+        Duration::from_secs(60)
+    ));
     let raw = {
         use zenoh::Wait;
-        session.session().declare_publisher(input.trim_start_matches('/').to_owned()).wait().unwrap()
+        session
+            .session()
+            .declare_publisher(input.trim_start_matches('/').to_owned())
+            .wait()
+            .unwrap()
     };
     let good = bag_frames(&repo(SCENES[0]));
     for (k, f) in good.iter().enumerate() {
@@ -191,7 +291,10 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
     }
     ok(&recorder.wait(Duration::from_secs(120)), "record");
     // The good scene: all 25 predictions, equal to the offline ones.
-    assert_eq!(assert_matches_offline(&out, &output, &[repo(SCENES[0])]), 25);
+    assert_eq!(
+        assert_matches_offline(&out, &output, &[repo(SCENES[0])]),
+        25
+    );
     // The status reports 3 rejected and 1 malformed frame within a few seconds.
     let deadline = std::time::Instant::now() + Duration::from_secs(10);
     let mut last = None;
@@ -212,7 +315,12 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
 }
 
 fn bag_frames(bag: &Path) -> Vec<ParticleFrame> {
-    read_frames(bag, Some(FRAMES_TOPIC)).unwrap().frames.into_iter().map(|m| m.2).collect()
+    read_frames(bag, Some(FRAMES_TOPIC))
+        .unwrap()
+        .frames
+        .into_iter()
+        .map(|m| m.2)
+        .collect()
 }
 
 #[test]
@@ -222,7 +330,8 @@ fn launch_replay_eval_prints_the_table() {
     let o = Node::spawn(
         "launch",
         &[
-            "launch", repo("launch_configs/replay_eval.yaml").to_str().unwrap(),
+            "launch",
+            repo("launch_configs/replay_eval.yaml").to_str().unwrap(),
             &format!("model:={}", model().display()),
             &format!("bags:={}", repo("bags").display()),
             &format!("out:={}", out.display()),
@@ -232,7 +341,10 @@ fn launch_replay_eval_prints_the_table() {
     .wait(Duration::from_secs(300));
     let err = ok(&o, "launch replay_eval");
     let table = String::from_utf8_lossy(&o.stdout);
-    assert!(table.contains("| **Average** |"), "no table in stdout:\n{table}\n{err}");
+    assert!(
+        table.contains("| **Average** |"),
+        "no table in stdout:\n{table}\n{err}"
+    );
     assert!(table.contains("constvel") && table.contains("persist"));
     assert!(out.join("eval").join("table.md").is_file());
 }
@@ -259,11 +371,23 @@ fn killing_a_required_node_stops_the_launch_with_an_error() {
         .output()
         .unwrap();
     let pids = String::from_utf8_lossy(&pid.stdout);
-    let pid = pids.lines().next().expect("the surrogate node runs").trim().to_owned();
-    assert!(std::process::Command::new("kill").args(["-KILL", &pid]).status().unwrap().success());
+    let pid = pids
+        .lines()
+        .next()
+        .expect("the surrogate node runs")
+        .trim()
+        .to_owned();
+    assert!(std::process::Command::new("kill")
+        .args(["-KILL", &pid])
+        .status()
+        .unwrap()
+        .success());
     let o = launch.wait(Duration::from_secs(30));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "{err}");
     assert!(err.contains("stopping all nodes"), "{err}");
-    assert!(err.contains("recorder exited"), "the recorder was stopped too:\n{err}");
+    assert!(
+        err.contains("recorder exited"),
+        "the recorder was stopped too:\n{err}"
+    );
 }

@@ -20,12 +20,27 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic(transport);
-    let mut rec_args = vec!["record", "--transport", transport, "--topic", &topic, "-o", out.to_str().unwrap()];
+    let mut rec_args = vec![
+        "record",
+        "--transport",
+        transport,
+        "--topic",
+        &topic,
+        "-o",
+        out.to_str().unwrap(),
+    ];
     rec_args.extend_from_slice(&["--count", "25"]);
     rec_args.extend_from_slice(extra_record);
     let recorder = Node::spawn("record", &rec_args);
     let source = source_bag();
-    let mut play_args = vec!["replay", source.to_str().unwrap(), "--transport", transport, "--topic", &topic];
+    let mut play_args = vec![
+        "replay",
+        source.to_str().unwrap(),
+        "--transport",
+        transport,
+        "--topic",
+        &topic,
+    ];
     play_args.extend_from_slice(extra_replay);
     let player = Node::spawn("replay", &play_args);
     let play_err = ok(&player.wait(Duration::from_secs(90)), "replay");
@@ -33,9 +48,18 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     let want = raw_messages(&source, Some(FRAMES_TOPIC));
     assert_eq!(want.len(), SOURCE_FRAMES);
     let got = raw_messages(&out, Some(&topic));
-    assert_eq!(got.len(), want.len(), "frames recorded\nreplay: {play_err}\nrecord: {rec_err}");
+    assert_eq!(
+        got.len(),
+        want.len(),
+        "frames recorded\nreplay: {play_err}\nrecord: {rec_err}"
+    );
     for (i, (g, w)) in got.iter().zip(&want).enumerate() {
-        assert!(g == w, "message {i} differs ({} vs {} bytes)", g.len(), w.len());
+        assert!(
+            g == w,
+            "message {i} differs ({} vs {} bytes)",
+            g.len(),
+            w.len()
+        );
     }
     assert!(out.join("metadata.yaml").is_file());
     assert_eq!(counter(&rec_err, "malformed"), Some(0));
@@ -96,11 +120,30 @@ fn zenoh_late_subscriber_gets_frames_published_after_it_joined() {
     let source = source_bag();
     let _player = Node::spawn(
         "replay",
-        &["replay", source.to_str().unwrap(), "--topic", &topic, "--loop", "--wait-for-subscribers", "0"],
+        &[
+            "replay",
+            source.to_str().unwrap(),
+            "--topic",
+            &topic,
+            "--loop",
+            "--wait-for-subscribers",
+            "0",
+        ],
     );
     std::thread::sleep(Duration::from_secs(2));
     let out = dir.path().join("late");
-    let recorder = Node::spawn("record", &["record", "--topic", &topic, "-o", out.to_str().unwrap(), "--count", "30"]);
+    let recorder = Node::spawn(
+        "record",
+        &[
+            "record",
+            "--topic",
+            &topic,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            "30",
+        ],
+    );
     ok(&recorder.wait(Duration::from_secs(60)), "record");
     let frames: Vec<_> = raw_messages(&out, Some(&topic))
         .iter()
@@ -109,7 +152,11 @@ fn zenoh_late_subscriber_gets_frames_published_after_it_joined() {
     assert_eq!(frames.len(), 30);
     // Consecutive frames of the looping bag, from wherever the subscriber joined.
     for w in frames.windows(2) {
-        assert_eq!(w[1].frame_index, (w[0].frame_index + 1) % SOURCE_FRAMES as u32, "no frame lost after joining");
+        assert_eq!(
+            w[1].frame_index,
+            (w[0].frame_index + 1) % SOURCE_FRAMES as u32,
+            "no frame lost after joining"
+        );
     }
 }
 
@@ -120,7 +167,17 @@ fn iceoryx2_publisher_killed_then_restarted_serves_a_new_subscriber() {
     let play = |name: &str| {
         Node::spawn(
             name,
-            &["replay", source.to_str().unwrap(), "--transport", "iceoryx2", "--topic", &topic, "--loop", "--wait-for-subscribers", "0"],
+            &[
+                "replay",
+                source.to_str().unwrap(),
+                "--transport",
+                "iceoryx2",
+                "--topic",
+                &topic,
+                "--loop",
+                "--wait-for-subscribers",
+                "0",
+            ],
         )
     };
     let first = play("replay 1");
@@ -132,9 +189,22 @@ fn iceoryx2_publisher_killed_then_restarted_serves_a_new_subscriber() {
     let out = dir.path().join("after_kill");
     let recorder = Node::spawn(
         "record",
-        &["record", "--transport", "iceoryx2", "--topic", &topic, "-o", out.to_str().unwrap(), "--count", "10"],
+        &[
+            "record",
+            "--transport",
+            "iceoryx2",
+            "--topic",
+            &topic,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            "10",
+        ],
     );
-    ok(&recorder.wait(Duration::from_secs(60)), "record after a killed publisher");
+    ok(
+        &recorder.wait(Duration::from_secs(60)),
+        "record after a killed publisher",
+    );
     assert_eq!(raw_messages(&out, Some(&topic)).len(), 10);
 }
 
@@ -146,10 +216,21 @@ fn record_then_signal(signal: &str) -> (tempfile::TempDir, std::path::PathBuf) {
     let topic = unique_topic(&signal.to_lowercase());
     let recorder = Node::spawn(
         "record",
-        &["record", "--topic", &topic, "-o", out.to_str().unwrap(), "--flush-interval", "0.2"],
+        &[
+            "record",
+            "--topic",
+            &topic,
+            "-o",
+            out.to_str().unwrap(),
+            "--flush-interval",
+            "0.2",
+        ],
     );
     let source = source_bag();
-    let player = Node::spawn("replay", &["replay", source.to_str().unwrap(), "--topic", &topic]);
+    let player = Node::spawn(
+        "replay",
+        &["replay", source.to_str().unwrap(), "--topic", &topic],
+    );
     ok(&player.wait(Duration::from_secs(60)), "replay");
     std::thread::sleep(Duration::from_secs(1));
     recorder.signal(signal);
@@ -161,19 +242,26 @@ fn record_then_signal(signal: &str) -> (tempfile::TempDir, std::path::PathBuf) {
 fn recorder_killed_leaves_a_bag_readable_up_to_its_last_chunk() {
     let (_dir, out) = record_then_signal("KILL");
     // Every frame arrived more than one flush interval before the kill.
-    let outcome = minflow::data::load(&[out.clone()], None);
+    let outcome = minflow::data::load(std::slice::from_ref(&out), None);
     let (trajs, _report) = outcome.expect("a killed recording loads for training");
     assert_eq!(trajs.iter().map(|t| t.frames).sum::<usize>(), SOURCE_FRAMES);
-    let info = Node::spawn("bag info", &["bag", "info", out.to_str().unwrap()]).wait(Duration::from_secs(30));
+    let info = Node::spawn("bag info", &["bag", "info", out.to_str().unwrap()])
+        .wait(Duration::from_secs(30));
     // Exit 3: read, but cut (no summary or footer).
-    assert_eq!(info.status.code(), Some(3), "{}", String::from_utf8_lossy(&info.stderr));
+    assert_eq!(
+        info.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&info.stderr)
+    );
     assert!(String::from_utf8_lossy(&info.stdout).contains("25"));
 }
 
 #[test]
 fn recorder_terminated_leaves_a_complete_bag() {
     let (_dir, out) = record_then_signal("TERM");
-    let check = Node::spawn("bag check", &["bag", "check", out.to_str().unwrap()]).wait(Duration::from_secs(30));
+    let check = Node::spawn("bag check", &["bag", "check", out.to_str().unwrap()])
+        .wait(Duration::from_secs(30));
     ok(&check, "bag check");
     assert_eq!(raw_messages(&out, None).len(), SOURCE_FRAMES);
 }
@@ -184,7 +272,18 @@ fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("malformed");
-    let recorder = Node::spawn("record", &["record", "--topic", &topic, "-o", out.to_str().unwrap(), "--count", "25"]);
+    let recorder = Node::spawn(
+        "record",
+        &[
+            "record",
+            "--topic",
+            &topic,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            "25",
+        ],
+    );
     // A raw zenoh publisher on the same key sends three bad payloads first.
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
     let key = topic.trim_start_matches('/').to_owned();
@@ -193,13 +292,19 @@ fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
         session.session().declare_publisher(key).wait().unwrap()
     };
     let mut frames = session.publisher(&topic).unwrap();
-    assert!(transport::wait_for_subscribers(frames.as_ref(), 1, Duration::from_secs(30)));
+    assert!(transport::wait_for_subscribers(
+        frames.as_ref(),
+        1,
+        Duration::from_secs(30)
+    ));
     std::thread::sleep(Duration::from_millis(500));
     let good = raw_messages(&source_bag(), Some(FRAMES_TOPIC));
     let mut wrong_len = minflow::msgs::decode(&good[0]).unwrap();
     wrong_len.velocity.pop();
     let bad: Vec<Vec<u8>> = vec![
-        (0..997u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8).collect(),
+        (0..997u32)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8)
+            .collect(),
         good[0][..good[0].len() / 2].to_vec(),
         minflow::msgs::encode(&wrong_len),
     ];

@@ -53,7 +53,9 @@ pub struct NodeBenchArgs {
 }
 
 fn wall_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 fn pct(sorted: &[f64], p: f64) -> f64 {
@@ -65,16 +67,35 @@ fn pct(sorted: &[f64], p: f64) -> f64 {
 
 fn rows(f: &ParticleFrame) -> Vec<f32> {
     (0..f.len())
-        .flat_map(|i| [f.position[2 * i], f.position[2 * i + 1], f.velocity[2 * i], f.velocity[2 * i + 1]])
+        .flat_map(|i| {
+            [
+                f.position[2 * i],
+                f.position[2 * i + 1],
+                f.velocity[2 * i],
+                f.velocity[2 * i + 1],
+            ]
+        })
         .collect()
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.
-fn make_model(dir: &Path, core: CoreKind, last: LastActivation, scaler: &Scaler) -> anyhow::Result<()> {
+fn make_model(
+    dir: &Path,
+    core: CoreKind,
+    last: LastActivation,
+    scaler: &Scaler,
+) -> anyhow::Result<()> {
     type B = NdArray<f32>;
-    let config = ModelConfig::new(core, 2500).with_encoder_last_activation(last).with_decoder_zero_init(false);
+    let config = ModelConfig::new(core, 2500)
+        .with_encoder_last_activation(last)
+        .with_decoder_zero_init(false);
     let model = config.init::<B>(&Default::default());
-    let meta = ModelMeta { config, scaler: scaler.clone(), epoch: 0, val_loss: 0.0 };
+    let meta = ModelMeta {
+        config,
+        scaler: *scaler,
+        epoch: 0,
+        val_loss: 0.0,
+    };
     save(dir, &model, &meta)?;
     Ok(())
 }
@@ -86,7 +107,11 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
         other => bail!("unknown --encoder-last-activation {other:?} (none | elu)"),
     };
     let transports = if args.transports.is_empty() {
-        vec![TransportKind::Zenoh, TransportKind::Iceoryx2, TransportKind::Ros2]
+        vec![
+            TransportKind::Zenoh,
+            TransportKind::Iceoryx2,
+            TransportKind::Ros2,
+        ]
     } else {
         args.transports.clone()
     };
@@ -96,13 +121,22 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
         .into_iter()
         .map(|m| m.2)
         .collect();
-    anyhow::ensure!(frames.len() >= 2 && frames[0].len() == 2500, "{} must hold 2,500-particle frames", args.bag.display());
+    anyhow::ensure!(
+        frames.len() >= 2 && frames[0].len() == 2500,
+        "{} must hold 2,500-particle frames",
+        args.bag.display()
+    );
     let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
     let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
     let exe = std::env::current_exe().context("locating the minflow binary")?;
     let tmp = tempfile::tempdir()?;
     let mut table = Vec::new();
-    for name in args.cores.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+    for name in args
+        .cores
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
         let core = CoreKind::parse(name).with_context(|| format!("unknown core {name:?}"))?;
         let dir = tmp.path().join(name);
         make_model(&dir, core, last, &scaler)?;
@@ -132,7 +166,16 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             let mut node = Command::new(&exe)
                 .args(["node", "--model"])
                 .arg(&dir)
-                .args(["--transport", &kind.to_string(), "--in", &input, "--out", &output, "--status", "none"])
+                .args([
+                    "--transport",
+                    &kind.to_string(),
+                    "--in",
+                    &input,
+                    "--out",
+                    &output,
+                    "--status",
+                    "none",
+                ])
                 .args(["--queue-depth", "4", "--on-gap", "skip"])
                 .stdout(Stdio::null())
                 .stderr(Stdio::null())
@@ -151,7 +194,8 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
                 for s in rx.try_iter() {
                     if let Ok(f) = s.decode() {
                         if let Some(t0) = sent.get(&(f.frame_index - 1)) {
-                            let arrived = wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
+                            let arrived =
+                                wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
                             latency.push(arrived.saturating_sub(*t0) as f64 / 1e3);
                         }
                     }
@@ -187,20 +231,24 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             let mut got = 0usize;
             let mut last = burst_start;
             let quiet = Duration::from_millis(1500);
-            loop {
-                match rx.recv_timeout(quiet) {
-                    Ok(_) => {
-                        got += 1;
-                        last = Instant::now();
-                    }
-                    Err(_) => break,
-                }
+            while rx.recv_timeout(quiet).is_ok() {
+                got += 1;
+                last = Instant::now();
             }
             let burst_fps = got as f64 / (last - burst_start).as_secs_f64().max(1e-9);
             let _ = node.kill();
             let _ = node.wait();
             latency.sort_by(f64::total_cmp);
-            table.push((name.to_owned(), kind, pct(&model_us, 0.5), pct(&model_us, 0.99), received, pct(&latency, 0.5), pct(&latency, 0.99), burst_fps));
+            table.push((
+                name.to_owned(),
+                kind,
+                pct(&model_us, 0.5),
+                pct(&model_us, 0.99),
+                received,
+                pct(&latency, 0.5),
+                pct(&latency, 0.99),
+                burst_fps,
+            ));
         }
     }
     println!(

@@ -139,7 +139,15 @@ where
     );
     println!(
         "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7} {:>9}",
-        "core", "T", "params", "s/epoch", "max s", "us/sample", "samples/s", "warm-up s", "wait %",
+        "core",
+        "T",
+        "params",
+        "s/epoch",
+        "max s",
+        "us/sample",
+        "samples/s",
+        "warm-up s",
+        "wait %",
         "peak MiB"
     );
     for &t in &args.windows {
@@ -168,10 +176,15 @@ where
             };
             let dir = tempfile::tempdir()?;
             let mut high = peak(true).unwrap_or(0.0);
-            let history = Trainer::<B>::new(config, opts, dir.path().into(), device.clone())
-                .fit(&index, None, &scaler, false, |_, _| {
+            let history = Trainer::<B>::new(config, opts, dir.path().into(), device.clone()).fit(
+                &index,
+                None,
+                &scaler,
+                false,
+                |_, _| {
                     high = high.max(peak(false).unwrap_or(f64::NAN));
-                })?;
+                },
+            )?;
             let (warm, timed) = history.split_at(args.warmup_epochs.min(history.len()));
             let warmup: f64 = warm.iter().map(|r| r.seconds).sum();
             let n = timed.len().max(1) as f64;

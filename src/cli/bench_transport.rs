@@ -58,13 +58,18 @@ const LATENCY_SCENE: &str = "bench/latency";
 const BURST_SCENE: &str = "bench/burst";
 
 fn wall_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// A frame of `n` particles with deterministic contents.
 fn frame(n: usize, scene: &str, index: u32) -> ParticleFrame {
     ParticleFrame {
-        header: Header { stamp: Time::default(), frame_id: "world".into() },
+        header: Header {
+            stamp: Time::default(),
+            frame_id: "world".into(),
+        },
         scene: scene.into(),
         frame_index: index,
         dt: 0.016,
@@ -84,7 +89,10 @@ pub fn run(args: TransportBenchArgs) -> anyhow::Result<Outcome> {
 fn publish(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
     let kind = *args.transports.first().context("--transport is required")?;
     let topic = args.topic.clone().context("--topic is required")?;
-    let session = transport::open(&TransportOptions { transport: kind, zenoh_config: args.zenoh_config.clone() })?;
+    let session = transport::open(&TransportOptions {
+        transport: kind,
+        zenoh_config: args.zenoh_config.clone(),
+    })?;
     let mut publisher = session.publisher(&topic)?;
     if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(30)) {
         bail!("no subscriber within 30 s");
@@ -133,7 +141,11 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 
 fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
     let kinds = if args.transports.is_empty() {
-        vec![TransportKind::Zenoh, TransportKind::Iceoryx2, TransportKind::Ros2]
+        vec![
+            TransportKind::Zenoh,
+            TransportKind::Iceoryx2,
+            TransportKind::Ros2,
+        ]
     } else {
         args.transports.clone()
     };
@@ -142,21 +154,47 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
     for kind in kinds {
         eprintln!("bench transport: {kind} ...");
         let topic = format!("/minflow_bench_{}/frames", std::process::id());
-        let session = transport::open(&TransportOptions { transport: kind, zenoh_config: args.zenoh_config.clone() })?;
+        let session = transport::open(&TransportOptions {
+            transport: kind,
+            zenoh_config: args.zenoh_config.clone(),
+        })?;
         let (tx, rx) = channel();
         let subscription = session.subscribe(&topic, tx)?;
         let mut child = Command::new(&exe);
-        child.args(["bench", "transport", "--role", "publisher", "--transport", &kind.to_string(), "--topic", &topic]);
-        child.args(["--frames", &args.frames.to_string(), "--hz", &args.hz.to_string()]);
-        child.args(["--burst", &args.burst.to_string(), "--particles", &args.particles.to_string()]);
+        child.args([
+            "bench",
+            "transport",
+            "--role",
+            "publisher",
+            "--transport",
+            &kind.to_string(),
+            "--topic",
+            &topic,
+        ]);
+        child.args([
+            "--frames",
+            &args.frames.to_string(),
+            "--hz",
+            &args.hz.to_string(),
+        ]);
+        child.args([
+            "--burst",
+            &args.burst.to_string(),
+            "--particles",
+            &args.particles.to_string(),
+        ]);
         if let Some(cfg) = &args.zenoh_config {
             child.arg("--zenoh-config").arg(cfg);
         }
-        let mut child = child.stdout(Stdio::null()).spawn().context("starting the publisher process")?;
+        let mut child = child
+            .stdout(Stdio::null())
+            .spawn()
+            .context("starting the publisher process")?;
         let mut latencies = Vec::with_capacity(args.frames as usize);
         let mut seen: BTreeMap<&str, u32> = BTreeMap::new();
         let (mut burst_first, mut burst_last) = (None, None);
-        let expected_time = Duration::from_secs_f64(args.frames as f64 / args.hz) + Duration::from_secs(60);
+        let expected_time =
+            Duration::from_secs_f64(args.frames as f64 / args.hz) + Duration::from_secs(60);
         let deadline = Instant::now() + expected_time;
         while Instant::now() < deadline {
             let Ok(sample) = rx.recv_timeout(Duration::from_millis(200)) else {
@@ -165,7 +203,8 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
                 }
                 continue;
             };
-            let arrived_wall = wall_ns().saturating_sub(sample.received.elapsed().as_nanos() as u64);
+            let arrived_wall =
+                wall_ns().saturating_sub(sample.received.elapsed().as_nanos() as u64);
             let f = match sample.frame() {
                 Ok(f) => f,
                 Err(reason) => bail!("{kind}: malformed frame in the benchmark: {reason}"),
@@ -189,7 +228,9 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
         latencies.sort_by(f64::total_cmp);
         let burst_received = seen.get(BURST_SCENE).copied().unwrap_or(0);
         let burst_fps = match (burst_first, burst_last) {
-            (Some(a), Some(b)) if burst_received > 1 => (burst_received - 1) as f64 / (b - a).as_secs_f64(),
+            (Some(a), Some(b)) if burst_received > 1 => {
+                (burst_received - 1) as f64 / (b - a).as_secs_f64()
+            }
             _ => f64::NAN,
         };
         rows.push(Row {

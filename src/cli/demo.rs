@@ -46,13 +46,30 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     println!("== bundled bags ({}) ==", args.bags.display());
     for f in &info.files {
         let scenes: Vec<&str> = f.scenes.keys().map(String::as_str).collect();
-        println!("{:<40} {:>5} frames  {}", f.path.display(), f.messages, scenes.join(", "));
+        println!(
+            "{:<40} {:>5} frames  {}",
+            f.path.display(),
+            f.messages,
+            scenes.join(", ")
+        );
     }
     let exe = std::env::current_exe().context("locating the minflow binary")?;
     if args.retrain || !args.model.join("model.json").is_file() {
-        println!("\n== training a small minGRU on {} ({} epochs at most) ==", args.bags.display(), args.epochs);
+        println!(
+            "\n== training a small minGRU on {} ({} epochs at most) ==",
+            args.bags.display(),
+            args.epochs
+        );
         let status = Command::new(&exe)
-            .args(["train", "--model", "mingru", "--width", "256", "--encoder-hidden", "64"])
+            .args([
+                "train",
+                "--model",
+                "mingru",
+                "--width",
+                "256",
+                "--encoder-hidden",
+                "64",
+            ])
             .args(["--epochs", &args.epochs.to_string(), "--patience", "5"])
             .arg("--data")
             .arg(&args.bags)
@@ -64,7 +81,10 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
             bail!("training failed ({status})");
         }
     } else {
-        println!("\n== model: {} (exists; --retrain to train again) ==", args.model.display());
+        println!(
+            "\n== model: {} (exists; --retrain to train again) ==",
+            args.model.display()
+        );
     }
     println!(
         "\n== launch replay_eval over {}: replay {} -> surrogate node (closed loop, {} frames) -> record -> eval ==",
@@ -86,7 +106,10 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     let nodes = crate::launch::load(&file, &overrides)?;
     let stop = shutdown_flag();
     let results = crate::launch::run(&nodes, &exe, &stop)?;
-    if let Some(failed) = results.iter().find(|r| !r.status.is_some_and(|s| s.success())) {
+    if let Some(failed) = results
+        .iter()
+        .find(|r| !r.status.is_some_and(|s| s.success()))
+    {
         bail!("the replay evaluation failed at node {}", failed.name);
     }
     println!(

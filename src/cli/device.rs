@@ -41,7 +41,10 @@ impl Device {
             Device::Cpu => Ok(None),
             Device::Cuda(ids) if ids.len() == 1 => Ok(Some(ids[0])),
             Device::Cuda(ids) => {
-                bail!("`{command}` runs on one device; got {} CUDA devices", ids.len())
+                bail!(
+                    "`{command}` runs on one device; got {} CUDA devices",
+                    ids.len()
+                )
             }
         }
     }

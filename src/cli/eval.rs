@@ -208,7 +208,11 @@ fn load_model(dir: &Path, name: &str, cuda: Option<usize>) -> anyhow::Result<Box
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device, CudaInfer};
-            Box::new(ModelPredictor::<CudaInfer>::load_on(dir, name, &device(id))?)
+            Box::new(ModelPredictor::<CudaInfer>::load_on(
+                dir,
+                name,
+                &device(id),
+            )?)
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => bail!("built without CUDA"),

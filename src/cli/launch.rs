@@ -20,7 +20,11 @@ pub struct LaunchArgs {
 
 pub fn run(args: LaunchArgs) -> anyhow::Result<Outcome> {
     let path = PathBuf::from(&args.file);
-    let path = if path.exists() { path } else { launch::bundled(&args.file) };
+    let path = if path.exists() {
+        path
+    } else {
+        launch::bundled(&args.file)
+    };
     let overrides = launch::parse_overrides(&args.overrides)?;
     let nodes = launch::load(&path, &overrides)?;
     let exe = std::env::current_exe().context("locating the minflow binary")?;
@@ -35,7 +39,12 @@ pub fn run(args: LaunchArgs) -> anyhow::Result<Outcome> {
         })
         .collect();
     if !failed.is_empty() {
-        bail!("launch {}: {} failed: {}", path.display(), failed.len(), failed.join(", "));
+        bail!(
+            "launch {}: {} failed: {}",
+            path.display(),
+            failed.len(),
+            failed.join(", ")
+        );
     }
     Ok(Outcome::Done)
 }

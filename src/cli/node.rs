@@ -12,8 +12,8 @@ use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::model::store::Surrogate;
 use crate::model::FusedElu;
 use crate::msgs::status::STATUS_TOPIC;
-use crate::node::surrogate::{self, NodeOptions, OnGap};
 use crate::node::shutdown_flag;
+use crate::node::surrogate::{self, NodeOptions, OnGap};
 use crate::transport::{self, TransportOptions};
 
 #[derive(Debug, Args)]
@@ -96,7 +96,9 @@ fn serve<B: FusedElu>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outco
         rate: args.rate,
         max_published: args.max_published,
         wait_for_subscribers: args.wait_for_subscribers,
-        stats_interval: args.stats_interval.map(|s| Duration::from_secs_f64(s.max(0.1))),
+        stats_interval: args
+            .stats_interval
+            .map(|s| Duration::from_secs_f64(s.max(0.1))),
     };
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;

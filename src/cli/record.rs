@@ -62,14 +62,20 @@ pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;
     let counters = Counters::default();
-    let _stats = args.stats_interval.map(|s| counters.log_every("record", secs(s)));
+    let _stats = args
+        .stats_interval
+        .map(|s| counters.log_every("record", secs(s)));
     let bar = indicatif::ProgressBar::new_spinner();
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {pos} frames recorded {per_sec}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {pos} frames recorded {per_sec}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
     );
     bar.enable_steady_tick(Duration::from_millis(200));
-    let report = record::record(&options, session.as_ref(), &counters, &stop, |n| bar.set_position(n))?;
+    let report = record::record(&options, session.as_ref(), &counters, &stop, |n| {
+        bar.set_position(n)
+    })?;
     bar.finish_and_clear();
     for file in &report.files {
         println!("{}", file.display());
@@ -78,7 +84,12 @@ pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
         "record: {} frame(s) in {} file(s) ({}); {}",
         report.written,
         report.files.len(),
-        report.per_topic.iter().map(|(t, n)| format!("{t}: {n}")).collect::<Vec<_>>().join(", "),
+        report
+            .per_topic
+            .iter()
+            .map(|(t, n)| format!("{t}: {n}"))
+            .collect::<Vec<_>>()
+            .join(", "),
         counters.get()
     );
     Ok(Outcome::Done)

@@ -49,7 +49,10 @@ pub struct ReplayArgs {
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
-    anyhow::ensure!(args.rate >= 0.0 && args.rate.is_finite(), "--rate must be >= 0");
+    anyhow::ensure!(
+        args.rate >= 0.0 && args.rate.is_finite(),
+        "--rate must be >= 0"
+    );
     let scenes = args
         .scene
         .iter()
@@ -69,17 +72,25 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
     let session = transport::open(&args.transport)?;
     let mut publisher = session.publisher(&args.topic)?;
     let counters = Counters::default();
-    let _stats = args.stats_interval.map(|s| counters.log_every("replay", Duration::from_secs_f64(s)));
+    let _stats = args
+        .stats_interval
+        .map(|s| counters.log_every("replay", Duration::from_secs_f64(s)));
     // Frames on the input topic, for the progress bar (a full scan; bags are small next to
     // the time they take to play).
     let total = crate::bag::inspect::info(&crate::bag::bag_paths(&options.inputs)?)
         .map(|info| {
             let on_topic = |t: &crate::bag::inspect::TopicInfo| t.topic == options.input_topic;
-            info.files.iter().flat_map(|f| f.topics.iter().filter(|t| on_topic(t))).map(|t| t.count).sum::<u64>()
+            info.files
+                .iter()
+                .flat_map(|f| f.topics.iter().filter(|t| on_topic(t)))
+                .map(|t| t.count)
+                .sum::<u64>()
         })
         .unwrap_or(0);
     let bar = super::progress(total, "frames");
-    let report = replay::play(&options, publisher.as_mut(), &counters, &stop, |n| bar.set_position(n))?;
+    let report = replay::play(&options, publisher.as_mut(), &counters, &stop, |n| {
+        bar.set_position(n)
+    })?;
     bar.finish_and_clear();
     eprintln!(
         "replay: {} frame(s) on {} over {} in {:.2} s ({} filtered){}; {}",
@@ -88,8 +99,16 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
         session.kind(),
         report.elapsed.as_secs_f64(),
         report.filtered,
-        if report.interrupted { ", interrupted" } else { "" },
+        if report.interrupted {
+            ", interrupted"
+        } else {
+            ""
+        },
         counters.get()
     );
-    Ok(if report.truncated.is_empty() { Outcome::Done } else { Outcome::DataLost })
+    Ok(if report.truncated.is_empty() {
+        Outcome::Done
+    } else {
+        Outcome::DataLost
+    })
 }

@@ -5,17 +5,17 @@
 
 use super::Outcome;
 use crate::bag::{BagWriter, FRAMES_TOPIC};
+use crate::msgs::ParticleFrame;
 use crate::sim::families::{self, Family};
 use crate::sim::run::SceneRun;
 use crate::sim::Scene;
-use crate::msgs::ParticleFrame;
 use crate::transport::{wait_for_subscribers, Counters, FramePublisher, TransportOptions};
-use std::sync::Mutex;
-use std::time::Duration;
 use anyhow::{bail, Context};
 use clap::Args;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Duration;
 
 #[derive(Debug, Args)]
 pub struct SimulateArgs {
@@ -126,7 +126,11 @@ fn simulate(
         .num_threads(args.jobs.unwrap_or(0))
         .build()
         .context("starting worker threads")?;
-    let live = if args.publish { Some(open(&args)?) } else { None };
+    let live = if args.publish {
+        Some(open(&args)?)
+    } else {
+        None
+    };
     let results: Vec<(String, anyhow::Result<PathBuf>)> = pool.install(|| {
         scenes
             .into_par_iter()
@@ -172,24 +176,40 @@ struct Live {
 
 impl Live {
     fn open(args: &SimulateArgs) -> anyhow::Result<Self> {
-        anyhow::ensure!(args.rate >= 0.0 && args.rate.is_finite(), "--rate must be >= 0");
+        anyhow::ensure!(
+            args.rate >= 0.0 && args.rate.is_finite(),
+            "--rate must be >= 0"
+        );
         let session = crate::transport::open(&args.transport)?;
         let publisher = session.publisher(&args.topic)?;
         if args.wait_for_subscribers > 0 {
-            tracing::info!("waiting for {} subscriber(s) on {}", args.wait_for_subscribers, args.topic);
+            tracing::info!(
+                "waiting for {} subscriber(s) on {}",
+                args.wait_for_subscribers,
+                args.topic
+            );
             let timeout = Duration::from_secs(60);
             if !wait_for_subscribers(publisher.as_ref(), args.wait_for_subscribers, timeout) {
-                bail!("no subscriber on {} within {timeout:?} (use --wait-for-subscribers 0)", args.topic);
+                bail!(
+                    "no subscriber on {} within {timeout:?} (use --wait-for-subscribers 0)",
+                    args.topic
+                );
             }
         }
-        Ok(Live { publisher: Mutex::new(publisher), _session: session, rate: args.rate, counters: Counters::default() })
+        Ok(Live {
+            publisher: Mutex::new(publisher),
+            _session: session,
+            rate: args.rate,
+            counters: Counters::default(),
+        })
     }
 
     /// Publishes `frame` of a scene whose simulation started at `started`, paced by its
     /// stamp (frame 0 goes out at once).
     fn publish(&self, frame: &ParticleFrame, started: std::time::Instant) -> anyhow::Result<()> {
         if self.rate > 0.0 {
-            let due = started + Duration::from_secs_f64(frame.header.stamp.as_secs_f64() / self.rate);
+            let due =
+                started + Duration::from_secs_f64(frame.header.stamp.as_secs_f64() / self.rate);
             if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
                 std::thread::sleep(wait);
             }
@@ -201,7 +221,10 @@ impl Live {
     }
 
     fn finish(self) {
-        let mut publisher = self.publisher.into_inner().expect("publisher lock poisoned");
+        let mut publisher = self
+            .publisher
+            .into_inner()
+            .expect("publisher lock poisoned");
         publisher.flush(Duration::from_secs(5));
         eprintln!("simulate: published {}", self.counters.get());
     }

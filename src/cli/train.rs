@@ -251,7 +251,17 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
                scaler: &Scaler,
                progress: &mut Progress| {
         let (opts, out) = (args.options(), args.out.clone());
-        fit_on(&device, config.clone(), opts, out, train, val, scaler, args.resume, progress)
+        fit_on(
+            &device,
+            config.clone(),
+            opts,
+            out,
+            train,
+            val,
+            scaler,
+            args.resume,
+            progress,
+        )
     };
     let mut progress = Progress {
         out: args.out.clone(),
@@ -319,11 +329,20 @@ fn fit_on(
         B::InnerBackend: FusedElu,
     {
         let (config, opts, out) = args;
-        Trainer::<B>::new(config, opts, out, device).fit_observed(train, val, scaler, resume, observer)
+        Trainer::<B>::new(config, opts, out, device)
+            .fit_observed(train, val, scaler, resume, observer)
     }
     let args = (config, opts, out);
     let history = match device {
-        Device::Cpu => on::<CpuTrain>(Default::default(), args, train, val, scaler, resume, observer)?,
+        Device::Cpu => on::<CpuTrain>(
+            Default::default(),
+            args,
+            train,
+            val,
+            scaler,
+            resume,
+            observer,
+        )?,
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) if ids.len() == 1 => {
             use super::device::cuda::{device, CudaTrain};

@@ -111,8 +111,10 @@ pub struct NodeDecl {
 /// Unreadable or invalid YAML, unknown or missing arguments, duplicate node names,
 /// `after`/`stop_after` naming unknown nodes.
 pub fn load(path: &Path, overrides: &BTreeMap<String, String>) -> anyhow::Result<Vec<NodeDecl>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let file: LaunchFile = serde_yaml_ng::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let file: LaunchFile =
+        serde_yaml_ng::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
     let mut vars: BTreeMap<String, String> = BTreeMap::new();
     let mut nodes = Vec::new();
     let declared: BTreeSet<&str> = file
@@ -121,25 +123,40 @@ pub fn load(path: &Path, overrides: &BTreeMap<String, String>) -> anyhow::Result
         .filter_map(|e| e.arg.as_ref().map(|a| a.name.as_str()))
         .collect();
     if let Some(unknown) = overrides.keys().find(|k| !declared.contains(k.as_str())) {
-        bail!("{}: no launch argument {unknown:?} (declared: {})", path.display(), declared.iter().copied().collect::<Vec<_>>().join(", "));
+        bail!(
+            "{}: no launch argument {unknown:?} (declared: {})",
+            path.display(),
+            declared.iter().copied().collect::<Vec<_>>().join(", ")
+        );
     }
     for entry in file.launch {
         match (entry.arg, entry.node) {
             (Some(a), None) => {
                 let value = match overrides.get(&a.name).or(a.default.as_ref()) {
                     Some(v) => substitute(v, &vars)?,
-                    None => bail!("launch argument {:?} has no default; give it as {}:=VALUE", a.name, a.name),
+                    None => bail!(
+                        "launch argument {:?} has no default; give it as {}:=VALUE",
+                        a.name,
+                        a.name
+                    ),
                 };
                 vars.insert(a.name, value);
             }
             (None, Some(mut n)) => {
-                n.args = n.args.iter().map(|a| substitute(a, &vars)).collect::<anyhow::Result<_>>()?;
+                n.args = n
+                    .args
+                    .iter()
+                    .map(|a| substitute(a, &vars))
+                    .collect::<anyhow::Result<_>>()?;
                 for v in n.env.values_mut() {
                     *v = substitute(v, &vars)?;
                 }
                 nodes.push(n);
             }
-            _ => bail!("{}: each launch entry is exactly one of `arg:` or `node:`", path.display()),
+            _ => bail!(
+                "{}: each launch entry is exactly one of `arg:` or `node:`",
+                path.display()
+            ),
         }
     }
     let names: BTreeSet<&str> = nodes.iter().map(|n| n.name.as_str()).collect();
@@ -147,7 +164,12 @@ pub fn load(path: &Path, overrides: &BTreeMap<String, String>) -> anyhow::Result
         bail!("{}: node names must be unique", path.display());
     }
     for n in &nodes {
-        if let Some(bad) = n.after.iter().chain(&n.stop_after).find(|d| !names.contains(d.as_str())) {
+        if let Some(bad) = n
+            .after
+            .iter()
+            .chain(&n.stop_after)
+            .find(|d| !names.contains(d.as_str()))
+        {
             bail!("node {:?} refers to unknown node {bad:?}", n.name);
         }
     }
@@ -161,9 +183,14 @@ fn substitute(s: &str, vars: &BTreeMap<String, String>) -> anyhow::Result<String
     while let Some(at) = rest.find("$(var ") {
         out.push_str(&rest[..at]);
         let tail = &rest[at + 6..];
-        let end = tail.find(')').with_context(|| format!("unclosed $(var ...) in {s:?}"))?;
+        let end = tail
+            .find(')')
+            .with_context(|| format!("unclosed $(var ...) in {s:?}"))?;
         let name = tail[..end].trim();
-        out.push_str(vars.get(name).with_context(|| format!("$(var {name}) is not declared before use"))?);
+        out.push_str(
+            vars.get(name)
+                .with_context(|| format!("$(var {name}) is not declared before use"))?,
+        );
         rest = &tail[end + 1..];
     }
     out.push_str(rest);
@@ -201,15 +228,27 @@ pub fn run(nodes: &[NodeDecl], exe: &Path, stop: &AtomicBool) -> anyhow::Result<
         // Start what can start.
         if !shutting_down {
             for n in nodes {
-                if running.contains_key(&n.name) || finished.contains_key(&n.name) || never_started.contains(&n.name) {
+                if running.contains_key(&n.name)
+                    || finished.contains_key(&n.name)
+                    || never_started.contains(&n.name)
+                {
                     continue;
                 }
-                if n.after.iter().any(|d| finished.get(d).is_some_and(|s| !s.success())) {
-                    launch_log(&format!("{} not started: a node it waits for failed", n.name));
+                if n.after
+                    .iter()
+                    .any(|d| finished.get(d).is_some_and(|s| !s.success()))
+                {
+                    launch_log(&format!(
+                        "{} not started: a node it waits for failed",
+                        n.name
+                    ));
                     never_started.insert(n.name.clone());
                     continue;
                 }
-                if n.after.iter().all(|d| finished.get(d).is_some_and(ExitStatus::success)) {
+                if n.after
+                    .iter()
+                    .all(|d| finished.get(d).is_some_and(ExitStatus::success))
+                {
                     running.insert(n.name.clone(), start(n, exe)?);
                 }
             }
@@ -226,13 +265,20 @@ pub fn run(nodes: &[NodeDecl], exe: &Path, stop: &AtomicBool) -> anyhow::Result<
             for p in r.pumps {
                 let _ = p.join();
             }
-            launch_log(&format!("{name} exited: {status} after {:.1} s", r.started.elapsed().as_secs_f64()));
+            launch_log(&format!(
+                "{name} exited: {status} after {:.1} s",
+                r.started.elapsed().as_secs_f64()
+            ));
             let decl = nodes.iter().find(|n| n.name == name).expect("declared");
             let failed = !status.success();
             if (decl.required || failed) && !shutting_down && !stop_sent.contains_key(&name) {
                 launch_log(&format!(
                     "{name} {}: stopping all nodes",
-                    if failed { "failed" } else { "(required) exited" }
+                    if failed {
+                        "failed"
+                    } else {
+                        "(required) exited"
+                    }
                 ));
                 shutting_down = true;
             }
@@ -245,10 +291,17 @@ pub fn run(nodes: &[NodeDecl], exe: &Path, stop: &AtomicBool) -> anyhow::Result<
         }
         // Scheduled stops.
         for n in nodes {
-            if stop_sent.contains_key(&n.name) || !running.contains_key(&n.name) || n.stop_after.is_empty() {
+            if stop_sent.contains_key(&n.name)
+                || !running.contains_key(&n.name)
+                || n.stop_after.is_empty()
+            {
                 continue;
             }
-            let last = n.stop_after.iter().map(|d| exited_at.get(d).copied()).collect::<Option<Vec<_>>>();
+            let last = n
+                .stop_after
+                .iter()
+                .map(|d| exited_at.get(d).copied())
+                .collect::<Option<Vec<_>>>();
             if let Some(times) = last {
                 let latest = times.into_iter().max().expect("non-empty");
                 if latest.elapsed().as_secs_f64() >= n.grace {
@@ -265,14 +318,21 @@ pub fn run(nodes: &[NodeDecl], exe: &Path, stop: &AtomicBool) -> anyhow::Result<
                 }
             }
             for (name, r) in running.iter_mut() {
-                if stop_sent.get(name).is_some_and(|t| t.elapsed() > Duration::from_secs(10)) {
+                if stop_sent
+                    .get(name)
+                    .is_some_and(|t| t.elapsed() > Duration::from_secs(10))
+                {
                     launch_log(&format!("{name} did not stop within 10 s: killing it"));
                     let _ = r.child.kill();
                 }
             }
         }
         let pending_start = !shutting_down
-            && nodes.iter().any(|n| !finished.contains_key(&n.name) && !running.contains_key(&n.name) && !never_started.contains(&n.name));
+            && nodes.iter().any(|n| {
+                !finished.contains_key(&n.name)
+                    && !running.contains_key(&n.name)
+                    && !never_started.contains(&n.name)
+            });
         if running.is_empty() && !pending_start {
             break;
         }
@@ -280,7 +340,10 @@ pub fn run(nodes: &[NodeDecl], exe: &Path, stop: &AtomicBool) -> anyhow::Result<
     }
     Ok(nodes
         .iter()
-        .map(|n| NodeResult { name: n.name.clone(), status: finished.get(&n.name).copied() })
+        .map(|n| NodeResult {
+            name: n.name.clone(),
+            status: finished.get(&n.name).copied(),
+        })
         .collect())
 }
 
@@ -298,9 +361,22 @@ fn interrupt(child: &Child, name: &str) {
 
 fn start(n: &NodeDecl, exe: &Path) -> anyhow::Result<Running> {
     let mut cmd = Command::new(exe);
-    cmd.arg(&n.exec).args(&n.args).envs(&n.env).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
-    let mut child = cmd.spawn().with_context(|| format!("starting node {}", n.name))?;
-    launch_log(&format!("started {} (pid {}): minflow {} {}", n.name, child.id(), n.exec, n.args.join(" ")));
+    cmd.arg(&n.exec)
+        .args(&n.args)
+        .envs(&n.env)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut child = cmd
+        .spawn()
+        .with_context(|| format!("starting node {}", n.name))?;
+    launch_log(&format!(
+        "started {} (pid {}): minflow {} {}",
+        n.name,
+        child.id(),
+        n.exec,
+        n.args.join(" ")
+    ));
     let mut pumps = Vec::new();
     let out = child.stdout.take().expect("piped");
     let err = child.stderr.take().expect("piped");
@@ -310,7 +386,11 @@ fn start(n: &NodeDecl, exe: &Path) -> anyhow::Result<Running> {
     pumps.push(std::thread::spawn(move || {
         for line in BufReader::new(out).lines().map_while(Result::ok) {
             let mut stdout = std::io::stdout().lock();
-            let _ = if plain { writeln!(stdout, "{line}") } else { writeln!(stdout, "{p}{line}") };
+            let _ = if plain {
+                writeln!(stdout, "{line}")
+            } else {
+                writeln!(stdout, "{p}{line}")
+            };
         }
     }));
     pumps.push(std::thread::spawn(move || {
@@ -322,7 +402,11 @@ fn start(n: &NodeDecl, exe: &Path) -> anyhow::Result<Running> {
             }
         }
     }));
-    Ok(Running { child, started: Instant::now(), pumps })
+    Ok(Running {
+        child,
+        started: Instant::now(),
+        pumps,
+    })
 }
 
 /// Parses `name:=value` command-line overrides.
@@ -343,12 +427,18 @@ pub fn parse_overrides(items: &[String]) -> anyhow::Result<BTreeMap<String, Stri
 /// A bundled launch file by name (`launch NAME`): `launch_configs/NAME.yaml` under the
 /// current folder, else in the source tree minflow was built from.
 pub fn bundled(name: &str) -> PathBuf {
-    let file = if name.ends_with(".yaml") { name.to_owned() } else { format!("{name}.yaml") };
+    let file = if name.ends_with(".yaml") {
+        name.to_owned()
+    } else {
+        format!("{name}.yaml")
+    };
     let here = Path::new("launch_configs").join(&file);
     if here.is_file() {
         return here;
     }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("launch_configs").join(file)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("launch_configs")
+        .join(file)
 }
 
 #[cfg(test)]
@@ -358,7 +448,10 @@ mod tests {
     #[test]
     fn substitution_and_overrides() {
         let vars = BTreeMap::from([("a".to_string(), "x".to_string())]);
-        assert_eq!(substitute("--m=$(var a)/$(var a)", &vars).unwrap(), "--m=x/x");
+        assert_eq!(
+            substitute("--m=$(var a)/$(var a)", &vars).unwrap(),
+            "--m=x/x"
+        );
         assert!(substitute("$(var b)", &vars).is_err());
         assert!(substitute("$(var a", &vars).is_err());
         let o = parse_overrides(&["model:=runs/x".into()]).unwrap();

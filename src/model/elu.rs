@@ -77,9 +77,13 @@ fn linear_stream(
     bias: Option<&FloatTensor<NdArray<f32>>>,
 ) -> Option<FloatTensor<NdArray<f32>>> {
     use burn::backend::ndarray::NdArrayTensor;
-    let (NdArrayTensor::F32(xs), NdArrayTensor::F32(ws)) = (x, weight) else { return None };
+    let (NdArrayTensor::F32(xs), NdArrayTensor::F32(ws)) = (x, weight) else {
+        return None;
+    };
     let (xv, wv) = (xs.view(), ws.view());
-    let (&[rows, d_in], &[w_in, d_out]) = (xv.shape(), wv.shape()) else { return None };
+    let (&[rows, d_in], &[w_in, d_out]) = (xv.shape(), wv.shape()) else {
+        return None;
+    };
     if rows > STREAM_ROWS || w_in != d_in {
         return None;
     }
@@ -129,7 +133,10 @@ fn linear_stream(
             out[r * d_out + lo..r * d_out + hi].copy_from_slice(&acc[r * w..(r + 1) * w]);
         }
     }
-    let y = Tensor::<NdArray<f32>, 2>::from_data(TensorData::new(out, [rows, d_out]), &Default::default());
+    let y = Tensor::<NdArray<f32>, 2>::from_data(
+        TensorData::new(out, [rows, d_out]),
+        &Default::default(),
+    );
     Some(y.into_primitive().tensor())
 }
 
@@ -251,7 +258,10 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
 /// `linear.forward(x)` through [`FusedElu::linear_forward`]: any leading dims, the last one
 /// `in`; returns the same leading dims and `out`. Equal to burn's `Linear::forward` up to
 /// float summation order (the CPU backend's streamed product for a few rows).
-pub fn linear<B: FusedElu, const D: usize>(l: &burn::nn::Linear<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+pub fn linear<B: FusedElu, const D: usize>(
+    l: &burn::nn::Linear<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
     let dims = x.dims();
     let d_in = dims[D - 1];
     let rows = dims[..D - 1].iter().product::<usize>();

@@ -52,7 +52,19 @@ pub fn schema_text() -> String {
 }
 
 /// `builtin_interfaces/Time`: seconds plus nanoseconds (nanosec in `0..1e9`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+)]
 pub struct Time {
     /// Whole seconds (may be negative).
     pub sec: i32,

@@ -53,7 +53,14 @@ pub fn encode_status(status: &SurrogateStatus) -> Vec<u8> {
     out.extend_from_slice(&(status.stamp.sec as u32).to_le_bytes());
     out.extend_from_slice(&status.stamp.nanosec.to_le_bytes());
     string(&mut out, &status.node);
-    for v in [status.received, status.predicted, status.published, status.dropped, status.malformed, status.rejected] {
+    for v in [
+        status.received,
+        status.predicted,
+        status.published,
+        status.dropped,
+        status.malformed,
+        status.rejected,
+    ] {
         align(&mut out, 8);
         out.extend_from_slice(&v.to_le_bytes());
     }
@@ -71,12 +78,22 @@ pub fn decode_status(bytes: &[u8]) -> Result<SurrogateStatus, String> {
     if bytes.len() < 4 || bytes[..2] != [0, 1] {
         return Err("not CDR little-endian".into());
     }
-    let mut r = Reader { body: &bytes[4..], pos: 0 };
+    let mut r = Reader {
+        body: &bytes[4..],
+        pos: 0,
+    };
     let sec = r.u32("stamp.sec")? as i32;
     let nanosec = r.u32("stamp.nanosec")?;
     let node = r.string("node")?;
     let mut c = [0u64; 6];
-    for (v, field) in c.iter_mut().zip(["received", "predicted", "published", "dropped", "malformed", "rejected"]) {
+    for (v, field) in c.iter_mut().zip([
+        "received",
+        "predicted",
+        "published",
+        "dropped",
+        "malformed",
+        "rejected",
+    ]) {
         *v = u64::from_le_bytes(r.take(8, 8, field)?.try_into().expect("8 bytes"));
     }
     let active_scenes = r.u32("active_scenes")?;
@@ -103,19 +120,26 @@ struct Reader<'a> {
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize, align: usize, field: &str) -> Result<&'a [u8], String> {
         let start = self.pos.div_ceil(align) * align;
-        let end = start.checked_add(n).filter(|&e| e <= self.body.len()).ok_or_else(|| format!("{field}: truncated"))?;
+        let end = start
+            .checked_add(n)
+            .filter(|&e| e <= self.body.len())
+            .ok_or_else(|| format!("{field}: truncated"))?;
         self.pos = end;
         Ok(&self.body[start..end])
     }
 
     fn u32(&mut self, field: &str) -> Result<u32, String> {
-        Ok(u32::from_le_bytes(self.take(4, 4, field)?.try_into().expect("4 bytes")))
+        Ok(u32::from_le_bytes(
+            self.take(4, 4, field)?.try_into().expect("4 bytes"),
+        ))
     }
 
     fn string(&mut self, field: &str) -> Result<String, String> {
         let len = self.u32(field)? as usize;
         let raw = self.take(len, 1, field)?;
-        let text = raw.strip_suffix(&[0]).ok_or_else(|| format!("{field}: no NUL terminator"))?;
+        let text = raw
+            .strip_suffix(&[0])
+            .ok_or_else(|| format!("{field}: no NUL terminator"))?;
         String::from_utf8(text.to_vec()).map_err(|e| format!("{field}: {e}"))
     }
 }

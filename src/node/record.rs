@@ -102,7 +102,10 @@ impl FileInfo {
 
 /// The rosbag2 base name of an output folder: its last component.
 fn base_name(out: &Path) -> String {
-    out.file_name().map_or_else(|| "rosbag2".to_owned(), |n| n.to_string_lossy().into_owned())
+    out.file_name().map_or_else(
+        || "rosbag2".to_owned(),
+        |n| n.to_string_lossy().into_owned(),
+    )
 }
 
 /// Records until `stop`, `--duration` or `--count`. `progress` is called with the frames
@@ -118,14 +121,24 @@ pub fn record(
     mut progress: impl FnMut(u64),
 ) -> Result<RecordReport, RecordError> {
     let out = &options.out;
-    let out_err = |reason: String| RecordError::Out { path: out.clone(), reason };
+    let out_err = |reason: String| RecordError::Out {
+        path: out.clone(),
+        reason,
+    };
     std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
     if options.overwrite {
-        for entry in std::fs::read_dir(out).map_err(|e| out_err(e.to_string()))?.filter_map(Result::ok) {
+        for entry in std::fs::read_dir(out)
+            .map_err(|e| out_err(e.to_string()))?
+            .filter_map(Result::ok)
+        {
             let path = entry.path();
-            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
             if name.ends_with(".mcap") || name == "metadata.yaml" {
-                std::fs::remove_file(&path).map_err(|e| out_err(format!("removing {}: {e}", path.display())))?;
+                std::fs::remove_file(&path)
+                    .map_err(|e| out_err(format!("removing {}: {e}", path.display())))?;
             }
         }
     }
@@ -134,7 +147,9 @@ pub fn record(
         .filter_map(Result::ok)
         .any(|e| e.path().extension().is_some_and(|x| x == "mcap"));
     if has_bags {
-        return Err(out_err("holds .mcap files already; choose a new folder or --overwrite".into()));
+        return Err(out_err(
+            "holds .mcap files already; choose a new folder or --overwrite".into(),
+        ));
     }
     let (tx, rx) = channel();
     let mut subscriptions = Vec::new();
@@ -142,7 +157,12 @@ pub fn record(
         subscriptions.push(transport.subscribe(topic, tx.clone())?);
     }
     drop(tx);
-    tracing::info!("recording {} over {} into {}", options.topics.join(" "), transport.kind(), out.display());
+    tracing::info!(
+        "recording {} over {} into {}",
+        options.topics.join(" "),
+        transport.kind(),
+        out.display()
+    );
 
     let base = base_name(out);
     let mut report = RecordReport::default();
@@ -154,7 +174,9 @@ pub fn record(
     let mut done = false;
     let mut last_message: Option<Instant> = None;
     loop {
-        let idle = options.idle_exit.is_some_and(|d| last_message.is_some_and(|t| t.elapsed() >= d));
+        let idle = options
+            .idle_exit
+            .is_some_and(|d| last_message.is_some_and(|t| t.elapsed() >= d));
         let stop_now = idle
             || stop.load(Ordering::Relaxed)
             || options.duration.is_some_and(|d| started.elapsed() >= d)
@@ -186,7 +208,11 @@ pub fn record(
         }
         let validated = sample.cdr().and_then(|bytes| {
             let frame = crate::msgs::decode(&bytes).map_err(|e| e.to_string())?;
-            let stamp = frame.header.stamp.as_unsigned_nanos().ok_or("negative stamp")?;
+            let stamp = frame
+                .header
+                .stamp
+                .as_unsigned_nanos()
+                .ok_or("negative stamp")?;
             Ok((bytes, stamp))
         });
         let (bytes, stamp_ns) = match validated {
@@ -197,14 +223,21 @@ pub fn record(
                 let n = malformed_per_topic.entry(sample.topic.clone()).or_default();
                 *n += 1;
                 if *n == 1 || *n % 100 == 0 {
-                    tracing::warn!("{}: malformed frame #{n} not recorded: {reason}", sample.topic);
+                    tracing::warn!(
+                        "{}: malformed frame #{n} not recorded: {reason}",
+                        sample.topic
+                    );
                 }
                 continue;
             }
         };
         let split = bag.as_ref().is_some_and(|b| {
-            options.max_bag_size.is_some_and(|max| b.writer.bytes_written() + b.pending >= max)
-                || options.max_bag_duration.is_some_and(|d| b.opened.elapsed() >= d)
+            options
+                .max_bag_size
+                .is_some_and(|max| b.writer.bytes_written() + b.pending >= max)
+                || options
+                    .max_bag_duration
+                    .is_some_and(|d| b.opened.elapsed() >= d)
         });
         if split {
             let done_bag = bag.take().expect("checked above");
@@ -219,7 +252,10 @@ pub fn record(
                     writer: BagWriter::create(&path)?,
                     opened: Instant::now(),
                     pending: 0,
-                    info: FileInfo { path, ..FileInfo::default() },
+                    info: FileInfo {
+                        path,
+                        ..FileInfo::default()
+                    },
                 })
             }
         };
@@ -239,7 +275,11 @@ pub fn record(
     Ok(report)
 }
 
-fn flush_if_due(bag: &mut Option<OpenBag>, last: &mut Instant, every: Duration) -> Result<(), RecordError> {
+fn flush_if_due(
+    bag: &mut Option<OpenBag>,
+    last: &mut Instant,
+    every: Duration,
+) -> Result<(), RecordError> {
     if last.elapsed() < every {
         return Ok(());
     }
@@ -321,13 +361,22 @@ fn write_metadata(out: &Path, files: &[FileInfo]) -> anyhow::Result<()> {
             *topics.entry(t).or_default() += n;
         }
     }
-    let name = |f: &FileInfo| f.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = |f: &FileInfo| {
+        f.path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
     let meta = Metadata {
         rosbag2_bagfile_information: BagInformation {
             version: 5,
             storage_identifier: "mcap",
-            duration: Nanoseconds { nanoseconds: last.saturating_sub(first) },
-            starting_time: SinceEpoch { nanoseconds_since_epoch: first },
+            duration: Nanoseconds {
+                nanoseconds: last.saturating_sub(first),
+            },
+            starting_time: SinceEpoch {
+                nanoseconds_since_epoch: first,
+            },
             message_count: files.iter().map(|f| f.count).sum(),
             topics_with_message_count: topics
                 .into_iter()
@@ -348,8 +397,12 @@ fn write_metadata(out: &Path, files: &[FileInfo]) -> anyhow::Result<()> {
                 .iter()
                 .map(|f| FileEntry {
                     path: name(f),
-                    starting_time: SinceEpoch { nanoseconds_since_epoch: f.first_ns.unwrap_or(0) },
-                    duration: Nanoseconds { nanoseconds: f.last_ns.saturating_sub(f.first_ns.unwrap_or(0)) },
+                    starting_time: SinceEpoch {
+                        nanoseconds_since_epoch: f.first_ns.unwrap_or(0),
+                    },
+                    duration: Nanoseconds {
+                        nanoseconds: f.last_ns.saturating_sub(f.first_ns.unwrap_or(0)),
+                    },
                     message_count: f.count,
                 })
                 .collect(),

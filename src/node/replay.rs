@@ -62,7 +62,11 @@ pub enum ReplayError {
     Bag(#[from] BagError),
     /// No subscriber came within the timeout.
     #[error("{wanted} subscriber(s) wanted, {have} after waiting {timeout:?} (use --wait-for-subscribers 0 to play anyway)")]
-    NoSubscribers { wanted: usize, have: usize, timeout: Duration },
+    NoSubscribers {
+        wanted: usize,
+        have: usize,
+        timeout: Duration,
+    },
     /// Publishing failed.
     #[error(transparent)]
     Transport(#[from] crate::transport::TransportError),
@@ -106,7 +110,12 @@ struct Merge {
 
 impl Merge {
     fn open(paths: &[PathBuf], topic: &str) -> Result<Self, BagError> {
-        let mut merge = Merge { readers: Vec::new(), heap: BinaryHeap::new(), topic: topic.to_owned(), truncated: Vec::new() };
+        let mut merge = Merge {
+            readers: Vec::new(),
+            heap: BinaryHeap::new(),
+            topic: topic.to_owned(),
+            truncated: Vec::new(),
+        };
         for path in paths {
             merge.readers.push(BagReader::open(path)?);
         }
@@ -132,14 +141,21 @@ impl Merge {
                 continue;
             }
             let frame = decode_checked(reader.path(), &self.topic, message.index, &message.data)?;
-            self.heap.push(Reverse(Next { log_time: message.log_time, bag, data: message.data, frame }));
+            self.heap.push(Reverse(Next {
+                log_time: message.log_time,
+                bag,
+                data: message.data,
+                frame,
+            }));
             return Ok(());
         }
         Ok(())
     }
 
     fn next(&mut self) -> Result<Option<Next>, BagError> {
-        let Some(Reverse(next)) = self.heap.pop() else { return Ok(None) };
+        let Some(Reverse(next)) = self.heap.pop() else {
+            return Ok(None);
+        };
         self.advance(next.bag)?;
         Ok(Some(next))
     }
@@ -161,7 +177,11 @@ pub fn play(
     let mut report = ReplayReport::default();
     if options.wait_for_subscribers > 0 {
         tracing::info!("waiting for {} subscriber(s)", options.wait_for_subscribers);
-        if !wait_for_subscribers(publisher, options.wait_for_subscribers, options.wait_timeout) {
+        if !wait_for_subscribers(
+            publisher,
+            options.wait_for_subscribers,
+            options.wait_timeout,
+        ) {
             return Err(ReplayError::NoSubscribers {
                 wanted: options.wait_for_subscribers,
                 have: publisher.subscriber_count(),
@@ -183,14 +203,19 @@ pub fn play(
             // The pass's clock: its first message's log time maps onto now.
             let (t0, log0) = *anchor.get_or_insert_with(|| (Instant::now(), next.log_time));
             if next.log_time < log0 + offset_ns
-                || (!options.scenes.is_empty() && !options.scenes.iter().any(|p| p.matches(&next.frame.scene)))
+                || (!options.scenes.is_empty()
+                    && !options.scenes.iter().any(|p| p.matches(&next.frame.scene)))
             {
                 report.filtered += 1;
                 continue;
             }
             if options.rate > 0.0 {
                 let due = t0
-                    + Duration::from_secs_f64((next.log_time - log0).saturating_sub(offset_ns) as f64 / 1e9 / options.rate);
+                    + Duration::from_secs_f64(
+                        (next.log_time - log0).saturating_sub(offset_ns) as f64
+                            / 1e9
+                            / options.rate,
+                    );
                 sleep_until(due, stop);
             }
             publisher.publish_cdr(&next.data, &next.frame)?;
@@ -204,7 +229,12 @@ pub fn play(
         if played_this_pass == 0 && !report.interrupted {
             return Err(ReplayError::Empty {
                 topic: options.input_topic.clone(),
-                inputs: options.inputs.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "),
+                inputs: options
+                    .inputs
+                    .iter()
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(" "),
             });
         }
         if !options.looped || report.interrupted || stop.load(Ordering::Relaxed) {

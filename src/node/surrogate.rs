@@ -90,11 +90,16 @@ struct SceneState<B: burn::tensor::backend::Backend> {
 fn check_frame(frame: &ParticleFrame, model_n: Option<usize>) -> Result<(), String> {
     if let Some(n) = model_n {
         if frame.len() != n {
-            return Err(format!("{} particles, the model was trained for N = {n}", frame.len()));
+            return Err(format!(
+                "{} particles, the model was trained for N = {n}",
+                frame.len()
+            ));
         }
     }
     if let Some(m) = frame.material.iter().find(|&&m| m > 3) {
-        return Err(format!("unknown material id {m} (0 liquid, 1 jelly, 2 snow, 3 rope)"));
+        return Err(format!(
+            "unknown material id {m} (0 liquid, 1 jelly, 2 snow, 3 rope)"
+        ));
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
     if !finite(&frame.position) || !finite(&frame.velocity) || !frame.dt.is_finite() {
@@ -126,7 +131,8 @@ fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleF
         position.extend_from_slice(&r[..2]);
         velocity.extend_from_slice(&r[2..]);
     }
-    let stamp_ns = input.header.stamp.as_nanos() + (f64::from(input.dt) * 1e9).round() as i64 * i64::from(steps);
+    let stamp_ns = input.header.stamp.as_nanos()
+        + (f64::from(input.dt) * 1e9).round() as i64 * i64::from(steps);
     let mut header = input.header.clone();
     header.stamp = Time::from_nanos(stamp_ns.max(0) as u64);
     ParticleFrame {
@@ -162,10 +168,18 @@ pub fn run<B: FusedElu>(
         None => None,
     };
     if options.wait_for_subscribers > 0 {
-        tracing::info!("{}: waiting for {} subscriber(s) on {}", options.name, options.wait_for_subscribers, options.output);
+        tracing::info!(
+            "{}: waiting for {} subscriber(s) on {}",
+            options.name,
+            options.wait_for_subscribers,
+            options.output
+        );
         while publisher.subscriber_count() < options.wait_for_subscribers {
             if stop.load(Ordering::Relaxed) {
-                return Ok(NodeReport { node: options.name.clone(), ..NodeReport::default() });
+                return Ok(NodeReport {
+                    node: options.name.clone(),
+                    ..NodeReport::default()
+                });
             }
             std::thread::sleep(Duration::from_millis(10));
         }
@@ -182,10 +196,15 @@ pub fn run<B: FusedElu>(
         options.input,
         options.output,
         transport.kind(),
-        options.rollout.map_or(String::new(), |k| format!(", closed loop {k} frames"))
+        options
+            .rollout
+            .map_or(String::new(), |k| format!(", closed loop {k} frames"))
     );
 
-    let mut report = NodeReport { node: options.name.clone(), ..NodeReport::default() };
+    let mut report = NodeReport {
+        node: options.name.clone(),
+        ..NodeReport::default()
+    };
     let mut scenes: BTreeMap<String, SceneState<B>> = BTreeMap::new();
     let mut pending: BTreeMap<String, VecDeque<ParticleFrame>> = BTreeMap::new();
     let mut logged: HashSet<(String, String)> = HashSet::new();
@@ -196,14 +215,23 @@ pub fn run<B: FusedElu>(
     let mut arrivals: BTreeMap<(String, u32), Instant> = BTreeMap::new();
 
     let mut note = |report: &mut NodeReport, scene: &str, reason: String| {
-        let kind: String = reason.split(|c: char| c.is_ascii_digit()).next().unwrap_or("").to_owned();
+        let kind: String = reason
+            .split(|c: char| c.is_ascii_digit())
+            .next()
+            .unwrap_or("")
+            .to_owned();
         if logged.insert((scene.to_owned(), kind)) {
-            tracing::warn!("{}: scene {scene:?}: {reason} (logged once per scene and reason)", options.name);
+            tracing::warn!(
+                "{}: scene {scene:?}: {reason} (logged once per scene and reason)",
+                options.name
+            );
         }
         report.last_error = format!("{scene}: {reason}");
     };
 
-    while !stop.load(Ordering::Relaxed) && options.max_published.is_none_or(|m| report.published < m) {
+    while !stop.load(Ordering::Relaxed)
+        && options.max_published.is_none_or(|m| report.published < m)
+    {
         // Status once per second.
         if Instant::now() >= next_status {
             next_status += Duration::from_secs(1);
@@ -225,7 +253,11 @@ pub fn run<B: FusedElu>(
         // Gather: block only when nothing is pending.
         let idle = pending.values().all(VecDeque::is_empty);
         let first = if idle {
-            match rx.recv_timeout(next_status.saturating_duration_since(Instant::now()).min(Duration::from_millis(100))) {
+            match rx.recv_timeout(
+                next_status
+                    .saturating_duration_since(Instant::now())
+                    .min(Duration::from_millis(100)),
+            ) {
                 Ok(s) => Some(s),
                 Err(RecvTimeoutError::Timeout) => None,
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -243,7 +275,9 @@ pub fn run<B: FusedElu>(
                     continue;
                 }
             };
-            if let Err(reason) = check_frame(&frame, model_n).and_then(|()| frame.validate().map_err(|e| e.to_string())) {
+            if let Err(reason) = check_frame(&frame, model_n)
+                .and_then(|()| frame.validate().map_err(|e| e.to_string()))
+            {
                 report.rejected += 1;
                 note(&mut report, &frame.scene.clone(), reason);
                 continue;
@@ -266,15 +300,24 @@ pub fn run<B: FusedElu>(
             }
         }
         // Predict one frame, scenes round robin.
-        let Some(scene) = next_scene(&pending, &cursor) else { continue };
+        let Some(scene) = next_scene(&pending, &cursor) else {
+            continue;
+        };
         cursor.clone_from(&scene);
-        let frame = pending.get_mut(&scene).and_then(VecDeque::pop_front).expect("scene has a pending frame");
+        let frame = pending
+            .get_mut(&scene)
+            .and_then(VecDeque::pop_front)
+            .expect("scene has a pending frame");
         if pending.get(&scene).is_some_and(VecDeque::is_empty) {
             pending.remove(&scene);
         }
         let arrived = arrivals.remove(&(frame.scene.clone(), frame.frame_index));
         if scenes.len() >= options.max_scenes.max(1) && !scenes.contains_key(&scene) {
-            if let Some(oldest) = scenes.iter().min_by_key(|(_, s)| s.last_seen).map(|(k, _)| k.clone()) {
+            if let Some(oldest) = scenes
+                .iter()
+                .min_by_key(|(_, s)| s.last_seen)
+                .map(|(k, _)| k.clone())
+            {
                 scenes.remove(&oldest);
             }
         }
@@ -284,8 +327,12 @@ pub fn run<B: FusedElu>(
             last_seen: Instant::now(),
             rolled_out: false,
         });
-        let follows = entry.last_index.is_some_and(|last| frame.frame_index == last + 1);
-        let older = entry.last_index.is_some_and(|last| frame.frame_index <= last);
+        let follows = entry
+            .last_index
+            .is_some_and(|last| frame.frame_index == last + 1);
+        let older = entry
+            .last_index
+            .is_some_and(|last| frame.frame_index <= last);
         let idle_too_long = entry.last_seen.elapsed() > options.idle_timeout;
         entry.last_seen = Instant::now();
         let restart = frame.frame_index == 0 || entry.last_index.is_none() || idle_too_long;
@@ -295,7 +342,11 @@ pub fn run<B: FusedElu>(
         if !restart && !follows {
             match options.on_gap {
                 OnGap::Reset => {
-                    tracing::debug!("{scene}: gap {:?} -> {}: state reset", entry.last_index, frame.frame_index);
+                    tracing::debug!(
+                        "{scene}: gap {:?} -> {}: state reset",
+                        entry.last_index,
+                        frame.frame_index
+                    );
                     entry.state = None;
                     entry.rolled_out = false;
                 }
@@ -327,7 +378,11 @@ pub fn run<B: FusedElu>(
         report.predicted += 1;
         match options.rollout {
             None => {
-                publish(publisher.as_mut(), &predicted_frame(&frame, &next, 1), &mut report);
+                publish(
+                    publisher.as_mut(),
+                    &predicted_frame(&frame, &next, 1),
+                    &mut report,
+                );
                 if let Some(t) = arrived {
                     latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
                 }
@@ -338,7 +393,8 @@ pub fn run<B: FusedElu>(
                 entry.rolled_out = true;
                 let mut state = state;
                 let mut rows = next;
-                let period = (options.rate > 0.0).then(|| Duration::from_secs_f64(f64::from(frame.dt) / options.rate));
+                let period = (options.rate > 0.0)
+                    .then(|| Duration::from_secs_f64(f64::from(frame.dt) / options.rate));
                 let start = Instant::now();
                 for i in 0..k {
                     if let Some(p) = period {
@@ -347,7 +403,11 @@ pub fn run<B: FusedElu>(
                             std::thread::sleep(wait);
                         }
                     }
-                    publish(publisher.as_mut(), &predicted_frame(&frame, &rows, i as u32 + 1), &mut report);
+                    publish(
+                        publisher.as_mut(),
+                        &predicted_frame(&frame, &rows, i as u32 + 1),
+                        &mut report,
+                    );
                     if i + 1 < k {
                         match surrogate.step(&rows, &frame.material, &[frame.dt], state) {
                             Ok((r, s)) => {
@@ -400,7 +460,11 @@ pub fn summary(r: &NodeReport) -> String {
         r.malformed,
         r.rejected,
         r.active_scenes,
-        if r.last_error.is_empty() { String::new() } else { format!("; last error: {}", r.last_error) }
+        if r.last_error.is_empty() {
+            String::new()
+        } else {
+            format!("; last error: {}", r.last_error)
+        }
     )
 }
 
@@ -426,12 +490,19 @@ fn next_scene(pending: &BTreeMap<String, VecDeque<ParticleFrame>>, cursor: &str)
         .map(|(k, _)| k.clone())
 }
 
-fn evict_idle<B: burn::tensor::backend::Backend>(scenes: &mut BTreeMap<String, SceneState<B>>, idle: Duration) {
+fn evict_idle<B: burn::tensor::backend::Backend>(
+    scenes: &mut BTreeMap<String, SceneState<B>>,
+    idle: Duration,
+) {
     scenes.retain(|_, s| s.last_seen.elapsed() <= idle);
 }
 
 fn wall_time() -> Time {
-    Time::from_nanos(SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64))
+    Time::from_nanos(
+        SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64),
+    )
 }
 
 #[cfg(test)]
@@ -442,7 +513,9 @@ mod tests {
     fn round_robin_over_scenes() {
         let mut p: BTreeMap<String, VecDeque<ParticleFrame>> = BTreeMap::new();
         for s in ["a", "b", "c"] {
-            p.entry(s.into()).or_default().push_back(ParticleFrame::default());
+            p.entry(s.into())
+                .or_default()
+                .push_back(ParticleFrame::default());
         }
         assert_eq!(next_scene(&p, "").as_deref(), Some("a"));
         assert_eq!(next_scene(&p, "a").as_deref(), Some("b"));

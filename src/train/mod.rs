@@ -432,9 +432,8 @@ where
                     // One read per step, after the step is queued: the host waits here for
                     // the device to finish it.
                     let waited = Instant::now();
-                    let value: f64 = batch_loss
-                        .map_or(0.0, |l| l.into_scalar().elem::<f64>())
-                        / b.max(1) as f64;
+                    let value: f64 =
+                        batch_loss.map_or(0.0, |l| l.into_scalar().elem::<f64>()) / b.max(1) as f64;
                     device_wait += waited.elapsed();
                     if !value.is_finite() {
                         return Err(TrainError::NonFinite {

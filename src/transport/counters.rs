@@ -67,12 +67,17 @@ impl Counters {
         let thread = std::thread::Builder::new()
             .name("stats".into())
             .spawn(move || {
-                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = rx.recv_timeout(interval) {
+                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
+                    rx.recv_timeout(interval)
+                {
                     tracing::info!("{node}: {}", counters.get());
                 }
             })
             .expect("spawn stats thread");
-        StatsGuard { stop: Some(stop), thread: Some(thread) }
+        StatsGuard {
+            stop: Some(stop),
+            thread: Some(thread),
+        }
     }
 }
 

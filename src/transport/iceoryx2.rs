@@ -23,14 +23,19 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
 use super::{
-    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport, TransportError,
-    TransportKind,
+    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport,
+    TransportError, TransportKind,
 };
 use crate::msgs::status::{decode_status, encode_status, SurrogateStatus};
 use crate::msgs::{Header, ParticleFrame, Time};
 
 const KIND: TransportKind = TransportKind::Iceoryx2;
 type Svc = ipc_threadsafe::Service;
+/// The frame service and its event service (wake-ups).
+type Services = (
+    PubSubFactory<Svc, [Particle], FrameHeader>,
+    iceoryx2::service::port_factory::event::PortFactory<Svc>,
+);
 
 /// Largest scene id that fits [`FrameHeader::scene`] (63 UTF-8 bytes + NUL).
 pub const MAX_SCENE_BYTES: usize = 63;
@@ -82,7 +87,14 @@ pub struct FrameHeader {
 
 impl Default for FrameHeader {
     fn default() -> Self {
-        FrameHeader { scene: [0; 64], frame_index: 0, dt: 0.0, stamp_sec: 0, stamp_nanosec: 0, particle_count: 0 }
+        FrameHeader {
+            scene: [0; 64],
+            frame_index: 0,
+            dt: 0.0,
+            stamp_sec: 0,
+            stamp_nanosec: 0,
+            particle_count: 0,
+        }
     }
 }
 
@@ -93,23 +105,37 @@ impl FrameHeader {
     /// [`TransportError::Unrepresentable`] for a scene id longer than 63 bytes or one with a
     /// NUL byte, or a frame_id other than `"world"`.
     pub fn from_frame(frame: &ParticleFrame) -> Result<Self, TransportError> {
-        let unrep = |reason: String| TransportError::Unrepresentable { transport: KIND, reason };
+        let unrep = |reason: String| TransportError::Unrepresentable {
+            transport: KIND,
+            reason,
+        };
         let scene = frame.scene.as_bytes();
         if scene.len() > MAX_SCENE_BYTES {
-            return Err(unrep(format!("scene id {:?} is {} bytes; at most {MAX_SCENE_BYTES} fit", frame.scene, scene.len())));
+            return Err(unrep(format!(
+                "scene id {:?} is {} bytes; at most {MAX_SCENE_BYTES} fit",
+                frame.scene,
+                scene.len()
+            )));
         }
         if scene.contains(&0) {
-            return Err(unrep(format!("scene id {:?} contains a NUL byte", frame.scene)));
+            return Err(unrep(format!(
+                "scene id {:?} contains a NUL byte",
+                frame.scene
+            )));
         }
         if frame.header.frame_id != "world" {
-            return Err(unrep(format!("frame_id {:?}: iceoryx2 frames are in \"world\"", frame.header.frame_id)));
+            return Err(unrep(format!(
+                "frame_id {:?}: iceoryx2 frames are in \"world\"",
+                frame.header.frame_id
+            )));
         }
         let mut header = FrameHeader {
             frame_index: frame.frame_index,
             dt: frame.dt,
             stamp_sec: frame.header.stamp.sec,
             stamp_nanosec: frame.header.stamp.nanosec,
-            particle_count: u32::try_from(frame.len()).map_err(|_| unrep("too many particles".into()))?,
+            particle_count: u32::try_from(frame.len())
+                .map_err(|_| unrep("too many particles".into()))?,
             ..FrameHeader::default()
         };
         header.scene[..scene.len()].copy_from_slice(scene);
@@ -121,7 +147,11 @@ impl FrameHeader {
     /// # Errors
     /// A reason if the bytes are not NUL-terminated UTF-8.
     pub fn scene(&self) -> Result<&str, String> {
-        let end = self.scene.iter().position(|&b| b == 0).ok_or("scene id not NUL-terminated")?;
+        let end = self
+            .scene
+            .iter()
+            .position(|&b| b == 0)
+            .ok_or("scene id not NUL-terminated")?;
         std::str::from_utf8(&self.scene[..end]).map_err(|e| format!("scene id not UTF-8: {e}"))
     }
 }
@@ -158,11 +188,17 @@ pub fn to_frame(header: &FrameHeader, particles: &[Particle]) -> Result<Particle
     for p in particles {
         position.extend_from_slice(&[p.x, p.y]);
         velocity.extend_from_slice(&[p.vx, p.vy]);
-        material.push(u8::try_from(p.material).map_err(|_| format!("material id {} out of range", p.material))?);
+        material.push(
+            u8::try_from(p.material)
+                .map_err(|_| format!("material id {} out of range", p.material))?,
+        );
     }
     Ok(ParticleFrame {
         header: Header {
-            stamp: Time { sec: header.stamp_sec, nanosec: header.stamp_nanosec },
+            stamp: Time {
+                sec: header.stamp_sec,
+                nanosec: header.stamp_nanosec,
+            },
             frame_id: "world".into(),
         },
         scene: header.scene()?.to_owned(),
@@ -210,18 +246,23 @@ impl IceoryxTransport {
         let node = NodeBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Svc>()
-            .map_err(|e| TransportError::Open { transport: KIND, reason: format!("{e:?}") })?;
+            .map_err(|e| TransportError::Open {
+                transport: KIND,
+                reason: format!("{e:?}"),
+            })?;
         Ok(IceoryxTransport { node })
     }
 
-    fn services(
-        &self,
-        topic: &str,
-        what: &'static str,
-    ) -> Result<(PubSubFactory<Svc, [Particle], FrameHeader>, iceoryx2::service::port_factory::event::PortFactory<Svc>), TransportError>
-    {
-        let err = |reason: String| TransportError::Declare { transport: KIND, what, topic: topic.to_owned(), reason };
-        let name: ServiceName = topic_key(topic)?.try_into().map_err(|e| err(format!("service name: {e:?}")))?;
+    fn services(&self, topic: &str, what: &'static str) -> Result<Services, TransportError> {
+        let err = |reason: String| TransportError::Declare {
+            transport: KIND,
+            what,
+            topic: topic.to_owned(),
+            reason,
+        };
+        let name: ServiceName = topic_key(topic)?
+            .try_into()
+            .map_err(|e| err(format!("service name: {e:?}")))?;
         let pubsub = self
             .node
             .service_builder(&name)
@@ -232,7 +273,12 @@ impl IceoryxTransport {
             .subscriber_max_buffer_size(SUBSCRIBER_BUFFER)
             .open_or_create()
             .map_err(|e| err(format!("{e:?}")))?;
-        let event = self.node.service_builder(&name).event().open_or_create().map_err(|e| err(format!("event: {e:?}")))?;
+        let event = self
+            .node
+            .service_builder(&name)
+            .event()
+            .open_or_create()
+            .map_err(|e| err(format!("event: {e:?}")))?;
         Ok((pubsub, event))
     }
 }
@@ -243,7 +289,12 @@ impl Transport for IceoryxTransport {
     }
 
     fn publisher(&self, topic: &str) -> Result<Box<dyn FramePublisher>, TransportError> {
-        let err = |reason: String| TransportError::Declare { transport: KIND, what: "publisher", topic: topic.to_owned(), reason };
+        let err = |reason: String| TransportError::Declare {
+            transport: KIND,
+            what: "publisher",
+            topic: topic.to_owned(),
+            reason,
+        };
         let (service, event) = self.services(topic, "publisher")?;
         let publisher = service
             .publisher_builder()
@@ -252,15 +303,38 @@ impl Transport for IceoryxTransport {
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .create()
             .map_err(|e| err(format!("{e:?}")))?;
-        let notifier = event.notifier_builder().create().map_err(|e| err(format!("notifier: {e:?}")))?;
-        Ok(Box::new(IceoryxPublisher { topic: topic.to_owned(), service, publisher, notifier }))
+        let notifier = event
+            .notifier_builder()
+            .create()
+            .map_err(|e| err(format!("notifier: {e:?}")))?;
+        Ok(Box::new(IceoryxPublisher {
+            topic: topic.to_owned(),
+            service,
+            publisher,
+            notifier,
+        }))
     }
 
-    fn subscribe(&self, topic: &str, sink: Sender<Sample>) -> Result<Box<dyn Subscription>, TransportError> {
-        let err = |reason: String| TransportError::Declare { transport: KIND, what: "subscriber", topic: topic.to_owned(), reason };
+    fn subscribe(
+        &self,
+        topic: &str,
+        sink: Sender<Sample>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
+        let err = |reason: String| TransportError::Declare {
+            transport: KIND,
+            what: "subscriber",
+            topic: topic.to_owned(),
+            reason,
+        };
         let (service, event) = self.services(topic, "subscriber")?;
-        let subscriber = service.subscriber_builder().create().map_err(|e| err(format!("{e:?}")))?;
-        let listener = event.listener_builder().create().map_err(|e| err(format!("listener: {e:?}")))?;
+        let subscriber = service
+            .subscriber_builder()
+            .create()
+            .map_err(|e| err(format!("{e:?}")))?;
+        let listener = event
+            .listener_builder()
+            .create()
+            .map_err(|e| err(format!("listener: {e:?}")))?;
         let stop = Arc::new(AtomicBool::new(false));
         let stopping = Arc::clone(&stop);
         let name = topic.to_owned();
@@ -274,12 +348,20 @@ impl Transport for IceoryxTransport {
                         match subscriber.receive() {
                             Ok(Some(sample)) => {
                                 let received = Instant::now();
-                                let payload = match to_frame(sample.user_header(), sample.payload()) {
+                                let payload = match to_frame(sample.user_header(), sample.payload())
+                                {
                                     Ok(frame) => Payload::Frame(frame),
                                     Err(reason) => Payload::Malformed(reason),
                                 };
                                 drop(sample);
-                                if sink.send(Sample { topic: name.clone(), payload, received }).is_err() {
+                                if sink
+                                    .send(Sample {
+                                        topic: name.clone(),
+                                        payload,
+                                        received,
+                                    })
+                                    .is_err()
+                                {
                                     return;
                                 }
                             }
@@ -297,7 +379,10 @@ impl Transport for IceoryxTransport {
                 }
             })
             .map_err(|e| err(e.to_string()))?;
-        Ok(Box::new(IceoryxSubscription { stop, thread: Some(thread) }))
+        Ok(Box::new(IceoryxSubscription {
+            stop,
+            thread: Some(thread),
+        }))
     }
 
     fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
@@ -313,7 +398,11 @@ impl Transport for IceoryxTransport {
                 topic: topic.to_owned(),
                 reason: format!("{e:?}"),
             })?;
-        Ok(Box::new(IceoryxStatusPublisher { topic: topic.to_owned(), _service: service, publisher }))
+        Ok(Box::new(IceoryxStatusPublisher {
+            topic: topic.to_owned(),
+            _service: service,
+            publisher,
+        }))
     }
 
     fn subscribe_status(
@@ -322,12 +411,16 @@ impl Transport for IceoryxTransport {
         sink: Sender<SurrogateStatus>,
     ) -> Result<Box<dyn Subscription>, TransportError> {
         let service = self.status_service(topic, "status subscriber")?;
-        let subscriber = service.subscriber_builder().create().map_err(|e| TransportError::Declare {
-            transport: KIND,
-            what: "status subscriber",
-            topic: topic.to_owned(),
-            reason: format!("{e:?}"),
-        })?;
+        let subscriber =
+            service
+                .subscriber_builder()
+                .create()
+                .map_err(|e| TransportError::Declare {
+                    transport: KIND,
+                    what: "status subscriber",
+                    topic: topic.to_owned(),
+                    reason: format!("{e:?}"),
+                })?;
         let stop = Arc::new(AtomicBool::new(false));
         let stopping = Arc::clone(&stop);
         let name = topic.to_owned();
@@ -356,7 +449,10 @@ impl Transport for IceoryxTransport {
                 topic: topic.to_owned(),
                 reason: e.to_string(),
             })?;
-        Ok(Box::new(IceoryxSubscription { stop, thread: Some(thread) }))
+        Ok(Box::new(IceoryxSubscription {
+            stop,
+            thread: Some(thread),
+        }))
     }
 }
 
@@ -369,9 +465,16 @@ struct IceoryxStatusPublisher {
 
 impl StatusPublisher for IceoryxStatusPublisher {
     fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
-        let err = |reason: String| TransportError::Publish { transport: KIND, topic: self.topic.clone(), reason };
+        let err = |reason: String| TransportError::Publish {
+            transport: KIND,
+            topic: self.topic.clone(),
+            reason,
+        };
         let bytes = encode_status(status);
-        let sample = self.publisher.loan_slice_uninit(bytes.len()).map_err(|e| err(format!("loan: {e:?}")))?;
+        let sample = self
+            .publisher
+            .loan_slice_uninit(bytes.len())
+            .map_err(|e| err(format!("loan: {e:?}")))?;
         let sample = sample.write_from_slice(&bytes);
         sample.send().map_err(|e| err(format!("send: {e:?}")))?;
         Ok(())
@@ -383,9 +486,19 @@ impl IceoryxTransport {
         &self,
         topic: &str,
         what: &'static str,
-    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>, TransportError> {
-        let err = |reason: String| TransportError::Declare { transport: KIND, what, topic: topic.to_owned(), reason };
-        let name: ServiceName = topic_key(topic)?.try_into().map_err(|e| err(format!("service name: {e:?}")))?;
+    ) -> Result<
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>,
+        TransportError,
+    > {
+        let err = |reason: String| TransportError::Declare {
+            transport: KIND,
+            what,
+            topic: topic.to_owned(),
+            reason,
+        };
+        let name: ServiceName = topic_key(topic)?
+            .try_into()
+            .map_err(|e| err(format!("service name: {e:?}")))?;
         self.node
             .service_builder(&name)
             .publish_subscribe::<[u8]>()
@@ -406,14 +519,23 @@ struct IceoryxPublisher {
 impl FramePublisher for IceoryxPublisher {
     fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
         let header = FrameHeader::from_frame(frame)?;
-        let err = |reason: String| TransportError::Publish { transport: KIND, topic: self.topic.clone(), reason };
-        let mut sample = self.publisher.loan_slice_uninit(frame.len()).map_err(|e| err(format!("loan: {e:?}")))?;
+        let err = |reason: String| TransportError::Publish {
+            transport: KIND,
+            topic: self.topic.clone(),
+            reason,
+        };
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(frame.len())
+            .map_err(|e| err(format!("loan: {e:?}")))?;
         *sample.user_header_mut() = header;
         write_particles(frame, sample.payload_mut());
         // SAFETY: every element was written by `write_particles` (slice length = frame.len()).
         let sample = unsafe { sample.assume_init() };
         sample.send().map_err(|e| err(format!("send: {e:?}")))?;
-        self.notifier.notify().map_err(|e| err(format!("notify: {e:?}")))?;
+        self.notifier
+            .notify()
+            .map_err(|e| err(format!("notify: {e:?}")))?;
         Ok(())
     }
 

@@ -29,7 +29,9 @@ use crate::msgs::{cdr, ParticleFrame};
 pub use counters::Counters;
 
 /// Which middleware carries the frames.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum TransportKind {
     /// zenoh 1.x: key = topic without the leading '/', payload = CDR bytes.
@@ -68,7 +70,10 @@ pub struct TransportOptions {
 impl TransportOptions {
     /// Options for `kind` with the default zenoh session.
     pub fn new(kind: TransportKind) -> Self {
-        TransportOptions { transport: kind, zenoh_config: None }
+        TransportOptions {
+            transport: kind,
+            zenoh_config: None,
+        }
     }
 }
 
@@ -77,17 +82,32 @@ impl TransportOptions {
 pub enum TransportError {
     /// The middleware could not be opened (session, node or context creation).
     #[error("cannot open {transport}: {reason}")]
-    Open { transport: TransportKind, reason: String },
+    Open {
+        transport: TransportKind,
+        reason: String,
+    },
     /// A publisher or subscriber could not be declared on `topic`.
     #[error("cannot declare {what} on {topic} over {transport}: {reason}")]
-    Declare { transport: TransportKind, what: &'static str, topic: String, reason: String },
+    Declare {
+        transport: TransportKind,
+        what: &'static str,
+        topic: String,
+        reason: String,
+    },
     /// Sending one frame failed.
     #[error("cannot publish on {topic} over {transport}: {reason}")]
-    Publish { transport: TransportKind, topic: String, reason: String },
+    Publish {
+        transport: TransportKind,
+        topic: String,
+        reason: String,
+    },
     /// The frame cannot be carried by this transport (for example a scene id longer than
     /// iceoryx2's 63-byte header field, or more particles than the service allows).
     #[error("frame not representable on {transport}: {reason}")]
-    Unrepresentable { transport: TransportKind, reason: String },
+    Unrepresentable {
+        transport: TransportKind,
+        reason: String,
+    },
     /// The topic is not a valid ROS 2 topic name (`/a/b`, no trailing '/').
     #[error("invalid topic {0:?}: expected an absolute ROS 2 name such as /mpm/frames")]
     Topic(String),
@@ -265,7 +285,9 @@ pub trait Transport: Send + Sync {
 /// [`TransportError::Open`] with the middleware's own message.
 pub fn open(options: &TransportOptions) -> Result<Box<dyn Transport>, TransportError> {
     match options.transport {
-        TransportKind::Zenoh => Ok(Box::new(zenoh::ZenohTransport::open(options.zenoh_config.as_deref())?)),
+        TransportKind::Zenoh => Ok(Box::new(zenoh::ZenohTransport::open(
+            options.zenoh_config.as_deref(),
+        )?)),
         TransportKind::Iceoryx2 => Ok(Box::new(iceoryx2::IceoryxTransport::open()?)),
         TransportKind::Ros2 => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Dds)?)),
         TransportKind::Ros2Zenoh => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Zenoh)?)),
@@ -278,7 +300,9 @@ pub fn open(options: &TransportOptions) -> Result<Box<dyn Transport>, TransportE
 /// # Errors
 /// [`TransportError::Topic`].
 pub fn topic_key(topic: &str) -> Result<&str, TransportError> {
-    let key = topic.strip_prefix('/').ok_or_else(|| TransportError::Topic(topic.to_owned()))?;
+    let key = topic
+        .strip_prefix('/')
+        .ok_or_else(|| TransportError::Topic(topic.to_owned()))?;
     let ok = !key.is_empty()
         && key.split('/').all(|seg| {
             !seg.is_empty()

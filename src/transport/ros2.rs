@@ -447,7 +447,9 @@ impl Transport for Ros2Transport {
                 Ok(Box::new(Ros2StatusPublisher {
                     topic: topic.to_owned(),
                     kind,
-                    send: Box::new(move |s| publisher.publish(s.clone()).map_err(|e| e.to_string())),
+                    send: Box::new(move |s| {
+                        publisher.publish(s.clone()).map_err(|e| e.to_string())
+                    }),
                 }))
             }
             NodeRef::Zenoh(z) => {
@@ -459,7 +461,9 @@ impl Transport for Ros2Transport {
                 Ok(Box::new(Ros2StatusPublisher {
                     topic: topic.to_owned(),
                     kind,
-                    send: Box::new(move |s| publisher.publish(s.clone()).map_err(|e| e.to_string())),
+                    send: Box::new(move |s| {
+                        publisher.publish(s.clone()).map_err(|e| e.to_string())
+                    }),
                 }))
             }
         }

@@ -25,8 +25,8 @@ use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
 use super::{
-    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport, TransportError,
-    TransportKind,
+    topic_key, FramePublisher, Payload, Sample, StatusPublisher, Subscription, Transport,
+    TransportError, TransportKind,
 };
 use crate::msgs::status::{decode_status, encode_status, SurrogateStatus};
 use crate::msgs::{cdr, ParticleFrame};
@@ -50,13 +50,18 @@ impl ZenohTransport {
     /// # Errors
     /// [`TransportError::Open`] if the file cannot be parsed or the session cannot start.
     pub fn open(config_file: Option<&Path>) -> Result<Self, TransportError> {
-        let open_err = |reason: String| TransportError::Open { transport: KIND, reason };
+        let open_err = |reason: String| TransportError::Open {
+            transport: KIND,
+            reason,
+        };
         let config = match config_file {
             Some(path) => zenoh::Config::from_file(path)
                 .map_err(|e| open_err(format!("zenoh config {}: {e}", path.display())))?,
             None => zenoh::Config::default(),
         };
-        let session = zenoh::open(config).wait().map_err(|e| open_err(e.to_string()))?;
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| open_err(e.to_string()))?;
         Ok(ZenohTransport { session })
     }
 
@@ -112,7 +117,11 @@ impl Transport for ZenohTransport {
         }))
     }
 
-    fn subscribe(&self, topic: &str, sink: Sender<Sample>) -> Result<Box<dyn Subscription>, TransportError> {
+    fn subscribe(
+        &self,
+        topic: &str,
+        sink: Sender<Sample>,
+    ) -> Result<Box<dyn Subscription>, TransportError> {
         let key = topic_key(topic)?.to_owned();
         let declare_err = |reason: String| TransportError::Declare {
             transport: KIND,
@@ -128,7 +137,11 @@ impl Transport for ZenohTransport {
                 let received = Instant::now();
                 let bytes = sample.payload().to_bytes().into_owned();
                 // A closed receiver means the owner is shutting down; nothing to do.
-                let _ = sink.send(Sample { topic: name.clone(), payload: Payload::Cdr(bytes), received });
+                let _ = sink.send(Sample {
+                    topic: name.clone(),
+                    payload: Payload::Cdr(bytes),
+                    received,
+                });
             })
             .wait()
             .map_err(|e| declare_err(e.to_string()))?;
@@ -144,18 +157,28 @@ impl Transport for ZenohTransport {
             .declare_token(format!("{}/{id}", liveliness_prefix(&key)))
             .wait()
             .map_err(|e| declare_err(e.to_string()))?;
-        Ok(Box::new(ZenohSubscription { _subscriber: subscriber, _token: Some(token) }))
+        Ok(Box::new(ZenohSubscription {
+            _subscriber: subscriber,
+            _token: Some(token),
+        }))
     }
 
     fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
         let key = topic_key(topic)?.to_owned();
-        let publisher = self.session.declare_publisher(key).wait().map_err(|e| TransportError::Declare {
-            transport: KIND,
-            what: "status publisher",
+        let publisher =
+            self.session
+                .declare_publisher(key)
+                .wait()
+                .map_err(|e| TransportError::Declare {
+                    transport: KIND,
+                    what: "status publisher",
+                    topic: topic.to_owned(),
+                    reason: e.to_string(),
+                })?;
+        Ok(Box::new(ZenohStatusPublisher {
             topic: topic.to_owned(),
-            reason: e.to_string(),
-        })?;
-        Ok(Box::new(ZenohStatusPublisher { topic: topic.to_owned(), publisher }))
+            publisher,
+        }))
     }
 
     fn subscribe_status(
@@ -168,12 +191,14 @@ impl Transport for ZenohTransport {
         let subscriber = self
             .session
             .declare_subscriber(key)
-            .callback(move |sample| match decode_status(&sample.payload().to_bytes()) {
-                Ok(status) => {
-                    let _ = sink.send(status);
-                }
-                Err(reason) => tracing::warn!("{name}: undecodable status: {reason}"),
-            })
+            .callback(
+                move |sample| match decode_status(&sample.payload().to_bytes()) {
+                    Ok(status) => {
+                        let _ = sink.send(status);
+                    }
+                    Err(reason) => tracing::warn!("{name}: undecodable status: {reason}"),
+                },
+            )
             .wait()
             .map_err(|e| TransportError::Declare {
                 transport: KIND,
@@ -181,7 +206,10 @@ impl Transport for ZenohTransport {
                 topic: topic.to_owned(),
                 reason: e.to_string(),
             })?;
-        Ok(Box::new(ZenohSubscription { _subscriber: subscriber, _token: None }))
+        Ok(Box::new(ZenohSubscription {
+            _subscriber: subscriber,
+            _token: None,
+        }))
     }
 }
 
@@ -192,11 +220,14 @@ struct ZenohStatusPublisher {
 
 impl StatusPublisher for ZenohStatusPublisher {
     fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
-        self.publisher.put(encode_status(status)).wait().map_err(|e| TransportError::Publish {
-            transport: KIND,
-            topic: self.topic.clone(),
-            reason: e.to_string(),
-        })
+        self.publisher
+            .put(encode_status(status))
+            .wait()
+            .map_err(|e| TransportError::Publish {
+                transport: KIND,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
     }
 }
 
@@ -210,11 +241,14 @@ struct ZenohPublisher {
 
 impl ZenohPublisher {
     fn put(&self, bytes: Vec<u8>) -> Result<(), TransportError> {
-        self.publisher.put(bytes).wait().map_err(|e| TransportError::Publish {
-            transport: KIND,
-            topic: self.topic.clone(),
-            reason: e.to_string(),
-        })
+        self.publisher
+            .put(bytes)
+            .wait()
+            .map_err(|e| TransportError::Publish {
+                transport: KIND,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
     }
 }
 
@@ -232,7 +266,12 @@ impl FramePublisher for ZenohPublisher {
 
     fn subscriber_count(&self) -> usize {
         let tokens = self.tokens.lock().expect("token set poisoned").len();
-        let matching = self.publisher.matching_status().wait().map(|s| s.matching()).unwrap_or(false);
+        let matching = self
+            .publisher
+            .matching_status()
+            .wait()
+            .map(|s| s.matching())
+            .unwrap_or(false);
         tokens.max(usize::from(matching))
     }
 }

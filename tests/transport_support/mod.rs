@@ -25,7 +25,10 @@ impl Node {
             .stderr(Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("starting {name}: {e}"));
-        Node { child: Some(child), name: name.into() }
+        Node {
+            child: Some(child),
+            name: name.into(),
+        }
     }
 
     /// Waits for exit (killing the process at the deadline) and returns its output.
@@ -52,7 +55,11 @@ impl Node {
     /// Sends `signal` (e.g. "KILL", "TERM") to the process.
     pub fn signal(&self, signal: &str) {
         let pid = self.child.as_ref().unwrap().id().to_string();
-        let ok = Command::new("kill").args([&format!("-{signal}"), &pid]).status().unwrap().success();
+        let ok = Command::new("kill")
+            .args([&format!("-{signal}"), &pid])
+            .status()
+            .unwrap()
+            .success();
         assert!(ok, "kill -{signal} {pid}");
     }
 }
@@ -69,14 +76,22 @@ impl Drop for Node {
 /// Asserts success and returns stderr.
 pub fn ok(out: &Output, what: &str) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "{what} failed ({:?}):\n{stderr}", out.status);
+    assert!(
+        out.status.success(),
+        "{what} failed ({:?}):\n{stderr}",
+        out.status
+    );
     stderr
 }
 
 /// A topic no other test uses: `/minflow_test_<pid>_<n>_<tag>/frames`.
 pub fn unique_topic(tag: &str) -> String {
     static N: AtomicU32 = AtomicU32::new(0);
-    format!("/minflow_test_{}_{}_{tag}/frames", std::process::id(), N.fetch_add(1, Ordering::Relaxed))
+    format!(
+        "/minflow_test_{}_{}_{tag}/frames",
+        std::process::id(),
+        N.fetch_add(1, Ordering::Relaxed)
+    )
 }
 
 /// The bundled bag used as the source.
@@ -104,6 +119,10 @@ pub fn counter(stderr: &str, name: &str) -> Option<u64> {
     let key = format!("{name}=");
     stderr.lines().rev().find_map(|line| {
         let at = line.find(&key)?;
-        line[at + key.len()..].split(|c: char| !c.is_ascii_digit()).next()?.parse().ok()
+        line[at + key.len()..]
+            .split(|c: char| !c.is_ascii_digit())
+            .next()?
+            .parse()
+            .ok()
     })
 }
