@@ -1,6 +1,6 @@
-//! The `minflow-cuda` binary (feature `cuda`): `minflow`'s `simulate`, `train`, `eval`, `bench train`
-//! alone, so that a stripped build with burn's CUDA backend stays small enough to carry to a
-//! GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
+//! The `minflow-cuda` binary (feature `cuda`): `minflow`'s `simulate`, `train`, `eval` and
+//! `bench train` alone, so that a stripped build with burn's CUDA backend stays small enough
+//! to carry to a GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
 
 use clap::Parser;
 use std::process::ExitCode;
