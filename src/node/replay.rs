@@ -188,6 +188,9 @@ pub fn play(
                 timeout: options.wait_timeout,
             });
         }
+        // Matching is seen from the publisher's side first; give the subscriber's side (DDS
+        // readers accept data only from writers they matched) a moment too.
+        std::thread::sleep(Duration::from_millis(300));
     }
     let offset_ns = (options.start_offset.max(0.0) * 1e9) as u64;
     let mut first_start: Option<Instant> = None;

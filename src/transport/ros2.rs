@@ -633,6 +633,12 @@ impl FramePublisher for DdsPublisher {
             })
     }
 
+    /// Reliable DDS retransmits what readers missed after the write returns: give it time
+    /// before the writer goes away (ros2-client does not expose acknowledgement waits).
+    fn flush(&mut self, timeout: Duration) {
+        std::thread::sleep(timeout.min(Duration::from_secs(1)));
+    }
+
     /// Matched DDS subscriptions (readers matched through SEDP with compatible QoS), as
     /// tracked by the node's spinner (`Publisher::get_subscription_count`).
     fn subscriber_count(&self) -> usize {
