@@ -14,12 +14,13 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::mpsc::channel;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use burn::backend::NdArray;
 use clap::Args;
 
+use super::bench_transport::{percentile as pct, wall_ns};
 use super::Outcome;
 use crate::bag::{read_frames, FRAMES_TOPIC};
 use crate::data::{self, Scaler};
@@ -27,6 +28,7 @@ use crate::model::store::{save, ModelMeta, Surrogate};
 use crate::model::temporal::CoreKind;
 use crate::model::{LastActivation, ModelConfig};
 use crate::msgs::{ParticleFrame, Time};
+use crate::node::surrogate::state_rows as rows;
 use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
 
 #[derive(Debug, Args)]
@@ -50,32 +52,6 @@ pub struct NodeBenchArgs {
     /// Bag whose frames are published.
     #[arg(long, default_value = "bags/multi_rope+snow_001.mcap")]
     bag: PathBuf,
-}
-
-fn wall_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
-fn pct(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
-fn rows(f: &ParticleFrame) -> Vec<f32> {
-    (0..f.len())
-        .flat_map(|i| {
-            [
-                f.position[2 * i],
-                f.position[2 * i + 1],
-                f.velocity[2 * i],
-                f.velocity[2 * i + 1],
-            ]
-        })
-        .collect()
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.

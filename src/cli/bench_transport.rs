@@ -57,7 +57,8 @@ pub struct TransportBenchArgs {
 const LATENCY_SCENE: &str = "bench/latency";
 const BURST_SCENE: &str = "bench/burst";
 
-fn wall_ns() -> u64 {
+/// Wall-clock time, ns since the Unix epoch (the same clock in every process).
+pub(super) fn wall_ns() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64)
@@ -132,7 +133,8 @@ struct Row {
     burst_fps: f64,
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
+/// The `p` quantile (0..=1) of sorted values, nearest rank; NaN when empty.
+pub(super) fn percentile(sorted: &[f64], p: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
     }

@@ -108,8 +108,8 @@ fn check_frame(frame: &ParticleFrame, model_n: Option<usize>) -> Result<(), Stri
     Ok(())
 }
 
-/// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy).
-fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
+/// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy), as `Surrogate::step` takes them.
+pub fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
     let mut rows = Vec::with_capacity(frame.len() * 4);
     for i in 0..frame.len() {
         rows.extend_from_slice(&[
