@@ -11,6 +11,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
+    minflow::cli::tune_allocator();
     let cli = minflow::cli::Cli::parse();
     minflow::cli::init_logging(cli.verbose);
     match minflow::cli::run(cli) {

@@ -10,6 +10,7 @@ use std::process::ExitCode;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
+    minflow::cli::tune_allocator();
     let cli = minflow::cli::TrainCli::parse();
     minflow::cli::init_logging(cli.verbose);
     match minflow::cli::run_train(cli) {

@@ -88,7 +88,7 @@ impl<B: FusedElu> Decoder<B> {
                 let per_frame = linear(&mlp.latent, latent);
                 let [_, hidden] = per_frame.dims();
                 let per_frame = per_frame.reshape([b, 1, hidden]);
-                let h = elu(mlp.features.forward(features) + per_frame);
+                let h = elu(linear(&mlp.features, features) + per_frame);
                 linear(&mlp.out, h)
             }
         }

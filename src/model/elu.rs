@@ -17,8 +17,10 @@ use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
 use burn::backend::{Autodiff, NdArray};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
-use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
+use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 use rayon::prelude::*;
+
+use super::cpu_kernels;
 
 /// A backend with a fused ELU (alpha = 1).
 pub trait FusedElu: Backend {
@@ -36,15 +38,38 @@ pub trait FusedElu: Backend {
         Self::float_reshape(y, shape)
     }
 
-    /// `x @ weight + bias`: `x` `[rows, in]`, `weight` `[in, out]` (burn's `Linear` layout),
-    /// `bias` `[out]`; returns `[rows, out]`. Composed from matmul and add by default; the CPU
-    /// backend streams the weights for a handful of rows (the inference step).
+    /// `x @ weight + bias`: `x` `[..., in]` (any rank >= 2), `weight` `[in, out]` (burn's
+    /// `Linear` layout), `bias` `[out]`; returns `[..., out]`. Composed from matmul and add by
+    /// default; the CPU backend calls AVX-512/AVX2 `gemm` (with the bias added in the same
+    /// pass, and no copies for reshapes), or streams the weights for a handful of rows (the
+    /// inference step).
     fn linear_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
         composed_linear::<Self>(x, weight, bias)
+    }
+
+    /// `elu(x @ weight + bias)`, shapes as [`FusedElu::linear_forward`]. The CPU backend
+    /// adds the bias and applies ELU in one pass over the product.
+    fn linear_elu_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        Self::elu_forward(Self::linear_forward(x, weight, bias))
+    }
+
+    /// Gradients of `y = x @ weight (+ bias)` from `grad` = dL/dy `[..., out]`:
+    /// `[dx [..., in], dweight [in, out], dbias [out]]`, each computed only when `need[i]`.
+    fn linear_backward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        composed_linear_backward::<Self>(x, weight, grad, need)
     }
 
     /// The input gradient from the forward output and the output gradient.
@@ -81,9 +106,12 @@ fn linear_stream(
         return None;
     };
     let (xv, wv) = (xs.view(), ws.view());
-    let (&[rows, d_in], &[w_in, d_out]) = (xv.shape(), wv.shape()) else {
+    let &[w_in, d_out] = wv.shape() else {
         return None;
     };
+    let x_shape = xv.shape().to_vec();
+    let (&d_in, lead) = x_shape.split_last()?;
+    let rows = lead.iter().product::<usize>();
     if rows > STREAM_ROWS || w_in != d_in {
         return None;
     }
@@ -133,11 +161,26 @@ fn linear_stream(
             out[r * d_out + lo..r * d_out + hi].copy_from_slice(&acc[r * w..(r + 1) * w]);
         }
     }
-    let y = Tensor::<NdArray<f32>, 2>::from_data(
-        TensorData::new(out, [rows, d_out]),
-        &Default::default(),
-    );
-    Some(y.into_primitive().tensor())
+    let mut shape = x_shape;
+    *shape.last_mut()? = d_out;
+    Some(cpu_kernels::tensor(out, &shape))
+}
+
+/// `x` `[..., cols]` as a `[rows, cols]` tensor, and its original shape.
+fn as_rows<B: Backend>(x: FloatTensor<B>) -> (Tensor<B, 2>, burn::tensor::Shape) {
+    let shape = x.shape();
+    let dims: Vec<usize> = shape.iter().copied().collect();
+    let cols = *dims.last().expect("rank >= 1");
+    let rows = dims[..dims.len() - 1].iter().product::<usize>();
+    let x = B::float_reshape(x, [rows, cols].into());
+    (Tensor::from_primitive(TensorPrimitive::Float(x)), shape)
+}
+
+/// `y` `[rows, out]` back to `shape` with its last dimension replaced by `out`.
+fn from_rows<B: Backend>(y: Tensor<B, 2>, shape: &burn::tensor::Shape) -> FloatTensor<B> {
+    let mut dims: Vec<usize> = shape.iter().copied().collect();
+    *dims.last_mut().expect("rank >= 1") = y.dims()[1];
+    B::float_reshape(y.into_primitive().tensor(), dims.into())
 }
 
 /// `x @ weight + bias` with burn's tensor ops (what `Linear::forward` does).
@@ -146,31 +189,31 @@ fn composed_linear<B: Backend>(
     weight: FloatTensor<B>,
     bias: Option<FloatTensor<B>>,
 ) -> FloatTensor<B> {
-    let x = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(x));
+    let (x, shape) = as_rows::<B>(x);
     let w = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(weight));
     let y = x.matmul(w);
     let y = match bias {
         Some(b) => y + Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(b)).unsqueeze::<2>(),
         None => y,
     };
-    y.into_primitive().tensor()
+    from_rows(y, &shape)
 }
 
-/// Applies `f` to every element of a CPU tensor in one pass (2 threads: chunks in parallel).
-fn map_cpu(
-    x: FloatTensor<NdArray<f32>>,
-    f: impl Fn(f32) -> f32 + Sync,
-) -> FloatTensor<NdArray<f32>> {
-    let shape = x.shape();
-    let device = Default::default();
-    let t = Tensor::<NdArray<f32>, 1>::from_primitive(TensorPrimitive::Float(x))
-        .reshape([shape.num_elements()]);
-    let mut v: Vec<f32> = t.into_data().into_vec().unwrap_or_default();
-    v.par_chunks_mut(1 << 16)
-        .for_each(|c| c.iter_mut().for_each(|e| *e = f(*e)));
-    let y =
-        Tensor::<NdArray<f32>, 1>::from_data(TensorData::new(v, [shape.num_elements()]), &device);
-    NdArray::<f32>::float_reshape(y.into_primitive().tensor(), shape)
+/// [`FusedElu::linear_backward`] with burn's tensor ops.
+fn composed_linear_backward<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    need: [bool; 3],
+) -> [Option<FloatTensor<B>>; 3] {
+    let (x, shape) = as_rows::<B>(x);
+    let (grad, _) = as_rows::<B>(grad);
+    let weight = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(weight));
+    let d_out = grad.dims()[1];
+    let dx = need[0].then(|| from_rows(grad.clone().matmul(weight.transpose()), &shape));
+    let dw = need[1].then(|| x.transpose().matmul(grad.clone()).into_primitive().tensor());
+    let db = need[2].then(|| grad.sum_dim(0).reshape([d_out]).into_primitive().tensor());
+    [dx, dw, db]
 }
 
 impl FusedElu for NdArray<f32> {
@@ -179,40 +222,55 @@ impl FusedElu for NdArray<f32> {
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        match linear_stream(&x, &weight, bias.as_ref()) {
-            Some(y) => y,
-            None => composed_linear::<Self>(x, weight, bias),
+        linear_stream(&x, &weight, bias.as_ref())
+            .or_else(|| cpu_kernels::linear(&x, &weight, bias.as_ref(), false))
+            .unwrap_or_else(|| composed_linear::<Self>(x, weight, bias))
+    }
+
+    fn linear_elu_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        if let Some(y) = linear_stream(&x, &weight, bias.as_ref()) {
+            return cpu_kernels::elu(y);
         }
+        cpu_kernels::linear(&x, &weight, bias.as_ref(), true)
+            .unwrap_or_else(|| Self::elu_forward(composed_linear::<Self>(x, weight, bias)))
+    }
+
+    fn linear_backward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        cpu_kernels::linear_backward(&x, &weight, &grad, need)
+            .unwrap_or_else(|| composed_linear_backward::<Self>(x, weight, grad, need))
     }
 
     fn elu_forward(x: FloatTensor<Self>) -> FloatTensor<Self> {
-        map_cpu(x, |v| if v > 0.0 { v } else { v.exp_m1() })
+        cpu_kernels::elu(x)
     }
 
     fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        let shape = out.shape();
-        let n = shape.num_elements();
-        let device = Default::default();
-        let vec = |t| {
-            Tensor::<NdArray<f32>, 1>::from_primitive(TensorPrimitive::Float(t))
-                .reshape([n])
-                .into_data()
-                .into_vec::<f32>()
-                .unwrap_or_default()
-        };
-        let out = vec(out);
-        let mut grad = vec(grad);
-        grad.par_chunks_mut(1 << 16)
-            .zip(out.par_chunks(1 << 16))
-            .for_each(|(g, o)| {
-                for (g, &o) in g.iter_mut().zip(o) {
-                    if o <= 0.0 {
-                        *g *= o + 1.0;
-                    }
-                }
-            });
-        let y = Tensor::<NdArray<f32>, 1>::from_data(TensorData::new(grad, [n]), &device);
-        NdArray::<f32>::float_reshape(y.into_primitive().tensor(), shape)
+        match cpu_kernels::elu_backward(&out, grad) {
+            Ok(g) => g,
+            Err(grad) => {
+                let shape = out.shape();
+                let n = shape.num_elements();
+                let flat = |t| {
+                    Tensor::<Self, 1>::from_primitive(TensorPrimitive::Float(Self::float_reshape(
+                        t,
+                        [n].into(),
+                    )))
+                };
+                let (out, grad) = (flat(out), flat(grad));
+                let positive = out.clone().greater_elem(0.0);
+                let slope = (out + 1.0).mask_fill(positive, 1.0);
+                Self::float_reshape((grad * slope).into_primitive().tensor(), shape)
+            }
+        }
     }
 }
 
@@ -220,7 +278,103 @@ impl FusedElu for NdArray<f32> {
 #[cfg(feature = "cuda")]
 impl FusedElu for burn::backend::Cuda<f32, i32> {}
 
+/// The backward node of a dense layer (`P` = 3 parents with a bias, 2 without): keeps the
+/// input and the weight (and the output when ELU follows) and calls
+/// [`FusedElu::linear_backward`] of the inner backend.
+#[derive(Debug)]
+struct LinearBackward;
+
+impl<B: FusedElu, const P: usize> Backward<B, P> for LinearBackward {
+    /// (input `[rows, in]`, weight `[in, out]`, ELU output `[rows, out]` when fused).
+    type State = (FloatTensor<B>, FloatTensor<B>, Option<FloatTensor<B>>);
+
+    fn backward(self, ops: Ops<Self::State, P>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let (x, weight, elu_out) = ops.state;
+        let mut grad = grads.consume::<B>(&ops.node);
+        if let Some(out) = elu_out {
+            grad = B::elu_backward(out, grad);
+        }
+        let need = std::array::from_fn(|i| ops.parents.get(i).is_some_and(|p| p.is_some()));
+        let parent_grads = B::linear_backward(x, weight, grad, need);
+        for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
+            if let (Some(parent), Some(g)) = (parent, g) {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
+/// Records `x @ weight + bias` (then ELU when `elu`) on the autodiff graph as one node.
+fn linear_node<B: FusedElu, C: CheckpointStrategy>(
+    x: FloatTensor<Autodiff<B, C>>,
+    weight: FloatTensor<Autodiff<B, C>>,
+    bias: Option<FloatTensor<Autodiff<B, C>>>,
+    elu: bool,
+) -> FloatTensor<Autodiff<B, C>> {
+    let forward = |x, w, b| {
+        if elu {
+            B::linear_elu_forward(x, w, b)
+        } else {
+            B::linear_forward(x, w, b)
+        }
+    };
+    match bias {
+        Some(bias) => {
+            let nodes = [x.node.clone(), weight.node.clone(), bias.node.clone()];
+            match <LinearBackward as Backward<B, 3>>::prepare::<C>(LinearBackward, nodes)
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let out = forward(
+                        x.primitive.clone(),
+                        weight.primitive.clone(),
+                        Some(bias.primitive),
+                    );
+                    let keep = elu.then(|| out.clone());
+                    prep.finish((x.primitive, weight.primitive, keep), out)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(forward(x.primitive, weight.primitive, Some(bias.primitive)))
+                }
+            }
+        }
+        None => {
+            let nodes = [x.node.clone(), weight.node.clone()];
+            match <LinearBackward as Backward<B, 2>>::prepare::<C>(LinearBackward, nodes)
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let out = forward(x.primitive.clone(), weight.primitive.clone(), None);
+                    let keep = elu.then(|| out.clone());
+                    prep.finish((x.primitive, weight.primitive, keep), out)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(forward(x.primitive, weight.primitive, None))
+                }
+            }
+        }
+    }
+}
+
 impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
+    fn linear_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        linear_node::<B, C>(x, weight, bias, false)
+    }
+
+    fn linear_elu_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        linear_node::<B, C>(x, weight, bias, true)
+    }
+
     fn elu_forward(x: FloatTensor<Self>) -> FloatTensor<Self> {
         #[derive(Debug)]
         struct EluBackward;
@@ -262,21 +416,32 @@ pub fn linear<B: FusedElu, const D: usize>(
     l: &burn::nn::Linear<B>,
     x: Tensor<B, D>,
 ) -> Tensor<B, D> {
-    let dims = x.dims();
-    let d_in = dims[D - 1];
-    let rows = dims[..D - 1].iter().product::<usize>();
-    let weight = l.weight.val();
-    let d_out = weight.dims()[1];
-    let x2 = x.reshape([rows, d_in]).into_primitive().tensor();
+    linear_impl(l, x, false)
+}
+
+fn linear_impl<B: FusedElu, const D: usize>(
+    l: &burn::nn::Linear<B>,
+    x: Tensor<B, D>,
+    elu: bool,
+) -> Tensor<B, D> {
+    let x = x.into_primitive().tensor();
+    let weight = l.weight.val().into_primitive().tensor();
     let bias = l.bias.as_ref().map(|b| b.val().into_primitive().tensor());
-    let y = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(B::linear_forward(
-        x2,
-        weight.into_primitive().tensor(),
-        bias,
-    )));
-    let mut out_dims = dims;
-    out_dims[D - 1] = d_out;
-    y.reshape(out_dims)
+    let y = if elu {
+        B::linear_elu_forward(x, weight, bias)
+    } else {
+        B::linear_forward(x, weight, bias)
+    };
+    Tensor::from_primitive(TensorPrimitive::Float(y))
+}
+
+/// `elu(linear.forward(x))` through [`FusedElu::linear_elu_forward`] (one node on the
+/// autodiff graph, one pass for bias and ELU on the CPU); shapes as [`linear`].
+pub fn linear_elu<B: FusedElu, const D: usize>(
+    l: &burn::nn::Linear<B>,
+    x: Tensor<B, D>,
+) -> Tensor<B, D> {
+    linear_impl(l, x, true)
 }
 
 /// ELU with alpha = 1 on any backend with [`FusedElu`].

@@ -7,6 +7,7 @@
 //! Layout: [`encoder`], [`temporal`] (minGRU | minLSTM | GRU | LSTM | MLP stack), [`minrnn`],
 //! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
 
+mod cpu_kernels;
 pub mod decoder;
 pub mod elu;
 pub mod encoder;

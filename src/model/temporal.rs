@@ -3,7 +3,7 @@
 //! ELU) on the last time step. `mlp` replaces the recurrent layers by per-step Linear + ELU
 //! layers and is stateless (the paper's MLP baseline). Used by [`crate::model::Model`].
 
-use super::elu::{elu, linear, FusedElu};
+use super::elu::{linear_elu, FusedElu};
 use super::minrnn::{last_step, MinGru, MinLstm};
 use super::rnn::{Gru, Lstm, LstmState};
 use burn::config::Config;
@@ -139,7 +139,7 @@ impl<B: FusedElu> Core<B> {
         let mut next = Vec::with_capacity(self.layers.len());
         for (layer, state) in self.layers.iter().zip(states) {
             let (out, s) = match (layer, state) {
-                (Layer::Mlp(l), _) => (elu(linear(l, x)), LayerState::None),
+                (Layer::Mlp(l), _) => (linear_elu(l, x), LayerState::None),
                 (Layer::Gru(l), s) => {
                     let (o, h) = l.forward(x, hidden(s));
                     (o, LayerState::Hidden(h))
@@ -160,7 +160,7 @@ impl<B: FusedElu> Core<B> {
             x = self.dropout.forward(out);
             next.push(s);
         }
-        (elu(self.mlp.forward(last_step(x))), next)
+        (linear_elu(&self.mlp, last_step(x)), next)
     }
 
     /// One frame (step-by-step inference).
@@ -176,7 +176,7 @@ impl<B: FusedElu> Core<B> {
         let mut next = Vec::with_capacity(self.layers.len());
         for (layer, state) in self.layers.iter().zip(states) {
             let (out, s) = match (layer, state) {
-                (Layer::Mlp(l), _) => (elu(linear(l, x)), LayerState::None),
+                (Layer::Mlp(l), _) => (linear_elu(l, x), LayerState::None),
                 (Layer::Gru(l), s) => {
                     let h = l.step(x, hidden(s));
                     (h.clone(), LayerState::Hidden(h))
@@ -197,7 +197,7 @@ impl<B: FusedElu> Core<B> {
             x = self.dropout.forward(out);
             next.push(s);
         }
-        (elu(self.mlp.forward(x)), next)
+        (linear_elu(&self.mlp, x), next)
     }
 }
 
