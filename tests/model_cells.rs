@@ -39,7 +39,9 @@ where
     (Tensor::stack(outs, 1), h.unwrap())
 }
 
-fn check_scan(kind: &str, t: usize, with_state: bool) {
+/// `log_scan`: the log-space parallel scan (what CUDA trains with); else `forward`, which on
+/// this CPU backend is the fused linear-space pass.
+fn check_scan(kind: &str, t: usize, with_state: bool, log_scan: bool) {
     let device = Default::default();
     let (b, d, h) = (3, 5, 7);
     let x =
@@ -50,7 +52,11 @@ fn check_scan(kind: &str, t: usize, with_state: bool) {
     let (par, seq, gp, gs, gw_par, gw_seq) = match kind {
         "mingru" => {
             let m = MinGru::<B>::new(d, h, d, &device);
-            let (p, _) = m.forward(x.clone(), h0.clone());
+            let (p, _) = if log_scan {
+                m.forward_log_scan(x.clone(), h0.clone())
+            } else {
+                m.forward(x.clone(), h0.clone())
+            };
             let (s, _) = stepped(x.clone(), h0.clone(), |xk, hk| m.step(xk, hk));
             let gp = (p.clone() * weights.clone()).sum().backward();
             let gs = (s.clone() * weights.clone()).sum().backward();
@@ -66,7 +72,11 @@ fn check_scan(kind: &str, t: usize, with_state: bool) {
         }
         _ => {
             let m = MinLstm::<B>::new(d, h, d, &device);
-            let (p, _) = m.forward(x.clone(), h0.clone());
+            let (p, _) = if log_scan {
+                m.forward_log_scan(x.clone(), h0.clone())
+            } else {
+                m.forward(x.clone(), h0.clone())
+            };
             let (s, _) = stepped(x.clone(), h0.clone(), |xk, hk| m.step(xk, hk));
             let gp = (p.clone() * weights.clone()).sum().backward();
             let gs = (s.clone() * weights.clone()).sum().backward();
@@ -84,10 +94,13 @@ fn check_scan(kind: &str, t: usize, with_state: bool) {
     let out = max_diff(par, seq);
     assert!(
         out <= 1e-5,
-        "{kind} T={t} state={with_state}: outputs differ by {out}"
+        "{kind} T={t} state={with_state} log={log_scan}: outputs differ by {out}"
     );
     let dx = max_diff(Tensor::<B, 3>::from_inner(gp), Tensor::from_inner(gs));
-    assert!(dx <= 1e-5, "{kind} T={t}: input gradients differ by {dx}");
+    assert!(
+        dx <= 1e-5,
+        "{kind} T={t} log={log_scan}: input gradients differ by {dx}"
+    );
     let dw = max_diff(
         Tensor::<B, 2>::from_inner(gw_par),
         Tensor::from_inner(gw_seq),
@@ -95,23 +108,27 @@ fn check_scan(kind: &str, t: usize, with_state: bool) {
     // Weight gradients sum over B x T terms; compare relative to their size.
     assert!(
         dw <= 1e-5 * (t as f32).max(1.0),
-        "{kind} T={t}: weight gradients differ by {dw}"
+        "{kind} T={t} log={log_scan}: weight gradients differ by {dw}"
     );
 }
 
 #[test]
 fn mingru_parallel_scan_equals_recurrence() {
     for t in [1, 2, 17, 256] {
-        check_scan("mingru", t, false);
-        check_scan("mingru", t, true);
+        for log_scan in [true, false] {
+            check_scan("mingru", t, false, log_scan);
+            check_scan("mingru", t, true, log_scan);
+        }
     }
 }
 
 #[test]
 fn minlstm_parallel_scan_equals_recurrence() {
     for t in [1, 2, 17, 256] {
-        check_scan("minlstm", t, false);
-        check_scan("minlstm", t, true);
+        for log_scan in [true, false] {
+            check_scan("minlstm", t, false, log_scan);
+            check_scan("minlstm", t, true, log_scan);
+        }
     }
 }
 

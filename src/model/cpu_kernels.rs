@@ -138,7 +138,11 @@ pub(crate) fn expm1(x: f32) -> f32 {
     // Round to nearest by the 1.5 * 2^23 trick (vectorises without SSE4.1 rounding).
     const MAGIC: f32 = 12_582_912.0;
     let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2E + MAGIC) - MAGIC;
+    let shifted = x * LOG2E + MAGIC;
+    let n = shifted - MAGIC;
+    // The integer n sits in the low mantissa bits of `shifted`: integer lanes, no `as i32`
+    // (whose NaN and saturation checks keep the loop from vectorising).
+    let n_int = (shifted.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
     let r = (x - n * LN2_HI) - n * LN2_LO;
     let p = r
         * (1.0
@@ -146,7 +150,7 @@ pub(crate) fn expm1(x: f32) -> f32 {
                 + r * (1.0 / 6.0
                     + r * (1.0 / 24.0
                         + r * (1.0 / 120.0 + r * (1.0 / 720.0 + r * (1.0 / 5040.0)))))));
-    let scale = f32::from_bits((((n as i32) + 127) as u32) << 23);
+    let scale = f32::from_bits(((n_int + 127) as u32) << 23);
     scale * p + (scale - 1.0)
 }
 
@@ -350,6 +354,195 @@ fn map_owned_zip(
     }
     tensor(data, &shape)
 }
+
+/// The f32 tensor's elements in row-major order (borrowed when already so) and its shape.
+fn dense(t: &CpuTensor) -> Option<(std::borrow::Cow<'_, [f32]>, Vec<usize>)> {
+    let NdArrayTensor::F32(s) = t else {
+        return None;
+    };
+    let v = s.view();
+    let shape = v.shape().to_vec();
+    let data = match v.to_slice() {
+        Some(slice) => std::borrow::Cow::Borrowed(slice),
+        None => std::borrow::Cow::Owned(v.iter().copied().collect()),
+    };
+    Some((data, shape))
+}
+
+/// The linear recurrence `h_t = a_t h_{t-1} + b_t` along T, sequentially (minGRU's and
+/// minLSTM's hidden state, Feng et al. 2024 eq. for `h_t`), `h_{-1} = h0` or 0.
+///
+/// # Shapes
+/// - `a`, `b`: `[B, T, H]`, `h0`: `[B, H]` -> `h`: `[B, T, H]`
+pub(crate) fn recurrence(
+    a: &CpuTensor,
+    b: &CpuTensor,
+    h0: Option<&CpuTensor>,
+) -> Option<CpuTensor> {
+    let ((a, shape), (b, b_shape)) = (dense(a)?, dense(b)?);
+    let &[batch, t, h] = shape.as_slice() else {
+        return None;
+    };
+    if b_shape != shape {
+        return None;
+    }
+    let h0 = match h0 {
+        Some(h0) => {
+            let (d, s) = dense(h0)?;
+            if s != [batch, h] {
+                return None;
+            }
+            Some(d)
+        }
+        None => None,
+    };
+    let mut out = vec![0f32; batch * t * h];
+    out.par_chunks_mut(t * h).enumerate().for_each(|(i, o)| {
+        let (a, b) = (
+            &a[i * t * h..(i + 1) * t * h],
+            &b[i * t * h..(i + 1) * t * h],
+        );
+        let mut prev: Vec<f32> = match &h0 {
+            Some(h0) => h0[i * h..(i + 1) * h].to_vec(),
+            None => vec![0.0; h],
+        };
+        for s in 0..t {
+            let row = s * h..(s + 1) * h;
+            for (((o, p), &a), &b) in o[row.clone()]
+                .iter_mut()
+                .zip(prev.iter_mut())
+                .zip(&a[row.clone()])
+                .zip(&b[row])
+            {
+                *p = a * *p + b;
+                *o = *p;
+            }
+        }
+    });
+    Some(tensor(out, &shape))
+}
+
+/// Backward of [`recurrence`] from its output `h` and `grad` = dL/dh (both `[B, T, H]`):
+/// `d_t = grad_t + a_{t+1} d_{t+1}` (from the end), then `da_t = d_t h_{t-1}`, `db_t = d_t`,
+/// `dh0 = a_0 d_0`. Returns `[da, db, dh0]` (dh0 None without `h0`).
+pub(crate) fn recurrence_backward(
+    a: &CpuTensor,
+    h0: Option<&CpuTensor>,
+    h: &CpuTensor,
+    grad: &CpuTensor,
+) -> Option<[Option<CpuTensor>; 3]> {
+    let ((a, shape), (hs, h_shape), (g, g_shape)) = (dense(a)?, dense(h)?, dense(grad)?);
+    let &[batch, t, w] = shape.as_slice() else {
+        return None;
+    };
+    if h_shape != shape || g_shape != shape {
+        return None;
+    }
+    let h0 = match h0 {
+        Some(h0) => {
+            let (d, s) = dense(h0)?;
+            if s != [batch, w] {
+                return None;
+            }
+            Some(d)
+        }
+        None => None,
+    };
+    let n = t * w;
+    let mut da = vec![0f32; batch * n];
+    let mut db = vec![0f32; batch * n];
+    let mut dh0 = vec![0f32; batch * w];
+    da.par_chunks_mut(n)
+        .zip(db.par_chunks_mut(n))
+        .zip(dh0.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(i, ((da, db), dh0))| {
+            let (a, hs, g) = (
+                &a[i * n..(i + 1) * n],
+                &hs[i * n..(i + 1) * n],
+                &g[i * n..(i + 1) * n],
+            );
+            let mut carry = vec![0f32; w]; // a_{t+1} d_{t+1}
+            for s in (0..t).rev() {
+                let row = s * w..(s + 1) * w;
+                for (j, c) in carry.iter_mut().enumerate() {
+                    let d = g[row.start + j] + *c;
+                    db[row.start + j] = d;
+                    let prev = if s > 0 {
+                        hs[row.start - w + j]
+                    } else {
+                        h0.as_ref().map_or(0.0, |h0| h0[i * w + j])
+                    };
+                    da[row.start + j] = d * prev;
+                    *c = a[row.start + j] * d;
+                }
+            }
+            dh0.copy_from_slice(&carry);
+        });
+    let dh0 = h0.is_some().then(|| tensor(dh0, &[batch, w]));
+    Some([Some(tensor(da, &shape)), Some(tensor(db, &shape)), dh0])
+}
+
+/// One Adam step over a parameter (Kingma & Ba 2015, Algorithm 1, in the `eps * sqrt(bias
+/// correction 2)` form PyTorch and burn use), one pass over `param`, `grad`, `m` and `v`:
+/// `m = b1 m + (1 - b1) g`, `v = b2 v + (1 - b2) g^2`,
+/// `param -= lr * (m * bc) / (sqrt(v) + eps * sqrt(1 - b2^t))` with
+/// `bc = sqrt(1 - b2^t) / (1 - b1^t)`. `m` and `v` None start from zero (the first step).
+/// In place where the buffers are unshared. Returns (param, m, v), shaped like `param`.
+pub(crate) fn adam(
+    param: CpuTensor,
+    grad: &CpuTensor,
+    m: Option<CpuTensor>,
+    v: Option<CpuTensor>,
+    c: &crate::model::elu::AdamStep,
+) -> AdamResult {
+    let NdArrayTensor::F32(g) = grad else {
+        return Err((param, m, v));
+    };
+    let g = g.view();
+    let Some(g) = g.as_slice() else {
+        return Err((param, m, v));
+    };
+    let f32_of_len = |t: &CpuTensor| {
+        matches!(t, NdArrayTensor::F32(_)) && t.shape_vec().iter().product::<usize>() == g.len()
+    };
+    if !f32_of_len(&param) || !m.iter().chain(v.iter()).all(f32_of_len) {
+        return Err((param, m, v));
+    }
+    let (mut p, shape) = into_vec(param);
+    let moment = |t: Option<CpuTensor>| match t {
+        Some(t) => into_vec(t).0,
+        None => vec![0f32; g.len()],
+    };
+    let (mut m, mut v) = (moment(m), moment(v));
+    let (b1, b2, lr) = (c.beta_1, c.beta_2, c.lr);
+    let (bc2, factor) = c.corrections();
+    let eps = c.epsilon * bc2;
+    const BLOCK: usize = 1 << 14;
+    let step = |((p, g), (m, v)): ((&mut [f32], &[f32]), (&mut [f32], &mut [f32]))| {
+        for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * (g * g);
+            *p -= lr * ((*m * factor) / (v.sqrt() + eps));
+        }
+    };
+    if p.len() * 4 >= PARALLEL_WORK {
+        p.par_chunks_mut(BLOCK)
+            .zip(g.par_chunks(BLOCK))
+            .zip(m.par_chunks_mut(BLOCK).zip(v.par_chunks_mut(BLOCK)))
+            .for_each(step);
+    } else {
+        p.chunks_mut(BLOCK)
+            .zip(g.chunks(BLOCK))
+            .zip(m.chunks_mut(BLOCK).zip(v.chunks_mut(BLOCK)))
+            .for_each(step);
+    }
+    Ok((tensor(p, &shape), tensor(m, &shape), tensor(v, &shape)))
+}
+
+/// (param, m, v) after the step, or the inputs back when they are not f32 tensors of one size.
+pub(crate) type AdamResult =
+    Result<(CpuTensor, CpuTensor, CpuTensor), (CpuTensor, Option<CpuTensor>, Option<CpuTensor>)>;
 
 /// Shape and dtype helpers on the primitive.
 trait PrimitiveInfo {

@@ -72,6 +72,48 @@ pub trait FusedElu: Backend {
         composed_linear_backward::<Self>(x, weight, grad, need)
     }
 
+    /// One Adam step on a parameter (see [`AdamStep`]): returns the new parameter and the
+    /// new first and second moments, all shaped like `param`; `m` / `v` None = zero (the
+    /// first step). Composed from tensor ops by default (about 13 passes over memory); the
+    /// CPU backend does it in one pass, in place.
+    fn adam_step(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        m: Option<FloatTensor<Self>>,
+        v: Option<FloatTensor<Self>>,
+        c: &AdamStep,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        composed_adam::<Self>(param, grad, m, v, c)
+    }
+
+    /// True where [`FusedElu::recurrence`] is a fused sequential pass (the CPU backend):
+    /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
+    /// log-space parallel scan, which is what pays on a GPU.
+    const SEQUENTIAL_SCAN: bool = false;
+
+    /// The linear recurrence `h_t = a_t h_{t-1} + b_t` along T (`h_{-1}` = `h0` or 0), with
+    /// `a`, `b` positive: `a`, `b` `[B, T, H]`, `h0` `[B, H]` -> `h` `[B, T, H]`. By default the
+    /// log-space parallel scan (Heinsen 2023) of `log a`, `log b`.
+    fn recurrence(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        log_scan_recurrence::<Self>(a, b, h0)
+    }
+
+    /// Gradients of [`FusedElu::recurrence`] from `a`, `h0`, its output `h` and `grad` =
+    /// dL/dh: `[da, db, dh0]` (`dh0` None without `h0`). By default a reverse loop of tensor
+    /// ops: `d_t = grad_t + a_{t+1} d_{t+1}`, `da_t = d_t h_{t-1}`, `db_t = d_t`, `dh0 = a_0 d_0`.
+    fn recurrence_backward(
+        a: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+        h: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        composed_recurrence_backward::<Self>(a, h0, h, grad)
+    }
+
     /// The input gradient from the forward output and the output gradient.
     fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         let shape = out.shape();
@@ -166,6 +208,114 @@ fn linear_stream(
     Some(cpu_kernels::tensor(out, &shape))
 }
 
+/// [`FusedElu::recurrence`]'s default: `exp` of the log-space scan of `log a`, `log b`.
+fn log_scan_recurrence<B: Backend>(
+    a: FloatTensor<B>,
+    b: FloatTensor<B>,
+    h0: Option<FloatTensor<B>>,
+) -> FloatTensor<B> {
+    let t3 = |p| Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(p));
+    let h0 = h0.map(|p| Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(p)));
+    super::minrnn::scan_with_state(t3(a).log(), t3(b).log(), h0)
+        .into_primitive()
+        .tensor()
+}
+
+/// [`FusedElu::recurrence_backward`]'s default, with tensor ops.
+fn composed_recurrence_backward<B: Backend>(
+    a: FloatTensor<B>,
+    h0: Option<FloatTensor<B>>,
+    h: FloatTensor<B>,
+    grad: FloatTensor<B>,
+) -> [Option<FloatTensor<B>>; 3] {
+    let t3 = |p| Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(p));
+    let (a, h, grad) = (t3(a), t3(h), t3(grad));
+    let h0 = h0.map(|p| Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(p)));
+    let [batch, t, w] = a.dims();
+    let step = |x: &Tensor<B, 3>, s: usize| x.clone().narrow(1, s, 1).reshape([batch, w]);
+    let mut carry = Tensor::<B, 2>::zeros([batch, w], &a.device());
+    let (mut da, mut db) = (Vec::with_capacity(t), Vec::with_capacity(t));
+    for s in (0..t).rev() {
+        let d = step(&grad, s) + carry;
+        let prev = if s > 0 {
+            step(&h, s - 1)
+        } else {
+            h0.clone()
+                .unwrap_or_else(|| Tensor::zeros([batch, w], &a.device()))
+        };
+        da.push((d.clone() * prev).reshape([batch, 1, w]));
+        carry = step(&a, s) * d.clone();
+        db.push(d.reshape([batch, 1, w]));
+    }
+    da.reverse();
+    db.reverse();
+    let prim = |x: Tensor<B, 3>| Some(x.into_primitive().tensor());
+    [
+        prim(Tensor::cat(da, 1)),
+        prim(Tensor::cat(db, 1)),
+        h0.map(|_| carry.into_primitive().tensor()),
+    ]
+}
+
+/// The scalars of one Adam step (Kingma & Ba 2015, Algorithm 1; epsilon added to
+/// `sqrt(v) * sqrt(1 - b2^t)` as in PyTorch and burn): learning rate, betas, epsilon and the
+/// step number `t` (1 for the first step).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamStep {
+    /// Learning rate.
+    pub lr: f32,
+    /// First-moment decay.
+    pub beta_1: f32,
+    /// Second-moment decay.
+    pub beta_2: f32,
+    /// Denominator epsilon.
+    pub epsilon: f32,
+    /// Step number, from 1.
+    pub time: usize,
+}
+
+impl AdamStep {
+    /// (`sqrt(1 - b2^t)`, `sqrt(1 - b2^t) / (1 - b1^t)`): burn's bias corrections.
+    pub fn corrections(&self) -> (f32, f32) {
+        let t = self.time as i32;
+        let bc2 = (1.0 - self.beta_2.powi(t)).sqrt();
+        (bc2, bc2 / (1.0 - self.beta_1.powi(t)))
+    }
+}
+
+/// [`FusedElu::adam_step`] with burn's tensor ops (the same arithmetic as `burn::optim::Adam`).
+pub(crate) fn composed_adam<B: Backend>(
+    param: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    m: Option<FloatTensor<B>>,
+    v: Option<FloatTensor<B>>,
+    c: &AdamStep,
+) -> (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>) {
+    let t = |p| Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(p));
+    let shape = param.shape();
+    let n = shape.num_elements();
+    let flat = |p| t(B::float_reshape(p, [n].into()));
+    let (param, grad) = (flat(param), flat(grad));
+    let m1 = grad.clone().mul_scalar(1.0 - c.beta_1);
+    let m2 = grad.square().mul_scalar(1.0 - c.beta_2);
+    let m1 = match m {
+        Some(m) => flat(m).mul_scalar(c.beta_1).add(m1),
+        None => m1,
+    };
+    let m2 = match v {
+        Some(v) => flat(v).mul_scalar(c.beta_2).add(m2),
+        None => m2,
+    };
+    let (bc2, factor) = c.corrections();
+    let update = m1
+        .clone()
+        .mul_scalar(factor)
+        .div(m2.clone().sqrt().add_scalar(c.epsilon * bc2));
+    let param = param - update.mul_scalar(c.lr);
+    let back = |x: Tensor<B, 1>| B::float_reshape(x.into_primitive().tensor(), shape.clone());
+    (back(param), back(m1), back(m2))
+}
+
 /// `x` `[..., cols]` as a `[rows, cols]` tensor, and its original shape.
 fn as_rows<B: Backend>(x: FloatTensor<B>) -> (Tensor<B, 2>, burn::tensor::Shape) {
     let shape = x.shape();
@@ -247,6 +397,40 @@ impl FusedElu for NdArray<f32> {
     ) -> [Option<FloatTensor<Self>>; 3] {
         cpu_kernels::linear_backward(&x, &weight, &grad, need)
             .unwrap_or_else(|| composed_linear_backward::<Self>(x, weight, grad, need))
+    }
+
+    fn adam_step(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        m: Option<FloatTensor<Self>>,
+        v: Option<FloatTensor<Self>>,
+        c: &AdamStep,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        match cpu_kernels::adam(param, &grad, m, v, c) {
+            Ok(out) => out,
+            Err((param, m, v)) => composed_adam::<Self>(param, grad, m, v, c),
+        }
+    }
+
+    const SEQUENTIAL_SCAN: bool = true;
+
+    fn recurrence(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        cpu_kernels::recurrence(&a, &b, h0.as_ref())
+            .unwrap_or_else(|| log_scan_recurrence::<Self>(a, b, h0))
+    }
+
+    fn recurrence_backward(
+        a: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+        h: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        cpu_kernels::recurrence_backward(&a, h0.as_ref(), &h, &grad)
+            .unwrap_or_else(|| composed_recurrence_backward::<Self>(a, h0, h, grad))
     }
 
     fn elu_forward(x: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -358,7 +542,66 @@ fn linear_node<B: FusedElu, C: CheckpointStrategy>(
     }
 }
 
+/// The backward node of [`FusedElu::recurrence`] (`P` = 3 parents with `h0`, 2 without).
+#[derive(Debug)]
+struct RecurrenceBackward;
+
+impl<B: FusedElu, const P: usize> Backward<B, P> for RecurrenceBackward {
+    /// (`a`, `h0`, output `h`).
+    type State = (FloatTensor<B>, Option<FloatTensor<B>>, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, P>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let (a, h0, h) = ops.state;
+        let grad = grads.consume::<B>(&ops.node);
+        let parent_grads = B::recurrence_backward(a, h0, h, grad);
+        for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
+            if let (Some(parent), Some(g)) = (parent, g) {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
 impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
+    const SEQUENTIAL_SCAN: bool = B::SEQUENTIAL_SCAN;
+
+    fn recurrence(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        if !B::SEQUENTIAL_SCAN {
+            return log_scan_recurrence::<Self>(a, b, h0);
+        }
+        macro_rules! node {
+            ($p:literal, $nodes:expr) => {
+                match <RecurrenceBackward as Backward<B, $p>>::prepare::<C>(
+                    RecurrenceBackward,
+                    $nodes,
+                )
+                .compute_bound()
+                .stateful()
+                {
+                    OpsKind::Tracked(prep) => {
+                        let h0p = h0.as_ref().map(|h| h.primitive.clone());
+                        let out =
+                            B::recurrence(a.primitive.clone(), b.primitive.clone(), h0p.clone());
+                        prep.finish((a.primitive.clone(), h0p, out.clone()), out)
+                    }
+                    OpsKind::UnTracked(prep) => prep.finish(B::recurrence(
+                        a.primitive.clone(),
+                        b.primitive.clone(),
+                        h0.as_ref().map(|h| h.primitive.clone()),
+                    )),
+                }
+            };
+        }
+        match &h0 {
+            Some(h) => node!(3, [a.node.clone(), b.node.clone(), h.node.clone()]),
+            None => node!(2, [a.node.clone(), b.node.clone()]),
+        }
+    }
+
     fn linear_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -442,6 +685,20 @@ pub fn linear_elu<B: FusedElu, const D: usize>(
     x: Tensor<B, D>,
 ) -> Tensor<B, D> {
     linear_impl(l, x, true)
+}
+
+/// [`FusedElu::recurrence`] on tensors: `h_t = a_t h_{t-1} + b_t`.
+///
+/// # Shapes
+/// - `a`, `b`: `[B, T, H]` (positive), `h0`: `[B, H]` or None (zeros) -> `[B, T, H]`
+pub fn recurrence<B: FusedElu>(
+    a: Tensor<B, 3>,
+    b: Tensor<B, 3>,
+    h0: Option<Tensor<B, 2>>,
+) -> Tensor<B, 3> {
+    let p = |x: Tensor<B, 3>| x.into_primitive().tensor();
+    let h0 = h0.map(|h| h.into_primitive().tensor());
+    Tensor::from_primitive(TensorPrimitive::Float(B::recurrence(p(a), p(b), h0)))
 }
 
 /// ELU with alpha = 1 on any backend with [`FusedElu`].

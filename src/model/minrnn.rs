@@ -16,7 +16,7 @@ use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-use super::elu::{linear, FusedElu};
+use super::elu::{linear, recurrence, FusedElu};
 
 /// `g(x)`: `x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise.
 pub fn g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
@@ -86,7 +86,7 @@ pub fn scan_log<B: Backend>(log_coeffs: Tensor<B, 3>, log_values: Tensor<B, 3>) 
 }
 
 /// Prepends `log h_0` (a value with coefficient 1) and scans; returns the `T` new steps.
-fn scan_with_state<B: Backend>(
+pub(crate) fn scan_with_state<B: Backend>(
     log_coeffs: Tensor<B, 3>,
     log_values: Tensor<B, 3>,
     h0: Option<Tensor<B, 2>>,
@@ -128,12 +128,32 @@ impl<B: FusedElu> MinGru<B> {
         }
     }
 
-    /// Whole window at once (log-space scan).
+    /// Whole window at once: the log-space parallel scan, or on a backend with
+    /// [`FusedElu::SEQUENTIAL_SCAN`] (the CPU) the same recurrence in linear space as one
+    /// fused pass (`a = 1 - z`, `b = z g(h~)`; equal up to float rounding).
     ///
     /// # Shapes
     /// - `x`: `[B, T, d_in]`, `h0`: `[B, hidden]` (positive) or `None` (zeros)
     /// - returns `([B, T, d_out], h_T: [B, hidden])`
     pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        h0: Option<Tensor<B, 2>>,
+    ) -> (Tensor<B, 3>, Tensor<B, 2>) {
+        if !B::SEQUENTIAL_SCAN {
+            return self.forward_log_scan(x, h0);
+        }
+        let hg = linear(&self.to_hidden_and_gate, x);
+        let tilde = g(hg.clone().narrow(2, 0, self.hidden));
+        let z = sigmoid(hg.narrow(2, self.hidden, self.hidden));
+        let h = recurrence(z.clone().neg().add_scalar(1.0), z * tilde, h0);
+        let last = last_step(h.clone());
+        (linear(&self.to_out, h), last)
+    }
+
+    /// Whole window at once with the log-space parallel scan (Heinsen 2023), on any backend.
+    /// Shapes as [`MinGru::forward`].
+    pub fn forward_log_scan(
         &self,
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,
@@ -185,8 +205,30 @@ impl<B: FusedElu> MinLstm<B> {
         }
     }
 
-    /// Whole window at once (log-space scan). Shapes as [`MinGru::forward`].
+    /// Whole window at once, as [`MinGru::forward`] (linear-space fused pass on the CPU:
+    /// `a = f'`, `b = i' g(h~)`). Shapes as [`MinGru::forward`].
     pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        h0: Option<Tensor<B, 2>>,
+    ) -> (Tensor<B, 3>, Tensor<B, 2>) {
+        if !B::SEQUENTIAL_SCAN {
+            return self.forward_log_scan(x, h0);
+        }
+        let hfi = linear(&self.to_hidden_and_gates, x);
+        let n = self.hidden;
+        let tilde = g(hfi.clone().narrow(2, 0, n));
+        let f = sigmoid(hfi.clone().narrow(2, n, n));
+        let i = sigmoid(hfi.narrow(2, 2 * n, n));
+        let norm = f.clone() + i.clone();
+        let h = recurrence(f / norm.clone(), i / norm * tilde, h0);
+        let last = last_step(h.clone());
+        (linear(&self.to_out, h), last)
+    }
+
+    /// Whole window at once with the log-space parallel scan, on any backend. Shapes as
+    /// [`MinGru::forward`].
+    pub fn forward_log_scan(
         &self,
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,

@@ -11,6 +11,7 @@
 //! left waiting on the host between micro-batches.
 //! Used by `minflow train` and `minflow bench train`.
 
+pub mod adam;
 pub mod checkpoint;
 pub mod loss;
 pub mod source;
@@ -22,7 +23,7 @@ use crate::model::store::{self, ModelMeta};
 use crate::model::{Model, ModelConfig, Scaling};
 use burn::backend::NdArray;
 use burn::module::{AutodiffModule, Module};
-use burn::optim::{AdamConfig, GradientsAccumulator, GradientsParams, Optimizer};
+use burn::optim::{GradientsAccumulator, GradientsParams, Optimizer};
 use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{ElementConversion, Tensor, TensorData};
@@ -341,7 +342,7 @@ where
         .scaling();
         B::seed(&self.device, self.opts.seed);
         let mut model: Model<B> = initial_model(&self.config, self.opts.seed, &self.device)?;
-        let mut optim = AdamConfig::new().with_epsilon(1e-8).init::<B, Model<B>>();
+        let mut optim = adam::FusedAdam::default().init::<B, Model<B>>();
         let mut history = Vec::new();
         let mut start_epoch = 0;
         let mut best = f64::INFINITY;
