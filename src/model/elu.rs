@@ -86,6 +86,34 @@ pub trait FusedElu: Backend {
         composed_adam::<Self>(param, grad, m, v, c)
     }
 
+    /// True where [`FusedElu::elu_mean_forward`] has its own backward (the CPU backend).
+    const FUSED_ELU_MEAN: bool = false;
+
+    /// `mean_n elu(x @ w + b)`: the encoder's first layer and mean pooling (used when the
+    /// second layer is applied after pooling). `x` `[M, N, F]`, `w` `[F, H]`, `b` `[H]` ->
+    /// `[M, H]`. Composed by default; the CPU backend does it in one pass without the
+    /// `[M, N, H]` activations and recomputes them in the backward.
+    fn elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        composed_elu_mean::<Self>(x, w, b)
+    }
+
+    /// Gradients of [`FusedElu::elu_mean_forward`] from `grad` `[M, H]`: `[dx, dw, db]`, each
+    /// only when `need[i]`. Only called where `FUSED_ELU_MEAN` is true.
+    fn elu_mean_backward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        let _ = (x, w, b, grad, need);
+        unreachable!("elu_mean_backward is only called on backends with FUSED_ELU_MEAN")
+    }
+
     /// True where [`FusedElu::recurrence`] is a fused sequential pass (the CPU backend):
     /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
     /// log-space parallel scan, which is what pays on a GPU.
@@ -206,6 +234,21 @@ fn linear_stream(
     let mut shape = x_shape;
     *shape.last_mut()? = d_out;
     Some(cpu_kernels::tensor(out, &shape))
+}
+
+/// [`FusedElu::elu_mean_forward`]'s default: ELU of the dense layer, then the mean over N.
+fn composed_elu_mean<B: FusedElu>(
+    x: FloatTensor<B>,
+    w: FloatTensor<B>,
+    b: FloatTensor<B>,
+) -> FloatTensor<B> {
+    let a = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(B::linear_elu_forward(
+        x,
+        w,
+        Some(b),
+    )));
+    let [m, _, h] = a.dims();
+    a.mean_dim(1).reshape([m, h]).into_primitive().tensor()
 }
 
 /// [`FusedElu::recurrence`]'s default: `exp` of the log-space scan of `log a`, `log b`.
@@ -413,6 +456,26 @@ impl FusedElu for NdArray<f32> {
     }
 
     const SEQUENTIAL_SCAN: bool = true;
+    const FUSED_ELU_MEAN: bool = true;
+
+    fn elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        cpu_kernels::elu_mean(&x, &w, &b).unwrap_or_else(|| composed_elu_mean::<Self>(x, w, b))
+    }
+
+    fn elu_mean_backward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        cpu_kernels::elu_mean_backward(&x, &w, &b, &grad, need)
+            .expect("elu_mean_backward on f32 tensors of the forward's shapes")
+    }
 
     fn recurrence(
         a: FloatTensor<Self>,
@@ -562,8 +625,57 @@ impl<B: FusedElu, const P: usize> Backward<B, P> for RecurrenceBackward {
     }
 }
 
+/// The backward node of [`FusedElu::elu_mean_forward`]: keeps `x`, `w`, `b`.
+#[derive(Debug)]
+struct EluMeanBackward;
+
+impl<B: FusedElu> Backward<B, 3> for EluMeanBackward {
+    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let (x, w, b) = ops.state;
+        let grad = grads.consume::<B>(&ops.node);
+        let need = std::array::from_fn(|i| ops.parents[i].is_some());
+        let parent_grads = B::elu_mean_backward(x, w, b, grad, need);
+        for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
+            if let (Some(parent), Some(g)) = (parent, g) {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
 impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
     const SEQUENTIAL_SCAN: bool = B::SEQUENTIAL_SCAN;
+    const FUSED_ELU_MEAN: bool = B::FUSED_ELU_MEAN;
+
+    fn elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        if !B::FUSED_ELU_MEAN {
+            return composed_elu_mean::<Self>(x, w, b);
+        }
+        let nodes = [x.node.clone(), w.node.clone(), b.node.clone()];
+        match EluMeanBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::elu_mean_forward(
+                    x.primitive.clone(),
+                    w.primitive.clone(),
+                    b.primitive.clone(),
+                );
+                prep.finish((x.primitive, w.primitive, b.primitive), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::elu_mean_forward(x.primitive, w.primitive, b.primitive))
+            }
+        }
+    }
 
     fn recurrence(
         a: FloatTensor<Self>,
@@ -685,6 +797,25 @@ pub fn linear_elu<B: FusedElu, const D: usize>(
     x: Tensor<B, D>,
 ) -> Tensor<B, D> {
     linear_impl(l, x, true)
+}
+
+/// `mean over particles of elu(first.forward(x))` through [`FusedElu::elu_mean_forward`]
+/// (falls back to the composed form for a layer without bias).
+///
+/// # Shapes
+/// - `x`: `[M, N, F]` -> `[M, H]`
+pub fn linear_elu_mean<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) -> Tensor<B, 2> {
+    let Some(bias) = &l.bias else {
+        let a = linear_elu(l, x);
+        let [m, _, h] = a.dims();
+        return a.mean_dim(1).reshape([m, h]);
+    };
+    let y = B::elu_mean_forward(
+        x.into_primitive().tensor(),
+        l.weight.val().into_primitive().tensor(),
+        bias.val().into_primitive().tensor(),
+    );
+    Tensor::from_primitive(TensorPrimitive::Float(y))
 }
 
 /// [`FusedElu::recurrence`] on tensors: `h_t = a_t h_{t-1} + b_t`.
