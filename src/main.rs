@@ -12,6 +12,7 @@ use std::process::ExitCode;
 
 fn main() -> ExitCode {
     minflow::cli::tune_allocator();
+    minflow::cli::flush_denormals();
     let cli = minflow::cli::Cli::parse();
     minflow::cli::init_logging(cli.verbose);
     match minflow::cli::run(cli) {

@@ -11,6 +11,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
     minflow::cli::tune_allocator();
+    minflow::cli::flush_denormals();
     let cli = minflow::cli::TrainCli::parse();
     minflow::cli::init_logging(cli.verbose);
     match minflow::cli::run_train(cli) {

@@ -7,7 +7,8 @@
 //! each epoch, freed before each core). `--warmup-epochs` run first and are left out of the
 //! means (JIT compilation and autotuning on the GPU); their time is its own column. `wait %`
 //! is the share of the epoch the host spent waiting for the device (near 100: device-bound;
-//! low: bound by issuing the work).
+//! low: bound by issuing the work); `data %` the share it waited for host batches (windows
+//! assembled and scaled on a second thread).
 
 use super::device::DeviceArgs;
 use super::train::CpuTrain;
@@ -138,7 +139,7 @@ where
         rayon::current_num_threads()
     );
     println!(
-        "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7} {:>9}",
+        "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9}",
         "core",
         "T",
         "params",
@@ -148,6 +149,7 @@ where
         "samples/s",
         "warm-up s",
         "wait %",
+        "data %",
         "peak MiB"
     );
     for &t in &args.windows {
@@ -191,10 +193,11 @@ where
             let mean = timed.iter().map(|r| r.seconds).sum::<f64>() / n;
             let max = timed.iter().map(|r| r.seconds).fold(0.0, f64::max);
             let wait = timed.iter().map(|r| r.wait_seconds).sum::<f64>() / n;
+            let data = timed.iter().map(|r| r.data_seconds).sum::<f64>() / n;
             let us = mean * 1e6 / index.len() as f64;
             times.insert(core.name(), mean);
             println!(
-                "{:<8} {:>3} {:>11} {:>10.3} {:>10.3} {:>10.0} {:>10.0} {:>10.2} {:>7.0} {:>9.0}",
+                "{:<8} {:>3} {:>11} {:>10.3} {:>10.3} {:>10.0} {:>10.0} {:>10.2} {:>7.0} {:>7.0} {:>9.0}",
                 core.name(),
                 t,
                 params,
@@ -204,6 +207,7 @@ where
                 index.len() as f64 / mean,
                 warmup,
                 100.0 * wait / mean.max(1e-12),
+                100.0 * data / mean.max(1e-12),
                 high
             );
         }

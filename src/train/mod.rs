@@ -409,6 +409,7 @@ where
                     let model = slot.take().expect("the model is put back after every step");
                     let mut accumulator = GradientsAccumulator::new();
                     let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
+                    let step_started = Instant::now();
                     for host in slices {
                         let len = host.len;
                         let s = host.upload::<B>(&self.device);
@@ -426,10 +427,14 @@ where
                             Some(acc) => acc + weighted,
                             None => weighted,
                         });
+                        let forward = step_started.elapsed();
                         let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
+                        let backward = step_started.elapsed();
                         accumulator.accumulate(&model, GradientsParams::from_grads(grads, &model));
+                        tracing::trace!(?forward, ?backward, accumulated = ?step_started.elapsed(), "micro-batch");
                     }
                     slot = Some(optim.step(self.opts.lr, model, accumulator.grads()));
+                    tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
                     // One read per step, after the step is queued: the host waits here for
                     // the device to finish it.
                     let waited = Instant::now();
