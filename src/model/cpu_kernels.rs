@@ -375,12 +375,7 @@ pub(crate) fn elu_mean(x: &CpuTensor, w: &CpuTensor, b: &CpuTensor) -> Option<Cp
         let mut z = vec![0f32; h];
         for p in 0..n {
             let xp = &x[(i * n + p) * f..(i * n + p + 1) * f];
-            z.copy_from_slice(&b);
-            for (k, &xk) in xp.iter().enumerate() {
-                for (z, &wv) in z.iter_mut().zip(&w[k * h..(k + 1) * h]) {
-                    *z += xk * wv;
-                }
-            }
+            pre_activation(xp, &w, &b, &mut z);
             for (a, &z) in acc.iter_mut().zip(&z) {
                 *a += elu1(z);
             }
@@ -388,6 +383,35 @@ pub(crate) fn elu_mean(x: &CpuTensor, w: &CpuTensor, b: &CpuTensor) -> Option<Cp
         acc.iter_mut().for_each(|a| *a *= scale);
     });
     Some(tensor(out, &[m, h]))
+}
+
+/// One particle's pre-activation `z = x w + b`: `xp` `[F]`, `w` `[F, H]`, `b` `[H]`, into `z`
+/// `[H]` (the encoder's first layer, for [`elu_mean`] and its backward).
+#[inline]
+fn pre_activation(xp: &[f32], w: &[f32], b: &[f32], z: &mut [f32]) {
+    let h = z.len();
+    z.copy_from_slice(b);
+    for (k, &xk) in xp.iter().enumerate() {
+        for (z, &wv) in z.iter_mut().zip(&w[k * h..(k + 1) * h]) {
+            *z += xk * wv;
+        }
+    }
+}
+
+/// One particle's `dz = grad / N * elu'(x w + b)` for [`elu_mean_backward`], recomputing
+/// the pre-activation; `grad` `[H]`, `scale` = 1 / N, into `dz` `[H]`.
+#[inline]
+fn elu_mean_dz(xp: &[f32], w: &[f32], b: &[f32], grad: &[f32], scale: f32, dz: &mut [f32]) {
+    pre_activation(xp, w, b, dz);
+    for (d, &gv) in dz.iter_mut().zip(grad) {
+        let z = *d;
+        let slope = if z > 0.0 {
+            1.0
+        } else {
+            expm1(z.min(0.0)) + 1.0
+        };
+        *d = gv * scale * slope;
+    }
 }
 
 /// Backward of [`elu_mean`] from `grad` = dL/dpooled `[M, H]`, recomputing the pre-activations:
@@ -422,21 +446,7 @@ pub(crate) fn elu_mean_backward(
                 let gi = &g[i * h..(i + 1) * h];
                 for p in 0..n {
                     let xp = &x[(i * n + p) * f..(i * n + p + 1) * f];
-                    dz.copy_from_slice(&b);
-                    for (k, &xk) in xp.iter().enumerate() {
-                        for (z, &wv) in dz.iter_mut().zip(&w[k * h..(k + 1) * h]) {
-                            *z += xk * wv;
-                        }
-                    }
-                    for (d, &gv) in dz.iter_mut().zip(gi) {
-                        let z = *d;
-                        let slope = if z > 0.0 {
-                            1.0
-                        } else {
-                            expm1(z.min(0.0)) + 1.0
-                        };
-                        *d = gv * scale * slope;
-                    }
+                    elu_mean_dz(xp, &w, &b, gi, scale, &mut dz);
                     for (d, &v) in db.iter_mut().zip(&dz) {
                         *d += v;
                     }
@@ -457,21 +467,7 @@ pub(crate) fn elu_mean_backward(
             let mut dz = vec![0f32; h];
             for p in 0..n {
                 let xp = &x[(i * n + p) * f..(i * n + p + 1) * f];
-                dz.copy_from_slice(&b);
-                for (k, &xk) in xp.iter().enumerate() {
-                    for (z, &wv) in dz.iter_mut().zip(&w[k * h..(k + 1) * h]) {
-                        *z += xk * wv;
-                    }
-                }
-                for (d, &gv) in dz.iter_mut().zip(gi) {
-                    let z = *d;
-                    let slope = if z > 0.0 {
-                        1.0
-                    } else {
-                        expm1(z.min(0.0)) + 1.0
-                    };
-                    *d = gv * scale * slope;
-                }
+                elu_mean_dz(xp, &w, &b, gi, scale, &mut dz);
                 for k in 0..f {
                     dxi[p * f + k] = dz
                         .iter()
@@ -629,6 +625,9 @@ pub(crate) fn recurrence_backward(
 /// `param -= lr * (m * bc) / (sqrt(v) + eps * sqrt(1 - b2^t))` with
 /// `bc = sqrt(1 - b2^t) / (1 - b1^t)`. `m` and `v` None start from zero (the first step).
 /// In place where the buffers are unshared. Returns (param, m, v), shaped like `param`.
+// The error hands the caller's tensors back (moved, not cloned, so the fallback keeps them
+// unshared); it is a few hundred bytes on the stack on a path that does not happen for f32.
+#[allow(clippy::result_large_err)]
 pub(crate) fn adam(
     param: CpuTensor,
     grad: &CpuTensor,
@@ -659,7 +658,9 @@ pub(crate) fn adam(
     let (bc2, factor) = c.corrections();
     let eps = c.epsilon * bc2;
     const BLOCK: usize = 1 << 14;
-    let step = |((p, g), (m, v)): ((&mut [f32], &[f32]), (&mut [f32], &mut [f32]))| {
+    // (parameter block, gradient block), (first-moment block, second-moment block).
+    type Blocks<'a> = ((&'a mut [f32], &'a [f32]), (&'a mut [f32], &'a mut [f32]));
+    let step = |((p, g), (m, v)): Blocks| {
         for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
             *m = b1 * *m + (1.0 - b1) * g;
             *v = b2 * *v + (1.0 - b2) * (g * g);

@@ -16,7 +16,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
 use burn::backend::{Autodiff, NdArray};
 use burn::tensor::backend::Backend;
-use burn::tensor::ops::{FloatTensor, FloatTensorOps};
+use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 use rayon::prelude::*;
 
@@ -144,18 +144,7 @@ pub trait FusedElu: Backend {
 
     /// The input gradient from the forward output and the output gradient.
     fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
-        let shape = out.shape();
-        let n = shape.num_elements();
-        let flat = |t| {
-            Tensor::<Self, 1>::from_primitive(TensorPrimitive::Float(Self::float_reshape(
-                t,
-                [n].into(),
-            )))
-        };
-        let (out, grad) = (flat(out), flat(grad));
-        let positive = out.clone().greater_elem(0.0);
-        let slope = (out + 1.0).mask_fill(positive, 1.0);
-        Self::float_reshape((grad * slope).into_primitive().tensor(), shape)
+        composed_elu_backward::<Self>(out, grad)
     }
 }
 
@@ -392,6 +381,19 @@ fn composed_linear<B: Backend>(
     from_rows(y, &shape)
 }
 
+/// [`FusedElu::elu_backward`] with burn's tensor ops: `grad` where `out > 0`, else
+/// `grad * (out + 1)`.
+fn composed_elu_backward<B: Backend>(out: FloatTensor<B>, grad: FloatTensor<B>) -> FloatTensor<B> {
+    let shape = out.shape();
+    let n = shape.num_elements();
+    let flat =
+        |t| Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(B::float_reshape(t, [n].into())));
+    let (out, grad) = (flat(out), flat(grad));
+    let positive = out.clone().greater_elem(0.0);
+    let slope = (out + 1.0).mask_fill(positive, 1.0);
+    B::float_reshape((grad * slope).into_primitive().tensor(), shape)
+}
+
 /// [`FusedElu::linear_backward`] with burn's tensor ops.
 fn composed_linear_backward<B: Backend>(
     x: FloatTensor<B>,
@@ -503,20 +505,7 @@ impl FusedElu for NdArray<f32> {
     fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         match cpu_kernels::elu_backward(&out, grad) {
             Ok(g) => g,
-            Err(grad) => {
-                let shape = out.shape();
-                let n = shape.num_elements();
-                let flat = |t| {
-                    Tensor::<Self, 1>::from_primitive(TensorPrimitive::Float(Self::float_reshape(
-                        t,
-                        [n].into(),
-                    )))
-                };
-                let (out, grad) = (flat(out), flat(grad));
-                let positive = out.clone().greater_elem(0.0);
-                let slope = (out + 1.0).mask_fill(positive, 1.0);
-                Self::float_reshape((grad * slope).into_primitive().tensor(), shape)
-            }
+            Err(grad) => composed_elu_backward::<Self>(out, grad),
         }
     }
 }
