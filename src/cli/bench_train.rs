@@ -10,7 +10,7 @@
 //! low: bound by issuing the work); `data %` the share it waited for host batches (windows
 //! assembled and scaled on a second thread).
 
-use super::device::DeviceArgs;
+use super::device::{Device, DeviceArgs};
 use super::train::CpuTrain;
 use super::Outcome;
 use crate::data::{Scaler, Trajectory, WindowIndex};
@@ -56,6 +56,11 @@ pub struct TrainBenchArgs {
     /// Epochs run before the measured ones and left out of the means (warm-up).
     #[arg(long, default_value_t = 0)]
     warmup_epochs: usize,
+    /// Split the long reductions of the per-particle layers' weight gradients into row
+    /// chunks (on) or run each as one product (off: to measure what the split buys; the CPU
+    /// backend has its own kernels and ignores it).
+    #[arg(long, default_value = "on")]
+    split_weight_grad: String,
     #[command(flatten)]
     device: DeviceArgs,
 }
@@ -98,29 +103,48 @@ fn peak_mib(reset: bool) -> Option<f64> {
 }
 
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
-    match args.device.parse()?.single("bench train")? {
-        None => bench::<CpuTrain>(&args, Default::default(), "host", &|reset| peak_mib(reset)),
+    crate::model::elu::set_split_weight_grad(match args.split_weight_grad.as_str() {
+        "on" => true,
+        "off" => false,
+        other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
+    });
+    match args.device.parse()? {
+        Device::Cpu => bench::<CpuTrain>(
+            &args,
+            vec![Default::default()],
+            "host",
+            &|reset| peak_mib(reset),
+        ),
         #[cfg(feature = "cuda")]
-        Some(id) => {
-            use super::device::cuda::{device, reserved_bytes, CudaTrain};
-            let device = device(id);
+        Device::Cuda(ids) => {
+            use super::device::cuda::{devices, reserved_bytes, CudaTrain};
+            let devices = devices(&ids)?;
+            // The largest pool on any one device.
             let peak = |reset: bool| {
-                if reset {
-                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
+                let mut most = None::<f64>;
+                for device in &devices {
+                    if reset {
+                        <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(device);
+                    }
+                    if let Some(bytes) = reserved_bytes(device) {
+                        let mib = bytes as f64 / (1 << 20) as f64;
+                        most = Some(most.map_or(mib, |m| m.max(mib)));
+                    }
                 }
-                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
+                most
             };
-            bench::<CudaTrain>(&args, device.clone(), "GPU pool", &peak)
+            let memory = if ids.len() > 1 { "GPU pool (largest of the devices)" } else { "GPU pool" };
+            bench::<CudaTrain>(&args, devices.clone(), memory, &peak)
         }
         #[cfg(not(feature = "cuda"))]
-        Some(_) => anyhow::bail!("built without CUDA"),
+        Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
     }
 }
 
 /// The table on backend `B`; `peak(reset)` reads the memory column (and resets it).
 fn bench<B: AutodiffBackend + FusedElu>(
     args: &TrainBenchArgs,
-    device: B::Device,
+    devices: Vec<B::Device>,
     memory: &str,
     peak: &dyn Fn(bool) -> Option<f64>,
 ) -> anyhow::Result<Outcome>
@@ -135,9 +159,17 @@ where
     println!(
         "N = {}, W = {}, encoder 5 -> {} -> {} ({:?}), micro-batch {}, {} samples/epoch, {} epochs (+{} warm-up), {}, {} threads",
         args.particles, args.width, args.encoder_hidden, args.width, last, args.micro_batch,
-        args.samples, args.epochs, args.warmup_epochs, B::name(&device),
+        args.samples, args.epochs, args.warmup_epochs, B::name(&devices[0]),
         rayon::current_num_threads()
     );
+    if devices.len() > 1 {
+        println!(
+            "data parallel on {} devices (micro-batch {} each), weight-gradient split {}",
+            devices.len(),
+            args.micro_batch.div_ceil(devices.len()),
+            args.split_weight_grad
+        );
+    }
     println!(
         "{:<8} {:>3} {:>11} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9}",
         "core",
@@ -178,7 +210,7 @@ where
             };
             let dir = tempfile::tempdir()?;
             let mut high = peak(true).unwrap_or(0.0);
-            let history = Trainer::<B>::new(config, opts, dir.path().into(), device.clone()).fit(
+            let history = Trainer::<B>::data_parallel(config, opts, dir.path().into(), devices.clone()).fit(
                 &index,
                 None,
                 &scaler,

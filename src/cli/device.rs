@@ -2,7 +2,7 @@
 //! `node` (each flattens [`DeviceArgs`]). `cpu` is burn's ndarray backend (the default, always
 //! built); `cuda` or `cuda:N` is burn's CUDA backend on GPU N, in a build with the `cuda`
 //! feature (docs/cuda.md); `cuda:0,cuda:1,...` lists several GPUs for data-parallel training
-//! (`train` only). Also the backend types of each device and the CUDA memory query the
+//! (`train` and `bench train`). Also the backend types of each device and the CUDA memory query the
 //! training benchmark reports.
 
 use anyhow::bail;
@@ -11,8 +11,8 @@ use clap::Args;
 /// The `--device` flag.
 #[derive(Debug, Clone, Args)]
 pub struct DeviceArgs {
-    /// Where the model runs: cpu | cuda | cuda:N | cuda:0,cuda:1 (data-parallel training;
-    /// train only). CUDA needs a build with `--features cuda` (docs/cuda.md).
+    /// Where the model runs: cpu | cuda | cuda:N | cuda:0,cuda:1 (data-parallel training:
+    /// train and bench train only). CUDA needs a build with `--features cuda` (docs/cuda.md).
     #[arg(long, default_value = "cpu")]
     pub device: String,
 }
@@ -92,9 +92,47 @@ pub mod cuda {
     /// A GPU.
     pub type CudaDevice = burn::backend::cuda::CudaDevice;
 
-    /// GPU `index`.
-    pub fn device(index: usize) -> CudaDevice {
-        CudaDevice { index }
+    /// GPU `index`, after checking that the driver loads and has such a GPU (burn would
+    /// panic deep inside its first kernel launch otherwise). Sets `CUDA_PATH` to
+    /// `/usr/local/cuda` when it is unset and that folder exists: NVRTC compiles burn's
+    /// kernels with the toolkit's headers.
+    ///
+    /// # Errors
+    /// No `libcuda` (no NVIDIA driver), a driver error, or `index` beyond the GPUs present.
+    pub fn device(index: usize) -> anyhow::Result<CudaDevice> {
+        // SAFETY: only tries to open the library (libloading), calls nothing in it.
+        if !unsafe { cudarc::driver::sys::is_culib_present() } {
+            anyhow::bail!(
+                "--device cuda:{index}: no NVIDIA driver here (libcuda could not be loaded); use --device cpu, or run on a machine with a GPU (docs/cuda.md)"
+            );
+        }
+        // SAFETY: as above, for NVRTC.
+        if !unsafe { cudarc::nvrtc::sys::is_culib_present() } {
+            anyhow::bail!(
+                "--device cuda:{index}: libnvrtc (the CUDA toolkit's run-time compiler) could not be loaded; install the toolkit or add its lib64 to LD_LIBRARY_PATH"
+            );
+        }
+        let count = cudarc::driver::CudaContext::device_count()
+            .map_err(|e| anyhow::anyhow!("--device cuda:{index}: the CUDA driver failed: {e}"))?;
+        if index >= count.max(0) as usize {
+            anyhow::bail!("--device cuda:{index}: this machine has {count} GPU(s)");
+        }
+        if std::env::var_os("CUDA_PATH").is_none() && std::path::Path::new(DEFAULT_CUDA_PATH).is_dir() {
+            // SAFETY: called before burn starts its threads (the first device is created after this).
+            unsafe { std::env::set_var("CUDA_PATH", DEFAULT_CUDA_PATH) };
+        }
+        Ok(CudaDevice { index })
+    }
+
+    /// Where the CUDA toolkit usually lives.
+    const DEFAULT_CUDA_PATH: &str = "/usr/local/cuda";
+
+    /// [`device`] for each ordinal, in order.
+    ///
+    /// # Errors
+    /// As [`device`].
+    pub fn devices(ids: &[usize]) -> anyhow::Result<Vec<CudaDevice>> {
+        ids.iter().map(|&i| device(i)).collect()
     }
 
     /// Bytes that cubecl's memory pool holds on `device` (it keeps freed pages for reuse,

@@ -211,7 +211,7 @@ fn load_model(dir: &Path, name: &str, cuda: Option<usize>) -> anyhow::Result<Box
             Box::new(ModelPredictor::<CudaInfer>::load_on(
                 dir,
                 name,
-                &device(id),
+                &device(id)?,
             )?)
         }
         #[cfg(not(feature = "cuda"))]

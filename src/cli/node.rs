@@ -72,7 +72,7 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device, CudaInfer};
-            serve::<CudaInfer>(args, device(id))
+            serve::<CudaInfer>(args, device(id)?)
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => anyhow::bail!("built without CUDA"),

@@ -317,7 +317,7 @@ fn fit_on(
     observer: &mut dyn Observer,
 ) -> anyhow::Result<Vec<EpochRecord>> {
     fn on<B: AutodiffBackend + FusedElu>(
-        device: B::Device,
+        devices: Vec<B::Device>,
         args: (ModelConfig, TrainOptions, PathBuf),
         train: &mut dyn BatchSource,
         val: Option<&mut dyn BatchSource>,
@@ -329,13 +329,13 @@ fn fit_on(
         B::InnerBackend: FusedElu,
     {
         let (config, opts, out) = args;
-        Trainer::<B>::new(config, opts, out, device)
+        Trainer::<B>::data_parallel(config, opts, out, devices)
             .fit_observed(train, val, scaler, resume, observer)
     }
     let args = (config, opts, out);
     let history = match device {
         Device::Cpu => on::<CpuTrain>(
-            Default::default(),
+            vec![Default::default()],
             args,
             train,
             val,
@@ -344,14 +344,12 @@ fn fit_on(
             observer,
         )?,
         #[cfg(feature = "cuda")]
-        Device::Cuda(ids) if ids.len() == 1 => {
-            use super::device::cuda::{device, CudaTrain};
-            on::<CudaTrain>(device(ids[0]), args, train, val, scaler, resume, observer)?
+        Device::Cuda(ids) => {
+            use super::device::cuda::{devices, CudaTrain};
+            on::<CudaTrain>(devices(ids)?, args, train, val, scaler, resume, observer)?
         }
-        Device::Cuda(ids) => bail!(
-            "data-parallel training on {} GPUs is not implemented yet; use one --device cuda:N",
-            ids.len()
-        ),
+        #[cfg(not(feature = "cuda"))]
+        Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
     };
     Ok(history)
 }

@@ -19,6 +19,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::cpu_kernels;
 
@@ -394,20 +395,99 @@ fn composed_elu_backward<B: Backend>(out: FloatTensor<B>, grad: FloatTensor<B>) 
     B::float_reshape((grad * slope).into_primitive().tensor(), shape)
 }
 
-/// [`FusedElu::linear_backward`] with burn's tensor ops.
+/// Whether [`composed_linear_backward`] splits long weight-gradient reductions into row
+/// chunks (see [`weight_grad_chunks`]); on by default, switched off by `bench train
+/// --split-weight-grad off` to measure what it buys.
+static SPLIT_WEIGHT_GRAD: AtomicBool = AtomicBool::new(true);
+
+/// Turns the chunked weight gradient of the composed dense-layer backward on or off (process
+/// wide; the CPU backend has its own backward and ignores it).
+pub fn set_split_weight_grad(on: bool) {
+    SPLIT_WEIGHT_GRAD.store(on, Ordering::Relaxed);
+}
+
+/// Fewest rows per chunk of a split weight gradient.
+const MIN_CHUNK_ROWS: usize = 512;
+/// Partial-gradient elements (chunks x in x out) a split aims for: enough output tiles to
+/// fill a GPU (~1,000 tiles of 64 x 64), a few MB of partials.
+const TARGET_PARTIALS: usize = 1 << 22;
+
+/// Row chunks `C` for the weight gradient `x^T g` of a dense layer with `rows` rows: 1 (one
+/// product) unless the reduction is long and the output small. A product with a reduction
+/// dimension K of 400,000 particle rows and a `5 x 256` or `256 x 1,250` output runs on a
+/// handful of output tiles, one multiprocessor each, in a tiled GPU matmul without split-K
+/// (cubecl's); as `C` batched products of `rows / C` rows summed afterwards ("split-K", as
+/// cuBLAS and CUTLASS do it: Kerr et al., "CUTLASS: Fast Linear Algebra in CUDA C++", NVIDIA
+/// 2017) it has `C` times the tiles. `C` divides `rows` exactly (the nearest divisor of the
+/// wanted count with at least [`MIN_CHUNK_ROWS`] rows per chunk), so the chunks are views.
+pub fn weight_grad_chunks(rows: usize, d_in: usize, d_out: usize) -> usize {
+    if !SPLIT_WEIGHT_GRAD.load(Ordering::Relaxed) || rows < 2 * MIN_CHUNK_ROWS {
+        return 1;
+    }
+    let most = rows / MIN_CHUNK_ROWS;
+    let want = TARGET_PARTIALS.div_ceil((d_in * d_out).max(1)).min(most);
+    if want < 2 {
+        return 1;
+    }
+    // The divisor of `rows` nearest to `want` within [want / 2, most].
+    (0..want)
+        .flat_map(|d| [want - d, want + d])
+        .filter(|&c| c >= want.div_ceil(2).max(2) && c <= most)
+        .find(|&c| rows % c == 0)
+        .unwrap_or(1)
+}
+
+/// [`FusedElu::linear_backward`] with burn's tensor ops: `dx = g w^T`, `dw = x^T g`,
+/// `db = sum_rows g`, the last two as sums of [`weight_grad_chunks`] partial products when
+/// the rows are many (what lets a GPU spread them).
 fn composed_linear_backward<B: Backend>(
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     grad: FloatTensor<B>,
     need: [bool; 3],
 ) -> [Option<FloatTensor<B>>; 3] {
+    let shape = x.shape();
+    let d_in = *shape.last().expect("rank >= 2");
+    let d_out = *grad.shape().last().expect("rank >= 2");
+    let chunks = weight_grad_chunks(shape.num_elements() / d_in.max(1), d_in, d_out);
+    linear_backward_in_chunks::<B>(x, weight, grad, need, chunks)
+}
+
+/// [`composed_linear_backward`] with `chunks` row chunks (dividing the rows).
+fn linear_backward_in_chunks<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    need: [bool; 3],
+    chunks: usize,
+) -> [Option<FloatTensor<B>>; 3] {
     let (x, shape) = as_rows::<B>(x);
     let (grad, _) = as_rows::<B>(grad);
     let weight = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(weight));
-    let d_out = grad.dims()[1];
+    let [rows, d_out] = grad.dims();
+    let d_in = x.dims()[1];
     let dx = need[0].then(|| from_rows(grad.clone().matmul(weight.transpose()), &shape));
-    let dw = need[1].then(|| x.transpose().matmul(grad.clone()).into_primitive().tensor());
-    let db = need[2].then(|| grad.sum_dim(0).reshape([d_out]).into_primitive().tensor());
+    let dw = need[1].then(|| {
+        let dw = if chunks > 1 {
+            let xs = x.reshape([chunks, rows / chunks, d_in]).swap_dims(1, 2);
+            let gs = grad.clone().reshape([chunks, rows / chunks, d_out]);
+            xs.matmul(gs).sum_dim(0).reshape([d_in, d_out])
+        } else {
+            x.transpose().matmul(grad.clone())
+        };
+        dw.into_primitive().tensor()
+    });
+    let db = need[2].then(|| {
+        // The bias gradient is a reduction over the rows with `d_out` outputs: split it for
+        // `d_out` alone (a `[16, 25,000, 1,250]` middle-axis sum ran on 40 thread blocks).
+        let chunks = if chunks > 1 { weight_grad_chunks(rows, 1, d_out) } else { 1 };
+        let db = if chunks > 1 {
+            grad.reshape([chunks, rows / chunks, d_out]).sum_dim(1).sum_dim(0)
+        } else {
+            grad.sum_dim(0).unsqueeze::<3>()
+        };
+        db.reshape([d_out]).into_primitive().tensor()
+    });
     [dx, dw, db]
 }
 
@@ -826,4 +906,55 @@ pub fn elu<B: FusedElu, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(B::elu_forward(
         x.into_primitive().tensor(),
     )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::Distribution;
+
+    type C = NdArray<f32>;
+
+    #[test]
+    fn chunk_counts_divide_the_rows() {
+        // The paper configuration's encoder at batch 80, T = 2: 400,000 particle rows.
+        assert_eq!(weight_grad_chunks(400_000, 256, 1250), 16);
+        assert_eq!(weight_grad_chunks(400_000, 5, 256), 640);
+        for (rows, d_in, d_out) in [(400_000, 5, 256), (6_400_000, 5, 256), (99_991, 5, 8)] {
+            let c = weight_grad_chunks(rows, d_in, d_out);
+            assert_eq!(rows % c, 0, "{rows} rows in {c} chunks");
+            assert!(c == 1 || rows / c >= MIN_CHUNK_ROWS);
+        }
+        // Few rows (the core, the decoder) or a big output: one product.
+        assert_eq!(weight_grad_chunks(160, 1250, 3750), 1);
+        assert_eq!(weight_grad_chunks(4096, 1250, 5000), 1);
+    }
+
+    #[test]
+    fn chunked_weight_gradient_equals_one_product() {
+        let device = Default::default();
+        let (rows, d_in, d_out) = (3 * 4 * 600, 5, 37);
+        let t = |dims: [usize; 2]| {
+            Tensor::<C, 2>::random(dims, Distribution::Normal(0.0, 1.0), &device)
+                .into_primitive()
+                .tensor()
+        };
+        let (x, w, g) = (t([rows, d_in]), t([d_in, d_out]), t([rows, d_out]));
+        let flat = |p: FloatTensor<C>| -> Vec<f32> {
+            let n = p.shape().num_elements();
+            Tensor::<C, 1>::from_primitive(TensorPrimitive::Float(C::float_reshape(p, [n].into())))
+                .into_data()
+                .to_vec()
+                .unwrap()
+        };
+        let one = linear_backward_in_chunks::<C>(x.clone(), w.clone(), g.clone(), [true; 3], 1);
+        let split = linear_backward_in_chunks::<C>(x, w, g, [true; 3], 12);
+        for (name, (a, b)) in ["dx", "dw", "db"].iter().zip(one.into_iter().zip(split)) {
+            let (a, b) = (flat(a.unwrap()), flat(b.unwrap()));
+            assert_eq!(a.len(), b.len(), "{name}");
+            let scale = a.iter().fold(1f32, |m, v| m.max(v.abs()));
+            let worst = a.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
+            assert!(worst <= 1e-5 * scale, "{name}: max diff {worst} (scale {scale})");
+        }
+    }
 }

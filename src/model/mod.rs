@@ -106,6 +106,32 @@ impl ModelConfig {
     }
 }
 
+/// `data` (row-major, `shape`) as a tensor on `device`, copied as one flat buffer and
+/// reshaped there (a view, no copy). burn's CUDA backend (cubecl 0.10) copies a tensor of rank
+/// >= 2 as one pitched 2-D copy of `shape[..D-1]` rows of `shape[D-1]` elements; from
+/// pageable host memory with rows of 8-20 bytes (particle features) that ran at ~0.2 GB/s on
+/// an H200 and was most of a training step (docs/cuda.md). A rank-1 copy is one plain copy.
+pub fn upload<B: Backend, const D: usize>(
+    data: Vec<f32>,
+    shape: [usize; D],
+    device: &B::Device,
+) -> Tensor<B, D> {
+    let n = data.len();
+    Tensor::<B, 1>::from_data(TensorData::new(data, [n]), device).reshape(shape)
+}
+
+/// The values of `x` in row-major order, read back as one flat buffer (see [`upload`]).
+///
+/// # Errors
+/// The backend's read error, as text.
+pub fn download<B: Backend, const D: usize>(x: Tensor<B, D>) -> Result<Vec<f32>, String> {
+    let n = x.shape().num_elements();
+    x.reshape([n])
+        .into_data()
+        .to_vec()
+        .map_err(|e| format!("{e:?}"))
+}
+
 /// Min-max scaling constants as the model uses them: `scaled = (phys - min) / range`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scaling {

@@ -11,7 +11,6 @@ use crate::data::Scaler;
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use burn::tensor::backend::Backend;
-use burn::tensor::{Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -176,13 +175,10 @@ impl<B: FusedElu> Surrogate<B> {
         // The training batches' own scaling (data::Scaler), so inputs match training exactly.
         let mut feats = Vec::with_capacity(b * n * 5);
         self.meta.scaler.scale_into(frames, material, &mut feats);
-        let x = Tensor::<B, 3>::from_data(TensorData::new(feats, [b, n, 5]), &self.device);
-        let dt_t = Tensor::<B, 1>::from_data(TensorData::new(dt.to_vec(), [b]), &self.device);
+        let x = super::upload::<B, 3>(feats, [b, n, 5], &self.device);
+        let dt_t = super::upload::<B, 1>(dt.to_vec(), [b], &self.device);
         let (out, layers) = self.model.step(x, dt_t, state.layers, &self.scaling);
-        let mut out: Vec<f32> = out
-            .into_data()
-            .to_vec()
-            .map_err(|e| StoreError::Shape(format!("{e:?}")))?;
+        let mut out = super::download(out).map_err(StoreError::Shape)?;
         self.meta.scaler.unscale_rows(&mut out, 4);
         Ok((
             out,

@@ -20,13 +20,13 @@ pub use source::BatchSource;
 
 use crate::data::{Batch, Scaler, WindowIndex};
 use crate::model::store::{self, ModelMeta};
-use crate::model::{Model, ModelConfig, Scaling};
+use crate::model::{upload, Model, ModelConfig, Scaling};
 use burn::backend::NdArray;
 use burn::module::{AutodiffModule, Module};
-use burn::optim::{GradientsAccumulator, GradientsParams, Optimizer};
+use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
 use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
-use burn::tensor::backend::{AutodiffBackend, Backend};
-use burn::tensor::{ElementConversion, Tensor, TensorData};
+use burn::tensor::backend::{AutodiffBackend, Backend, DeviceOps};
+use burn::tensor::{ElementConversion, Tensor};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -118,6 +118,16 @@ struct Slice<B: Backend> {
     dt: Tensor<B, 1>,
 }
 
+/// Deals micro-batches to `k` devices in turn (the first devices get one more when they do
+/// not divide evenly).
+fn deal(slices: Vec<HostSlice>, k: usize) -> Vec<Vec<HostSlice>> {
+    let mut shards: Vec<Vec<HostSlice>> = (0..k).map(|_| Vec::new()).collect();
+    for (i, s) in slices.into_iter().enumerate() {
+        shards[i % k].push(s);
+    }
+    shards
+}
+
 /// Cuts `batch` into micro-batches of at most `micro` windows (host side).
 fn host_slices(batch: Batch, micro: usize) -> Vec<HostSlice> {
     let (t, n, b) = (batch.t, batch.n, batch.b);
@@ -156,10 +166,10 @@ impl HostSlice {
     fn upload<B: Backend>(self, device: &B::Device) -> Slice<B> {
         let (len, t, n) = (self.len, self.t, self.n);
         Slice {
-            inputs: Tensor::from_data(TensorData::new(self.inputs, [len, t, n, 5]), device),
-            targets: Tensor::from_data(TensorData::new(self.targets, [len, n, 4]), device),
-            target_pos: Tensor::from_data(TensorData::new(self.target_pos, [len, n, 2]), device),
-            dt: Tensor::from_data(TensorData::new(self.dt, [len]), device),
+            inputs: upload(self.inputs, [len, t, n, 5], device),
+            targets: upload(self.targets, [len, n, 4], device),
+            target_pos: upload(self.target_pos, [len, n, 2], device),
+            dt: upload(self.dt, [len], device),
         }
     }
 }
@@ -269,7 +279,10 @@ pub struct Trainer<B: AutodiffBackend> {
     pub opts: TrainOptions,
     /// Output folder.
     pub out: PathBuf,
+    /// The main device: holds the model between epochs, validates, checkpoints.
     device: B::Device,
+    /// Further devices for data-parallel training (empty: one device).
+    replicas: Vec<B::Device>,
 }
 
 impl<B: AutodiffBackend + crate::model::FusedElu> Trainer<B>
@@ -283,7 +296,84 @@ where
             opts,
             out,
             device,
+            replicas: Vec::new(),
         }
+    }
+
+    /// A trainer that trains data-parallel on `devices` (the first is the main device), with
+    /// burn's multi-device strategy (`burn-train`'s `MultiDevice` with `OptimSharded`): every
+    /// optimizer step forks the model to each device, each device runs forward and backward
+    /// on its share of the batch's micro-batches, and
+    /// [`Optimizer::step_multi`](burn::optim::Optimizer::step_multi) sums each parameter's
+    /// gradients on one device (chosen by parameter id, so the optimizer state is sharded
+    /// over the devices) and updates it there. The effective batch, the data order and the
+    /// loss scaling are those of a one-device run; only the dropout masks differ (each
+    /// device draws its own).
+    ///
+    /// # Panics
+    /// If `devices` is empty.
+    pub fn data_parallel(
+        config: ModelConfig,
+        opts: TrainOptions,
+        out: PathBuf,
+        mut devices: Vec<B::Device>,
+    ) -> Self {
+        assert!(!devices.is_empty(), "data_parallel needs at least one device");
+        let device = devices.remove(0);
+        Self {
+            config,
+            opts,
+            out,
+            device,
+            replicas: devices,
+        }
+    }
+
+    /// The devices it trains on, main device first.
+    pub fn devices(&self) -> Vec<B::Device> {
+        std::iter::once(self.device.clone())
+            .chain(self.replicas.iter().cloned())
+            .collect()
+    }
+
+    /// Forward and backward of `slices` (micro-batches of one optimizer step of `b`
+    /// windows) on `device`: the accumulated gradients (scaled so that the shares of all
+    /// devices sum to the batch mean) and the summed, window-weighted loss (not read back).
+    fn shard_step(
+        &self,
+        model: &Model<B>,
+        slices: Vec<HostSlice>,
+        b: usize,
+        scaling: &Scaling,
+        device: &B::Device,
+    ) -> (GradientsParams, Option<Tensor<B::InnerBackend, 1>>) {
+        let mut accumulator = GradientsAccumulator::new();
+        let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
+        let started = Instant::now();
+        for host in slices {
+            let len = host.len;
+            let s = host.upload::<B>(device);
+            let pred = model.forward(s.inputs, s.dt, scaling);
+            let parts = loss::loss(
+                pred.clone(),
+                s.targets,
+                positions(pred, scaling),
+                s.target_pos,
+                self.opts.density_grid,
+                self.opts.density_weight,
+            );
+            let weighted = parts.total.clone().inner().mul_scalar(len as f32);
+            batch_loss = Some(match batch_loss {
+                Some(acc) => acc + weighted,
+                None => weighted,
+            });
+            let forward = started.elapsed();
+            let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
+            let backward = started.elapsed();
+            accumulator.accumulate(model, GradientsParams::from_grads(grads, model));
+            tracing::trace!(?forward, ?backward, accumulated = ?started.elapsed(), "micro-batch");
+        }
+        (accumulator.grads(), batch_loss)
     }
 
     /// Trains on `train`, validating on `val`; resumes from `out/checkpoint` when `resume`.
@@ -369,13 +459,16 @@ where
             if self.opts.patience > 0 && since_best >= self.opts.patience {
                 break;
             }
-            B::seed(
-                &self.device,
-                self.opts
-                    .seed
-                    .wrapping_mul(1_000_003)
-                    .wrapping_add(epoch as u64),
-            );
+            for (k, device) in self.devices().iter().enumerate() {
+                B::seed(
+                    device,
+                    self.opts
+                        .seed
+                        .wrapping_mul(1_000_003)
+                        .wrapping_add(epoch as u64)
+                        .wrapping_add((k as u64) << 32),
+                );
+            }
             let started = Instant::now();
             let total = train.num_batches(self.opts.batch_size.max(1));
             let batches = train.batches(
@@ -384,6 +477,7 @@ where
                 epoch as u64,
             )?;
             let micro = self.opts.micro_batch;
+            let parallel = 1 + self.replicas.len();
             // The model moves into the step loop and back out (`optim.step` consumes it, so
             // the parameters are updated in place when nothing else holds them).
             let mut slot = Some(model);
@@ -392,7 +486,11 @@ where
                 let (tx, rx) = std::sync::mpsc::sync_channel(1);
                 scope.spawn(move || {
                     for batch in batches {
-                        let item = batch.map(|b| (b.b, host_slices(b, micro)));
+                        // Data parallel: at least one micro-batch per device.
+                        let item = batch.map(|b| {
+                            let micro = micro.min(b.b.div_ceil(parallel));
+                            (b.b, host_slices(b, micro))
+                        });
                         if tx.send(item).is_err() {
                             break;
                         }
@@ -407,39 +505,54 @@ where
                     data_wait += waited.elapsed();
                     let (b, slices) = item?;
                     let model = slot.take().expect("the model is put back after every step");
-                    let mut accumulator = GradientsAccumulator::new();
-                    let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
                     let step_started = Instant::now();
-                    for host in slices {
-                        let len = host.len;
-                        let s = host.upload::<B>(&self.device);
-                        let pred = model.forward(s.inputs, s.dt, &scaling);
-                        let parts = loss::loss(
-                            pred.clone(),
-                            s.targets,
-                            positions(pred, &scaling),
-                            s.target_pos,
-                            self.opts.density_grid,
-                            self.opts.density_weight,
-                        );
-                        let weighted = parts.total.clone().inner().mul_scalar(len as f32);
-                        batch_loss = Some(match batch_loss {
-                            Some(acc) => acc + weighted,
-                            None => weighted,
+                    let losses = if self.replicas.is_empty() {
+                        let (grads, loss) =
+                            self.shard_step(&model, slices, b, &scaling, &self.device);
+                        slot = Some(optim.step(self.opts.lr, model, grads));
+                        vec![loss]
+                    } else {
+                        let devices = self.devices();
+                        let shards = deal(slices, devices.len());
+                        let results: Vec<_> = std::thread::scope(|workers| {
+                            let handles: Vec<_> = shards
+                                .into_iter()
+                                .zip(&devices)
+                                .map(|(shard, device)| {
+                                    let model = &model;
+                                    let scaling = &scaling;
+                                    workers.spawn(move || {
+                                        let local = model.clone().fork(device);
+                                        let (grads, loss) =
+                                            self.shard_step(&local, shard, b, scaling, device);
+                                        (grads, device.id(), loss)
+                                    })
+                                })
+                                .collect();
+                            handles
+                                .into_iter()
+                                .map(|h| h.join().expect("a data-parallel worker panicked"))
+                                .collect()
                         });
-                        let forward = step_started.elapsed();
-                        let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
-                        let backward = step_started.elapsed();
-                        accumulator.accumulate(&model, GradientsParams::from_grads(grads, &model));
-                        tracing::trace!(?forward, ?backward, accumulated = ?step_started.elapsed(), "micro-batch");
-                    }
-                    slot = Some(optim.step(self.opts.lr, model, accumulator.grads()));
+                        let mut multi = MultiGradientsParams::default();
+                        let mut losses = Vec::new();
+                        for (grads, id, loss) in results {
+                            multi.grads.push((grads, id));
+                            losses.push(loss);
+                        }
+                        slot = Some(optim.step_multi(self.opts.lr, model, multi));
+                        losses
+                    };
                     tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
                     // One read per step, after the step is queued: the host waits here for
                     // the device to finish it.
                     let waited = Instant::now();
-                    let value: f64 =
-                        batch_loss.map_or(0.0, |l| l.into_scalar().elem::<f64>()) / b.max(1) as f64;
+                    let value: f64 = losses
+                        .into_iter()
+                        .flatten()
+                        .map(|l| l.into_scalar().elem::<f64>())
+                        .sum::<f64>()
+                        / b.max(1) as f64;
                     device_wait += waited.elapsed();
                     if !value.is_finite() {
                         return Err(TrainError::NonFinite {
@@ -457,6 +570,10 @@ where
                 Ok((sum, seen, data_wait, device_wait))
             })?;
             model = slot.expect("the model is put back after every step");
+            if !self.replicas.is_empty() {
+                // `step_multi` left each parameter on the device that updated it.
+                model = model.fork(&self.device);
+            }
             let seconds = started.elapsed().as_secs_f64();
             let train_loss = sum / seen.max(1) as f64;
             let valid = model.valid();

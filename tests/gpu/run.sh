@@ -1,0 +1,112 @@
+#!/usr/bin/env bash
+# GPU checks and benchmarks of docs/cuda.md, for a CUDA machine (CI has no GPU and does not
+# run this). From the repository root, with `minflow` built with `--features cuda` in gpu/
+# (plain, or xz-compressed as gpu/minflow.xz; docs/cuda.md says how):
+#
+#   tests/gpu/run.sh speed     # PyTorch reference, bench train: split on/off, five cores
+#   tests/gpu/run.sh profile   # host timings per micro-batch and cubecl's kernel profile
+#   tests/gpu/run.sh parity    # CPU and GPU train the same model from the same seed and data
+#   tests/gpu/run.sh node      # the surrogate node on the GPU over zenoh and iceoryx2
+#   tests/gpu/run.sh multi     # data parallel on two GPUs: parity with one GPU, throughput
+#
+# Logs go to $OUT (default /tmp/minflow-gpu). A part that fails prints FAIL and the script
+# goes on with the next one; the exit code is the number of failed parts.
+set -uo pipefail
+OUT=${OUT:-/tmp/minflow-gpu}
+mkdir -p "$OUT"
+export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
+# NVLink multicast stays off (the machines' rule; NCCL is not used by the multi-device
+# strategy, but keep it so for any library that loads NCCL).
+export NCCL_NVLS_ENABLE=0
+BIN=gpu/minflow
+if [ ! -x "$BIN" ] && [ -f gpu/minflow.xz ]; then
+    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/minflow.xz'), open('$BIN', 'wb'))"
+    chmod +x "$BIN"
+fi
+failed=0
+check() { # name command...
+    local name=$1
+    shift
+    echo "=== $name: $*"
+    if "$@" 2>&1 | tee -a "$OUT/$name.log"; then echo "--- $name ok"; else
+        echo "--- $name FAIL"
+        failed=$((failed + 1))
+    fi
+}
+
+speed() {
+    nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
+    # PyTorch on the same GPU, the paper's configuration (ELU encoder, batch 80, T = 2).
+    check torch python3 docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20
+    # The paper's model: what splitting the weight gradients buys, then the five cores.
+    for split in off on; do
+        check "paper-split-$split" "$BIN" bench train --device cuda --encoder-last-activation elu \
+            --windows 2 --cores mingru --micro-batch 80 --samples 800 --epochs 2 \
+            --warmup-epochs 1 --split-weight-grad "$split"
+    done
+    check paper-cores "$BIN" bench train --device cuda --encoder-last-activation elu --windows 2 \
+        --micro-batch 80 --samples 800 --epochs 2 --warmup-epochs 1
+    # minflow's default encoder (pool-then-project), T = 2 and 32.
+    check cheap-cores "$BIN" bench train --device cuda --windows 2,32 --micro-batch 80 \
+        --samples 400 --epochs 2 --warmup-epochs 1
+}
+
+profile() { # where a step's time goes: host timings per micro-batch, then cubecl's kernel profile
+    local cheap=(bench train --device cuda --windows 32 --cores mingru --micro-batch 80
+        --samples 160 --epochs 1 --warmup-epochs 1)
+    local paper=(bench train --device cuda --encoder-last-activation elu --windows 2
+        --cores mingru --micro-batch 80 --samples 320 --epochs 1 --warmup-epochs 1)
+    RUST_LOG=minflow::train=trace check host-cheap32 "$BIN" "${cheap[@]}"
+    RUST_LOG=minflow::train=trace check host-paper "$BIN" "${paper[@]}"
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-cheap32.txt" \
+        check prof-cheap32 "$BIN" "${cheap[@]}"
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-paper.txt" \
+        check prof-paper "$BIN" "${paper[@]}"
+}
+
+data() { # the dataset of the parity runs: 10 multi scenes of 60 frames (deterministic bags)
+    [ -d "$OUT/data" ] || "$BIN" simulate --family multi --scenes 0..10 --frames 60 \
+        --out "$OUT/data" >/dev/null 2>&1
+    (cd "$OUT/data" && md5sum *.mcap | md5sum)
+}
+
+parity() {
+    data
+    local common=(--data "$OUT/data" --model mingru --width 256 --encoder-hidden 128
+        --encoder-last-activation elu --batch-size 16 --micro-batch 16 --epochs 5 --seed 3
+        --patience 0)
+    check parity-gpu "$BIN" train "${common[@]}" --device cuda --out "$OUT/runs/gpu"
+    check parity-cpu "$BIN" train "${common[@]}" --device cpu --out "$OUT/runs/cpu"
+    paste -d, "$OUT/runs/cpu/metrics.csv" "$OUT/runs/gpu/metrics.csv" | tee "$OUT/parity.csv"
+}
+
+node() {
+    [ -d "$OUT/runs/gpu" ] || parity
+    for transport in zenoh iceoryx2; do
+        check "node-$transport" "$BIN" launch replay_eval model:="$OUT/runs/gpu" device:=cuda \
+            transport:="$transport" bags:=bags out:="$OUT/replay-$transport"
+    done
+}
+
+multi() {
+    nvidia-smi --query-gpu=index,name,memory.total --format=csv
+    data
+    # dropout 0: two GPUs then compute the one-GPU gradient (up to summation order).
+    local common=(--data "$OUT/data" --model mingru --width 256 --encoder-hidden 128
+        --encoder-last-activation elu --batch-size 16 --micro-batch 16 --epochs 5 --seed 3
+        --patience 0 --dropout 0)
+    check multi-one "$BIN" train "${common[@]}" --device cuda:0 --out "$OUT/runs/one"
+    check multi-two "$BIN" train "${common[@]}" --device cuda:0,cuda:1 --out "$OUT/runs/two"
+    paste -d, "$OUT/runs/one/metrics.csv" "$OUT/runs/two/metrics.csv" | tee "$OUT/multi.csv"
+    for devices in cuda:0 cuda:0,cuda:1; do
+        check "multi-bench-$devices" "$BIN" bench train --device "$devices" \
+            --encoder-last-activation elu --windows 2 --cores mingru --micro-batch 160 \
+            --samples 1600 --epochs 2 --warmup-epochs 1
+    done
+}
+
+for part in "${@:-speed}"; do
+    "$part"
+done
+echo "failed parts: $failed"
+exit "$failed"
