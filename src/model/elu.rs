@@ -115,6 +115,23 @@ pub trait FusedElu: Backend {
         unreachable!("elu_mean_backward is only called on backends with FUSED_ELU_MEAN")
     }
 
+    /// `mean_n elu(x @ w + b)` for a layer whose output is pooled (the paper encoder's second
+    /// layer): `x` `[M, N, H]`, `w` `[H, W]`, `b` `[W]` -> `[M, W]`. Composed by default; the
+    /// autodiff backend records it as one node whose backward forms the pre-activation
+    /// gradient `elu'(out) * g / N` in one broadcast element-wise pass (burn's `mean_dim`
+    /// backward writes the broadcast `g / N` out first, then ELU's backward reads it back).
+    fn linear_elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let out = Tensor::<Self, 3>::from_primitive(TensorPrimitive::Float(
+            Self::linear_elu_forward(x, w, Some(b)),
+        ));
+        let [m, _, width] = out.dims();
+        out.mean_dim(1).reshape([m, width]).into_primitive().tensor()
+    }
+
     /// True where [`FusedElu::recurrence`] is a fused sequential pass (the CPU backend):
     /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
     /// log-space parallel scan, which is what pays on a GPU.
@@ -674,6 +691,34 @@ fn linear_node<B: FusedElu, C: CheckpointStrategy>(
     }
 }
 
+/// The backward node of [`FusedElu::linear_elu_mean_forward`]: keeps the input, the weight
+/// and the ELU output `[M, N, W]` (before the mean).
+#[derive(Debug)]
+struct LinearEluMeanBackward;
+
+impl<B: FusedElu> Backward<B, 3> for LinearEluMeanBackward {
+    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let (x, weight, out) = ops.state;
+        let grad = grads.consume::<B>(&ops.node);
+        let shape = out.shape();
+        let (m, n, width) = (shape[0], shape[1], shape[2]);
+        let g = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(grad))
+            .div_scalar(n as f32)
+            .reshape([m, 1, width])
+            .expand([m, n, width]);
+        let dz = B::elu_backward(out, g.into_primitive().tensor());
+        let need = std::array::from_fn(|i| ops.parents[i].is_some());
+        let parent_grads = B::linear_backward(x, weight, dz, need);
+        for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
+            if let (Some(parent), Some(g)) = (parent, g) {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
 /// The backward node of [`FusedElu::recurrence`] (`P` = 3 parents with `h0`, 2 without).
 #[derive(Debug)]
 struct RecurrenceBackward;
@@ -791,6 +836,39 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
         linear_node::<B, C>(x, weight, bias, false)
     }
 
+    fn linear_elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let mean = |out: FloatTensor<B>| {
+            let out = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(out));
+            let [m, _, width] = out.dims();
+            out.mean_dim(1).reshape([m, width]).into_primitive().tensor()
+        };
+        let nodes = [x.node.clone(), w.node.clone(), b.node.clone()];
+        match LinearEluMeanBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::linear_elu_forward(
+                    x.primitive.clone(),
+                    w.primitive.clone(),
+                    Some(b.primitive),
+                );
+                let pooled = mean(out.clone());
+                prep.finish((x.primitive, w.primitive, out), pooled)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(mean(B::linear_elu_forward(
+                x.primitive,
+                w.primitive,
+                Some(b.primitive),
+            ))),
+        }
+    }
+
     fn linear_elu_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -887,6 +965,29 @@ pub fn linear_elu_mean<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) ->
     Tensor::from_primitive(TensorPrimitive::Float(y))
 }
 
+/// `mean over particles of elu(layer.forward(x))` through
+/// [`FusedElu::linear_elu_mean_forward`] (one autodiff node; a layer without bias takes the
+/// composed form).
+///
+/// # Shapes
+/// - `x`: `[M, N, H]` -> `[M, W]`
+pub fn linear_elu_mean_pool<B: FusedElu>(
+    l: &burn::nn::Linear<B>,
+    x: Tensor<B, 3>,
+) -> Tensor<B, 2> {
+    let Some(bias) = &l.bias else {
+        let a = linear_elu(l, x);
+        let [m, _, w] = a.dims();
+        return a.mean_dim(1).reshape([m, w]);
+    };
+    let y = B::linear_elu_mean_forward(
+        x.into_primitive().tensor(),
+        l.weight.val().into_primitive().tensor(),
+        bias.val().into_primitive().tensor(),
+    );
+    Tensor::from_primitive(TensorPrimitive::Float(y))
+}
+
 /// [`FusedElu::recurrence`] on tensors: `h_t = a_t h_{t-1} + b_t`.
 ///
 /// # Shapes
@@ -911,6 +1012,7 @@ pub fn elu<B: FusedElu, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use burn::tensor::ops::FloatTensorOps;
     use burn::tensor::Distribution;
 
     type C = NdArray<f32>;
