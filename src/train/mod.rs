@@ -199,9 +199,15 @@ pub fn initial_model<B: crate::model::FusedElu>(
     seed: u64,
     device: &B::Device,
 ) -> Result<Model<B>, TrainError> {
+    // burn's CPU generator is one per process: seeding and drawing under one lock keeps the
+    // draw deterministic when several trainers start at once (tests, data-parallel tools).
+    static DRAW: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let cpu = Default::default();
-    NdArray::<f32>::seed(&cpu, seed);
-    let drawn: Model<NdArray<f32>> = config.init(&cpu);
+    let drawn: Model<NdArray<f32>> = {
+        let _guard = DRAW.lock().unwrap_or_else(|e| e.into_inner());
+        NdArray::<f32>::seed(&cpu, seed);
+        config.init(&cpu)
+    };
     let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
     let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
         .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;

@@ -4,6 +4,7 @@
 # (plain, or xz-compressed as gpu/minflow.xz; docs/cuda.md says how):
 #
 #   tests/gpu/run.sh speed     # PyTorch reference, bench train: split on/off, five cores
+#   tests/gpu/run.sh autotune  # the paper's model with burn's autotuned kernels (cuda-autotune)
 #   tests/gpu/run.sh profile   # host timings per micro-batch and cubecl's kernel profile
 #   tests/gpu/run.sh parity    # CPU and GPU train the same model from the same seed and data
 #   tests/gpu/run.sh node      # the surrogate node on the GPU over zenoh and iceoryx2
@@ -37,7 +38,7 @@ check() { # name command...
 speed() {
     nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
     # PyTorch on the same GPU, the paper's configuration (ELU encoder, batch 80, T = 2).
-    check torch python3 docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20
+    check torch python3 docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20 --warmup 3
     # The paper's model: what splitting the weight gradients buys, then the five cores.
     for split in off on; do
         check "paper-split-$split" "$BIN" bench train --device cuda --encoder-last-activation elu \
@@ -49,6 +50,20 @@ speed() {
     # minflow's default encoder (pool-then-project), T = 2 and 32.
     check cheap-cores "$BIN" bench train --device cuda --windows 2,32 --micro-batch 80 \
         --samples 400 --epochs 2 --warmup-epochs 1
+}
+
+autotune() { # burn's autotuned kernels (gpu/minflow-at: --features cuda-autotune); the tuning
+    # results land in target/autotune (reused by later runs from this folder)
+    local at=gpu/minflow-at
+    if [ ! -x "$at" ] && [ -f gpu/minflow-at.xz ]; then
+        python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$at.xz'), open('$at', 'wb'))"
+        chmod +x "$at"
+    fi
+    for core in mingru gru; do
+        check "autotune-$core" "$at" bench train --device cuda --encoder-last-activation elu \
+            --windows 2 --cores "$core" --micro-batch 80 --samples 800 --epochs 2 --warmup-epochs 1
+    done
+    tar czf "$OUT/autotune.tgz" target/autotune 2>/dev/null
 }
 
 profile() { # where a step's time goes: host timings per micro-batch, then cubecl's kernel profile
