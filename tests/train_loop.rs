@@ -181,7 +181,13 @@ fn data_parallel_equals_one_device() {
     assert_eq!(one.len(), two.len());
     for (a, b) in one.iter().zip(&two) {
         let rel = (a.train_loss - b.train_loss).abs() / a.train_loss;
-        assert!(rel < 1e-4, "epoch {}: {:e} vs {:e}", a.epoch, a.train_loss, b.train_loss);
+        assert!(
+            rel < 1e-4,
+            "epoch {}: {:e} vs {:e}",
+            a.epoch,
+            a.train_loss,
+            b.train_loss
+        );
     }
     // Training moved: the check is not of four identical untouched epochs.
     assert!(one[3].train_loss < 0.9 * one[0].train_loss, "{one:?}");

@@ -109,12 +109,9 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
     });
     match args.device.parse()? {
-        Device::Cpu => bench::<CpuTrain>(
-            &args,
-            vec![Default::default()],
-            "host",
-            &|reset| peak_mib(reset),
-        ),
+        Device::Cpu => bench::<CpuTrain>(&args, vec![Default::default()], "host", &|reset| {
+            peak_mib(reset)
+        }),
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
             use super::device::cuda::{devices, reserved_bytes, CudaTrain};
@@ -133,7 +130,11 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
                 }
                 most
             };
-            let memory = if ids.len() > 1 { "GPU pool (largest of the devices)" } else { "GPU pool" };
+            let memory = if ids.len() > 1 {
+                "GPU pool (largest of the devices)"
+            } else {
+                "GPU pool"
+            };
             bench::<CudaTrain>(&args, devices.clone(), memory, &peak)
         }
         #[cfg(not(feature = "cuda"))]
@@ -210,15 +211,15 @@ where
             };
             let dir = tempfile::tempdir()?;
             let mut high = peak(true).unwrap_or(0.0);
-            let history = Trainer::<B>::data_parallel(config, opts, dir.path().into(), devices.clone()).fit(
-                &index,
-                None,
-                &scaler,
-                false,
-                |_, _| {
-                    high = high.max(peak(false).unwrap_or(f64::NAN));
-                },
-            )?;
+            let history = Trainer::<B>::data_parallel(
+                config,
+                opts,
+                dir.path().into(),
+                devices.clone(),
+            )
+            .fit(&index, None, &scaler, false, |_, _| {
+                high = high.max(peak(false).unwrap_or(f64::NAN));
+            })?;
             let (warm, timed) = history.split_at(args.warmup_epochs.min(history.len()));
             let warmup: f64 = warm.iter().map(|r| r.seconds).sum();
             let n = timed.len().max(1) as f64;

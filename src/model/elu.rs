@@ -129,7 +129,10 @@ pub trait FusedElu: Backend {
             Self::linear_elu_forward(x, w, Some(b)),
         ));
         let [m, _, width] = out.dims();
-        out.mean_dim(1).reshape([m, width]).into_primitive().tensor()
+        out.mean_dim(1)
+            .reshape([m, width])
+            .into_primitive()
+            .tensor()
     }
 
     /// True where [`FusedElu::recurrence`] is a fused sequential pass (the CPU backend):
@@ -497,9 +500,15 @@ fn linear_backward_in_chunks<B: Backend>(
     let db = need[2].then(|| {
         // The bias gradient is a reduction over the rows with `d_out` outputs: split it for
         // `d_out` alone (a `[16, 25,000, 1,250]` middle-axis sum ran on 40 thread blocks).
-        let chunks = if chunks > 1 { weight_grad_chunks(rows, 1, d_out) } else { 1 };
+        let chunks = if chunks > 1 {
+            weight_grad_chunks(rows, 1, d_out)
+        } else {
+            1
+        };
         let db = if chunks > 1 {
-            grad.reshape([chunks, rows / chunks, d_out]).sum_dim(1).sum_dim(0)
+            grad.reshape([chunks, rows / chunks, d_out])
+                .sum_dim(1)
+                .sum_dim(0)
         } else {
             grad.sum_dim(0).unsqueeze::<3>()
         };
@@ -844,7 +853,10 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
         let mean = |out: FloatTensor<B>| {
             let out = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(out));
             let [m, _, width] = out.dims();
-            out.mean_dim(1).reshape([m, width]).into_primitive().tensor()
+            out.mean_dim(1)
+                .reshape([m, width])
+                .into_primitive()
+                .tensor()
         };
         let nodes = [x.node.clone(), w.node.clone(), b.node.clone()];
         match LinearEluMeanBackward
@@ -971,10 +983,7 @@ pub fn linear_elu_mean<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) ->
 ///
 /// # Shapes
 /// - `x`: `[M, N, H]` -> `[M, W]`
-pub fn linear_elu_mean_pool<B: FusedElu>(
-    l: &burn::nn::Linear<B>,
-    x: Tensor<B, 3>,
-) -> Tensor<B, 2> {
+pub fn linear_elu_mean_pool<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) -> Tensor<B, 2> {
     let Some(bias) = &l.bias else {
         let a = linear_elu(l, x);
         let [m, _, w] = a.dims();
@@ -1055,8 +1064,15 @@ mod tests {
             let (a, b) = (flat(a.unwrap()), flat(b.unwrap()));
             assert_eq!(a.len(), b.len(), "{name}");
             let scale = a.iter().fold(1f32, |m, v| m.max(v.abs()));
-            let worst = a.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
-            assert!(worst <= 1e-5 * scale, "{name}: max diff {worst} (scale {scale})");
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                worst <= 1e-5 * scale,
+                "{name}: max diff {worst} (scale {scale})"
+            );
         }
     }
 }

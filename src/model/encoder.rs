@@ -99,8 +99,7 @@ impl<B: FusedElu> Encoder<B> {
             return linear(&self.second, linear_elu_mean(&self.first, x));
         }
         let a = linear_elu(&self.first, x); // [m, n, hidden]
-        if !B::FUSED_ELU_MEAN && self.last == LastActivation::Elu && self.pooling == Pooling::Mean
-        {
+        if !B::FUSED_ELU_MEAN && self.last == LastActivation::Elu && self.pooling == Pooling::Mean {
             // GPU: the ELU output's mean and its backward as one node (see the function).
             return linear_elu_mean_pool(&self.second, a);
         }

@@ -324,7 +324,10 @@ where
         out: PathBuf,
         mut devices: Vec<B::Device>,
     ) -> Self {
-        assert!(!devices.is_empty(), "data_parallel needs at least one device");
+        assert!(
+            !devices.is_empty(),
+            "data_parallel needs at least one device"
+        );
         let device = devices.remove(0);
         Self {
             config,
