@@ -225,31 +225,7 @@ fn pool_then_project_equals_plain_encoder() {
     let x = Tensor::<B, 3>::random([4, 300, 5], Distribution::Uniform(-1.0, 1.0), &device)
         .require_grad();
     let (fused, plain) = (enc.forward(x.clone()), enc.forward_unfused(x.clone()));
-    let d = max_diff(fused.clone(), plain.clone());
-    assert!(d <= 1e-5, "differ by {d}");
-    let w = Tensor::<B, 2>::random([4, 48], Distribution::Normal(0.0, 1.0), &device);
-    let (gf, gp) = (
-        (fused * w.clone()).sum().backward(),
-        (plain * w).sum().backward(),
-    );
-    let d = max_diff(
-        Tensor::<B, 3>::from_inner(x.grad(&gf).unwrap()),
-        Tensor::from_inner(x.grad(&gp).unwrap()),
-    );
-    assert!(d <= 1e-5, "input gradients differ by {d}");
-    for l in [&enc.first, &enc.second] {
-        let (a, b) = (
-            l.weight.val().grad(&gf).unwrap(),
-            l.weight.val().grad(&gp).unwrap(),
-        );
-        let d = max_diff(Tensor::<B, 2>::from_inner(a), Tensor::from_inner(b));
-        // Sums over 1,200 particles in different orders: f32 rounding ~1e-5 of their size.
-        assert!(d <= 1e-4, "weight gradients differ by {d}");
-        let bias = l.bias.as_ref().unwrap().val();
-        let (a, b) = (bias.grad(&gf).unwrap(), bias.grad(&gp).unwrap());
-        let d = max_diff(Tensor::<B, 1>::from_inner(a), Tensor::from_inner(b));
-        assert!(d <= 1e-4, "bias gradients differ by {d}");
-    }
+    assert_same_function(&x, fused, plain, &[&enc.first, &enc.second], 1e-5);
     let elu = Encoder::<B>::new(5, 32, 48, LastActivation::Elu, Pooling::Mean, &device);
     assert!(!elu.project_after_pool);
 }
@@ -354,9 +330,23 @@ fn linear_elu_mean_node_equals_composed() {
         .require_grad();
     let fused = linear_elu_mean_pool(&layer, x.clone());
     let plain = elu(layer.forward(x.clone())).mean_dim(1).reshape([3, 24]);
+    assert_same_function(&x, fused, plain, &[&layer], 1e-6);
+}
+
+/// `fused` and `plain`, two computations of `[M, W]` from `x`, agree in values (within
+/// `tol`) and in the gradients of a random projection of them with respect to `x` (`tol`)
+/// and to each layer's weight and bias (1e-4: sums over hundreds of particles in different
+/// orders round to ~1e-5 of their size in f32).
+fn assert_same_function(
+    x: &Tensor<B, 3>,
+    fused: Tensor<B, 2>,
+    plain: Tensor<B, 2>,
+    layers: &[&Linear<B>],
+    tol: f32,
+) {
     let d = max_diff(fused.clone(), plain.clone());
-    assert!(d <= 1e-6, "values differ by {d}");
-    let w = Tensor::<B, 2>::random([3, 24], Distribution::Normal(0.0, 1.0), &device);
+    assert!(d <= tol, "values differ by {d}");
+    let w = Tensor::<B, 2>::random(fused.dims(), Distribution::Normal(0.0, 1.0), &x.device());
     let (gf, gp) = (
         (fused * w.clone()).sum().backward(),
         (plain * w).sum().backward(),
@@ -365,18 +355,17 @@ fn linear_elu_mean_node_equals_composed() {
         Tensor::<B, 3>::from_inner(x.grad(&gf).unwrap()),
         Tensor::from_inner(x.grad(&gp).unwrap()),
     );
-    assert!(d <= 1e-6, "input gradients differ by {d}");
-    let (a, b) = (
-        layer.weight.val().grad(&gf).unwrap(),
-        layer.weight.val().grad(&gp).unwrap(),
-    );
-    let d = max_diff(Tensor::<B, 2>::from_inner(a), Tensor::from_inner(b));
-    // Sums over 600 rows in different orders: f32 rounding ~1e-5 of their size.
-    assert!(d <= 1e-4, "weight gradients differ by {d}");
-    let bias = layer.bias.as_ref().unwrap().val();
-    let d = max_diff(
-        Tensor::<B, 1>::from_inner(bias.grad(&gf).unwrap()),
-        Tensor::from_inner(bias.grad(&gp).unwrap()),
-    );
-    assert!(d <= 1e-4, "bias gradients differ by {d}");
+    assert!(d <= tol, "input gradients differ by {d}");
+    for l in layers {
+        let (a, b) = (
+            l.weight.val().grad(&gf).unwrap(),
+            l.weight.val().grad(&gp).unwrap(),
+        );
+        let d = max_diff(Tensor::<B, 2>::from_inner(a), Tensor::from_inner(b));
+        assert!(d <= 1e-4, "weight gradients differ by {d}");
+        let bias = l.bias.as_ref().unwrap().val();
+        let (a, b) = (bias.grad(&gf).unwrap(), bias.grad(&gp).unwrap());
+        let d = max_diff(Tensor::<B, 1>::from_inner(a), Tensor::from_inner(b));
+        assert!(d <= 1e-4, "bias gradients differ by {d}");
+    }
 }

@@ -964,17 +964,7 @@ pub fn linear_elu<B: FusedElu, const D: usize>(
 /// # Shapes
 /// - `x`: `[M, N, F]` -> `[M, H]`
 pub fn linear_elu_mean<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) -> Tensor<B, 2> {
-    let Some(bias) = &l.bias else {
-        let a = linear_elu(l, x);
-        let [m, _, h] = a.dims();
-        return a.mean_dim(1).reshape([m, h]);
-    };
-    let y = B::elu_mean_forward(
-        x.into_primitive().tensor(),
-        l.weight.val().into_primitive().tensor(),
-        bias.val().into_primitive().tensor(),
-    );
-    Tensor::from_primitive(TensorPrimitive::Float(y))
+    pooled_layer(l, x, B::elu_mean_forward)
 }
 
 /// `mean over particles of elu(layer.forward(x))` through
@@ -984,12 +974,21 @@ pub fn linear_elu_mean<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) ->
 /// # Shapes
 /// - `x`: `[M, N, H]` -> `[M, W]`
 pub fn linear_elu_mean_pool<B: FusedElu>(l: &burn::nn::Linear<B>, x: Tensor<B, 3>) -> Tensor<B, 2> {
+    pooled_layer(l, x, B::linear_elu_mean_forward)
+}
+
+/// A dense layer + ELU + mean over particles through `op(x, w, b)`, or composed without bias.
+fn pooled_layer<B: FusedElu>(
+    l: &burn::nn::Linear<B>,
+    x: Tensor<B, 3>,
+    op: fn(FloatTensor<B>, FloatTensor<B>, FloatTensor<B>) -> FloatTensor<B>,
+) -> Tensor<B, 2> {
     let Some(bias) = &l.bias else {
         let a = linear_elu(l, x);
-        let [m, _, w] = a.dims();
-        return a.mean_dim(1).reshape([m, w]);
+        let [m, _, h] = a.dims();
+        return a.mean_dim(1).reshape([m, h]);
     };
-    let y = B::linear_elu_mean_forward(
+    let y = op(
         x.into_primitive().tensor(),
         l.weight.val().into_primitive().tensor(),
         bias.val().into_primitive().tensor(),

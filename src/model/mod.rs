@@ -107,10 +107,11 @@ impl ModelConfig {
 }
 
 /// `data` (row-major, `shape`) as a tensor on `device`, copied as one flat buffer and
-/// reshaped there (a view, no copy). burn's CUDA backend (cubecl 0.10) copies a tensor of rank
-/// >= 2 as one pitched 2-D copy of `shape[..D-1]` rows of `shape[D-1]` elements; from
-/// pageable host memory with rows of 8-20 bytes (particle features) that ran at ~0.2 GB/s on
-/// an H200 and was most of a training step (docs/cuda.md). A rank-1 copy is one plain copy.
+/// reshaped there (a view, no copy). burn's CUDA backend (cubecl 0.10) copies a tensor of
+/// rank 2 or more as one pitched 2-D copy of `shape[..D-1]` rows of `shape[D-1]` elements;
+/// from pageable host memory with rows of 8-20 bytes (particle features) that ran at
+/// ~0.2 GB/s on an H200 and was most of a training step (docs/cuda.md). A rank-1 copy is one
+/// plain copy.
 pub fn upload<B: Backend, const D: usize>(
     data: Vec<f32>,
     shape: [usize; D],

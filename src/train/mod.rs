@@ -199,15 +199,11 @@ pub fn initial_model<B: crate::model::FusedElu>(
     seed: u64,
     device: &B::Device,
 ) -> Result<Model<B>, TrainError> {
-    // burn's CPU generator is one per process: seeding and drawing under one lock keeps the
-    // draw deterministic when several trainers start at once (tests, data-parallel tools).
-    static DRAW: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    // burn's CPU generator is one per process: trainers started at once in one process
+    // (parallel tests) draw from it in turn, so only a lone trainer's draw is reproducible.
     let cpu = Default::default();
-    let drawn: Model<NdArray<f32>> = {
-        let _guard = DRAW.lock().unwrap_or_else(|e| e.into_inner());
-        NdArray::<f32>::seed(&cpu, seed);
-        config.init(&cpu)
-    };
+    NdArray::<f32>::seed(&cpu, seed);
+    let drawn: Model<NdArray<f32>> = config.init(&cpu);
     let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
     let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
         .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
@@ -225,6 +221,24 @@ fn positions<B: burn::tensor::backend::Backend>(
     (pred * range + min).narrow(2, 0, 2)
 }
 
+/// The model's prediction for a batch slice and its loss (train and validation alike).
+fn slice_loss<B: crate::model::FusedElu>(
+    model: &Model<B>,
+    s: Slice<B>,
+    scaling: &Scaling,
+    opts: &TrainOptions,
+) -> loss::LossParts<B> {
+    let pred = model.forward(s.inputs, s.dt, scaling);
+    loss::loss(
+        pred.clone(),
+        s.targets,
+        positions(pred, scaling),
+        s.target_pos,
+        opts.density_grid,
+        opts.density_weight,
+    )
+}
+
 /// Mean loss of `model` over `index` (no gradients, no dropout).
 pub fn evaluate<B: crate::model::FusedElu>(
     model: &Model<B>,
@@ -236,16 +250,7 @@ pub fn evaluate<B: crate::model::FusedElu>(
     let (mut sum, mut count) = (0.0, 0usize);
     for batch in index.batches(opts.micro_batch.max(1), None, 0)? {
         let batch = batch?;
-        let s = slice::<B>(&batch, 0, batch.b, device);
-        let pred = model.forward(s.inputs, s.dt, scaling);
-        let parts = loss::loss(
-            pred.clone(),
-            s.targets,
-            positions(pred, scaling),
-            s.target_pos,
-            opts.density_grid,
-            opts.density_weight,
-        );
+        let parts = slice_loss(model, slice::<B>(&batch, 0, batch.b, device), scaling, opts);
         sum += parts.total.into_scalar().elem::<f64>() * batch.b as f64;
         count += batch.b;
     }
@@ -361,16 +366,7 @@ where
         let started = Instant::now();
         for host in slices {
             let len = host.len;
-            let s = host.upload::<B>(device);
-            let pred = model.forward(s.inputs, s.dt, scaling);
-            let parts = loss::loss(
-                pred.clone(),
-                s.targets,
-                positions(pred, scaling),
-                s.target_pos,
-                self.opts.density_grid,
-                self.opts.density_weight,
-            );
+            let parts = slice_loss(model, host.upload::<B>(device), scaling, &self.opts);
             let weighted = parts.total.clone().inner().mul_scalar(len as f32);
             batch_loss = Some(match batch_loss {
                 Some(acc) => acc + weighted,

@@ -1,0 +1,55 @@
+//! Data-parallel training (`Trainer::data_parallel`) against a one-device run. Its own test
+//! binary: burn's CPU random generator is one per process, and two runs can only start from
+//! the same initial weights when no other test draws from it at the same time.
+
+use minflow::data::{Scaler, WindowIndex};
+use minflow::model::CoreKind;
+use minflow::train::{TrainOptions, Trainer};
+
+#[allow(dead_code)]
+mod train_support;
+use train_support::{options, tiny, trajectory, B};
+
+/// burn's multi-device strategy as the trainer drives it (fork per device, gradients summed
+/// by `step_multi`), on two CPU "devices" (the same ndarray device twice): with dropout off
+/// the gradient of the summed shares is the batch gradient, so the losses of every epoch
+/// equal a one-device run's up to float summation order. (On GPUs the same code runs with
+/// `--device cuda:0,cuda:1`; docs/cuda.md has that run.)
+#[test]
+fn data_parallel_equals_one_device() {
+    let traj = trajectory(32, 10);
+    let scaler = Scaler::fit(&[&traj]);
+    let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
+    let opts = TrainOptions {
+        batch_size: 4,
+        micro_batch: 4,
+        ..options(4)
+    };
+    let run = |devices: Vec<_>| {
+        let dir = tempfile::tempdir().unwrap();
+        let trainer = Trainer::<B>::data_parallel(
+            tiny(CoreKind::MinGru, 32),
+            opts.clone(),
+            dir.path().to_path_buf(),
+            devices,
+        );
+        trainer
+            .fit(&index, None, &scaler, false, |_, _| {})
+            .unwrap()
+    };
+    let one = run(vec![Default::default()]);
+    let two = run(vec![Default::default(), Default::default()]);
+    assert_eq!(one.len(), two.len());
+    for (a, b) in one.iter().zip(&two) {
+        let rel = (a.train_loss - b.train_loss).abs() / a.train_loss;
+        assert!(
+            rel < 1e-4,
+            "epoch {}: {:e} vs {:e}",
+            a.epoch,
+            a.train_loss,
+            b.train_loss
+        );
+    }
+    // Training moved: the check is not of four identical untouched epochs.
+    assert!(one[3].train_loss < 0.9 * one[0].train_loss, "{one:?}");
+}
