@@ -93,7 +93,8 @@ pub trait FusedElu: Backend {
     /// `mean_n elu(x @ w + b)`: the encoder's first layer and mean pooling (used when the
     /// second layer is applied after pooling). `x` `[M, N, F]`, `w` `[F, H]`, `b` `[H]` ->
     /// `[M, H]`. Composed by default; the CPU backend does it in one pass without the
-    /// `[M, N, H]` activations and recomputes them in the backward.
+    /// `[M, N, H]` activations and recomputes them in the backward; the autodiff backend over
+    /// any other backend takes [`FusedElu::linear_elu_mean_forward`]'s node.
     fn elu_mean_forward(
         x: FloatTensor<Self>,
         w: FloatTensor<Self>,
@@ -115,8 +116,9 @@ pub trait FusedElu: Backend {
         unreachable!("elu_mean_backward is only called on backends with FUSED_ELU_MEAN")
     }
 
-    /// `mean_n elu(x @ w + b)` for a layer whose output is pooled (the paper encoder's second
-    /// layer): `x` `[M, N, H]`, `w` `[H, W]`, `b` `[W]` -> `[M, W]`. Composed by default; the
+    /// `mean_n elu(x @ w + b)` keeping the activations (the paper encoder's second layer on
+    /// the GPU, and the first where no recomputing kernel exists): `x` `[M, N, H]`, `w`
+    /// `[H, W]`, `b` `[W]` -> `[M, W]`. Composed by default; the
     /// autodiff backend records it as one node whose backward forms the pre-activation
     /// gradient `elu'(out) * g / N` in one broadcast element-wise pass (burn's `mean_dim`
     /// backward writes the broadcast `g / N` out first, then ELU's backward reads it back).
@@ -125,14 +127,7 @@ pub trait FusedElu: Backend {
         w: FloatTensor<Self>,
         b: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        let out = Tensor::<Self, 3>::from_primitive(TensorPrimitive::Float(
-            Self::linear_elu_forward(x, w, Some(b)),
-        ));
-        let [m, _, width] = out.dims();
-        out.mean_dim(1)
-            .reshape([m, width])
-            .into_primitive()
-            .tensor()
+        composed_elu_mean::<Self>(x, w, b)
     }
 
     /// True where [`FusedElu::recurrence`] is a fused sequential pass (the CPU backend):
@@ -252,11 +247,12 @@ fn composed_elu_mean<B: FusedElu>(
     w: FloatTensor<B>,
     b: FloatTensor<B>,
 ) -> FloatTensor<B> {
-    let a = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(B::linear_elu_forward(
-        x,
-        w,
-        Some(b),
-    )));
+    particle_mean::<B>(B::linear_elu_forward(x, w, Some(b)))
+}
+
+/// The mean over particles: `[M, N, H]` -> `[M, H]`.
+fn particle_mean<B: Backend>(a: FloatTensor<B>) -> FloatTensor<B> {
+    let a = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(a));
     let [m, _, h] = a.dims();
     a.mean_dim(1).reshape([m, h]).into_primitive().tensor()
 }
@@ -778,7 +774,8 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
         b: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         if !B::FUSED_ELU_MEAN {
-            return composed_elu_mean::<Self>(x, w, b);
+            // No recomputing kernel here: the node that keeps the activations.
+            return Self::linear_elu_mean_forward(x, w, b);
         }
         let nodes = [x.node.clone(), w.node.clone(), b.node.clone()];
         match EluMeanBackward
@@ -850,14 +847,6 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
         w: FloatTensor<Self>,
         b: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        let mean = |out: FloatTensor<B>| {
-            let out = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(out));
-            let [m, _, width] = out.dims();
-            out.mean_dim(1)
-                .reshape([m, width])
-                .into_primitive()
-                .tensor()
-        };
         let nodes = [x.node.clone(), w.node.clone(), b.node.clone()];
         match LinearEluMeanBackward
             .prepare::<C>(nodes)
@@ -870,14 +859,14 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
                     w.primitive.clone(),
                     Some(b.primitive),
                 );
-                let pooled = mean(out.clone());
+                let pooled = particle_mean::<B>(out.clone());
                 prep.finish((x.primitive, w.primitive, out), pooled)
             }
-            OpsKind::UnTracked(prep) => prep.finish(mean(B::linear_elu_forward(
+            OpsKind::UnTracked(prep) => prep.finish(composed_elu_mean::<B>(
                 x.primitive,
                 w.primitive,
-                Some(b.primitive),
-            ))),
+                b.primitive,
+            )),
         }
     }
 

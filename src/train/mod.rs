@@ -174,23 +174,6 @@ impl HostSlice {
     }
 }
 
-fn slice<B: Backend>(batch: &Batch, start: usize, len: usize, device: &B::Device) -> Slice<B> {
-    let (t, n) = (batch.t, batch.n);
-    HostSlice {
-        len,
-        t,
-        n,
-        inputs: batch.inputs[start * t * n * 5..(start + len) * t * n * 5].to_vec(),
-        targets: batch.targets[start * n * 4..(start + len) * n * 4].to_vec(),
-        target_pos: batch.target_phys[start * n * 4..(start + len) * n * 4]
-            .chunks_exact(4)
-            .flat_map(|r| [r[0], r[1]])
-            .collect(),
-        dt: batch.dt[start..start + len].to_vec(),
-    }
-    .upload(device)
-}
-
 /// Fresh weights from `seed`, drawn on the CPU backend whatever `B` is and moved to `device`
 /// through an f32 record, so runs on different backends start from identical weights. (For
 /// `B` on ndarray these are the weights `config.init::<B>` draws after seeding.)
@@ -250,9 +233,13 @@ pub fn evaluate<B: crate::model::FusedElu>(
     let (mut sum, mut count) = (0.0, 0usize);
     for batch in index.batches(opts.micro_batch.max(1), None, 0)? {
         let batch = batch?;
-        let parts = slice_loss(model, slice::<B>(&batch, 0, batch.b, device), scaling, opts);
-        sum += parts.total.into_scalar().elem::<f64>() * batch.b as f64;
-        count += batch.b;
+        let b = batch.b;
+        for host in host_slices(batch, b) {
+            let len = host.len;
+            let parts = slice_loss(model, host.upload::<B>(device), scaling, opts);
+            sum += parts.total.into_scalar().elem::<f64>() * len as f64;
+            count += len;
+        }
     }
     Ok(if count == 0 {
         f64::NAN
@@ -290,10 +277,9 @@ pub struct Trainer<B: AutodiffBackend> {
     pub opts: TrainOptions,
     /// Output folder.
     pub out: PathBuf,
-    /// The main device: holds the model between epochs, validates, checkpoints.
-    device: B::Device,
-    /// Further devices for data-parallel training (empty: one device).
-    replicas: Vec<B::Device>,
+    /// The devices it trains on (never empty); the first, the main device, holds the model
+    /// between epochs, validates and checkpoints; more than one train data-parallel.
+    devices: Vec<B::Device>,
 }
 
 impl<B: AutodiffBackend + crate::model::FusedElu> Trainer<B>
@@ -302,13 +288,7 @@ where
 {
     /// A trainer writing to `out`.
     pub fn new(config: ModelConfig, opts: TrainOptions, out: PathBuf, device: B::Device) -> Self {
-        Self {
-            config,
-            opts,
-            out,
-            device,
-            replicas: Vec::new(),
-        }
+        Self::data_parallel(config, opts, out, vec![device])
     }
 
     /// A trainer that trains data-parallel on `devices` (the first is the main device), with
@@ -327,27 +307,23 @@ where
         config: ModelConfig,
         opts: TrainOptions,
         out: PathBuf,
-        mut devices: Vec<B::Device>,
+        devices: Vec<B::Device>,
     ) -> Self {
         assert!(
             !devices.is_empty(),
             "data_parallel needs at least one device"
         );
-        let device = devices.remove(0);
         Self {
             config,
             opts,
             out,
-            device,
-            replicas: devices,
+            devices,
         }
     }
 
-    /// The devices it trains on, main device first.
-    pub fn devices(&self) -> Vec<B::Device> {
-        std::iter::once(self.device.clone())
-            .chain(self.replicas.iter().cloned())
-            .collect()
+    /// The main device.
+    fn main(&self) -> &B::Device {
+        &self.devices[0]
     }
 
     /// Forward and backward of `slices` (micro-batches of one optimizer step of `b`
@@ -435,15 +411,15 @@ where
             val_loss: 0.0,
         }
         .scaling();
-        B::seed(&self.device, self.opts.seed);
-        let mut model: Model<B> = initial_model(&self.config, self.opts.seed, &self.device)?;
+        B::seed(self.main(), self.opts.seed);
+        let mut model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
         let mut optim = adam::FusedAdam::default().init::<B, Model<B>>();
         let mut history = Vec::new();
         let mut start_epoch = 0;
         let mut best = f64::INFINITY;
         if resume {
             if let Some(state) =
-                checkpoint::load::<B, _>(&self.out, &self.config, &self.device, &optim)?
+                checkpoint::load::<B, _>(&self.out, &self.config, self.main(), &optim)?
             {
                 model = state.model;
                 optim = optim.load_record(state.optim);
@@ -464,7 +440,7 @@ where
             if self.opts.patience > 0 && since_best >= self.opts.patience {
                 break;
             }
-            for (k, device) in self.devices().iter().enumerate() {
+            for (k, device) in self.devices.iter().enumerate() {
                 B::seed(
                     device,
                     self.opts
@@ -482,7 +458,7 @@ where
                 epoch as u64,
             )?;
             let micro = self.opts.micro_batch;
-            let parallel = 1 + self.replicas.len();
+            let parallel = self.devices.len();
             // The model moves into the step loop and back out (`optim.step` consumes it, so
             // the parameters are updated in place when nothing else holds them).
             let mut slot = Some(model);
@@ -511,18 +487,17 @@ where
                     let (b, slices) = item?;
                     let model = slot.take().expect("the model is put back after every step");
                     let step_started = Instant::now();
-                    let losses = if self.replicas.is_empty() {
+                    let losses = if parallel == 1 {
                         let (grads, loss) =
-                            self.shard_step(&model, slices, b, &scaling, &self.device);
+                            self.shard_step(&model, slices, b, &scaling, self.main());
                         slot = Some(optim.step(self.opts.lr, model, grads));
                         vec![loss]
                     } else {
-                        let devices = self.devices();
-                        let shards = deal(slices, devices.len());
+                        let shards = deal(slices, parallel);
                         let results: Vec<_> = std::thread::scope(|workers| {
                             let handles: Vec<_> = shards
                                 .into_iter()
-                                .zip(&devices)
+                                .zip(&self.devices)
                                 .map(|(shard, device)| {
                                     let model = &model;
                                     let scaling = &scaling;
@@ -575,16 +550,16 @@ where
                 Ok((sum, seen, data_wait, device_wait))
             })?;
             model = slot.expect("the model is put back after every step");
-            if !self.replicas.is_empty() {
+            if parallel > 1 {
                 // `step_multi` left each parameter on the device that updated it.
-                model = model.fork(&self.device);
+                model = model.fork(self.main());
             }
             let seconds = started.elapsed().as_secs_f64();
             let train_loss = sum / seen.max(1) as f64;
             let valid = model.valid();
             let val_loss = match val.as_mut() {
                 Some(v) if v.windows() > 0 => {
-                    evaluate(&valid, &mut **v, &scaling, &self.opts, &self.device)?
+                    evaluate(&valid, &mut **v, &scaling, &self.opts, self.main())?
                 }
                 _ => train_loss,
             };
