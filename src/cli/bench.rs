@@ -1,4 +1,5 @@
-//! `minflow bench sim`: milliseconds per saved frame of the MLS-MPM ground truth for the
+//! `minflow bench`: the subcommands (train, transport, node and gemm live in their own
+//! files). `bench sim`: milliseconds per saved frame of the MLS-MPM ground truth for the
 //! `multi` setting (2,500 particles, 64^2 grid, 20 substeps) and the `fluid` setting
 //! (128^2 grid, 80 substeps), on one thread and on all threads (one scene per thread), in
 //! one run so the ratios are comparable on a noisy machine. Taichi 1.7.4's CPU backend needs
@@ -21,6 +22,8 @@ pub enum BenchCommand {
     Transport(super::bench_transport::TransportBenchArgs),
     /// Surrogate node latency and throughput per core and transport (two processes).
     Node(super::bench_node::NodeBenchArgs),
+    /// GPU dense-layer products: cubecl vs cuBLAS TF32 / FP32, ms, TFLOP/s, difference.
+    Gemm(super::bench_gemm::GemmBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -42,6 +45,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
         BenchCommand::Train(args) => super::bench_train::run(args),
         BenchCommand::Transport(args) => super::bench_transport::run(args),
         BenchCommand::Node(args) => super::bench_node::run(args),
+        BenchCommand::Gemm(args) => super::bench_gemm::run(args),
     }
 }
 

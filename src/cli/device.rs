@@ -15,6 +15,11 @@ pub struct DeviceArgs {
     /// train and bench train only). CUDA needs a build with `--features cuda` (docs/cuda.md).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// The kernel for the large dense-layer products on a GPU: tf32 (cuBLAS on TF32 tensor
+    /// cores, as cubecl's own f32 matmul) | fp32 (cuBLAS, full FP32) | cubecl (burn's
+    /// matmul). Ignored on the CPU.
+    #[arg(long, default_value = "tf32", value_parser = ["tf32", "fp32", "cubecl"])]
+    pub gpu_gemm: String,
 }
 
 /// A parsed `--device`.
@@ -27,9 +32,13 @@ pub enum Device {
 }
 
 impl DeviceArgs {
-    /// Validates the flag (a CUDA device in a build without the feature is an error).
+    /// Validates the flags (a CUDA device in a build without the feature is an error) and
+    /// sets `--gpu-gemm` for the process.
     pub fn parse(&self) -> anyhow::Result<Device> {
-        parse(&self.device)
+        let device = parse(&self.device)?;
+        #[cfg(feature = "cuda")]
+        crate::model::cublas::set_gpu_gemm(crate::model::cublas::GpuGemm::parse(&self.gpu_gemm)?);
+        Ok(device)
     }
 }
 

@@ -4,6 +4,7 @@
 
 mod bag;
 mod bench;
+mod bench_gemm;
 mod bench_node;
 mod bench_train;
 mod bench_transport;
@@ -92,6 +93,8 @@ enum TrainCommand {
 enum TrainBenchCommand {
     /// Training speed per core (as `minflow bench train`).
     Train(bench_train::TrainBenchArgs),
+    /// GPU dense-layer products per kernel (as `minflow bench gemm`).
+    Gemm(bench_gemm::GemmBenchArgs),
 }
 
 /// Runs a parsed [`TrainCli`] command.
@@ -101,6 +104,7 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Train(args) => train::run(args),
         TrainCommand::Eval(args) => eval::run(args),
         TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench_train::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench_gemm::run(args),
     }
 }
 

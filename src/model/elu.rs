@@ -53,13 +53,17 @@ pub trait FusedElu: Backend {
     }
 
     /// `elu(x @ weight + bias)`, shapes as [`FusedElu::linear_forward`]. The CPU backend
-    /// adds the bias and applies ELU in one pass over the product.
+    /// adds the bias and applies ELU in one pass over the product; by default bias and ELU
+    /// are applied to the `[rows, out]` product before it takes `x`'s leading dims back (a
+    /// fusing backend then compiles them into one kernel: a reshape between them split it).
     fn linear_elu_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        Self::elu_forward(Self::linear_forward(x, weight, bias))
+        composed_linear_map::<Self>(x, weight, bias, |y| {
+            burn::tensor::activation::elu(y, 1.0)
+        })
     }
 
     /// Gradients of `y = x @ weight (+ bias)` from `grad` = dL/dy `[..., out]`:
@@ -71,6 +75,21 @@ pub trait FusedElu: Backend {
         need: [bool; 3],
     ) -> [Option<FloatTensor<Self>>; 3] {
         composed_linear_backward::<Self>(x, weight, grad, need)
+    }
+
+    /// `a @ b` for 2-D `a` `[m, k]` and `b` `[k, n]` (either may be a transposed view) ->
+    /// `[m, n]`: the products of the composed dense layer and its backward. burn's matmul
+    /// by default; the CUDA backend sends large ones to cuBLAS (`model::cublas`).
+    fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::float_matmul(a, b)
+    }
+
+    /// Whether [`FusedElu::matmul`] takes a `[m, k] x [k, n]` product with a long reduction
+    /// `k` whole and still fills the device (cuBLAS chooses split-K itself), so the composed
+    /// backward does not cut the weight gradient into row chunks ([`weight_grad_chunks`]).
+    fn splits_reduction(m: usize, k: usize, n: usize) -> bool {
+        let _ = (m, k, n);
+        false
     }
 
     /// One Adam step on a parameter (see [`AdamStep`]): returns the new parameter and the
@@ -382,20 +401,33 @@ fn from_rows<B: Backend>(y: Tensor<B, 2>, shape: &burn::tensor::Shape) -> FloatT
     B::float_reshape(y.into_primitive().tensor(), dims.into())
 }
 
-/// `x @ weight + bias` with burn's tensor ops (what `Linear::forward` does).
-fn composed_linear<B: Backend>(
+/// `x @ weight + bias` with burn's tensor ops (what `Linear::forward` does), the product
+/// through [`FusedElu::matmul`].
+fn composed_linear<B: FusedElu>(
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     bias: Option<FloatTensor<B>>,
 ) -> FloatTensor<B> {
+    composed_linear_map::<B>(x, weight, bias, |y| y)
+}
+
+/// `f(x @ weight + bias)` with `f` applied to the `[rows, out]` rows.
+fn composed_linear_map<B: FusedElu>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    bias: Option<FloatTensor<B>>,
+    f: impl FnOnce(Tensor<B, 2>) -> Tensor<B, 2>,
+) -> FloatTensor<B> {
     let (x, shape) = as_rows::<B>(x);
-    let w = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(weight));
-    let y = x.matmul(w);
+    let y = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(B::matmul(
+        x.into_primitive().tensor(),
+        weight,
+    )));
     let y = match bias {
         Some(b) => y + Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(b)).unsqueeze::<2>(),
         None => y,
     };
-    from_rows(y, &shape)
+    from_rows(f(y), &shape)
 }
 
 /// [`FusedElu::elu_backward`] with burn's tensor ops: `grad` where `out > 0`, else
@@ -456,7 +488,7 @@ pub fn weight_grad_chunks(rows: usize, d_in: usize, d_out: usize) -> usize {
 /// [`FusedElu::linear_backward`] with burn's tensor ops: `dx = g w^T`, `dw = x^T g`,
 /// `db = sum_rows g`, the last two as sums of [`weight_grad_chunks`] partial products when
 /// the rows are many (what lets a GPU spread them).
-fn composed_linear_backward<B: Backend>(
+fn composed_linear_backward<B: FusedElu>(
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     grad: FloatTensor<B>,
@@ -465,12 +497,18 @@ fn composed_linear_backward<B: Backend>(
     let shape = x.shape();
     let d_in = *shape.last().expect("rank >= 2");
     let d_out = *grad.shape().last().expect("rank >= 2");
-    let chunks = weight_grad_chunks(shape.num_elements() / d_in.max(1), d_in, d_out);
+    let rows = shape.num_elements() / d_in.max(1);
+    let chunks = if B::splits_reduction(d_in, rows, d_out) {
+        1
+    } else {
+        weight_grad_chunks(rows, d_in, d_out)
+    };
     linear_backward_in_chunks::<B>(x, weight, grad, need, chunks)
 }
 
-/// [`composed_linear_backward`] with `chunks` row chunks (dividing the rows).
-fn linear_backward_in_chunks<B: Backend>(
+/// [`composed_linear_backward`] with `chunks` row chunks (dividing the rows) for the weight
+/// gradient; the bias gradient is split by its own [`weight_grad_chunks`].
+fn linear_backward_in_chunks<B: FusedElu>(
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     grad: FloatTensor<B>,
@@ -482,25 +520,30 @@ fn linear_backward_in_chunks<B: Backend>(
     let weight = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(weight));
     let [rows, d_out] = grad.dims();
     let d_in = x.dims()[1];
-    let dx = need[0].then(|| from_rows(grad.clone().matmul(weight.transpose()), &shape));
+    let product = |a: Tensor<B, 2>, b: Tensor<B, 2>| {
+        Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(B::matmul(
+            a.into_primitive().tensor(),
+            b.into_primitive().tensor(),
+        )))
+    };
+    let dx = need[0].then(|| from_rows(product(grad.clone(), weight.transpose()), &shape));
     let dw = need[1].then(|| {
-        let dw = if chunks > 1 {
+        if chunks > 1 {
             let xs = x.reshape([chunks, rows / chunks, d_in]).swap_dims(1, 2);
             let gs = grad.clone().reshape([chunks, rows / chunks, d_out]);
-            xs.matmul(gs).sum_dim(0).reshape([d_in, d_out])
+            let dw = xs.matmul(gs).sum_dim(0).reshape([d_in, d_out]);
+            dw.into_primitive().tensor()
         } else {
-            x.transpose().matmul(grad.clone())
-        };
-        dw.into_primitive().tensor()
+            B::matmul(
+                x.transpose().into_primitive().tensor(),
+                grad.clone().into_primitive().tensor(),
+            )
+        }
     });
     let db = need[2].then(|| {
         // The bias gradient is a reduction over the rows with `d_out` outputs: split it for
         // `d_out` alone (a `[16, 25,000, 1,250]` middle-axis sum ran on 40 thread blocks).
-        let chunks = if chunks > 1 {
-            weight_grad_chunks(rows, 1, d_out)
-        } else {
-            1
-        };
+        let chunks = weight_grad_chunks(rows, 1, d_out);
         let db = if chunks > 1 {
             grad.reshape([chunks, rows / chunks, d_out])
                 .sum_dim(1)
@@ -612,9 +655,18 @@ impl FusedElu for NdArray<f32> {
     }
 }
 
-/// CUDA (feature `cuda`): the composed defaults, fused into one kernel by burn's fusion layer.
+/// CUDA (feature `cuda`): the composed defaults, whose element-wise chains burn's fusion
+/// layer compiles into single kernels, with the large products through cuBLAS.
 #[cfg(feature = "cuda")]
-impl FusedElu for burn::backend::Cuda<f32, i32> {}
+impl FusedElu for burn::backend::Cuda<f32, i32> {
+    fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        super::cublas::matmul(a, b)
+    }
+
+    fn splits_reduction(m: usize, k: usize, n: usize) -> bool {
+        super::cublas::worth_it(m, k, n)
+    }
+}
 
 /// The backward node of a dense layer (`P` = 3 parents with a bias, 2 without): keeps the
 /// input and the weight (and the output when ELU follows) and calls
@@ -707,13 +759,16 @@ impl<B: FusedElu> Backward<B, 3> for LinearEluMeanBackward {
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let (x, weight, out) = ops.state;
         let grad = grads.consume::<B>(&ops.node);
-        let shape = out.shape();
-        let (m, n, width) = (shape[0], shape[1], shape[2]);
+        let out = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(out));
+        let [m, n, width] = out.dims();
+        // One broadcast pass: `g / N` `[M, 1, W]` against the `[M, N, W]` output. (Expanding
+        // `g` first and flattening both, as `elu_backward` does, copied the expanded
+        // gradient out: a 2 GB copy per step at the paper's sizes.)
         let g = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(grad))
             .div_scalar(n as f32)
-            .reshape([m, 1, width])
-            .expand([m, n, width]);
-        let dz = B::elu_backward(out, g.into_primitive().tensor());
+            .reshape([m, 1, width]);
+        let slope = (out.clone() + 1.0).mask_fill(out.greater_elem(0.0), 1.0);
+        let dz = (slope * g).into_primitive().tensor();
         let need = std::array::from_fn(|i| ops.parents[i].is_some());
         let parent_grads = B::linear_backward(x, weight, dz, need);
         for (parent, g) in ops.parents.into_iter().zip(parent_grads) {

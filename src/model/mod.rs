@@ -8,6 +8,8 @@
 //! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
 
 mod cpu_kernels;
+#[cfg(feature = "cuda")]
+pub mod cublas;
 pub mod decoder;
 pub mod elu;
 pub mod encoder;

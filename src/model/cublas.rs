@@ -1,0 +1,322 @@
+//! The large dense-layer products of training on burn's CUDA backend through cuBLAS (feature
+//! `cuda`), as a custom operation of burn's fusion layer.
+//!
+//! Why: the paper's encoder spends most of a GPU training step in three
+//! `[400,000 x 256] x [256 x 1,250]` products (forward, input gradient, weight gradient),
+//! which cubek's default tiled TF32 kernel ran at ~36 TFLOP/s on an H200 (docs/cuda.md).
+//! cuBLAS (`cublasSgemm`, NVIDIA cuBLAS Library, "cublas<t>gemm") is the kernel library
+//! PyTorch calls for the same products; it picks tile shapes and split-K per shape.
+//!
+//! How: [`matmul`] records a `CustomOpIr` on the fusion stream, so it runs in order with the
+//! fused kernels around it. When the stream reaches it, the device pointers of the inputs and
+//! of a fresh output are read from cubecl's memory pool, and `cublasSgemm` is enqueued on the
+//! CUDA stream that pool belongs to: the stream cubecl launches this thread's kernels on
+//! (exposed by the vendored cubecl-cuda, vendor/README.md). Reading a resource goes through
+//! cubecl's device queue, so every kernel recorded before is launched first, and every kernel
+//! after is launched after: stream order does the rest, with no host wait. [`worth_it`] sends
+//! products of at least 2^28 multiply-adds here; smaller ones stay with cubecl.
+//!
+//! [`GpuGemm`] picks the math: TF32 tensor cores (what cubek does for f32 products, and
+//! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel.
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU8, Ordering};
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{DType, Shape, TensorMetadata};
+use burn_cubecl::tensor::CubeTensor;
+use burn_cubecl::CubeBackend;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_fusion::FusionRuntime;
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cudarc::cublas::{result as cublas, sys as cublas_sys};
+use cudarc::driver::{result as driver, sys as driver_sys};
+
+/// The backend under burn's fusion layer for `Cuda<f32, i32>`.
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+/// burn's CUDA backend with fusion (what `--device cuda` trains on).
+type Cuda = burn::backend::Cuda<f32, i32>;
+/// The fusion runtime of [`Inner`].
+type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+
+/// Which kernel multiplies the large dense-layer products on the GPU (`--gpu-gemm`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GpuGemm {
+    /// cuBLAS with TF32 tensor cores (`CUBLAS_TF32_TENSOR_OP_MATH`): inputs rounded to a
+    /// 10-bit mantissa, products accumulated in f32, as cubek's f32 matmul does.
+    Tf32,
+    /// cuBLAS in full FP32 (`CUBLAS_DEFAULT_MATH`; PyTorch's default for f32).
+    Fp32,
+    /// cubecl's matmul (burn's own), with the split-K weight gradients of `model::elu`.
+    Cubecl,
+}
+
+impl GpuGemm {
+    /// Parses `tf32 | fp32 | cubecl`.
+    ///
+    /// # Errors
+    /// Any other text.
+    pub fn parse(text: &str) -> anyhow::Result<Self> {
+        match text {
+            "tf32" => Ok(Self::Tf32),
+            "fp32" => Ok(Self::Fp32),
+            "cubecl" => Ok(Self::Cubecl),
+            other => anyhow::bail!("--gpu-gemm {other:?}: expected tf32 | fp32 | cubecl"),
+        }
+    }
+}
+
+/// The process-wide choice (0 = TF32, 1 = FP32, 2 = cubecl).
+static GEMM: AtomicU8 = AtomicU8::new(0);
+
+/// Sets which kernel [`matmul`] uses from now on (process wide).
+pub fn set_gpu_gemm(gemm: GpuGemm) {
+    GEMM.store(gemm as u8, Ordering::Relaxed);
+}
+
+/// The current choice.
+pub fn gpu_gemm() -> GpuGemm {
+    match GEMM.load(Ordering::Relaxed) {
+        0 => GpuGemm::Tf32,
+        1 => GpuGemm::Fp32,
+        _ => GpuGemm::Cubecl,
+    }
+}
+
+/// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS: below, the two host
+/// waits would cost more than cubecl's kernel loses.
+const MIN_MACS: usize = 1 << 28;
+
+/// Whether a `[m, k] x [k, n]` product goes to cuBLAS (then it also splits its long
+/// reductions itself: no row chunks needed for the weight gradients).
+pub fn worth_it(m: usize, k: usize, n: usize) -> bool {
+    gpu_gemm() != GpuGemm::Cubecl && m.saturating_mul(k).saturating_mul(n) >= MIN_MACS
+}
+
+/// `a @ b` for 2-D `a` `[m, k]` and `b` `[k, n]` -> `[m, n]` (contiguous), through cuBLAS when
+/// [`worth_it`], else burn's matmul. Either input may be a transposed view (as `w^T` and `x^T`
+/// in a dense layer's backward are); other strided views are made contiguous first.
+///
+/// # Panics
+/// A cuBLAS or CUDA driver error (cuBLAS missing: `libcublas.so.13` not found) panics, as
+/// burn's own kernels do on a device error.
+pub fn matmul(a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
+    use burn::tensor::ops::FloatTensorOps;
+    let (sa, sb) = (a.shape(), b.shape());
+    assert!(
+        sa.num_dims() == 2 && sb.num_dims() == 2 && sa[1] == sb[0],
+        "cublas::matmul: [m, k] x [k, n], got {sa:?} x {sb:?}"
+    );
+    let (m, k, n) = (sa[0], sa[1], sb[1]);
+    if !worth_it(m, k, n) {
+        return Cuda::float_matmul(a, b);
+    }
+
+    /// The recorded operation: inputs `[a, b]`, output `[c]`.
+    #[derive(Debug)]
+    struct Gemm {
+        desc: CustomOpIr,
+        gemm: GpuGemm,
+    }
+
+    impl Operation<Runtime> for Gemm {
+        fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
+            let ([a, b], [c]) = self.desc.as_fixed();
+            let a = handles.get_float_tensor::<Inner>(a);
+            let b = handles.get_float_tensor::<Inner>(b);
+            let out = gemm_cube(a, b, self.gemm);
+            handles.register_float_tensor::<Inner>(&c.id, out);
+        }
+    }
+
+    let client = a.client.clone();
+    let streams = OperationStreams::with_inputs([&a, &b]);
+    let out = TensorIr::uninit(client.create_empty_handle(), Shape::new([m, n]), DType::F32);
+    let desc = CustomOpIr::new("minflow_cublas_sgemm", &[a.into_ir(), b.into_ir()], &[out]);
+    let gemm = gpu_gemm();
+    client
+        .register(streams, OperationIr::Custom(desc.clone()), Gemm { desc, gemm })
+        .remove(0)
+}
+
+/// How cuBLAS reads a row-major 2-D view: `(transposed, leading dimension)`, or None when it
+/// is neither rows nor columns with unit stride (then it is copied contiguous first).
+fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
+    let [r, c] = shape;
+    let [sr, sc] = strides;
+    if (c == 1 || sc == 1) && (r == 1 || sr >= c) {
+        return Some((false, if r == 1 { c } else { sr }.max(1)));
+    }
+    if (r == 1 || sr == 1) && (c == 1 || sc >= r) {
+        return Some((true, if c == 1 { r } else { sc }.max(1)));
+    }
+    None
+}
+
+/// A 2-D CubeTensor's shape and strides.
+fn dims(t: &CubeTensor<CudaRuntime>) -> ([usize; 2], [usize; 2]) {
+    let (shape, strides) = (t.meta.shape(), t.meta.strides());
+    ([shape[0], shape[1]], [strides[0], strides[1]])
+}
+
+/// The view cuBLAS reads for `t`, copying it contiguous when it has no such layout.
+fn readable(t: CubeTensor<CudaRuntime>) -> (CubeTensor<CudaRuntime>, bool, usize) {
+    let (shape, strides) = dims(&t);
+    if let Some((trans, ld)) = layout(shape, strides) {
+        return (t, trans, ld);
+    }
+    let t = burn_cubecl::kernel::into_contiguous(t);
+    let (shape, strides) = dims(&t);
+    let (trans, ld) = layout(shape, strides).expect("a contiguous tensor is row-major");
+    (t, trans, ld)
+}
+
+/// One cuBLAS handle per (thread, GPU), the stream it is bound to, and the GPU's primary
+/// context (the one cubecl uses).
+struct Blas {
+    handle: cublas_sys::cublasHandle_t,
+    stream: driver_sys::CUstream,
+    ctx: driver_sys::CUcontext,
+    math: Option<GpuGemm>,
+}
+
+thread_local! {
+    static BLAS: RefCell<HashMap<usize, Blas>> = RefCell::new(HashMap::new());
+}
+
+/// Runs `f` with GPU `index`'s cuBLAS handle, its math mode set for `gemm` and bound to
+/// `stream`, the GPU's context current on this thread.
+fn with_blas<T>(
+    index: usize,
+    gemm: GpuGemm,
+    stream: driver_sys::CUstream,
+    f: impl FnOnce(cublas_sys::cublasHandle_t) -> T,
+) -> T {
+    BLAS.with(|cell| {
+        let mut map = cell.borrow_mut();
+        let blas = map.entry(index).or_insert_with(|| {
+            // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
+            // one cubecl retained for this GPU, retained again here (never released: the
+            // handle lives as long as the thread).
+            unsafe {
+                let dev = driver::device::get(index as i32).expect("CUDA device");
+                let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
+                driver::ctx::set_current(ctx).expect("CUDA context");
+                let handle = cublas::create_handle().unwrap_or_else(|e| {
+                    panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
+                });
+                Blas {
+                    handle,
+                    stream: std::ptr::null_mut(),
+                    ctx,
+                    math: None,
+                }
+            }
+        });
+        // SAFETY: the context and handle were created above and are alive.
+        unsafe {
+            driver::ctx::set_current(blas.ctx).expect("CUDA context");
+            if blas.math != Some(gemm) {
+                let mode = match gemm {
+                    GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
+                    _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
+                };
+                cublas_sys::cublasSetMathMode(blas.handle, mode)
+                    .result()
+                    .expect("cuBLAS math mode");
+                blas.math = Some(gemm);
+            }
+            if blas.stream != stream {
+                // (Resets cuBLAS's workspace to its default pool: done only on a change.)
+                cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
+                blas.stream = stream;
+            }
+        }
+        f(blas.handle)
+    })
+}
+
+/// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
+/// `C^T = B^T A^T`), enqueued on cubecl's stream.
+fn gemm_cube(
+    a: CubeTensor<CudaRuntime>,
+    b: CubeTensor<CudaRuntime>,
+    gemm: GpuGemm,
+) -> CubeTensor<CudaRuntime> {
+    let (a, a_trans, lda) = readable(a);
+    let (b, b_trans, ldb) = readable(b);
+    let ([m, k], _) = dims(&a);
+    let n = dims(&b).0[1];
+    let client = a.client.clone();
+    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+        client.clone(),
+        a.device.clone(),
+        Shape::new([m, n]),
+        DType::F32,
+    );
+    // (pointer, stream of its pool); reading a resource also makes this thread's stream wait
+    // for a tensor written on another one.
+    let resource = |t: &CubeTensor<CudaRuntime>| {
+        let r = client.get_resource(t.handle.clone()).expect("cubecl resource");
+        (r.resource().ptr, r.resource().stream)
+    };
+    let ((pa, _), (pb, _)) = (resource(&a), resource(&b));
+    // The output was just allocated from this thread's pool: its stream is the one cubecl
+    // launches on for this thread.
+    let (pc, stream) = resource(&out);
+    let op = |t: bool| {
+        if t {
+            cublas_sys::cublasOperation_t::CUBLAS_OP_T
+        } else {
+            cublas_sys::cublasOperation_t::CUBLAS_OP_N
+        }
+    };
+    let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
+    with_blas(a.device.index, gemm, stream, |handle| {
+        let (alpha, beta) = (1.0f32, 0.0f32);
+        // SAFETY: the pointers are live allocations of the tensors held above, of the sizes
+        // the dimensions and leading dimensions describe (checked by `layout`). The product
+        // is enqueued on the stream cubecl writes them on, after every kernel launched so far
+        // (the resource reads above went through cubecl's queue); their memory returns to
+        // the pool when `a` and `b` drop, for kernels enqueued after this one.
+        unsafe {
+            cublas::sgemm(
+                handle,
+                op(b_trans),
+                op(a_trans),
+                int(n),
+                int(m),
+                int(k),
+                &alpha,
+                pb as *const f32,
+                int(ldb),
+                pa as *const f32,
+                int(lda),
+                &beta,
+                pc as *mut f32,
+                int(n),
+            )
+            .expect("cublasSgemm");
+        }
+    });
+    drop((a, b));
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::layout;
+
+    #[test]
+    fn layouts_of_rows_columns_and_neither() {
+        assert_eq!(layout([4, 3], [3, 1]), Some((false, 3)));
+        assert_eq!(layout([4, 3], [8, 1]), Some((false, 8)), "pitched rows");
+        assert_eq!(layout([3, 4], [1, 3]), Some((true, 3)), "transposed view");
+        assert_eq!(layout([1, 5], [0, 1]), Some((false, 5)));
+        assert_eq!(layout([5, 1], [1, 0]), Some((false, 1)));
+        assert_eq!(layout([4, 3], [0, 1]), None, "broadcast rows");
+        assert_eq!(layout([4, 3], [6, 2]), None, "strided columns");
+    }
+}
