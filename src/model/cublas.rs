@@ -19,9 +19,9 @@
 //! [`GpuGemm`] picks the math: TF32 tensor cores (what cubek does for f32 products, and
 //! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel.
 
-use std::cell::RefCell;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Mutex;
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
@@ -137,7 +137,11 @@ pub fn matmul(a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
     let desc = CustomOpIr::new("minflow_cublas_sgemm", &[a.into_ir(), b.into_ir()], &[out]);
     let gemm = gpu_gemm();
     client
-        .register(streams, OperationIr::Custom(desc.clone()), Gemm { desc, gemm })
+        .register(
+            streams,
+            OperationIr::Custom(desc.clone()),
+            Gemm { desc, gemm },
+        )
         .remove(0)
 }
 
@@ -173,8 +177,9 @@ fn readable(t: CubeTensor<CudaRuntime>) -> (CubeTensor<CudaRuntime>, bool, usize
     (t, trans, ld)
 }
 
-/// One cuBLAS handle per (thread, GPU), the stream it is bound to, and the GPU's primary
-/// context (the one cubecl uses).
+/// One cuBLAS handle per GPU, the stream it is bound to, and the GPU's primary context (the
+/// one cubecl uses). Process-wide, behind a lock (data-parallel workers are new threads
+/// every step; a handle per thread would be created and leaked per step).
 struct Blas {
     handle: cublas_sys::cublasHandle_t,
     stream: driver_sys::CUstream,
@@ -182,9 +187,11 @@ struct Blas {
     math: Option<GpuGemm>,
 }
 
-thread_local! {
-    static BLAS: RefCell<HashMap<usize, Blas>> = RefCell::new(HashMap::new());
-}
+// SAFETY: the handle and context are plain driver handles; every use holds `BLAS`'s lock and
+// makes the context current on the calling thread first.
+unsafe impl Send for Blas {}
+
+static BLAS: Mutex<Option<HashMap<usize, Blas>>> = Mutex::new(None);
 
 /// Runs `f` with GPU `index`'s cuBLAS handle, its math mode set for `gemm` and bound to
 /// `stream`, the GPU's context current on this thread.
@@ -194,48 +201,47 @@ fn with_blas<T>(
     stream: driver_sys::CUstream,
     f: impl FnOnce(cublas_sys::cublasHandle_t) -> T,
 ) -> T {
-    BLAS.with(|cell| {
-        let mut map = cell.borrow_mut();
-        let blas = map.entry(index).or_insert_with(|| {
-            // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
-            // one cubecl retained for this GPU, retained again here (never released: the
-            // handle lives as long as the thread).
-            unsafe {
-                let dev = driver::device::get(index as i32).expect("CUDA device");
-                let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
-                driver::ctx::set_current(ctx).expect("CUDA context");
-                let handle = cublas::create_handle().unwrap_or_else(|e| {
-                    panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
-                });
-                Blas {
-                    handle,
-                    stream: std::ptr::null_mut(),
-                    ctx,
-                    math: None,
-                }
-            }
-        });
-        // SAFETY: the context and handle were created above and are alive.
+    let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
+    let map = guard.get_or_insert_with(HashMap::new);
+    let blas = map.entry(index).or_insert_with(|| {
+        // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
+        // one cubecl retained for this GPU, retained again here (never released: the
+        // handle lives as long as the process).
         unsafe {
-            driver::ctx::set_current(blas.ctx).expect("CUDA context");
-            if blas.math != Some(gemm) {
-                let mode = match gemm {
-                    GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
-                    _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
-                };
-                cublas_sys::cublasSetMathMode(blas.handle, mode)
-                    .result()
-                    .expect("cuBLAS math mode");
-                blas.math = Some(gemm);
-            }
-            if blas.stream != stream {
-                // (Resets cuBLAS's workspace to its default pool: done only on a change.)
-                cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
-                blas.stream = stream;
+            let dev = driver::device::get(index as i32).expect("CUDA device");
+            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
+            driver::ctx::set_current(ctx).expect("CUDA context");
+            let handle = cublas::create_handle().unwrap_or_else(|e| {
+                panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
+            });
+            Blas {
+                handle,
+                stream: std::ptr::null_mut(),
+                ctx,
+                math: None,
             }
         }
-        f(blas.handle)
-    })
+    });
+    // SAFETY: the context and handle were created above and are alive.
+    unsafe {
+        driver::ctx::set_current(blas.ctx).expect("CUDA context");
+        if blas.math != Some(gemm) {
+            let mode = match gemm {
+                GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
+                _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
+            };
+            cublas_sys::cublasSetMathMode(blas.handle, mode)
+                .result()
+                .expect("cuBLAS math mode");
+            blas.math = Some(gemm);
+        }
+        if blas.stream != stream {
+            // (Resets cuBLAS's workspace to its default pool: done only on a change.)
+            cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
+            blas.stream = stream;
+        }
+    }
+    f(blas.handle)
 }
 
 /// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
@@ -259,13 +265,19 @@ fn gemm_cube(
     // (pointer, stream of its pool); reading a resource also makes this thread's stream wait
     // for a tensor written on another one.
     let resource = |t: &CubeTensor<CudaRuntime>| {
-        let r = client.get_resource(t.handle.clone()).expect("cubecl resource");
+        let r = client
+            .get_resource(t.handle.clone())
+            .expect("cubecl resource");
         (r.resource().ptr, r.resource().stream)
     };
-    let ((pa, _), (pb, _)) = (resource(&a), resource(&b));
+    let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
     // The output was just allocated from this thread's pool: its stream is the one cubecl
     // launches on for this thread.
     let (pc, stream) = resource(&out);
+    // An input from another stream's pool (data parallel: tensors moved between devices and
+    // threads) may be freed and its memory reused on that stream as soon as we return, while
+    // the product still reads it here: then wait for the product before returning.
+    let foreign = sa != stream || sb != stream;
     let op = |t: bool| {
         if t {
             cublas_sys::cublasOperation_t::CUBLAS_OP_T
@@ -299,6 +311,9 @@ fn gemm_cube(
                 int(n),
             )
             .expect("cublasSgemm");
+            if foreign {
+                driver::stream::synchronize(stream).expect("cuBLAS stream");
+            }
         }
     });
     drop((a, b));

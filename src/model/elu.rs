@@ -61,9 +61,7 @@ pub trait FusedElu: Backend {
         weight: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        composed_linear_map::<Self>(x, weight, bias, |y| {
-            burn::tensor::activation::elu(y, 1.0)
-        })
+        composed_linear_map::<Self>(x, weight, bias, |y| burn::tensor::activation::elu(y, 1.0))
     }
 
     /// Gradients of `y = x @ weight (+ bias)` from `grad` = dL/dy `[..., out]`:

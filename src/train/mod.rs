@@ -26,7 +26,7 @@ use burn::module::{AutodiffModule, Module};
 use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
 use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
 use burn::tensor::backend::{AutodiffBackend, Backend, DeviceOps};
-use burn::tensor::{ElementConversion, Tensor};
+use burn::tensor::{ElementConversion, StreamId, Tensor};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -436,6 +436,20 @@ where
             .rev()
             .take_while(|r| r.val_loss > best)
             .count();
+        // Data parallel: one fixed stream id per device for the whole run (this thread's for
+        // the main device, a fresh one each for the others). burn's fusion streams and
+        // cubecl's CUDA streams and memory pools are per stream id, which is per thread by
+        // default: workers spawned every step would open a new ~10 GB pool per step at the
+        // paper's size (the allocator then failed), and two threads sharing one id on a
+        // device corrupt its stream (illegal addresses).
+        let streams: Vec<StreamId> = (0..self.devices.len())
+            .map(|k| match k {
+                0 => StreamId::current(),
+                _ => std::thread::spawn(StreamId::current)
+                    .join()
+                    .expect("a thread that only reads its id"),
+            })
+            .collect();
         for epoch in start_epoch..self.opts.epochs {
             if self.opts.patience > 0 && since_best >= self.opts.patience {
                 break;
@@ -494,18 +508,22 @@ where
                         vec![loss]
                     } else {
                         let shards = deal(slices, parallel);
+                        // The workers are new threads every step, on the run's fixed
+                        // stream ids (see `streams`).
                         let results: Vec<_> = std::thread::scope(|workers| {
                             let handles: Vec<_> = shards
                                 .into_iter()
-                                .zip(&self.devices)
-                                .map(|(shard, device)| {
+                                .zip(self.devices.iter().zip(&streams))
+                                .map(|(shard, (device, &stream))| {
                                     let model = &model;
                                     let scaling = &scaling;
                                     workers.spawn(move || {
-                                        let local = model.clone().fork(device);
-                                        let (grads, loss) =
-                                            self.shard_step(&local, shard, b, scaling, device);
-                                        (grads, device.id(), loss)
+                                        stream.executes(|| {
+                                            let local = model.clone().fork(device);
+                                            let (grads, loss) =
+                                                self.shard_step(&local, shard, b, scaling, device);
+                                            (grads, device.id(), loss)
+                                        })
                                     })
                                 })
                                 .collect();

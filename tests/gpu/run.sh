@@ -3,7 +3,7 @@
 # run this). From the repository root, with `minflow` built with `--features cuda` in gpu/
 # (plain, or xz-compressed as gpu/minflow.xz; docs/cuda.md says how):
 #
-#   tests/gpu/run.sh speed     # PyTorch reference, bench train: split on/off, five cores
+#   tests/gpu/run.sh speed     # PyTorch reference, bench gemm, bench train per --gpu-gemm, five cores
 #   tests/gpu/run.sh autotune  # the paper's model with burn's autotuned kernels (cuda-autotune)
 #   tests/gpu/run.sh profile   # host timings per micro-batch and cubecl's kernel profile
 #   tests/gpu/run.sh parity    # CPU and GPU train the same model from the same seed and data
@@ -20,6 +20,11 @@ export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
 # strategy, but keep it so for any library that loads NCCL).
 export NCCL_NVLS_ENABLE=0
 BIN=gpu/minflow
+# PyTorch for the reference timings: python3, or the machine's torch venv.
+PY=${PY:-python3}
+if ! "$PY" -c "import torch" 2>/dev/null && [ -x /opt/torch/.venv/bin/python ]; then
+    PY=/opt/torch/.venv/bin/python
+fi
 if [ ! -x "$BIN" ] && [ -f gpu/minflow.xz ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/minflow.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
@@ -38,13 +43,19 @@ check() { # name command...
 speed() {
     nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
     # PyTorch on the same GPU, the paper's configuration (ELU encoder, batch 80, T = 2).
-    check torch python3 docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20 --warmup 3
-    # The paper's model: what splitting the weight gradients buys, then the five cores.
-    for split in off on; do
-        check "paper-split-$split" "$BIN" bench train --device cuda --encoder-last-activation elu \
+    check torch "$PY" docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20 --warmup 3
+    # The encoder's products alone: cubecl vs cuBLAS TF32 / FP32.
+    check gemm "$BIN" bench gemm --device cuda
+    # The paper's model per product kernel (cubecl: with and without split-K), then the
+    # five cores.
+    for gemm in tf32 fp32 cubecl; do
+        check "paper-gemm-$gemm" "$BIN" bench train --device cuda --encoder-last-activation elu \
             --windows 2 --cores mingru --micro-batch 80 --samples 800 --epochs 2 \
-            --warmup-epochs 1 --split-weight-grad "$split"
+            --warmup-epochs 1 --gpu-gemm "$gemm"
     done
+    check paper-split-off "$BIN" bench train --device cuda --encoder-last-activation elu \
+        --windows 2 --cores mingru --micro-batch 80 --samples 800 --epochs 2 \
+        --warmup-epochs 1 --gpu-gemm cubecl --split-weight-grad off
     check paper-cores "$BIN" bench train --device cuda --encoder-last-activation elu --windows 2 \
         --micro-batch 80 --samples 800 --epochs 2 --warmup-epochs 1
     # minflow's default encoder (pool-then-project), T = 2 and 32.
