@@ -36,7 +36,6 @@ impl DeviceArgs {
     /// sets `--gpu-gemm` for the process.
     pub fn parse(&self) -> anyhow::Result<Device> {
         let device = parse(&self.device)?;
-        #[cfg(feature = "cuda")]
         crate::model::cublas::set_gpu_gemm(crate::model::cublas::GpuGemm::parse(&self.gpu_gemm)?);
         Ok(device)
     }
@@ -101,13 +100,15 @@ pub mod cuda {
     /// A GPU.
     pub type CudaDevice = burn::backend::cuda::CudaDevice;
 
-    /// GPU `index`, after checking that the driver loads and has such a GPU (burn would
-    /// panic deep inside its first kernel launch otherwise). Sets `CUDA_PATH` to
+    /// GPU `index`, after checking that the driver, NVRTC and (unless `--gpu-gemm cubecl`)
+    /// cuBLAS load and that the driver has such a GPU (burn would panic deep inside its
+    /// first kernel launch otherwise). Sets `CUDA_PATH` to
     /// `/usr/local/cuda` when it is unset and that folder exists: NVRTC compiles burn's
     /// kernels with the toolkit's headers.
     ///
     /// # Errors
-    /// No `libcuda` (no NVIDIA driver), a driver error, or `index` beyond the GPUs present.
+    /// No `libcuda` (no NVIDIA driver), no `libnvrtc` or `libcublas`, a driver error, or
+    /// `index` beyond the GPUs present.
     pub fn device(index: usize) -> anyhow::Result<CudaDevice> {
         // SAFETY: only tries to open the library (libloading), calls nothing in it.
         if !unsafe { cudarc::driver::sys::is_culib_present() } {
@@ -119,6 +120,14 @@ pub mod cuda {
         if !unsafe { cudarc::nvrtc::sys::is_culib_present() } {
             anyhow::bail!(
                 "--device cuda:{index}: libnvrtc (the CUDA toolkit's run-time compiler) could not be loaded; install the toolkit or add its lib64 to LD_LIBRARY_PATH"
+            );
+        }
+        let cublas_wanted =
+            crate::model::cublas::gpu_gemm() != crate::model::cublas::GpuGemm::Cubecl;
+        // SAFETY: as above, for cuBLAS (the large products, `--gpu-gemm`).
+        if cublas_wanted && !unsafe { cudarc::cublas::sys::is_culib_present() } {
+            anyhow::bail!(
+                "--device cuda:{index}: libcublas.so.13 could not be loaded; add the CUDA toolkit's lib64 to LD_LIBRARY_PATH, or run with --gpu-gemm cubecl"
             );
         }
         let count = cudarc::driver::CudaContext::device_count()

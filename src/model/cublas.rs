@@ -1,5 +1,6 @@
-//! The large dense-layer products of training on burn's CUDA backend through cuBLAS (feature
-//! `cuda`), as a custom operation of burn's fusion layer.
+//! The large dense-layer products of training on burn's CUDA backend through cuBLAS, as a
+//! custom operation of burn's fusion layer. The choice of kernel ([`GpuGemm`], `--gpu-gemm`)
+//! and the layout logic are always built; the CUDA side (`matmul`) with the feature `cuda`.
 //!
 //! Why: the paper's encoder spends most of a GPU training step in three
 //! `[400,000 x 256] x [256 x 1,250]` products (forward, input gradient, weight gradient),
@@ -14,32 +15,12 @@
 //! (exposed by the vendored cubecl-cuda, vendor/README.md). Reading a resource goes through
 //! cubecl's device queue, so every kernel recorded before is launched first, and every kernel
 //! after is launched after: stream order does the rest, with no host wait. [`worth_it`] sends
-//! products of at least 2^28 multiply-adds here; smaller ones stay with cubecl.
+//! products of at least 2^30 multiply-adds here; smaller ones stay with cubecl.
 //!
 //! [`GpuGemm`] picks the math: TF32 tensor cores (what cubek does for f32 products, and
 //! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel.
 
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicU8, Ordering};
-use std::sync::Mutex;
-
-use burn::cubecl::cuda::CudaRuntime;
-use burn::tensor::ops::FloatTensor;
-use burn::tensor::{DType, Shape, TensorMetadata};
-use burn_cubecl::tensor::CubeTensor;
-use burn_cubecl::CubeBackend;
-use burn_fusion::stream::{Operation, OperationStreams};
-use burn_fusion::FusionRuntime;
-use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
-use cudarc::cublas::{result as cublas, sys as cublas_sys};
-use cudarc::driver::{result as driver, sys as driver_sys};
-
-/// The backend under burn's fusion layer for `Cuda<f32, i32>`.
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-/// burn's CUDA backend with fusion (what `--device cuda` trains on).
-type Cuda = burn::backend::Cuda<f32, i32>;
-/// The fusion runtime of [`Inner`].
-type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
 
 /// Which kernel multiplies the large dense-layer products on the GPU (`--gpu-gemm`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -85,9 +66,13 @@ pub fn gpu_gemm() -> GpuGemm {
     }
 }
 
-/// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS: below, the two host
-/// waits would cost more than cubecl's kernel loses.
-const MIN_MACS: usize = 1 << 28;
+/// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS (2^30: the paper
+/// encoder's second layer, 1.3e11, goes; its first, 400,000 x 5 x 256 = 5.1e8, stays). Each
+/// cuBLAS call reads three resources through cubecl's device queue, a host round trip that
+/// stops the host from running ahead of the GPU; where the host is the limit (minflow's
+/// default encoder) that cost more than cuBLAS saved on the small products (`bench train`:
+/// default encoder, minGRU, T = 2, 6,752 -> 5,151 samples/s with the first layer on cuBLAS).
+const MIN_MACS: usize = 1 << 30;
 
 /// Whether a `[m, k] x [k, n]` product goes to cuBLAS (then it also splits its long
 /// reductions itself: no row chunks needed for the weight gradients).
@@ -95,58 +80,9 @@ pub fn worth_it(m: usize, k: usize, n: usize) -> bool {
     gpu_gemm() != GpuGemm::Cubecl && m.saturating_mul(k).saturating_mul(n) >= MIN_MACS
 }
 
-/// `a @ b` for 2-D `a` `[m, k]` and `b` `[k, n]` -> `[m, n]` (contiguous), through cuBLAS when
-/// [`worth_it`], else burn's matmul. Either input may be a transposed view (as `w^T` and `x^T`
-/// in a dense layer's backward are); other strided views are made contiguous first.
-///
-/// # Panics
-/// A cuBLAS or CUDA driver error (cuBLAS missing: `libcublas.so.13` not found) panics, as
-/// burn's own kernels do on a device error.
-pub fn matmul(a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
-    use burn::tensor::ops::FloatTensorOps;
-    let (sa, sb) = (a.shape(), b.shape());
-    assert!(
-        sa.num_dims() == 2 && sb.num_dims() == 2 && sa[1] == sb[0],
-        "cublas::matmul: [m, k] x [k, n], got {sa:?} x {sb:?}"
-    );
-    let (m, k, n) = (sa[0], sa[1], sb[1]);
-    if !worth_it(m, k, n) {
-        return Cuda::float_matmul(a, b);
-    }
-
-    /// The recorded operation: inputs `[a, b]`, output `[c]`.
-    #[derive(Debug)]
-    struct Gemm {
-        desc: CustomOpIr,
-        gemm: GpuGemm,
-    }
-
-    impl Operation<Runtime> for Gemm {
-        fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
-            let ([a, b], [c]) = self.desc.as_fixed();
-            let a = handles.get_float_tensor::<Inner>(a);
-            let b = handles.get_float_tensor::<Inner>(b);
-            let out = gemm_cube(a, b, self.gemm);
-            handles.register_float_tensor::<Inner>(&c.id, out);
-        }
-    }
-
-    let client = a.client.clone();
-    let streams = OperationStreams::with_inputs([&a, &b]);
-    let out = TensorIr::uninit(client.create_empty_handle(), Shape::new([m, n]), DType::F32);
-    let desc = CustomOpIr::new("minflow_cublas_sgemm", &[a.into_ir(), b.into_ir()], &[out]);
-    let gemm = gpu_gemm();
-    client
-        .register(
-            streams,
-            OperationIr::Custom(desc.clone()),
-            Gemm { desc, gemm },
-        )
-        .remove(0)
-}
-
 /// How cuBLAS reads a row-major 2-D view: `(transposed, leading dimension)`, or None when it
 /// is neither rows nor columns with unit stride (then it is copied contiguous first).
+#[cfg_attr(not(feature = "cuda"), allow(dead_code))]
 fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
     let [r, c] = shape;
     let [sr, sc] = strides;
@@ -159,170 +95,267 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
     None
 }
 
-/// A 2-D CubeTensor's shape and strides.
-fn dims(t: &CubeTensor<CudaRuntime>) -> ([usize; 2], [usize; 2]) {
-    let (shape, strides) = (t.meta.shape(), t.meta.strides());
-    ([shape[0], shape[1]], [strides[0], strides[1]])
-}
+#[cfg(feature = "cuda")]
+pub use gpu::matmul;
 
-/// The view cuBLAS reads for `t`, copying it contiguous when it has no such layout.
-fn readable(t: CubeTensor<CudaRuntime>) -> (CubeTensor<CudaRuntime>, bool, usize) {
-    let (shape, strides) = dims(&t);
-    if let Some((trans, ld)) = layout(shape, strides) {
-        return (t, trans, ld);
-    }
-    let t = burn_cubecl::kernel::into_contiguous(t);
-    let (shape, strides) = dims(&t);
-    let (trans, ld) = layout(shape, strides).expect("a contiguous tensor is row-major");
-    (t, trans, ld)
-}
+/// The CUDA side: the fusion custom operation and the cuBLAS calls.
+#[cfg(feature = "cuda")]
+mod gpu {
+    use super::{gpu_gemm, layout, worth_it, GpuGemm};
+    use std::collections::HashMap;
+    use std::sync::Mutex;
 
-/// One cuBLAS handle per GPU, the stream it is bound to, and the GPU's primary context (the
-/// one cubecl uses). Process-wide, behind a lock (data-parallel workers are new threads
-/// every step; a handle per thread would be created and leaked per step).
-struct Blas {
-    handle: cublas_sys::cublasHandle_t,
-    stream: driver_sys::CUstream,
-    ctx: driver_sys::CUcontext,
-    math: Option<GpuGemm>,
-}
+    use burn::cubecl::cuda::CudaRuntime;
+    use burn::tensor::ops::FloatTensor;
+    use burn::tensor::{DType, Shape, TensorMetadata};
+    use burn_cubecl::tensor::CubeTensor;
+    use burn_cubecl::CubeBackend;
+    use burn_fusion::stream::{Operation, OperationStreams};
+    use burn_fusion::FusionRuntime;
+    use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+    use cudarc::cublas::{result as cublas, sys as cublas_sys};
+    use cudarc::driver::{result as driver, sys as driver_sys};
 
-// SAFETY: the handle and context are plain driver handles; every use holds `BLAS`'s lock and
-// makes the context current on the calling thread first.
-unsafe impl Send for Blas {}
+    /// The backend under burn's fusion layer for `Cuda<f32, i32>`.
+    type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+    /// burn's CUDA backend with fusion (what `--device cuda` trains on).
+    type Cuda = burn::backend::Cuda<f32, i32>;
+    /// The fusion runtime of [`Inner`].
+    type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
 
-static BLAS: Mutex<Option<HashMap<usize, Blas>>> = Mutex::new(None);
+    /// `a @ b` for 2-D `a` `[m, k]` and `b` `[k, n]` -> `[m, n]` (contiguous), through cuBLAS when
+    /// [`worth_it`], else burn's matmul. Either input may be a transposed view (as `w^T` and `x^T`
+    /// in a dense layer's backward are); other strided views are made contiguous first.
+    ///
+    /// # Panics
+    /// A cuBLAS or CUDA driver error (cuBLAS missing: `libcublas.so.13` not found) panics, as
+    /// burn's own kernels do on a device error.
+    pub fn matmul(a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
+        use burn::tensor::ops::FloatTensorOps;
+        let (sa, sb) = (a.shape(), b.shape());
+        assert!(
+            sa.num_dims() == 2 && sb.num_dims() == 2 && sa[1] == sb[0],
+            "cublas::matmul: [m, k] x [k, n], got {sa:?} x {sb:?}"
+        );
+        let (m, k, n) = (sa[0], sa[1], sb[1]);
+        if !worth_it(m, k, n) {
+            return Cuda::float_matmul(a, b);
+        }
 
-/// Runs `f` with GPU `index`'s cuBLAS handle, its math mode set for `gemm` and bound to
-/// `stream`, the GPU's context current on this thread.
-fn with_blas<T>(
-    index: usize,
-    gemm: GpuGemm,
-    stream: driver_sys::CUstream,
-    f: impl FnOnce(cublas_sys::cublasHandle_t) -> T,
-) -> T {
-    let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
-    let map = guard.get_or_insert_with(HashMap::new);
-    let blas = map.entry(index).or_insert_with(|| {
-        // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
-        // one cubecl retained for this GPU, retained again here (never released: the
-        // handle lives as long as the process).
-        unsafe {
-            let dev = driver::device::get(index as i32).expect("CUDA device");
-            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
-            driver::ctx::set_current(ctx).expect("CUDA context");
-            let handle = cublas::create_handle().unwrap_or_else(|e| {
-                panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
-            });
-            Blas {
-                handle,
-                stream: std::ptr::null_mut(),
-                ctx,
-                math: None,
+        /// The recorded operation: inputs `[a, b]`, output `[c]`.
+        #[derive(Debug)]
+        struct Gemm {
+            desc: CustomOpIr,
+            gemm: GpuGemm,
+        }
+
+        impl Operation<Runtime> for Gemm {
+            fn execute(
+                &self,
+                handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>,
+            ) {
+                let ([a, b], [c]) = self.desc.as_fixed();
+                let a = handles.get_float_tensor::<Inner>(a);
+                let b = handles.get_float_tensor::<Inner>(b);
+                let out = gemm_cube(a, b, self.gemm);
+                handles.register_float_tensor::<Inner>(&c.id, out);
             }
         }
-    });
-    // SAFETY: the context and handle were created above and are alive.
-    unsafe {
-        driver::ctx::set_current(blas.ctx).expect("CUDA context");
-        if blas.math != Some(gemm) {
-            let mode = match gemm {
-                GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
-                _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
-            };
-            cublas_sys::cublasSetMathMode(blas.handle, mode)
-                .result()
-                .expect("cuBLAS math mode");
-            blas.math = Some(gemm);
-        }
-        if blas.stream != stream {
-            // (Resets cuBLAS's workspace to its default pool: done only on a change.)
-            cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
-            blas.stream = stream;
-        }
-    }
-    f(blas.handle)
-}
 
-/// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
-/// `C^T = B^T A^T`), enqueued on cubecl's stream.
-fn gemm_cube(
-    a: CubeTensor<CudaRuntime>,
-    b: CubeTensor<CudaRuntime>,
-    gemm: GpuGemm,
-) -> CubeTensor<CudaRuntime> {
-    let (a, a_trans, lda) = readable(a);
-    let (b, b_trans, ldb) = readable(b);
-    let ([m, k], _) = dims(&a);
-    let n = dims(&b).0[1];
-    let client = a.client.clone();
-    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-        client.clone(),
-        a.device.clone(),
-        Shape::new([m, n]),
-        DType::F32,
-    );
-    // (pointer, stream of its pool); reading a resource also makes this thread's stream wait
-    // for a tensor written on another one.
-    let resource = |t: &CubeTensor<CudaRuntime>| {
-        let r = client
-            .get_resource(t.handle.clone())
-            .expect("cubecl resource");
-        (r.resource().ptr, r.resource().stream)
-    };
-    let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
-    // The output was just allocated from this thread's pool: its stream is the one cubecl
-    // launches on for this thread.
-    let (pc, stream) = resource(&out);
-    // An input from another stream's pool (data parallel: tensors moved between devices and
-    // threads) may be freed and its memory reused on that stream as soon as we return, while
-    // the product still reads it here: then wait for the product before returning.
-    let foreign = sa != stream || sb != stream;
-    let op = |t: bool| {
-        if t {
-            cublas_sys::cublasOperation_t::CUBLAS_OP_T
-        } else {
-            cublas_sys::cublasOperation_t::CUBLAS_OP_N
-        }
-    };
-    let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
-    with_blas(a.device.index, gemm, stream, |handle| {
-        let (alpha, beta) = (1.0f32, 0.0f32);
-        // SAFETY: the pointers are live allocations of the tensors held above, of the sizes
-        // the dimensions and leading dimensions describe (checked by `layout`). The product
-        // is enqueued on the stream cubecl writes them on, after every kernel launched so far
-        // (the resource reads above went through cubecl's queue); their memory returns to
-        // the pool when `a` and `b` drop, for kernels enqueued after this one.
-        unsafe {
-            cublas::sgemm(
-                handle,
-                op(b_trans),
-                op(a_trans),
-                int(n),
-                int(m),
-                int(k),
-                &alpha,
-                pb as *const f32,
-                int(ldb),
-                pa as *const f32,
-                int(lda),
-                &beta,
-                pc as *mut f32,
-                int(n),
+        let client = a.client.clone();
+        let streams = OperationStreams::with_inputs([&a, &b]);
+        let out = TensorIr::uninit(client.create_empty_handle(), Shape::new([m, n]), DType::F32);
+        let desc = CustomOpIr::new("minflow_cublas_sgemm", &[a.into_ir(), b.into_ir()], &[out]);
+        let gemm = gpu_gemm();
+        client
+            .register(
+                streams,
+                OperationIr::Custom(desc.clone()),
+                Gemm { desc, gemm },
             )
-            .expect("cublasSgemm");
-            if foreign {
-                driver::stream::synchronize(stream).expect("cuBLAS stream");
+            .remove(0)
+    }
+
+    /// A 2-D CubeTensor's shape and strides.
+    fn dims(t: &CubeTensor<CudaRuntime>) -> ([usize; 2], [usize; 2]) {
+        let (shape, strides) = (t.meta.shape(), t.meta.strides());
+        ([shape[0], shape[1]], [strides[0], strides[1]])
+    }
+
+    /// The view cuBLAS reads for `t`, copying it contiguous when it has no such layout.
+    fn readable(t: CubeTensor<CudaRuntime>) -> (CubeTensor<CudaRuntime>, bool, usize) {
+        let (shape, strides) = dims(&t);
+        if let Some((trans, ld)) = layout(shape, strides) {
+            return (t, trans, ld);
+        }
+        let t = burn_cubecl::kernel::into_contiguous(t);
+        let (shape, strides) = dims(&t);
+        let (trans, ld) = layout(shape, strides).expect("a contiguous tensor is row-major");
+        (t, trans, ld)
+    }
+
+    /// One cuBLAS handle per GPU, the stream it is bound to, and the GPU's primary context (the
+    /// one cubecl uses). Process-wide, behind a lock (data-parallel workers are new threads
+    /// every step; a handle per thread would be created and leaked per step).
+    struct Blas {
+        handle: cublas_sys::cublasHandle_t,
+        stream: driver_sys::CUstream,
+        ctx: driver_sys::CUcontext,
+        math: Option<GpuGemm>,
+    }
+
+    // SAFETY: the handle and context are plain driver handles; every use holds `BLAS`'s lock and
+    // makes the context current on the calling thread first.
+    unsafe impl Send for Blas {}
+
+    static BLAS: Mutex<Option<HashMap<usize, Blas>>> = Mutex::new(None);
+
+    /// Runs `f` with GPU `index`'s cuBLAS handle, its math mode set for `gemm` and bound to
+    /// `stream`, the GPU's context current on this thread.
+    fn with_blas<T>(
+        index: usize,
+        gemm: GpuGemm,
+        stream: driver_sys::CUstream,
+        f: impl FnOnce(cublas_sys::cublasHandle_t) -> T,
+    ) -> T {
+        let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
+        let map = guard.get_or_insert_with(HashMap::new);
+        let blas = map.entry(index).or_insert_with(|| {
+            // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
+            // one cubecl retained for this GPU, retained again here (never released: the
+            // handle lives as long as the process).
+            unsafe {
+                let dev = driver::device::get(index as i32).expect("CUDA device");
+                let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
+                driver::ctx::set_current(ctx).expect("CUDA context");
+                let handle = cublas::create_handle().unwrap_or_else(|e| {
+                    panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
+                });
+                Blas {
+                    handle,
+                    stream: std::ptr::null_mut(),
+                    ctx,
+                    math: None,
+                }
+            }
+        });
+        // SAFETY: the context and handle were created above and are alive.
+        unsafe {
+            driver::ctx::set_current(blas.ctx).expect("CUDA context");
+            if blas.math != Some(gemm) {
+                let mode = match gemm {
+                    GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
+                    _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
+                };
+                cublas_sys::cublasSetMathMode(blas.handle, mode)
+                    .result()
+                    .expect("cuBLAS math mode");
+                blas.math = Some(gemm);
+            }
+            if blas.stream != stream {
+                // (Resets cuBLAS's workspace to its default pool: done only on a change.)
+                cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
+                blas.stream = stream;
             }
         }
-    });
-    drop((a, b));
-    out
+        f(blas.handle)
+    }
+
+    /// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
+    /// `C^T = B^T A^T`), enqueued on cubecl's stream.
+    fn gemm_cube(
+        a: CubeTensor<CudaRuntime>,
+        b: CubeTensor<CudaRuntime>,
+        gemm: GpuGemm,
+    ) -> CubeTensor<CudaRuntime> {
+        let (a, a_trans, lda) = readable(a);
+        let (b, b_trans, ldb) = readable(b);
+        let ([m, k], _) = dims(&a);
+        let n = dims(&b).0[1];
+        let client = a.client.clone();
+        let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+            client.clone(),
+            a.device.clone(),
+            Shape::new([m, n]),
+            DType::F32,
+        );
+        // (pointer, stream of its pool); reading a resource also makes this thread's stream wait
+        // for a tensor written on another one.
+        let resource = |t: &CubeTensor<CudaRuntime>| {
+            let r = client
+                .get_resource(t.handle.clone())
+                .expect("cubecl resource");
+            (r.resource().ptr, r.resource().stream)
+        };
+        let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
+        // The output was just allocated from this thread's pool: its stream is the one cubecl
+        // launches on for this thread.
+        let (pc, stream) = resource(&out);
+        // An input from another stream's pool (data parallel: tensors moved between devices and
+        // threads) may be freed and its memory reused on that stream as soon as we return, while
+        // the product still reads it here: then wait for the product before returning.
+        let foreign = sa != stream || sb != stream;
+        let op = |t: bool| {
+            if t {
+                cublas_sys::cublasOperation_t::CUBLAS_OP_T
+            } else {
+                cublas_sys::cublasOperation_t::CUBLAS_OP_N
+            }
+        };
+        let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
+        with_blas(a.device.index, gemm, stream, |handle| {
+            let (alpha, beta) = (1.0f32, 0.0f32);
+            // SAFETY: the pointers are live allocations of the tensors held above, of the sizes
+            // the dimensions and leading dimensions describe (checked by `layout`). The product
+            // is enqueued on the stream cubecl writes them on, after every kernel launched so far
+            // (the resource reads above went through cubecl's queue); their memory returns to
+            // the pool when `a` and `b` drop, for kernels enqueued after this one.
+            unsafe {
+                cublas::sgemm(
+                    handle,
+                    op(b_trans),
+                    op(a_trans),
+                    int(n),
+                    int(m),
+                    int(k),
+                    &alpha,
+                    pb as *const f32,
+                    int(ldb),
+                    pa as *const f32,
+                    int(lda),
+                    &beta,
+                    pc as *mut f32,
+                    int(n),
+                )
+                .expect("cublasSgemm");
+                if foreign {
+                    driver::stream::synchronize(stream).expect("cuBLAS stream");
+                }
+            }
+        });
+        drop((a, b));
+        out
+    }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::layout;
+    use super::{gpu_gemm, layout, set_gpu_gemm, worth_it, GpuGemm};
+
+    #[test]
+    fn the_flag_parses_and_picks_the_large_products() {
+        assert_eq!(GpuGemm::parse("tf32").unwrap(), GpuGemm::Tf32);
+        assert_eq!(GpuGemm::parse("fp32").unwrap(), GpuGemm::Fp32);
+        assert!(GpuGemm::parse("fp16").is_err());
+        set_gpu_gemm(GpuGemm::Fp32);
+        assert_eq!(gpu_gemm(), GpuGemm::Fp32);
+        // The paper encoder's second layer goes to cuBLAS, its first stays with cubecl.
+        assert!(worth_it(400_000, 256, 1250));
+        assert!(!worth_it(400_000, 5, 256));
+        set_gpu_gemm(GpuGemm::Cubecl);
+        assert!(!worth_it(400_000, 256, 1250));
+        set_gpu_gemm(GpuGemm::Tf32);
+    }
 
     #[test]
     fn layouts_of_rows_columns_and_neither() {

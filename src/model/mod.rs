@@ -8,7 +8,6 @@
 //! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
 
 mod cpu_kernels;
-#[cfg(feature = "cuda")]
 pub mod cublas;
 pub mod decoder;
 pub mod elu;
