@@ -7,8 +7,9 @@
 //! [`FusedElu`] has composed default methods, so any backend can opt in with an empty impl;
 //! `NdArray<f32>` overrides them with single-pass loops (parallel over chunks), and
 //! `Autodiff<B>` records one backward node. burn's CUDA backend (feature `cuda`) takes the
-//! composed defaults: its fusion layer compiles the element-wise chain into one kernel. Used by the encoder, the core's MLPs and the
-//! pointwise decoder.
+//! composed defaults, whose element-wise chains its fusion layer compiles into one kernel,
+//! and sends the large products of [`FusedElu::matmul`] to cuBLAS (`model::cublas`). Used by
+//! the encoder, the core's MLPs and the pointwise decoder.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
