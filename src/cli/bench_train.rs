@@ -130,6 +130,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
                 }
                 most
             };
+            println!("GPU products: --gpu-gemm {}", args.device.gpu_gemm);
             let memory = if ids.len() > 1 {
                 "GPU pool (largest of the devices)"
             } else {
@@ -163,10 +164,6 @@ where
         args.samples, args.epochs, args.warmup_epochs, B::name(&devices[0]),
         rayon::current_num_threads()
     );
-    #[cfg(feature = "cuda")]
-    if B::name(&devices[0]).to_lowercase().contains("cuda") {
-        println!("GPU products: --gpu-gemm {}", args.device.gpu_gemm);
-    }
     if devices.len() > 1 {
         println!(
             "data parallel on {} devices (micro-batch {} each), weight-gradient split {}",

@@ -437,9 +437,13 @@ fn composed_elu_backward<B: Backend>(out: FloatTensor<B>, grad: FloatTensor<B>) 
     let flat =
         |t| Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(B::float_reshape(t, [n].into())));
     let (out, grad) = (flat(out), flat(grad));
+    B::float_reshape((grad * elu_slope(out)).into_primitive().tensor(), shape)
+}
+
+/// `d ELU / dx` from the ELU output: 1 where `out > 0`, `out + 1` elsewhere.
+fn elu_slope<B: Backend, const D: usize>(out: Tensor<B, D>) -> Tensor<B, D> {
     let positive = out.clone().greater_elem(0.0);
-    let slope = (out + 1.0).mask_fill(positive, 1.0);
-    B::float_reshape((grad * slope).into_primitive().tensor(), shape)
+    (out + 1.0).mask_fill(positive, 1.0)
 }
 
 /// Whether [`composed_linear_backward`] splits long weight-gradient reductions into row
@@ -533,10 +537,9 @@ fn linear_backward_in_chunks<B: FusedElu>(
             let dw = xs.matmul(gs).sum_dim(0).reshape([d_in, d_out]);
             dw.into_primitive().tensor()
         } else {
-            B::matmul(
-                x.transpose().into_primitive().tensor(),
-                grad.clone().into_primitive().tensor(),
-            )
+            product(x.transpose(), grad.clone())
+                .into_primitive()
+                .tensor()
         }
     });
     let db = need[2].then(|| {
@@ -766,8 +769,7 @@ impl<B: FusedElu> Backward<B, 3> for LinearEluMeanBackward {
         let g = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(grad))
             .div_scalar(n as f32)
             .reshape([m, 1, width]);
-        let slope = (out.clone() + 1.0).mask_fill(out.greater_elem(0.0), 1.0);
-        let dz = (slope * g).into_primitive().tensor();
+        let dz = (elu_slope(out) * g).into_primitive().tensor();
         let need = std::array::from_fn(|i| ops.parents[i].is_some());
         let parent_grads = B::linear_backward(x, weight, dz, need);
         for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
