@@ -67,7 +67,7 @@ fn make_model(
         .with_decoder_zero_init(false);
     let model = config.init::<B>(&Default::default());
     let meta = ModelMeta {
-        config,
+        net: crate::model::store::NetConfig::Paper(config),
         scaler: *scaler,
         epoch: 0,
         val_loss: 0.0,

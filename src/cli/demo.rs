@@ -1,5 +1,6 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). On the bundled bags
-//! in `bags/`: trains a small minGRU if `--model` holds no model yet, then launches
+//! in `bags/`: uses the shipped grid minGRU in `models/` (`--train` trains one on the bundled
+//! bags instead, as it does when `--model` holds no model), then launches
 //! `launch_configs/replay_eval.yaml` over zenoh with an embedded peer (replay -> surrogate
 //! node in closed loop -> recorder -> `eval --pred --truth`) and prints the replay
 //! evaluation table with the `persist` and `constvel` baselines.
@@ -18,9 +19,13 @@ pub struct DemoArgs {
     /// Bundled ground-truth bags.
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
-    /// Run folder of the model; trained here first if it holds no model.
-    #[arg(long, default_value = "runs/demo-mingru")]
+    /// Run folder of the model (the shipped grid minGRU by default); trained here first if
+    /// it holds no model.
+    #[arg(long, default_value = "models/all-grid-mingru")]
     model: PathBuf,
+    /// Where `--train` (or a missing model) trains the demo's own model.
+    #[arg(long, default_value = "runs/demo-grid-mingru")]
+    train_out: PathBuf,
     /// Output folder of the replay evaluation.
     #[arg(short, long, default_value = "runs/demo")]
     out: PathBuf,
@@ -31,11 +36,12 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 20)]
     horizon: u32,
     /// Training epochs when a model is trained.
-    #[arg(long, default_value_t = 15)]
+    #[arg(long, default_value_t = 6)]
     epochs: u32,
-    /// Retrain even if the model exists.
-    #[arg(long)]
-    retrain: bool,
+    /// Train a grid minGRU on the bundled bags (into --train-out) and use it instead of
+    /// --model.
+    #[arg(long, alias = "retrain")]
+    train: bool,
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
@@ -54,38 +60,43 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
         );
     }
     let exe = std::env::current_exe().context("locating the minflow binary")?;
-    if args.retrain || !args.model.join("model.json").is_file() {
+    let model = if args.train || !args.model.join("model.json").is_file() {
+        if !args.train {
+            println!("\n(no model in {}: training one)", args.model.display());
+        }
         println!(
-            "\n== training a small minGRU on {} ({} epochs at most) ==",
+            "\n== training a small grid minGRU on {} ({} epochs) ==",
             args.bags.display(),
             args.epochs
         );
         let status = Command::new(&exe)
+            .args(["train", "--arch", "grid", "--model", "mingru"])
             .args([
-                "train",
-                "--model",
-                "mingru",
-                "--width",
-                "256",
-                "--encoder-hidden",
-                "64",
+                "--unet-width",
+                "16",
+                "--samples-per-epoch",
+                "96",
+                "--batch-size",
+                "4",
             ])
-            .args(["--epochs", &args.epochs.to_string(), "--patience", "5"])
+            .args(["--epochs", &args.epochs.to_string(), "--patience", "0"])
             .arg("--data")
             .arg(&args.bags)
             .arg("--out")
-            .arg(&args.model)
+            .arg(&args.train_out)
             .status()
             .context("running minflow train")?;
         if !status.success() {
             bail!("training failed ({status})");
         }
+        args.train_out.clone()
     } else {
         println!(
-            "\n== model: {} (exists; --retrain to train again) ==",
+            "\n== model: {} (shipped; --train to train one on the bundled bags) ==",
             args.model.display()
         );
-    }
+        args.model.clone()
+    };
     println!(
         "\n== launch replay_eval over {}: replay {} -> surrogate node (closed loop, {} frames) -> record -> eval ==",
         args.transport,
@@ -94,7 +105,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     );
     let file = crate::launch::bundled("replay_eval");
     let overrides = [
-        ("model", args.model.display().to_string()),
+        ("model", model.display().to_string()),
         ("bags", args.bags.display().to_string()),
         ("transport", args.transport.clone()),
         ("horizon", args.horizon.to_string()),

@@ -18,6 +18,7 @@ mod replay;
 mod report;
 mod simulate;
 pub mod train;
+mod train_grid;
 
 use clap::{Parser, Subcommand};
 
@@ -187,10 +188,14 @@ pub fn init_logging(verbose: u8) {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    // Colour codes only on a terminal: a log redirected to a file or read by `launch` (a
+    // pipe) stays plain text.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .with_target(false)
+        .with_ansi(ansi)
         .try_init();
 }
 

@@ -122,10 +122,7 @@ fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
         &std::fs::read_to_string(&meta_path)
             .with_context(|| format!("reading {}", meta_path.display()))?,
     )?;
-    let params = meta
-        .config
-        .init::<CpuInfer>(&Default::default())
-        .num_params();
+    let params = meta.net.init::<CpuInfer>(&Default::default()).num_params();
     let rate = rate / epochs.max(1) as f64;
     Ok(Speed {
         core: core.to_owned(),
@@ -164,7 +161,12 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     let mut dirs = Vec::new();
     for core in &args.cores {
         let dir = runs.join(core);
-        let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
+        let mut argv: Vec<String> = vec![
+            "train".into(),
+            "--arch".into(),
+            "paper".into(),
+            "--data".into(),
+        ];
         argv.extend(data.iter().cloned());
         for (flag, value) in [
             ("--model", core.clone()),

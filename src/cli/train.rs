@@ -26,8 +26,13 @@ pub struct TrainArgs {
     /// Bags or folders of bags.
     #[arg(long, required = true, num_args = 1..)]
     pub data: Vec<PathBuf>,
-    /// Core: mlp | lstm | gru | minlstm | mingru.
-    #[arg(long, default_value = "mingru")]
+    /// Architecture: grid (local: P2G -> U-Net -> G2P with per-particle memory; any N) |
+    /// paper (the paper's Table 1: pooled encoder, core, decoder).
+    #[arg(long, default_value = "grid", value_parser = ["grid", "paper"])]
+    pub arch: String,
+    /// Core. grid: none | mingru | minlstm | gru | lstm (per-particle memory); paper: mlp |
+    /// lstm | gru | minlstm | mingru.
+    #[arg(long, alias = "core", default_value = "mingru")]
     pub model: String,
     /// Run folder.
     #[arg(short, long)]
@@ -97,6 +102,8 @@ pub struct TrainArgs {
     /// each epoch (a frame of 2,500 particles is 40 kB).
     #[arg(long, default_value_t = 50_000)]
     pub max_resident_frames: usize,
+    #[command(flatten)]
+    pub grid_args: super::train_grid::GridArgs,
 }
 
 impl TrainArgs {
@@ -160,9 +167,16 @@ impl TrainArgs {
 }
 
 /// Progress bar per epoch, one log line per epoch, metrics.csv and loss.png kept current.
-struct Progress {
+pub(crate) struct Progress {
     out: PathBuf,
     bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress {
+    /// Progress of a run writing to `out`.
+    pub(crate) fn new(out: PathBuf) -> Self {
+        Self { out, bar: None }
+    }
 }
 
 impl Observer for Progress {
@@ -205,6 +219,9 @@ fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
 }
 
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
+    if args.arch == "grid" {
+        return super::train_grid::run(args);
+    }
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
     let infos = data::scan(&args.data, topic).context("reading the bags")?;

@@ -152,7 +152,7 @@ impl<B: FusedElu> Predictor for ModelPredictor<B> {
     }
 
     fn window(&self) -> usize {
-        self.surrogate.meta().config.window
+        self.surrogate.meta().window()
     }
 
     fn rollout(

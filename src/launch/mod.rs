@@ -173,7 +173,52 @@ pub fn load(path: &Path, overrides: &BTreeMap<String, String>) -> anyhow::Result
             bail!("node {:?} refers to unknown node {bad:?}", n.name);
         }
     }
+    if let Some(cycle) = after_cycle(&nodes) {
+        bail!(
+            "{}: the `after` lists form a cycle ({}): none of these nodes could ever start",
+            path.display(),
+            cycle.join(" -> ")
+        );
+    }
     Ok(nodes)
+}
+
+/// A cycle in the `after` graph (node -> the nodes it waits for), as the names along it with
+/// the first repeated at the end; `None` when every node can start. Depth-first search with
+/// the three colours of Cormen et al., "Introduction to Algorithms", section 22.3.
+fn after_cycle(nodes: &[NodeDecl]) -> Option<Vec<String>> {
+    fn visit<'a>(
+        name: &'a str,
+        nodes: &'a [NodeDecl],
+        state: &mut BTreeMap<&'a str, bool>, // false: on the path, true: done
+        path: &mut Vec<&'a str>,
+    ) -> Option<Vec<String>> {
+        match state.get(name) {
+            Some(true) => return None,
+            Some(false) => {
+                let from = path.iter().position(|n| *n == name).unwrap_or(0);
+                let mut cycle: Vec<String> = path[from..].iter().map(|n| n.to_string()).collect();
+                cycle.push(name.to_owned());
+                return Some(cycle);
+            }
+            None => {}
+        }
+        state.insert(name, false);
+        path.push(name);
+        let node = nodes.iter().find(|n| n.name == name)?;
+        for dep in &node.after {
+            if let Some(cycle) = visit(dep, nodes, state, path) {
+                return Some(cycle);
+            }
+        }
+        path.pop();
+        state.insert(name, true);
+        None
+    }
+    let mut state = BTreeMap::new();
+    nodes
+        .iter()
+        .find_map(|n| visit(&n.name, nodes, &mut state, &mut Vec::new()))
 }
 
 /// Replaces every `$(var NAME)` in `s`.
@@ -457,5 +502,19 @@ mod tests {
         let o = parse_overrides(&["model:=runs/x".into()]).unwrap();
         assert_eq!(o["model"], "runs/x");
         assert!(parse_overrides(&["model=runs/x".into()]).is_err());
+    }
+
+    /// An `after` cycle is an error when the file is loaded (it used to wait forever).
+    #[test]
+    fn after_cycles_are_refused_at_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("cycle.yaml");
+        let yaml = "launch:\n  - node: {name: a, exec: replay, after: [c]}\n  - node: {name: b, exec: record, after: [a]}\n  - node: {name: c, exec: eval, after: [b]}\n  - node: {name: d, exec: eval}\n";
+        std::fs::write(&file, yaml).unwrap();
+        let err = load(&file, &BTreeMap::new()).unwrap_err().to_string();
+        assert!(err.contains("cycle (a -> c -> b -> a)"), "{err}");
+        let chain = "launch:\n  - node: {name: a, exec: replay}\n  - node: {name: b, exec: record, after: [a]}\n  - node: {name: c, exec: eval, after: [a, b]}\n";
+        std::fs::write(&file, chain).unwrap();
+        assert_eq!(load(&file, &BTreeMap::new()).unwrap().len(), 3);
     }
 }

@@ -12,6 +12,7 @@ pub mod cublas;
 pub mod decoder;
 pub mod elu;
 pub mod encoder;
+pub mod grid;
 pub mod minrnn;
 pub mod rnn;
 pub mod store;

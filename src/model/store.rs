@@ -2,15 +2,19 @@
 //! (`eval`, `node`, `report`): [`Surrogate`] with `init_state`, `step`, `rollout` in
 //! physical units (scaling inside).
 //!
-//! A run folder holds `model.json` (the [`ModelConfig`], the scaler, the window T) and
-//! `model.mpk` (weights, burn's named MessagePack, full precision). `minflow train` writes
-//! them (the best epoch); its resumable checkpoint lives in `checkpoint/` beside them.
+//! A run folder holds `model.json` (the architecture and its config, [`NetConfig`], the
+//! scaler, the window T) and `model.mpk` (weights, burn's named MessagePack, full
+//! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
+//! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
+//! ([`GridModel`]), are served by one [`Surrogate`].
 
+use super::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
 use super::{FusedElu, LayerState, Model, ModelConfig, Scaling};
 use crate::data::Scaler;
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -30,11 +34,41 @@ pub enum StoreError {
     Shape(String),
 }
 
+/// The architecture and its hyper-parameters (`"arch": "paper" | "grid"` in `model.json`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "arch", rename_all = "lowercase")]
+pub enum NetConfig {
+    /// The paper's encoder - core - decoder ([`Model`]).
+    Paper(ModelConfig),
+    /// The grid architecture ([`GridModel`]).
+    Grid(GridConfig),
+}
+
+/// A network of either architecture.
+#[derive(Module, Debug)]
+pub enum Net<B: Backend> {
+    /// The paper's.
+    Paper(Model<B>),
+    /// The grid architecture.
+    Grid(GridModel<B>),
+}
+
+impl NetConfig {
+    /// A network with fresh weights.
+    pub fn init<B: FusedElu>(&self, device: &B::Device) -> Net<B> {
+        match self {
+            NetConfig::Paper(c) => Net::Paper(c.init(device)),
+            NetConfig::Grid(c) => Net::Grid(c.init(device)),
+        }
+    }
+}
+
 /// `model.json`: everything needed to rebuild the network and use it.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ModelMeta {
-    /// Network hyper-parameters.
-    pub config: ModelConfig,
+    /// Architecture and hyper-parameters.
+    #[serde(flatten)]
+    pub net: NetConfig,
     /// The scaler fitted on the training split.
     pub scaler: Scaler,
     /// Epoch the weights come from.
@@ -44,6 +78,38 @@ pub struct ModelMeta {
 }
 
 impl ModelMeta {
+    /// Input frames a prediction reads (T).
+    pub fn window(&self) -> usize {
+        match &self.net {
+            NetConfig::Paper(c) => c.window,
+            NetConfig::Grid(c) => c.window,
+        }
+    }
+
+    /// `paper` or `grid`.
+    pub fn arch_name(&self) -> &'static str {
+        match &self.net {
+            NetConfig::Paper(_) => "paper",
+            NetConfig::Grid(_) => "grid",
+        }
+    }
+
+    /// The temporal core's or memory's command-line name.
+    pub fn core_name(&self) -> &'static str {
+        match &self.net {
+            NetConfig::Paper(c) => c.core.name(),
+            NetConfig::Grid(c) => c.memory.name(),
+        }
+    }
+
+    /// The particle count the model is tied to (the paper's global decoder), if any.
+    pub fn fixed_particles(&self) -> Option<usize> {
+        match &self.net {
+            NetConfig::Paper(c) if c.decoder == super::DecoderKind::Global => Some(c.particles),
+            _ => None,
+        }
+    }
+
     /// The scaling constants as the network uses them.
     pub fn scaling(&self) -> Scaling {
         let mut range = [1.0; 5];
@@ -65,7 +131,11 @@ fn io(path: &Path, what: impl ToString) -> StoreError {
 }
 
 /// Writes `model.json` + `model.mpk` into `dir` (via temporary names, renamed at the end).
-pub fn save<B: FusedElu>(dir: &Path, model: &Model<B>, meta: &ModelMeta) -> Result<(), StoreError> {
+pub fn save<B: Backend, M: Module<B>>(
+    dir: &Path,
+    model: &M,
+    meta: &ModelMeta,
+) -> Result<(), StoreError> {
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     // The recorder appends `.mpk`, replacing any extension: `model-tmp` -> `model-tmp.mpk`.
@@ -81,51 +151,88 @@ pub fn save<B: FusedElu>(dir: &Path, model: &Model<B>, meta: &ModelMeta) -> Resu
     Ok(())
 }
 
-/// Reads `model.json` and the weights from `dir`.
-pub fn load<B: FusedElu>(
+/// Reads `model.json` and the weights from `dir`, of either architecture.
+pub fn load_net<B: FusedElu>(
     dir: &Path,
     device: &B::Device,
-) -> Result<(Model<B>, ModelMeta), StoreError> {
+) -> Result<(Net<B>, ModelMeta), StoreError> {
     let path = dir.join("model.json");
     let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
     let meta: ModelMeta = serde_json::from_str(&text).map_err(|e| io(&path, e))?;
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     let weights = dir.join("model.mpk");
-    let model = meta
-        .config
-        .init::<B>(device)
-        .load_file(weights.clone(), &recorder, device)
-        .map_err(|e| io(&weights, e))?;
-    Ok((model, meta))
+    // Each architecture's weights are saved as its own module (not as a `Net`).
+    let net = match meta.net.init::<B>(device) {
+        Net::Paper(m) => Net::Paper(
+            m.load_file(weights.clone(), &recorder, device)
+                .map_err(|e| io(&weights, e))?,
+        ),
+        Net::Grid(m) => Net::Grid(
+            m.load_file(weights.clone(), &recorder, device)
+                .map_err(|e| io(&weights, e))?,
+        ),
+    };
+    Ok((net, meta))
+}
+
+/// Reads a `paper` model (`model.json` and the weights) from `dir`.
+pub fn load<B: FusedElu>(
+    dir: &Path,
+    device: &B::Device,
+) -> Result<(Model<B>, ModelMeta), StoreError> {
+    match load_net(dir, device)? {
+        (Net::Paper(model), meta) => Ok((model, meta)),
+        (Net::Grid(_), _) => Err(StoreError::Shape(format!(
+            "{}: a grid model, where a paper model was expected",
+            dir.display()
+        ))),
+    }
 }
 
 /// A trained model ready for step-by-step prediction in physical units.
 pub struct Surrogate<B: Backend> {
-    model: Model<B>,
+    net: Net<B>,
     meta: ModelMeta,
     scaling: Scaling,
     device: B::Device,
 }
 
-/// Per-trajectory recurrent state (one batch row per trajectory).
+/// Per-trajectory state (one batch row per trajectory).
 pub struct State<B: Backend> {
-    layers: Vec<LayerState<B>>,
+    inner: NetState<B>,
     /// Frames consumed since the state was reset.
     pub frames: usize,
 }
 
+/// What each architecture carries between frames.
+enum NetState<B: Backend> {
+    /// The paper core's layer states.
+    Paper(Vec<LayerState<B>>),
+    /// The grid model's per-particle memory and the velocities of the last T - 1 frames
+    /// (`[B, N, 2 (T - 1)]`, oldest first; `None` before the first frame or when T = 1).
+    Grid {
+        memory: MemoryState<B>,
+        history: Option<Tensor<B, 3>>,
+    },
+}
+
 impl<B: FusedElu> Surrogate<B> {
-    /// Loads a run folder.
+    /// Loads a run folder (either architecture).
     pub fn load(dir: &Path, device: &B::Device) -> Result<Self, StoreError> {
-        let (model, meta) = load(dir, device)?;
-        Ok(Self::new(model, meta, device))
+        let (net, meta) = load_net(dir, device)?;
+        Ok(Self::from_net(net, meta, device))
     }
 
-    /// Wraps an in-memory model.
+    /// Wraps an in-memory paper model.
     pub fn new(model: Model<B>, meta: ModelMeta, device: &B::Device) -> Self {
+        Self::from_net(Net::Paper(model), meta, device)
+    }
+
+    /// Wraps an in-memory network of either architecture.
+    pub fn from_net(net: Net<B>, meta: ModelMeta, device: &B::Device) -> Self {
         let scaling = meta.scaling();
         Self {
-            model,
+            net,
             meta,
             scaling,
             device: device.clone(),
@@ -139,10 +246,14 @@ impl<B: FusedElu> Surrogate<B> {
 
     /// A fresh (empty) state. The batch size is set by the first `step`.
     pub fn init_state(&self) -> State<B> {
-        State {
-            layers: self.model.core.init_state(),
-            frames: 0,
-        }
+        let inner = match &self.net {
+            Net::Paper(model) => NetState::Paper(model.core.init_state()),
+            Net::Grid(_) => NetState::Grid {
+                memory: MemoryState::Empty,
+                history: None,
+            },
+        };
+        State { inner, frames: 0 }
     }
 
     /// Predicts the next frame of each trajectory in the batch and advances the state.
@@ -150,6 +261,9 @@ impl<B: FusedElu> Surrogate<B> {
     /// # Shapes
     /// - `frames`: `[B, N, 4]` physical x, y, vx, vy; `material`: `[B, N]`; `dt`: `[B]`
     /// - returns `[B, N, 4]` physical, the frame `dt` later
+    ///
+    /// # Errors
+    /// [`StoreError::Shape`] when the lengths disagree or the model is tied to another N.
     pub fn step(
         &self,
         frames: &[f32],
@@ -166,27 +280,73 @@ impl<B: FusedElu> Surrogate<B> {
                 material.len()
             )));
         }
-        let expected = self.meta.config.particles;
-        if self.meta.config.decoder == super::DecoderKind::Global && n != expected {
+        if let Some(expected) = self.meta.fixed_particles().filter(|&e| e != n) {
             return Err(StoreError::Shape(format!(
                 "model was trained for N = {expected} particles, frame has {n}"
             )));
         }
-        // The training batches' own scaling (data::Scaler), so inputs match training exactly.
-        let mut feats = Vec::with_capacity(b * n * 5);
-        self.meta.scaler.scale_into(frames, material, &mut feats);
-        let x = super::upload::<B, 3>(feats, [b, n, 5], &self.device);
-        let dt_t = super::upload::<B, 1>(dt.to_vec(), [b], &self.device);
-        let (out, layers) = self.model.step(x, dt_t, state.layers, &self.scaling);
-        let mut out = super::download(out).map_err(StoreError::Shape)?;
-        self.meta.scaler.unscale_rows(&mut out, 4);
+        let (out, inner) = match (&self.net, state.inner) {
+            (Net::Paper(model), NetState::Paper(layers)) => {
+                // The training batches' own scaling (data::Scaler), so inputs match training.
+                let mut feats = Vec::with_capacity(b * n * 5);
+                self.meta.scaler.scale_into(frames, material, &mut feats);
+                let x = super::upload::<B, 3>(feats, [b, n, 5], &self.device);
+                let dt_t = super::upload::<B, 1>(dt.to_vec(), [b], &self.device);
+                let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
+                let mut out = super::download(out).map_err(StoreError::Shape)?;
+                self.meta.scaler.unscale_rows(&mut out, 4);
+                (out, NetState::Paper(layers))
+            }
+            (Net::Grid(model), NetState::Grid { memory, history }) => {
+                self.grid_step(model, frames, material, dt, memory, history)?
+            }
+            _ => return Err(StoreError::Shape("state of another architecture".into())),
+        };
         Ok((
             out,
             State {
-                layers,
+                inner,
                 frames: state.frames + 1,
             },
         ))
+    }
+
+    /// [`Surrogate::step`] of a grid model: the velocity history is completed from the state
+    /// (the current velocity repeated before T frames were seen, or when B or N changed).
+    fn grid_step(
+        &self,
+        model: &GridModel<B>,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        memory: MemoryState<B>,
+        history: Option<Tensor<B, 3>>,
+    ) -> Result<(Vec<f32>, NetState<B>), StoreError> {
+        let (b, t) = (dt.len(), model.window());
+        let n = material.len() / b;
+        let frame = super::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
+        let pos = frame.clone().narrow(2, 0, 2);
+        let vel = frame.narrow(2, 2, 2);
+        let history = history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]);
+        let memory = match memory.rows() {
+            Some(rows) if rows != b * n => MemoryState::Empty,
+            _ => memory,
+        };
+        let vel_hist = match history {
+            Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
+            None => vel.repeat_dim(2, t),
+        };
+        let input = StepInput {
+            pos,
+            vel: vel_hist.clone(),
+            material: one_hot(material, b, n, &self.device),
+            dt: super::upload::<B, 1>(dt.to_vec(), [b], &self.device),
+        };
+        let (out, memory) = model.step(input, memory);
+        let next = Tensor::cat(vec![out.pos, out.vel], 2);
+        let out = super::download(next).map_err(StoreError::Shape)?;
+        let history = (t > 1).then(|| vel_hist.narrow(2, 2, 2 * (t - 1)));
+        Ok((out, NetState::Grid { memory, history }))
     }
 
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`

@@ -27,7 +27,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use crate::model::elu::FusedElu;
 use crate::model::store::{State, Surrogate};
-use crate::model::DecoderKind;
 use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{ParticleFrame, Time};
 use crate::transport::{FramePublisher, StatusPublisher, Transport, TransportError};
@@ -186,13 +185,14 @@ pub fn run<B: FusedElu>(
     }
     let (tx, rx) = channel();
     let _subscription = transport.subscribe(&options.input, tx)?;
-    let config = &surrogate.meta().config;
-    let model_n = (config.decoder == DecoderKind::Global).then_some(config.particles);
-    let window = config.window.max(1);
+    let meta = surrogate.meta();
+    let model_n = meta.fixed_particles();
+    let window = meta.window().max(1);
     tracing::info!(
-        "{}: {} core, T = {window}, {} -> {} over {}{}",
+        "{}: {} architecture, {} core, T = {window}, {} -> {} over {}{}",
         options.name,
-        format!("{:?}", config.core).to_lowercase(),
+        meta.arch_name(),
+        meta.core_name(),
         options.input,
         options.output,
         transport.kind(),

@@ -5,8 +5,7 @@
 
 use super::{EpochRecord, TrainError};
 use crate::model::store::StoreError;
-use crate::model::{Model, ModelConfig};
-use burn::module::Module;
+use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
@@ -20,9 +19,9 @@ fn err(path: &Path, what: impl ToString) -> TrainError {
 }
 
 /// Writes the checkpoint of the epoch just finished.
-pub fn save<B: AutodiffBackend, O: Optimizer<Model<B>, B>>(
+pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     out: &Path,
-    model: &Model<B>,
+    model: &M,
     optim: &O,
     history: &[EpochRecord],
 ) -> Result<(), TrainError> {
@@ -50,23 +49,23 @@ pub fn save<B: AutodiffBackend, O: Optimizer<Model<B>, B>>(
 }
 
 /// A checkpoint read back.
-pub struct Resumed<B: AutodiffBackend, R> {
+pub struct Resumed<M, R> {
     /// Weights after the last finished epoch.
-    pub model: Model<B>,
+    pub model: M,
     /// Optimizer state.
     pub optim: R,
     /// Every finished epoch.
     pub history: Vec<EpochRecord>,
 }
 
-/// Reads `OUT/checkpoint` (or `checkpoint.old` if a swap was interrupted); `None` if there
-/// is none.
-pub fn load<B: AutodiffBackend + crate::model::FusedElu, O: Optimizer<Model<B>, B>>(
+/// Reads `OUT/checkpoint` (or `checkpoint.old` if a swap was interrupted) into `fresh` (a
+/// model of the run's configuration); `None` if there is none.
+pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     out: &Path,
-    config: &ModelConfig,
+    fresh: M,
     device: &B::Device,
     _optim: &O,
-) -> Result<Option<Resumed<B, O::Record>>, TrainError> {
+) -> Result<Option<Resumed<M, O::Record>>, TrainError> {
     let dir = [out.join("checkpoint"), out.join("checkpoint.old")]
         .into_iter()
         .find(|d| d.join("history.json").exists());
@@ -74,8 +73,7 @@ pub fn load<B: AutodiffBackend + crate::model::FusedElu, O: Optimizer<Model<B>, 
         return Ok(None);
     };
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-    let model = config
-        .init::<B>(device)
+    let model = fresh
         .load_file(dir.join("model"), &recorder, device)
         .map_err(|e| err(&dir, e))?;
     let optim: O::Record =

@@ -13,6 +13,7 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod grid;
 pub mod loss;
 pub mod source;
 
@@ -405,7 +406,7 @@ where
             )));
         }
         let scaling = ModelMeta {
-            config: self.config.clone(),
+            net: store::NetConfig::Paper(self.config.clone()),
             scaler: *scaler,
             epoch: 0,
             val_loss: 0.0,
@@ -418,9 +419,12 @@ where
         let mut start_epoch = 0;
         let mut best = f64::INFINITY;
         if resume {
-            if let Some(state) =
-                checkpoint::load::<B, _>(&self.out, &self.config, self.main(), &optim)?
-            {
+            if let Some(state) = checkpoint::load::<B, _, _>(
+                &self.out,
+                self.config.init::<B>(self.main()),
+                self.main(),
+                &optim,
+            )? {
                 model = state.model;
                 optim = optim.load_record(state.optim);
                 history = state.history;
@@ -594,7 +598,7 @@ where
                 best = val_loss;
                 since_best = 0;
                 let meta = ModelMeta {
-                    config: self.config.clone(),
+                    net: store::NetConfig::Paper(self.config.clone()),
                     scaler: *scaler,
                     epoch: epoch + 1,
                     val_loss,

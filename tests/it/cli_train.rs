@@ -10,6 +10,8 @@ fn train(out: &Path, extra: &[&str]) -> std::process::Output {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
     let mut args = vec![
         "train",
+        "--arch",
+        "paper",
         "--data",
         bags,
         "--out",
@@ -99,4 +101,107 @@ fn bad_flags_fail_clearly() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown --model"));
     let o = train(dir.path(), &["--batch-size", "0"]);
     assert_eq!(o.status.code(), Some(1));
+}
+
+/// `train --arch grid` with a tiny network (16 x 16 grid, two levels, a few samples per
+/// epoch) on the bundled bags.
+fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let mut args = vec![
+        "train",
+        "--data",
+        bags,
+        "--out",
+        out.to_str().unwrap(),
+        "--grid",
+        "16",
+        "--levels",
+        "2",
+        "--unet-width",
+        "4",
+        "--latent",
+        "4",
+        "--hidden",
+        "4",
+        "--head-hidden",
+        "8",
+        "--rollout-steps",
+        "2",
+        "--batch-size",
+        "4",
+        "--samples-per-epoch",
+        "8",
+        "--val-starts",
+        "1",
+        "--val-horizon",
+        "3",
+        "--noise",
+        "0.1",
+    ];
+    args.extend_from_slice(extra);
+    Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(&args)
+        .output()
+        .unwrap()
+}
+
+/// The (train, val) loss columns of metrics.csv, as text (exact digits).
+fn losses(out: &Path) -> Vec<(String, String)> {
+    std::fs::read_to_string(out.join("metrics.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[1].to_owned(), f[2].to_owned())
+        })
+        .collect()
+}
+
+/// The grid run folder is complete (grid is the default architecture), and a run killed
+/// after one epoch and resumed ends with the same losses as one run straight through.
+#[test]
+fn grid_train_writes_a_run_folder_and_resumes_bit_for_bit() {
+    let straight = tempfile::tempdir().unwrap();
+    let o = train_grid(straight.path(), &["--epochs", "2", "--model", "minlstm"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let meta = std::fs::read_to_string(straight.path().join("model.json")).unwrap();
+    assert!(
+        meta.contains("\"arch\": \"grid\"") && meta.contains("MinLstm"),
+        "{meta}"
+    );
+    for file in [
+        "model.mpk",
+        "checkpoint/model.mpk",
+        "checkpoint/optim.mpk",
+        "loss.png",
+    ] {
+        assert!(straight.path().join(file).exists(), "missing {file}");
+    }
+    let resumed = tempfile::tempdir().unwrap();
+    let o = train_grid(resumed.path(), &["--epochs", "1", "--model", "minlstm"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = train_grid(
+        resumed.path(),
+        &["--epochs", "2", "--model", "minlstm", "--resume"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (losses(straight.path()), losses(resumed.path()));
+    assert_eq!(a.len(), 2);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
+    let dir = tempfile::tempdir().unwrap();
+    for extra in [
+        &["--grid", "20", "--levels", "4"][..],
+        &["--teacher-steps", "3"][..],
+        &["--model", "transformer"][..],
+    ] {
+        let o = train_grid(dir.path(), extra);
+        assert!(!o.status.success(), "{extra:?} was accepted");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("--"), "{extra:?}: {err}");
+    }
 }

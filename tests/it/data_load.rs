@@ -3,11 +3,9 @@
 //! particle counts and materials as errors naming scene and frame, truncated bags, topic
 //! filtering, and `scan` agreeing with `load`.
 
-mod data_support;
-
 use std::path::PathBuf;
 
-use data_support::{same_bits, simulate, state_of, synthetic, write_bag, TOPIC};
+use crate::data_support::{same_bits, simulate, state_of, synthetic, write_bag, TOPIC};
 use minflow::bag::{BagWriter, PREDICTED_TOPIC};
 use minflow::data::{self, DataError, Gap};
 

@@ -4,12 +4,10 @@
 //! streamed scaler equals the in-memory one; scenes over budget and bags changed since the
 //! scan are errors.
 
-mod data_support;
-
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use data_support::{same_bits, simulate, write_bag};
+use crate::data_support::{same_bits, simulate, write_bag};
 use minflow::data::{
     self, Batch, DataError, Scaler, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
 };

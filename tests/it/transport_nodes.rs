@@ -5,12 +5,10 @@
 //! publisher killed with SIGKILL and started again, the recorder killed with SIGKILL and
 //! SIGTERM, and malformed payloads counted without stopping the recorder.
 
-mod transport_support;
-
 use std::time::Duration;
 
+use crate::transport_support::*;
 use minflow::bag::FRAMES_TOPIC;
-use transport_support::*;
 
 const SOURCE_FRAMES: usize = 25;
 

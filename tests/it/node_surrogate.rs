@@ -6,18 +6,16 @@
 //! replay evaluation ends with exit code 0 and a table, and killing a required node stops
 //! the rest with a non-zero exit.
 
-mod transport_support;
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::Duration;
 
+use crate::transport_support::*;
 use burn::backend::NdArray;
 use minflow::bag::{read_frames, FRAMES_TOPIC};
 use minflow::model::store::Surrogate;
 use minflow::msgs::ParticleFrame;
-use transport_support::*;
 
 const SCENES: [&str; 2] = [
     "bags/multi_rope+snow_001.mcap",
@@ -38,6 +36,8 @@ fn model() -> PathBuf {
             "train",
             &[
                 "train",
+                "--arch",
+                "paper",
                 "--data",
                 repo("bags").to_str().unwrap(),
                 "--model",

@@ -2,9 +2,7 @@
 //! buffer forms agreeing with the per-value ones, fitting on the training split only (an
 //! outlier in a test scene is ignored), constant features getting a range of 1, and serde.
 
-mod data_support;
-
-use data_support::{simulate, synthetic, write_bag};
+use crate::data_support::{simulate, synthetic, write_bag};
 use minflow::data::{self, Part, Scaler, Split, Trajectory, FEATURES};
 use minflow::sim::{families, Family};
 

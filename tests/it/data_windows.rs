@@ -2,11 +2,9 @@
 //! frames at the right frame indices for T = 1, 2, 3, no window across a gap, deterministic
 //! shuffling per (seed, epoch), and mixed particle counts batched separately.
 
-mod data_support;
-
 use std::collections::HashMap;
 
-use data_support::{same_bits, simulate, state_of, synthetic, write_bag};
+use crate::data_support::{same_bits, simulate, state_of, synthetic, write_bag};
 use minflow::data::{self, DataError, Scaler, Trajectory, WindowIndex};
 use minflow::msgs::ParticleFrame;
 

@@ -35,7 +35,7 @@ fn tiny_model(dir: &Path) {
     B::seed(&Default::default(), 11);
     let model = config.init::<B>(&Default::default());
     let meta = ModelMeta {
-        config,
+        net: store::NetConfig::Paper(config),
         scaler,
         epoch: 0,
         val_loss: 0.0,

@@ -1,0 +1,267 @@
+//! `minflow train --arch grid` (the default): the grid architecture's flags ([`GridArgs`],
+//! flattened into `train`'s) and its run: load the bags, split 80:10:10 by scene, fit the
+//! min-max scaler and the velocity statistics on the training split, train with
+//! [`crate::train::grid::GridTrainer`] (rollout loss, clipping, cosine decay, best
+//! checkpoint by validation rollout error) and leave the run folder as `train --arch paper`
+//! does (`model.json` + `model.mpk`, `checkpoint/`, `metrics.csv`, `loss.png`,
+//! `split.json`, `train.json`).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context};
+use burn::tensor::backend::AutodiffBackend;
+use clap::Args;
+
+use super::device::Device;
+use super::train::{CpuTrain, Progress, TrainArgs};
+use super::Outcome;
+use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
+use crate::model::grid::{GridConfig, MemoryKind};
+use crate::model::FusedElu;
+use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
+use crate::train::{EpochRecord, Observer, TrainError};
+
+/// Flags of the grid architecture (ignored by `--arch paper`).
+#[derive(Debug, Clone, Args)]
+pub struct GridArgs {
+    /// Grid size n of P2G / U-Net / G2P (a multiple of 2^(levels - 1)).
+    #[arg(long, default_value_t = 64)]
+    pub grid: usize,
+    /// U-Net first-level width (channels).
+    #[arg(long, default_value_t = 32)]
+    pub unet_width: usize,
+    /// U-Net resolutions.
+    #[arg(long, default_value_t = 4)]
+    pub levels: usize,
+    /// Channels the U-Net hands back to the particles.
+    #[arg(long, default_value_t = 32)]
+    pub latent: usize,
+    /// Hidden state values per particle (memory cores).
+    #[arg(long, default_value_t = 32)]
+    pub hidden: usize,
+    /// Per-particle head width.
+    #[arg(long, default_value_t = 64)]
+    pub head_hidden: usize,
+    /// Steps per training sample P (a short rollout; the loss averages them).
+    #[arg(long, default_value_t = 4)]
+    pub rollout_steps: usize,
+    /// Of those, steps that read the true frame (the rest read the model's own predictions).
+    #[arg(long, default_value_t = 1)]
+    pub teacher_steps: usize,
+    /// Gaussian noise on the true input velocities, in units of the velocity change's
+    /// standard deviation.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise: f32,
+    /// Gradient-norm clipping threshold (0: off).
+    #[arg(long, default_value_t = 1.0)]
+    pub clip: f32,
+    /// Learning rate at the end of the cosine decay.
+    #[arg(long, default_value_t = 1e-5)]
+    pub lr_final: f64,
+    /// Samples per epoch at most (0: every window).
+    #[arg(long, default_value_t = 0)]
+    pub samples_per_epoch: usize,
+    /// Validation rollouts per validation scene.
+    #[arg(long, default_value_t = 3)]
+    pub val_starts: usize,
+    /// Validation rollout length (frames).
+    #[arg(long, default_value_t = 20)]
+    pub val_horizon: usize,
+    /// Stop after this many minutes of training (the epoch in progress is cut short,
+    /// validated and kept; 0: no limit).
+    #[arg(long, default_value_t = 0.0)]
+    pub max_minutes: f64,
+}
+
+impl TrainArgs {
+    /// The grid network these flags describe (normalisation constants still at their
+    /// defaults: [`fit_stats`] fills them from the training split).
+    ///
+    /// # Errors
+    /// An unknown core or a size out of range, naming the flag.
+    pub fn grid_config(&self) -> anyhow::Result<GridConfig> {
+        let memory = match self.model.as_str() {
+            "mlp" => MemoryKind::None,
+            name => MemoryKind::parse(name).with_context(|| {
+                format!("unknown --model {name:?} for --arch grid (none | mingru | minlstm | gru | lstm)")
+            })?,
+        };
+        let g = &self.grid_args;
+        let config = GridConfig::new(memory)
+            .with_grid(g.grid)
+            .with_window(self.window)
+            .with_unet_width(g.unet_width)
+            .with_levels(g.levels)
+            .with_latent(g.latent)
+            .with_hidden(g.hidden)
+            .with_head_hidden(g.head_hidden);
+        config
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;
+        if g.rollout_steps == 0 || g.teacher_steps == 0 || g.teacher_steps > g.rollout_steps {
+            bail!("--rollout-steps must be at least 1 and --teacher-steps in 1..=--rollout-steps");
+        }
+        if !(g.noise >= 0.0 && g.clip >= 0.0 && self.lr > 0.0 && g.lr_final >= 0.0) {
+            bail!("--noise, --clip and --lr-final must be >= 0 and --lr > 0");
+        }
+        if self.batch_size == 0 || self.epochs == 0 || g.val_horizon == 0 {
+            bail!("--batch-size, --epochs and --val-horizon must be at least 1");
+        }
+        Ok(config)
+    }
+
+    /// The grid run's optimisation settings.
+    pub fn grid_options(&self) -> GridTrainOptions {
+        let g = &self.grid_args;
+        GridTrainOptions {
+            epochs: self.epochs,
+            batch_size: self.batch_size,
+            samples_per_epoch: g.samples_per_epoch,
+            lr: self.lr,
+            lr_final: g.lr_final,
+            clip: g.clip,
+            steps: g.rollout_steps,
+            teacher: g.teacher_steps,
+            noise: g.noise,
+            seed: self.seed,
+            patience: self.patience,
+            val_starts: g.val_starts,
+            val_horizon: g.val_horizon,
+            max_minutes: g.max_minutes,
+        }
+    }
+}
+
+/// Runs `train --arch grid`.
+///
+/// # Errors
+/// Bad flags (before any data is read), unreadable bags, no training scenes, training errors.
+pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
+    let mut config = args.grid_config()?;
+    let opts = args.grid_options();
+    let device = args.device.parse()?;
+    let topic = Some(args.topic.as_str());
+    let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
+    for gap in &report.gaps {
+        tracing::warn!("{gap}");
+    }
+    let mut scenes: Vec<String> = trajs.iter().map(|t| t.scene.clone()).collect();
+    scenes.dedup();
+    let split = Split::new(&scenes, args.seed);
+    let (train, val, test) = split.partition(trajs);
+    if train.is_empty() {
+        bail!("no training scenes in {:?}", args.data);
+    }
+    let refs: Vec<&Trajectory> = train.iter().collect();
+    let scaler = Scaler::fit(&refs);
+    let (vel_scale, dv_mean, dv_scale) = fit_stats(&refs);
+    config.vel_scale = vel_scale;
+    config.dv_mean = dv_mean;
+    config.dv_scale = dv_scale;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    std::fs::write(
+        args.out.join("split.json"),
+        serde_json::to_string_pretty(&split)?,
+    )?;
+    std::fs::write(
+        args.out.join("train.json"),
+        serde_json::to_string_pretty(&opts)?,
+    )?;
+    let index = WindowIndex::new(train, config.window + opts.steps - 1, Scaler::default())?;
+    let counts: Vec<usize> = index.particle_counts();
+    eprintln!(
+        "{} scenes: {} train ({} samples), {} val, {} test; grid architecture, {} memory, n = {}, T = {}, P = {} (teacher {}), N = {counts:?}",
+        scenes.len(),
+        index.trajectories().len(),
+        index.len(),
+        val.len(),
+        test.len(),
+        config.memory.name(),
+        config.grid,
+        config.window,
+        opts.steps,
+        opts.teacher,
+    );
+    if index.is_empty() {
+        bail!(
+            "no training samples: every training scene has at most T + P - 1 = {} frames",
+            index.t()
+        );
+    }
+    let mut progress = Progress::new(args.out.clone());
+    let history = fit_on(
+        &device,
+        (config, opts, args.out.clone()),
+        &index,
+        &val,
+        &scaler,
+        args.resume,
+        &mut progress,
+    )?;
+    if let Some(best) = history
+        .iter()
+        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss))
+    {
+        println!(
+            "best epoch {} validation rollout MSE {:.4e} -> {}",
+            best.epoch,
+            best.val_loss,
+            args.out.join("model.json").display()
+        );
+    }
+    Ok(Outcome::Done)
+}
+
+/// Trains on `device` (the CPU, or one GPU).
+fn fit_on(
+    device: &Device,
+    run: (GridConfig, GridTrainOptions, PathBuf),
+    train: &WindowIndex,
+    val: &[Trajectory],
+    scaler: &Scaler,
+    resume: bool,
+    observer: &mut dyn Observer,
+) -> anyhow::Result<Vec<EpochRecord>> {
+    fn on<B: AutodiffBackend + FusedElu>(
+        device: B::Device,
+        run: (GridConfig, GridTrainOptions, PathBuf),
+        train: &WindowIndex,
+        val: &[Trajectory],
+        scaler: &Scaler,
+        resume: bool,
+        observer: &mut dyn Observer,
+    ) -> Result<Vec<EpochRecord>, TrainError>
+    where
+        B::InnerBackend: FusedElu,
+    {
+        let (config, opts, out) = run;
+        GridTrainer::<B> {
+            config,
+            opts,
+            out,
+            device,
+        }
+        .fit(train, val, scaler, resume, observer)
+    }
+    let ordinal = device.single("train --arch grid")?;
+    let history = match ordinal {
+        None => on::<CpuTrain>(
+            Default::default(),
+            run,
+            train,
+            val,
+            scaler,
+            resume,
+            observer,
+        )?,
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device as cuda_device, CudaTrain};
+            on::<CudaTrain>(cuda_device(id)?, run, train, val, scaler, resume, observer)?
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
+    };
+    Ok(history)
+}

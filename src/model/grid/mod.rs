@@ -1,0 +1,283 @@
+//! `--arch grid`: a local, grid-based surrogate with Lagrangian memory (DESIGN.md, "Models";
+//! docs/grid.md). One step, for every particle i of every scene in a batch:
+//!
+//! 1. P2G ([`transfer`]): the particle's mass (1), its last T velocities and its material
+//!    one-hot are splatted onto an `n x n` grid with MPM's quadratic B-spline weights;
+//!    channels `m / 4`, `sum w v / m` per frame (normalised), `sum w onehot / m`, plus two
+//!    wall masks (nodes with index < 3 or > n - 3 on each axis, where `sim` enforces its
+//!    walls). NeuralMPM (Rochman-Sharabi et al. 2024, arXiv 2408.15753) builds its grid the
+//!    same way.
+//! 2. A [`unet::UNet`] on the grid.
+//! 3. G2P: the U-Net's output gathered back at the particle, `g_i`.
+//! 4. Memory ([`memory`]): `u_i = [g_i, own_i]` (own = normalised velocities, material
+//!    one-hot, position) drives a per-particle minGRU | minLSTM | GRU | LSTM, or nothing.
+//! 5. Head: an MLP on `[u_i, memory output]` predicts the normalised velocity change;
+//!    `dv = dv_mean + dv_scale * out` (physical), `v' = v + dv`, and the trapezoid
+//!    `x' = x + dt (v + v') / 2` (its floor against MPM frames is 1.5e-6 / 1.3e-6 MSE, the
+//!    explicit `x + v' dt` 8e-6 / 2e-5: DESIGN.md), clamped into the box MPM keeps its
+//!    particles in.
+//!
+//! Any N, any particle order: every per-particle operation is row-wise and the grid sums are
+//! order-free. The normalisation constants are fitted on the training split and saved in
+//! [`GridConfig`]. Used by [`crate::model::store::Surrogate`] and [`crate::train::grid`].
+
+pub mod memory;
+pub mod transfer;
+pub mod unet;
+
+pub use memory::{Memory, MemoryKind, MemoryState};
+pub use unet::{UNet, UNetConfig};
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::tensor::activation::silu;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Tensor, TensorData};
+
+use super::FusedElu;
+
+/// Materials (one-hot width).
+pub const MATERIALS: usize = 4;
+
+/// Every size and normalisation constant of a grid model; saved with each checkpoint.
+#[derive(Config, Debug)]
+pub struct GridConfig {
+    /// Per-particle memory.
+    pub memory: MemoryKind,
+    /// Grid size n (a multiple of `2^(levels - 1)`).
+    #[config(default = 64)]
+    pub grid: usize,
+    /// Velocity frames per particle as input, T (the current one and T - 1 before it).
+    #[config(default = 2)]
+    pub window: usize,
+    /// U-Net first-level width.
+    #[config(default = 32)]
+    pub unet_width: usize,
+    /// U-Net resolutions.
+    #[config(default = 4)]
+    pub levels: usize,
+    /// Channels the U-Net returns to the particles.
+    #[config(default = 32)]
+    pub latent: usize,
+    /// Hidden state values per particle.
+    #[config(default = 32)]
+    pub hidden: usize,
+    /// Head MLP width.
+    #[config(default = 64)]
+    pub head_hidden: usize,
+    /// Velocity normalisation (x, y), domain units per time unit.
+    #[config(default = "[1.0, 1.0]")]
+    pub vel_scale: [f32; 2],
+    /// Mean velocity change per frame (x, y): gravity's share.
+    #[config(default = "[0.0, 0.0]")]
+    pub dv_mean: [f32; 2],
+    /// Standard deviation of the velocity change per frame (x, y).
+    #[config(default = "[1.0, 1.0]")]
+    pub dv_scale: [f32; 2],
+    /// Start the head's last layer at zero (an untrained model is then constant velocity
+    /// plus the mean acceleration; Goyal et al. 2017, section 5.1); tests turn it off.
+    #[config(default = true)]
+    pub head_zero_init: bool,
+}
+
+impl GridConfig {
+    /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls).
+    pub fn grid_channels(&self) -> usize {
+        1 + 2 * self.window + MATERIALS + 2
+    }
+
+    /// Per-particle own features (T velocities, material one-hot, position).
+    pub fn own_features(&self) -> usize {
+        2 * self.window + MATERIALS + 2
+    }
+
+    /// Checks the sizes.
+    ///
+    /// # Errors
+    /// A sentence naming the setting.
+    pub fn validate(&self) -> Result<(), String> {
+        let levels = self.levels.max(1);
+        if self.window == 0 {
+            return Err("window must be at least 1".into());
+        }
+        if self.grid < 8 || self.grid % (1 << (levels - 1)) != 0 {
+            return Err(format!(
+                "grid {} must be at least 8 and a multiple of 2^(levels - 1) = {}",
+                self.grid,
+                1 << (levels - 1)
+            ));
+        }
+        if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
+            return Err("widths must be at least 1".into());
+        }
+        Ok(())
+    }
+
+    /// A model with fresh weights; the head's last layer starts at zero, so an untrained
+    /// model predicts `dv = dv_mean` (constant velocity plus the mean acceleration).
+    pub fn init<B: FusedElu>(&self, device: &B::Device) -> GridModel<B> {
+        let own = self.own_features();
+        let d_u = self.latent + own;
+        let d_head = d_u
+            + if self.memory == MemoryKind::None {
+                0
+            } else {
+                self.hidden
+            };
+        GridModel {
+            unet: UNetConfig::new(self.grid_channels(), self.latent)
+                .with_width(self.unet_width)
+                .with_levels(self.levels)
+                .init(device),
+            memory: Memory::new(self.memory, d_u, self.hidden, device),
+            head_a: LinearConfig::new(d_head, self.head_hidden).init(device),
+            head_b: LinearConfig::new(self.head_hidden, self.head_hidden).init(device),
+            head_out: if self.head_zero_init {
+                LinearConfig::new(self.head_hidden, 2)
+                    .with_initializer(Initializer::Zeros)
+                    .init(device)
+            } else {
+                LinearConfig::new(self.head_hidden, 2).init(device)
+            },
+            n: self.grid,
+            window: self.window,
+            vel_scale: self.vel_scale,
+            dv_mean: self.dv_mean,
+            dv_scale: self.dv_scale,
+        }
+    }
+}
+
+/// The network (see the module doc).
+#[derive(Module, Debug)]
+pub struct GridModel<B: Backend> {
+    unet: UNet<B>,
+    memory: Memory<B>,
+    head_a: Linear<B>,
+    head_b: Linear<B>,
+    head_out: Linear<B>,
+    n: usize,
+    window: usize,
+    vel_scale: [f32; 2],
+    dv_mean: [f32; 2],
+    dv_scale: [f32; 2],
+}
+
+/// One scene batch's input to a step, physical units.
+#[derive(Clone, Debug)]
+pub struct StepInput<B: Backend> {
+    /// `[B, N, 2]` positions, domain units.
+    pub pos: Tensor<B, 3>,
+    /// `[B, N, 2 T]` velocities of the last T frames, oldest first, domain units per time unit.
+    pub vel: Tensor<B, 3>,
+    /// `[B, N, 4]` material one-hot.
+    pub material: Tensor<B, 3>,
+    /// `[B]` frame spacing, time units.
+    pub dt: Tensor<B, 1>,
+}
+
+/// A step's prediction, physical units.
+#[derive(Clone, Debug)]
+pub struct StepOutput<B: Backend> {
+    /// `[B, N, 2]` next positions.
+    pub pos: Tensor<B, 3>,
+    /// `[B, N, 2]` next velocities.
+    pub vel: Tensor<B, 3>,
+}
+
+/// `[1, 1, 2k]`: `v` repeated k times (per-component constants for interleaved x, y).
+fn pairs<B: Backend>(v: [f32; 2], k: usize, device: &B::Device) -> Tensor<B, 3> {
+    let data: Vec<f32> = (0..k).flat_map(|_| v).collect();
+    Tensor::from_data(TensorData::new(data, [1, 1, 2 * k]), device)
+}
+
+/// `[B, N, 4]` one-hot of material ids `[B N]` (ids above 3 count as 3).
+pub fn one_hot<B: Backend>(
+    material: &[u8],
+    b: usize,
+    n: usize,
+    device: &B::Device,
+) -> Tensor<B, 3> {
+    let mut data = vec![0.0f32; b * n * MATERIALS];
+    for (row, &m) in data.chunks_exact_mut(MATERIALS).zip(material) {
+        row[usize::from(m).min(MATERIALS - 1)] = 1.0;
+    }
+    Tensor::from_data(TensorData::new(data, [b, n, MATERIALS]), device)
+}
+
+/// `[B, n^2, 2]`: the wall masks (x walls, y walls) of an n x n grid.
+fn walls<B: Backend>(b: usize, n: usize, device: &B::Device) -> Tensor<B, 3> {
+    let wall = |i: usize| f32::from(u8::from(i < 3 || i + 3 > n));
+    let data: Vec<f32> = (0..n * n)
+        .flat_map(|k| [wall(k / n), wall(k % n)])
+        .collect();
+    Tensor::<B, 3>::from_data(TensorData::new(data, [1, n * n, 2]), device).repeat_dim(0, b)
+}
+
+impl<B: FusedElu> GridModel<B> {
+    /// Velocity frames per particle the step reads (T).
+    pub fn window(&self) -> usize {
+        self.window
+    }
+
+    /// One step for a batch of scenes: the next frame and the new memory state.
+    ///
+    /// # Shapes
+    /// See [`StepInput`] and [`StepOutput`]; `state` holds `[B N, H]` rows.
+    pub fn step(
+        &self,
+        input: StepInput<B>,
+        state: MemoryState<B>,
+    ) -> (StepOutput<B>, MemoryState<B>) {
+        let [b, n_p, _] = input.pos.dims();
+        let t = self.window;
+        let device = input.pos.device();
+        let vel = input.vel / pairs(self.vel_scale, t, &device); // [B, N, 2T]
+                                                                 // P2G.
+        let s = transfer::stencil(input.pos.clone(), self.n);
+        let ones = Tensor::ones([b, n_p, 1], &device);
+        let splat = transfer::p2g(
+            &s,
+            Tensor::cat(vec![ones, vel.clone(), input.material.clone()], 2),
+        ); // [B, n^2, 1 + 2T + 4]
+        let mass = splat.clone().narrow(2, 0, 1);
+        let per_mass = splat.narrow(2, 1, 2 * t + MATERIALS) / mass.clone().clamp_min(1e-6);
+        let cells = self.n * self.n;
+        let grid = Tensor::cat(
+            vec![mass.mul_scalar(0.25), per_mass, walls(b, self.n, &device)],
+            2,
+        ); // [B, n^2, C]
+        let c = grid.dims()[2];
+        let grid = grid.swap_dims(1, 2).reshape([b, c, self.n, self.n]);
+        // U-Net, G2P.
+        let out = self.unet.forward(grid);
+        let latent = out.dims()[1];
+        let out = out.reshape([b, latent, cells]).swap_dims(1, 2); // [B, n^2, L]
+        let gathered = transfer::g2p(&s, out); // [B, N, L]
+                                               // Memory and head, one row per particle.
+        let u = Tensor::cat(
+            vec![gathered, vel.clone(), input.material, input.pos.clone()],
+            2,
+        );
+        let d_u = u.dims()[2];
+        let u = u.reshape([b * n_p, d_u]);
+        let (memory, state) = self.memory.step(u.clone(), state);
+        let features = match memory {
+            Some(m) => Tensor::cat(vec![u, m], 1),
+            None => u,
+        };
+        let h = silu(self.head_a.forward(features));
+        let h = silu(self.head_b.forward(h));
+        let dv = self.head_out.forward(h).reshape([b, n_p, 2]);
+        let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
+        // Integrate (trapezoid) in physical units.
+        let v = vel.narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
+        let v_next = v.clone() + dv;
+        let dt = input.dt.reshape([b, 1, 1]);
+        let pos = input.pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
+        let dx = 1.0 / self.n as f32;
+        let pos = pos.clamp(0.5 * dx, 1.0 - 1.5 * dx);
+        (StepOutput { pos, vel: v_next }, state)
+    }
+}

@@ -1,0 +1,460 @@
+//! Training of the grid architecture ([`crate::model::grid`]) for stable rollouts, after GNS
+//! (Sanchez-Gonzalez et al. 2020, "Learning to Simulate Complex Physics with Graph
+//! Networks", section 3: normalised targets, noise on the inputs), NeuralMPM (Rochman-Sharabi
+//! et al. 2024: loss over short autoregressive rollouts) and LagrangeBench (Toshev et al.
+//! 2023: push-forward, best checkpoint by validation rollout error).
+//!
+//! A sample is `T + P` consecutive frames of one scene. The model steps P times from frame
+//! `T - 1`: the first `teacher` steps read the true frame (velocities with Gaussian noise of
+//! `noise * dv_scale`), the rest read the model's own previous prediction, and the memory
+//! state runs through all P steps, so gradients flow through the state and through the
+//! fed-back predictions (backpropagation through the short rollout). Loss per step: the MSE of
+//! the next velocity in units of `dv_scale` plus the MSE of the next position in units of
+//! `dv_scale * dt`, averaged over the steps. Adam with gradient-norm clipping and a cosine
+//! learning-rate decay from `lr` to `lr_final` over the run; after each epoch the validation
+//! scenes are rolled out `val_horizon` frames from `val_starts` starts and the mean scaled
+//! MSE (as `eval` scores, with the training split's min-max scaler) picks the kept model.
+//! A checkpoint is written every epoch; a resumed run continues bit for bit (the noise and
+//! the data order are reseeded from (seed, epoch)) unless a time limit (`max_minutes`) set
+//! the learning-rate decay by the clock. Used by `minflow train --arch grid`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use burn::grad_clipping::GradientClippingConfig;
+use burn::module::AutodiffModule;
+use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::{Distribution, ElementConversion, Tensor};
+
+use super::{checkpoint, EpochRecord, Observer, TrainError};
+use crate::data::{Batch, Scaler, Trajectory, WindowIndex};
+use crate::eval::rollout::start_offsets;
+use crate::model::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
+use crate::model::{upload, FusedElu};
+
+/// Optimisation settings of a grid run.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct GridTrainOptions {
+    /// Epochs at most.
+    pub epochs: usize,
+    /// Samples per optimizer step.
+    pub batch_size: usize,
+    /// Samples per epoch at most (0: every window of the training split).
+    pub samples_per_epoch: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Learning rate at the end of the cosine decay.
+    pub lr_final: f64,
+    /// Gradient-norm clipping threshold (0: none).
+    pub clip: f32,
+    /// Steps per sample P.
+    pub steps: usize,
+    /// Of those, steps that read the true frame.
+    pub teacher: usize,
+    /// Input-velocity noise, in units of `dv_scale`.
+    pub noise: f32,
+    /// Seed of the weights, data order and noise.
+    pub seed: u64,
+    /// Stop after this many epochs without a better validation rollout (0: never).
+    pub patience: usize,
+    /// Validation rollouts per scene.
+    pub val_starts: usize,
+    /// Validation rollout length.
+    pub val_horizon: usize,
+    /// Stop (after validating) once training has run this many minutes (0: no limit).
+    pub max_minutes: f64,
+}
+
+/// Velocity and velocity-change statistics of `trajs` (the training split): per component
+/// `vel_scale` = the velocities' standard deviation, `dv_mean` and `dv_scale` = the mean
+/// and standard deviation of the change over one frame. Used to fill [`GridConfig`].
+pub fn fit_stats(trajs: &[&Trajectory]) -> ([f32; 2], [f32; 2], [f32; 2]) {
+    let mut v = [[0.0f64; 3]; 2]; // count, sum, sum of squares
+    let mut dv = [[0.0f64; 3]; 2];
+    for traj in trajs {
+        for k in 0..traj.frames {
+            let now = traj.state(k);
+            let next = (k + 1 < traj.frames).then(|| traj.state(k + 1));
+            for (p, row) in now.chunks_exact(4).enumerate() {
+                for c in 0..2 {
+                    let x = f64::from(row[2 + c]);
+                    v[c][0] += 1.0;
+                    v[c][1] += x;
+                    v[c][2] += x * x;
+                    if let Some(next) = next {
+                        let d = f64::from(next[4 * p + 2 + c]) - x;
+                        dv[c][0] += 1.0;
+                        dv[c][1] += d;
+                        dv[c][2] += d * d;
+                    }
+                }
+            }
+        }
+    }
+    let mean = |s: [f64; 3]| if s[0] > 0.0 { s[1] / s[0] } else { 0.0 };
+    let std = |s: [f64; 3]| {
+        let m = mean(s);
+        let var = if s[0] > 0.0 { s[2] / s[0] - m * m } else { 1.0 };
+        (var.max(0.0).sqrt() as f32).max(1e-6)
+    };
+    (
+        [std(v[0]), std(v[1])],
+        [mean(dv[0]) as f32, mean(dv[1]) as f32],
+        [std(dv[0]), std(dv[1])],
+    )
+}
+
+/// The learning rate at `progress` (0 to 1) through the run: cosine from `lr` to `lr_final`
+/// (Loshchilov and Hutter 2017, "SGDR", eq. 5, one cycle).
+pub fn learning_rate(opts: &GridTrainOptions, progress: f64) -> f64 {
+    let progress = progress.clamp(0.0, 1.0);
+    opts.lr_final
+        + 0.5 * (opts.lr - opts.lr_final) * (1.0 + (std::f64::consts::PI * progress).cos())
+}
+
+/// A grid training run.
+pub struct GridTrainer<B: AutodiffBackend> {
+    /// The network (with its normalisation constants filled in).
+    pub config: GridConfig,
+    /// Optimisation settings.
+    pub opts: GridTrainOptions,
+    /// Run folder.
+    pub out: PathBuf,
+    /// Device.
+    pub device: B::Device,
+}
+
+/// The `[B, S, N, 4]` frames, `[B, N, 4]` one-hot materials and `[B]` dt of a batch of
+/// windows built with the identity scaler (inputs then hold physical values).
+fn upload_batch<B: Backend>(
+    batch: Batch,
+    device: &B::Device,
+) -> (Tensor<B, 4>, Tensor<B, 3>, Tensor<B, 1>) {
+    let (b, t, n) = (batch.b, batch.t, batch.n);
+    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
+    for w in 0..b {
+        for k in 0..t {
+            let start = ((w * t + k) * n) * 5;
+            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
+                frames.extend_from_slice(&row[..4]);
+            }
+        }
+        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
+    }
+    (
+        upload(frames, [b, t + 1, n, 4], device),
+        one_hot(&batch.material, b, n, device),
+        upload(batch.dt, [b], device),
+    )
+}
+
+/// The training loss of one batch (see the module doc).
+fn sequence_loss<B: FusedElu>(
+    model: &GridModel<B>,
+    config: &GridConfig,
+    opts: &GridTrainOptions,
+    frames: Tensor<B, 4>,
+    material: Tensor<B, 3>,
+    dt: Tensor<B, 1>,
+) -> Tensor<B, 1> {
+    let [b, _, n, _] = frames.dims();
+    let t = config.window;
+    let device = frames.device();
+    let truth = |k: usize| frames.clone().narrow(1, k, 1).reshape([b, n, 4]);
+    let dv_scale = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
+    let noisy = |v: Tensor<B, 3>| {
+        if opts.noise > 0.0 {
+            let e = Tensor::random([b, n, 2], Distribution::Normal(0.0, 1.0), &device);
+            v + e * dv_scale.clone().mul_scalar(opts.noise)
+        } else {
+            v
+        }
+    };
+    let mut history: Vec<Tensor<B, 3>> = (0..t).map(|k| noisy(truth(k).narrow(2, 2, 2))).collect();
+    let mut pos = truth(t - 1).narrow(2, 0, 2);
+    let mut state = MemoryState::Empty;
+    let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
+    let mut total: Option<Tensor<B, 1>> = None;
+    for p in 0..opts.steps {
+        let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
+        let input = StepInput {
+            pos,
+            vel,
+            material: material.clone(),
+            dt: dt.clone(),
+        };
+        let (out, next_state) = model.step(input, state);
+        state = next_state;
+        let target = truth(t + p);
+        let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
+            .powi_scalar(2)
+            .mean();
+        let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
+            .powi_scalar(2)
+            .mean();
+        let step = lv + lx;
+        total = Some(match total {
+            Some(acc) => acc + step,
+            None => step,
+        });
+        if p + 1 < opts.teacher {
+            pos = target.clone().narrow(2, 0, 2);
+            history.push(noisy(target.narrow(2, 2, 2)));
+        } else {
+            pos = out.pos;
+            history.push(out.vel);
+        }
+    }
+    total
+        .expect("at least one step")
+        .div_scalar(opts.steps.max(1) as f32)
+}
+
+/// Mean scaled MSE of `horizon`-frame rollouts of `surrogate` from `starts` starts of every
+/// trajectory (all starts of a scene as one batch).
+///
+/// # Errors
+/// A step failed ([`store::StoreError`]).
+pub fn validation_rollout<B: FusedElu>(
+    surrogate: &Surrogate<B>,
+    trajs: &[Trajectory],
+    scaler: &Scaler,
+    starts: usize,
+    horizon: usize,
+) -> Result<f64, store::StoreError> {
+    let window = surrogate.meta().window();
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for traj in trajs {
+        let offsets = start_offsets(traj.frames, window, horizon, starts);
+        let offsets: Vec<usize> = offsets
+            .into_iter()
+            .filter(|&o| o + window + horizon <= traj.frames)
+            .collect();
+        if offsets.is_empty() {
+            continue;
+        }
+        let (b, n) = (offsets.len(), traj.n);
+        let material: Vec<u8> = (0..b).flat_map(|_| traj.material.iter().copied()).collect();
+        let dt = vec![traj.dt; b];
+        let mut state = surrogate.init_state();
+        let mut next = Vec::new();
+        for k in 0..window {
+            let frame: Vec<f32> = offsets
+                .iter()
+                .flat_map(|&o| traj.state(o + k).iter().copied())
+                .collect();
+            let (out, s) = surrogate.step(&frame, &material, &dt, state)?;
+            state = s;
+            next = out;
+        }
+        for k in 0..horizon {
+            for (row, &o) in offsets.iter().enumerate() {
+                let truth = traj.state(o + window + k);
+                let pred = &next[row * n * 4..(row + 1) * n * 4];
+                for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
+                    for f in 0..4 {
+                        let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
+                        sum += d * d;
+                    }
+                }
+                count += n * 4;
+            }
+            if k + 1 < horizon {
+                let (out, s) = surrogate.step(&next, &material, &dt, state)?;
+                state = s;
+                next = out;
+            }
+        }
+    }
+    Ok(if count == 0 {
+        f64::NAN
+    } else {
+        sum / count as f64
+    })
+}
+
+impl<B: AutodiffBackend + FusedElu> GridTrainer<B>
+where
+    B::InnerBackend: FusedElu,
+{
+    /// Trains on `train` (windows of `T + P - 1` input frames built with the identity
+    /// scaler), validating by rollouts of `val`; `scaler` is the training split's min-max
+    /// scaler (saved with the model, used for the validation score). Resumes from
+    /// `out/checkpoint` when `resume`.
+    ///
+    /// # Errors
+    /// A non-finite loss, a failed save or load, a failed validation step.
+    pub fn fit(
+        &self,
+        train: &WindowIndex,
+        val: &[Trajectory],
+        scaler: &Scaler,
+        resume: bool,
+        observer: &mut dyn Observer,
+    ) -> Result<Vec<EpochRecord>, TrainError> {
+        let opts = &self.opts;
+        if train.t() != self.config.window + opts.steps - 1 {
+            return Err(TrainError::Mismatch(format!(
+                "windows of {} frames, the run needs T + P - 1 = {}",
+                train.t(),
+                self.config.window + opts.steps - 1
+            )));
+        }
+        B::seed(&self.device, opts.seed);
+        let mut model: GridModel<B> = initial_grid_model(&self.config, opts.seed, &self.device)?;
+        let mut adam = AdamConfig::new().with_epsilon(1e-8);
+        if opts.clip > 0.0 {
+            adam = adam.with_grad_clipping(Some(GradientClippingConfig::Norm(opts.clip)));
+        }
+        let mut optim = adam.init::<B, GridModel<B>>();
+        let mut history: Vec<EpochRecord> = Vec::new();
+        if resume {
+            if let Some(state) = checkpoint::load::<B, _, _>(
+                &self.out,
+                self.config.init::<B>(&self.device),
+                &self.device,
+                &optim,
+            )? {
+                model = state.model;
+                optim = optim.load_record(state.optim);
+                history = state.history;
+            }
+        }
+        let mut best = history
+            .iter()
+            .map(|r| r.val_loss)
+            .fold(f64::INFINITY, f64::min);
+        let mut since_best = history
+            .iter()
+            .rev()
+            .take_while(|r| r.val_loss > best)
+            .count();
+        let per_epoch = match opts.samples_per_epoch {
+            0 => train.len(),
+            s => s.min(train.len()),
+        };
+        let batches = per_epoch.div_ceil(opts.batch_size.max(1));
+        let total_steps = batches * opts.epochs;
+        let started_run = Instant::now();
+        let meta = |epoch: usize, val_loss: f64| ModelMeta {
+            net: NetConfig::Grid(self.config.clone()),
+            scaler: *scaler,
+            epoch,
+            val_loss,
+        };
+        for epoch in history.len()..opts.epochs {
+            if opts.patience > 0 && since_best >= opts.patience {
+                break;
+            }
+            B::seed(
+                &self.device,
+                opts.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64),
+            );
+            let started = Instant::now();
+            let (mut sum, mut seen) = (0.0f64, 0usize);
+            let mut wait = 0.0f64;
+            let mut data = 0.0f64;
+            let mut out_of_time = false;
+            let mut fetch = Instant::now();
+            for (k, batch) in train
+                .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
+                .take(batches)
+                .enumerate()
+            {
+                let b = batch.b;
+                let (frames, material, dt) = upload_batch::<B>(batch, &self.device);
+                data += fetch.elapsed().as_secs_f64();
+                let loss = sequence_loss(&model, &self.config, opts, frames, material, dt);
+                let grads = GradientsParams::from_grads(loss.backward(), &model);
+                // Progress through the run: by steps, or by time when a time limit ends it
+                // first (the decay then finishes at the limit).
+                let mut progress = (epoch * batches + k) as f64 / total_steps.max(1) as f64;
+                if opts.max_minutes > 0.0 {
+                    progress = progress
+                        .max(started_run.elapsed().as_secs_f64() / (opts.max_minutes * 60.0));
+                }
+                let lr = learning_rate(opts, progress);
+                model = optim.step(lr, model, grads);
+                let waited = Instant::now();
+                let value: f64 = loss.into_scalar().elem();
+                wait += waited.elapsed().as_secs_f64();
+                if !value.is_finite() {
+                    return Err(TrainError::NonFinite {
+                        epoch: epoch + 1,
+                        batch: k,
+                        loss: value as f32,
+                    });
+                }
+                sum += value * b as f64;
+                seen += b;
+                let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                observer.batch(epoch + 1, k + 1, batches, sum / seen as f64, rate);
+                if opts.max_minutes > 0.0
+                    && started_run.elapsed().as_secs_f64() > opts.max_minutes * 60.0
+                {
+                    out_of_time = true;
+                    break;
+                }
+                fetch = Instant::now();
+            }
+            let seconds = started.elapsed().as_secs_f64();
+            let train_loss = sum / seen.max(1) as f64;
+            let surrogate =
+                Surrogate::from_net(Net::Grid(model.valid()), meta(epoch + 1, 0.0), &self.device);
+            let val_loss = if val.is_empty() {
+                train_loss
+            } else {
+                validation_rollout(&surrogate, val, scaler, opts.val_starts, opts.val_horizon)?
+            };
+            let record = EpochRecord {
+                epoch: epoch + 1,
+                train_loss,
+                val_loss,
+                seconds,
+                samples_per_sec: seen as f64 / seconds.max(1e-9),
+                data_seconds: data,
+                wait_seconds: wait,
+            };
+            if val_loss < best {
+                best = val_loss;
+                since_best = 0;
+                store::save(&self.out, &model, &meta(epoch + 1, val_loss))?;
+            } else {
+                since_best += 1;
+            }
+            history.push(record.clone());
+            checkpoint::save(&self.out, &model, &optim, &history)?;
+            observer.epoch(&record, &history);
+            if out_of_time {
+                break;
+            }
+        }
+        Ok(history)
+    }
+}
+
+/// Fresh weights from `seed`, drawn on the CPU and moved to `device` (as
+/// [`super::initial_model`] does for the paper's model), so every backend starts alike.
+///
+/// # Errors
+/// Moving the record failed.
+pub fn initial_grid_model<B: FusedElu>(
+    config: &GridConfig,
+    seed: u64,
+    device: &B::Device,
+) -> Result<GridModel<B>, TrainError> {
+    use burn::backend::NdArray;
+    use burn::module::Module;
+    use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
+    let cpu = Default::default();
+    NdArray::<f32>::seed(&cpu, seed);
+    let drawn: GridModel<NdArray<f32>> = config.init(&cpu);
+    let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
+    let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
+        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
+    let record = Recorder::<B>::load(&recorder, bytes, device)
+        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
+    Ok(config.init::<B>(device).load_record(record))
+}

@@ -1,0 +1,35 @@
+//! The integration tests, as one test binary (ripgrep keeps one integration-test crate the
+//! same way): each module below was its own binary before, and linking the whole stack
+//! (zenoh, burn, iceoryx2, ros2-client) once instead of 22 times is most of the build's
+//! time saved. The training tests that need burn's per-process CPU generator to themselves
+//! (`train_loop`, `train_resume`, `train_parallel`) and `transport_ros2` (it sets a
+//! process-wide environment variable that spawned nodes would inherit) stay binaries of
+//! their own.
+
+mod bag_bad_input;
+mod bag_python_interop;
+mod bag_roundtrip;
+mod cli_simulate;
+mod cli_train;
+mod data_load;
+mod data_scaler;
+mod data_split;
+mod data_streaming;
+mod data_windows;
+mod eval_metrics;
+mod eval_render;
+mod eval_replay;
+mod eval_report;
+mod model_cells;
+mod model_grid;
+mod msgs_cdr;
+mod node_surrogate;
+mod plot_png;
+mod sim_scenes;
+mod sim_validation;
+mod transport_nodes;
+
+#[allow(dead_code)]
+mod data_support;
+#[allow(dead_code)]
+mod transport_support;
