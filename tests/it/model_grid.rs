@@ -228,3 +228,77 @@ fn any_particle_count_and_run_folder_round_trip() {
     assert_eq!(loaded.meta().arch_name(), "grid");
     assert_eq!(loaded.meta().core_name(), "minlstm");
 }
+
+/// The CPU's im2col + gemm convolution (channels last) equals burn's `Conv2d::forward` (3x3
+/// same padding and 1x1), in outputs and in the gradients of the input, the weight and the bias.
+#[test]
+fn im2col_convolution_equals_burns() {
+    use burn::backend::Autodiff;
+    use burn::nn::conv::Conv2dConfig;
+    use burn::nn::PaddingConfig2d;
+    use minflow::model::grid::unet::conv;
+    type A = Autodiff<B>;
+    let device = Default::default();
+    for k in [3, 1] {
+        let layer = Conv2dConfig::new([5, 7], [k, k])
+            .with_padding(PaddingConfig2d::Same)
+            .init::<A>(&device);
+        let x = Tensor::<A, 4>::random(
+            [2, 8, 6, 5],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        )
+        .require_grad();
+        // Ours takes channels last; burn's takes channels first.
+        let ours = conv(&layer, x.clone());
+        let theirs = layer
+            .forward(x.clone().permute([0, 3, 1, 2]))
+            .permute([0, 2, 3, 1]);
+        let close = |a: Vec<f32>, b: Vec<f32>, what: &str| {
+            assert_eq!(a.len(), b.len());
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst < 1e-4, "k = {k}, {what}: {worst}");
+        };
+        close(
+            ours.clone().into_data().to_vec().unwrap(),
+            theirs.clone().into_data().to_vec().unwrap(),
+            "output",
+        );
+        let probe = Tensor::<A, 4>::random(
+            ours.dims(),
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let g_ours = (ours * probe.clone()).sum().backward();
+        let g_theirs = (theirs * probe).sum().backward();
+        let grad = |g: &<A as burn::tensor::backend::AutodiffBackend>::Gradients| {
+            (
+                x.grad(g).unwrap().into_data().to_vec::<f32>().unwrap(),
+                layer
+                    .weight
+                    .grad(g)
+                    .unwrap()
+                    .into_data()
+                    .to_vec::<f32>()
+                    .unwrap(),
+                layer
+                    .bias
+                    .as_ref()
+                    .unwrap()
+                    .grad(g)
+                    .unwrap()
+                    .into_data()
+                    .to_vec::<f32>()
+                    .unwrap(),
+            )
+        };
+        let (a, b) = (grad(&g_ours), grad(&g_theirs));
+        close(a.0, b.0, "input gradient");
+        close(a.1, b.1, "weight gradient");
+        close(a.2, b.2, "bias gradient");
+    }
+}

@@ -249,11 +249,11 @@ impl<B: FusedElu> GridModel<B> {
             2,
         ); // [B, n^2, C]
         let c = grid.dims()[2];
-        let grid = grid.swap_dims(1, 2).reshape([b, c, self.n, self.n]);
-        // U-Net, G2P.
+        let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
+                                                         // U-Net, G2P.
         let out = self.unet.forward(grid);
-        let latent = out.dims()[1];
-        let out = out.reshape([b, latent, cells]).swap_dims(1, 2); // [B, n^2, L]
+        let latent = out.dims()[3];
+        let out = out.reshape([b, cells, latent]); // [B, n^2, L]
         let gathered = transfer::g2p(&s, out); // [B, N, L]
                                                // Memory and head, one row per particle.
         let u = Tensor::cat(
