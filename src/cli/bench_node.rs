@@ -52,6 +52,10 @@ pub struct NodeBenchArgs {
     /// Bag whose frames are published.
     #[arg(long, default_value = "bags/multi_rope+snow_001.mcap")]
     bag: PathBuf,
+    /// Trained run folders to measure (repeatable; e.g. the shipped models/all-grid-mingru)
+    /// instead of untrained paper-sized models of --cores.
+    #[arg(long = "model", value_name = "DIR")]
+    models: Vec<PathBuf>,
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.
@@ -107,15 +111,30 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     let exe = std::env::current_exe().context("locating the minflow binary")?;
     let tmp = tempfile::tempdir()?;
     let mut table = Vec::new();
-    for name in args
-        .cores
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-    {
-        let core = CoreKind::parse(name).with_context(|| format!("unknown core {name:?}"))?;
-        let dir = tmp.path().join(name);
-        make_model(&dir, core, last, &scaler)?;
+    let mut runs: Vec<(String, PathBuf)> = Vec::new();
+    if args.models.is_empty() {
+        for name in args
+            .cores
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+        {
+            let core = CoreKind::parse(name).with_context(|| format!("unknown core {name:?}"))?;
+            let dir = tmp.path().join(name);
+            make_model(&dir, core, last, &scaler)?;
+            runs.push((name.to_owned(), dir));
+        }
+    } else {
+        for dir in &args.models {
+            let name = dir.file_name().map_or_else(
+                || dir.display().to_string(),
+                |n| n.to_string_lossy().into_owned(),
+            );
+            runs.push((name, dir.clone()));
+        }
+    }
+    for (name, dir) in &runs {
+        let (name, dir) = (name.as_str(), dir.clone());
         // The model's own step time, in this process.
         let surrogate = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())?;
         let mut state = surrogate.init_state();

@@ -38,10 +38,10 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Steps predicted per rollout H (the paper's avg20 / f20: 20).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
     pub horizon: usize,
     /// Rollouts per trajectory from evenly spaced start frames (1: from the first frame).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
     pub starts: usize,
     /// Seed frames before the first prediction when no model is given (else the largest
     /// model window T).

@@ -11,6 +11,7 @@ mod bench_transport;
 mod demo;
 pub mod device;
 pub mod eval;
+mod flags;
 mod launch;
 mod node;
 mod record;

@@ -64,13 +64,17 @@ pub fn parse_ids(spec: &str) -> anyhow::Result<Vec<u32>> {
             .parse()
             .with_context(|| format!("scene id {s:?} is not a number"))
     };
-    if let Some((a, b)) = spec.split_once("..=") {
-        return Ok((num(a)?..=num(b)?).collect());
+    let ids: Vec<u32> = if let Some((a, b)) = spec.split_once("..=") {
+        (num(a)?..=num(b)?).collect()
+    } else if let Some((a, b)) = spec.split_once("..") {
+        (num(a)?..num(b)?).collect()
+    } else {
+        spec.split(',').map(num).collect::<anyhow::Result<_>>()?
+    };
+    if ids.is_empty() {
+        bail!("--scenes {spec:?} names no scene (an empty range)");
     }
-    if let Some((a, b)) = spec.split_once("..") {
-        return Ok((num(a)?..num(b)?).collect());
-    }
-    spec.split(',').map(num).collect()
+    Ok(ids)
 }
 
 /// The bag file name of a scene id: `/` becomes `_`, e.g. `multi_rope+snow_007.mcap`.
@@ -99,6 +103,13 @@ fn simulate(
             Some(spec) => parse_ids(spec)?,
             None => (0..family.scene_count()).collect(),
         };
+        if let Some(bad) = ids.iter().find(|&&id| id >= family.scene_count()) {
+            bail!(
+                "--scenes: id {bad} is outside the family's {} ids (0..{})",
+                family.scene_count(),
+                family.scene_count()
+            );
+        }
         scenes.extend(
             ids.into_iter()
                 .map(|id| families::scene(family, id, args.seed)),

@@ -38,31 +38,31 @@ pub struct TrainArgs {
     #[arg(short, long)]
     pub out: PathBuf,
     /// Epochs (at most; early stopping may end sooner).
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 30, value_parser = super::flags::at_least_one)]
     pub epochs: usize,
     /// Effective batch size (windows per optimizer step).
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
     pub batch_size: usize,
     /// Windows per forward pass; gradients accumulate up to --batch-size.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
     pub micro_batch: usize,
     /// Input frames per sample T.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
     pub window: usize,
     /// Seed of the split, the weights, the data order and dropout.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Adam learning rate.
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = 1e-3, value_parser = super::flags::positive)]
     pub lr: f64,
     /// Stop after this many epochs without a better validation loss (0: never).
     #[arg(long, default_value_t = 5)]
     pub patience: usize,
     /// Latent and core width W (the paper: 1250).
-    #[arg(long, default_value_t = 1250)]
+    #[arg(long, default_value_t = 1250, value_parser = super::flags::at_least_one)]
     pub width: usize,
     /// Encoder hidden width (the paper: 256).
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = super::flags::at_least_one)]
     pub encoder_hidden: usize,
     /// Activation after the encoder's last Linear: elu (the paper's text) | none (with mean
     /// pooling the encoder is then ~200x cheaper, exactly).
@@ -72,10 +72,10 @@ pub struct TrainArgs {
     #[arg(long, default_value = "mean")]
     pub pooling: String,
     /// Recurrent layers.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
     pub layers: usize,
     /// Dropout after each recurrent layer.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, value_parser = super::flags::dropout)]
     pub dropout: f64,
     /// Decoder: global (the paper's, fixed N) | pointwise (any N).
     #[arg(long, default_value = "global")]
@@ -85,10 +85,10 @@ pub struct TrainArgs {
     #[arg(long, default_value = "zero")]
     pub decoder_init: String,
     /// Density-map grid G for the loss.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
     pub density_grid: usize,
     /// Weight of the density-map loss.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, value_parser = super::flags::non_negative_f32)]
     pub density_weight: f32,
     /// Topic to read frames from.
     #[arg(long, default_value = crate::bag::FRAMES_TOPIC)]

@@ -25,51 +25,51 @@ use crate::train::{EpochRecord, Observer, TrainError};
 #[derive(Debug, Clone, Args)]
 pub struct GridArgs {
     /// Grid size n of P2G / U-Net / G2P (a multiple of 2^(levels - 1)).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub grid: usize,
     /// U-Net first-level width (channels).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
     pub unet_width: usize,
     /// U-Net resolutions.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
     pub levels: usize,
     /// Channels the U-Net hands back to the particles.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
     pub latent: usize,
     /// Hidden state values per particle (memory cores).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
     pub hidden: usize,
     /// Per-particle head width.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub head_hidden: usize,
     /// Steps per training sample P (a short rollout; the loss averages them).
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
     pub rollout_steps: usize,
     /// Of those, steps that read the true frame (the rest read the model's own predictions).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
     pub teacher_steps: usize,
     /// Gaussian noise on the true input velocities, in units of the velocity change's
     /// standard deviation.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative_f32)]
     pub noise: f32,
     /// Gradient-norm clipping threshold (0: off).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::flags::non_negative_f32)]
     pub clip: f32,
     /// Learning rate at the end of the cosine decay.
-    #[arg(long, default_value_t = 1e-5)]
+    #[arg(long, default_value_t = 1e-5, value_parser = super::flags::non_negative)]
     pub lr_final: f64,
     /// Samples per epoch at most (0: every window).
     #[arg(long, default_value_t = 0)]
     pub samples_per_epoch: usize,
     /// Validation rollouts per validation scene.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, value_parser = super::flags::at_least_one)]
     pub val_starts: usize,
     /// Validation rollout length (frames).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
     pub val_horizon: usize,
     /// Stop after this many minutes of training (the epoch in progress is cut short,
     /// validated and kept; 0: no limit).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
     pub max_minutes: f64,
 }
 

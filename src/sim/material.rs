@@ -87,6 +87,16 @@ impl Elasticity {
     }
 }
 
+/// The smallest volume ratio a liquid particle keeps. Explicit MPM can compress a liquid
+/// particle through zero volume in one substep when a stiff body presses it against a wall
+/// (`multi/liquid+snow/007` with `--seed 2` reached `J = 0` at frame 43-61), after which its
+/// stress and volume are meaningless. The liquid's `J` is therefore floored after the
+/// update, a volume floor in the plastic projection (the liquid already discards all of F
+/// but its determinant). 0.1 is far below what a resolved scene reaches (the pressure
+/// continues monotonically below 0.5, see [`liquid_pressure`]), so only the degenerate
+/// substep is changed.
+pub const LIQUID_J_MIN: f32 = 0.1;
+
 /// Snow's singular-value clamp (MPM.md): compression and stretch limits.
 const SNOW_MIN: f32 = 1.0 - 2.5e-2;
 const SNOW_MAX: f32 = 1.0 + 4.5e-3;
@@ -102,7 +112,8 @@ pub fn project(material: u8, f: &mut Mat2, jp: &mut f32) {
         0 => {
             // mpm99 resets F to sqrt(J) I; only J = det F enters the liquid's stress, so
             // diag(J, 1) is equivalent and needs no square root.
-            *f = [linalg::det(f), 0.0, 0.0, 1.0];
+            // J clamped away from 0 (see `LIQUID_J_MIN`).
+            *f = [linalg::det(f).max(LIQUID_J_MIN), 0.0, 0.0, 1.0];
         }
         2 => {
             let (u, sig, v) = linalg::svd(f);

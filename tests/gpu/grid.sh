@@ -31,7 +31,7 @@ data)
 train)
     name=$2 core=$3 minutes=$4
     shift 4
-    "$BIN" train --device cuda --data "$DATA" --model "$core" --out "runs/$name" \
+    "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --model "$core" --out "runs/$name" \
         --epochs 1000 --patience 0 --max-minutes "$minutes" "$@" >"$OUT/train-$name.log" 2>&1
     echo "train $name: exit $?"
     tail -n 4 "$OUT/train-$name.log"
@@ -41,8 +41,9 @@ eval)
     models=()
     for name in "$@"; do models+=(--model "runs/$name"); done
     for horizon in 20 100; do
-        "$BIN" eval "${models[@]}" --data "$DATA" --starts 5 --horizon "$horizon" --no-render \
-            --out "$OUT/eval-h$horizon" >"$OUT/eval-h$horizon.log" 2>&1
+        timeout "${EVAL_TIMEOUT:-300}" "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/multi "$DATA"/fluid \
+            --starts 5 --horizon "$horizon" --no-render --out "$OUT/eval-h$horizon" \
+            >"$OUT/eval-h$horizon.log" 2>&1
         echo "eval horizon $horizon: exit $?"
         cat "$OUT/eval-h$horizon/table.md" 2>/dev/null || tail -n 20 "$OUT/eval-h$horizon.log"
     done

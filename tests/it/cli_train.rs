@@ -99,8 +99,22 @@ fn bad_flags_fail_clearly() {
     let o = train(dir.path(), &["--model", "transformer"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown --model"));
-    let o = train(dir.path(), &["--batch-size", "0"]);
-    assert_eq!(o.status.code(), Some(1));
+    // Out-of-range numbers are usage errors (exit 2) naming the flag, before data is read.
+    for bad in [
+        &["--batch-size", "0"][..],
+        &["--epochs", "0"][..],
+        &["--lr", "-1"][..],
+        &["--dropout", "2"][..],
+        &["--dropout", "-0.5"][..],
+        &["--density-grid", "0"][..],
+    ] {
+        let o = train(dir.path(), bad);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}");
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains(bad[0]),
+            "{bad:?}"
+        );
+    }
 }
 
 /// `train --arch grid` with a tiny network (16 x 16 grid, two levels, a few samples per

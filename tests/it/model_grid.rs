@@ -34,7 +34,7 @@ fn stencil_matches_hand_computed_weights() {
         assert!((w - wx[k / 3] * wy[k % 3]).abs() < 1e-6, "{k}: {w}");
     }
     // The tensor version agrees, node for node.
-    let st = stencil(tensor3(vec![0.30, 0.55], [1, 1, 2]), 10);
+    let st = stencil(tensor3(vec![0.30, 0.55], [1, 1, 2]), 10, false);
     let index: Vec<i64> = st.index.into_data().convert::<i64>().to_vec().unwrap();
     let weight = values(st.weight);
     for (k, &(i, j, w)) in s.iter().enumerate() {
@@ -59,7 +59,25 @@ fn random_positions(b: usize, n: usize, seed: u32) -> Vec<f32> {
 fn p2g_conserves_mass_and_g2p_returns_a_uniform_field() {
     let (b, n, grid) = (2, 300, 16);
     let pos = tensor3(random_positions(b, n, 7), [b, n, 2]);
-    let s = stencil(pos, grid);
+    let s = stencil(pos.clone(), grid, false);
+    // The separable dense form (the GPU's) gives the same grid and the same gathers.
+    let dense = stencil(pos, grid, true);
+    let v = tensor3(random_positions(b, n, 9), [b, n, 2]);
+    let field = tensor3(
+        random_positions(b, grid * grid / 2, 11),
+        [b, grid * grid, 1],
+    );
+    for (sparse, dense) in [
+        (values(p2g(&s, v.clone())), values(p2g(&dense, v))),
+        (values(g2p(&s, field.clone())), values(g2p(&dense, field))),
+    ] {
+        let worst = sparse
+            .iter()
+            .zip(&dense)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "sparse vs dense: {worst}");
+    }
     let mass = values(p2g(&s, Tensor::ones([b, n, 1], &Default::default())));
     for row in mass.chunks(grid * grid) {
         let total: f32 = row.iter().sum();
@@ -301,4 +319,32 @@ fn im2col_convolution_equals_burns() {
         close(a.1, b.1, "weight gradient");
         close(a.2, b.2, "bias gradient");
     }
+}
+
+/// The CPU convolution of a channel concatenation given as parts (the U-Net decoder's
+/// `[upsampled, skip]`) equals the convolution of the concatenated tensor.
+#[test]
+fn convolution_of_parts_equals_convolution_of_the_concatenation() {
+    use burn::nn::conv::Conv2dConfig;
+    use burn::nn::PaddingConfig2d;
+    use minflow::model::grid::unet::{conv, conv_parts};
+    let device = Default::default();
+    let layer = Conv2dConfig::new([7, 4], [3, 3])
+        .with_padding(PaddingConfig2d::Same)
+        .init::<B>(&device);
+    let normal = burn::tensor::Distribution::Normal(0.0, 1.0);
+    let a = Tensor::<B, 4>::random([2, 8, 8, 3], normal, &device);
+    let b = Tensor::<B, 4>::random([2, 8, 8, 4], normal, &device);
+    let whole = values(
+        conv(&layer, Tensor::cat(vec![a.clone(), b.clone()], 3))
+            .reshape([2, 256])
+            .unsqueeze(),
+    );
+    let parts = values(conv_parts(&layer, vec![a, b]).reshape([2, 256]).unsqueeze());
+    let worst = whole
+        .iter()
+        .zip(&parts)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-5, "{worst}");
 }

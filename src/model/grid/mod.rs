@@ -235,7 +235,8 @@ impl<B: FusedElu> GridModel<B> {
         let device = input.pos.device();
         let vel = input.vel / pairs(self.vel_scale, t, &device); // [B, N, 2T]
                                                                  // P2G.
-        let s = transfer::stencil(input.pos.clone(), self.n);
+                                                                 // The separable dense transfers on accelerators, the sparse ones on the CPU.
+        let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
         let ones = Tensor::ones([b, n_p, 1], &device);
         let splat = transfer::p2g(
             &s,
