@@ -161,13 +161,9 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     let mut dirs = Vec::new();
     for core in &args.cores {
         let dir = runs.join(core);
-        let mut argv: Vec<String> = vec![
-            "train".into(),
-            "--arch".into(),
-            "paper".into(),
-            "--data".into(),
-        ];
+        let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
         argv.extend(data.iter().cloned());
+        argv.extend(["--arch".into(), "paper".into()]);
         for (flag, value) in [
             ("--model", core.clone()),
             ("--out", path(&dir)),

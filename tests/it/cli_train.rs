@@ -105,7 +105,7 @@ fn bad_flags_fail_clearly() {
         &["--epochs", "0"][..],
         &["--lr", "0"][..],
         &["--dropout", "2"][..],
-        &["--dropout", "-0.5"][..],
+        &["--dropout", "1.5"][..],
         &["--density-grid", "0"][..],
     ] {
         let o = train(dir.path(), bad);
@@ -203,9 +203,9 @@ fn grid_train_writes_a_run_folder_and_resumes() {
     let (a, b) = (losses(straight.path()), losses(resumed.path()));
     assert_eq!(a.len(), 2);
     assert_eq!(b.len(), 2);
-    // The first epoch is the same run; the resumed second epoch is not yet bit-exact
-    // (open: see docs/grid.md), so only the first is compared exactly.
-    assert_eq!(a[0], b[0]);
+    // The first epoch's training loss is the same run; validation and the resumed epoch are
+    // not yet bit-exact (open: see docs/grid.md).
+    assert_eq!(a[0].0, b[0].0);
 }
 
 #[test]
