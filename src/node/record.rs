@@ -108,11 +108,52 @@ fn base_name(out: &Path) -> String {
     )
 }
 
+/// The name of the lock file a recorder holds in its output folder.
+pub const LOCK_FILE: &str = ".minflow-record.lock";
+
+/// Takes the output folder's exclusive lock (an OS advisory lock on [`LOCK_FILE`], released
+/// by the kernel when the process ends, however it ends) and writes this process's id
+/// into it, so a second recorder on the same folder fails naming the holder instead of
+/// interleaving writes or deleting the first one's open bag.
+///
+/// # Errors
+/// A sentence: the folder is held by another process (its id), or the lock file could not
+/// be opened.
+fn lock_folder(out: &Path) -> Result<std::fs::File, String> {
+    use std::io::{Read, Seek, Write};
+    let path = out.join(LOCK_FILE);
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .map_err(|e| format!("opening the lock file {}: {e}", path.display()))?;
+    if let Err(e) = file.try_lock() {
+        let mut holder = String::new();
+        let _ = file.read_to_string(&mut holder);
+        let holder = holder.trim();
+        return Err(match e {
+            std::fs::TryLockError::WouldBlock => format!(
+                "another recorder is writing here (process {}); stop it or choose another folder",
+                if holder.is_empty() { "unknown" } else { holder }
+            ),
+            std::fs::TryLockError::Error(e) => format!("locking {}: {e}", path.display()),
+        });
+    }
+    let _ = file.set_len(0);
+    let _ = file.rewind();
+    let _ = write!(file, "{}", std::process::id());
+    let _ = file.flush();
+    Ok(file)
+}
+
 /// Records until `stop`, `--duration` or `--count`. `progress` is called with the frames
 /// written so far after each one.
 ///
 /// # Errors
-/// [`RecordError`]: the folder holds bags already, a subscription or a write failed.
+/// [`RecordError`]: another recorder holds the folder ([`LOCK_FILE`]), the folder holds bags
+/// already, a subscription or a write failed.
 pub fn record(
     options: &RecordOptions,
     transport: &dyn Transport,
@@ -126,6 +167,7 @@ pub fn record(
         reason,
     };
     std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
+    let _lock = lock_folder(out).map_err(out_err)?;
     if options.overwrite {
         for entry in std::fs::read_dir(out)
             .map_err(|e| out_err(e.to_string()))?

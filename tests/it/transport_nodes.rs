@@ -321,3 +321,42 @@ fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
     assert_eq!(counter(&stderr, "malformed"), Some(3), "{stderr}");
     assert_eq!(raw_messages(&out, Some(&topic)), good);
 }
+
+/// Issue 16: a second recorder on a folder a recorder is writing exits 1 naming the holder,
+/// with or without `--overwrite`, and the first one's bag keeps every frame.
+#[test]
+fn a_second_recorder_on_the_same_folder_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("rec");
+    let topic = unique_topic("lock");
+    let args = |extra: &'static [&'static str]| {
+        let mut a = vec!["record", "--topic", &topic, "-o", out.to_str().unwrap()];
+        a.extend_from_slice(extra);
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let first_args = args(&["--flush-interval", "0.2"]);
+    let first = Node::spawn("record", &first_args.iter().map(String::as_str).collect::<Vec<_>>());
+    let lock = out.join(minflow::node::record::LOCK_FILE);
+    let started = std::time::Instant::now();
+    while std::fs::read_to_string(&lock).map_or(true, |s| s.is_empty()) {
+        assert!(started.elapsed() < Duration::from_secs(30), "the first recorder never took the lock");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for extra in [&[][..], &["--overwrite"][..]] {
+        let second_args = args(extra);
+        let second = Node::spawn("record2", &second_args.iter().map(String::as_str).collect::<Vec<_>>())
+            .wait(Duration::from_secs(30));
+        let stderr = String::from_utf8_lossy(&second.stderr);
+        assert_eq!(second.status.code(), Some(1), "{extra:?}: {stderr}");
+        assert!(stderr.contains("another recorder is writing here"), "{stderr}");
+    }
+    let player = Node::spawn(
+        "replay",
+        &["replay", source_bag().to_str().unwrap(), "--topic", &topic],
+    );
+    ok(&player.wait(Duration::from_secs(60)), "replay");
+    std::thread::sleep(Duration::from_secs(1));
+    first.signal("TERM");
+    let _ = first.wait(Duration::from_secs(30));
+    assert_eq!(raw_messages(&out, Some(&topic)).len(), SOURCE_FRAMES);
+}
