@@ -8,7 +8,8 @@
 //! means (JIT compilation and autotuning on the GPU); their time is its own column. `wait %`
 //! is the share of the epoch the host spent waiting for the device (near 100: device-bound;
 //! low: bound by issuing the work); `data %` the share it waited for host batches (windows
-//! assembled and scaled on a second thread).
+//! assembled and scaled on a second thread). `--arch grid` measures the grid architecture
+//! instead ([`super::bench_train_grid`]).
 
 use super::device::{Device, DeviceArgs};
 use super::train::CpuTrain;
@@ -22,28 +23,39 @@ use clap::Args;
 
 #[derive(Debug, Args)]
 pub struct TrainBenchArgs {
-    /// Window lengths T to measure.
+    /// Architecture: paper (the paper's Table 4) | grid (P2G -> U-Net -> G2P, docs/grid.md).
+    #[arg(long, default_value = "paper", value_parser = ["paper", "grid"])]
+    pub(super) arch: String,
+    /// Window lengths T to measure (paper).
     #[arg(long, value_delimiter = ',', default_value = "2,32")]
     windows: Vec<usize>,
-    /// Cores to measure.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "mlp,lstm,gru,minlstm,mingru"
-    )]
-    cores: Vec<String>,
+    /// Cores to measure [paper: mlp,lstm,gru,minlstm,mingru; grid: none,mingru,minlstm].
+    #[arg(long, value_delimiter = ',')]
+    pub(super) cores: Option<Vec<String>>,
     /// Samples (windows) per epoch.
-    #[arg(long, default_value_t = 16)]
-    samples: usize,
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    pub(super) samples: usize,
     /// Epochs per core (the first includes warm-up).
-    #[arg(long, default_value_t = 2)]
-    epochs: usize,
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    pub(super) epochs: usize,
     /// Micro-batch (= batch) size.
-    #[arg(long, default_value_t = 8)]
-    micro_batch: usize,
+    #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
+    pub(super) micro_batch: usize,
     /// Particles N.
-    #[arg(long, default_value_t = 2500)]
-    particles: usize,
+    #[arg(long, default_value_t = 2500, value_parser = super::flags::at_least_one)]
+    pub(super) particles: usize,
+    /// Grid size n (grid).
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    pub(super) grid: usize,
+    /// Rollout steps per sample P (grid).
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    pub(super) rollout_steps: usize,
+    /// Convolution kernels to measure (grid): auto | burn | gather | shift.
+    #[arg(long, value_delimiter = ',', default_value = "auto")]
+    pub(super) conv: Vec<String>,
+    /// Also time each stage of one step, forward + backward (grid).
+    #[arg(long)]
+    pub(super) stages: bool,
     /// Latent and core width W.
     #[arg(long, default_value_t = 1250)]
     width: usize,
@@ -55,7 +67,7 @@ pub struct TrainBenchArgs {
     encoder_last_activation: String,
     /// Epochs run before the measured ones and left out of the means (warm-up).
     #[arg(long, default_value_t = 0)]
-    warmup_epochs: usize,
+    pub(super) warmup_epochs: usize,
     /// Split the long reductions of the per-particle layers' weight gradients into row
     /// chunks (on) or run each as one product (off: to measure what the split buys; the CPU
     /// backend has its own kernels and ignores it).
@@ -65,8 +77,8 @@ pub struct TrainBenchArgs {
     device: DeviceArgs,
 }
 
-/// A deterministic synthetic trajectory of `frames` frames.
-fn synthetic(n: usize, frames: usize) -> Trajectory {
+/// A deterministic synthetic trajectory of `frames` frames (values uniform in [0, 1)).
+pub(super) fn synthetic(n: usize, frames: usize) -> Trajectory {
     let mut s = 7u64;
     let mut next = || {
         s = s
@@ -83,6 +95,32 @@ fn synthetic(n: usize, frames: usize) -> Trajectory {
         states,
         frames,
         n,
+    }
+}
+
+/// Seconds per epoch of a benchmark run: the warm-up epochs' total, then the timed ones'
+/// mean and maximum, and the mean seconds waiting for the device and for host batches.
+pub(super) struct EpochMeans {
+    pub warmup: f64,
+    pub mean: f64,
+    pub max: f64,
+    pub wait: f64,
+    pub data: f64,
+}
+
+impl EpochMeans {
+    /// The means of `history` after its first `warmup_epochs`.
+    pub fn of(history: &[crate::train::EpochRecord], warmup_epochs: usize) -> Self {
+        let (warm, timed) = history.split_at(warmup_epochs.min(history.len()));
+        let n = timed.len().max(1) as f64;
+        let mean_of = |f: fn(&crate::train::EpochRecord) -> f64| timed.iter().map(f).sum::<f64>() / n;
+        Self {
+            warmup: warm.iter().map(|r| r.seconds).sum(),
+            mean: mean_of(|r| r.seconds),
+            max: timed.iter().map(|r| r.seconds).fold(0.0, f64::max),
+            wait: mean_of(|r| r.wait_seconds),
+            data: mean_of(|r| r.data_seconds),
+        }
     }
 }
 
@@ -108,6 +146,9 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         "off" => false,
         other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
     });
+    if args.arch == "grid" {
+        return grid(&args);
+    }
     match args.device.parse()? {
         Device::Cpu => bench::<CpuTrain>(&args, vec![Default::default()], "host", &|reset| {
             peak_mib(reset)
@@ -140,6 +181,30 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         }
         #[cfg(not(feature = "cuda"))]
         Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
+    }
+}
+
+/// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
+fn grid(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
+    use super::bench_train_grid::bench as grid_bench;
+    match args.device.parse()?.single("bench train --arch grid")? {
+        None => grid_bench::<CpuTrain>(args, Default::default(), "host", &|reset| {
+            peak_mib(reset)
+        }),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device, reserved_bytes, CudaTrain};
+            let device = device(id)?;
+            let peak = |reset: bool| {
+                if reset {
+                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
+                }
+                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
+            };
+            grid_bench::<CudaTrain>(args, device.clone(), "GPU pool", &peak)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
     }
 }
 
@@ -191,7 +256,8 @@ where
         let scaler = Scaler::fit(&[&traj]);
         let index = WindowIndex::new(vec![traj], t, scaler)?;
         let mut times = std::collections::BTreeMap::new();
-        for name in &args.cores {
+        let default_cores = ["mlp", "lstm", "gru", "minlstm", "mingru"].map(String::from);
+        for name in args.cores.as_deref().unwrap_or(&default_cores) {
             let core =
                 CoreKind::parse(name).ok_or_else(|| anyhow::anyhow!("unknown core {name:?}"))?;
             let config = ModelConfig::new(core, args.particles)
@@ -221,13 +287,13 @@ where
             .fit(&index, None, &scaler, false, |_, _| {
                 high = high.max(peak(false).unwrap_or(f64::NAN));
             })?;
-            let (warm, timed) = history.split_at(args.warmup_epochs.min(history.len()));
-            let warmup: f64 = warm.iter().map(|r| r.seconds).sum();
-            let n = timed.len().max(1) as f64;
-            let mean = timed.iter().map(|r| r.seconds).sum::<f64>() / n;
-            let max = timed.iter().map(|r| r.seconds).fold(0.0, f64::max);
-            let wait = timed.iter().map(|r| r.wait_seconds).sum::<f64>() / n;
-            let data = timed.iter().map(|r| r.data_seconds).sum::<f64>() / n;
+            let EpochMeans {
+                warmup,
+                mean,
+                max,
+                wait,
+                data,
+            } = EpochMeans::of(&history, args.warmup_epochs);
             let us = mean * 1e6 / index.len() as f64;
             times.insert(core.name(), mean);
             println!(

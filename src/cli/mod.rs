@@ -7,6 +7,7 @@ mod bench;
 mod bench_gemm;
 mod bench_node;
 mod bench_train;
+mod bench_train_grid;
 mod bench_transport;
 mod demo;
 pub mod device;

@@ -16,7 +16,7 @@ use super::device::Device;
 use super::train::{CpuTrain, Progress, TrainArgs};
 use super::Outcome;
 use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
-use crate::model::grid::{GridConfig, MemoryKind};
+use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
 use crate::model::FusedElu;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
@@ -42,6 +42,10 @@ pub struct GridArgs {
     /// Per-particle head width.
     #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub head_hidden: usize,
+    /// How the U-Net's convolutions run: auto (gather on the CPU, burn on a GPU) | burn |
+    /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "burn", "gather", "shift"])]
+    pub conv: String,
     /// Steps per training sample P (a short rollout; the loss averages them).
     #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
     pub rollout_steps: usize,
@@ -94,7 +98,8 @@ impl TrainArgs {
             .with_levels(g.levels)
             .with_latent(g.latent)
             .with_hidden(g.hidden)
-            .with_head_hidden(g.head_hidden);
+            .with_head_hidden(g.head_hidden)
+            .with_conv(ConvKernel::parse(&g.conv).with_context(|| format!("--conv {:?}", g.conv))?);
         config
             .validate()
             .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;

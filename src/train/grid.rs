@@ -445,16 +445,10 @@ pub fn initial_grid_model<B: FusedElu>(
     seed: u64,
     device: &B::Device,
 ) -> Result<GridModel<B>, TrainError> {
-    use burn::backend::NdArray;
-    use burn::module::Module;
-    use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
-    let cpu = Default::default();
-    NdArray::<f32>::seed(&cpu, seed);
-    let drawn: GridModel<NdArray<f32>> = config.init(&cpu);
-    let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
-    let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
-        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
-    let record = Recorder::<B>::load(&recorder, bytes, device)
-        .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
-    Ok(config.init::<B>(device).load_record(record))
+    super::drawn_on_cpu(
+        seed,
+        |cpu| config.init(cpu),
+        config.init::<B>(device),
+        device,
+    )
 }

@@ -183,17 +183,37 @@ pub fn initial_model<B: crate::model::FusedElu>(
     seed: u64,
     device: &B::Device,
 ) -> Result<Model<B>, TrainError> {
+    drawn_on_cpu(
+        seed,
+        |cpu| config.init(cpu),
+        config.init::<B>(device),
+        device,
+    )
+}
+
+/// The weights `draw` makes on the CPU backend after seeding it with `seed`, loaded into
+/// `fresh` (the same network on `device`) through an f32 record. Every architecture's
+/// trainer starts from this, so a CUDA run starts from a CPU run's weights.
+///
+/// # Errors
+/// The record could not be moved.
+pub fn drawn_on_cpu<B: Backend, C: Module<NdArray<f32>>, M: Module<B>>(
+    seed: u64,
+    draw: impl FnOnce(&burn::backend::ndarray::NdArrayDevice) -> C,
+    fresh: M,
+    device: &B::Device,
+) -> Result<M, TrainError> {
     // burn's CPU generator is one per process: trainers started at once in one process
     // (parallel tests) draw from it in turn, so only a lone trainer's draw is reproducible.
     let cpu = Default::default();
     NdArray::<f32>::seed(&cpu, seed);
-    let drawn: Model<NdArray<f32>> = config.init(&cpu);
+    let drawn = draw(&cpu);
     let recorder = BinBytesRecorder::<FullPrecisionSettings>::default();
     let bytes = Recorder::<NdArray<f32>>::record(&recorder, drawn.into_record(), ())
         .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
     let record = Recorder::<B>::load(&recorder, bytes, device)
         .map_err(|e| TrainError::Mismatch(format!("moving the initial weights: {e}")))?;
-    Ok(config.init::<B>(device).load_record(record))
+    Ok(fresh.load_record(record))
 }
 
 /// Predicted positions in domain units from a scaled prediction `[B, N, 4]`.

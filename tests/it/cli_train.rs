@@ -222,3 +222,28 @@ fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
         assert!(err.contains("--"), "{extra:?}: {err}");
     }
 }
+
+/// `bench train --arch grid` trains each requested kernel and prints one table row per
+/// (core, kernel) with a positive samples/s, and the stage times with `--stages`.
+#[test]
+fn bench_train_measures_the_grid_architecture() {
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args([
+            "bench", "train", "--arch", "grid", "--cores", "none", "--conv", "gather,shift",
+            "--particles", "64", "--grid", "16", "--samples", "2", "--micro-batch", "2",
+            "--epochs", "1", "--rollout-steps", "2", "--stages",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&o.stderr));
+    for kernel in ["gather", "shift"] {
+        let row = stdout
+            .lines()
+            .find(|l| l.starts_with("none") && l.split_whitespace().nth(1) == Some(kernel))
+            .unwrap_or_else(|| panic!("no row for {kernel}: {stdout}"));
+        let rate: f64 = row.split_whitespace().nth(4).unwrap().parse().unwrap();
+        assert!(rate > 0.0, "{row}");
+    }
+    assert_eq!(stdout.matches("ms per forward + backward").count(), 2, "{stdout}");
+}

@@ -247,17 +247,21 @@ fn any_particle_count_and_run_folder_round_trip() {
     assert_eq!(loaded.meta().core_name(), "minlstm");
 }
 
-/// The CPU's im2col + gemm convolution (channels last) equals burn's `Conv2d::forward` (3x3
-/// same padding and 1x1), in outputs and in the gradients of the input, the weight and the bias.
+/// Both im2col + gemm convolutions (channels last: by a row gather, by shifted slices) equal
+/// burn's `Conv2d::forward` (3x3 same padding and 1x1), in outputs and in the gradients of
+/// the input, the weight and the bias.
 #[test]
 fn im2col_convolution_equals_burns() {
     use burn::backend::Autodiff;
     use burn::nn::conv::Conv2dConfig;
     use burn::nn::PaddingConfig2d;
-    use minflow::model::grid::unet::conv;
+    use minflow::model::grid::unet::{conv, ConvKernel};
     type A = Autodiff<B>;
     let device = Default::default();
-    for k in [3, 1] {
+    for (k, kernel) in [3, 1]
+        .into_iter()
+        .flat_map(|k| [(k, ConvKernel::Gather), (k, ConvKernel::Shift)])
+    {
         let layer = Conv2dConfig::new([5, 7], [k, k])
             .with_padding(PaddingConfig2d::Same)
             .init::<A>(&device);
@@ -268,7 +272,7 @@ fn im2col_convolution_equals_burns() {
         )
         .require_grad();
         // Ours takes channels last; burn's takes channels first.
-        let ours = conv(&layer, x.clone());
+        let ours = conv(&layer, x.clone(), kernel);
         let theirs = layer
             .forward(x.clone().permute([0, 3, 1, 2]))
             .permute([0, 2, 3, 1]);
@@ -279,7 +283,7 @@ fn im2col_convolution_equals_burns() {
                 .zip(&b)
                 .map(|(p, q)| (p - q).abs())
                 .fold(0.0f32, f32::max);
-            assert!(worst < 1e-4, "k = {k}, {what}: {worst}");
+            assert!(worst < 1e-4, "k = {k}, {kernel:?}, {what}: {worst}");
         };
         close(
             ours.clone().into_data().to_vec().unwrap(),
@@ -327,7 +331,7 @@ fn im2col_convolution_equals_burns() {
 fn convolution_of_parts_equals_convolution_of_the_concatenation() {
     use burn::nn::conv::Conv2dConfig;
     use burn::nn::PaddingConfig2d;
-    use minflow::model::grid::unet::{conv, conv_parts};
+    use minflow::model::grid::unet::{conv, conv_parts, ConvKernel::Gather};
     let device = Default::default();
     let layer = Conv2dConfig::new([7, 4], [3, 3])
         .with_padding(PaddingConfig2d::Same)
@@ -336,11 +340,11 @@ fn convolution_of_parts_equals_convolution_of_the_concatenation() {
     let a = Tensor::<B, 4>::random([2, 8, 8, 3], normal, &device);
     let b = Tensor::<B, 4>::random([2, 8, 8, 4], normal, &device);
     let whole = values(
-        conv(&layer, Tensor::cat(vec![a.clone(), b.clone()], 3))
+        conv(&layer, Tensor::cat(vec![a.clone(), b.clone()], 3), Gather)
             .reshape([2, 256])
             .unsqueeze(),
     );
-    let parts = values(conv_parts(&layer, vec![a, b]).reshape([2, 256]).unsqueeze());
+    let parts = values(conv_parts(&layer, vec![a, b], Gather).reshape([2, 256]).unsqueeze());
     let worst = whole
         .iter()
         .zip(&parts)

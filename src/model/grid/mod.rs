@@ -26,7 +26,7 @@ pub mod transfer;
 pub mod unet;
 
 pub use memory::{Memory, MemoryKind, MemoryState};
-pub use unet::{UNet, UNetConfig};
+pub use unet::{ConvKernel, UNet, UNetConfig};
 
 use burn::config::Config;
 use burn::module::Module;
@@ -79,6 +79,9 @@ pub struct GridConfig {
     /// plus the mean acceleration; Goyal et al. 2017, section 5.1); tests turn it off.
     #[config(default = true)]
     pub head_zero_init: bool,
+    /// How the U-Net's convolutions are computed (same weights and results either way).
+    #[config(default = "ConvKernel::Auto")]
+    pub conv: ConvKernel,
 }
 
 impl GridConfig {
@@ -129,6 +132,7 @@ impl GridConfig {
             unet: UNetConfig::new(self.grid_channels(), self.latent)
                 .with_width(self.unet_width)
                 .with_levels(self.levels)
+                .with_conv(self.conv)
                 .init(device),
             memory: Memory::new(self.memory, d_u, self.hidden, device),
             head_a: LinearConfig::new(d_head, self.head_hidden).init(device),

@@ -3,12 +3,14 @@
 //! two 3x3 convolutions + SiLU per level on the way down (2x2 average pooling between
 //! levels) and on the way up (nearest 2x upsampling, concatenated with the skip of the same
 //! level), then a 1x1 convolution to the output channels. Widths double per level up to 4x
-//! the first. The weights are burn's `Conv2d`s. On a GPU they run as burn's convolution; on
-//! the CPU, where burn-ndarray's direct convolution loop took 59 % of an inference step
+//! the first. The weights are burn's `Conv2d`s. On a GPU they run as im2col by shifted slices
+//! (burn's convolution gradients made the U-Net 8x slower there); on the CPU, where burn-ndarray's direct convolution loop took 59 % of an inference step
 //! (perf, `eval` of a grid model), as im2col + one matrix product through the CPU's gemm
 //! kernels ([`FusedElu::linear_forward`]): the nine shifted copies of the zero-padded
 //! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
 //! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
+//! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
+//! other): burn's convolution, im2col by a row gather, im2col by nine shifted slices.
 
 use burn::config::Config;
 use burn::module::Module;
@@ -19,6 +21,56 @@ use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
 use crate::model::FusedElu;
+
+/// How the U-Net's convolutions are computed; the weights and the result are the same.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ConvKernel {
+    /// `Gather` on the CPU, `Shift` elsewhere (on an H100, `bench train --arch grid
+    /// --stages`: a batch-16 U-Net forward + backward took 14 ms with `Shift`, 121 ms with
+    /// `Burn`, whose convolution gradients dominate; on the CPU `Gather` beat `Shift`, 0.48 s
+    /// to 0.65 s, and `Burn` took 14 s).
+    #[default]
+    Auto,
+    /// burn's `Conv2d::forward` on the permuted (channels-first) view.
+    Burn,
+    /// im2col as one row gather (`select`) of a zero-padded copy, then one product through
+    /// [`FusedElu::linear_forward`]; the concatenation of the U-Net's parts is never built.
+    Gather,
+    /// im2col as the nine shifted slices of the zero-padded input concatenated along the
+    /// channels, then one product through [`FusedElu::linear_forward`] (no gather, so its
+    /// gradient needs no scatter).
+    Shift,
+}
+
+impl ConvKernel {
+    /// Every kernel, for flags.
+    pub const ALL: [ConvKernel; 4] = [Self::Auto, Self::Burn, Self::Gather, Self::Shift];
+
+    /// The flag value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Burn => "burn",
+            Self::Gather => "gather",
+            Self::Shift => "shift",
+        }
+    }
+
+    /// The kernel named `name`, if any.
+    pub fn parse(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == name)
+    }
+
+    /// What `Auto` means on backend `B`.
+    pub fn resolve<B: FusedElu>(self) -> Self {
+        match self {
+            Self::Auto if B::SEQUENTIAL_SCAN => Self::Gather,
+            Self::Auto => Self::Shift,
+            k => k,
+        }
+    }
+}
 
 /// U-Net sizes.
 #[derive(Config, Debug)]
@@ -33,6 +85,9 @@ pub struct UNetConfig {
     /// Resolutions (the grid size must be divisible by `2^(levels - 1)`).
     #[config(default = 4)]
     pub levels: usize,
+    /// How the convolutions are computed.
+    #[config(default = "ConvKernel::Auto")]
+    pub conv: ConvKernel,
 }
 
 impl UNetConfig {
@@ -51,7 +106,7 @@ impl UNetConfig {
                 } else {
                     self.level_width(l - 1)
                 };
-                ConvBlock::new(c_in, self.level_width(l), device)
+                ConvBlock::new(c_in, self.level_width(l), self.conv, device)
             })
             .collect();
         let up = (0..levels - 1)
@@ -59,6 +114,7 @@ impl UNetConfig {
                 ConvBlock::new(
                     self.level_width(l + 1) + self.level_width(l),
                     self.level_width(l),
+                    self.conv,
                     device,
                 )
             })
@@ -67,6 +123,7 @@ impl UNetConfig {
             down,
             up,
             head: Conv2dConfig::new([self.level_width(0), self.channels_out], [1, 1]).init(device),
+            kernel: self.conv,
         }
     }
 }
@@ -76,10 +133,12 @@ impl UNetConfig {
 pub struct ConvBlock<B: Backend> {
     a: Conv2d<B>,
     b: Conv2d<B>,
+    #[module(skip)]
+    kernel: ConvKernel,
 }
 
 impl<B: Backend> ConvBlock<B> {
-    fn new(c_in: usize, c_out: usize, device: &B::Device) -> Self {
+    fn new(c_in: usize, c_out: usize, kernel: ConvKernel, device: &B::Device) -> Self {
         let conv = |i, o| {
             Conv2dConfig::new([i, o], [3, 3])
                 .with_padding(PaddingConfig2d::Same)
@@ -88,6 +147,7 @@ impl<B: Backend> ConvBlock<B> {
         Self {
             a: conv(c_in, c_out),
             b: conv(c_out, c_out),
+            kernel,
         }
     }
 }
@@ -99,45 +159,98 @@ impl<B: FusedElu> ConvBlock<B> {
 
     /// The block on the channel concatenation of `parts` (see [`conv_parts`]).
     fn forward_parts(&self, parts: Vec<Tensor<B, 4>>) -> Tensor<B, 4> {
-        silu(conv(&self.b, silu(conv_parts(&self.a, parts))))
+        let k = self.kernel;
+        silu(conv(&self.b, silu(conv_parts(&self.a, parts, k)), k))
     }
 }
 
 /// `conv.forward` for a stride-1 convolution with a 1x1 or 3x3 kernel and same padding, on a
-/// channels-last tensor: burn's convolution on backends without
-/// [`FusedElu::SEQUENTIAL_SCAN`] (the GPU; its input is the permuted view), im2col + gemm on
-/// the CPU (see the module doc).
+/// channels-last tensor, computed as `kernel` says (see [`ConvKernel`]).
 ///
 /// # Shapes
 /// - `x`: `[B, H, W, C_in]` -> `[B, H, W, C_out]`
-pub fn conv<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
-    conv_parts(conv, vec![x])
+pub fn conv<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>, kernel: ConvKernel) -> Tensor<B, 4> {
+    conv_parts(conv, vec![x], kernel)
 }
 
-/// [`conv`] of the channel concatenation of `parts` (the U-Net's `[upsampled, skip]`). On the
-/// CPU the concatenation is never built: each part is multiplied by its slice of the weight
-/// and the products are summed (burn-ndarray's concatenation along the last axis copies
-/// element by element, as slowly as the convolution loop it replaces).
+/// `[k^2 C_in, C_out]`: the weight of `conv` for channels `offset..offset + c` as the matrix
+/// an im2col product needs (row `(ky k + kx) c + i` multiplies channel i at offset (ky, kx)).
+fn im2col_weight<B: Backend>(conv: &Conv2d<B>, offset: usize, c: usize) -> Tensor<B, 2> {
+    let weight = conv.weight.val(); // [C_out, C_in, k, k]
+    let [c_out, _, k, _] = weight.dims();
+    weight
+        .narrow(1, offset, c)
+        .permute([2, 3, 1, 0])
+        .reshape([k * k * c, c_out])
+}
+
+/// `rows @ matrix + bias` through [`FusedElu::linear_forward`].
+fn product<B: FusedElu>(
+    rows: Tensor<B, 2>,
+    matrix: Tensor<B, 2>,
+    bias: Option<Tensor<B, 1>>,
+) -> Tensor<B, 2> {
+    let y = B::linear_forward(
+        rows.into_primitive().tensor(),
+        matrix.into_primitive().tensor(),
+        bias.map(|b| b.into_primitive().tensor()),
+    );
+    Tensor::from_primitive(TensorPrimitive::Float(y))
+}
+
+/// [`ConvKernel::Shift`]: the nine (or one) shifted slices of the zero-padded `x`
+/// concatenated along the channels, times the weight matrix.
+fn conv_shift<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    let [b, h, w, c] = x.dims();
+    let k = conv.weight.dims()[2];
+    let c_out = conv.weight.dims()[0];
+    let cols = if k == 1 {
+        x
+    } else {
+        let half = k / 2;
+        let device = x.device();
+        let zeros_h = Tensor::zeros([b, half, w, c], &device);
+        let x = Tensor::cat(vec![zeros_h.clone(), x, zeros_h], 1);
+        let zeros_w = Tensor::zeros([b, h + 2 * half, half, c], &device);
+        let x = Tensor::cat(vec![zeros_w.clone(), x, zeros_w], 2);
+        let shifted = (0..k * k)
+            .map(|s| x.clone().narrow(1, s / k, h).narrow(2, s % k, w))
+            .collect();
+        Tensor::cat(shifted, 3)
+    };
+    let rows = cols.reshape([b * h * w, k * k * c]);
+    let bias = conv.bias.as_ref().map(|p| p.val());
+    product(rows, im2col_weight(conv, 0, c), bias).reshape([b, h, w, c_out])
+}
+
+/// [`conv`] of the channel concatenation of `parts` (the U-Net's `[upsampled, skip]`). With
+/// [`ConvKernel::Gather`] the concatenation is never built: each part is multiplied by its
+/// slice of the weight and the products are summed (burn-ndarray's concatenation along the
+/// last axis copies element by element, as slowly as the convolution loop it replaces).
 ///
 /// # Shapes
 /// - `parts`: `[B, H, W, C_p]` each, `sum C_p = C_in` -> `[B, H, W, C_out]`
-pub fn conv_parts<B: FusedElu>(conv: &Conv2d<B>, mut parts: Vec<Tensor<B, 4>>) -> Tensor<B, 4> {
-    if !B::SEQUENTIAL_SCAN {
+pub fn conv_parts<B: FusedElu>(
+    conv: &Conv2d<B>,
+    mut parts: Vec<Tensor<B, 4>>,
+    kernel: ConvKernel,
+) -> Tensor<B, 4> {
+    let kernel = kernel.resolve::<B>();
+    if kernel != ConvKernel::Gather {
         let x = match parts.len() {
             1 => parts.pop().expect("one part"),
             _ => Tensor::cat(parts, 3),
         };
+        if kernel == ConvKernel::Shift {
+            return conv_shift(conv, x);
+        }
         return conv.forward(x.permute([0, 3, 1, 2])).permute([0, 2, 3, 1]);
     }
     let [b, h, w, _] = parts[0].dims();
     let device = parts[0].device();
-    let weight = conv.weight.val(); // [C_out, C_in, k, k]
-    let [c_out, _, k, _] = weight.dims();
+    let [c_out, _, k, _] = conv.weight.dims();
     let index = (k > 1).then(|| im2col_index::<B>(b, h, w, k, &device));
-    let mut bias = conv
-        .bias
-        .as_ref()
-        .map(|p| p.val().into_primitive().tensor());
+    let mut bias = conv.bias.as_ref().map(|p| p.val());
     let mut offset = 0;
     let mut sum: Option<Tensor<B, 2>> = None;
     for x in parts {
@@ -149,19 +262,8 @@ pub fn conv_parts<B: FusedElu>(conv: &Conv2d<B>, mut parts: Vec<Tensor<B, 4>>) -
                 .select(0, index.clone())
                 .reshape([b * h * w, k * k * c]),
         };
-        // Row (ky k + kx) C + i multiplies channel i of this part at offset (ky, kx).
-        let matrix = weight
-            .clone()
-            .narrow(1, offset, c)
-            .permute([2, 3, 1, 0])
-            .reshape([k * k * c, c_out]);
+        let y = product(cols, im2col_weight(conv, offset, c), bias.take());
         offset += c;
-        let y = B::linear_forward(
-            cols.into_primitive().tensor(),
-            matrix.into_primitive().tensor(),
-            bias.take(),
-        );
-        let y = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(y));
         sum = Some(match sum {
             Some(acc) => acc + y,
             None => y,
@@ -226,6 +328,8 @@ pub struct UNet<B: Backend> {
     down: Vec<ConvBlock<B>>,
     up: Vec<ConvBlock<B>>,
     head: Conv2d<B>,
+    #[module(skip)]
+    kernel: ConvKernel,
 }
 
 impl<B: FusedElu> UNet<B> {
@@ -249,7 +353,7 @@ impl<B: FusedElu> UNet<B> {
             let skip = skips.pop().expect("one skip per upper level");
             x = block.forward_parts(vec![upsample(x), skip]);
         }
-        conv(&self.head, x)
+        conv(&self.head, x, self.kernel)
     }
 }
 

@@ -1,0 +1,194 @@
+//! `minflow bench train --arch grid`: the grid architecture's training speed on this machine,
+//! in one run: for each memory core and convolution kernel, trainable parameters, seconds
+//! per epoch, samples per second, warm-up, `wait %` / `data %` (as for the paper's model)
+//! and peak memory, training with [`GridTrainer`] (rollout loss over P steps, clipping, Adam)
+//! on one fixed synthetic dataset; with `--stages`, the time of one forward + backward pass
+//! of each stage of a step (stencil, P2G, U-Net, G2P, memory, the whole step) at the same
+//! batch size, each synchronised with the device, to show where a step's time goes.
+
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::{Distribution, Tensor};
+
+use super::bench_train::{synthetic, EpochMeans, TrainBenchArgs};
+use super::Outcome;
+use crate::data::{Scaler, WindowIndex};
+use crate::model::grid::{
+    one_hot, transfer, ConvKernel, GridConfig, Memory, MemoryKind, MemoryState, StepInput,
+    UNetConfig,
+};
+use crate::model::FusedElu;
+use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
+use crate::train::Quiet;
+
+/// The grid table on backend `B`; `peak(reset)` reads the memory column (and resets it).
+pub fn bench<B: AutodiffBackend + FusedElu>(
+    args: &TrainBenchArgs,
+    device: B::Device,
+    memory: &str,
+    peak: &dyn Fn(bool) -> Option<f64>,
+) -> anyhow::Result<Outcome>
+where
+    B::InnerBackend: FusedElu,
+{
+    let cores = match &args.cores {
+        Some(cores) => cores.clone(),
+        None => vec!["none".into(), "mingru".into(), "minlstm".into()],
+    };
+    let kernels = args
+        .conv
+        .iter()
+        .map(|k| {
+            ConvKernel::parse(k)
+                .ok_or_else(|| anyhow::anyhow!("unknown --conv {k:?} (auto | burn | gather | shift)"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let (t, p) = (2, args.rollout_steps);
+    let traj = synthetic(args.particles, args.samples + t + p - 1);
+    let (vel_scale, dv_mean, dv_scale) = fit_stats(&[&traj]);
+    let index = WindowIndex::new(vec![traj], t + p - 1, Scaler::default())?;
+    println!(
+        "grid architecture: N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {}",
+        args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
+        B::name(&device)
+    );
+    println!(
+        "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9}",
+        "core", "conv", "params", "s/epoch", "samples/s", "warm-up s", "wait %", "data %", "peak MiB"
+    );
+    for name in &cores {
+        let memory_kind = MemoryKind::parse(name).ok_or_else(|| {
+            anyhow::anyhow!("unknown core {name:?} for --arch grid (none | mingru | minlstm | gru | lstm)")
+        })?;
+        for &kernel in &kernels {
+            let config = GridConfig::new(memory_kind)
+                .with_grid(args.grid)
+                .with_window(t)
+                .with_vel_scale(vel_scale)
+                .with_dv_mean(dv_mean)
+                .with_dv_scale(dv_scale)
+                .with_conv(kernel);
+            config.validate().map_err(anyhow::Error::msg)?;
+            let params = config.init::<B>(&device).num_params();
+            let opts = GridTrainOptions {
+                epochs: args.warmup_epochs + args.epochs,
+                batch_size: args.micro_batch,
+                samples_per_epoch: 0,
+                lr: 1e-3,
+                lr_final: 1e-5,
+                clip: 1.0,
+                steps: p,
+                teacher: 1,
+                noise: 0.0,
+                seed: 0,
+                patience: 0,
+                val_starts: 1,
+                val_horizon: 1,
+                max_minutes: 0.0,
+            };
+            let dir = tempfile::tempdir()?;
+            let mut high = peak(true).unwrap_or(0.0);
+            let trainer = GridTrainer::<B> {
+                config: config.clone(),
+                opts,
+                out: dir.path().into(),
+                device: device.clone(),
+            };
+            let history = trainer.fit(&index, &[], &Scaler::default(), false, &mut Quiet)?;
+            high = high.max(peak(false).unwrap_or(f64::NAN));
+            let EpochMeans {
+                warmup,
+                mean,
+                wait,
+                data,
+                ..
+            } = EpochMeans::of(&history, args.warmup_epochs);
+            println!(
+                "{:<8} {:<7} {:>9} {:>10.3} {:>10.1} {:>10.2} {:>7.0} {:>7.0} {:>9.0}",
+                memory_kind.name(),
+                kernel.resolve::<B>().name(),
+                params,
+                mean,
+                index.len() as f64 / mean,
+                warmup,
+                100.0 * wait / mean.max(1e-12),
+                100.0 * data / mean.max(1e-12),
+                high
+            );
+            if args.stages {
+                stages::<B>(&config, args.micro_batch, args.particles, &device);
+            }
+        }
+    }
+    println!("peak MiB: {memory} memory");
+    Ok(Outcome::Done)
+}
+
+/// Milliseconds per call of `f`, after one untimed call, synchronised with the device.
+fn timed<B: Backend>(device: &B::Device, repeats: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let _ = B::sync(device);
+    let started = Instant::now();
+    for _ in 0..repeats {
+        f();
+    }
+    let _ = B::sync(device);
+    started.elapsed().as_secs_f64() * 1e3 / repeats.max(1) as f64
+}
+
+/// One line: forward + backward milliseconds of each stage of a step of `config` at batch
+/// `b`, and the whole step.
+fn stages<B: AutodiffBackend + FusedElu>(config: &GridConfig, b: usize, n_p: usize, device: &B::Device) {
+    let normal = Distribution::Normal(0.0, 1.0);
+    let n = config.grid;
+    let dense = !B::SEQUENTIAL_SCAN;
+    let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.05, 0.95), device);
+    let s = transfer::stencil(pos.clone(), n, dense);
+    let repeats = 5;
+    let stencil = timed::<B>(device, repeats, || {
+        let _ = transfer::stencil(pos.clone(), n, dense);
+    });
+    let c_in = config.grid_channels();
+    let values = Tensor::<B, 3>::random([b, n_p, c_in], normal, device).require_grad();
+    let p2g = timed::<B>(device, repeats, || {
+        let _ = transfer::p2g(&s, values.clone()).sum().backward();
+    });
+    let unet = UNetConfig::new(c_in, config.latent)
+        .with_width(config.unet_width)
+        .with_levels(config.levels)
+        .with_conv(config.conv)
+        .init::<B>(device);
+    let grid = Tensor::<B, 4>::random([b, n, n, c_in], normal, device).require_grad();
+    let unet_ms = timed::<B>(device, repeats, || {
+        let _ = unet.forward(grid.clone()).sum().backward();
+    });
+    let latent = Tensor::<B, 3>::random([b, n * n, config.latent], normal, device).require_grad();
+    let g2p = timed::<B>(device, repeats, || {
+        let _ = transfer::g2p(&s, latent.clone()).sum().backward();
+    });
+    let d_u = config.latent + config.own_features();
+    let memory = Memory::<B>::new(config.memory, d_u, config.hidden, device);
+    let u = Tensor::<B, 2>::random([b * n_p, d_u], normal, device).require_grad();
+    let memory_ms = timed::<B>(device, repeats, || {
+        if let (Some(out), _) = memory.step(u.clone(), MemoryState::Empty) {
+            let _ = out.sum().backward();
+        }
+    });
+    let model = config.init::<B>(device);
+    let material: Vec<u8> = (0..b * n_p).map(|i| (i % 4) as u8).collect();
+    let input = StepInput {
+        pos: pos.clone(),
+        vel: Tensor::random([b, n_p, 2 * config.window], normal, device).require_grad(),
+        material: one_hot(&material, b, n_p, device),
+        dt: Tensor::ones([b], device).mul_scalar(0.016),
+    };
+    let step = timed::<B>(device, repeats, || {
+        let (out, _) = model.step(input.clone(), MemoryState::Empty);
+        let _ = (out.pos.sum() + out.vel.sum()).backward();
+    });
+    println!(
+        "  ms per forward + backward at batch {b}: stencil {stencil:.2} (forward), P2G {p2g:.2}, U-Net {unet_ms:.2}, G2P {g2p:.2}, memory {memory_ms:.2}, whole step {step:.2}"
+    );
+}
