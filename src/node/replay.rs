@@ -152,6 +152,17 @@ impl Merge {
         Ok(())
     }
 
+    /// The earliest log time of any frame on `topic` in `paths` (a pass over the bags: log
+    /// times need not be sorted in file order, and a recording may start mid-scene).
+    fn earliest(paths: &[PathBuf], topic: &str) -> Result<Option<u64>, BagError> {
+        let mut merge = Merge::open(paths, topic)?;
+        let mut least: Option<u64> = None;
+        while let Some(next) = merge.next()? {
+            least = Some(least.map_or(next.log_time, |l| l.min(next.log_time)));
+        }
+        Ok(least)
+    }
+
     fn next(&mut self) -> Result<Option<Next>, BagError> {
         let Some(Reverse(next)) = self.heap.pop() else {
             return Ok(None);
@@ -192,7 +203,14 @@ pub fn play(
         // readers accept data only from writers they matched) a moment too.
         std::thread::sleep(Duration::from_millis(300));
     }
+    // `--start-offset` counts from the earliest log time in the bags; without it nothing is
+    // filtered by time (a frame logged before the first one in file order still plays).
     let offset_ns = (options.start_offset.max(0.0) * 1e9) as u64;
+    let earliest = if offset_ns > 0 {
+        Merge::earliest(&paths, &options.input_topic)?
+    } else {
+        None
+    };
     let mut first_start: Option<Instant> = None;
     loop {
         let mut merge = Merge::open(&paths, &options.input_topic)?;
@@ -204,8 +222,9 @@ pub fn play(
                 break;
             }
             // The pass's clock: its first message's log time maps onto now.
-            let (t0, log0) = *anchor.get_or_insert_with(|| (Instant::now(), next.log_time));
-            if next.log_time < log0 + offset_ns
+            let (t0, log0) = *anchor
+                .get_or_insert_with(|| (Instant::now(), earliest.unwrap_or(next.log_time)));
+            if (offset_ns > 0 && next.log_time < log0 + offset_ns)
                 || (!options.scenes.is_empty()
                     && !options.scenes.iter().any(|p| p.matches(&next.frame.scene)))
             {
@@ -215,7 +234,7 @@ pub fn play(
             if options.rate > 0.0 {
                 let due = t0
                     + Duration::from_secs_f64(
-                        (next.log_time - log0).saturating_sub(offset_ns) as f64
+                        next.log_time.saturating_sub(log0).saturating_sub(offset_ns) as f64
                             / 1e9
                             / options.rate,
                     );

@@ -294,3 +294,48 @@ fn bag_paths_expands_folders_sorted() {
     let none = bag::bag_paths(&[empty.path().to_path_buf()]).unwrap_err();
     assert!(matches!(none, BagError::NoBags { .. }), "{none}");
 }
+
+/// Issue 16: `replay` of a bag whose log times are not sorted in file order (the first
+/// message logged 1 s after the others) plays every frame without `--start-offset`, and with
+/// `--start-offset 0.5` drops exactly the frames logged in the first half second after the
+/// earliest log time.
+#[test]
+fn replay_filters_by_offset_from_the_earliest_log_time_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("unsorted.mcap");
+    let mut w = BagWriter::create(&path).expect("create");
+    w.write_raw(TOPIC, 1_000_000_000, &msgs::encode(&frame("s", 0, 10)))
+        .expect("write");
+    for k in 1..40u32 {
+        let log = u64::from(k) * 16_000_000;
+        w.write_raw(TOPIC, log, &msgs::encode(&frame("s", k, 10)))
+            .expect("write");
+    }
+    w.finish().expect("finish");
+    let replay = |extra: &[&str]| {
+        let mut args = vec![
+            "replay",
+            path.to_str().unwrap(),
+            "--rate",
+            "0",
+            "--wait-for-subscribers",
+            "0",
+            "--topic",
+            "/minflow_test/unsorted",
+        ];
+        args.extend_from_slice(extra);
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .args(&args)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(0), "{extra:?}: {stderr}");
+        stderr
+    };
+    let all = replay(&[]);
+    assert!(all.contains("replay: 40 frame(s)") && all.contains("(0 filtered)"), "{all}");
+    // Log times 16 ms .. 624 ms and 1 s; at least 0.5 s after the earliest (16 ms), i.e. at
+    // 516 ms or later: k = 33..39 (528 ms on) and the 1 s frame, 8 frames; 32 filtered.
+    let late = replay(&["--start-offset", "0.5"]);
+    assert!(late.contains("replay: 8 frame(s)") && late.contains("(32 filtered)"), "{late}");
+}
