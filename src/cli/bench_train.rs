@@ -51,8 +51,8 @@ pub struct TrainBenchArgs {
     #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
     pub(super) rollout_steps: usize,
     /// Convolution kernels to measure (grid): auto | burn | gather | shift.
-    #[arg(long, value_delimiter = ',', default_value = "auto")]
-    pub(super) conv: Vec<String>,
+    #[arg(long, value_delimiter = ',', default_value = "auto", value_parser = super::flags::conv_kernel)]
+    pub(super) conv: Vec<crate::model::grid::ConvKernel>,
     /// Also time each stage of one step, forward + backward (grid).
     #[arg(long)]
     pub(super) stages: bool,
@@ -113,7 +113,8 @@ impl EpochMeans {
     pub fn of(history: &[crate::train::EpochRecord], warmup_epochs: usize) -> Self {
         let (warm, timed) = history.split_at(warmup_epochs.min(history.len()));
         let n = timed.len().max(1) as f64;
-        let mean_of = |f: fn(&crate::train::EpochRecord) -> f64| timed.iter().map(f).sum::<f64>() / n;
+        let mean_of =
+            |f: fn(&crate::train::EpochRecord) -> f64| timed.iter().map(f).sum::<f64>() / n;
         Self {
             warmup: warm.iter().map(|r| r.seconds).sum(),
             mean: mean_of(|r| r.seconds),
@@ -188,9 +189,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
 fn grid(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
     use super::bench_train_grid::bench as grid_bench;
     match args.device.parse()?.single("bench train --arch grid")? {
-        None => grid_bench::<CpuTrain>(args, Default::default(), "host", &|reset| {
-            peak_mib(reset)
-        }),
+        None => grid_bench::<CpuTrain>(args, Default::default(), "host", &|reset| peak_mib(reset)),
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device, reserved_bytes, CudaTrain};

@@ -16,8 +16,7 @@ use super::bench_train::{synthetic, EpochMeans, TrainBenchArgs};
 use super::Outcome;
 use crate::data::{Scaler, WindowIndex};
 use crate::model::grid::{
-    one_hot, transfer, ConvKernel, GridConfig, Memory, MemoryKind, MemoryState, StepInput,
-    UNetConfig,
+    one_hot, transfer, GridConfig, Memory, MemoryKind, MemoryState, StepInput, UNetConfig,
 };
 use crate::model::FusedElu;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
@@ -37,14 +36,6 @@ where
         Some(cores) => cores.clone(),
         None => vec!["none".into(), "mingru".into(), "minlstm".into()],
     };
-    let kernels = args
-        .conv
-        .iter()
-        .map(|k| {
-            ConvKernel::parse(k)
-                .ok_or_else(|| anyhow::anyhow!("unknown --conv {k:?} (auto | burn | gather | shift)"))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
     let (t, p) = (2, args.rollout_steps);
     let traj = synthetic(args.particles, args.samples + t + p - 1);
     let (vel_scale, dv_mean, dv_scale) = fit_stats(&[&traj]);
@@ -56,13 +47,23 @@ where
     );
     println!(
         "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9}",
-        "core", "conv", "params", "s/epoch", "samples/s", "warm-up s", "wait %", "data %", "peak MiB"
+        "core",
+        "conv",
+        "params",
+        "s/epoch",
+        "samples/s",
+        "warm-up s",
+        "wait %",
+        "data %",
+        "peak MiB"
     );
     for name in &cores {
         let memory_kind = MemoryKind::parse(name).ok_or_else(|| {
-            anyhow::anyhow!("unknown core {name:?} for --arch grid (none | mingru | minlstm | gru | lstm)")
+            anyhow::anyhow!(
+                "unknown core {name:?} for --arch grid (none | mingru | minlstm | gru | lstm)"
+            )
         })?;
-        for &kernel in &kernels {
+        for &kernel in &args.conv {
             let config = GridConfig::new(memory_kind)
                 .with_grid(args.grid)
                 .with_window(t)
@@ -140,7 +141,12 @@ fn timed<B: Backend>(device: &B::Device, repeats: usize, mut f: impl FnMut()) ->
 
 /// One line: forward + backward milliseconds of each stage of a step of `config` at batch
 /// `b`, and the whole step.
-fn stages<B: AutodiffBackend + FusedElu>(config: &GridConfig, b: usize, n_p: usize, device: &B::Device) {
+fn stages<B: AutodiffBackend + FusedElu>(
+    config: &GridConfig,
+    b: usize,
+    n_p: usize,
+    device: &B::Device,
+) {
     let normal = Distribution::Normal(0.0, 1.0);
     let n = config.grid;
     let dense = !B::SEQUENTIAL_SCAN;

@@ -43,6 +43,12 @@ pub fn dropout(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A U-Net convolution kernel: auto | burn | gather | shift.
+pub fn conv_kernel(s: &str) -> Result<crate::model::grid::ConvKernel, String> {
+    crate::model::grid::ConvKernel::parse(s)
+        .ok_or_else(|| format!("{s:?} is not one of auto | burn | gather | shift"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -53,5 +59,6 @@ mod tests {
         assert!(positive("-1").is_err() && positive("inf").is_err() && positive("0").is_err());
         assert!(non_negative("0").is_ok() && non_negative("-0.5").is_err());
         assert!(dropout("2").is_err() && dropout("-0.5").is_err() && dropout("0.1").is_ok());
+        assert!(conv_kernel("shift").is_ok() && conv_kernel("winograd").is_err());
     }
 }

@@ -42,10 +42,10 @@ pub struct GridArgs {
     /// Per-particle head width.
     #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub head_hidden: usize,
-    /// How the U-Net's convolutions run: auto (gather on the CPU, burn on a GPU) | burn |
+    /// How the U-Net's convolutions run: auto (gather on the CPU, shift on a GPU) | burn |
     /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
-    #[arg(long, default_value = "auto", value_parser = ["auto", "burn", "gather", "shift"])]
-    pub conv: String,
+    #[arg(long, default_value = "auto", value_parser = super::flags::conv_kernel)]
+    pub conv: ConvKernel,
     /// Steps per training sample P (a short rollout; the loss averages them).
     #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
     pub rollout_steps: usize,
@@ -99,7 +99,7 @@ impl TrainArgs {
             .with_latent(g.latent)
             .with_hidden(g.hidden)
             .with_head_hidden(g.head_hidden)
-            .with_conv(ConvKernel::parse(&g.conv).with_context(|| format!("--conv {:?}", g.conv))?);
+            .with_conv(g.conv);
         config
             .validate()
             .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;

@@ -222,8 +222,8 @@ pub fn play(
                 break;
             }
             // The pass's clock: its first message's log time maps onto now.
-            let (t0, log0) = *anchor
-                .get_or_insert_with(|| (Instant::now(), earliest.unwrap_or(next.log_time)));
+            let (t0, log0) =
+                *anchor.get_or_insert_with(|| (Instant::now(), earliest.unwrap_or(next.log_time)));
             if (offset_ns > 0 && next.log_time < log0 + offset_ns)
                 || (!options.scenes.is_empty()
                     && !options.scenes.iter().any(|p| p.matches(&next.frame.scene)))

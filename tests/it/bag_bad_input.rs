@@ -333,9 +333,15 @@ fn replay_filters_by_offset_from_the_earliest_log_time_only() {
         stderr
     };
     let all = replay(&[]);
-    assert!(all.contains("replay: 40 frame(s)") && all.contains("(0 filtered)"), "{all}");
+    assert!(
+        all.contains("replay: 40 frame(s)") && all.contains("(0 filtered)"),
+        "{all}"
+    );
     // Log times 16 ms .. 624 ms and 1 s; at least 0.5 s after the earliest (16 ms), i.e. at
     // 516 ms or later: k = 33..39 (528 ms on) and the 1 s frame, 8 frames; 32 filtered.
     let late = replay(&["--start-offset", "0.5"]);
-    assert!(late.contains("replay: 8 frame(s)") && late.contains("(32 filtered)"), "{late}");
+    assert!(
+        late.contains("replay: 8 frame(s)") && late.contains("(32 filtered)"),
+        "{late}"
+    );
 }

@@ -229,14 +229,36 @@ fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
 fn bench_train_measures_the_grid_architecture() {
     let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args([
-            "bench", "train", "--arch", "grid", "--cores", "none", "--conv", "gather,shift",
-            "--particles", "64", "--grid", "16", "--samples", "2", "--micro-batch", "2",
-            "--epochs", "1", "--rollout-steps", "2", "--stages",
+            "bench",
+            "train",
+            "--arch",
+            "grid",
+            "--cores",
+            "none",
+            "--conv",
+            "gather,shift",
+            "--particles",
+            "64",
+            "--grid",
+            "16",
+            "--samples",
+            "2",
+            "--micro-batch",
+            "2",
+            "--epochs",
+            "1",
+            "--rollout-steps",
+            "2",
+            "--stages",
         ])
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     for kernel in ["gather", "shift"] {
         let row = stdout
             .lines()
@@ -245,5 +267,9 @@ fn bench_train_measures_the_grid_architecture() {
         let rate: f64 = row.split_whitespace().nth(4).unwrap().parse().unwrap();
         assert!(rate > 0.0, "{row}");
     }
-    assert_eq!(stdout.matches("ms per forward + backward").count(), 2, "{stdout}");
+    assert_eq!(
+        stdout.matches("ms per forward + backward").count(),
+        2,
+        "{stdout}"
+    );
 }

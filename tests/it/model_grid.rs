@@ -344,7 +344,11 @@ fn convolution_of_parts_equals_convolution_of_the_concatenation() {
             .reshape([2, 256])
             .unsqueeze(),
     );
-    let parts = values(conv_parts(&layer, vec![a, b], Gather).reshape([2, 256]).unsqueeze());
+    let parts = values(
+        conv_parts(&layer, vec![a, b], Gather)
+            .reshape([2, 256])
+            .unsqueeze(),
+    );
     let worst = whole
         .iter()
         .zip(&parts)

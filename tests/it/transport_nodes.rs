@@ -335,20 +335,32 @@ fn a_second_recorder_on_the_same_folder_is_refused() {
         a.into_iter().map(String::from).collect::<Vec<_>>()
     };
     let first_args = args(&["--flush-interval", "0.2"]);
-    let first = Node::spawn("record", &first_args.iter().map(String::as_str).collect::<Vec<_>>());
+    let first = Node::spawn(
+        "record",
+        &first_args.iter().map(String::as_str).collect::<Vec<_>>(),
+    );
     let lock = out.join(minflow::node::record::LOCK_FILE);
     let started = std::time::Instant::now();
     while std::fs::read_to_string(&lock).map_or(true, |s| s.is_empty()) {
-        assert!(started.elapsed() < Duration::from_secs(30), "the first recorder never took the lock");
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the first recorder never took the lock"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     for extra in [&[][..], &["--overwrite"][..]] {
         let second_args = args(extra);
-        let second = Node::spawn("record2", &second_args.iter().map(String::as_str).collect::<Vec<_>>())
-            .wait(Duration::from_secs(30));
+        let second = Node::spawn(
+            "record2",
+            &second_args.iter().map(String::as_str).collect::<Vec<_>>(),
+        )
+        .wait(Duration::from_secs(30));
         let stderr = String::from_utf8_lossy(&second.stderr);
         assert_eq!(second.status.code(), Some(1), "{extra:?}: {stderr}");
-        assert!(stderr.contains("another recorder is writing here"), "{stderr}");
+        assert!(
+            stderr.contains("another recorder is writing here"),
+            "{stderr}"
+        );
     }
     let player = Node::spawn(
         "replay",

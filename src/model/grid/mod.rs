@@ -238,8 +238,8 @@ impl<B: FusedElu> GridModel<B> {
         let t = self.window;
         let device = input.pos.device();
         let vel = input.vel / pairs(self.vel_scale, t, &device); // [B, N, 2T]
-                                                                 // P2G.
-                                                                 // The separable dense transfers on accelerators, the sparse ones on the CPU.
+
+        // P2G: the separable dense transfers on accelerators, the sparse ones on the CPU.
         let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
         let ones = Tensor::ones([b, n_p, 1], &device);
         let splat = transfer::p2g(
@@ -255,12 +255,14 @@ impl<B: FusedElu> GridModel<B> {
         ); // [B, n^2, C]
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
-                                                         // U-Net, G2P.
+
+        // U-Net, G2P.
         let out = self.unet.forward(grid);
         let latent = out.dims()[3];
         let out = out.reshape([b, cells, latent]); // [B, n^2, L]
         let gathered = transfer::g2p(&s, out); // [B, N, L]
-                                               // Memory and head, one row per particle.
+
+        // Memory and head, one row per particle.
         let u = Tensor::cat(
             vec![gathered, vel.clone(), input.material, input.pos.clone()],
             2,

@@ -3,10 +3,10 @@
 //! two 3x3 convolutions + SiLU per level on the way down (2x2 average pooling between
 //! levels) and on the way up (nearest 2x upsampling, concatenated with the skip of the same
 //! level), then a 1x1 convolution to the output channels. Widths double per level up to 4x
-//! the first. The weights are burn's `Conv2d`s. On a GPU they run as im2col by shifted slices
-//! (burn's convolution gradients made the U-Net 8x slower there); on the CPU, where burn-ndarray's direct convolution loop took 59 % of an inference step
-//! (perf, `eval` of a grid model), as im2col + one matrix product through the CPU's gemm
-//! kernels ([`FusedElu::linear_forward`]): the nine shifted copies of the zero-padded
+//! the first. The weights are burn's `Conv2d`s. On a GPU they run as im2col by shifted
+//! slices (burn's convolution gradients made the U-Net 8x slower there); on the CPU, where
+//! burn-ndarray's direct convolution loop took 59 % of an inference step (perf, `eval` of a
+//! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`FusedElu::linear_forward`]): the nine shifted copies of the zero-padded
 //! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
 //! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
 //! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
