@@ -31,9 +31,29 @@ pub fn log_g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
     neg.mask_where(pos, (relu(x) + 0.5).log())
 }
 
-/// Numerically stable `log(1 + exp(x))` (burn's `softplus` overflows for large x).
+/// Numerically stable `log(1 + exp(x))` (burn's `softplus` overflows for large x): `x` above
+/// 20 (where the two differ by under `exp(-20)`), `log1p(exp(x))` below, so the gradient is
+/// `sigmoid(x)` everywhere, 1/2 at 0 included (the form `relu(x) + log1p(exp(-|x|))` gives 0
+/// there: burn's derivatives of `relu` and `abs` at 0 are both 0).
 pub fn softplus<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
-    relu(x.clone()) + x.abs().neg().exp().log1p()
+    let big = x.clone().greater_elem(20.0);
+    x.clone().clamp_max(20.0).exp().log1p().mask_where(big, x)
+}
+
+/// minLSTM's normalised gates `(f', i') = (f, i) / (f + i)` with `f = sigmoid(a)`,
+/// `i = sigmoid(b)`, from the pre-activations `a`, `b` (any shape, the same).
+///
+/// Computed as `f' = sigmoid(-d)`, `i' = sigmoid(d)` with
+/// `d = log f - log i`, negated: `d = softplus(-a) - softplus(-b)` (the same quantity the
+/// log-space scan uses). The direct quotient is the same function but not the same numbers:
+/// when both gates are tiny (`a, b < -44`), `(f + i)^2` in its gradient underflows in f32 and
+/// training hits a non-finite loss; this form is bounded (`|df'/da| <= 1/4`) everywhere.
+pub fn normalized_gates<B: Backend, const D: usize>(
+    a: Tensor<B, D>,
+    b: Tensor<B, D>,
+) -> (Tensor<B, D>, Tensor<B, D>) {
+    let d = softplus(a.neg()) - softplus(b.neg());
+    (sigmoid(d.clone().neg()), sigmoid(d))
 }
 
 /// `log(exp(a) + exp(b))`, stable.
@@ -218,10 +238,8 @@ impl<B: FusedElu> MinLstm<B> {
         let hfi = linear(&self.to_hidden_and_gates, x);
         let n = self.hidden;
         let tilde = g(hfi.clone().narrow(2, 0, n));
-        let f = sigmoid(hfi.clone().narrow(2, n, n));
-        let i = sigmoid(hfi.narrow(2, 2 * n, n));
-        let norm = f.clone() + i.clone();
-        let h = recurrence(f / norm.clone(), i / norm * tilde, h0);
+        let (f, i) = normalized_gates(hfi.clone().narrow(2, n, n), hfi.narrow(2, 2 * n, n));
+        let h = recurrence(f, i * tilde, h0);
         let last = last_step(h.clone());
         (linear(&self.to_out, h), last)
     }
@@ -252,10 +270,7 @@ impl<B: FusedElu> MinLstm<B> {
         let hfi = linear(&self.to_hidden_and_gates, x);
         let n = self.hidden;
         let tilde = g(hfi.clone().narrow(1, 0, n));
-        let f = sigmoid(hfi.clone().narrow(1, n, n));
-        let i = sigmoid(hfi.narrow(1, 2 * n, n));
-        let norm = f.clone() + i.clone();
-        let (f, i) = (f / norm.clone(), i / norm);
+        let (f, i) = normalized_gates(hfi.clone().narrow(1, n, n), hfi.narrow(1, 2 * n, n));
         let next = match h {
             Some(h) => f * h + i * tilde,
             None => i * tilde,

@@ -1,14 +1,15 @@
 //! The model's building blocks against references: minGRU and minLSTM parallel scans equal
 //! their step-by-step recurrences (outputs and gradients, windows of 1, 2, 17 and 256, with
 //! and without a carried state); GRU and LSTM match steps computed by hand; the encoder's
-//! pool-then-project rewrite equals the plain encoder.
+//! pool-then-project rewrite equals the plain encoder; minLSTM's normalised gates keep finite
+//! values and gradients when both gates are closed.
 
 use burn::backend::{Autodiff, NdArray};
 use burn::module::Param;
 use burn::nn::Linear;
 use burn::tensor::{Distribution, Tensor, TensorData};
 use minflow::model::encoder::{Encoder, LastActivation, Pooling};
-use minflow::model::minrnn::{MinGru, MinLstm};
+use minflow::model::minrnn::{normalized_gates, MinGru, MinLstm};
 use minflow::model::rnn::{Gru, Lstm};
 
 type B = Autodiff<NdArray<f32>>;
@@ -129,6 +130,43 @@ fn minlstm_parallel_scan_equals_recurrence() {
             check_scan("minlstm", t, false, log_scan);
             check_scan("minlstm", t, true, log_scan);
         }
+    }
+}
+
+/// `f' = f / (f + i)` against f64 over pre-activations from -90 to 30, where both sigmoids
+/// underflow in f32 at the low end; its gradient `d f' / d a = f' (1 - f') (1 - f)` stays finite.
+#[test]
+fn minlstm_normalized_gates_are_finite_when_both_gates_close() {
+    let device = Default::default();
+    let pairs: Vec<(f32, f32)> = (-9..=3)
+        .flat_map(|p| [-20.0f32, -3.0, 0.0, 2.5].map(|d| (p as f32 * 10.0, p as f32 * 10.0 + d)))
+        .collect();
+    let a: Vec<f32> = pairs.iter().map(|p| p.0).collect();
+    let b: Vec<f32> = pairs.iter().map(|p| p.1).collect();
+    let at = Tensor::<B, 1>::from_floats(a.as_slice(), &device).require_grad();
+    let bt = Tensor::<B, 1>::from_floats(b.as_slice(), &device).require_grad();
+    let (f, i) = normalized_gates(at.clone(), bt.clone());
+    let grads = f.clone().sum().backward();
+    let ga: Vec<f32> = at.grad(&grads).unwrap().into_data().to_vec().unwrap();
+    let f: Vec<f32> = f.into_data().to_vec().unwrap();
+    let i: Vec<f32> = i.into_data().to_vec().unwrap();
+    let log_sigmoid = |x: f64| -(1.0 + (-x).exp()).ln();
+    for (k, &(a, b)) in pairs.iter().enumerate() {
+        let (a, b) = (f64::from(a), f64::from(b));
+        // f' = 1 / (1 + exp(log i - log f)), exact in f64 for these ranges.
+        let want = 1.0 / (1.0 + (log_sigmoid(b) - log_sigmoid(a)).exp());
+        let want_grad = want * (1.0 - want) * (1.0 - 1.0 / (1.0 + (-a).exp()));
+        assert!(
+            (f64::from(f[k]) - want).abs() < 1e-6 && (f64::from(i[k]) - (1.0 - want)).abs() < 1e-6,
+            "a {a} b {b}: f' {} i' {}, want {want}",
+            f[k],
+            i[k]
+        );
+        assert!(
+            ga[k].is_finite() && (f64::from(ga[k]) - want_grad).abs() < 1e-6,
+            "a {a} b {b}: df'/da {} want {want_grad}",
+            ga[k]
+        );
     }
 }
 
