@@ -9,6 +9,7 @@
 use super::device::{Device, DeviceArgs};
 use super::Outcome;
 use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
+use crate::model::store::NetConfig;
 use crate::model::{CoreKind, DecoderKind, FusedElu, LastActivation, ModelConfig, Pooling};
 use crate::train::{BatchSource, EpochRecord, Observer, TrainError, TrainOptions, Trainer};
 use anyhow::{bail, Context};
@@ -240,6 +241,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     };
     let particles = first.n;
     let config = args.model_config(particles)?;
+    if args.resume {
+        check_resume(&args.out, &NetConfig::Paper(config.clone()))?;
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     std::fs::write(
@@ -369,4 +373,49 @@ fn fit_on(
         Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
     };
     Ok(history)
+}
+
+/// With `--resume`, the run folder's `model.json` (written with the first checkpoint) must
+/// describe the network this invocation builds: weights of another shape cannot load, and
+/// other settings would silently change the run. Compares every hyper-parameter of `net`
+/// with the saved one, except the values fitted on the data (`vel_scale`, `dv_mean`,
+/// `dv_scale`) and the convolution kernel (`conv`: the same weights and results). A folder
+/// without `model.json` passes (nothing to resume yet).
+///
+/// # Errors
+/// An unreadable `model.json`, or one whose settings differ: the error names each field with
+/// both values.
+pub(crate) fn check_resume(out: &Path, net: &NetConfig) -> anyhow::Result<()> {
+    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
+    let path = out.join("model.json");
+    let text = match std::fs::read_to_string(&path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let saved: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let new = serde_json::to_value(net)?;
+    let differ: Vec<String> = new
+        .as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
+        .filter_map(|(key, value)| {
+            let old = saved.get(key);
+            (old != Some(value)).then(|| {
+                let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
+                format!("{key}: checkpoint {old}, this run {value}")
+            })
+        })
+        .collect();
+    if !differ.is_empty() {
+        bail!(
+            "--resume: {} was trained with other settings ({}); resume with the flags it was \
+             started with, or train into a new --out",
+            out.display(),
+            differ.join("; ")
+        );
+    }
+    Ok(())
 }

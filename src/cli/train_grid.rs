@@ -13,10 +13,11 @@ use burn::tensor::backend::AutodiffBackend;
 use clap::Args;
 
 use super::device::Device;
-use super::train::{CpuTrain, Progress, TrainArgs};
+use super::train::{check_resume, CpuTrain, Progress, TrainArgs};
 use super::Outcome;
 use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
 use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
+use crate::model::store::NetConfig;
 use crate::model::FusedElu;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
@@ -163,6 +164,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     config.vel_scale = vel_scale;
     config.dv_mean = dv_mean;
     config.dv_scale = dv_scale;
+    if args.resume {
+        check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     std::fs::write(

@@ -118,9 +118,12 @@ impl Scene {
         self.dt * self.substeps as f32
     }
 
-    /// Total particle count N.
+    /// Total particle count N (saturating: counts that overflow `usize` when summed read as
+    /// `usize::MAX`, which [`Scene::validate`] rejects).
     pub fn particle_count(&self) -> usize {
-        self.bodies.iter().map(|b| b.count).sum()
+        self.bodies
+            .iter()
+            .fold(0usize, |n, b| n.saturating_add(b.count))
     }
 
     /// Checks ranges: grid, dt, counts, bodies inside `[dx, 1 - 2 dx]`, rope spacing

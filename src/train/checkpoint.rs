@@ -1,7 +1,9 @@
 //! The resumable checkpoint of a training run: `OUT/checkpoint/` holds the model and the
 //! optimizer state (burn named MessagePack, full precision) and `history.json` (every epoch
 //! so far). It is written to `checkpoint.tmp/` and swapped in with renames, so a run killed
-//! at any moment leaves either the previous or the new checkpoint, never a torn one.
+//! at any moment leaves either the previous or the new checkpoint, never a torn one; the
+//! previous epoch's stays as `checkpoint.old/`, and a resume whose checkpoint was damaged
+//! afterwards (a truncated copy, a full disk) falls back to it with a warning naming the file.
 
 use super::{EpochRecord, TrainError};
 use crate::model::store::StoreError;
@@ -44,7 +46,6 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
         std::fs::rename(&dir, &old).map_err(|e| err(&dir, e))?;
     }
     std::fs::rename(&tmp, &dir).map_err(|e| err(&tmp, e))?;
-    let _ = std::fs::remove_dir_all(&old);
     Ok(())
 }
 
@@ -58,31 +59,72 @@ pub struct Resumed<M, R> {
     pub history: Vec<EpochRecord>,
 }
 
-/// Reads `OUT/checkpoint` (or `checkpoint.old` if a swap was interrupted) into `fresh` (a
-/// model of the run's configuration); `None` if there is none.
+/// Reads `OUT/checkpoint` into `fresh` (a model of the run's configuration), or, when it is
+/// missing or damaged, the previous epoch's `OUT/checkpoint.old`; `None` if there is neither.
+///
+/// # Errors
+/// Every checkpoint there is damaged: [`StoreError::Io`] naming the first damaged file of
+/// each (`model.mpk`, `optim.mpk` or `history.json`) and what was wrong with it.
 pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     out: &Path,
     fresh: M,
     device: &B::Device,
     _optim: &O,
 ) -> Result<Option<Resumed<M, O::Record>>, TrainError> {
-    let dir = [out.join("checkpoint"), out.join("checkpoint.old")]
+    let dirs: Vec<_> = [out.join("checkpoint"), out.join("checkpoint.old")]
         .into_iter()
-        .find(|d| d.join("history.json").exists());
-    let Some(dir) = dir else {
-        return Ok(None);
+        .filter(|d| d.join("history.json").exists())
+        .collect();
+    let mut damaged: Vec<String> = Vec::new();
+    for dir in &dirs {
+        match read::<B, M, O>(dir, fresh.clone(), device) {
+            Ok(resumed) => {
+                if !damaged.is_empty() {
+                    tracing::warn!(
+                        "{}; resuming from {} (epoch {}) instead",
+                        damaged.join("; "),
+                        dir.display(),
+                        resumed.history.len()
+                    );
+                }
+                return Ok(Some(resumed));
+            }
+            Err(e) => damaged.push(e),
+        }
+    }
+    match damaged.is_empty() {
+        true => Ok(None),
+        false => Err(err(
+            &out.join("checkpoint"),
+            format!("cannot resume: {}", damaged.join("; ")),
+        )),
+    }
+}
+
+/// One checkpoint folder read back; the error names the damaged file.
+fn read<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
+    dir: &Path,
+    fresh: M,
+    device: &B::Device,
+) -> Result<Resumed<M, O::Record>, String> {
+    let damaged = |file: &str, e: &dyn std::fmt::Display| {
+        format!(
+            "{} is damaged or belongs to another network ({e})",
+            dir.join(file).display()
+        )
     };
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     let model = fresh
         .load_file(dir.join("model"), &recorder, device)
-        .map_err(|e| err(&dir, e))?;
-    let optim: O::Record =
-        Recorder::<B>::load(&recorder, dir.join("optim"), device).map_err(|e| err(&dir, e))?;
-    let text = std::fs::read_to_string(dir.join("history.json")).map_err(|e| err(&dir, e))?;
-    let history = serde_json::from_str(&text).map_err(|e| err(&dir, e))?;
-    Ok(Some(Resumed {
+        .map_err(|e| damaged("model.mpk", &e))?;
+    let optim: O::Record = Recorder::<B>::load(&recorder, dir.join("optim"), device)
+        .map_err(|e| damaged("optim.mpk", &e))?;
+    let text = std::fs::read_to_string(dir.join("history.json"))
+        .map_err(|e| damaged("history.json", &e))?;
+    let history = serde_json::from_str(&text).map_err(|e| damaged("history.json", &e))?;
+    Ok(Resumed {
         model,
         optim,
         history,
-    }))
+    })
 }

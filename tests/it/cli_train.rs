@@ -206,6 +206,57 @@ fn grid_train_writes_a_run_folder_and_resumes() {
     // The first epoch's training loss is the same run; validation and the resumed epoch are
     // not yet bit-exact (open: see docs/grid.md).
     assert_eq!(a[0].0, b[0].0);
+    // Resuming with another network is refused before any training, naming the field.
+    let o = train_grid(
+        resumed.path(),
+        &[
+            "--epochs", "3", "--model", "minlstm", "--resume", "--window", "3",
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("window: checkpoint 2, this run 3"), "{err}");
+    assert_eq!(losses(resumed.path()).len(), 2, "the refused run trained");
+}
+
+/// A resume whose checkpoint was truncated afterwards falls back to the previous epoch's
+/// (`checkpoint.old`) with a warning naming the file; with both damaged it fails naming them.
+#[test]
+fn a_damaged_checkpoint_falls_back_to_the_previous_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = train_grid(dir.path(), &["--epochs", "2", "--model", "none"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let truncate = |folder: &str| {
+        let path = dir.path().join(folder).join("model.mpk");
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    };
+    truncate("checkpoint");
+    let o = train_grid(
+        dir.path(),
+        &["--epochs", "3", "--model", "none", "--resume"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("checkpoint/model.mpk is damaged") && err.contains("(epoch 1) instead"),
+        "{err}"
+    );
+    assert_eq!(losses(dir.path()).len(), 3);
+    truncate("checkpoint");
+    truncate("checkpoint.old");
+    let o = train_grid(
+        dir.path(),
+        &["--epochs", "4", "--model", "none", "--resume"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("cannot resume")
+            && err.contains("checkpoint/model.mpk is damaged")
+            && err.contains("checkpoint.old/model.mpk is damaged"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -122,6 +122,15 @@ fn the_example_scene_file_runs() {
 
 #[test]
 fn bad_scene_files_give_clear_errors() {
+    let body = |count: u64| {
+        format!("[[body]]\nshape = \"disk\"\nmaterial = \"jelly\"\nposition = [0.5, 0.5]\nsize = [0.2, 0.2]\ncount = {count}\n")
+    };
+    let overflowing = format!(
+        "frames = 10\nname = \"x\"\n{}{}{}",
+        body(i64::MAX as u64),
+        body(i64::MAX as u64),
+        body(3)
+    );
     let cases = [
         ("frames = 10\n[[body]]\nshape = \"cube\"", "cube"),
         ("frames = 10\nname = \"x\"\nbody = []", "particles"),
@@ -134,6 +143,8 @@ fn bad_scene_files_give_clear_errors() {
             "spacing",
         ),
         ("frames = 10\nname = \"x\"\ncolour = 3\nbody = []", "colour"),
+        // Counts whose sum wraps to 1 in usize arithmetic.
+        (overflowing.as_str(), "particles"),
     ];
     for (text, needle) in cases {
         let err = Scene::from_toml(text).unwrap_err().to_string();
