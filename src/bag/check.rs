@@ -165,16 +165,74 @@ fn check_channel(path: &Path, message: &RawMessage, report: &mut CheckReport) {
             "{path}: topic {topic}: schema encoding {enc:?}, expected \"ros2msg\""
         ));
     } else if schema.data.as_ref() != msgs::schema_text().as_bytes() {
-        let ours = msgs::schema_text();
-        let theirs = String::from_utf8_lossy(&schema.data);
-        let line = (ours.lines().zip(theirs.lines()))
-            .position(|(a, b)| a != b)
-            .unwrap_or(ours.lines().count().min(theirs.lines().count()));
-        report.problem(format!(
-            "{path}: topic {topic}: schema text differs from msgs/*.msg (first at line {})",
-            line + 1
-        ));
+        let ours = definitions(&msgs::schema_text());
+        let theirs = definitions(&String::from_utf8_lossy(&schema.data));
+        if ours != theirs {
+            report.problem(format!(
+                "{path}: topic {topic}: schema differs from msgs/*.msg: {}",
+                first_difference(&ours, &theirs)
+            ));
+        }
     }
+}
+
+/// The message definitions of a `ros2msg` schema text, as `(type name, fields)`: the main
+/// definition first (name empty), then its dependencies sorted by name. Comments (`#` to the
+/// end of the line), blank lines and spacing are dropped, so two texts that define the same
+/// types compare equal however a writer laid them out (the MCAP `ros2msg` encoding: the
+/// main `.msg` text, then for each dependency a line of `=`, `MSG: pkg/Type` and its text).
+fn definitions(text: &str) -> Vec<(String, Vec<String>)> {
+    let mut defs: Vec<(String, Vec<String>)> = vec![(String::new(), Vec::new())];
+    for line in text.lines() {
+        let line = line.split('#').next().unwrap_or("").trim();
+        if line.len() >= 3 && line.chars().all(|c| c == '=') {
+            defs.push((String::new(), Vec::new()));
+        } else if let Some(name) = line.strip_prefix("MSG:") {
+            if let Some(def) = defs.last_mut() {
+                def.0 = name.trim().to_owned();
+            }
+        } else if !line.is_empty() {
+            let field = line.split_whitespace().collect::<Vec<_>>().join(" ");
+            if let Some(def) = defs.last_mut() {
+                def.1.push(field.replace(" =", "=").replace("= ", "="));
+            }
+        }
+    }
+    defs[1..].sort();
+    defs
+}
+
+/// The first definition line where `theirs` differs from `ours`, for the report.
+fn first_difference(ours: &[(String, Vec<String>)], theirs: &[(String, Vec<String>)]) -> String {
+    for (k, (a, b)) in ours.iter().zip(theirs).enumerate() {
+        let name = if k == 0 {
+            msgs::TYPE_NAME
+        } else {
+            a.0.as_str()
+        };
+        if a.0 != b.0 {
+            return format!("definition of {:?} where {name:?} was expected", b.0);
+        }
+        let fields = a.1.iter().map(Some).chain(std::iter::repeat(None));
+        let other = b.1.iter().map(Some).chain(std::iter::repeat(None));
+        if let Some((x, y)) = fields
+            .zip(other)
+            .take(a.1.len().max(b.1.len()))
+            .find(|(x, y)| x != y)
+        {
+            let show = |f: Option<&String>| f.map_or("no field".to_owned(), |f| format!("{f:?}"));
+            return format!(
+                "in {name}, field {} where {} was expected",
+                show(y),
+                show(x)
+            );
+        }
+    }
+    format!(
+        "{} definitions where {} were expected",
+        theirs.len(),
+        ours.len()
+    )
 }
 
 /// Frame index, stamp, particle count, materials and dt against the scene's previous frame.

@@ -152,8 +152,9 @@ pub(crate) fn scaler_for(
 }
 
 /// Direct evaluation: loads the models and the scenes of `part`, rolls everything out.
-/// Returns the evaluation and the number of model columns.
-pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
+/// Returns the evaluation, the number of model columns and the outcome (data lost when a
+/// bag was truncated: its frames before the damage were used).
+pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outcome)> {
     let part = parse_split(&args.split)?;
     let names = model_names(&args.models);
     let device = args.device.parse()?.single("eval")?;
@@ -198,7 +199,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize)> {
     let bar = super::progress(0, "rollouts");
     let eval = eval::evaluate(&trajs, &predictors, &scaler, &source, &opts, &bar)?;
     bar.finish_and_clear();
-    Ok((eval, models.len()))
+    Ok((eval, models.len(), super::read_to_damage(&report.truncated)))
 }
 
 /// A run folder's model on the CPU (`None`) or on CUDA GPU `cuda`.
@@ -261,8 +262,8 @@ fn replay(args: &EvalArgs) -> anyhow::Result<(Evaluation, bool)> {
 pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
     let (eval, models, lost) = match (args.pred.is_empty(), args.data.is_empty()) {
         (true, false) => {
-            let (eval, models) = direct(&args)?;
-            (eval, models, false)
+            let (eval, models, outcome) = direct(&args)?;
+            (eval, models, outcome == Outcome::DataLost)
         }
         (false, true) => {
             let (eval, lost) = replay(&args)?;
@@ -293,11 +294,13 @@ pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
         files.len(),
         args.out.display()
     );
-    if eval.missing() > 0 || lost {
+    if eval.missing() > 0 {
         eprintln!(
             "{} predicted frames missing (excluded from the scores)",
             eval.missing()
         );
+    }
+    if eval.missing() > 0 || lost {
         return Ok(Outcome::DataLost);
     }
     Ok(Outcome::Done)

@@ -120,6 +120,21 @@ pub enum Outcome {
     DataLost,
 }
 
+/// The outcome of a command that read `truncated` bags to the damage and used what came
+/// before it: each is logged as a warning, and any makes the outcome [`Outcome::DataLost`]
+/// (exit code 3, the same rule as `bag info` and `replay`).
+pub(crate) fn read_to_damage(
+    truncated: &[(std::path::PathBuf, crate::bag::Truncation)],
+) -> Outcome {
+    for (path, truncation) in truncated {
+        tracing::warn!("{}: {truncation}", path.display());
+    }
+    match truncated.is_empty() {
+        true => Outcome::Done,
+        false => Outcome::DataLost,
+    }
+}
+
 /// Runs the parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
     match cli.command {

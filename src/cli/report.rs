@@ -212,7 +212,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     }
     let eval_args: EvalArgs = parse(&argv)?;
     eprintln!("== evaluating {} models", dirs.len());
-    let (eval, models) = direct(&eval_args)?;
+    let (eval, models, outcome) = direct(&eval_args)?;
     let bar = super::progress(0, "renders");
     output::write_all(&eval_dir, &eval, models, "minflow report: evaluation", &bar)?;
     bar.finish_and_clear();
@@ -227,7 +227,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     std::fs::write(&out, &text).with_context(|| format!("writing {}", path(&out)))?;
     print!("{}", table::markdown(&eval));
     println!("report: {}", path(&out));
-    Ok(Outcome::Done)
+    Ok(outcome)
 }
 
 /// Table 4: training speed per core, then the classic/minimal ratios.

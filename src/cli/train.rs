@@ -225,7 +225,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
-    let infos = data::scan(&args.data, topic).context("reading the bags")?;
+    let (infos, scanned) = data::scan_with_report(&args.data, topic).context("reading the bags")?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = Split::new(&scenes, args.seed);
     let in_part = |part: Part| -> Vec<SceneInfo> {
@@ -320,7 +320,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
             args.out.join("model.json").display()
         );
     }
-    Ok(Outcome::Done)
+    Ok(super::read_to_damage(&scanned.truncated))
 }
 
 /// Trains on `device`: the CPU backend, or burn's CUDA backend (one GPU; several train

@@ -219,7 +219,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
             args.out.join("model.json").display()
         );
     }
-    Ok(Outcome::Done)
+    Ok(super::read_to_damage(&report.truncated))
 }
 
 /// Trains on `device` (the CPU, or one GPU).

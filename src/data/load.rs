@@ -120,7 +120,17 @@ fn load_filtered(
 
 /// The index of the scenes in `inputs` (only `topic`'s frames when given), sorted by scene id.
 /// Decodes every frame to check it as [`load()`] does, but keeps only frame indices.
+/// [`scan_with_report`] also says which bags were truncated.
 pub fn scan(inputs: &[PathBuf], topic: Option<&str>) -> Result<Vec<SceneInfo>, DataError> {
+    scan_with_report(inputs, topic).map(|(infos, _)| infos)
+}
+
+/// [`scan`], with the [`LoadReport`] of the pass (truncated bags, skipped messages; its
+/// `frames` and `gaps` are not filled in).
+pub fn scan_with_report(
+    inputs: &[PathBuf],
+    topic: Option<&str>,
+) -> Result<(Vec<SceneInfo>, LoadReport), DataError> {
     struct Acc {
         head: SceneHead,
         indices: BTreeSet<u32>,
@@ -165,7 +175,7 @@ pub fn scan(inputs: &[PathBuf], topic: Option<&str>) -> Result<Vec<SceneInfo>, D
             }
         })
         .collect();
-    Ok(infos)
+    Ok((infos, report))
 }
 
 /// Calls `each` with every frame of every bag in turn; records truncations and skipped

@@ -276,6 +276,55 @@ fn check_finds_gaps_and_changed_particle_counts() {
     );
 }
 
+/// `bag check` compares schemas as parsed definitions: one that differs from `msgs/*.msg`
+/// only in comments, blank lines and spacing (as other writers lay it out, e.g. the Python
+/// mcap-ros2 writer) passes; a changed field type is a problem naming the field.
+#[test]
+fn check_compares_parsed_schema_definitions() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let write = |name: &str, schema: &str| {
+        let path = dir.path().join(name);
+        let mut w = mcap::Writer::new(Cursor::new(Vec::new())).expect("writer");
+        let id = w
+            .add_schema(msgs::TYPE_NAME, "ros2msg", schema.as_bytes())
+            .expect("schema");
+        let channel = w
+            .add_channel(id, TOPIC, "cdr", &BTreeMap::new())
+            .expect("channel");
+        for k in 0..3u32 {
+            let header = MessageHeader {
+                channel_id: channel,
+                sequence: k,
+                log_time: u64::from(k) * 16_000_000,
+                publish_time: u64::from(k) * 16_000_000,
+            };
+            w.write_to_known_channel(&header, &msgs::encode(&frame("s", k, 8)))
+                .expect("write");
+        }
+        w.finish().expect("finish");
+        std::fs::write(&path, w.into_inner().into_inner()).expect("file");
+        path
+    };
+    let ours = msgs::schema_text();
+    let relaid: String = ours
+        .lines()
+        .map(|l| match l.starts_with('=') || l.starts_with("MSG:") {
+            true => format!("{l}\n"),
+            false => format!("  {}   # another comment\n\n", l.replace(' ', "  ")),
+        })
+        .collect();
+    assert_ne!(relaid, ours);
+    let report = bag::check(&[write("relaid.mcap", &relaid)]).expect("check");
+    assert!(report.is_ok(), "{report}");
+    let changed = ours.replacen("float32[] position", "float64[] position", 1);
+    let report = bag::check(&[write("changed.mcap", &changed)]).expect("check");
+    assert!(
+        report.problems.iter().any(|p| p.contains("schema differs")
+            && p.contains("\"float64[] position\" where \"float32[] position\" was expected")),
+        "{report}"
+    );
+}
+
 #[test]
 fn bag_paths_expands_folders_sorted() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -120,6 +120,70 @@ fn truncated_bag_is_reported_with_exit_code_3() {
     for (k, (_, _, f)) in read.frames.iter().enumerate() {
         assert_eq!(f.frame_index as usize, k);
     }
+    // train (both architectures) and eval use the frames before the damage and exit 3 too.
+    let cut = cut.to_str().unwrap();
+    let grid = dir.path().join("grid");
+    let paper = dir.path().join("paper");
+    let tiny_grid = [
+        "--grid",
+        "16",
+        "--levels",
+        "2",
+        "--unet-width",
+        "4",
+        "--latent",
+        "4",
+        "--hidden",
+        "4",
+        "--head-hidden",
+        "8",
+        "--rollout-steps",
+        "2",
+        "--batch-size",
+        "4",
+        "--samples-per-epoch",
+        "8",
+        "--epochs",
+        "1",
+    ];
+    let tiny_paper = [
+        "--arch",
+        "paper",
+        "--width",
+        "16",
+        "--encoder-hidden",
+        "8",
+        "--epochs",
+        "1",
+    ];
+    for (out, flags) in [(&grid, &tiny_grid[..]), (&paper, &tiny_paper[..])] {
+        let mut args = vec!["train", "--data", cut, "--out", out.to_str().unwrap()];
+        args.extend_from_slice(flags);
+        let o = minflow(&args);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(3), "{args:?}: {stderr}");
+        assert!(stderr.contains("truncated or damaged"), "{stderr}");
+        assert!(out.join("model.json").exists(), "{args:?}: no model");
+    }
+    let o = minflow(&[
+        "eval",
+        "--model",
+        grid.to_str().unwrap(),
+        "--data",
+        cut,
+        "--split",
+        "all",
+        "--horizon",
+        "5",
+        "--starts",
+        "1",
+        "--no-render",
+        "--out",
+        dir.path().join("eval").to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{stderr}");
+    assert!(stderr.contains("truncated or damaged"), "{stderr}");
 }
 
 #[test]
