@@ -246,9 +246,17 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             ));
         }
     }
+    let what = if args.models.is_empty() {
+        format!(
+            "untrained paper-sized models (N = 2,500, W = 1,250, encoder last activation {})",
+            args.encoder_last_activation
+        )
+    } else {
+        "the given run folders".to_owned()
+    };
     println!(
-        "\nSurrogate node, paper-sized model (N = 2,500, W = 1,250, encoder last activation {}), {} frames at 62.5 Hz, burst of {}:",
-        args.encoder_last_activation, args.frames, args.burst
+        "\nSurrogate node, {what}, {} frames at 62.5 Hz, burst of {}:",
+        args.frames, args.burst
     );
     println!("| core | transport | model p50 ms | model p99 ms | predictions | e2e p50 ms | e2e p99 ms | transport adds (p50) | burst predictions/s |");
     println!("|---|---|---|---|---|---|---|---|---|");

@@ -328,7 +328,7 @@ fn into_vec(x: CpuTensor) -> (Vec<f32>, Vec<usize>) {
 }
 
 /// Applies `f` to row blocks of the tensor's own buffer (in place when unshared).
-fn map_owned(x: CpuTensor, f: impl Fn(&mut [f32]) + Sync + Send) -> CpuTensor {
+pub(crate) fn map_owned(x: CpuTensor, f: impl Fn(&mut [f32]) + Sync + Send) -> CpuTensor {
     let (mut data, shape) = into_vec(x);
     let cols = shape.last().copied().unwrap_or(1);
     for_rows(&mut data, cols, f);
@@ -336,7 +336,7 @@ fn map_owned(x: CpuTensor, f: impl Fn(&mut [f32]) + Sync + Send) -> CpuTensor {
 }
 
 /// Applies `f` to aligned blocks of the tensor's own buffer and `other` (same length).
-fn map_owned_zip(
+pub(crate) fn map_owned_zip(
     x: CpuTensor,
     other: &[f32],
     f: impl Fn(&mut [f32], &[f32]) + Sync + Send,
@@ -492,7 +492,7 @@ pub(crate) fn elu_mean_backward(
 }
 
 /// The f32 tensor's elements in row-major order (borrowed when already so) and its shape.
-fn dense(t: &CpuTensor) -> Option<(std::borrow::Cow<'_, [f32]>, Vec<usize>)> {
+pub(crate) fn dense(t: &CpuTensor) -> Option<(std::borrow::Cow<'_, [f32]>, Vec<usize>)> {
     let NdArrayTensor::F32(s) = t else {
         return None;
     };
@@ -686,7 +686,7 @@ pub(crate) type AdamResult =
     Result<(CpuTensor, CpuTensor, CpuTensor), (CpuTensor, Option<CpuTensor>, Option<CpuTensor>)>;
 
 /// Shape and dtype helpers on the primitive.
-trait PrimitiveInfo {
+pub(crate) trait PrimitiveInfo {
     fn shape_vec(&self) -> Vec<usize>;
     fn dtype_name(&self) -> String;
 }

@@ -105,6 +105,33 @@ pub trait FusedElu: Backend {
         composed_adam::<Self>(param, grad, m, v, c)
     }
 
+    /// True where [`FusedElu::im2col`], [`FusedElu::col2im`] and [`FusedElu::silu`] are
+    /// single-pass kernels with their own autodiff nodes (the CPU backend); elsewhere the grid
+    /// model composes its convolutions from burn's tensor operations.
+    const NATIVE_CONV_OPS: bool = false;
+
+    /// im2col of a same-padding `k x k` convolution (column order in `model::conv_ops`).
+    /// `x` `[B, H, W, C]` -> `[B H W, C k^2]`.
+    fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
+        super::conv_ops::composed_im2col::<Self>(x, k)
+    }
+
+    /// The adjoint of [`FusedElu::im2col`] (im2col's gradient): `cols` `[B H W, C k^2]` ->
+    /// `[B, H, W, C]` = `shape`.
+    fn col2im(cols: FloatTensor<Self>, shape: [usize; 4], k: usize) -> FloatTensor<Self> {
+        super::conv_ops::composed_col2im::<Self>(cols, shape, k)
+    }
+
+    /// `x sigmoid(x)`, any shape.
+    fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        super::conv_ops::composed_silu::<Self>(x)
+    }
+
+    /// SiLU's input gradient from its input `x` and the output gradient (same shape).
+    fn silu_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        super::conv_ops::composed_silu_backward::<Self>(x, grad)
+    }
+
     /// True where [`FusedElu::elu_mean_forward`] has its own backward (the CPU backend).
     const FUSED_ELU_MEAN: bool = false;
 
@@ -606,6 +633,28 @@ impl FusedElu for NdArray<f32> {
 
     const SEQUENTIAL_SCAN: bool = true;
     const FUSED_ELU_MEAN: bool = true;
+    const NATIVE_CONV_OPS: bool = true;
+
+    fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
+        super::conv_ops::cpu_im2col(&x, k)
+            .unwrap_or_else(|| super::conv_ops::composed_im2col::<Self>(x, k))
+    }
+
+    fn col2im(cols: FloatTensor<Self>, shape: [usize; 4], k: usize) -> FloatTensor<Self> {
+        super::conv_ops::cpu_col2im(&cols, shape, k)
+            .unwrap_or_else(|| super::conv_ops::composed_col2im::<Self>(cols, shape, k))
+    }
+
+    fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        super::conv_ops::cpu_silu(x)
+    }
+
+    fn silu_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        match super::conv_ops::cpu_silu_backward(&x, grad) {
+            Ok(g) => g,
+            Err(grad) => super::conv_ops::composed_silu_backward::<Self>(x, grad),
+        }
+    }
 
     fn elu_mean_forward(
         x: FloatTensor<Self>,
@@ -823,6 +872,21 @@ impl<B: FusedElu> Backward<B, 3> for EluMeanBackward {
 impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
     const SEQUENTIAL_SCAN: bool = B::SEQUENTIAL_SCAN;
     const FUSED_ELU_MEAN: bool = B::FUSED_ELU_MEAN;
+    const NATIVE_CONV_OPS: bool = B::NATIVE_CONV_OPS;
+
+    fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
+        match B::NATIVE_CONV_OPS {
+            true => super::conv_ops::autodiff_im2col::<B, C>(x, k),
+            false => super::conv_ops::composed_im2col::<Self>(x, k),
+        }
+    }
+
+    fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        match B::NATIVE_CONV_OPS {
+            true => super::conv_ops::autodiff_silu::<B, C>(x),
+            false => super::conv_ops::composed_silu::<Self>(x),
+        }
+    }
 
     fn elu_mean_forward(
         x: FloatTensor<Self>,

@@ -7,6 +7,7 @@
 //! Layout: [`encoder`], [`temporal`] (minGRU | minLSTM | GRU | LSTM | MLP stack), [`minrnn`],
 //! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
 
+pub mod conv_ops;
 mod cpu_kernels;
 pub mod cublas;
 pub mod decoder;

@@ -356,3 +356,48 @@ fn convolution_of_parts_equals_convolution_of_the_concatenation() {
         .fold(0.0f32, f32::max);
     assert!(worst < 1e-5, "{worst}");
 }
+
+/// The grid's SiLU (`model::conv_ops::silu`, a native CPU kernel on NdArray) equals burn's
+/// `activation::silu` in value and gradient, over large and tiny inputs.
+#[test]
+fn silu_equals_burns_in_value_and_gradient() {
+    use burn::backend::Autodiff;
+    use minflow::model::conv_ops::silu;
+    type A = Autodiff<B>;
+    let device = Default::default();
+    let data: Vec<f32> = (0..2000).map(|i| (i as f32 - 1000.0) * 0.03).collect();
+    let x = Tensor::<A, 2>::from_data(TensorData::new(data, [40, 50]), &device).require_grad();
+    let ours = silu(x.clone());
+    let theirs = burn::tensor::activation::silu(x.clone());
+    let probe = Tensor::<A, 2>::random(
+        [40, 50],
+        burn::tensor::Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    let worst = |a: Tensor<A, 2>, b: Tensor<A, 2>| {
+        let (a, b): (Vec<f32>, Vec<f32>) = (
+            a.into_data().to_vec().unwrap(),
+            b.into_data().to_vec().unwrap(),
+        );
+        a.iter()
+            .zip(&b)
+            .map(|(p, q)| (p - q).abs() / (1.0 + q.abs()))
+            .fold(0.0f32, f32::max)
+    };
+    assert!(worst(ours.clone(), theirs.clone()) < 1e-5);
+    let g_ours = (ours * probe.clone()).sum().backward();
+    let g_theirs = (theirs * probe).sum().backward();
+    let (ga, gb) = (x.grad(&g_ours).unwrap(), x.grad(&g_theirs).unwrap());
+    let close = |a: Tensor<B, 2>, b: Tensor<B, 2>| {
+        let (a, b): (Vec<f32>, Vec<f32>) = (
+            a.into_data().to_vec().unwrap(),
+            b.into_data().to_vec().unwrap(),
+        );
+        a.iter()
+            .zip(&b)
+            .map(|(p, q)| (p - q).abs() / (1.0 + q.abs()))
+            .fold(0.0f32, f32::max)
+    };
+    let w = close(ga, gb);
+    assert!(w < 1e-5, "gradient {w}");
+}

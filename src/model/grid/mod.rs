@@ -31,10 +31,10 @@ pub use unet::{ConvKernel, UNet, UNetConfig};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
-use burn::tensor::activation::silu;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
+use super::conv_ops::silu;
 use super::FusedElu;
 
 /// Materials (one-hot width).

@@ -16,10 +16,10 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
-use burn::tensor::activation::silu;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
+use crate::model::conv_ops::{im2col, silu};
 use crate::model::FusedElu;
 
 /// How the U-Net's convolutions are computed; the weights and the result are the same.
@@ -248,7 +248,10 @@ pub fn conv_parts<B: FusedElu>(
     }
     let [b, h, w, _] = parts[0].dims();
     let device = parts[0].device();
-    let [c_out, _, k, _] = conv.weight.dims();
+    let [c_out, c_in, k, _] = conv.weight.dims();
+    if B::NATIVE_CONV_OPS {
+        return conv_parts_native(conv, parts, [b, h, w, c_out, c_in, k]);
+    }
     let index = (k > 1).then(|| im2col_index::<B>(b, h, w, k, &device));
     let mut bias = conv.bias.as_ref().map(|p| p.val());
     let mut offset = 0;
@@ -263,6 +266,39 @@ pub fn conv_parts<B: FusedElu>(
                 .reshape([b * h * w, k * k * c]),
         };
         let y = product(cols, im2col_weight(conv, offset, c), bias.take());
+        offset += c;
+        sum = Some(match sum {
+            Some(acc) => acc + y,
+            None => y,
+        });
+    }
+    sum.expect("at least one part").reshape([b, h, w, c_out])
+}
+
+/// [`ConvKernel::Gather`] on a backend with native im2col ([`FusedElu::NATIVE_CONV_OPS`]):
+/// each part through [`FusedElu::im2col`] (one pass, columns ordered as burn's weight
+/// `[C_out, C_in, k, k]` flattens, so the weight matrix is a transposed view of it) and one
+/// product, the products summed.
+fn conv_parts_native<B: FusedElu>(
+    conv: &Conv2d<B>,
+    parts: Vec<Tensor<B, 4>>,
+    [b, h, w, c_out, c_in, k]: [usize; 6],
+) -> Tensor<B, 4> {
+    let weight = conv.weight.val().reshape([c_out, c_in * k * k]);
+    let mut bias = conv.bias.as_ref().map(|p| p.val());
+    let mut offset = 0;
+    let mut sum: Option<Tensor<B, 2>> = None;
+    for x in parts {
+        let c = x.dims()[3];
+        let cols = match k {
+            1 => x.reshape([b * h * w, c]),
+            _ => im2col(x, k),
+        };
+        let matrix = weight
+            .clone()
+            .narrow(1, offset * k * k, c * k * k)
+            .transpose();
+        let y = product(cols, matrix, bias.take());
         offset += c;
         sum = Some(match sum {
             Some(acc) => acc + y,
