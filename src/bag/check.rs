@@ -4,14 +4,16 @@
 //! `Display` is the printed report: on our topics (and wherever our schema appears) the schema
 //! name, schema encoding and text, and message encoding are ours, every frame decodes and
 //! validates, and within each (topic, scene) `frame_index` rises by exactly 1, stamps (ns)
-//! strictly increase, and particle count, materials and `dt` stay constant. Damaged or cut files
-//! are problems in the report, not errors. It does not load a whole bag into memory. Also used
-//! by `demo`.
+//! strictly increase, and particle count, materials and `dt` stay constant; and the summary and
+//! message indexes agree with the data ([`super::check_index`]). Damaged or cut files are
+//! problems in the report, not errors. It does not load a whole bag into memory. Also used by
+//! `demo`.
 
 use std::collections::BTreeMap;
 use std::fmt;
 use std::path::Path;
 
+use super::check_index::check_index;
 use super::read::{decode_checked, BagReader, RawMessage};
 use super::{BagError, FRAMES_TOPIC, MESSAGE_ENCODING, PREDICTED_TOPIC, SCHEMA_ENCODING};
 use crate::msgs;
@@ -136,6 +138,12 @@ fn check_file(
         match decode_checked(&path, message.topic(), message.index, &message.data) {
             Ok(frame) => check_sequence(&path, &message, frame, scenes, report),
             Err(err) => report.problem(err.to_string()),
+        }
+    }
+    // A cut or damaged file is already a problem; its index cannot be whole.
+    if reader.truncation().is_none() {
+        for problem in check_index(&path, reader.messages_read()) {
+            report.problem(problem);
         }
     }
 }

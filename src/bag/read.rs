@@ -7,10 +7,13 @@
 //! [`ParticleFrame`], and [`super::frames`] narrows a reader to decoded frames. Memory stays at
 //! one chunk, so datasets need not fit in memory. A bag cut anywhere (writer killed, disk full)
 //! yields every complete message before the cut, then one [`BagError::Truncated`] with a
-//! [`Truncation`] (also logged with `tracing::warn!`). Used by `train`, `replay`, `eval` and
-//! `bag info/check`.
+//! [`Truncation`] (also logged with `tracing::warn!`). A damaged chunk (bad CRC, bad
+//! compression, a bad record) in a bag that still has its summary is skipped: the rest is read
+//! chunk by chunk through the summary's chunk index, as `mcap recover` does (Foxglove's `mcap`
+//! CLI), and the closing [`BagError::Truncated`] counts the chunks skipped. Used by `train`,
+//! `replay`, `eval` and `bag info/check`.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::fmt;
 use std::fs::File;
 use std::io::{BufReader, Read};
@@ -28,21 +31,40 @@ use crate::msgs::{self, ParticleFrame};
 /// the reader allocate without bound.
 const MAX_RECORD_BYTES: usize = 256 << 20;
 
-/// How much of a damaged or cut bag was read, and why reading stopped.
+/// How much of a damaged or cut bag was read, and what was lost.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Truncation {
     /// Messages (all topics) read before the damage.
     pub messages_read: u64,
-    /// Bytes consumed from the file when reading stopped.
+    /// Bytes consumed from the file when the damage was met.
     pub bytes_read: u64,
     /// File size in bytes.
     pub bytes_total: u64,
-    /// The reader's error at the point where it stopped.
+    /// The reader's error at the damage.
     pub error: String,
+    /// Damaged chunks skipped by reading on through the summary's chunk index (0 when the bag
+    /// had no readable summary and reading stopped at the damage).
+    pub chunks_skipped: u64,
+    /// Messages read after the damage, from the intact chunks past it.
+    pub messages_after: u64,
 }
 
 impl fmt::Display for Truncation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.chunks_skipped > 0 || self.messages_after > 0 {
+            return write!(
+                f,
+                "bag is damaged: read {} messages, then at byte {} of {}: {}; skipped {} damaged \
+                 chunk(s) (their messages are lost) and read {} messages after them from the \
+                 summary's chunk index",
+                self.messages_read,
+                self.bytes_read,
+                self.bytes_total,
+                self.error,
+                self.chunks_skipped,
+                self.messages_after
+            );
+        }
         write!(
             f,
             "bag is truncated or damaged: read {} messages from {} of {} bytes, then: {}; \
@@ -50,6 +72,14 @@ impl fmt::Display for Truncation {
             self.messages_read, self.bytes_read, self.bytes_total, self.error
         )
     }
+}
+
+/// A message read through the summary's chunk index after damage.
+struct Recovered {
+    channel: Arc<mcap::Channel<'static>>,
+    log_time: u64,
+    publish_time: u64,
+    data: Vec<u8>,
 }
 
 /// One message of any topic, undecoded.
@@ -135,6 +165,10 @@ pub struct BagReader {
     truncation: Option<Truncation>,
     /// Set once the streaming re-read after a cut has started.
     recovering: bool,
+    /// Messages still to yield from the intact chunks past a damaged one.
+    pending: VecDeque<Recovered>,
+    /// Set once the closing [`BagError::Truncated`] was yielded.
+    truncation_reported: bool,
 }
 
 impl BagReader {
@@ -169,6 +203,8 @@ impl BagReader {
             messages_read: 0,
             truncation: None,
             recovering: false,
+            pending: VecDeque::new(),
+            truncation_reported: false,
         };
         reader.start(true)?;
         Ok(reader)
@@ -206,6 +242,78 @@ impl BagReader {
         inner.next()?.ok()
     }
 
+    /// After damage, reads the chunks of the summary's chunk index in file order (each
+    /// CRC-checked as a whole), skips the first `messages_read` intact messages (already
+    /// yielded) and queues the rest. Returns the damaged chunks' count, or None when the
+    /// summary is unreadable or indexes no chunk. Loads the file into memory: only after damage.
+    fn recover_indexed(&mut self) -> Option<u64> {
+        let bytes = std::fs::read(&self.path).ok()?;
+        let summary = mcap::Summary::read(&bytes).ok()??;
+        let mut chunks = summary.chunk_indexes.clone();
+        if chunks.is_empty() {
+            return None;
+        }
+        chunks.sort_by_key(|c| c.chunk_start_offset);
+        chunks.dedup_by_key(|c| c.chunk_start_offset);
+        let (mut skip, mut damaged) = (self.messages_read, 0u64);
+        for index in &chunks {
+            let Some(messages) = read_chunk(&summary, &bytes, index) else {
+                damaged += 1;
+                continue;
+            };
+            for message in messages {
+                if skip > 0 {
+                    skip -= 1;
+                } else {
+                    self.pending.push_back(message);
+                }
+            }
+        }
+        Some(damaged)
+    }
+
+    /// Yields the next queued message of a recovery, or the closing truncation once empty.
+    fn next_recovered(&mut self) -> Option<Result<RawMessage, BagError>> {
+        let Some(message) = self.pending.pop_front() else {
+            let truncation = self.truncation.clone()?;
+            self.truncation_reported = true;
+            return Some(Err(BagError::Truncated {
+                path: self.path.clone(),
+                truncation,
+            }));
+        };
+        if let Some(t) = self.truncation.as_mut() {
+            t.messages_after += 1;
+        }
+        Some(Ok(self.numbered(
+            message.channel,
+            message.log_time,
+            message.publish_time,
+            message.data,
+        )))
+    }
+
+    /// Counts a message and numbers it within its channel.
+    fn numbered(
+        &mut self,
+        channel: Arc<mcap::Channel<'static>>,
+        log_time: u64,
+        publish_time: u64,
+        data: Vec<u8>,
+    ) -> RawMessage {
+        let counter = self.per_channel.entry(channel.id).or_insert(0);
+        let index = *counter;
+        *counter += 1;
+        self.messages_read += 1;
+        RawMessage {
+            channel,
+            index,
+            log_time,
+            publish_time,
+            data,
+        }
+    }
+
     /// The bag's path.
     pub fn path(&self) -> &Path {
         &self.path
@@ -231,50 +339,118 @@ impl Iterator for BagReader {
     type Item = Result<RawMessage, BagError>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        let next = match self.inner.as_mut()?.next()? {
+        if self.inner.is_none() {
+            return if self.truncation_reported {
+                None
+            } else {
+                self.next_recovered()
+            };
+        }
+        let next = match self.inner.as_mut()?.next() {
+            None => {
+                self.inner = None;
+                return None;
+            }
             // A cut: recover the complete messages of a cut chunk, which validation withheld.
-            Err(mcap::McapError::UnexpectedEof) if !self.recovering => {
+            Some(Err(mcap::McapError::UnexpectedEof)) if !self.recovering => {
                 self.recover().ok_or(mcap::McapError::UnexpectedEof)
             }
-            other => other,
+            Some(other) => other,
         };
         match next {
             Ok(message) => {
-                let counter = self.per_channel.entry(message.channel.id).or_insert(0);
-                let index = *counter;
-                *counter += 1;
-                self.messages_read += 1;
-                Some(Ok(RawMessage {
-                    channel: message.channel,
-                    index,
-                    log_time: message.log_time,
-                    publish_time: message.publish_time,
-                    data: message.data.into_owned(),
-                }))
+                let data = message.data.into_owned();
+                let (log, publish) = (message.log_time, message.publish_time);
+                Some(Ok(self.numbered(message.channel, log, publish, data)))
             }
             Err(err) => {
-                let truncation = Truncation {
+                self.inner = None;
+                let mut truncation = Truncation {
                     messages_read: self.messages_read,
                     bytes_read: self.bytes_read.load(Ordering::Relaxed),
                     bytes_total: self.bytes_total,
                     error: err.to_string(),
+                    chunks_skipped: 0,
+                    messages_after: 0,
                 };
-                tracing::warn!(
-                    "bag {} is truncated or damaged: kept the {} messages before byte {} of {}, \
-                     the rest is lost ({})",
-                    self.path.display(),
-                    truncation.messages_read,
-                    truncation.bytes_read,
-                    truncation.bytes_total,
-                    truncation.error
-                );
-                self.truncation = Some(truncation.clone());
-                self.inner = None;
-                Some(Err(BagError::Truncated {
-                    path: self.path.clone(),
-                    truncation,
-                }))
+                if let Some(skipped) = self.recover_indexed() {
+                    truncation.chunks_skipped = skipped;
+                    tracing::warn!(
+                        "bag {} is damaged at byte {} of {} ({}): read {} messages before it, \
+                         skipped {skipped} damaged chunk(s) and read on through the summary's \
+                         chunk index ({} more messages)",
+                        self.path.display(),
+                        truncation.bytes_read,
+                        truncation.bytes_total,
+                        truncation.error,
+                        truncation.messages_read,
+                        self.pending.len()
+                    );
+                } else {
+                    tracing::warn!(
+                        "bag {} is truncated or damaged: kept the {} messages before byte {} of \
+                         {}, the rest is lost ({})",
+                        self.path.display(),
+                        truncation.messages_read,
+                        truncation.bytes_read,
+                        truncation.bytes_total,
+                        truncation.error
+                    );
+                }
+                self.truncation = Some(truncation);
+                self.next_recovered()
             }
         }
     }
+}
+
+/// The messages of one indexed chunk, or None when the chunk is damaged (bad CRC, bad
+/// compression, a bad record inside, an unknown channel): all or nothing, so no message of a
+/// damaged chunk is used. The chunk record is fed alone to a linear reader that checks its CRC
+/// before yielding and bounds every record length (a damaged length must not allocate).
+fn read_chunk(
+    summary: &mcap::Summary,
+    bytes: &[u8],
+    index: &mcap::records::ChunkIndex,
+) -> Option<Vec<Recovered>> {
+    use mcap::records::{op, Record};
+    use mcap::sans_io::{LinearReadEvent, LinearReader};
+    // A damaged index may point anywhere: keep the record inside the file.
+    let end = index.chunk_start_offset.checked_add(index.chunk_length)?;
+    if index.chunk_length < 9 || end > bytes.len() as u64 {
+        return None;
+    }
+    let mut record = &bytes[index.chunk_start_offset as usize..end as usize];
+    if record[0] != op::CHUNK {
+        return None;
+    }
+    let options = LinearReaderOptions::default()
+        .with_skip_start_magic(true)
+        .with_skip_end_magic(true)
+        .with_validate_chunk_crcs(true)
+        .with_prevalidate_chunk_crcs(true)
+        .with_record_length_limit(MAX_RECORD_BYTES);
+    let mut reader = LinearReader::new_with_options(options);
+    let mut out = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event.ok()? {
+            LinearReadEvent::ReadRequest(need) => {
+                let n = need.min(record.len());
+                reader.insert(n).copy_from_slice(&record[..n]);
+                reader.notify_read(n);
+                record = &record[n..];
+            }
+            LinearReadEvent::Record { opcode, data } => {
+                if let Record::Message { header, data } = mcap::parse_record(opcode, data).ok()? {
+                    out.push(Recovered {
+                        channel: Arc::clone(summary.channels.get(&header.channel_id)?),
+                        log_time: header.log_time,
+                        publish_time: header.publish_time,
+                        data: data.into_owned(),
+                    });
+                }
+            }
+        }
+    }
+    Some(out)
 }

@@ -1,0 +1,208 @@
+//! The index half of `minflow bag check`: a bag whose data reads cleanly can still carry a
+//! damaged summary or message index, which indexed readers (Foxglove, the Python and C++
+//! `mcap` readers, `ros2 bag play`) trust to find messages. [`check_index`] checks what the
+//! MCAP specification (mcap.dev/spec) lets a reader verify without decompressing:
+//!
+//! - the footer's summary CRC over the summary and summary offset sections;
+//! - that the summary parses (schemas, channels, statistics, chunk indexes);
+//! - the statistics' message and chunk counts against what the linear read found;
+//! - each chunk index: a chunk record at its offset with its length, and the message index
+//!   records after the chunk parse, name the chunk's channels, keep their offsets inside the
+//!   uncompressed chunk and their log times inside the chunk's time range;
+//! - the message index entries, summed, equal the messages read.
+//!
+//! Reads the footer, the summary and the message indexes only (seeks, no decompression).
+
+use std::fs::File;
+use std::io::{Read, Seek, SeekFrom};
+use std::path::Path;
+
+use mcap::records::{op, ChunkIndex, Record};
+use mcap::sans_io::{SummaryReadEvent, SummaryReader, SummaryReaderOptions};
+
+/// Footer record (opcode, length, summary start, summary offset start, CRC) and end magic.
+const FOOTER_AND_MAGIC: u64 = 1 + 8 + 8 + 8 + 4 + 8;
+
+/// Index records larger than this are damage, not data (a chunk's message index is a few KiB).
+const MAX_INDEX_BYTES: u64 = 64 << 20;
+
+/// Returns the problems with `path`'s summary and message indexes, each naming the file;
+/// `messages` is the count the linear read found (all topics). A bag without a summary has
+/// nothing to check here (the specification makes it optional).
+pub fn check_index(path: &Path, messages: u64) -> Vec<String> {
+    let name = path.display();
+    match index_problems(path, messages) {
+        Ok(problems) => problems
+            .into_iter()
+            .map(|p| format!("{name}: {p}"))
+            .collect(),
+        Err(err) => vec![format!("{name}: summary section unreadable: {err}")],
+    }
+}
+
+fn index_problems(path: &Path, messages: u64) -> Result<Vec<String>, String> {
+    let mut file = File::open(path).map_err(|e| e.to_string())?;
+    let len = file.metadata().map_err(|e| e.to_string())?.len();
+    if len < FOOTER_AND_MAGIC + 8 {
+        return Err("file too short for a footer".into());
+    }
+    let footer = read_at(&mut file, len - FOOTER_AND_MAGIC, 29)?;
+    if footer[0] != op::FOOTER {
+        return Err(format!("no footer record (opcode {:#04x})", footer[0]));
+    }
+    let summary_start = u64_at(&footer, 9);
+    let crc = u32::from_le_bytes(footer[25..29].try_into().unwrap_or_default());
+    if summary_start == 0 {
+        return Ok(Vec::new());
+    }
+    let crc_end = len - FOOTER_AND_MAGIC + 25;
+    if summary_start >= crc_end {
+        return Err(format!("summary start {summary_start} is past the footer"));
+    }
+    let mut problems = Vec::new();
+    if crc != 0 {
+        let covered = read_at(&mut file, summary_start, crc_end - summary_start)?;
+        let actual = crc32fast::hash(&covered);
+        if actual != crc {
+            problems.push(format!(
+                "summary CRC is {actual:#010x}, the footer says {crc:#010x}: the summary or \
+                 its index is damaged"
+            ));
+        }
+    }
+    let summary = read_summary(&mut file, len)?;
+    if let Some(stats) = &summary.stats {
+        if stats.message_count != messages {
+            problems.push(format!(
+                "summary statistics count {} messages, the file holds {messages}",
+                stats.message_count
+            ));
+        }
+        if stats.chunk_count as usize != summary.chunk_indexes.len() {
+            problems.push(format!(
+                "summary statistics count {} chunks, the chunk index lists {}",
+                stats.chunk_count,
+                summary.chunk_indexes.len()
+            ));
+        }
+    }
+    let mut indexed = 0u64;
+    for (k, chunk) in summary.chunk_indexes.iter().enumerate() {
+        match check_chunk(&mut file, len, chunk) {
+            Ok(entries) => indexed += entries,
+            Err(p) => problems.push(format!(
+                "chunk index {k} (offset {}): {p}",
+                chunk.chunk_start_offset
+            )),
+        }
+    }
+    if !summary.chunk_indexes.is_empty() && problems.is_empty() && indexed != messages {
+        problems.push(format!(
+            "message indexes list {indexed} messages, the file holds {messages}"
+        ));
+    }
+    Ok(problems)
+}
+
+/// Checks one chunk index against the file; returns its message index entry count.
+fn check_chunk(file: &mut File, len: u64, chunk: &ChunkIndex) -> Result<u64, String> {
+    let end = chunk
+        .chunk_start_offset
+        .checked_add(chunk.chunk_length)
+        .filter(|&end| end <= len && chunk.chunk_length >= 9)
+        .ok_or("points outside the file")?;
+    let head = read_at(file, chunk.chunk_start_offset, 9)?;
+    if head[0] != op::CHUNK || u64_at(&head, 1) != chunk.chunk_length - 9 {
+        return Err("no chunk record of the indexed length there".into());
+    }
+    if chunk.message_index_length > MAX_INDEX_BYTES
+        || end.saturating_add(chunk.message_index_length) > len
+    {
+        return Err("message index length points outside the file".into());
+    }
+    let bytes = read_at(file, end, chunk.message_index_length)?;
+    let (mut at, mut entries, mut channels) = (0usize, 0u64, 0usize);
+    while at < bytes.len() {
+        if bytes.len() - at < 9 {
+            return Err("message index ends inside a record header".into());
+        }
+        let body_len = usize::try_from(u64_at(&bytes, at + 1)).unwrap_or(usize::MAX);
+        let body = bytes
+            .get(at + 9..(at + 9).saturating_add(body_len))
+            .ok_or("message index record runs past the index")?;
+        if bytes[at] != op::MESSAGE_INDEX {
+            return Err(format!(
+                "record {:#04x} among the message indexes",
+                bytes[at]
+            ));
+        }
+        let Ok(Record::MessageIndex(index)) = mcap::parse_record(op::MESSAGE_INDEX, body) else {
+            return Err("message index record does not parse".into());
+        };
+        if !chunk.message_index_offsets.contains_key(&index.channel_id) {
+            return Err(format!(
+                "message index of channel {} not listed",
+                index.channel_id
+            ));
+        }
+        for entry in &index.records {
+            if entry.offset >= chunk.uncompressed_size {
+                return Err(format!("message offset {} outside the chunk", entry.offset));
+            }
+            if entry.log_time < chunk.message_start_time || entry.log_time > chunk.message_end_time
+            {
+                return Err(format!(
+                    "log time {} outside the chunk's range",
+                    entry.log_time
+                ));
+            }
+        }
+        entries += index.records.len() as u64;
+        channels += 1;
+        at += 9 + body_len;
+    }
+    if channels != chunk.message_index_offsets.len() {
+        return Err(format!(
+            "{} message index records, the chunk index lists {}",
+            channels,
+            chunk.message_index_offsets.len()
+        ));
+    }
+    Ok(entries)
+}
+
+/// The parsed summary section, read with seeks.
+fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
+    let options = SummaryReaderOptions::default().with_file_size(len);
+    let mut reader = SummaryReader::new_with_options(options);
+    while let Some(event) = reader.next_event() {
+        match event.map_err(|e| e.to_string())? {
+            SummaryReadEvent::ReadRequest(n) => {
+                let read = file.read(reader.insert(n)).map_err(|e| e.to_string())?;
+                reader.notify_read(read);
+            }
+            SummaryReadEvent::SeekRequest(to) => {
+                let pos = file.seek(to).map_err(|e| e.to_string())?;
+                reader.notify_seeked(pos);
+            }
+        }
+    }
+    reader.finish().ok_or_else(|| "no summary".to_owned())
+}
+
+fn read_at(file: &mut File, at: u64, n: u64) -> Result<Vec<u8>, String> {
+    file.seek(SeekFrom::Start(at)).map_err(|e| e.to_string())?;
+    let mut buf = Vec::new();
+    file.by_ref()
+        .take(n)
+        .read_to_end(&mut buf)
+        .map_err(|e| e.to_string())?;
+    if buf.len() as u64 != n {
+        return Err(format!("file ends inside the {n} bytes at {at}"));
+    }
+    Ok(buf)
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap_or_default())
+}
