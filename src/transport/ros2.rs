@@ -244,6 +244,10 @@ enum NodeRef {
 struct DdsNode {
     node: Mutex<Option<ros2_client::dds::Node>>,
     spinner: Option<JoinHandle<()>>,
+    /// Keeps the DDS participant alive until the node's own writers (parameter events,
+    /// rosout) are gone: ros2-client's `Node` drops its context before them, and a writer
+    /// dropped after the participant logs "Cannot remove Writer ... Disconnected" as ERROR.
+    _context: ros2_client::dds::Context,
 }
 
 impl DdsNode {
@@ -331,6 +335,7 @@ fn open_dds(domain_id: u16) -> Result<DdsNode, String> {
     Ok(DdsNode {
         node: Mutex::new(Some(node)),
         spinner: Some(thread),
+        _context: context,
     })
 }
 

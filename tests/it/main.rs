@@ -7,6 +7,7 @@
 //! their own.
 
 mod bag_bad_input;
+mod bag_damage;
 mod bag_python_interop;
 mod bag_roundtrip;
 mod cli_simulate;

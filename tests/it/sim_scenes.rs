@@ -5,10 +5,10 @@
 use minflow::sim::families::{self, Family, FLUID_KINDS, PAIRINGS};
 use minflow::sim::{Material, Scene, SceneRun};
 
-fn first_frames_are_sane(family: Family) {
+fn first_frames_are_sane(family: Family, seed: u64, ids: impl IntoIterator<Item = u32>) {
     let mut failures = Vec::new();
-    for id in 0..family.scene_count() {
-        let mut scene = families::scene(family, id, 0);
+    for id in ids {
+        let mut scene = families::scene(family, id, seed);
         scene.frames = 100;
         let name = scene.name.clone();
         let mut run = SceneRun::new(scene).unwrap();
@@ -17,7 +17,7 @@ fn first_frames_are_sane(family: Family) {
             match frame {
                 Ok(_) => count += 1,
                 Err(err) => {
-                    failures.push(format!("{name}: {err}"));
+                    failures.push(format!("{name} (seed {seed}): {err}"));
                     break;
                 }
             }
@@ -26,7 +26,7 @@ fn first_frames_are_sane(family: Family) {
         assert_eq!(
             run.solver().escaped,
             0,
-            "{name}: particles left the interpolation band"
+            "{name} (seed {seed}): particles left the interpolation band"
         );
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
@@ -34,12 +34,29 @@ fn first_frames_are_sane(family: Family) {
 
 #[test]
 fn every_multi_scene_is_sane_for_100_frames() {
-    first_frames_are_sane(Family::Multi);
+    first_frames_are_sane(Family::Multi, 0, 0..Family::Multi.scene_count());
+}
+
+/// Issue 16's seed sweep: other seeds once failed 3 of 420 multi scenes ("liquid J = 0" at
+/// frames 43-61, e.g. `multi/liquid+snow/007` with seed 2; seed 9001 scene 51 at frame 63)
+/// before the liquid's J was floored (`sim::material::project`). Those two, and every third
+/// multi scene holding liquid for seeds 1-7 (the whole 7 x 60 sweep runs with `simulate`).
+#[test]
+fn other_seeds_are_sane_for_100_frames() {
+    first_frames_are_sane(Family::Multi, 2, [7]);
+    first_frames_are_sane(Family::Multi, 9001, [51]);
+    let liquid: Vec<u32> = (0..Family::Multi.scene_count())
+        .filter(|&id| families::multi_materials(id).contains(&Material::Liquid))
+        .collect();
+    for seed in 1..=7u64 {
+        let ids = liquid.iter().copied().skip(seed as usize % 3).step_by(3);
+        first_frames_are_sane(Family::Multi, seed, ids);
+    }
 }
 
 #[test]
 fn every_fluid_scene_is_sane_for_100_frames() {
-    first_frames_are_sane(Family::Fluid);
+    first_frames_are_sane(Family::Fluid, 0, 0..Family::Fluid.scene_count());
 }
 
 #[test]

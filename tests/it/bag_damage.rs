@@ -1,0 +1,128 @@
+//! Property tests of bag reading under damage (proptest): a bag of 1-12 frames in 1-4 frame
+//! chunks, then cut at any length, one byte flipped anywhere, or one chunk record's length
+//! overwritten. Reading never panics; what it returns is frames as written, in order, none
+//! twice; a cut keeps every frame of the chunks before it; a flip or a bad length loses at most
+//! the frames of one chunk (the rest is read through the summary's chunk index); only a
+//! damaged magic makes the file unreadable.
+
+use std::path::Path;
+
+use minflow::bag::{self, BagWriter};
+use minflow::msgs::{Header, ParticleFrame, Time};
+use proptest::prelude::*;
+
+const TOPIC: &str = "/mpm/frames";
+
+fn frame(k: u32) -> ParticleFrame {
+    let n = 20 + k as usize;
+    ParticleFrame {
+        header: Header {
+            stamp: Time::from_nanos(u64::from(k) * 16_000_000),
+            frame_id: "world".into(),
+        },
+        scene: "p".into(),
+        frame_index: k,
+        dt: 0.016,
+        position: (0..2 * n)
+            .map(|i| (i as f32 * 0.37 + k as f32) % 1.0)
+            .collect(),
+        velocity: (0..2 * n).map(|i| i as f32 * 0.01 - k as f32).collect(),
+        material: (0..n).map(|i| (i % 4) as u8).collect(),
+    }
+}
+
+/// Writes `count` frames, closing a chunk after every `per_chunk`; returns the bytes, the
+/// frames and each chunk's (start, end, frames in it).
+fn bag_bytes(
+    dir: &Path,
+    count: u32,
+    per_chunk: u32,
+) -> (Vec<u8>, Vec<ParticleFrame>, Vec<(u64, u64)>) {
+    let path = dir.join("good.mcap");
+    let frames: Vec<_> = (0..count).map(frame).collect();
+    let mut w = BagWriter::create(&path).expect("create");
+    for (k, f) in frames.iter().enumerate() {
+        w.write(TOPIC, f).expect("write");
+        if (k as u32 + 1) % per_chunk == 0 {
+            w.flush().expect("flush");
+        }
+    }
+    w.finish().expect("finish");
+    let bytes = std::fs::read(&path).expect("read");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("present");
+    let mut chunks: Vec<_> = summary
+        .chunk_indexes
+        .iter()
+        .map(|c| (c.chunk_start_offset, c.chunk_start_offset + c.chunk_length))
+        .collect();
+    chunks.sort();
+    (bytes, frames, chunks)
+}
+
+/// Reads `bytes` as a bag: Err when unreadable, else the frames in file order.
+fn read(dir: &Path, bytes: &[u8]) -> Result<Vec<ParticleFrame>, String> {
+    let path = dir.join("damaged.mcap");
+    std::fs::write(&path, bytes).expect("write");
+    // Info and check must not panic either.
+    let _ = bag::info(&[&path]);
+    let _ = bag::check(&[&path]);
+    bag::read_frames(&path, None)
+        .map(|o| o.frames.into_iter().map(|(_, _, f)| f).collect())
+        .map_err(|e| e.to_string())
+}
+
+/// Whether `got` is `all` with some frames left out, in order, none twice.
+fn in_order(got: &[ParticleFrame], all: &[ParticleFrame]) -> bool {
+    let mut rest = all.iter();
+    got.iter().all(|g| rest.any(|f| f == g))
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(96))]
+
+    #[test]
+    fn a_cut_keeps_every_chunk_before_it(count in 1u32..12, per_chunk in 1u32..4, cut in any::<prop::sample::Index>()) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (bytes, frames, chunks) = bag_bytes(dir.path(), count, per_chunk);
+        let len = cut.index(bytes.len());
+        match read(dir.path(), &bytes[..len]) {
+            Err(e) => prop_assert!(len < 8, "cut at {len}: {e}"),
+            Ok(got) => {
+                let whole = chunks.iter().filter(|c| c.1 <= len as u64).count();
+                let kept = (whole as u32 * per_chunk).min(count) as usize;
+                prop_assert!(got.len() >= kept, "cut at {len}: {} of {kept}", got.len());
+                prop_assert!(got[..] == frames[..got.len()], "cut at {len}: not a prefix");
+            }
+        }
+    }
+
+    #[test]
+    fn a_flipped_byte_loses_at_most_one_chunk(count in 1u32..12, per_chunk in 1u32..4, at in any::<prop::sample::Index>(), mask in 1u8..=255) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (mut bytes, frames, _) = bag_bytes(dir.path(), count, per_chunk);
+        let at = at.index(bytes.len());
+        bytes[at] ^= mask;
+        match read(dir.path(), &bytes) {
+            Err(e) => prop_assert!(at < 8, "flip at {at}: {e}"),
+            Ok(got) => {
+                prop_assert!(in_order(&got, &frames), "flip at {at}: frames out of order");
+                let lost = frames.len() - got.len();
+                prop_assert!(lost <= per_chunk as usize, "flip at {at}: {lost} frames lost");
+            }
+        }
+    }
+
+    #[test]
+    fn a_bad_chunk_length_loses_at_most_one_chunk(count in 1u32..12, per_chunk in 1u32..4, which in any::<prop::sample::Index>(), length in any::<u64>()) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (mut bytes, frames, chunks) = bag_bytes(dir.path(), count, per_chunk);
+        let (start, _) = chunks[which.index(chunks.len())];
+        let at = start as usize + 1;
+        bytes[at..at + 8].copy_from_slice(&length.to_le_bytes());
+        let got = read(dir.path(), &bytes).map_err(|e| TestCaseError::fail(e))?;
+        prop_assert!(in_order(&got, &frames), "frames out of order");
+        prop_assert!(frames.len() - got.len() <= per_chunk as usize, "{} frames lost", frames.len() - got.len());
+    }
+}
