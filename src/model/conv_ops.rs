@@ -202,30 +202,48 @@ pub(crate) fn cpu_silu_backward(x: &CpuTensor, grad: CpuTensor) -> Result<CpuTen
     }))
 }
 
-/// CPU im2col: one task per image row, each output row filled by `k^2` strided copies of
-/// `C` channels. None for tensors that are not f32 of rank 4.
+/// CPU im2col: one task per image row; each output row is written in order (channel, then
+/// offset), reading the `k^2` source pixels it needs (zeros outside the grid). None for
+/// tensors that are not f32 of rank 4, or kernels larger than 3 x 3.
 pub(crate) fn cpu_im2col(x: &CpuTensor, k: usize) -> Option<CpuTensor> {
+    const MAX_KK: usize = 9;
     let (data, shape) = cpu_kernels::dense(x)?;
     let [b, h, w, c] = <[usize; 4]>::try_from(shape).ok()?;
     let (kk, half) = (k * k, (k / 2) as isize);
+    if kk > MAX_KK {
+        return None;
+    }
     let row = c * kk;
-    let mut out = vec![0f32; b * h * w * row];
+    let mut out = Vec::new();
     let fill = |by: usize, dst: &mut [f32]| {
         let (bb, y) = (by / h, (by % h) as isize);
         for (x, dst) in dst.chunks_exact_mut(row).enumerate() {
-            for s in 0..kk {
+            // Source offset of each kernel offset, or None outside the grid.
+            let mut src = [None; MAX_KK];
+            for (s, src) in src.iter_mut().enumerate().take(kk) {
                 let yy = y + (s / k) as isize - half;
                 let xx = x as isize + (s % k) as isize - half;
-                if yy < 0 || xx < 0 || yy >= h as isize || xx >= w as isize {
-                    continue;
+                if yy >= 0 && xx >= 0 && yy < h as isize && xx < w as isize {
+                    *src = Some(((bb * h + yy as usize) * w + xx as usize) * c);
                 }
-                let src = ((bb * h + yy as usize) * w + xx as usize) * c;
-                for (i, v) in data[src..src + c].iter().enumerate() {
-                    dst[i * kk + s] = *v;
+            }
+            if src[..kk].iter().all(Option::is_some) {
+                let src: [usize; MAX_KK] = std::array::from_fn(|s| src[s].unwrap_or(0));
+                for (i, dst) in dst.chunks_exact_mut(kk).enumerate() {
+                    for (d, &o) in dst.iter_mut().zip(&src[..kk]) {
+                        *d = data[o + i];
+                    }
+                }
+            } else {
+                for (i, dst) in dst.chunks_exact_mut(kk).enumerate() {
+                    for (d, o) in dst.iter_mut().zip(&src[..kk]) {
+                        *d = o.map_or(0.0, |o| data[o + i]);
+                    }
                 }
             }
         }
     };
+    out.resize(b * h * w * row, 0.0);
     if out.len() * 4 >= 1 << 20 {
         out.par_chunks_mut(w * row)
             .enumerate()

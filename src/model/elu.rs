@@ -17,7 +17,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
 use burn::backend::{Autodiff, NdArray};
 use burn::tensor::backend::Backend;
-use burn::tensor::ops::FloatTensor;
+use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -130,6 +130,27 @@ pub trait FusedElu: Backend {
     /// SiLU's input gradient from its input `x` and the output gradient (same shape).
     fn silu_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         super::conv_ops::composed_silu_backward::<Self>(x, grad)
+    }
+
+    /// G2P of a sparse stencil (`model::transfer_ops`): `grid` `[B, n^2, C]`, `index`
+    /// `[B N 9]` flat grid rows, `weight` `[B, N, 9]` -> `[B, N, C]`.
+    fn stencil_gather(
+        grid: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        super::transfer_ops::composed_gather::<Self>(grid, index, weight)
+    }
+
+    /// P2G of a sparse stencil, the adjoint of [`FusedElu::stencil_gather`]: `values`
+    /// `[B, N, C]` -> `[B, nodes, C]`.
+    fn stencil_splat(
+        values: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+        nodes: usize,
+    ) -> FloatTensor<Self> {
+        super::transfer_ops::composed_splat::<Self>(values, index, weight, nodes)
     }
 
     /// True where [`FusedElu::elu_mean_forward`] has its own backward (the CPU backend).
@@ -649,6 +670,29 @@ impl FusedElu for NdArray<f32> {
         super::conv_ops::cpu_silu(x)
     }
 
+    fn stencil_gather(
+        grid: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        match super::transfer_ops::cpu_gather(&grid, &index, &weight) {
+            Some(out) => out,
+            None => super::transfer_ops::composed_gather::<Self>(grid, index, weight),
+        }
+    }
+
+    fn stencil_splat(
+        values: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+        nodes: usize,
+    ) -> FloatTensor<Self> {
+        match super::transfer_ops::cpu_splat(&values, &index, &weight, nodes) {
+            Some(out) => out,
+            None => super::transfer_ops::composed_splat::<Self>(values, index, weight, nodes),
+        }
+    }
+
     fn silu_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         match super::conv_ops::cpu_silu_backward(&x, grad) {
             Ok(g) => g,
@@ -885,6 +929,29 @@ impl<B: FusedElu, C: CheckpointStrategy> FusedElu for Autodiff<B, C> {
         match B::NATIVE_CONV_OPS {
             true => super::conv_ops::autodiff_silu::<B, C>(x),
             false => super::conv_ops::composed_silu::<Self>(x),
+        }
+    }
+
+    fn stencil_gather(
+        grid: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        match B::NATIVE_CONV_OPS {
+            true => super::transfer_ops::autodiff_gather::<B, C>(grid, index, weight),
+            false => super::transfer_ops::composed_gather::<Self>(grid, index, weight),
+        }
+    }
+
+    fn stencil_splat(
+        values: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+        nodes: usize,
+    ) -> FloatTensor<Self> {
+        match B::NATIVE_CONV_OPS {
+            true => super::transfer_ops::autodiff_splat::<B, C>(values, index, weight, nodes),
+            false => super::transfer_ops::composed_splat::<Self>(values, index, weight, nodes),
         }
     }
 

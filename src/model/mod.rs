@@ -18,6 +18,7 @@ pub mod minrnn;
 pub mod rnn;
 pub mod store;
 pub mod temporal;
+pub mod transfer_ops;
 
 pub use decoder::{Decoder, DecoderKind};
 pub use elu::FusedElu;

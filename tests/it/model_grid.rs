@@ -401,3 +401,40 @@ fn silu_equals_burns_in_value_and_gradient() {
     let w = close(ga, gb);
     assert!(w < 1e-5, "gradient {w}");
 }
+
+/// The CPU's native P2G / G2P (`model::transfer_ops`, one autodiff node each, the other's
+/// adjoint as backward) give the gradients of burn's separable dense products, batch of 2.
+#[test]
+fn native_transfers_have_the_dense_gradients() {
+    use burn::backend::Autodiff;
+    type A = Autodiff<B>;
+    let device = Default::default();
+    let (b, n, grid, c) = (2, 200, 12, 3);
+    let pos = Tensor::<A, 3>::from_data(
+        TensorData::new(random_positions(b, n, 5), [b, n, 2]),
+        &device,
+    );
+    let normal = burn::tensor::Distribution::Normal(0.0, 1.0);
+    let v = Tensor::<A, 3>::random([b, n, c], normal, &device).require_grad();
+    let g = Tensor::<A, 3>::random([b, grid * grid, c], normal, &device).require_grad();
+    let probe_grid = Tensor::<A, 3>::random([b, grid * grid, c], normal, &device);
+    let probe_part = Tensor::<A, 3>::random([b, n, c], normal, &device);
+    let grads = |dense: bool| {
+        let s = stencil(pos.clone(), grid, dense);
+        let loss = (p2g(&s, v.clone()) * probe_grid.clone()).sum()
+            + (g2p(&s, g.clone()) * probe_part.clone()).sum();
+        let gr = loss.backward();
+        let out =
+            |t: &Tensor<A, 3>| -> Vec<f32> { t.grad(&gr).unwrap().into_data().to_vec().unwrap() };
+        (out(&v), out(&g))
+    };
+    let ((sv, sg), (dv, dg)) = (grads(false), grads(true));
+    for (a, b, what) in [(sv, dv, "values"), (sg, dg, "grid")] {
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{what} gradient: {worst}");
+    }
+}

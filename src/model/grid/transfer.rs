@@ -11,8 +11,9 @@
 //! exactly. [`stencil_host`] is the same computation in plain f32 for tests.
 //!
 //! Two equal ways to apply a stencil ([`Stencil::dense`] picks):
-//! - sparse, for the CPU: the 9 node indices and weights of each particle, P2G a row
-//!   scatter-add (`select_assign`) and G2P a row gather (`select`);
+//! - sparse, for the CPU: the 9 node indices and weights of each particle, P2G a weighted
+//!   scatter-add and G2P a weighted gather (`model::transfer_ops`: one pass each on the CPU,
+//!   burn's `select_assign` / `select` elsewhere);
 //! - separable dense, for the GPU: the weights factor per axis, `w_ip = wx_p[i_x] wy_p[i_y]`,
 //!   so with `Wx, Wy` (`[B, N, n]`, three non-zeros per row) P2G is
 //!   `Wx^T (Wy (x) v)` and G2P `sum_y Wy (Wx G)`: two batched matrix products, no scatter.
@@ -20,7 +21,10 @@
 //!   on an H100; the products take milliseconds.
 
 use burn::tensor::backend::Backend;
-use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorData};
+use burn::tensor::{Int, Tensor, TensorData};
+
+use crate::model::transfer_ops;
+use crate::model::FusedElu;
 
 /// The grid nodes and weights of every particle of a batch, sparse or separable dense.
 #[derive(Clone, Debug)]
@@ -109,10 +113,9 @@ pub fn stencil<B: Backend>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<
 
 /// P2G: `values` (`[B, N, C]`) splatted onto the grid, `sum_p w_ip v_p` per node, as
 /// `[B, n^2, C]` (node `i n + j` at `(i dx, j dx)`).
-pub fn p2g<B: Backend>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
-    let [b, n_p, c] = values.dims();
+pub fn p2g<B: FusedElu>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
     if let Some((wx, wy)) = &s.dense {
-        let n = s.n;
+        let ([b, n_p, c], n) = (values.dims(), s.n);
         let spread = wy.clone().unsqueeze_dim::<4>(3) * values.unsqueeze_dim::<4>(2); // [B,N,n,C]
         return wx
             .clone()
@@ -120,35 +123,20 @@ pub fn p2g<B: Backend>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
             .matmul(spread.reshape([b, n_p, n * c]))
             .reshape([b, n * n, c]);
     }
-    let spread = s.weight.clone().unsqueeze_dim::<4>(3) * values.unsqueeze_dim::<4>(2); // [B,N,9,C]
-    let grid = Tensor::zeros([s.batch * s.n * s.n, c], &spread.device());
-    grid.select_assign(
-        0,
-        s.index.clone(),
-        spread.reshape([b * n_p * 9, c]),
-        IndexingUpdateOp::Add,
-    )
-    .reshape([b, s.n * s.n, c])
+    transfer_ops::splat(values, s.index.clone(), s.weight.clone(), s.n * s.n)
 }
 
 /// G2P: grid values (`[B, n^2, C]`) gathered to every particle, `sum_i w_ip g_i`, as
 /// `[B, N, C]`.
-pub fn g2p<B: Backend>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
-    let [b, _, c] = grid.dims();
+pub fn g2p<B: FusedElu>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
     if let Some((wx, wy)) = &s.dense {
-        let n = s.n;
+        let ([b, _, c], n) = (grid.dims(), s.n);
         let rows = wx.clone().matmul(grid.reshape([b, n, n * c])); // [B, N, n C]
         return (rows.reshape([b, s.particles, n, c]) * wy.clone().unsqueeze_dim::<4>(3))
             .sum_dim(2)
             .reshape([b, s.particles, c]);
     }
-    let picked = grid
-        .reshape([b * s.n * s.n, c])
-        .select(0, s.index.clone())
-        .reshape([b, s.particles, 9, c]);
-    (picked * s.weight.clone().unsqueeze_dim::<4>(3))
-        .sum_dim(2)
-        .reshape([b, s.particles, c])
+    transfer_ops::gather(grid, s.index.clone(), s.weight.clone())
 }
 
 /// [`stencil`] for one particle at `(x, y)` in plain f32: the nine `(i, j, w)`.
