@@ -8,19 +8,11 @@ use clap::Parser;
 /// model's per-step activations stop page-faulting (see `bench train`).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-use std::process::ExitCode;
 
-fn main() -> ExitCode {
+fn main() -> std::process::ExitCode {
     minflow::cli::tune_allocator();
     minflow::cli::flush_denormals();
     let cli = minflow::cli::Cli::parse();
     minflow::cli::init_logging(cli.verbose);
-    match minflow::cli::run(cli) {
-        Ok(minflow::cli::Outcome::Done) => ExitCode::SUCCESS,
-        Ok(minflow::cli::Outcome::DataLost) => ExitCode::from(3),
-        Err(err) => {
-            eprintln!("error: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    minflow::cli::exit_code(minflow::cli::run(cli))
 }

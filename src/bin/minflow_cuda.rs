@@ -3,23 +3,15 @@
 //! to carry to a GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
 
 use clap::Parser;
-use std::process::ExitCode;
 
 /// As in `minflow`: mimalloc reuses freed large host buffers.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-fn main() -> ExitCode {
+fn main() -> std::process::ExitCode {
     minflow::cli::tune_allocator();
     minflow::cli::flush_denormals();
     let cli = minflow::cli::TrainCli::parse();
     minflow::cli::init_logging(cli.verbose);
-    match minflow::cli::run_train(cli) {
-        Ok(minflow::cli::Outcome::Done) => ExitCode::SUCCESS,
-        Ok(minflow::cli::Outcome::DataLost) => ExitCode::from(3),
-        Err(err) => {
-            eprintln!("error: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    minflow::cli::exit_code(minflow::cli::run_train(cli))
 }

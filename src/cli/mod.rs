@@ -111,6 +111,29 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
     }
 }
 
+/// A flag or file value found out of range after parsing (it needs another flag or the data
+/// to judge): exit code 2, like clap's own usage errors. Return it inside an `anyhow::Error`.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct UsageError(pub String);
+
+/// The process exit code of a command's result: 0 done, 3 data lost, 2 a [`UsageError`]
+/// anywhere in the error chain, 1 any other error (printed to stderr with its causes).
+pub fn exit_code(result: anyhow::Result<Outcome>) -> std::process::ExitCode {
+    use std::process::ExitCode;
+    match result {
+        Ok(Outcome::Done) => ExitCode::SUCCESS,
+        Ok(Outcome::DataLost) => ExitCode::from(3),
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            match err.chain().any(|e| e.is::<UsageError>()) {
+                true => ExitCode::from(2),
+                false => ExitCode::FAILURE,
+            }
+        }
+    }
+}
+
 /// How a command finished.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Outcome {

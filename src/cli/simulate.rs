@@ -3,7 +3,7 @@
 //! parallel over scenes with a progress bar. Each bag is written to `NAME.mcap.part` and
 //! renamed when complete, so a folder never holds a half-written bag under a final name.
 
-use super::Outcome;
+use super::{Outcome, UsageError};
 use crate::bag::{BagWriter, FRAMES_TOPIC};
 use crate::msgs::ParticleFrame;
 use crate::sim::families::{self, Family};
@@ -62,7 +62,7 @@ pub fn parse_ids(spec: &str) -> anyhow::Result<Vec<u32>> {
     let num = |s: &str| -> anyhow::Result<u32> {
         s.trim()
             .parse()
-            .with_context(|| format!("scene id {s:?} is not a number"))
+            .map_err(|_| UsageError(format!("--scenes: scene id {s:?} is not a number")).into())
     };
     let ids: Vec<u32> = if let Some((a, b)) = spec.split_once("..=") {
         (num(a)?..=num(b)?).collect()
@@ -72,7 +72,9 @@ pub fn parse_ids(spec: &str) -> anyhow::Result<Vec<u32>> {
         spec.split(',').map(num).collect::<anyhow::Result<_>>()?
     };
     if ids.is_empty() {
-        bail!("--scenes {spec:?} names no scene (an empty range)");
+        return Err(
+            UsageError(format!("--scenes {spec:?} names no scene (an empty range)")).into(),
+        );
     }
     Ok(ids)
 }
@@ -104,11 +106,12 @@ fn simulate(
             None => (0..family.scene_count()).collect(),
         };
         if let Some(bad) = ids.iter().find(|&&id| id >= family.scene_count()) {
-            bail!(
+            return Err(UsageError(format!(
                 "--scenes: id {bad} is outside the family's {} ids (0..{})",
                 family.scene_count(),
                 family.scene_count()
-            );
+            ))
+            .into());
         }
         scenes.extend(
             ids.into_iter()

@@ -240,6 +240,18 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         bail!("no training scenes in {:?}", args.data);
     };
     let particles = first.n;
+    // A sample is T input frames and the next: a window no training scene can hold trains on
+    // nothing (it once saved a model with validation loss 0).
+    let longest = train_infos.iter().map(|s| s.frames).max().unwrap_or(0);
+    if longest <= args.window {
+        return Err(super::UsageError(format!(
+            "--window {}: no training samples: the longest training scene has {longest} frames, \
+             a sample needs T + 1 = {}",
+            args.window,
+            args.window + 1
+        ))
+        .into());
+    }
     let config = args.model_config(particles)?;
     if args.resume {
         check_resume(&args.out, &NetConfig::Paper(config.clone()))?;

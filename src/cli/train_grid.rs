@@ -193,10 +193,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         opts.teacher,
     );
     if index.is_empty() {
-        bail!(
-            "no training samples: every training scene has at most T + P - 1 = {} frames",
+        return Err(super::UsageError(format!(
+            "--window {}: no training samples: every training scene has fewer than the T + P - \
+             1 = {} frames a sample needs (lower --window or --rollout-steps)",
+            config.window,
             index.t()
-        );
+        ))
+        .into());
     }
     let mut progress = Progress::new(args.out.clone());
     let history = fit_on(

@@ -195,6 +195,12 @@ fn bad_arguments_fail_clearly() {
     assert_eq!(o.status.code(), Some(1));
     let o = minflow(&["simulate", "--bogus"]);
     assert_eq!(o.status.code(), Some(2), "usage errors exit 2");
+    // Scene ids are usage errors too, though checked after parsing (they need --family).
+    for scenes in ["5..2", "999", "x", ""] {
+        let o = minflow(&["simulate", "--scenes", scenes, "--out", "/tmp/never"]);
+        assert_eq!(o.status.code(), Some(2), "--scenes {scenes:?}");
+        assert!(String::from_utf8_lossy(&o.stderr).contains("--scenes"));
+    }
 }
 
 #[test]

@@ -107,6 +107,8 @@ fn bad_flags_fail_clearly() {
         &["--dropout", "2"][..],
         &["--dropout", "1.5"][..],
         &["--density-grid", "0"][..],
+        // Known only once the bags are scanned: the bundled scenes have 25 frames.
+        &["--window", "30"][..],
     ] {
         let o = train(dir.path(), bad);
         assert_eq!(o.status.code(), Some(2), "{bad:?}");
@@ -115,6 +117,11 @@ fn bad_flags_fail_clearly() {
             "{bad:?}"
         );
     }
+    // Nothing was written for the run that could not train.
+    assert!(!dir.path().join("model.json").exists());
+    let o = train_grid(dir.path(), &["--window", "30"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--window 30"));
 }
 
 /// `train --arch grid` with a tiny network (16 x 16 grid, two levels, a few samples per
