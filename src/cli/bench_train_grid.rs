@@ -96,6 +96,7 @@ where
                 opts,
                 out: dir.path().into(),
                 device: device.clone(),
+                init_from: None,
             };
             let history = trainer.fit(&index, &[], &Scaler::default(), false, &mut Quiet)?;
             high = high.max(peak(false).unwrap_or(f64::NAN));

@@ -1,12 +1,15 @@
 //! `minflow report --data DIR --out DIR`: the paper's experiment end to end on one dataset.
-//! Trains the five cores (mlp, lstm, gru, minlstm, mingru) with one configuration (`minflow
-//! train`, into `OUT/runs/<core>`), evaluates them beside the baselines on the test scenes
-//! (`minflow eval`, into `OUT/eval`), measures training speed from the runs themselves
-//! (seconds per epoch and microseconds per sample, the paper's Table 4), and writes
-//! `OUT/REPORT.md`: the machine (CPU model, cores), the configuration and seed, Tables 2
-//! (fluid scenes), 3 (multi-material scenes) and 4, the detailed metrics and the figures.
-//! Flags shorten it (`--epochs`, `--width`, `--encoder-hidden`, `--cores`) for a quick run
-//! on the bundled bags; `--reuse` keeps runs that already have a model.
+//! Trains the five cores (mlp, lstm, gru, minlstm, mingru) in each architecture (`--archs`:
+//! the paper's pooled encoder-decoder and the grid architecture, where `mlp` is the grid
+//! model without memory, `none`) with one configuration (`minflow train`, into
+//! `OUT/runs/<arch>-<core>`), evaluates them side by side with the baselines on the test
+//! scenes (`minflow eval`, into `OUT/eval`), measures training speed from the runs
+//! themselves (seconds per epoch and microseconds per sample, the paper's Table 4), and
+//! writes `OUT/REPORT.md`: the machine (CPU model, cores), the configuration and seed,
+//! Tables 2 (fluid scenes), 3 (multi-material scenes) and 4, the detailed metrics and the
+//! figures. Flags shorten it (`--epochs`, `--width`, `--encoder-hidden`, `--cores`,
+//! `--grid`, `--samples-per-epoch`) for a quick run on the bundled bags; `--reuse` keeps runs
+//! that already have a model.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -27,9 +30,13 @@ pub struct ReportArgs {
     /// Ground-truth bags or folders of bags.
     #[arg(long, required = true, num_args = 1..)]
     pub data: Vec<PathBuf>,
-    /// Output folder: REPORT.md, runs/<core>, eval/.
+    /// Output folder: REPORT.md, runs/<arch>-<core>, eval/.
     #[arg(short, long, default_value = "report")]
     pub out: PathBuf,
+    /// Architectures to train each core in: paper (the paper's Table 1) | grid (P2G -> U-Net
+    /// -> G2P with per-particle memory; `mlp` there is the model without memory).
+    #[arg(long, value_delimiter = ',', default_value = "paper,grid", value_parser = ["paper", "grid"])]
+    pub archs: Vec<String>,
     /// Cores to train and compare.
     #[arg(
         long,
@@ -64,6 +71,21 @@ pub struct ReportArgs {
     /// Activation after the encoder's last Linear: none | elu (the paper's text).
     #[arg(long, default_value = "none")]
     pub encoder_last_activation: String,
+    /// Grid architecture: grid size n.
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    pub grid: usize,
+    /// Grid architecture: U-Net first-level width.
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    pub unet_width: usize,
+    /// Grid architecture: U-Net resolutions.
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    pub levels: usize,
+    /// Grid architecture: samples per epoch at most (0: every window).
+    #[arg(long, default_value_t = 0)]
+    pub samples_per_epoch: usize,
+    /// Grid architecture: minutes of training per core at most (0: no limit).
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
+    pub max_minutes: f64,
     /// Steps per rollout H.
     #[arg(long, default_value_t = 20)]
     pub horizon: usize,
@@ -159,40 +181,27 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     let runs = args.out.join("runs");
     let mut train_argv = Vec::new();
     let mut dirs = Vec::new();
-    for core in &args.cores {
-        let dir = runs.join(core);
-        let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
-        argv.extend(data.iter().cloned());
-        argv.extend(["--arch".into(), "paper".into()]);
-        for (flag, value) in [
-            ("--model", core.clone()),
-            ("--out", path(&dir)),
-            ("--epochs", args.epochs.to_string()),
-            ("--width", args.width.to_string()),
-            ("--encoder-hidden", args.encoder_hidden.to_string()),
-            ("--batch-size", args.batch_size.to_string()),
-            ("--micro-batch", args.micro_batch.to_string()),
-            ("--window", args.window.to_string()),
-            ("--seed", args.seed.to_string()),
-            ("--patience", args.patience.to_string()),
-            (
-                "--encoder-last-activation",
-                args.encoder_last_activation.clone(),
-            ),
-        ] {
-            argv.extend([flag.to_owned(), value]);
-        }
+    let mut names = Vec::new();
+    for (arch, core) in args
+        .archs
+        .iter()
+        .flat_map(|a| args.cores.iter().map(move |c| (a.as_str(), c.as_str())))
+    {
+        let name = run_name(arch, core);
+        let dir = runs.join(&name);
+        let argv = train_argv_of(&args, &data, arch, core, &dir);
         let train: TrainArgs = parse(&argv)?;
         if args.reuse && dir.join("model.json").exists() {
-            eprintln!("{core}: reusing {}", path(&dir));
+            eprintln!("{name}: reusing {}", path(&dir));
         } else {
-            eprintln!("== training {core} -> {}", path(&dir));
+            eprintln!("== training {name} -> {}", path(&dir));
             let start = Instant::now();
-            super::train::run(train).with_context(|| format!("training {core}"))?;
-            eprintln!("{core}: trained in {:.1} s", start.elapsed().as_secs_f64());
+            super::train::run(train).with_context(|| format!("training {name}"))?;
+            eprintln!("{name}: trained in {:.1} s", start.elapsed().as_secs_f64());
         }
         train_argv.push(argv);
         dirs.push(dir);
+        names.push(name);
     }
     let eval_dir = args.out.join("eval");
     let mut argv: Vec<String> = vec!["eval".into()];
@@ -216,13 +225,12 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     let bar = super::progress(0, "renders");
     output::write_all(&eval_dir, &eval, models, "minflow report: evaluation", &bar)?;
     bar.finish_and_clear();
-    let speeds: Vec<Speed> = args
-        .cores
+    let speeds: Vec<Speed> = names
         .iter()
         .zip(&dirs)
         .map(|(c, d)| speed(c, d))
         .collect::<anyhow::Result<_>>()?;
-    let text = report_text(&args, &train_argv, &argv, &eval, &speeds);
+    let text = report_text(&args, &names, &train_argv, &argv, &eval, &speeds);
     let out = args.out.join("REPORT.md");
     std::fs::write(&out, &text).with_context(|| format!("writing {}", path(&out)))?;
     print!("{}", table::markdown(&eval));
@@ -230,7 +238,55 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     Ok(outcome)
 }
 
-/// Table 4: training speed per core, then the classic/minimal ratios.
+/// The run (and column) name of `core` in `arch`: `paper-mingru`, `grid-none` (the grid
+/// model's `mlp` is the one without memory).
+fn run_name(arch: &str, core: &str) -> String {
+    match (arch, core) {
+        ("grid", "mlp") => "grid-none".to_owned(),
+        _ => format!("{arch}-{core}"),
+    }
+}
+
+/// The `minflow train` command line of one run (what REPORT.md prints to reproduce it).
+fn train_argv_of(args: &ReportArgs, data: &[String], arch: &str, core: &str, dir: &Path) -> Vec<String> {
+    let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
+    argv.extend(data.iter().cloned());
+    argv.extend(["--arch".into(), arch.into()]);
+    let mut flags = vec![
+        ("--model", core.to_owned()),
+        ("--out", path(dir)),
+        ("--epochs", args.epochs.to_string()),
+        ("--batch-size", args.batch_size.to_string()),
+        ("--window", args.window.to_string()),
+        ("--seed", args.seed.to_string()),
+        ("--patience", args.patience.to_string()),
+    ];
+    if arch == "paper" {
+        flags.extend([
+            ("--width", args.width.to_string()),
+            ("--encoder-hidden", args.encoder_hidden.to_string()),
+            ("--micro-batch", args.micro_batch.to_string()),
+            (
+                "--encoder-last-activation",
+                args.encoder_last_activation.clone(),
+            ),
+        ]);
+    } else {
+        flags.extend([
+            ("--grid", args.grid.to_string()),
+            ("--unet-width", args.unet_width.to_string()),
+            ("--levels", args.levels.to_string()),
+            ("--samples-per-epoch", args.samples_per_epoch.to_string()),
+            ("--max-minutes", args.max_minutes.to_string()),
+        ]);
+    }
+    for (flag, value) in flags {
+        argv.extend([flag.to_owned(), value]);
+    }
+    argv
+}
+
+/// Table 4: training speed per run, then the classic/minimal ratios of each architecture.
 fn speed_table(speeds: &[Speed]) -> String {
     let mut s = String::from(
         "| core | parameters | epochs | total training s | s / epoch | us / sample | best epoch | best val loss |\n\
@@ -256,9 +312,12 @@ fn speed_table(speeds: &[Speed]) -> String {
             .find(|r| r.core == name)
             .map(|r| r.total_s / r.epochs.max(1) as f64)
     };
-    for (classic, minimal) in [("lstm", "minlstm"), ("gru", "mingru")] {
-        if let (Some(a), Some(b)) = (per_epoch(classic), per_epoch(minimal)) {
-            let _ = writeln!(s, "\n{classic} / {minimal} time per epoch: {:.2}x", a / b);
+    for arch in ["paper", "grid"] {
+        for (classic, minimal) in [("lstm", "minlstm"), ("gru", "mingru")] {
+            let (classic, minimal) = (run_name(arch, classic), run_name(arch, minimal));
+            if let (Some(a), Some(b)) = (per_epoch(&classic), per_epoch(&minimal)) {
+                let _ = writeln!(s, "\n{classic} / {minimal} time per epoch: {:.2}x", a / b);
+            }
         }
     }
     s
@@ -267,6 +326,7 @@ fn speed_table(speeds: &[Speed]) -> String {
 /// The Markdown of REPORT.md.
 fn report_text(
     args: &ReportArgs,
+    names: &[String],
     train_argv: &[Vec<String>],
     eval_argv: &[String],
     eval: &Evaluation,
@@ -278,34 +338,42 @@ fn report_text(
         s,
         "The experiment of Dharma et al. (ICCS 2025), \"MinRNNs for Lagrangian-Based \
          Simulations of Transient Flow Problems\", reproduced on `{}`: the cores {} trained \
-         with one configuration, rolled out on the scenes of the `{}` split beside the \
-         `persist` and `constvel` baselines, and their training speed measured.\n",
+         in the architecture(s) {} with one configuration, rolled out on the scenes of the \
+         `{}` split beside the `persist` and `constvel` baselines, and their training speed \
+         measured.\n",
         args.data
             .iter()
             .map(|p| path(p))
             .collect::<Vec<_>>()
             .join(" "),
         args.cores.join(", "),
+        args.archs.join(", "),
         args.eval_split
     );
     let _ = writeln!(
         s,
         "## Machine and configuration\n\n- CPU: {cpu}, {cores} logical cores ({} rayon \
          threads); burn ndarray backend (f32), minflow {}\n- seed: {} (split 80:10:10 by \
-         scene, weights, data order, dropout)\n- training: epochs {}, W {}, encoder hidden {}, \
-         final encoder activation {}, batch {} (micro-batch {}), T {}, patience {}\n- \
-         evaluation: horizon {}, {} start(s) per trajectory; {}\n",
+         scene, weights, data order, dropout)\n- training: epochs {}, batch {}, T {}, patience \
+         {}; paper: W {}, encoder hidden {}, final encoder activation {}, micro-batch {}; \
+         grid: n {}, U-Net width {}, {} levels, samples per epoch {} (0: all), max minutes {} \
+         (0: no limit)\n- evaluation: horizon {}, {} start(s) per trajectory; {}\n",
         rayon::current_num_threads(),
         env!("CARGO_PKG_VERSION"),
         args.seed,
         args.epochs,
+        args.batch_size,
+        args.window,
+        args.patience,
         args.width,
         args.encoder_hidden,
         args.encoder_last_activation,
-        args.batch_size,
         args.micro_batch,
-        args.window,
-        args.patience,
+        args.grid,
+        args.unet_width,
+        args.levels,
+        args.samples_per_epoch,
+        args.max_minutes,
         args.horizon,
         args.starts,
         eval.scaler_source
@@ -361,8 +429,7 @@ fn report_text(
         );
     }
     s.push_str("\nTraining loss curves: ");
-    let links: Vec<String> = args
-        .cores
+    let links: Vec<String> = names
         .iter()
         .map(|c| format!("[{c}](runs/{c}/loss.png)"))
         .collect();

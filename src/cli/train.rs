@@ -398,29 +398,9 @@ fn fit_on(
 /// An unreadable `model.json`, or one whose settings differ: the error names each field with
 /// both values.
 pub(crate) fn check_resume(out: &Path, net: &NetConfig) -> anyhow::Result<()> {
-    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
-    let path = out.join("model.json");
-    let text = match std::fs::read_to_string(&path) {
-        Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    let Some(differ) = config_differences(out, net)? else {
+        return Ok(());
     };
-    let saved: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-    let new = serde_json::to_value(net)?;
-    let differ: Vec<String> = new
-        .as_object()
-        .into_iter()
-        .flatten()
-        .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
-        .filter_map(|(key, value)| {
-            let old = saved.get(key);
-            (old != Some(value)).then(|| {
-                let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
-                format!("{key}: checkpoint {old}, this run {value}")
-            })
-        })
-        .collect();
     if !differ.is_empty() {
         bail!(
             "--resume: {} was trained with other settings ({}); resume with the flags it was \
@@ -430,4 +410,38 @@ pub(crate) fn check_resume(out: &Path, net: &NetConfig) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// Each hyper-parameter of `net` that differs from the one saved in `dir/model.json`, as
+/// `"field: checkpoint OLD, this run NEW"`, skipping the values fitted on the data
+/// (`vel_scale`, `dv_mean`, `dv_scale`) and the convolution kernel (`conv`). `None` when
+/// `dir` has no `model.json`.
+///
+/// # Errors
+/// An unreadable or unparsable `model.json`.
+pub(crate) fn config_differences(dir: &Path, net: &NetConfig) -> anyhow::Result<Option<Vec<String>>> {
+    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
+    let path = dir.join("model.json");
+    let text = match std::fs::read_to_string(&path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let saved: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let new = serde_json::to_value(net)?;
+    Ok(Some(
+        new.as_object()
+            .into_iter()
+            .flatten()
+            .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
+            .filter_map(|(key, value)| {
+                let old = saved.get(key);
+                (old != Some(value)).then(|| {
+                    let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
+                    format!("{key}: checkpoint {old}, this run {value}")
+                })
+            })
+            .collect(),
+    ))
 }

@@ -76,6 +76,11 @@ pub struct GridArgs {
     /// validated and kept; 0: no limit).
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
     pub max_minutes: f64,
+    /// Start from the weights of this run folder (fine-tuning, or continuing a finished run
+    /// with a new learning-rate schedule) instead of fresh ones. Its architecture must be the
+    /// one these flags describe; its normalisation constants are kept.
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    pub init_from: Option<PathBuf>,
 }
 
 impl TrainArgs {
@@ -146,6 +151,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let mut config = args.grid_config()?;
     let opts = args.grid_options();
     let device = args.device.parse()?;
+    let init = match &args.grid_args.init_from {
+        Some(dir) => Some(init_config(dir, config.clone())?),
+        None => None,
+    };
     let topic = Some(args.topic.as_str());
     let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
     for gap in &report.gaps {
@@ -166,6 +175,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     config.dv_scale = dv_scale;
     if args.resume {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
+    }
+    if let Some(init) = init {
+        // The weights were trained against the source run's normalisation.
+        config.vel_scale = init.vel_scale;
+        config.dv_mean = init.dv_mean;
+        config.dv_scale = init.dv_scale;
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
@@ -204,7 +219,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let mut progress = Progress::new(args.out.clone());
     let history = fit_on(
         &device,
-        (config, opts, args.out.clone()),
+        (config, opts, args.out.clone(), args.grid_args.init_from.clone()),
         &index,
         &val,
         &scaler,
@@ -225,10 +240,41 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     Ok(super::read_to_damage(&report.truncated))
 }
 
+/// `config` with the normalisation constants of the grid model in `dir` (`--init-from`),
+/// after checking that `dir` holds a grid model of the architecture `config` describes.
+///
+/// # Errors
+/// `dir` has no readable `model.json`, holds another architecture, or one whose
+/// hyper-parameters differ (each named, a usage error).
+fn init_config(dir: &std::path::Path, config: GridConfig) -> anyhow::Result<GridConfig> {
+    let net = NetConfig::Grid(config);
+    let differ = super::train::config_differences(dir, &net)?
+        .with_context(|| format!("--init-from {}: no model.json there", dir.display()))?;
+    if !differ.is_empty() {
+        return Err(super::UsageError(format!(
+            "--init-from {}: its network differs from the one these flags describe ({}); \
+             give the flags it was trained with",
+            dir.display(),
+            differ.join("; ")
+        ))
+        .into());
+    }
+    let NetConfig::Grid(mut config) = net else {
+        unreachable!("built as a grid config")
+    };
+    let (_, meta) = crate::model::store::read_meta(dir)?;
+    if let NetConfig::Grid(saved) = meta.net {
+        config.vel_scale = saved.vel_scale;
+        config.dv_mean = saved.dv_mean;
+        config.dv_scale = saved.dv_scale;
+    }
+    Ok(config)
+}
+
 /// Trains on `device` (the CPU, or one GPU).
 fn fit_on(
     device: &Device,
-    run: (GridConfig, GridTrainOptions, PathBuf),
+    run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
     train: &WindowIndex,
     val: &[Trajectory],
     scaler: &Scaler,
@@ -237,7 +283,7 @@ fn fit_on(
 ) -> anyhow::Result<Vec<EpochRecord>> {
     fn on<B: AutodiffBackend + FusedElu>(
         device: B::Device,
-        run: (GridConfig, GridTrainOptions, PathBuf),
+        run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
         train: &WindowIndex,
         val: &[Trajectory],
         scaler: &Scaler,
@@ -247,12 +293,13 @@ fn fit_on(
     where
         B::InnerBackend: FusedElu,
     {
-        let (config, opts, out) = run;
+        let (config, opts, out, init_from) = run;
         GridTrainer::<B> {
             config,
             opts,
             out,
             device,
+            init_from,
         }
         .fit(train, val, scaler, resume, observer)
     }

@@ -151,14 +151,23 @@ pub fn save<B: Backend, M: Module<B>>(
     Ok(())
 }
 
+/// Reads `dir/model.json`: its path and contents.
+///
+/// # Errors
+/// [`StoreError::Io`] when it is missing, unreadable or not a model description.
+pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreError> {
+    let path = dir.join("model.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
+    let meta: ModelMeta = serde_json::from_str(&text).map_err(|e| io(&path, e))?;
+    Ok((path, meta))
+}
+
 /// Reads `model.json` and the weights from `dir`, of either architecture.
 pub fn load_net<B: FusedElu>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Net<B>, ModelMeta), StoreError> {
-    let path = dir.join("model.json");
-    let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
-    let meta: ModelMeta = serde_json::from_str(&text).map_err(|e| io(&path, e))?;
+    let (_, meta) = read_meta(dir)?;
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     let weights = dir.join("model.mpk");
     // Each architecture's weights are saved as its own module (not as a `Net`).

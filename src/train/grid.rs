@@ -124,6 +124,9 @@ pub struct GridTrainer<B: AutodiffBackend> {
     pub out: PathBuf,
     /// Device.
     pub device: B::Device,
+    /// A run folder whose weights replace the fresh ones (`--init-from`; its architecture
+    /// is `config`'s). A resumed checkpoint takes precedence.
+    pub init_from: Option<PathBuf>,
 }
 
 /// The `[B, S, N, 4]` frames, `[B, N, 4]` one-hot materials and `[B]` dt of a batch of
@@ -303,7 +306,18 @@ where
             )));
         }
         B::seed(&self.device, opts.seed);
-        let mut model: GridModel<B> = initial_grid_model(&self.config, opts.seed, &self.device)?;
+        let mut model: GridModel<B> = match &self.init_from {
+            Some(dir) => match store::load_net::<B>(dir, &self.device)? {
+                (Net::Grid(model), _) => model,
+                (Net::Paper(_), _) => {
+                    return Err(TrainError::Mismatch(format!(
+                        "{}: a paper model, where a grid model was expected",
+                        dir.display()
+                    )))
+                }
+            },
+            None => initial_grid_model(&self.config, opts.seed, &self.device)?,
+        };
         let mut adam = AdamConfig::new().with_epsilon(1e-8);
         if opts.clip > 0.0 {
             adam = adam.with_grad_clipping(Some(GradientClippingConfig::Norm(opts.clip)));

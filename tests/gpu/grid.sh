@@ -7,9 +7,14 @@
 #
 #   tests/gpu/grid.sh data                    # simulate: 60 multi + 40 fluid scenes, seed 1
 #   tests/gpu/grid.sh train NAME CORE MIN [FLAGS...]  # train runs/NAME (--max-minutes MIN)
+#   tests/gpu/grid.sh start NAME CORE MIN [FLAGS...]  # the same in the background (setsid),
+#                                             # on GPU $GPU: several runs, one per GPU
+#   tests/gpu/grid.sh wait                    # until every started run has ended, a line a minute
 #   tests/gpu/grid.sh eval NAME...            # eval --starts 5 at horizons 20 and 100
+#   tests/gpu/grid.sh pack DEST NAME...       # run folders (no checkpoints), logs, tables -> DEST
 #
-# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
+# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data),
+# GPU (the device ordinal of train/start/eval, default 0), EVAL_OUT (eval's folder name).
 set -uo pipefail
 OUT=${OUT:-/tmp/minflow-gpu}
 DATA=${DATA:-/tmp/data}
@@ -31,21 +36,50 @@ data)
 train)
     name=$2 core=$3 minutes=$4
     shift 4
-    "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --model "$core" --out "runs/$name" \
+    "$BIN" train --device "cuda:${GPU:-0}" --data "$DATA"/multi "$DATA"/fluid --model "$core" --out "runs/$name" \
         --epochs 1000 --patience 0 --max-minutes "$minutes" "$@" >"$OUT/train-$name.log" 2>&1
     echo "train $name: exit $?"
     tail -n 4 "$OUT/train-$name.log"
+    ;;
+start)
+    shift
+    setsid nohup bash "$0" train "$@" >"$OUT/start-$1.log" 2>&1 &
+    echo $! >>"$OUT/started.pids"
+    echo "started $1 on GPU ${GPU:-0} (pid $!)"
+    ;;
+wait)
+    while true; do
+        running=0
+        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
+            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
+        done
+        for log in "$OUT"/train-*.log; do
+            [ -f "$log" ] || continue
+            printf '%s: %s\n' "$(basename "$log" .log)" "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
+        done
+        [ "$running" -eq 0 ] && break
+        sleep 60
+    done
+    ;;
+pack)
+    dest=$2
+    shift 2
+    mkdir -p "$dest"
+    for name in "$@"; do
+        tar czf "$dest/run-$name.tgz" --exclude checkpoint --exclude checkpoint.old "runs/$name"
+    done
+    tar czf "$dest/logs.tgz" -C "$OUT" --exclude '*.mcap' .
     ;;
 eval)
     shift
     models=()
     for name in "$@"; do models+=(--model "runs/$name"); done
     for horizon in 20 100; do
-        timeout "${EVAL_TIMEOUT:-300}" "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/multi "$DATA"/fluid \
-            --starts 5 --horizon "$horizon" --no-render --out "$OUT/eval-h$horizon" \
-            >"$OUT/eval-h$horizon.log" 2>&1
+        dir="$OUT/${EVAL_OUT:-eval}-h$horizon"
+        timeout "${EVAL_TIMEOUT:-300}" "$BIN" eval "${models[@]}" --device "cuda:${GPU:-0}" --data "$DATA"/multi "$DATA"/fluid \
+            --starts 5 --horizon "$horizon" --no-render --out "$dir" >"$dir.log" 2>&1
         echo "eval horizon $horizon: exit $?"
-        cat "$OUT/eval-h$horizon/table.md" 2>/dev/null || tail -n 20 "$OUT/eval-h$horizon.log"
+        cat "$dir/table.md" 2>/dev/null || tail -n 20 "$dir.log"
     done
     ;;
 *)

@@ -266,6 +266,61 @@ fn a_damaged_checkpoint_falls_back_to_the_previous_one() {
     );
 }
 
+/// `--init-from` starts from a finished run's weights: with a learning rate too small to
+/// move them, the first validation rollout equals the source run's best to 3 digits (a fresh
+/// start is far off), and the source's normalisation constants are kept. Another network is
+/// refused as a usage error naming the field, before any training.
+#[test]
+fn grid_train_starts_from_another_runs_weights() {
+    let source = tempfile::tempdir().unwrap();
+    let o = train_grid(
+        source.path(),
+        &["--epochs", "3", "--model", "mingru", "--lr", "3e-3"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let meta = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    };
+    let best = meta(source.path())["val_loss"].as_f64().unwrap();
+    let run = |dir: &Path, extra: &[&str]| {
+        let mut args = vec!["--epochs", "1", "--model", "mingru", "--lr", "1e-12"];
+        args.extend_from_slice(extra);
+        train_grid(dir, &args)
+    };
+    let tuned = tempfile::tempdir().unwrap();
+    let o = run(
+        tuned.path(),
+        &["--init-from", source.path().to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let first: f64 = losses(tuned.path())[0].1.parse().unwrap();
+    assert!(
+        ((first - best) / best).abs() < 1e-3,
+        "init-from val {first} vs source best {best}"
+    );
+    assert_eq!(
+        meta(tuned.path())["dv_scale"],
+        meta(source.path())["dv_scale"]
+    );
+    let fresh = tempfile::tempdir().unwrap();
+    let o = run(fresh.path(), &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let scratch: f64 = losses(fresh.path())[0].1.parse().unwrap();
+    assert!(
+        ((scratch - best) / best).abs() > 1e-2,
+        "a fresh start scored {scratch}, the source {best}: the test cannot tell them apart"
+    );
+    let other = tempfile::tempdir().unwrap();
+    let o = run(
+        other.path(),
+        &["--init-from", source.path().to_str().unwrap(), "--window", "3"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("window: checkpoint 2, this run 3"), "{err}");
+    assert!(!other.path().join("metrics.csv").exists(), "the refused run trained");
+}
+
 #[test]
 fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();

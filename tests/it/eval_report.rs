@@ -1,6 +1,7 @@
-//! `minflow report` (issue 4) end to end on the bundled bags with two tiny cores and one
-//! epoch: REPORT.md states the machine, the configuration and the seed and holds Tables 2,
-//! 3 and 4 and the figures it links to; `--reuse` skips training.
+//! `minflow report` (issue 4) end to end on the bundled bags with two tiny cores in both
+//! architectures and one epoch: REPORT.md states the machine, the configuration and the seed
+//! and holds Tables 2, 3 and 4 with the paper's and the grid architecture side by side, and
+//! the figures it links to; `--reuse` skips training.
 
 use std::process::Command;
 
@@ -27,6 +28,14 @@ fn report_trains_evaluates_and_writes_report_md() {
         "all",
         "--seed",
         "3",
+        "--grid",
+        "16",
+        "--levels",
+        "2",
+        "--unet-width",
+        "4",
+        "--samples-per-epoch",
+        "8",
     ];
     let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(args)
@@ -42,8 +51,10 @@ fn report_trains_evaluates_and_writes_report_md() {
         "## Table 4: training speed",
         "| `fluid/circle/000` |",
         "| `multi/rope+snow/001` |",
-        "| mingru |",
-        "avg20 mlp",
+        "| paper-mingru |",
+        "| grid-mingru |",
+        "avg20 paper-mlp",
+        "avg20 grid-none",
         "f20 constvel",
         "not only held-out test",
         "minflow train --data",
@@ -54,24 +65,30 @@ fn report_trains_evaluates_and_writes_report_md() {
         "eval/mse_curves.png",
         "eval/table.csv",
         "eval/render_fluid_circle_000.gif",
-        "runs/mingru/model.json",
-        "runs/mlp/loss.png",
+        "runs/paper-mingru/model.json",
+        "runs/paper-mlp/loss.png",
+        "runs/grid-mingru/model.json",
+        "runs/grid-none/loss.png",
     ] {
         assert!(out.join(file).exists(), "missing {file}");
     }
-    // Table 4 has one row per core with one epoch each.
+    // Table 4 has one row per run with one epoch each.
     let rows: Vec<&str> = report
         .lines()
-        .filter(|l| l.starts_with("| mlp |") || l.starts_with("| mingru |"))
+        .filter(|l| {
+            ["| paper-mlp |", "| paper-mingru |", "| grid-none |", "| grid-mingru |"]
+                .iter()
+                .any(|p| l.starts_with(p))
+        })
         .filter(|l| l.split('|').count() == 10)
         .collect();
-    assert_eq!(rows.len(), 2, "{rows:?}");
+    assert_eq!(rows.len(), 4, "{rows:?}");
     assert!(rows
         .iter()
         .all(|r| r.split('|').nth(3).unwrap().trim() == "1"));
 
     // Rerun with --reuse: nothing is trained again (metrics.csv untouched).
-    let before = std::fs::metadata(out.join("runs/mlp/metrics.csv"))
+    let before = std::fs::metadata(out.join("runs/paper-mlp/metrics.csv"))
         .unwrap()
         .modified()
         .unwrap();
@@ -82,8 +99,8 @@ fn report_trains_evaluates_and_writes_report_md() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("mlp: reusing"));
-    let after = std::fs::metadata(out.join("runs/mlp/metrics.csv"))
+    assert!(String::from_utf8_lossy(&o.stderr).contains("paper-mlp: reusing"));
+    let after = std::fs::metadata(out.join("runs/paper-mlp/metrics.csv"))
         .unwrap()
         .modified()
         .unwrap();

@@ -26,33 +26,71 @@ fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }
 
-/// A small minGRU trained for one epoch on the bundled bags (once per test binary).
+/// A small paper-architecture minGRU trained for one epoch on the bundled bags (once per
+/// test binary).
 fn model() -> PathBuf {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
-    DIR.get_or_init(|| {
+    trained(
+        &DIR,
+        &[
+            "--arch",
+            "paper",
+            "--width",
+            "48",
+            "--encoder-hidden",
+            "16",
+        ],
+    )
+}
+
+/// A small grid-architecture minGRU (16 x 16 grid, per-particle memory) trained for one
+/// short epoch on the bundled bags (once per test binary).
+fn grid_model() -> PathBuf {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    trained(
+        &DIR,
+        &[
+            "--grid",
+            "16",
+            "--levels",
+            "2",
+            "--unet-width",
+            "4",
+            "--latent",
+            "4",
+            "--hidden",
+            "4",
+            "--head-hidden",
+            "8",
+            "--samples-per-epoch",
+            "16",
+            "--val-starts",
+            "1",
+            "--val-horizon",
+            "3",
+        ],
+    )
+}
+
+/// `train --model mingru --epochs 1` with `flags` into a folder kept in `dir`.
+fn trained(dir: &'static OnceLock<tempfile::TempDir>, flags: &[&str]) -> PathBuf {
+    dir.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("mingru");
-        let o = Node::spawn(
+        let data = repo("bags");
+        let mut args = vec![
             "train",
-            &[
-                "train",
-                "--arch",
-                "paper",
-                "--data",
-                repo("bags").to_str().unwrap(),
-                "--model",
-                "mingru",
-                "--epochs",
-                "1",
-                "--width",
-                "48",
-                "--encoder-hidden",
-                "16",
-                "--out",
-                out.to_str().unwrap(),
-            ],
-        )
-        .wait(Duration::from_secs(300));
+            "--data",
+            data.to_str().unwrap(),
+            "--model",
+            "mingru",
+            "--epochs",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(flags);
+        let o = Node::spawn("train", &args).wait(Duration::from_secs(300));
         ok(&o, "train");
         dir
     })
@@ -62,9 +100,9 @@ fn model() -> PathBuf {
 
 /// Offline stateful one-step predictions of every frame of `bag`'s scene, keyed by the
 /// predicted frame_index.
-fn offline(bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
+fn offline(model: &Path, bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
     let device = Default::default();
-    let s = Surrogate::<NdArray<f32>>::load(&model(), &device).unwrap();
+    let s = Surrogate::<NdArray<f32>>::load(model, &device).unwrap();
     let frames: Vec<ParticleFrame> = read_frames(bag, None)
         .unwrap()
         .frames
@@ -105,10 +143,10 @@ fn rows_of(f: &ParticleFrame) -> Vec<f32> {
 }
 
 /// Compares recorded predictions with the offline ones; returns how many were compared.
-fn assert_matches_offline(pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usize {
+fn assert_matches_offline(model: &Path, pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usize {
     let mut want: BTreeMap<String, BTreeMap<u32, Vec<f32>>> = BTreeMap::new();
     for b in bags {
-        let (scene, preds) = offline(b);
+        let (scene, preds) = offline(model, b);
         want.insert(scene, preds);
     }
     let mut compared = 0;
@@ -134,7 +172,11 @@ fn assert_matches_offline(pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usi
 
 /// replay (two bags, interleaved by log time) -> node -> record, over `transport`.
 fn node_matches_offline(transport: &str) {
-    let model = model();
+    node_with_model_matches_offline(&model(), transport);
+}
+
+/// [`node_matches_offline`] with the model in `model`.
+fn node_with_model_matches_offline(model: &Path, transport: &str) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("pred");
     let input = unique_topic(&format!("{transport}_in"));
@@ -182,7 +224,7 @@ fn node_matches_offline(transport: &str) {
     let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
     node.signal("INT");
     let node_err = ok(&node.wait(Duration::from_secs(30)), "node");
-    let n = assert_matches_offline(&out, &output, &bags);
+    let n = assert_matches_offline(model, &out, &output, &bags);
     assert_eq!(
         n, expected,
         "predictions recorded\nrecord: {rec}\nnode: {node_err}"
@@ -192,6 +234,13 @@ fn node_matches_offline(transport: &str) {
 #[test]
 fn zenoh_node_equals_offline_stateful_predictions() {
     node_matches_offline("zenoh");
+}
+
+/// The grid architecture through the node: per-particle memory and the velocity history are
+/// kept per scene exactly as offline.
+#[test]
+fn zenoh_node_equals_offline_grid_predictions() {
+    node_with_model_matches_offline(&grid_model(), "zenoh");
 }
 
 #[test]
@@ -292,7 +341,7 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
     ok(&recorder.wait(Duration::from_secs(120)), "record");
     // The good scene: all 25 predictions, equal to the offline ones.
     assert_eq!(
-        assert_matches_offline(&out, &output, &[repo(SCENES[0])]),
+        assert_matches_offline(&model, &out, &output, &[repo(SCENES[0])]),
         25
     );
     // The status reports 3 rejected and 1 malformed frame within a few seconds.

@@ -35,6 +35,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
 use super::conv_ops::silu;
+use super::elu::linear;
 use super::FusedElu;
 
 /// Materials (one-hot width).
@@ -274,9 +275,13 @@ impl<B: FusedElu> GridModel<B> {
             Some(m) => Tensor::cat(vec![u, m], 1),
             None => u,
         };
-        let h = silu(self.head_a.forward(features));
-        let h = silu(self.head_b.forward(h));
-        let dv = self.head_out.forward(h).reshape([b, n_p, 2]);
+        // Through the backend-ops dense layer, as every per-particle layer: its weight
+        // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with a
+        // handful of output tiles on a GPU (`bench train --arch grid --stages`, H100, batch
+        // 64: 62 ms of a 110 ms step outside the timed stages).
+        let h = silu(linear(&self.head_a, features));
+        let h = silu(linear(&self.head_b, h));
+        let dv = linear(&self.head_out, h).reshape([b, n_p, 2]);
         let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
         // Integrate (trapezoid) in physical units.
         let v = vel.narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
