@@ -2,8 +2,6 @@
 //! outcome to an exit code (0 ok, 1 error, 2 usage, 3 finished but data was lost, such as
 //! a truncated bag). Results go to stdout, logs and progress bars to stderr.
 
-use clap::Parser;
-
 /// mimalloc reuses freed large buffers instead of returning them to the kernel, so the
 /// model's per-step activations stop page-faulting (see `bench train`).
 #[global_allocator]
@@ -12,7 +10,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> std::process::ExitCode {
     minflow::cli::tune_allocator();
     minflow::cli::flush_denormals();
-    let cli = minflow::cli::Cli::parse();
+    let cli: minflow::cli::Cli = minflow::cli::parse();
     minflow::cli::init_logging(cli.verbose);
     minflow::cli::exit_code(minflow::cli::run(cli))
 }

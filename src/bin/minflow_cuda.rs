@@ -2,8 +2,6 @@
 //! `bench train` alone, so that a stripped build with burn's CUDA backend stays small enough
 //! to carry to a GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
 
-use clap::Parser;
-
 /// As in `minflow`: mimalloc reuses freed large host buffers.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
@@ -11,7 +9,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> std::process::ExitCode {
     minflow::cli::tune_allocator();
     minflow::cli::flush_denormals();
-    let cli = minflow::cli::TrainCli::parse();
+    let cli: minflow::cli::TrainCli = minflow::cli::parse();
     minflow::cli::init_logging(cli.verbose);
     minflow::cli::exit_code(minflow::cli::run_train(cli))
 }

@@ -34,6 +34,41 @@ pub fn non_negative_f32(s: &str) -> Result<f32, String> {
     non_negative(s).map(|v| v as f32)
 }
 
+/// The longest wait or duration a flag may ask for, in seconds (about 31 years): longer ones
+/// overflow the clock arithmetic (`Duration::from_secs_f64` panics past ~5.8e11 years).
+pub const MAX_SECONDS: f64 = 1e9;
+
+/// Seconds of a wait or a duration: a finite number in `[0, MAX_SECONDS]`.
+pub fn seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && (0.0..=MAX_SECONDS).contains(&v) => Ok(v),
+        Ok(v) => Err(format!(
+            "{v} is not a number of seconds in [0, {MAX_SECONDS:e}]"
+        )),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// A repeating interval in seconds: a finite number in `[0.001, MAX_SECONDS]` (0 would log or
+/// split in a busy loop).
+pub fn interval(s: &str) -> Result<f64, String> {
+    match seconds(s) {
+        Ok(v) if v >= 1e-3 => Ok(v),
+        Ok(v) => Err(format!("{v} is shorter than 0.001 s")),
+        Err(e) => Err(e),
+    }
+}
+
+/// A pacing factor (1 = real time): 0 (as fast as possible) or a finite number of at least
+/// 1e-6 (slower ones turn frame gaps into waits that overflow the clock arithmetic).
+pub fn rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v == 0.0 || (v.is_finite() && v >= 1e-6) => Ok(v),
+        Ok(v) => Err(format!("{v} is neither 0 nor a finite number >= 1e-6")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A probability of dropping, in `[0, 1)`.
 pub fn dropout(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
@@ -60,5 +95,14 @@ mod tests {
         assert!(non_negative("0").is_ok() && non_negative("-0.5").is_err());
         assert!(dropout("2").is_err() && dropout("-0.5").is_err() && dropout("0.1").is_ok());
         assert!(conv_kernel("shift").is_ok() && conv_kernel("winograd").is_err());
+        assert!(seconds("0") == Ok(0.0) && seconds("2.5") == Ok(2.5));
+        assert!(["-1", "inf", "NaN", "1e10", "x"]
+            .iter()
+            .all(|s| seconds(s).is_err()));
+        assert!(interval("0").is_err() && interval("0.5") == Ok(0.5) && interval("-1").is_err());
+        assert!(rate("0") == Ok(0.0) && rate("2") == Ok(2.0));
+        assert!(["-1", "1e-300", "inf", "NaN"]
+            .iter()
+            .all(|s| rate(s).is_err()));
     }
 }

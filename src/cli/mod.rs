@@ -111,6 +111,19 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
     }
 }
 
+/// Parses the process's command line into `P` as `P::parse()` does (errors and `--help` exit
+/// through clap, usage errors with code 2), except that a flag's value may be a negative
+/// number: `--lr -1` reaches the flag's range check, whose message names the flag, instead of
+/// clap's "unexpected argument '-1' found".
+pub fn parse<P: clap::Parser>() -> P {
+    fn negatives(cmd: clap::Command) -> clap::Command {
+        cmd.mut_args(|a| a.allow_negative_numbers(true))
+            .mut_subcommands(negatives)
+    }
+    let mut matches = negatives(P::command()).get_matches();
+    P::from_arg_matches_mut(&mut matches).unwrap_or_else(|e| e.exit())
+}
+
 /// A flag or file value found out of range after parsing (it needs another flag or the data
 /// to judge): exit code 2, like clap's own usage errors. Return it inside an `anyhow::Error`.
 #[derive(Debug, thiserror::Error)]

@@ -39,19 +39,19 @@ pub struct NodeArgs {
     #[arg(long, value_enum, default_value_t = OnGap::Reset)]
     on_gap: OnGap,
     /// Seconds without frames after which a scene's state is reset and dropped.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = super::flags::seconds)]
     idle_timeout: f64,
     /// Most scene states kept (least recently seen dropped first).
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 1024, value_parser = super::flags::at_least_one)]
     max_scenes: usize,
     /// Pending frames per scene before the oldest is dropped.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
     queue_depth: usize,
     /// Closed loop: after the first T frames of a scene, publish K predicted frames.
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_name = "K", value_parser = super::flags::at_least_one)]
     rollout: Option<usize>,
     /// Closed-loop pacing factor (1 = the scene's own frame rate); 0 = as fast as possible.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::rate)]
     rate: f64,
     /// Exit after publishing this many predicted frames.
     #[arg(long)]
@@ -60,7 +60,7 @@ pub struct NodeArgs {
     #[arg(long, default_value_t = 0)]
     wait_for_subscribers: usize,
     /// Log the counters every this many seconds.
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
     #[command(flatten)]
     device: super::device::DeviceArgs,

@@ -24,25 +24,25 @@ pub struct RecordArgs {
     #[arg(long)]
     max_bag_size: Option<u64>,
     /// Split into a new file after this many seconds.
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::interval)]
     max_bag_duration: Option<f64>,
     /// Stop after this many seconds.
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::seconds)]
     duration: Option<f64>,
     /// Stop after this many frames.
     #[arg(long)]
     count: Option<u64>,
     /// Close and flush the current chunk every this many seconds (what SIGKILL can lose).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::flags::seconds)]
     flush_interval: f64,
     /// Stop after this many seconds without a message (counted from the first one).
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::seconds)]
     idle_exit: Option<f64>,
     /// Delete the bags (and metadata.yaml) already in the output folder.
     #[arg(long)]
     overwrite: bool,
     /// Log the counters every this many seconds.
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
 }
 

@@ -26,13 +26,13 @@ pub struct ReplayArgs {
     #[arg(long, default_value = FRAMES_TOPIC)]
     input_topic: String,
     /// Playback speed factor; 0 plays as fast as the transport accepts frames.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::flags::rate)]
     rate: f64,
     /// Play again from the start when done, until Ctrl-C.
     #[arg(long = "loop")]
     looped: bool,
     /// Start this many seconds (log time) into the bags.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::seconds)]
     start_offset: f64,
     /// Play only scenes matching this glob (repeatable), e.g. `multi/rope*`.
     #[arg(long)]
@@ -41,18 +41,14 @@ pub struct ReplayArgs {
     #[arg(long, default_value_t = 1)]
     wait_for_subscribers: usize,
     /// Seconds to wait for subscribers before giving up.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 30.0, value_parser = super::flags::seconds)]
     wait_timeout: f64,
     /// Log the counters every this many seconds.
-    #[arg(long)]
+    #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
-    anyhow::ensure!(
-        args.rate >= 0.0 && args.rate.is_finite(),
-        "--rate must be >= 0"
-    );
     let scenes = args
         .scene
         .iter()

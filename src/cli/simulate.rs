@@ -32,7 +32,7 @@ pub struct SimulateArgs {
     #[arg(long, conflicts_with_all = ["scenes"])]
     scene_file: Vec<PathBuf>,
     /// Shorten every scene to at most N frames (frame 0 included).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     frames: Option<u32>,
     /// Output folder (created if missing).
     #[arg(short, long, default_value = "data")]
@@ -50,7 +50,7 @@ pub struct SimulateArgs {
     transport: TransportOptions,
     /// With --publish: pace each scene at its simulation clock times this factor (1 = real
     /// time, 62.5 frames per second); 0 publishes frames as fast as they are simulated.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::flags::rate)]
     rate: f64,
     /// With --publish: wait for this many subscribers before simulating.
     #[arg(long, default_value_t = 1)]
@@ -121,15 +121,27 @@ fn simulate(
         for path in &args.scene_file {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("reading scene file {}", path.display()))?;
-            let scene =
-                Scene::from_toml(&text).with_context(|| format!("in {}", path.display()))?;
+            // A value out of range in the file is a usage error (exit 2) naming the field.
+            let scene = Scene::from_toml(&text)
+                .map_err(|e| UsageError(format!("--scene-file {}: {e}", path.display())))?;
             scenes.push(scene);
         }
     }
+    // Two scenes with one bag name would be written to the same file at once.
+    let mut names = std::collections::BTreeSet::new();
+    if let Some(twice) = scenes.iter().find(|s| !names.insert(bag_name(&s.name))) {
+        let flag = match args.scene_file.is_empty() {
+            true => "--scenes",
+            false => "--scene-file",
+        };
+        return Err(UsageError(format!(
+            "{flag}: scene {:?} is named twice (each scene writes {})",
+            twice.name,
+            bag_name(&twice.name)
+        ))
+        .into());
+    }
     if let Some(n) = args.frames {
-        if n == 0 {
-            bail!("--frames must be at least 1");
-        }
         scenes.iter_mut().for_each(|s| s.frames = s.frames.min(n));
     }
     std::fs::create_dir_all(&args.out)
@@ -222,9 +234,14 @@ impl Live {
     /// stamp (frame 0 goes out at once).
     fn publish(&self, frame: &ParticleFrame, started: std::time::Instant) -> anyhow::Result<()> {
         if self.rate > 0.0 {
-            let due =
-                started + Duration::from_secs_f64(frame.header.stamp.as_secs_f64() / self.rate);
-            if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
+            // Stamps of a scene file's frames can be far off (any positive dt): a wait past
+            // the clock's range is skipped rather than a panic.
+            let due = Duration::try_from_secs_f64(frame.header.stamp.as_secs_f64() / self.rate)
+                .ok()
+                .and_then(|d| started.checked_add(d));
+            if let Some(wait) =
+                due.and_then(|d| d.checked_duration_since(std::time::Instant::now()))
+            {
                 std::thread::sleep(wait);
             }
         }

@@ -516,5 +516,16 @@ mod tests {
         let chain = "launch:\n  - node: {name: a, exec: replay}\n  - node: {name: b, exec: record, after: [a]}\n  - node: {name: c, exec: eval, after: [a, b]}\n";
         std::fs::write(&file, chain).unwrap();
         assert_eq!(load(&file, &BTreeMap::new()).unwrap().len(), 3);
+        // A node waiting for itself, and a wait for a node that does not exist.
+        let own = "launch:\n  - node: {name: a, exec: replay, after: [a]}\n";
+        std::fs::write(&file, own).unwrap();
+        let err = load(&file, &BTreeMap::new()).unwrap_err().to_string();
+        assert!(err.contains("cycle (a -> a)"), "{err}");
+        for list in ["after", "stop_after"] {
+            let unknown = format!("launch:\n  - node: {{name: a, exec: replay, {list}: [b]}}\n");
+            std::fs::write(&file, unknown).unwrap();
+            let err = load(&file, &BTreeMap::new()).unwrap_err().to_string();
+            assert!(err.contains("unknown node \"b\""), "{list}: {err}");
+        }
     }
 }

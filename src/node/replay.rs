@@ -232,13 +232,15 @@ pub fn play(
                 continue;
             }
             if options.rate > 0.0 {
-                let due = t0
-                    + Duration::from_secs_f64(
-                        next.log_time.saturating_sub(log0).saturating_sub(offset_ns) as f64
-                            / 1e9
-                            / options.rate,
-                    );
-                sleep_until(due, stop);
+                // Log times are any u64: a wait past the clock's range waits until stopped.
+                let wait = Duration::try_from_secs_f64(
+                    next.log_time.saturating_sub(log0).saturating_sub(offset_ns) as f64
+                        / 1e9
+                        / options.rate,
+                )
+                .unwrap_or(Duration::MAX);
+                let far = Duration::from_secs(u64::from(u32::MAX));
+                sleep_until(t0.checked_add(wait).unwrap_or(t0 + far), stop);
             }
             publisher.publish_cdr(&next.data, &next.frame)?;
             first_start.get_or_insert_with(Instant::now);

@@ -393,12 +393,18 @@ pub fn run<B: FusedElu>(
                 entry.rolled_out = true;
                 let mut state = state;
                 let mut rows = next;
-                let period = (options.rate > 0.0)
-                    .then(|| Duration::from_secs_f64(f64::from(frame.dt) / options.rate));
+                // A frame's dt is any positive f32: pacing that overflows the clock is skipped
+                // rather than a panic.
+                let period = match options.rate > 0.0 {
+                    true => Duration::try_from_secs_f64(f64::from(frame.dt) / options.rate).ok(),
+                    false => None,
+                };
                 let start = Instant::now();
                 for i in 0..k {
-                    if let Some(p) = period {
-                        let due = start + p * i as u32;
+                    let due = period
+                        .and_then(|p| p.checked_mul(u32::try_from(i).ok()?))
+                        .and_then(|d| start.checked_add(d));
+                    if let Some(due) = due {
                         if let Some(wait) = due.checked_duration_since(Instant::now()) {
                             std::thread::sleep(wait);
                         }

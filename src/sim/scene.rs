@@ -126,10 +126,22 @@ impl Scene {
             .fold(0usize, |n, b| n.saturating_add(b.count))
     }
 
-    /// Checks ranges: grid, dt, counts, bodies inside `[dx, 1 - 2 dx]`, rope spacing
-    /// `<= dx / 4` (MPM.md), at most 1,000,000 particles.
+    /// Checks ranges: a name that can be a bag's file name, grid, dt, counts, bodies inside
+    /// `[dx, 1 - 2 dx]`, rope spacing `<= dx / 4` (MPM.md), at most 1,000,000 particles.
     pub fn validate(&self) -> Result<(), SimError> {
         let bad = |what: String| Err(SimError::Invalid(format!("scene {}: {what}", self.name)));
+        // The name becomes the bag's file name (`/` -> `_`, see `cli::bag_name`): an empty
+        // one wrote a hidden `.mcap` that `bag info DIR` does not list.
+        if self.name.is_empty()
+            || self.name.starts_with('.')
+            || self.name.chars().any(|c| c.is_control() || c == '\\')
+        {
+            return Err(SimError::Invalid(format!(
+                "name {:?}: must be non-empty, must not start with '.' and must hold no \
+                 control characters or backslashes (it names the bag file)",
+                self.name
+            )));
+        }
         if !(8..=4096).contains(&self.grid) {
             return bad(format!("grid {} outside 8..=4096", self.grid));
         }

@@ -3,7 +3,8 @@
 //! overwritten. Reading never panics; what it returns is frames as written, in order, none
 //! twice; a cut keeps every frame of the chunks before it; a flip or a bad length loses at most
 //! the frames of one chunk (the rest is read through the summary's chunk index); only a
-//! damaged magic makes the file unreadable.
+//! damaged magic makes the file unreadable. No loss is silent: whenever a frame is missing the
+//! outcome reports the damage (what makes `bag info`, `replay`, `train` and `eval` exit 3).
 
 use std::path::Path;
 
@@ -61,16 +62,22 @@ fn bag_bytes(
     (bytes, frames, chunks)
 }
 
-/// Reads `bytes` as a bag: Err when unreadable, else the frames in file order.
-fn read(dir: &Path, bytes: &[u8]) -> Result<Vec<ParticleFrame>, String> {
+/// Reads `bytes` as a bag: Err when unreadable, else the frames in file order. Frames lost
+/// (fewer than `written`) without the damage being reported fail the test: no silent loss.
+fn read(dir: &Path, bytes: &[u8], written: usize) -> Result<Vec<ParticleFrame>, String> {
     let path = dir.join("damaged.mcap");
     std::fs::write(&path, bytes).expect("write");
     // Info and check must not panic either.
     let _ = bag::info(&[&path]);
     let _ = bag::check(&[&path]);
-    bag::read_frames(&path, None)
-        .map(|o| o.frames.into_iter().map(|(_, _, f)| f).collect())
-        .map_err(|e| e.to_string())
+    let outcome = bag::read_frames(&path, None).map_err(|e| e.to_string())?;
+    let frames: Vec<_> = outcome.frames.into_iter().map(|(_, _, f)| f).collect();
+    assert!(
+        frames.len() == written || outcome.truncated.is_some(),
+        "{} of {written} frames read and no damage reported",
+        frames.len()
+    );
+    Ok(frames)
 }
 
 /// Whether `got` is `all` with some frames left out, in order, none twice.
@@ -87,7 +94,7 @@ proptest! {
         let dir = tempfile::tempdir().expect("tempdir");
         let (bytes, frames, chunks) = bag_bytes(dir.path(), count, per_chunk);
         let len = cut.index(bytes.len());
-        match read(dir.path(), &bytes[..len]) {
+        match read(dir.path(), &bytes[..len], frames.len()) {
             Err(e) => prop_assert!(len < 8, "cut at {len}: {e}"),
             Ok(got) => {
                 let whole = chunks.iter().filter(|c| c.1 <= len as u64).count();
@@ -104,7 +111,7 @@ proptest! {
         let (mut bytes, frames, _) = bag_bytes(dir.path(), count, per_chunk);
         let at = at.index(bytes.len());
         bytes[at] ^= mask;
-        match read(dir.path(), &bytes) {
+        match read(dir.path(), &bytes, frames.len()) {
             Err(e) => prop_assert!(at < 8, "flip at {at}: {e}"),
             Ok(got) => {
                 prop_assert!(in_order(&got, &frames), "flip at {at}: frames out of order");
@@ -121,7 +128,7 @@ proptest! {
         let (start, _) = chunks[which.index(chunks.len())];
         let at = start as usize + 1;
         bytes[at..at + 8].copy_from_slice(&length.to_le_bytes());
-        let got = read(dir.path(), &bytes).map_err(|e| TestCaseError::fail(e))?;
+        let got = read(dir.path(), &bytes, frames.len()).map_err(TestCaseError::fail)?;
         prop_assert!(in_order(&got, &frames), "frames out of order");
         prop_assert!(frames.len() - got.len() <= per_chunk as usize, "{} frames lost", frames.len() - got.len());
     }

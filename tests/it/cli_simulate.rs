@@ -120,6 +120,24 @@ fn truncated_bag_is_reported_with_exit_code_3() {
     for (k, (_, _, f)) in read.frames.iter().enumerate() {
         assert_eq!(f.frame_index as usize, k);
     }
+    // replay plays what was read and exits 3 as well.
+    let topic = format!("/minflow_test_{}_cut/frames", std::process::id());
+    let o = minflow(&[
+        "replay",
+        cut.to_str().unwrap(),
+        "--rate",
+        "0",
+        "--wait-for-subscribers",
+        "0",
+        "--topic",
+        &topic,
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "replay: {stderr}");
+    assert!(
+        stderr.contains(&format!("replay: {} frame(s)", read.frames.len())),
+        "{stderr}"
+    );
     // train (both architectures) and eval use the frames before the damage and exit 3 too.
     let cut = cut.to_str().unwrap();
     let grid = dir.path().join("grid");
@@ -196,10 +214,45 @@ fn bad_arguments_fail_clearly() {
     let o = minflow(&["simulate", "--bogus"]);
     assert_eq!(o.status.code(), Some(2), "usage errors exit 2");
     // Scene ids are usage errors too, though checked after parsing (they need --family).
-    for scenes in ["5..2", "999", "x", ""] {
+    for scenes in ["5..2", "999", "x", "", "1,1"] {
         let o = minflow(&["simulate", "--scenes", scenes, "--out", "/tmp/never"]);
         assert_eq!(o.status.code(), Some(2), "--scenes {scenes:?}");
         assert!(String::from_utf8_lossy(&o.stderr).contains("--scenes"));
+    }
+    let o = minflow(&["simulate", "--frames", "0", "--out", "/tmp/never"]);
+    assert_eq!(o.status.code(), Some(2), "--frames 0");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--frames"));
+    // Scene file values are usage errors naming the field: an empty name (it used to write a
+    // hidden `.mcap` that `bag info DIR` cannot find), two files naming one scene.
+    let dir = tempfile::tempdir().unwrap();
+    let example = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/launch_configs/scenes/example.toml"
+    ))
+    .unwrap();
+    let name_line = example
+        .lines()
+        .find(|l| l.starts_with("name"))
+        .expect("the example names its scene");
+    let file = |name: &str, text: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let out = dir.path().join("out");
+    let empty = file("empty.toml", &example.replace(name_line, "name = \"\""));
+    let same = file("same.toml", &example);
+    for files in [&[empty.as_str()][..], &[same.as_str(), same.as_str()][..]] {
+        let mut args = vec!["simulate", "--frames", "2", "--out", out.to_str().unwrap()];
+        files.iter().for_each(|f| args.extend(["--scene-file", f]));
+        let o = minflow(&args);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{files:?}: {stderr}");
+        assert!(
+            stderr.contains("--scene-file") && stderr.contains("name"),
+            "{stderr}"
+        );
+        assert!(!out.join(".mcap").exists());
     }
 }
 

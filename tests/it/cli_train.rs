@@ -7,6 +7,11 @@ use std::path::Path;
 use std::process::Command;
 
 fn train(out: &Path, extra: &[&str]) -> std::process::Output {
+    train_width(out, "48", extra)
+}
+
+/// [`train`] with latent width `width`.
+fn train_width(out: &Path, width: &str, extra: &[&str]) -> std::process::Output {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
     let mut args = vec![
         "train",
@@ -17,7 +22,7 @@ fn train(out: &Path, extra: &[&str]) -> std::process::Output {
         "--out",
         out.to_str().unwrap(),
         "--width",
-        "48",
+        width,
         "--encoder-hidden",
         "16",
     ];
@@ -79,6 +84,17 @@ fn train_writes_a_complete_run_folder_and_resumes() {
             .collect::<Vec<_>>()
     };
     assert_eq!(first_two(&before), first_two(&after));
+    // Resuming with another --width is refused before training, naming the field (it was a
+    // panic in burn's matmul, exit 101).
+    let o = train_width(
+        dir.path(),
+        "32",
+        &["--epochs", "5", "--model", "minlstm", "--resume"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("width: checkpoint 48, this run 32"), "{err}");
+    assert_eq!(epochs(dir.path()), 4, "the refused run trained");
 }
 
 #[test]
@@ -104,18 +120,21 @@ fn bad_flags_fail_clearly() {
         &["--batch-size", "0"][..],
         &["--epochs", "0"][..],
         &["--lr", "0"][..],
+        &["--lr", "-1"][..],
+        &["--lr=-1"][..],
+        &["--lr", "nan"][..],
         &["--dropout", "2"][..],
         &["--dropout", "1.5"][..],
+        &["--dropout=-0.5"][..],
         &["--density-grid", "0"][..],
         // Known only once the bags are scanned: the bundled scenes have 25 frames.
         &["--window", "30"][..],
     ] {
         let o = train(dir.path(), bad);
-        assert_eq!(o.status.code(), Some(2), "{bad:?}");
-        assert!(
-            String::from_utf8_lossy(&o.stderr).contains(bad[0]),
-            "{bad:?}"
-        );
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {stderr}");
+        let flag = bad[0].split('=').next().unwrap();
+        assert!(stderr.contains(flag), "{bad:?}: {stderr}");
     }
     // Nothing was written for the run that could not train.
     assert!(!dir.path().join("model.json").exists());
@@ -250,11 +269,24 @@ fn a_damaged_checkpoint_falls_back_to_the_previous_one() {
         "{err}"
     );
     assert_eq!(losses(dir.path()).len(), 3);
+    // An empty checkpoint file (a full disk) falls back the same way.
+    std::fs::write(dir.path().join("checkpoint/optim.mpk"), b"").unwrap();
+    let o = train_grid(
+        dir.path(),
+        &["--epochs", "4", "--model", "none", "--resume"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("checkpoint/optim.mpk is damaged") && err.contains("(epoch 2) instead"),
+        "{err}"
+    );
+    assert_eq!(losses(dir.path()).len(), 4);
     truncate("checkpoint");
     truncate("checkpoint.old");
     let o = train_grid(
         dir.path(),
-        &["--epochs", "4", "--model", "none", "--resume"],
+        &["--epochs", "5", "--model", "none", "--resume"],
     );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");

@@ -272,4 +272,19 @@ fn bad_invocations_fail_clearly() {
     ]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("loading model"));
+    // Zero horizons and start counts are usage errors naming the flag (they quietly became 1).
+    for (flag, value) in [("--horizon", "0"), ("--starts", "0"), ("--horizon", "-3")] {
+        let o = minflow(&[
+            "eval",
+            "--data",
+            s(&bags()),
+            flag,
+            value,
+            "--out",
+            s(tmp.path()),
+        ]);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {stderr}");
+        assert!(stderr.contains(flag), "{flag} {value}: {stderr}");
+    }
 }

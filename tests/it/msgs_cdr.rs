@@ -1,7 +1,11 @@
 //! CDR encoding of `ParticleFrame`: exact bytes of a small known message built by hand from the
 //! CDR rules, round trips of random messages, and malformed input (every truncation, random
-//! bytes, corrupted bytes) giving errors rather than panics. Also the `ros2msg` schema text.
+//! bytes, corrupted bytes) giving errors rather than panics. Property tests (issue 16) over
+//! random frames: a cut anywhere is an error, any number of flipped bytes and any value in any
+//! length or count prefix never panic; the same for `SurrogateStatus`. Also the `ros2msg`
+//! schema text.
 
+use minflow::msgs::status::{decode_status, encode_status, SurrogateStatus};
 use minflow::msgs::{self, CdrError, FrameError, Header, ParticleFrame, Time};
 use proptest::prelude::*;
 
@@ -293,5 +297,123 @@ proptest! {
         let i = at % bytes.len();
         bytes[i] = byte;
         let _ = msgs::decode(&bytes);
+    }
+}
+
+/// Buffer offsets (encapsulation header included) of the five length prefixes of `frame`'s
+/// encoding: header.frame_id, scene, position, velocity, material.
+fn length_offsets(frame: &ParticleFrame) -> [usize; 5] {
+    let align = |x: usize| x.div_ceil(4) * 4;
+    let n2 = 4 * frame.position.len();
+    let frame_id = 8;
+    let scene = align(frame_id + 4 + frame.header.frame_id.len() + 1);
+    let position = align(scene + 4 + frame.scene.len() + 1) + 8;
+    let velocity = position + 4 + n2;
+    let material = velocity + 4 + 4 * frame.velocity.len();
+    [frame_id, scene, position, velocity, material].map(|at| at + 4)
+}
+
+fn arb_status() -> impl Strategy<Value = SurrogateStatus> {
+    (
+        any::<(i32, u32)>(),
+        "\\PC{0,12}",
+        any::<[u64; 6]>(),
+        any::<u32>(),
+        "\\PC{0,40}",
+    )
+        .prop_map(
+            |((sec, nanosec), node, c, active_scenes, last_error)| SurrogateStatus {
+                stamp: Time { sec, nanosec },
+                node,
+                received: c[0],
+                predicted: c[1],
+                published: c[2],
+                dropped: c[3],
+                malformed: c[4],
+                rejected: c[5],
+                active_scenes,
+                last_error,
+            },
+        )
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(512))]
+
+    /// A message cut anywhere short of its end is an error, never a panic or a shorter frame.
+    #[test]
+    fn a_cut_message_is_an_error(frame in arb_frame(), cut in any::<prop::sample::Index>()) {
+        let bytes = msgs::encode(&frame);
+        let len = cut.index(bytes.len());
+        let result = msgs::decode(&bytes[..len]);
+        prop_assert!(result.is_err(), "a cut at {} of {} bytes decoded", len, bytes.len());
+    }
+
+    /// Up to 8 bytes flipped anywhere: an error or a frame, never a panic; a frame that
+    /// decodes can be validated and encoded again.
+    #[test]
+    fn flipped_bytes_never_panic(
+        frame in arb_frame(),
+        flips in prop::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 1..8),
+    ) {
+        let mut bytes = msgs::encode(&frame);
+        for (at, mask) in &flips {
+            let i = at.index(bytes.len());
+            bytes[i] ^= mask;
+        }
+        if let Ok(back) = msgs::decode(&bytes) {
+            let _ = back.validate();
+            let _ = msgs::encode(&back);
+        }
+    }
+
+    /// Any value in any string length or sequence count (0, small, huge, u32::MAX): never a
+    /// panic nor an allocation of the claimed size; the written value decodes the frame.
+    #[test]
+    fn any_length_prefix_never_panics(
+        frame in arb_frame(),
+        which in 0usize..5,
+        value in prop_oneof![any::<u32>(), 0u32..64, (u32::MAX - 8)..=u32::MAX, Just(u32::MAX / 4 + 1)],
+    ) {
+        let mut bytes = msgs::encode(&frame);
+        let at = length_offsets(&frame)[which];
+        let original = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap());
+        let lengths = [
+            frame.header.frame_id.len() + 1,
+            frame.scene.len() + 1,
+            frame.position.len(),
+            frame.velocity.len(),
+            frame.material.len(),
+        ];
+        prop_assert_eq!(original as usize, lengths[which], "not a length prefix at {}", at);
+        bytes[at..at + 4].copy_from_slice(&value.to_le_bytes());
+        let result = msgs::decode(&bytes);
+        if value == original {
+            let back = result.expect("the written length decodes");
+            prop_assert_eq!(msgs::encode(&back), msgs::encode(&frame));
+        }
+    }
+
+    /// `SurrogateStatus` (decoded from live payloads by a status subscriber): round trip,
+    /// every cut an error, flips and random bytes never a panic.
+    #[test]
+    fn status_decoding_never_panics(
+        status in arb_status(),
+        cut in any::<prop::sample::Index>(),
+        flips in prop::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 1..6),
+        noise in prop::collection::vec(any::<u8>(), 0..120),
+    ) {
+        let bytes = encode_status(&status);
+        prop_assert_eq!(decode_status(&bytes), Ok(status));
+        let len = cut.index(bytes.len());
+        prop_assert!(decode_status(&bytes[..len]).is_err(), "a cut at {} decoded", len);
+        let mut flipped = bytes.clone();
+        for (at, mask) in &flips {
+            let i = at.index(flipped.len());
+            flipped[i] ^= mask;
+        }
+        let _ = decode_status(&flipped);
+        let _ = decode_status(&noise);
+        let _ = decode_status(&[&[0, 1, 0, 0][..], &noise].concat());
     }
 }

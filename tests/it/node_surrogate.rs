@@ -3,8 +3,9 @@
 //! two scenes interleaved frame by frame (so they also equal each scene predicted alone);
 //! bad frames (wrong N, NaN, material 9, truncated CDR) are counted on /surrogate/status
 //! while the good scene interleaved with them is still predicted correctly; `launch` of the
-//! replay evaluation ends with exit code 0 and a table, and killing a required node stops
-//! the rest with a non-zero exit.
+//! replay evaluation ends with exit code 0 and a table (no colour codes in its piped logs),
+//! killing a required node stops the rest with a non-zero exit, and an `after` cycle ends
+//! `launch` at once.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -394,6 +395,11 @@ fn launch_replay_eval_prints_the_table() {
         table.contains("| **Average** |"),
         "no table in stdout:\n{table}\n{err}"
     );
+    // Read through pipes, the launch prefixes and the nodes' logs carry no colour codes.
+    assert!(
+        !err.contains('\x1b') && !table.contains('\x1b'),
+        "colour codes in a pipe:\n{err}"
+    );
     assert!(table.contains("constvel") && table.contains("persist"));
     assert!(out.join("eval").join("table.md").is_file());
 }
@@ -439,4 +445,22 @@ fn killing_a_required_node_stops_the_launch_with_an_error() {
         err.contains("recorder exited"),
         "the recorder was stopped too:\n{err}"
     );
+}
+
+/// An `after` cycle is refused when the launch file is loaded: exit 1 at once naming the
+/// cycle (it used to print nothing and wait forever).
+#[test]
+fn launch_with_an_after_cycle_exits_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cycle.yaml");
+    std::fs::write(
+        &file,
+        "launch:\n  - node: {name: a, exec: replay, after: [b]}\n  - node: {name: b, exec: record, after: [a]}\n",
+    )
+    .unwrap();
+    let o =
+        Node::spawn("launch", &["launch", file.to_str().unwrap()]).wait(Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("cycle (a -> b -> a)"), "{err}");
 }

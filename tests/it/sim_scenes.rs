@@ -148,6 +148,8 @@ fn bad_scene_files_give_clear_errors() {
         body(i64::MAX as u64),
         body(3)
     );
+    let named = |name: &str| format!("frames = 10\nname = {name:?}\n{}", body(10));
+    let (empty_name, hidden_name, control_name) = (named(""), named(".x"), named("a\nb"));
     let cases = [
         ("frames = 10\n[[body]]\nshape = \"cube\"", "cube"),
         ("frames = 10\nname = \"x\"\nbody = []", "particles"),
@@ -162,6 +164,10 @@ fn bad_scene_files_give_clear_errors() {
         ("frames = 10\nname = \"x\"\ncolour = 3\nbody = []", "colour"),
         // Counts whose sum wraps to 1 in usize arithmetic.
         (overflowing.as_str(), "particles"),
+        // The name is the bag's file name: empty, hidden or with a control character.
+        (empty_name.as_str(), "name \"\": must be non-empty"),
+        (hidden_name.as_str(), "must not start with '.'"),
+        (control_name.as_str(), "control characters"),
     ];
     for (text, needle) in cases {
         let err = Scene::from_toml(text).unwrap_err().to_string();

@@ -3,7 +3,8 @@
 //! count). Plus the issue's transport-specific checks: a late zenoh subscriber, a zenoh peer
 //! configured from a file (explicit endpoints, multicast scouting off), an iceoryx2
 //! publisher killed with SIGKILL and started again, the recorder killed with SIGKILL and
-//! SIGTERM, and malformed payloads counted without stopping the recorder.
+//! SIGTERM, malformed payloads counted without stopping the recorder, and a second recorder
+//! on the same folder refused. A clean run logs no ERROR and no colour codes into a pipe.
 
 use std::time::Duration;
 
@@ -61,6 +62,15 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     }
     assert!(out.join("metadata.yaml").is_file());
     assert_eq!(counter(&rec_err, "malformed"), Some(0));
+    // A clean run logs no ERROR (the DDS transport used to log "Cannot remove Writer ...
+    // Disconnected" on every shutdown), and a log read through a pipe has no colour codes.
+    for (what, log) in [("replay", &play_err), ("record", &rec_err)] {
+        assert!(!log.contains("ERROR"), "{transport} {what}:\n{log}");
+        assert!(
+            !log.contains('\x1b'),
+            "{transport} {what}: colour codes\n{log}"
+        );
+    }
 }
 
 #[test]
@@ -357,8 +367,9 @@ fn a_second_recorder_on_the_same_folder_is_refused() {
         .wait(Duration::from_secs(30));
         let stderr = String::from_utf8_lossy(&second.stderr);
         assert_eq!(second.status.code(), Some(1), "{extra:?}: {stderr}");
+        let holder = format!("(process {})", first.child.as_ref().unwrap().id());
         assert!(
-            stderr.contains("another recorder is writing here"),
+            stderr.contains("another recorder is writing here") && stderr.contains(&holder),
             "{stderr}"
         );
     }
