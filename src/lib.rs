@@ -13,6 +13,7 @@ pub mod launch;
 pub mod model;
 pub mod msgs;
 pub mod node;
+pub mod ops;
 pub mod plot;
 pub mod sim;
 pub mod train;

@@ -10,7 +10,8 @@ use super::device::{Device, DeviceArgs};
 use super::Outcome;
 use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
 use crate::model::store::NetConfig;
-use crate::model::{CoreKind, DecoderKind, FusedElu, LastActivation, ModelConfig, Pooling};
+use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
+use crate::ops::NetOps;
 use crate::train::{BatchSource, EpochRecord, Observer, TrainError, TrainOptions, Trainer};
 use anyhow::{bail, Context};
 use burn::backend::{Autodiff, NdArray};
@@ -349,7 +350,7 @@ fn fit_on(
     resume: bool,
     observer: &mut dyn Observer,
 ) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + FusedElu>(
+    fn on<B: AutodiffBackend + NetOps>(
         devices: Vec<B::Device>,
         args: (ModelConfig, TrainOptions, PathBuf),
         train: &mut dyn BatchSource,
@@ -359,7 +360,7 @@ fn fit_on(
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
-        B::InnerBackend: FusedElu,
+        B::InnerBackend: NetOps,
     {
         let (config, opts, out) = args;
         Trainer::<B>::data_parallel(config, opts, out, devices)

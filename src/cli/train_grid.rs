@@ -18,7 +18,7 @@ use super::Outcome;
 use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
 use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
 use crate::model::store::NetConfig;
-use crate::model::FusedElu;
+use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
 
@@ -235,7 +235,7 @@ fn fit_on(
     resume: bool,
     observer: &mut dyn Observer,
 ) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + FusedElu>(
+    fn on<B: AutodiffBackend + NetOps>(
         device: B::Device,
         run: (GridConfig, GridTrainOptions, PathBuf),
         train: &WindowIndex,
@@ -245,7 +245,7 @@ fn fit_on(
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
-        B::InnerBackend: FusedElu,
+        B::InnerBackend: NetOps,
     {
         let (config, opts, out) = run;
         GridTrainer::<B> {
