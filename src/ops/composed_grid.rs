@@ -10,10 +10,12 @@ use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorMetadata, TensorPrimitiv
 use super::NetOps;
 use super::STENCIL_NODES as NODES;
 
-pub(crate) fn wrap<B: NetOps, const D: usize>(x: FloatTensor<B>) -> Tensor<B, D> {
+/// A float primitive as a tensor of rank `D`.
+fn wrap<B: NetOps, const D: usize>(x: FloatTensor<B>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(x))
 }
 
+/// The dims of a rank-4 primitive.
 pub(crate) fn dims4<B: NetOps>(x: &FloatTensor<B>) -> [usize; 4] {
     let s = x.shape();
     [s[0], s[1], s[2], s[3]]

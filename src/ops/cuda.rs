@@ -5,8 +5,8 @@ use burn::tensor::ops::FloatTensor;
 
 use super::NetOps;
 
-/// CUDA (feature `cuda`): the composed defaults, whose element-wise chains burn's fusion
-/// layer compiles into single kernels, with the large products through cuBLAS.
+/// The composed defaults, whose element-wise chains burn's fusion layer compiles into single
+/// kernels; the large products go to cuBLAS, which also splits their long reductions.
 impl NetOps for burn::backend::Cuda<f32, i32> {
     fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
         super::cublas::matmul(a, b)

@@ -10,6 +10,7 @@ use burn::tensor::{Int, Tensor, TensorPrimitive};
 
 use super::NetOps;
 
+/// A float primitive as a tensor of rank `D`.
 fn wrap<B: NetOps, const D: usize>(x: FloatTensor<B>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(x))
 }
