@@ -1,9 +1,24 @@
 //! minflow: learned real-time surrogates for 2D MLS-MPM particle simulation.
 //!
 //! The library behind the `minflow` binary and the tests. Modules follow the pipeline
-//! (`../shared/DESIGN.md`): [`sim`] makes the ground truth, [`msgs`] defines the
-//! `ParticleFrame` message and its CDR encoding, [`bag`] reads and writes MCAP bags, and
-//! [`cli`] is the command layer of the `minflow` binary.
+//! (`../shared/DESIGN.md`):
+//!
+//! - [`sim`]: the MLS-MPM solver and its scenes, which make the ground truth;
+//! - [`msgs`]: the `ParticleFrame` and `SurrogateStatus` messages and their CDR encoding;
+//! - [`bag`]: MCAP bags: writer, reader (foreign and truncated bags), `info`, `check`;
+//! - [`data`]: bags -> trajectories, split by scene, scaler, windows and batches;
+//! - [`ops`]: the backend operations the networks need beyond burn's (fused dense layers,
+//!   the recurrence scans, Adam, im2col, P2G/G2P): composed fallbacks, autodiff nodes, CPU
+//!   kernels and cuBLAS products;
+//! - [`model`]: the networks on [`ops`] (the grid architecture, the paper's encoder - core -
+//!   decoder) and saved models;
+//! - [`train`]: losses, the training loops, the optimizer, checkpoints;
+//! - [`eval`]: rollouts, metrics, baselines, tables, curves and renders;
+//! - [`plot`]: PNG line charts;
+//! - [`transport`]: one publish / subscribe interface over zenoh, iceoryx2 and ROS 2;
+//! - [`node`]: the surrogate node, the replay player and the recorder;
+//! - [`launch`]: launch files, their nodes as supervised child processes;
+//! - [`cli`]: the command layer of the `minflow` binary.
 
 pub mod bag;
 pub mod cli;
@@ -13,6 +28,7 @@ pub mod launch;
 pub mod model;
 pub mod msgs;
 pub mod node;
+pub mod ops;
 pub mod plot;
 pub mod sim;
 pub mod train;

@@ -53,15 +53,15 @@ pub fn run(args: GemmBenchArgs) -> anyhow::Result<Outcome> {
 mod cuda {
     use super::super::device::cuda::{CudaDevice, CudaInfer};
     use super::{GemmBenchArgs, Outcome};
-    use crate::model::cublas::{gpu_gemm, set_gpu_gemm, GpuGemm};
-    use crate::model::FusedElu;
+    use crate::ops::cublas::{gpu_gemm, set_gpu_gemm, GpuGemm};
+    use crate::ops::NetOps;
     use burn::tensor::backend::Backend;
     use burn::tensor::{Distribution, ElementConversion, Tensor, TensorPrimitive};
     use std::time::Instant;
 
     type T2 = Tensor<CudaInfer, 2>;
 
-    /// `a @ b` through the training path's product ([`FusedElu::matmul`]).
+    /// `a @ b` through the training path's product ([`NetOps::matmul`]).
     fn product(a: &T2, b: &T2) -> T2 {
         let p = |t: &T2| t.clone().into_primitive().tensor();
         Tensor::from_primitive(TensorPrimitive::Float(CudaInfer::matmul(p(a), p(b))))

@@ -15,7 +15,8 @@ use super::device::{Device, DeviceArgs};
 use super::train::CpuTrain;
 use super::Outcome;
 use crate::data::{Scaler, Trajectory, WindowIndex};
-use crate::model::{CoreKind, FusedElu, LastActivation, ModelConfig};
+use crate::model::{CoreKind, LastActivation, ModelConfig};
+use crate::ops::NetOps;
 use crate::train::{TrainOptions, Trainer};
 use burn::module::Module;
 use burn::tensor::backend::AutodiffBackend;
@@ -142,7 +143,7 @@ fn peak_mib(reset: bool) -> Option<f64> {
 }
 
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
-    crate::model::elu::set_split_weight_grad(match args.split_weight_grad.as_str() {
+    crate::ops::composed::set_split_weight_grad(match args.split_weight_grad.as_str() {
         "on" => true,
         "off" => false,
         other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
@@ -208,14 +209,14 @@ fn grid(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
 }
 
 /// The table on backend `B`; `peak(reset)` reads the memory column (and resets it).
-fn bench<B: AutodiffBackend + FusedElu>(
+fn bench<B: AutodiffBackend + NetOps>(
     args: &TrainBenchArgs,
     devices: Vec<B::Device>,
     memory: &str,
     peak: &dyn Fn(bool) -> Option<f64>,
 ) -> anyhow::Result<Outcome>
 where
-    B::InnerBackend: FusedElu,
+    B::InnerBackend: NetOps,
 {
     let last = if args.encoder_last_activation == "elu" {
         LastActivation::Elu

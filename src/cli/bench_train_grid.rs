@@ -18,19 +18,19 @@ use crate::data::{Scaler, WindowIndex};
 use crate::model::grid::{
     one_hot, transfer, GridConfig, Memory, MemoryKind, MemoryState, StepInput, UNetConfig,
 };
-use crate::model::FusedElu;
+use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::Quiet;
 
 /// The grid table on backend `B`; `peak(reset)` reads the memory column (and resets it).
-pub fn bench<B: AutodiffBackend + FusedElu>(
+pub fn bench<B: AutodiffBackend + NetOps>(
     args: &TrainBenchArgs,
     device: B::Device,
     memory: &str,
     peak: &dyn Fn(bool) -> Option<f64>,
 ) -> anyhow::Result<Outcome>
 where
-    B::InnerBackend: FusedElu,
+    B::InnerBackend: NetOps,
 {
     let cores = match &args.cores {
         Some(cores) => cores.clone(),
@@ -142,7 +142,7 @@ fn timed<B: Backend>(device: &B::Device, repeats: usize, mut f: impl FnMut()) ->
 
 /// One line: forward + backward milliseconds of each stage of a step of `config` at batch
 /// `b`, and the whole step.
-fn stages<B: AutodiffBackend + FusedElu>(
+fn stages<B: AutodiffBackend + NetOps>(
     config: &GridConfig,
     b: usize,
     n_p: usize,

@@ -36,7 +36,7 @@ impl DeviceArgs {
     /// sets `--gpu-gemm` for the process.
     pub fn parse(&self) -> anyhow::Result<Device> {
         let device = parse(&self.device)?;
-        crate::model::cublas::set_gpu_gemm(crate::model::cublas::GpuGemm::parse(&self.gpu_gemm)?);
+        crate::ops::cublas::set_gpu_gemm(crate::ops::cublas::GpuGemm::parse(&self.gpu_gemm)?);
         Ok(device)
     }
 }
@@ -122,8 +122,7 @@ pub mod cuda {
                 "--device cuda:{index}: libnvrtc (the CUDA toolkit's run-time compiler) could not be loaded; install the toolkit or add its lib64 to LD_LIBRARY_PATH"
             );
         }
-        let cublas_wanted =
-            crate::model::cublas::gpu_gemm() != crate::model::cublas::GpuGemm::Cubecl;
+        let cublas_wanted = crate::ops::cublas::gpu_gemm() != crate::ops::cublas::GpuGemm::Cubecl;
         // SAFETY: as above, for cuBLAS (the large products, `--gpu-gemm`).
         if cublas_wanted && !unsafe { cudarc::cublas::sys::is_culib_present() } {
             anyhow::bail!(

@@ -10,10 +10,10 @@ use clap::Args;
 use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::model::store::Surrogate;
-use crate::model::FusedElu;
 use crate::msgs::status::STATUS_TOPIC;
 use crate::node::shutdown_flag;
 use crate::node::surrogate::{self, NodeOptions, OnGap};
+use crate::ops::NetOps;
 use crate::transport::{self, TransportOptions};
 
 #[derive(Debug, Args)]
@@ -80,7 +80,7 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 }
 
 /// Loads the model onto `device` of backend `B` and serves until stopped.
-fn serve<B: FusedElu>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
+fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
     let options = NodeOptions {

@@ -248,7 +248,13 @@ fn run_name(arch: &str, core: &str) -> String {
 }
 
 /// The `minflow train` command line of one run (what REPORT.md prints to reproduce it).
-fn train_argv_of(args: &ReportArgs, data: &[String], arch: &str, core: &str, dir: &Path) -> Vec<String> {
+fn train_argv_of(
+    args: &ReportArgs,
+    data: &[String],
+    arch: &str,
+    core: &str,
+    dir: &Path,
+) -> Vec<String> {
     let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
     argv.extend(data.iter().cloned());
     argv.extend(["--arch".into(), arch.into()]);

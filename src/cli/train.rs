@@ -10,7 +10,8 @@ use super::device::{Device, DeviceArgs};
 use super::Outcome;
 use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
 use crate::model::store::NetConfig;
-use crate::model::{CoreKind, DecoderKind, FusedElu, LastActivation, ModelConfig, Pooling};
+use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
+use crate::ops::NetOps;
 use crate::train::{BatchSource, EpochRecord, Observer, TrainError, TrainOptions, Trainer};
 use anyhow::{bail, Context};
 use burn::backend::{Autodiff, NdArray};
@@ -349,7 +350,7 @@ fn fit_on(
     resume: bool,
     observer: &mut dyn Observer,
 ) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + FusedElu>(
+    fn on<B: AutodiffBackend + NetOps>(
         devices: Vec<B::Device>,
         args: (ModelConfig, TrainOptions, PathBuf),
         train: &mut dyn BatchSource,
@@ -359,7 +360,7 @@ fn fit_on(
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
-        B::InnerBackend: FusedElu,
+        B::InnerBackend: NetOps,
     {
         let (config, opts, out) = args;
         Trainer::<B>::data_parallel(config, opts, out, devices)
@@ -419,7 +420,10 @@ pub(crate) fn check_resume(out: &Path, net: &NetConfig) -> anyhow::Result<()> {
 ///
 /// # Errors
 /// An unreadable or unparsable `model.json`.
-pub(crate) fn config_differences(dir: &Path, net: &NetConfig) -> anyhow::Result<Option<Vec<String>>> {
+pub(crate) fn config_differences(
+    dir: &Path,
+    net: &NetConfig,
+) -> anyhow::Result<Option<Vec<String>>> {
     const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
     let path = dir.join("model.json");
     let text = match std::fs::read_to_string(&path) {

@@ -18,7 +18,7 @@ use super::Outcome;
 use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
 use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
 use crate::model::store::NetConfig;
-use crate::model::FusedElu;
+use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
 
@@ -219,7 +219,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let mut progress = Progress::new(args.out.clone());
     let history = fit_on(
         &device,
-        (config, opts, args.out.clone(), args.grid_args.init_from.clone()),
+        (
+            config,
+            opts,
+            args.out.clone(),
+            args.grid_args.init_from.clone(),
+        ),
         &index,
         &val,
         &scaler,
@@ -281,7 +286,7 @@ fn fit_on(
     resume: bool,
     observer: &mut dyn Observer,
 ) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + FusedElu>(
+    fn on<B: AutodiffBackend + NetOps>(
         device: B::Device,
         run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
         train: &WindowIndex,
@@ -291,7 +296,7 @@ fn fit_on(
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
-        B::InnerBackend: FusedElu,
+        B::InnerBackend: NetOps,
     {
         let (config, opts, out, init_from) = run;
         GridTrainer::<B> {

@@ -18,7 +18,7 @@ use burn::backend::NdArray;
 use super::EvalError;
 use crate::data::Trajectory;
 use crate::model::store::Surrogate;
-use crate::model::FusedElu;
+use crate::ops::NetOps;
 
 /// The CPU inference backend.
 pub type CpuInfer = NdArray<f32>;
@@ -102,7 +102,7 @@ impl Predictor for ConstVel {
 
 /// A trained model (a `minflow train` run folder), on the CPU backend unless loaded with
 /// [`ModelPredictor::load_on`].
-pub struct ModelPredictor<B: FusedElu = CpuInfer> {
+pub struct ModelPredictor<B: NetOps = CpuInfer> {
     name: String,
     surrogate: Surrogate<B>,
 }
@@ -115,7 +115,7 @@ impl ModelPredictor<CpuInfer> {
     }
 }
 
-impl<B: FusedElu> ModelPredictor<B> {
+impl<B: NetOps> ModelPredictor<B> {
     /// [`ModelPredictor::load`] onto `device` of backend `B`.
     pub fn load_on(
         dir: &Path,
@@ -146,7 +146,7 @@ impl<B: FusedElu> ModelPredictor<B> {
     }
 }
 
-impl<B: FusedElu> Predictor for ModelPredictor<B> {
+impl<B: NetOps> Predictor for ModelPredictor<B> {
     fn name(&self) -> &str {
         &self.name
     }

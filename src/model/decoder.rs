@@ -5,7 +5,7 @@
 //! first Linear is split into a per-particle and a per-frame part, which is exactly equal).
 //! Used by [`crate::model::Model`].
 
-use super::elu::{elu, linear, FusedElu};
+use crate::ops::{elu, linear, NetOps};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -43,7 +43,7 @@ pub enum Decoder<B: Backend> {
     Pointwise(PointwiseMlp<B>),
 }
 
-impl<B: FusedElu> Decoder<B> {
+impl<B: NetOps> Decoder<B> {
     /// New decoder for `particles` particles (global) or any count (pointwise); with
     /// `zero_init` the output layer starts at zero (dv = 0).
     pub fn new(

@@ -4,7 +4,7 @@
 //! Linear commutes with the mean, so it is applied after pooling: exactly equal, N times
 //! cheaper (~200x less encoder work at N = 2,500). Used by [`crate::model::Model`].
 
-use super::elu::{elu, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool, FusedElu};
+use crate::ops::{elu, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool, NetOps};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -47,7 +47,7 @@ pub struct Encoder<B: Backend> {
     pub project_after_pool: bool,
 }
 
-impl<B: FusedElu> Encoder<B> {
+impl<B: NetOps> Encoder<B> {
     /// New encoder `features -> hidden -> width`.
     pub fn new(
         features: usize,

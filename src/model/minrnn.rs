@@ -16,13 +16,11 @@ use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-use super::elu::{linear, recurrence, FusedElu};
+use crate::ops::mingru::mingru_update;
+use crate::ops::scan::scan_with_state;
+use crate::ops::{linear, recurrence, NetOps};
 
-/// `g(x)`: `x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise.
-pub fn g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
-    let pos = x.clone().greater_equal_elem(0.0);
-    sigmoid(x.clone()).mask_where(pos, x + 0.5)
-}
+pub use crate::ops::mingru::g;
 
 /// `log g(x)`: `log(x + 0.5)` for `x >= 0`, `-softplus(-x)` otherwise.
 pub fn log_g<B: Backend, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
@@ -56,72 +54,6 @@ pub fn normalized_gates<B: Backend, const D: usize>(
     (sigmoid(d.clone().neg()), sigmoid(d))
 }
 
-/// `log(exp(a) + exp(b))`, stable.
-fn log_add_exp<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>) -> Tensor<B, D> {
-    let hi = a.clone().max_pair(b.clone());
-    let diff = (a - b).abs().neg();
-    hi + diff.exp().log1p()
-}
-
-/// Stand-in for `log 0` in padded scan positions (finite, so gradients stay finite).
-const LOG_ZERO: f32 = -1e30;
-
-/// The log-space scan for `h_t = a_t h_{t-1} + b_t` (`h_0 = 0`): returns `log h_t`.
-///
-/// Heinsen (2023) writes it as `log h_t = a*_t + logcumsumexp(log b - a*)_t` with
-/// `a*_t = sum_{s <= t} log a_s`; in f32 that subtracts offsets that grow with t (|a*| ~ 180
-/// after 256 steps, losing ~1e-5). Here the same prefix is computed by a Hillis-Steele scan
-/// over pairs `(log a, log b)` with the associative operator
-/// `(a1, b1) o (a2, b2) = (a1 + a2, logaddexp(b1 + a2, b2))`: `ceil(log2 T)` parallel passes,
-/// no cancellation, and the result agrees with the step-by-step recurrence to ~1e-6.
-///
-/// # Shapes
-/// - `log_coeffs` (log a), `log_values` (log b): `[B, T, H]` -> `log h`: `[B, T, H]`
-pub fn scan_log<B: Backend>(log_coeffs: Tensor<B, 3>, log_values: Tensor<B, 3>) -> Tensor<B, 3> {
-    let [b, t, h] = log_values.dims();
-    let device = log_values.device();
-    let (mut la, mut lb) = (log_coeffs, log_values);
-    let mut shift = 1;
-    while shift < t {
-        // The element `shift` steps back, or the identity (a = 1, b = 0) before the start.
-        let prev_a = Tensor::cat(
-            vec![
-                Tensor::zeros([b, shift, h], &device),
-                la.clone().narrow(1, 0, t - shift),
-            ],
-            1,
-        );
-        let prev_b = Tensor::cat(
-            vec![
-                Tensor::full([b, shift, h], LOG_ZERO, &device),
-                lb.clone().narrow(1, 0, t - shift),
-            ],
-            1,
-        );
-        lb = log_add_exp(prev_b + la.clone(), lb);
-        la = prev_a + la;
-        shift *= 2;
-    }
-    lb
-}
-
-/// Prepends `log h_0` (a value with coefficient 1) and scans; returns the `T` new steps.
-pub(crate) fn scan_with_state<B: Backend>(
-    log_coeffs: Tensor<B, 3>,
-    log_values: Tensor<B, 3>,
-    h0: Option<Tensor<B, 2>>,
-) -> Tensor<B, 3> {
-    let Some(h0) = h0 else {
-        return scan_log(log_coeffs, log_values).exp();
-    };
-    let [b, t, h] = log_values.dims();
-    let log_h0 = h0.log().reshape([b, 1, h]);
-    let zeros = Tensor::zeros([b, 1, h], &log_coeffs.device());
-    let coeffs = Tensor::cat(vec![zeros, log_coeffs], 1);
-    let values = Tensor::cat(vec![log_h0, log_values], 1);
-    scan_log(coeffs, values).narrow(1, 1, t).exp()
-}
-
 /// Last time step of `[B, T, H]` as `[B, H]`.
 pub(crate) fn last_step<B: Backend>(x: Tensor<B, 3>) -> Tensor<B, 2> {
     let [b, t, h] = x.dims();
@@ -138,7 +70,7 @@ pub struct MinGru<B: Backend> {
     hidden: usize,
 }
 
-impl<B: FusedElu> MinGru<B> {
+impl<B: NetOps> MinGru<B> {
     /// New layer `d_in -> hidden -> d_out`.
     pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
         Self {
@@ -149,7 +81,7 @@ impl<B: FusedElu> MinGru<B> {
     }
 
     /// Whole window at once: the log-space parallel scan, or on a backend with
-    /// [`FusedElu::SEQUENTIAL_SCAN`] (the CPU) the same recurrence in linear space as one
+    /// [`NetOps::SEQUENTIAL_SCAN`] (the CPU) the same recurrence in linear space as one
     /// fused pass (`a = 1 - z`, `b = z g(h~)`; equal up to float rounding).
     ///
     /// # Shapes
@@ -195,12 +127,7 @@ impl<B: FusedElu> MinGru<B> {
     /// - `x`: `[B, d_in]`, `h`: `[B, hidden]` or `None` -> `([B, d_out], [B, hidden])`
     pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
         let hg = linear(&self.to_hidden_and_gate, x);
-        let tilde = g(hg.clone().narrow(1, 0, self.hidden));
-        let z = sigmoid(hg.narrow(1, self.hidden, self.hidden));
-        let next = match h {
-            Some(h) => (z.clone().neg() + 1.0) * h + z * tilde,
-            None => z * tilde,
-        };
+        let next = mingru_update(hg, h);
         (linear(&self.to_out, next.clone()), next)
     }
 }
@@ -215,7 +142,7 @@ pub struct MinLstm<B: Backend> {
     hidden: usize,
 }
 
-impl<B: FusedElu> MinLstm<B> {
+impl<B: NetOps> MinLstm<B> {
     /// New layer `d_in -> hidden -> d_out`.
     pub fn new(d_in: usize, hidden: usize, d_out: usize, device: &B::Device) -> Self {
         Self {

@@ -5,23 +5,20 @@
 //! by semi-implicit Euler: `v' = v + dv`, `x' = x + v' dt` (DESIGN.md, "Model").
 //!
 //! Layout: [`encoder`], [`temporal`] (minGRU | minLSTM | GRU | LSTM | MLP stack), [`minrnn`],
-//! [`rnn`], [`decoder`]. Used by `minflow train`, `eval`, `node`.
+//! [`rnn`], [`decoder`]; the grid architecture in [`grid`]; saved models in [`store`]. The
+//! networks are generic over a backend with [`NetOps`], whose kernels (fused dense layers,
+//! the recurrence scans, im2col, P2G/G2P) live in [`crate::ops`]. Used by `minflow train`,
+//! `eval`, `node`.
 
-pub mod conv_ops;
-mod cpu_kernels;
-pub mod cublas;
 pub mod decoder;
-pub mod elu;
 pub mod encoder;
 pub mod grid;
 pub mod minrnn;
 pub mod rnn;
 pub mod store;
 pub mod temporal;
-pub mod transfer_ops;
 
 pub use decoder::{Decoder, DecoderKind};
-pub use elu::FusedElu;
 pub use encoder::{Encoder, LastActivation, Pooling};
 pub use temporal::{Core, CoreKind, LayerState};
 
@@ -29,6 +26,8 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
+
+use crate::ops::NetOps;
 
 /// Every width, depth, pooling and dropout of the network; saved with each checkpoint.
 #[derive(Config, Debug)]
@@ -77,7 +76,7 @@ pub struct ModelConfig {
 
 impl ModelConfig {
     /// Builds the network with fresh weights.
-    pub fn init<B: FusedElu>(&self, device: &B::Device) -> Model<B> {
+    pub fn init<B: NetOps>(&self, device: &B::Device) -> Model<B> {
         let encoder = Encoder::new(
             self.features,
             self.encoder_hidden,
@@ -174,7 +173,7 @@ pub struct Model<B: Backend> {
     pub decoder: Decoder<B>,
 }
 
-impl<B: FusedElu> Model<B> {
+impl<B: NetOps> Model<B> {
     /// Encodes each frame of a window.
     ///
     /// # Shapes

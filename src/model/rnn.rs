@@ -15,7 +15,7 @@ use burn::tensor::activation::{sigmoid, tanh};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-use super::elu::{linear, FusedElu};
+use crate::ops::{linear, NetOps};
 
 /// A GRU layer of width `hidden`.
 #[derive(Module, Debug)]
@@ -29,7 +29,7 @@ pub struct Gru<B: Backend> {
     hidden: usize,
 }
 
-impl<B: FusedElu> Gru<B> {
+impl<B: NetOps> Gru<B> {
     /// New layer `d_in -> hidden`.
     pub fn new(d_in: usize, hidden: usize, device: &B::Device) -> Self {
         let no_bias = |i, o| LinearConfig::new(i, o).with_bias(false).init(device);
@@ -100,7 +100,7 @@ pub struct Lstm<B: Backend> {
     hidden: usize,
 }
 
-impl<B: FusedElu> Lstm<B> {
+impl<B: NetOps> Lstm<B> {
     /// New layer `d_in -> hidden`.
     pub fn new(d_in: usize, hidden: usize, device: &B::Device) -> Self {
         Self {

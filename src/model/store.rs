@@ -9,8 +9,9 @@
 //! ([`GridModel`]), are served by one [`Surrogate`].
 
 use super::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
-use super::{FusedElu, LayerState, Model, ModelConfig, Scaling};
+use super::{LayerState, Model, ModelConfig, Scaling};
 use crate::data::Scaler;
+use crate::ops::NetOps;
 use burn::module::Module;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use burn::tensor::backend::Backend;
@@ -55,7 +56,7 @@ pub enum Net<B: Backend> {
 
 impl NetConfig {
     /// A network with fresh weights.
-    pub fn init<B: FusedElu>(&self, device: &B::Device) -> Net<B> {
+    pub fn init<B: NetOps>(&self, device: &B::Device) -> Net<B> {
         match self {
             NetConfig::Paper(c) => Net::Paper(c.init(device)),
             NetConfig::Grid(c) => Net::Grid(c.init(device)),
@@ -163,7 +164,7 @@ pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreErr
 }
 
 /// Reads `model.json` and the weights from `dir`, of either architecture.
-pub fn load_net<B: FusedElu>(
+pub fn load_net<B: NetOps>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Net<B>, ModelMeta), StoreError> {
@@ -185,7 +186,7 @@ pub fn load_net<B: FusedElu>(
 }
 
 /// Reads a `paper` model (`model.json` and the weights) from `dir`.
-pub fn load<B: FusedElu>(
+pub fn load<B: NetOps>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Model<B>, ModelMeta), StoreError> {
@@ -225,7 +226,7 @@ enum NetState<B: Backend> {
     },
 }
 
-impl<B: FusedElu> Surrogate<B> {
+impl<B: NetOps> Surrogate<B> {
     /// Loads a run folder (either architecture).
     pub fn load(dir: &Path, device: &B::Device) -> Result<Self, StoreError> {
         let (net, meta) = load_net(dir, device)?;

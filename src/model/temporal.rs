@@ -3,9 +3,9 @@
 //! ELU) on the last time step. `mlp` replaces the recurrent layers by per-step Linear + ELU
 //! layers and is stateless (the paper's MLP baseline). Used by [`crate::model::Model`].
 
-use super::elu::{linear_elu, FusedElu};
 use super::minrnn::{last_step, MinGru, MinLstm};
 use super::rnn::{Gru, Lstm, LstmState};
+use crate::ops::{linear_elu, NetOps};
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, Linear, LinearConfig};
@@ -92,7 +92,7 @@ pub struct Core<B: Backend> {
     dropout: Dropout,
 }
 
-impl<B: FusedElu> Core<B> {
+impl<B: NetOps> Core<B> {
     /// A stack of `layers` layers `d_in -> width -> ... -> width`, dropout `p`.
     pub fn new(
         kind: CoreKind,

@@ -25,10 +25,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{channel, RecvTimeoutError};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::model::elu::FusedElu;
 use crate::model::store::{State, Surrogate};
 use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{ParticleFrame, Time};
+use crate::ops::NetOps;
 use crate::transport::{FramePublisher, StatusPublisher, Transport, TransportError};
 
 /// What to do with a frame that does not follow the previous one of its scene.
@@ -149,7 +149,7 @@ fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleF
 ///
 /// # Errors
 /// Declaring the subscription or publishers fails ([`TransportError`]).
-pub fn run<B: FusedElu>(
+pub fn run<B: NetOps>(
     options: &NodeOptions,
     surrogate: &Surrogate<B>,
     transport: &dyn Transport,

@@ -1,11 +1,11 @@
 //! Adam as one fused pass per parameter: [`FusedAdam`] is a `burn::optim::SimpleOptimizer`
 //! (used through burn's `OptimizerAdaptor`, like `burn::optim::Adam`) whose step calls the
-//! backend's [`FusedElu::adam_step`]. Same arithmetic as burn's Adam (Kingma & Ba 2015,
+//! backend's [`NetOps::adam_step`]. Same arithmetic as burn's Adam (Kingma & Ba 2015,
 //! Algorithm 1, epsilon scaled by `sqrt(1 - b2^t)` as in PyTorch), but burn composes it from
 //! about 13 tensor ops that each read and write the whole parameter; at the paper's sizes
 //! (11-33 M parameters) that was half of a CPU training step with the cheap encoder.
 
-use crate::model::elu::{AdamStep, FusedElu};
+use crate::ops::{AdamStep, NetOps};
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{LearningRate, SimpleOptimizer};
@@ -39,7 +39,7 @@ impl FusedAdam {
     /// The optimizer for module `M` on autodiff backend `B`.
     pub fn init<B: AutodiffBackend, M: AutodiffModule<B>>(self) -> OptimizerAdaptor<Self, M, B>
     where
-        B::InnerBackend: FusedElu,
+        B::InnerBackend: NetOps,
     {
         OptimizerAdaptor::from(self)
     }
@@ -57,7 +57,7 @@ pub struct FusedAdamState<B: Backend, const D: usize> {
     pub moment_2: Tensor<B, D>,
 }
 
-impl<B: FusedElu> SimpleOptimizer<B> for FusedAdam {
+impl<B: NetOps> SimpleOptimizer<B> for FusedAdam {
     type State<const D: usize> = FusedAdamState<B, D>;
 
     fn step<const D: usize>(
@@ -137,7 +137,7 @@ mod tests {
         };
         let prim = |t: Tensor<C, 2>| t.into_primitive().tensor();
         let wrap = |t| Tensor::<C, 2>::from_primitive(TensorPrimitive::Float(t));
-        let (pa, ma, va) = crate::model::elu::composed_adam::<C>(
+        let (pa, ma, va) = crate::ops::adam::composed_adam::<C>(
             prim(p2.clone()),
             prim(g.clone()),
             Some(prim(s.moment_1.clone())),

@@ -32,7 +32,8 @@ use crate::data::{Batch, Scaler, Trajectory, WindowIndex};
 use crate::eval::rollout::start_offsets;
 use crate::model::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
 use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
-use crate::model::{upload, FusedElu};
+use crate::model::upload;
+use crate::ops::NetOps;
 
 /// Optimisation settings of a grid run.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
@@ -154,7 +155,7 @@ fn upload_batch<B: Backend>(
 }
 
 /// The training loss of one batch (see the module doc).
-fn sequence_loss<B: FusedElu>(
+fn sequence_loss<B: NetOps>(
     model: &GridModel<B>,
     config: &GridConfig,
     opts: &GridTrainOptions,
@@ -220,7 +221,7 @@ fn sequence_loss<B: FusedElu>(
 ///
 /// # Errors
 /// A step failed ([`store::StoreError`]).
-pub fn validation_rollout<B: FusedElu>(
+pub fn validation_rollout<B: NetOps>(
     surrogate: &Surrogate<B>,
     trajs: &[Trajectory],
     scaler: &Scaler,
@@ -278,9 +279,9 @@ pub fn validation_rollout<B: FusedElu>(
     })
 }
 
-impl<B: AutodiffBackend + FusedElu> GridTrainer<B>
+impl<B: AutodiffBackend + NetOps> GridTrainer<B>
 where
-    B::InnerBackend: FusedElu,
+    B::InnerBackend: NetOps,
 {
     /// Trains on `train` (windows of `T + P - 1` input frames built with the identity
     /// scaler), validating by rollouts of `val`; `scaler` is the training split's min-max
@@ -454,7 +455,7 @@ where
 ///
 /// # Errors
 /// Moving the record failed.
-pub fn initial_grid_model<B: FusedElu>(
+pub fn initial_grid_model<B: NetOps>(
     config: &GridConfig,
     seed: u64,
     device: &B::Device,

@@ -178,7 +178,7 @@ impl HostSlice {
 /// Fresh weights from `seed`, drawn on the CPU backend whatever `B` is and moved to `device`
 /// through an f32 record, so runs on different backends start from identical weights. (For
 /// `B` on ndarray these are the weights `config.init::<B>` draws after seeding.)
-pub fn initial_model<B: crate::model::FusedElu>(
+pub fn initial_model<B: crate::ops::NetOps>(
     config: &ModelConfig,
     seed: u64,
     device: &B::Device,
@@ -226,7 +226,7 @@ fn positions<B: burn::tensor::backend::Backend>(
 }
 
 /// The model's prediction for a batch slice and its loss (train and validation alike).
-fn slice_loss<B: crate::model::FusedElu>(
+fn slice_loss<B: crate::ops::NetOps>(
     model: &Model<B>,
     s: Slice<B>,
     scaling: &Scaling,
@@ -244,7 +244,7 @@ fn slice_loss<B: crate::model::FusedElu>(
 }
 
 /// Mean loss of `model` over `index` (no gradients, no dropout).
-pub fn evaluate<B: crate::model::FusedElu>(
+pub fn evaluate<B: crate::ops::NetOps>(
     model: &Model<B>,
     index: &mut dyn BatchSource,
     scaling: &Scaling,
@@ -303,9 +303,9 @@ pub struct Trainer<B: AutodiffBackend> {
     devices: Vec<B::Device>,
 }
 
-impl<B: AutodiffBackend + crate::model::FusedElu> Trainer<B>
+impl<B: AutodiffBackend + crate::ops::NetOps> Trainer<B>
 where
-    B::InnerBackend: crate::model::FusedElu,
+    B::InnerBackend: crate::ops::NetOps,
 {
     /// A trainer writing to `out`.
     pub fn new(config: ModelConfig, opts: TrainOptions, out: PathBuf, device: B::Device) -> Self {

@@ -345,12 +345,20 @@ fn grid_train_starts_from_another_runs_weights() {
     let other = tempfile::tempdir().unwrap();
     let o = run(
         other.path(),
-        &["--init-from", source.path().to_str().unwrap(), "--window", "3"],
+        &[
+            "--init-from",
+            source.path().to_str().unwrap(),
+            "--window",
+            "3",
+        ],
     );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("window: checkpoint 2, this run 3"), "{err}");
-    assert!(!other.path().join("metrics.csv").exists(), "the refused run trained");
+    assert!(
+        !other.path().join("metrics.csv").exists(),
+        "the refused run trained"
+    );
 }
 
 #[test]

@@ -76,9 +76,14 @@ fn report_trains_evaluates_and_writes_report_md() {
     let rows: Vec<&str> = report
         .lines()
         .filter(|l| {
-            ["| paper-mlp |", "| paper-mingru |", "| grid-none |", "| grid-mingru |"]
-                .iter()
-                .any(|p| l.starts_with(p))
+            [
+                "| paper-mlp |",
+                "| paper-mingru |",
+                "| grid-none |",
+                "| grid-mingru |",
+            ]
+            .iter()
+            .any(|p| l.starts_with(p))
         })
         .filter(|l| l.split('|').count() == 10)
         .collect();

@@ -276,7 +276,7 @@ fn fused_elu_equals_composed_elu() {
     let x = Tensor::<B, 3>::random([3, 50, 7], Distribution::Uniform(-4.0, 4.0), &device)
         .require_grad();
     let w = Tensor::<B, 3>::random([3, 50, 7], Distribution::Normal(0.0, 1.0), &device);
-    let fused = minflow::model::elu::elu(x.clone());
+    let fused = minflow::ops::elu(x.clone());
     let composed = burn::tensor::activation::elu(x.clone(), 1.0);
     assert!(max_diff(fused.clone(), composed.clone()) <= 1e-6);
     let gf = x.grad(&(fused * w.clone()).sum().backward()).unwrap();
@@ -285,7 +285,7 @@ fn fused_elu_equals_composed_elu() {
     assert!(d <= 1e-6, "gradients differ by {d}");
     let plain =
         Tensor::<NdArray<f32>, 2>::random([64, 9], Distribution::Uniform(-3.0, 3.0), &device);
-    let a: Vec<f32> = minflow::model::elu::elu(plain.clone())
+    let a: Vec<f32> = minflow::ops::elu(plain.clone())
         .into_data()
         .to_vec()
         .unwrap();
@@ -322,14 +322,11 @@ fn fused_linear_equals_burns_linear() {
                 );
                 let (fused, plain) = if with_elu {
                     (
-                        minflow::model::elu::linear_elu(&l, x.clone()),
+                        minflow::ops::linear_elu(&l, x.clone()),
                         burn::tensor::activation::elu(l.forward(x.clone()), 1.0),
                     )
                 } else {
-                    (
-                        minflow::model::elu::linear(&l, x.clone()),
-                        l.forward(x.clone()),
-                    )
+                    (minflow::ops::linear(&l, x.clone()), l.forward(x.clone()))
                 };
                 let d = max_diff(fused.clone(), plain.clone());
                 assert!(
@@ -361,7 +358,7 @@ fn fused_linear_equals_burns_linear() {
 /// gradients of input, weight and bias.
 #[test]
 fn linear_elu_mean_node_equals_composed() {
-    use minflow::model::elu::{elu, linear_elu_mean_pool};
+    use minflow::ops::{elu, linear_elu_mean_pool};
     let device = Default::default();
     let layer = burn::nn::LinearConfig::new(16, 24).init::<B>(&device);
     let x = Tensor::<B, 3>::random([3, 200, 16], Distribution::Uniform(-1.0, 1.0), &device)

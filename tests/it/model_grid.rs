@@ -357,12 +357,12 @@ fn convolution_of_parts_equals_convolution_of_the_concatenation() {
     assert!(worst < 1e-5, "{worst}");
 }
 
-/// The grid's SiLU (`model::conv_ops::silu`, a native CPU kernel on NdArray) equals burn's
+/// The grid's SiLU (`ops::silu`, a native CPU kernel on NdArray) equals burn's
 /// `activation::silu` in value and gradient, over large and tiny inputs.
 #[test]
 fn silu_equals_burns_in_value_and_gradient() {
     use burn::backend::Autodiff;
-    use minflow::model::conv_ops::silu;
+    use minflow::ops::silu;
     type A = Autodiff<B>;
     let device = Default::default();
     let data: Vec<f32> = (0..2000).map(|i| (i as f32 - 1000.0) * 0.03).collect();
@@ -402,7 +402,7 @@ fn silu_equals_burns_in_value_and_gradient() {
     assert!(w < 1e-5, "gradient {w}");
 }
 
-/// The CPU's native P2G / G2P (`model::transfer_ops`, one autodiff node each, the other's
+/// The CPU's native P2G / G2P (`ops::gather` / `ops::splat`, one autodiff node each, the other's
 /// adjoint as backward) give the gradients of burn's separable dense products, batch of 2.
 #[test]
 fn native_transfers_have_the_dense_gradients() {

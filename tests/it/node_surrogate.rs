@@ -33,14 +33,7 @@ fn model() -> PathBuf {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     trained(
         &DIR,
-        &[
-            "--arch",
-            "paper",
-            "--width",
-            "48",
-            "--encoder-hidden",
-            "16",
-        ],
+        &["--arch", "paper", "--width", "48", "--encoder-hidden", "16"],
     )
 }
 

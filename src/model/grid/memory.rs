@@ -13,7 +13,7 @@ use burn::tensor::Tensor;
 
 use crate::model::minrnn::{MinGru, MinLstm};
 use crate::model::rnn::{Gru, Lstm, LstmState};
-use crate::model::FusedElu;
+use crate::ops::NetOps;
 
 /// Which per-particle memory.
 #[derive(Config, Debug, Copy, PartialEq, Eq)]
@@ -88,7 +88,7 @@ pub struct Memory<B: Backend> {
     lstm: Option<Lstm<B>>,
 }
 
-impl<B: FusedElu> Memory<B> {
+impl<B: NetOps> Memory<B> {
     /// A cell of kind `kind` reading `d_in` features per particle with `hidden` state values.
     pub fn new(kind: MemoryKind, d_in: usize, hidden: usize, device: &B::Device) -> Self {
         Self {

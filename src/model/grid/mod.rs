@@ -34,9 +34,7 @@ use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
-use super::conv_ops::silu;
-use super::elu::linear;
-use super::FusedElu;
+use crate::ops::{linear, silu, NetOps};
 
 /// Materials (one-hot width).
 pub const MATERIALS: usize = 4;
@@ -120,7 +118,7 @@ impl GridConfig {
 
     /// A model with fresh weights; the head's last layer starts at zero, so an untrained
     /// model predicts `dv = dv_mean` (constant velocity plus the mean acceleration).
-    pub fn init<B: FusedElu>(&self, device: &B::Device) -> GridModel<B> {
+    pub fn init<B: NetOps>(&self, device: &B::Device) -> GridModel<B> {
         let own = self.own_features();
         let d_u = self.latent + own;
         let d_head = d_u
@@ -220,7 +218,7 @@ fn walls<B: Backend>(b: usize, n: usize, device: &B::Device) -> Tensor<B, 3> {
     Tensor::<B, 3>::from_data(TensorData::new(data, [1, n * n, 2]), device).repeat_dim(0, b)
 }
 
-impl<B: FusedElu> GridModel<B> {
+impl<B: NetOps> GridModel<B> {
     /// Velocity frames per particle the step reads (T).
     pub fn window(&self) -> usize {
         self.window

@@ -12,8 +12,8 @@
 //!
 //! Two equal ways to apply a stencil ([`Stencil::dense`] picks):
 //! - sparse, for the CPU: the 9 node indices and weights of each particle, P2G a weighted
-//!   scatter-add and G2P a weighted gather (`model::transfer_ops`: one pass each on the CPU,
-//!   burn's `select_assign` / `select` elsewhere);
+//!   scatter-add and G2P a weighted gather ([`ops::splat`], [`ops::gather`]: one pass each on
+//!   the CPU, burn's `select_assign` / `select` elsewhere);
 //! - separable dense, for the GPU: the weights factor per axis, `w_ip = wx_p[i_x] wy_p[i_y]`,
 //!   so with `Wx, Wy` (`[B, N, n]`, three non-zeros per row) P2G is
 //!   `Wx^T (Wy (x) v)` and G2P `sum_y Wy (Wx G)`: two batched matrix products, no scatter.
@@ -23,8 +23,7 @@
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
 
-use crate::model::transfer_ops;
-use crate::model::FusedElu;
+use crate::ops::{self, NetOps};
 
 /// The grid nodes and weights of every particle of a batch, sparse or separable dense.
 #[derive(Clone, Debug)]
@@ -113,7 +112,7 @@ pub fn stencil<B: Backend>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<
 
 /// P2G: `values` (`[B, N, C]`) splatted onto the grid, `sum_p w_ip v_p` per node, as
 /// `[B, n^2, C]` (node `i n + j` at `(i dx, j dx)`).
-pub fn p2g<B: FusedElu>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
+pub fn p2g<B: NetOps>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
     if let Some((wx, wy)) = &s.dense {
         let ([b, n_p, c], n) = (values.dims(), s.n);
         let spread = wy.clone().unsqueeze_dim::<4>(3) * values.unsqueeze_dim::<4>(2); // [B,N,n,C]
@@ -123,12 +122,12 @@ pub fn p2g<B: FusedElu>(s: &Stencil<B>, values: Tensor<B, 3>) -> Tensor<B, 3> {
             .matmul(spread.reshape([b, n_p, n * c]))
             .reshape([b, n * n, c]);
     }
-    transfer_ops::splat(values, s.index.clone(), s.weight.clone(), s.n * s.n)
+    ops::splat(values, s.index.clone(), s.weight.clone(), s.n * s.n)
 }
 
 /// G2P: grid values (`[B, n^2, C]`) gathered to every particle, `sum_i w_ip g_i`, as
 /// `[B, N, C]`.
-pub fn g2p<B: FusedElu>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
+pub fn g2p<B: NetOps>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
     if let Some((wx, wy)) = &s.dense {
         let ([b, _, c], n) = (grid.dims(), s.n);
         let rows = wx.clone().matmul(grid.reshape([b, n, n * c])); // [B, N, n C]
@@ -136,7 +135,7 @@ pub fn g2p<B: FusedElu>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
             .sum_dim(2)
             .reshape([b, s.particles, c]);
     }
-    transfer_ops::gather(grid, s.index.clone(), s.weight.clone())
+    ops::gather(grid, s.index.clone(), s.weight.clone())
 }
 
 /// [`stencil`] for one particle at `(x, y)` in plain f32: the nine `(i, j, w)`.

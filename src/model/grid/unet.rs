@@ -6,7 +6,7 @@
 //! the first. The weights are burn's `Conv2d`s. On a GPU they run as im2col by shifted
 //! slices (burn's convolution gradients made the U-Net 8x slower there); on the CPU, where
 //! burn-ndarray's direct convolution loop took 59 % of an inference step (perf, `eval` of a
-//! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`FusedElu::linear_forward`]): the nine shifted copies of the zero-padded
+//! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`NetOps::linear_forward`]): the nine shifted copies of the zero-padded
 //! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
 //! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
 //! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
@@ -19,8 +19,7 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
-use crate::model::conv_ops::{im2col, silu};
-use crate::model::FusedElu;
+use crate::ops::{im2col, silu, NetOps};
 
 /// How the U-Net's convolutions are computed; the weights and the result are the same.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -35,10 +34,10 @@ pub enum ConvKernel {
     /// burn's `Conv2d::forward` on the permuted (channels-first) view.
     Burn,
     /// im2col as one row gather (`select`) of a zero-padded copy, then one product through
-    /// [`FusedElu::linear_forward`]; the concatenation of the U-Net's parts is never built.
+    /// [`NetOps::linear_forward`]; the concatenation of the U-Net's parts is never built.
     Gather,
     /// im2col as the nine shifted slices of the zero-padded input concatenated along the
-    /// channels, then one product through [`FusedElu::linear_forward`] (no gather, so its
+    /// channels, then one product through [`NetOps::linear_forward`] (no gather, so its
     /// gradient needs no scatter).
     Shift,
 }
@@ -63,7 +62,7 @@ impl ConvKernel {
     }
 
     /// What `Auto` means on backend `B`.
-    pub fn resolve<B: FusedElu>(self) -> Self {
+    pub fn resolve<B: NetOps>(self) -> Self {
         match self {
             Self::Auto if B::SEQUENTIAL_SCAN => Self::Gather,
             Self::Auto => Self::Shift,
@@ -152,7 +151,7 @@ impl<B: Backend> ConvBlock<B> {
     }
 }
 
-impl<B: FusedElu> ConvBlock<B> {
+impl<B: NetOps> ConvBlock<B> {
     fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         self.forward_parts(vec![x])
     }
@@ -169,7 +168,7 @@ impl<B: FusedElu> ConvBlock<B> {
 ///
 /// # Shapes
 /// - `x`: `[B, H, W, C_in]` -> `[B, H, W, C_out]`
-pub fn conv<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>, kernel: ConvKernel) -> Tensor<B, 4> {
+pub fn conv<B: NetOps>(conv: &Conv2d<B>, x: Tensor<B, 4>, kernel: ConvKernel) -> Tensor<B, 4> {
     conv_parts(conv, vec![x], kernel)
 }
 
@@ -184,8 +183,8 @@ fn im2col_weight<B: Backend>(conv: &Conv2d<B>, offset: usize, c: usize) -> Tenso
         .reshape([k * k * c, c_out])
 }
 
-/// `rows @ matrix + bias` through [`FusedElu::linear_forward`].
-fn product<B: FusedElu>(
+/// `rows @ matrix + bias` through [`NetOps::linear_forward`].
+fn product<B: NetOps>(
     rows: Tensor<B, 2>,
     matrix: Tensor<B, 2>,
     bias: Option<Tensor<B, 1>>,
@@ -200,7 +199,7 @@ fn product<B: FusedElu>(
 
 /// [`ConvKernel::Shift`]: the nine (or one) shifted slices of the zero-padded `x`
 /// concatenated along the channels, times the weight matrix.
-fn conv_shift<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
+fn conv_shift<B: NetOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
     let [b, h, w, c] = x.dims();
     let k = conv.weight.dims()[2];
     let c_out = conv.weight.dims()[0];
@@ -230,7 +229,7 @@ fn conv_shift<B: FusedElu>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
 ///
 /// # Shapes
 /// - `parts`: `[B, H, W, C_p]` each, `sum C_p = C_in` -> `[B, H, W, C_out]`
-pub fn conv_parts<B: FusedElu>(
+pub fn conv_parts<B: NetOps>(
     conv: &Conv2d<B>,
     mut parts: Vec<Tensor<B, 4>>,
     kernel: ConvKernel,
@@ -275,11 +274,11 @@ pub fn conv_parts<B: FusedElu>(
     sum.expect("at least one part").reshape([b, h, w, c_out])
 }
 
-/// [`ConvKernel::Gather`] on a backend with native im2col ([`FusedElu::NATIVE_CONV_OPS`]):
-/// each part through [`FusedElu::im2col`] (one pass, columns ordered as burn's weight
+/// [`ConvKernel::Gather`] on a backend with native im2col ([`NetOps::NATIVE_CONV_OPS`]):
+/// each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
 /// `[C_out, C_in, k, k]` flattens, so the weight matrix is a transposed view of it) and one
 /// product, the products summed.
-fn conv_parts_native<B: FusedElu>(
+fn conv_parts_native<B: NetOps>(
     conv: &Conv2d<B>,
     parts: Vec<Tensor<B, 4>>,
     [b, h, w, c_out, c_in, k]: [usize; 6],
@@ -368,7 +367,7 @@ pub struct UNet<B: Backend> {
     kernel: ConvKernel,
 }
 
-impl<B: FusedElu> UNet<B> {
+impl<B: NetOps> UNet<B> {
     /// Channels last throughout (the grid as P2G leaves it), so the CPU's convolutions never
     /// copy a transposed layout.
     ///

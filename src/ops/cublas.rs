@@ -30,7 +30,7 @@ pub enum GpuGemm {
     Tf32,
     /// cuBLAS in full FP32 (`CUBLAS_DEFAULT_MATH`; PyTorch's default for f32).
     Fp32,
-    /// cubecl's matmul (burn's own), with the split-K weight gradients of `model::elu`.
+    /// cubecl's matmul (burn's own), with the split-K weight gradients of `ops::composed`.
     Cubecl,
 }
 

@@ -1,0 +1,102 @@
+//! The minGRU's inference update (`ops::mingru`) as one pass over the state on the CPU.
+
+use rayon::prelude::*;
+
+use super::activation::expm1;
+use super::{dense, tensor, CpuTensor};
+
+/// Rows per task of the update.
+const ROWS_PER_TASK: usize = 256;
+
+/// `sigmoid(x) = 1 / (2 + expm1(-x))`, vectorisable.
+#[inline(always)]
+fn sigmoid1(x: f32) -> f32 {
+    1.0 / (2.0 + expm1(-x))
+}
+
+/// `(1 - z) h + z g(h~)` in one pass: `hg` `[M, 2H]`, `h` `[M, H]` -> `[M, H]`; None when the
+/// inputs are not f32 of those shapes (the caller then composes it).
+pub(crate) fn update(hg: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor> {
+    let (hg, shape) = dense(hg)?;
+    let &[m, two_h] = shape.as_slice() else {
+        return None;
+    };
+    let hidden = two_h / 2;
+    if two_h != 2 * hidden {
+        return None;
+    }
+    let prev = match h {
+        Some(h) => {
+            let (h, hshape) = dense(h)?;
+            if hshape != [m, hidden] {
+                return None;
+            }
+            Some(h)
+        }
+        None => None,
+    };
+    let mut out = vec![0f32; m * hidden];
+    let fill = |r0: usize, dst: &mut [f32]| {
+        for (q, dst) in dst.chunks_exact_mut(hidden).enumerate() {
+            let r = r0 + q;
+            let row = &hg[r * two_h..(r + 1) * two_h];
+            let (tilde, gate) = row.split_at(hidden);
+            for j in 0..hidden {
+                let t = tilde[j];
+                let g = if t >= 0.0 { t + 0.5 } else { sigmoid1(t) };
+                let z = sigmoid1(gate[j]);
+                let p = prev.as_ref().map_or(0.0, |p| p[r * hidden + j]);
+                dst[j] = p + z * (g - p);
+            }
+        }
+    };
+    if m > ROWS_PER_TASK && hidden > 0 {
+        out.par_chunks_mut(ROWS_PER_TASK * hidden)
+            .enumerate()
+            .for_each(|(t, dst)| fill(t * ROWS_PER_TASK, dst));
+    } else {
+        fill(0, &mut out);
+    }
+    Some(tensor(out, &[m, hidden]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ops::mingru::composed_mingru_update;
+    use burn::backend::NdArray;
+    use burn::tensor::{Tensor, TensorData, TensorPrimitive};
+
+    /// The one pass equals the composed formula, with and without a previous state, over
+    /// negative and positive `h~` and gates.
+    #[test]
+    fn update_equals_the_composed_one() {
+        type B = NdArray<f32>;
+        let (m, hidden) = (300, 5);
+        let values = |n: usize, k: f32| -> Vec<f32> {
+            (0..n).map(|i| (i as f32 * k).sin() * 6.0).collect()
+        };
+        let hg = Tensor::<B, 2>::from_data(
+            TensorData::new(values(m * 2 * hidden, 0.37), [m, 2 * hidden]),
+            &Default::default(),
+        );
+        let h = Tensor::<B, 2>::from_data(
+            TensorData::new(values(m * hidden, 0.11), [m, hidden]),
+            &Default::default(),
+        );
+        let back = |x| Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(x));
+        for prev in [None, Some(h)] {
+            let p = prev.clone().map(|h| h.into_primitive().tensor());
+            let cpu = update(&hg.clone().into_primitive().tensor(), p.as_ref()).expect("f32");
+            let composed = composed_mingru_update::<B>(hg.clone().into_primitive().tensor(), p);
+            let a: Vec<f32> = back(cpu).into_data().to_vec().unwrap();
+            let b: Vec<f32> = back(composed).into_data().to_vec().unwrap();
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst < 1e-5, "{worst}");
+        }
+    }
+}

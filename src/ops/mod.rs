@@ -1,0 +1,284 @@
+//! `ops`: the backend operations minflow's networks need beyond burn's, as one backend
+//! extension trait, [`NetOps`]: the dense layer `x @ W + b` (alone or fused with ELU) and its
+//! gradients, the products under it, ELU, the paper encoder's dense layer + ELU + mean
+//! pooling, the linear recurrence of minGRU / minLSTM, one Adam step, and the grid model's
+//! im2col / col2im, SiLU and particle <-> grid stencil transfers. `model/` builds its networks
+//! on these (through the tensor-level functions re-exported here, [`linear`], [`elu`],
+//! [`recurrence`], ...), and `train::adam` on [`NetOps::adam_step`]. Nothing here imports
+//! `model`.
+//!
+//! Every method has a default composed from burn's tensor operations, so any backend opts in
+//! with an empty impl and overrides what it does faster. Where things live:
+//!
+//! - `mod.rs`: the trait: each operation's contract (shapes, what it computes) and default.
+//! - `tensor.rs`: the operations on burn `Tensor`s that `model/` calls.
+//! - [`composed`]: the defaults in burn's tensor operations for the dense layer, ELU and the
+//!   pooled ELU, with the dense layer's chunked weight gradient; `composed_grid.rs`: those of
+//!   im2col, col2im, SiLU and the stencil transfers.
+//! - [`mingru`]: the minGRU's activation `g` and its inference update.
+//! - [`scan`]: the recurrence in burn's tensor operations (Heinsen's log-space parallel scan,
+//!   the default, and its reverse-loop backward).
+//! - [`adam`]: [`AdamStep`], the scalars of one Adam step, and its composed default.
+//! - `autodiff.rs`: the impl for `Autodiff<B>`: one graph node per fused forward, whose
+//!   backward calls the inner backend's backward operation; `autodiff_grid.rs`: the nodes of
+//!   the grid model's operations.
+//! - `ndarray.rs`: the impl for `NdArray<f32>` (the CPU), on the kernels of `cpu/`: `gemm.rs`
+//!   (dense layers), `activation.rs` (ELU, SiLU), `elu_mean.rs` (the encoder's first layer
+//!   and pooling in one pass), `scan.rs` (the sequential recurrence), `adam.rs`, `conv.rs`
+//!   (im2col, col2im) and `transfer.rs` (the stencil gather and scatter-add).
+//! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults,
+//!   whose element-wise chains burn's fusion layer compiles into single kernels, with the
+//!   large products through [`cublas`].
+//!
+//! Two choices are process-wide settings: the GPU's product kernel
+//! ([`cublas::set_gpu_gemm`], `--gpu-gemm`) and whether the composed dense-layer backward
+//! splits long weight-gradient reductions ([`composed::set_split_weight_grad`], `bench train
+//! --split-weight-grad`).
+
+pub mod adam;
+mod autodiff;
+mod autodiff_grid;
+pub mod composed;
+mod composed_grid;
+mod cpu;
+pub mod cublas;
+#[cfg(feature = "cuda")]
+mod cuda;
+pub mod mingru;
+mod ndarray;
+pub mod scan;
+mod tensor;
+
+pub use adam::AdamStep;
+pub use tensor::{
+    elu, gather, im2col, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool, recurrence,
+    silu, splat,
+};
+
+use burn::tensor::backend::Backend;
+use burn::tensor::ops::{FloatTensor, IntTensor};
+use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
+
+/// Stencil nodes per particle of [`NetOps::stencil_gather`] and [`NetOps::stencil_splat`]
+/// (3 x 3, quadratic B-spline).
+pub(crate) const STENCIL_NODES: usize = 9;
+
+/// The backend operations minflow's networks need beyond burn's (see the module doc for
+/// where each implementation lives). ELU is always `alpha = 1`.
+pub trait NetOps: Backend {
+    /// `elu(x)`, any shape.
+    fn elu_forward(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let shape = x.shape();
+        let n = shape.num_elements();
+        let flat = Tensor::<Self, 1>::from_primitive(TensorPrimitive::Float(Self::float_reshape(
+            x,
+            [n].into(),
+        )));
+        let y = burn::tensor::activation::elu(flat, 1.0)
+            .into_primitive()
+            .tensor();
+        Self::float_reshape(y, shape)
+    }
+
+    /// `x @ weight + bias`: `x` `[..., in]` (any rank >= 2), `weight` `[in, out]` (burn's
+    /// `Linear` layout), `bias` `[out]`; returns `[..., out]`. Composed from matmul and add by
+    /// default; the CPU backend calls AVX-512/AVX2 `gemm` (with the bias added in the same
+    /// pass, and no copies for reshapes), or streams the weights for a handful of rows (the
+    /// inference step).
+    fn linear_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        composed::composed_linear::<Self>(x, weight, bias)
+    }
+
+    /// `elu(x @ weight + bias)`, shapes as [`NetOps::linear_forward`]. The CPU backend
+    /// adds the bias and applies ELU in one pass over the product; by default bias and ELU
+    /// are applied to the `[rows, out]` product before it takes `x`'s leading dims back (a
+    /// fusing backend then compiles them into one kernel: a reshape between them split it).
+    fn linear_elu_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        composed::composed_linear_map::<Self>(x, weight, bias, |y| {
+            burn::tensor::activation::elu(y, 1.0)
+        })
+    }
+
+    /// Gradients of `y = x @ weight (+ bias)` from `grad` = dL/dy `[..., out]`:
+    /// `[dx [..., in], dweight [in, out], dbias [out]]`, each computed only when `need[i]`.
+    fn linear_backward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        composed::composed_linear_backward::<Self>(x, weight, grad, need)
+    }
+
+    /// `a @ b` for 2-D `a` `[m, k]` and `b` `[k, n]` (either may be a transposed view) ->
+    /// `[m, n]`: the products of the composed dense layer and its backward. burn's matmul
+    /// by default; the CUDA backend sends large ones to cuBLAS ([`cublas`]).
+    fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::float_matmul(a, b)
+    }
+
+    /// Whether [`NetOps::matmul`] takes a `[m, k] x [k, n]` product with a long reduction
+    /// `k` whole and still fills the device (cuBLAS chooses split-K itself), so the composed
+    /// backward does not cut the weight gradient into row chunks ([`composed::weight_grad_chunks`]).
+    fn splits_reduction(m: usize, k: usize, n: usize) -> bool {
+        let _ = (m, k, n);
+        false
+    }
+
+    /// One Adam step on a parameter (see [`AdamStep`]): returns the new parameter and the
+    /// new first and second moments, all shaped like `param`; `m` / `v` None = zero (the
+    /// first step). Composed from tensor ops by default (about 13 passes over memory); the
+    /// CPU backend does it in one pass, in place.
+    fn adam_step(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        m: Option<FloatTensor<Self>>,
+        v: Option<FloatTensor<Self>>,
+        c: &AdamStep,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        adam::composed_adam::<Self>(param, grad, m, v, c)
+    }
+
+    /// True where [`NetOps::im2col`], [`NetOps::col2im`] and [`NetOps::silu`] are
+    /// single-pass kernels with their own autodiff nodes (the CPU backend); elsewhere the grid
+    /// model composes its convolutions from burn's tensor operations.
+    const NATIVE_CONV_OPS: bool = false;
+
+    /// im2col of a same-padding `k x k` convolution: `x` `[B, H, W, C]` -> `[B H W, C k^2]`.
+    /// Row `(b H + y) W + x` holds, at column `i k^2 + ky k + kx`, channel `i` of input
+    /// position `(y + ky - k/2, x + kx - k/2)` (zero outside the grid): the order of burn's
+    /// `Conv2d` weight `[C_out, C_in, k, k]` flattened over its last three dims, so the
+    /// product's weight matrix is a transposed view of it (no copy).
+    fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
+        composed_grid::composed_im2col::<Self>(x, k)
+    }
+
+    /// The adjoint of [`NetOps::im2col`] (im2col's gradient): `cols` `[B H W, C k^2]` ->
+    /// `[B, H, W, C]` = `shape`.
+    fn col2im(cols: FloatTensor<Self>, shape: [usize; 4], k: usize) -> FloatTensor<Self> {
+        composed_grid::composed_col2im::<Self>(cols, shape, k)
+    }
+
+    /// The minGRU's step update ([`mingru`]): `hg` `[M, 2H]` (`h~`, then the gate's
+    /// pre-activation), `h` `[M, H]` -> `(1 - z) h + z g(h~)`, `[M, H]`.
+    fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
+        mingru::composed_mingru_update::<Self>(hg, h)
+    }
+
+    /// `x sigmoid(x)`, any shape.
+    fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed_grid::composed_silu::<Self>(x)
+    }
+
+    /// SiLU's input gradient from its input `x` and the output gradient (same shape).
+    fn silu_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed_grid::composed_silu_backward::<Self>(x, grad)
+    }
+
+    /// G2P of a sparse stencil, one weighted gather `out_p = sum_k w_pk grid[i_pk]`: `grid`
+    /// `[B, n^2, C]`, `index` `[B N 9]` (flat rows `b n^2 + node` of the `[B n^2, C]` grid,
+    /// particle-major), `weight` `[B, N, 9]` -> `[B, N, C]`. The stencil's nodes and weights
+    /// are constants (no gradient flows to them).
+    fn stencil_gather(
+        grid: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        composed_grid::composed_gather::<Self>(grid, index, weight)
+    }
+
+    /// P2G of a sparse stencil, the adjoint of [`NetOps::stencil_gather`], one weighted
+    /// scatter-add `grid[i_pk] += w_pk v_p`: `values` `[B, N, C]` -> `[B, nodes, C]`.
+    fn stencil_splat(
+        values: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+        nodes: usize,
+    ) -> FloatTensor<Self> {
+        composed_grid::composed_splat::<Self>(values, index, weight, nodes)
+    }
+
+    /// True where [`NetOps::elu_mean_forward`] has its own backward (the CPU backend).
+    const FUSED_ELU_MEAN: bool = false;
+
+    /// `mean_n elu(x @ w + b)`: the encoder's first layer and mean pooling (used when the
+    /// second layer is applied after pooling). `x` `[M, N, F]`, `w` `[F, H]`, `b` `[H]` ->
+    /// `[M, H]`. Composed by default; the CPU backend does it in one pass without the
+    /// `[M, N, H]` activations and recomputes them in the backward; the autodiff backend over
+    /// any other backend takes [`NetOps::linear_elu_mean_forward`]'s node.
+    fn elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        composed::composed_elu_mean::<Self>(x, w, b)
+    }
+
+    /// Gradients of [`NetOps::elu_mean_forward`] from `grad` `[M, H]`: `[dx, dw, db]`, each
+    /// only when `need[i]`. Only called where `FUSED_ELU_MEAN` is true.
+    fn elu_mean_backward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        let _ = (x, w, b, grad, need);
+        unreachable!("elu_mean_backward is only called on backends with FUSED_ELU_MEAN")
+    }
+
+    /// `mean_n elu(x @ w + b)` keeping the activations (the paper encoder's second layer on
+    /// the GPU, and the first where no recomputing kernel exists): `x` `[M, N, H]`, `w`
+    /// `[H, W]`, `b` `[W]` -> `[M, W]`. Composed by default; the
+    /// autodiff backend records it as one node whose backward forms the pre-activation
+    /// gradient `elu'(out) * g / N` in one broadcast element-wise pass (burn's `mean_dim`
+    /// backward writes the broadcast `g / N` out first, then ELU's backward reads it back).
+    fn linear_elu_mean_forward(
+        x: FloatTensor<Self>,
+        w: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        composed::composed_elu_mean::<Self>(x, w, b)
+    }
+
+    /// True where [`NetOps::recurrence`] is a fused sequential pass (the CPU backend):
+    /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
+    /// log-space parallel scan, which is what pays on a GPU.
+    const SEQUENTIAL_SCAN: bool = false;
+
+    /// The linear recurrence `h_t = a_t h_{t-1} + b_t` along T (`h_{-1}` = `h0` or 0), with
+    /// `a`, `b` positive: `a`, `b` `[B, T, H]`, `h0` `[B, H]` -> `h` `[B, T, H]`. By default the
+    /// log-space parallel scan (Heinsen 2023) of `log a`, `log b`.
+    fn recurrence(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+    ) -> FloatTensor<Self> {
+        scan::log_scan_recurrence::<Self>(a, b, h0)
+    }
+
+    /// Gradients of [`NetOps::recurrence`] from `a`, `h0`, its output `h` and `grad` =
+    /// dL/dh: `[da, db, dh0]` (`dh0` None without `h0`). By default a reverse loop of tensor
+    /// ops: `d_t = grad_t + a_{t+1} d_{t+1}`, `da_t = d_t h_{t-1}`, `db_t = d_t`, `dh0 = a_0 d_0`.
+    fn recurrence_backward(
+        a: FloatTensor<Self>,
+        h0: Option<FloatTensor<Self>>,
+        h: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        scan::composed_recurrence_backward::<Self>(a, h0, h, grad)
+    }
+
+    /// The input gradient from the forward output and the output gradient.
+    fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed::composed_elu_backward::<Self>(out, grad)
+    }
+}
