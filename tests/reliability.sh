@@ -103,8 +103,8 @@ done
 bad 1 "--model" "${T[@]}" --model transformer
 bad 1 "--model" "${T[@]}" --arch paper --model none
 # Checked after parsing in src/cli/train_grid.rs with exit 1 (left to that file's owner).
-bad 2/1 "--grid" "${T[@]}" --grid 20 --levels 4
-bad 2/1 "--teacher-steps" "${T[@]}" --teacher-steps 5 --rollout-steps 2
+bad 2 "--grid" "${T[@]}" --grid 20 --levels 4
+bad 2 "--teacher-steps" "${T[@]}" --teacher-steps 5 --rollout-steps 2
 bad 1 "/no/such" train --data /no/such/bags --out "$O/t2"
 E=(eval --data "$BAGS" --out "$O/e" --no-render)
 for f in "--horizon 0" "--horizon -3" "--starts 0" "--starts x"; do

@@ -88,8 +88,13 @@ impl TrainArgs {
     /// defaults: [`fit_stats`] fills them from the training split).
     ///
     /// # Errors
-    /// An unknown core or a size out of range, naming the flag.
+    /// An unknown core or a size out of range, naming the flag (a [`super::UsageError`]).
     pub fn grid_config(&self) -> anyhow::Result<GridConfig> {
+        self.checked_grid_config()
+            .map_err(|e| super::UsageError(format!("{e:#}")).into())
+    }
+
+    fn checked_grid_config(&self) -> anyhow::Result<GridConfig> {
         let memory = match self.model.as_str() {
             "mlp" => MemoryKind::None,
             name => MemoryKind::parse(name).with_context(|| {

@@ -101,17 +101,20 @@ impl GridConfig {
     pub fn validate(&self) -> Result<(), String> {
         let levels = self.levels.max(1);
         if self.window == 0 {
-            return Err("window must be at least 1".into());
+            return Err("--window must be at least 1".into());
         }
         if self.grid < 8 || self.grid % (1 << (levels - 1)) != 0 {
             return Err(format!(
-                "grid {} must be at least 8 and a multiple of 2^(levels - 1) = {}",
+                "--grid {} must be at least 8 and a multiple of 2^(--levels - 1) = {}",
                 self.grid,
                 1 << (levels - 1)
             ));
         }
         if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
-            return Err("widths must be at least 1".into());
+            return Err(
+                "widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1"
+                    .into(),
+            );
         }
         Ok(())
     }
