@@ -30,7 +30,7 @@ if [ "${1:-}" = "--tests" ]; then
         sim_scenes:: transport_nodes:: node_surrogate::bad_frames node_surrogate::launch \
         node_surrogate::killing || exit 1
     cargo test --release --lib -- launch:: flags:: status:: || exit 1
-    cargo test --release --test train_resume || exit 1
+    cargo test --release --test it -- train_resume:: || exit 1
 fi
 [ -x "$BIN" ] || { echo "no $BIN: cargo build --release --bin minflow" >&2; exit 1; }
 
@@ -100,8 +100,8 @@ for f in "--window 30" "--window 30 --arch paper"; do
     # shellcheck disable=SC2086
     bad 2 "--window" "${T[@]}" "${TINY_GRID[@]}" $f
 done
-bad 1 "--model" "${T[@]}" --model transformer
-bad 1 "--model" "${T[@]}" --arch paper --model none
+bad 2 "--model" "${T[@]}" --model transformer
+bad 2 "--model" "${T[@]}" --arch paper --model none
 # Checked after parsing in src/cli/train_grid.rs with exit 1 (left to that file's owner).
 bad 2 "--grid" "${T[@]}" --grid 20 --levels 4
 bad 2 "--teacher-steps" "${T[@]}" --teacher-steps 5 --rollout-steps 2

@@ -224,6 +224,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     if args.arch == "grid" {
         return super::train_grid::run(args);
     }
+    // The flags' names and ranges, before any bag is read (the particle count comes later).
+    args.model_config(1)
+        .map_err(|e| super::UsageError(format!("{e:#}")))?;
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
     let (infos, scanned) = data::scan_with_report(&args.data, topic).context("reading the bags")?;
@@ -253,7 +256,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         ))
         .into());
     }
-    let config = args.model_config(particles)?;
+    let config = args
+        .model_config(particles)
+        .map_err(|e| super::UsageError(format!("{e:#}")))?;
     if args.resume {
         check_resume(&args.out, &NetConfig::Paper(config.clone()))?;
     }

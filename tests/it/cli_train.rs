@@ -112,8 +112,9 @@ fn large_datasets_are_streamed() {
 #[test]
 fn bad_flags_fail_clearly() {
     let dir = tempfile::tempdir().unwrap();
+    // Unknown names are usage errors too.
     let o = train(dir.path(), &["--model", "transformer"]);
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown --model"));
     // Out-of-range numbers are usage errors (exit 2) naming the flag, before data is read.
     for bad in [

@@ -3,8 +3,8 @@
 //! (zenoh, burn, iceoryx2, ros2-client) once instead of 22 times is most of the build's
 //! time saved. The training tests that need burn's per-process CPU generator to themselves
 //! (`train_loop`, `train_resume`, `train_parallel`) and `transport_ros2` (it sets a
-//! process-wide environment variable that spawned nodes would inherit) stay binaries of
-//! their own.
+//! process-wide environment variable that spawned nodes would inherit) run each test body in
+//! a child process of this binary (`isolated`).
 
 mod bag_bad_input;
 mod bag_damage;
@@ -28,9 +28,16 @@ mod node_surrogate;
 mod plot_png;
 mod sim_scenes;
 mod sim_validation;
+mod train_loop;
+mod train_parallel;
+mod train_resume;
 mod transport_nodes;
+mod transport_ros2;
 
 #[allow(dead_code)]
 mod data_support;
+mod isolated;
+#[allow(dead_code)]
+mod train_support;
 #[allow(dead_code)]
 mod transport_support;

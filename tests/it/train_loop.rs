@@ -10,11 +10,18 @@ use minflow::model::store::Surrogate;
 use minflow::model::CoreKind;
 use minflow::train::{TrainOptions, Trainer};
 
-mod train_support;
-use train_support::{integrator_trajectory, options, tiny, trajectory, B};
+use crate::train_support::{integrator_trajectory, options, tiny, trajectory, B};
 
 #[test]
 fn every_core_overfits_four_frames() {
+    crate::isolated::run(
+        concat!(module_path!(), "::every_core_overfits_four_frames"),
+        every_core_overfits_four_frames_alone,
+    );
+}
+
+/// [`every_core_overfits_four_frames`]'s body, in a process of its own.
+fn every_core_overfits_four_frames_alone() {
     let traj = integrator_trajectory(32, 4);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
@@ -49,6 +56,14 @@ fn every_core_overfits_four_frames() {
 
 #[test]
 fn particle_count_mismatch_is_a_clear_error() {
+    crate::isolated::run(
+        concat!(module_path!(), "::particle_count_mismatch_is_a_clear_error"),
+        particle_count_mismatch_is_a_clear_error_alone,
+    );
+}
+
+/// [`particle_count_mismatch_is_a_clear_error`]'s body, in a process of its own.
+fn particle_count_mismatch_is_a_clear_error_alone() {
     let traj = trajectory(20, 4);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
@@ -69,6 +84,14 @@ fn particle_count_mismatch_is_a_clear_error() {
 
 #[test]
 fn stateful_step_equals_training_forward() {
+    crate::isolated::run(
+        concat!(module_path!(), "::stateful_step_equals_training_forward"),
+        stateful_step_equals_training_forward_alone,
+    );
+}
+
+/// [`stateful_step_equals_training_forward`]'s body, in a process of its own.
+fn stateful_step_equals_training_forward_alone() {
     let traj = trajectory(32, 5);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj.clone()], 2, scaler).unwrap();
@@ -120,6 +143,14 @@ fn stateful_step_equals_training_forward() {
 /// A loss that turns NaN or infinite stops training with an error naming epoch and batch.
 #[test]
 fn non_finite_loss_is_a_clear_error() {
+    crate::isolated::run(
+        concat!(module_path!(), "::non_finite_loss_is_a_clear_error"),
+        non_finite_loss_is_a_clear_error_alone,
+    );
+}
+
+/// [`non_finite_loss_is_a_clear_error`]'s body, in a process of its own.
+fn non_finite_loss_is_a_clear_error_alone() {
     let traj = trajectory(32, 8);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();

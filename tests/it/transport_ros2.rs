@@ -111,6 +111,17 @@ fn stream_frames(
 
 #[test]
 fn dds_frames_arrive_in_order_and_byte_equal() {
+    crate::isolated::run(
+        concat!(
+            module_path!(),
+            "::dds_frames_arrive_in_order_and_byte_equal"
+        ),
+        dds_frames_arrive_in_order_and_byte_equal_alone,
+    );
+}
+
+/// [`dds_frames_arrive_in_order_and_byte_equal`]'s body, in a process of its own.
+fn dds_frames_arrive_in_order_and_byte_equal_alone() {
     let a = Ros2Transport::open(Backend::Dds).unwrap();
     let b = Ros2Transport::open(Backend::Dds).unwrap();
     let lat = stream_frames(&a, &b, &topic("stream"), 200);
@@ -128,6 +139,17 @@ fn dds_frames_arrive_in_order_and_byte_equal() {
 /// peer would send): its samples become `Malformed` and the subscription keeps delivering.
 #[test]
 fn dds_malformed_sample_is_reported_and_delivery_continues() {
+    crate::isolated::run(
+        concat!(
+            module_path!(),
+            "::dds_malformed_sample_is_reported_and_delivery_continues"
+        ),
+        dds_malformed_sample_is_reported_and_delivery_continues_alone,
+    );
+}
+
+/// [`dds_malformed_sample_is_reported_and_delivery_continues`]'s body, in a process of its own.
+fn dds_malformed_sample_is_reported_and_delivery_continues_alone() {
     use ros2_client::dds::{Context, ContextOptions};
     use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions};
 
@@ -211,6 +233,14 @@ fn dds_malformed_sample_is_reported_and_delivery_continues() {
 
 #[test]
 fn invalid_topics_are_rejected() {
+    crate::isolated::run(
+        concat!(module_path!(), "::invalid_topics_are_rejected"),
+        invalid_topics_are_rejected_alone,
+    );
+}
+
+/// [`invalid_topics_are_rejected`]'s body, in a process of its own.
+fn invalid_topics_are_rejected_alone() {
     let t = Ros2Transport::open(Backend::Dds).unwrap();
     assert!(t.publisher("no_slash").is_err());
     let (tx, _rx) = channel();
@@ -221,6 +251,17 @@ fn invalid_topics_are_rejected() {
 /// processes a zenoh router is needed, as with rmw_zenoh).
 #[test]
 fn zenoh_frames_arrive_in_order_and_byte_equal() {
+    crate::isolated::run(
+        concat!(
+            module_path!(),
+            "::zenoh_frames_arrive_in_order_and_byte_equal"
+        ),
+        zenoh_frames_arrive_in_order_and_byte_equal_alone,
+    );
+}
+
+/// [`zenoh_frames_arrive_in_order_and_byte_equal`]'s body, in a process of its own.
+fn zenoh_frames_arrive_in_order_and_byte_equal_alone() {
     use zenoh::Wait;
 
     // Let a plain zenoh session connect to the node's session to see the raw payloads
@@ -310,6 +351,14 @@ fn zenoh_frames_arrive_in_order_and_byte_equal() {
 /// Publisher and subscription on one transport (one DDS participant).
 #[test]
 fn dds_same_participant() {
+    crate::isolated::run(
+        concat!(module_path!(), "::dds_same_participant"),
+        dds_same_participant_alone,
+    );
+}
+
+/// [`dds_same_participant`]'s body, in a process of its own.
+fn dds_same_participant_alone() {
     let t = Ros2Transport::open(Backend::Dds).unwrap();
     let lat = stream_frames(&t, &t, &topic("same"), 30);
     eprintln!(

@@ -6,9 +6,7 @@ use minflow::data::{Scaler, WindowIndex};
 use minflow::model::CoreKind;
 use minflow::train::{TrainOptions, Trainer};
 
-#[allow(dead_code)]
-mod train_support;
-use train_support::{options, tiny, trajectory, B};
+use crate::train_support::{options, tiny, trajectory, B};
 
 /// burn's multi-device strategy as the trainer drives it (fork per device, gradients summed
 /// by `step_multi`), on two CPU "devices" (the same ndarray device twice): with dropout off
@@ -17,6 +15,14 @@ use train_support::{options, tiny, trajectory, B};
 /// `--device cuda:0,cuda:1`; docs/cuda.md has that run.)
 #[test]
 fn data_parallel_equals_one_device() {
+    crate::isolated::run(
+        concat!(module_path!(), "::data_parallel_equals_one_device"),
+        data_parallel_equals_one_device_alone,
+    );
+}
+
+/// [`data_parallel_equals_one_device`]'s body, in a process of its own.
+fn data_parallel_equals_one_device_alone() {
     let traj = trajectory(32, 10);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();

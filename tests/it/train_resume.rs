@@ -25,12 +25,18 @@ fn weights(dir: &std::path::Path) -> Vec<f32> {
     c.0
 }
 
-#[allow(dead_code)]
-mod train_support;
-use train_support::{options, tiny, trajectory, B};
+use crate::train_support::{options, tiny, trajectory, B};
 
 #[test]
 fn resumed_run_equals_uninterrupted_run() {
+    crate::isolated::run(
+        concat!(module_path!(), "::resumed_run_equals_uninterrupted_run"),
+        resumed_run_equals_uninterrupted_run_alone,
+    );
+}
+
+/// [`resumed_run_equals_uninterrupted_run`]'s body, in a process of its own.
+fn resumed_run_equals_uninterrupted_run_alone() {
     let traj = trajectory(32, 6);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
