@@ -71,15 +71,9 @@ pub struct ReportArgs {
     /// Activation after the encoder's last Linear: none | elu (the paper's text).
     #[arg(long, default_value = "none")]
     pub encoder_last_activation: String,
-    /// Grid architecture: grid size n.
-    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
-    pub grid: usize,
-    /// Grid architecture: U-Net first-level width.
-    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
-    pub unet_width: usize,
-    /// Grid architecture: U-Net resolutions.
-    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
-    pub levels: usize,
+    /// Grid architecture: the network's sizes.
+    #[command(flatten)]
+    pub grid_net: super::train_grid::GridNetArgs,
     /// Grid architecture: samples per epoch at most (0: every window).
     #[arg(long, default_value_t = 0)]
     pub samples_per_epoch: usize,
@@ -279,15 +273,15 @@ fn train_argv_of(
         ]);
     } else {
         flags.extend([
-            ("--grid", args.grid.to_string()),
-            ("--unet-width", args.unet_width.to_string()),
-            ("--levels", args.levels.to_string()),
             ("--samples-per-epoch", args.samples_per_epoch.to_string()),
             ("--max-minutes", args.max_minutes.to_string()),
         ]);
     }
     for (flag, value) in flags {
         argv.extend([flag.to_owned(), value]);
+    }
+    if arch == "grid" {
+        argv.extend(args.grid_net.argv());
     }
     argv
 }
@@ -375,9 +369,9 @@ fn report_text(
         args.encoder_hidden,
         args.encoder_last_activation,
         args.micro_batch,
-        args.grid,
-        args.unet_width,
-        args.levels,
+        args.grid_net.grid,
+        args.grid_net.unet_width,
+        args.grid_net.levels,
         args.samples_per_epoch,
         args.max_minutes,
         args.horizon,

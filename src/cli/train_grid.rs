@@ -22,9 +22,9 @@ use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
 
-/// Flags of the grid architecture (ignored by `--arch paper`).
+/// The grid network's sizes (`train` and `report`).
 #[derive(Debug, Clone, Args)]
-pub struct GridArgs {
+pub struct GridNetArgs {
     /// Grid size n of P2G / U-Net / G2P (a multiple of 2^(levels - 1)).
     #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub grid: usize,
@@ -43,6 +43,30 @@ pub struct GridArgs {
     /// Per-particle head width.
     #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub head_hidden: usize,
+}
+
+impl GridNetArgs {
+    /// These flags as `train` takes them (what `report` prints to reproduce a run).
+    pub fn argv(&self) -> Vec<String> {
+        [
+            ("--grid", self.grid),
+            ("--unet-width", self.unet_width),
+            ("--levels", self.levels),
+            ("--latent", self.latent),
+            ("--hidden", self.hidden),
+            ("--head-hidden", self.head_hidden),
+        ]
+        .into_iter()
+        .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
+        .collect()
+    }
+}
+
+/// Flags of the grid architecture (ignored by `--arch paper`).
+#[derive(Debug, Clone, Args)]
+pub struct GridArgs {
+    #[command(flatten)]
+    pub net: GridNetArgs,
     /// How the U-Net's convolutions run: auto (gather on the CPU, shift on a GPU) | burn |
     /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
     #[arg(long, default_value = "auto", value_parser = super::flags::conv_kernel)]
@@ -103,13 +127,13 @@ impl TrainArgs {
         };
         let g = &self.grid_args;
         let config = GridConfig::new(memory)
-            .with_grid(g.grid)
+            .with_grid(g.net.grid)
             .with_window(self.window)
-            .with_unet_width(g.unet_width)
-            .with_levels(g.levels)
-            .with_latent(g.latent)
-            .with_hidden(g.hidden)
-            .with_head_hidden(g.head_hidden)
+            .with_unet_width(g.net.unet_width)
+            .with_levels(g.net.levels)
+            .with_latent(g.net.latent)
+            .with_hidden(g.net.hidden)
+            .with_head_hidden(g.net.head_hidden)
             .with_conv(g.conv);
         config
             .validate()

@@ -142,19 +142,8 @@ fn truncated_bag_is_reported_with_exit_code_3() {
     let cut = cut.to_str().unwrap();
     let grid = dir.path().join("grid");
     let paper = dir.path().join("paper");
-    let tiny_grid = [
-        "--grid",
-        "16",
-        "--levels",
-        "2",
-        "--unet-width",
-        "4",
-        "--latent",
-        "4",
-        "--hidden",
-        "4",
-        "--head-hidden",
-        "8",
+    let mut tiny_grid = crate::TINY_GRID_NET.to_vec();
+    tiny_grid.extend([
         "--rollout-steps",
         "2",
         "--batch-size",
@@ -163,7 +152,7 @@ fn truncated_bag_is_reported_with_exit_code_3() {
         "8",
         "--epochs",
         "1",
-    ];
+    ]);
     let tiny_paper = [
         "--arch",
         "paper",

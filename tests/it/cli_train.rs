@@ -154,18 +154,6 @@ fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
         bags,
         "--out",
         out.to_str().unwrap(),
-        "--grid",
-        "16",
-        "--levels",
-        "2",
-        "--unet-width",
-        "4",
-        "--latent",
-        "4",
-        "--hidden",
-        "4",
-        "--head-hidden",
-        "8",
         "--rollout-steps",
         "2",
         "--batch-size",
@@ -179,6 +167,7 @@ fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
         "--noise",
         "0.1",
     ];
+    args.extend_from_slice(&crate::TINY_GRID_NET);
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)

@@ -37,6 +37,24 @@ mod transport_ros2;
 #[allow(dead_code)]
 mod data_support;
 mod isolated;
+
+/// The grid network of the command-line tests (16 x 16 grid, two levels, widths 4 to 8:
+/// seconds per epoch on a CPU).
+pub const TINY_GRID_NET: [&str; 12] = [
+    "--grid",
+    "16",
+    "--levels",
+    "2",
+    "--unet-width",
+    "4",
+    "--latent",
+    "4",
+    "--hidden",
+    "4",
+    "--head-hidden",
+    "8",
+];
+
 #[allow(dead_code)]
 mod train_support;
 #[allow(dead_code)]

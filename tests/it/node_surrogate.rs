@@ -41,29 +41,16 @@ fn model() -> PathBuf {
 /// short epoch on the bundled bags (once per test binary).
 fn grid_model() -> PathBuf {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
-    trained(
-        &DIR,
-        &[
-            "--grid",
-            "16",
-            "--levels",
-            "2",
-            "--unet-width",
-            "4",
-            "--latent",
-            "4",
-            "--hidden",
-            "4",
-            "--head-hidden",
-            "8",
-            "--samples-per-epoch",
-            "16",
-            "--val-starts",
-            "1",
-            "--val-horizon",
-            "3",
-        ],
-    )
+    let mut flags = crate::TINY_GRID_NET.to_vec();
+    flags.extend([
+        "--samples-per-epoch",
+        "16",
+        "--val-starts",
+        "1",
+        "--val-horizon",
+        "3",
+    ]);
+    trained(&DIR, &flags)
 }
 
 /// `train --model mingru --epochs 1` with `flags` into a folder kept in `dir`.
