@@ -11,15 +11,17 @@
 //! frames are published as fast as the transport accepts them; the node drops the oldest
 //! pending frames it cannot keep up with).
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::sync::mpsc::channel;
+use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use burn::backend::NdArray;
 use clap::Args;
 
+use super::bench::BenchTransportOptions;
 use super::bench_transport::{percentile as pct, wall_ns};
 use super::Outcome;
 use crate::bag::{read_frames, FRAMES_TOPIC};
@@ -29,16 +31,15 @@ use crate::model::temporal::CoreKind;
 use crate::model::{LastActivation, ModelConfig};
 use crate::msgs::{ParticleFrame, Time};
 use crate::node::surrogate::state_rows as rows;
-use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
+use crate::transport::{self, wait_for_subscribers, FramePublisher, Sample, TransportKind};
 
 #[derive(Debug, Args)]
 pub struct NodeBenchArgs {
     /// Cores to measure (comma-separated): mlp, lstm, gru, minlstm, mingru.
     #[arg(long, default_value = "mingru,minlstm,gru,lstm,mlp")]
     cores: String,
-    /// Transports (repeatable; default zenoh, iceoryx2, ros2).
-    #[arg(long = "transport", value_enum)]
-    transports: Vec<TransportKind>,
+    #[command(flatten)]
+    transport: BenchTransportOptions,
     /// Frames published at 62.5 Hz per row.
     #[arg(long, default_value_t = 300)]
     frames: u32,
@@ -80,23 +81,62 @@ fn make_model(
     Ok(())
 }
 
+/// One row of the table: a model over one transport.
+struct Row {
+    name: String,
+    kind: TransportKind,
+    /// The model's own step time in this process, p50 and p99, us.
+    model_p50: f64,
+    model_p99: f64,
+    /// Predictions received of the paced run.
+    received: usize,
+    /// Publish-to-prediction latency, p50 and p99, us.
+    e2e_p50: f64,
+    e2e_p99: f64,
+    /// Predictions received per second during the burst.
+    burst_fps: f64,
+}
+
 pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     let last = match args.encoder_last_activation.as_str() {
         "none" => LastActivation::None,
         "elu" => LastActivation::Elu,
         other => bail!("unknown --encoder-last-activation {other:?} (none | elu)"),
     };
-    let transports = if args.transports.is_empty() {
-        vec![
-            TransportKind::Zenoh,
-            TransportKind::Iceoryx2,
-            TransportKind::Ros2,
-        ]
-    } else {
-        args.transports.clone()
-    };
-    let frames: Vec<ParticleFrame> = read_frames(&args.bag, Some(FRAMES_TOPIC))
-        .with_context(|| format!("reading {}", args.bag.display()))?
+    let transports = args.transport.kinds();
+    let frames = bag_frames(&args.bag)?;
+    let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
+    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
+    let exe = std::env::current_exe().context("locating the minflow binary")?;
+    let tmp = tempfile::tempdir()?;
+    let runs = model_runs(&args, tmp.path(), last, &scaler)?;
+    let mut table = Vec::new();
+    for (name, dir) in &runs {
+        let model_us = model_step_us(dir, &frames)?;
+        for &kind in &transports {
+            eprintln!("bench node: {name} over {kind} ...");
+            let (received, latency, burst_fps) = through_node(&args, &exe, dir, kind, &frames)?;
+            table.push(Row {
+                name: name.clone(),
+                kind,
+                model_p50: pct(&model_us, 0.5),
+                model_p99: pct(&model_us, 0.99),
+                received,
+                e2e_p50: pct(&latency, 0.5),
+                e2e_p99: pct(&latency, 0.99),
+                burst_fps,
+            });
+        }
+    }
+    print_table(&args, &table);
+    Ok(Outcome::Done)
+}
+
+/// The frames of `bag`'s frames topic; an error unless there are at least two of 2,500
+/// particles.
+fn bag_frames(bag: &Path) -> anyhow::Result<Vec<ParticleFrame>> {
+    let frames: Vec<ParticleFrame> = read_frames(bag, Some(FRAMES_TOPIC))
+        .with_context(|| format!("reading {}", bag.display()))?
         .frames
         .into_iter()
         .map(|m| m.2)
@@ -104,14 +144,20 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     anyhow::ensure!(
         frames.len() >= 2 && frames[0].len() == 2500,
         "{} must hold 2,500-particle frames",
-        args.bag.display()
+        bag.display()
     );
-    let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
-    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
-    let exe = std::env::current_exe().context("locating the minflow binary")?;
-    let tmp = tempfile::tempdir()?;
-    let mut table = Vec::new();
-    let mut runs: Vec<(String, PathBuf)> = Vec::new();
+    Ok(frames)
+}
+
+/// The models to measure, as (row name, run folder): the `--model` folders, or an untrained
+/// paper-sized model per `--cores` entry saved under `tmp`.
+fn model_runs(
+    args: &NodeBenchArgs,
+    tmp: &Path,
+    last: LastActivation,
+    scaler: &Scaler,
+) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    let mut runs = Vec::new();
     if args.models.is_empty() {
         for name in args
             .cores
@@ -120,8 +166,8 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             .filter(|s| !s.is_empty())
         {
             let core = CoreKind::parse(name).with_context(|| format!("unknown core {name:?}"))?;
-            let dir = tmp.path().join(name);
-            make_model(&dir, core, last, &scaler)?;
+            let dir = tmp.join(name);
+            make_model(&dir, core, last, scaler)?;
             runs.push((name.to_owned(), dir));
         }
     } else {
@@ -133,119 +179,141 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             runs.push((name, dir.clone()));
         }
     }
-    for (name, dir) in &runs {
-        let (name, dir) = (name.as_str(), dir.clone());
-        // The model's own step time, in this process.
-        let surrogate = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())?;
-        let mut state = surrogate.init_state();
-        let mut model_us = Vec::new();
-        for i in 0..60 {
-            let f = &frames[i % frames.len()];
-            let t = Instant::now();
-            let (_, s) = surrogate.step(&rows(f), &f.material, &[f.dt], state)?;
-            state = s;
-            if i >= 10 {
-                model_us.push(t.elapsed().as_secs_f64() * 1e6);
-            }
-        }
-        model_us.sort_by(f64::total_cmp);
-        drop(surrogate);
-        for &kind in &transports {
-            eprintln!("bench node: {name} over {kind} ...");
-            let input = format!("/minflow_bench_{}/in", std::process::id());
-            let output = format!("/minflow_bench_{}/out", std::process::id());
-            let session = transport::open(&TransportOptions::new(kind))?;
-            let (tx, rx) = channel();
-            let _sub = session.subscribe(&output, tx)?;
-            let mut publisher = session.publisher(&input)?;
-            let mut node = Command::new(&exe)
-                .args(["node", "--model"])
-                .arg(&dir)
-                .args([
-                    "--transport",
-                    &kind.to_string(),
-                    "--in",
-                    &input,
-                    "--out",
-                    &output,
-                    "--status",
-                    "none",
-                ])
-                .args(["--queue-depth", "4", "--on-gap", "skip"])
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()?;
-            if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(60)) {
-                let _ = node.kill();
-                bail!("{kind}: the node did not subscribe within 60 s");
-            }
-            std::thread::sleep(Duration::from_millis(500));
-            let period = Duration::from_secs_f64(0.016);
-            let mut sent = std::collections::HashMap::new();
-            let mut latency = Vec::new();
-            let start = Instant::now();
-            let mut index = 0u32;
-            let drain = |latency: &mut Vec<f64>, sent: &std::collections::HashMap<u32, u64>| {
-                for s in rx.try_iter() {
-                    if let Ok(f) = s.decode() {
-                        if let Some(t0) = sent.get(&(f.frame_index - 1)) {
-                            let arrived =
-                                wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
-                            latency.push(arrived.saturating_sub(*t0) as f64 / 1e3);
-                        }
-                    }
-                }
-            };
-            for i in 0..args.frames {
-                let due = start + period * i;
-                while Instant::now() < due {
-                    drain(&mut latency, &sent);
-                    std::thread::sleep(Duration::from_micros(200));
-                }
-                let mut f = frames[(i as usize) % frames.len()].clone();
-                f.frame_index = index;
-                f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
-                sent.insert(index, wall_ns());
-                publisher.publish(&f)?;
-                index += 1;
-            }
-            let settle = Instant::now() + Duration::from_secs(2);
-            while Instant::now() < settle && latency.len() < args.frames as usize {
-                drain(&mut latency, &sent);
-                std::thread::sleep(Duration::from_millis(1));
-            }
-            let received = latency.len();
-            // Burst: as fast as the transport accepts.
-            let burst_start = Instant::now();
-            for _ in 0..args.burst {
-                let mut f = frames[(index as usize) % frames.len()].clone();
-                f.frame_index = index;
-                publisher.publish(&f)?;
-                index += 1;
-            }
-            let mut got = 0usize;
-            let mut last = burst_start;
-            let quiet = Duration::from_millis(1500);
-            while rx.recv_timeout(quiet).is_ok() {
-                got += 1;
-                last = Instant::now();
-            }
-            let burst_fps = got as f64 / (last - burst_start).as_secs_f64().max(1e-9);
-            let _ = node.kill();
-            let _ = node.wait();
-            latency.sort_by(f64::total_cmp);
-            table.push((
-                name.to_owned(),
-                kind,
-                pct(&model_us, 0.5),
-                pct(&model_us, 0.99),
-                received,
-                pct(&latency, 0.5),
-                pct(&latency, 0.99),
-                burst_fps,
-            ));
+    Ok(runs)
+}
+
+/// The model's own step times in this process, us, sorted: 50 steps after 10 warm-up ones
+/// over consecutive `frames`.
+fn model_step_us(dir: &Path, frames: &[ParticleFrame]) -> anyhow::Result<Vec<f64>> {
+    let surrogate = Surrogate::<NdArray<f32>>::load(dir, &Default::default())?;
+    let mut state = surrogate.init_state();
+    let mut model_us = Vec::new();
+    for i in 0..60 {
+        let f = &frames[i % frames.len()];
+        let t = Instant::now();
+        let (_, s) = surrogate.step(&rows(f), &f.material, &[f.dt], state)?;
+        state = s;
+        if i >= 10 {
+            model_us.push(t.elapsed().as_secs_f64() * 1e6);
         }
     }
+    model_us.sort_by(f64::total_cmp);
+    Ok(model_us)
+}
+
+/// Starts a `minflow node` process serving the model in `dir` over `kind`, publishes
+/// `--frames` frames at 62.5 Hz and then a burst of `--burst`. Returns the predictions
+/// received of the paced run, their publish-to-prediction latencies (us, sorted) and the
+/// burst's predictions per second.
+fn through_node(
+    args: &NodeBenchArgs,
+    exe: &Path,
+    dir: &Path,
+    kind: TransportKind,
+    frames: &[ParticleFrame],
+) -> anyhow::Result<(usize, Vec<f64>, f64)> {
+    let input = format!("/minflow_bench_{}/in", std::process::id());
+    let output = format!("/minflow_bench_{}/out", std::process::id());
+    let session = transport::open(&args.transport.options(kind))?;
+    let (tx, rx) = channel();
+    let _sub = session.subscribe(&output, tx)?;
+    let mut publisher = session.publisher(&input)?;
+    let mut node = Command::new(exe)
+        .args(["node", "--model"])
+        .arg(dir)
+        .args(args.transport.child_args(kind))
+        .args(["--in", &input, "--out", &output, "--status", "none"])
+        .args(["--queue-depth", "4", "--on-gap", "skip"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()?;
+    if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(60)) {
+        let _ = node.kill();
+        bail!("{kind}: the node did not subscribe within 60 s");
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (mut latency, index) = paced(args.frames, publisher.as_mut(), &rx, frames)?;
+    let received = latency.len();
+    let burst_fps = burst(args.burst, index, publisher.as_mut(), &rx, frames)?;
+    let _ = node.kill();
+    let _ = node.wait();
+    latency.sort_by(f64::total_cmp);
+    Ok((received, latency, burst_fps))
+}
+
+/// Publishes `count` frames (consecutive indices from 0) at 62.5 Hz and collects the
+/// predictions for 2 s more. Returns the latency of each prediction received (us, from
+/// publication to arrival on the transport's I/O thread) and the next frame index.
+fn paced(
+    count: u32,
+    publisher: &mut dyn FramePublisher,
+    rx: &Receiver<Sample>,
+    frames: &[ParticleFrame],
+) -> anyhow::Result<(Vec<f64>, u32)> {
+    let period = Duration::from_secs_f64(0.016);
+    let mut sent = HashMap::new();
+    let mut latency = Vec::new();
+    let start = Instant::now();
+    let mut index = 0u32;
+    let drain = |latency: &mut Vec<f64>, sent: &HashMap<u32, u64>| {
+        for s in rx.try_iter() {
+            if let Ok(f) = s.decode() {
+                if let Some(t0) = sent.get(&(f.frame_index - 1)) {
+                    let arrived = wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
+                    latency.push(arrived.saturating_sub(*t0) as f64 / 1e3);
+                }
+            }
+        }
+    };
+    for i in 0..count {
+        let due = start + period * i;
+        while Instant::now() < due {
+            drain(&mut latency, &sent);
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        let mut f = frames[(i as usize) % frames.len()].clone();
+        f.frame_index = index;
+        f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
+        sent.insert(index, wall_ns());
+        publisher.publish(&f)?;
+        index += 1;
+    }
+    let settle = Instant::now() + Duration::from_secs(2);
+    while Instant::now() < settle && latency.len() < count as usize {
+        drain(&mut latency, &sent);
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    Ok((latency, index))
+}
+
+/// Publishes `count` frames from index `index` as fast as the transport accepts them;
+/// returns the predictions received per second until 1.5 s pass without one.
+fn burst(
+    count: u32,
+    mut index: u32,
+    publisher: &mut dyn FramePublisher,
+    rx: &Receiver<Sample>,
+    frames: &[ParticleFrame],
+) -> anyhow::Result<f64> {
+    let burst_start = Instant::now();
+    for _ in 0..count {
+        let mut f = frames[(index as usize) % frames.len()].clone();
+        f.frame_index = index;
+        publisher.publish(&f)?;
+        index += 1;
+    }
+    let mut got = 0usize;
+    let mut last = burst_start;
+    let quiet = Duration::from_millis(1500);
+    while rx.recv_timeout(quiet).is_ok() {
+        got += 1;
+        last = Instant::now();
+    }
+    Ok(got as f64 / (last - burst_start).as_secs_f64().max(1e-9))
+}
+
+/// Prints the table (Markdown) on stdout.
+fn print_table(args: &NodeBenchArgs, table: &[Row]) {
     let what = if args.models.is_empty() {
         format!(
             "untrained paper-sized models (N = 2,500, W = 1,250, encoder last activation {})",
@@ -260,16 +328,19 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     );
     println!("| core | transport | model p50 ms | model p99 ms | predictions | e2e p50 ms | e2e p99 ms | transport adds (p50) | burst predictions/s |");
     println!("|---|---|---|---|---|---|---|---|---|");
-    for (core, kind, m50, m99, received, e50, e99, fps) in &table {
+    for r in table {
         println!(
-            "| {core} | {kind} | {:.2} | {:.2} | {received}/{} | {:.2} | {:.2} | {:+.0} % | {fps:.0} |",
-            m50 / 1e3,
-            m99 / 1e3,
+            "| {} | {} | {:.2} | {:.2} | {}/{} | {:.2} | {:.2} | {:+.0} % | {:.0} |",
+            r.name,
+            r.kind,
+            r.model_p50 / 1e3,
+            r.model_p99 / 1e3,
+            r.received,
             args.frames,
-            e50 / 1e3,
-            e99 / 1e3,
-            (e50 - m50) / m50 * 100.0,
+            r.e2e_p50 / 1e3,
+            r.e2e_p99 / 1e3,
+            (r.e2e_p50 - r.model_p50) / r.model_p50 * 100.0,
+            r.burst_fps,
         );
     }
-    Ok(Outcome::Done)
 }

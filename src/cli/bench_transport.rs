@@ -16,9 +16,10 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 
+use super::bench::BenchTransportOptions;
 use super::Outcome;
 use crate::msgs::{Header, ParticleFrame, Time};
-use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
+use crate::transport::{self, wait_for_subscribers, TransportKind};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Role {
@@ -30,9 +31,8 @@ pub enum Role {
 
 #[derive(Debug, Args)]
 pub struct TransportBenchArgs {
-    /// Transports to measure (repeatable; default: zenoh, iceoryx2, ros2).
-    #[arg(long = "transport", value_enum)]
-    transports: Vec<TransportKind>,
+    #[command(flatten)]
+    transport: BenchTransportOptions,
     /// Frames for the latency run.
     #[arg(long, default_value_t = 1000)]
     frames: u32,
@@ -45,9 +45,6 @@ pub struct TransportBenchArgs {
     /// Particles per frame.
     #[arg(long, default_value_t = 2500)]
     particles: usize,
-    /// zenoh JSON5 config for both processes.
-    #[arg(long)]
-    zenoh_config: Option<std::path::PathBuf>,
     #[arg(long, value_enum, default_value_t = Role::Bench, hide = true)]
     role: Role,
     #[arg(long, hide = true)]
@@ -88,12 +85,13 @@ pub fn run(args: TransportBenchArgs) -> anyhow::Result<Outcome> {
 }
 
 fn publish(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
-    let kind = *args.transports.first().context("--transport is required")?;
+    let kind = *args
+        .transport
+        .transports
+        .first()
+        .context("--transport is required")?;
     let topic = args.topic.clone().context("--topic is required")?;
-    let session = transport::open(&TransportOptions {
-        transport: kind,
-        zenoh_config: args.zenoh_config.clone(),
-    })?;
+    let session = transport::open(&args.transport.options(kind))?;
     let mut publisher = session.publisher(&topic)?;
     if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(30)) {
         bail!("no subscriber within 30 s");
@@ -142,24 +140,13 @@ pub(super) fn percentile(sorted: &[f64], p: f64) -> f64 {
 }
 
 fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
-    let kinds = if args.transports.is_empty() {
-        vec![
-            TransportKind::Zenoh,
-            TransportKind::Iceoryx2,
-            TransportKind::Ros2,
-        ]
-    } else {
-        args.transports.clone()
-    };
+    let kinds = args.transport.kinds();
     let exe = std::env::current_exe().context("locating the minflow binary")?;
     let mut rows = Vec::new();
     for kind in kinds {
         eprintln!("bench transport: {kind} ...");
         let topic = format!("/minflow_bench_{}/frames", std::process::id());
-        let session = transport::open(&TransportOptions {
-            transport: kind,
-            zenoh_config: args.zenoh_config.clone(),
-        })?;
+        let session = transport::open(&args.transport.options(kind))?;
         let (tx, rx) = channel();
         let subscription = session.subscribe(&topic, tx)?;
         let mut child = Command::new(&exe);
@@ -168,11 +155,10 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
             "transport",
             "--role",
             "publisher",
-            "--transport",
-            &kind.to_string(),
             "--topic",
             &topic,
         ]);
+        child.args(args.transport.child_args(kind));
         child.args([
             "--frames",
             &args.frames.to_string(),
@@ -185,9 +171,6 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
             "--particles",
             &args.particles.to_string(),
         ]);
-        if let Some(cfg) = &args.zenoh_config {
-            child.arg("--zenoh-config").arg(cfg);
-        }
         let mut child = child
             .stdout(Stdio::null())
             .spawn()

@@ -127,6 +127,7 @@ impl<'a> Truth<'a> {
         })
     }
 
+    /// The truth state `[N, 4]` of frame `index`, where there is one.
     fn state(&self, index: i64) -> Option<&'a [f32]> {
         self.find(index).map(|(t, off)| t.state(off))
     }
@@ -145,17 +146,7 @@ pub fn score_predictions(
     opts: &ReplayOptions,
 ) -> Result<Evaluation, EvalError> {
     let h = opts.horizon.max(1);
-    let mut by_scene: BTreeMap<&str, Truth> = BTreeMap::new();
-    for t in truth {
-        by_scene
-            .entry(t.scene.as_str())
-            .or_insert_with(|| Truth {
-                segments: Vec::new(),
-            })
-            .segments
-            .push(t);
-    }
-    let columns = 1 + baselines.len();
+    let by_scene = truth_by_scene(truth);
     let mut notes = Vec::new();
     let mut scenes = Vec::new();
     for (scene, sp) in &preds.scenes {
@@ -169,88 +160,8 @@ pub fn score_predictions(
         let Some(&first) = sp.frames.keys().next() else {
             continue;
         };
-        let material = &tr.segments[0].material;
-        if *material != sp.material {
-            return Err(EvalError::Mismatch {
-                scene: scene.clone(),
-                frame: first,
-                what: format!(
-                    "predicted frames have {} particles / materials unlike the truth's {}",
-                    sp.material.len(),
-                    material.len()
-                ),
-            });
-        }
-        let first = i64::from(first);
-        let mut result = SceneResult {
-            scene: scene.clone(),
-            rollouts: 1,
-            missing: vec![0; columns],
-            ..SceneResult::default()
-        };
-        let mut sums = vec![StepSums::new(h); columns];
-        // Baseline predictions per step (None where they cannot be seeded).
-        let base: Vec<Vec<Option<Vec<f32>>>> = baselines
-            .iter()
-            .map(|b| baseline_steps(*b, tr, first, h, opts.one_step))
-            .collect::<Result<_, _>>()?;
-        let mut snap = Snapshots {
-            material: material.clone(),
-            truth: vec![tr.state(first - 1).map(<[f32]>::to_vec)],
-            preds: vec![vec![tr.state(first - 1).map(<[f32]>::to_vec)]; columns],
-        };
-        for k in 1..=h {
-            let index = first + k as i64 - 1;
-            let truth_frame = tr.state(index);
-            let pred = sp.frames.get(&(index as u32));
-            snap.truth.push(truth_frame.map(<[f32]>::to_vec));
-            snap.preds[0].push(pred.cloned());
-            for (b, steps) in base.iter().enumerate() {
-                snap.preds[b + 1].push(steps[k - 1].clone());
-            }
-            let Some(truth_frame) = truth_frame else {
-                result.unmatched += usize::from(pred.is_some());
-                continue;
-            };
-            let score =
-                |p: &[f32]| frame_metrics(p, truth_frame, material, scaler, opts.density_grid);
-            match pred {
-                Some(p) => sums[0].steps[k - 1].push(score(p)),
-                None => result.missing[0] += 1,
-            }
-            for (b, steps) in base.iter().enumerate() {
-                if let Some(p) = &steps[k - 1] {
-                    sums[b + 1].steps[k - 1].push(score(p));
-                }
-            }
-        }
-        result.beyond = sp.frames.range((first + h as i64) as u32..).count();
-        if result.missing[0] > 0 {
-            notes.push(format!(
-                "scene {scene:?}: {} of {h} predicted frames missing (excluded from the scores)",
-                result.missing[0]
-            ));
-        }
-        if result.unmatched > 0 {
-            notes.push(format!(
-                "scene {scene:?}: {} predicted frames have no ground truth (excluded)",
-                result.unmatched
-            ));
-        }
-        if result.beyond > 0 {
-            notes.push(format!(
-                "scene {scene:?}: {} predicted frames past the {h}-step horizon (not scored)",
-                result.beyond
-            ));
-        }
-        if sp.duplicates > 0 {
-            notes.push(format!(
-                "scene {scene:?}: {} duplicate predicted frames dropped",
-                sp.duplicates
-            ));
-        }
-        result.curves = sums.iter().map(StepSums::curve).collect();
-        result.snapshots = opts.snapshots.then_some(snap);
+        let result = score_scene(scene, sp, first, tr, baselines, scaler, opts)?;
+        notes.extend(scene_notes(scene, sp, &result, h));
         scenes.push(result);
     }
     for (path, t) in &preds.truncated {
@@ -271,6 +182,126 @@ pub fn score_predictions(
         scenes,
         notes,
     })
+}
+
+/// The ground-truth segments grouped by scene id.
+fn truth_by_scene(truth: &[Trajectory]) -> BTreeMap<&str, Truth<'_>> {
+    let mut by_scene: BTreeMap<&str, Truth> = BTreeMap::new();
+    for t in truth {
+        by_scene
+            .entry(t.scene.as_str())
+            .or_insert_with(|| Truth {
+                segments: Vec::new(),
+            })
+            .segments
+            .push(t);
+    }
+    by_scene
+}
+
+/// Scores steps 1..=H of one scene whose first predicted frame is `first`: the predictions
+/// (column 0) and each baseline against the truth `tr`. Counts missing, unmatched and
+/// beyond-horizon frames; keeps the frames for renders when `opts.snapshots`.
+fn score_scene(
+    scene: &str,
+    sp: &ScenePredictions,
+    first: u32,
+    tr: &Truth,
+    baselines: &[&dyn Predictor],
+    scaler: &Scaler,
+    opts: &ReplayOptions,
+) -> Result<SceneResult, EvalError> {
+    let h = opts.horizon.max(1);
+    let columns = 1 + baselines.len();
+    let material = &tr.segments[0].material;
+    if *material != sp.material {
+        return Err(EvalError::Mismatch {
+            scene: scene.to_owned(),
+            frame: first,
+            what: format!(
+                "predicted frames have {} particles / materials unlike the truth's {}",
+                sp.material.len(),
+                material.len()
+            ),
+        });
+    }
+    let first = i64::from(first);
+    let mut result = SceneResult {
+        scene: scene.to_owned(),
+        rollouts: 1,
+        missing: vec![0; columns],
+        ..SceneResult::default()
+    };
+    let mut sums = vec![StepSums::new(h); columns];
+    // Baseline predictions per step (None where they cannot be seeded).
+    let base: Vec<Vec<Option<Vec<f32>>>> = baselines
+        .iter()
+        .map(|b| baseline_steps(*b, tr, first, h, opts.one_step))
+        .collect::<Result<_, _>>()?;
+    let mut snap = Snapshots {
+        material: material.clone(),
+        truth: vec![tr.state(first - 1).map(<[f32]>::to_vec)],
+        preds: vec![vec![tr.state(first - 1).map(<[f32]>::to_vec)]; columns],
+    };
+    for k in 1..=h {
+        let index = first + k as i64 - 1;
+        let truth_frame = tr.state(index);
+        let pred = sp.frames.get(&(index as u32));
+        snap.truth.push(truth_frame.map(<[f32]>::to_vec));
+        snap.preds[0].push(pred.cloned());
+        for (b, steps) in base.iter().enumerate() {
+            snap.preds[b + 1].push(steps[k - 1].clone());
+        }
+        let Some(truth_frame) = truth_frame else {
+            result.unmatched += usize::from(pred.is_some());
+            continue;
+        };
+        let score = |p: &[f32]| frame_metrics(p, truth_frame, material, scaler, opts.density_grid);
+        match pred {
+            Some(p) => sums[0].steps[k - 1].push(score(p)),
+            None => result.missing[0] += 1,
+        }
+        for (b, steps) in base.iter().enumerate() {
+            if let Some(p) = &steps[k - 1] {
+                sums[b + 1].steps[k - 1].push(score(p));
+            }
+        }
+    }
+    result.beyond = sp.frames.range((first + h as i64) as u32..).count();
+    result.curves = sums.iter().map(StepSums::curve).collect();
+    result.snapshots = opts.snapshots.then_some(snap);
+    Ok(result)
+}
+
+/// The notes on one scored scene: predicted frames missing, without ground truth, past
+/// the horizon `h`, duplicated.
+fn scene_notes(scene: &str, sp: &ScenePredictions, result: &SceneResult, h: usize) -> Vec<String> {
+    let mut notes = Vec::new();
+    if result.missing[0] > 0 {
+        notes.push(format!(
+            "scene {scene:?}: {} of {h} predicted frames missing (excluded from the scores)",
+            result.missing[0]
+        ));
+    }
+    if result.unmatched > 0 {
+        notes.push(format!(
+            "scene {scene:?}: {} predicted frames have no ground truth (excluded)",
+            result.unmatched
+        ));
+    }
+    if result.beyond > 0 {
+        notes.push(format!(
+            "scene {scene:?}: {} predicted frames past the {h}-step horizon (not scored)",
+            result.beyond
+        ));
+    }
+    if sp.duplicates > 0 {
+        notes.push(format!(
+            "scene {scene:?}: {} duplicate predicted frames dropped",
+            sp.duplicates
+        ));
+    }
+    notes
 }
 
 /// A baseline's prediction for steps 1..=h of a scene whose first predicted frame is

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use crate::bag::{BagError, BagWriter, DEFAULT_QOS_YAML, MESSAGE_ENCODING};
 use crate::msgs::TYPE_NAME;
-use crate::transport::{Counters, Transport, TransportError};
+use crate::transport::{Counters, Sample, Transport, TransportError};
 
 /// What to record and when to split or stop.
 #[derive(Debug, Clone)]
@@ -162,12 +162,82 @@ pub fn record(
     mut progress: impl FnMut(u64),
 ) -> Result<RecordReport, RecordError> {
     let out = &options.out;
+    let _lock = prepare_folder(options)?;
+    let (tx, rx) = channel();
+    let mut subscriptions = Vec::new();
+    for topic in &options.topics {
+        subscriptions.push(transport.subscribe(topic, tx.clone())?);
+    }
+    drop(tx);
+    tracing::info!(
+        "recording {} over {} into {}",
+        options.topics.join(" "),
+        transport.kind(),
+        out.display()
+    );
+
+    let mut files = Files::new(options);
+    let started = Instant::now();
+    let mut done = false;
+    let mut last_message: Option<Instant> = None;
+    loop {
+        let idle = options
+            .idle_exit
+            .is_some_and(|d| last_message.is_some_and(|t| t.elapsed() >= d));
+        let stop_now = idle
+            || stop.load(Ordering::Relaxed)
+            || options.duration.is_some_and(|d| started.elapsed() >= d)
+            || options.count.is_some_and(|n| files.report.written >= n);
+        if stop_now && !done {
+            // Stop receiving, then write what already arrived.
+            done = true;
+            subscriptions.clear();
+        }
+        let sample = if done {
+            match rx.try_recv() {
+                Ok(s) => s,
+                Err(_) => break,
+            }
+        } else {
+            match rx.recv_timeout(Duration::from_millis(50)) {
+                Ok(s) => s,
+                Err(RecvTimeoutError::Timeout) => {
+                    files.flush_if_due()?;
+                    continue;
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        };
+        counters.received();
+        last_message = Some(Instant::now());
+        if options.count.is_some_and(|n| files.report.written >= n) {
+            continue;
+        }
+        let Some((bytes, stamp_ns)) = files.validate(&sample, counters) else {
+            continue;
+        };
+        files.write(&sample.topic, stamp_ns, &bytes)?;
+        progress(files.report.written);
+        files.flush_if_due()?;
+    }
+    drop(subscriptions);
+    files.finish()
+}
+
+/// Creates the output folder and takes its lock (held while the returned file is open);
+/// with `overwrite`, deletes its bags and metadata.yaml.
+///
+/// # Errors
+/// [`RecordError::Out`]: the folder cannot be created or read, is locked by another
+/// recorder, or still holds bags.
+fn prepare_folder(options: &RecordOptions) -> Result<std::fs::File, RecordError> {
+    let out = &options.out;
     let out_err = |reason: String| RecordError::Out {
         path: out.clone(),
         reason,
     };
     std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
-    let _lock = lock_folder(out).map_err(out_err)?;
+    let lock = lock_folder(out).map_err(out_err)?;
     if options.overwrite {
         for entry in std::fs::read_dir(out)
             .map_err(|e| out_err(e.to_string()))?
@@ -193,61 +263,39 @@ pub fn record(
             "holds .mcap files already; choose a new folder or --overwrite".into(),
         ));
     }
-    let (tx, rx) = channel();
-    let mut subscriptions = Vec::new();
-    for topic in &options.topics {
-        subscriptions.push(transport.subscribe(topic, tx.clone())?);
-    }
-    drop(tx);
-    tracing::info!(
-        "recording {} over {} into {}",
-        options.topics.join(" "),
-        transport.kind(),
-        out.display()
-    );
+    Ok(lock)
+}
 
-    let base = base_name(out);
-    let mut report = RecordReport::default();
-    let mut infos: Vec<FileInfo> = Vec::new();
-    let mut bag: Option<OpenBag> = None;
-    let started = Instant::now();
-    let mut last_flush = Instant::now();
-    let mut malformed_per_topic: BTreeMap<String, u64> = BTreeMap::new();
-    let mut done = false;
-    let mut last_message: Option<Instant> = None;
-    loop {
-        let idle = options
-            .idle_exit
-            .is_some_and(|d| last_message.is_some_and(|t| t.elapsed() >= d));
-        let stop_now = idle
-            || stop.load(Ordering::Relaxed)
-            || options.duration.is_some_and(|d| started.elapsed() >= d)
-            || options.count.is_some_and(|n| report.written >= n);
-        if stop_now && !done {
-            // Stop receiving, then write what already arrived.
-            done = true;
-            subscriptions.clear();
+/// The bag files of a recording: the one being written, those finished, and the counts.
+struct Files<'a> {
+    options: &'a RecordOptions,
+    /// rosbag2 base name of the files (the folder's name).
+    base: String,
+    report: RecordReport,
+    /// Finished files, in order.
+    infos: Vec<FileInfo>,
+    bag: Option<OpenBag>,
+    last_flush: Instant,
+    malformed_per_topic: BTreeMap<String, u64>,
+}
+
+impl<'a> Files<'a> {
+    /// No file open yet.
+    fn new(options: &'a RecordOptions) -> Self {
+        Files {
+            options,
+            base: base_name(&options.out),
+            report: RecordReport::default(),
+            infos: Vec::new(),
+            bag: None,
+            last_flush: Instant::now(),
+            malformed_per_topic: BTreeMap::new(),
         }
-        let sample = if done {
-            match rx.try_recv() {
-                Ok(s) => s,
-                Err(_) => break,
-            }
-        } else {
-            match rx.recv_timeout(Duration::from_millis(50)) {
-                Ok(s) => s,
-                Err(RecvTimeoutError::Timeout) => {
-                    flush_if_due(&mut bag, &mut last_flush, options.flush_interval)?;
-                    continue;
-                }
-                Err(RecvTimeoutError::Disconnected) => break,
-            }
-        };
-        counters.received();
-        last_message = Some(Instant::now());
-        if options.count.is_some_and(|n| report.written >= n) {
-            continue;
-        }
+    }
+
+    /// The sample's CDR bytes and its frame's stamp (ns), or None when it is not a valid
+    /// frame (counted as malformed; logged for the first one per topic, then every 100th).
+    fn validate(&mut self, sample: &Sample, counters: &Counters) -> Option<(Vec<u8>, u64)> {
         let validated = sample.cdr().and_then(|bytes| {
             let frame = crate::msgs::decode(&bytes).map_err(|e| e.to_string())?;
             let stamp = frame
@@ -257,12 +305,15 @@ pub fn record(
                 .ok_or("negative stamp")?;
             Ok((bytes, stamp))
         });
-        let (bytes, stamp_ns) = match validated {
-            Ok(v) => v,
+        match validated {
+            Ok(v) => Some(v),
             Err(reason) => {
                 counters.malformed();
-                report.malformed += 1;
-                let n = malformed_per_topic.entry(sample.topic.clone()).or_default();
+                self.report.malformed += 1;
+                let n = self
+                    .malformed_per_topic
+                    .entry(sample.topic.clone())
+                    .or_default();
                 *n += 1;
                 if *n == 1 || *n % 100 == 0 {
                     tracing::warn!(
@@ -270,10 +321,16 @@ pub fn record(
                         sample.topic
                     );
                 }
-                continue;
+                None
             }
-        };
-        let split = bag.as_ref().is_some_and(|b| {
+        }
+    }
+
+    /// Writes one message, first closing the current file when it reached
+    /// `--max-bag-size` or `--max-bag-duration` and opening the next one if none is open.
+    fn write(&mut self, topic: &str, stamp_ns: u64, bytes: &[u8]) -> Result<(), RecordError> {
+        let options = self.options;
+        let split = self.bag.as_ref().is_some_and(|b| {
             options
                 .max_bag_size
                 .is_some_and(|max| b.writer.bytes_written() + b.pending >= max)
@@ -282,15 +339,17 @@ pub fn record(
                     .is_some_and(|d| b.opened.elapsed() >= d)
         });
         if split {
-            let done_bag = bag.take().expect("checked above");
-            infos.push(close(done_bag, &mut report)?);
+            let done_bag = self.bag.take().expect("checked above");
+            self.infos.push(close(done_bag, &mut self.report)?);
         }
-        let open = match &mut bag {
+        let open = match &mut self.bag {
             Some(b) => b,
             None => {
-                let path = out.join(format!("{base}_{}.mcap", infos.len()));
+                let path = options
+                    .out
+                    .join(format!("{}_{}.mcap", self.base, self.infos.len()));
                 tracing::info!("writing {}", path.display());
-                bag.insert(OpenBag {
+                self.bag.insert(OpenBag {
                     writer: BagWriter::create(&path)?,
                     opened: Instant::now(),
                     pending: 0,
@@ -301,22 +360,38 @@ pub fn record(
                 })
             }
         };
-        open.writer.write_raw(&sample.topic, stamp_ns, &bytes)?;
+        open.writer.write_raw(topic, stamp_ns, bytes)?;
         open.pending += bytes.len() as u64;
-        open.info.add(&sample.topic, stamp_ns);
-        report.written += 1;
-        *report.per_topic.entry(sample.topic.clone()).or_default() += 1;
-        progress(report.written);
-        flush_if_due(&mut bag, &mut last_flush, options.flush_interval)?;
+        open.info.add(topic, stamp_ns);
+        self.report.written += 1;
+        *self.report.per_topic.entry(topic.to_owned()).or_default() += 1;
+        Ok(())
     }
-    drop(subscriptions);
-    if let Some(b) = bag.take() {
-        infos.push(close(b, &mut report)?);
+
+    /// Closes and flushes the current chunk when `flush_interval` passed since the last time.
+    fn flush_if_due(&mut self) -> Result<(), RecordError> {
+        flush_if_due(
+            &mut self.bag,
+            &mut self.last_flush,
+            self.options.flush_interval,
+        )
     }
-    write_metadata(out, &infos).map_err(|e| out_err(format!("metadata.yaml: {e}")))?;
-    Ok(report)
+
+    /// Finishes the open file and writes metadata.yaml; returns the totals.
+    fn finish(mut self) -> Result<RecordReport, RecordError> {
+        if let Some(b) = self.bag.take() {
+            self.infos.push(close(b, &mut self.report)?);
+        }
+        let out = &self.options.out;
+        write_metadata(out, &self.infos).map_err(|e| RecordError::Out {
+            path: out.clone(),
+            reason: format!("metadata.yaml: {e}"),
+        })?;
+        Ok(self.report)
+    }
 }
 
+/// Closes and flushes `bag`'s current chunk when `every` passed since `last`.
 fn flush_if_due(
     bag: &mut Option<OpenBag>,
     last: &mut Instant,
@@ -335,6 +410,7 @@ fn flush_if_due(
     Ok(())
 }
 
+/// Finishes `bag`, adding its path to the report's files.
 fn close(bag: OpenBag, report: &mut RecordReport) -> Result<FileInfo, RecordError> {
     bag.writer.finish()?;
     report.files.push(bag.info.path.clone());

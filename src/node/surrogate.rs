@@ -22,14 +22,14 @@
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{channel, RecvTimeoutError};
+use std::sync::mpsc::{channel, Receiver, RecvTimeoutError};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use crate::model::store::{State, Surrogate};
 use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{ParticleFrame, Time};
 use crate::ops::NetOps;
-use crate::transport::{FramePublisher, StatusPublisher, Transport, TransportError};
+use crate::transport::{FramePublisher, Sample, StatusPublisher, Transport, TransportError};
 
 /// What to do with a frame that does not follow the previous one of its scene.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -147,6 +147,9 @@ fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleF
 
 /// Runs the node until `stop` turns true (or `max_published` is reached). Returns totals.
 ///
+/// Reads as its steps: declare the output (and status) publishers, wait for the output's
+/// subscribers, subscribe to the input, then loop { status, gather, predict one frame }.
+///
 /// # Errors
 /// Declaring the subscription or publishers fails ([`TransportError`]).
 pub fn run<B: NetOps>(
@@ -155,44 +158,86 @@ pub fn run<B: NetOps>(
     transport: &dyn Transport,
     stop: &AtomicBool,
 ) -> Result<NodeReport, TransportError> {
-    let mut publisher = transport.publisher(&options.output)?;
-    let mut status_pub: Option<Box<dyn StatusPublisher>> = match &options.status {
-        Some(topic) => match transport.status_publisher(topic) {
-            Ok(p) => Some(p),
-            Err(e) => {
-                tracing::warn!("no status reports: {e}");
-                None
-            }
-        },
-        None => None,
-    };
-    if options.wait_for_subscribers > 0 {
-        tracing::info!(
-            "{}: waiting for {} subscriber(s) on {}",
-            options.name,
-            options.wait_for_subscribers,
-            options.output
-        );
-        while publisher.subscriber_count() < options.wait_for_subscribers {
-            if stop.load(Ordering::Relaxed) {
-                return Ok(NodeReport {
-                    node: options.name.clone(),
-                    ..NodeReport::default()
-                });
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        }
+    let publisher = transport.publisher(&options.output)?;
+    let status_pub = open_status_publisher(options, transport);
+    if !wait_for_output_subscribers(options, publisher.as_ref(), stop) {
+        return Ok(NodeReport {
+            node: options.name.clone(),
+            ..NodeReport::default()
+        });
     }
     let (tx, rx) = channel();
     let _subscription = transport.subscribe(&options.input, tx)?;
-    let meta = surrogate.meta();
-    let model_n = meta.fixed_particles();
-    let window = meta.window().max(1);
+    log_start(options, surrogate, transport);
+    let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
+    while !stop.load(Ordering::Relaxed)
+        && options
+            .max_published
+            .is_none_or(|m| node.tally.report.published < m)
+    {
+        node.periodic();
+        if !node.gather(&rx) {
+            break;
+        }
+        node.predict_next();
+    }
+    Ok(node.finish())
+}
+
+/// The status publisher if `options.status` names a topic; a failure to declare it is
+/// logged and the node runs without status reports.
+fn open_status_publisher(
+    options: &NodeOptions,
+    transport: &dyn Transport,
+) -> Option<Box<dyn StatusPublisher>> {
+    let topic = options.status.as_ref()?;
+    match transport.status_publisher(topic) {
+        Ok(p) => Some(p),
+        Err(e) => {
+            tracing::warn!("no status reports: {e}");
+            None
+        }
+    }
+}
+
+/// Waits until the output has `options.wait_for_subscribers` subscribers. False when `stop`
+/// turned true first.
+fn wait_for_output_subscribers(
+    options: &NodeOptions,
+    publisher: &dyn FramePublisher,
+    stop: &AtomicBool,
+) -> bool {
+    if options.wait_for_subscribers == 0 {
+        return true;
+    }
     tracing::info!(
-        "{}: {} architecture, {} core, T = {window}, {} -> {} over {}{}",
+        "{}: waiting for {} subscriber(s) on {}",
+        options.name,
+        options.wait_for_subscribers,
+        options.output
+    );
+    while publisher.subscriber_count() < options.wait_for_subscribers {
+        if stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    true
+}
+
+/// Logs the model and topics the node serves, once at start.
+fn log_start<B: NetOps>(
+    options: &NodeOptions,
+    surrogate: &Surrogate<B>,
+    transport: &dyn Transport,
+) {
+    let meta = surrogate.meta();
+    tracing::info!(
+        "{}: {} architecture, {} core, T = {}, {} -> {} over {}{}",
         options.name,
         meta.arch_name(),
         meta.core_name(),
+        meta.window().max(1),
         options.input,
         options.output,
         transport.kind(),
@@ -200,133 +245,268 @@ pub fn run<B: NetOps>(
             .rollout
             .map_or(String::new(), |k| format!(", closed loop {k} frames"))
     );
+}
 
-    let mut report = NodeReport {
-        node: options.name.clone(),
-        ..NodeReport::default()
-    };
-    let mut scenes: BTreeMap<String, SceneState<B>> = BTreeMap::new();
-    let mut pending: BTreeMap<String, VecDeque<ParticleFrame>> = BTreeMap::new();
-    let mut logged: HashSet<(String, String)> = HashSet::new();
-    let mut next_status = Instant::now();
-    let mut next_stats = options.stats_interval.map(|d| Instant::now() + d);
-    let mut cursor = String::new();
-    let mut latencies_us: Vec<f64> = Vec::new();
-    let mut arrivals: BTreeMap<(String, u32), Instant> = BTreeMap::new();
+/// The run's counters, and which (scene, reason kind) pairs were already logged.
+struct Tally {
+    report: NodeReport,
+    logged: HashSet<(String, String)>,
+}
 
-    let mut note = |report: &mut NodeReport, scene: &str, reason: String| {
+impl Tally {
+    /// Records `reason` as the last error; logs it once per scene and reason kind (the
+    /// reason's text up to its first digit).
+    fn note(&mut self, scene: &str, reason: String) {
         let kind: String = reason
             .split(|c: char| c.is_ascii_digit())
             .next()
             .unwrap_or("")
             .to_owned();
-        if logged.insert((scene.to_owned(), kind)) {
+        if self.logged.insert((scene.to_owned(), kind)) {
             tracing::warn!(
                 "{}: scene {scene:?}: {reason} (logged once per scene and reason)",
-                options.name
+                self.report.node
             );
         }
-        report.last_error = format!("{scene}: {reason}");
-    };
+        self.report.last_error = format!("{scene}: {reason}");
+    }
+}
 
-    while !stop.load(Ordering::Relaxed)
-        && options.max_published.is_none_or(|m| report.published < m)
-    {
-        // Status once per second.
-        if Instant::now() >= next_status {
-            next_status += Duration::from_secs(1);
-            report.active_scenes = scenes.len() as u32;
-            report.stamp = wall_time();
-            if let Some(p) = status_pub.as_mut() {
-                if let Err(e) = p.publish(&report) {
+/// The node's state between loop iterations: per-scene hidden states, pending frames,
+/// arrival times, counters and the timers of the periodic reports.
+struct NodeLoop<'a, B: NetOps> {
+    options: &'a NodeOptions,
+    surrogate: &'a Surrogate<B>,
+    publisher: Box<dyn FramePublisher>,
+    status_pub: Option<Box<dyn StatusPublisher>>,
+    /// The model's particle count, where it has a fixed one.
+    model_n: Option<usize>,
+    /// Frames a scene needs before closed loop starts (T, at least 1).
+    window: usize,
+    tally: Tally,
+    scenes: BTreeMap<String, SceneState<B>>,
+    pending: BTreeMap<String, VecDeque<ParticleFrame>>,
+    /// Arrival time of each pending frame, by (scene, frame index).
+    arrivals: BTreeMap<(String, u32), Instant>,
+    /// The scene predicted last (round robin starts after it).
+    cursor: String,
+    next_status: Instant,
+    next_stats: Option<Instant>,
+    latencies_us: Vec<f64>,
+}
+
+impl<'a, B: NetOps> NodeLoop<'a, B> {
+    /// An empty loop state for the node.
+    fn new(
+        options: &'a NodeOptions,
+        surrogate: &'a Surrogate<B>,
+        publisher: Box<dyn FramePublisher>,
+        status_pub: Option<Box<dyn StatusPublisher>>,
+    ) -> Self {
+        let meta = surrogate.meta();
+        NodeLoop {
+            options,
+            surrogate,
+            publisher,
+            status_pub,
+            model_n: meta.fixed_particles(),
+            window: meta.window().max(1),
+            tally: Tally {
+                report: NodeReport {
+                    node: options.name.clone(),
+                    ..NodeReport::default()
+                },
+                logged: HashSet::new(),
+            },
+            scenes: BTreeMap::new(),
+            pending: BTreeMap::new(),
+            arrivals: BTreeMap::new(),
+            cursor: String::new(),
+            next_status: Instant::now(),
+            next_stats: options.stats_interval.map(|d| Instant::now() + d),
+            latencies_us: Vec::new(),
+        }
+    }
+
+    /// Once per second: publishes the status and drops idle scenes. Every
+    /// `stats_interval`: logs the counters.
+    fn periodic(&mut self) {
+        if Instant::now() >= self.next_status {
+            self.next_status += Duration::from_secs(1);
+            self.stamp_report();
+            if let Some(p) = self.status_pub.as_mut() {
+                if let Err(e) = p.publish(&self.tally.report) {
                     tracing::warn!("status: {e}");
                 }
             }
-            evict_idle(&mut scenes, options.idle_timeout);
+            evict_idle(&mut self.scenes, self.options.idle_timeout);
         }
-        if let (Some(due), Some(every)) = (next_stats, options.stats_interval) {
+        if let (Some(due), Some(every)) = (self.next_stats, self.options.stats_interval) {
             if Instant::now() >= due {
-                next_stats = Some(due + every);
-                tracing::info!("{}", summary(&report));
+                self.next_stats = Some(due + every);
+                tracing::info!("{}", summary(&self.tally.report));
             }
         }
-        // Gather: block only when nothing is pending.
-        let idle = pending.values().all(VecDeque::is_empty);
+    }
+
+    /// Sets the report's scene count and stamp to now.
+    fn stamp_report(&mut self) {
+        self.tally.report.active_scenes = self.scenes.len() as u32;
+        self.tally.report.stamp = wall_time();
+    }
+
+    /// Takes every sample waiting in `rx` into the per-scene queues; blocks (until the next
+    /// status, at most 100 ms) only when nothing is pending. False when the transport is gone.
+    fn gather(&mut self, rx: &Receiver<Sample>) -> bool {
+        let idle = self.pending.values().all(VecDeque::is_empty);
         let first = if idle {
             match rx.recv_timeout(
-                next_status
+                self.next_status
                     .saturating_duration_since(Instant::now())
                     .min(Duration::from_millis(100)),
             ) {
                 Ok(s) => Some(s),
                 Err(RecvTimeoutError::Timeout) => None,
-                Err(RecvTimeoutError::Disconnected) => break,
+                Err(RecvTimeoutError::Disconnected) => return false,
             }
         } else {
             None
         };
         for sample in first.into_iter().chain(rx.try_iter()) {
-            report.received += 1;
-            let frame = match sample.decode() {
-                Ok(f) => f,
-                Err(reason) => {
-                    report.malformed += 1;
-                    note(&mut report, "?", format!("malformed payload: {reason}"));
-                    continue;
-                }
-            };
-            if let Err(reason) = check_frame(&frame, model_n)
-                .and_then(|()| frame.validate().map_err(|e| e.to_string()))
-            {
-                report.rejected += 1;
-                note(&mut report, &frame.scene.clone(), reason);
-                continue;
-            }
-            // Closed loop: a scene already rolled out waits for its next start (frame 0).
-            if options.rollout.is_some()
-                && frame.frame_index != 0
-                && scenes.get(&frame.scene).is_some_and(|s| s.rolled_out)
-            {
-                continue;
-            }
-            arrivals.insert((frame.scene.clone(), frame.frame_index), sample.received);
-            let queue = pending.entry(frame.scene.clone()).or_default();
-            queue.push_back(frame);
-            if queue.len() > options.queue_depth.max(1) {
-                if let Some(old) = queue.pop_front() {
-                    arrivals.remove(&(old.scene.clone(), old.frame_index));
-                }
-                report.dropped += 1;
-            }
+            self.accept(sample);
         }
-        // Predict one frame, scenes round robin.
-        let Some(scene) = next_scene(&pending, &cursor) else {
-            continue;
+        true
+    }
+
+    /// Decodes and checks one sample and queues its frame (dropping the scene's oldest
+    /// pending frame past `queue_depth`); bad input is counted and noted.
+    fn accept(&mut self, sample: Sample) {
+        self.tally.report.received += 1;
+        let frame = match sample.decode() {
+            Ok(f) => f,
+            Err(reason) => {
+                self.tally.report.malformed += 1;
+                self.tally.note("?", format!("malformed payload: {reason}"));
+                return;
+            }
         };
-        cursor.clone_from(&scene);
-        let frame = pending
+        if let Err(reason) = check_frame(&frame, self.model_n)
+            .and_then(|()| frame.validate().map_err(|e| e.to_string()))
+        {
+            self.tally.report.rejected += 1;
+            self.tally.note(&frame.scene.clone(), reason);
+            return;
+        }
+        // Closed loop: a scene already rolled out waits for its next start (frame 0).
+        if self.options.rollout.is_some()
+            && frame.frame_index != 0
+            && self.scenes.get(&frame.scene).is_some_and(|s| s.rolled_out)
+        {
+            return;
+        }
+        self.arrivals
+            .insert((frame.scene.clone(), frame.frame_index), sample.received);
+        let queue = self.pending.entry(frame.scene.clone()).or_default();
+        queue.push_back(frame);
+        if queue.len() > self.options.queue_depth.max(1) {
+            if let Some(old) = queue.pop_front() {
+                self.arrivals.remove(&(old.scene.clone(), old.frame_index));
+            }
+            self.tally.report.dropped += 1;
+        }
+    }
+
+    /// Predicts one pending frame, scenes round robin, and publishes the prediction (or,
+    /// in closed loop once the scene has T frames, its rollout).
+    fn predict_next(&mut self) {
+        let Some(scene) = next_scene(&self.pending, &self.cursor) else {
+            return;
+        };
+        self.cursor.clone_from(&scene);
+        let frame = self
+            .pending
             .get_mut(&scene)
             .and_then(VecDeque::pop_front)
             .expect("scene has a pending frame");
-        if pending.get(&scene).is_some_and(VecDeque::is_empty) {
-            pending.remove(&scene);
+        if self.pending.get(&scene).is_some_and(VecDeque::is_empty) {
+            self.pending.remove(&scene);
         }
-        let arrived = arrivals.remove(&(frame.scene.clone(), frame.frame_index));
-        if scenes.len() >= options.max_scenes.max(1) && !scenes.contains_key(&scene) {
-            if let Some(oldest) = scenes
+        let arrived = self
+            .arrivals
+            .remove(&(frame.scene.clone(), frame.frame_index));
+        self.make_room_for(&scene);
+        let Some(state) = self.admit(&scene, &frame) else {
+            return;
+        };
+        let rows = state_rows(&frame);
+        let (next, state) = match self
+            .surrogate
+            .step(&rows, &frame.material, &[frame.dt], state)
+        {
+            Ok(v) => v,
+            Err(e) => {
+                self.tally.report.rejected += 1;
+                self.tally.note(&scene, e.to_string());
+                return;
+            }
+        };
+        self.tally.report.predicted += 1;
+        let keep = match self.options.rollout {
+            None => {
+                publish(
+                    self.publisher.as_mut(),
+                    &predicted_frame(&frame, &next, 1),
+                    &mut self.tally.report,
+                );
+                if let Some(t) = arrived {
+                    self.latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
+                }
+                Some(state)
+            }
+            Some(k) if state.frames >= self.window => {
+                // Closed loop from here: K frames, fed back.
+                if let Some(entry) = self.scenes.get_mut(&scene) {
+                    entry.rolled_out = true;
+                }
+                self.roll_out(&scene, &frame, next, state, k);
+                None
+            }
+            Some(_) => Some(state),
+        };
+        if let Some(entry) = self.scenes.get_mut(&scene) {
+            entry.state = keep;
+        }
+    }
+
+    /// Before a new scene is admitted at `max_scenes`, evicts the least recently seen one.
+    fn make_room_for(&mut self, scene: &str) {
+        if self.scenes.len() >= self.options.max_scenes.max(1) && !self.scenes.contains_key(scene) {
+            if let Some(oldest) = self
+                .scenes
                 .iter()
                 .min_by_key(|(_, s)| s.last_seen)
                 .map(|(k, _)| k.clone())
             {
-                scenes.remove(&oldest);
+                self.scenes.remove(&oldest);
             }
         }
-        let entry = scenes.entry(scene.clone()).or_insert_with(|| SceneState {
-            state: None,
-            last_index: None,
-            last_seen: Instant::now(),
-            rolled_out: false,
-        });
+    }
+
+    /// Applies the state rules (module doc) to `frame` of `scene`: the hidden state to
+    /// step from, or None when the frame is not predicted on (an older frame under
+    /// [`OnGap::Skip`], counted as dropped; a scene already rolled out).
+    fn admit(&mut self, scene: &str, frame: &ParticleFrame) -> Option<State<B>> {
+        let options = self.options;
+        let surrogate = self.surrogate;
+        let entry = self
+            .scenes
+            .entry(scene.to_owned())
+            .or_insert_with(|| SceneState {
+                state: None,
+                last_index: None,
+                last_seen: Instant::now(),
+                rolled_out: false,
+            });
         let follows = entry
             .last_index
             .is_some_and(|last| frame.frame_index == last + 1);
@@ -337,7 +517,7 @@ pub fn run<B: NetOps>(
         entry.last_seen = Instant::now();
         let restart = frame.frame_index == 0 || entry.last_index.is_none() || idle_too_long;
         if options.rollout.is_some() && entry.rolled_out && !restart {
-            continue;
+            return None;
         }
         if !restart && !follows {
             match options.on_gap {
@@ -351,8 +531,8 @@ pub fn run<B: NetOps>(
                     entry.rolled_out = false;
                 }
                 OnGap::Skip if older => {
-                    report.dropped += 1;
-                    continue;
+                    self.tally.report.dropped += 1;
+                    return None;
                 }
                 OnGap::Skip => {}
             }
@@ -363,95 +543,91 @@ pub fn run<B: NetOps>(
         }
         entry.last_index = Some(frame.frame_index);
         if options.rollout.is_some() && entry.rolled_out {
-            continue;
+            return None;
         }
-        let state = entry.state.take().unwrap_or_else(|| surrogate.init_state());
-        let rows = state_rows(&frame);
-        let (next, state) = match surrogate.step(&rows, &frame.material, &[frame.dt], state) {
-            Ok(v) => v,
-            Err(e) => {
-                report.rejected += 1;
-                note(&mut report, &scene, e.to_string());
-                continue;
-            }
+        Some(entry.state.take().unwrap_or_else(|| surrogate.init_state()))
+    }
+
+    /// Closed loop: publishes `k` frames after `frame`, the first `next`, each further one
+    /// predicted from the previous; paced at the scene's `dt` over `rate` when `rate` > 0.
+    fn roll_out(
+        &mut self,
+        scene: &str,
+        frame: &ParticleFrame,
+        next: Vec<f32>,
+        state: State<B>,
+        k: usize,
+    ) {
+        let mut state = state;
+        let mut rows = next;
+        // A frame's dt is any positive f32: pacing that overflows the clock is skipped
+        // rather than a panic.
+        let period = match self.options.rate > 0.0 {
+            true => Duration::try_from_secs_f64(f64::from(frame.dt) / self.options.rate).ok(),
+            false => None,
         };
-        report.predicted += 1;
-        match options.rollout {
-            None => {
-                publish(
-                    publisher.as_mut(),
-                    &predicted_frame(&frame, &next, 1),
-                    &mut report,
-                );
-                if let Some(t) = arrived {
-                    latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
+        let start = Instant::now();
+        for i in 0..k {
+            let due = period
+                .and_then(|p| p.checked_mul(u32::try_from(i).ok()?))
+                .and_then(|d| start.checked_add(d));
+            if let Some(due) = due {
+                if let Some(wait) = due.checked_duration_since(Instant::now()) {
+                    std::thread::sleep(wait);
                 }
-                entry.state = Some(state);
             }
-            Some(k) if state.frames >= window => {
-                // Closed loop from here: K frames, fed back.
-                entry.rolled_out = true;
-                let mut state = state;
-                let mut rows = next;
-                // A frame's dt is any positive f32: pacing that overflows the clock is skipped
-                // rather than a panic.
-                let period = match options.rate > 0.0 {
-                    true => Duration::try_from_secs_f64(f64::from(frame.dt) / options.rate).ok(),
-                    false => None,
-                };
-                let start = Instant::now();
-                for i in 0..k {
-                    let due = period
-                        .and_then(|p| p.checked_mul(u32::try_from(i).ok()?))
-                        .and_then(|d| start.checked_add(d));
-                    if let Some(due) = due {
-                        if let Some(wait) = due.checked_duration_since(Instant::now()) {
-                            std::thread::sleep(wait);
-                        }
+            publish(
+                self.publisher.as_mut(),
+                &predicted_frame(frame, &rows, i as u32 + 1),
+                &mut self.tally.report,
+            );
+            if i + 1 < k {
+                match self
+                    .surrogate
+                    .step(&rows, &frame.material, &[frame.dt], state)
+                {
+                    Ok((r, s)) => {
+                        rows = r;
+                        state = s;
+                        self.tally.report.predicted += 1;
                     }
-                    publish(
-                        publisher.as_mut(),
-                        &predicted_frame(&frame, &rows, i as u32 + 1),
-                        &mut report,
-                    );
-                    if i + 1 < k {
-                        match surrogate.step(&rows, &frame.material, &[frame.dt], state) {
-                            Ok((r, s)) => {
-                                rows = r;
-                                state = s;
-                                report.predicted += 1;
-                            }
-                            Err(e) => {
-                                note(&mut report, &scene, e.to_string());
-                                break;
-                            }
-                        }
+                    Err(e) => {
+                        self.tally.note(scene, e.to_string());
+                        break;
                     }
                 }
-                entry.state = None;
             }
-            Some(_) => entry.state = Some(state),
         }
     }
-    publisher.flush(Duration::from_secs(5));
-    report.active_scenes = scenes.len() as u32;
-    report.stamp = wall_time();
-    if let Some(p) = status_pub.as_mut() {
-        let _ = p.publish(&report);
+
+    /// Flushes the output, publishes the final status, logs the latency percentiles and
+    /// returns the totals.
+    fn finish(mut self) -> NodeReport {
+        self.publisher.flush(Duration::from_secs(5));
+        self.stamp_report();
+        if let Some(p) = self.status_pub.as_mut() {
+            let _ = p.publish(&self.tally.report);
+        }
+        log_latencies(&self.options.name, &mut self.latencies_us);
+        self.tally.report
     }
-    if !latencies_us.is_empty() {
-        latencies_us.sort_by(f64::total_cmp);
-        let pct = |p: f64| latencies_us[((latencies_us.len() - 1) as f64 * p).round() as usize];
-        tracing::info!(
-            "{}: arrival -> publication latency over {} frames: p50 {:.0} us, p99 {:.0} us, max {:.0} us",
-            options.name,
-            latencies_us.len(),
-            pct(0.5),
-            pct(0.99),
-            pct(1.0)
-        );
+}
+
+/// Logs the arrival -> publication latency percentiles (nothing when no frame was timed).
+fn log_latencies(name: &str, latencies_us: &mut [f64]) {
+    if latencies_us.is_empty() {
+        return;
     }
-    Ok(report)
+    latencies_us.sort_by(f64::total_cmp);
+    let pct = |p: f64| latencies_us[((latencies_us.len() - 1) as f64 * p).round() as usize];
+    tracing::info!(
+        "{}: arrival -> publication latency over {} frames: p50 {:.0} us, p99 {:.0} us, max {:.0} us",
+        name,
+        latencies_us.len(),
+        pct(0.5),
+        pct(0.99),
+        pct(1.0)
+    );
 }
 
 /// The counters as one line.

@@ -24,6 +24,7 @@ use crate::model::store::{self, ModelMeta};
 use crate::model::{upload, Model, ModelConfig, Scaling};
 use burn::backend::NdArray;
 use burn::module::{AutodiffModule, Module};
+use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
 use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
 use burn::tensor::backend::{AutodiffBackend, Backend, DeviceOps};
@@ -408,6 +409,10 @@ where
 
     /// [`Trainer::fit`] over any [`BatchSource`] (in memory or streamed from the bags),
     /// reporting to an [`Observer`] (per batch and per epoch).
+    ///
+    /// Per epoch: seed every device, train ([`Trainer::train_epoch`]), validate, save the
+    /// model when its validation loss is the best so far, checkpoint. Stops after `epochs`,
+    /// or `patience` epochs without a better validation loss.
     pub fn fit_observed(
         &self,
         train: &mut dyn BatchSource,
@@ -416,188 +421,39 @@ where
         resume: bool,
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError> {
-        let counts = train.particle_counts();
-        if self.config.decoder == crate::model::DecoderKind::Global
-            && counts.iter().any(|&n| n != self.config.particles)
-        {
-            return Err(TrainError::Mismatch(format!(
-                "the global decoder is built for N = {} particles but the data has N = {counts:?}; use --decoder pointwise or matching bags",
-                self.config.particles
-            )));
-        }
-        let scaling = ModelMeta {
-            net: store::NetConfig::Paper(self.config.clone()),
-            scaler: *scaler,
-            epoch: 0,
-            val_loss: 0.0,
-        }
-        .scaling();
-        B::seed(self.main(), self.opts.seed);
-        let mut model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
-        let mut optim = adam::FusedAdam::default().init::<B, Model<B>>();
-        let mut history = Vec::new();
-        let mut start_epoch = 0;
-        let mut best = f64::INFINITY;
-        if resume {
-            if let Some(state) = checkpoint::load::<B, _, _>(
-                &self.out,
-                self.config.init::<B>(self.main()),
-                self.main(),
-                &optim,
-            )? {
-                model = state.model;
-                optim = optim.load_record(state.optim);
-                history = state.history;
-                start_epoch = history.len();
-                best = history
-                    .iter()
-                    .map(|r: &EpochRecord| r.val_loss)
-                    .fold(f64::INFINITY, f64::min);
-            }
-        }
+        self.check_particle_counts(&train.particle_counts())?;
+        let scaling = self.meta(scaler, 0, 0.0).scaling();
+        let (mut model, mut optim, mut history) = self.start(resume)?;
+        let start_epoch = history.len();
+        let mut best = history
+            .iter()
+            .map(|r: &EpochRecord| r.val_loss)
+            .fold(f64::INFINITY, f64::min);
         let mut since_best = history
             .iter()
             .rev()
             .take_while(|r| r.val_loss > best)
             .count();
-        // Data parallel: one fixed stream id per device for the whole run (this thread's for
-        // the main device, a fresh one each for the others). burn's fusion streams and
-        // cubecl's CUDA streams and memory pools are per stream id, which is per thread by
-        // default: workers spawned every step would open a new ~10 GB pool per step at the
-        // paper's size (the allocator then failed), and two threads sharing one id on a
-        // device corrupt its stream (illegal addresses).
-        let streams: Vec<StreamId> = (0..self.devices.len())
-            .map(|k| match k {
-                0 => StreamId::current(),
-                _ => std::thread::spawn(StreamId::current)
-                    .join()
-                    .expect("a thread that only reads its id"),
-            })
-            .collect();
+        let streams = self.stream_ids();
         for epoch in start_epoch..self.opts.epochs {
             if self.opts.patience > 0 && since_best >= self.opts.patience {
                 break;
             }
-            for (k, device) in self.devices.iter().enumerate() {
-                B::seed(
-                    device,
-                    self.opts
-                        .seed
-                        .wrapping_mul(1_000_003)
-                        .wrapping_add(epoch as u64)
-                        .wrapping_add((k as u64) << 32),
-                );
-            }
+            self.seed_epoch(epoch);
             let started = Instant::now();
-            let total = train.num_batches(self.opts.batch_size.max(1));
-            let batches = train.batches(
-                self.opts.batch_size.max(1),
-                Some(self.opts.seed),
-                epoch as u64,
+            let (trained, totals) = self.train_epoch(
+                model,
+                &mut optim,
+                &mut *train,
+                epoch,
+                &scaling,
+                &streams,
+                &mut *observer,
+                started,
             )?;
-            let micro = self.opts.micro_batch;
-            let parallel = self.devices.len();
-            // The model moves into the step loop and back out (`optim.step` consumes it, so
-            // the parameters are updated in place when nothing else holds them).
-            let mut slot = Some(model);
-            let (sum, seen, data_wait, device_wait) = std::thread::scope(|scope| {
-                // Host batches are assembled (and cut into micro-batches) one ahead.
-                let (tx, rx) = std::sync::mpsc::sync_channel(1);
-                scope.spawn(move || {
-                    for batch in batches {
-                        // Data parallel: at least one micro-batch per device.
-                        let item = batch.map(|b| {
-                            let micro = micro.min(b.b.div_ceil(parallel));
-                            (b.b, host_slices(b, micro))
-                        });
-                        if tx.send(item).is_err() {
-                            break;
-                        }
-                    }
-                });
-                let (mut sum, mut seen) = (0.0f64, 0usize);
-                let (mut data_wait, mut device_wait) = (Duration::ZERO, Duration::ZERO);
-                let mut k = 0;
-                loop {
-                    let waited = Instant::now();
-                    let Ok(item) = rx.recv() else { break };
-                    data_wait += waited.elapsed();
-                    let (b, slices) = item?;
-                    let model = slot.take().expect("the model is put back after every step");
-                    let step_started = Instant::now();
-                    let losses = if parallel == 1 {
-                        let (grads, loss) =
-                            self.shard_step(&model, slices, b, &scaling, self.main());
-                        slot = Some(optim.step(self.opts.lr, model, grads));
-                        vec![loss]
-                    } else {
-                        let shards = deal(slices, parallel);
-                        // The workers are new threads every step, on the run's fixed
-                        // stream ids (see `streams`).
-                        let results: Vec<_> = std::thread::scope(|workers| {
-                            let handles: Vec<_> = shards
-                                .into_iter()
-                                .zip(self.devices.iter().zip(&streams))
-                                .map(|(shard, (device, &stream))| {
-                                    let model = &model;
-                                    let scaling = &scaling;
-                                    workers.spawn(move || {
-                                        stream.executes(|| {
-                                            let local = model.clone().fork(device);
-                                            let (grads, loss) =
-                                                self.shard_step(&local, shard, b, scaling, device);
-                                            (grads, device.id(), loss)
-                                        })
-                                    })
-                                })
-                                .collect();
-                            handles
-                                .into_iter()
-                                .map(|h| h.join().expect("a data-parallel worker panicked"))
-                                .collect()
-                        });
-                        let mut multi = MultiGradientsParams::default();
-                        let mut losses = Vec::new();
-                        for (grads, id, loss) in results {
-                            multi.grads.push((grads, id));
-                            losses.push(loss);
-                        }
-                        slot = Some(optim.step_multi(self.opts.lr, model, multi));
-                        losses
-                    };
-                    tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
-                    // One read per step, after the step is queued: the host waits here for
-                    // the device to finish it.
-                    let waited = Instant::now();
-                    let value: f64 = losses
-                        .into_iter()
-                        .flatten()
-                        .map(|l| l.into_scalar().elem::<f64>())
-                        .sum::<f64>()
-                        / b.max(1) as f64;
-                    device_wait += waited.elapsed();
-                    if !value.is_finite() {
-                        return Err(TrainError::NonFinite {
-                            epoch: epoch + 1,
-                            batch: k,
-                            loss: value as f32,
-                        });
-                    }
-                    sum += value * b as f64;
-                    seen += b;
-                    k += 1;
-                    let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-                    observer.batch(epoch + 1, k, total, sum / seen as f64, rate);
-                }
-                Ok((sum, seen, data_wait, device_wait))
-            })?;
-            model = slot.expect("the model is put back after every step");
-            if parallel > 1 {
-                // `step_multi` left each parameter on the device that updated it.
-                model = model.fork(self.main());
-            }
+            model = trained;
             let seconds = started.elapsed().as_secs_f64();
-            let train_loss = sum / seen.max(1) as f64;
+            let train_loss = totals.sum / totals.seen.max(1) as f64;
             let valid = model.valid();
             let val_loss = match val.as_mut() {
                 Some(v) if v.windows() > 0 => {
@@ -610,20 +466,14 @@ where
                 train_loss,
                 val_loss,
                 seconds,
-                samples_per_sec: seen as f64 / seconds.max(1e-9),
-                data_seconds: data_wait.as_secs_f64(),
-                wait_seconds: device_wait.as_secs_f64(),
+                samples_per_sec: totals.seen as f64 / seconds.max(1e-9),
+                data_seconds: totals.data_wait.as_secs_f64(),
+                wait_seconds: totals.device_wait.as_secs_f64(),
             };
             if val_loss < best {
                 best = val_loss;
                 since_best = 0;
-                let meta = ModelMeta {
-                    net: store::NetConfig::Paper(self.config.clone()),
-                    scaler: *scaler,
-                    epoch: epoch + 1,
-                    val_loss,
-                };
-                store::save(&self.out, &model, &meta)?;
+                store::save(&self.out, &model, &self.meta(scaler, epoch + 1, val_loss))?;
             } else {
                 since_best += 1;
             }
@@ -633,4 +483,230 @@ where
         }
         Ok(history)
     }
+
+    /// The global decoder is built for the config's N: an error when the data has another.
+    fn check_particle_counts(&self, counts: &[usize]) -> Result<(), TrainError> {
+        if self.config.decoder == crate::model::DecoderKind::Global
+            && counts.iter().any(|&n| n != self.config.particles)
+        {
+            return Err(TrainError::Mismatch(format!(
+                "the global decoder is built for N = {} particles but the data has N = {counts:?}; use --decoder pointwise or matching bags",
+                self.config.particles
+            )));
+        }
+        Ok(())
+    }
+
+    /// The stored metadata of this run's model after `epoch` epochs.
+    fn meta(&self, scaler: &Scaler, epoch: usize, val_loss: f64) -> ModelMeta {
+        ModelMeta {
+            net: store::NetConfig::Paper(self.config.clone()),
+            scaler: *scaler,
+            epoch,
+            val_loss,
+        }
+    }
+
+    /// The model, optimizer and history to start from: freshly initialised (seeded), or
+    /// those of `out/checkpoint` when `resume` and there is one.
+    fn start(&self, resume: bool) -> Result<(Model<B>, Optim<B>, Vec<EpochRecord>), TrainError> {
+        B::seed(self.main(), self.opts.seed);
+        let model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
+        let optim = adam::FusedAdam::default().init::<B, Model<B>>();
+        if resume {
+            if let Some(state) = checkpoint::load::<B, _, _>(
+                &self.out,
+                self.config.init::<B>(self.main()),
+                self.main(),
+                &optim,
+            )? {
+                let optim = optim.load_record(state.optim);
+                return Ok((state.model, optim, state.history));
+            }
+        }
+        Ok((model, optim, Vec::new()))
+    }
+
+    /// One fixed stream id per device for the whole run (this thread's for the main
+    /// device, a fresh one each for the others). burn's fusion streams and cubecl's CUDA
+    /// streams and memory pools are per stream id, which is per thread by default: workers
+    /// spawned every step would open a new ~10 GB pool per step at the paper's size (the
+    /// allocator then failed), and two threads sharing one id on a device corrupt its
+    /// stream (illegal addresses).
+    fn stream_ids(&self) -> Vec<StreamId> {
+        (0..self.devices.len())
+            .map(|k| match k {
+                0 => StreamId::current(),
+                _ => std::thread::spawn(StreamId::current)
+                    .join()
+                    .expect("a thread that only reads its id"),
+            })
+            .collect()
+    }
+
+    /// Seeds each device's random numbers (dropout) for `epoch`.
+    fn seed_epoch(&self, epoch: usize) {
+        for (k, device) in self.devices.iter().enumerate() {
+            B::seed(
+                device,
+                self.opts
+                    .seed
+                    .wrapping_mul(1_000_003)
+                    .wrapping_add(epoch as u64)
+                    .wrapping_add((k as u64) << 32),
+            );
+        }
+    }
+
+    /// One epoch over `train` (0-based `epoch`, started at `started`): host batches are
+    /// assembled one ahead on a second thread; each is one optimizer step, its loss read
+    /// back once. Returns the trained model (on the main device) and the epoch's totals.
+    #[allow(clippy::too_many_arguments)]
+    fn train_epoch(
+        &self,
+        model: Model<B>,
+        optim: &mut Optim<B>,
+        train: &mut dyn BatchSource,
+        epoch: usize,
+        scaling: &Scaling,
+        streams: &[StreamId],
+        observer: &mut dyn Observer,
+        started: Instant,
+    ) -> Result<(Model<B>, EpochTotals), TrainError> {
+        let total = train.num_batches(self.opts.batch_size.max(1));
+        let batches = train.batches(
+            self.opts.batch_size.max(1),
+            Some(self.opts.seed),
+            epoch as u64,
+        )?;
+        let micro = self.opts.micro_batch;
+        let parallel = self.devices.len();
+        // The model moves into the step loop and back out (`optim.step` consumes it, so
+        // the parameters are updated in place when nothing else holds them).
+        let mut slot = Some(model);
+        let totals = std::thread::scope(|scope| {
+            // Host batches are assembled (and cut into micro-batches) one ahead.
+            let (tx, rx) = std::sync::mpsc::sync_channel(1);
+            scope.spawn(move || {
+                for batch in batches {
+                    // Data parallel: at least one micro-batch per device.
+                    let item = batch.map(|b| {
+                        let micro = micro.min(b.b.div_ceil(parallel));
+                        (b.b, host_slices(b, micro))
+                    });
+                    if tx.send(item).is_err() {
+                        break;
+                    }
+                }
+            });
+            let mut totals = EpochTotals::default();
+            let mut k = 0;
+            loop {
+                let waited = Instant::now();
+                let Ok(item) = rx.recv() else { break };
+                totals.data_wait += waited.elapsed();
+                let (b, slices) = item?;
+                let model = slot.take().expect("the model is put back after every step");
+                let step_started = Instant::now();
+                let (model, losses) =
+                    self.optimizer_step(model, optim, slices, b, scaling, streams);
+                slot = Some(model);
+                tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
+                // One read per step, after the step is queued: the host waits here for
+                // the device to finish it.
+                let waited = Instant::now();
+                let value: f64 = losses
+                    .into_iter()
+                    .flatten()
+                    .map(|l| l.into_scalar().elem::<f64>())
+                    .sum::<f64>()
+                    / b.max(1) as f64;
+                totals.device_wait += waited.elapsed();
+                if !value.is_finite() {
+                    return Err(TrainError::NonFinite {
+                        epoch: epoch + 1,
+                        batch: k,
+                        loss: value as f32,
+                    });
+                }
+                totals.sum += value * b as f64;
+                totals.seen += b;
+                k += 1;
+                let rate = totals.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                observer.batch(epoch + 1, k, total, totals.sum / totals.seen as f64, rate);
+            }
+            Ok(totals)
+        })?;
+        let mut model = slot.expect("the model is put back after every step");
+        if parallel > 1 {
+            // `step_multi` left each parameter on the device that updated it.
+            model = model.fork(self.main());
+        }
+        Ok((model, totals))
+    }
+
+    /// One optimizer step on a batch of `b` windows cut into `slices`: on the main device,
+    /// or data-parallel with the slices dealt over the devices. Returns the updated model
+    /// and the summed losses of each device (not read back).
+    fn optimizer_step(
+        &self,
+        model: Model<B>,
+        optim: &mut Optim<B>,
+        slices: Vec<HostSlice>,
+        b: usize,
+        scaling: &Scaling,
+        streams: &[StreamId],
+    ) -> (Model<B>, Vec<Option<Tensor<B::InnerBackend, 1>>>) {
+        let parallel = self.devices.len();
+        if parallel == 1 {
+            let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
+            return (optim.step(self.opts.lr, model, grads), vec![loss]);
+        }
+        let shards = deal(slices, parallel);
+        // The workers are new threads every step, on the run's fixed stream ids (see
+        // `stream_ids`).
+        let results: Vec<_> = std::thread::scope(|workers| {
+            let handles: Vec<_> = shards
+                .into_iter()
+                .zip(self.devices.iter().zip(streams))
+                .map(|(shard, (device, &stream))| {
+                    let model = &model;
+                    workers.spawn(move || {
+                        stream.executes(|| {
+                            let local = model.clone().fork(device);
+                            let (grads, loss) = self.shard_step(&local, shard, b, scaling, device);
+                            (grads, device.id(), loss)
+                        })
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().expect("a data-parallel worker panicked"))
+                .collect()
+        });
+        let mut multi = MultiGradientsParams::default();
+        let mut losses = Vec::new();
+        for (grads, id, loss) in results {
+            multi.grads.push((grads, id));
+            losses.push(loss);
+        }
+        (optim.step_multi(self.opts.lr, model, multi), losses)
+    }
+}
+
+/// The optimizer of a run: [`adam::FusedAdam`] through burn's adaptor.
+type Optim<B> = OptimizerAdaptor<adam::FusedAdam, Model<B>, B>;
+
+/// What one epoch of training summed up.
+#[derive(Debug, Default)]
+struct EpochTotals {
+    /// Sum over batches of the batch-mean loss times the batch size.
+    sum: f64,
+    /// Windows trained on.
+    seen: usize,
+    /// Time waiting for host batches.
+    data_wait: Duration,
+    /// Time waiting for the device (reading the loss back).
+    device_wait: Duration,
 }

@@ -1,0 +1,188 @@
+//! The publisher side of the ROS 2 transport: declaring frame publishers
+//! (`minflow_msgs/msg/ParticleFrame`) and status publishers
+//! (`minflow_msgs/msg/SurrogateStatus`) on either backend, and the [`FramePublisher`] /
+//! [`StatusPublisher`] impls that send them.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use ros2_client::MessageTypeName;
+
+use super::dds::DdsNode;
+use super::names::{ros_name, type_name, PACKAGE, QOS};
+use super::rmw_zenoh::ZenohNode;
+use super::wire::WireFrame;
+use super::{NodeRef, Ros2Transport};
+use crate::msgs::status::SurrogateStatus;
+use crate::msgs::ParticleFrame;
+use crate::transport::{FramePublisher, StatusPublisher, TransportError, TransportKind};
+
+impl Ros2Transport {
+    /// Declares a frame publisher on `topic` ([`Transport::publisher`](super::Transport::publisher)).
+    pub(super) fn frame_publisher(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn FramePublisher>, TransportError> {
+        let name = ros_name(topic)?;
+        let declare_err = |reason: String| TransportError::Declare {
+            transport: self.backend.kind(),
+            what: "publisher",
+            topic: topic.to_owned(),
+            reason,
+        };
+        match &self.node {
+            NodeRef::Dds(dds) => {
+                let publisher = dds
+                    .with(|node| {
+                        let t = node.create_topic(&name, type_name(), &QOS)?;
+                        node.create_publisher::<WireFrame>(&t, Some(QOS))
+                    })
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(DdsPublisher {
+                    topic: topic.to_owned(),
+                    publisher,
+                    node: Arc::clone(dds),
+                }))
+            }
+            NodeRef::Zenoh(z) => {
+                let t = z.node.create_topic(&name, type_name(), &QOS);
+                let publisher = z
+                    .node
+                    .create_publisher::<WireFrame>(&t, Some(QOS))
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(ZenohPublisher {
+                    topic: topic.to_owned(),
+                    publisher,
+                    node: Arc::clone(z),
+                }))
+            }
+        }
+    }
+
+    /// `minflow_msgs/msg/SurrogateStatus` on the topic (DDS type
+    /// `minflow_msgs::msg::dds_::SurrogateStatus_`), default ROS 2 QoS.
+    pub(super) fn surrogate_status_publisher(
+        &self,
+        topic: &str,
+    ) -> Result<Box<dyn StatusPublisher>, TransportError> {
+        let name = ros_name(topic)?;
+        let kind = self.backend.kind();
+        let declare_err = |reason: String| TransportError::Declare {
+            transport: kind,
+            what: "status publisher",
+            topic: topic.to_owned(),
+            reason,
+        };
+        let type_name = MessageTypeName::new(PACKAGE, "SurrogateStatus");
+        match &self.node {
+            NodeRef::Dds(dds) => {
+                let publisher = dds
+                    .with(|node| {
+                        let t = node.create_topic(&name, type_name, &QOS)?;
+                        node.create_publisher::<SurrogateStatus>(&t, Some(QOS))
+                    })
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(Ros2StatusPublisher {
+                    topic: topic.to_owned(),
+                    kind,
+                    send: Box::new(move |s| {
+                        publisher.publish(s.clone()).map_err(|e| e.to_string())
+                    }),
+                }))
+            }
+            NodeRef::Zenoh(z) => {
+                let t = z.node.create_topic(&name, type_name, &QOS);
+                let publisher = z
+                    .node
+                    .create_publisher::<SurrogateStatus>(&t, Some(QOS))
+                    .map_err(|e| declare_err(e.to_string()))?;
+                Ok(Box::new(Ros2StatusPublisher {
+                    topic: topic.to_owned(),
+                    kind,
+                    send: Box::new(move |s| {
+                        publisher.publish(s.clone()).map_err(|e| e.to_string())
+                    }),
+                }))
+            }
+        }
+    }
+}
+
+type SendStatus = Box<dyn FnMut(&SurrogateStatus) -> Result<(), String> + Send>;
+
+struct Ros2StatusPublisher {
+    topic: String,
+    kind: TransportKind,
+    send: SendStatus,
+}
+
+impl StatusPublisher for Ros2StatusPublisher {
+    fn publish(&mut self, status: &SurrogateStatus) -> Result<(), TransportError> {
+        (self.send)(status).map_err(|reason| TransportError::Publish {
+            transport: self.kind,
+            topic: self.topic.clone(),
+            reason,
+        })
+    }
+}
+
+struct DdsPublisher {
+    topic: String,
+    publisher: ros2_client::dds::Publisher<WireFrame>,
+    node: Arc<DdsNode>,
+}
+
+impl FramePublisher for DdsPublisher {
+    fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
+        self.publisher
+            .publish(WireFrame::from(frame.clone()))
+            .map_err(|e| TransportError::Publish {
+                transport: TransportKind::Ros2,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
+    }
+
+    /// Reliable DDS retransmits what readers missed after the write returns: give it time
+    /// before the writer goes away (ros2-client does not expose acknowledgement waits).
+    fn flush(&mut self, timeout: Duration) {
+        std::thread::sleep(timeout.min(Duration::from_secs(1)));
+    }
+
+    /// Matched DDS subscriptions (readers matched through SEDP with compatible QoS), as
+    /// tracked by the node's spinner (`Publisher::get_subscription_count`).
+    fn subscriber_count(&self) -> usize {
+        self.node.with(|node| {
+            // ros2-client logs an error for a writer that has never been matched, so ask only
+            // once discovery has seen a reader on the topic at all.
+            if node.subscription_count(&self.topic) == 0 {
+                0
+            } else {
+                self.publisher.get_subscription_count(node)
+            }
+        })
+    }
+}
+
+struct ZenohPublisher {
+    topic: String,
+    publisher: ros2_client::zenoh::Publisher<WireFrame>,
+    node: Arc<ZenohNode>,
+}
+
+impl FramePublisher for ZenohPublisher {
+    fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
+        self.publisher
+            .publish(WireFrame::from(frame.clone()))
+            .map_err(|e| TransportError::Publish {
+                transport: TransportKind::Ros2Zenoh,
+                topic: self.topic.clone(),
+                reason: e.to_string(),
+            })
+    }
+
+    /// Subscriptions on the topic in the ROS graph (rmw_zenoh liveliness tokens).
+    fn subscriber_count(&self) -> usize {
+        self.publisher.get_subscription_count(&self.node.node)
+    }
+}

@@ -1,0 +1,59 @@
+//! Opening a ROS 2 node on the `rmw_zenoh` wire protocol (ros2-client's zenoh backend),
+//! with a session configured like `rmw_zenoh`'s default or from `ZENOH_SESSION_CONFIG_URI`,
+//! amended by `ZENOH_CONFIG_OVERRIDE`.
+
+use super::names::{node_name, node_options};
+
+/// The zenoh-backend node (no spinner needed: its graph cache is fed by zenoh callbacks).
+pub(super) struct ZenohNode {
+    pub(super) node: ros2_client::zenoh::Node,
+}
+
+/// `rmw_zenoh`'s default session config (`DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5`, Jazzy):
+/// a peer that connects to the router on `tcp/localhost:7447` and learns about other peers by
+/// gossip; multicast scouting off. Listening on loopback with an OS-chosen port.
+fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
+    let mut config = zenoh::Config::default();
+    for (key, value) in [
+        ("mode", r#""peer""#),
+        ("connect/endpoints", r#"["tcp/localhost:7447"]"#),
+        ("listen/endpoints", r#"["tcp/127.0.0.1:0"]"#),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "true"),
+    ] {
+        config
+            .insert_json5(key, value)
+            .map_err(|e| format!("zenoh config {key}: {e}"))?;
+    }
+    if let Ok(overrides) = std::env::var("ZENOH_CONFIG_OVERRIDE") {
+        for entry in overrides
+            .split(';')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+        {
+            let (key, value) = entry
+                .split_once('=')
+                .ok_or_else(|| format!("ZENOH_CONFIG_OVERRIDE entry {entry:?} is not key=value"))?;
+            config
+                .insert_json5(key.trim(), value.trim())
+                .map_err(|e| format!("ZENOH_CONFIG_OVERRIDE {}: {e}", key.trim()))?;
+        }
+    }
+    Ok(config)
+}
+
+/// A zenoh-backend node in `domain_id`.
+pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, String> {
+    use ros2_client::zenoh::{Context, ContextOptions};
+    let mut options = ContextOptions::new().domain_id(domain_id);
+    // With ZENOH_SESSION_CONFIG_URI set, ros2-client loads that file (and the override).
+    let from_file = std::env::var("ZENOH_SESSION_CONFIG_URI").is_ok_and(|v| !v.trim().is_empty());
+    if !from_file {
+        options = options.zenoh_config(rmw_zenoh_default_config()?);
+    }
+    let context = Context::with_options(options).map_err(|e| format!("zenoh session: {e}"))?;
+    let node = context
+        .new_node(node_name(), node_options())
+        .map_err(|e| format!("ROS 2 node: {e}"))?;
+    Ok(ZenohNode { node })
+}
