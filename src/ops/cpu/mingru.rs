@@ -73,9 +73,8 @@ mod tests {
     fn update_equals_the_composed_one() {
         type B = NdArray<f32>;
         let (m, hidden) = (300, 5);
-        let values = |n: usize, k: f32| -> Vec<f32> {
-            (0..n).map(|i| (i as f32 * k).sin() * 6.0).collect()
-        };
+        let values =
+            |n: usize, k: f32| -> Vec<f32> { (0..n).map(|i| (i as f32 * k).sin() * 6.0).collect() };
         let hg = Tensor::<B, 2>::from_data(
             TensorData::new(values(m * 2 * hidden, 0.37), [m, 2 * hidden]),
             &Default::default(),
