@@ -1,7 +1,7 @@
 //! minflow: learned real-time surrogates for 2D MLS-MPM particle simulation.
 //!
 //! The library behind the `minflow` binary and the tests. Modules follow the pipeline
-//! (`../shared/DESIGN.md`):
+//! (`docs/design.md`, "Pipeline"):
 //!
 //! - [`sim`]: the MLS-MPM solver and its scenes, which make the ground truth;
 //! - [`msgs`]: the `ParticleFrame` and `SurrogateStatus` messages and their CDR encoding;

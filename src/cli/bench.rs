@@ -3,7 +3,7 @@
 //! `multi` setting (2,500 particles, 64^2 grid, 20 substeps) and the `fluid` setting
 //! (128^2 grid, 80 substeps), on one thread and on all threads (one scene per thread), in
 //! one run so the ratios are comparable on a noisy machine. Taichi 1.7.4's CPU backend needs
-//! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (MPM.md).
+//! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (docs/mpm.md, "Speed anchor").
 
 use super::Outcome;
 use crate::sim::families::{self, Family};
@@ -158,6 +158,6 @@ fn sim(args: SimBenchArgs) -> anyhow::Result<Outcome> {
             );
         }
     }
-    println!("(Taichi 1.7.4 CPU, same machine kind: 16-20 ms multi, 62-75 ms fluid; MPM.md)");
+    println!("(Taichi 1.7.4 CPU, same machine kind: 16-20 ms multi, 62-75 ms fluid; docs/mpm.md)");
     Ok(Outcome::Done)
 }

@@ -138,12 +138,45 @@ pub fn exit_code(result: anyhow::Result<Outcome>) -> std::process::ExitCode {
         Ok(Outcome::Done) => ExitCode::SUCCESS,
         Ok(Outcome::DataLost) => ExitCode::from(3),
         Err(err) => {
-            eprintln!("error: {err:#}");
+            eprintln!("error: {}", error_text(&err));
             match err.chain().any(|e| e.is::<UsageError>()) {
                 true => ExitCode::from(2),
                 false => ExitCode::FAILURE,
             }
         }
+    }
+}
+
+/// The error and its causes joined by ": ", as `{:#}` prints them, but leaving out a cause
+/// whose text the message before it already ends with (library errors that print their
+/// source themselves, such as `StoreError::Io` and `BagError::Io`).
+fn error_text(err: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in err.chain() {
+        let text = cause.to_string();
+        if out.ends_with(&text) {
+            continue;
+        }
+        if !out.is_empty() {
+            out.push_str(": ");
+        }
+        out.push_str(&text);
+    }
+    out
+}
+
+#[cfg(test)]
+mod error_text_tests {
+    /// A cause already printed by the error above it appears once; context is kept.
+    #[test]
+    fn a_cause_is_printed_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "gone");
+        let store = crate::model::store::io(std::path::Path::new("m/model.json"), io);
+        let err = anyhow::Error::new(store).context("loading the model");
+        assert_eq!(
+            super::error_text(&err),
+            "loading the model: m/model.json: gone"
+        );
     }
 }
 

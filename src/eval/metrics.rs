@@ -1,4 +1,4 @@
-//! Per-frame error metrics of a predicted frame against its ground truth (DESIGN.md,
+//! Per-frame error metrics of a predicted frame against its ground truth (docs/design.md,
 //! "Metrics"; the paper's Tables 2 and 3), and their averages.
 //!
 //! Inputs: two physical `[N, 4]` states (x, y in domain units, vx, vy in domain units per

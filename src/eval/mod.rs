@@ -1,5 +1,5 @@
 //! `eval`: rollout metrics, tables, plots and renders of surrogates against the ground truth
-//! (DESIGN.md, "Metrics"; the paper's Tables 2 and 3 and Figures 1, 4, 7, 8, 9).
+//! (docs/design.md, "Metrics"; the paper's Tables 2 and 3 and Figures 1, 4, 7, 8, 9).
 //!
 //! - [`metrics`]: [`FrameMetrics`] of one predicted frame (MSE over scaled x, y, vx, vy, per
 //!   channel, per material, physical units, physics diagnostics) and the density map.

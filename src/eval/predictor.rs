@@ -1,5 +1,5 @@
 //! What `eval` rolls out: the [`Predictor`] trait and its implementations, the two trivial
-//! baselines DESIGN.md ("Metrics") requires beside every model, [`Persist`] (copy the last
+//! baselines docs/design.md ("Metrics") requires beside every model, [`Persist`] (copy the last
 //! frame) and [`ConstVel`] (`x' = x + v dt`, `v' = v`), and [`ModelPredictor`], a trained
 //! run folder on burn's CPU backend ([`Surrogate`], scaling inside).
 //!

@@ -1,7 +1,7 @@
 //! Replay evaluation: scoring a bag of predicted frames (recorded from a running surrogate
 //! node, or written offline) against the ground truth, matched by scene and `frame_index`.
 //!
-//! Predicted frames are ParticleFrames with `frame_index` = input's + 1 (DESIGN.md,
+//! Predicted frames are ParticleFrames with `frame_index` = input's + 1 (docs/design.md,
 //! "Messages"). Per scene, step `k` = `frame_index - first + 1`, where `first` is the scene's
 //! smallest predicted `frame_index`; steps 1..=H are scored. A closed-loop node (`--rollout
 //! K`: K predicted frames after its first T truth frames) thus publishes exactly the frames of

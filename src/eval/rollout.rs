@@ -1,4 +1,4 @@
-//! Direct evaluation (DESIGN.md, "Metrics"): every predictor rolled out autoregressively from
+//! Direct evaluation (docs/design.md, "Metrics"): every predictor rolled out autoregressively from
 //! ground-truth seed frames of each trajectory, and each predicted frame scored against the
 //! truth.
 //!

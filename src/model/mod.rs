@@ -2,7 +2,7 @@
 //! generic over the burn backend. Input: T frames of N particles with features
 //! (x, y, vx, vy, m), min-max scaled; output: the next frame's scaled (x, y, vx, vy).
 //! The decoder predicts a velocity change `dv` (scaled units), integrated in physical units
-//! by semi-implicit Euler: `v' = v + dv`, `x' = x + v' dt` (DESIGN.md, "Model").
+//! by semi-implicit Euler: `v' = v + dv`, `x' = x + v' dt` (docs/design.md, "Models").
 //!
 //! Layout: [`encoder`], [`temporal`] (minGRU | minLSTM | GRU | LSTM | MLP stack), [`minrnn`],
 //! [`rnn`], [`decoder`]; the grid architecture in [`grid`]; saved models in [`store`]. The
@@ -127,13 +127,28 @@ pub fn upload<B: Backend, const D: usize>(
 /// The values of `x` in row-major order, read back as one flat buffer (see [`upload`]).
 ///
 /// # Errors
-/// The backend's read error, as text.
-pub fn download<B: Backend, const D: usize>(x: Tensor<B, D>) -> Result<Vec<f32>, String> {
+/// [`DownloadError`] carrying the backend's read error.
+pub fn download<B: Backend, const D: usize>(x: Tensor<B, D>) -> Result<Vec<f32>, DownloadError> {
+    let shape = x.dims().to_vec();
     let n = x.shape().num_elements();
     x.reshape([n])
         .into_data()
         .to_vec()
-        .map_err(|e| format!("{e:?}"))
+        .map_err(|e| DownloadError {
+            shape,
+            source: Box::new(e),
+        })
+}
+
+/// A tensor could not be read back from its device as `f32` values ([`download`]).
+#[derive(Debug, thiserror::Error)]
+#[error("reading a {shape:?} tensor back from the device: {source}")]
+pub struct DownloadError {
+    /// The tensor's shape.
+    pub shape: Vec<usize>,
+    /// The backend's error.
+    #[source]
+    pub source: Box<dyn std::error::Error + Send + Sync>,
 }
 
 /// Min-max scaling constants as the model uses them: `scaled = (phys - min) / range`.

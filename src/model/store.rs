@@ -22,17 +22,30 @@ use std::path::{Path, PathBuf};
 /// Errors loading or saving a model.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
-    /// A file could not be read or written.
-    #[error("{path}: {what}")]
+    /// A file could not be read or written, or its contents could not be decoded.
+    #[error("{path}: {source}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// What failed.
-        what: String,
+        /// What failed: the OS, JSON or weight-recorder error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A saved file that cannot be read back into the network it should hold.
+    #[error("{path} is damaged or belongs to another network ({source})")]
+    Damaged {
+        /// The file.
+        path: PathBuf,
+        /// The recorder's, OS or JSON error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
     /// Input that does not fit the model.
     #[error("{0}")]
     Shape(String),
+    /// The prediction could not be read back from the device.
+    #[error(transparent)]
+    Download(#[from] super::DownloadError),
 }
 
 /// The architecture and its hyper-parameters (`"arch": "paper" | "grid"` in `model.json`).
@@ -124,10 +137,14 @@ impl ModelMeta {
     }
 }
 
-fn io(path: &Path, what: impl ToString) -> StoreError {
+/// [`StoreError::Io`] for `path`, keeping `source`.
+pub(crate) fn io(
+    path: &Path,
+    source: impl Into<Box<dyn std::error::Error + Send + Sync>>,
+) -> StoreError {
     StoreError::Io {
         path: path.to_path_buf(),
-        what: what.to_string(),
+        source: source.into(),
     }
 }
 
@@ -303,7 +320,7 @@ impl<B: NetOps> Surrogate<B> {
                 let x = super::upload::<B, 3>(feats, [b, n, 5], &self.device);
                 let dt_t = super::upload::<B, 1>(dt.to_vec(), [b], &self.device);
                 let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
-                let mut out = super::download(out).map_err(StoreError::Shape)?;
+                let mut out = super::download(out)?;
                 self.meta.scaler.unscale_rows(&mut out, 4);
                 (out, NetState::Paper(layers))
             }
@@ -354,7 +371,7 @@ impl<B: NetOps> Surrogate<B> {
         };
         let (out, memory) = model.step(input, memory);
         let next = Tensor::cat(vec![out.pos, out.vel], 2);
-        let out = super::download(next).map_err(StoreError::Shape)?;
+        let out = super::download(next)?;
         let history = (t > 1).then(|| vel_hist.narrow(2, 2, 2 * (t - 1)));
         Ok((out, NetState::Grid { memory, history }))
     }

@@ -70,13 +70,42 @@ pub fn encode_status(status: &SurrogateStatus) -> Vec<u8> {
     out
 }
 
+/// Why a `SurrogateStatus` message could not be decoded; each names the field.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum StatusError {
+    /// The encapsulation header is missing or is not CDR little-endian.
+    #[error("not CDR little-endian")]
+    NotCdrLe,
+    /// The message ends inside this field.
+    #[error("{field}: truncated")]
+    Truncated {
+        /// The field being read.
+        field: &'static str,
+    },
+    /// A string field without its NUL terminator.
+    #[error("{field}: no NUL terminator")]
+    NoNul {
+        /// The string field.
+        field: &'static str,
+    },
+    /// A string field that is not UTF-8.
+    #[error("{field}: {source}")]
+    Utf8 {
+        /// The string field.
+        field: &'static str,
+        /// Where the bytes stop being UTF-8.
+        #[source]
+        source: std::string::FromUtf8Error,
+    },
+}
+
 /// Decodes a CDR little-endian `SurrogateStatus`.
 ///
 /// # Errors
-/// A reason naming the field that is missing or malformed.
-pub fn decode_status(bytes: &[u8]) -> Result<SurrogateStatus, String> {
+/// A [`StatusError`] naming the field that is missing or malformed.
+pub fn decode_status(bytes: &[u8]) -> Result<SurrogateStatus, StatusError> {
     if bytes.len() < 4 || bytes[..2] != [0, 1] {
-        return Err("not CDR little-endian".into());
+        return Err(StatusError::NotCdrLe);
     }
     let mut r = Reader {
         body: &bytes[4..],
@@ -118,29 +147,32 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize, align: usize, field: &str) -> Result<&'a [u8], String> {
+    fn take(
+        &mut self,
+        n: usize,
+        align: usize,
+        field: &'static str,
+    ) -> Result<&'a [u8], StatusError> {
         let start = self.pos.div_ceil(align) * align;
         let end = start
             .checked_add(n)
             .filter(|&e| e <= self.body.len())
-            .ok_or_else(|| format!("{field}: truncated"))?;
+            .ok_or(StatusError::Truncated { field })?;
         self.pos = end;
         Ok(&self.body[start..end])
     }
 
-    fn u32(&mut self, field: &str) -> Result<u32, String> {
+    fn u32(&mut self, field: &'static str) -> Result<u32, StatusError> {
         Ok(u32::from_le_bytes(
             self.take(4, 4, field)?.try_into().expect("4 bytes"),
         ))
     }
 
-    fn string(&mut self, field: &str) -> Result<String, String> {
+    fn string(&mut self, field: &'static str) -> Result<String, StatusError> {
         let len = self.u32(field)? as usize;
         let raw = self.take(len, 1, field)?;
-        let text = raw
-            .strip_suffix(&[0])
-            .ok_or_else(|| format!("{field}: no NUL terminator"))?;
-        String::from_utf8(text.to_vec()).map_err(|e| format!("{field}: {e}"))
+        let text = raw.strip_suffix(&[0]).ok_or(StatusError::NoNul { field })?;
+        String::from_utf8(text.to_vec()).map_err(|source| StatusError::Utf8 { field, source })
     }
 }
 
@@ -166,7 +198,13 @@ mod tests {
         // stamp (8) + "abc\0" with length (8) = 16, already 8-aligned: first u64 at body 16.
         assert_eq!(&bytes[4 + 16..4 + 24], &1u64.to_le_bytes());
         assert_eq!(decode_status(&bytes).unwrap(), s);
-        assert!(decode_status(&bytes[..bytes.len() - 3]).is_err());
+        assert_eq!(
+            decode_status(&bytes[..bytes.len() - 3]),
+            Err(StatusError::Truncated {
+                field: "last_error"
+            })
+        );
+        assert_eq!(decode_status(&[1, 0, 0, 0]), Err(StatusError::NotCdrLe));
         let mut odd = s.clone();
         odd.node = "ab".into(); // body 15 -> padded to 16
         assert_eq!(decode_status(&encode_status(&odd)).unwrap(), odd);

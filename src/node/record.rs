@@ -9,7 +9,7 @@
 //! SIGKILL, the current chunk is closed and flushed every `flush_interval`, so a killed
 //! recorder leaves a bag readable up to its last flushed chunk. A payload that is not a
 //! valid frame is counted as malformed and logged (first one per topic, then every 100th),
-//! never written. Messages keep the frame's stamp as log and publish time (DESIGN.md,
+//! never written. Messages keep the frame's stamp as log and publish time (docs/design.md,
 //! "Bags"), and their bytes as they travelled where the transport carries CDR.
 
 use std::collections::BTreeMap;
@@ -296,7 +296,7 @@ impl<'a> Files<'a> {
     /// The sample's CDR bytes and its frame's stamp (ns), or None when it is not a valid
     /// frame (counted as malformed; logged for the first one per topic, then every 100th).
     fn validate(&mut self, sample: &Sample, counters: &Counters) -> Option<(Vec<u8>, u64)> {
-        let validated = sample.cdr().and_then(|bytes| {
+        let validated = sample.cdr().map_err(|e| e.to_string()).and_then(|bytes| {
             let frame = crate::msgs::decode(&bytes).map_err(|e| e.to_string())?;
             let stamp = frame
                 .header

@@ -1,8 +1,8 @@
 //! The surrogate node (`minflow node`): subscribes to particle frames, keeps one hidden
 //! state per `scene`, and for every input frame publishes the predicted next frame
-//! (DESIGN.md: same scene and material, `frame_index` + 1, stamp + `dt`). In closed loop
-//! (`rollout`), after the first T frames of a scene it publishes K predicted frames by
-//! feeding its own predictions back.
+//! (docs/design.md, "Messages": same scene and material, `frame_index` + 1, stamp + `dt`).
+//! In closed loop (`rollout`), after the first T frames of a scene it publishes K predicted
+//! frames by feeding its own predictions back.
 //!
 //! Threads: the transport's I/O thread only hands samples over (a channel); this node's
 //! own thread decodes, checks, queues per scene and predicts, so a slow model never blocks

@@ -2,7 +2,7 @@
 //! (family, scene id, seed): `multi` (60 ids, 64 x 64 grid, dt 8e-4 x 20 substeps, 625
 //! frames) and `fluid` (40 ids, 128 x 128 grid, dt 2e-4 x 80 substeps, 313-1563 frames).
 //!
-//! Body sizes and placements follow `../shared/MPM.md` ("Scene families"): liquid block
+//! Body sizes and placements follow `docs/mpm.md` ("Scene families"): liquid block
 //! 0.2 x 0.4, snow block ~0.25^2, jelly disk r 0.08-0.1, rope 0.4 long at y 0.6-0.9 with
 //! 200 particles (spacing dx / 8), random placement, initial speed <= 2; fluid circle r 0.2
 //! at (0.45, 0.46), rectangle [0.3, 0.7] x [0.25, 0.7], splash column with a random velocity

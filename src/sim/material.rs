@@ -2,7 +2,7 @@
 //! updated deformation gradient `F` (and plastic volume ratio `Jp`), apply plasticity and
 //! return the Kirchhoff stress `tau` (domain units: rho = 1, so stress is energy per area).
 //!
-//! Models follow Taichi's mpm99 example and `../shared/MPM.md`: fixed-corotated elasticity
+//! Models follow Taichi's mpm99 example and `docs/mpm.md` ("Materials"): fixed-corotated elasticity
 //! `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation), liquid with
 //! zero shear modulus and `F` reset to a matrix of determinant J, snow with singular values clamped to
 //! `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)), 0.1, 5)`.
@@ -57,7 +57,7 @@ impl Material {
 
 /// Lamé parameters and snow plasticity limits, shared by every material of a scene.
 ///
-/// Defaults: `E0 = 400`, `nu = 0.2` (mu0 = 166.7, lambda0 = 111.1), as in mpm99 and MPM.md.
+/// Defaults: `E0 = 400`, `nu = 0.2` (mu0 = 166.7, lambda0 = 111.1), as in mpm99 and docs/mpm.md ("Global settings").
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Elasticity {
     /// Young's modulus E0 before hardening.
@@ -97,7 +97,7 @@ impl Elasticity {
 /// substep is changed.
 pub const LIQUID_J_MIN: f32 = 0.1;
 
-/// Snow's singular-value clamp (MPM.md): compression and stretch limits.
+/// Snow's singular-value clamp (docs/mpm.md, "Materials"): compression and stretch limits.
 const SNOW_MIN: f32 = 1.0 - 2.5e-2;
 const SNOW_MAX: f32 = 1.0 + 4.5e-3;
 
@@ -127,7 +127,7 @@ pub fn project(material: u8, f: &mut Mat2, jp: &mut f32) {
     }
 }
 
-/// Hardening factor h scaling mu0 and lambda0 (MPM.md table): liquid 1, jelly 0.3,
+/// Hardening factor h scaling mu0 and lambda0 (docs/mpm.md, "Materials"): liquid 1, jelly 0.3,
 /// snow `clamp(exp(10 (1 - Jp)), 0.1, 5)`, rope 0.5.
 #[inline(always)]
 pub fn hardening(material: u8, jp: f32) -> f32 {
@@ -161,7 +161,7 @@ pub fn kirchhoff_stress(material: u8, f: &Mat2, jp: f32, mu0: f32, lambda0: f32)
     (corotated(f, &linalg::polar_rotation(f), j, mu, la), k)
 }
 
-/// Liquid Kirchhoff pressure term: `lambda J (J - 1)` (mpm99, MPM.md) for `J >= 0.5`.
+/// Liquid Kirchhoff pressure term: `lambda J (J - 1)` (mpm99, docs/mpm.md "Materials") for `J >= 0.5`.
 ///
 /// Below `J = 0.5` that expression loses stiffness (its magnitude falls back to 0 at
 /// `J = 0`), so a particle squeezed past half its volume collapses to `J = 0`: seen in

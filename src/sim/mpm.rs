@@ -376,7 +376,7 @@ impl Solver {
     }
 }
 
-/// `F <- (I + dt C) F` (MPM.md). When `dt |C|_F > 0.25` a single factor can invert F
+/// `F <- (I + dt C) F` (docs/mpm.md, "Materials"). When `dt |C|_F > 0.25` a single factor can invert F
 /// (`det(I + dt C) <= 0`, seen when a fast particle meets a wall), so `F' = C F` is then
 /// integrated in `m` equal steps, `F <- (I + dt/m C)^m F`, which tends to the exact
 /// `exp(dt C) F` and keeps `det F > 0`. Rare in the generated scenes.

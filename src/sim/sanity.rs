@@ -1,4 +1,4 @@
-//! Per-frame sanity checks of a running scene (`../shared/MPM.md`, check 6): no NaN, every
+//! Per-frame sanity checks of a running scene (`docs/mpm.md`, "Validation checks", check 6): no NaN, every
 //! particle inside `[0.5 dx, 1 - 1.5 dx)`, speed `<= 20` domain units per time unit, liquid
 //! `J > 0`, and neighbouring rope particles no more than `dx` apart.
 //!

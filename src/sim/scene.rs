@@ -127,7 +127,7 @@ impl Scene {
     }
 
     /// Checks ranges: a name that can be a bag's file name, grid, dt, counts, bodies inside
-    /// `[dx, 1 - 2 dx]`, rope spacing `<= dx / 4` (MPM.md), at most 1,000,000 particles.
+    /// `[dx, 1 - 2 dx]`, rope spacing `<= dx / 4` (docs/mpm.md, "Materials"), at most 1,000,000 particles.
     pub fn validate(&self) -> Result<(), SimError> {
         let bad = |what: String| Err(SimError::Invalid(format!("scene {}: {what}", self.name)));
         // The name becomes the bag's file name (`/` -> `_`, see `cli::bag_name`): an empty

@@ -6,18 +6,15 @@
 //! afterwards (a truncated copy, a full disk) falls back to it with a warning naming the file.
 
 use super::{EpochRecord, TrainError};
-use crate::model::store::StoreError;
+use crate::model::store;
 use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
 use std::path::Path;
 
-fn err(path: &Path, what: impl ToString) -> TrainError {
-    TrainError::Store(StoreError::Io {
-        path: path.to_path_buf(),
-        what: what.to_string(),
-    })
+fn err(path: &Path, source: impl Into<Box<dyn std::error::Error + Send + Sync>>) -> TrainError {
+    TrainError::Store(store::io(path, source))
 }
 
 /// Writes the checkpoint of the epoch just finished.
@@ -63,7 +60,7 @@ pub struct Resumed<M, R> {
 /// missing or damaged, the previous epoch's `OUT/checkpoint.old`; `None` if there is neither.
 ///
 /// # Errors
-/// Every checkpoint there is damaged: [`StoreError::Io`] naming the first damaged file of
+/// Every checkpoint there is damaged: [`store::StoreError::Io`] naming the first damaged file of
 /// each (`model.mpk`, `optim.mpk` or `history.json`) and what was wrong with it.
 pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     out: &Path,
@@ -89,7 +86,7 @@ pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
                 }
                 return Ok(Some(resumed));
             }
-            Err(e) => damaged.push(e),
+            Err(e) => damaged.push(e.to_string()),
         }
     }
     match damaged.is_empty() {
@@ -106,22 +103,21 @@ fn read<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     dir: &Path,
     fresh: M,
     device: &B::Device,
-) -> Result<Resumed<M, O::Record>, String> {
-    let damaged = |file: &str, e: &dyn std::fmt::Display| {
-        format!(
-            "{} is damaged or belongs to another network ({e})",
-            dir.join(file).display()
-        )
-    };
+) -> Result<Resumed<M, O::Record>, store::StoreError> {
+    let damaged =
+        |file: &str, source: Box<dyn std::error::Error + Send + Sync>| store::StoreError::Damaged {
+            path: dir.join(file),
+            source,
+        };
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     let model = fresh
         .load_file(dir.join("model"), &recorder, device)
-        .map_err(|e| damaged("model.mpk", &e))?;
+        .map_err(|e| damaged("model.mpk", e.into()))?;
     let optim: O::Record = Recorder::<B>::load(&recorder, dir.join("optim"), device)
-        .map_err(|e| damaged("optim.mpk", &e))?;
+        .map_err(|e| damaged("optim.mpk", e.into()))?;
     let text = std::fs::read_to_string(dir.join("history.json"))
-        .map_err(|e| damaged("history.json", &e))?;
-    let history = serde_json::from_str(&text).map_err(|e| damaged("history.json", &e))?;
+        .map_err(|e| damaged("history.json", e.into()))?;
+    let history = serde_json::from_str(&text).map_err(|e| damaged("history.json", e.into()))?;
     Ok(Resumed {
         model,
         optim,

@@ -1,4 +1,4 @@
-//! The training loss (DESIGN.md, "Model"; the paper's eq. 2 plus its density term): MSE over
+//! The training loss (docs/design.md, "Models"; the paper's eq. 2 plus its density term): MSE over
 //! the next frame's scaled (x, y, vx, vy), plus `weight` times the MSE between density maps of
 //! the predicted and true positions.
 //!

@@ -1,4 +1,4 @@
-//! `train`: fits a model on trajectories from bags (DESIGN.md, "Model"): Adam (lr 1e-3,
+//! `train`: fits a model on trajectories from bags (docs/design.md, "Models"): Adam (lr 1e-3,
 //! epsilon 1e-8 as PyTorch), effective batch reached by micro-batches with gradient
 //! accumulation, early stopping on the validation loss, a metrics CSV per epoch, and a
 //! checkpoint (model + optimizer + state) written atomically every epoch so a killed run

@@ -1,6 +1,6 @@
 //! iceoryx2 transport: zero-copy shared-memory publish-subscribe of a slice of
 //! `#[repr(C)]` [`Particle`]s with a `#[repr(C)]` [`FrameHeader`] user header
-//! (DESIGN.md, "Topics and transports"). Same host only.
+//! (docs/design.md, "Topics and transports"). Same host only.
 //!
 //! Service name = topic without the leading slash (`mpm/frames`). Each publish-subscribe
 //! service has an event service of the same name: publishers notify it after every sample,
@@ -66,7 +66,8 @@ pub struct Particle {
 }
 
 /// The per-sample user header: everything of a `ParticleFrame` but the particles.
-/// `header.frame_id` is always `"world"` (DESIGN.md) and is not carried.
+/// `header.frame_id` is always `"world"` (docs/design.md, "Topics and transports") and is
+/// not carried.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
 #[type_name("minflow::FrameHeader")]
@@ -145,14 +146,14 @@ impl FrameHeader {
     /// The scene id.
     ///
     /// # Errors
-    /// A reason if the bytes are not NUL-terminated UTF-8.
-    pub fn scene(&self) -> Result<&str, String> {
+    /// [`SampleError::SceneUnterminated`] or [`SampleError::SceneUtf8`].
+    pub fn scene(&self) -> Result<&str, SampleError> {
         let end = self
             .scene
             .iter()
             .position(|&b| b == 0)
-            .ok_or("scene id not NUL-terminated")?;
-        std::str::from_utf8(&self.scene[..end]).map_err(|e| format!("scene id not UTF-8: {e}"))
+            .ok_or(SampleError::SceneUnterminated)?;
+        std::str::from_utf8(&self.scene[..end]).map_err(SampleError::SceneUtf8)
     }
 }
 
@@ -169,18 +170,42 @@ pub fn write_particles(frame: &ParticleFrame, out: &mut [std::mem::MaybeUninit<P
     }
 }
 
+/// Why a received sample is not a frame.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SampleError {
+    /// The header's particle count disagrees with the slice.
+    #[error("header says {header} particles, sample carries {carried}")]
+    Count {
+        /// `particle_count` in the header.
+        header: u32,
+        /// Particles in the sample's slice.
+        carried: usize,
+    },
+    /// The scene field has no NUL byte.
+    #[error("scene id not NUL-terminated")]
+    SceneUnterminated,
+    /// The scene field is not UTF-8.
+    #[error("scene id not UTF-8: {0}")]
+    SceneUtf8(#[source] std::str::Utf8Error),
+    /// A material id that does not fit the message's byte.
+    #[error("material id {0} out of range")]
+    Material(u32),
+}
+
 /// Rebuilds a `ParticleFrame` from a header and its particles.
 ///
 /// # Errors
-/// A reason if the header's count disagrees with the slice, the scene id is bad or a
-/// material id does not fit a byte.
-pub fn to_frame(header: &FrameHeader, particles: &[Particle]) -> Result<ParticleFrame, String> {
+/// A [`SampleError`] if the header's count disagrees with the slice, the scene id is bad
+/// or a material id does not fit a byte.
+pub fn to_frame(
+    header: &FrameHeader,
+    particles: &[Particle],
+) -> Result<ParticleFrame, SampleError> {
     if header.particle_count as usize != particles.len() {
-        return Err(format!(
-            "header says {} particles, sample carries {}",
-            header.particle_count,
-            particles.len()
-        ));
+        return Err(SampleError::Count {
+            header: header.particle_count,
+            carried: particles.len(),
+        });
     }
     let mut position = Vec::with_capacity(2 * particles.len());
     let mut velocity = Vec::with_capacity(2 * particles.len());
@@ -188,10 +213,7 @@ pub fn to_frame(header: &FrameHeader, particles: &[Particle]) -> Result<Particle
     for p in particles {
         position.extend_from_slice(&[p.x, p.y]);
         velocity.extend_from_slice(&[p.vx, p.vy]);
-        material.push(
-            u8::try_from(p.material)
-                .map_err(|_| format!("material id {} out of range", p.material))?,
-        );
+        material.push(u8::try_from(p.material).map_err(|_| SampleError::Material(p.material))?);
     }
     Ok(ParticleFrame {
         header: Header {
@@ -351,7 +373,7 @@ impl Transport for IceoryxTransport {
                                 let payload = match to_frame(sample.user_header(), sample.payload())
                                 {
                                     Ok(frame) => Payload::Frame(frame),
-                                    Err(reason) => Payload::Malformed(reason),
+                                    Err(reason) => Payload::Malformed(reason.to_string()),
                                 };
                                 drop(sample);
                                 if sink
@@ -568,5 +590,44 @@ mod tests {
     fn layout_is_packed() {
         assert_eq!(std::mem::size_of::<Particle>(), 20);
         assert_eq!(std::mem::size_of::<FrameHeader>(), 64 + 5 * 4);
+    }
+
+    /// A sample that disagrees with its header is refused with the reason, not truncated.
+    #[test]
+    fn bad_samples_name_what_is_wrong() {
+        let particle = |material| Particle {
+            x: 0.5,
+            y: 0.5,
+            vx: 0.0,
+            vy: 0.0,
+            material,
+        };
+        let frame = ParticleFrame {
+            header: Header {
+                frame_id: "world".into(),
+                ..Header::default()
+            },
+            scene: "s".into(),
+            position: vec![0.5, 0.5],
+            velocity: vec![0.0, 0.0],
+            material: vec![1],
+            ..ParticleFrame::default()
+        };
+        let header = FrameHeader::from_frame(&frame).unwrap();
+        assert_eq!(to_frame(&header, &[particle(1)]).unwrap().scene, "s");
+        assert_eq!(
+            to_frame(&header, &[]).unwrap_err(),
+            SampleError::Count {
+                header: 1,
+                carried: 0
+            }
+        );
+        assert_eq!(
+            to_frame(&header, &[particle(300)]).unwrap_err(),
+            SampleError::Material(300)
+        );
+        let mut full = header;
+        full.scene = [b'a'; 64];
+        assert_eq!(full.scene(), Err(SampleError::SceneUnterminated));
     }
 }

@@ -1,5 +1,5 @@
 //! Transports: one small interface to publish and subscribe `ParticleFrame`s on a named
-//! topic, with three real implementations (DESIGN.md, "Topics and transports").
+//! topic, with three real implementations (docs/design.md, "Topics and transports").
 //!
 //! - [`zenoh`](self::zenoh): key = topic without the leading slash, payload = the CDR bytes
 //!   (the zenoh-bridge-ros2dds mapping); embedded peer session by default, or a standard
@@ -24,7 +24,7 @@ use std::sync::mpsc::Sender;
 use std::time::{Duration, Instant};
 
 use crate::msgs::status::SurrogateStatus;
-use crate::msgs::{cdr, ParticleFrame};
+use crate::msgs::{cdr, FrameError, ParticleFrame};
 
 pub use counters::Counters;
 
@@ -113,6 +113,22 @@ pub enum TransportError {
     Topic(String),
 }
 
+/// Why a received message is not a usable frame ([`Sample::frame`], [`Sample::decode`],
+/// [`Sample::cdr`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MalformedFrame {
+    /// The CDR bytes do not decode (the field and byte offset are in the error).
+    #[error(transparent)]
+    Cdr(#[from] cdr::CdrError),
+    /// The frame decodes but is not valid (lengths, finiteness, material ids).
+    #[error(transparent)]
+    Invalid(#[from] FrameError),
+    /// The transport delivered something that is not a frame; its reason as it gave it
+    /// ([`Payload::Malformed`]).
+    #[error("{0}")]
+    Transport(String),
+}
+
 /// What arrived on a subscription.
 #[derive(Debug, Clone)]
 pub enum Payload {
@@ -140,13 +156,9 @@ impl Sample {
     ///
     /// # Errors
     /// The reason a payload is malformed (CDR decode error, failed validation).
-    pub fn frame(&self) -> Result<ParticleFrame, String> {
-        let frame = match &self.payload {
-            Payload::Cdr(bytes) => cdr::decode(bytes).map_err(|e| e.to_string())?,
-            Payload::Frame(frame) => frame.clone(),
-            Payload::Malformed(reason) => return Err(reason.clone()),
-        };
-        frame.validate().map_err(|e| e.to_string())?;
+    pub fn frame(&self) -> Result<ParticleFrame, MalformedFrame> {
+        let frame = self.decode()?;
+        frame.validate()?;
         Ok(frame)
     }
 
@@ -155,11 +167,11 @@ impl Sample {
     ///
     /// # Errors
     /// The reason the payload does not decode.
-    pub fn decode(&self) -> Result<ParticleFrame, String> {
+    pub fn decode(&self) -> Result<ParticleFrame, MalformedFrame> {
         match &self.payload {
-            Payload::Cdr(bytes) => cdr::decode(bytes).map_err(|e| e.to_string()),
+            Payload::Cdr(bytes) => Ok(cdr::decode(bytes)?),
             Payload::Frame(frame) => Ok(frame.clone()),
-            Payload::Malformed(reason) => Err(reason.clone()),
+            Payload::Malformed(reason) => Err(MalformedFrame::Transport(reason.clone())),
         }
     }
 
@@ -167,11 +179,10 @@ impl Sample {
     ///
     /// # Errors
     /// As [`Sample::frame`].
-    pub fn cdr(&self) -> Result<Vec<u8>, String> {
+    pub fn cdr(&self) -> Result<Vec<u8>, MalformedFrame> {
         match &self.payload {
             Payload::Cdr(bytes) => {
-                let frame = cdr::decode(bytes).map_err(|e| e.to_string())?;
-                frame.validate().map_err(|e| e.to_string())?;
+                cdr::decode(bytes)?.validate()?;
                 Ok(bytes.clone())
             }
             _ => self.frame().map(|f| cdr::encode(&f)),

@@ -1,5 +1,5 @@
 //! zenoh transport: key = ROS 2 topic without the leading slash, payload = the frame's CDR
-//! bytes (the zenoh-bridge-ros2dds mapping, DESIGN.md "Topics and transports"), so the
+//! bytes (the zenoh-bridge-ros2dds mapping, docs/design.md "Topics and transports"), so the
 //! bridge, rmw_zenoh tools and any zenoh client in any language can read and write frames.
 //!
 //! The default session is an embedded peer (multicast scouting, no router needed); a

@@ -1,4 +1,4 @@
-//! Bags minflow writes, read by the Python `mcap` + `mcap-ros2-support` readers (DESIGN.md,
+//! Bags minflow writes, read by the Python `mcap` + `mcap-ros2-support` readers (docs/design.md,
 //! "Bags"): [`BagWriter`] writes two scenes of 2,500 particles with strings of odd byte lengths
 //! (one not ASCII), `tests/python/read_bag.py` decodes them with `mcap_ros2`'s `DecoderFactory`
 //! and prints a JSON summary, and every field is compared with what was written (floats after

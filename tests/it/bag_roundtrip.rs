@@ -1,5 +1,5 @@
 //! Bags that follow the format, read back exactly: frames -> bag -> frames for synthetic scenes,
-//! byte-identical rewrites, the schema/channel/header records DESIGN.md fixes, bags written by
+//! byte-identical rewrites, the schema/channel/header records docs/design.md ("Bags") fixes, bags written by
 //! mcap's own writer (no chunks, lz4, no summary, a foreign topic), bags cut at many byte
 //! offsets (and one copied while its writer is still open), and `bag info`.
 

@@ -1,6 +1,6 @@
 //! The `minflow` binary end to end: `simulate` writes bags that `bag info` and `bag check`
 //! accept and that read back frame for frame as the simulator made them; the same scene id
-//! and seed give byte-identical bags (MPM.md check 7); a truncated bag is reported with
+//! and seed give byte-identical bags (docs/mpm.md, "Validation checks", check 7); a truncated bag is reported with
 //! exit code 3; the bundled sample in `bags/` is valid.
 
 use minflow::bag::read_frames;

@@ -1,5 +1,5 @@
 //! Scene generation: every scene id of both families passes the per-frame sanity checks of
-//! `../shared/MPM.md` (check 6) over its first 100 frames; the families have the sizes the
+//! `docs/mpm.md` ("Validation checks", check 6) over its first 100 frames; the families have the sizes the
 //! paper gives; scene files parse, run, and fail with clear errors.
 
 use minflow::sim::families::{self, Family, FLUID_KINDS, PAIRINGS};

@@ -1,4 +1,4 @@
-//! The MLS-MPM validation checks of `../shared/MPM.md` ("Validation checks"), each with its
+//! The MLS-MPM validation checks of `docs/mpm.md` ("Validation checks"), each with its
 //! tolerance: mass, momentum, free fall, two-disk rebound, dam break against Martin and
 //! Moyce (1952), and determinism. (Per-scene sanity is in `sim_scenes.rs`.)
 

@@ -1,5 +1,5 @@
-//! `--arch grid`: a local, grid-based surrogate with Lagrangian memory (DESIGN.md, "Models";
-//! docs/grid.md). One step, for every particle i of every scene in a batch:
+//! `--arch grid`: a local, grid-based surrogate with Lagrangian memory (docs/design.md,
+//! "Models"; docs/grid.md). One step, for every particle i of every scene in a batch:
 //!
 //! 1. P2G ([`transfer`]): the particle's mass (1), its last T velocities and its material
 //!    one-hot are splatted onto an `n x n` grid with MPM's quadratic B-spline weights;
@@ -14,8 +14,8 @@
 //! 5. Head: an MLP on `[u_i, memory output]` predicts the normalised velocity change;
 //!    `dv = dv_mean + dv_scale * out` (physical), `v' = v + dv`, and the trapezoid
 //!    `x' = x + dt (v + v') / 2` (its floor against MPM frames is 1.5e-6 / 1.3e-6 MSE, the
-//!    explicit `x + v' dt` 8e-6 / 2e-5: DESIGN.md), clamped into the box MPM keeps its
-//!    particles in.
+//!    explicit `x + v' dt` 8e-6 / 2e-5: docs/design.md, "Models"), clamped into the box MPM
+//!    keeps its particles in.
 //!
 //! Any N, any particle order: every per-particle operation is row-wise and the grid sums are
 //! order-free. The normalisation constants are fitted on the training split and saved in
@@ -83,6 +83,25 @@ pub struct GridConfig {
     pub conv: ConvKernel,
 }
 
+/// A [`GridConfig`] setting out of range; each message names the command-line flag.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum GridConfigError {
+    /// `window` is 0.
+    #[error("--window must be at least 1")]
+    Window,
+    /// `grid` is below 8 or not divisible by the coarsest U-Net level's factor.
+    #[error("--grid {grid} must be at least 8 and a multiple of 2^(--levels - 1) = {multiple}")]
+    Grid {
+        /// The grid side asked for.
+        grid: usize,
+        /// `2^(levels - 1)`, which it must be a multiple of.
+        multiple: usize,
+    },
+    /// One of the layer widths is 0.
+    #[error("widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1")]
+    Width,
+}
+
 impl GridConfig {
     /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls).
     pub fn grid_channels(&self) -> usize {
@@ -97,24 +116,21 @@ impl GridConfig {
     /// Checks the sizes.
     ///
     /// # Errors
-    /// A sentence naming the setting.
-    pub fn validate(&self) -> Result<(), String> {
+    /// The first setting out of range, as a [`GridConfigError`] whose message names its flag.
+    pub fn validate(&self) -> Result<(), GridConfigError> {
         let levels = self.levels.max(1);
         if self.window == 0 {
-            return Err("--window must be at least 1".into());
+            return Err(GridConfigError::Window);
         }
-        if self.grid < 8 || self.grid % (1 << (levels - 1)) != 0 {
-            return Err(format!(
-                "--grid {} must be at least 8 and a multiple of 2^(--levels - 1) = {}",
-                self.grid,
-                1 << (levels - 1)
-            ));
+        let multiple = 1 << (levels - 1);
+        if self.grid < 8 || self.grid % multiple != 0 {
+            return Err(GridConfigError::Grid {
+                grid: self.grid,
+                multiple,
+            });
         }
         if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
-            return Err(
-                "widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1"
-                    .into(),
-            );
+            return Err(GridConfigError::Width);
         }
         Ok(())
     }

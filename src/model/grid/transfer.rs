@@ -43,7 +43,7 @@ pub struct Stencil<B: Backend> {
 }
 
 /// Where stencils are clamped: the positions MPM keeps its particles in, `[0.5 dx, 1 - 1.5
-/// dx)`, so every stencil lies inside the grid (MPM.md, check 6).
+/// dx)`, so every stencil lies inside the grid (docs/mpm.md, "Validation checks", check 6).
 fn bounds(n: usize) -> (f32, f32) {
     let dx = 1.0 / n as f32;
     (0.5 * dx, 1.0 - 1.5 * dx - 1e-5)

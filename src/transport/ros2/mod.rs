@@ -1,7 +1,7 @@
 //! ROS 2 transport with [`ros2-client`](https://docs.rs/ros2-client) 0.12: a real ROS 2 node
 //! (pure Rust, no ROS installation needed) that publishes and subscribes
 //! `minflow_msgs/msg/ParticleFrame` exactly as an `rclcpp`/`rclpy` node would
-//! (DESIGN.md, "Messages" and "Topics and transports").
+//! (docs/design.md, "Messages" and "Topics and transports").
 //!
 //! Two middlewares, chosen with [`Backend`]:
 //!
