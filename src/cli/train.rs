@@ -429,7 +429,6 @@ pub(crate) fn config_differences(
     dir: &Path,
     net: &NetConfig,
 ) -> anyhow::Result<Option<Vec<String>>> {
-    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
     let path = dir.join("model.json");
     let text = match std::fs::read_to_string(&path) {
         Ok(text) => text,
@@ -438,19 +437,31 @@ pub(crate) fn config_differences(
     };
     let saved: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    differences(&saved, net).map(Some)
+}
+
+/// Each hyper-parameter of `net` that differs from its value in `saved` (a `model.json`, or
+/// a saved [`NetConfig`], as JSON), as [`config_differences`] lists them.
+///
+/// # Errors
+/// `net` does not serialise (not expected).
+pub(crate) fn differences(
+    saved: &serde_json::Value,
+    net: &NetConfig,
+) -> anyhow::Result<Vec<String>> {
+    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
     let new = serde_json::to_value(net)?;
-    Ok(Some(
-        new.as_object()
-            .into_iter()
-            .flatten()
-            .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
-            .filter_map(|(key, value)| {
-                let old = saved.get(key);
-                (old != Some(value)).then(|| {
-                    let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
-                    format!("{key}: checkpoint {old}, this run {value}")
-                })
+    Ok(new
+        .as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
+        .filter_map(|(key, value)| {
+            let old = saved.get(key);
+            (old != Some(value)).then(|| {
+                let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
+                format!("{key}: checkpoint {old}, this run {value}")
             })
-            .collect(),
-    ))
+        })
+        .collect())
 }

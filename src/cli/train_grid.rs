@@ -181,7 +181,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let opts = args.grid_options();
     let device = args.device.parse()?;
     let init = match &args.grid_args.init_from {
-        Some(dir) => Some(init_config(dir, config.clone())?),
+        Some(dir) => Some(init_normalisation(dir, &config)?),
         None => None,
     };
     let topic = Some(args.topic.as_str());
@@ -198,18 +198,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let refs: Vec<&Trajectory> = train.iter().collect();
     let scaler = Scaler::fit(&refs);
-    let (vel_scale, dv_mean, dv_scale) = fit_stats(&refs);
+    // Weights from --init-from were trained against their run's normalisation: keep it.
+    let (vel_scale, dv_mean, dv_scale) = init.unwrap_or_else(|| fit_stats(&refs));
     config.vel_scale = vel_scale;
     config.dv_mean = dv_mean;
     config.dv_scale = dv_scale;
     if args.resume {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
-    }
-    if let Some(init) = init {
-        // The weights were trained against the source run's normalisation.
-        config.vel_scale = init.vel_scale;
-        config.dv_mean = init.dv_mean;
-        config.dv_scale = init.dv_scale;
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
@@ -274,16 +269,22 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     Ok(super::read_to_damage(&report.truncated))
 }
 
-/// `config` with the normalisation constants of the grid model in `dir` (`--init-from`),
-/// after checking that `dir` holds a grid model of the architecture `config` describes.
+/// The normalisation constants `(vel_scale, dv_mean, dv_scale)` of the grid model in `dir`
+/// (`--init-from`), after checking that it is the architecture `config` describes.
 ///
 /// # Errors
 /// `dir` has no readable `model.json`, holds another architecture, or one whose
 /// hyper-parameters differ (each named, a usage error).
-fn init_config(dir: &std::path::Path, config: GridConfig) -> anyhow::Result<GridConfig> {
-    let net = NetConfig::Grid(config);
-    let differ = super::train::config_differences(dir, &net)?
-        .with_context(|| format!("--init-from {}: no model.json there", dir.display()))?;
+fn init_normalisation(
+    dir: &std::path::Path,
+    config: &GridConfig,
+) -> anyhow::Result<([f32; 2], [f32; 2], [f32; 2])> {
+    let (path, meta) = crate::model::store::read_meta(dir)
+        .with_context(|| format!("--init-from {}", dir.display()))?;
+    let differ = super::train::differences(
+        &serde_json::to_value(&meta.net)?,
+        &NetConfig::Grid(config.clone()),
+    )?;
     if !differ.is_empty() {
         return Err(super::UsageError(format!(
             "--init-from {}: its network differs from the one these flags describe ({}); \
@@ -293,16 +294,10 @@ fn init_config(dir: &std::path::Path, config: GridConfig) -> anyhow::Result<Grid
         ))
         .into());
     }
-    let NetConfig::Grid(mut config) = net else {
-        unreachable!("built as a grid config")
-    };
-    let (_, meta) = crate::model::store::read_meta(dir)?;
-    if let NetConfig::Grid(saved) = meta.net {
-        config.vel_scale = saved.vel_scale;
-        config.dv_mean = saved.dv_mean;
-        config.dv_scale = saved.dv_scale;
+    match meta.net {
+        NetConfig::Grid(saved) => Ok((saved.vel_scale, saved.dv_mean, saved.dv_scale)),
+        NetConfig::Paper(_) => unreachable!("{}: compared equal to a grid config", path.display()),
     }
-    Ok(config)
 }
 
 /// Trains on `device` (the CPU, or one GPU).

@@ -10,7 +10,7 @@ fn report_trains_evaluates_and_writes_report_md() {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("report");
-    let args = [
+    let mut args = vec![
         "report",
         "--data",
         bags,
@@ -28,17 +28,12 @@ fn report_trains_evaluates_and_writes_report_md() {
         "all",
         "--seed",
         "3",
-        "--grid",
-        "16",
-        "--levels",
-        "2",
-        "--unet-width",
-        "4",
         "--samples-per-epoch",
         "8",
     ];
+    args.extend(crate::TINY_GRID_NET);
     let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .args(args)
+        .args(&args)
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
