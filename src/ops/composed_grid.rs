@@ -4,6 +4,7 @@
 //! and the stencil transfers (G2P through burn's row gather `select`, P2G through its
 //! scatter-add `select_assign`). The CPU has single-pass kernels for all of them (`cpu/`).
 
+use burn::tensor::backend::Backend;
 use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorMetadata, TensorPrimitive};
 
@@ -21,6 +22,18 @@ pub(crate) fn dims4<B: NetOps>(x: &FloatTensor<B>) -> [usize; 4] {
     [s[0], s[1], s[2], s[3]]
 }
 
+/// `x` `[B, H, W, C]` with `half` zero rows above and below and `half` zero columns left
+/// and right: `[B, H + 2 half, W + 2 half, C]` (the "same" padding of a `2 half + 1`
+/// convolution, channels last).
+pub fn pad_hw<B: Backend>(x: Tensor<B, 4>, half: usize) -> Tensor<B, 4> {
+    let [b, h, w, c] = x.dims();
+    let device = x.device();
+    let zeros_h = Tensor::zeros([b, half, w, c], &device);
+    let x = Tensor::cat(vec![zeros_h.clone(), x, zeros_h], 1);
+    let zeros_w = Tensor::zeros([b, h + 2 * half, half, c], &device);
+    Tensor::cat(vec![zeros_w.clone(), x, zeros_w], 2)
+}
+
 /// Composed im2col: the `k^2` shifted slices of the zero-padded input, interleaved so that
 /// the offset is the fastest column index.
 ///
@@ -29,12 +42,7 @@ pub(crate) fn dims4<B: NetOps>(x: &FloatTensor<B>) -> [usize; 4] {
 pub(crate) fn composed_im2col<B: NetOps>(x: FloatTensor<B>, k: usize) -> FloatTensor<B> {
     let [b, h, w, c] = dims4::<B>(&x);
     let x = wrap::<B, 4>(x);
-    let half = k / 2;
-    let device = x.device();
-    let zeros_h = Tensor::zeros([b, half, w, c], &device);
-    let x = Tensor::cat(vec![zeros_h.clone(), x, zeros_h], 1);
-    let zeros_w = Tensor::zeros([b, h + 2 * half, half, c], &device);
-    let x = Tensor::cat(vec![zeros_w.clone(), x, zeros_w], 2);
+    let x = pad_hw(x, k / 2);
     let shifted: Vec<Tensor<B, 5>> = (0..k * k)
         .map(|s| {
             x.clone()

@@ -40,6 +40,7 @@ mod autodiff;
 mod autodiff_grid;
 pub mod composed;
 mod composed_grid;
+pub use composed_grid::pad_hw;
 mod cpu;
 pub mod cublas;
 #[cfg(feature = "cuda")]

@@ -206,12 +206,7 @@ fn conv_shift<B: NetOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
     let cols = if k == 1 {
         x
     } else {
-        let half = k / 2;
-        let device = x.device();
-        let zeros_h = Tensor::zeros([b, half, w, c], &device);
-        let x = Tensor::cat(vec![zeros_h.clone(), x, zeros_h], 1);
-        let zeros_w = Tensor::zeros([b, h + 2 * half, half, c], &device);
-        let x = Tensor::cat(vec![zeros_w.clone(), x, zeros_w], 2);
+        let x = crate::ops::pad_hw(x, k / 2);
         let shifted = (0..k * k)
             .map(|s| x.clone().narrow(1, s / k, h).narrow(2, s % k, w))
             .collect();
