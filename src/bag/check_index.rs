@@ -190,6 +190,34 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
     reader.finish().ok_or_else(|| "no summary".to_owned())
 }
 
+/// ParticleFrame messages on `topic` (any topic when None) that `path`'s summary statistics
+/// count, read with seeks (no decompression); None when the bag cannot be opened or has no
+/// readable summary or statistics (a cut or streaming-written bag): then only reading the
+/// bag tells.
+pub fn summary_frames(path: &Path, topic: Option<&str>) -> Option<u64> {
+    let mut file = File::open(path).ok()?;
+    let len = file.metadata().ok()?.len();
+    let summary = read_summary(&mut file, len).ok()?;
+    let stats = summary.stats.as_ref()?;
+    let counted = summary.channels.values().filter(|channel| {
+        let frames = channel.schema.as_ref().is_some_and(|schema| {
+            schema.name == crate::msgs::TYPE_NAME || schema.name == "minflow_msgs/ParticleFrame"
+        });
+        frames && topic.is_none_or(|t| channel.topic == t)
+    });
+    Some(
+        counted
+            .map(|channel| {
+                stats
+                    .channel_message_counts
+                    .get(&channel.id)
+                    .copied()
+                    .unwrap_or(0)
+            })
+            .sum(),
+    )
+}
+
 fn read_at(file: &mut File, at: u64, n: u64) -> Result<Vec<u8>, String> {
     file.seek(SeekFrom::Start(at)).map_err(|e| e.to_string())?;
     let mut buf = Vec::new();

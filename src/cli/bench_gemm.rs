@@ -40,7 +40,11 @@ pub fn run(args: GemmBenchArgs) -> anyhow::Result<Outcome> {
         let Some(index) = device.single("bench gemm")? else {
             anyhow::bail!("bench gemm measures GPU products: give --device cuda[:N]");
         };
-        cuda::table(&args, super::device::cuda::device(index)?)
+        cuda::table(
+            &args,
+            index,
+            super::device::cuda::device(index, args.device.kernels())?,
+        )
     }
     #[cfg(not(feature = "cuda"))]
     {
@@ -53,7 +57,8 @@ pub fn run(args: GemmBenchArgs) -> anyhow::Result<Outcome> {
 mod cuda {
     use super::super::device::cuda::{CudaDevice, CudaInfer};
     use super::{GemmBenchArgs, Outcome};
-    use crate::ops::cublas::{gpu_gemm, set_gpu_gemm, GpuGemm};
+    use crate::ops::cublas::{kernels, open, GpuGemm};
+    use crate::ops::Kernels;
     use crate::ops::NetOps;
     use burn::tensor::backend::Backend;
     use burn::tensor::{Distribution, ElementConversion, Tensor, TensorPrimitive};
@@ -67,8 +72,15 @@ mod cuda {
         Tensor::from_primitive(TensorPrimitive::Float(CudaInfer::matmul(p(a), p(b))))
     }
 
-    pub(super) fn table(args: &GemmBenchArgs, device: CudaDevice) -> anyhow::Result<Outcome> {
-        let chosen = gpu_gemm();
+    /// Times each product under each kernel: GPU `index` is reopened with that kernel
+    /// ([`open`]) before its products, and with the flags' choice again at the end.
+    pub(super) fn table(
+        args: &GemmBenchArgs,
+        index: usize,
+        device: CudaDevice,
+    ) -> anyhow::Result<Outcome> {
+        let chosen = kernels(index);
+        let with = |gemm| open(index, Kernels { gemm, ..chosen });
         let (rows, hidden, width) = (args.rows, args.hidden, args.width);
         let rand = |r, c| T2::random([r, c], Distribution::Uniform(-1.0, 1.0), &device);
         let x = rand(rows, hidden);
@@ -91,7 +103,7 @@ mod cuda {
         );
         for (name, a, b) in &cases {
             let ([m, k], n) = (a.dims(), b.dims()[1]);
-            set_gpu_gemm(GpuGemm::Fp32);
+            with(GpuGemm::Fp32);
             let reference = product(a, b);
             // Reductions on the GPU: downloading a [400,000 x 1,250] product is slow.
             let largest = |t: T2| t.abs().max().into_scalar().elem::<f32>();
@@ -101,7 +113,7 @@ mod cuda {
                 ("tf32", GpuGemm::Tf32),
                 ("fp32", GpuGemm::Fp32),
             ] {
-                set_gpu_gemm(gemm);
+                with(gemm);
                 let diff = largest(product(a, b) - reference.clone());
                 // One untimed run of exactly the timed graph (a lone product compiles to
                 // another kernel than the product fused with the subtraction above).
@@ -126,7 +138,7 @@ mod cuda {
                 );
             }
         }
-        set_gpu_gemm(chosen);
+        open(index, chosen);
         Ok(Outcome::Done)
     }
 }

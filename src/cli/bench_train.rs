@@ -142,12 +142,21 @@ fn peak_mib(reset: bool) -> Option<f64> {
     Some(kb / 1024.0)
 }
 
-pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
-    crate::ops::composed::set_split_weight_grad(match args.split_weight_grad.as_str() {
+/// The kernel choices the GPUs are opened with: `--gpu-gemm` and `--split-weight-grad`.
+fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kernels> {
+    let split_weight_grad = match args.split_weight_grad.as_str() {
         "on" => true,
         "off" => false,
         other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
-    });
+    };
+    Ok(crate::ops::Kernels {
+        split_weight_grad,
+        ..args.device.kernels()
+    })
+}
+
+pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
+    kernels(&args)?;
     if args.arch == "grid" {
         return grid(&args);
     }
@@ -158,7 +167,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
             use super::device::cuda::{devices, reserved_bytes, CudaTrain};
-            let devices = devices(&ids)?;
+            let devices = devices(&ids, kernels(&args)?)?;
             // The largest pool on any one device.
             let peak = |reset: bool| {
                 let mut most = None::<f64>;
@@ -194,7 +203,7 @@ fn grid(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device, reserved_bytes, CudaTrain};
-            let device = device(id)?;
+            let device = device(id, kernels(args)?)?;
             let peak = |reset: bool| {
                 if reset {
                     <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);

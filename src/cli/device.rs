@@ -8,6 +8,9 @@
 use anyhow::bail;
 use clap::Args;
 
+use crate::ops::cublas::GpuGemm;
+use crate::ops::Kernels;
+
 /// The `--device` flag.
 #[derive(Debug, Clone, Args)]
 pub struct DeviceArgs {
@@ -32,12 +35,29 @@ pub enum Device {
 }
 
 impl DeviceArgs {
-    /// Validates the flags (a CUDA device in a build without the feature is an error) and
-    /// sets `--gpu-gemm` for the process.
+    /// Validates the flags (a CUDA device in a build without the feature is an error).
     pub fn parse(&self) -> anyhow::Result<Device> {
         let device = parse(&self.device)?;
-        crate::ops::cublas::set_gpu_gemm(crate::ops::cublas::GpuGemm::parse(&self.gpu_gemm)?);
+        self.gemm()?;
         Ok(device)
+    }
+
+    /// The kernel choices a GPU is opened with ([`cuda::device`]): `--gpu-gemm`, the rest
+    /// as default. Call after [`DeviceArgs::parse`] (which checks the flag).
+    pub fn kernels(&self) -> Kernels {
+        Kernels {
+            gemm: self.gemm().unwrap_or(Kernels::default().gemm),
+            ..Kernels::default()
+        }
+    }
+
+    fn gemm(&self) -> anyhow::Result<GpuGemm> {
+        GpuGemm::parse(&self.gpu_gemm).ok_or_else(|| {
+            anyhow::anyhow!(
+                "--gpu-gemm {:?}: expected tf32 | fp32 | cubecl",
+                self.gpu_gemm
+            )
+        })
     }
 }
 
@@ -93,6 +113,8 @@ pub fn parse(text: &str) -> anyhow::Result<Device> {
 pub mod cuda {
     use burn::cubecl::Runtime;
 
+    use crate::ops::Kernels;
+
     /// Inference backend: burn's CUDA backend (with fusion), f32.
     pub type CudaInfer = burn::backend::Cuda<f32, i32>;
     /// Training backend.
@@ -100,8 +122,9 @@ pub mod cuda {
     /// A GPU.
     pub type CudaDevice = burn::backend::cuda::CudaDevice;
 
-    /// GPU `index`, after checking that the driver, NVRTC and (unless `--gpu-gemm cubecl`)
-    /// cuBLAS load and that the driver has such a GPU (burn would panic deep inside its
+    /// GPU `index`, opened with `kernels` ([`crate::ops::cublas::open`]), after checking that
+    /// the driver, NVRTC and (unless `--gpu-gemm cubecl`) cuBLAS load and that the driver has
+    /// such a GPU (burn would panic deep inside its
     /// first kernel launch otherwise). Sets `CUDA_PATH` to
     /// `/usr/local/cuda` when it is unset and that folder exists: NVRTC compiles burn's
     /// kernels with the toolkit's headers.
@@ -109,7 +132,7 @@ pub mod cuda {
     /// # Errors
     /// No `libcuda` (no NVIDIA driver), no `libnvrtc` or `libcublas`, a driver error, or
     /// `index` beyond the GPUs present.
-    pub fn device(index: usize) -> anyhow::Result<CudaDevice> {
+    pub fn device(index: usize, kernels: Kernels) -> anyhow::Result<CudaDevice> {
         // SAFETY: only tries to open the library (libloading), calls nothing in it.
         if !unsafe { cudarc::driver::sys::is_culib_present() } {
             anyhow::bail!(
@@ -122,7 +145,7 @@ pub mod cuda {
                 "--device cuda:{index}: libnvrtc (the CUDA toolkit's run-time compiler) could not be loaded; install the toolkit or add its lib64 to LD_LIBRARY_PATH"
             );
         }
-        let cublas_wanted = crate::ops::cublas::gpu_gemm() != crate::ops::cublas::GpuGemm::Cubecl;
+        let cublas_wanted = kernels.gemm != crate::ops::cublas::GpuGemm::Cubecl;
         // SAFETY: as above, for cuBLAS (the large products, `--gpu-gemm`).
         if cublas_wanted && !unsafe { cudarc::cublas::sys::is_culib_present() } {
             anyhow::bail!(
@@ -140,6 +163,7 @@ pub mod cuda {
             // SAFETY: called before burn starts its threads (the first device is created after this).
             unsafe { std::env::set_var("CUDA_PATH", DEFAULT_CUDA_PATH) };
         }
+        crate::ops::cublas::open(index, kernels);
         Ok(CudaDevice { index })
     }
 
@@ -150,8 +174,8 @@ pub mod cuda {
     ///
     /// # Errors
     /// As [`device`].
-    pub fn devices(ids: &[usize]) -> anyhow::Result<Vec<CudaDevice>> {
-        ids.iter().map(|&i| device(i)).collect()
+    pub fn devices(ids: &[usize], kernels: Kernels) -> anyhow::Result<Vec<CudaDevice>> {
+        ids.iter().map(|&i| device(i, kernels)).collect()
     }
 
     /// Bytes that cubecl's memory pool holds on `device` (it keeps freed pages for reuse,

@@ -158,6 +158,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let part = parse_split(&args.split)?;
     let names = model_names(&args.models);
     let device = args.device.parse()?.single("eval")?;
+    let device = device.map(|id| (id, args.device.kernels()));
     let mut models: Vec<Box<dyn Predictor>> = Vec::new();
     for (dir, name) in args.models.iter().zip(&names) {
         models.push(load_model(dir, name, device)?);
@@ -202,17 +203,22 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     Ok((eval, models.len(), super::read_to_damage(&report.truncated)))
 }
 
-/// A run folder's model on the CPU (`None`) or on CUDA GPU `cuda`.
-fn load_model(dir: &Path, name: &str, cuda: Option<usize>) -> anyhow::Result<Box<dyn Predictor>> {
+/// A run folder's model on the CPU (`None`) or on CUDA GPU `cuda` (its ordinal and the
+/// kernel choices it is opened with).
+fn load_model(
+    dir: &Path,
+    name: &str,
+    cuda: Option<(usize, crate::ops::Kernels)>,
+) -> anyhow::Result<Box<dyn Predictor>> {
     Ok(match cuda {
         None => Box::new(ModelPredictor::load(dir, name)?),
         #[cfg(feature = "cuda")]
-        Some(id) => {
+        Some((id, kernels)) => {
             use super::device::cuda::{device, CudaInfer};
             Box::new(ModelPredictor::<CudaInfer>::load_on(
                 dir,
                 name,
-                &device(id)?,
+                &device(id, kernels)?,
             )?)
         }
         #[cfg(not(feature = "cuda"))]

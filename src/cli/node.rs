@@ -72,7 +72,8 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device, CudaInfer};
-            serve::<CudaInfer>(args, device(id)?)
+            let device = device(id, args.device.kernels())?;
+            serve::<CudaInfer>(args, device)
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => anyhow::bail!("built without CUDA"),

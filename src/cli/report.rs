@@ -94,14 +94,15 @@ pub struct ReportArgs {
     pub reuse: bool,
 }
 
-/// Parses a subcommand's flags with its own defaults (so the report runs exactly what the
-/// printed command line would).
-fn parse<T: Args>(argv: &[String]) -> anyhow::Result<T> {
+/// A subcommand's flag values with its own defaults for every flag but `required` (the
+/// values report sets itself next), so the report runs what `train` and `eval` would.
+fn defaults<T: Args>(required: &[&str]) -> anyhow::Result<T> {
     #[derive(Parser)]
     struct Wrap<T: Args> {
         #[command(flatten)]
         inner: T,
     }
+    let argv = std::iter::once("minflow").chain(required.iter().flat_map(|f| [*f, "-"]));
     Ok(Wrap::<T>::try_parse_from(argv)?.inner)
 }
 
@@ -171,7 +172,6 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
         bail!("--cores is empty");
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", path(&args.out)))?;
-    let data: Vec<String> = args.data.iter().map(|p| path(p)).collect();
     let runs = args.out.join("runs");
     let mut train_argv = Vec::new();
     let mut dirs = Vec::new();
@@ -183,8 +183,8 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     {
         let name = run_name(arch, core);
         let dir = runs.join(&name);
-        let argv = train_argv_of(&args, &data, arch, core, &dir);
-        let train: TrainArgs = parse(&argv)?;
+        let train = train_args(&args, arch, core, &dir)?;
+        let argv = train_flags(&train);
         if args.reuse && dir.join("model.json").exists() {
             eprintln!("{name}: reusing {}", path(&dir));
         } else {
@@ -198,22 +198,15 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
         names.push(name);
     }
     let eval_dir = args.out.join("eval");
-    let mut argv: Vec<String> = vec!["eval".into()];
-    for dir in &dirs {
-        argv.extend(["--model".into(), path(dir)]);
-    }
-    argv.push("--data".into());
-    argv.extend(data.iter().cloned());
-    for (flag, value) in [
-        ("--split", args.eval_split.clone()),
-        ("--seed", args.seed.to_string()),
-        ("--horizon", args.horizon.to_string()),
-        ("--starts", args.starts.to_string()),
-        ("--out", path(&eval_dir)),
-    ] {
-        argv.extend([flag.to_owned(), value]);
-    }
-    let eval_args: EvalArgs = parse(&argv)?;
+    let mut eval_args: EvalArgs = defaults(&["--model", "--data"])?;
+    eval_args.models = dirs.clone();
+    eval_args.data = args.data.clone();
+    eval_args.split = args.eval_split.clone();
+    eval_args.seed = args.seed;
+    eval_args.horizon = args.horizon;
+    eval_args.starts = args.starts;
+    eval_args.out = eval_dir.clone();
+    let argv = eval_flags(&eval_args);
     eprintln!("== evaluating {} models", dirs.len());
     let (eval, models, outcome) = direct(&eval_args)?;
     let bar = super::progress(0, "renders");
@@ -241,47 +234,88 @@ fn run_name(arch: &str, core: &str) -> String {
     }
 }
 
-/// The `minflow train` command line of one run (what REPORT.md prints to reproduce it).
-fn train_argv_of(
-    args: &ReportArgs,
-    data: &[String],
-    arch: &str,
-    core: &str,
-    dir: &Path,
-) -> Vec<String> {
-    let mut argv: Vec<String> = vec!["train".into(), "--data".into()];
-    argv.extend(data.iter().cloned());
-    argv.extend(["--arch".into(), arch.into()]);
-    let mut flags = vec![
-        ("--model", core.to_owned()),
-        ("--out", path(dir)),
-        ("--epochs", args.epochs.to_string()),
-        ("--batch-size", args.batch_size.to_string()),
-        ("--window", args.window.to_string()),
-        ("--seed", args.seed.to_string()),
-        ("--patience", args.patience.to_string()),
-    ];
+/// The `train` flags of one run: train's defaults, with what the report's flags set.
+fn train_args(args: &ReportArgs, arch: &str, core: &str, dir: &Path) -> anyhow::Result<TrainArgs> {
+    let mut t: TrainArgs = defaults(&["--data", "--out"])?;
+    t.data = args.data.clone();
+    t.out = dir.to_path_buf();
+    t.arch = arch.to_owned();
+    t.model = core.to_owned();
+    t.epochs = args.epochs;
+    t.batch_size = args.batch_size;
+    t.window = args.window;
+    t.seed = args.seed;
+    t.patience = args.patience;
     if arch == "paper" {
+        t.width = args.width;
+        t.encoder_hidden = args.encoder_hidden;
+        t.micro_batch = args.micro_batch;
+        t.encoder_last_activation = args.encoder_last_activation.clone();
+    } else {
+        t.grid_args.samples_per_epoch = args.samples_per_epoch;
+        t.grid_args.max_minutes = args.max_minutes;
+        t.grid_args.net = args.grid_net.clone();
+    }
+    Ok(t)
+}
+
+/// The `minflow train` command line of a run from [`train_args`] (what REPORT.md prints to
+/// reproduce it): the flags the report sets.
+fn train_flags(t: &TrainArgs) -> Vec<String> {
+    let mut argv = vec!["train".to_owned(), "--data".to_owned()];
+    argv.extend(t.data.iter().map(|p| path(p)));
+    let mut flags = vec![
+        ("--arch", t.arch.clone()),
+        ("--model", t.model.clone()),
+        ("--out", path(&t.out)),
+        ("--epochs", t.epochs.to_string()),
+        ("--batch-size", t.batch_size.to_string()),
+        ("--window", t.window.to_string()),
+        ("--seed", t.seed.to_string()),
+        ("--patience", t.patience.to_string()),
+    ];
+    if t.arch == "paper" {
         flags.extend([
-            ("--width", args.width.to_string()),
-            ("--encoder-hidden", args.encoder_hidden.to_string()),
-            ("--micro-batch", args.micro_batch.to_string()),
+            ("--width", t.width.to_string()),
+            ("--encoder-hidden", t.encoder_hidden.to_string()),
+            ("--micro-batch", t.micro_batch.to_string()),
             (
                 "--encoder-last-activation",
-                args.encoder_last_activation.clone(),
+                t.encoder_last_activation.clone(),
             ),
         ]);
     } else {
+        let g = &t.grid_args;
         flags.extend([
-            ("--samples-per-epoch", args.samples_per_epoch.to_string()),
-            ("--max-minutes", args.max_minutes.to_string()),
+            ("--samples-per-epoch", g.samples_per_epoch.to_string()),
+            ("--max-minutes", g.max_minutes.to_string()),
         ]);
     }
     for (flag, value) in flags {
         argv.extend([flag.to_owned(), value]);
     }
-    if arch == "grid" {
-        argv.extend(args.grid_net.argv());
+    if t.arch == "grid" {
+        argv.extend(t.grid_args.net.argv());
+    }
+    argv
+}
+
+/// The `minflow eval` command line of the report's evaluation (printed in REPORT.md).
+fn eval_flags(e: &EvalArgs) -> Vec<String> {
+    let mut argv = vec!["eval".to_owned()];
+    for dir in &e.models {
+        argv.extend(["--model".to_owned(), path(dir)]);
+    }
+    argv.push("--data".into());
+    argv.extend(e.data.iter().map(|p| path(p)));
+    for (flag, value) in [
+        ("--split", e.split.clone()),
+        ("--seed", e.seed.to_string()),
+        ("--horizon", e.horizon.to_string()),
+        ("--starts", e.starts.to_string()),
+        ("--out", path(&e.out)),
+    ] {
+        argv.extend([flag.to_owned(), value]);
     }
     argv
 }

@@ -8,7 +8,9 @@
 
 use super::device::{Device, DeviceArgs};
 use super::Outcome;
-use crate::data::{self, Part, Scaler, SceneInfo, Split, StreamingLoader, WindowIndex};
+use crate::data::{
+    self, LoadReport, Part, Scaler, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+};
 use crate::model::store::NetConfig;
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::ops::NetOps;
@@ -229,7 +231,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         .map_err(|e| super::UsageError(format!("{e:#}")))?;
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
-    let (infos, scanned) = data::scan_with_report(&args.data, topic).context("reading the bags")?;
+    let (infos, resident, scanned) = read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = Split::new(&scenes, args.seed);
     let in_part = |part: Part| -> Vec<SceneInfo> {
@@ -291,7 +293,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
                progress: &mut Progress| {
         let (opts, out) = (args.options(), args.out.clone());
         fit_on(
-            &device,
+            (&device, args.device.kernels()),
             config.clone(),
             opts,
             out,
@@ -314,10 +316,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         let val = (!val.is_empty()).then_some(&mut val as &mut dyn BatchSource);
         fit(&mut train, val, &scaler, &mut progress)?
     } else {
-        let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
-        for gap in &report.gaps {
-            tracing::warn!("{gap}");
-        }
+        let trajs = match resident {
+            Some(trajs) => trajs,
+            // Bags without summary statistics fit after all: read them once more.
+            None => load(&args.data, topic)?.0,
+        };
         let (train, val, _test) = split.partition(trajs);
         let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
         let train_index = WindowIndex::new(train, args.window, scaler)?;
@@ -341,11 +344,41 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     Ok(super::read_to_damage(&scanned.truncated))
 }
 
+/// The paper path's scene index, with the trajectories themselves when the bags fit in
+/// memory (`--max-resident-frames`, by their summaries' frame counts): then the bags are
+/// read once. Otherwise (a large dataset, or bags without summary statistics) the index
+/// comes from a decoding pass and the trajectories are streamed or loaded afterwards.
+fn read_data(
+    args: &TrainArgs,
+    topic: Option<&str>,
+) -> anyhow::Result<(Vec<SceneInfo>, Option<Vec<Trajectory>>, LoadReport)> {
+    let fits = data::summary_frames(&args.data, topic)
+        .is_some_and(|frames| frames <= args.max_resident_frames as u64);
+    if fits {
+        let (trajs, report) = load(&args.data, topic)?;
+        Ok((SceneInfo::of(&trajs), Some(trajs), report))
+    } else {
+        let (infos, report) =
+            data::scan_with_report(&args.data, topic).context("reading the bags")?;
+        Ok((infos, None, report))
+    }
+}
+
+/// [`data::load`], with its gaps logged.
+fn load(inputs: &[PathBuf], topic: Option<&str>) -> anyhow::Result<(Vec<Trajectory>, LoadReport)> {
+    let (trajs, report) = data::load(inputs, topic).context("loading trajectories")?;
+    for gap in &report.gaps {
+        tracing::warn!("{gap}");
+    }
+    Ok((trajs, report))
+}
+
 /// Trains on `device`: the CPU backend, or burn's CUDA backend (one GPU; several train
 /// data-parallel).
 #[allow(clippy::too_many_arguments)]
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 fn fit_on(
-    device: &Device,
+    (device, kernels): (&Device, crate::ops::Kernels),
     config: ModelConfig,
     opts: TrainOptions,
     out: PathBuf,
@@ -385,7 +418,15 @@ fn fit_on(
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
             use super::device::cuda::{devices, CudaTrain};
-            on::<CudaTrain>(devices(ids)?, args, train, val, scaler, resume, observer)?
+            on::<CudaTrain>(
+                devices(ids, kernels)?,
+                args,
+                train,
+                val,
+                scaler,
+                resume,
+                observer,
+            )?
         }
         #[cfg(not(feature = "cuda"))]
         Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),

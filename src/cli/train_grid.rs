@@ -242,7 +242,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let mut progress = Progress::new(args.out.clone());
     let history = fit_on(
-        &device,
+        (&device, args.device.kernels()),
         (
             config,
             opts,
@@ -300,9 +300,10 @@ fn init_normalisation(
     }
 }
 
-/// Trains on `device` (the CPU, or one GPU).
+/// Trains on `device` (the CPU, or one GPU opened with the kernel choices).
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 fn fit_on(
-    device: &Device,
+    (device, kernels): (&Device, crate::ops::Kernels),
     run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
     train: &WindowIndex,
     val: &[Trajectory],
@@ -346,7 +347,15 @@ fn fit_on(
         #[cfg(feature = "cuda")]
         Some(id) => {
             use super::device::cuda::{device as cuda_device, CudaTrain};
-            on::<CudaTrain>(cuda_device(id)?, run, train, val, scaler, resume, observer)?
+            on::<CudaTrain>(
+                cuda_device(id, kernels)?,
+                run,
+                train,
+                val,
+                scaler,
+                resume,
+                observer,
+            )?
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => unreachable!("--device cuda is refused without the cuda feature"),

@@ -38,6 +38,30 @@ pub struct SceneInfo {
 }
 
 impl SceneInfo {
+    /// The index of loaded trajectories (sorted by scene, as [`load()`] returns them): what
+    /// [`scan`] would have found, without reading the bags again (`bags` is left empty).
+    pub fn of(trajectories: &[Trajectory]) -> Vec<SceneInfo> {
+        let mut infos: Vec<SceneInfo> = Vec::new();
+        for t in trajectories {
+            let segment = t.start_index..t.start_index + t.frames as u32;
+            match infos.last_mut() {
+                Some(info) if info.scene == t.scene => {
+                    info.frames += t.frames;
+                    info.segments.push(segment);
+                }
+                _ => infos.push(SceneInfo {
+                    scene: t.scene.clone(),
+                    n: t.n,
+                    dt: t.dt,
+                    frames: t.frames,
+                    segments: vec![segment],
+                    bags: Vec::new(),
+                }),
+            }
+        }
+        infos
+    }
+
     /// Windows of `t` input frames plus a target over all segments.
     pub fn windows(&self, t: usize) -> usize {
         self.segments
@@ -116,6 +140,16 @@ fn load_filtered(
         report.bags
     );
     Ok((trajectories, report))
+}
+
+/// ParticleFrames on `topic` in the bags of `inputs` by their summaries' statistics (no
+/// message is read: see [`crate::bag::check_index::summary_frames`]); None when a bag has no
+/// readable summary, or `inputs` names no bag.
+pub fn summary_frames(inputs: &[PathBuf], topic: Option<&str>) -> Option<u64> {
+    let paths = bag_paths(inputs).ok()?;
+    paths.iter().try_fold(0u64, |sum, path| {
+        Some(sum + crate::bag::check_index::summary_frames(path, topic)?)
+    })
 }
 
 /// The index of the scenes in `inputs` (only `topic`'s frames when given), sorted by scene id.

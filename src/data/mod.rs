@@ -28,7 +28,7 @@ pub mod windows;
 
 use std::path::PathBuf;
 
-pub use load::{load, load_scenes, scan, scan_with_report, SceneInfo};
+pub use load::{load, load_scenes, scan, scan_with_report, summary_frames, SceneInfo};
 pub use scaler::{Scaler, ScalerFit, FEATURES, FEATURE_NAMES};
 pub use split::{Part, Split, SplitFractions};
 pub use streaming::{EpochBatches, StreamingLoader};

@@ -70,6 +70,30 @@ pub enum RecordError {
     /// The output folder is unusable.
     #[error("output folder {path}: {reason}")]
     Out { path: PathBuf, reason: String },
+    /// Another recorder holds the output folder's lock ([`LOCK_FILE`]).
+    #[error(
+        "output folder {path}: another recorder is writing here (process {holder}); stop it or \
+         choose another folder"
+    )]
+    Locked {
+        path: PathBuf,
+        /// The holder's process id as its lock file says, or `unknown`.
+        holder: String,
+    },
+    /// A file of the output folder (its lock file, metadata.yaml) could not be written.
+    #[error("{path}: {source}")]
+    File {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// metadata.yaml could not be serialised.
+    #[error("{path}: {source}")]
+    Metadata {
+        path: PathBuf,
+        #[source]
+        source: serde_yaml_ng::Error,
+    },
 }
 
 /// One bag file being written.
@@ -117,9 +141,9 @@ pub const LOCK_FILE: &str = ".minflow-record.lock";
 /// interleaving writes or deleting the first one's open bag.
 ///
 /// # Errors
-/// A sentence: the folder is held by another process (its id), or the lock file could not
-/// be opened.
-fn lock_folder(out: &Path) -> Result<std::fs::File, String> {
+/// [`RecordError::Locked`]: the folder is held by another process (its id);
+/// [`RecordError::File`]: the lock file could not be opened or locked.
+fn lock_folder(out: &Path) -> Result<std::fs::File, RecordError> {
     use std::io::{Read, Seek, Write};
     let path = out.join(LOCK_FILE);
     let mut file = std::fs::OpenOptions::new()
@@ -128,17 +152,20 @@ fn lock_folder(out: &Path) -> Result<std::fs::File, String> {
         .create(true)
         .truncate(false)
         .open(&path)
-        .map_err(|e| format!("opening the lock file {}: {e}", path.display()))?;
+        .map_err(|source| RecordError::File {
+            path: path.clone(),
+            source,
+        })?;
     if let Err(e) = file.try_lock() {
         let mut holder = String::new();
         let _ = file.read_to_string(&mut holder);
         let holder = holder.trim();
         return Err(match e {
-            std::fs::TryLockError::WouldBlock => format!(
-                "another recorder is writing here (process {}); stop it or choose another folder",
-                if holder.is_empty() { "unknown" } else { holder }
-            ),
-            std::fs::TryLockError::Error(e) => format!("locking {}: {e}", path.display()),
+            std::fs::TryLockError::WouldBlock => RecordError::Locked {
+                path: out.to_path_buf(),
+                holder: if holder.is_empty() { "unknown" } else { holder }.to_owned(),
+            },
+            std::fs::TryLockError::Error(source) => RecordError::File { path, source },
         });
     }
     let _ = file.set_len(0);
@@ -228,8 +255,8 @@ pub fn record(
 /// with `overwrite`, deletes its bags and metadata.yaml.
 ///
 /// # Errors
-/// [`RecordError::Out`]: the folder cannot be created or read, is locked by another
-/// recorder, or still holds bags.
+/// [`RecordError::Out`]: the folder cannot be created or read, or still holds bags;
+/// [`RecordError::Locked`]: another recorder holds it.
 fn prepare_folder(options: &RecordOptions) -> Result<std::fs::File, RecordError> {
     let out = &options.out;
     let out_err = |reason: String| RecordError::Out {
@@ -237,7 +264,7 @@ fn prepare_folder(options: &RecordOptions) -> Result<std::fs::File, RecordError>
         reason,
     };
     std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
-    let lock = lock_folder(out).map_err(out_err)?;
+    let lock = lock_folder(out)?;
     if options.overwrite {
         for entry in std::fs::read_dir(out)
             .map_err(|e| out_err(e.to_string()))?
@@ -383,10 +410,7 @@ impl<'a> Files<'a> {
             self.infos.push(close(b, &mut self.report)?);
         }
         let out = &self.options.out;
-        write_metadata(out, &self.infos).map_err(|e| RecordError::Out {
-            path: out.clone(),
-            reason: format!("metadata.yaml: {e}"),
-        })?;
+        write_metadata(out, &self.infos)?;
         Ok(self.report)
     }
 }
@@ -470,7 +494,7 @@ struct FileEntry {
     message_count: u64,
 }
 
-fn write_metadata(out: &Path, files: &[FileInfo]) -> anyhow::Result<()> {
+fn write_metadata(out: &Path, files: &[FileInfo]) -> Result<(), RecordError> {
     let first = files.iter().filter_map(|f| f.first_ns).min().unwrap_or(0);
     let last = files.iter().map(|f| f.last_ns).max().unwrap_or(0);
     let mut topics: BTreeMap<&str, u64> = BTreeMap::new();
@@ -526,7 +550,10 @@ fn write_metadata(out: &Path, files: &[FileInfo]) -> anyhow::Result<()> {
                 .collect(),
         },
     };
-    let text = serde_yaml_ng::to_string(&meta)?;
-    std::fs::write(out.join("metadata.yaml"), text)?;
-    Ok(())
+    let path = out.join("metadata.yaml");
+    let text = serde_yaml_ng::to_string(&meta).map_err(|source| RecordError::Metadata {
+        path: path.clone(),
+        source,
+    })?;
+    std::fs::write(&path, text).map_err(|source| RecordError::File { path, source })
 }

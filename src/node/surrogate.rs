@@ -85,26 +85,41 @@ struct SceneState<B: burn::tensor::backend::Backend> {
     rolled_out: bool,
 }
 
+/// Why the node rejects a decoded frame (counted and logged; the node keeps serving).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+enum Rejection {
+    /// The model takes a fixed particle count (the paper's architecture) and this is another.
+    #[error("{got} particles, the model was trained for N = {model}")]
+    ParticleCount { got: usize, model: usize },
+    /// A material id beyond the four the models know.
+    #[error("unknown material id {0} (0 liquid, 1 jelly, 2 snow, 3 rope)")]
+    Material(u8),
+    /// A NaN or infinity in the state.
+    #[error("non-finite position, velocity or dt")]
+    NonFinite,
+    /// The message's own checks ([`ParticleFrame::validate`]).
+    #[error("{0}")]
+    Invalid(String),
+}
+
 /// Reasons a frame is rejected, checked in order.
-fn check_frame(frame: &ParticleFrame, model_n: Option<usize>) -> Result<(), String> {
-    if let Some(n) = model_n {
-        if frame.len() != n {
-            return Err(format!(
-                "{} particles, the model was trained for N = {n}",
-                frame.len()
-            ));
-        }
+fn check_frame(frame: &ParticleFrame, model_n: Option<usize>) -> Result<(), Rejection> {
+    if let Some(model) = model_n.filter(|&n| n != frame.len()) {
+        return Err(Rejection::ParticleCount {
+            got: frame.len(),
+            model,
+        });
     }
-    if let Some(m) = frame.material.iter().find(|&&m| m > 3) {
-        return Err(format!(
-            "unknown material id {m} (0 liquid, 1 jelly, 2 snow, 3 rope)"
-        ));
+    if let Some(&m) = frame.material.iter().find(|&&m| m > 3) {
+        return Err(Rejection::Material(m));
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
     if !finite(&frame.position) || !finite(&frame.velocity) || !frame.dt.is_finite() {
-        return Err("non-finite position, velocity or dt".into());
+        return Err(Rejection::NonFinite);
     }
-    Ok(())
+    frame
+        .validate()
+        .map_err(|e| Rejection::Invalid(e.to_string()))
 }
 
 /// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy), as `Surrogate::step` takes them.
@@ -390,11 +405,9 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                 return;
             }
         };
-        if let Err(reason) = check_frame(&frame, self.model_n)
-            .and_then(|()| frame.validate().map_err(|e| e.to_string()))
-        {
+        if let Err(reason) = check_frame(&frame, self.model_n) {
             self.tally.report.rejected += 1;
-            self.tally.note(&frame.scene.clone(), reason);
+            self.tally.note(&frame.scene.clone(), reason.to_string());
             return;
         }
         // Closed loop: a scene already rolled out waits for its next start (frame 0).
@@ -716,12 +729,14 @@ mod tests {
             dt: 0.016,
             ..ParticleFrame::default()
         };
-        assert!(check_frame(&f, Some(2)).is_ok());
-        assert!(check_frame(&f, Some(3)).unwrap_err().contains("N = 3"));
+        assert_eq!(check_frame(&f, Some(2)), Ok(()));
+        let wrong_n = check_frame(&f, Some(3)).unwrap_err();
+        assert_eq!(wrong_n, Rejection::ParticleCount { got: 2, model: 3 });
+        assert!(wrong_n.to_string().contains("N = 3"));
         f.material[1] = 9;
-        assert!(check_frame(&f, None).unwrap_err().contains("material id 9"));
+        assert_eq!(check_frame(&f, None), Err(Rejection::Material(9)));
         f.material[1] = 0;
         f.velocity[3] = f32::NAN;
-        assert!(check_frame(&f, None).unwrap_err().contains("non-finite"));
+        assert_eq!(check_frame(&f, None), Err(Rejection::NonFinite));
     }
 }

@@ -7,7 +7,6 @@
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
-use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::NetOps;
 
@@ -93,17 +92,6 @@ pub(crate) fn elu_slope<B: Backend, const D: usize>(out: Tensor<B, D>) -> Tensor
     (out + 1.0).mask_fill(positive, 1.0)
 }
 
-/// Whether [`composed_linear_backward`] splits long weight-gradient reductions into row
-/// chunks (see [`weight_grad_chunks`]); on by default, switched off by `bench train
-/// --split-weight-grad off` to measure what it buys.
-static SPLIT_WEIGHT_GRAD: AtomicBool = AtomicBool::new(true);
-
-/// Turns the chunked weight gradient of the composed dense-layer backward on or off (process
-/// wide; the CPU backend has its own backward and ignores it).
-pub fn set_split_weight_grad(on: bool) {
-    SPLIT_WEIGHT_GRAD.store(on, Ordering::Relaxed);
-}
-
 /// Fewest rows per chunk of a split weight gradient.
 const MIN_CHUNK_ROWS: usize = 512;
 /// Partial-gradient elements (chunks x in x out) a split aims for: enough output tiles to
@@ -119,7 +107,7 @@ const TARGET_PARTIALS: usize = 1 << 22;
 /// 2017) it has `C` times the tiles. `C` divides `rows` exactly (the nearest divisor of the
 /// wanted count with at least [`MIN_CHUNK_ROWS`] rows per chunk), so the chunks are views.
 pub fn weight_grad_chunks(rows: usize, d_in: usize, d_out: usize) -> usize {
-    if !SPLIT_WEIGHT_GRAD.load(Ordering::Relaxed) || rows < 2 * MIN_CHUNK_ROWS {
+    if rows < 2 * MIN_CHUNK_ROWS {
         return 1;
     }
     let most = rows / MIN_CHUNK_ROWS;
@@ -148,22 +136,25 @@ pub(crate) fn composed_linear_backward<B: NetOps>(
     let d_in = *shape.last().expect("rank >= 2");
     let d_out = *grad.shape().last().expect("rank >= 2");
     let rows = shape.num_elements() / d_in.max(1);
-    let chunks = if B::splits_reduction(d_in, rows, d_out) {
+    let device = B::float_device(&x);
+    let split = B::kernels(&device).split_weight_grad;
+    let chunks = if !split || B::splits_reduction(&device, d_in, rows, d_out) {
         1
     } else {
         weight_grad_chunks(rows, d_in, d_out)
     };
-    linear_backward_in_chunks::<B>(x, weight, grad, need, chunks)
+    linear_backward_in_chunks::<B>(x, weight, grad, need, chunks, split)
 }
 
 /// [`composed_linear_backward`] with `chunks` row chunks (dividing the rows) for the weight
-/// gradient; the bias gradient is split by its own [`weight_grad_chunks`].
+/// gradient; the bias gradient is split by its own [`weight_grad_chunks`] unless `split` is off.
 fn linear_backward_in_chunks<B: NetOps>(
     x: FloatTensor<B>,
     weight: FloatTensor<B>,
     grad: FloatTensor<B>,
     need: [bool; 3],
     chunks: usize,
+    split: bool,
 ) -> [Option<FloatTensor<B>>; 3] {
     let (x, shape) = as_rows::<B>(x);
     let (grad, _) = as_rows::<B>(grad);
@@ -192,7 +183,11 @@ fn linear_backward_in_chunks<B: NetOps>(
     let db = need[2].then(|| {
         // The bias gradient is a reduction over the rows with `d_out` outputs: split it for
         // `d_out` alone (a `[16, 25,000, 1,250]` middle-axis sum ran on 40 thread blocks).
-        let chunks = weight_grad_chunks(rows, 1, d_out);
+        let chunks = if split {
+            weight_grad_chunks(rows, 1, d_out)
+        } else {
+            1
+        };
         let db = if chunks > 1 {
             grad.reshape([chunks, rows / chunks, d_out])
                 .sum_dim(1)
@@ -245,8 +240,9 @@ mod tests {
                 .to_vec()
                 .unwrap()
         };
-        let one = linear_backward_in_chunks::<C>(x.clone(), w.clone(), g.clone(), [true; 3], 1);
-        let split = linear_backward_in_chunks::<C>(x, w, g, [true; 3], 12);
+        let one =
+            linear_backward_in_chunks::<C>(x.clone(), w.clone(), g.clone(), [true; 3], 1, true);
+        let split = linear_backward_in_chunks::<C>(x, w, g, [true; 3], 12, true);
         for (name, (a, b)) in ["dx", "dw", "db"].iter().zip(one.into_iter().zip(split)) {
             let (a, b) = (flat(a.unwrap()), flat(b.unwrap()));
             assert_eq!(a.len(), b.len(), "{name}");

@@ -18,9 +18,16 @@
 //! products of at least 2^30 multiply-adds here; smaller ones stay with cubecl.
 //!
 //! [`GpuGemm`] picks the math: TF32 tensor cores (what cubek does for f32 products, and
-//! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel.
+//! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel. It is a
+//! setting of the GPU, like the math mode of the cuBLAS handle it becomes: [`open`] fixes a
+//! GPU's [`Kernels`] when the command opens that device (`cli::device`), and the device's ops
+//! read them back through [`kernels`] (the tensor knows its GPU). A GPU never opened runs the
+//! defaults.
 
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+use super::Kernels;
 
 /// Which kernel multiplies the large dense-layer products on the GPU (`--gpu-gemm`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -35,35 +42,36 @@ pub enum GpuGemm {
 }
 
 impl GpuGemm {
-    /// Parses `tf32 | fp32 | cubecl`.
-    ///
-    /// # Errors
-    /// Any other text.
-    pub fn parse(text: &str) -> anyhow::Result<Self> {
+    /// Parses `tf32 | fp32 | cubecl`; None for any other text.
+    pub fn parse(text: &str) -> Option<Self> {
         match text {
-            "tf32" => Ok(Self::Tf32),
-            "fp32" => Ok(Self::Fp32),
-            "cubecl" => Ok(Self::Cubecl),
-            other => anyhow::bail!("--gpu-gemm {other:?}: expected tf32 | fp32 | cubecl"),
+            "tf32" => Some(Self::Tf32),
+            "fp32" => Some(Self::Fp32),
+            "cubecl" => Some(Self::Cubecl),
+            _ => None,
         }
     }
 }
 
-/// The process-wide choice (0 = TF32, 1 = FP32, 2 = cubecl).
-static GEMM: AtomicU8 = AtomicU8::new(0);
+/// The kernel choices of each GPU opened so far, by ordinal (written by [`open`] only).
+static OPENED: Mutex<Option<HashMap<usize, Kernels>>> = Mutex::new(None);
 
-/// Sets which kernel [`matmul`] uses from now on (process wide).
-pub fn set_gpu_gemm(gemm: GpuGemm) {
-    GEMM.store(gemm as u8, Ordering::Relaxed);
+/// Fixes GPU `index`'s kernel choices: called once per device by the command that opens it
+/// (`cli::device::cuda::device`), before any of its tensors exist.
+pub fn open(index: usize, kernels: Kernels) {
+    let mut guard = OPENED.lock().unwrap_or_else(|e| e.into_inner());
+    guard
+        .get_or_insert_with(HashMap::new)
+        .insert(index, kernels);
 }
 
-/// The current choice.
-pub fn gpu_gemm() -> GpuGemm {
-    match GEMM.load(Ordering::Relaxed) {
-        0 => GpuGemm::Tf32,
-        1 => GpuGemm::Fp32,
-        _ => GpuGemm::Cubecl,
-    }
+/// GPU `index`'s kernel choices: what [`open`] fixed, or the defaults.
+pub fn kernels(index: usize) -> Kernels {
+    let guard = OPENED.lock().unwrap_or_else(|e| e.into_inner());
+    guard
+        .as_ref()
+        .and_then(|opened| opened.get(&index).copied())
+        .unwrap_or_default()
 }
 
 /// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS (2^30: the paper
@@ -74,10 +82,10 @@ pub fn gpu_gemm() -> GpuGemm {
 /// default encoder, minGRU, T = 2, 6,752 -> 5,151 samples/s with the first layer on cuBLAS).
 const MIN_MACS: usize = 1 << 30;
 
-/// Whether a `[m, k] x [k, n]` product goes to cuBLAS (then it also splits its long
-/// reductions itself: no row chunks needed for the weight gradients).
-pub fn worth_it(m: usize, k: usize, n: usize) -> bool {
-    gpu_gemm() != GpuGemm::Cubecl && m.saturating_mul(k).saturating_mul(n) >= MIN_MACS
+/// Whether a `[m, k] x [k, n]` product goes to cuBLAS under `gemm` (then it also splits its
+/// long reductions itself: no row chunks needed for the weight gradients).
+pub fn worth_it(gemm: GpuGemm, m: usize, k: usize, n: usize) -> bool {
+    gemm != GpuGemm::Cubecl && m.saturating_mul(k).saturating_mul(n) >= MIN_MACS
 }
 
 /// How cuBLAS reads a row-major 2-D view: `(transposed, leading dimension)`, or None when it
@@ -101,7 +109,7 @@ pub use gpu::matmul;
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
 mod gpu {
-    use super::{gpu_gemm, layout, worth_it, GpuGemm};
+    use super::{kernels, layout, worth_it, GpuGemm};
     use std::collections::HashMap;
     use std::sync::Mutex;
 
@@ -138,7 +146,8 @@ mod gpu {
             "cublas::matmul: [m, k] x [k, n], got {sa:?} x {sb:?}"
         );
         let (m, k, n) = (sa[0], sa[1], sb[1]);
-        if !worth_it(m, k, n) {
+        let gemm = kernels(a.client.device().index).gemm;
+        if !worth_it(gemm, m, k, n) {
             return Cuda::float_matmul(a, b);
         }
 
@@ -166,7 +175,6 @@ mod gpu {
         let streams = OperationStreams::with_inputs([&a, &b]);
         let out = TensorIr::uninit(client.create_empty_handle(), Shape::new([m, n]), DType::F32);
         let desc = CustomOpIr::new("minflow_cublas_sgemm", &[a.into_ir(), b.into_ir()], &[out]);
-        let gemm = gpu_gemm();
         client
             .register(
                 streams,
@@ -340,21 +348,33 @@ mod gpu {
 
 #[cfg(test)]
 mod tests {
-    use super::{gpu_gemm, layout, set_gpu_gemm, worth_it, GpuGemm};
+    use super::{kernels, layout, open, worth_it, GpuGemm, Kernels};
 
     #[test]
     fn the_flag_parses_and_picks_the_large_products() {
-        assert_eq!(GpuGemm::parse("tf32").unwrap(), GpuGemm::Tf32);
-        assert_eq!(GpuGemm::parse("fp32").unwrap(), GpuGemm::Fp32);
-        assert!(GpuGemm::parse("fp16").is_err());
-        set_gpu_gemm(GpuGemm::Fp32);
-        assert_eq!(gpu_gemm(), GpuGemm::Fp32);
+        assert_eq!(GpuGemm::parse("tf32"), Some(GpuGemm::Tf32));
+        assert_eq!(GpuGemm::parse("fp32"), Some(GpuGemm::Fp32));
+        assert_eq!(GpuGemm::parse("fp16"), None);
         // The paper encoder's second layer goes to cuBLAS, its first stays with cubecl.
-        assert!(worth_it(400_000, 256, 1250));
-        assert!(!worth_it(400_000, 5, 256));
-        set_gpu_gemm(GpuGemm::Cubecl);
-        assert!(!worth_it(400_000, 256, 1250));
-        set_gpu_gemm(GpuGemm::Tf32);
+        assert!(worth_it(GpuGemm::Fp32, 400_000, 256, 1250));
+        assert!(!worth_it(GpuGemm::Fp32, 400_000, 5, 256));
+        assert!(!worth_it(GpuGemm::Cubecl, 400_000, 256, 1250));
+    }
+
+    #[test]
+    fn each_gpu_keeps_the_choices_it_was_opened_with() {
+        let fp32 = Kernels {
+            gemm: GpuGemm::Fp32,
+            split_weight_grad: false,
+        };
+        open(7, fp32);
+        assert_eq!(kernels(7), fp32);
+        assert_eq!(
+            kernels(8),
+            Kernels::default(),
+            "a GPU never opened runs the defaults"
+        );
+        assert_eq!(Kernels::default().gemm, GpuGemm::Tf32);
     }
 
     #[test]

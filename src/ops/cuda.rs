@@ -12,7 +12,11 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         super::cublas::matmul(a, b)
     }
 
-    fn splits_reduction(m: usize, k: usize, n: usize) -> bool {
-        super::cublas::worth_it(m, k, n)
+    fn splits_reduction(device: &Self::Device, m: usize, k: usize, n: usize) -> bool {
+        super::cublas::worth_it(Self::kernels(device).gemm, m, k, n)
+    }
+
+    fn kernels(device: &Self::Device) -> super::Kernels {
+        super::cublas::kernels(device.index)
     }
 }

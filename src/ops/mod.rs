@@ -30,10 +30,11 @@
 //!   whose element-wise chains burn's fusion layer compiles into single kernels, with the
 //!   large products through [`cublas`].
 //!
-//! Two choices are process-wide settings: the GPU's product kernel
-//! ([`cublas::set_gpu_gemm`], `--gpu-gemm`) and whether the composed dense-layer backward
-//! splits long weight-gradient reductions ([`composed::set_split_weight_grad`], `bench train
-//! --split-weight-grad`).
+//! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
+//! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
+//! reductions (`bench train --split-weight-grad`). They are fixed when a command opens the
+//! GPU ([`cublas::open`]) and read back through [`NetOps::kernels`] from a tensor's device;
+//! the CPU has none to choose.
 
 pub mod adam;
 mod autodiff;
@@ -63,6 +64,26 @@ use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 /// Stencil nodes per particle of [`NetOps::stencil_gather`] and [`NetOps::stencil_splat`]
 /// (3 x 3, quadratic B-spline).
 pub(crate) const STENCIL_NODES: usize = 9;
+
+/// The kernel choices of one device (see the module doc): fixed when the device is opened,
+/// read by its ops. The default is what every command runs unless a flag says otherwise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Kernels {
+    /// The large dense-layer products on a GPU (`--gpu-gemm`).
+    pub gemm: cublas::GpuGemm,
+    /// Whether the composed dense-layer backward cuts long weight-gradient reductions into
+    /// row chunks ([`composed::weight_grad_chunks`]; `bench train --split-weight-grad`).
+    pub split_weight_grad: bool,
+}
+
+impl Default for Kernels {
+    fn default() -> Self {
+        Self {
+            gemm: cublas::GpuGemm::Tf32,
+            split_weight_grad: true,
+        }
+    }
+}
 
 /// The backend operations minflow's networks need beyond burn's (see the module doc for
 /// where each implementation lives). ELU is always `alpha = 1`.
@@ -129,9 +150,16 @@ pub trait NetOps: Backend {
     /// Whether [`NetOps::matmul`] takes a `[m, k] x [k, n]` product with a long reduction
     /// `k` whole and still fills the device (cuBLAS chooses split-K itself), so the composed
     /// backward does not cut the weight gradient into row chunks ([`composed::weight_grad_chunks`]).
-    fn splits_reduction(m: usize, k: usize, n: usize) -> bool {
-        let _ = (m, k, n);
+    fn splits_reduction(device: &Self::Device, m: usize, k: usize, n: usize) -> bool {
+        let _ = (device, m, k, n);
         false
+    }
+
+    /// The kernel choices `device` was opened with ([`Kernels`]); the defaults on a backend
+    /// with nothing to choose.
+    fn kernels(device: &Self::Device) -> Kernels {
+        let _ = device;
+        Kernels::default()
     }
 
     /// One Adam step on a parameter (see [`AdamStep`]): returns the new parameter and the
