@@ -264,16 +264,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     if args.resume {
         check_resume(&args.out, &NetConfig::Paper(config.clone()))?;
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    std::fs::write(
-        args.out.join("split.json"),
-        serde_json::to_string_pretty(&split)?,
-    )?;
-    std::fs::write(
-        args.out.join("train.json"),
-        serde_json::to_string_pretty(&args.options())?,
-    )?;
+    write_run_files(&args.out, &split, &args.options())?;
     let total: usize = infos.iter().map(|s| s.frames).sum();
     let streamed = total > args.max_resident_frames;
     eprintln!(
@@ -330,18 +321,44 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         let val = (!val_index.is_empty()).then_some(&mut val_ref as &mut dyn BatchSource);
         fit(&mut train_ref, val, &scaler, &mut progress)?
     };
-    let best = history
+    print_best(&history, "val loss", &args.out);
+    Ok(super::read_to_damage(&scanned.truncated))
+}
+
+/// Creates the run folder `out` with its `split.json` and `train.json` (`options`).
+///
+/// # Errors
+/// The folder or a file could not be written.
+pub(crate) fn write_run_files(
+    out: &Path,
+    split: &Split,
+    options: &impl serde::Serialize,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    for (name, text) in [
+        ("split.json", serde_json::to_string_pretty(split)?),
+        ("train.json", serde_json::to_string_pretty(options)?),
+    ] {
+        let path = out.join(name);
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Prints the best epoch of `history` (by validation loss, called `what`) and where its
+/// model was saved.
+pub(crate) fn print_best(history: &[EpochRecord], what: &str, out: &Path) {
+    if let Some(best) = history
         .iter()
-        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss));
-    if let Some(best) = best {
+        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss))
+    {
         println!(
-            "best epoch {} val loss {:.4e} -> {}",
+            "best epoch {} {what} {:.4e} -> {}",
             best.epoch,
             best.val_loss,
-            args.out.join("model.json").display()
+            out.join("model.json").display()
         );
     }
-    Ok(super::read_to_damage(&scanned.truncated))
 }
 
 /// The paper path's scene index, with the trajectories themselves when the bags fit in

@@ -206,16 +206,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     if args.resume {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    std::fs::write(
-        args.out.join("split.json"),
-        serde_json::to_string_pretty(&split)?,
-    )?;
-    std::fs::write(
-        args.out.join("train.json"),
-        serde_json::to_string_pretty(&opts)?,
-    )?;
+    super::train::write_run_files(&args.out, &split, &opts)?;
     let index = WindowIndex::new(train, config.window + opts.steps - 1, Scaler::default())?;
     let counts: Vec<usize> = index.particle_counts();
     eprintln!(
@@ -255,17 +246,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         args.resume,
         &mut progress,
     )?;
-    if let Some(best) = history
-        .iter()
-        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss))
-    {
-        println!(
-            "best epoch {} validation rollout MSE {:.4e} -> {}",
-            best.epoch,
-            best.val_loss,
-            args.out.join("model.json").display()
-        );
-    }
+    super::train::print_best(&history, "validation rollout MSE", &args.out);
     Ok(super::read_to_damage(&report.truncated))
 }
 

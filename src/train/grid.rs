@@ -23,7 +23,8 @@ use std::time::Instant;
 
 use burn::grad_clipping::GradientClippingConfig;
 use burn::module::AutodiffModule;
-use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+use burn::optim::adaptor::OptimizerAdaptor;
+use burn::optim::{Adam, AdamConfig, GradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Distribution, ElementConversion, Tensor};
 
@@ -306,6 +307,80 @@ where
                 self.config.window + opts.steps - 1
             )));
         }
+        let (mut model, mut optim, mut history) = self.start(resume)?;
+        let mut best = history
+            .iter()
+            .map(|r| r.val_loss)
+            .fold(f64::INFINITY, f64::min);
+        let mut since_best = history
+            .iter()
+            .rev()
+            .take_while(|r| r.val_loss > best)
+            .count();
+        let per_epoch = match opts.samples_per_epoch {
+            0 => train.len(),
+            s => s.min(train.len()),
+        };
+        let batches = per_epoch.div_ceil(opts.batch_size.max(1));
+        let clock = RunClock {
+            started: Instant::now(),
+            total_steps: batches * opts.epochs,
+            batches,
+        };
+        for epoch in history.len()..opts.epochs {
+            if opts.patience > 0 && since_best >= opts.patience {
+                break;
+            }
+            let started = Instant::now();
+            let (next, pass) =
+                self.train_epoch(model, &mut optim, train, epoch, &clock, observer)?;
+            model = next;
+            let seconds = started.elapsed().as_secs_f64();
+            let train_loss = pass.sum / pass.seen.max(1) as f64;
+            let val_loss = if val.is_empty() {
+                train_loss
+            } else {
+                let surrogate = Surrogate::from_net(
+                    Net::Grid(model.valid()),
+                    self.meta(scaler, epoch + 1, 0.0),
+                    &self.device,
+                );
+                validation_rollout(&surrogate, val, scaler, opts.val_starts, opts.val_horizon)?
+            };
+            let record = EpochRecord {
+                epoch: epoch + 1,
+                train_loss,
+                val_loss,
+                seconds,
+                samples_per_sec: pass.seen as f64 / seconds.max(1e-9),
+                data_seconds: pass.data,
+                wait_seconds: pass.wait,
+            };
+            if val_loss < best {
+                best = val_loss;
+                since_best = 0;
+                store::save(&self.out, &model, &self.meta(scaler, epoch + 1, val_loss))?;
+            } else {
+                since_best += 1;
+            }
+            history.push(record.clone());
+            checkpoint::save(&self.out, &model, &optim, &history)?;
+            observer.epoch(&record, &history);
+            if pass.out_of_time {
+                break;
+            }
+        }
+        Ok(history)
+    }
+
+    /// The run's starting point: the weights (fresh, or `init_from`'s), Adam (with clipping
+    /// when `clip > 0`) and the epochs done so far, all three from `out/checkpoint` when
+    /// `resume` finds one.
+    ///
+    /// # Errors
+    /// `init_from` or the checkpoint could not be loaded, or `init_from` is a paper model.
+    fn start(&self, resume: bool) -> Result<GridStart<B>, TrainError> {
+        let opts = &self.opts;
         B::seed(&self.device, opts.seed);
         let mut model: GridModel<B> = match &self.init_from {
             Some(dir) => match store::load_net::<B>(dir, &self.device)? {
@@ -324,7 +399,7 @@ where
             adam = adam.with_grad_clipping(Some(GradientClippingConfig::Norm(opts.clip)));
         }
         let mut optim = adam.init::<B, GridModel<B>>();
-        let mut history: Vec<EpochRecord> = Vec::new();
+        let mut history = Vec::new();
         if resume {
             if let Some(state) = checkpoint::load::<B, _, _>(
                 &self.out,
@@ -337,116 +412,120 @@ where
                 history = state.history;
             }
         }
-        let mut best = history
-            .iter()
-            .map(|r| r.val_loss)
-            .fold(f64::INFINITY, f64::min);
-        let mut since_best = history
-            .iter()
-            .rev()
-            .take_while(|r| r.val_loss > best)
-            .count();
-        let per_epoch = match opts.samples_per_epoch {
-            0 => train.len(),
-            s => s.min(train.len()),
-        };
-        let batches = per_epoch.div_ceil(opts.batch_size.max(1));
-        let total_steps = batches * opts.epochs;
-        let started_run = Instant::now();
-        let meta = |epoch: usize, val_loss: f64| ModelMeta {
+        Ok((model, optim, history))
+    }
+
+    /// One pass over `clock.batches` batches of `train` (epoch `epoch`, 0-based): a step of
+    /// Adam per batch at the decayed learning rate, the observer told after each. Stops
+    /// early, with `out_of_time` set, once `--max-minutes` have passed since the run began.
+    ///
+    /// # Errors
+    /// [`TrainError::NonFinite`] for a NaN or infinite batch loss.
+    fn train_epoch(
+        &self,
+        mut model: GridModel<B>,
+        optim: &mut GridOptim<B>,
+        train: &WindowIndex,
+        epoch: usize,
+        clock: &RunClock,
+        observer: &mut dyn Observer,
+    ) -> Result<(GridModel<B>, EpochPass), TrainError> {
+        let opts = &self.opts;
+        B::seed(
+            &self.device,
+            opts.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64),
+        );
+        let started = Instant::now();
+        let mut pass = EpochPass::default();
+        let mut fetch = Instant::now();
+        for (k, batch) in train
+            .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
+            .take(clock.batches)
+            .enumerate()
+        {
+            let b = batch.b;
+            let (frames, material, dt) = upload_batch::<B>(batch, &self.device);
+            pass.data += fetch.elapsed().as_secs_f64();
+            let loss = sequence_loss(&model, &self.config, opts, frames, material, dt);
+            let grads = GradientsParams::from_grads(loss.backward(), &model);
+            let lr = learning_rate(opts, clock.progress(opts, epoch, k));
+            model = optim.step(lr, model, grads);
+            let waited = Instant::now();
+            let value: f64 = loss.into_scalar().elem();
+            pass.wait += waited.elapsed().as_secs_f64();
+            if !value.is_finite() {
+                return Err(TrainError::NonFinite {
+                    epoch: epoch + 1,
+                    batch: k,
+                    loss: value as f32,
+                });
+            }
+            pass.sum += value * b as f64;
+            pass.seen += b;
+            let rate = pass.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+            let mean = pass.sum / pass.seen as f64;
+            observer.batch(epoch + 1, k + 1, clock.batches, mean, rate);
+            if clock.out_of_time(opts) {
+                pass.out_of_time = true;
+                break;
+            }
+            fetch = Instant::now();
+        }
+        Ok((model, pass))
+    }
+
+    /// What `model.json` says of a checkpoint of epoch `epoch` with `val_loss`.
+    fn meta(&self, scaler: &Scaler, epoch: usize, val_loss: f64) -> ModelMeta {
+        ModelMeta {
             net: NetConfig::Grid(self.config.clone()),
             scaler: *scaler,
             epoch,
             val_loss,
-        };
-        for epoch in history.len()..opts.epochs {
-            if opts.patience > 0 && since_best >= opts.patience {
-                break;
-            }
-            B::seed(
-                &self.device,
-                opts.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64),
-            );
-            let started = Instant::now();
-            let (mut sum, mut seen) = (0.0f64, 0usize);
-            let mut wait = 0.0f64;
-            let mut data = 0.0f64;
-            let mut out_of_time = false;
-            let mut fetch = Instant::now();
-            for (k, batch) in train
-                .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
-                .take(batches)
-                .enumerate()
-            {
-                let b = batch.b;
-                let (frames, material, dt) = upload_batch::<B>(batch, &self.device);
-                data += fetch.elapsed().as_secs_f64();
-                let loss = sequence_loss(&model, &self.config, opts, frames, material, dt);
-                let grads = GradientsParams::from_grads(loss.backward(), &model);
-                // Progress through the run: by steps, or by time when a time limit ends it
-                // first (the decay then finishes at the limit).
-                let mut progress = (epoch * batches + k) as f64 / total_steps.max(1) as f64;
-                if opts.max_minutes > 0.0 {
-                    progress = progress
-                        .max(started_run.elapsed().as_secs_f64() / (opts.max_minutes * 60.0));
-                }
-                let lr = learning_rate(opts, progress);
-                model = optim.step(lr, model, grads);
-                let waited = Instant::now();
-                let value: f64 = loss.into_scalar().elem();
-                wait += waited.elapsed().as_secs_f64();
-                if !value.is_finite() {
-                    return Err(TrainError::NonFinite {
-                        epoch: epoch + 1,
-                        batch: k,
-                        loss: value as f32,
-                    });
-                }
-                sum += value * b as f64;
-                seen += b;
-                let rate = seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-                observer.batch(epoch + 1, k + 1, batches, sum / seen as f64, rate);
-                if opts.max_minutes > 0.0
-                    && started_run.elapsed().as_secs_f64() > opts.max_minutes * 60.0
-                {
-                    out_of_time = true;
-                    break;
-                }
-                fetch = Instant::now();
-            }
-            let seconds = started.elapsed().as_secs_f64();
-            let train_loss = sum / seen.max(1) as f64;
-            let surrogate =
-                Surrogate::from_net(Net::Grid(model.valid()), meta(epoch + 1, 0.0), &self.device);
-            let val_loss = if val.is_empty() {
-                train_loss
-            } else {
-                validation_rollout(&surrogate, val, scaler, opts.val_starts, opts.val_horizon)?
-            };
-            let record = EpochRecord {
-                epoch: epoch + 1,
-                train_loss,
-                val_loss,
-                seconds,
-                samples_per_sec: seen as f64 / seconds.max(1e-9),
-                data_seconds: data,
-                wait_seconds: wait,
-            };
-            if val_loss < best {
-                best = val_loss;
-                since_best = 0;
-                store::save(&self.out, &model, &meta(epoch + 1, val_loss))?;
-            } else {
-                since_best += 1;
-            }
-            history.push(record.clone());
-            checkpoint::save(&self.out, &model, &optim, &history)?;
-            observer.epoch(&record, &history);
-            if out_of_time {
-                break;
-            }
         }
-        Ok(history)
+    }
+}
+
+/// Adam over a grid model, as [`GridTrainer`] builds it.
+type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
+/// The weights, the optimiser and the epochs done, where a run starts or resumes.
+type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
+
+/// The sums of one epoch's pass over its batches.
+#[derive(Debug, Default)]
+struct EpochPass {
+    /// Loss summed over samples, and the samples.
+    sum: f64,
+    seen: usize,
+    /// Seconds building and uploading batches, and waiting for the loss value (the GPU).
+    data: f64,
+    wait: f64,
+    /// `--max-minutes` ran out during the pass.
+    out_of_time: bool,
+}
+
+/// Where a run is in its schedule.
+struct RunClock {
+    started: Instant,
+    /// Batches per epoch, and over all epochs.
+    batches: usize,
+    total_steps: usize,
+}
+
+impl RunClock {
+    /// Progress through the run (0 to 1) at batch `k` of `epoch`: by steps, or by time when
+    /// a time limit ends the run first (the decay then finishes at the limit).
+    fn progress(&self, opts: &GridTrainOptions, epoch: usize, k: usize) -> f64 {
+        let steps = (epoch * self.batches + k) as f64 / self.total_steps.max(1) as f64;
+        if opts.max_minutes > 0.0 {
+            steps.max(self.started.elapsed().as_secs_f64() / (opts.max_minutes * 60.0))
+        } else {
+            steps
+        }
+    }
+
+    /// Whether `--max-minutes` have passed since the run began.
+    fn out_of_time(&self, opts: &GridTrainOptions) -> bool {
+        opts.max_minutes > 0.0 && self.started.elapsed().as_secs_f64() > opts.max_minutes * 60.0
     }
 }
 
