@@ -21,8 +21,7 @@ use anyhow::{bail, Context};
 use burn::backend::NdArray;
 use clap::Args;
 
-use super::bench::BenchTransportOptions;
-use super::bench_transport::{percentile as pct, wall_ns};
+use super::bench_transport::{percentile as pct, wall_ns, BenchTransportOptions};
 use super::Outcome;
 use crate::bag::{read_frames, FRAMES_TOPIC};
 use crate::data::{self, Scaler};

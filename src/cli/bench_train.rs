@@ -75,7 +75,7 @@ pub struct TrainBenchArgs {
     #[arg(long, default_value = "on")]
     split_weight_grad: String,
     #[command(flatten)]
-    device: DeviceArgs,
+    pub(super) device: DeviceArgs,
 }
 
 /// A deterministic synthetic trajectory of `frames` frames (values uniform in [0, 1)).
@@ -127,7 +127,7 @@ impl EpochMeans {
 }
 
 /// Peak resident memory in MiB since the last reset, and a reset.
-fn peak_mib(reset: bool) -> Option<f64> {
+pub(super) fn peak_mib(reset: bool) -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let kb: f64 = status
         .lines()
@@ -143,7 +143,7 @@ fn peak_mib(reset: bool) -> Option<f64> {
 }
 
 /// The kernel choices the GPUs are opened with: `--gpu-gemm` and `--split-weight-grad`.
-fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kernels> {
+pub(super) fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kernels> {
     let split_weight_grad = match args.split_weight_grad.as_str() {
         "on" => true,
         "off" => false,
@@ -157,9 +157,6 @@ fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kernels> {
 
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
     kernels(&args)?;
-    if args.arch == "grid" {
-        return grid(&args);
-    }
     match args.device.parse()? {
         Device::Cpu => bench::<CpuTrain>(&args, vec![Default::default()], "host", &|reset| {
             peak_mib(reset)
@@ -192,28 +189,6 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         }
         #[cfg(not(feature = "cuda"))]
         Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
-    }
-}
-
-/// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
-fn grid(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
-    use super::bench_train_grid::bench as grid_bench;
-    match args.device.parse()?.single("bench train --arch grid")? {
-        None => grid_bench::<CpuTrain>(args, Default::default(), "host", &|reset| peak_mib(reset)),
-        #[cfg(feature = "cuda")]
-        Some(id) => {
-            use super::device::cuda::{device, reserved_bytes, CudaTrain};
-            let device = device(id, kernels(args)?)?;
-            let peak = |reset: bool| {
-                if reset {
-                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
-                }
-                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
-            };
-            grid_bench::<CudaTrain>(args, device.clone(), "GPU pool", &peak)
-        }
-        #[cfg(not(feature = "cuda"))]
-        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
     }
 }
 

@@ -199,3 +199,28 @@ fn stages<B: AutodiffBackend + NetOps>(
         "  ms per forward + backward at batch {b}: stencil {stencil:.2} (forward), P2G {p2g:.2}, U-Net {unet_ms:.2}, G2P {g2p:.2}, memory {memory_ms:.2}, whole step {step:.2}"
     );
 }
+
+/// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
+pub fn run(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
+    use super::bench_train::{kernels, peak_mib};
+    use super::train::CpuTrain;
+    let kernels = kernels(args)?;
+    match args.device.parse()?.single("bench train --arch grid")? {
+        None => bench::<CpuTrain>(args, Default::default(), "host", &|reset| peak_mib(reset)),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use super::device::cuda::{device, reserved_bytes, CudaTrain};
+            let device = device(id, kernels)?;
+            let peak = |reset: bool| {
+                if reset {
+                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
+                }
+                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
+            };
+            bench::<CudaTrain>(args, device.clone(), "GPU pool", &peak)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
+    }
+}

@@ -16,10 +16,58 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 
-use super::bench::BenchTransportOptions;
 use super::Outcome;
 use crate::msgs::{Header, ParticleFrame, Time};
-use crate::transport::{self, wait_for_subscribers, TransportKind};
+use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
+use std::ffi::OsString;
+use std::path::PathBuf;
+
+/// The transport flags of `bench transport` and `bench node`, flattened into both: the
+/// shared [`TransportOptions`] flags, except that `--transport` is repeatable because a
+/// benchmark measures several transports in one run.
+#[derive(Debug, Clone, Args)]
+pub struct BenchTransportOptions {
+    /// Transports to measure (repeatable; default: zenoh, iceoryx2, ros2).
+    #[arg(long = "transport", value_enum)]
+    pub transports: Vec<TransportKind>,
+    /// A standard zenoh JSON5 config file for every process of the benchmark; without it,
+    /// embedded peer sessions that need no router.
+    #[arg(long, value_name = "FILE")]
+    pub zenoh_config: Option<PathBuf>,
+}
+
+impl BenchTransportOptions {
+    /// The transports to measure: those given, or zenoh, iceoryx2 and ros2.
+    pub fn kinds(&self) -> Vec<TransportKind> {
+        if self.transports.is_empty() {
+            vec![
+                TransportKind::Zenoh,
+                TransportKind::Iceoryx2,
+                TransportKind::Ros2,
+            ]
+        } else {
+            self.transports.clone()
+        }
+    }
+
+    /// The options to open `kind` with in this process.
+    pub fn options(&self, kind: TransportKind) -> TransportOptions {
+        TransportOptions {
+            transport: kind,
+            zenoh_config: self.zenoh_config.clone(),
+        }
+    }
+
+    /// The same flags for a `minflow` child process that opens `kind`.
+    pub fn child_args(&self, kind: TransportKind) -> Vec<OsString> {
+        let mut args = vec!["--transport".into(), kind.to_string().into()];
+        if let Some(cfg) = &self.zenoh_config {
+            args.push("--zenoh-config".into());
+            args.push(cfg.clone().into());
+        }
+        args
+    }
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Role {
