@@ -209,3 +209,63 @@ fn record_points_writes_clouds_foxglove_reads_from_the_bag() {
         );
     }
 }
+
+#[test]
+fn node_colours_its_predictions_by_their_error_against_the_truth() {
+    let bag = source_bag();
+    let n = frames(&bag)[0].len();
+    let input = unique_topic("vizin");
+    let output = unique_topic("vizout");
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/all-grid-mingru-small");
+    let mut node = Node::spawn(
+        "node",
+        &[
+            "node",
+            "--model",
+            model.to_str().unwrap(),
+            "--in",
+            &input,
+            "--out",
+            &output,
+            "--status",
+            "none",
+            "--foxglove",
+            "127.0.0.1:0",
+        ],
+    );
+    let (url, _stderr) = served_url(&mut node);
+    // The client subscribes before the first frame: replay waits for the node, and the
+    // node's channels exist once it has declared its output.
+    let python = interpreter();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/foxglove_client.py");
+    let client = Command::new(&python)
+        .arg(&script)
+        .args([&url, &format!("{output}/points"), "20", "90"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    let player = Node::spawn(
+        "replay",
+        &["replay", bag.to_str().unwrap(), "--topic", &input],
+    );
+    ok(&player.wait(Duration::from_secs(90)), "replay");
+    let out = client.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "foxglove_client.py failed:\n{stderr}");
+    let got: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let seen = got["frames"].as_array().unwrap();
+    assert_eq!(seen.len(), 20);
+    let mut errors = Vec::new();
+    for cloud in seen {
+        assert_eq!(cloud["points"].as_u64(), Some(n as u64));
+        let first: Vec<f64> = serde_json::from_value(cloud["first"].clone()).unwrap();
+        let error = first[2] as f32;
+        assert!(error >= 0.0 && error < 0.1, "error {error}");
+        let colour = minflow::viz::cloud::error_colour(error).map(f64::from);
+        assert_eq!(&first[3..7], &colour, "coloured by error, not material");
+        errors.push(error);
+    }
+    assert!(errors.iter().any(|&e| e > 0.0), "{errors:?}");
+}
