@@ -7,7 +7,7 @@
 //! whose first point has the frame's first position and its material's colour.
 //! The interpreter: [`crate::python_support::interpreter`].
 
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 use std::process::Command;
 use std::sync::mpsc;
@@ -34,14 +34,17 @@ fn frames(bag: &Path) -> Vec<ParticleFrame> {
     out
 }
 
-/// Waits (at most 60 s) for the `foxglove: serving on ws://...` line on `node`'s stderr and
-/// returns the URL; the rest of stderr is collected by a thread and returned by the handle.
-fn served_url(node: &mut Node) -> (String, std::thread::JoinHandle<String>) {
-    let stderr = node.child.as_mut().unwrap().stderr.take().unwrap();
+/// Waits (at most 60 s) for a line starting with `prefix` on `stream` and returns the rest of
+/// that line; a thread collects everything the stream says, returned by the handle.
+fn wait_for_line(
+    stream: impl Read + Send + 'static,
+    prefix: &str,
+    what: &str,
+) -> (String, std::thread::JoinHandle<String>) {
     let (tx, rx) = mpsc::channel();
-    let rest = std::thread::spawn(move || {
+    let all = std::thread::spawn(move || {
         let mut all = String::new();
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+        for line in BufReader::new(stream).lines().map_while(Result::ok) {
             let _ = tx.send(line.clone());
             all.push_str(&line);
             all.push('\n');
@@ -50,11 +53,17 @@ fn served_url(node: &mut Node) -> (String, std::thread::JoinHandle<String>) {
     });
     let deadline = Instant::now() + Duration::from_secs(60);
     while let Ok(line) = rx.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
-        if let Some(url) = line.strip_prefix("foxglove: serving on ") {
-            return (url.trim().to_owned(), rest);
+        if let Some(rest) = line.strip_prefix(prefix) {
+            return (rest.trim().to_owned(), all);
         }
     }
-    panic!("{} never said where it serves Foxglove", node.name);
+    panic!("{what} never said {prefix:?}:\n{}", all.join().unwrap());
+}
+
+/// The URL `node` serves Foxglove on (its `foxglove: serving on ws://...` line) and its stderr.
+fn served_url(node: &mut Node) -> (String, std::thread::JoinHandle<String>) {
+    let stderr = node.child.as_mut().unwrap().stderr.take().unwrap();
+    wait_for_line(stderr, "foxglove: serving on ", &node.name)
 }
 
 /// Runs the Python client against `url`: `count` messages of `topic`, as JSON.
@@ -234,25 +243,25 @@ fn node_colours_its_predictions_by_their_error_against_the_truth() {
         ],
     );
     let (url, _stderr) = served_url(&mut node);
-    // The client subscribes before the first frame: replay waits for the node, and the
-    // node's channels exist once it has declared its output.
+    // The client subscribes before the first frame is played.
     let python = interpreter();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/foxglove_client.py");
-    let client = Command::new(&python)
+    let mut client = Command::new(&python)
         .arg(&script)
         .args([&url, &format!("{output}/points"), "20", "90"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_secs(2));
+    let client_err = client.stderr.take().unwrap();
+    let (_, client_err) = wait_for_line(client_err, "subscribed", "foxglove_client.py");
     let player = Node::spawn(
         "replay",
         &["replay", bag.to_str().unwrap(), "--topic", &input],
     );
     ok(&player.wait(Duration::from_secs(90)), "replay");
     let out = client.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = client_err.join().unwrap();
     assert!(out.status.success(), "foxglove_client.py failed:\n{stderr}");
     let got: Value = serde_json::from_slice(&out.stdout).unwrap();
     let seen = got["frames"].as_array().unwrap();

@@ -5,7 +5,8 @@ offer only that one), as the Foxglove app does, and reports which one the server
 
 Connects to URL, waits for the advertisement of TOPIC, subscribes to it, receives COUNT
 messages, decodes each with Foxglove's published protobuf schemas (foxglove-schemas-protobuf)
-and prints one JSON object: the advertised channel and, per message, the point count, the
+and prints one JSON object (and the line "subscribed" on stderr once it asked for the topic): the
+negotiated subprotocol, the advertised channel and, per message, the point count, the
 stride, the field names, the frame id, the timestamp and the first point's values.
 
 Usage: foxglove_client.py URL TOPIC COUNT TIMEOUT_S
@@ -46,6 +47,7 @@ async def run(url, topic, count, timeout):
                 channel = next((c for c in msg["channels"] if c["topic"] == topic), None)
         await ws.send(json.dumps({"op": "subscribe",
                                   "subscriptions": [{"id": 7, "channelId": channel["id"]}]}))
+        print("subscribed", file=sys.stderr, flush=True)
         frames = []
         while len(frames) < count:
             msg = await ws.recv()
