@@ -18,6 +18,7 @@
 //! - [`transport`]: one publish / subscribe interface over zenoh, iceoryx2 and ROS 2;
 //! - [`node`]: the surrogate node, the replay player and the recorder;
 //! - [`launch`]: launch files, their nodes as supervised child processes;
+//! - [`viz`]: frames as Foxglove point clouds, live over a WebSocket server or into bags;
 //! - [`cli`]: the command layer of the `minflow` binary.
 
 pub mod bag;
@@ -33,3 +34,4 @@ pub mod plot;
 pub mod sim;
 pub mod train;
 pub mod transport;
+pub mod viz;

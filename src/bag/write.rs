@@ -7,7 +7,8 @@
 //! YAML; profile `ros2`; zstd chunks of 1 MiB. `log_time` = `publish_time` = the frame's stamp
 //! in ns; `sequence` counts messages per channel from 0. Output is deterministic: the same
 //! frames give byte-identical files (the header's library string carries versions only, and
-//! zstd runs single-threaded). Used by `simulate` and the `record` node.
+//! zstd runs single-threaded). Used by `simulate` and the `record` node. `record --points`
+//! adds `foxglove.PointCloud` channels (schema and message encoding `protobuf`) beside them.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -30,6 +31,8 @@ pub struct BagWriter {
     schema_id: u16,
     /// topic -> (channel id, messages written on it)
     channels: BTreeMap<String, (u16, u32)>,
+    /// The `foxglove.PointCloud` schema, once a points channel exists.
+    points_schema: Option<u16>,
     scratch: Vec<u8>,
 }
 
@@ -65,6 +68,7 @@ impl BagWriter {
             writer,
             schema_id,
             channels: BTreeMap::new(),
+            points_schema: None,
             scratch: Vec::new(),
         })
     }
@@ -105,7 +109,36 @@ impl BagWriter {
     /// Writes already-encoded CDR bytes on `topic` at `stamp_ns` (log and publish time), as a
     /// recorder does with what a transport delivered. The bytes are not checked.
     pub fn write_raw(&mut self, topic: &str, stamp_ns: u64, cdr: &[u8]) -> Result<(), BagError> {
-        let (channel_id, sequence) = self.channel(topic)?;
+        let channel = self.channel(topic)?;
+        self.write_message(channel, stamp_ns, cdr)
+    }
+
+    /// Writes `frame` as a `foxglove.PointCloud` (protobuf, Foxglove's schema; coloured by
+    /// material, [`crate::viz::cloud`]) on `topic` at `stamp_ns`, for Foxglove's 3D panel
+    /// (`record --points`). The frame is not checked.
+    pub fn write_points(
+        &mut self,
+        topic: &str,
+        stamp_ns: u64,
+        frame: &ParticleFrame,
+    ) -> Result<(), BagError> {
+        let channel = self.points_channel(topic)?;
+        let mut bytes = std::mem::take(&mut self.scratch);
+        bytes.clear();
+        // Into a Vec, which grows: encoding cannot run out of room.
+        let _ = foxglove::Encode::encode(&crate::viz::cloud::by_material(frame), &mut bytes);
+        let result = self.write_message(channel, stamp_ns, &bytes);
+        self.scratch = bytes;
+        result
+    }
+
+    /// Writes one message on a known channel, `log_time` = `publish_time` = `stamp_ns`.
+    fn write_message(
+        &mut self,
+        (channel_id, sequence): (u16, u32),
+        stamp_ns: u64,
+        bytes: &[u8],
+    ) -> Result<(), BagError> {
         self.writer
             .write_to_known_channel(
                 &MessageHeader {
@@ -114,7 +147,7 @@ impl BagWriter {
                     log_time: stamp_ns,
                     publish_time: stamp_ns,
                 },
-                cdr,
+                bytes,
             )
             .map_err(|source| BagError::Mcap {
                 path: self.path.clone(),
@@ -125,15 +158,56 @@ impl BagWriter {
     /// Returns the channel id for `topic` (adding the channel on first use) and the sequence
     /// number of the next message on it.
     fn channel(&mut self, topic: &str) -> Result<(u16, u32), BagError> {
-        if let Some((id, count)) = self.channels.get_mut(topic) {
-            let sequence = *count;
-            *count = count.wrapping_add(1);
-            return Ok((*id, sequence));
+        if let Some(next) = self.next_sequence(topic) {
+            return Ok(next);
         }
         let metadata = BTreeMap::from([(QOS_KEY.to_owned(), DEFAULT_QOS_YAML.to_owned())]);
+        self.add_channel(topic, self.schema_id, MESSAGE_ENCODING, &metadata)
+    }
+
+    /// As [`BagWriter::channel`] for a `foxglove.PointCloud` channel (message encoding
+    /// `protobuf`, no QoS metadata: ROS 2 does not play these).
+    fn points_channel(&mut self, topic: &str) -> Result<(u16, u32), BagError> {
+        if let Some(next) = self.next_sequence(topic) {
+            return Ok(next);
+        }
+        let schema_id = match self.points_schema {
+            Some(id) => id,
+            None => {
+                let schema = <foxglove::messages::PointCloud as foxglove::Encode>::get_schema()
+                    .expect("foxglove.PointCloud has a schema");
+                let id = self
+                    .writer
+                    .add_schema(&schema.name, &schema.encoding, &schema.data)
+                    .map_err(|source| BagError::Mcap {
+                        path: self.path.clone(),
+                        source,
+                    })?;
+                *self.points_schema.insert(id)
+            }
+        };
+        self.add_channel(topic, schema_id, "protobuf", &BTreeMap::new())
+    }
+
+    /// The channel of `topic` and the sequence number of its next message, if it exists.
+    fn next_sequence(&mut self, topic: &str) -> Option<(u16, u32)> {
+        let (id, count) = self.channels.get_mut(topic)?;
+        let sequence = *count;
+        *count = count.wrapping_add(1);
+        Some((*id, sequence))
+    }
+
+    /// Adds the channel of `topic`; returns its id and sequence number 0.
+    fn add_channel(
+        &mut self,
+        topic: &str,
+        schema_id: u16,
+        encoding: &str,
+        metadata: &BTreeMap<String, String>,
+    ) -> Result<(u16, u32), BagError> {
         let id = self
             .writer
-            .add_channel(self.schema_id, topic, MESSAGE_ENCODING, &metadata)
+            .add_channel(schema_id, topic, encoding, metadata)
             .map_err(|source| BagError::Mcap {
                 path: self.path.clone(),
                 source,

@@ -56,6 +56,10 @@ pub struct NodeBenchArgs {
     /// instead of untrained paper-sized models of --cores.
     #[arg(long = "model", value_name = "DIR")]
     models: Vec<PathBuf>,
+    /// Also run every row with the node serving Foxglove (`--foxglove 127.0.0.1:0`) and no
+    /// client connected: what the idle live view costs.
+    #[arg(long)]
+    foxglove_idle: bool,
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.
@@ -84,6 +88,8 @@ fn make_model(
 struct Row {
     name: String,
     kind: TransportKind,
+    /// The node served Foxglove (nothing connected).
+    foxglove: bool,
     /// The model's own step time in this process, p50 and p99, us.
     model_p50: f64,
     model_p99: f64,
@@ -112,12 +118,22 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     let mut table = Vec::new();
     for (name, dir) in &runs {
         let model_us = model_step_us(dir, &frames)?;
-        for &kind in &transports {
-            eprintln!("bench node: {name} over {kind} ...");
-            let (received, latency, burst_fps) = through_node(&args, &exe, dir, kind, &frames)?;
+        let variants: &[bool] = if args.foxglove_idle {
+            &[false, true]
+        } else {
+            &[false]
+        };
+        for (&kind, &foxglove) in transports
+            .iter()
+            .flat_map(|k| variants.iter().map(move |f| (k, f)))
+        {
+            eprintln!("bench node: {name} over {kind}{} ...", suffix(foxglove));
+            let (received, latency, burst_fps) =
+                through_node(&args, &exe, dir, (kind, foxglove), &frames)?;
             table.push(Row {
                 name: name.clone(),
                 kind,
+                foxglove,
                 model_p50: pct(&model_us, 0.5),
                 model_p99: pct(&model_us, 0.99),
                 received,
@@ -129,6 +145,15 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     }
     print_table(&args, &table);
     Ok(Outcome::Done)
+}
+
+/// How a row's transport column names the idle live view.
+fn suffix(foxglove: bool) -> &'static str {
+    if foxglove {
+        " + foxglove (idle)"
+    } else {
+        ""
+    }
 }
 
 /// The frames of `bag`'s frames topic; an error unless there are at least two of 2,500
@@ -200,7 +225,8 @@ fn model_step_us(dir: &Path, frames: &[ParticleFrame]) -> anyhow::Result<Vec<f64
     Ok(model_us)
 }
 
-/// Starts a `minflow node` process serving the model in `dir` over `kind`, publishes
+/// Starts a `minflow node` process serving the model in `dir` over `kind` (with
+/// `--foxglove 127.0.0.1:0` when `foxglove`), publishes
 /// `--frames` frames at 62.5 Hz and then a burst of `--burst`. Returns the predictions
 /// received of the paced run, their publish-to-prediction latencies (us, sorted) and the
 /// burst's predictions per second.
@@ -208,7 +234,7 @@ fn through_node(
     args: &NodeBenchArgs,
     exe: &Path,
     dir: &Path,
-    kind: TransportKind,
+    (kind, foxglove): (TransportKind, bool),
     frames: &[ParticleFrame],
 ) -> anyhow::Result<(usize, Vec<f64>, f64)> {
     let input = format!("/minflow_bench_{}/in", std::process::id());
@@ -223,6 +249,11 @@ fn through_node(
         .args(args.transport.child_args(kind))
         .args(["--in", &input, "--out", &output, "--status", "none"])
         .args(["--queue-depth", "4", "--on-gap", "skip"])
+        .args(if foxglove {
+            &["--foxglove", "127.0.0.1:0"][..]
+        } else {
+            &[]
+        })
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()?;
@@ -329,9 +360,10 @@ fn print_table(args: &NodeBenchArgs, table: &[Row]) {
     println!("|---|---|---|---|---|---|---|---|---|");
     for r in table {
         println!(
-            "| {} | {} | {:.2} | {:.2} | {}/{} | {:.2} | {:.2} | {:+.0} % | {:.0} |",
+            "| {} | {}{} | {:.2} | {:.2} | {}/{} | {:.2} | {:.2} | {:+.0} % | {:.0} |",
             r.name,
             r.kind,
+            suffix(r.foxglove),
             r.model_p50 / 1e3,
             r.model_p99 / 1e3,
             r.received,

@@ -13,6 +13,7 @@ mod demo;
 pub mod device;
 pub mod eval;
 mod flags;
+mod foxglove;
 mod launch;
 mod node;
 mod record;

@@ -64,6 +64,8 @@ pub struct NodeArgs {
     stats_interval: Option<f64>,
     #[command(flatten)]
     device: super::device::DeviceArgs,
+    #[command(flatten)]
+    foxglove: super::foxglove::FoxgloveArgs,
 }
 
 pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
@@ -84,6 +86,9 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?;
+    let foxglove = args
+        .foxglove
+        .start(&format!("minflow node {}", args.name))?;
     let options = NodeOptions {
         name: args.name,
         input: args.input,
@@ -100,6 +105,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         stats_interval: args
             .stats_interval
             .map(|s| Duration::from_secs_f64(s.max(0.1))),
+        foxglove,
     };
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;

@@ -44,6 +44,10 @@ pub struct RecordArgs {
     /// Log the counters every this many seconds.
     #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
+    /// Also write every frame as a foxglove.PointCloud (protobuf, coloured by material) on
+    /// `<topic>/points`, so Foxglove's 3D panel plays the recording.
+    #[arg(long)]
+    points: bool,
 }
 
 pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
@@ -58,6 +62,7 @@ pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
         flush_interval: secs(args.flush_interval),
         overwrite: args.overwrite,
         idle_exit: args.idle_exit.map(secs),
+        points: args.points,
     };
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;

@@ -11,6 +11,7 @@ use super::Outcome;
 use crate::bag::FRAMES_TOPIC;
 use crate::node::{replay, shutdown_flag};
 use crate::transport::{self, Counters, TransportOptions};
+use crate::viz::VizPublisher;
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
@@ -46,6 +47,8 @@ pub struct ReplayArgs {
     /// Log the counters every this many seconds.
     #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
+    #[command(flatten)]
+    foxglove: super::foxglove::FoxgloveArgs,
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
@@ -67,6 +70,10 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
     let stop = shutdown_flag();
     let session = transport::open(&args.transport)?;
     let mut publisher = session.publisher(&args.topic)?;
+    if let Some(view) = args.foxglove.start("minflow replay")? {
+        // A Foxglove client watching the points counts as a subscriber (docs/design.md).
+        publisher = Box::new(VizPublisher::new(publisher, view.points(&args.topic)));
+    }
     let counters = Counters::default();
     let _stats = args
         .stats_interval

@@ -10,6 +10,7 @@ use crate::sim::families::{self, Family};
 use crate::sim::run::SceneRun;
 use crate::sim::Scene;
 use crate::transport::{wait_for_subscribers, Counters, FramePublisher, TransportOptions};
+use crate::viz::VizPublisher;
 use anyhow::{bail, Context};
 use clap::Args;
 use rayon::prelude::*;
@@ -52,9 +53,13 @@ pub struct SimulateArgs {
     /// time, 62.5 frames per second); 0 publishes frames as fast as they are simulated.
     #[arg(long, default_value_t = 1.0, value_parser = super::flags::rate)]
     rate: f64,
-    /// With --publish: wait for this many subscribers before simulating.
+    /// With --publish: wait for this many subscribers before simulating (a Foxglove client
+    /// watching the points counts as one).
     #[arg(long, default_value_t = 1)]
     wait_for_subscribers: usize,
+    /// With --publish.
+    #[command(flatten)]
+    foxglove: super::foxglove::FoxgloveArgs,
 }
 
 /// Parses `A..B`, `A..=B`, `a,b,c` or `a` into ids.
@@ -98,6 +103,9 @@ fn simulate(
     args: SimulateArgs,
     open: impl Fn(&SimulateArgs) -> anyhow::Result<Live>,
 ) -> anyhow::Result<Outcome> {
+    if args.foxglove.foxglove.is_some() && !args.publish {
+        return Err(UsageError("--foxglove needs --publish".into()).into());
+    }
     let mut scenes: Vec<Scene> = Vec::new();
     if args.scene_file.is_empty() {
         let family: Family = args.family.parse()?;
@@ -207,7 +215,10 @@ impl Live {
             "--rate must be >= 0"
         );
         let session = crate::transport::open(&args.transport)?;
-        let publisher = session.publisher(&args.topic)?;
+        let mut publisher = session.publisher(&args.topic)?;
+        if let Some(view) = args.foxglove.start("minflow simulate")? {
+            publisher = Box::new(VizPublisher::new(publisher, view.points(&args.topic)));
+        }
         if args.wait_for_subscribers > 0 {
             tracing::info!(
                 "waiting for {} subscriber(s) on {}",

@@ -19,7 +19,7 @@ use std::sync::mpsc::{channel, RecvTimeoutError};
 use std::time::{Duration, Instant};
 
 use crate::bag::{BagError, BagWriter, DEFAULT_QOS_YAML, MESSAGE_ENCODING};
-use crate::msgs::TYPE_NAME;
+use crate::msgs::{ParticleFrame, TYPE_NAME};
 use crate::transport::{Counters, Sample, Transport, TransportError};
 
 /// What to record and when to split or stop.
@@ -43,6 +43,10 @@ pub struct RecordOptions {
     pub overwrite: bool,
     /// Stop once this long passed without a message, after the first one.
     pub idle_exit: Option<Duration>,
+    /// Also write every frame as a `foxglove.PointCloud` on `<topic>/points`
+    /// ([`crate::viz::points_topic`]), for Foxglove's 3D panel. Not counted in `written`,
+    /// not listed in metadata.yaml (ROS 2 does not play protobuf).
+    pub points: bool,
 }
 
 /// What a recording wrote.
@@ -240,10 +244,13 @@ pub fn record(
         if options.count.is_some_and(|n| files.report.written >= n) {
             continue;
         }
-        let Some((bytes, stamp_ns)) = files.validate(&sample, counters) else {
+        let Some((bytes, stamp_ns, frame)) = files.validate(&sample, counters) else {
             continue;
         };
         files.write(&sample.topic, stamp_ns, &bytes)?;
+        if options.points {
+            files.write_points(&sample.topic, stamp_ns, &frame)?;
+        }
         progress(files.report.written);
         files.flush_if_due()?;
     }
@@ -322,7 +329,11 @@ impl<'a> Files<'a> {
 
     /// The sample's CDR bytes and its frame's stamp (ns), or None when it is not a valid
     /// frame (counted as malformed; logged for the first one per topic, then every 100th).
-    fn validate(&mut self, sample: &Sample, counters: &Counters) -> Option<(Vec<u8>, u64)> {
+    fn validate(
+        &mut self,
+        sample: &Sample,
+        counters: &Counters,
+    ) -> Option<(Vec<u8>, u64, ParticleFrame)> {
         let validated = sample.cdr().map_err(|e| e.to_string()).and_then(|bytes| {
             let frame = crate::msgs::decode(&bytes).map_err(|e| e.to_string())?;
             let stamp = frame
@@ -330,7 +341,7 @@ impl<'a> Files<'a> {
                 .stamp
                 .as_unsigned_nanos()
                 .ok_or("negative stamp")?;
-            Ok((bytes, stamp))
+            Ok((bytes, stamp, frame))
         });
         match validated {
             Ok(v) => Some(v),
@@ -392,6 +403,21 @@ impl<'a> Files<'a> {
         open.info.add(topic, stamp_ns);
         self.report.written += 1;
         *self.report.per_topic.entry(topic.to_owned()).or_default() += 1;
+        Ok(())
+    }
+
+    /// Writes `frame`'s point cloud into the open file (opened by [`Files::write`] just before).
+    fn write_points(
+        &mut self,
+        topic: &str,
+        stamp_ns: u64,
+        frame: &ParticleFrame,
+    ) -> Result<(), RecordError> {
+        if let Some(open) = self.bag.as_mut() {
+            let points = crate::viz::points_topic(topic);
+            open.writer.write_points(&points, stamp_ns, frame)?;
+            open.pending += (frame.len() * crate::viz::cloud::POINT_STRIDE as usize) as u64;
+        }
         Ok(())
     }
 

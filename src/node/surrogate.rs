@@ -30,6 +30,7 @@ use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{ParticleFrame, Time};
 use crate::ops::NetOps;
 use crate::transport::{FramePublisher, Sample, StatusPublisher, Transport, TransportError};
+use crate::viz::PredictionView;
 
 /// What to do with a frame that does not follow the previous one of its scene.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -71,6 +72,9 @@ pub struct NodeOptions {
     /// Subscribe to the input only once the output has this many subscribers (so a
     /// recorder started alongside misses nothing).
     pub wait_for_subscribers: usize,
+    /// Live view (`--foxglove`): the input on `<input>/points`, predictions on
+    /// `<output>/points` coloured by their error against the ground truth.
+    pub foxglove: Option<crate::viz::LiveView>,
 }
 
 /// Totals of a node run, as in the status message.
@@ -308,6 +312,7 @@ struct NodeLoop<'a, B: NetOps> {
     next_status: Instant,
     next_stats: Option<Instant>,
     latencies_us: Vec<f64>,
+    view: Option<PredictionView>,
 }
 
 impl<'a, B: NetOps> NodeLoop<'a, B> {
@@ -340,6 +345,10 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             next_status: Instant::now(),
             next_stats: options.stats_interval.map(|d| Instant::now() + d),
             latencies_us: Vec::new(),
+            view: options
+                .foxglove
+                .as_ref()
+                .map(|v| PredictionView::new(v, &options.input, &options.output)),
         }
     }
 
@@ -410,6 +419,9 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             self.tally.note(&frame.scene.clone(), reason.to_string());
             return;
         }
+        if let Some(view) = self.view.as_mut() {
+            view.truth(&frame);
+        }
         // Closed loop: a scene already rolled out waits for its next start (frame 0).
         if self.options.rollout.is_some()
             && frame.frame_index != 0
@@ -466,11 +478,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
         self.tally.report.predicted += 1;
         let keep = match self.options.rollout {
             None => {
-                publish(
-                    self.publisher.as_mut(),
-                    &predicted_frame(&frame, &next, 1),
-                    &mut self.tally.report,
-                );
+                self.emit(&predicted_frame(&frame, &next, 1));
                 if let Some(t) = arrived {
                     self.latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
                 }
@@ -589,11 +597,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                     std::thread::sleep(wait);
                 }
             }
-            publish(
-                self.publisher.as_mut(),
-                &predicted_frame(frame, &rows, i as u32 + 1),
-                &mut self.tally.report,
-            );
+            self.emit(&predicted_frame(frame, &rows, i as u32 + 1));
             if i + 1 < k {
                 match self
                     .surrogate
@@ -613,10 +617,21 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
         }
     }
 
+    /// Publishes a predicted frame (counted) and hands it to the live view.
+    fn emit(&mut self, frame: &ParticleFrame) {
+        publish(self.publisher.as_mut(), frame, &mut self.tally.report);
+        if let Some(view) = self.view.as_mut() {
+            view.prediction(frame);
+        }
+    }
+
     /// Flushes the output, publishes the final status, logs the latency percentiles and
     /// returns the totals.
     fn finish(mut self) -> NodeReport {
         self.publisher.flush(Duration::from_secs(5));
+        if let Some(view) = self.view.as_mut() {
+            view.finish();
+        }
         self.stamp_report();
         if let Some(p) = self.status_pub.as_mut() {
             let _ = p.publish(&self.tally.report);

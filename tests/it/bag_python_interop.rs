@@ -4,20 +4,18 @@
 //! and prints a JSON summary, and every field is compared with what was written (floats after
 //! rounding to float32).
 //!
-//! The interpreter is `$MINFLOW_PYTHON`; else a venv at `~/.cache/minflow/venv`, which the
-//! test creates from `tests/python/requirements.txt` on first use (so `cargo test --release`
-//! works on a fresh machine). The test fails, never skips, when the packages cannot be had.
+//! The interpreter: [`crate::python_support::interpreter`].
 
 use std::path::Path;
 use std::process::Command;
 
+use crate::python_support::{interpreter, INSTALL_HINT};
 use minflow::bag::{BagWriter, FRAMES_TOPIC, PREDICTED_TOPIC, QOS_KEY};
 use minflow::msgs::{self, Header, ParticleFrame, Time};
 use serde_json::Value;
 
 const PARTICLES: usize = 2500;
 const FRAMES_PER_SCENE: u32 = 3;
-const INSTALL_HINT: &str = "python3 -m pip install -r tests/python/requirements.txt";
 
 /// Scene ids and frame ids of odd byte lengths (15, 21; 5, 7); "é" is two bytes in UTF-8.
 const SCENES: [(&str, &str); 2] = [
@@ -51,49 +49,6 @@ fn frame(s: usize, k: u32) -> ParticleFrame {
             .map(|i| ((i + s + k as usize) % 4) as u8)
             .collect(),
     }
-}
-
-/// `$MINFLOW_PYTHON`, else the project venv (created and filled from requirements.txt when
-/// it lacks the readers).
-fn interpreter() -> String {
-    if let Ok(python) = std::env::var("MINFLOW_PYTHON") {
-        return python;
-    }
-    let home = std::env::var("HOME").unwrap_or_else(|_| "/tmp".to_owned());
-    let venv = Path::new(&home).join(".cache/minflow/venv");
-    let python = venv.join("bin/python");
-    let has_readers = |p: &Path| {
-        Command::new(p)
-            .args(["-c", "import mcap, mcap_ros2"])
-            .output()
-            .map(|o| o.status.success())
-            .unwrap_or(false)
-    };
-    if !has_readers(&python) {
-        let run = |cmd: &mut Command| {
-            let out = cmd.output().unwrap_or_else(|e| panic!("{cmd:?}: {e}"));
-            assert!(
-                out.status.success(),
-                "{cmd:?} failed; run `{INSTALL_HINT}`\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        };
-        if !python.exists() {
-            run(Command::new("python3").arg("-m").arg("venv").arg(&venv));
-        }
-        let req = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/requirements.txt");
-        run(Command::new(&python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--disable-pip-version-check",
-                "-r",
-            ])
-            .arg(req));
-    }
-    python.to_string_lossy().into_owned()
 }
 
 /// Runs `tests/python/read_bag.py` on `bag`; fails with the install hint when the packages are

@@ -33,10 +33,12 @@ mod train_parallel;
 mod train_resume;
 mod transport_nodes;
 mod transport_ros2;
+mod viz_foxglove;
 
 #[allow(dead_code)]
 mod data_support;
 mod isolated;
+mod python_support;
 
 /// The grid network of the command-line tests (16 x 16 grid, two levels, widths 4 to 8:
 /// seconds per epoch on a CPU).
