@@ -19,8 +19,10 @@ mod node;
 mod record;
 mod replay;
 mod report;
+mod run_folder;
 mod simulate;
 pub mod train;
+mod train_args;
 mod train_grid;
 
 use clap::{Parser, Subcommand};

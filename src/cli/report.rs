@@ -73,7 +73,7 @@ pub struct ReportArgs {
     pub encoder_last_activation: String,
     /// Grid architecture: the network's sizes.
     #[command(flatten)]
-    pub grid_net: super::train_grid::GridNetArgs,
+    pub grid_net: super::train_args::GridNetArgs,
     /// Grid architecture: samples per epoch at most (0: every window).
     #[arg(long, default_value_t = 0)]
     pub samples_per_epoch: usize,

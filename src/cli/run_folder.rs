@@ -1,0 +1,174 @@
+//! What a training run leaves in its folder, for both architectures: the progress bar and
+//! `metrics.csv` / `loss.png` kept current ([`Progress`]), `split.json` and `train.json`
+//! ([`write_run_files`]), the closing line ([`print_best`]), and the check that a `--resume`
+//! or `--init-from` folder holds the network the flags describe ([`check_resume`],
+//! [`differences`]).
+
+use anyhow::{bail, Context};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use crate::data::Split;
+use crate::model::store::NetConfig;
+use crate::train::{EpochRecord, Observer};
+
+/// Progress bar per epoch, one log line per epoch, metrics.csv and loss.png kept current.
+pub(crate) struct Progress {
+    out: PathBuf,
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress {
+    /// Progress of a run writing to `out`.
+    pub(crate) fn new(out: PathBuf) -> Self {
+        Self { out, bar: None }
+    }
+}
+
+impl Observer for Progress {
+    fn batch(&mut self, epoch: usize, done: usize, total: usize, loss: f64, rate: f64) {
+        let bar = self
+            .bar
+            .get_or_insert_with(|| super::progress(total as u64, &format!("epoch {epoch}")));
+        bar.set_position(done as u64);
+        bar.set_message(format!("epoch {epoch} loss {loss:.3e} {rate:.1}/s"));
+    }
+
+    fn epoch(&mut self, r: &EpochRecord, history: &[EpochRecord]) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+        eprintln!(
+            "epoch {:>3}  train {:.4e}  val {:.4e}  {:.1} s  {:.1} samples/s",
+            r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
+        );
+        if let Err(err) = write_metrics(&self.out, history) {
+            tracing::warn!("writing metrics: {err:#}");
+        }
+    }
+}
+
+/// Rewrites `metrics.csv` (and `loss.png`) from the whole history.
+fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
+    let path = out.join("metrics.csv");
+    let mut f =
+        std::fs::File::create(&path).with_context(|| format!("writing {}", path.display()))?;
+    writeln!(f, "epoch,train_loss,val_loss,seconds,samples_per_sec")?;
+    for r in history {
+        writeln!(
+            f,
+            "{},{},{},{:.3},{:.3}",
+            r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
+        )?;
+    }
+    super::loss_plot(&out.join("loss.png"), history)
+}
+
+/// Creates the run folder `out` with its `split.json` and `train.json` (`options`).
+///
+/// # Errors
+/// The folder or a file could not be written.
+pub(crate) fn write_run_files(
+    out: &Path,
+    split: &Split,
+    options: &impl serde::Serialize,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    for (name, text) in [
+        ("split.json", serde_json::to_string_pretty(split)?),
+        ("train.json", serde_json::to_string_pretty(options)?),
+    ] {
+        let path = out.join(name);
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Prints the best epoch of `history` (by validation loss, called `what`) and where its
+/// model was saved.
+pub(crate) fn print_best(history: &[EpochRecord], what: &str, out: &Path) {
+    if let Some(best) = history
+        .iter()
+        .min_by(|a, b| a.val_loss.total_cmp(&b.val_loss))
+    {
+        println!(
+            "best epoch {} {what} {:.4e} -> {}",
+            best.epoch,
+            best.val_loss,
+            out.join("model.json").display()
+        );
+    }
+}
+
+/// With `--resume`, the run folder's `model.json` (written with the first checkpoint) must
+/// describe the network this invocation builds: weights of another shape cannot load, and
+/// other settings would silently change the run. Compares every hyper-parameter of `net`
+/// with the saved one, except the values fitted on the data (`vel_scale`, `dv_mean`,
+/// `dv_scale`) and the convolution kernel (`conv`: the same weights and results). A folder
+/// without `model.json` passes (nothing to resume yet).
+///
+/// # Errors
+/// An unreadable `model.json`, or one whose settings differ: the error names each field with
+/// both values.
+pub(crate) fn check_resume(out: &Path, net: &NetConfig) -> anyhow::Result<()> {
+    let Some(differ) = config_differences(out, net)? else {
+        return Ok(());
+    };
+    if !differ.is_empty() {
+        bail!(
+            "--resume: {} was trained with other settings ({}); resume with the flags it was \
+             started with, or train into a new --out",
+            out.display(),
+            differ.join("; ")
+        );
+    }
+    Ok(())
+}
+
+/// Each hyper-parameter of `net` that differs from the one saved in `dir/model.json`, as
+/// `"field: checkpoint OLD, this run NEW"`, skipping the values fitted on the data
+/// (`vel_scale`, `dv_mean`, `dv_scale`) and the convolution kernel (`conv`). `None` when
+/// `dir` has no `model.json`.
+///
+/// # Errors
+/// An unreadable or unparsable `model.json`.
+pub(crate) fn config_differences(
+    dir: &Path,
+    net: &NetConfig,
+) -> anyhow::Result<Option<Vec<String>>> {
+    let path = dir.join("model.json");
+    let text = match std::fs::read_to_string(&path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let saved: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    differences(&saved, net).map(Some)
+}
+
+/// Each hyper-parameter of `net` that differs from its value in `saved` (a `model.json`, or
+/// a saved [`NetConfig`], as JSON), as [`config_differences`] lists them.
+///
+/// # Errors
+/// `net` does not serialise (not expected).
+pub(crate) fn differences(
+    saved: &serde_json::Value,
+    net: &NetConfig,
+) -> anyhow::Result<Vec<String>> {
+    const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
+    let new = serde_json::to_value(net)?;
+    Ok(new
+        .as_object()
+        .into_iter()
+        .flatten()
+        .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
+        .filter_map(|(key, value)| {
+            let old = saved.get(key);
+            (old != Some(value)).then(|| {
+                let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
+                format!("{key}: checkpoint {old}, this run {value}")
+            })
+        })
+        .collect())
+}

@@ -1,0 +1,313 @@
+//! `minflow train`'s flags ([`TrainArgs`], with the grid architecture's [`GridArgs`] and
+//! [`GridNetArgs`], which `report` shares) and the configurations they describe for each
+//! architecture. `train.rs` runs the paper's architecture and dispatches, `train_grid.rs` runs
+//! the grid architecture, `run_folder.rs` holds what both leave in the run folder.
+
+use anyhow::{bail, Context};
+use burn::backend::{Autodiff, NdArray};
+use clap::Args;
+use std::path::PathBuf;
+
+use super::device::DeviceArgs;
+use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
+use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
+use crate::train::grid::GridTrainOptions;
+use crate::train::TrainOptions;
+
+/// The CPU training backend.
+pub type CpuTrain = Autodiff<NdArray<f32>>;
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Bags or folders of bags.
+    #[arg(long, required = true, num_args = 1..)]
+    pub data: Vec<PathBuf>,
+    /// Architecture: grid (local: P2G -> U-Net -> G2P with per-particle memory; any N) |
+    /// paper (the paper's Table 1: pooled encoder, core, decoder).
+    #[arg(long, default_value = "grid", value_parser = ["grid", "paper"])]
+    pub arch: String,
+    /// Core. grid: none | mingru | minlstm | gru | lstm (per-particle memory); paper: mlp |
+    /// lstm | gru | minlstm | mingru.
+    #[arg(long, alias = "core", default_value = "mingru")]
+    pub model: String,
+    /// Run folder.
+    #[arg(short, long)]
+    pub out: PathBuf,
+    /// Epochs (at most; early stopping may end sooner).
+    #[arg(long, default_value_t = 30, value_parser = super::flags::at_least_one)]
+    pub epochs: usize,
+    /// Effective batch size (windows per optimizer step).
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    pub batch_size: usize,
+    /// Windows per forward pass; gradients accumulate up to --batch-size.
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    pub micro_batch: usize,
+    /// Input frames per sample T.
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    pub window: usize,
+    /// Seed of the split, the weights, the data order and dropout.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 1e-3, value_parser = super::flags::positive)]
+    pub lr: f64,
+    /// Stop after this many epochs without a better validation loss (0: never).
+    #[arg(long, default_value_t = 5)]
+    pub patience: usize,
+    /// Latent and core width W (the paper: 1250).
+    #[arg(long, default_value_t = 1250, value_parser = super::flags::at_least_one)]
+    pub width: usize,
+    /// Encoder hidden width (the paper: 256).
+    #[arg(long, default_value_t = 256, value_parser = super::flags::at_least_one)]
+    pub encoder_hidden: usize,
+    /// Activation after the encoder's last Linear: elu (the paper's text) | none (with mean
+    /// pooling the encoder is then ~200x cheaper, exactly).
+    #[arg(long, default_value = "none")]
+    pub encoder_last_activation: String,
+    /// Pooling over particles: mean | max | mean-max.
+    #[arg(long, default_value = "mean")]
+    pub pooling: String,
+    /// Recurrent layers.
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    pub layers: usize,
+    /// Dropout after each recurrent layer.
+    #[arg(long, default_value_t = 0.1, value_parser = super::flags::dropout)]
+    pub dropout: f64,
+    /// Decoder: global (the paper's, fixed N) | pointwise (any N).
+    #[arg(long, default_value = "global")]
+    pub decoder: String,
+    /// Initial decoder output layer: zero (an untrained model is the constant-velocity
+    /// baseline) | random (burn's default Kaiming-uniform, as in the paper's PyTorch code).
+    #[arg(long, default_value = "zero")]
+    pub decoder_init: String,
+    /// Density-map grid G for the loss.
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    pub density_grid: usize,
+    /// Weight of the density-map loss.
+    #[arg(long, default_value_t = 0.1, value_parser = super::flags::non_negative_f32)]
+    pub density_weight: f32,
+    /// Topic to read frames from.
+    #[arg(long, default_value = crate::bag::FRAMES_TOPIC)]
+    pub topic: String,
+    #[command(flatten)]
+    pub device: DeviceArgs,
+    /// Continue a killed run from OUT/checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// Frames held in memory at most; a larger dataset is streamed from the bags in chunks
+    /// each epoch (a frame of 2,500 particles is 40 kB).
+    #[arg(long, default_value_t = 50_000)]
+    pub max_resident_frames: usize,
+    #[command(flatten)]
+    pub grid_args: GridArgs,
+}
+
+impl TrainArgs {
+    /// The network configuration these flags describe, for `particles` particles.
+    pub fn model_config(&self, particles: usize) -> anyhow::Result<ModelConfig> {
+        let core = CoreKind::parse(&self.model).with_context(|| {
+            format!(
+                "unknown --model {:?} (mlp | lstm | gru | minlstm | mingru)",
+                self.model
+            )
+        })?;
+        let last = match self.encoder_last_activation.as_str() {
+            "elu" => LastActivation::Elu,
+            "none" => LastActivation::None,
+            other => bail!("unknown --encoder-last-activation {other:?} (elu | none)"),
+        };
+        let pooling = match self.pooling.as_str() {
+            "mean" => Pooling::Mean,
+            "max" => Pooling::Max,
+            "mean-max" => Pooling::MeanMax,
+            other => bail!("unknown --pooling {other:?} (mean | max | mean-max)"),
+        };
+        let decoder = match self.decoder.as_str() {
+            "global" => DecoderKind::Global,
+            "pointwise" => DecoderKind::Pointwise,
+            other => bail!("unknown --decoder {other:?} (global | pointwise)"),
+        };
+        let zero_init = match self.decoder_init.as_str() {
+            "zero" => true,
+            "random" => false,
+            other => bail!("unknown --decoder-init {other:?} (zero | random)"),
+        };
+        if self.window == 0 || self.batch_size == 0 || self.micro_batch == 0 {
+            bail!("--window, --batch-size and --micro-batch must be at least 1");
+        }
+        Ok(ModelConfig::new(core, particles)
+            .with_window(self.window)
+            .with_width(self.width)
+            .with_encoder_hidden(self.encoder_hidden)
+            .with_encoder_last_activation(last)
+            .with_pooling(pooling)
+            .with_layers(self.layers)
+            .with_dropout(self.dropout)
+            .with_decoder(decoder)
+            .with_decoder_zero_init(zero_init))
+    }
+
+    /// The optimisation settings these flags describe.
+    pub fn options(&self) -> TrainOptions {
+        TrainOptions {
+            epochs: self.epochs,
+            batch_size: self.batch_size,
+            micro_batch: self.micro_batch.min(self.batch_size),
+            lr: self.lr,
+            seed: self.seed,
+            patience: self.patience,
+            density_grid: self.density_grid,
+            density_weight: self.density_weight,
+        }
+    }
+}
+
+/// The grid network's sizes (`train` and `report`).
+#[derive(Debug, Clone, Args)]
+pub struct GridNetArgs {
+    /// Grid size n of P2G / U-Net / G2P (a multiple of 2^(levels - 1)).
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    pub grid: usize,
+    /// U-Net first-level width (channels).
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    pub unet_width: usize,
+    /// U-Net resolutions.
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    pub levels: usize,
+    /// Channels the U-Net hands back to the particles.
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    pub latent: usize,
+    /// Hidden state values per particle (memory cores).
+    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    pub hidden: usize,
+    /// Per-particle head width.
+    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    pub head_hidden: usize,
+}
+
+impl GridNetArgs {
+    /// These flags as `train` takes them (what `report` prints to reproduce a run).
+    pub fn argv(&self) -> Vec<String> {
+        [
+            ("--grid", self.grid),
+            ("--unet-width", self.unet_width),
+            ("--levels", self.levels),
+            ("--latent", self.latent),
+            ("--hidden", self.hidden),
+            ("--head-hidden", self.head_hidden),
+        ]
+        .into_iter()
+        .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
+        .collect()
+    }
+}
+
+/// Flags of the grid architecture (ignored by `--arch paper`).
+#[derive(Debug, Clone, Args)]
+pub struct GridArgs {
+    #[command(flatten)]
+    pub net: GridNetArgs,
+    /// How the U-Net's convolutions run: auto (gather on the CPU, shift on a GPU) | burn |
+    /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
+    #[arg(long, default_value = "auto", value_parser = super::flags::conv_kernel)]
+    pub conv: ConvKernel,
+    /// Steps per training sample P (a short rollout; the loss averages them).
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    pub rollout_steps: usize,
+    /// Of those, steps that read the true frame (the rest read the model's own predictions).
+    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
+    pub teacher_steps: usize,
+    /// Gaussian noise on the true input velocities, in units of the velocity change's
+    /// standard deviation.
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative_f32)]
+    pub noise: f32,
+    /// Gradient-norm clipping threshold (0: off).
+    #[arg(long, default_value_t = 1.0, value_parser = super::flags::non_negative_f32)]
+    pub clip: f32,
+    /// Learning rate at the end of the cosine decay.
+    #[arg(long, default_value_t = 1e-5, value_parser = super::flags::non_negative)]
+    pub lr_final: f64,
+    /// Samples per epoch at most (0: every window).
+    #[arg(long, default_value_t = 0)]
+    pub samples_per_epoch: usize,
+    /// Validation rollouts per validation scene.
+    #[arg(long, default_value_t = 3, value_parser = super::flags::at_least_one)]
+    pub val_starts: usize,
+    /// Validation rollout length (frames).
+    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
+    pub val_horizon: usize,
+    /// Stop after this many minutes of training (the epoch in progress is cut short,
+    /// validated and kept; 0: no limit).
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
+    pub max_minutes: f64,
+    /// Start from the weights of this run folder (fine-tuning, or continuing a finished run
+    /// with a new learning-rate schedule) instead of fresh ones. Its architecture must be the
+    /// one these flags describe; its normalisation constants are kept.
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    pub init_from: Option<PathBuf>,
+}
+
+impl TrainArgs {
+    /// The grid network these flags describe (normalisation constants still at their
+    /// defaults: [`fit_stats`] fills them from the training split).
+    ///
+    /// # Errors
+    /// An unknown core or a size out of range, naming the flag (a [`super::UsageError`]).
+    pub fn grid_config(&self) -> anyhow::Result<GridConfig> {
+        self.checked_grid_config()
+            .map_err(|e| super::UsageError(format!("{e:#}")).into())
+    }
+
+    fn checked_grid_config(&self) -> anyhow::Result<GridConfig> {
+        let memory = match self.model.as_str() {
+            "mlp" => MemoryKind::None,
+            name => MemoryKind::parse(name).with_context(|| {
+                format!("unknown --model {name:?} for --arch grid (none | mingru | minlstm | gru | lstm)")
+            })?,
+        };
+        let g = &self.grid_args;
+        let config = GridConfig::new(memory)
+            .with_grid(g.net.grid)
+            .with_window(self.window)
+            .with_unet_width(g.net.unet_width)
+            .with_levels(g.net.levels)
+            .with_latent(g.net.latent)
+            .with_hidden(g.net.hidden)
+            .with_head_hidden(g.net.head_hidden)
+            .with_conv(g.conv);
+        config
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;
+        if g.rollout_steps == 0 || g.teacher_steps == 0 || g.teacher_steps > g.rollout_steps {
+            bail!("--rollout-steps must be at least 1 and --teacher-steps in 1..=--rollout-steps");
+        }
+        if !(g.noise >= 0.0 && g.clip >= 0.0 && self.lr > 0.0 && g.lr_final >= 0.0) {
+            bail!("--noise, --clip and --lr-final must be >= 0 and --lr > 0");
+        }
+        if self.batch_size == 0 || self.epochs == 0 || g.val_horizon == 0 {
+            bail!("--batch-size, --epochs and --val-horizon must be at least 1");
+        }
+        Ok(config)
+    }
+
+    /// The grid run's optimisation settings.
+    pub fn grid_options(&self) -> GridTrainOptions {
+        let g = &self.grid_args;
+        GridTrainOptions {
+            epochs: self.epochs,
+            batch_size: self.batch_size,
+            samples_per_epoch: g.samples_per_epoch,
+            lr: self.lr,
+            lr_final: g.lr_final,
+            clip: g.clip,
+            steps: g.rollout_steps,
+            teacher: g.teacher_steps,
+            noise: g.noise,
+            seed: self.seed,
+            patience: self.patience,
+            val_starts: g.val_starts,
+            val_horizon: g.val_horizon,
+            max_minutes: g.max_minutes,
+        }
+    }
+}
