@@ -219,8 +219,9 @@ fn grid_train_writes_a_run_folder_and_resumes() {
     let (a, b) = (losses(straight.path()), losses(resumed.path()));
     assert_eq!(a.len(), 2);
     assert_eq!(b.len(), 2);
-    // The first epoch's training loss is the same run; validation and the resumed epoch are
-    // not yet bit-exact (open: see docs/grid.md).
+    // The first epoch's training loss is the same run (its learning-rate schedule, which
+    // spans --epochs, differs after the first batch; `grid_resume_is_bit_exact` resumes a
+    // run of the same length).
     assert_eq!(a[0].0, b[0].0);
     // Resuming with another network is refused before any training, naming the field.
     let o = train_grid(
@@ -233,6 +234,35 @@ fn grid_train_writes_a_run_folder_and_resumes() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("window: checkpoint 2, this run 3"), "{err}");
     assert_eq!(losses(resumed.path()).len(), 2, "the refused run trained");
+}
+
+/// Resume is bit-exact: a run resumed from its epoch-1 checkpoint (the straight run's
+/// `checkpoint.old`, what a run killed during epoch 2 leaves behind) ends with the same
+/// epoch-2 losses, to the last digit, and the same weights as the run that went straight
+/// through, input noise included.
+#[test]
+fn grid_resume_is_bit_exact() {
+    let flags = ["--epochs", "2", "--model", "mingru"];
+    let straight = tempfile::tempdir().unwrap();
+    let o = train_grid(straight.path(), &flags);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let resumed = tempfile::tempdir().unwrap();
+    let checkpoint = resumed.path().join("checkpoint");
+    std::fs::create_dir_all(&checkpoint).unwrap();
+    for entry in std::fs::read_dir(straight.path().join("checkpoint.old")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, checkpoint.join(path.file_name().unwrap())).unwrap();
+    }
+    let o = train_grid(resumed.path(), &[&flags[..], &["--resume"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (losses(straight.path()), losses(resumed.path()));
+    assert_eq!(a.len(), 2);
+    assert_eq!(a, b, "(train loss, validation loss) per epoch");
+    let weights = |dir: &Path| std::fs::read(dir.join("checkpoint/model.mpk")).unwrap();
+    assert!(
+        weights(straight.path()) == weights(resumed.path()),
+        "the epoch-2 weights differ"
+    );
 }
 
 /// A resume whose checkpoint was truncated afterwards falls back to the previous epoch's
