@@ -202,14 +202,13 @@ pub fn parse_msg(type_name: &str, text: &str) -> Result<IndividualTypeDescriptio
     }
     if fields.is_empty() {
         // rosidl_adapter gives an empty message this one member.
-        let mut field =
-            parse_field_type("uint8", package).map_err(|reason| TypeHashError::Syntax {
-                type_name: type_name.to_owned(),
-                line: 0,
-                reason,
-            })?;
-        field.name = "structure_needs_at_least_one_member".to_owned();
-        fields.push(field);
+        fields.push(FieldDescription {
+            name: "structure_needs_at_least_one_member".to_owned(),
+            type_id: 3, // uint8
+            capacity: 0,
+            string_capacity: 0,
+            nested_type_name: String::new(),
+        });
     }
     Ok(IndividualTypeDescription {
         type_name: type_name.to_owned(),
