@@ -14,6 +14,7 @@
 //!   decoder) and saved models;
 //! - [`train`]: losses, the training loops, the optimizer, checkpoints;
 //! - [`eval`]: rollouts, metrics, baselines, tables, curves and renders;
+//! - [`interop`]: datasets for other tools (bags -> numpy `.npz`);
 //! - [`plot`]: PNG line charts;
 //! - [`transport`]: one publish / subscribe interface over zenoh, iceoryx2 and ROS 2;
 //! - [`node`]: the surrogate node, the replay player and the recorder;
@@ -25,6 +26,7 @@ pub mod bag;
 pub mod cli;
 pub mod data;
 pub mod eval;
+pub mod interop;
 pub mod launch;
 pub mod model;
 pub mod msgs;

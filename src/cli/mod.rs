@@ -12,6 +12,7 @@ mod bench_transport;
 mod demo;
 pub mod device;
 pub mod eval;
+mod export;
 mod flags;
 mod foxglove;
 mod launch;
@@ -64,6 +65,8 @@ enum Command {
     /// Inspect and validate MCAP bags of ParticleFrames.
     #[command(subcommand)]
     Bag(bag::BagCommand),
+    /// Write the trajectories of bags for other tools (numpy `.npz`, one file per trajectory).
+    Export(export::ExportArgs),
     /// Benchmarks that print a table.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -213,6 +216,7 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Demo(args) => demo::run(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Bag(cmd) => bag::run(cmd),
+        Command::Export(args) => export::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Record(args) => record::run(args),
         Command::Node(args) => node::run(args),

@@ -7,11 +7,13 @@
 //! [`MATERIAL_NAMES`]); `dt` is in simulation time units, the header stamp is the simulation
 //! time of the frame (sec + nanosec, i.e. stamps in ns). The `.msg` files in the repository's
 //! `msgs/` folder are the single source of truth: [`schema_text`] is built from them with
-//! `include_str!`. The wire format (CDR) lives in [`cdr`]. Used by every subcommand that moves
+//! `include_str!`. The wire format (CDR) lives in [`cdr`], the REP-2016 type hashes
+//! (`RIHS01_…`) in [`type_hash`]. Used by every subcommand that moves
 //! frames: `simulate`, `bag`, `train`, `replay`, `record`, `surrogate`, `eval`.
 
 pub mod cdr;
 pub mod status;
+pub mod type_hash;
 
 pub use cdr::{decode, encode, encode_into, CdrError};
 

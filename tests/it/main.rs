@@ -2,9 +2,10 @@
 //! same way): each module below was its own binary before, and linking the whole stack
 //! (zenoh, burn, iceoryx2, ros2-client) once instead of 22 times is most of the build's
 //! time saved. The training tests that need burn's per-process CPU generator to themselves
-//! (`train_loop`, `train_resume`, `train_parallel`) and `transport_ros2` (it sets a
-//! process-wide environment variable that spawned nodes would inherit) run each test body in
-//! a child process of this binary (`isolated`).
+//! (`train_loop`, `train_resume`, `train_parallel`) and the ros2-zenoh tests of
+//! `transport_ros2` and `transport_type_hash` (they set a process-wide environment variable
+//! that spawned nodes would inherit) run each test body in a child process of this binary
+//! (`isolated`).
 
 mod bag_bad_input;
 mod bag_damage;
@@ -21,6 +22,7 @@ mod eval_metrics;
 mod eval_render;
 mod eval_replay;
 mod eval_report;
+mod interop_npz;
 mod model_cells;
 mod model_grid;
 mod msgs_cdr;
@@ -33,6 +35,7 @@ mod train_parallel;
 mod train_resume;
 mod transport_nodes;
 mod transport_ros2;
+mod transport_type_hash;
 mod viz_foxglove;
 
 #[allow(dead_code)]

@@ -18,11 +18,12 @@
 //!   `rmw_zenoh`, processes find each other through a zenoh router on
 //!   `tcp/localhost:7447` (`ros2 run rmw_zenoh_cpp rmw_zenohd`, or `zenohd`); the session
 //!   config can be replaced with `ZENOH_SESSION_CONFIG_URI` and amended with
-//!   `ZENOH_CONFIG_OVERRIDE`, as in `rmw_zenoh`. Limitation: ros2-client cannot compute the
-//!   REP-2016 type hash of a custom message, so it *sends* with an all-zero placeholder
-//!   hash; ros2-client receivers (and therefore minflow) accept any hash, but a C++
-//!   `rmw_zenoh` subscriber expects the real `RIHS01_…` hash and will not receive minflow's
-//!   frames. The other direction (C++ publisher → minflow) works.
+//!   `ZENOH_CONFIG_OVERRIDE`, as in `rmw_zenoh`. The type hash in keys and liveliness tokens
+//!   is the REP-2016 `RIHS01_…` hash of the message, computed from `msgs/*.msg` as rosidl
+//!   does ([`crate::msgs::type_hash`]) and handed to ros2-client through the one hook of
+//!   our vendored copy (`vendor/README.md`; upstream sends an all-zero placeholder for
+//!   custom types, which C++ `rmw_zenoh` subscribers do not match). Subscriptions accept
+//!   any hash (ros2-client listens with a wildcard in the hash slot).
 //!
 //! QoS: the ROS 2 default profile (`rmw_qos_profile_default`: reliable, volatile, keep last
 //! 10, see [`QOS`]) for publishers and subscriptions.

@@ -67,6 +67,11 @@ pub(super) fn type_name() -> MessageTypeName {
     MessageTypeName::new(PACKAGE, MESSAGE)
 }
 
+/// `minflow_msgs/msg/SurrogateStatus` (DDS type `minflow_msgs::msg::dds_::SurrogateStatus_`).
+pub(super) fn status_type_name() -> MessageTypeName {
+    MessageTypeName::new(PACKAGE, "SurrogateStatus")
+}
+
 /// A fresh node name per transport: `minflow_<pid>_<n>` in the root namespace.
 pub(super) fn node_name() -> NodeName {
     static NEXT: AtomicU32 = AtomicU32::new(0);

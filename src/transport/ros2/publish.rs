@@ -6,10 +6,8 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use ros2_client::MessageTypeName;
-
 use super::dds::DdsNode;
-use super::names::{ros_name, type_name, PACKAGE, QOS};
+use super::names::{ros_name, status_type_name, type_name, QOS};
 use super::rmw_zenoh::ZenohNode;
 use super::wire::WireFrame;
 use super::{NodeRef, Ros2Transport};
@@ -73,7 +71,7 @@ impl Ros2Transport {
             topic: topic.to_owned(),
             reason,
         };
-        let type_name = MessageTypeName::new(PACKAGE, "SurrogateStatus");
+        let type_name = status_type_name();
         match &self.node {
             NodeRef::Dds(dds) => {
                 let publisher = dds

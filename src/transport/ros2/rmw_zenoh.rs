@@ -1,8 +1,14 @@
 //! Opening a ROS 2 node on the `rmw_zenoh` wire protocol (ros2-client's zenoh backend),
 //! with a session configured like `rmw_zenoh`'s default or from `ZENOH_SESSION_CONFIG_URI`,
-//! amended by `ZENOH_CONFIG_OVERRIDE`.
+//! amended by `ZENOH_CONFIG_OVERRIDE`, after registering the REP-2016 type hashes of
+//! minflow's messages with ros2-client (the key `<domain>/<topic>/<dds type>/<RIHS01 hash>`
+//! and the liveliness tokens of our publishers and subscriptions carry them, so C++
+//! `rmw_zenoh` peers match).
 
-use super::names::{node_name, node_options};
+use super::names::{node_name, node_options, status_type_name, type_name};
+use crate::msgs::status::STATUS_TYPE_NAME;
+use crate::msgs::type_hash::minflow_type_hash;
+use crate::msgs::TYPE_NAME;
 
 /// The zenoh-backend node (no spinner needed: its graph cache is fed by zenoh callbacks).
 pub(super) struct ZenohNode {
@@ -42,9 +48,25 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
     Ok(config)
 }
 
+/// Registers the RIHS01 hashes of `ParticleFrame` and `SurrogateStatus`, computed from
+/// `msgs/*.msg` ([`crate::msgs::type_hash`]), with ros2-client (the one hook our vendored copy
+/// adds, `vendor/README.md`): without them it sends an all-zero placeholder hash.
+fn register_type_hashes() -> Result<(), String> {
+    for (ros_type, dds_type) in [
+        (TYPE_NAME, type_name()),
+        (STATUS_TYPE_NAME, status_type_name()),
+    ] {
+        let hash =
+            minflow_type_hash(ros_type).map_err(|e| format!("type hash of {ros_type}: {e}"))?;
+        ros2_client::zenoh::register_type_hash(&dds_type.dds_msg_type(), &hash)?;
+    }
+    Ok(())
+}
+
 /// A zenoh-backend node in `domain_id`.
 pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, String> {
     use ros2_client::zenoh::{Context, ContextOptions};
+    register_type_hashes()?;
     let mut options = ContextOptions::new().domain_id(domain_id);
     // With ZENOH_SESSION_CONFIG_URI set, ros2-client loads that file (and the override).
     let from_file = std::env::var("ZENOH_SESSION_CONFIG_URI").is_ok_and(|v| !v.trim().is_empty());
