@@ -5,7 +5,7 @@
 use std::sync::Mutex;
 use std::thread::JoinHandle;
 
-use super::names::{node_name, node_options};
+use super::names::{node_name, node_options, OpenError};
 
 /// The DDS node and the thread running its `Spinner` (graph/discovery bookkeeping).
 pub(super) struct DdsNode {
@@ -36,16 +36,16 @@ impl Drop for DdsNode {
 }
 
 /// A DDS node in `domain_id` with its spinner thread started.
-pub(super) fn open_dds(domain_id: u16) -> Result<DdsNode, String> {
+pub(super) fn open_dds(domain_id: u16) -> Result<DdsNode, OpenError> {
     use ros2_client::dds::{Context, ContextOptions};
     let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
-        .map_err(|e| format!("DDS participant in domain {domain_id}: {e}"))?;
+        .map_err(|e| OpenError::middleware(format!("DDS participant in domain {domain_id}"), e))?;
     let mut node = context
         .new_node(node_name(), node_options())
-        .map_err(|e| format!("ROS 2 node: {e}"))?;
+        .map_err(|e| OpenError::middleware("ROS 2 node", e))?;
     let spinner = node
         .spinner()
-        .map_err(|e| format!("ROS 2 node spinner: {e}"))?;
+        .map_err(|e| OpenError::middleware("ROS 2 node spinner", e))?;
     let thread = std::thread::Builder::new()
         .name("ros2-spinner".into())
         .spawn(move || {
@@ -53,7 +53,7 @@ pub(super) fn open_dds(domain_id: u16) -> Result<DdsNode, String> {
                 tracing::warn!("ROS 2 spinner stopped: {e}");
             }
         })
-        .map_err(|e| format!("spinner thread: {e}"))?;
+        .map_err(|e| OpenError::middleware("spinner thread", e))?;
     Ok(DdsNode {
         node: Mutex::new(Some(node)),
         spinner: Some(thread),

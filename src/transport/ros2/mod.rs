@@ -62,7 +62,7 @@ use super::{
     FramePublisher, Sample, StatusPublisher, Subscription, Transport, TransportError, TransportKind,
 };
 use dds::{open_dds, DdsNode};
-pub use names::{domain_id_from_env, MAX_DOMAIN_ID, MESSAGE, PACKAGE, QOS};
+pub use names::{domain_id_from_env, OpenError, MAX_DOMAIN_ID, MESSAGE, PACKAGE, QOS};
 use rmw_zenoh::{open_zenoh, ZenohNode};
 
 /// Which middleware the ROS 2 node runs on.
@@ -114,9 +114,9 @@ impl Ros2Transport {
     /// zenoh config).
     pub fn open(backend: Backend) -> Result<Self, TransportError> {
         let kind = backend.kind();
-        let open_err = |reason: String| TransportError::Open {
+        let open_err = |e: OpenError| TransportError::Open {
             transport: kind,
-            reason,
+            reason: e.to_string(),
         };
         let domain_id = domain_id_from_env().map_err(open_err)?;
         let node = match backend {

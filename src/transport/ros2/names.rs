@@ -30,30 +30,63 @@ pub const QOS: QosProfile = QosProfile::publisher_default()
 /// "The ROS_DOMAIN_ID").
 pub const MAX_DOMAIN_ID: u16 = 232;
 
+/// Why a ROS 2 node could not be opened (becomes [`TransportError::Open`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum OpenError {
+    /// `ROS_DOMAIN_ID` is not an integer in `0..=232`.
+    #[error("ROS_DOMAIN_ID={value:?} is not a domain id (an integer 0..={MAX_DOMAIN_ID})")]
+    DomainId {
+        /// The variable's value as set.
+        value: String,
+    },
+    /// A zenoh session setting (rmw_zenoh's defaults or `ZENOH_CONFIG_OVERRIDE`) was refused.
+    #[error("zenoh config {key}: {reason}")]
+    ZenohConfig { key: String, reason: String },
+    /// A `ZENOH_CONFIG_OVERRIDE` entry without `=`.
+    #[error("ZENOH_CONFIG_OVERRIDE entry {entry:?} is not key=value")]
+    Override { entry: String },
+    /// A message's REP-2016 type hash could not be computed or registered.
+    #[error("type hash of {ros_type}: {reason}")]
+    TypeHash { ros_type: String, reason: String },
+    /// The middleware failed to make one of the node's parts (`what`).
+    #[error("{what}: {reason}")]
+    Middleware { what: String, reason: String },
+}
+
+impl OpenError {
+    /// [`OpenError::Middleware`] for `what`, with `error`'s message.
+    pub(super) fn middleware(what: impl Into<String>, error: impl std::fmt::Display) -> Self {
+        Self::Middleware {
+            what: what.into(),
+            reason: error.to_string(),
+        }
+    }
+}
+
 /// `ROS_DOMAIN_ID` as ROS 2 reads it: unset or empty means 0, otherwise a decimal integer in
 /// `0..=232`.
 ///
 /// # Errors
-/// A message naming the bad value (not a number, or above [`MAX_DOMAIN_ID`]).
-pub fn domain_id_from_env() -> Result<u16, String> {
+/// [`OpenError::DomainId`] naming the bad value (not a number, or above [`MAX_DOMAIN_ID`]).
+pub fn domain_id_from_env() -> Result<u16, OpenError> {
     match std::env::var("ROS_DOMAIN_ID") {
         Err(std::env::VarError::NotPresent) => Ok(0),
-        Err(std::env::VarError::NotUnicode(v)) => {
-            Err(format!("ROS_DOMAIN_ID={v:?} is not a number"))
-        }
+        Err(std::env::VarError::NotUnicode(v)) => Err(OpenError::DomainId {
+            value: v.to_string_lossy().into_owned(),
+        }),
         Ok(v) => parse_domain_id(&v),
     }
 }
 
-fn parse_domain_id(v: &str) -> Result<u16, String> {
+fn parse_domain_id(v: &str) -> Result<u16, OpenError> {
     if v.trim().is_empty() {
         return Ok(0);
     }
     match v.trim().parse::<u16>() {
         Ok(id) if id <= MAX_DOMAIN_ID => Ok(id),
-        _ => Err(format!(
-            "ROS_DOMAIN_ID={v:?} is not a domain id (an integer 0..={MAX_DOMAIN_ID})"
-        )),
+        _ => Err(OpenError::DomainId {
+            value: v.to_owned(),
+        }),
     }
 }
 

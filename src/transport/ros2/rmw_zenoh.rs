@@ -5,7 +5,7 @@
 //! and the liveliness tokens of our publishers and subscriptions carry them, so C++
 //! `rmw_zenoh` peers match).
 
-use super::names::{node_name, node_options, status_type_name, type_name};
+use super::names::{node_name, node_options, status_type_name, type_name, OpenError};
 use crate::msgs::status::STATUS_TYPE_NAME;
 use crate::msgs::type_hash::minflow_type_hash;
 use crate::msgs::TYPE_NAME;
@@ -18,7 +18,7 @@ pub(super) struct ZenohNode {
 /// `rmw_zenoh`'s default session config (`DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5`, Jazzy):
 /// a peer that connects to the router on `tcp/localhost:7447` and learns about other peers by
 /// gossip; multicast scouting off. Listening on loopback with an OS-chosen port.
-fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
+fn rmw_zenoh_default_config() -> Result<zenoh::Config, OpenError> {
     let mut config = zenoh::Config::default();
     for (key, value) in [
         ("mode", r#""peer""#),
@@ -29,7 +29,10 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
     ] {
         config
             .insert_json5(key, value)
-            .map_err(|e| format!("zenoh config {key}: {e}"))?;
+            .map_err(|e| OpenError::ZenohConfig {
+                key: key.to_owned(),
+                reason: e.to_string(),
+            })?;
     }
     if let Ok(overrides) = std::env::var("ZENOH_CONFIG_OVERRIDE") {
         for entry in overrides
@@ -37,12 +40,15 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
             .map(str::trim)
             .filter(|s| !s.is_empty())
         {
-            let (key, value) = entry
-                .split_once('=')
-                .ok_or_else(|| format!("ZENOH_CONFIG_OVERRIDE entry {entry:?} is not key=value"))?;
+            let (key, value) = entry.split_once('=').ok_or_else(|| OpenError::Override {
+                entry: entry.to_owned(),
+            })?;
             config
                 .insert_json5(key.trim(), value.trim())
-                .map_err(|e| format!("ZENOH_CONFIG_OVERRIDE {}: {e}", key.trim()))?;
+                .map_err(|e| OpenError::ZenohConfig {
+                    key: format!("ZENOH_CONFIG_OVERRIDE {}", key.trim()),
+                    reason: e.to_string(),
+                })?;
         }
     }
     Ok(config)
@@ -51,20 +57,23 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, String> {
 /// Registers the RIHS01 hashes of `ParticleFrame` and `SurrogateStatus`, computed from
 /// `msgs/*.msg` ([`crate::msgs::type_hash`]), with ros2-client (the one hook our vendored copy
 /// adds, `vendor/README.md`): without them it sends an all-zero placeholder hash.
-fn register_type_hashes() -> Result<(), String> {
+fn register_type_hashes() -> Result<(), OpenError> {
     for (ros_type, dds_type) in [
         (TYPE_NAME, type_name()),
         (STATUS_TYPE_NAME, status_type_name()),
     ] {
-        let hash =
-            minflow_type_hash(ros_type).map_err(|e| format!("type hash of {ros_type}: {e}"))?;
-        ros2_client::zenoh::register_type_hash(&dds_type.dds_msg_type(), &hash)?;
+        let err = |reason: String| OpenError::TypeHash {
+            ros_type: ros_type.to_owned(),
+            reason,
+        };
+        let hash = minflow_type_hash(ros_type).map_err(|e| err(e.to_string()))?;
+        ros2_client::zenoh::register_type_hash(&dds_type.dds_msg_type(), &hash).map_err(err)?;
     }
     Ok(())
 }
 
 /// A zenoh-backend node in `domain_id`.
-pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, String> {
+pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, OpenError> {
     use ros2_client::zenoh::{Context, ContextOptions};
     register_type_hashes()?;
     let mut options = ContextOptions::new().domain_id(domain_id);
@@ -73,9 +82,10 @@ pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, String> {
     if !from_file {
         options = options.zenoh_config(rmw_zenoh_default_config()?);
     }
-    let context = Context::with_options(options).map_err(|e| format!("zenoh session: {e}"))?;
+    let context =
+        Context::with_options(options).map_err(|e| OpenError::middleware("zenoh session", e))?;
     let node = context
         .new_node(node_name(), node_options())
-        .map_err(|e| format!("ROS 2 node: {e}"))?;
+        .map_err(|e| OpenError::middleware("ROS 2 node", e))?;
     Ok(ZenohNode { node })
 }
