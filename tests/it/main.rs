@@ -22,6 +22,7 @@ mod eval_metrics;
 mod eval_render;
 mod eval_replay;
 mod eval_report;
+mod interop_import;
 mod interop_npz;
 mod model_cells;
 mod model_grid;
