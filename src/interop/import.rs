@@ -77,7 +77,7 @@ pub enum ImportError {
         mass: f64,
     },
     /// The file has several datasets and `--dataset` names none of them (or is missing).
-    #[error("{path}: {what}; datasets: {}", names.join(", "))]
+    #[error("{path}: {what}; datasets in its root: {}", listed(names))]
     Dataset {
         /// The HDF5 file.
         path: PathBuf,
@@ -97,6 +97,14 @@ pub enum ImportError {
         /// The underlying error.
         source: std::io::Error,
     },
+}
+
+/// `names` joined by ", ", or "none".
+fn listed(names: &[String]) -> String {
+    match names.is_empty() {
+        true => "none".to_owned(),
+        false => names.join(", "),
+    }
 }
 
 impl ImportError {

@@ -5,7 +5,7 @@
 //!
 //! | file | content |
 //! | --- | --- |
-//! | `metadata.json` | `dt` (solver step, s), `write_every` (solver steps per saved frame, optional here), `bounds` `[[xmin, xmax], [ymin, ymax]]`, `periodic_boundary_conditions` (per axis, optional) |
+//! | `metadata.json` | `dim` (2), `dt` (solver step, s), `write_every` (solver steps per saved frame, optional here), `bounds` `[[xmin, xmax], [ymin, ymax]]`, `periodic_boundary_conditions` (per axis, optional) |
 //! | `train.h5`, `valid.h5`, `test.h5` | one group per trajectory (`00000`, ...), each with `position` [T, N, 2] (float, dataset units) and `particle_type` [N] (integer) |
 //!
 //! The import:
@@ -65,11 +65,17 @@ pub fn read_metadata(dir: &Path, dt_override: Option<f64>) -> Result<Metadata, I
             "bounds: {e} (expected [[xmin, xmax], [ymin, ymax]])"
         ))
     })?;
-    let bounds: [[f64; 2]; 2] = match bounds.as_slice() {
-        [x, y] if x.len() == 2 && y.len() == 2 => [[x[0], x[1]], [y[0], y[1]]],
-        _ => return Err(invalid(format!(
-            "bounds {bounds:?}: only 2D datasets ([[xmin, xmax], [ymin, ymax]]) can be imported"
-        ))),
+    // LagrangeBench reads `bounds[:dim]`: with `dim` 2, rows past the second are ignored.
+    let dim = meta["dim"].as_u64();
+    let bounds: [[f64; 2]; 2] = match (dim, bounds.as_slice()) {
+        (None, [x, y]) | (Some(2), [x, y, ..]) if x.len() == 2 && y.len() == 2 => {
+            [[x[0], x[1]], [y[0], y[1]]]
+        }
+        _ => {
+            return Err(invalid(format!(
+                "dim {dim:?}, bounds {bounds:?}: only 2D datasets can be imported"
+            )))
+        }
     };
     let periodic: Vec<bool> = match &meta["periodic_boundary_conditions"] {
         serde_json::Value::Null => vec![],

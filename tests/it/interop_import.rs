@@ -360,3 +360,57 @@ fn paper_bad_mass_is_an_error() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("particle 2 of frame 1 has m = 7"), "{err}");
 }
+
+/// An (S, T, N, F) dataset is S trajectories, one bag each, scenes numbered after the
+/// dataset; `--dt` sets the frame spacing.
+#[test]
+fn paper_4d_dataset_is_one_bag_per_trajectory() {
+    let dir = tempfile::tempdir().unwrap();
+    let (file, out) = (dir.path().join("multi.h5"), dir.path().join("bags"));
+    let value = |s: usize, t: usize, i: usize| -> [f64; 5] {
+        let base = paper_values(t, i);
+        [
+            base[0] + 0.1 * s as f64,
+            base[1],
+            base[2],
+            base[3] * s as f64,
+            3.0,
+        ]
+    };
+    let values: Vec<f64> = (0..2)
+        .flat_map(|s| (0..3).flat_map(move |t| (0..4).flat_map(move |i| value(s, t, i))))
+        .collect();
+    let mut h5 = hdf5_pure::FileBuilder::new();
+    h5.create_dataset("d")
+        .with_f64_data(&values)
+        .with_shape(&[2, 3, 4, 5]);
+    h5.write(&file).unwrap();
+    let o = minflow(&[
+        "import",
+        "--format",
+        "paper",
+        file.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--dt",
+        "0.5",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    for s in 0..2 {
+        let frames = frames_of(&out.join(format!("paper_multi_d_{s:03}.mcap")));
+        assert_eq!(frames.len(), 3);
+        for (t, f) in frames.iter().enumerate() {
+            assert_eq!(f.scene, format!("paper/multi/d/{s:03}"));
+            assert_eq!(
+                (f.dt, f.header.stamp.as_nanos()),
+                (0.5, t as i64 * 500_000_000)
+            );
+            for i in 0..4 {
+                let p = value(s, t, i);
+                assert_eq!(f.position[2 * i..2 * i + 2], [p[0] as f32, p[1] as f32]);
+                assert_eq!(f.velocity[2 * i..2 * i + 2], [p[2] as f32, p[3] as f32]);
+            }
+            assert_eq!(f.material, [3; 4]);
+        }
+    }
+}
