@@ -76,7 +76,7 @@ pub enum ImportError {
         /// The value found.
         mass: f64,
     },
-    /// The file has several datasets and `--dataset` names none of them (or is missing).
+    /// `--dataset` names a dataset the file lacks, or the file has several and no `--dataset`.
     #[error("{path}: {what}; datasets in its root: {}", listed(names))]
     Dataset {
         /// The HDF5 file.

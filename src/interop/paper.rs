@@ -45,8 +45,9 @@ impl Source {
 /// Picks the dataset of `path` (`dataset`, or the root's only dataset) and checks its shape.
 ///
 /// # Errors
-/// [`ImportError::Dataset`] when the file has no such dataset, none, or several and none was
-/// named; [`ImportError::Shape`]; [`ImportError::Read`] for a file that is not HDF5.
+/// [`ImportError::Dataset`] (a usage error) when the file has no dataset named `dataset`, or
+/// several and none was named; [`ImportError::Invalid`] when it has none;
+/// [`ImportError::Shape`]; [`ImportError::Read`] for a file that is not HDF5.
 pub fn survey(path: &Path, dataset: Option<&str>) -> Result<Source, ImportError> {
     let h5 = hdf5_pure::File::open(path).map_err(read_error(path, "opening"))?;
     let mut names = h5
@@ -63,7 +64,12 @@ pub fn survey(path: &Path, dataset: Option<&str>) -> Result<Source, ImportError>
         (Some(d), _) if names.iter().any(|n| n == d) => d.to_owned(),
         (Some(d), _) => return Err(choose(format!("no dataset {d:?} (--dataset)"))),
         (None, [only]) => only.clone(),
-        (None, []) => return Err(choose("no dataset in the file's root".into())),
+        (None, []) => {
+            return Err(ImportError::Invalid {
+                path: path.to_owned(),
+                what: "no dataset in the file's root".into(),
+            })
+        }
         (None, _) => return Err(choose("several datasets: choose one with --dataset".into())),
     };
     let shape = h5
