@@ -15,6 +15,7 @@ pub mod eval;
 mod export;
 mod flags;
 mod foxglove;
+mod import;
 mod launch;
 mod node;
 mod record;
@@ -67,6 +68,9 @@ enum Command {
     Bag(bag::BagCommand),
     /// Write the trajectories of bags for other tools (numpy `.npz`, one file per trajectory).
     Export(export::ExportArgs),
+    /// Convert datasets of other tools into bags, one per trajectory (LagrangeBench's HDF5
+    /// layout, the paper's HDF5 layout).
+    Import(import::ImportArgs),
     /// Benchmarks that print a table.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -217,6 +221,7 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Simulate(args) => simulate::run(args),
         Command::Bag(cmd) => bag::run(cmd),
         Command::Export(args) => export::run(args),
+        Command::Import(args) => import::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Record(args) => record::run(args),
         Command::Node(args) => node::run(args),

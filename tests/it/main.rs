@@ -22,6 +22,8 @@ mod eval_metrics;
 mod eval_render;
 mod eval_replay;
 mod eval_report;
+mod interop_import;
+mod interop_import_h5py;
 mod interop_npz;
 mod model_cells;
 mod model_grid;

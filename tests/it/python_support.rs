@@ -1,4 +1,5 @@
-//! The Python interpreter of the interop tests (`bag_python_interop`, `viz_foxglove`):
+//! The Python interpreter of the interop tests (`bag_python_interop`, `viz_foxglove`,
+//! `interop_import_h5py`):
 //! `$MINFLOW_PYTHON`; else a venv at `~/.cache/minflow/venv`, created and filled from
 //! `tests/python/requirements.txt` on first use (so `cargo test --release` works on a fresh
 //! machine). A test fails, never skips, when the packages cannot be had.
@@ -9,7 +10,7 @@ use std::process::Command;
 pub const INSTALL_HINT: &str = "python3 -m pip install -r tests/python/requirements.txt";
 
 /// The modules requirements.txt provides, as one `import` statement.
-const IMPORTS: &str = "import mcap, mcap_ros2, websockets, foxglove_schemas_protobuf";
+const IMPORTS: &str = "import mcap, mcap_ros2, websockets, foxglove_schemas_protobuf, h5py";
 
 /// `$MINFLOW_PYTHON`, else the project venv (created and filled from requirements.txt when
 /// it lacks a package).
