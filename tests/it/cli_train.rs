@@ -148,25 +148,8 @@ fn bad_flags_fail_clearly() {
 /// epoch) on the bundled bags.
 fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let mut args = vec![
-        "train",
-        "--data",
-        bags,
-        "--out",
-        out.to_str().unwrap(),
-        "--rollout-steps",
-        "2",
-        "--batch-size",
-        "4",
-        "--samples-per-epoch",
-        "8",
-        "--val-starts",
-        "1",
-        "--val-horizon",
-        "3",
-        "--noise",
-        "0.1",
-    ];
+    let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
+    args.extend_from_slice(&crate::TINY_GRID_SCHEDULE);
     args.extend_from_slice(&crate::TINY_GRID_NET);
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))

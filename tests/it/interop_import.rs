@@ -167,19 +167,8 @@ fn lagrangebench_dataset_imports_and_trains() {
         run.to_str().unwrap(),
         "--epochs",
         "1",
-        "--rollout-steps",
-        "2",
-        "--batch-size",
-        "4",
-        "--samples-per-epoch",
-        "8",
-        "--val-starts",
-        "1",
-        "--val-horizon",
-        "3",
-        "--noise",
-        "0.1",
     ];
+    args.extend_from_slice(&crate::TINY_GRID_SCHEDULE);
     args.extend_from_slice(&crate::TINY_GRID_NET);
     let o = minflow(&args);
     assert!(o.status.success(), "{}", text(&o));

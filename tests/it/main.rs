@@ -62,6 +62,23 @@ pub const TINY_GRID_NET: [&str; 12] = [
     "8",
 ];
 
+/// The schedule of the command-line grid trainings (2-step rollouts, batches of 4, 8 samples
+/// an epoch, one 3-frame validation rollout per scene): with [`TINY_GRID_NET`], seconds.
+pub const TINY_GRID_SCHEDULE: [&str; 12] = [
+    "--rollout-steps",
+    "2",
+    "--batch-size",
+    "4",
+    "--samples-per-epoch",
+    "8",
+    "--val-starts",
+    "1",
+    "--val-horizon",
+    "3",
+    "--noise",
+    "0.1",
+];
+
 #[allow(dead_code)]
 mod train_support;
 #[allow(dead_code)]
