@@ -45,22 +45,22 @@ pub struct ReportArgs {
     )]
     pub cores: Vec<String>,
     /// Epochs per core (at most; early stopping may end sooner).
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 30, value_parser = super::flags::at_least_one)]
     pub epochs: usize,
     /// Latent and core width W (the paper: 1250).
-    #[arg(long, default_value_t = 1250)]
+    #[arg(long, default_value_t = 1250, value_parser = super::flags::at_least_one)]
     pub width: usize,
     /// Encoder hidden width (the paper: 256).
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = super::flags::at_least_one)]
     pub encoder_hidden: usize,
     /// Effective batch size.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
     pub batch_size: usize,
     /// Windows per forward pass.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
     pub micro_batch: usize,
     /// Input frames per sample T.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
     pub window: usize,
     /// Seed of the split, the weights, the data order and dropout.
     #[arg(long, default_value_t = 0)]
@@ -81,10 +81,10 @@ pub struct ReportArgs {
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
     pub max_minutes: f64,
     /// Steps per rollout H.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
     pub horizon: usize,
     /// Rollouts per test trajectory (evenly spaced start frames).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
     pub starts: usize,
     /// Scenes to evaluate: test | val | train | all.
     #[arg(long, default_value = "test")]

@@ -106,3 +106,37 @@ fn report_trains_evaluates_and_writes_report_md() {
         .unwrap();
     assert_eq!(before, after);
 }
+
+/// The flags `report` hands to `train` and `eval` keep those commands' range checks: a zero
+/// is a usage error naming the flag, before any folder is made or any run trains.
+#[test]
+fn report_flags_out_of_range_are_usage_errors() {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("report");
+    for flag in [
+        "--epochs",
+        "--batch-size",
+        "--window",
+        "--width",
+        "--horizon",
+        "--starts",
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .args([
+                "report",
+                "--data",
+                bags,
+                "--out",
+                out.to_str().unwrap(),
+                flag,
+                "0",
+            ])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{flag}: {err}");
+        assert!(err.contains(flag), "{flag}: {err}");
+        assert!(!out.exists(), "{flag}: the report folder was made");
+    }
+}
