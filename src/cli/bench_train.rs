@@ -155,8 +155,9 @@ pub(super) fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kerne
     })
 }
 
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
-    kernels(&args)?;
+    let kernels = kernels(&args)?;
     match args.device.parse()? {
         Device::Cpu => bench::<CpuTrain>(&args, vec![Default::default()], "host", &|reset| {
             peak_mib(reset)
@@ -164,7 +165,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
             use super::device::cuda::{devices, reserved_bytes, CudaTrain};
-            let devices = devices(&ids, kernels(&args)?)?;
+            let devices = devices(&ids, kernels)?;
             // The largest pool on any one device.
             let peak = |reset: bool| {
                 let mut most = None::<f64>;
