@@ -180,6 +180,19 @@ impl BagError {
     }
 }
 
+/// The file stem of a scene's files: its id with `/` (and any backslash) as `_`
+/// (`multi/rope+snow/007` -> `multi_rope+snow_007`), as `simulate`, `import` and `export` name
+/// what they write.
+pub fn scene_file_stem(scene: &str) -> String {
+    scene.replace(['/', '\\'], "_")
+}
+
+/// The bag file name of a scene: [`scene_file_stem`] plus `.mcap`
+/// (`multi_rope+snow_007.mcap`).
+pub fn bag_name(scene: &str) -> String {
+    format!("{}.mcap", scene_file_stem(scene))
+}
+
 /// Expands inputs into bag paths: a folder gives its `*.mcap` files sorted by name, a file is
 /// kept as given, a glob pattern (`*`, `?`, `[`) gives its matches sorted. Input order is kept.
 /// A folder or pattern with no bags, or a path that does not exist, is an error.

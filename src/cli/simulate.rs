@@ -84,10 +84,7 @@ pub fn parse_ids(spec: &str) -> anyhow::Result<Vec<u32>> {
     Ok(ids)
 }
 
-/// The bag file name of a scene id: `/` becomes `_`, e.g. `multi_rope+snow_007.mcap`.
-pub fn bag_name(scene: &str) -> String {
-    format!("{}.mcap", scene.replace('/', "_"))
-}
+pub use crate::bag::bag_name;
 
 pub fn run(args: SimulateArgs) -> anyhow::Result<Outcome> {
     simulate(args, Live::open)

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use crate::bag::{BagError, BagWriter};
-use crate::msgs::{Header, ParticleFrame, Time, MATERIAL_NAMES};
+use crate::msgs::{ParticleFrame, MATERIAL_NAMES};
 
 /// Why an import failed.
 #[derive(Debug, thiserror::Error)]
@@ -277,12 +277,6 @@ pub struct Imported {
     pub particles: usize,
 }
 
-/// The bag file name of a scene: `/` as `_` plus `.mcap`, as `minflow simulate` names its
-/// bags (`lagrangebench/train/00000` -> `lagrangebench_train_00000.mcap`).
-pub fn bag_file_name(scene: &str) -> String {
-    format!("{}.mcap", scene.replace(['/', '\\'], "_"))
-}
-
 /// Writes the frames of one imported trajectory to `OUT/NAME.mcap` (through
 /// `NAME.mcap.part`, renamed by [`BagSink::finish`], as `simulate` does).
 pub struct BagSink {
@@ -320,7 +314,7 @@ impl BagSink {
             path: out_dir.to_owned(),
             source,
         })?;
-        let path = out_dir.join(bag_file_name(scene));
+        let path = out_dir.join(crate::bag::bag_name(scene));
         let part = path.with_extension("mcap.part");
         Ok(Self {
             writer: BagWriter::create(&part)?,
@@ -340,18 +334,14 @@ impl BagSink {
     /// # Errors
     /// A bag error, also for a frame that fails validation (lengths, non-finite values).
     pub fn push(&mut self, position: Vec<f32>, velocity: Vec<f32>) -> Result<(), ImportError> {
-        let frame = ParticleFrame {
-            header: Header {
-                stamp: Time::from_nanos(u64::from(self.frames) * self.period_ns),
-                frame_id: "world".to_owned(),
-            },
-            scene: self.scene.clone(),
-            frame_index: self.frames,
-            dt: (self.period_ns as f64 * 1e-9) as f32,
+        let frame = ParticleFrame::on_clock(
+            self.scene.clone(),
+            self.frames,
+            self.period_ns,
             position,
             velocity,
-            material: self.material.clone(),
-        };
+            self.material.clone(),
+        );
         self.writer.write(&self.topic, &frame)?;
         self.frames += 1;
         Ok(())

@@ -26,7 +26,7 @@ use crate::data::Trajectory;
 /// The archive's file name for `traj`: the scene id with `/` as `_` (`multi/rope+snow/001` ->
 /// `multi_rope+snow_001.npz`); with `segmented`, `_from<start_index>` is added before `.npz`.
 pub fn file_name(traj: &Trajectory, segmented: bool) -> String {
-    let stem = traj.scene.replace(['/', '\\'], "_");
+    let stem = crate::bag::scene_file_stem(&traj.scene);
     match segmented {
         true => format!("{stem}_from{}.npz", traj.start_index),
         false => format!("{stem}.npz"),

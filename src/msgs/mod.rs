@@ -189,6 +189,32 @@ pub enum FrameError {
 }
 
 impl ParticleFrame {
+    /// Frame `frame_index` of `scene` as minflow writes its bags (docs/design.md, "Bags"):
+    /// stamped `frame_index * period_ns` in integer nanoseconds (so stamps never drift),
+    /// `frame_id` `"world"`, `dt` the period in seconds. `position` and `velocity` are
+    /// interleaved `[N * 2]`, `material` `[N]`.
+    pub fn on_clock(
+        scene: String,
+        frame_index: u32,
+        period_ns: u64,
+        position: Vec<f32>,
+        velocity: Vec<f32>,
+        material: Vec<u8>,
+    ) -> Self {
+        Self {
+            header: Header {
+                stamp: Time::from_nanos(u64::from(frame_index) * period_ns),
+                frame_id: "world".to_owned(),
+            },
+            scene,
+            frame_index,
+            dt: (period_ns as f64 * 1e-9) as f32,
+            position,
+            velocity,
+            material,
+        }
+    }
+
     /// Particle count N (= `material.len()`).
     pub fn len(&self) -> usize {
         self.material.len()

@@ -11,7 +11,7 @@ use super::mpm::Solver;
 use super::sanity;
 use super::scene::{BodySpan, Scene};
 use super::SimError;
-use crate::msgs::{Header, ParticleFrame, Time};
+use crate::msgs::ParticleFrame;
 
 /// A scene being simulated, frame by frame.
 pub struct SceneRun {
@@ -76,18 +76,14 @@ impl SceneRun {
     /// The current particle state as frame `index` of this scene.
     pub fn frame(&self, index: u32) -> ParticleFrame {
         let ps = &self.solver.particles;
-        ParticleFrame {
-            header: Header {
-                stamp: Time::from_nanos(index as u64 * self.period_ns),
-                frame_id: "world".to_string(),
-            },
-            scene: self.scene.name.clone(),
-            frame_index: index,
-            dt: (self.period_ns as f64 * 1e-9) as f32,
-            position: ps.x.iter().flatten().copied().collect(),
-            velocity: ps.v.iter().flatten().copied().collect(),
-            material: ps.material.clone(),
-        }
+        ParticleFrame::on_clock(
+            self.scene.name.clone(),
+            index,
+            self.period_ns,
+            ps.x.iter().flatten().copied().collect(),
+            ps.v.iter().flatten().copied().collect(),
+            ps.material.clone(),
+        )
     }
 }
 
