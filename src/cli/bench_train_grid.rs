@@ -190,6 +190,7 @@ fn stages<B: AutodiffBackend + NetOps>(
         vel: Tensor::random([b, n_p, 2 * config.window], normal, device).require_grad(),
         material: one_hot(&material, b, n_p, device),
         dt: Tensor::ones([b], device).mul_scalar(0.016),
+        reference: None,
     };
     let step = timed::<B>(device, repeats, || {
         let (out, _) = model.step(input.clone(), MemoryState::Empty);

@@ -135,7 +135,7 @@ fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
         }
     }
     let meta_path = dir.join("model.json");
-    let meta: ModelMeta = serde_json::from_str(
+    let meta: ModelMeta = crate::model::store::parse_meta(
         &std::fs::read_to_string(&meta_path)
             .with_context(|| format!("reading {}", meta_path.display()))?,
     )?;

@@ -165,6 +165,11 @@ pub(crate) fn differences(
         .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
         .filter_map(|(key, value)| {
             let old = saved.get(key);
+            // Saved before `reference` existed: without it.
+            let old = match (key.as_str(), old) {
+                ("reference", None) => Some(&serde_json::Value::Bool(false)),
+                _ => old,
+            };
             (old != Some(value)).then(|| {
                 let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
                 format!("{key}: checkpoint {old}, this run {value}")

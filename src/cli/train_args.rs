@@ -183,6 +183,21 @@ pub struct GridNetArgs {
     /// Per-particle head width.
     #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
     pub head_hidden: usize,
+    /// Reference positions: first-frame (each particle remembers where it was in the first
+    /// frame of its stream, MPM's reference configuration, and the grid sees its
+    /// displacement from there; `--init-from` a model without it grows the two input
+    /// channels at zero) | none.
+    #[arg(long, value_enum, default_value_t = Reference::None)]
+    pub reference: Reference,
+}
+
+/// `--reference`: what the grid model takes as each particle's reference position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Reference {
+    /// No reference positions (models saved before the flag existed).
+    None,
+    /// The particle's position in the first frame of its stream.
+    FirstFrame,
 }
 
 impl GridNetArgs {
@@ -198,6 +213,12 @@ impl GridNetArgs {
         ]
         .into_iter()
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
+        .chain(
+            (self.reference == Reference::FirstFrame)
+                .then(|| ["--reference".to_owned(), "first-frame".to_owned()])
+                .into_iter()
+                .flatten(),
+        )
         .collect()
     }
 }
@@ -274,7 +295,8 @@ impl TrainArgs {
             .with_latent(g.net.latent)
             .with_hidden(g.net.hidden)
             .with_head_hidden(g.net.head_hidden)
-            .with_conv(g.conv);
+            .with_conv(g.conv)
+            .with_reference(g.net.reference == Reference::FirstFrame);
         config
             .validate()
             .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;

@@ -112,9 +112,12 @@ fn init_normalisation(
 ) -> anyhow::Result<([f32; 2], [f32; 2], [f32; 2])> {
     let (path, meta) = crate::model::store::read_meta(dir)
         .with_context(|| format!("--init-from {}", dir.display()))?;
+    // A model without reference channels may grow them (`GridModel::with_reference`).
+    let grows = matches!(&meta.net, NetConfig::Grid(saved) if !saved.reference);
+    let compared = config.clone().with_reference(config.reference && !grows);
     let differ = differences(
         &serde_json::to_value(&meta.net)?,
-        &NetConfig::Grid(config.clone()),
+        &NetConfig::Grid(compared),
     )?;
     if !differ.is_empty() {
         return Err(super::UsageError(format!(

@@ -46,6 +46,9 @@ pub struct Batch {
     pub material: Vec<u8>,
     /// `[B]`: (trajectory id, offset of the first input frame in that trajectory).
     pub ids: Vec<(u32, u32)>,
+    /// `[B, N, 2]`: physical x, y of each window's trajectory in its first frame (frame 0):
+    /// the reference positions of the grid model's `--reference first-frame`.
+    pub first_pos: Vec<f32>,
 }
 
 /// Every window of a set of trajectories, and the batches made from them. (`Debug` prints
@@ -208,6 +211,7 @@ impl WindowIndex {
             dt: Vec::with_capacity(b),
             material: Vec::with_capacity(b * n),
             ids: Vec::with_capacity(b),
+            first_pos: Vec::with_capacity(b * n * 2),
         };
         for &w in windows {
             let (i, start) = self.windows[w as usize];
@@ -225,6 +229,9 @@ impl WindowIndex {
             batch.dt.push(traj.dt);
             batch.material.extend_from_slice(&traj.material);
             batch.ids.push((self.ids[i as usize], start));
+            for row in traj.state(0).chunks_exact(4) {
+                batch.first_pos.extend_from_slice(&row[..2]);
+            }
         }
         batch
     }

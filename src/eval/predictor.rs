@@ -164,7 +164,7 @@ impl<B: NetOps> Predictor for ModelPredictor<B> {
         let t = self.window();
         let seed: Vec<Vec<f32>> = (first - t..first).map(|k| traj.state(k).to_vec()).collect();
         self.surrogate
-            .rollout(&seed, &traj.material, traj.dt, steps)
+            .rollout(Some(traj.state(0)), &seed, &traj.material, traj.dt, steps)
             .map_err(|e| EvalError::Rollout {
                 predictor: self.name.clone(),
                 scene: traj.scene.clone(),

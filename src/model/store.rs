@@ -176,8 +176,25 @@ pub fn save<B: Backend, M: Module<B>>(
 pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreError> {
     let path = dir.join("model.json");
     let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
-    let meta: ModelMeta = serde_json::from_str(&text).map_err(|e| io(&path, e))?;
+    let meta = parse_meta(&text).map_err(|e| io(&path, e))?;
     Ok((path, meta))
+}
+
+/// A `model.json`'s text as a [`ModelMeta`]. A grid model saved before
+/// [`GridConfig::reference`] existed reads as one without it.
+///
+/// # Errors
+/// The text is not JSON or not a model description.
+pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
+    let mut value: serde_json::Value = serde_json::from_str(text)?;
+    // The network's fields sit at the top level (`ModelMeta::net` is flattened).
+    if let Some(meta) = value.as_object_mut() {
+        if meta.get("arch").and_then(|a| a.as_str()) == Some("grid") {
+            meta.entry("reference")
+                .or_insert(serde_json::Value::Bool(false));
+        }
+    }
+    serde_json::from_value(value)
 }
 
 /// Reads `model.json` and the weights from `dir`, of either architecture.
@@ -224,6 +241,9 @@ pub struct Surrogate<B: Backend> {
     device: B::Device,
 }
 
+/// What a grid model carries between steps: memory, velocity history, reference positions.
+type GridCarry<B> = (MemoryState<B>, Option<Tensor<B, 3>>, Option<Tensor<B, 3>>);
+
 /// Per-trajectory state (one batch row per trajectory).
 pub struct State<B: Backend> {
     inner: NetState<B>,
@@ -235,11 +255,14 @@ pub struct State<B: Backend> {
 enum NetState<B: Backend> {
     /// The paper core's layer states.
     Paper(Vec<LayerState<B>>),
-    /// The grid model's per-particle memory and the velocities of the last T - 1 frames
-    /// (`[B, N, 2 (T - 1)]`, oldest first; `None` before the first frame or when T = 1).
+    /// The grid model's per-particle memory, the velocities of the last T - 1 frames
+    /// (`[B, N, 2 (T - 1)]`, oldest first; `None` before the first frame or when T = 1) and
+    /// the reference positions (`[B, N, 2]`: the first frame's, unless set by
+    /// [`Surrogate::init_state_at`]; read only by a model with `reference`).
     Grid {
         memory: MemoryState<B>,
         history: Option<Tensor<B, 3>>,
+        reference: Option<Tensor<B, 3>>,
     },
 }
 
@@ -278,9 +301,34 @@ impl<B: NetOps> Surrogate<B> {
             Net::Grid(_) => NetState::Grid {
                 memory: MemoryState::Empty,
                 history: None,
+                reference: None,
             },
         };
         State { inner, frames: 0 }
+    }
+
+    /// A fresh state whose reference positions are those of `first` (`[B, N, 4]` physical
+    /// frames: the first frame of each trajectory, when the prediction starts later in it).
+    /// Without this the first frame a state steps on is taken as the reference. Only a grid
+    /// model trained with `--reference first-frame` reads it; for others this is
+    /// [`Surrogate::init_state`].
+    ///
+    /// # Errors
+    /// [`StoreError::Shape`] when `first` is not `b` frames of 4 values per particle.
+    pub fn init_state_at(&self, first: &[f32], b: usize) -> Result<State<B>, StoreError> {
+        let mut state = self.init_state();
+        if b == 0 || first.len() % (4 * b) != 0 {
+            return Err(StoreError::Shape(format!(
+                "reference: {} state values for {b} frames",
+                first.len()
+            )));
+        }
+        if let NetState::Grid { reference, .. } = &mut state.inner {
+            let n = first.len() / (4 * b);
+            let frame = super::upload::<B, 3>(first.to_vec(), [b, n, 4], &self.device);
+            *reference = Some(frame.narrow(2, 0, 2));
+        }
+        Ok(state)
     }
 
     /// Predicts the next frame of each trajectory in the batch and advances the state.
@@ -324,9 +372,14 @@ impl<B: NetOps> Surrogate<B> {
                 self.meta.scaler.unscale_rows(&mut out, 4);
                 (out, NetState::Paper(layers))
             }
-            (Net::Grid(model), NetState::Grid { memory, history }) => {
-                self.grid_step(model, frames, material, dt, memory, history)?
-            }
+            (
+                Net::Grid(model),
+                NetState::Grid {
+                    memory,
+                    history,
+                    reference,
+                },
+            ) => self.grid_step(model, frames, material, dt, (memory, history, reference))?,
             _ => return Err(StoreError::Shape("state of another architecture".into())),
         };
         Ok((
@@ -339,15 +392,15 @@ impl<B: NetOps> Surrogate<B> {
     }
 
     /// [`Surrogate::step`] of a grid model: the velocity history is completed from the state
-    /// (the current velocity repeated before T frames were seen, or when B or N changed).
+    /// (the current velocity repeated before T frames were seen, or when B or N changed), and
+    /// the reference positions are this frame's when the state has none of this shape.
     fn grid_step(
         &self,
         model: &GridModel<B>,
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
-        memory: MemoryState<B>,
-        history: Option<Tensor<B, 3>>,
+        (memory, history, reference): GridCarry<B>,
     ) -> Result<(Vec<f32>, NetState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
         let n = material.len() / b;
@@ -355,6 +408,9 @@ impl<B: NetOps> Surrogate<B> {
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let history = history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]);
+        let reference = reference
+            .filter(|r| r.dims() == [b, n, 2])
+            .unwrap_or_else(|| pos.clone());
         let memory = match memory.rows() {
             Some(rows) if rows != b * n => MemoryState::Empty,
             _ => memory,
@@ -368,24 +424,42 @@ impl<B: NetOps> Surrogate<B> {
             vel: vel_hist.clone(),
             material: one_hot(material, b, n, &self.device),
             dt: super::upload::<B, 1>(dt.to_vec(), [b], &self.device),
+            reference: Some(reference.clone()),
         };
         let (out, memory) = model.step(input, memory);
         let next = Tensor::cat(vec![out.pos, out.vel], 2);
         let out = super::download(next)?;
         let history = (t > 1).then(|| vel_hist.narrow(2, 2, 2 * (t - 1)));
-        Ok((out, NetState::Grid { memory, history }))
+        let reference = Some(reference);
+        Ok((
+            out,
+            NetState::Grid {
+                memory,
+                history,
+                reference,
+            },
+        ))
     }
 
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`
     /// frames autoregressively, feeding predictions back. Returns the `k` predicted frames.
+    /// `first`, the trajectory's first frame (`[N, 4]`), sets the reference positions (see
+    /// [`Surrogate::init_state_at`]); without it the first seed frame is the reference.
+    ///
+    /// # Errors
+    /// A step's [`StoreError`].
     pub fn rollout(
         &self,
+        first: Option<&[f32]>,
         seed: &[Vec<f32>],
         material: &[u8],
         dt: f32,
         k: usize,
     ) -> Result<Vec<Vec<f32>>, StoreError> {
-        let mut state = self.init_state();
+        let mut state = match first {
+            Some(frame) => self.init_state_at(frame, 1)?,
+            None => self.init_state(),
+        };
         let mut next = Vec::new();
         for frame in seed {
             let (out, s) = self.step(frame, material, &[dt], state)?;

@@ -131,12 +131,21 @@ pub struct GridTrainer<B: AutodiffBackend> {
     pub init_from: Option<PathBuf>,
 }
 
-/// The `[B, S, N, 4]` frames, `[B, N, 4]` one-hot materials and `[B]` dt of a batch of
-/// windows built with the identity scaler (inputs then hold physical values).
-fn upload_batch<B: Backend>(
-    batch: Batch,
-    device: &B::Device,
-) -> (Tensor<B, 4>, Tensor<B, 3>, Tensor<B, 1>) {
+/// What [`sequence_loss`] reads of one batch, on the device, physical units.
+struct BatchTensors<B: Backend> {
+    /// `[B, S, N, 4]`: the window's frames and its target frame.
+    frames: Tensor<B, 4>,
+    /// `[B, N, 4]`: material one-hot.
+    material: Tensor<B, 3>,
+    /// `[B]`: frame spacing.
+    dt: Tensor<B, 1>,
+    /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
+    first_pos: Tensor<B, 3>,
+}
+
+/// The tensors of a batch of windows built with the identity scaler (inputs then hold
+/// physical values).
+fn upload_batch<B: Backend>(batch: Batch, device: &B::Device) -> BatchTensors<B> {
     let (b, t, n) = (batch.b, batch.t, batch.n);
     let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
     for w in 0..b {
@@ -148,11 +157,12 @@ fn upload_batch<B: Backend>(
         }
         frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
     }
-    (
-        upload(frames, [b, t + 1, n, 4], device),
-        one_hot(&batch.material, b, n, device),
-        upload(batch.dt, [b], device),
-    )
+    BatchTensors {
+        frames: upload(frames, [b, t + 1, n, 4], device),
+        material: one_hot(&batch.material, b, n, device),
+        dt: upload(batch.dt, [b], device),
+        first_pos: upload(batch.first_pos, [b, n, 2], device),
+    }
 }
 
 /// The training loss of one batch (see the module doc).
@@ -160,10 +170,14 @@ fn sequence_loss<B: NetOps>(
     model: &GridModel<B>,
     config: &GridConfig,
     opts: &GridTrainOptions,
-    frames: Tensor<B, 4>,
-    material: Tensor<B, 3>,
-    dt: Tensor<B, 1>,
+    batch: BatchTensors<B>,
 ) -> Tensor<B, 1> {
+    let BatchTensors {
+        frames,
+        material,
+        dt,
+        first_pos,
+    } = batch;
     let [b, _, n, _] = frames.dims();
     let t = config.window;
     let device = frames.device();
@@ -189,6 +203,7 @@ fn sequence_loss<B: NetOps>(
             vel,
             material: material.clone(),
             dt: dt.clone(),
+            reference: Some(first_pos.clone()),
         };
         let (out, next_state) = model.step(input, state);
         state = next_state;
@@ -243,7 +258,8 @@ pub fn validation_rollout<B: NetOps>(
         let (b, n) = (offsets.len(), traj.n);
         let material: Vec<u8> = (0..b).flat_map(|_| traj.material.iter().copied()).collect();
         let dt = vec![traj.dt; b];
-        let mut state = surrogate.init_state();
+        let first: Vec<f32> = (0..b).flat_map(|_| traj.state(0).iter().copied()).collect();
+        let mut state = surrogate.init_state_at(&first, b)?;
         let mut next = Vec::new();
         for k in 0..window {
             let frame: Vec<f32> = offsets
@@ -384,6 +400,8 @@ where
         B::seed(&self.device, opts.seed);
         let mut model: GridModel<B> = match &self.init_from {
             Some(dir) => match store::load_net::<B>(dir, &self.device)? {
+                // A model without reference channels grows them, their weights zero.
+                (Net::Grid(model), _) if self.config.reference => model.with_reference(),
                 (Net::Grid(model), _) => model,
                 (Net::Paper(_), _) => {
                     return Err(TrainError::Mismatch(format!(
@@ -444,9 +462,9 @@ where
             .enumerate()
         {
             let b = batch.b;
-            let (frames, material, dt) = upload_batch::<B>(batch, &self.device);
+            let tensors = upload_batch::<B>(batch, &self.device);
             pass.data += fetch.elapsed().as_secs_f64();
-            let loss = sequence_loss(&model, &self.config, opts, frames, material, dt);
+            let loss = sequence_loss(&model, &self.config, opts, tensors);
             let grads = GradientsParams::from_grads(loss.backward(), &model);
             let lr = learning_rate(opts, clock.progress(opts, epoch, k));
             model = optim.step(lr, model, grads);

@@ -55,7 +55,7 @@ fn predictions_bag(model: &Path, path: &Path, skip: &[usize]) -> Vec<String> {
     for traj in &test {
         let seed: Vec<Vec<f32>> = (0..2).map(|k| traj.state(k).to_vec()).collect();
         let frames = surrogate
-            .rollout(&seed, &traj.material, traj.dt, 20)
+            .rollout(None, &seed, &traj.material, traj.dt, 20)
             .unwrap();
         for (k, state) in frames.iter().enumerate() {
             if skip.contains(&(k + 1)) {

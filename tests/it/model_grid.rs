@@ -137,7 +137,12 @@ fn per_particle_scan_equals_step_recurrence() {
 }
 
 fn meta(memory: MemoryKind) -> ModelMeta {
+    meta_with(memory, false)
+}
+
+fn meta_with(memory: MemoryKind, reference: bool) -> ModelMeta {
     let config = GridConfig::new(memory)
+        .with_reference(reference)
         .with_grid(16)
         .with_levels(2)
         .with_unet_width(4)
@@ -154,8 +159,8 @@ fn meta(memory: MemoryKind) -> ModelMeta {
     }
 }
 
-fn surrogate(memory: MemoryKind) -> Surrogate<B> {
-    let meta = meta(memory);
+fn surrogate_with(memory: MemoryKind, reference: bool) -> Surrogate<B> {
+    let meta = meta_with(memory, reference);
     let NetConfig::Grid(config) = &meta.net else {
         unreachable!()
     };
@@ -179,8 +184,13 @@ fn frame(n: usize, seed: u32) -> (Vec<f32>, Vec<u8>) {
 /// over two steps (the memory state follows its particle).
 #[test]
 fn permuting_particles_permutes_predictions() {
-    for memory in [MemoryKind::None, MemoryKind::MinGru, MemoryKind::Lstm] {
-        let s = surrogate(memory);
+    for (memory, reference) in [
+        (MemoryKind::None, false),
+        (MemoryKind::MinGru, false),
+        (MemoryKind::Lstm, false),
+        (MemoryKind::MinGru, true),
+    ] {
+        let s = surrogate_with(memory, reference);
         let n = 200;
         let (state, material) = frame(n, 3);
         let perm: Vec<usize> = (0..n).map(|i| (i * 37 + 11) % n).collect();
@@ -205,6 +215,73 @@ fn permuting_particles_permutes_predictions() {
             "the untrained head is not zero, so the step changes the frame"
         );
     }
+}
+
+/// `--reference first-frame`: a model grown from one without it (`with_reference`, zero
+/// weights on the two new channels) predicts exactly what the old one did, whatever the
+/// reference; a model that reads the reference takes the first frame it steps on unless told
+/// otherwise, and a different reference changes its prediction.
+#[test]
+fn reference_positions_grow_at_zero_and_default_to_the_first_frame() {
+    let device = Default::default();
+    let old = meta_with(MemoryKind::MinGru, false);
+    let new = meta_with(MemoryKind::MinGru, true);
+    let (NetConfig::Grid(config_old), NetConfig::Grid(config_new)) = (&old.net, &new.net) else {
+        unreachable!()
+    };
+    let n = 150;
+    let (state, material) = frame(n, 7);
+    // Everything displaced by 0.1 in x from where it started.
+    let first: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [r[0] - 0.1, r[1], r[2], r[3]])
+        .collect();
+
+    let model = initial_grid_model::<B>(config_old, 3, &device).unwrap();
+    let grown = model.clone().with_reference();
+    assert!(grown.uses_reference() && !model.uses_reference());
+    let plain = Surrogate::from_net(store::Net::Grid(model), old, &device);
+    let grown = Surrogate::from_net(store::Net::Grid(grown), new.clone(), &device);
+    let a = plain
+        .rollout(None, &[state.clone()], &material, 0.016, 3)
+        .unwrap();
+    let b = grown
+        .rollout(Some(&first), &[state.clone()], &material, 0.016, 3)
+        .unwrap();
+    assert_eq!(
+        a, b,
+        "zero weights on the new channels: the same predictions"
+    );
+
+    let fresh = initial_grid_model::<B>(config_new, 4, &device).unwrap();
+    let fresh = Surrogate::from_net(store::Net::Grid(fresh), new, &device);
+    let own = fresh
+        .rollout(None, &[state.clone()], &material, 0.016, 3)
+        .unwrap();
+    let given = fresh
+        .rollout(Some(&state), &[state.clone()], &material, 0.016, 3)
+        .unwrap();
+    assert_eq!(
+        own, given,
+        "without a reference the first frame is the reference"
+    );
+    let moved = fresh
+        .rollout(Some(&first), &[state.clone()], &material, 0.016, 3)
+        .unwrap();
+    let change = own
+        .iter()
+        .flatten()
+        .zip(moved.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        change > 1e-6,
+        "the reference reaches the prediction ({change})"
+    );
+    assert!(
+        fresh.init_state_at(&state[..10], 1).is_err(),
+        "a short frame is refused"
+    );
 }
 
 /// The grid model has no N in its weights: the same run folder serves N = 2,500 and N =

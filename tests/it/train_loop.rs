@@ -109,7 +109,7 @@ fn stateful_step_equals_training_forward_alone() {
         // Seeded with frames 0 and 1, the rollout's first frame predicts frame 2.
         let seed = vec![traj.state(0).to_vec(), traj.state(1).to_vec()];
         let rollout = surrogate
-            .rollout(&seed, &traj.material, traj.dt, 1)
+            .rollout(None, &seed, &traj.material, traj.dt, 1)
             .unwrap();
         let (model, meta) =
             minflow::model::store::load::<NdArray<f32>>(dir.path(), &Default::default()).unwrap();

@@ -81,6 +81,13 @@ pub struct GridConfig {
     /// How the U-Net's convolutions are computed (same weights and results either way).
     #[config(default = "ConvKernel::Auto")]
     pub conv: ConvKernel,
+    /// Give the grid each particle's displacement from its reference position X, its
+    /// position in the first frame of its stream (`--reference first-frame`): two more P2G
+    /// channels, `sum w (x - X) n / m` (grid cells). MPM measures its deformation gradient
+    /// `F = dx/dX` from that configuration; the U-Net can read `I - F^-1` as the displacement
+    /// field's gradient across cells. Off in models saved before it existed.
+    #[config(default = false)]
+    pub reference: bool,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -103,9 +110,10 @@ pub enum GridConfigError {
 }
 
 impl GridConfig {
-    /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls).
+    /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls, and the
+    /// displacement from the reference position when `reference`).
     pub fn grid_channels(&self) -> usize {
-        1 + 2 * self.window + MATERIALS + 2
+        1 + 2 * self.window + MATERIALS + 2 + if self.reference { 2 } else { 0 }
     }
 
     /// Per-particle own features (T velocities, material one-hot, position).
@@ -164,6 +172,7 @@ impl GridConfig {
             },
             n: self.grid,
             window: self.window,
+            reference: self.reference,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,
@@ -181,6 +190,7 @@ pub struct GridModel<B: Backend> {
     head_out: Linear<B>,
     n: usize,
     window: usize,
+    reference: bool,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
     dv_scale: [f32; 2],
@@ -197,6 +207,10 @@ pub struct StepInput<B: Backend> {
     pub material: Tensor<B, 3>,
     /// `[B]` frame spacing, time units.
     pub dt: Tensor<B, 1>,
+    /// `[B, N, 2]` reference positions X (each particle's position in the first frame of
+    /// its stream), domain units; read only by a model with [`GridConfig::reference`], which
+    /// takes `pos` (no displacement) when it is `None`.
+    pub reference: Option<Tensor<B, 3>>,
 }
 
 /// A step's prediction, physical units.
@@ -243,6 +257,26 @@ impl<B: NetOps> GridModel<B> {
         self.window
     }
 
+    /// Whether the step reads reference positions ([`GridConfig::reference`]).
+    pub fn uses_reference(&self) -> bool {
+        self.reference
+    }
+
+    /// This model with [`GridConfig::reference`] on: the U-Net's first convolution gets two
+    /// input channels (the displacement from the reference position) whose weights start at
+    /// zero, so the result predicts exactly what `self` does until it is trained further
+    /// (`train --init-from` a model without them). A model that has them is returned as is.
+    pub fn with_reference(self) -> Self {
+        if self.reference {
+            return self;
+        }
+        Self {
+            unet: self.unet.widen_input(2),
+            reference: true,
+            ..self
+        }
+    }
+
     /// One step for a batch of scenes: the next frame and the new memory state.
     ///
     /// # Shapes
@@ -260,17 +294,28 @@ impl<B: NetOps> GridModel<B> {
         // P2G: the separable dense transfers on accelerators, the sparse ones on the CPU.
         let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
         let ones = Tensor::ones([b, n_p, 1], &device);
-        let splat = transfer::p2g(
-            &s,
-            Tensor::cat(vec![ones, vel.clone(), input.material.clone()], 2),
-        ); // [B, n^2, 1 + 2T + 4]
+        let mut values = vec![ones, vel.clone(), input.material.clone()];
+        if self.reference {
+            // Displacement from the reference position, in grid cells.
+            let x0 = input.reference.unwrap_or_else(|| input.pos.clone());
+            values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
+        }
+        let splat = transfer::p2g(&s, Tensor::cat(values, 2)); // [B, n^2, 1 + 2T + 4 (+ 2)]
+        let c_splat = splat.dims()[2];
         let mass = splat.clone().narrow(2, 0, 1);
-        let per_mass = splat.narrow(2, 1, 2 * t + MATERIALS) / mass.clone().clamp_min(1e-6);
+        let per_mass = splat.narrow(2, 1, c_splat - 1) / mass.clone().clamp_min(1e-6);
         let cells = self.n * self.n;
-        let grid = Tensor::cat(
-            vec![mass.mul_scalar(0.25), per_mass, walls(b, self.n, &device)],
-            2,
-        ); // [B, n^2, C]
+        let own = 2 * t + MATERIALS;
+        let mut parts = vec![
+            mass.mul_scalar(0.25),
+            per_mass.clone().narrow(2, 0, own),
+            walls(b, self.n, &device),
+        ];
+        if self.reference {
+            // After the walls, so a model grown by `with_reference` keeps its channel order.
+            parts.push(per_mass.narrow(2, own, 2));
+        }
+        let grid = Tensor::cat(parts, 2); // [B, n^2, C]
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
 

@@ -151,6 +151,24 @@ impl<B: Backend> ConvBlock<B> {
     }
 }
 
+impl<B: Backend> ConvBlock<B> {
+    /// This block with `extra` more input channels, appended after the existing ones, whose
+    /// weights in the first convolution are zero (the block computes what it did).
+    fn widen_input(self, extra: usize) -> Self {
+        let weight = self.a.weight.val(); // [C_out, C_in, k, k]
+        let [c_out, _, k, _] = weight.dims();
+        let zeros = Tensor::zeros([c_out, extra, k, k], &weight.device());
+        let weight = Tensor::cat(vec![weight, zeros], 1).detach();
+        Self {
+            a: Conv2d {
+                weight: burn::module::Param::from_tensor(weight),
+                ..self.a
+            },
+            ..self
+        }
+    }
+}
+
 impl<B: NetOps> ConvBlock<B> {
     fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         self.forward_parts(vec![x])
@@ -360,6 +378,18 @@ pub struct UNet<B: Backend> {
     head: Conv2d<B>,
     #[module(skip)]
     kernel: ConvKernel,
+}
+
+impl<B: Backend> UNet<B> {
+    /// This U-Net with `extra` more input channels after the existing ones, their weights
+    /// zero: the output is unchanged for any values in them (see
+    /// [`super::GridModel::with_reference`]).
+    pub fn widen_input(mut self, extra: usize) -> Self {
+        if let Some(first) = self.down.first_mut() {
+            *first = first.clone().widen_input(extra);
+        }
+        self
+    }
 }
 
 impl<B: NetOps> UNet<B> {
