@@ -186,8 +186,8 @@ pub struct GridNetArgs {
     /// Reference positions: first-frame (each particle remembers where it was in the first
     /// frame of its stream, MPM's reference configuration, and the grid sees its
     /// displacement from there; `--init-from` a model without it grows the two input
-    /// channels at zero) | none.
-    #[arg(long, value_enum, default_value_t = Reference::None)]
+    /// channels at zero) | none (as models saved before the flag).
+    #[arg(long, value_enum, default_value_t = Reference::FirstFrame)]
     pub reference: Reference,
 }
 
@@ -214,8 +214,8 @@ impl GridNetArgs {
         .into_iter()
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
         .chain(
-            (self.reference == Reference::FirstFrame)
-                .then(|| ["--reference".to_owned(), "first-frame".to_owned()])
+            (self.reference == Reference::None)
+                .then(|| ["--reference".to_owned(), "none".to_owned()])
                 .into_iter()
                 .flatten(),
         )

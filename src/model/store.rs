@@ -307,6 +307,23 @@ impl<B: NetOps> Surrogate<B> {
         State { inner, frames: 0 }
     }
 
+    /// `state` reset as at the start of a stream (memory, velocity history, frame count),
+    /// except that a grid model's reference positions are kept: what the node does over a
+    /// gap in a stream that goes on.
+    pub fn restart(&self, state: State<B>) -> State<B> {
+        let mut fresh = self.init_state();
+        if let (
+            NetState::Grid { reference, .. },
+            NetState::Grid {
+                reference: kept, ..
+            },
+        ) = (&mut fresh.inner, state.inner)
+        {
+            *reference = kept;
+        }
+        fresh
+    }
+
     /// A fresh state whose reference positions are those of `first` (`[B, N, 4]` physical
     /// frames: the first frame of each trajectory, when the prediction starts later in it).
     /// Without this the first frame a state steps on is taken as the reference. Only a grid

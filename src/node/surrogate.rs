@@ -13,7 +13,9 @@
 //! unseen scene id), on a gap or out-of-order frame ([`OnGap::Reset`]; [`OnGap::Skip`]
 //! drops out-of-order frames and carries on over gaps), and after `idle_timeout` without
 //! frames; states idle that long are dropped, and at most `max_scenes` are kept (least
-//! recently seen evicted), so memory stays bounded.
+//! recently seen evicted), so memory stays bounded. A grid model with `--reference
+//! first-frame` takes the first frame of a scene as its reference positions and keeps them
+//! over a gap reset (the stream goes on), not over a restart.
 //!
 //! Bad input is never predicted on: a payload that does not decode is `malformed`; a frame
 //! with a particle count other than the model's N, non-finite values or a material id
@@ -548,7 +550,8 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                         entry.last_index,
                         frame.frame_index
                     );
-                    entry.state = None;
+                    // The stream goes on: its reference positions are kept.
+                    entry.state = entry.state.take().map(|s| surrogate.restart(s));
                     entry.rolled_out = false;
                 }
                 OnGap::Skip if older => {
