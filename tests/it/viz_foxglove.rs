@@ -240,6 +240,10 @@ fn node_colours_its_predictions_by_their_error_against_the_truth() {
             "none",
             "--foxglove",
             "127.0.0.1:0",
+            // Every frame predicted even when the test machine is busy (the replay plays at
+            // the bag's rate; at the default depth, 8, a slow step under load drops frames).
+            "--queue-depth",
+            "64",
         ],
     );
     let (url, _stderr) = served_url(&mut node);
