@@ -172,9 +172,11 @@ pub struct PredictionView {
     truth: PointsChannel,
     predicted: PointsChannel,
     held: HashMap<String, BTreeMap<u32, ParticleFrame>>,
-    /// The last ground-truth frame per scene, kept while predictions are watched (a
-    /// prediction made after its truth arrived, from a queued input, is shown at once).
-    last_truth: HashMap<String, ParticleFrame>,
+    /// The ground-truth frames per scene that no prediction has passed yet (at most
+    /// [`HELD_PER_SCENE`]), kept while predictions are watched: a prediction made after its
+    /// truth arrived (the node accepts frames before it predicts on them, and lags behind
+    /// under load) is shown by error at once.
+    truths: HashMap<String, BTreeMap<u32, ParticleFrame>>,
 }
 
 impl PredictionView {
@@ -184,7 +186,7 @@ impl PredictionView {
             truth: view.points(input),
             predicted: view.points(output),
             held: HashMap::new(),
-            last_truth: HashMap::new(),
+            truths: HashMap::new(),
         }
     }
 
@@ -193,11 +195,15 @@ impl PredictionView {
     pub fn truth(&mut self, frame: &ParticleFrame) {
         self.truth.show(frame);
         if !self.predicted.watched() {
-            self.last_truth.clear();
+            self.truths.clear();
             self.held.clear();
             return;
         }
-        self.last_truth.insert(frame.scene.clone(), frame.clone());
+        let truths = self.truths.entry(frame.scene.clone()).or_default();
+        truths.insert(frame.frame_index, frame.clone());
+        if truths.len() > HELD_PER_SCENE {
+            truths.pop_first();
+        }
         let Some(held) = self.held.get_mut(&frame.scene) else {
             return;
         };
@@ -220,13 +226,14 @@ impl PredictionView {
         if !self.predicted.watched() {
             return;
         }
-        if let Some(truth) = self
-            .last_truth
-            .get(&frame.scene)
-            .filter(|t| t.frame_index == frame.frame_index)
-        {
-            self.predicted.show_error(frame, truth);
-            return;
+        if let Some(truths) = self.truths.get_mut(&frame.scene) {
+            // Truths up to this index are passed: predictions come in index order.
+            let later = truths.split_off(&frame.frame_index.saturating_add(1));
+            let passed = std::mem::replace(truths, later);
+            if let Some(truth) = passed.get(&frame.frame_index) {
+                self.predicted.show_error(frame, truth);
+                return;
+            }
         }
         let held = self.held.entry(frame.scene.clone()).or_default();
         held.insert(frame.frame_index, frame.clone());
