@@ -18,8 +18,8 @@ use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::data::{self, Part, Scaler, Split, StreamingLoader};
 use crate::eval::{
-    self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReplayOptions,
-    RolloutOptions,
+    self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReferenceFrom,
+    ReplayOptions, RolloutOptions,
 };
 use crate::model::store::ModelMeta;
 
@@ -75,6 +75,11 @@ pub struct EvalArgs {
     /// Skip the particle renders (PNG grid and GIF per scene).
     #[arg(long)]
     pub no_render: bool,
+    /// Where models with reference positions (`train --reference first-frame`) take them:
+    /// scene-start (the scene's frame 0, as a node that saw the stream from its start) |
+    /// rollout-start (the first seed frame of each rollout, as a node that joined there).
+    #[arg(long, value_enum, default_value_t = ReferenceFrom::SceneStart)]
+    pub reference_from: ReferenceFrom,
     #[command(flatten)]
     pub device: super::device::DeviceArgs,
 }
@@ -161,7 +166,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let device = device.map(|id| (id, args.device.kernels()));
     let mut models: Vec<Box<dyn Predictor>> = Vec::new();
     for (dir, name) in args.models.iter().zip(&names) {
-        models.push(load_model(dir, name, device)?);
+        models.push(load_model(dir, name, device, args.reference_from)?);
     }
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
@@ -209,17 +214,17 @@ fn load_model(
     dir: &Path,
     name: &str,
     cuda: Option<(usize, crate::ops::Kernels)>,
+    reference: ReferenceFrom,
 ) -> anyhow::Result<Box<dyn Predictor>> {
     Ok(match cuda {
-        None => Box::new(ModelPredictor::load(dir, name)?),
+        None => Box::new(ModelPredictor::load(dir, name)?.with_reference_from(reference)),
         #[cfg(feature = "cuda")]
         Some((id, kernels)) => {
             use super::device::cuda::{device, CudaInfer};
-            Box::new(ModelPredictor::<CudaInfer>::load_on(
-                dir,
-                name,
-                &device(id, kernels)?,
-            )?)
+            Box::new(
+                ModelPredictor::<CudaInfer>::load_on(dir, name, &device(id, kernels)?)?
+                    .with_reference_from(reference),
+            )
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => bail!("built without CUDA"),

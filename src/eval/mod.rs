@@ -32,7 +32,7 @@ pub mod table;
 use std::path::PathBuf;
 
 pub use metrics::{density_map, frame_metrics, FrameMetrics, MATERIALS, METRIC_NAMES};
-pub use predictor::{ConstVel, CpuInfer, ModelPredictor, Persist, Predictor};
+pub use predictor::{ConstVel, CpuInfer, ModelPredictor, Persist, Predictor, ReferenceFrom};
 pub use replay::{read_predictions, score_predictions, Predictions, ReplayOptions};
 pub use rollout::{evaluate, start_offsets, RolloutOptions};
 

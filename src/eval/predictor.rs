@@ -100,11 +100,23 @@ impl Predictor for ConstVel {
     }
 }
 
+/// Where a model with reference positions (`train --reference first-frame`) takes them
+/// from in a rollout (`eval --reference-from`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum ReferenceFrom {
+    /// The trajectory's frame 0: a node that has seen the stream from its start.
+    #[default]
+    SceneStart,
+    /// The first frame of the rollout's seed window: a node that joined the stream there.
+    RolloutStart,
+}
+
 /// A trained model (a `minflow train` run folder), on the CPU backend unless loaded with
 /// [`ModelPredictor::load_on`].
 pub struct ModelPredictor<B: NetOps = CpuInfer> {
     name: String,
     surrogate: Surrogate<B>,
+    reference: ReferenceFrom,
 }
 
 impl ModelPredictor<CpuInfer> {
@@ -126,10 +138,7 @@ impl<B: NetOps> ModelPredictor<B> {
             dir: dir.to_path_buf(),
             what: e.to_string(),
         })?;
-        Ok(Self {
-            name: name.into(),
-            surrogate,
-        })
+        Ok(Self::new(surrogate, name))
     }
 
     /// Wraps an already loaded model.
@@ -137,7 +146,13 @@ impl<B: NetOps> ModelPredictor<B> {
         Self {
             name: name.into(),
             surrogate,
+            reference: ReferenceFrom::default(),
         }
+    }
+
+    /// This predictor with its reference positions taken from `reference`.
+    pub fn with_reference_from(self, reference: ReferenceFrom) -> Self {
+        Self { reference, ..self }
     }
 
     /// The model (its [`crate::model::store::ModelMeta`] holds the scaler and the config).
@@ -163,8 +178,12 @@ impl<B: NetOps> Predictor for ModelPredictor<B> {
     ) -> Result<Vec<Vec<f32>>, EvalError> {
         let t = self.window();
         let seed: Vec<Vec<f32>> = (first - t..first).map(|k| traj.state(k).to_vec()).collect();
+        let first = match self.reference {
+            ReferenceFrom::SceneStart => Some(traj.state(0)),
+            ReferenceFrom::RolloutStart => None,
+        };
         self.surrogate
-            .rollout(Some(traj.state(0)), &seed, &traj.material, traj.dt, steps)
+            .rollout(first, &seed, &traj.material, traj.dt, steps)
             .map_err(|e| EvalError::Rollout {
                 predictor: self.name.clone(),
                 scene: traj.scene.clone(),

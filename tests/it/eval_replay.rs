@@ -2,7 +2,7 @@
 //! model's rollouts (BagWriter, `/surrogate/frames`, frame_index = input's + 1) scores
 //! exactly like the direct `minflow eval --model`; frames missing from a predictions bag are
 //! reported per scene, excluded from the scores (never scored as zero error) and make the
-//! command exit with 3.
+//! command exit with 3. `--reference-from` changes only rollouts that start after frame 0.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -287,4 +287,43 @@ fn bad_invocations_fail_clearly() {
         assert_eq!(o.status.code(), Some(2), "{flag} {value}: {stderr}");
         assert!(stderr.contains(flag), "{flag} {value}: {stderr}");
     }
+}
+
+/// `eval --reference-from`: a model with reference positions (the shipped minGRU) takes them
+/// from the scene's frame 0 or from each rollout's first seed frame. A rollout from the start
+/// of a scene has the same reference either way; later rollouts do not.
+#[test]
+fn reference_from_changes_only_rollouts_that_start_late() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let tmp = tempfile::tempdir().unwrap();
+    let table = |starts: &str, from: &str| {
+        let out = tmp.path().join(format!("{starts}-{from}"));
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .args(["eval", "--model", &format!("{root}/models/all-grid-mingru")])
+            .args([
+                "--data",
+                &format!("{root}/bags"),
+                "--split",
+                "all",
+                "--horizon",
+                "3",
+            ])
+            .args(["--starts", starts, "--reference-from", from, "--no-render"])
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read_to_string(out.join("table.csv")).unwrap()
+    };
+    assert_eq!(
+        table("1", "scene-start"),
+        table("1", "rollout-start"),
+        "from the first frame the two references are the same frame"
+    );
+    assert_ne!(
+        table("2", "scene-start"),
+        table("2", "rollout-start"),
+        "a later rollout's first seed frame is not frame 0"
+    );
 }
