@@ -14,6 +14,8 @@
 //! learning-rate decay from `lr` to `lr_final` over the run; after each epoch the validation
 //! scenes are rolled out `val_horizon` frames from `val_starts` starts and the mean scaled
 //! MSE (as `eval` scores, with the training split's min-max scaler) picks the kept model.
+//! A model with reference positions takes each sample's from its trajectory's frame 0, in
+//! training and in validation rollouts alike.
 //! A checkpoint is written every epoch; a resumed run continues bit for bit (the noise and
 //! the data order are reseeded from (seed, epoch)) unless a time limit (`max_minutes`) set
 //! the learning-rate decay by the clock. Used by `minflow train --arch grid`.

@@ -6,7 +6,9 @@
 //!    channels `m / 4`, `sum w v / m` per frame (normalised), `sum w onehot / m`, plus two
 //!    wall masks (nodes with index < 3 or > n - 3 on each axis, where `sim` enforces its
 //!    walls). NeuralMPM (Rochman-Sharabi et al. 2024, arXiv 2408.15753) builds its grid the
-//!    same way.
+//!    same way. With [`GridConfig::reference`], two more channels after the walls: the
+//!    displacement `(x - X) n` from each particle's reference position X (its position in the
+//!    first frame of its stream; MPM's reference configuration), mass-weighted.
 //! 2. A [`unet::UNet`] on the grid.
 //! 3. G2P: the U-Net's output gathered back at the particle, `g_i`.
 //! 4. Memory ([`memory`]): `u_i = [g_i, own_i]` (own = normalised velocities, material
