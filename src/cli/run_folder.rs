@@ -142,8 +142,8 @@ pub(crate) fn config_differences(
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
     };
-    let saved: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let saved = crate::model::store::meta_value(&text)
+        .with_context(|| format!("parsing {}", path.display()))?;
     differences(&saved, net).map(Some)
 }
 
@@ -165,11 +165,6 @@ pub(crate) fn differences(
         .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
         .filter_map(|(key, value)| {
             let old = saved.get(key);
-            // Saved before `reference` existed: without it.
-            let old = match (key.as_str(), old) {
-                ("reference", None) => Some(&serde_json::Value::Bool(false)),
-                _ => old,
-            };
             (old != Some(value)).then(|| {
                 let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
                 format!("{key}: checkpoint {old}, this run {value}")

@@ -186,6 +186,16 @@ pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreErr
 /// # Errors
 /// The text is not JSON or not a model description.
 pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
+    serde_json::from_value(meta_value(text)?)
+}
+
+/// A `model.json`'s text as JSON, with the fields added since it was saved filled in at the
+/// values that mean "as before" (a grid model's `reference`: false). [`parse_meta`] and the
+/// comparison of a run folder's settings (`train --resume`) both read it through this.
+///
+/// # Errors
+/// The text is not JSON.
+pub fn meta_value(text: &str) -> Result<serde_json::Value, serde_json::Error> {
     let mut value: serde_json::Value = serde_json::from_str(text)?;
     // The network's fields sit at the top level (`ModelMeta::net` is flattened).
     if let Some(meta) = value.as_object_mut() {
@@ -194,7 +204,7 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
                 .or_insert(serde_json::Value::Bool(false));
         }
     }
-    serde_json::from_value(value)
+    Ok(value)
 }
 
 /// Reads `model.json` and the weights from `dir`, of either architecture.
