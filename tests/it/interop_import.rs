@@ -79,6 +79,12 @@ fn minflow(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `minflow import --format FORMAT INPUT -o OUT EXTRA...`.
+fn import(format: &str, input: &Path, out: &Path, extra: &[&str]) -> Output {
+    let (input, out) = (input.to_str().unwrap(), out.to_str().unwrap());
+    minflow(&[&["import", "--format", format, input, "-o", out][..], extra].concat())
+}
+
 fn text(o: &Output) -> String {
     format!(
         "{}\n{}",
@@ -136,16 +142,12 @@ fn lagrangebench_dataset_imports_and_trains() {
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
-    let o = minflow(&[
-        "import",
-        "--format",
+    let o = import(
         "lagrangebench",
-        data.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--material-map",
-        "0=liquid,1=rope",
-    ]);
+        &data,
+        &out,
+        &["--material-map", "0=liquid,1=rope"],
+    );
     assert!(o.status.success(), "{}", text(&o));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(stdout.lines().count(), 4, "{stdout}");
@@ -189,20 +191,19 @@ fn lagrangebench_splits_and_dt_flags() {
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
-    let o = minflow(&[
-        "import",
-        "--format",
+    let o = import(
         "lagrangebench",
-        data.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--material-map",
-        "0=snow,1=jelly",
-        "--splits",
-        "valid",
-        "--dt",
-        "0.02",
-    ]);
+        &data,
+        &out,
+        &[
+            "--material-map",
+            "0=snow,1=jelly",
+            "--splits",
+            "valid",
+            "--dt",
+            "0.02",
+        ],
+    );
     assert!(o.status.success(), "{}", text(&o));
     let names: Vec<_> = std::fs::read_dir(&out)
         .unwrap()
@@ -225,15 +226,7 @@ fn import_flag_errors_are_usage_errors() {
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
-    let lb = [
-        "import",
-        "--format",
-        "lagrangebench",
-        data.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ];
-    let o = minflow(&lb);
+    let o = import("lagrangebench", &data, &out, &[]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -252,7 +245,7 @@ fn import_flag_errors_are_usage_errors() {
         &["--dataset", "x"],
         &["--dt", "0"],
     ] {
-        let o = minflow(&[&lb[..], bad].concat());
+        let o = import("lagrangebench", &data, &out, bad);
         assert_eq!(o.status.code(), Some(2), "{bad:?}: {}", text(&o));
     }
     let parsed: MaterialMap = "1=rope, 0=liquid ,7=2".parse().unwrap();
@@ -287,15 +280,7 @@ fn paper_file_imports() {
         .with_shape(&[T as u64, N as u64, 6]);
     h5.create_dataset("other").with_f64_data(&[1.0]);
     h5.write(&file).unwrap();
-    let args = [
-        "import",
-        "--format",
-        "paper",
-        file.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ];
-    let o = minflow(&args);
+    let o = import("paper", &file, &out, &[]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -303,7 +288,7 @@ fn paper_file_imports() {
         "{err}"
     );
 
-    let o = minflow(&[&args[..], &["--dataset", "rollout"]].concat());
+    let o = import("paper", &file, &out, &["--dataset", "rollout"]);
     assert!(o.status.success(), "{}", text(&o));
     let frames = frames_of(&out.join("paper_sim_rollout.mcap"));
     assert_eq!(frames.len(), T);
@@ -337,14 +322,7 @@ fn paper_bad_mass_is_an_error() {
         .with_f64_data(&values)
         .with_shape(&[2, 4, 5]);
     h5.write(&file).unwrap();
-    let o = minflow(&[
-        "import",
-        "--format",
-        "paper",
-        file.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ]);
+    let o = import("paper", &file, &out, &[]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("particle 2 of frame 1 has m = 7"), "{err}");
@@ -374,16 +352,7 @@ fn paper_4d_dataset_is_one_bag_per_trajectory() {
         .with_f64_data(&values)
         .with_shape(&[2, 3, 4, 5]);
     h5.write(&file).unwrap();
-    let o = minflow(&[
-        "import",
-        "--format",
-        "paper",
-        file.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--dt",
-        "0.5",
-    ]);
+    let o = import("paper", &file, &out, &["--dt", "0.5"]);
     assert!(o.status.success(), "{}", text(&o));
     for s in 0..2 {
         let frames = frames_of(&out.join(format!("paper_multi_d_{s:03}.mcap")));
