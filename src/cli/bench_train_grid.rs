@@ -1,7 +1,9 @@
 //! `minflow bench train --arch grid`: the grid architecture's training speed on this machine,
 //! in one run: for each memory core and convolution kernel, trainable parameters, seconds
 //! per epoch, samples per second, warm-up, `wait %` / `data %` (as for the paper's model)
-//! and peak memory, training with [`GridTrainer`] (rollout loss over P steps, clipping, Adam)
+//! peak memory and the first epoch's training loss (kernels that compute the same function,
+//! such as the `--conv` choices, start from the same weights and data, so it agrees between
+//! them to float rounding: a check of the kernels on the device), training with [`GridTrainer`] (rollout loss over P steps, clipping, Adam)
 //! on one fixed synthetic dataset; with `--stages`, the time of one forward + backward pass
 //! of each stage of a step (stencil, P2G, U-Net, G2P, memory, the whole step) at the same
 //! batch size, each synchronised with the device, to show where a step's time goes.
@@ -46,7 +48,7 @@ where
         B::name(&device)
     );
     println!(
-        "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9}",
+        "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9} {:>12}",
         "core",
         "conv",
         "params",
@@ -55,7 +57,8 @@ where
         "warm-up s",
         "wait %",
         "data %",
-        "peak MiB"
+        "peak MiB",
+        "loss 1"
     );
     for name in &cores {
         let memory_kind = MemoryKind::parse(name).ok_or_else(|| {
@@ -108,7 +111,7 @@ where
                 ..
             } = EpochMeans::of(&history, args.warmup_epochs);
             println!(
-                "{:<8} {:<7} {:>9} {:>10.3} {:>10.1} {:>10.2} {:>7.0} {:>7.0} {:>9.0}",
+                "{:<8} {:<7} {:>9} {:>10.3} {:>10.1} {:>10.2} {:>7.0} {:>7.0} {:>9.0} {:>12.6e}",
                 memory_kind.name(),
                 kernel.resolve::<B>().name(),
                 params,
@@ -117,7 +120,8 @@ where
                 warmup,
                 100.0 * wait / mean.max(1e-12),
                 100.0 * data / mean.max(1e-12),
-                high
+                high,
+                history.first().map_or(f64::NAN, |e| e.train_loss)
             );
             if args.stages {
                 stages::<B>(&config, args.micro_batch, args.particles, &device);

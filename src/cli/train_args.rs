@@ -228,7 +228,7 @@ impl GridNetArgs {
 pub struct GridArgs {
     #[command(flatten)]
     pub net: GridNetArgs,
-    /// How the U-Net's convolutions run: auto (gather on the CPU, shift on a GPU) | burn |
+    /// How the U-Net's convolutions run: auto (gather: single-kernel im2col on the CPU and CUDA) | burn |
     /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
     #[arg(long, default_value = "auto", value_parser = super::flags::conv_kernel)]
     pub conv: ConvKernel,

@@ -28,7 +28,7 @@
 //!   (im2col, col2im) and `transfer.rs` (the stencil gather and scatter-add).
 //! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults,
 //!   whose element-wise chains burn's fusion layer compiles into single kernels, with the
-//!   large products through [`cublas`].
+//!   large products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels.
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
@@ -46,6 +46,8 @@ mod cpu;
 pub mod cublas;
 #[cfg(feature = "cuda")]
 mod cuda;
+#[cfg(feature = "cuda")]
+mod cuda_conv;
 pub mod mingru;
 mod ndarray;
 pub mod scan;
@@ -177,8 +179,8 @@ pub trait NetOps: Backend {
     }
 
     /// True where [`NetOps::im2col`], [`NetOps::col2im`] and [`NetOps::silu`] are
-    /// single-pass kernels with their own autodiff nodes (the CPU backend); elsewhere the grid
-    /// model composes its convolutions from burn's tensor operations.
+    /// single-pass kernels with their own autodiff nodes (the CPU and CUDA backends); elsewhere
+    /// the grid model composes its convolutions from burn's tensor operations.
     const NATIVE_CONV_OPS: bool = false;
 
     /// im2col of a same-padding `k x k` convolution: `x` `[B, H, W, C]` -> `[B H W, C k^2]`.

@@ -9,6 +9,8 @@
 #   tests/gpu/run.sh parity    # CPU and GPU train the same model from the same seed and data
 #   tests/gpu/run.sh node      # the surrogate node on the GPU over zenoh and iceoryx2
 #   tests/gpu/run.sh multi     # data parallel on two GPUs: parity with one GPU, throughput
+#   tests/gpu/run.sh grid      # the grid model: the GPU's im2col kernels against the composed
+#                              # ones (same first-epoch loss, samples/s), and PyTorch's step
 #
 # Logs go to $OUT (default /tmp/minflow-gpu). A part that fails prints FAIL and the script
 # goes on with the next one; the exit code is the number of failed parts.
@@ -128,6 +130,25 @@ multi() {
         check "multi-bench-$devices" "$BIN" bench train --device "$devices" \
             --encoder-last-activation elu --windows 2 --cores mingru --micro-batch 160 \
             --samples 1600 --epochs 2 --warmup-epochs 1
+    done
+}
+
+grid() { # docs/grid.md, "GPU speed"
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    for b in 16 32; do
+        check "grid-conv-$b" "$BIN" bench train --arch grid --device cuda --cores mingru \
+            --conv shift,gather --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
+            --warmup-epochs 1 --stages
+        # Both kernels start from the same weights and data: the first epoch's loss (the last
+        # column) must agree to float rounding, else the GPU's im2col / col2im is wrong.
+        check "grid-conv-$b-agree" awk '$1 == "mingru" { loss[$2] = $NF }
+            END { d = loss["shift"] - loss["gather"]; if (d < 0) d = -d
+                  if (!("shift" in loss) || !("gather" in loss) || d > 1e-5 * loss["shift"]) {
+                      print "first-epoch losses differ:", loss["shift"], loss["gather"]; exit 1 }
+                  print "first-epoch losses agree:", loss["shift"], loss["gather"] }' \
+            "$OUT/grid-conv-$b.log"
+        check "grid-torch-$b" "$PY" docs/torch_grid_reference.py --memory mingru \
+            --precision fp32,tf32 --batch "$b"
     done
 }
 

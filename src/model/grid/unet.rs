@@ -25,15 +25,17 @@ use crate::ops::{im2col, silu, NetOps};
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ConvKernel {
-    /// `Gather` on the CPU, `Shift` elsewhere (on an H100, `bench train --arch grid
-    /// --stages`: a batch-16 U-Net forward + backward took 14 ms with `Shift`, 121 ms with
-    /// `Burn`, whose convolution gradients dominate; on the CPU `Gather` beat `Shift`, 0.48 s
-    /// to 0.65 s, and `Burn` took 14 s).
+    /// `Gather` where the backend has single-kernel im2col / col2im
+    /// ([`NetOps::NATIVE_CONV_OPS`]: the CPU and CUDA), `Shift` elsewhere (on an H100, `bench
+    /// train --arch grid --stages`: a batch-16 U-Net forward + backward took 14 ms with
+    /// `Shift`, 121 ms with `Burn`, whose convolution gradients dominate; on the CPU `Gather`
+    /// beat `Shift`, 0.48 s to 0.65 s, and `Burn` took 14 s).
     #[default]
     Auto,
     /// burn's `Conv2d::forward` on the permuted (channels-first) view.
     Burn,
-    /// im2col as one row gather (`select`) of a zero-padded copy, then one product through
+    /// im2col through [`NetOps::im2col`] where it is one kernel (else as one row gather,
+    /// `select`, of a zero-padded copy), then one product through
     /// [`NetOps::linear_forward`]; the concatenation of the U-Net's parts is never built.
     Gather,
     /// im2col as the nine shifted slices of the zero-padded input concatenated along the
@@ -64,7 +66,7 @@ impl ConvKernel {
     /// What `Auto` means on backend `B`.
     pub fn resolve<B: NetOps>(self) -> Self {
         match self {
-            Self::Auto if B::SEQUENTIAL_SCAN => Self::Gather,
+            Self::Auto if B::NATIVE_CONV_OPS => Self::Gather,
             Self::Auto => Self::Shift,
             k => k,
         }

@@ -1,0 +1,217 @@
+//! The grid model's im2col and col2im on burn's CUDA backend (feature `cuda`): one cubecl
+//! kernel each, recorded as custom operations of burn's fusion layer, so a `k x k`
+//! convolution is one im2col launch + one product forward and one col2im launch + two products
+//! backward.
+//!
+//! Why: composed from burn's tensor operations (the padded input's `k^2` shifted slices,
+//! concatenated; `composed_grid.rs`), a training step of the U-Net launched ~1,500 kernels,
+//! most of them slice assignments and fills of the padding and of the slices' gradients, and
+//! the GPU sat idle while the host recorded them (docs/grid.md, "GPU speed"). The column order
+//! is [`NetOps::im2col`]'s (that of burn's `Conv2d` weight `[C_out, C_in, k, k]` flattened
+//! over its last three dims), the same as the CPU kernels of `cpu/conv.rs`.
+//!
+//! Each kernel runs one thread per output element and writes it once (col2im gathers the `k^2`
+//! columns that read an input element instead of scattering into it, so it needs no atomics
+//! and is deterministic). How a custom operation joins the fusion stream: see `cublas.rs`.
+//!
+//! [`NetOps::im2col`]: super::NetOps::im2col
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{Shape, TensorMetadata};
+use burn_cubecl::cubecl;
+use burn_cubecl::tensor::CubeTensor;
+use burn_cubecl::CubeBackend;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_fusion::FusionRuntime;
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cubecl::{calculate_cube_count_elemwise, prelude::*};
+
+/// The backend under burn's fusion layer for `Cuda<f32, i32>`.
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+/// burn's CUDA backend with fusion.
+type Cuda = burn::backend::Cuda<f32, i32>;
+/// The fusion runtime of [`Inner`].
+type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+
+/// im2col: `input` `[B, H, W, C]` (contiguous) -> `output` `[B H W, C k^2]`. Output element
+/// `(row, i k^2 + ky k + kx)`, row = `(b H + y) W + x`, is channel `i` of input position
+/// `(y + ky - k/2, x + kx - k/2)`, or 0 outside the grid.
+#[cube(launch)]
+fn im2col_kernel<F: Float>(
+    input: &Tensor<F>,
+    output: &mut Tensor<F>,
+    h: u32,
+    w: u32,
+    c: u32,
+    #[comptime] k: u32,
+    #[define(F)] _dtype: StorageType,
+) {
+    if ABSOLUTE_POS >= output.len() {
+        terminate!();
+    }
+    let (h, w, c) = (h as usize, w as usize, c as usize);
+    let k = k as usize;
+    let (kk, half) = (k * k, k / 2);
+    let pos = ABSOLUTE_POS;
+    let col = pos % (c * kk);
+    let row = pos / (c * kk);
+    let (i, s) = (col / kk, col % kk);
+    let (ky, kx) = (s / k, s % k);
+    let x = row % w;
+    let y = (row / w) % h;
+    let b = row / (w * h);
+    // Input position (y + ky - half, x + kx - half), kept unsigned: yy = y + ky.
+    let (yy, xx) = (y + ky, x + kx);
+    let mut value = F::new(0.0);
+    if yy >= half && yy < h + half && xx >= half && xx < w + half {
+        value = input[((b * h + yy - half) * w + xx - half) * c + i];
+    }
+    output[pos] = value;
+}
+
+/// col2im, the adjoint of [`im2col_kernel`]: `cols` `[B H W, C k^2]` (contiguous) ->
+/// `output` `[B, H, W, C]`. Output element `(b, y, x, i)` sums the `k^2` columns that read
+/// it: `cols[(b H + y - ky + k/2) W + x - kx + k/2, i k^2 + ky k + kx]` over the offsets whose
+/// row lies inside the grid.
+#[cube(launch)]
+fn col2im_kernel<F: Float>(
+    cols: &Tensor<F>,
+    output: &mut Tensor<F>,
+    h: u32,
+    w: u32,
+    c: u32,
+    #[comptime] k: u32,
+    #[define(F)] _dtype: StorageType,
+) {
+    if ABSOLUTE_POS >= output.len() {
+        terminate!();
+    }
+    let (h, w, c) = (h as usize, w as usize, c as usize);
+    let k = k as usize;
+    let (kk, half) = (k * k, k / 2);
+    let pos = ABSOLUTE_POS;
+    let i = pos % c;
+    let x = (pos / c) % w;
+    let y = (pos / (c * w)) % h;
+    let b = pos / (c * w * h);
+    // The reading row's position (y0, x0) = (y - ky + half, x - kx + half), unsigned.
+    let (yp, xp) = (y + half, x + half);
+    let mut acc = F::new(0.0);
+    #[unroll]
+    for s in 0..kk {
+        let (ky, kx) = (s / k, s % k);
+        if yp >= ky && yp < h + ky && xp >= kx && xp < w + kx {
+            acc += cols[((b * h + yp - ky) * w + xp - kx) * (c * kk) + i * kk + s];
+        }
+    }
+    output[pos] = acc;
+}
+
+/// Which of the two kernels a recorded operation launches.
+#[derive(Clone, Copy, Debug)]
+enum Kind {
+    Im2col,
+    Col2im,
+}
+
+/// The recorded operation: input `[x]`, output `[y]`; `dims` = `[B, H, W, C]` of the grid.
+#[derive(Debug)]
+struct ConvOp {
+    desc: CustomOpIr,
+    kind: Kind,
+    dims: [usize; 4],
+    k: usize,
+}
+
+impl Operation<Runtime> for ConvOp {
+    fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
+        let ([x], [y]) = self.desc.as_fixed();
+        let x = handles.get_float_tensor::<Inner>(x);
+        let out = launch(x, self.kind, self.dims, self.k);
+        handles.register_float_tensor::<Inner>(&y.id, out);
+    }
+}
+
+/// Launches `kind` on the cubecl tensor `x`; returns the new contiguous output.
+fn launch(
+    x: CubeTensor<CudaRuntime>,
+    kind: Kind,
+    [b, h, w, c]: [usize; 4],
+    k: usize,
+) -> CubeTensor<CudaRuntime> {
+    let x = match x.is_contiguous() {
+        true => x,
+        false => burn_cubecl::kernel::into_contiguous(x),
+    };
+    let shape = match kind {
+        Kind::Im2col => Shape::new([b * h * w, c * k * k]),
+        Kind::Col2im => Shape::new([b, h, w, c]),
+    };
+    let client = x.client.clone();
+    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+        client.clone(),
+        x.device.clone(),
+        shape,
+        x.dtype,
+    );
+    let units = out.meta.num_elements();
+    let cube_dim = CubeDim::new(&client, units);
+    let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
+    let int = |v: usize| u32::try_from(v).expect("grid dimension fits u32");
+    let dtype = out.dtype.into();
+    let run = match kind {
+        Kind::Im2col => im2col_kernel::launch::<CudaRuntime>,
+        Kind::Col2im => col2im_kernel::launch::<CudaRuntime>,
+    };
+    run(
+        &client,
+        cube_count,
+        cube_dim,
+        x.into_tensor_arg(),
+        out.clone().into_tensor_arg(),
+        int(h),
+        int(w),
+        int(c),
+        int(k),
+        dtype,
+    );
+    out
+}
+
+/// Records `kind` on `x`'s fusion stream; returns its output.
+fn record(x: FloatTensor<Cuda>, kind: Kind, dims: [usize; 4], k: usize) -> FloatTensor<Cuda> {
+    let [b, h, w, c] = dims;
+    let (shape, name) = match kind {
+        Kind::Im2col => (Shape::new([b * h * w, c * k * k]), "minflow_im2col"),
+        Kind::Col2im => (Shape::new([b, h, w, c]), "minflow_col2im"),
+    };
+    let client = x.client.clone();
+    let dtype = x.dtype();
+    let streams = OperationStreams::with_inputs([&x]);
+    let out = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
+    let desc = CustomOpIr::new(name, &[x.into_ir()], &[out]);
+    let op = ConvOp {
+        desc: desc.clone(),
+        kind,
+        dims,
+        k,
+    };
+    client
+        .register(streams, OperationIr::Custom(desc), op)
+        .remove(0)
+}
+
+/// [`NetOps::im2col`](super::NetOps::im2col) on the GPU: `x` `[B, H, W, C]` ->
+/// `[B H W, C k^2]`, one kernel.
+pub(crate) fn im2col(x: FloatTensor<Cuda>, k: usize) -> FloatTensor<Cuda> {
+    let s = x.shape();
+    let dims = [s[0], s[1], s[2], s[3]];
+    record(x, Kind::Im2col, dims, k)
+}
+
+/// [`NetOps::col2im`](super::NetOps::col2im) on the GPU: `cols` `[B H W, C k^2]` ->
+/// `[B, H, W, C]` = `shape`, one kernel.
+pub(crate) fn col2im(cols: FloatTensor<Cuda>, shape: [usize; 4], k: usize) -> FloatTensor<Cuda> {
+    record(cols, Kind::Col2im, shape, k)
+}
