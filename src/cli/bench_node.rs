@@ -2,14 +2,16 @@
 //! transport, between processes on loopback. For each core, an untrained model at the
 //! paper's sizes (2,500 particles, encoder 5 -> 256 -> 1250, two layers of 1250, global
 //! decoder; weights do not change the cost) is saved; then, per transport, a `minflow node`
-//! process is started and this process publishes the frames of a bundled bag at 62.5 Hz
+//! process is started, warmed up (frames until it has returned a few predictions), and this
+//! process publishes the frames of a bundled bag at 62.5 Hz
 //! (one scene, consecutive frame indices, so the hidden state carries on) and receives the
 //! predictions. Printed per row: the model's own step time in this process (p50, p99), the
 //! publish-to-prediction latency through the node (p50, p99; two transport hops plus the
 //! model), what the transport adds over the model (p50 difference over the model's p50),
 //! and the sustained frames per second of a burst (predictions received per second while
 //! frames are published as fast as the transport accepts them; the node drops the oldest
-//! pending frames it cannot keep up with).
+//! pending frames it cannot keep up with). `--device cuda[:N]` runs the model, in this
+//! process and in the node, on a GPU (a build with the `cuda` feature).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -30,6 +32,7 @@ use crate::model::temporal::CoreKind;
 use crate::model::{LastActivation, ModelConfig};
 use crate::msgs::{ParticleFrame, Time};
 use crate::node::surrogate::state_rows as rows;
+use crate::ops::NetOps;
 use crate::transport::{self, wait_for_subscribers, FramePublisher, Sample, TransportKind};
 
 #[derive(Debug, Args)]
@@ -60,6 +63,8 @@ pub struct NodeBenchArgs {
     /// client connected: what the idle live view costs.
     #[arg(long)]
     foxglove_idle: bool,
+    #[command(flatten)]
+    device: super::device::DeviceArgs,
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.
@@ -108,6 +113,7 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
         "elu" => LastActivation::Elu,
         other => bail!("unknown --encoder-last-activation {other:?} (none | elu)"),
     };
+    let gpu = args.device.parse()?.single("bench node")?;
     let transports = args.transport.kinds();
     let frames = bag_frames(&args.bag)?;
     let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
@@ -117,7 +123,17 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     let runs = model_runs(&args, tmp.path(), last, &scaler)?;
     let mut table = Vec::new();
     for (name, dir) in &runs {
-        let model_us = model_step_us(dir, &frames)?;
+        let model_us = match gpu {
+            None => model_step_us::<NdArray<f32>>(dir, &frames, &Default::default())?,
+            #[cfg(feature = "cuda")]
+            Some(id) => {
+                use super::device::cuda::{device, CudaInfer};
+                let device = device(id, args.device.kernels())?;
+                model_step_us::<CudaInfer>(dir, &frames, &device)?
+            }
+            #[cfg(not(feature = "cuda"))]
+            Some(_) => bail!("built without CUDA"),
+        };
         let variants: &[bool] = if args.foxglove_idle {
             &[false, true]
         } else {
@@ -206,10 +222,15 @@ fn model_runs(
     Ok(runs)
 }
 
-/// The model's own step times in this process, us, sorted: 50 steps after 10 warm-up ones
-/// over consecutive `frames`.
-fn model_step_us(dir: &Path, frames: &[ParticleFrame]) -> anyhow::Result<Vec<f64>> {
-    let surrogate = Surrogate::<NdArray<f32>>::load(dir, &Default::default())?;
+/// The model's own step times in this process on `device`, us, sorted: 50 steps after 10
+/// warm-up ones over consecutive `frames` (each step returns its prediction to the host, as
+/// the node's does).
+fn model_step_us<B: NetOps>(
+    dir: &Path,
+    frames: &[ParticleFrame],
+    device: &B::Device,
+) -> anyhow::Result<Vec<f64>> {
+    let surrogate = Surrogate::<B>::load(dir, device)?;
     let mut state = surrogate.init_state();
     let mut model_us = Vec::new();
     for i in 0..60 {
@@ -249,6 +270,12 @@ fn through_node(
         .args(args.transport.child_args(kind))
         .args(["--in", &input, "--out", &output, "--status", "none"])
         .args(["--queue-depth", "4", "--on-gap", "skip"])
+        .args([
+            "--device",
+            &args.device.device,
+            "--gpu-gemm",
+            &args.device.gpu_gemm,
+        ])
         .args(if foxglove {
             &["--foxglove", "127.0.0.1:0"][..]
         } else {
@@ -262,7 +289,11 @@ fn through_node(
         bail!("{kind}: the node did not subscribe within 60 s");
     }
     std::thread::sleep(Duration::from_millis(500));
-    let (mut latency, index) = paced(args.frames, publisher.as_mut(), &rx, frames)?;
+    let Some(first) = warm_up(publisher.as_mut(), &rx, frames)? else {
+        let _ = node.kill();
+        bail!("{kind}: the node predicted nothing within {WARM_UP_S} s of frames");
+    };
+    let (mut latency, index) = paced(args.frames, first, publisher.as_mut(), &rx, frames)?;
     let received = latency.len();
     let burst_fps = burst(args.burst, index, publisher.as_mut(), &rx, frames)?;
     let _ = node.kill();
@@ -271,11 +302,48 @@ fn through_node(
     Ok((received, latency, burst_fps))
 }
 
-/// Publishes `count` frames (consecutive indices from 0) at 62.5 Hz and collects the
+/// How long [`warm_up`] waits for the node's first predictions.
+const WARM_UP_S: u64 = 120;
+
+/// Predictions the node must return before the timed runs start.
+const WARM_UP_PREDICTIONS: usize = 5;
+
+/// Publishes frames (indices from 0) at 62.5 Hz until the node has returned
+/// [`WARM_UP_PREDICTIONS`] predictions: a node on a GPU compiles its kernels on its first
+/// steps (seconds), and frames sent meanwhile are dropped. Returns the next frame index, or
+/// None after [`WARM_UP_S`] seconds without them.
+fn warm_up(
+    publisher: &mut dyn FramePublisher,
+    rx: &Receiver<Sample>,
+    frames: &[ParticleFrame],
+) -> anyhow::Result<Option<u32>> {
+    let deadline = Instant::now() + Duration::from_secs(WARM_UP_S);
+    let mut received = 0;
+    let mut index = 0u32;
+    while Instant::now() < deadline {
+        let mut f = frames[(index as usize) % frames.len()].clone();
+        f.frame_index = index;
+        f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
+        publisher.publish(&f)?;
+        index += 1;
+        std::thread::sleep(Duration::from_millis(16));
+        received += rx.try_iter().filter(|s| s.decode().is_ok()).count();
+        if received >= WARM_UP_PREDICTIONS {
+            // Let the node's queue drain, and drop what it still sends.
+            std::thread::sleep(Duration::from_millis(200));
+            rx.try_iter().for_each(drop);
+            return Ok(Some(index));
+        }
+    }
+    Ok(None)
+}
+
+/// Publishes `count` frames (consecutive indices from `first`) at 62.5 Hz and collects the
 /// predictions for 2 s more. Returns the latency of each prediction received (us, from
 /// publication to arrival on the transport's I/O thread) and the next frame index.
 fn paced(
     count: u32,
+    first: u32,
     publisher: &mut dyn FramePublisher,
     rx: &Receiver<Sample>,
     frames: &[ParticleFrame],
@@ -284,7 +352,7 @@ fn paced(
     let mut sent = HashMap::new();
     let mut latency = Vec::new();
     let start = Instant::now();
-    let mut index = 0u32;
+    let mut index = first;
     let drain = |latency: &mut Vec<f64>, sent: &HashMap<u32, u64>| {
         for s in rx.try_iter() {
             if let Ok(f) = s.decode() {
@@ -353,8 +421,8 @@ fn print_table(args: &NodeBenchArgs, table: &[Row]) {
         "the given run folders".to_owned()
     };
     println!(
-        "\nSurrogate node, {what}, {} frames at 62.5 Hz, burst of {}:",
-        args.frames, args.burst
+        "\nSurrogate node, {what}, on {}, {} frames at 62.5 Hz, burst of {}:",
+        args.device.device, args.frames, args.burst
     );
     println!("| core | transport | model p50 ms | model p99 ms | predictions | e2e p50 ms | e2e p99 ms | transport adds (p50) | burst predictions/s |");
     println!("|---|---|---|---|---|---|---|---|---|");

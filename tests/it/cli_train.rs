@@ -415,6 +415,7 @@ fn bench_train_measures_the_grid_architecture() {
         "{stdout}\n{}",
         String::from_utf8_lossy(&o.stderr)
     );
+    let mut first_losses = Vec::new();
     for kernel in ["gather", "shift"] {
         let row = stdout
             .lines()
@@ -422,7 +423,17 @@ fn bench_train_measures_the_grid_architecture() {
             .unwrap_or_else(|| panic!("no row for {kernel}: {stdout}"));
         let rate: f64 = row.split_whitespace().nth(4).unwrap().parse().unwrap();
         assert!(rate > 0.0, "{row}");
+        let loss: f64 = row.split_whitespace().last().unwrap().parse().unwrap();
+        assert!(loss.is_finite() && loss > 0.0, "{row}");
+        first_losses.push(loss);
     }
+    // The same weights and data through two convolution kernels of one function: the same
+    // first-epoch loss (the column the GPU check in tests/gpu/run.sh compares).
+    let (a, b) = (first_losses[0], first_losses[1]);
+    assert!(
+        (a - b).abs() <= 1e-5 * a,
+        "gather {a} vs shift {b}: {stdout}"
+    );
     assert_eq!(
         stdout.matches("ms per forward + backward").count(),
         2,

@@ -444,3 +444,54 @@ fn launch_with_an_after_cycle_exits_at_once() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("cycle (a -> b -> a)"), "{err}");
 }
+
+/// `bench node` warms the node up, then measures it: the shipped small grid model over zenoh
+/// predicts most of a short paced run (its 2-core step is about half the 16 ms frame
+/// interval) and the row names the device; a device the build cannot open, or a list of
+/// them, is an error before any process starts.
+#[test]
+fn bench_node_measures_a_shipped_model_after_warming_it_up() {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
+        .args(["--transport", "zenoh", "--frames", "20", "--burst", "5"])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(stdout.contains("on cpu"), "{stdout}");
+    let row = stdout
+        .lines()
+        .find(|l| l.starts_with("| all-grid-mingru-small | zenoh |"))
+        .unwrap_or_else(|| panic!("no row: {stdout}"));
+    let predicted: usize = row
+        .split('|')
+        .nth(5)
+        .unwrap()
+        .trim()
+        .split('/')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(predicted >= 10, "{predicted} of 20 predicted: {row}");
+
+    for device in ["cuda:0,cuda:1", "tpu"] {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
+            .args(["--device", device])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "--device {device} was accepted");
+        assert!(
+            err.contains("--device") || err.contains("one device"),
+            "{device}: {err}"
+        );
+    }
+}
