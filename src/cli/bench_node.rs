@@ -289,7 +289,7 @@ fn through_node(
         bail!("{kind}: the node did not subscribe within 60 s");
     }
     std::thread::sleep(Duration::from_millis(500));
-    let Some(first) = warm_up(publisher.as_mut(), &rx, frames)? else {
+    let Some(first) = warm_up(publisher.as_mut(), &rx, frames, &mut node)? else {
         let _ = node.kill();
         bail!("{kind}: the node predicted nothing within {WARM_UP_S} s of frames");
     };
@@ -311,16 +311,23 @@ const WARM_UP_PREDICTIONS: usize = 5;
 /// Publishes frames (indices from 0) at 62.5 Hz until the node has returned
 /// [`WARM_UP_PREDICTIONS`] predictions: a node on a GPU compiles its kernels on its first
 /// steps (seconds), and frames sent meanwhile are dropped. Returns the next frame index, or
-/// None after [`WARM_UP_S`] seconds without them.
+/// None after [`WARM_UP_S`] seconds without them; an error as soon as the node exits.
 fn warm_up(
     publisher: &mut dyn FramePublisher,
     rx: &Receiver<Sample>,
     frames: &[ParticleFrame],
+    node: &mut std::process::Child,
 ) -> anyhow::Result<Option<u32>> {
     let deadline = Instant::now() + Duration::from_secs(WARM_UP_S);
     let mut received = 0;
     let mut index = 0u32;
     while Instant::now() < deadline {
+        if let Some(status) = node.try_wait()? {
+            bail!(
+                "the node exited ({status}) before predicting anything; run the same \
+                 `minflow node --model ... --device ...` alone to see why"
+            );
+        }
         let mut f = frames[(index as usize) % frames.len()].clone();
         f.frame_index = index;
         f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
@@ -369,7 +376,7 @@ fn paced(
             drain(&mut latency, &sent);
             std::thread::sleep(Duration::from_micros(200));
         }
-        let mut f = frames[(i as usize) % frames.len()].clone();
+        let mut f = frames[(index as usize) % frames.len()].clone();
         f.frame_index = index;
         f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
         sent.insert(index, wall_ns());

@@ -212,6 +212,16 @@ pub(crate) fn im2col(x: FloatTensor<Cuda>, k: usize) -> FloatTensor<Cuda> {
 
 /// [`NetOps::col2im`](super::NetOps::col2im) on the GPU: `cols` `[B H W, C k^2]` ->
 /// `[B, H, W, C]` = `shape`, one kernel.
+///
+/// # Panics
+/// `cols` is not `[B H W, C k^2]` for `shape` = `[B, H, W, C]` (the kernel would read out of
+/// bounds).
 pub(crate) fn col2im(cols: FloatTensor<Cuda>, shape: [usize; 4], k: usize) -> FloatTensor<Cuda> {
+    let [b, h, w, c] = shape;
+    let s = cols.shape();
+    assert!(
+        s.num_dims() == 2 && s[0] == b * h * w && s[1] == c * k * k,
+        "col2im: columns {s:?} do not match {shape:?} with k = {k}"
+    );
     record(cols, Kind::Col2im, shape, k)
 }

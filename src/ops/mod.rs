@@ -178,9 +178,10 @@ pub trait NetOps: Backend {
         adam::composed_adam::<Self>(param, grad, m, v, c)
     }
 
-    /// True where [`NetOps::im2col`], [`NetOps::col2im`] and [`NetOps::silu`] are
-    /// single-pass kernels with their own autodiff nodes (the CPU and CUDA backends); elsewhere
-    /// the grid model composes its convolutions from burn's tensor operations.
+    /// True where [`NetOps::im2col`] and [`NetOps::col2im`] are single kernels (the CPU and
+    /// CUDA backends) and, with [`NetOps::silu`] (a single pass on the CPU, burn's fused
+    /// composition on CUDA), get their own autodiff nodes; elsewhere the grid model composes
+    /// its convolutions from burn's tensor operations.
     const NATIVE_CONV_OPS: bool = false;
 
     /// im2col of a same-padding `k x k` convolution: `x` `[B, H, W, C]` -> `[B H W, C k^2]`.

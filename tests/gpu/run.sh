@@ -140,10 +140,12 @@ grid() { # docs/grid.md, "GPU speed"
             --conv shift,gather --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
             --warmup-epochs 1 --stages
         # Both kernels start from the same weights and data: the first epoch's loss (the last
-        # column) must agree to float rounding, else the GPU's im2col / col2im is wrong.
-        check "grid-conv-$b-agree" awk '$1 == "mingru" { loss[$2] = $NF }
-            END { d = loss["shift"] - loss["gather"]; if (d < 0) d = -d
-                  if (!("shift" in loss) || !("gather" in loss) || d > 1e-5 * loss["shift"]) {
+        # column) must agree to float rounding, else the GPU's im2col / col2im is wrong (a NaN
+        # loss is no number and fails too).
+        check "grid-conv-$b-agree" awk '$1 == "mingru" && $NF ~ /^[0-9]/ { loss[$2] = $NF }
+            END { ok = ("shift" in loss) && ("gather" in loss)
+                  d = loss["shift"] - loss["gather"]; if (d < 0) d = -d
+                  if (!ok || d > 1e-5 * loss["shift"]) {
                       print "first-epoch losses differ:", loss["shift"], loss["gather"]; exit 1 }
                   print "first-epoch losses agree:", loss["shift"], loss["gather"] }' \
             "$OUT/grid-conv-$b.log"

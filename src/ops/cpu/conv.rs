@@ -28,9 +28,8 @@ pub(crate) fn im2col(x: &CpuTensor, k: usize) -> Option<CpuTensor> {
     let n = b * h * w * row;
     let mut out: Vec<f32> = Vec::with_capacity(n);
     let spare = &mut out.spare_capacity_mut()[..n];
-    let fill = |by: usize, dst: &mut [MaybeUninit<f32>]| {
-        im2col_image_row(&data, [h, w, c], k, by, dst)
-    };
+    let fill =
+        |by: usize, dst: &mut [MaybeUninit<f32>]| im2col_image_row(&data, [h, w, c], k, by, dst);
     if n * 4 >= 1 << 20 {
         spare
             .par_chunks_mut(w * row)
