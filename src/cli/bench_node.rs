@@ -302,6 +302,15 @@ fn through_node(
     Ok((received, latency, burst_fps))
 }
 
+/// Frame `index` of the stream the benchmark publishes: the bag's frames in a loop, with
+/// consecutive indices (so the node's hidden state carries on) and stamps 16 ms apart.
+fn frame_at(frames: &[ParticleFrame], index: u32) -> ParticleFrame {
+    let mut f = frames[(index as usize) % frames.len()].clone();
+    f.frame_index = index;
+    f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
+    f
+}
+
 /// How long [`warm_up`] waits for the node's first predictions.
 const WARM_UP_S: u64 = 120;
 
@@ -328,10 +337,7 @@ fn warm_up(
                  `minflow node --model ... --device ...` alone to see why"
             );
         }
-        let mut f = frames[(index as usize) % frames.len()].clone();
-        f.frame_index = index;
-        f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
-        publisher.publish(&f)?;
+        publisher.publish(&frame_at(frames, index))?;
         index += 1;
         std::thread::sleep(Duration::from_millis(16));
         received += rx.try_iter().filter(|s| s.decode().is_ok()).count();
@@ -376,9 +382,7 @@ fn paced(
             drain(&mut latency, &sent);
             std::thread::sleep(Duration::from_micros(200));
         }
-        let mut f = frames[(index as usize) % frames.len()].clone();
-        f.frame_index = index;
-        f.header.stamp = Time::from_nanos(u64::from(index) * 16_000_000);
+        let f = frame_at(frames, index);
         sent.insert(index, wall_ns());
         publisher.publish(&f)?;
         index += 1;
@@ -402,9 +406,7 @@ fn burst(
 ) -> anyhow::Result<f64> {
     let burst_start = Instant::now();
     for _ in 0..count {
-        let mut f = frames[(index as usize) % frames.len()].clone();
-        f.frame_index = index;
-        publisher.publish(&f)?;
+        publisher.publish(&frame_at(frames, index))?;
         index += 1;
     }
     let mut got = 0usize;

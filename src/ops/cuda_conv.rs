@@ -115,6 +115,16 @@ enum Kind {
     Col2im,
 }
 
+impl Kind {
+    /// The output shape for a `[B, H, W, C]` grid and a `k x k` kernel.
+    fn out_shape(self, [b, h, w, c]: [usize; 4], k: usize) -> Shape {
+        match self {
+            Kind::Im2col => Shape::new([b * h * w, c * k * k]),
+            Kind::Col2im => Shape::new([b, h, w, c]),
+        }
+    }
+}
+
 /// The recorded operation: input `[x]`, output `[y]`; `dims` = `[B, H, W, C]` of the grid.
 #[derive(Debug)]
 struct ConvOp {
@@ -137,17 +147,15 @@ impl Operation<Runtime> for ConvOp {
 fn launch(
     x: CubeTensor<CudaRuntime>,
     kind: Kind,
-    [b, h, w, c]: [usize; 4],
+    dims: [usize; 4],
     k: usize,
 ) -> CubeTensor<CudaRuntime> {
+    let [_, h, w, c] = dims;
     let x = match x.is_contiguous() {
         true => x,
         false => burn_cubecl::kernel::into_contiguous(x),
     };
-    let shape = match kind {
-        Kind::Im2col => Shape::new([b * h * w, c * k * k]),
-        Kind::Col2im => Shape::new([b, h, w, c]),
-    };
+    let shape = kind.out_shape(dims, k);
     let client = x.client.clone();
     let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
         client.clone(),
@@ -181,10 +189,10 @@ fn launch(
 
 /// Records `kind` on `x`'s fusion stream; returns its output.
 fn record(x: FloatTensor<Cuda>, kind: Kind, dims: [usize; 4], k: usize) -> FloatTensor<Cuda> {
-    let [b, h, w, c] = dims;
-    let (shape, name) = match kind {
-        Kind::Im2col => (Shape::new([b * h * w, c * k * k]), "minflow_im2col"),
-        Kind::Col2im => (Shape::new([b, h, w, c]), "minflow_col2im"),
+    let shape = kind.out_shape(dims, k);
+    let name = match kind {
+        Kind::Im2col => "minflow_im2col",
+        Kind::Col2im => "minflow_col2im",
     };
     let client = x.client.clone();
     let dtype = x.dtype();
@@ -217,11 +225,10 @@ pub(crate) fn im2col(x: FloatTensor<Cuda>, k: usize) -> FloatTensor<Cuda> {
 /// `cols` is not `[B H W, C k^2]` for `shape` = `[B, H, W, C]` (the kernel would read out of
 /// bounds).
 pub(crate) fn col2im(cols: FloatTensor<Cuda>, shape: [usize; 4], k: usize) -> FloatTensor<Cuda> {
-    let [b, h, w, c] = shape;
-    let s = cols.shape();
+    let (s, expected) = (cols.shape(), Kind::Im2col.out_shape(shape, k));
     assert!(
-        s.num_dims() == 2 && s[0] == b * h * w && s[1] == c * k * k,
-        "col2im: columns {s:?} do not match {shape:?} with k = {k}"
+        s == expected,
+        "col2im: columns {s:?} do not match {shape:?} with k = {k} ({expected:?})"
     );
     record(cols, Kind::Col2im, shape, k)
 }

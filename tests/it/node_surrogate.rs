@@ -451,18 +451,17 @@ fn launch_with_an_after_cycle_exits_at_once() {
 /// them, is an error before any process starts.
 #[test]
 fn bench_node_measures_a_shipped_model_after_warming_it_up() {
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
-        .args(["--transport", "zenoh", "--frames", "20", "--burst", "5"])
-        .output()
-        .unwrap();
+    let bench = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let o = bench(&["--transport", "zenoh", "--frames", "20", "--burst", "5"]);
+    ok(&o, "bench node");
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
     assert!(stdout.contains("on cpu"), "{stdout}");
     let row = stdout
         .lines()
@@ -481,12 +480,7 @@ fn bench_node_measures_a_shipped_model_after_warming_it_up() {
     assert!(predicted >= 10, "{predicted} of 20 predicted: {row}");
 
     for device in ["cuda:0,cuda:1", "tpu"] {
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
-            .args(["--device", device])
-            .output()
-            .unwrap();
+        let o = bench(&["--device", device]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "--device {device} was accepted");
         assert!(
