@@ -190,6 +190,15 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
     reader.finish().ok_or_else(|| "no summary".to_owned())
 }
 
+/// Messages of all topics that `path`'s summary statistics count, read with seeks; None
+/// when the bag has no readable summary or statistics (a cut or streaming-written bag).
+pub fn summary_messages(path: &Path) -> Option<u64> {
+    let mut file = File::open(path).ok()?;
+    let len = file.metadata().ok()?.len();
+    let summary = read_summary(&mut file, len).ok()?;
+    Some(summary.stats.as_ref()?.message_count)
+}
+
 /// ParticleFrame messages on `topic` (any topic when None) that `path`'s summary statistics
 /// count, read with seeks (no decompression); None when the bag cannot be opened or has no
 /// readable summary or statistics (a cut or streaming-written bag): then only reading the

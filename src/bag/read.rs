@@ -10,7 +10,10 @@
 //! [`Truncation`] (also logged with `tracing::warn!`). A damaged chunk (bad CRC, bad
 //! compression, a bad record) in a bag that still has its summary is skipped: the rest is read
 //! chunk by chunk through the summary's chunk index, as `mcap recover` does (Foxglove's `mcap`
-//! CLI), and the closing [`BagError::Truncated`] counts the chunks skipped. Used by `train`,
+//! CLI), and the closing [`BagError::Truncated`] counts the chunks skipped. A bag that reads to
+//! its end is checked against its summary's statistics: a record with a damaged opcode is
+//! skipped as unknown (as the specification tells readers to), and only the count shows the
+//! loss, which is then reported the same way. Used by `train`,
 //! `replay`, `eval` and `bag info/check`.
 
 use std::collections::{HashMap, VecDeque};
@@ -349,7 +352,7 @@ impl Iterator for BagReader {
         let next = match self.inner.as_mut()?.next() {
             None => {
                 self.inner = None;
-                return None;
+                return if self.recovering { None } else { self.finished() };
             }
             // A cut: recover the complete messages of a cut chunk, which validation withheld.
             Some(Err(mcap::McapError::UnexpectedEof)) if !self.recovering => {
@@ -363,44 +366,66 @@ impl Iterator for BagReader {
                 let (log, publish) = (message.log_time, message.publish_time);
                 Some(Ok(self.numbered(message.channel, log, publish, data)))
             }
-            Err(err) => {
-                self.inner = None;
-                let mut truncation = Truncation {
-                    messages_read: self.messages_read,
-                    bytes_read: self.bytes_read.load(Ordering::Relaxed),
-                    bytes_total: self.bytes_total,
-                    error: err.to_string(),
-                    chunks_skipped: 0,
-                    messages_after: 0,
-                };
-                if let Some(skipped) = self.recover_indexed() {
-                    truncation.chunks_skipped = skipped;
-                    tracing::warn!(
-                        "bag {} is damaged at byte {} of {} ({}): read {} messages before it, \
-                         skipped {skipped} damaged chunk(s) and read on through the summary's \
-                         chunk index ({} more messages)",
-                        self.path.display(),
-                        truncation.bytes_read,
-                        truncation.bytes_total,
-                        truncation.error,
-                        truncation.messages_read,
-                        self.pending.len()
-                    );
-                } else {
-                    tracing::warn!(
-                        "bag {} is truncated or damaged: kept the {} messages before byte {} of \
-                         {}, the rest is lost ({})",
-                        self.path.display(),
-                        truncation.messages_read,
-                        truncation.bytes_read,
-                        truncation.bytes_total,
-                        truncation.error
-                    );
-                }
-                self.truncation = Some(truncation);
-                self.next_recovered()
-            }
+            Err(err) => self.damaged(err.to_string()),
         }
+    }
+}
+
+impl BagReader {
+    /// The file read to its end without error: checks the count against the summary's
+    /// statistics. A record whose opcode was damaged reads as an unknown record, which MCAP
+    /// readers skip by the specification, so only the count shows that a chunk or message went
+    /// missing. Bags without statistics (optional in MCAP) cannot be checked this way.
+    fn finished(&mut self) -> Option<Result<RawMessage, BagError>> {
+        let expected = super::check_index::summary_messages(&self.path)?;
+        if expected <= self.messages_read {
+            return None;
+        }
+        self.damaged(format!(
+            "the summary's statistics count {expected} messages but the file holds {} readable \
+             ones: a record was skipped (most likely a damaged opcode)",
+            self.messages_read
+        ))
+    }
+
+    /// Reading stopped at damage (`error`): reads on through the summary's chunk index where
+    /// there is one, logs what was lost and yields what follows, then the closing truncation.
+    fn damaged(&mut self, error: String) -> Option<Result<RawMessage, BagError>> {
+        self.inner = None;
+        let mut truncation = Truncation {
+            messages_read: self.messages_read,
+            bytes_read: self.bytes_read.load(Ordering::Relaxed),
+            bytes_total: self.bytes_total,
+            error,
+            chunks_skipped: 0,
+            messages_after: 0,
+        };
+        if let Some(skipped) = self.recover_indexed() {
+            truncation.chunks_skipped = skipped;
+            tracing::warn!(
+                "bag {} is damaged at byte {} of {} ({}): read {} messages before it, \
+                 skipped {skipped} damaged chunk(s) and read on through the summary's \
+                 chunk index ({} more messages)",
+                self.path.display(),
+                truncation.bytes_read,
+                truncation.bytes_total,
+                truncation.error,
+                truncation.messages_read,
+                self.pending.len()
+            );
+        } else {
+            tracing::warn!(
+                "bag {} is truncated or damaged: kept the {} messages before byte {} of \
+                 {}, the rest is lost ({})",
+                self.path.display(),
+                truncation.messages_read,
+                truncation.bytes_read,
+                truncation.bytes_total,
+                truncation.error
+            );
+        }
+        self.truncation = Some(truncation);
+        self.next_recovered()
     }
 }
 

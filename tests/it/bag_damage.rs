@@ -133,3 +133,22 @@ proptest! {
         prop_assert!(frames.len() - got.len() <= per_chunk as usize, "{} frames lost", frames.len() - got.len());
     }
 }
+
+/// Every chunk's opcode byte damaged, one at a time, with masks that make it unknown (skipped
+/// by MCAP readers, as the specification says) or another record type: the chunk's frames
+/// are lost and the loss is reported (the statistics' count gives it away), the rest is read.
+#[test]
+fn a_damaged_chunk_opcode_is_reported() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (bytes, frames, chunks) = bag_bytes(dir.path(), 10, 1);
+    for &(start, _) in &chunks {
+        for mask in [0x10, 0x80, 0xff, 0x01] {
+            let mut damaged = bytes.clone();
+            damaged[start as usize] ^= mask;
+            let got = read(dir.path(), &damaged, frames.len())
+                .unwrap_or_else(|e| panic!("chunk at {start}, mask {mask:#x}: {e}"));
+            assert!(in_order(&got, &frames), "chunk at {start}: out of order");
+            assert!(got.len() + 1 >= frames.len(), "chunk at {start}: {} read", got.len());
+        }
+    }
+}
