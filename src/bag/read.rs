@@ -352,7 +352,11 @@ impl Iterator for BagReader {
         let next = match self.inner.as_mut()?.next() {
             None => {
                 self.inner = None;
-                return if self.recovering { None } else { self.finished() };
+                return if self.recovering {
+                    None
+                } else {
+                    self.finished()
+                };
             }
             // A cut: recover the complete messages of a cut chunk, which validation withheld.
             Some(Err(mcap::McapError::UnexpectedEof)) if !self.recovering => {

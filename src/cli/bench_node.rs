@@ -11,7 +11,9 @@
 //! and the sustained frames per second of a burst (predictions received per second while
 //! frames are published as fast as the transport accepts them; the node drops the oldest
 //! pending frames it cannot keep up with). `--device cuda[:N]` runs the model, in this
-//! process and in the node, on a GPU (a build with the `cuda` feature).
+//! process and in the node, on a GPU (a build with the `cuda` feature). `--batch 1,16,64`
+//! adds a table of the model's step on that many scenes at once (frames per second a batching
+//! node could sustain); `--skip-node` measures in this process only.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -63,6 +65,14 @@ pub struct NodeBenchArgs {
     /// client connected: what the idle live view costs.
     #[arg(long)]
     foxglove_idle: bool,
+    /// Batch sizes (comma-separated, each 1-1024) for the batched table: the model's step on
+    /// that many scenes at once in this process, and the frames per second it sustains
+    /// (scenes / step time): what one node serving many streams could reach with batching.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=1024))]
+    batch: Vec<u32>,
+    /// Measure in this process only (the model's step and `--batch`), without starting nodes.
+    #[arg(long)]
+    skip_node: bool,
     #[command(flatten)]
     device: super::device::DeviceArgs,
 }
@@ -92,7 +102,8 @@ fn make_model(
 /// One row of the table: a model over one transport.
 struct Row {
     name: String,
-    kind: TransportKind,
+    /// None for a row measured in this process only (`--skip-node`).
+    kind: Option<TransportKind>,
     /// The node served Foxglove (nothing connected).
     foxglove: bool,
     /// The model's own step time in this process, p50 and p99, us.
@@ -122,18 +133,31 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     let tmp = tempfile::tempdir()?;
     let runs = model_runs(&args, tmp.path(), last, &scaler)?;
     let mut table = Vec::new();
+    let mut batched = Vec::new();
     for (name, dir) in &runs {
-        let model_us = match gpu {
-            None => model_step_us::<NdArray<f32>>(dir, &frames, &Default::default())?,
-            #[cfg(feature = "cuda")]
-            Some(id) => {
-                use super::device::cuda::{device, CudaInfer};
-                let device = device(id, args.device.kernels())?;
-                model_step_us::<CudaInfer>(dir, &frames, &device)?
+        let step_us = |b: usize| -> anyhow::Result<Vec<f64>> {
+            match gpu {
+                None => model_step_us::<NdArray<f32>>(dir, &frames, b, &Default::default()),
+                #[cfg(feature = "cuda")]
+                Some(id) => {
+                    use super::device::cuda::{device, CudaInfer};
+                    let device = device(id, args.device.kernels())?;
+                    model_step_us::<CudaInfer>(dir, &frames, b, &device)
+                }
+                #[cfg(not(feature = "cuda"))]
+                Some(_) => bail!("built without CUDA"),
             }
-            #[cfg(not(feature = "cuda"))]
-            Some(_) => bail!("built without CUDA"),
         };
+        let model_us = step_us(1)?;
+        for &b in &args.batch {
+            eprintln!("bench node: {name}, {b} scenes per step ...");
+            let us = step_us(b as usize)?;
+            batched.push((name.clone(), b, pct(&us, 0.5), pct(&us, 0.99)));
+        }
+        if args.skip_node {
+            table.push(Row::in_process(name, &model_us));
+            continue;
+        }
         let variants: &[bool] = if args.foxglove_idle {
             &[false, true]
         } else {
@@ -148,7 +172,7 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
                 through_node(&args, &exe, dir, (kind, foxglove), &frames)?;
             table.push(Row {
                 name: name.clone(),
-                kind,
+                kind: Some(kind),
                 foxglove,
                 model_p50: pct(&model_us, 0.5),
                 model_p99: pct(&model_us, 0.99),
@@ -160,6 +184,7 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
         }
     }
     print_table(&args, &table);
+    print_batched(&args, &batched);
     Ok(Outcome::Done)
 }
 
@@ -223,20 +248,27 @@ fn model_runs(
 }
 
 /// The model's own step times in this process on `device`, us, sorted: 50 steps after 10
-/// warm-up ones over consecutive `frames` (each step returns its prediction to the host, as
-/// the node's does).
+/// warm-up ones over consecutive `frames`, `b` scenes per step (scene j starts j frames into
+/// the bag; each step returns its predictions to the host, as the node's does).
 fn model_step_us<B: NetOps>(
     dir: &Path,
     frames: &[ParticleFrame],
+    b: usize,
     device: &B::Device,
 ) -> anyhow::Result<Vec<f64>> {
     let surrogate = Surrogate::<B>::load(dir, device)?;
     let mut state = surrogate.init_state();
     let mut model_us = Vec::new();
     for i in 0..60 {
-        let f = &frames[i % frames.len()];
+        let batch: Vec<&ParticleFrame> = (0..b).map(|j| &frames[(i + j) % frames.len()]).collect();
+        let states: Vec<f32> = batch.iter().flat_map(|f| rows(f)).collect();
+        let material: Vec<u8> = batch
+            .iter()
+            .flat_map(|f| f.material.iter().copied())
+            .collect();
+        let dt: Vec<f32> = batch.iter().map(|f| f.dt).collect();
         let t = Instant::now();
-        let (_, s) = surrogate.step(&rows(f), &f.material, &[f.dt], state)?;
+        let (_, s) = surrogate.step(&states, &material, &dt, state)?;
         state = s;
         if i >= 10 {
             model_us.push(t.elapsed().as_secs_f64() * 1e6);
@@ -419,6 +451,45 @@ fn burst(
     Ok(got as f64 / (last - burst_start).as_secs_f64().max(1e-9))
 }
 
+impl Row {
+    /// A row measured in this process only (`--skip-node`): no transport columns.
+    fn in_process(name: &str, model_us: &[f64]) -> Self {
+        Self {
+            name: name.to_owned(),
+            kind: None,
+            foxglove: false,
+            model_p50: pct(model_us, 0.5),
+            model_p99: pct(model_us, 0.99),
+            received: 0,
+            e2e_p50: f64::NAN,
+            e2e_p99: f64::NAN,
+            burst_fps: f64::NAN,
+        }
+    }
+}
+
+/// Prints the batched table (Markdown) on stdout: per model and batch size, the step's p50 and
+/// p99 and the frames per second at p50. Nothing when `--batch` was not given.
+fn print_batched(args: &NodeBenchArgs, rows: &[(String, u32, f64, f64)]) {
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\nBatched step in this process on {} (B scenes per step, 2,500 particles each):",
+        args.device.device
+    );
+    println!("| model | B | step p50 ms | step p99 ms | frames/s (B / p50) |");
+    println!("|---|---:|---:|---:|---:|");
+    for (name, b, p50, p99) in rows {
+        let fps = f64::from(*b) / (p50 / 1e6);
+        println!(
+            "| {name} | {b} | {:.2} | {:.2} | {fps:.0} |",
+            p50 / 1e3,
+            p99 / 1e3
+        );
+    }
+}
+
 /// Prints the table (Markdown) on stdout.
 fn print_table(args: &NodeBenchArgs, table: &[Row]) {
     let what = if args.models.is_empty() {
@@ -429,6 +500,19 @@ fn print_table(args: &NodeBenchArgs, table: &[Row]) {
     } else {
         "the given run folders".to_owned()
     };
+    if args.skip_node {
+        println!(
+            "\nModel step in this process, {what}, on {}:",
+            args.device.device
+        );
+        println!("| core | model p50 ms | model p99 ms |");
+        println!("|---|---|---|");
+        for r in table {
+            let (p50, p99) = (r.model_p50 / 1e3, r.model_p99 / 1e3);
+            println!("| {} | {p50:.2} | {p99:.2} |", r.name);
+        }
+        return;
+    }
     println!(
         "\nSurrogate node, {what}, on {}, {} frames at 62.5 Hz, burst of {}:",
         args.device.device, args.frames, args.burst
@@ -439,7 +523,7 @@ fn print_table(args: &NodeBenchArgs, table: &[Row]) {
         println!(
             "| {} | {}{} | {:.2} | {:.2} | {}/{} | {:.2} | {:.2} | {:+.0} % | {:.0} |",
             r.name,
-            r.kind,
+            r.kind.map_or_else(String::new, |k| k.to_string()),
             suffix(r.foxglove),
             r.model_p50 / 1e3,
             r.model_p99 / 1e3,

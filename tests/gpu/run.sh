@@ -8,6 +8,7 @@
 #   tests/gpu/run.sh profile   # host timings per micro-batch and cubecl's kernel profile
 #   tests/gpu/run.sh parity    # CPU and GPU train the same model from the same seed and data
 #   tests/gpu/run.sh node      # the surrogate node on the GPU over zenoh and iceoryx2
+#   tests/gpu/run.sh batched   # the shipped grid models' step on 1-256 scenes at once
 #   tests/gpu/run.sh multi     # data parallel on two GPUs: parity with one GPU, throughput
 #   tests/gpu/run.sh grid      # the grid model: the GPU's im2col kernels against the composed
 #                              # ones (same first-epoch loss, samples/s), and PyTorch's step
@@ -114,6 +115,13 @@ node() {
         check "node-$transport" "$BIN" launch replay_eval model:="$OUT/runs/gpu" device:=cuda \
             transport:="$transport" bags:=bags out:="$OUT/replay-$transport"
     done
+}
+
+batched() { # frames per second of one step over many scenes (README, "On a GPU")
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    check batched "$BIN" bench node --device cuda --skip-node --batch 1,4,16,64,256 \
+        --model models/all-grid-mingru --model models/all-grid-minlstm \
+        --model models/all-grid-mingru-small
 }
 
 multi() {

@@ -148,7 +148,11 @@ fn a_damaged_chunk_opcode_is_reported() {
             let got = read(dir.path(), &damaged, frames.len())
                 .unwrap_or_else(|e| panic!("chunk at {start}, mask {mask:#x}: {e}"));
             assert!(in_order(&got, &frames), "chunk at {start}: out of order");
-            assert!(got.len() + 1 >= frames.len(), "chunk at {start}: {} read", got.len());
+            assert!(
+                got.len() + 1 >= frames.len(),
+                "chunk at {start}: {} read",
+                got.len()
+            );
         }
     }
 }

@@ -489,3 +489,51 @@ fn bench_node_measures_a_shipped_model_after_warming_it_up() {
         );
     }
 }
+
+/// `bench node --batch` steps several scenes at once in this process and reports the frames
+/// per second per batch size; `--skip-node` starts no node; a batch of 0 is a usage error.
+#[test]
+fn bench_node_measures_batched_steps_in_process() {
+    let bench = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let o = bench(&["--skip-node", "--batch", "1,3"]);
+    ok(&o, "bench node --batch");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        !stdout.contains("e2e"),
+        "a node row without a node: {stdout}"
+    );
+    let fps = |b: &str| -> f64 {
+        let row = stdout
+            .lines()
+            .find(|l| l.starts_with(&format!("| all-grid-mingru-small | {b} |")))
+            .unwrap_or_else(|| panic!("no batch {b} row: {stdout}"));
+        let cells: Vec<f64> = row
+            .split('|')
+            .skip(3)
+            .filter_map(|c| c.trim().parse().ok())
+            .collect();
+        let (p50_ms, fps) = (cells[0], cells[2]);
+        let b: f64 = b.parse().unwrap();
+        assert!(
+            (fps - b / (p50_ms / 1e3)).abs() <= 0.01 * fps + 1.0,
+            "{row}"
+        );
+        fps
+    };
+    assert!(fps("1") > 0.0 && fps("3") > 0.0);
+
+    let o = bench(&["--skip-node", "--batch", "0"]);
+    assert_eq!(
+        o.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
