@@ -445,20 +445,22 @@ fn launch_with_an_after_cycle_exits_at_once() {
     assert!(err.contains("cycle (a -> b -> a)"), "{err}");
 }
 
+/// `minflow bench node --model models/all-grid-mingru-small` with `extra` flags.
+fn bench(extra: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
 /// `bench node` warms the node up, then measures it: the shipped small grid model over zenoh
 /// predicts most of a short paced run (its 2-core step is about half the 16 ms frame
 /// interval) and the row names the device; a device the build cannot open, or a list of
 /// them, is an error before any process starts.
 #[test]
 fn bench_node_measures_a_shipped_model_after_warming_it_up() {
-    let bench = |extra: &[&str]| {
-        std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
-            .args(extra)
-            .output()
-            .unwrap()
-    };
     let o = bench(&["--transport", "zenoh", "--frames", "20", "--burst", "5"]);
     ok(&o, "bench node");
     let stdout = String::from_utf8_lossy(&o.stdout);
@@ -494,14 +496,6 @@ fn bench_node_measures_a_shipped_model_after_warming_it_up() {
 /// per second per batch size; `--skip-node` starts no node; a batch of 0 is a usage error.
 #[test]
 fn bench_node_measures_batched_steps_in_process() {
-    let bench = |extra: &[&str]| {
-        std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .args(["bench", "node", "--model", "models/all-grid-mingru-small"])
-            .args(extra)
-            .output()
-            .unwrap()
-    };
     let o = bench(&["--skip-node", "--batch", "1,3"]);
     ok(&o, "bench node --batch");
     let stdout = String::from_utf8_lossy(&o.stdout);
