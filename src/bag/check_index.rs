@@ -40,35 +40,57 @@ pub fn check_index(path: &Path, messages: u64) -> Vec<String> {
     }
 }
 
-fn index_problems(path: &Path, messages: u64) -> Result<Vec<String>, String> {
-    let mut file = File::open(path).map_err(|e| e.to_string())?;
-    let len = file.metadata().map_err(|e| e.to_string())?.len();
+/// What the footer says of the summary section.
+enum SummaryCrc {
+    /// The bag has no summary (summary start 0).
+    Absent,
+    /// The footer's CRC matches the summary and summary offset sections, or is 0 (not set).
+    Good,
+    /// The CRC does not match: the problem, worded for `bag check`.
+    Bad(String),
+}
+
+/// Reads the footer and checks the summary CRC it carries (mcap.dev/spec, Footer); an error
+/// when there is no footer or it points outside the file.
+fn summary_crc(file: &mut File, len: u64) -> Result<SummaryCrc, String> {
     if len < FOOTER_AND_MAGIC + 8 {
         return Err("file too short for a footer".into());
     }
-    let footer = read_at(&mut file, len - FOOTER_AND_MAGIC, 29)?;
+    let footer = read_at(file, len - FOOTER_AND_MAGIC, 29)?;
     if footer[0] != op::FOOTER {
         return Err(format!("no footer record (opcode {:#04x})", footer[0]));
     }
     let summary_start = u64_at(&footer, 9);
     let crc = u32::from_le_bytes(footer[25..29].try_into().unwrap_or_default());
     if summary_start == 0 {
-        return Ok(Vec::new());
+        return Ok(SummaryCrc::Absent);
     }
     let crc_end = len - FOOTER_AND_MAGIC + 25;
     if summary_start >= crc_end {
         return Err(format!("summary start {summary_start} is past the footer"));
     }
+    if crc == 0 {
+        return Ok(SummaryCrc::Good);
+    }
+    let covered = read_at(file, summary_start, crc_end - summary_start)?;
+    let actual = crc32fast::hash(&covered);
+    if actual != crc {
+        return Ok(SummaryCrc::Bad(format!(
+            "summary CRC is {actual:#010x}, the footer says {crc:#010x}: the summary or its \
+             index is damaged"
+        )));
+    }
+    Ok(SummaryCrc::Good)
+}
+
+fn index_problems(path: &Path, messages: u64) -> Result<Vec<String>, String> {
+    let mut file = File::open(path).map_err(|e| e.to_string())?;
+    let len = file.metadata().map_err(|e| e.to_string())?.len();
     let mut problems = Vec::new();
-    if crc != 0 {
-        let covered = read_at(&mut file, summary_start, crc_end - summary_start)?;
-        let actual = crc32fast::hash(&covered);
-        if actual != crc {
-            problems.push(format!(
-                "summary CRC is {actual:#010x}, the footer says {crc:#010x}: the summary or \
-                 its index is damaged"
-            ));
-        }
+    match summary_crc(&mut file, len)? {
+        SummaryCrc::Absent => return Ok(problems),
+        SummaryCrc::Good => {}
+        SummaryCrc::Bad(problem) => problems.push(problem),
     }
     let summary = read_summary(&mut file, len)?;
     if let Some(stats) = &summary.stats {
@@ -191,10 +213,15 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
 }
 
 /// Messages of all topics that `path`'s summary statistics count, read with seeks; None
-/// when the bag has no readable summary or statistics (a cut or streaming-written bag).
+/// when the bag has no readable summary or statistics (a cut or streaming-written bag), or
+/// when the footer's summary CRC does not match (a damaged count must not pass for lost
+/// messages: `bag check` reports the CRC).
 pub fn summary_messages(path: &Path) -> Option<u64> {
     let mut file = File::open(path).ok()?;
     let len = file.metadata().ok()?.len();
+    if !matches!(summary_crc(&mut file, len).ok()?, SummaryCrc::Good) {
+        return None;
+    }
     let summary = read_summary(&mut file, len).ok()?;
     Some(summary.stats.as_ref()?.message_count)
 }

@@ -50,10 +50,22 @@ pub struct Truncation {
     pub chunks_skipped: u64,
     /// Messages read after the damage, from the intact chunks past it.
     pub messages_after: u64,
+    /// The file read to its end without error, and only the summary's message count showed
+    /// the loss (a record skipped as unknown). With `chunks_skipped` 0 where the lost
+    /// messages were is unknown.
+    pub found_at_end: bool,
 }
 
 impl fmt::Display for Truncation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.found_at_end && self.chunks_skipped == 0 {
+            return write!(
+                f,
+                "bag is damaged: read {} messages to its end of {} bytes, then: {}; where the \
+                 lost messages were is unknown",
+                self.messages_read, self.bytes_total, self.error
+            );
+        }
         if self.chunks_skipped > 0 || self.messages_after > 0 {
             return write!(
                 f,
@@ -75,6 +87,16 @@ impl fmt::Display for Truncation {
             self.messages_read, self.bytes_read, self.bytes_total, self.error
         )
     }
+}
+
+/// What reading through the summary's chunk index found after damage.
+#[derive(Default)]
+struct Recovery {
+    /// Damaged chunks, skipped.
+    damaged: u64,
+    /// The first damaged chunk's offset in the file and the messages of the intact chunks
+    /// before it.
+    first_damaged: Option<(u64, u64)>,
 }
 
 /// A message read through the summary's chunk index after damage.
@@ -247,9 +269,9 @@ impl BagReader {
 
     /// After damage, reads the chunks of the summary's chunk index in file order (each
     /// CRC-checked as a whole), skips the first `messages_read` intact messages (already
-    /// yielded) and queues the rest. Returns the damaged chunks' count, or None when the
-    /// summary is unreadable or indexes no chunk. Loads the file into memory: only after damage.
-    fn recover_indexed(&mut self) -> Option<u64> {
+    /// yielded) and queues the rest. Returns what it found, or None when the summary is
+    /// unreadable or indexes no chunk. Loads the file into memory: only after damage.
+    fn recover_indexed(&mut self) -> Option<Recovery> {
         let bytes = std::fs::read(&self.path).ok()?;
         let summary = mcap::Summary::read(&bytes).ok()??;
         let mut chunks = summary.chunk_indexes.clone();
@@ -258,12 +280,17 @@ impl BagReader {
         }
         chunks.sort_by_key(|c| c.chunk_start_offset);
         chunks.dedup_by_key(|c| c.chunk_start_offset);
-        let (mut skip, mut damaged) = (self.messages_read, 0u64);
+        let (mut skip, mut found) = (self.messages_read, Recovery::default());
+        let mut intact = 0u64;
         for index in &chunks {
             let Some(messages) = read_chunk(&summary, &bytes, index) else {
-                damaged += 1;
+                found.damaged += 1;
+                found
+                    .first_damaged
+                    .get_or_insert((index.chunk_start_offset, intact));
                 continue;
             };
+            intact += messages.len() as u64;
             for message in messages {
                 if skip > 0 {
                     skip -= 1;
@@ -272,7 +299,7 @@ impl BagReader {
                 }
             }
         }
-        Some(damaged)
+        Some(found)
     }
 
     /// Yields the next queued message of a recovery, or the closing truncation once empty.
@@ -370,7 +397,7 @@ impl Iterator for BagReader {
                 let (log, publish) = (message.log_time, message.publish_time);
                 Some(Ok(self.numbered(message.channel, log, publish, data)))
             }
-            Err(err) => self.damaged(err.to_string()),
+            Err(err) => self.damaged(err.to_string(), false),
         }
     }
 }
@@ -385,16 +412,20 @@ impl BagReader {
         if expected <= self.messages_read {
             return None;
         }
-        self.damaged(format!(
+        let error = format!(
             "the summary's statistics count {expected} messages but the file holds {} readable \
              ones: a record was skipped (most likely a damaged opcode)",
             self.messages_read
-        ))
+        );
+        self.damaged(error, true)
     }
 
     /// Reading stopped at damage (`error`): reads on through the summary's chunk index where
     /// there is one, logs what was lost and yields what follows, then the closing truncation.
-    fn damaged(&mut self, error: String) -> Option<Result<RawMessage, BagError>> {
+    /// `at_end`: the damage was found only at the end of the file (by the message count), so
+    /// every readable message was already yielded; the damage is placed at the first damaged
+    /// chunk of the index when there is one.
+    fn damaged(&mut self, error: String, at_end: bool) -> Option<Result<RawMessage, BagError>> {
         self.inner = None;
         let mut truncation = Truncation {
             messages_read: self.messages_read,
@@ -403,9 +434,16 @@ impl BagReader {
             error,
             chunks_skipped: 0,
             messages_after: 0,
+            found_at_end: at_end,
         };
-        if let Some(skipped) = self.recover_indexed() {
-            truncation.chunks_skipped = skipped;
+        if let Some(found) = self.recover_indexed() {
+            truncation.chunks_skipped = found.damaged;
+            if let (true, Some((offset, before))) = (at_end, found.first_damaged) {
+                truncation.bytes_read = offset;
+                truncation.messages_read = before.min(self.messages_read);
+                truncation.messages_after = self.messages_read - truncation.messages_read;
+            }
+            let skipped = found.damaged;
             tracing::warn!(
                 "bag {} is damaged at byte {} of {} ({}): read {} messages before it, \
                  skipped {skipped} damaged chunk(s) and read on through the summary's \
@@ -415,7 +453,13 @@ impl BagReader {
                 truncation.bytes_total,
                 truncation.error,
                 truncation.messages_read,
-                self.pending.len()
+                self.pending.len() as u64 + truncation.messages_after
+            );
+        } else if at_end {
+            tracing::warn!(
+                "bag {} is damaged: {}",
+                self.path.display(),
+                truncation.error
             );
         } else {
             tracing::warn!(

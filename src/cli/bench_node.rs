@@ -71,7 +71,7 @@ pub struct NodeBenchArgs {
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=1024))]
     batch: Vec<u32>,
     /// Measure in this process only (the model's step and `--batch`), without starting nodes.
-    #[arg(long)]
+    #[arg(long, conflicts_with_all = ["transports", "foxglove_idle", "frames", "burst"])]
     skip_node: bool,
     #[command(flatten)]
     device: super::device::DeviceArgs,
@@ -483,7 +483,7 @@ fn print_batched(args: &NodeBenchArgs, rows: &[(String, u32, f64, f64)]) {
     for (name, b, p50, p99) in rows {
         let fps = f64::from(*b) / (p50 / 1e6);
         println!(
-            "| {name} | {b} | {:.2} | {:.2} | {fps:.0} |",
+            "| {name} | {b} | {:.3} | {:.3} | {fps:.0} |",
             p50 / 1e3,
             p99 / 1e3
         );
@@ -505,7 +505,7 @@ fn print_table(args: &NodeBenchArgs, table: &[Row]) {
             "\nModel step in this process, {what}, on {}:",
             args.device.device
         );
-        println!("| core | model p50 ms | model p99 ms |");
+        println!("| model | model p50 ms | model p99 ms |");
         println!("|---|---|---|");
         for r in table {
             let (p50, p99) = (r.model_p50 / 1e3, r.model_p99 / 1e3);

@@ -155,4 +155,30 @@ fn a_damaged_chunk_opcode_is_reported() {
             );
         }
     }
+    // Where the loss was: the damaged chunk's offset, the frames before and after it.
+    for (k, &(start, _)) in chunks.iter().enumerate().skip(1) {
+        let mut damaged = bytes.clone();
+        damaged[start as usize] ^= 0x10;
+        let path = dir.path().join("damaged.mcap");
+        std::fs::write(&path, &damaged).expect("write");
+        let t = bag::read_frames(&path, None)
+            .expect("read")
+            .truncated
+            .expect("damage is reported");
+        let k = k as u64;
+        assert_eq!(
+            (
+                t.bytes_read,
+                t.messages_read,
+                t.messages_after,
+                t.chunks_skipped
+            ),
+            (start, k, 9 - k, 1),
+            "chunk {k}: {t}"
+        );
+        assert!(
+            t.found_at_end && t.to_string().contains("skipped 1 damaged chunk"),
+            "{t}"
+        );
+    }
 }

@@ -516,7 +516,8 @@ fn bench_node_measures_batched_steps_in_process() {
         let (p50_ms, fps) = (cells[0], cells[2]);
         let b: f64 = b.parse().unwrap();
         assert!(
-            (fps - b / (p50_ms / 1e3)).abs() <= 0.01 * fps + 1.0,
+            // p50 is printed to 0.001 ms, frames/s to 1.
+            (fps - b / (p50_ms / 1e3)).abs() <= fps * 0.0006 / p50_ms + 1.0,
             "{row}"
         );
         fps
