@@ -212,6 +212,24 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
     reader.finish().ok_or_else(|| "no summary".to_owned())
 }
 
+/// Where `path`'s data section ends and its summary section starts (bytes), from the footer,
+/// confirmed by the Data End record just before it (opcode 0x0F, length 4: mcap.dev/spec);
+/// None without a footer, a summary or that record.
+pub fn data_end(path: &Path) -> Option<u64> {
+    let mut file = File::open(path).ok()?;
+    let len = file.metadata().ok()?.len();
+    if len < FOOTER_AND_MAGIC + 8 + 13 {
+        return None;
+    }
+    let footer = read_at(&mut file, len - FOOTER_AND_MAGIC, 29).ok()?;
+    let summary_start = u64_at(&footer, 9);
+    if footer[0] != op::FOOTER || summary_start < 8 + 13 || summary_start >= len {
+        return None;
+    }
+    let data_end = read_at(&mut file, summary_start - 13, 9).ok()?;
+    (data_end[0] == op::DATA_END && u64_at(&data_end, 1) == 4).then_some(summary_start)
+}
+
 /// Messages of all topics that `path`'s summary statistics count, read with seeks; None
 /// when the bag has no readable summary or statistics (a cut or streaming-written bag), or
 /// when the footer's summary CRC does not match (a damaged count must not pass for lost

@@ -13,7 +13,8 @@
 //! CLI), and the closing [`BagError::Truncated`] counts the chunks skipped. A bag that reads to
 //! its end is checked against its summary's statistics: a record with a damaged opcode is
 //! skipped as unknown (as the specification tells readers to), and only the count shows the
-//! loss, which is then reported the same way. Used by `train`,
+//! loss, which is then reported the same way. Damage past the Data End record, in the summary
+//! section, loses no message: it is logged and reading ends normally. Used by `train`,
 //! `replay`, `eval` and `bag info/check`.
 
 use std::collections::{HashMap, VecDeque};
@@ -397,7 +398,13 @@ impl Iterator for BagReader {
                 let (log, publish) = (message.log_time, message.publish_time);
                 Some(Ok(self.numbered(message.channel, log, publish, data)))
             }
-            Err(err) => self.damaged(err.to_string(), false),
+            Err(err) => {
+                let at = self.bytes_read.load(Ordering::Relaxed);
+                match super::check_index::data_end(&self.path) {
+                    Some(end) if at > end => self.summary_damaged(at, &err.to_string()),
+                    _ => self.damaged(err.to_string(), false),
+                }
+            }
         }
     }
 }
@@ -418,6 +425,21 @@ impl BagReader {
             self.messages_read
         );
         self.damaged(error, true)
+    }
+
+    /// The damage is in the summary section, after the Data End record: every message was
+    /// read, so reading ends normally with a warning (`bag check` reports the summary's damage;
+    /// indexed readers would not find the messages).
+    fn summary_damaged(&mut self, at: u64, error: &str) -> Option<Result<RawMessage, BagError>> {
+        self.inner = None;
+        tracing::warn!(
+            "bag {}: its summary section is damaged at byte {at} of {} ({error}); all {} \
+             messages of its data section were read (`minflow bag check` names the damage)",
+            self.path.display(),
+            self.bytes_total,
+            self.messages_read
+        );
+        None
     }
 
     /// Reading stopped at damage (`error`): reads on through the summary's chunk index where
