@@ -212,9 +212,11 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
     reader.finish().ok_or_else(|| "no summary".to_owned())
 }
 
-/// Where `path`'s data section ends and its summary section starts (bytes), from the footer,
-/// confirmed by the Data End record just before it (opcode 0x0F, length 4: mcap.dev/spec);
-/// None without a footer, a summary or that record.
+/// Where `path`'s data section ends and its summary section starts (bytes), when the data
+/// section's framing is intact: the footer's summary start, and the chain of record headers
+/// (opcode, length) from the magic lands exactly on the Data End record just before it
+/// (mcap.dev/spec). A damaged record length breaks the chain. None without a footer, a
+/// summary, or an intact chain. Reads only the record headers (a seek per record).
 pub fn data_end(path: &Path) -> Option<u64> {
     let mut file = File::open(path).ok()?;
     let len = file.metadata().ok()?.len();
@@ -226,8 +228,14 @@ pub fn data_end(path: &Path) -> Option<u64> {
     if footer[0] != op::FOOTER || summary_start < 8 + 13 || summary_start >= len {
         return None;
     }
-    let data_end = read_at(&mut file, summary_start - 13, 9).ok()?;
-    (data_end[0] == op::DATA_END && u64_at(&data_end, 1) == 4).then_some(summary_start)
+    let data_end = summary_start - 13;
+    let mut at = 8u64;
+    while at < data_end {
+        let head = read_at(&mut file, at, 9).ok()?;
+        at = at.checked_add(9)?.checked_add(u64_at(&head, 1))?;
+    }
+    let head = read_at(&mut file, data_end, 9).ok()?;
+    (at == data_end && head[0] == op::DATA_END && u64_at(&head, 1) == 4).then_some(summary_start)
 }
 
 /// Messages of all topics that `path`'s summary statistics count, read with seeks; None

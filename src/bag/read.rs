@@ -400,9 +400,10 @@ impl Iterator for BagReader {
             }
             Err(err) => {
                 let at = self.bytes_read.load(Ordering::Relaxed);
-                match super::check_index::data_end(&self.path) {
-                    Some(end) if at > end => self.summary_damaged(at, &err.to_string()),
-                    _ => self.damaged(err.to_string(), false),
+                if self.only_summary_damaged(at) {
+                    self.summary_damaged(at, &err.to_string())
+                } else {
+                    self.damaged(err.to_string(), false)
                 }
             }
         }
@@ -425,6 +426,16 @@ impl BagReader {
             self.messages_read
         );
         self.damaged(error, true)
+    }
+
+    /// Whether reading failed at byte `at` past the Data End record, the data section's record
+    /// framing intact (so no record ran on into the summary) and no message missing by the
+    /// summary's count where its CRC holds: then only the summary section is damaged.
+    fn only_summary_damaged(&self, at: u64) -> bool {
+        let past_data = super::check_index::data_end(&self.path).is_some_and(|end| at > end);
+        past_data
+            && super::check_index::summary_messages(&self.path)
+                .is_none_or(|expected| expected <= self.messages_read)
     }
 
     /// The damage is in the summary section, after the Data End record: every message was

@@ -182,3 +182,20 @@ fn a_damaged_chunk_opcode_is_reported() {
         );
     }
 }
+
+/// A chunk whose length field was damaged to reach into the summary section: the reader fails
+/// past the Data End record, where damage usually means only the summary is hurt, but here a
+/// chunk was lost, and the summary's message count (its CRC intact) says so.
+#[test]
+fn a_chunk_length_reaching_into_the_summary_is_reported() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (bytes, frames, chunks) = bag_bytes(dir.path(), 6, 1);
+    let footer = mcap::read::footer(&bytes).expect("footer");
+    for &(start, _) in &chunks {
+        let mut damaged = bytes.clone();
+        let length = footer.summary_start + 20 - start - 9;
+        damaged[start as usize + 1..start as usize + 9].copy_from_slice(&length.to_le_bytes());
+        let got = read(dir.path(), &damaged, frames.len()).expect("readable");
+        assert!(in_order(&got, &frames), "chunk at {start}: out of order");
+    }
+}
