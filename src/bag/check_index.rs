@@ -50,9 +50,9 @@ enum SummaryCrc {
     Bad(String),
 }
 
-/// Reads the footer and checks the summary CRC it carries (mcap.dev/spec, Footer); an error
-/// when there is no footer or it points outside the file.
-fn summary_crc(file: &mut File, len: u64) -> Result<SummaryCrc, String> {
+/// The footer's summary start (0: no summary) and summary CRC (0: not set), mcap.dev/spec,
+/// Footer; an error when the file is too short for one or the record there is no footer.
+fn footer(file: &mut File, len: u64) -> Result<(u64, u32), String> {
     if len < FOOTER_AND_MAGIC + 8 {
         return Err("file too short for a footer".into());
     }
@@ -60,8 +60,14 @@ fn summary_crc(file: &mut File, len: u64) -> Result<SummaryCrc, String> {
     if footer[0] != op::FOOTER {
         return Err(format!("no footer record (opcode {:#04x})", footer[0]));
     }
-    let summary_start = u64_at(&footer, 9);
     let crc = u32::from_le_bytes(footer[25..29].try_into().unwrap_or_default());
+    Ok((u64_at(&footer, 9), crc))
+}
+
+/// Reads the footer and checks the summary CRC it carries (mcap.dev/spec, Footer); an error
+/// when there is no footer or it points outside the file.
+fn summary_crc(file: &mut File, len: u64) -> Result<SummaryCrc, String> {
+    let (summary_start, crc) = footer(file, len)?;
     if summary_start == 0 {
         return Ok(SummaryCrc::Absent);
     }
@@ -220,12 +226,8 @@ fn read_summary(file: &mut File, len: u64) -> Result<mcap::Summary, String> {
 pub fn data_end(path: &Path) -> Option<u64> {
     let mut file = File::open(path).ok()?;
     let len = file.metadata().ok()?.len();
-    if len < FOOTER_AND_MAGIC + 8 + 13 {
-        return None;
-    }
-    let footer = read_at(&mut file, len - FOOTER_AND_MAGIC, 29).ok()?;
-    let summary_start = u64_at(&footer, 9);
-    if footer[0] != op::FOOTER || summary_start < 8 + 13 || summary_start >= len {
+    let (summary_start, _) = footer(&mut file, len).ok()?;
+    if summary_start < 8 + 13 || summary_start >= len {
         return None;
     }
     let data_end = summary_start - 13;

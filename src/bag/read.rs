@@ -308,6 +308,8 @@ impl BagReader {
         let Some(message) = self.pending.pop_front() else {
             let truncation = self.truncation.clone()?;
             self.truncation_reported = true;
+            // Logged here, where its counts are final, in the words of the error.
+            tracing::warn!("{}: {truncation}", self.path.display());
             return Some(Err(BagError::Truncated {
                 path: self.path.clone(),
                 truncation,
@@ -454,7 +456,7 @@ impl BagReader {
     }
 
     /// Reading stopped at damage (`error`): reads on through the summary's chunk index where
-    /// there is one, logs what was lost and yields what follows, then the closing truncation.
+    /// there is one and yields what follows, then the closing truncation (logged then).
     /// `at_end`: the damage was found only at the end of the file (by the message count), so
     /// every readable message was already yielded; the damage is placed at the first damaged
     /// chunk of the index when there is one.
@@ -476,34 +478,6 @@ impl BagReader {
                 truncation.messages_read = before.min(self.messages_read);
                 truncation.messages_after = self.messages_read - truncation.messages_read;
             }
-            let skipped = found.damaged;
-            tracing::warn!(
-                "bag {} is damaged at byte {} of {} ({}): read {} messages before it, \
-                 skipped {skipped} damaged chunk(s) and read on through the summary's \
-                 chunk index ({} more messages)",
-                self.path.display(),
-                truncation.bytes_read,
-                truncation.bytes_total,
-                truncation.error,
-                truncation.messages_read,
-                self.pending.len() as u64 + truncation.messages_after
-            );
-        } else if at_end {
-            tracing::warn!(
-                "bag {} is damaged: {}",
-                self.path.display(),
-                truncation.error
-            );
-        } else {
-            tracing::warn!(
-                "bag {} is truncated or damaged: kept the {} messages before byte {} of \
-                 {}, the rest is lost ({})",
-                self.path.display(),
-                truncation.messages_read,
-                truncation.bytes_read,
-                truncation.bytes_total,
-                truncation.error
-            );
         }
         self.truncation = Some(truncation);
         self.next_recovered()
