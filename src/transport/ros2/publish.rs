@@ -150,13 +150,15 @@ impl FramePublisher for DdsPublisher {
     /// Matched DDS subscriptions (readers matched through SEDP with compatible QoS), as
     /// tracked by the node's spinner (`Publisher::get_subscription_count`).
     fn subscriber_count(&self) -> usize {
+        use futures::FutureExt;
         self.node.with(|node| {
-            // ros2-client logs an error for a writer that has never been matched, so ask only
-            // once discovery has seen a reader on the topic at all.
-            if node.subscription_count(&self.topic) == 0 {
-                0
-            } else {
-                self.publisher.get_subscription_count(node)
+            // ros2-client logs an ERROR when asked to count for a writer its spinner has not
+            // yet matched to any reader, and the spinner learns of a match after discovery
+            // does, so a reader discovered on the topic is not enough. Its "wait for a
+            // subscription" future is ready exactly when the spinner has matched one.
+            match self.publisher.wait_for_subscription(node).now_or_never() {
+                Some(()) => self.publisher.get_subscription_count(node),
+                None => 0,
             }
         })
     }
