@@ -199,6 +199,21 @@ pub trait NetOps: Backend {
         composed_grid::composed_col2im::<Self>(cols, shape, k)
     }
 
+    /// The forward of a 3x3 same-padding convolution of the channel concatenation of
+    /// `parts`, for inference: `parts` `[B, H, W, C_p]` each (`Σ C_p = C_in`), `weight`
+    /// `[C_out, C_in, 3, 3]` (burn's `Conv2d` layout), `bias` `[C_out]` -> `[B, H, W, C_out]`.
+    /// None where the backend has no such kernel for these operands, and always on backends
+    /// that track gradients; the grid model then runs im2col and a product. The CPU computes
+    /// it by Winograd's F(2x2, 3x3) (Lavin & Gray 2016; `cpu/winograd.rs`).
+    fn conv3x3_forward(
+        parts: &[FloatTensor<Self>],
+        weight: &FloatTensor<Self>,
+        bias: Option<&FloatTensor<Self>>,
+    ) -> Option<FloatTensor<Self>> {
+        let _ = (parts, weight, bias);
+        None
+    }
+
     /// The minGRU's step update ([`mingru`]): `hg` `[M, 2H]` (`h~`, then the gate's
     /// pre-activation), `h` `[M, H]` -> `(1 - z) h + z g(h~)`, `[M, H]`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {

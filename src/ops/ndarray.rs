@@ -76,6 +76,14 @@ impl NetOps for NdArray<f32> {
             .unwrap_or_else(|| composed_col2im::<Self>(cols, shape, k))
     }
 
+    fn conv3x3_forward(
+        parts: &[FloatTensor<Self>],
+        weight: &FloatTensor<Self>,
+        bias: Option<&FloatTensor<Self>>,
+    ) -> Option<FloatTensor<Self>> {
+        cpu::winograd::conv3x3(parts, weight, bias)
+    }
+
     fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
         cpu::activation::silu(x)
     }

@@ -515,3 +515,57 @@ fn native_transfers_have_the_dense_gradients() {
         assert!(worst < 1e-4, "{what} gradient: {worst}");
     }
 }
+
+/// The CPU's inference convolution (Winograd F(2x2, 3x3) for 3x3 kernels on even grids, im2col
+/// on odd ones) equals burn's `Conv2d::forward` to rounding, over the U-Net's sizes, a batch,
+/// non-square and odd grids, and a channel concatenation given as parts.
+#[test]
+fn inference_convolution_equals_burns() {
+    use burn::nn::conv::Conv2dConfig;
+    use burn::nn::PaddingConfig2d;
+    use minflow::model::grid::unet::{conv_parts, ConvKernel::Gather};
+    let device = Default::default();
+    let normal = burn::tensor::Distribution::Normal(0.0, 1.0);
+    // (batch, height, width, input channels of each part, output channels)
+    let cases: [(usize, usize, usize, &[usize], usize); 9] = [
+        (1, 64, 64, &[27], 32),
+        (1, 63, 65, &[27, 5], 32),
+        (6, 33, 31, &[64, 64], 64),
+        (1, 32, 32, &[128, 64], 64),
+        (1, 8, 8, &[128], 128),
+        (3, 2, 2, &[5], 7),
+        (2, 6, 10, &[3, 17], 33),
+        (1, 5, 7, &[4], 6),
+        (2, 4, 4, &[1], 1),
+    ];
+    for (b, h, w, channels, c_out) in cases {
+        let c_in: usize = channels.iter().sum();
+        let layer = Conv2dConfig::new([c_in, c_out], [3, 3])
+            .with_padding(PaddingConfig2d::Same)
+            .init::<B>(&device);
+        let parts: Vec<Tensor<B, 4>> = channels
+            .iter()
+            .map(|&c| Tensor::random([b, h, w, c], normal, &device))
+            .collect();
+        let ours: Vec<f32> = conv_parts(&layer, parts.clone(), Gather)
+            .into_data()
+            .to_vec()
+            .unwrap();
+        let theirs: Vec<f32> = layer
+            .forward(Tensor::cat(parts, 3).permute([0, 3, 1, 2]))
+            .permute([0, 2, 3, 1])
+            .into_data()
+            .to_vec()
+            .unwrap();
+        assert_eq!(ours.len(), b * h * w * c_out);
+        let scale = theirs.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let worst = ours
+            .iter()
+            .zip(&theirs)
+            .fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+        assert!(
+            worst <= 1e-5 * scale,
+            "{b}x{h}x{w}, parts {channels:?} -> {c_out}: {worst} of {scale}"
+        );
+    }
+}

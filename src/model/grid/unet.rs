@@ -290,7 +290,8 @@ pub fn conv_parts<B: NetOps>(
 }
 
 /// [`ConvKernel::Gather`] on a backend with native im2col ([`NetOps::NATIVE_CONV_OPS`]):
-/// each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
+/// a 3x3 kernel through [`NetOps::conv3x3_forward`] where the backend has it (the CPU's
+/// inference: Winograd F(2x2, 3x3)); otherwise each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
 /// `[C_out, C_in, k, k]` flattens, so the weight matrix is a transposed view of it) and one
 /// product, the products summed.
 fn conv_parts_native<B: NetOps>(
@@ -298,6 +299,20 @@ fn conv_parts_native<B: NetOps>(
     parts: Vec<Tensor<B, 4>>,
     [b, h, w, c_out, c_in, k]: [usize; 6],
 ) -> Tensor<B, 4> {
+    if k == 3 {
+        let inputs: Vec<_> = parts
+            .iter()
+            .map(|x| x.clone().into_primitive().tensor())
+            .collect();
+        let bias = conv
+            .bias
+            .as_ref()
+            .map(|p| p.val().into_primitive().tensor());
+        let weight = conv.weight.val().into_primitive().tensor();
+        if let Some(y) = B::conv3x3_forward(&inputs, &weight, bias.as_ref()) {
+            return Tensor::from_primitive(TensorPrimitive::Float(y));
+        }
+    }
     let weight = conv.weight.val().reshape([c_out, c_in * k * k]);
     let mut bias = conv.bias.as_ref().map(|p| p.val());
     let mut offset = 0;

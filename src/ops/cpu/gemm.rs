@@ -14,6 +14,28 @@ use super::{for_rows, rows_view, slice1, tensor, view2, CpuTensor, PrimitiveInfo
 /// strides, `dst` row-major `[m, n]`.
 fn gemm_into(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f32>, accumulate: bool) {
     let (m, k) = a.dim();
+    let parallelism = if m * b.ncols() * k >= PARALLEL_WORK {
+        gemm::Parallelism::Rayon(rayon::current_num_threads())
+    } else {
+        gemm::Parallelism::None
+    };
+    gemm_with(dst, a, b, accumulate, parallelism);
+}
+
+/// `dst = a @ b` on the calling thread, for callers that run several products in parallel
+/// themselves; shapes as [`gemm_into`].
+pub(crate) fn gemm_serial(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f32>) {
+    gemm_with(dst, a, b, false, gemm::Parallelism::None);
+}
+
+fn gemm_with(
+    dst: &mut [f32],
+    a: &ArrayView2<f32>,
+    b: &ArrayView2<f32>,
+    accumulate: bool,
+    parallelism: gemm::Parallelism,
+) {
+    let (m, k) = a.dim();
     let (k2, n) = b.dim();
     assert_eq!(k, k2, "inner dimensions differ");
     assert_eq!(dst.len(), m * n, "output size");
@@ -26,11 +48,6 @@ fn gemm_into(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f32>, accumula
         }
         return;
     }
-    let parallelism = if m * n * k >= PARALLEL_WORK {
-        gemm::Parallelism::Rayon(rayon::current_num_threads())
-    } else {
-        gemm::Parallelism::None
-    };
     let (sa, sb) = (a.strides(), b.strides());
     // SAFETY: the views are valid for their shapes and strides for the call's duration; dst
     // is a distinct, exclusively borrowed row-major m x n buffer.

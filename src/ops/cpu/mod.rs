@@ -18,6 +18,8 @@
 //! - `adam.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.
 //! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather.
+//! - `winograd.rs`: the forward of the grid model's 3x3 convolutions by Winograd F(2x2, 3x3)
+//!   (inference).
 //!
 //! The kernels take operands with any strides (transposes are free) and return row-major
 //! contiguous tensors, or None (or their input back) for operands they do not handle. Results
@@ -32,6 +34,7 @@ pub(crate) mod gemm;
 pub(crate) mod mingru;
 pub(crate) mod scan;
 pub(crate) mod transfer;
+pub(crate) mod winograd;
 
 use burn::backend::ndarray::{NdArrayTensor, SharedArray};
 use burn::backend::NdArray;
