@@ -9,6 +9,8 @@
 //! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`NetOps::linear_forward`]): the nine shifted copies of the zero-padded
 //! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
 //! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
+//! For inference the CPU runs the 3x3 convolutions by Winograd F(2x2, 3x3) instead
+//! ([`NetOps::conv3x3_forward`]).
 //! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
 //! other): burn's convolution, im2col by a row gather, im2col by nine shifted slices.
 
