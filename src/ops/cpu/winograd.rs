@@ -144,9 +144,14 @@ struct Part<'a> {
     offset: usize,
 }
 
-/// Runs `f` over chunks of `buf` (with their index), in parallel when the buffer is large.
-fn for_chunks(buf: &mut [f32], chunk: usize, f: impl Fn(usize, &mut [f32]) + Sync + Send) {
-    if buf.len() * 4 >= PARALLEL_WORK {
+/// Runs `f` over chunks of `buf` (with their index), on the rayon pool when `parallel`.
+fn for_chunks(
+    buf: &mut [f32],
+    chunk: usize,
+    parallel: bool,
+    f: impl Fn(usize, &mut [f32]) + Sync + Send,
+) {
+    if parallel {
         buf.par_chunks_mut(chunk)
             .enumerate()
             .for_each(|(i, c)| f(i, c));
@@ -232,7 +237,8 @@ fn transform_input(parts: &[Part<'_>], size: Size, v: &mut [f32]) {
     let (th, tw) = (h / 2, w / 2);
     let widest = parts.iter().map(|p| p.channels).max().unwrap_or(0);
     let zeros = vec![0f32; widest];
-    for_chunks(v, tw * POINTS * c_in, |row, dst| {
+    let parallel = v.len() * 4 >= PARALLEL_WORK;
+    for_chunks(v, tw * POINTS * c_in, parallel, |row, dst| {
         let (bb, ty) = (row / th, row % th);
         let mut lanes = [[0f32; LANES]; POINTS];
         let mut out = [[0f32; LANES]; POINTS];
@@ -334,15 +340,8 @@ fn products(v: &[f32], u: &[f32], size: Size, m: &mut [f32]) {
             .expect("U holds 16 C_in x C_out matrices");
         gemm_serial(dst, &vs, &us);
     };
-    if tiles * c_in * c_out * POINTS >= PARALLEL_WORK {
-        m.par_chunks_mut(tiles * c_out)
-            .enumerate()
-            .for_each(|(s, dst)| product(s, dst));
-    } else {
-        m.chunks_mut(tiles * c_out)
-            .enumerate()
-            .for_each(|(s, dst)| product(s, dst));
-    }
+    let parallel = tiles * c_in * c_out * POINTS >= PARALLEL_WORK;
+    for_chunks(m, tiles * c_out, parallel, product);
 }
 
 /// `A^T M A + bias` of every tile into the row-major `[B, H, W, C_out]` output; one task per
@@ -354,7 +353,8 @@ fn transform_output(m: &[f32], bias: Option<&[f32]>, size: Size) -> Vec<f32> {
     let zeros = vec![0f32; c_out];
     let bias = bias.unwrap_or(&zeros);
     let mut y = vec![0f32; b * h * w * c_out];
-    for_chunks(&mut y, 2 * w * c_out, |row, dst| {
+    let parallel = y.len() * 4 >= PARALLEL_WORK;
+    for_chunks(&mut y, 2 * w * c_out, parallel, |row, dst| {
         let mut lanes = [[0f32; LANES]; POINTS];
         let mut out = [[0f32; LANES]; 4];
         let mut shift = [0f32; LANES];
