@@ -64,6 +64,53 @@ fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
     super::loss_plot(&out.join("loss.png"), history)
 }
 
+/// The split a run trains with, over the scene ids `scenes` of its data. With `split_from`
+/// (a run folder or a `split.json`; default: `init_from`'s run folder when it has one) its
+/// validation and test scenes stay held out and every other scene trains
+/// ([`Split::keeping_held_out`]), so a model continued on more scenes never trains on what
+/// its parent held out; otherwise the seeded 80:10:10 split of `scenes`.
+///
+/// # Errors
+/// The split file is unreadable or malformed; none of its validation scenes is in the data
+/// (a usage error: no validation rollouts to choose the checkpoint by).
+pub(crate) fn run_split(
+    scenes: &[String],
+    seed: u64,
+    split_from: Option<&Path>,
+    init_from: Option<&Path>,
+) -> anyhow::Result<Split> {
+    let path = |p: &Path| if p.is_dir() { p.join("split.json") } else { p.to_path_buf() };
+    let source = match (split_from, init_from) {
+        (Some(p), _) => Some(path(p)),
+        (None, Some(dir)) => Some(dir.join("split.json")).filter(|p| p.is_file()),
+        (None, None) => None,
+    };
+    let Some(file) = source else {
+        return Ok(Split::new(scenes, seed));
+    };
+    let text = std::fs::read_to_string(&file)
+        .with_context(|| format!("reading the split to keep, {}", file.display()))?;
+    let saved: Split = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a split.json", file.display()))?;
+    let split = Split::keeping_held_out(&saved, scenes);
+    if split.val.is_empty() && !saved.val.is_empty() {
+        return Err(super::UsageError(format!(
+            "--split-from {}: none of its {} validation scenes is in --data",
+            file.display(),
+            saved.val.len()
+        ))
+        .into());
+    }
+    tracing::info!(
+        "split kept from {}: {} train, {} val, {} test scenes",
+        file.display(),
+        split.train.len(),
+        split.val.len(),
+        split.test.len()
+    );
+    Ok(split)
+}
+
 /// Creates the run folder `out` with its `split.json` and `train.json` (`options`).
 ///
 /// # Errors

@@ -13,10 +13,10 @@
 pub use super::train_args::{CpuTrain, TrainArgs};
 
 use super::device::Device;
-use super::run_folder::{check_resume, print_best, write_run_files, Progress};
+use super::run_folder::{check_resume, print_best, run_split, write_run_files, Progress};
 use super::Outcome;
 use crate::data::{
-    self, LoadReport, Part, Scaler, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+    self, LoadReport, Part, Scaler, SceneInfo, StreamingLoader, Trajectory, WindowIndex,
 };
 use crate::model::store::NetConfig;
 use crate::model::ModelConfig;
@@ -37,7 +37,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let topic = Some(args.topic.as_str());
     let (infos, resident, scanned) = read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
-    let split = Split::new(&scenes, args.seed);
+    let split = run_split(&scenes, args.seed, args.split_from.as_deref(), None)?;
     let in_part = |part: Part| -> Vec<SceneInfo> {
         infos
             .iter()

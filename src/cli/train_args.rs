@@ -94,6 +94,12 @@ pub struct TrainArgs {
     /// Continue a killed run from OUT/checkpoint.
     #[arg(long)]
     pub resume: bool,
+    /// Keep the validation and test scenes of this run folder's `split.json` (or of that
+    /// file itself) held out and train on every other scene of --data, instead of a new
+    /// seeded split: more training scenes (e.g. `simulate --scenes 60..300`) for a model
+    /// whose held-out scenes must stay unseen. Default with --init-from: its run's split.
+    #[arg(long, value_name = "DIR")]
+    pub split_from: Option<PathBuf>,
     /// Frames held in memory at most; a larger dataset is streamed from the bags in chunks
     /// each epoch (a frame of 2,500 particles is 40 kB).
     #[arg(long, default_value_t = 50_000)]

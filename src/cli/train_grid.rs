@@ -12,10 +12,12 @@ use anyhow::{bail, Context};
 use burn::tensor::backend::AutodiffBackend;
 
 use super::device::Device;
-use super::run_folder::{check_resume, differences, print_best, write_run_files, Progress};
+use super::run_folder::{
+    check_resume, differences, print_best, run_split, write_run_files, Progress,
+};
 use super::train_args::{CpuTrain, TrainArgs};
 use super::Outcome;
-use crate::data::{self, Scaler, Split, Trajectory, WindowIndex};
+use crate::data::{self, Scaler, Trajectory, WindowIndex};
 use crate::model::grid::GridConfig;
 use crate::model::store::NetConfig;
 use crate::ops::NetOps;
@@ -41,15 +43,24 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let mut scenes: Vec<String> = trajs.iter().map(|t| t.scene.clone()).collect();
     scenes.dedup();
-    let split = Split::new(&scenes, args.seed);
+    let split = run_split(
+        &scenes,
+        args.seed,
+        args.split_from.as_deref(),
+        args.grid_args.init_from.as_deref(),
+    )?;
     let (train, val, test) = split.partition(trajs);
     if train.is_empty() {
         bail!("no training scenes in {:?}", args.data);
     }
     let refs: Vec<&Trajectory> = train.iter().collect();
-    let scaler = Scaler::fit(&refs);
-    // Weights from --init-from were trained against their run's normalisation: keep it.
-    let (vel_scale, dv_mean, dv_scale) = init.unwrap_or_else(|| fit_stats(&refs));
+    // Weights from --init-from were trained against their run's normalisation: keep it, and
+    // its scaler, so validation and `eval` score in the parent's units whatever scenes were
+    // added.
+    let ((vel_scale, dv_mean, dv_scale), scaler) = match init {
+        Some((stats, scaler)) => (stats, scaler),
+        None => (fit_stats(&refs), Scaler::fit(&refs)),
+    };
     config.vel_scale = vel_scale;
     config.dv_mean = dv_mean;
     config.dv_scale = dv_scale;
@@ -100,8 +111,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     Ok(super::read_to_damage(&report.truncated))
 }
 
-/// The normalisation constants `(vel_scale, dv_mean, dv_scale)` of the grid model in `dir`
-/// (`--init-from`), after checking that it is the architecture `config` describes.
+/// The normalisation constants `(vel_scale, dv_mean, dv_scale)` and the min-max scaler of the
+/// grid model in `dir` (`--init-from`), after checking that it is the architecture `config`
+/// describes.
 ///
 /// # Errors
 /// `dir` has no readable `model.json`, holds another architecture, or one whose
@@ -109,7 +121,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
 fn init_normalisation(
     dir: &std::path::Path,
     config: &GridConfig,
-) -> anyhow::Result<([f32; 2], [f32; 2], [f32; 2])> {
+) -> anyhow::Result<(([f32; 2], [f32; 2], [f32; 2]), Scaler)> {
     let (path, meta) = crate::model::store::read_meta(dir)
         .with_context(|| format!("--init-from {}", dir.display()))?;
     // A model without reference channels may grow them (`GridModel::with_reference`).
@@ -129,7 +141,10 @@ fn init_normalisation(
         .into());
     }
     match meta.net {
-        NetConfig::Grid(saved) => Ok((saved.vel_scale, saved.dv_mean, saved.dv_scale)),
+        NetConfig::Grid(saved) => Ok((
+            (saved.vel_scale, saved.dv_mean, saved.dv_scale),
+            meta.scaler,
+        )),
         NetConfig::Paper(_) => unreachable!("{}: compared equal to a grid config", path.display()),
     }
 }

@@ -113,6 +113,35 @@ impl Split {
         })
     }
 
+    /// The split of `scenes` that keeps `saved`'s held-out scenes held out: a scene of
+    /// `saved.val` (`saved.test`) is a validation (test) scene, every other scene of `scenes` is
+    /// a training scene (`train --split-from`: more training data for a model whose validation
+    /// and test scenes must stay unseen). Held-out scenes of `saved` that `scenes` lacks are
+    /// left out; duplicates count once.
+    pub fn keeping_held_out<S: AsRef<str>>(saved: &Split, scenes: impl IntoIterator<Item = S>) -> Split {
+        let ids: BTreeSet<String> = scenes.into_iter().map(|s| s.as_ref().to_owned()).collect();
+        let mut split = Split::default();
+        for id in ids {
+            match saved.part_of(&id) {
+                Some(Part::Val) => split.val.push(id),
+                Some(Part::Test) => split.test.push(id),
+                _ => split.train.push(id),
+            }
+        }
+        split
+    }
+
+    /// Scenes that `self` holds out (validation or test) but `other` trains on: what a model
+    /// trained with `other` has seen of this split's held-out scenes.
+    pub fn held_out_trained_in(&self, other: &Split) -> Vec<String> {
+        self.val
+            .iter()
+            .chain(&self.test)
+            .filter(|s| other.part_of(s) == Some(Part::Train))
+            .cloned()
+            .collect()
+    }
+
     /// The scene ids of `part`.
     pub fn scenes(&self, part: Part) -> &[String] {
         match part {

@@ -364,6 +364,86 @@ fn grid_train_starts_from_another_runs_weights() {
     );
 }
 
+/// `--split-from` keeps another split's validation and test scenes held out and trains on
+/// every other scene; `--init-from` keeps its run's split by default and its scaler whatever
+/// the split; a split none of whose validation scenes is in the data is a usage error.
+#[test]
+fn grid_train_keeps_the_held_out_scenes_of_another_split() {
+    let split = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("split.json")).unwrap()).unwrap()
+    };
+    let names = |v: &serde_json::Value| -> Vec<String> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s.as_str().unwrap().to_owned())
+            .collect()
+    };
+    let seeded = tempfile::tempdir().unwrap();
+    let o = train_grid(seeded.path(), &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s0 = split(seeded.path());
+    let train0 = names(&s0["train"]);
+    assert_eq!(train0.len(), 4, "{s0}");
+    // Held out: two scenes the seeded split trains on.
+    let saved = serde_json::json!({"train": [], "val": [train0[0]], "test": [train0[1]]});
+    let file = seeded.path().join("keep.json");
+    std::fs::write(&file, saved.to_string()).unwrap();
+    let kept = tempfile::tempdir().unwrap();
+    let o = train_grid(
+        kept.path(),
+        &["--epochs", "1", "--split-from", file.to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s1 = split(kept.path());
+    assert_eq!(names(&s1["val"]), [train0[0].clone()]);
+    assert_eq!(names(&s1["test"]), [train0[1].clone()]);
+    let mut expected: Vec<String> = train0[2..]
+        .iter()
+        .chain(&names(&s0["val"]))
+        .chain(&names(&s0["test"]))
+        .cloned()
+        .collect();
+    expected.sort();
+    assert_eq!(names(&s1["train"]), expected);
+
+    // --init-from: its run's split by default; with --split-from another training set, but
+    // the parent's scaler (the units its validation and eval scores are in).
+    let meta = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    };
+    let child = tempfile::tempdir().unwrap();
+    let init = ["--epochs", "1", "--init-from", kept.path().to_str().unwrap()];
+    let o = train_grid(child.path(), &init);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(split(child.path()), s1);
+    let reseeded = tempfile::tempdir().unwrap();
+    let seeded_split = seeded.path().join("split.json");
+    let mut args = init.to_vec();
+    args.extend(["--split-from", seeded_split.to_str().unwrap()]);
+    let o = train_grid(reseeded.path(), &args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(split(reseeded.path()), s0);
+    assert_ne!(
+        meta(seeded.path())["scaler"],
+        meta(kept.path())["scaler"],
+        "the two training sets fit the same scaler: the next check cannot fail"
+    );
+    assert_eq!(meta(reseeded.path())["scaler"], meta(kept.path())["scaler"]);
+
+    let foreign = seeded.path().join("foreign.json");
+    let other = serde_json::json!({"train": [], "val": ["multi/jelly/999"], "test": []});
+    std::fs::write(&foreign, other.to_string()).unwrap();
+    let refused = tempfile::tempdir().unwrap();
+    let o = train_grid(
+        refused.path(),
+        &["--epochs", "1", "--split-from", foreign.to_str().unwrap()],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--split-from") && err.contains("validation"), "{err}");
+}
+
 #[test]
 fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
