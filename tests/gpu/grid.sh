@@ -6,6 +6,9 @@
 # gpu/minflow.xz, docs/cuda.md):
 #
 #   tests/gpu/grid.sh data                    # simulate: 60 multi + 40 fluid scenes, seed 1
+#   tests/gpu/grid.sh extra A..B              # more multi scenes, ids A..B of seed 1, into
+#                                             # $DATA/multi-extra (training only: train with
+#                                             # --split-from, or --init-from a seed-1 run)
 #   tests/gpu/grid.sh train NAME CORE MIN [FLAGS...]  # train runs/NAME (--max-minutes MIN)
 #   tests/gpu/grid.sh start NAME CORE MIN [FLAGS...]  # the same in the background (setsid),
 #                                             # on GPU $GPU: several runs, one per GPU
@@ -14,7 +17,8 @@
 #   tests/gpu/grid.sh pack DEST NAME...       # run folders (no checkpoints), logs, tables -> DEST
 #
 # Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data),
-# GPU (the device ordinal of train/start/eval, default 0), EVAL_OUT (eval's folder name).
+# GPU (the device ordinal of train/start/eval, default 0), EVAL_OUT (eval's folder name),
+# EXTRA (non-empty: train also on $DATA/multi-extra).
 set -uo pipefail
 OUT=${OUT:-/tmp/minflow-gpu}
 DATA=${DATA:-/tmp/data}
@@ -33,10 +37,14 @@ data)
             2>&1 | tail -n 3 | tee -a "$OUT/data.log"
     done
     ;;
+extra)
+    "$BIN" simulate --family multi --seed 1 --scenes "$2" --jobs "$(nproc)" --out "$DATA/multi-extra" \
+        2>&1 | tail -n 3 | tee -a "$OUT/data.log"
+    ;;
 train)
     name=$2 core=$3 minutes=$4
     shift 4
-    "$BIN" train --device "cuda:${GPU:-0}" --data "$DATA"/multi "$DATA"/fluid --model "$core" --out "runs/$name" \
+    "$BIN" train --device "cuda:${GPU:-0}" --data "$DATA"/multi "$DATA"/fluid ${EXTRA:+"$DATA"/multi-extra} --model "$core" --out "runs/$name" \
         --epochs 1000 --patience 0 --max-minutes "$minutes" "$@" >"$OUT/train-$name.log" 2>&1
     echo "train $name: exit $?"
     tail -n 4 "$OUT/train-$name.log"
