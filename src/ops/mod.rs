@@ -204,13 +204,16 @@ pub trait NetOps: Backend {
     /// `[C_out, C_in, 3, 3]` (burn's `Conv2d` layout), `bias` `[C_out]` -> `[B, H, W, C_out]`.
     /// None where the backend has no such kernel for these operands, and always on backends
     /// that track gradients; the grid model then runs im2col and a product. The CPU computes
-    /// it by Winograd's F(2x2, 3x3) (Lavin & Gray 2016; `cpu/winograd.rs`).
+    /// it by Winograd's F(4x4, 3x3) (Lavin & Gray 2016; `cpu/winograd.rs`). With `silu`, the
+    /// result is `x sigmoid(x)` of the convolution, applied as it is written (the U-Net's
+    /// convolutions are all followed by SiLU but its last).
     fn conv3x3_forward(
         parts: &[FloatTensor<Self>],
         weight: &FloatTensor<Self>,
         bias: Option<&FloatTensor<Self>>,
+        silu: bool,
     ) -> Option<FloatTensor<Self>> {
-        let _ = (parts, weight, bias);
+        let _ = (parts, weight, bias, silu);
         None
     }
 

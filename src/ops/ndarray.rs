@@ -80,8 +80,9 @@ impl NetOps for NdArray<f32> {
         parts: &[FloatTensor<Self>],
         weight: &FloatTensor<Self>,
         bias: Option<&FloatTensor<Self>>,
+        silu: bool,
     ) -> Option<FloatTensor<Self>> {
-        cpu::winograd::conv3x3(parts, weight, bias)
+        cpu::winograd::conv3x3(parts, weight, bias, silu)
     }
 
     fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -9,7 +9,7 @@
 //! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`NetOps::linear_forward`]): the nine shifted copies of the zero-padded
 //! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
 //! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
-//! For inference the CPU runs the 3x3 convolutions by Winograd F(2x2, 3x3) instead
+//! For inference the CPU runs the 3x3 convolutions by Winograd F(4x4, 3x3) instead
 //! ([`NetOps::conv3x3_forward`]).
 //! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
 //! other): burn's convolution, im2col by a row gather, im2col by nine shifted slices.
@@ -181,7 +181,8 @@ impl<B: NetOps> ConvBlock<B> {
     /// The block on the channel concatenation of `parts` (see [`conv_parts`]).
     fn forward_parts(&self, parts: Vec<Tensor<B, 4>>) -> Tensor<B, 4> {
         let k = self.kernel;
-        silu(conv(&self.b, silu(conv_parts(&self.a, parts, k)), k))
+        let a = conv_silu_parts(&self.a, parts, k);
+        conv_silu_parts(&self.b, vec![a], k)
     }
 }
 
@@ -239,6 +240,48 @@ fn conv_shift<B: NetOps>(conv: &Conv2d<B>, x: Tensor<B, 4>) -> Tensor<B, 4> {
     product(rows, im2col_weight(conv, 0, c), bias).reshape([b, h, w, c_out])
 }
 
+/// `silu(conv_parts(conv, parts, kernel))`, the SiLU applied as the convolution writes its
+/// output where the backend's inference kernel does that ([`NetOps::conv3x3_forward`]: the
+/// CPU's Winograd output transform, which saves a pass over the output).
+///
+/// # Shapes
+/// As [`conv_parts`].
+pub fn conv_silu_parts<B: NetOps>(
+    conv: &Conv2d<B>,
+    parts: Vec<Tensor<B, 4>>,
+    kernel: ConvKernel,
+) -> Tensor<B, 4> {
+    if kernel.resolve::<B>() == ConvKernel::Gather && B::NATIVE_CONV_OPS {
+        if let Some(y) = conv3x3_forward(conv, &parts, true) {
+            return y;
+        }
+    }
+    silu(conv_parts(conv, parts, kernel))
+}
+
+/// [`NetOps::conv3x3_forward`] of `conv` (then SiLU when `silu`); None for another kernel
+/// size or where the backend has no such kernel.
+fn conv3x3_forward<B: NetOps>(
+    conv: &Conv2d<B>,
+    parts: &[Tensor<B, 4>],
+    silu: bool,
+) -> Option<Tensor<B, 4>> {
+    if conv.weight.dims()[2] != 3 {
+        return None;
+    }
+    let inputs: Vec<_> = parts
+        .iter()
+        .map(|x| x.clone().into_primitive().tensor())
+        .collect();
+    let bias = conv
+        .bias
+        .as_ref()
+        .map(|p| p.val().into_primitive().tensor());
+    let weight = conv.weight.val().into_primitive().tensor();
+    let y = B::conv3x3_forward(&inputs, &weight, bias.as_ref(), silu)?;
+    Some(Tensor::from_primitive(TensorPrimitive::Float(y)))
+}
+
 /// [`conv`] of the channel concatenation of `parts` (the U-Net's `[upsampled, skip]`). With
 /// [`ConvKernel::Gather`] the concatenation is never built: each part is multiplied by its
 /// slice of the weight and the products are summed (burn-ndarray's concatenation along the
@@ -293,7 +336,7 @@ pub fn conv_parts<B: NetOps>(
 
 /// [`ConvKernel::Gather`] on a backend with native im2col ([`NetOps::NATIVE_CONV_OPS`]):
 /// a 3x3 kernel through [`NetOps::conv3x3_forward`] where the backend has it (the CPU's
-/// inference: Winograd F(2x2, 3x3)); otherwise each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
+/// inference: Winograd F(4x4, 3x3)); otherwise each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
 /// `[C_out, C_in, k, k]` flattens, so the weight matrix is a transposed view of it) and one
 /// product, the products summed.
 fn conv_parts_native<B: NetOps>(
@@ -301,19 +344,8 @@ fn conv_parts_native<B: NetOps>(
     parts: Vec<Tensor<B, 4>>,
     [b, h, w, c_out, c_in, k]: [usize; 6],
 ) -> Tensor<B, 4> {
-    if k == 3 {
-        let inputs: Vec<_> = parts
-            .iter()
-            .map(|x| x.clone().into_primitive().tensor())
-            .collect();
-        let bias = conv
-            .bias
-            .as_ref()
-            .map(|p| p.val().into_primitive().tensor());
-        let weight = conv.weight.val().into_primitive().tensor();
-        if let Some(y) = B::conv3x3_forward(&inputs, &weight, bias.as_ref()) {
-            return Tensor::from_primitive(TensorPrimitive::Float(y));
-        }
+    if let Some(y) = conv3x3_forward(conv, &parts, false) {
+        return y;
     }
     let weight = conv.weight.val().reshape([c_out, c_in * k * k]);
     let mut bias = conv.bias.as_ref().map(|p| p.val());

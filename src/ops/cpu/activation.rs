@@ -102,7 +102,7 @@ pub(crate) fn elu_backward(out: &CpuTensor, grad: CpuTensor) -> Result<CpuTensor
 
 /// `x sigmoid(x)` through the vectorisable `expm1`: `sigmoid(x) = 1 / (2 + expm1(-x))`.
 #[inline(always)]
-fn sigmoid1(v: f32) -> f32 {
+pub(crate) fn sigmoid1(v: f32) -> f32 {
     1.0 / (2.0 + expm1(-v))
 }
 

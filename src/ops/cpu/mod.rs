@@ -18,7 +18,7 @@
 //! - `adam.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.
 //! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather.
-//! - `winograd.rs`: the forward of the grid model's 3x3 convolutions by Winograd F(2x2, 3x3)
+//! - `winograd.rs`: the forward of the grid model's 3x3 convolutions by Winograd F(4x4, 3x3)
 //!   (inference).
 //!
 //! The kernels take operands with any strides (transposes are free) and return row-major

@@ -1,21 +1,26 @@
 //! The forward of the U-Net's 3x3 same-padding convolutions on the CPU by Winograd's minimal
-//! filtering F(2x2, 3x3) (Lavin & Gray 2016, "Fast Algorithms for Convolutional Neural
-//! Networks", arXiv 1509.09308, section 4): each 2x2 block of outputs from its 4x4 input
-//! tile with 16 multiplies per channel pair instead of im2col's 36, as 16 independent
+//! filtering F(4x4, 3x3) (Lavin & Gray 2016, "Fast Algorithms for Convolutional Neural
+//! Networks", arXiv 1509.09308, sections 4 and 5): each 4x4 block of outputs from its 6x6
+//! input tile with 36 multiplies per channel pair instead of im2col's 144, as 36 independent
 //! products `[tiles, C_in] x [C_in, C_out]`. Inference only (`eval`, `node`): training keeps
 //! im2col, whose backward is the col2im of `conv.rs`.
 //!
 //! Why: im2col + gemm was 60 % of the full-size grid model's step on 2 cores (perf over
 //! `minflow eval`: gemm 43 %, im2col 17 %), and the step missed the 16 ms frame interval.
+//! F(2x2, 3x3) (16 multiplies per 2x2 block) cut that to 0.76x the CPU time; F(4x4, 3x3)
+//! multiplies 1.78x less again and expands the input 2.25x instead of 4x (docs/grid.md, "CPU
+//! speed").
 //!
-//! With `d` the 4x4 input tile (zeros outside the grid), `g` the 3x3 kernel and
-//! `B^T = [[1,0,-1,0],[0,1,1,0],[0,-1,1,0],[0,1,0,-1]]`, `G = [[1,0,0],[½,½,½],[½,-½,½],[0,0,1]]`,
-//! `A^T = [[1,1,1,0],[0,1,-1,-1]]`, the 2x2 output block is
-//! `A^T [ Σ_c (G g_c G^T) ⊙ (B^T d_c B) ] A`, the sum over input channels being the 16
-//! products. The result equals the direct convolution up to rounding (`model_grid` tests it
-//! against burn's `Conv2d`).
+//! With `d` the 6x6 input tile (zeros outside the grid) and `g` the 3x3 kernel, the 4x4 output
+//! block is `A^T [ Σ_c (G g_c G^T) ⊙ (B^T d_c B) ] A`, the sum over input channels being the
+//! 36 products, with Lavin & Gray's interpolation points 0, ±1, ±2 (their equation 9's
+//! matrices, written out in [`transform_weight`], [`input_tile`] and [`output_tile`]). Grids
+//! that are not a multiple of 4 get partial tiles at their far edges. The result equals the
+//! direct convolution up to rounding, which these points make ~10x larger than F(2x2, 3x3)'s
+//! (`model_grid` tests it against burn's `Conv2d`).
 
 use std::borrow::Cow;
+use std::mem::MaybeUninit;
 use std::sync::{Arc, Mutex};
 
 use burn::backend::ndarray::NdArrayTensor;
@@ -23,35 +28,43 @@ use burn::backend::ndarray::NdArrayTensor;
 use ndarray::{ArrayView2, ShapeBuilder};
 use rayon::prelude::*;
 
+use super::activation::sigmoid1;
 use super::gemm::gemm_serial;
 use super::{dense, slice1, tensor, CpuTensor, PrimitiveInfo, PARALLEL_WORK};
 
-/// Points of the 4x4 transformed tile.
-const POINTS: usize = 16;
+/// Outputs per tile side (the m of F(m x m, 3x3)).
+const TILE: usize = 4;
+
+/// Input pixels per tile side, `TILE + 2`.
+const ALPHA: usize = TILE + 2;
+
+/// Points of the 6x6 transformed tile.
+const POINTS: usize = ALPHA * ALPHA;
 
 /// Channels handled in step by the tile transforms (one AVX-512 register, two AVX2 ones).
 const LANES: usize = 16;
 
 /// `conv(concat(parts, channels), weight) + bias` for a 3x3 kernel with same padding,
-/// channels last.
+/// channels last, then SiLU (`x sigmoid(x)`, as `activation.rs` computes it) when `silu`.
 ///
 /// # Shapes
-/// - `parts`: `[B, H, W, C_p]` each, with `H` and `W` even and `Σ C_p = C_in`
+/// - `parts`: `[B, H, W, C_p]` each, with `Σ C_p = C_in`
 /// - `weight`: `[C_out, C_in, 3, 3]` (burn's `Conv2d` layout), `bias`: `[C_out]`
 /// - returns `[B, H, W, C_out]`
 ///
-/// None for operands it does not take (not f32, other ranks or sizes, odd `H` or `W`); the
-/// caller then runs im2col.
+/// None for operands it does not take (not f32, other ranks or sizes); the caller then runs
+/// im2col.
 pub(crate) fn conv3x3(
     parts: &[CpuTensor],
     weight: &CpuTensor,
     bias: Option<&CpuTensor>,
+    silu: bool,
 ) -> Option<CpuTensor> {
     let parts: Vec<(Cow<'_, [f32]>, Vec<usize>)> =
         parts.iter().map(dense).collect::<Option<_>>()?;
     let (_, first) = parts.first()?;
     let [b, h, w, _] = <[usize; 4]>::try_from(first.as_slice()).ok()?;
-    if h % 2 != 0 || w % 2 != 0 || b * h * w == 0 {
+    if b * h * w == 0 {
         return None;
     }
     let mut offsets = Vec::with_capacity(parts.len());
@@ -98,7 +111,7 @@ pub(crate) fn conv3x3(
         transform_input(&inputs, size, v);
         let m = sized(m, POINTS * size.tiles() * c_out);
         products(v, &u, size, m);
-        transform_output(m, bias.as_deref(), size)
+        transform_output(m, bias.as_deref(), silu, size)
     });
     Some(tensor(y, &[b, h, w, c_out]))
 }
@@ -131,8 +144,14 @@ struct Size {
 }
 
 impl Size {
+    /// Tile rows and columns: `ceil(H / 4)`, `ceil(W / 4)`.
+    fn tile_grid(self) -> (usize, usize) {
+        (self.h.div_ceil(TILE), self.w.div_ceil(TILE))
+    }
+
     fn tiles(self) -> usize {
-        self.b * (self.h / 2) * (self.w / 2)
+        let (th, tw) = self.tile_grid();
+        self.b * th * tw
     }
 }
 
@@ -198,31 +217,33 @@ fn transformed_weight(weight: &CpuTensor, c_in: usize, c_out: usize) -> Option<A
     Some(u)
 }
 
-/// `U = G g G^T` for every (input, output) channel pair: `[16, C_in, C_out]`, point
-/// `4 a + b` of the transformed kernel first.
+/// `U = G g G^T` for every (input, output) channel pair: `[36, C_in, C_out]`, point
+/// `6 a + b` of the transformed kernel first. `G` is Lavin & Gray's for F(4, 3):
+/// rows `[1/4, 0, 0]`, `-[1, 1, 1]/6`, `-[1, -1, 1]/6`, `[1/24, 1/12, 1/6]`,
+/// `[1/24, -1/12, 1/6]`, `[0, 0, 1]`.
 fn transform_weight(weight: &[f32], c_in: usize, c_out: usize) -> Vec<f32> {
+    /// `G x` for a kernel column or row `x`.
+    fn g_times(x: [f32; 3]) -> [f32; ALPHA] {
+        let [g0, g1, g2] = x;
+        [
+            g0 / 4.0,
+            -(g0 + g1 + g2) / 6.0,
+            -(g0 - g1 + g2) / 6.0,
+            g0 / 24.0 + g1 / 12.0 + g2 / 6.0,
+            g0 / 24.0 - g1 / 12.0 + g2 / 6.0,
+            g2,
+        ]
+    }
     let mut u = vec![0f32; POINTS * c_in * c_out];
     for i in 0..c_in {
         for o in 0..c_out {
             let g = &weight[(o * c_in + i) * 9..][..9];
-            // G g: 4 rows of 3.
-            let mut gg = [[0f32; 3]; 4];
-            for x in 0..3 {
-                let (g0, g1, g2) = (g[x], g[3 + x], g[6 + x]);
-                gg[0][x] = g0;
-                gg[1][x] = 0.5 * (g0 + g1 + g2);
-                gg[2][x] = 0.5 * (g0 - g1 + g2);
-                gg[3][x] = g2;
-            }
-            for (a, r) in gg.iter().enumerate() {
-                let row = [
-                    r[0],
-                    0.5 * (r[0] + r[1] + r[2]),
-                    0.5 * (r[0] - r[1] + r[2]),
-                    r[2],
-                ];
+            // G g: 6 rows of 3 (one column of g at a time).
+            let columns: [[f32; ALPHA]; 3] = std::array::from_fn(|x| g_times([g[x], g[3 + x], g[6 + x]]));
+            for a in 0..ALPHA {
+                let row = g_times([columns[0][a], columns[1][a], columns[2][a]]);
                 for (bb, value) in row.into_iter().enumerate() {
-                    u[((4 * a + bb) * c_in + i) * c_out + o] = value;
+                    u[((ALPHA * a + bb) * c_in + i) * c_out + o] = value;
                 }
             }
         }
@@ -230,11 +251,11 @@ fn transform_weight(weight: &[f32], c_in: usize, c_out: usize) -> Vec<f32> {
     u
 }
 
-/// `V = B^T d B` of every tile and input channel: `[tiles, 16, C_in]`, tiles in row-major
-/// order of `[B, H/2, W/2]`; one task per row of tiles.
+/// `V = B^T d B` of every tile and input channel: `[tiles, 36, C_in]`, tiles in row-major
+/// order of `[B, ceil(H/4), ceil(W/4)]`; one task per row of tiles.
 fn transform_input(parts: &[Part<'_>], size: Size, v: &mut [f32]) {
     let Size { h, w, c_in, .. } = size;
-    let (th, tw) = (h / 2, w / 2);
+    let (th, tw) = size.tile_grid();
     let widest = parts.iter().map(|p| p.channels).max().unwrap_or(0);
     let zeros = vec![0f32; widest];
     let parallel = v.len() * 4 >= PARALLEL_WORK;
@@ -245,10 +266,10 @@ fn transform_input(parts: &[Part<'_>], size: Size, v: &mut [f32]) {
         for (tx, tile) in dst.chunks_exact_mut(POINTS * c_in).enumerate() {
             for part in parts {
                 let c = part.channels;
-                // The 16 input pixels of the tile, row by row (zeros outside the grid).
+                // The 36 input pixels of the tile, row by row (zeros outside the grid).
                 let d: [&[f32]; POINTS] = std::array::from_fn(|s| {
-                    let y = (2 * ty + s / 4) as isize - 1;
-                    let x = (2 * tx + s % 4) as isize - 1;
+                    let y = (TILE * ty + s / ALPHA) as isize - 1;
+                    let x = (TILE * tx + s % ALPHA) as isize - 1;
                     if y < 0 || x < 0 || y >= h as isize || x >= w as isize {
                         &zeros[..c]
                     } else {
@@ -298,68 +319,96 @@ fn store(dst: &mut [f32], values: &[f32; LANES]) {
     }
 }
 
-/// `B^T d B` on `LANES` channels at once; `d` and the result row-major 4x4.
+/// `B^T x` for one column (or row) `x` of a tile, `LANES` channels at a time. Lavin & Gray's
+/// `B^T` for F(4, 3): rows `[4, 0, -5, 0, 1, 0]`, `[0, -4, -4, 1, 1, 0]`,
+/// `[0, 4, -4, -1, 1, 0]`, `[0, -2, -1, 2, 1, 0]`, `[0, 2, -1, -2, 1, 0]`,
+/// `[0, 4, 0, -5, 0, 1]`.
+#[inline(always)]
+fn bt_times(x: [f32; ALPHA]) -> [f32; ALPHA] {
+    let [d0, d1, d2, d3, d4, d5] = x;
+    let (a, b) = (d4 - 4.0 * d2, d3 - 4.0 * d1);
+    let (c, e) = (d4 - d2, 2.0 * (d3 - d1));
+    [
+        4.0 * d0 - 5.0 * d2 + d4,
+        a + b,
+        a - b,
+        c + e,
+        c - e,
+        4.0 * d1 - 5.0 * d3 + d5,
+    ]
+}
+
+/// `B^T d B` on `LANES` channels at once; `d` and the result row-major 6x6.
 #[inline(always)]
 fn input_tile(d: &[[f32; LANES]; POINTS], v: &mut [[f32; LANES]; POINTS]) {
     let mut t = [[0f32; LANES]; POINTS];
-    for j in 0..4 {
+    for j in 0..ALPHA {
         for l in 0..LANES {
-            let (d0, d1, d2, d3) = (d[j][l], d[4 + j][l], d[8 + j][l], d[12 + j][l]);
-            t[j][l] = d0 - d2;
-            t[4 + j][l] = d1 + d2;
-            t[8 + j][l] = d2 - d1;
-            t[12 + j][l] = d1 - d3;
+            let col = bt_times(std::array::from_fn(|r| d[ALPHA * r + j][l]));
+            for (r, value) in col.into_iter().enumerate() {
+                t[ALPHA * r + j][l] = value;
+            }
         }
     }
-    for i in 0..4 {
+    for i in 0..ALPHA {
         for l in 0..LANES {
-            let (t0, t1, t2, t3) = (
-                t[4 * i][l],
-                t[4 * i + 1][l],
-                t[4 * i + 2][l],
-                t[4 * i + 3][l],
-            );
-            v[4 * i][l] = t0 - t2;
-            v[4 * i + 1][l] = t1 + t2;
-            v[4 * i + 2][l] = t2 - t1;
-            v[4 * i + 3][l] = t1 - t3;
+            let row = bt_times(std::array::from_fn(|k| t[ALPHA * i + k][l]));
+            for (k, value) in row.into_iter().enumerate() {
+                v[ALPHA * i + k][l] = value;
+            }
         }
     }
 }
 
-/// `M_s = V_s U_s` for the 16 points `s`: `[16, tiles, C_out]`; one task per point, each a
+/// `M_s = V_s U_s` for the 36 points `s`: `[36, tiles, C_out]`; one task per point, each a
 /// single-threaded product.
 fn products(v: &[f32], u: &[f32], size: Size, m: &mut [f32]) {
     let Size { c_in, c_out, .. } = size;
     let tiles = size.tiles();
     let product = |s: usize, dst: &mut [f32]| {
-        // Point s of every tile: rows 16 C_in apart.
+        // Point s of every tile: rows 36 C_in apart.
         let vs = ArrayView2::from_shape((tiles, c_in).strides((POINTS * c_in, 1)), &v[s * c_in..])
-            .expect("V holds every tile's 16 points");
+            .expect("V holds every tile's 36 points");
         let us = ArrayView2::from_shape((c_in, c_out), &u[s * c_in * c_out..][..c_in * c_out])
-            .expect("U holds 16 C_in x C_out matrices");
+            .expect("U holds 36 C_in x C_out matrices");
         gemm_serial(dst, &vs, &us);
     };
     let parallel = tiles * c_in * c_out * POINTS >= PARALLEL_WORK;
     for_chunks(m, tiles * c_out, parallel, product);
 }
 
-/// `A^T M A + bias` of every tile into the row-major `[B, H, W, C_out]` output; one task per
-/// row of tiles (two image rows).
-fn transform_output(m: &[f32], bias: Option<&[f32]>, size: Size) -> Vec<f32> {
+/// `A^T M A + bias` of every tile (then SiLU when `silu`) into the row-major
+/// `[B, H, W, C_out]` output; one task per row of tiles (four image rows, fewer in a partial
+/// last row).
+fn transform_output(m: &[f32], bias: Option<&[f32]>, silu: bool, size: Size) -> Vec<f32> {
     let Size { b, h, w, c_out, .. } = size;
-    let tw = w / 2;
+    let (th, tw) = size.tile_grid();
     let plane = size.tiles() * c_out;
     let zeros = vec![0f32; c_out];
     let bias = bias.unwrap_or(&zeros);
-    let mut y = vec![0f32; b * h * w * c_out];
-    let parallel = y.len() * 4 >= PARALLEL_WORK;
-    for_chunks(&mut y, 2 * w * c_out, parallel, |row, dst| {
+    let len = b * h * w * c_out;
+    let mut y: Vec<f32> = Vec::with_capacity(len);
+    let parallel = len * 4 >= PARALLEL_WORK;
+    // One chunk per row of tiles: up to four image rows.
+    let row_len = w * c_out;
+    let rows_of = |ty: usize| TILE.min(h - ty * TILE);
+    let mut chunks: Vec<(usize, &mut [MaybeUninit<f32>])> = Vec::with_capacity(b * th);
+    let mut rest = &mut y.spare_capacity_mut()[..len];
+    for bb in 0..b {
+        for ty in 0..th {
+            let (chunk, tail) = rest.split_at_mut(rows_of(ty) * row_len);
+            chunks.push((bb * th + ty, chunk));
+            rest = tail;
+        }
+    }
+    let run = |(row, dst): (usize, &mut [MaybeUninit<f32>])| {
+        let rows = dst.len() / row_len;
         let mut lanes = [[0f32; LANES]; POINTS];
-        let mut out = [[0f32; LANES]; 4];
+        let mut out = [[0f32; LANES]; TILE * TILE];
         let mut shift = [0f32; LANES];
         for tx in 0..tw {
             let tile = row * tw + tx;
+            let cols = TILE.min(w - tx * TILE);
             let mut start = 0;
             while start < c_out {
                 let n = LANES.min(c_out - start);
@@ -368,42 +417,67 @@ fn transform_output(m: &[f32], bias: Option<&[f32]>, size: Size) -> Vec<f32> {
                 }
                 load(&bias[start..start + n], &mut shift);
                 output_tile(&lanes, &mut out);
-                for (q, values) in out.iter_mut().enumerate() {
-                    let (r, x) = (q / 2, 2 * tx + q % 2);
-                    let at = (r * w + x) * c_out + start;
-                    for (v, b) in values.iter_mut().zip(&shift) {
-                        *v += b;
+                for r in 0..rows {
+                    for q in 0..cols {
+                        let values = &mut out[TILE * r + q];
+                        let at = (r * w + TILE * tx + q) * c_out + start;
+                        for (v, b) in values.iter_mut().zip(&shift) {
+                            *v += b;
+                        }
+                        if silu {
+                            for v in values.iter_mut() {
+                                *v *= sigmoid1(*v);
+                            }
+                        }
+                        for (d, v) in dst[at..at + n].iter_mut().zip(values.iter()) {
+                            d.write(*v);
+                        }
                     }
-                    store(&mut dst[at..at + n], values);
                 }
                 start += n;
             }
         }
-    });
+    };
+    if parallel {
+        chunks.into_par_iter().for_each(run);
+    } else {
+        chunks.into_iter().for_each(run);
+    }
+    // SAFETY: the chunks cover the first `len` elements, and every tile wrote each of its
+    // image rows' columns (`cols` of 4 at the right edge) and channels.
+    unsafe { y.set_len(len) };
     y
 }
 
-/// `A^T m A` on `LANES` channels at once: the 2x2 outputs, row-major.
+/// `A^T x` for one column (or row) `x` of a transformed tile. Lavin & Gray's `A^T` for
+/// F(4, 3): rows `[1, 1, 1, 1, 1, 0]`, `[0, 1, -1, 2, -2, 0]`, `[0, 1, 1, 4, 4, 0]`,
+/// `[0, 1, -1, 8, -8, 1]`.
 #[inline(always)]
-fn output_tile(m: &[[f32; LANES]; POINTS], y: &mut [[f32; LANES]; 4]) {
-    let mut s = [[0f32; LANES]; 8];
-    for j in 0..4 {
+fn at_times(x: [f32; ALPHA]) -> [f32; TILE] {
+    let [m0, m1, m2, m3, m4, m5] = x;
+    let (p, q) = (m1 + m2, m3 + m4);
+    let (r, t) = (m1 - m2, m3 - m4);
+    [m0 + p + q, r + 2.0 * t, p + 4.0 * q, r + 8.0 * t + m5]
+}
+
+/// `A^T m A` on `LANES` channels at once: the 4x4 outputs, row-major.
+#[inline(always)]
+fn output_tile(m: &[[f32; LANES]; POINTS], y: &mut [[f32; LANES]; TILE * TILE]) {
+    let mut s = [[0f32; LANES]; TILE * ALPHA];
+    for j in 0..ALPHA {
         for l in 0..LANES {
-            let (m0, m1, m2, m3) = (m[j][l], m[4 + j][l], m[8 + j][l], m[12 + j][l]);
-            s[j][l] = m0 + m1 + m2;
-            s[4 + j][l] = m1 - m2 - m3;
+            let col = at_times(std::array::from_fn(|r| m[ALPHA * r + j][l]));
+            for (r, value) in col.into_iter().enumerate() {
+                s[ALPHA * r + j][l] = value;
+            }
         }
     }
-    for r in 0..2 {
+    for r in 0..TILE {
         for l in 0..LANES {
-            let (s0, s1, s2, s3) = (
-                s[4 * r][l],
-                s[4 * r + 1][l],
-                s[4 * r + 2][l],
-                s[4 * r + 3][l],
-            );
-            y[2 * r][l] = s0 + s1 + s2;
-            y[2 * r + 1][l] = s1 - s2 - s3;
+            let row = at_times(std::array::from_fn(|k| s[ALPHA * r + k][l]));
+            for (q, value) in row.into_iter().enumerate() {
+                y[TILE * r + q][l] = value;
+            }
         }
     }
 }
