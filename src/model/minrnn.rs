@@ -14,7 +14,7 @@ use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::backend::Backend;
-use burn::tensor::Tensor;
+use burn::tensor::{Tensor, TensorPrimitive};
 
 use crate::ops::mingru::mingru_update;
 use crate::ops::scan::scan_with_state;
@@ -195,6 +195,15 @@ impl<B: NetOps> MinLstm<B> {
     /// One step. Shapes as [`MinGru::step`].
     pub fn step(&self, x: Tensor<B, 2>, h: Option<Tensor<B, 2>>) -> (Tensor<B, 2>, Tensor<B, 2>) {
         let hfi = linear(&self.to_hidden_and_gates, x);
+        // One pass where the backend has it (the CPU's inference).
+        let fused = B::minlstm_update(
+            &hfi.clone().into_primitive().tensor(),
+            h.clone().map(|h| h.into_primitive().tensor()).as_ref(),
+        );
+        if let Some(next) = fused {
+            let next = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(next));
+            return (linear(&self.to_out, next.clone()), next);
+        }
         let n = self.hidden;
         let tilde = g(hfi.clone().narrow(1, 0, n));
         let (f, i) = normalized_gates(hfi.clone().narrow(1, n, n), hfi.narrow(1, 2 * n, n));

@@ -217,6 +217,19 @@ pub trait NetOps: Backend {
         None
     }
 
+    /// The minLSTM's step update in one pass where the backend has it: `hfi` `[M, 3H]` (`h~`,
+    /// then the forget and input gates' pre-activations `a`, `b`), `h` `[M, H]` ->
+    /// `f' h + i' g(h~)` `[M, H]`, `(f', i') = (f, i) / (f + i)` (Feng et al. 2024). None
+    /// elsewhere, and always on backends that track gradients: `MinLstm::step` then composes
+    /// it from burn's ops. The CPU's is `cpu/mingru.rs`.
+    fn minlstm_update(
+        hfi: &FloatTensor<Self>,
+        h: Option<&FloatTensor<Self>>,
+    ) -> Option<FloatTensor<Self>> {
+        let _ = (hfi, h);
+        None
+    }
+
     /// The minGRU's step update ([`mingru`]): `hg` `[M, 2H]` (`h~`, then the gate's
     /// pre-activation), `h` `[M, H]` -> `(1 - z) h + z g(h~)`, `[M, H]`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {

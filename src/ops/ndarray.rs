@@ -89,6 +89,13 @@ impl NetOps for NdArray<f32> {
         cpu::activation::silu(x)
     }
 
+    fn minlstm_update(
+        hfi: &FloatTensor<Self>,
+        h: Option<&FloatTensor<Self>>,
+    ) -> Option<FloatTensor<Self>> {
+        cpu::mingru::lstm_update(hfi, h)
+    }
+
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
         match cpu::mingru::update(&hg, h.as_ref()) {
             Some(out) => out,
