@@ -15,15 +15,32 @@ fn sigmoid1(x: f32) -> f32 {
     1.0 / (2.0 + expm1(-x))
 }
 
-/// `(1 - z) h + z g(h~)` in one pass: `hg` `[M, 2H]`, `h` `[M, H]` -> `[M, H]`; None when the
-/// inputs are not f32 of those shapes (the caller then composes it).
-pub(crate) fn update(hg: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor> {
-    let (hg, shape) = dense(hg)?;
-    let &[m, two_h] = shape.as_slice() else {
+/// `g(x)`: `x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise (`ops::mingru::g`).
+#[inline(always)]
+fn g1(t: f32) -> f32 {
+    if t >= 0.0 {
+        t + 0.5
+    } else {
+        sigmoid1(t)
+    }
+}
+
+/// The frame both updates share: `pre` `[M, k H]` (the layer's pre-activations) and `h`
+/// `[M, H]` as row-major f32, then `row(pre_row, prev_row, out_row)` for every row (zeros for
+/// `prev_row` without `h`), in parallel over blocks of rows. None when the inputs are not f32
+/// of those shapes.
+fn each_row(
+    pre: &CpuTensor,
+    h: Option<&CpuTensor>,
+    k: usize,
+    row: impl Fn(&[f32], &[f32], &mut [f32]) + Sync,
+) -> Option<CpuTensor> {
+    let (pre, shape) = dense(pre)?;
+    let &[m, width] = shape.as_slice() else {
         return None;
     };
-    let hidden = two_h / 2;
-    if two_h != 2 * hidden {
+    let hidden = width / k;
+    if width != k * hidden || hidden == 0 {
         return None;
     }
     let prev = match h {
@@ -36,22 +53,16 @@ pub(crate) fn update(hg: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor>
         }
         None => None,
     };
+    let zeros = vec![0f32; hidden];
     let mut out = vec![0f32; m * hidden];
     let fill = |r0: usize, dst: &mut [f32]| {
         for (q, dst) in dst.chunks_exact_mut(hidden).enumerate() {
             let r = r0 + q;
-            let row = &hg[r * two_h..(r + 1) * two_h];
-            let (tilde, gate) = row.split_at(hidden);
-            for j in 0..hidden {
-                let t = tilde[j];
-                let g = if t >= 0.0 { t + 0.5 } else { sigmoid1(t) };
-                let z = sigmoid1(gate[j]);
-                let p = prev.as_ref().map_or(0.0, |p| p[r * hidden + j]);
-                dst[j] = p + z * (g - p);
-            }
+            let p = prev.as_ref().map_or(&zeros[..], |p| &p[r * hidden..][..hidden]);
+            row(&pre[r * width..][..width], p, dst);
         }
     };
-    if m > ROWS_PER_TASK && hidden > 0 {
+    if m > ROWS_PER_TASK {
         out.par_chunks_mut(ROWS_PER_TASK * hidden)
             .enumerate()
             .for_each(|(t, dst)| fill(t * ROWS_PER_TASK, dst));
@@ -59,6 +70,18 @@ pub(crate) fn update(hg: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor>
         fill(0, &mut out);
     }
     Some(tensor(out, &[m, hidden]))
+}
+
+/// `(1 - z) h + z g(h~)` in one pass: `hg` `[M, 2H]`, `h` `[M, H]` -> `[M, H]`; None when the
+/// inputs are not f32 of those shapes (the caller then composes it).
+pub(crate) fn update(hg: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor> {
+    each_row(hg, h, 2, |row, prev, dst| {
+        let (tilde, gate) = row.split_at(dst.len());
+        for (j, d) in dst.iter_mut().enumerate() {
+            let (g, z, p) = (g1(tilde[j]), sigmoid1(gate[j]), prev[j]);
+            *d = p + z * (g - p);
+        }
+    })
 }
 
 /// `exp(x)` for `x <= 0` through the vectorisable `expm1` (absolute error ~1e-7).
@@ -77,52 +100,17 @@ fn exp_nonpositive(x: f32) -> f32 {
 /// exponent is positive and `u + v >= 1` (no overflow, no 0 / 0 where both gates underflow,
 /// which the composed form avoids through softplus).
 pub(crate) fn lstm_update(hfi: &CpuTensor, h: Option<&CpuTensor>) -> Option<CpuTensor> {
-    let (hfi, shape) = dense(hfi)?;
-    let &[m, three_h] = shape.as_slice() else {
-        return None;
-    };
-    let hidden = three_h / 3;
-    if three_h != 3 * hidden {
-        return None;
-    }
-    let prev = match h {
-        Some(h) => {
-            let (h, hshape) = dense(h)?;
-            if hshape != [m, hidden] {
-                return None;
-            }
-            Some(h)
+    each_row(hfi, h, 3, |row, prev, dst| {
+        let (tilde, gates) = row.split_at(dst.len());
+        let (a, b) = gates.split_at(dst.len());
+        for (j, d) in dst.iter_mut().enumerate() {
+            let s = a[j].min(b[j]).min(0.0);
+            let e = exp_nonpositive(s);
+            let u = e + exp_nonpositive(s - a[j]);
+            let v = e + exp_nonpositive(s - b[j]);
+            *d = (v * prev[j] + u * g1(tilde[j])) / (u + v);
         }
-        None => None,
-    };
-    let mut out = vec![0f32; m * hidden];
-    let fill = |r0: usize, dst: &mut [f32]| {
-        for (q, dst) in dst.chunks_exact_mut(hidden).enumerate() {
-            let r = r0 + q;
-            let row = &hfi[r * three_h..(r + 1) * three_h];
-            let (tilde, gates) = row.split_at(hidden);
-            let (a, b) = gates.split_at(hidden);
-            for j in 0..hidden {
-                let t = tilde[j];
-                let g = if t >= 0.0 { t + 0.5 } else { sigmoid1(t) };
-                let s = a[j].min(b[j]).min(0.0);
-                let e = exp_nonpositive(s);
-                let u = e + exp_nonpositive(s - a[j]);
-                let v = e + exp_nonpositive(s - b[j]);
-                let inv = 1.0 / (u + v);
-                let p = prev.as_ref().map_or(0.0, |p| p[r * hidden + j]);
-                dst[j] = (v * p + u * g) * inv;
-            }
-        }
-    };
-    if m > ROWS_PER_TASK && hidden > 0 {
-        out.par_chunks_mut(ROWS_PER_TASK * hidden)
-            .enumerate()
-            .for_each(|(t, dst)| fill(t * ROWS_PER_TASK, dst));
-    } else {
-        fill(0, &mut out);
-    }
-    Some(tensor(out, &[m, hidden]))
+    })
 }
 
 #[cfg(test)]
