@@ -73,6 +73,9 @@ pub struct NodeBenchArgs {
     /// Measure in this process only (the model's step and `--batch`), without starting nodes.
     #[arg(long, conflicts_with_all = ["transports", "foxglove_idle", "frames", "burst"])]
     skip_node: bool,
+    /// Run the `--model` grid models as mirror ensembles (`node --mirror`: twice the work).
+    #[arg(long)]
+    mirror: bool,
     #[command(flatten)]
     device: super::device::DeviceArgs,
 }
@@ -137,12 +140,12 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     for (name, dir) in &runs {
         let step_us = |b: usize| -> anyhow::Result<Vec<f64>> {
             match gpu {
-                None => model_step_us::<NdArray<f32>>(dir, &frames, b, &Default::default()),
+                None => model_step_us::<NdArray<f32>>(dir, &frames, b, args.mirror, &Default::default()),
                 #[cfg(feature = "cuda")]
                 Some(id) => {
                     use super::device::cuda::{device, CudaInfer};
                     let device = device(id, args.device.kernels())?;
-                    model_step_us::<CudaInfer>(dir, &frames, b, &device)
+                    model_step_us::<CudaInfer>(dir, &frames, b, args.mirror, &device)
                 }
                 #[cfg(not(feature = "cuda"))]
                 Some(_) => bail!("built without CUDA"),
@@ -254,9 +257,10 @@ fn model_step_us<B: NetOps>(
     dir: &Path,
     frames: &[ParticleFrame],
     b: usize,
+    mirror: bool,
     device: &B::Device,
 ) -> anyhow::Result<Vec<f64>> {
-    let surrogate = Surrogate::<B>::load(dir, device)?;
+    let surrogate = Surrogate::<B>::load(dir, device)?.with_mirror(mirror);
     let mut state = surrogate.init_state();
     let mut model_us = Vec::new();
     for i in 0..60 {
@@ -313,6 +317,7 @@ fn through_node(
         } else {
             &[]
         })
+        .args(if args.mirror { &["--mirror"][..] } else { &[] })
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()?;

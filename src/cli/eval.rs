@@ -80,6 +80,11 @@ pub struct EvalArgs {
     /// rollout-start (the first seed frame of each rollout, as a node that joined there).
     #[arg(long, value_enum, default_value_t = ReferenceFrom::SceneStart)]
     pub reference_from: ReferenceFrom,
+    /// Step grid models as a mirror ensemble: each frame and its mirror image about the
+    /// box's vertical midline, predictions averaged (test-time augmentation by a symmetry of
+    /// MPM's box; twice the work of a step).
+    #[arg(long)]
+    pub mirror: bool,
     #[command(flatten)]
     pub device: super::device::DeviceArgs,
 }
@@ -166,7 +171,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let device = device.map(|id| (id, args.device.kernels()));
     let mut models: Vec<Box<dyn Predictor>> = Vec::new();
     for (dir, name) in args.models.iter().zip(&names) {
-        models.push(load_model(dir, name, device, args.reference_from)?);
+        models.push(load_model(dir, name, device, args.reference_from, args.mirror)?);
     }
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
@@ -215,15 +220,21 @@ fn load_model(
     name: &str,
     cuda: Option<(usize, crate::ops::Kernels)>,
     reference: ReferenceFrom,
+    mirror: bool,
 ) -> anyhow::Result<Box<dyn Predictor>> {
     Ok(match cuda {
-        None => Box::new(ModelPredictor::load(dir, name)?.with_reference_from(reference)),
+        None => Box::new(
+            ModelPredictor::load(dir, name)?
+                .with_reference_from(reference)
+                .with_mirror(mirror),
+        ),
         #[cfg(feature = "cuda")]
         Some((id, kernels)) => {
             use super::device::cuda::{device, CudaInfer};
             Box::new(
                 ModelPredictor::<CudaInfer>::load_on(dir, name, &device(id, kernels)?)?
-                    .with_reference_from(reference),
+                    .with_reference_from(reference)
+                    .with_mirror(mirror),
             )
         }
         #[cfg(not(feature = "cuda"))]

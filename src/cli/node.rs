@@ -62,6 +62,11 @@ pub struct NodeArgs {
     /// Log the counters every this many seconds.
     #[arg(long, value_parser = super::flags::interval)]
     stats_interval: Option<f64>,
+    /// Step a grid model as a mirror ensemble: each frame and its mirror image about the
+    /// box's vertical midline, predictions averaged (`eval --mirror`; twice the work per
+    /// step, two memory states per scene).
+    #[arg(long)]
+    mirror: bool,
     #[command(flatten)]
     device: super::device::DeviceArgs,
     #[command(flatten)]
@@ -85,7 +90,8 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 /// Loads the model onto `device` of backend `B` and serves until stopped.
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let model = Surrogate::<B>::load(&args.model, &device)
-        .with_context(|| format!("loading the model in {}", args.model.display()))?;
+        .with_context(|| format!("loading the model in {}", args.model.display()))?
+        .with_mirror(args.mirror);
     let foxglove = args
         .foxglove
         .start(&format!("minflow node {}", args.name))?;

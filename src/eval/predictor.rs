@@ -155,6 +155,12 @@ impl<B: NetOps> ModelPredictor<B> {
         Self { reference, ..self }
     }
 
+    /// This predictor as a mirror ensemble ([`Surrogate::with_mirror`], `eval --mirror`).
+    pub fn with_mirror(self, mirror: bool) -> Self {
+        let surrogate = self.surrogate.with_mirror(mirror);
+        Self { surrogate, ..self }
+    }
+
     /// The model (its [`crate::model::store::ModelMeta`] holds the scaler and the config).
     pub fn surrogate(&self) -> &Surrogate<B> {
         &self.surrogate

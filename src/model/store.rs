@@ -249,6 +249,7 @@ pub struct Surrogate<B: Backend> {
     meta: ModelMeta,
     scaling: Scaling,
     device: B::Device,
+    mirror: bool,
 }
 
 /// What a grid model carries between steps: memory, velocity history, reference positions.
@@ -296,7 +297,26 @@ impl<B: NetOps> Surrogate<B> {
             meta,
             scaling,
             device: device.clone(),
+            mirror: false,
         }
+    }
+
+    /// This surrogate as a mirror ensemble (`--mirror`): a grid model steps each frame and
+    /// its mirror image about the box's vertical midline (`x -> 1 - x`, `vx -> -vx`) as two
+    /// batch rows, each with its own state, and predicts the mean of the first row's
+    /// prediction and the second's mirrored back. MPM's box, walls (nodes `< 3` or `> n - 3`:
+    /// free from 2.5 to n - 2.5 cells) and gravity are symmetric under that mirror, so the
+    /// mirrored scene is one the model could have been trained on: test-time augmentation
+    /// by a symmetry of the physics. Twice the work of a step; no effect on a paper model
+    /// (its output is tied to particle index, not position). States made before this was
+    /// switched do not fit: switch it before [`Surrogate::init_state`].
+    pub fn with_mirror(self, mirror: bool) -> Self {
+        Self { mirror, ..self }
+    }
+
+    /// Whether [`Surrogate::with_mirror`] is on (and the model is a grid model).
+    pub fn mirrored(&self) -> bool {
+        self.mirror && matches!(self.net, Net::Grid(_))
     }
 
     /// The model's description.
@@ -351,8 +371,12 @@ impl<B: NetOps> Surrogate<B> {
             )));
         }
         if let NetState::Grid { reference, .. } = &mut state.inner {
+            let (first, b) = match self.mirrored() {
+                true => (with_mirror_rows(first), 2 * b),
+                false => (first.to_vec(), b),
+            };
             let n = first.len() / (4 * b);
-            let frame = super::upload::<B, 3>(first.to_vec(), [b, n, 4], &self.device);
+            let frame = super::upload::<B, 3>(first, [b, n, 4], &self.device);
             *reference = Some(frame.narrow(2, 0, 2));
         }
         Ok(state)
@@ -398,6 +422,20 @@ impl<B: NetOps> Surrogate<B> {
                 let mut out = super::download(out)?;
                 self.meta.scaler.unscale_rows(&mut out, 4);
                 (out, NetState::Paper(layers))
+            }
+            (
+                Net::Grid(model),
+                NetState::Grid {
+                    memory,
+                    history,
+                    reference,
+                },
+            ) if self.mirror => {
+                let (material, dt) = ([material, material].concat(), [dt, dt].concat());
+                let frames = with_mirror_rows(frames);
+                let carry = (memory, history, reference);
+                let (out, inner) = self.grid_step(model, &frames, &material, &dt, carry)?;
+                (mean_of_mirror_rows(&out), inner)
             }
             (
                 Net::Grid(model),
@@ -504,4 +542,28 @@ impl<B: NetOps> Surrogate<B> {
         }
         Ok(frames)
     }
+}
+
+/// Mirrors a physical particle state about the box's vertical midline: `x -> 1 - x`,
+/// `vx -> -vx` (rows of x, y, vx, vy).
+fn mirror_into(rows: &[f32], out: &mut Vec<f32>) {
+    for p in rows.chunks_exact(4) {
+        out.extend_from_slice(&[1.0 - p[0], p[1], -p[2], p[3]]);
+    }
+}
+
+/// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
+fn with_mirror_rows(frames: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * frames.len());
+    out.extend_from_slice(frames);
+    mirror_into(frames, &mut out);
+    out
+}
+
+/// The mean of the first half of `out` (`[2B, N, 4]`) and its second half mirrored back.
+fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
+    let (direct, mirrored) = out.split_at(out.len() / 2);
+    let mut back = Vec::with_capacity(direct.len());
+    mirror_into(mirrored, &mut back);
+    direct.iter().zip(&back).map(|(a, b)| 0.5 * (a + b)).collect()
 }
