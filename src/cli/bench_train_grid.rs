@@ -86,6 +86,7 @@ where
                 steps: p,
                 teacher: 1,
                 noise: 0.0,
+                mirror: false,
                 seed: 0,
                 patience: 0,
                 val_starts: 1,

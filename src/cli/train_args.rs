@@ -248,6 +248,11 @@ pub struct GridArgs {
     /// standard deviation.
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative_f32)]
     pub noise: f32,
+    /// Train on each sample or, with probability 1/2, its mirror image about the box's
+    /// vertical midline (x -> 1 - x, vx -> -vx): a symmetry of MPM's box, walls and gravity,
+    /// so twice the scenes.
+    #[arg(long)]
+    pub mirror: bool,
     /// Gradient-norm clipping threshold (0: off).
     #[arg(long, default_value_t = 1.0, value_parser = super::flags::non_negative_f32)]
     pub clip: f32,
@@ -331,6 +336,7 @@ impl TrainArgs {
             steps: g.rollout_steps,
             teacher: g.teacher_steps,
             noise: g.noise,
+            mirror: g.mirror,
             seed: self.seed,
             patience: self.patience,
             val_starts: g.val_starts,

@@ -8,7 +8,7 @@
 //! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
 //! ([`GridModel`]), are served by one [`Surrogate`].
 
-use super::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use super::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
 use super::{LayerState, Model, ModelConfig, Scaling};
 use crate::data::Scaler;
 use crate::ops::NetOps;
@@ -544,26 +544,19 @@ impl<B: NetOps> Surrogate<B> {
     }
 }
 
-/// Mirrors a physical particle state about the box's vertical midline: `x -> 1 - x`,
-/// `vx -> -vx` (rows of x, y, vx, vy).
-fn mirror_into(rows: &[f32], out: &mut Vec<f32>) {
-    for p in rows.chunks_exact(4) {
-        out.extend_from_slice(&[1.0 - p[0], p[1], -p[2], p[3]]);
-    }
-}
-
 /// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
 fn with_mirror_rows(frames: &[f32]) -> Vec<f32> {
     let mut out = Vec::with_capacity(2 * frames.len());
     out.extend_from_slice(frames);
-    mirror_into(frames, &mut out);
+    out.extend_from_slice(frames);
+    mirror_rows(&mut out[frames.len()..], 4);
     out
 }
 
 /// The mean of the first half of `out` (`[2B, N, 4]`) and its second half mirrored back.
 fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
     let (direct, mirrored) = out.split_at(out.len() / 2);
-    let mut back = Vec::with_capacity(direct.len());
-    mirror_into(mirrored, &mut back);
+    let mut back = mirrored.to_vec();
+    mirror_rows(&mut back, 4);
     direct.iter().zip(&back).map(|(a, b)| 0.5 * (a + b)).collect()
 }

@@ -29,11 +29,13 @@ use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{Adam, AdamConfig, GradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Distribution, ElementConversion, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use super::{checkpoint, EpochRecord, Observer, TrainError};
 use crate::data::{Batch, Scaler, Trajectory, WindowIndex};
 use crate::eval::rollout::start_offsets;
-use crate::model::grid::{one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use crate::model::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
 use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
 use crate::model::upload;
 use crate::ops::NetOps;
@@ -59,6 +61,11 @@ pub struct GridTrainOptions {
     pub teacher: usize,
     /// Input-velocity noise, in units of `dv_scale`.
     pub noise: f32,
+    /// Train on each sample or, with probability 1/2, its mirror image about the box's
+    /// vertical midline (`x -> 1 - x`, `vx -> -vx`; see
+    /// [`crate::model::grid::mirror_rows`]).
+    #[serde(default)]
+    pub mirror: bool,
     /// Seed of the weights, data order and noise.
     pub seed: u64,
     /// Stop after this many epochs without a better validation rollout (0: never).
@@ -146,11 +153,13 @@ struct BatchTensors<B: Backend> {
 }
 
 /// The tensors of a batch of windows built with the identity scaler (inputs then hold
-/// physical values).
-fn upload_batch<B: Backend>(batch: Batch, device: &B::Device) -> BatchTensors<B> {
+/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]).
+fn upload_batch<B: Backend>(batch: Batch, mirror: &[bool], device: &B::Device) -> BatchTensors<B> {
     let (b, t, n) = (batch.b, batch.t, batch.n);
     let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
+    let mut first_pos = batch.first_pos;
     for w in 0..b {
+        let start = frames.len();
         for k in 0..t {
             let start = ((w * t + k) * n) * 5;
             for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
@@ -158,14 +167,19 @@ fn upload_batch<B: Backend>(batch: Batch, device: &B::Device) -> BatchTensors<B>
             }
         }
         frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
+        if mirror.get(w).copied().unwrap_or(false) {
+            mirror_rows(&mut frames[start..], 4);
+            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
+        }
     }
     BatchTensors {
         frames: upload(frames, [b, t + 1, n, 4], device),
         material: one_hot(&batch.material, b, n, device),
         dt: upload(batch.dt, [b], device),
-        first_pos: upload(batch.first_pos, [b, n, 2], device),
+        first_pos: upload(first_pos, [b, n, 2], device),
     }
 }
+
 
 /// The training loss of one batch (see the module doc).
 fn sequence_loss<B: NetOps>(
@@ -457,6 +471,7 @@ where
         );
         let started = Instant::now();
         let mut pass = EpochPass::default();
+        let mut flips = ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
         let mut fetch = Instant::now();
         for (k, batch) in train
             .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
@@ -464,7 +479,8 @@ where
             .enumerate()
         {
             let b = batch.b;
-            let tensors = upload_batch::<B>(batch, &self.device);
+            let mirror: Vec<bool> = (0..b).map(|_| opts.mirror && flips.random_bool(0.5)).collect();
+            let tensors = upload_batch::<B>(batch, &mirror, &self.device);
             pass.data += fetch.elapsed().as_secs_f64();
             let loss = sequence_loss(&model, &self.config, opts, tensors);
             let grads = GradientsParams::from_grads(loss.backward(), &model);
@@ -565,4 +581,52 @@ pub fn initial_grid_model<B: NetOps>(
         config.init::<B>(device),
         device,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
+    /// 1/2 (x -> 1 - x, vx -> -vx, y and vy kept); an unflagged one is uploaded as it is.
+    #[test]
+    fn mirrored_windows_are_uploaded_mirrored() {
+        let (b, t, n) = (2, 2, 3);
+        let value = |i: usize| 0.01 * i as f32 + 0.1;
+        let batch = Batch {
+            b,
+            t,
+            n,
+            inputs: (0..b * t * n * 5).map(value).collect(),
+            targets: vec![0.0; b * n * 4],
+            last: vec![0.0; b * n * 4],
+            target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
+            dt: vec![0.016; b],
+            material: vec![0; b * n],
+            ids: vec![(0, 0); b],
+            first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
+        };
+        let device = Default::default();
+        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], &device);
+        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], &device);
+        let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host(plain.frames), host(mirrored.frames));
+        let per_window = (t + 1) * n * 4;
+        assert_eq!(p[..per_window], m[..per_window], "window 0 is not flagged");
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(per_window) {
+            let want = match i % 4 {
+                0 => 1.0 - x,
+                2 => -x,
+                _ => *x,
+            };
+            assert_eq!(*y, want, "value {i}");
+        }
+        let host3 = |t: Tensor<NdArray<f32>, 3>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host3(plain.first_pos), host3(mirrored.first_pos));
+        assert_eq!(p[..n * 2], m[..n * 2]);
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(n * 2) {
+            assert_eq!(*y, if i % 2 == 0 { 1.0 - x } else { *x }, "reference {i}");
+        }
+    }
 }

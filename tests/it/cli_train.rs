@@ -222,10 +222,11 @@ fn grid_train_writes_a_run_folder_and_resumes() {
 /// Resume is bit-exact: a run resumed from its epoch-1 checkpoint (the straight run's
 /// `checkpoint.old`, what a run killed during epoch 2 leaves behind) ends with the same
 /// epoch-2 losses, to the last digit, and the same weights as the run that went straight
-/// through, input noise included.
+/// through, input noise and mirrored samples (`--mirror`) included. Mirroring changes what
+/// the run trains on.
 #[test]
 fn grid_resume_is_bit_exact() {
-    let flags = ["--epochs", "2", "--model", "mingru"];
+    let flags = ["--epochs", "2", "--model", "mingru", "--mirror"];
     let straight = tempfile::tempdir().unwrap();
     let o = train_grid(straight.path(), &flags);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -246,6 +247,10 @@ fn grid_resume_is_bit_exact() {
         weights(straight.path()) == weights(resumed.path()),
         "the epoch-2 weights differ"
     );
+    let plain = tempfile::tempdir().unwrap();
+    let o = train_grid(plain.path(), &flags[..4]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_ne!(losses(plain.path())[0].0, a[0].0, "--mirror changed nothing");
 }
 
 /// A resume whose checkpoint was truncated afterwards falls back to the previous epoch's

@@ -357,3 +357,18 @@ impl<B: NetOps> GridModel<B> {
         (StepOutput { pos, vel: v_next }, state)
     }
 }
+
+/// Mirrors physical particle rows of `width` values (x, y[, vx, vy]) about the box's
+/// vertical midline in place: `x -> 1 - x`, `vx -> -vx`. MPM's unit box, its walls (grid
+/// nodes `< 3` or `> n - 3`, free from 2.5 to n - 2.5 cells) and gravity are symmetric under
+/// it, so a mirrored trajectory is one MPM could have produced: `train --mirror` doubles the
+/// scenes a model sees, as GNS-style training augments with the symmetries of the physics
+/// ([`crate::model::store::Surrogate::with_mirror`] uses the same symmetry at inference).
+pub fn mirror_rows(rows: &mut [f32], width: usize) {
+    for r in rows.chunks_exact_mut(width) {
+        r[0] = 1.0 - r[0];
+        if width >= 4 {
+            r[2] = -r[2];
+        }
+    }
+}
