@@ -140,7 +140,9 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     for (name, dir) in &runs {
         let step_us = |b: usize| -> anyhow::Result<Vec<f64>> {
             match gpu {
-                None => model_step_us::<NdArray<f32>>(dir, &frames, b, args.mirror, &Default::default()),
+                None => {
+                    model_step_us::<NdArray<f32>>(dir, &frames, b, args.mirror, &Default::default())
+                }
                 #[cfg(feature = "cuda")]
                 Some(id) => {
                     use super::device::cuda::{device, CudaInfer};

@@ -171,7 +171,13 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let device = device.map(|id| (id, args.device.kernels()));
     let mut models: Vec<Box<dyn Predictor>> = Vec::new();
     for (dir, name) in args.models.iter().zip(&names) {
-        models.push(load_model(dir, name, device, args.reference_from, args.mirror)?);
+        models.push(load_model(
+            dir,
+            name,
+            device,
+            args.reference_from,
+            args.mirror,
+        )?);
     }
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;

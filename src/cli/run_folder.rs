@@ -79,7 +79,13 @@ pub(crate) fn run_split(
     split_from: Option<&Path>,
     init_from: Option<&Path>,
 ) -> anyhow::Result<Split> {
-    let path = |p: &Path| if p.is_dir() { p.join("split.json") } else { p.to_path_buf() };
+    let path = |p: &Path| {
+        if p.is_dir() {
+            p.join("split.json")
+        } else {
+            p.to_path_buf()
+        }
+    };
     let source = match (split_from, init_from) {
         (Some(p), _) => Some(path(p)),
         (None, Some(dir)) => Some(dir.join("split.json")).filter(|p| p.is_file()),

@@ -118,7 +118,10 @@ impl Split {
     /// a training scene (`train --split-from`: more training data for a model whose validation
     /// and test scenes must stay unseen). Held-out scenes of `saved` that `scenes` lacks are
     /// left out; duplicates count once.
-    pub fn keeping_held_out<S: AsRef<str>>(saved: &Split, scenes: impl IntoIterator<Item = S>) -> Split {
+    pub fn keeping_held_out<S: AsRef<str>>(
+        saved: &Split,
+        scenes: impl IntoIterator<Item = S>,
+    ) -> Split {
         let ids: BTreeSet<String> = scenes.into_iter().map(|s| s.as_ref().to_owned()).collect();
         let mut split = Split::default();
         for id in ids {

@@ -558,5 +558,9 @@ fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
     let (direct, mirrored) = out.split_at(out.len() / 2);
     let mut back = mirrored.to_vec();
     mirror_rows(&mut back, 4);
-    direct.iter().zip(&back).map(|(a, b)| 0.5 * (a + b)).collect()
+    direct
+        .iter()
+        .zip(&back)
+        .map(|(a, b)| 0.5 * (a + b))
+        .collect()
 }

@@ -180,7 +180,6 @@ fn upload_batch<B: Backend>(batch: Batch, mirror: &[bool], device: &B::Device) -
     }
 }
 
-
 /// The training loss of one batch (see the module doc).
 fn sequence_loss<B: NetOps>(
     model: &GridModel<B>,
@@ -471,7 +470,8 @@ where
         );
         let started = Instant::now();
         let mut pass = EpochPass::default();
-        let mut flips = ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
+        let mut flips =
+            ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
         let mut fetch = Instant::now();
         for (k, batch) in train
             .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
@@ -479,7 +479,9 @@ where
             .enumerate()
         {
             let b = batch.b;
-            let mirror: Vec<bool> = (0..b).map(|_| opts.mirror && flips.random_bool(0.5)).collect();
+            let mirror: Vec<bool> = (0..b)
+                .map(|_| opts.mirror && flips.random_bool(0.5))
+                .collect();
             let tensors = upload_batch::<B>(batch, &mirror, &self.device);
             pass.data += fetch.elapsed().as_secs_f64();
             let loss = sequence_loss(&model, &self.config, opts, tensors);

@@ -250,7 +250,11 @@ fn grid_resume_is_bit_exact() {
     let plain = tempfile::tempdir().unwrap();
     let o = train_grid(plain.path(), &flags[..4]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert_ne!(losses(plain.path())[0].0, a[0].0, "--mirror changed nothing");
+    assert_ne!(
+        losses(plain.path())[0].0,
+        a[0].0,
+        "--mirror changed nothing"
+    );
 }
 
 /// A resume whose checkpoint was truncated afterwards falls back to the previous epoch's
@@ -418,7 +422,12 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
         serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
     };
     let child = tempfile::tempdir().unwrap();
-    let init = ["--epochs", "1", "--init-from", kept.path().to_str().unwrap()];
+    let init = [
+        "--epochs",
+        "1",
+        "--init-from",
+        kept.path().to_str().unwrap(),
+    ];
     let o = train_grid(child.path(), &init);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(split(child.path()), s1);
@@ -446,7 +455,10 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("--split-from") && err.contains("validation"), "{err}");
+    assert!(
+        err.contains("--split-from") && err.contains("validation"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -180,6 +180,15 @@ fn frame(n: usize, seed: u32) -> (Vec<f32>, Vec<u8>) {
     (state, material)
 }
 
+/// The largest absolute difference between two rollouts' frames.
+fn max_abs_diff(a: &[Vec<f32>], b: &[Vec<f32>]) -> f32 {
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max)
+}
+
 /// Permuting the particles permutes the predictions, for a stateless and a memory core,
 /// over two steps (the memory state follows its particle).
 #[test]
@@ -268,12 +277,7 @@ fn reference_positions_grow_at_zero_and_default_to_the_first_frame() {
     let moved = fresh
         .rollout(Some(&first), &[state.clone()], &material, 0.016, 3)
         .unwrap();
-    let change = own
-        .iter()
-        .flatten()
-        .zip(moved.iter().flatten())
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0f32, f32::max);
+    let change = max_abs_diff(&own, &moved);
     assert!(
         change > 1e-6,
         "the reference reaches the prediction ({change})"
@@ -297,34 +301,35 @@ fn mirror_ensemble_is_mirror_equivariant() {
             .flat_map(|r| [1.0 - r[0], r[1], -r[2], r[3]])
             .collect()
     };
-    let first: Vec<f32> = state.chunks(4).flat_map(|r| [r[0] - 0.05, r[1], 0.0, 0.0]).collect();
+    let first: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [r[0] - 0.05, r[1], 0.0, 0.0])
+        .collect();
     let gap = |a: &[Vec<f32>], b: &[Vec<f32>]| {
         let b: Vec<Vec<f32>> = b.iter().map(|f| mirror(f)).collect();
-        a.iter()
-            .flatten()
-            .zip(b.iter().flatten())
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max)
+        max_abs_diff(a, &b)
     };
     let plain = surrogate_with(MemoryKind::MinGru, true);
     let ensemble = surrogate_with(MemoryKind::MinGru, true).with_mirror(true);
     assert!(ensemble.mirrored() && !plain.mirrored());
     let roll = |s: &Surrogate<B>, first: &[f32], seed: &[f32]| {
-        s.rollout(Some(first), &[seed.to_vec()], &material, 0.016, 4).unwrap()
+        s.rollout(Some(first), &[seed.to_vec()], &material, 0.016, 4)
+            .unwrap()
     };
     let a = roll(&ensemble, &first, &state);
     let b = roll(&ensemble, &mirror(&first), &mirror(&state));
     assert!(gap(&a, &b) < 1e-5, "ensemble: {}", gap(&a, &b));
     let p = roll(&plain, &first, &state);
     let q = roll(&plain, &mirror(&first), &mirror(&state));
-    assert!(gap(&p, &q) > 1e-4, "an untrained grid model is not symmetric by itself");
-    let change = a
-        .iter()
-        .flatten()
-        .zip(p.iter().flatten())
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0f32, f32::max);
-    assert!(change > 1e-4, "the ensemble is not the plain model ({change})");
+    assert!(
+        gap(&p, &q) > 1e-4,
+        "an untrained grid model is not symmetric by itself"
+    );
+    let change = max_abs_diff(&a, &p);
+    assert!(
+        change > 1e-4,
+        "the ensemble is not the plain model ({change})"
+    );
 }
 
 /// The grid model has no N in its weights: the same run folder serves N = 2,500 and N =
@@ -611,7 +616,10 @@ fn inference_convolution_equals_burns() {
             .unwrap();
         let theirs: Vec<f32> = theirs.into_data().to_vec().unwrap();
         assert_eq!(ours.len(), b * h * w * c_out);
-        for (what, ours, theirs) in [("conv", &ours, &theirs), ("conv + SiLU", &ours_silu, &theirs_silu)] {
+        for (what, ours, theirs) in [
+            ("conv", &ours, &theirs),
+            ("conv + SiLU", &ours_silu, &theirs_silu),
+        ] {
             let scale = theirs.iter().fold(0f32, |m, v| m.max(v.abs()));
             let worst = ours
                 .iter()

@@ -80,10 +80,12 @@ fn trained(dir: &'static OnceLock<tempfile::TempDir>, flags: &[&str]) -> PathBuf
 }
 
 /// Offline stateful one-step predictions of every frame of `bag`'s scene, keyed by the
-/// predicted frame_index.
-fn offline(model: &Path, bag: &Path) -> (String, BTreeMap<u32, Vec<f32>>) {
+/// predicted frame_index (a mirror ensemble when `mirror`).
+fn offline(model: &Path, bag: &Path, mirror: bool) -> (String, BTreeMap<u32, Vec<f32>>) {
     let device = Default::default();
-    let s = Surrogate::<NdArray<f32>>::load(model, &device).unwrap();
+    let s = Surrogate::<NdArray<f32>>::load(model, &device)
+        .unwrap()
+        .with_mirror(mirror);
     let frames: Vec<ParticleFrame> = read_frames(bag, None)
         .unwrap()
         .frames
@@ -124,10 +126,15 @@ fn rows_of(f: &ParticleFrame) -> Vec<f32> {
 }
 
 /// Compares recorded predictions with the offline ones; returns how many were compared.
-fn assert_matches_offline(model: &Path, pred_dir: &Path, topic: &str, bags: &[PathBuf]) -> usize {
+fn assert_matches_offline(
+    (model, mirror): (&Path, bool),
+    pred_dir: &Path,
+    topic: &str,
+    bags: &[PathBuf],
+) -> usize {
     let mut want: BTreeMap<String, BTreeMap<u32, Vec<f32>>> = BTreeMap::new();
     for b in bags {
-        let (scene, preds) = offline(model, b);
+        let (scene, preds) = offline(model, b, mirror);
         want.insert(scene, preds);
     }
     let mut compared = 0;
@@ -153,11 +160,12 @@ fn assert_matches_offline(model: &Path, pred_dir: &Path, topic: &str, bags: &[Pa
 
 /// replay (two bags, interleaved by log time) -> node -> record, over `transport`.
 fn node_matches_offline(transport: &str) {
-    node_with_model_matches_offline(&model(), transport);
+    node_with_model_matches_offline(&model(), transport, false);
 }
 
-/// [`node_matches_offline`] with the model in `model`.
-fn node_with_model_matches_offline(model: &Path, transport: &str) {
+/// [`node_matches_offline`] with the model in `model`, run as a mirror ensemble (`node
+/// --mirror`) when `mirror`.
+fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("pred");
     let input = unique_topic(&format!("{transport}_in"));
@@ -178,24 +186,28 @@ fn node_with_model_matches_offline(model: &Path, transport: &str) {
             &expected.to_string(),
         ],
     );
-    let node = Node::spawn(
+    let mut node_args = vec![
         "node",
-        &[
-            "node",
-            "--model",
-            model.to_str().unwrap(),
-            "--transport",
-            transport,
-            "--in",
-            &input,
-            "--out",
-            &output,
-            "--wait-for-subscribers",
-            "1",
-            "--status",
-            "none",
-        ],
-    );
+        "--model",
+        model.to_str().unwrap(),
+        "--transport",
+        transport,
+        "--in",
+        &input,
+        "--out",
+        &output,
+        "--wait-for-subscribers",
+        "1",
+        "--status",
+        "none",
+        // Room for every frame of a scene: the replay publishes faster than a node steps.
+        "--queue-depth",
+        "32",
+    ];
+    if mirror {
+        node_args.push("--mirror");
+    }
+    let node = Node::spawn("node", &node_args);
     let mut replay = vec!["replay", "--transport", transport, "--topic", &input];
     replay.extend(bags.iter().map(|b| b.to_str().unwrap()));
     ok(
@@ -205,7 +217,7 @@ fn node_with_model_matches_offline(model: &Path, transport: &str) {
     let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
     node.signal("INT");
     let node_err = ok(&node.wait(Duration::from_secs(30)), "node");
-    let n = assert_matches_offline(model, &out, &output, &bags);
+    let n = assert_matches_offline((model, mirror), &out, &output, &bags);
     assert_eq!(
         n, expected,
         "predictions recorded\nrecord: {rec}\nnode: {node_err}"
@@ -221,7 +233,14 @@ fn zenoh_node_equals_offline_stateful_predictions() {
 /// kept per scene exactly as offline.
 #[test]
 fn zenoh_node_equals_offline_grid_predictions() {
-    node_with_model_matches_offline(&grid_model(), "zenoh");
+    node_with_model_matches_offline(&grid_model(), "zenoh", false);
+}
+
+/// `node --mirror`: the node steps each scene as a mirror ensemble, two memory states per
+/// scene, exactly as `Surrogate::with_mirror` does offline.
+#[test]
+fn zenoh_node_with_mirror_equals_offline_mirror_ensemble() {
+    node_with_model_matches_offline(&grid_model(), "zenoh", true);
 }
 
 #[test]
@@ -322,7 +341,7 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
     ok(&recorder.wait(Duration::from_secs(120)), "record");
     // The good scene: all 25 predictions, equal to the offline ones.
     assert_eq!(
-        assert_matches_offline(&model, &out, &output, &[repo(SCENES[0])]),
+        assert_matches_offline((&model, false), &out, &output, &[repo(SCENES[0])]),
         25
     );
     // The status reports 3 rejected and 1 malformed frame within a few seconds.

@@ -58,7 +58,9 @@ fn each_row(
     let fill = |r0: usize, dst: &mut [f32]| {
         for (q, dst) in dst.chunks_exact_mut(hidden).enumerate() {
             let r = r0 + q;
-            let p = prev.as_ref().map_or(&zeros[..], |p| &p[r * hidden..][..hidden]);
+            let p = prev
+                .as_ref()
+                .map_or(&zeros[..], |p| &p[r * hidden..][..hidden]);
             row(&pre[r * width..][..width], p, dst);
         }
     };

@@ -239,7 +239,8 @@ fn transform_weight(weight: &[f32], c_in: usize, c_out: usize) -> Vec<f32> {
         for o in 0..c_out {
             let g = &weight[(o * c_in + i) * 9..][..9];
             // G g: 6 rows of 3 (one column of g at a time).
-            let columns: [[f32; ALPHA]; 3] = std::array::from_fn(|x| g_times([g[x], g[3 + x], g[6 + x]]));
+            let columns: [[f32; ALPHA]; 3] =
+                std::array::from_fn(|x| g_times([g[x], g[3 + x], g[6 + x]]));
             for a in 0..ALPHA {
                 let row = g_times([columns[0][a], columns[1][a], columns[2][a]]);
                 for (bb, value) in row.into_iter().enumerate() {
