@@ -371,9 +371,10 @@ impl<B: NetOps> Surrogate<B> {
             )));
         }
         if let NetState::Grid { reference, .. } = &mut state.inner {
-            let (first, b) = match self.mirrored() {
-                true => (with_mirror_rows(first), 2 * b),
-                false => (first.to_vec(), b),
+            let (first, b) = if self.mirror {
+                (with_mirror_rows(first), 2 * b)
+            } else {
+                (first.to_vec(), b)
             };
             let n = first.len() / (4 * b);
             let frame = super::upload::<B, 3>(first, [b, n, 4], &self.device);
@@ -430,21 +431,17 @@ impl<B: NetOps> Surrogate<B> {
                     history,
                     reference,
                 },
-            ) if self.mirror => {
-                let (material, dt) = ([material, material].concat(), [dt, dt].concat());
-                let frames = with_mirror_rows(frames);
+            ) => {
                 let carry = (memory, history, reference);
-                let (out, inner) = self.grid_step(model, &frames, &material, &dt, carry)?;
-                (mean_of_mirror_rows(&out), inner)
+                if self.mirror {
+                    let (material, dt) = ([material, material].concat(), [dt, dt].concat());
+                    let frames = with_mirror_rows(frames);
+                    let (out, inner) = self.grid_step(model, &frames, &material, &dt, carry)?;
+                    (mean_of_mirror_rows(&out), inner)
+                } else {
+                    self.grid_step(model, frames, material, dt, carry)?
+                }
             }
-            (
-                Net::Grid(model),
-                NetState::Grid {
-                    memory,
-                    history,
-                    reference,
-                },
-            ) => self.grid_step(model, frames, material, dt, (memory, history, reference))?,
             _ => return Err(StoreError::Shape("state of another architecture".into())),
         };
         Ok((

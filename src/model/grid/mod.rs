@@ -362,8 +362,8 @@ impl<B: NetOps> GridModel<B> {
 /// vertical midline in place: `x -> 1 - x`, `vx -> -vx`. MPM's unit box, its walls (grid
 /// nodes `< 3` or `> n - 3`, free from 2.5 to n - 2.5 cells) and gravity are symmetric under
 /// it, so a mirrored trajectory is one MPM could have produced: `train --mirror` doubles the
-/// scenes a model sees, as GNS-style training augments with the symmetries of the physics
-/// ([`crate::model::store::Surrogate::with_mirror`] uses the same symmetry at inference).
+/// scenes a model sees (data augmentation by a symmetry of the physics), and
+/// [`crate::model::store::Surrogate::with_mirror`] uses the same symmetry at inference.
 pub fn mirror_rows(rows: &mut [f32], width: usize) {
     for r in rows.chunks_exact_mut(width) {
         r[0] = 1.0 - r[0];
