@@ -398,6 +398,18 @@ impl<B: NetOps> Surrogate<B> {
         dt: &[f32],
         state: State<B>,
     ) -> Result<(Vec<f32>, State<B>), StoreError> {
+        // On the CPU: on the rayon pool with a worker awake (`NetOps::run_step`).
+        B::run_step(|| self.step_here(frames, material, dt, state))
+    }
+
+    /// [`Surrogate::step`] on the calling thread.
+    fn step_here(
+        &self,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        state: State<B>,
+    ) -> Result<(Vec<f32>, State<B>), StoreError> {
         let b = dt.len();
         let n = material.len().checked_div(b).unwrap_or(0);
         if b == 0 || frames.len() != b * n * 4 || material.len() != b * n {

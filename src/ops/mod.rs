@@ -178,6 +178,14 @@ pub trait NetOps: Backend {
         adam::composed_adam::<Self>(param, grad, m, v, c)
     }
 
+    /// Runs one inference step `f` where this backend's kernels start their parallel passes
+    /// cheaply: as it is by default; on the CPU, on the rayon pool with a worker kept awake
+    /// (`cpu/pool.rs`: 0.75x the full-size grid model's step p50 on 2 cores for running it on
+    /// the pool, ~0.9x again for the awake worker).
+    fn run_step<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+        f()
+    }
+
     /// True where [`NetOps::im2col`] and [`NetOps::col2im`] are single kernels (the CPU and
     /// CUDA backends) and, with [`NetOps::silu`] (a single pass on the CPU, burn's fused
     /// composition on CUDA), get their own autodiff nodes; elsewhere the grid model composes

@@ -18,6 +18,10 @@ use super::scan::{composed_recurrence_backward, log_scan_recurrence};
 use super::{cpu, NetOps};
 
 impl NetOps for NdArray<f32> {
+    fn run_step<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+        cpu::pool::hot(f)
+    }
+
     fn linear_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,

@@ -18,6 +18,7 @@
 //! - `adam.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.
 //! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather.
+//! - `pool.rs`: a whole inference step on the rayon pool with a worker kept awake.
 //! - `winograd.rs`: the forward of the grid model's 3x3 convolutions by Winograd F(4x4, 3x3)
 //!   (inference).
 //!
@@ -32,6 +33,7 @@ pub(crate) mod conv;
 pub(crate) mod elu_mean;
 pub(crate) mod gemm;
 pub(crate) mod mingru;
+pub(crate) mod pool;
 pub(crate) mod scan;
 pub(crate) mod transfer;
 pub(crate) mod winograd;
