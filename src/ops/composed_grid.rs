@@ -150,3 +150,63 @@ pub(crate) fn composed_splat<B: NetOps>(
         .into_primitive()
         .tensor()
 }
+
+/// Whether grid node `i` of an `n`-node axis is a wall node: index < 3 or > n - 3, where
+/// `sim` zeroes the outward velocity (`sim::mpm`).
+pub(crate) fn is_wall(i: usize, n: usize) -> bool {
+    i < 3 || i + 3 > n
+}
+
+/// Composed grid channels (see [`NetOps::grid_channels`]): narrows, a division and a
+/// concatenation with the wall masks.
+pub(crate) fn composed_grid_channels<B: NetOps>(
+    splat: FloatTensor<B>,
+    n: usize,
+    own: usize,
+) -> FloatTensor<B> {
+    let splat = wrap::<B, 3>(splat);
+    let [b, cells, c_s] = splat.dims();
+    let device = splat.device();
+    let mass = splat.clone().narrow(2, 0, 1);
+    let per_mass = splat.narrow(2, 1, c_s - 1) / mass.clone().clamp_min(1e-6);
+    let walls: Vec<f32> = (0..cells)
+        .flat_map(|k| [is_wall(k / n, n), is_wall(k % n, n)])
+        .map(|wall| f32::from(u8::from(wall)))
+        .collect();
+    let walls =
+        Tensor::<B, 3>::from_data(burn::tensor::TensorData::new(walls, [1, cells, 2]), &device)
+            .repeat_dim(0, b);
+    let mut parts = vec![
+        mass.mul_scalar(0.25),
+        per_mass.clone().narrow(2, 0, own),
+        walls,
+    ];
+    if c_s > 1 + own {
+        parts.push(per_mass.narrow(2, own, c_s - 1 - own));
+    }
+    Tensor::cat(parts, 2).into_primitive().tensor()
+}
+
+/// Composed 2x2 average pooling (see [`NetOps::pool2`]): two `mean_dim`s over a 6-D view.
+pub(crate) fn composed_pool2<B: NetOps>(x: FloatTensor<B>) -> FloatTensor<B> {
+    let x = wrap::<B, 4>(x);
+    let [b, h, w, c] = x.dims();
+    x.reshape([b, h / 2, 2, w / 2, 2, c])
+        .mean_dim(4)
+        .mean_dim(2)
+        .reshape([b, h / 2, w / 2, c])
+        .into_primitive()
+        .tensor()
+}
+
+/// Composed nearest 2x upsampling (see [`NetOps::upsample2`]), by broadcasting, so every
+/// backend differentiates it.
+pub(crate) fn composed_upsample2<B: NetOps>(x: FloatTensor<B>) -> FloatTensor<B> {
+    let x = wrap::<B, 4>(x);
+    let [b, h, w, c] = x.dims();
+    x.reshape([b, h, 1, w, 1, c])
+        .expand([b, h, 2, w, 2, c])
+        .reshape([b, 2 * h, 2 * w, c])
+        .into_primitive()
+        .tensor()
+}

@@ -55,8 +55,8 @@ mod tensor;
 
 pub use adam::AdamStep;
 pub use tensor::{
-    elu, gather, im2col, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool, recurrence,
-    silu, splat,
+    elu, gather, grid_channels, im2col, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool,
+    pool2, recurrence, silu, splat, upsample2,
 };
 
 use burn::tensor::backend::Backend;
@@ -184,6 +184,28 @@ pub trait NetOps: Backend {
     /// the pool, ~0.9x again for the awake worker).
     fn run_step<R: Send>(f: impl FnOnce() -> R + Send) -> R {
         f()
+    }
+
+    /// The grid model's input channels from P2G's splat `[B, n^2, 1 + own + r]` (mass, then
+    /// `own` mass-weighted sums, then `r` more): `[B, n^2, 1 + own + 2 + r]` = `m / 4`, the
+    /// `own` sums divided by `max(m, 1e-6)`, the two wall masks of node `(i, j)` (x walls by
+    /// i, y walls by j: index < 3 or > n - 3), the `r` sums divided by the mass. Composed from
+    /// burn's operations by default; one pass on the CPU (equal to the composed result).
+    fn grid_channels(splat: FloatTensor<Self>, n: usize, own: usize) -> FloatTensor<Self> {
+        composed_grid::composed_grid_channels::<Self>(splat, n, own)
+    }
+
+    /// 2x2 average pooling, stride 2, of a channels-last grid: `[B, h, w, C]` ->
+    /// `[B, h/2, w/2, C]` (h, w even). One pass on the CPU (inference); composed (and
+    /// differentiated by autodiff) elsewhere.
+    fn pool2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed_grid::composed_pool2::<Self>(x)
+    }
+
+    /// Nearest-neighbour 2x upsampling of a channels-last grid: `[B, h, w, C]` ->
+    /// `[B, 2h, 2w, C]`. One pass on the CPU (inference); composed elsewhere.
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed_grid::composed_upsample2::<Self>(x)
     }
 
     /// True where [`NetOps::im2col`] and [`NetOps::col2im`] are single kernels (the CPU and

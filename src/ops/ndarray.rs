@@ -12,7 +12,8 @@ use super::composed::{
     composed_elu_backward, composed_elu_mean, composed_linear, composed_linear_backward,
 };
 use super::composed_grid::{
-    composed_col2im, composed_gather, composed_im2col, composed_silu_backward, composed_splat,
+    composed_col2im, composed_gather, composed_grid_channels, composed_im2col, composed_pool2,
+    composed_silu_backward, composed_splat, composed_upsample2,
 };
 use super::scan::{composed_recurrence_backward, log_scan_recurrence};
 use super::{cpu, NetOps};
@@ -91,6 +92,19 @@ impl NetOps for NdArray<f32> {
 
     fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {
         cpu::activation::silu(x)
+    }
+
+    fn grid_channels(splat: FloatTensor<Self>, n: usize, own: usize) -> FloatTensor<Self> {
+        cpu::grid::grid_channels(&splat, n, own)
+            .unwrap_or_else(|| composed_grid_channels::<Self>(splat, n, own))
+    }
+
+    fn pool2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        cpu::grid::pool2(&x).unwrap_or_else(|| composed_pool2::<Self>(x))
+    }
+
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        cpu::grid::upsample2(&x).unwrap_or_else(|| composed_upsample2::<Self>(x))
     }
 
     fn minlstm_update(

@@ -111,6 +111,22 @@ pub fn silu<B: NetOps, const D: usize>(x: Tensor<B, D>) -> Tensor<B, D> {
     wrap(B::silu(x.into_primitive().tensor()))
 }
 
+/// `splat` `[B, n^2, 1 + own + r]` -> `[B, n^2, 1 + own + 2 + r]` through
+/// [`NetOps::grid_channels`].
+pub fn grid_channels<B: NetOps>(splat: Tensor<B, 3>, n: usize, own: usize) -> Tensor<B, 3> {
+    wrap(B::grid_channels(splat.into_primitive().tensor(), n, own))
+}
+
+/// `[B, h, w, C]` -> `[B, h/2, w/2, C]` through [`NetOps::pool2`].
+pub fn pool2<B: NetOps>(x: Tensor<B, 4>) -> Tensor<B, 4> {
+    wrap(B::pool2(x.into_primitive().tensor()))
+}
+
+/// `[B, h, w, C]` -> `[B, 2h, 2w, C]` through [`NetOps::upsample2`].
+pub fn upsample2<B: NetOps>(x: Tensor<B, 4>) -> Tensor<B, 4> {
+    wrap(B::upsample2(x.into_primitive().tensor()))
+}
+
 /// `[B, H, W, C]` -> `[B H W, C k^2]` through [`NetOps::im2col`] (column order in
 /// [`NetOps::im2col`]).
 pub fn im2col<B: NetOps>(x: Tensor<B, 4>, k: usize) -> Tensor<B, 2> {

@@ -36,7 +36,7 @@ use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
-use crate::ops::{linear, silu, NetOps};
+use crate::ops::{grid_channels, linear, silu, NetOps};
 
 /// Materials (one-hot width).
 pub const MATERIALS: usize = 4;
@@ -244,15 +244,6 @@ pub fn one_hot<B: Backend>(
     Tensor::from_data(TensorData::new(data, [b, n, MATERIALS]), device)
 }
 
-/// `[B, n^2, 2]`: the wall masks (x walls, y walls) of an n x n grid.
-fn walls<B: Backend>(b: usize, n: usize, device: &B::Device) -> Tensor<B, 3> {
-    let wall = |i: usize| f32::from(u8::from(i < 3 || i + 3 > n));
-    let data: Vec<f32> = (0..n * n)
-        .flat_map(|k| [wall(k / n), wall(k % n)])
-        .collect();
-    Tensor::<B, 3>::from_data(TensorData::new(data, [1, n * n, 2]), device).repeat_dim(0, b)
-}
-
 impl<B: NetOps> GridModel<B> {
     /// Velocity frames per particle the step reads (T).
     pub fn window(&self) -> usize {
@@ -303,21 +294,11 @@ impl<B: NetOps> GridModel<B> {
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
         let splat = transfer::p2g(&s, Tensor::cat(values, 2)); // [B, n^2, 1 + 2T + 4 (+ 2)]
-        let c_splat = splat.dims()[2];
-        let mass = splat.clone().narrow(2, 0, 1);
-        let per_mass = splat.narrow(2, 1, c_splat - 1) / mass.clone().clamp_min(1e-6);
+                                                               // [m / 4, velocities and materials per mass, walls (, displacement per mass)]: the
+                                                               // reference channels after the walls, so a model grown by `with_reference` keeps its
+                                                               // channel order.
+        let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
         let cells = self.n * self.n;
-        let own = 2 * t + MATERIALS;
-        let mut parts = vec![
-            mass.mul_scalar(0.25),
-            per_mass.clone().narrow(2, 0, own),
-            walls(b, self.n, &device),
-        ];
-        if self.reference {
-            // After the walls, so a model grown by `with_reference` keeps its channel order.
-            parts.push(per_mass.narrow(2, own, 2));
-        }
-        let grid = Tensor::cat(parts, 2); // [B, n^2, C]
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
 

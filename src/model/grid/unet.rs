@@ -21,7 +21,7 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
-use crate::ops::{im2col, silu, NetOps};
+use crate::ops::{im2col, pool2 as pool, silu, upsample2 as upsample, NetOps};
 
 /// How the U-Net's convolutions are computed; the weights and the result are the same.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -466,22 +466,4 @@ impl<B: NetOps> UNet<B> {
         }
         conv(&self.head, x, self.kernel)
     }
-}
-
-/// Nearest-neighbour 2x upsampling by broadcasting (`[B, h, w, C]` -> `[B, 2h, 2w, C]`), in
-/// plain tensor operations so every backend differentiates it.
-fn upsample<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
-    let [b, h, w, c] = x.dims();
-    x.reshape([b, h, 1, w, 1, c])
-        .expand([b, h, 2, w, 2, c])
-        .reshape([b, 2 * h, 2 * w, c])
-}
-
-/// 2x2 average pooling, stride 2 (`[B, h, w, C]` -> `[B, h/2, w/2, C]`).
-fn pool<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 4> {
-    let [b, h, w, c] = x.dims();
-    x.reshape([b, h / 2, 2, w / 2, 2, c])
-        .mean_dim(4)
-        .mean_dim(2)
-        .reshape([b, h / 2, w / 2, c])
 }

@@ -13,6 +13,7 @@
 //!   weights for a handful of rows (the inference step).
 //! - `activation.rs`: ELU and SiLU and their gradients through a vectorisable `expm1`.
 //! - `elu_mean.rs`: the encoder's first layer, ELU and mean pooling in one pass.
+//! - `grid.rs`: the grid model's input channels, 2x2 pooling and 2x upsampling (inference).
 //! - `mingru.rs`: the minGRU's inference update in one pass.
 //! - `scan.rs`: the linear recurrence of minGRU / minLSTM as one sequential pass.
 //! - `adam.rs`: one Adam step in one pass, in place.
@@ -32,6 +33,7 @@ pub(crate) mod adam;
 pub(crate) mod conv;
 pub(crate) mod elu_mean;
 pub(crate) mod gemm;
+pub(crate) mod grid;
 pub(crate) mod mingru;
 pub(crate) mod pool;
 pub(crate) mod scan;
