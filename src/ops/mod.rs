@@ -67,6 +67,8 @@ use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 /// (3 x 3, quadratic B-spline).
 pub(crate) const STENCIL_NODES: usize = 9;
 
+pub use cpu::transfer::{bspline_axis, stencil_bounds};
+
 /// The kernel choices of one device (see the module doc): fixed when the device is opened,
 /// read by its ops. The default is what every command runs unless a flag says otherwise.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -193,6 +195,19 @@ pub trait NetOps: Backend {
     /// burn's operations by default; one pass on the CPU (equal to the composed result).
     fn grid_channels(splat: FloatTensor<Self>, n: usize, own: usize) -> FloatTensor<Self> {
         composed_grid::composed_grid_channels::<Self>(splat, n, own)
+    }
+
+    /// The grid model's sparse stencil (`model::grid::transfer`) computed where reading the
+    /// positions `pos` `[B, N, 2]` costs nothing: `index` `[B N 9]` and `weight` `[B, N, 9]`
+    /// of each particle on an `n x n` grid, or None (the default) for the composed
+    /// computation. The CPU computes it in one pass over the particles (the composed one is
+    /// ~25 tensor passes over `[B, N, 2]` and `[B, N, 9]` tensors).
+    fn sparse_stencil(
+        pos: &FloatTensor<Self>,
+        n: usize,
+    ) -> Option<(IntTensor<Self>, FloatTensor<Self>)> {
+        let _ = (pos, n);
+        None
     }
 
     /// 2x2 average pooling, stride 2, of a channels-last grid: `[B, h, w, C]` ->

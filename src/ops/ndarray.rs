@@ -99,6 +99,13 @@ impl NetOps for NdArray<f32> {
             .unwrap_or_else(|| composed_grid_channels::<Self>(splat, n, own))
     }
 
+    fn sparse_stencil(
+        pos: &FloatTensor<Self>,
+        n: usize,
+    ) -> Option<(IntTensor<Self>, FloatTensor<Self>)> {
+        cpu::transfer::sparse_stencil(pos, n)
+    }
+
     fn pool2(x: FloatTensor<Self>) -> FloatTensor<Self> {
         cpu::grid::pool2(&x).unwrap_or_else(|| composed_pool2::<Self>(x))
     }

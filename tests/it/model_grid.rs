@@ -6,7 +6,7 @@
 use burn::backend::NdArray;
 use burn::tensor::{Tensor, TensorData};
 use minflow::data::Scaler;
-use minflow::model::grid::transfer::{g2p, p2g, stencil, stencil_host};
+use minflow::model::grid::transfer::{composed_stencil, g2p, p2g, stencil, stencil_host};
 use minflow::model::grid::{GridConfig, MemoryKind};
 use minflow::model::minrnn::{MinGru, MinLstm};
 use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
@@ -53,6 +53,24 @@ fn random_positions(b: usize, n: usize, seed: u32) -> Vec<f32> {
             0.02 + 0.96 * (state as f32 / u32::MAX as f32)
         })
         .collect()
+}
+
+/// The CPU's one-pass sparse stencil equals the composed one in indices and, bit for bit,
+/// in weights: a batch of two, positions inside the box and outside it on every side (the
+/// clamp), on a grid that is not a power of two.
+#[test]
+fn cpu_stencil_equals_the_composed_one() {
+    let (b, n, grid) = (2, 500, 24);
+    let mut pos = random_positions(b, n, 3);
+    pos[..8].copy_from_slice(&[-0.2, 0.5, 1.3, 0.5, 0.5, -1.0, 0.5, 1.01]);
+    let pos = tensor3(pos, [b, n, 2]);
+    let cpu = stencil(pos.clone(), grid, false);
+    let composed = composed_stencil(pos, grid, false);
+    let ints = |t: Tensor<B, 1, burn::tensor::Int>| -> Vec<i64> {
+        t.into_data().convert::<i64>().to_vec().unwrap()
+    };
+    assert_eq!(ints(cpu.index), ints(composed.index));
+    assert_eq!(values(cpu.weight), values(composed.weight));
 }
 
 #[test]

@@ -21,7 +21,7 @@
 //!   on an H100; the products take milliseconds.
 
 use burn::tensor::backend::Backend;
-use burn::tensor::{Int, Tensor, TensorData};
+use burn::tensor::{Int, Tensor, TensorData, TensorPrimitive};
 
 use crate::ops::{self, NetOps};
 
@@ -42,20 +42,36 @@ pub struct Stencil<B: Backend> {
     pub particles: usize,
 }
 
-/// Where stencils are clamped: the positions MPM keeps its particles in, `[0.5 dx, 1 - 1.5
-/// dx)`, so every stencil lies inside the grid (docs/mpm.md, "Validation checks", check 6).
-fn bounds(n: usize) -> (f32, f32) {
-    let dx = 1.0 / n as f32;
-    (0.5 * dx, 1.0 - 1.5 * dx - 1e-5)
-}
-
 /// The stencil of positions `pos` (`[B, N, 2]`, domain units) on an `n x n` grid over the
 /// unit square, in sparse form, and with `dense` also in separable dense form (then P2G and
-/// G2P use that). Positions outside the box are clamped into it for the stencil only.
-pub fn stencil<B: Backend>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<B> {
+/// G2P use that). Positions are clamped into the box MPM keeps its particles in, `[0.5 dx,
+/// 1 - 1.5 dx)`, for the stencil only, so every stencil lies inside the grid (docs/mpm.md,
+/// "Validation checks", check 6). The sparse form comes from
+/// [`NetOps::sparse_stencil`] where the backend computes it (the CPU, one pass over the
+/// particles), else from [`composed_stencil`].
+pub fn stencil<B: NetOps>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<B> {
+    let [batch, particles, _] = pos.dims();
+    if !dense {
+        if let Some((index, weight)) = B::sparse_stencil(&pos.clone().into_primitive().tensor(), n)
+        {
+            return Stencil {
+                index: Tensor::from_primitive(index),
+                weight: Tensor::from_primitive(TensorPrimitive::Float(weight)),
+                dense: None,
+                n,
+                batch,
+                particles,
+            };
+        }
+    }
+    composed_stencil(pos, n, dense)
+}
+
+/// [`stencil`] in burn's tensor operations, on any backend.
+pub fn composed_stencil<B: Backend>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<B> {
     let [batch, particles, _] = pos.dims();
     let device = pos.device();
-    let (lo, hi) = bounds(n);
+    let (lo, hi) = ops::stencil_bounds(n);
     let g = pos.detach().clamp(lo, hi).mul_scalar(n as f32); // [B, N, 2] in grid units
     let base = g.clone().sub_scalar(0.5).floor();
     let f = g - base.clone();
@@ -140,21 +156,7 @@ pub fn g2p<B: NetOps>(s: &Stencil<B>, grid: Tensor<B, 3>) -> Tensor<B, 3> {
 
 /// [`stencil`] for one particle at `(x, y)` in plain f32: the nine `(i, j, w)`.
 pub fn stencil_host(x: f32, y: f32, n: usize) -> [(usize, usize, f32); 9] {
-    let (lo, hi) = bounds(n);
-    let axis = |p: f32| {
-        let g = p.clamp(lo, hi) * n as f32;
-        let base = (g - 0.5).floor();
-        let f = g - base;
-        (
-            base as usize,
-            [
-                0.5 * (1.5 - f).powi(2),
-                0.75 - (f - 1.0).powi(2),
-                0.5 * (f - 0.5).powi(2),
-            ],
-        )
-    };
-    let ((bx, wx), (by, wy)) = (axis(x), axis(y));
+    let ((bx, wx), (by, wy)) = (ops::bspline_axis(x, n), ops::bspline_axis(y, n));
     std::array::from_fn(|k| {
         let (i, j) = (k / 3, k % 3);
         (bx + i, by + j, wx[i] * wy[j])
