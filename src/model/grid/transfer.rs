@@ -46,9 +46,9 @@ pub struct Stencil<B: Backend> {
 /// unit square, in sparse form, and with `dense` also in separable dense form (then P2G and
 /// G2P use that). Positions are clamped into the box MPM keeps its particles in, `[0.5 dx,
 /// 1 - 1.5 dx)`, for the stencil only, so every stencil lies inside the grid (docs/mpm.md,
-/// "Validation checks", check 6). The sparse form comes from
+/// "Validation checks", check 6). Without `dense` the sparse form comes from
 /// [`NetOps::sparse_stencil`] where the backend computes it (the CPU, one pass over the
-/// particles), else from [`composed_stencil`].
+/// particles); otherwise, and always with `dense`, from [`composed_stencil`].
 pub fn stencil<B: NetOps>(pos: Tensor<B, 3>, n: usize, dense: bool) -> Stencil<B> {
     let [batch, particles, _] = pos.dims();
     if !dense {

@@ -17,7 +17,7 @@ use crate::ops::composed_grid::is_wall;
 pub(crate) fn grid_channels(splat: &CpuTensor, n: usize, own: usize) -> Option<CpuTensor> {
     let (data, shape) = dense(splat)?;
     let [b, cells, c_s] = <[usize; 3]>::try_from(shape.as_slice()).ok()?;
-    if cells != n * n || c_s < 1 + own {
+    if cells != n * n || c_s < 1 + own || b * cells == 0 {
         return None;
     }
     let extra = c_s - 1 - own;
@@ -26,7 +26,8 @@ pub(crate) fn grid_channels(splat: &CpuTensor, n: usize, own: usize) -> Option<C
     for (k, row) in data.chunks_exact(c_s).enumerate() {
         let cell = k % cells;
         let mass = row[0];
-        let divisor = mass.max(1e-6);
+        // burn's `clamp_min`: a NaN mass stays NaN (f32::max would return the bound).
+        let divisor = if mass < 1e-6 { 1e-6 } else { mass };
         out.push(mass * 0.25);
         out.extend(row[1..1 + own].iter().map(|v| v / divisor));
         out.push(f32::from(u8::from(is_wall(cell / n, n))));
@@ -41,7 +42,7 @@ pub(crate) fn grid_channels(splat: &CpuTensor, n: usize, own: usize) -> Option<C
 pub(crate) fn pool2(x: &CpuTensor) -> Option<CpuTensor> {
     let (data, shape) = dense(x)?;
     let [b, h, w, c] = <[usize; 4]>::try_from(shape.as_slice()).ok()?;
-    if h % 2 != 0 || w % 2 != 0 {
+    if h % 2 != 0 || w % 2 != 0 || b * h * w * c == 0 {
         return None;
     }
     let (ho, wo) = (h / 2, w / 2);
@@ -55,11 +56,12 @@ pub(crate) fn pool2(x: &CpuTensor) -> Option<CpuTensor> {
             at(bb, 2 * y + 1, 2 * x),
             at(bb, 2 * y + 1, 2 * x + 1),
         ];
-        // In the order of the composed pooling (the mean over x, then over y).
+        // In the order of the composed pooling (the mean over x, then over y), each mean a
+        // sum from 0 as ndarray's `mean_axis` takes it (so -0 + -0 gives +0 there too).
         for (i, d) in dst.iter_mut().enumerate() {
-            let top = (rows[0][i] + rows[1][i]) / 2.0;
-            let bottom = (rows[2][i] + rows[3][i]) / 2.0;
-            *d = (top + bottom) / 2.0;
+            let top = (0.0 + rows[0][i] + rows[1][i]) / 2.0;
+            let bottom = (0.0 + rows[2][i] + rows[3][i]) / 2.0;
+            *d = (0.0 + top + bottom) / 2.0;
         }
     }
     Some(tensor(out, &[b, ho, wo, c]))
@@ -70,6 +72,9 @@ pub(crate) fn pool2(x: &CpuTensor) -> Option<CpuTensor> {
 pub(crate) fn upsample2(x: &CpuTensor) -> Option<CpuTensor> {
     let (data, shape) = dense(x)?;
     let [b, h, w, c] = <[usize; 4]>::try_from(shape.as_slice()).ok()?;
+    if b * h * w * c == 0 {
+        return None;
+    }
     let mut out = Vec::with_capacity(b * 4 * h * w * c);
     for source_row in data.chunks_exact(w * c) {
         for _ in 0..2 {
@@ -107,17 +112,24 @@ mod tests {
         )
     }
 
+    /// Shape and bit patterns (so -0 differs from +0 and NaN equals itself).
+    fn bits<const D: usize>(x: CpuTensor) -> (Vec<usize>, Vec<u32>) {
+        let (shape, v) = values::<D>(x);
+        (shape, v.into_iter().map(f32::to_bits).collect())
+    }
+
     /// Bit for bit the composed channels, with and without the reference channels, over a
     /// batch of two and cells with no mass (mass 0 and negative sums included).
     #[test]
     fn grid_channels_equal_the_composed_ones() {
         for (n, own, extra) in [(8, 8, 0), (8, 8, 2), (12, 3, 2)] {
             let splat = tensor_of([2, n * n, 1 + own + extra], 0.731);
-            // Zero the mass of every fifth cell.
+            // Zero the mass of every fifth cell, and make one mass NaN.
             let (shape, mut data) = values::<3>(splat);
             for cell in data.chunks_exact_mut(1 + own + extra).step_by(5) {
                 cell[0] = 0.0;
             }
+            data[(1 + own + extra) * 3] = f32::NAN;
             let splat = Tensor::<B, 3>::from_data(
                 TensorData::new(data, [shape[0], shape[1], shape[2]]),
                 &Default::default(),
@@ -127,8 +139,8 @@ mod tests {
             let cpu = grid_channels(&splat, n, own).expect("f32, rank 3");
             let composed = composed_grid_channels::<B>(splat, n, own);
             assert_eq!(
-                values::<3>(cpu),
-                values::<3>(composed),
+                bits::<3>(cpu),
+                bits::<3>(composed),
                 "n {n} own {own} extra {extra}"
             );
         }
@@ -138,14 +150,18 @@ mod tests {
     /// grid.
     #[test]
     fn pool_and_upsample_equal_the_composed_ones() {
-        let x = tensor_of([2, 6, 10, 5], 0.377);
+        let (shape, mut data) = values::<4>(tensor_of([2, 6, 10, 5], 0.377));
+        data[..20].fill(-0.0); // a 2x2 block of negative zeros (SiLU's output far below 0)
+        let x = Tensor::<B, 4>::from_data(
+            TensorData::new(data, [shape[0], shape[1], shape[2], shape[3]]),
+            &Default::default(),
+        )
+        .into_primitive()
+        .tensor();
         let pooled = pool2(&x).expect("even sides");
-        assert_eq!(
-            values::<4>(pooled),
-            values::<4>(composed_pool2::<B>(x.clone()))
-        );
+        assert_eq!(bits::<4>(pooled), bits::<4>(composed_pool2::<B>(x.clone())));
         let up = upsample2(&x).expect("f32");
-        assert_eq!(values::<4>(up), values::<4>(composed_upsample2::<B>(x)));
+        assert_eq!(bits::<4>(up), bits::<4>(composed_upsample2::<B>(x)));
         assert!(
             pool2(&tensor_of([1, 5, 4, 2], 0.1)).is_none(),
             "odd side declined"

@@ -10,10 +10,12 @@
 //! parallel passes ran no faster on 2 threads than on 1 (`bench node --skip-node`: the same
 //! p50 with `RAYON_NUM_THREADS=1` and 2). OpenMP runtimes solve the same problem by letting
 //! idle threads spin for a while before they sleep (`OMP_WAIT_POLICY=active`, KMP_BLOCKTIME);
-//! rayon has no such setting, so [`hot`] spawns a task that keeps one worker spinning, and
-//! running pending jobs, for the length of the step.
+//! rayon has no such setting, so [`hot`] spawns a task that keeps one more worker spinning,
+//! and running pending jobs, for the length of the step (one: these machines have two cores;
+//! on larger ones the other workers still sleep between passes).
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// How long the spinning task waits without finding a job before it gives up and lets its
@@ -27,13 +29,21 @@ const IDLE_LIMIT: Duration = Duration::from_millis(2);
 ///
 /// From a thread outside the pool (the node's step loop, `bench node`) `f` is handed to the
 /// pool once, instead of once per parallel pass. On a pool thread already (an `eval` that
-/// steps scenes in parallel) `f` runs where it is, as before. With one worker the spinner
-/// runs after `f` and returns at once.
+/// steps scenes in parallel) `f` runs where it is, as before. With one worker no spinner is
+/// started.
 ///
 /// The spinner runs other pending jobs of the pool (`rayon::yield_now`) and stops when `f`
-/// returns or after [`IDLE_LIMIT`] without a job. The limit also bounds the one case where a
-/// spinner could wait on itself: two steps handed to the pool from two outside threads at
-/// once, each worker blocked in its step beneath the other step's spinner.
+/// returns or after [`IDLE_LIMIT`] without a job. It is spawned detached, so `hot` returns
+/// when `f` does, even if the spinner is still inside an unrelated job it picked up. It is
+/// pushed onto the stepping worker's own queue before `f` starts, and other workers steal
+/// the oldest job first, so no part of `f` can be stolen before the spinner is: the stepping
+/// worker never runs its own spinner beneath `f`. The idle limit bounds the one case where a
+/// spinner could still wait on a blocked step: two steps handed to the pool from two outside
+/// threads at once, each worker blocked in its step beneath the other step's spinner.
+///
+/// The step now runs on whichever worker takes it, so per-thread scratch buffers (Winograd's
+/// `V` and `M`, the im2col index cache) can exist once per worker, and the step runs under
+/// the workers' flush-to-zero setting (`cli::flush_denormals`).
 pub(crate) fn hot<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     if rayon::current_thread_index().is_some() {
         return f();
@@ -41,10 +51,11 @@ pub(crate) fn hot<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     if rayon::current_num_threads() < 2 {
         return rayon::scope(|_| f());
     }
-    let done = AtomicBool::new(false);
-    rayon::scope(|scope| {
-        scope.spawn(|_| spin(&done));
-        let _finished = SetOnDrop(&done);
+    rayon::scope(|_| {
+        let done = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&done);
+        rayon::spawn(move || spin(&flag));
+        let _finished = SetOnDrop(done);
         f()
     })
 }
@@ -62,9 +73,9 @@ fn spin(done: &AtomicBool) {
 }
 
 /// Sets its flag when dropped, so the spinner stops when `f` returns or panics.
-struct SetOnDrop<'a>(&'a AtomicBool);
+struct SetOnDrop(Arc<AtomicBool>);
 
-impl Drop for SetOnDrop<'_> {
+impl Drop for SetOnDrop {
     fn drop(&mut self) {
         self.0.store(true, Ordering::Release);
     }
