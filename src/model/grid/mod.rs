@@ -293,10 +293,10 @@ impl<B: NetOps> GridModel<B> {
             let x0 = input.reference.unwrap_or_else(|| input.pos.clone());
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
-        let splat = transfer::p2g(&s, Tensor::cat(values, 2)); // [B, n^2, 1 + 2T + 4 (+ 2)]
-                                                               // [m / 4, velocities and materials per mass, walls (, displacement per mass)]: the
-                                                               // reference channels after the walls, so a model grown by `with_reference` keeps its
-                                                               // channel order.
+        // [B, n^2, 1 + 2T + 4 (+ 2)], then the channels [m / 4, velocities and materials per
+        // mass, walls, displacement per mass]: the reference channels after the walls, so a
+        // model grown by `with_reference` keeps its channel order.
+        let splat = transfer::p2g(&s, Tensor::cat(values, 2));
         let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];

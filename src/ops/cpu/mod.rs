@@ -18,7 +18,7 @@
 //! - `scan.rs`: the linear recurrence of minGRU / minLSTM as one sequential pass.
 //! - `adam.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.
-//! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather.
+//! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather, and its sparse stencil.
 //! - `pool.rs`: a whole inference step on the rayon pool with a worker kept awake.
 //! - `winograd.rs`: the forward of the grid model's 3x3 convolutions by Winograd F(4x4, 3x3)
 //!   (inference).
