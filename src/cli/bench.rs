@@ -1,4 +1,4 @@
-//! `minflow bench`: the subcommands (train, transport, node and gemm live in their own
+//! `minflow bench`: the subcommands (train, transport, node, rollout and gemm live in their own
 //! files). `bench sim`: milliseconds per saved frame of the MLS-MPM ground truth for the
 //! `multi` setting (2,500 particles, 64^2 grid, 20 substeps) and the `fluid` setting
 //! (128^2 grid, 80 substeps), on one thread and on all threads (one scene per thread), in
@@ -24,6 +24,8 @@ pub enum BenchCommand {
     Node(super::bench_node::NodeBenchArgs),
     /// GPU dense-layer products: cubecl vs cuBLAS TF32 / FP32, ms, TFLOP/s, difference.
     Gemm(super::bench_gemm::GemmBenchArgs),
+    /// Closed-loop rollout cost per frame of models against the MPM solver, as a ratio.
+    Rollout(super::bench_rollout::RolloutBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -42,11 +44,11 @@ pub struct SimBenchArgs {
 pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
     match cmd {
         BenchCommand::Sim(args) => sim(args),
-        BenchCommand::Train(args) if args.arch == "grid" => super::bench_train_grid::run(&args),
         BenchCommand::Train(args) => super::bench_train::run(args),
         BenchCommand::Transport(args) => super::bench_transport::run(args),
         BenchCommand::Node(args) => super::bench_node::run(args),
         BenchCommand::Gemm(args) => super::bench_gemm::run(args),
+        BenchCommand::Rollout(args) => super::bench_rollout::run(args),
     }
 }
 

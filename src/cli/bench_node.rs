@@ -30,7 +30,7 @@ use super::Outcome;
 use crate::bag::{read_frames, FRAMES_TOPIC};
 use crate::data::{self, Scaler};
 use crate::model::store::{save, ModelMeta, Surrogate};
-use crate::model::temporal::CoreKind;
+use crate::model::CoreKind;
 use crate::model::{LastActivation, ModelConfig};
 use crate::msgs::{ParticleFrame, Time};
 use crate::node::surrogate::state_rows as rows;

@@ -1,17 +1,17 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). On the bundled bags
 //! in `bags/`: uses the shipped grid minGRU in `models/` (`--train` trains one on the bundled
-//! bags instead, as it does when `--model` holds no model), then launches
+//! bags instead, in this process, as it does when `--model` holds no model), then launches
 //! `launch_configs/replay_eval.yaml` over zenoh with an embedded peer (replay -> surrogate
 //! node in closed loop -> recorder -> `eval --pred --truth`) and prints the replay
 //! evaluation table with the `persist` and `constvel` baselines.
 
+use super::train::TrainArgs;
 use super::Outcome;
 use crate::bag;
 use crate::node::shutdown_flag;
 use anyhow::{bail, Context};
 use clap::Args;
 use std::path::PathBuf;
-use std::process::Command;
 use std::time::Instant;
 
 #[derive(Debug, Args)]
@@ -59,7 +59,6 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
             scenes.join(", ")
         );
     }
-    let exe = std::env::current_exe().context("locating the minflow binary")?;
     let model = if args.train || !args.model.join("model.json").is_file() {
         if !args.train {
             println!("\n(no model in {}: training one)", args.model.display());
@@ -69,26 +68,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
             args.bags.display(),
             args.epochs
         );
-        let status = Command::new(&exe)
-            .args(["train", "--arch", "grid", "--model", "mingru"])
-            .args([
-                "--unet-width",
-                "16",
-                "--samples-per-epoch",
-                "96",
-                "--batch-size",
-                "4",
-            ])
-            .args(["--epochs", &args.epochs.to_string(), "--patience", "0"])
-            .arg("--data")
-            .arg(&args.bags)
-            .arg("--out")
-            .arg(&args.train_out)
-            .status()
-            .context("running minflow train")?;
-        if !status.success() {
-            bail!("training failed ({status})");
-        }
+        let mut train = TrainArgs::defaults(vec![args.bags.clone()], args.train_out.clone());
+        train.epochs = args.epochs as usize;
+        train.batch_size = 4;
+        train.patience = 0;
+        train.grid_args.net.unet_width = 16;
+        train.grid_args.samples_per_epoch = 96;
+        crate::cli::train::run(train).context("training the demo model")?;
         args.train_out.clone()
     } else {
         println!(
@@ -116,6 +102,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     .collect();
     let nodes = crate::launch::load(&file, &overrides)?;
     let stop = shutdown_flag();
+    let exe = std::env::current_exe().context("locating the minflow binary")?;
     let results = crate::launch::run(&nodes, &exe, &stop)?;
     if let Some(failed) = results
         .iter()

@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use clap::Args;
 
+use super::flags::Horizon;
 use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::data::{self, Part, Scaler, Split, StreamingLoader};
@@ -21,7 +22,6 @@ use crate::eval::{
     self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReferenceFrom,
     ReplayOptions, RolloutOptions,
 };
-use crate::model::store::ModelMeta;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -37,9 +37,14 @@ pub struct EvalArgs {
     /// Seed of the split (use the one the models were trained with).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Steps predicted per rollout H (the paper's avg20 / f20: 20).
-    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
-    pub horizon: usize,
+    /// Steps predicted per rollout H (the paper's avg20 / f20: 20), or `full`: one rollout
+    /// per trajectory from its seed frames to its last frame (avg_full / f_full; --data only).
+    #[arg(long, default_value = "20", value_parser = super::flags::horizon)]
+    pub horizon: super::flags::Horizon,
+    /// Skip the plausibility metrics (Sinkhorn divergence per material, strain error of the
+    /// solids) at steps 20, 50, 100, 200, ... and the rollout's end.
+    #[arg(long)]
+    pub no_plausibility: bool,
     /// Rollouts per trajectory from evenly spaced start frames (1: from the first frame).
     #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
     pub starts: usize,
@@ -127,11 +132,7 @@ pub(crate) fn scaler_for(
     seed: u64,
 ) -> anyhow::Result<(Scaler, String)> {
     if let Some(dir) = models.first() {
-        let path = dir.join("model.json");
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("reading {}", path.display()))?;
-        let meta: ModelMeta =
-            serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        let (_, meta) = crate::model::store::read_meta(dir)?;
         return Ok((
             meta.scaler,
             format!("scaled with the scaler stored in {}", dir.display()),
@@ -207,11 +208,16 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let mut predictors: Vec<&dyn Predictor> = models.iter().map(|m| m.as_ref()).collect();
     predictors.extend([&Persist as &dyn Predictor, &ConstVel]);
     let opts = RolloutOptions {
-        horizon: args.horizon,
+        horizon: match args.horizon {
+            Horizon::Steps(k) => k,
+            Horizon::Full => 0,
+        },
         starts: args.starts,
         window: args.window,
         density_grid: args.density_grid,
         snapshots: !args.no_render,
+        full: args.horizon == Horizon::Full,
+        plausibility: !args.no_plausibility,
     };
     let bar = super::progress(0, "rollouts");
     let eval = eval::evaluate(&trajs, &predictors, &scaler, &source, &opts, &bar)?;
@@ -273,8 +279,14 @@ fn replay(args: &EvalArgs) -> anyhow::Result<(Evaluation, bool)> {
     let (truth, report) = data::load_scenes(&args.truth, Some(&args.topic), &scenes)
         .context("reading the ground truth")?;
     let (scaler, source) = scaler_for(&args.models, &args.truth, &args.topic, args.seed)?;
+    let Horizon::Steps(horizon) = args.horizon else {
+        return Err(super::UsageError(
+            "--horizon full rolls models out on --data; for --pred give a number of steps".into(),
+        )
+        .into());
+    };
     let opts = ReplayOptions {
-        horizon: args.horizon,
+        horizon,
         one_step: args.one_step,
         density_grid: args.density_grid,
         snapshots: !args.no_render,

@@ -11,6 +11,43 @@ pub fn at_least_one(s: &str) -> Result<usize, String> {
     }
 }
 
+/// A rollout length: a number of steps (at least 1), or `full`, to each scene's end.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Horizon {
+    /// This many predicted steps.
+    Steps(usize),
+    /// From the seed frames to the scene's last frame.
+    Full,
+}
+
+impl std::fmt::Display for Horizon {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Horizon::Steps(k) => write!(f, "{k}"),
+            Horizon::Full => f.write_str("full"),
+        }
+    }
+}
+
+/// `--horizon`: a step count of at least 1, or `full`.
+pub fn horizon(s: &str) -> Result<Horizon, String> {
+    match s {
+        "full" => Ok(Horizon::Full),
+        _ => at_least_one(s)
+            .map(Horizon::Steps)
+            .map_err(|e| format!("{e} (a number of steps, or full)")),
+    }
+}
+
+/// A bundle size K (`--bundle`): an integer in 1..=16.
+pub fn bundle(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(v) if (1..=16).contains(&v) => Ok(v),
+        Ok(_) => Err("must be in 1..=16".into()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A finite number above 0.
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {

@@ -6,8 +6,8 @@ mod bag;
 mod bench;
 mod bench_gemm;
 mod bench_node;
+mod bench_rollout;
 mod bench_train;
-mod bench_train_grid;
 mod bench_transport;
 mod demo;
 pub mod device;
@@ -24,8 +24,6 @@ mod report;
 mod run_folder;
 mod simulate;
 pub mod train;
-mod train_args;
-mod train_grid;
 
 use clap::{Parser, Subcommand};
 

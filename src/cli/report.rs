@@ -73,7 +73,7 @@ pub struct ReportArgs {
     pub encoder_last_activation: String,
     /// Grid architecture: the network's sizes.
     #[command(flatten)]
-    pub grid_net: super::train_args::GridNetArgs,
+    pub grid_net: super::train::args::GridNetArgs,
     /// Grid architecture: samples per epoch at most (0: every window).
     #[arg(long, default_value_t = 0)]
     pub samples_per_epoch: usize,
@@ -203,7 +203,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
     eval_args.data = args.data.clone();
     eval_args.split = args.eval_split.clone();
     eval_args.seed = args.seed;
-    eval_args.horizon = args.horizon;
+    eval_args.horizon = super::flags::Horizon::Steps(args.horizon);
     eval_args.starts = args.starts;
     eval_args.out = eval_dir.clone();
     let argv = eval_flags(&eval_args);

@@ -23,7 +23,9 @@
 
 pub mod metrics;
 pub mod output;
+pub mod plausibility;
 pub mod predictor;
+pub mod probe_table;
 pub mod render;
 pub mod replay;
 pub mod rollout;
@@ -32,6 +34,7 @@ pub mod table;
 use std::path::PathBuf;
 
 pub use metrics::{density_map, frame_metrics, FrameMetrics, MATERIALS, METRIC_NAMES};
+pub use plausibility::Plausibility;
 pub use predictor::{ConstVel, CpuInfer, ModelPredictor, Persist, Predictor, ReferenceFrom};
 pub use replay::{read_predictions, score_predictions, Predictions, ReplayOptions};
 pub use rollout::{evaluate, start_offsets, RolloutOptions};
@@ -145,6 +148,28 @@ pub struct SceneResult {
     pub beyond: usize,
     /// Frames for the renders (the first rollout).
     pub snapshots: Option<Snapshots>,
+    /// Per predictor: the mean plausibility at each probe of its rollouts (empty when not
+    /// scored: predictions bags, `--no-plausibility`).
+    pub probes: Vec<Vec<(Probe, Plausibility)>>,
+}
+
+/// Where a rollout's plausibility is probed: after a fixed number of steps, or at the
+/// rollout's last step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Probe {
+    /// Step k (1-based).
+    Step(usize),
+    /// The rollout's last step (the scene's end with `--horizon full`).
+    End,
+}
+
+impl std::fmt::Display for Probe {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Probe::Step(k) => write!(f, "{k}"),
+            Probe::End => f.write_str("end"),
+        }
+    }
 }
 
 /// Everything an evaluation measured.
@@ -152,8 +177,11 @@ pub struct SceneResult {
 pub struct Evaluation {
     /// Predictor (column) names: models first, then `persist` and `constvel`.
     pub predictors: Vec<String>,
-    /// Steps predicted per rollout (H).
+    /// Steps predicted per rollout (H; with `full`, the longest rollout's).
     pub horizon: usize,
+    /// Rolled out to each trajectory's end (`--horizon full`): the blocks are `avg_full` and
+    /// `f_full`, each scene's last step its own.
+    pub full: bool,
     /// The scaler defining the scaled features.
     pub scaler: Scaler,
     /// Where the scaler comes from (for the report).
@@ -165,6 +193,16 @@ pub struct Evaluation {
 }
 
 impl Evaluation {
+    /// The table's block names: `avgH` and `fH` (the paper's `avg20` and `f20`), or
+    /// `avg_full` and `f_full` for whole-scene rollouts.
+    pub fn block_names(&self) -> (String, String) {
+        if self.full {
+            ("avg_full".into(), "f_full".into())
+        } else {
+            table::block_names(self.horizon)
+        }
+    }
+
     /// Total steps missing from predictions, over scenes and predictors.
     pub fn missing(&self) -> usize {
         self.scenes.iter().flat_map(|s| &s.missing).sum()

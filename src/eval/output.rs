@@ -1,13 +1,13 @@
 //! Writes everything an [`Evaluation`] produced into one folder: `table.md` (the Tables 2/3
 //! layout of the MSE, then the detailed summary), `table.csv`, `metrics.csv` (every metric
-//! at every step), `mse_curves.png` (per-scene MSE curves) and, per scene with snapshots,
+//! at every step), `plausibility.csv` (when probed), `mse_curves.png` (per-scene MSE curves) and, per scene with snapshots,
 //! `render_<scene>.png` and `render_<scene>.gif` (ground truth beside each model). Used by
 //! `minflow eval` and `minflow report`.
 
 use std::path::{Path, PathBuf};
 
 use super::render::{file_stem, mse_curves, render_gif, render_grid};
-use super::{table, EvalError, Evaluation};
+use super::{probe_table, table, EvalError, Evaluation};
 
 /// Writes the tables and figures of `eval` into `dir` (created if needed). The first
 /// `models` predictors are rendered beside the ground truth (the baselines after them are
@@ -31,17 +31,29 @@ pub fn write_all(
         files.push(path);
         Ok(())
     };
+    let (avg, last) = eval.block_names();
+    let steps = if eval.full {
+        "mean over each rollout's steps to the scene's end".to_owned()
+    } else {
+        format!(
+            "mean over steps 1..{h} ({avg}) and at step {h} ({last})",
+            h = eval.horizon
+        )
+    };
     let md = format!(
-        "# {title}\n\nMSE over scaled (x, y, vx, vy) ({}), mean over steps 1..{h} (avg{h}) and \
-         at step {h} (f{h}); the lowest value of each row and block in bold.\n\n{}\n{}",
+        "# {title}\n\nMSE over scaled (x, y, vx, vy) ({}), {steps}; the lowest value of each \
+         row and block in bold.\n\n{}\n{}{}",
         eval.scaler_source,
         table::markdown(eval),
         table::details(eval),
-        h = eval.horizon
+        probe_table::markdown(eval),
     );
     write("table.md", md)?;
     write("table.csv", table::csv(eval))?;
     write("metrics.csv", table::metrics_csv(eval))?;
+    if eval.scenes.iter().any(|s| !s.probes.is_empty()) {
+        write("plausibility.csv", probe_table::csv(eval))?;
+    }
     let curves = dir.join("mse_curves.png");
     mse_curves(&curves, eval)?;
     files.push(curves);

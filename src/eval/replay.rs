@@ -177,6 +177,7 @@ pub fn score_predictions(
     Ok(Evaluation {
         predictors,
         horizon: h,
+        full: false,
         scaler: *scaler,
         scaler_source: scaler_source.to_owned(),
         scenes,

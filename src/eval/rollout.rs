@@ -15,7 +15,12 @@
 
 use std::collections::BTreeMap;
 
-use super::{frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums};
+use rayon::prelude::*;
+
+use super::plausibility::{probe_steps, Neighbours, Plausibility};
+use super::{
+    frame_metrics, EvalError, Evaluation, Predictor, Probe, SceneResult, Snapshots, StepSums,
+};
 use crate::data::{Scaler, Trajectory};
 
 /// Settings of [`evaluate`].
@@ -32,6 +37,11 @@ pub struct RolloutOptions {
     pub density_grid: usize,
     /// Keep the first rollout's frames of each scene for the renders.
     pub snapshots: bool,
+    /// Roll out from the seed frames to each trajectory's end (`--horizon full`): one
+    /// rollout per trajectory from its first frame; `horizon` and `starts` are not used.
+    pub full: bool,
+    /// Score plausibility ([`super::plausibility`]) at the [`probe_steps`].
+    pub plausibility: bool,
 }
 
 impl Default for RolloutOptions {
@@ -42,6 +52,8 @@ impl Default for RolloutOptions {
             window: 2,
             density_grid: 32,
             snapshots: true,
+            full: false,
+            plausibility: true,
         }
     }
 }
@@ -76,17 +88,26 @@ pub fn evaluate(
     opts: &RolloutOptions,
     progress: &indicatif::ProgressBar,
 ) -> Result<Evaluation, EvalError> {
-    let h = opts.horizon.max(1);
     let w = predictors
         .iter()
         .map(|p| p.window())
         .chain([opts.window, 1])
         .max()
         .unwrap_or(1);
+    let h = match opts.full {
+        true => trajs
+            .iter()
+            .map(|t| t.frames.saturating_sub(w))
+            .max()
+            .unwrap_or(0),
+        false => opts.horizon,
+    }
+    .max(1);
     let mut notes = Vec::new();
     let mut plan = Vec::new();
     for traj in trajs {
-        let offsets = start_offsets(traj.frames, w, h, opts.starts);
+        let starts = if opts.full { 1 } else { opts.starts };
+        let offsets = start_offsets(traj.frames, w, h, starts);
         if offsets.is_empty() {
             notes.push(format!(
                 "scene {:?} (frames {}..{}): {} frames, too short for {w} seed frames; skipped",
@@ -98,7 +119,7 @@ pub fn evaluate(
             continue;
         }
         let steps = h.min(traj.frames - w);
-        if steps < h {
+        if steps < h && !opts.full {
             notes.push(format!(
                 "scene {:?} (frames {}..{}): only {steps} of {h} steps after {w} seed frames",
                 traj.scene,
@@ -114,17 +135,22 @@ pub fn evaluate(
         )));
     }
     progress.set_length((plan.len() * predictors.len()) as u64);
-    let mut scenes: BTreeMap<String, (SceneResult, Vec<StepSums>)> = BTreeMap::new();
+    let mut scenes: BTreeMap<String, (SceneResult, Vec<StepSums>, Vec<ProbeSums>)> =
+        BTreeMap::new();
     for (traj, start, steps) in plan {
         let first = start + w;
-        let (result, sums) = scenes.entry(traj.scene.clone()).or_insert_with(|| {
+        let (result, sums, probes) = scenes.entry(traj.scene.clone()).or_insert_with(|| {
             let result = SceneResult {
                 scene: traj.scene.clone(),
                 missing: vec![0; predictors.len()],
                 ..SceneResult::default()
             };
-            (result, vec![StepSums::new(h); predictors.len()])
+            let probes = vec![ProbeSums::default(); predictors.len()];
+            (result, vec![StepSums::new(h); predictors.len()], probes)
         });
+        let neighbours = opts
+            .plausibility
+            .then(|| Neighbours::new(traj.state(first - 1), &traj.material));
         result.rollouts += 1;
         let keep = opts.snapshots && result.snapshots.is_none();
         let mut snap = keep.then(|| Snapshots {
@@ -147,6 +173,9 @@ pub fn evaluate(
                     opts.density_grid,
                 ));
             }
+            if let Some(nb) = &neighbours {
+                probes[p].add(traj, first, &frames, steps, nb);
+            }
             if let Some(snap) = snap.as_mut() {
                 let mut row = vec![Some(traj.state(first - 1).to_vec())];
                 row.extend(frames.into_iter().map(Some));
@@ -161,14 +190,24 @@ pub fn evaluate(
     }
     let scenes = scenes
         .into_values()
-        .map(|(mut result, sums)| {
+        .map(|(mut result, sums, probes)| {
             result.curves = sums.iter().map(StepSums::curve).collect();
+            if opts.full {
+                // Each scene's curve ends at its own last frame.
+                for curve in &mut result.curves {
+                    while curve.steps.len() > 1 && curve.steps.last() == Some(&None) {
+                        curve.steps.pop();
+                    }
+                }
+            }
+            result.probes = probes.iter().map(ProbeSums::means).collect();
             result
         })
         .collect();
     Ok(Evaluation {
         predictors: predictors.iter().map(|p| p.name().to_owned()).collect(),
         horizon: h,
+        full: opts.full,
         scaler: *scaler,
         scaler_source: scaler_source.to_owned(),
         scenes,
@@ -189,4 +228,57 @@ fn check_len(traj: &Trajectory, offset: usize, len: usize, who: &str) -> Result<
             traj.n
         ),
     })
+}
+
+/// The plausibility of one predictor's rollouts of one scene, by probe.
+#[derive(Debug, Clone, Default)]
+struct ProbeSums {
+    /// Per probe label (`"20"`, `"100"`, ..., `"end"`): the rollouts' plausibility there.
+    by_probe: BTreeMap<Probe, Vec<Plausibility>>,
+}
+
+impl ProbeSums {
+    /// Scores `frames` (a rollout of `steps` steps whose step k is trajectory frame
+    /// `first + k - 1`) at its [`probe_steps`], the last as [`Probe::End`]; the probes run in
+    /// parallel.
+    fn add(
+        &mut self,
+        traj: &Trajectory,
+        first: usize,
+        frames: &[Vec<f32>],
+        steps: usize,
+        nb: &Neighbours,
+    ) {
+        let steps = steps.min(frames.len());
+        let scored: Vec<(usize, Plausibility)> = probe_steps(steps)
+            .into_par_iter()
+            .map(|k| {
+                let truth = traj.state(first + k - 1);
+                (
+                    k,
+                    Plausibility::of(&frames[k - 1], truth, &traj.material, nb),
+                )
+            })
+            .collect();
+        for (k, value) in scored {
+            let label = if k == steps {
+                Probe::End
+            } else {
+                Probe::Step(k)
+            };
+            self.by_probe.entry(label).or_default().push(value);
+            if k == steps && k <= 200 {
+                // The horizon's own step is a probe too (f20, f100, f200 alike).
+                self.by_probe.entry(Probe::Step(k)).or_default().push(value);
+            }
+        }
+    }
+
+    /// The mean plausibility at each probe.
+    fn means(&self) -> Vec<(Probe, Plausibility)> {
+        self.by_probe
+            .iter()
+            .filter_map(|(&probe, all)| Plausibility::mean(all).map(|m| (probe, m)))
+            .collect()
+    }
 }

@@ -78,7 +78,7 @@ pub fn markdown(eval: &Evaluation) -> String {
 
 /// The Tables 2/3 layout of any per-frame `metric` as Markdown.
 pub fn markdown_of(eval: &Evaluation, metric: &dyn Fn(&FrameMetrics) -> f64) -> String {
-    let (avg, last) = block_names(eval.horizon);
+    let (avg, last) = eval.block_names();
     let mut s = String::from("| Scene |");
     for block in [&avg, &last] {
         for p in &eval.predictors {
@@ -109,7 +109,7 @@ pub fn markdown_of(eval: &Evaluation, metric: &dyn Fn(&FrameMetrics) -> f64) -> 
 /// The Tables 2/3 layout as CSV: `scene,avgH_<p>...,fH_<p>...`, full precision, empty where
 /// not scored; the last row is `Average`.
 pub fn csv(eval: &Evaluation) -> String {
-    let (avg, last) = block_names(eval.horizon);
+    let (avg, last) = eval.block_names();
     let mut s = String::from("scene");
     for block in [&avg, &last] {
         for p in &eval.predictors {
@@ -176,7 +176,7 @@ pub fn metrics_csv(eval: &Evaluation) -> String {
 /// The detailed summary: per predictor, the `avgH` of every metric averaged over scenes,
 /// then missing frames per scene and the notes.
 pub fn details(eval: &Evaluation) -> String {
-    let (avg, _) = block_names(eval.horizon);
+    let (avg, _) = eval.block_names();
     let mut s = String::new();
     let averages = eval.averages();
     let fmt = |v: f64| {

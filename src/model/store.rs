@@ -181,7 +181,8 @@ pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreErr
 }
 
 /// A `model.json`'s text as a [`ModelMeta`]. A grid model saved before
-/// [`GridConfig::reference`] existed reads as one without it.
+/// [`GridConfig::reference`] or [`GridConfig::bundle`] existed reads as one without
+/// reference channels, predicting one frame per call.
 ///
 /// # Errors
 /// The text is not JSON or not a model description.
@@ -190,7 +191,7 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 }
 
 /// A `model.json`'s text as JSON, with the fields added since it was saved filled in at the
-/// values that mean "as before" (a grid model's `reference`: false). [`parse_meta`] and the
+/// values that mean "as before" (a grid model's `reference`: false, `bundle`: 1). [`parse_meta`] and the
 /// comparison of a run folder's settings (`train --resume`) both read it through this.
 ///
 /// # Errors
@@ -202,6 +203,7 @@ pub fn meta_value(text: &str) -> Result<serde_json::Value, serde_json::Error> {
         if meta.get("arch").and_then(|a| a.as_str()) == Some("grid") {
             meta.entry("reference")
                 .or_insert(serde_json::Value::Bool(false));
+            meta.entry("bundle").or_insert(serde_json::Value::from(1));
         }
     }
     Ok(value)
@@ -383,7 +385,19 @@ impl<B: NetOps> Surrogate<B> {
         Ok(state)
     }
 
-    /// Predicts the next frame of each trajectory in the batch and advances the state.
+    /// Frames one network call predicts (K, `train --bundle`): 1 for the paper's model and
+    /// a single-frame grid model.
+    pub fn bundle(&self) -> usize {
+        match &self.net {
+            Net::Grid(model) => model.bundle(),
+            Net::Paper(_) => 1,
+        }
+    }
+
+    /// Predicts the next frame of each trajectory in the batch and advances the state. A
+    /// bundled model (K > 1) makes a whole call and returns its first frame; its state then
+    /// goes on from `frames` (the next input is the next observed frame): what a node fed
+    /// live frames does on the frames where it calls the network.
     ///
     /// # Shapes
     /// - `frames`: `[B, N, 4]` physical x, y, vx, vy; `material`: `[B, N]`; `dt`: `[B]`
@@ -399,17 +413,40 @@ impl<B: NetOps> Surrogate<B> {
         state: State<B>,
     ) -> Result<(Vec<f32>, State<B>), StoreError> {
         // On the CPU: on the rayon pool with a worker awake (`NetOps::run_step`).
-        B::run_step(|| self.step_here(frames, material, dt, state))
+        let (mut out, state) = B::run_step(|| self.step_here(frames, material, dt, state, false))?;
+        Ok((out.swap_remove(0), state))
     }
 
-    /// [`Surrogate::step`] on the calling thread.
+    /// One network call: the next K = [`Surrogate::bundle`] frames of each trajectory in the
+    /// batch, oldest first, and the state after the last of them (its velocity history ends
+    /// with the bundle's frames: the next call reads the bundle's last frame). A rollout of
+    /// H frames takes ceil(H / K) calls.
+    ///
+    /// # Shapes
+    /// As [`Surrogate::step`]; returns K frames of `[B, N, 4]`.
+    ///
+    /// # Errors
+    /// As [`Surrogate::step`].
+    pub fn step_bundle(
+        &self,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        state: State<B>,
+    ) -> Result<(Vec<Vec<f32>>, State<B>), StoreError> {
+        B::run_step(|| self.step_here(frames, material, dt, state, true))
+    }
+
+    /// [`Surrogate::step`] (`whole`: false) or [`Surrogate::step_bundle`] (true) on the
+    /// calling thread.
     fn step_here(
         &self,
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
         state: State<B>,
-    ) -> Result<(Vec<f32>, State<B>), StoreError> {
+        whole: bool,
+    ) -> Result<(Vec<Vec<f32>>, State<B>), StoreError> {
         let b = dt.len();
         let n = material.len().checked_div(b).unwrap_or(0);
         if b == 0 || frames.len() != b * n * 4 || material.len() != b * n {
@@ -434,7 +471,7 @@ impl<B: NetOps> Surrogate<B> {
                 let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
                 let mut out = super::download(out)?;
                 self.meta.scaler.unscale_rows(&mut out, 4);
-                (out, NetState::Paper(layers))
+                (vec![out], NetState::Paper(layers))
             }
             (
                 Net::Grid(model),
@@ -448,10 +485,11 @@ impl<B: NetOps> Surrogate<B> {
                 if self.mirror {
                     let (material, dt) = ([material, material].concat(), [dt, dt].concat());
                     let frames = with_mirror_rows(frames);
-                    let (out, inner) = self.grid_step(model, &frames, &material, &dt, carry)?;
-                    (mean_of_mirror_rows(&out), inner)
+                    let (out, inner) =
+                        self.grid_step(model, &frames, &material, &dt, carry, whole)?;
+                    (out.iter().map(|o| mean_of_mirror_rows(o)).collect(), inner)
                 } else {
-                    self.grid_step(model, frames, material, dt, carry)?
+                    self.grid_step(model, frames, material, dt, carry, whole)?
                 }
             }
             _ => return Err(StoreError::Shape("state of another architecture".into())),
@@ -465,9 +503,11 @@ impl<B: NetOps> Surrogate<B> {
         ))
     }
 
-    /// [`Surrogate::step`] of a grid model: the velocity history is completed from the state
-    /// (the current velocity repeated before T frames were seen, or when B or N changed), and
-    /// the reference positions are this frame's when the state has none of this shape.
+    /// [`Surrogate::step`] (`whole`: false) or [`Surrogate::step_bundle`] (true) of a grid
+    /// model: the velocity history is completed from the state (the current velocity
+    /// repeated before T frames were seen, or when B or N changed), and the reference
+    /// positions are this frame's when the state has none of this shape. Returns the K
+    /// predicted frames (the first alone unless `whole`).
     fn grid_step(
         &self,
         model: &GridModel<B>,
@@ -475,7 +515,8 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         (memory, history, reference): GridCarry<B>,
-    ) -> Result<(Vec<f32>, NetState<B>), StoreError> {
+        whole: bool,
+    ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
         let n = material.len() / b;
         let frame = super::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
@@ -500,10 +541,32 @@ impl<B: NetOps> Surrogate<B> {
             dt: super::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference.clone()),
         };
-        let (out, memory) = model.step(input, memory);
-        let next = Tensor::cat(vec![out.pos, out.vel], 2);
+        let (mut outs, memory) = model.step_bundle(input, memory);
+        if !whole {
+            outs.truncate(1);
+        }
+        // The T - 1 velocities before the next call's input frame: the input frame's own
+        // window (the next observed frame follows it), or that window continued by the
+        // bundle's frames but its last (the next call's input is that last frame).
+        let mut window = vec![vel_hist];
+        if whole {
+            window.extend(outs[..outs.len() - 1].iter().map(|o| o.vel.clone()));
+        }
+        let window = Tensor::cat(window, 2);
+        let width = window.dims()[2];
+        let history = (t > 1).then(|| window.narrow(2, width - 2 * (t - 1), 2 * (t - 1)));
+        let k = outs.len();
+        let next = Tensor::cat(
+            outs.into_iter()
+                .map(|o| Tensor::cat(vec![o.pos, o.vel], 2))
+                .collect(),
+            0,
+        ); // [K B, N, 4]
         let out = super::download(next)?;
-        let history = (t > 1).then(|| vel_hist.narrow(2, 2, 2 * (t - 1)));
+        let per_frame = b * n * 4;
+        let out = (0..k)
+            .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())
+            .collect();
         let reference = Some(reference);
         Ok((
             out,
@@ -534,21 +597,21 @@ impl<B: NetOps> Surrogate<B> {
             Some(frame) => self.init_state_at(frame, 1)?,
             None => self.init_state(),
         };
-        let mut next = Vec::new();
-        for frame in seed {
-            let (out, s) = self.step(frame, material, &[dt], state)?;
+        let Some((last, before)) = seed.split_last() else {
+            return Err(StoreError::Shape("rollout: no seed frame".into()));
+        };
+        for frame in before {
+            state = self.step(frame, material, &[dt], state)?.1;
+        }
+        // ceil(k / K) calls, each from the last frame the one before predicted.
+        let mut frames: Vec<Vec<f32>> = Vec::with_capacity(k);
+        while frames.len() < k {
+            let input: &[f32] = frames.last().map_or(last.as_slice(), Vec::as_slice);
+            let (bundle, s) = self.step_bundle(input, material, &[dt], state)?;
             state = s;
-            next = out;
+            frames.extend(bundle);
         }
-        let mut frames = Vec::with_capacity(k);
-        for i in 0..k {
-            frames.push(next.clone());
-            if i + 1 < k {
-                let (out, s) = self.step(&next, material, &[dt], state)?;
-                state = s;
-                next = out;
-            }
-        }
+        frames.truncate(k);
         Ok(frames)
     }
 }

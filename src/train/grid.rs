@@ -4,13 +4,14 @@
 //! et al. 2024: loss over short autoregressive rollouts) and LagrangeBench (Toshev et al.
 //! 2023: push-forward, best checkpoint by validation rollout error).
 //!
-//! A sample is `T + P` consecutive frames of one scene. The model steps P times from frame
-//! `T - 1`: the first `teacher` steps read the true frame (velocities with Gaussian noise of
-//! `noise * dv_scale`), the rest read the model's own previous prediction, and the memory
-//! state runs through all P steps, so gradients flow through the state and through the
-//! fed-back predictions (backpropagation through the short rollout). Loss per step: the MSE of
-//! the next velocity in units of `dv_scale` plus the MSE of the next position in units of
-//! `dv_scale * dt`, averaged over the steps. Adam with gradient-norm clipping and a cosine
+//! A sample is `T + P K` consecutive frames of one scene (K = [`GridConfig::bundle`], the
+//! frames one call predicts). The model makes P calls from frame `T - 1`, each predicting K
+//! frames: the first `teacher` calls read the true frames (velocities with Gaussian noise of
+//! `noise * dv_scale`), the rest read the model's own previous predictions, and the memory
+//! state runs through all P calls, so gradients flow through the state and through the
+//! fed-back predictions (backpropagation through the short rollout). Loss per frame: the MSE
+//! of the next velocity in units of `dv_scale` plus the MSE of the next position in units of
+//! `dv_scale * dt`, averaged over the P K frames. Adam with gradient-norm clipping and a cosine
 //! learning-rate decay from `lr` to `lr_final` over the run; after each epoch the validation
 //! scenes are rolled out `val_horizon` frames from `val_starts` starts and the mean scaled
 //! MSE (as `eval` scores, with the training split's min-max scaler) picks the kept model.
@@ -32,6 +33,7 @@ use burn::tensor::{Distribution, ElementConversion, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::epochs::{run_epochs, EpochPass, EpochRun};
 use super::{checkpoint, EpochRecord, Observer, TrainError};
 use crate::data::{Batch, Scaler, Trajectory, WindowIndex};
 use crate::eval::rollout::start_offsets;
@@ -210,6 +212,7 @@ fn sequence_loss<B: NetOps>(
     let mut pos = truth(t - 1).narrow(2, 0, 2);
     let mut state = MemoryState::Empty;
     let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
+    let bundle = config.bundle.max(1);
     let mut total: Option<Tensor<B, 1>> = None;
     for p in 0..opts.steps {
         let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
@@ -220,31 +223,36 @@ fn sequence_loss<B: NetOps>(
             dt: dt.clone(),
             reference: Some(first_pos.clone()),
         };
-        let (out, next_state) = model.step(input, state);
+        let (outs, next_state) = model.step_bundle(input, state);
         state = next_state;
-        let target = truth(t + p);
-        let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
-            .powi_scalar(2)
-            .mean();
-        let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
-            .powi_scalar(2)
-            .mean();
-        let step = lv + lx;
-        total = Some(match total {
-            Some(acc) => acc + step,
-            None => step,
-        });
-        if p + 1 < opts.teacher {
-            pos = target.clone().narrow(2, 0, 2);
-            history.push(noisy(target.narrow(2, 2, 2)));
-        } else {
-            pos = out.pos;
-            history.push(out.vel);
+        let mut last_pos = None;
+        for (k, out) in outs.into_iter().enumerate() {
+            let target = truth(t + p * bundle + k);
+            let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
+                .powi_scalar(2)
+                .mean();
+            let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
+                .powi_scalar(2)
+                .mean();
+            let step = lv + lx;
+            total = Some(match total {
+                Some(acc) => acc + step,
+                None => step,
+            });
+            // The next call reads the truth (teacher steps) or the bundle's own frames.
+            if p + 1 < opts.teacher {
+                last_pos = Some(target.clone().narrow(2, 0, 2));
+                history.push(noisy(target.narrow(2, 2, 2)));
+            } else {
+                last_pos = Some(out.pos);
+                history.push(out.vel);
+            }
         }
+        pos = last_pos.expect("a bundle has at least one frame");
     }
     total
         .expect("at least one step")
-        .div_scalar(opts.steps.max(1) as f32)
+        .div_scalar((opts.steps.max(1) * bundle) as f32)
 }
 
 /// Mean scaled MSE of `horizon`-frame rollouts of `surrogate` from `starts` starts of every
@@ -275,32 +283,37 @@ pub fn validation_rollout<B: NetOps>(
         let dt = vec![traj.dt; b];
         let first: Vec<f32> = (0..b).flat_map(|_| traj.state(0).iter().copied()).collect();
         let mut state = surrogate.init_state_at(&first, b)?;
-        let mut next = Vec::new();
-        for k in 0..window {
+        for k in 0..window - 1 {
             let frame: Vec<f32> = offsets
                 .iter()
                 .flat_map(|&o| traj.state(o + k).iter().copied())
                 .collect();
-            let (out, s) = surrogate.step(&frame, &material, &dt, state)?;
-            state = s;
-            next = out;
+            state = surrogate.step(&frame, &material, &dt, state)?.1;
         }
-        for k in 0..horizon {
-            for (row, &o) in offsets.iter().enumerate() {
-                let truth = traj.state(o + window + k);
-                let pred = &next[row * n * 4..(row + 1) * n * 4];
-                for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
-                    for f in 0..4 {
-                        let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
-                        sum += d * d;
+        // ceil(horizon / K) calls, each from the last frame the one before predicted.
+        let mut next: Vec<f32> = offsets
+            .iter()
+            .flat_map(|&o| traj.state(o + window - 1).iter().copied())
+            .collect();
+        let mut k = 0;
+        while k < horizon {
+            let (bundle, s) = surrogate.step_bundle(&next, &material, &dt, state)?;
+            state = s;
+            for pred in bundle.into_iter().take(horizon - k) {
+                for (row, &o) in offsets.iter().enumerate() {
+                    let truth = traj.state(o + window + k);
+                    let pred = &pred[row * n * 4..(row + 1) * n * 4];
+                    for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
+                        for f in 0..4 {
+                            let d =
+                                f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
+                            sum += d * d;
+                        }
                     }
+                    count += n * 4;
                 }
-                count += n * 4;
-            }
-            if k + 1 < horizon {
-                let (out, s) = surrogate.step(&next, &material, &dt, state)?;
-                state = s;
-                next = out;
+                k += 1;
+                next = pred;
             }
         }
     }
@@ -331,23 +344,14 @@ where
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError> {
         let opts = &self.opts;
-        if train.t() != self.config.window + opts.steps - 1 {
+        let needed = self.config.window + opts.steps * self.config.bundle.max(1) - 1;
+        if train.t() != needed {
             return Err(TrainError::Mismatch(format!(
-                "windows of {} frames, the run needs T + P - 1 = {}",
+                "windows of {} frames, the run needs T + P K - 1 = {needed}",
                 train.t(),
-                self.config.window + opts.steps - 1
             )));
         }
-        let (mut model, mut optim, mut history) = self.start(resume)?;
-        let mut best = history
-            .iter()
-            .map(|r| r.val_loss)
-            .fold(f64::INFINITY, f64::min);
-        let mut since_best = history
-            .iter()
-            .rev()
-            .take_while(|r| r.val_loss > best)
-            .count();
+        let start = self.start(resume)?;
         let per_epoch = match opts.samples_per_epoch {
             0 => train.len(),
             s => s.min(train.len()),
@@ -358,50 +362,14 @@ where
             total_steps: batches * opts.epochs,
             batches,
         };
-        for epoch in history.len()..opts.epochs {
-            if opts.patience > 0 && since_best >= opts.patience {
-                break;
-            }
-            let started = Instant::now();
-            let (next, pass) =
-                self.train_epoch(model, &mut optim, train, epoch, &clock, observer)?;
-            model = next;
-            let seconds = started.elapsed().as_secs_f64();
-            let train_loss = pass.sum / pass.seen.max(1) as f64;
-            let val_loss = if val.is_empty() {
-                train_loss
-            } else {
-                let surrogate = Surrogate::from_net(
-                    Net::Grid(model.valid()),
-                    self.meta(scaler, epoch + 1, 0.0),
-                    &self.device,
-                );
-                validation_rollout(&surrogate, val, scaler, opts.val_starts, opts.val_horizon)?
-            };
-            let record = EpochRecord {
-                epoch: epoch + 1,
-                train_loss,
-                val_loss,
-                seconds,
-                samples_per_sec: pass.seen as f64 / seconds.max(1e-9),
-                data_seconds: pass.data,
-                wait_seconds: pass.wait,
-            };
-            if val_loss < best {
-                best = val_loss;
-                since_best = 0;
-                store::save(&self.out, &model, &self.meta(scaler, epoch + 1, val_loss))?;
-            } else {
-                since_best += 1;
-            }
-            history.push(record.clone());
-            checkpoint::save(&self.out, &model, &optim, &history)?;
-            observer.epoch(&record, &history);
-            if pass.out_of_time {
-                break;
-            }
-        }
-        Ok(history)
+        let mut run = GridRun {
+            trainer: self,
+            train,
+            val,
+            scaler: *scaler,
+            clock,
+        };
+        run_epochs(&mut run, start, observer)
     }
 
     /// The run's starting point: the weights (fresh, or `init_from`'s), Adam (with clipping
@@ -415,9 +383,12 @@ where
         B::seed(&self.device, opts.seed);
         let mut model: GridModel<B> = match &self.init_from {
             Some(dir) => match store::load_net::<B>(dir, &self.device)? {
-                // A model without reference channels grows them, their weights zero.
-                (Net::Grid(model), _) if self.config.reference => model.with_reference(),
-                (Net::Grid(model), _) => model,
+                // A model without reference channels grows them, their weights zero; a
+                // single-frame model grows its bundle (`GridModel::with_bundle`).
+                (Net::Grid(model), _) if self.config.reference => {
+                    model.with_reference().with_bundle(self.config.bundle)
+                }
+                (Net::Grid(model), _) => model.with_bundle(self.config.bundle),
                 (Net::Paper(_), _) => {
                     return Err(TrainError::Mismatch(format!(
                         "{}: a paper model, where a grid model was expected",
@@ -483,14 +454,14 @@ where
                 .map(|_| opts.mirror && flips.random_bool(0.5))
                 .collect();
             let tensors = upload_batch::<B>(batch, &mirror, &self.device);
-            pass.data += fetch.elapsed().as_secs_f64();
+            pass.data_seconds += fetch.elapsed().as_secs_f64();
             let loss = sequence_loss(&model, &self.config, opts, tensors);
             let grads = GradientsParams::from_grads(loss.backward(), &model);
             let lr = learning_rate(opts, clock.progress(opts, epoch, k));
             model = optim.step(lr, model, grads);
             let waited = Instant::now();
             let value: f64 = loss.into_scalar().elem();
-            pass.wait += waited.elapsed().as_secs_f64();
+            pass.wait_seconds += waited.elapsed().as_secs_f64();
             if !value.is_finite() {
                 return Err(TrainError::NonFinite {
                     epoch: epoch + 1,
@@ -528,19 +499,6 @@ type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 
-/// The sums of one epoch's pass over its batches.
-#[derive(Debug, Default)]
-struct EpochPass {
-    /// Loss summed over samples, and the samples.
-    sum: f64,
-    seen: usize,
-    /// Seconds building and uploading batches, and waiting for the loss value (the GPU).
-    data: f64,
-    wait: f64,
-    /// `--max-minutes` ran out during the pass.
-    out_of_time: bool,
-}
-
 /// Where a run is in its schedule.
 struct RunClock {
     started: Instant,
@@ -564,6 +522,80 @@ impl RunClock {
     /// Whether `--max-minutes` have passed since the run began.
     fn out_of_time(&self, opts: &GridTrainOptions) -> bool {
         opts.max_minutes > 0.0 && self.started.elapsed().as_secs_f64() > opts.max_minutes * 60.0
+    }
+}
+
+/// A grid run in progress: the trainer, its data and its clock, as [`run_epochs`] drives it.
+struct GridRun<'a, B: AutodiffBackend> {
+    trainer: &'a GridTrainer<B>,
+    train: &'a WindowIndex,
+    val: &'a [Trajectory],
+    scaler: Scaler,
+    clock: RunClock,
+}
+
+impl<B: AutodiffBackend + NetOps> EpochRun for GridRun<'_, B>
+where
+    B::InnerBackend: NetOps,
+{
+    type Model = GridModel<B>;
+    type Optim = GridOptim<B>;
+
+    fn limits(&self) -> (usize, usize) {
+        (self.trainer.opts.epochs, self.trainer.opts.patience)
+    }
+
+    fn train_epoch(
+        &mut self,
+        model: GridModel<B>,
+        optim: &mut GridOptim<B>,
+        epoch: usize,
+        observer: &mut dyn Observer,
+    ) -> Result<(GridModel<B>, EpochPass), TrainError> {
+        self.trainer
+            .train_epoch(model, optim, self.train, epoch, &self.clock, observer)
+    }
+
+    /// The mean scaled MSE of validation rollouts ([`validation_rollout`]).
+    fn validate(
+        &mut self,
+        model: &GridModel<B>,
+        epoch: usize,
+        train_loss: f64,
+    ) -> Result<f64, TrainError> {
+        let t = self.trainer;
+        if self.val.is_empty() {
+            return Ok(train_loss);
+        }
+        let meta = t.meta(&self.scaler, epoch, 0.0);
+        let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
+        let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
+        Ok(validation_rollout(
+            &surrogate,
+            self.val,
+            &self.scaler,
+            starts,
+            horizon,
+        )?)
+    }
+
+    fn save_best(
+        &self,
+        model: &GridModel<B>,
+        epoch: usize,
+        val_loss: f64,
+    ) -> Result<(), TrainError> {
+        let meta = self.trainer.meta(&self.scaler, epoch, val_loss);
+        Ok(store::save(&self.trainer.out, model, &meta)?)
+    }
+
+    fn checkpoint(
+        &self,
+        model: &GridModel<B>,
+        optim: &GridOptim<B>,
+        history: &[EpochRecord],
+    ) -> Result<(), TrainError> {
+        checkpoint::save(&self.trainer.out, model, optim, history)
     }
 }
 

@@ -8,8 +8,8 @@ use burn::backend::{Autodiff, NdArray};
 use burn::module::Param;
 use burn::nn::Linear;
 use burn::tensor::{Distribution, Tensor, TensorData};
-use minflow::model::encoder::{Encoder, LastActivation, Pooling};
 use minflow::model::minrnn::{normalized_gates, MinGru, MinLstm};
+use minflow::model::paper::encoder::{Encoder, LastActivation, Pooling};
 use minflow::model::rnn::{Gru, Lstm};
 
 type B = Autodiff<NdArray<f32>>;

@@ -9,8 +9,10 @@
 //!    same way. With [`GridConfig::reference`], two more channels after the walls: the
 //!    displacement `(x - X) n` from each particle's reference position X (its position in the
 //!    first frame of its stream; MPM's reference configuration), mass-weighted.
-//! 2. A [`unet::UNet`] on the grid.
-//! 3. G2P: the U-Net's output gathered back at the particle, `g_i`.
+//! 2. A [`unet::UNet`] on the grid; with temporal bundling ([`GridConfig::bundle`] = K) it
+//!    returns K latent fields, one per predicted frame.
+//! 3. G2P: the U-Net's output gathered back at the particle, `g_i` (field k at the
+//!    particle's position after k - 1 predicted frames).
 //! 4. Memory ([`memory`]): `u_i = [g_i, own_i]` (own = normalised velocities, material
 //!    one-hot, position) drives a per-particle minGRU | minLSTM | GRU | LSTM, or nothing.
 //! 5. Head: an MLP on `[u_i, memory output]` predicts the normalised velocity change;
@@ -90,6 +92,14 @@ pub struct GridConfig {
     /// field's gradient across cells. Off in models saved before it existed.
     #[config(default = false)]
     pub reference: bool,
+    /// Frames predicted per call, K (temporal bundling, `train --bundle K`): the U-Net emits
+    /// K latent fields (`K latent` channels) and each particle reads field k at its position
+    /// after k - 1 integrated frames (NeuralMPM's multi-step grid velocities, Rochman-Sharabi
+    /// et al. 2024, section 3; Brandstetter et al. 2022, "Message passing neural PDE
+    /// solvers", section 2.3, temporal bundling). The memory is updated once per call.
+    /// 1 (the single-frame model) in models saved before it existed.
+    #[config(default = 1)]
+    pub bundle: usize,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -109,6 +119,9 @@ pub enum GridConfigError {
     /// One of the layer widths is 0.
     #[error("widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1")]
     Width,
+    /// `bundle` is 0 or above 16.
+    #[error("--bundle must be in 1..=16")]
+    Bundle,
 }
 
 impl GridConfig {
@@ -142,6 +155,9 @@ impl GridConfig {
         if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
             return Err(GridConfigError::Width);
         }
+        if !(1..=16).contains(&self.bundle) {
+            return Err(GridConfigError::Bundle);
+        }
         Ok(())
     }
 
@@ -157,7 +173,7 @@ impl GridConfig {
                 self.hidden
             };
         GridModel {
-            unet: UNetConfig::new(self.grid_channels(), self.latent)
+            unet: UNetConfig::new(self.grid_channels(), self.latent * self.bundle.max(1))
                 .with_width(self.unet_width)
                 .with_levels(self.levels)
                 .with_conv(self.conv)
@@ -174,6 +190,7 @@ impl GridConfig {
             },
             n: self.grid,
             window: self.window,
+            bundle: self.bundle.max(1),
             reference: self.reference,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
@@ -192,6 +209,7 @@ pub struct GridModel<B: Backend> {
     head_out: Linear<B>,
     n: usize,
     window: usize,
+    bundle: usize,
     reference: bool,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
@@ -250,6 +268,11 @@ impl<B: NetOps> GridModel<B> {
         self.window
     }
 
+    /// Frames predicted per call (K, [`GridConfig::bundle`]).
+    pub fn bundle(&self) -> usize {
+        self.bundle
+    }
+
     /// Whether the step reads reference positions ([`GridConfig::reference`]).
     pub fn uses_reference(&self) -> bool {
         self.reference
@@ -270,7 +293,25 @@ impl<B: NetOps> GridModel<B> {
         }
     }
 
-    /// One step for a batch of scenes: the next frame and the new memory state.
+    /// This single-frame model as a bundled one predicting `k` frames per call
+    /// ([`GridConfig::bundle`]): the U-Net's output head is tiled `k` times, so every frame
+    /// of a bundle starts out reading the same latent field at the particle's position after
+    /// the frames before it (the single-frame model's prediction, applied again where the
+    /// particle went). `train --bundle K --init-from` a single-frame model starts from this.
+    /// A model that is already bundled, or `k` = 1, is returned as is.
+    pub fn with_bundle(self, k: usize) -> Self {
+        if self.bundle != 1 || k <= 1 {
+            return self;
+        }
+        Self {
+            unet: self.unet.tile_output(k),
+            bundle: k,
+            ..self
+        }
+    }
+
+    /// One step for a batch of scenes: the next frame and the new memory state. For a
+    /// bundled model (K > 1) this is the first frame of [`GridModel::step_bundle`].
     ///
     /// # Shapes
     /// See [`StepInput`] and [`StepOutput`]; `state` holds `[B N, H]` rows.
@@ -279,10 +320,28 @@ impl<B: NetOps> GridModel<B> {
         input: StepInput<B>,
         state: MemoryState<B>,
     ) -> (StepOutput<B>, MemoryState<B>) {
+        let (mut frames, state) = self.step_bundle(input, state);
+        (frames.swap_remove(0), state)
+    }
+
+    /// One network call for a batch of scenes: the next K frames (K = [`GridModel::bundle`])
+    /// and the new memory state. P2G, the U-Net and the memory run once; then for k = 1..K
+    /// each particle gathers latent field k at its current position (G2P), the head predicts
+    /// its velocity change and the frame is integrated, so frame k + 1 reads the grid where
+    /// frame k left the particle. K = 1 is the single-frame step.
+    ///
+    /// # Shapes
+    /// See [`StepInput`]; returns K [`StepOutput`]s, oldest first; `state` holds `[B N, H]`
+    /// rows.
+    pub fn step_bundle(
+        &self,
+        input: StepInput<B>,
+        state: MemoryState<B>,
+    ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
         let [b, n_p, _] = input.pos.dims();
         let t = self.window;
         let device = input.pos.device();
-        let vel = input.vel / pairs(self.vel_scale, t, &device); // [B, N, 2T]
+        let vel = input.vel.clone() / pairs(self.vel_scale, t, &device); // [B, N, 2T], normalised
 
         // P2G: the separable dense transfers on accelerators, the sparse ones on the CPU.
         let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
@@ -290,7 +349,7 @@ impl<B: NetOps> GridModel<B> {
         let mut values = vec![ones, vel.clone(), input.material.clone()];
         if self.reference {
             // Displacement from the reference position, in grid cells.
-            let x0 = input.reference.unwrap_or_else(|| input.pos.clone());
+            let x0 = input.reference.clone().unwrap_or_else(|| input.pos.clone());
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
         // [B, n^2, 1 + 2T + 4 (+ 2)], then the channels [m / 4, velocities and materials per
@@ -302,24 +361,87 @@ impl<B: NetOps> GridModel<B> {
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
 
-        // U-Net, G2P.
+        // U-Net: K latent fields of L channels each.
         let out = self.unet.forward(grid);
-        let latent = out.dims()[3];
-        let out = out.reshape([b, cells, latent]); // [B, n^2, L]
-        let gathered = transfer::g2p(&s, out); // [B, N, L]
+        let channels = out.dims()[3];
+        let out = out.reshape([b, cells, channels]); // [B, n^2, K L]
+        let latent = channels / self.bundle;
+        let field = |k: usize| {
+            if self.bundle == 1 {
+                out.clone()
+            } else {
+                out.clone().narrow(2, k * latent, latent)
+            }
+        };
 
-        // Memory and head, one row per particle.
+        // Memory, once per call, on the first frame's inputs.
+        let u = self.particle_inputs(
+            transfer::g2p(&s, field(0)),
+            &vel,
+            &input.material,
+            &input.pos,
+        );
+        let (memory, state) = self.memory.step(u.clone(), state);
+        let dt = input.dt.clone().reshape([b, 1, 1]);
+        let (mut pos, mut vel, mut u) = (input.pos.clone(), vel, u);
+        let mut frames = Vec::with_capacity(self.bundle);
+        for k in 0..self.bundle {
+            if k > 0 {
+                let s = transfer::stencil(pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
+                u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
+            }
+            let features = match &memory {
+                Some(m) => Tensor::cat(vec![u.clone(), m.clone()], 1),
+                None => u.clone(),
+            };
+            let next = self.head_step(features, &vel, pos, dt.clone(), [b, n_p]);
+            if k + 1 < self.bundle {
+                // The velocity window moves on by the frame just predicted (normalised).
+                let v = next.vel.clone() / pairs(self.vel_scale, 1, &device);
+                vel = match t {
+                    1 => v,
+                    _ => Tensor::cat(vec![vel.narrow(2, 2, 2 * (t - 1)), v], 2),
+                };
+            }
+            pos = next.pos.clone();
+            frames.push(next);
+        }
+        (frames, state)
+    }
+
+    /// `[B N, L + 2T + 4 + 2]` rows `u_i = [gathered_i, own_i]`: the gathered latent features,
+    /// the normalised velocity window `vel` (`[B, N, 2T]`), the material one-hot `material` and the
+    /// position `pos` (`[B, N, 2]`).
+    fn particle_inputs(
+        &self,
+        gathered: Tensor<B, 3>,
+        vel: &Tensor<B, 3>,
+        material: &Tensor<B, 3>,
+        pos: &Tensor<B, 3>,
+    ) -> Tensor<B, 2> {
+        let [b, n_p, _] = pos.dims();
         let u = Tensor::cat(
-            vec![gathered, vel.clone(), input.material, input.pos.clone()],
+            vec![gathered, vel.clone(), material.clone(), pos.clone()],
             2,
         );
         let d_u = u.dims()[2];
-        let u = u.reshape([b * n_p, d_u]);
-        let (memory, state) = self.memory.step(u.clone(), state);
-        let features = match memory {
-            Some(m) => Tensor::cat(vec![u, m], 1),
-            None => u,
-        };
+        u.reshape([b * n_p, d_u])
+    }
+
+    /// The head on `features` (`[B N, D]` rows) and the integration of one frame from the
+    /// normalised velocity window `vel` and positions `pos`, physical units: `dv = dv_mean +
+    /// dv_scale * out`, `v' = v + dv`, the trapezoid `x' = x + dt (v + v') / 2`, clamped into
+    /// the box MPM keeps its particles in.
+    fn head_step(
+        &self,
+        features: Tensor<B, 2>,
+        vel: &Tensor<B, 3>,
+        pos: Tensor<B, 3>,
+        dt: Tensor<B, 3>,
+        [b, n_p]: [usize; 2],
+    ) -> StepOutput<B> {
+        let device = pos.device();
+        let t = self.window;
         // Through the backend-ops dense layer, as every per-particle layer: its weight
         // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with a
         // handful of output tiles on a GPU (`bench train --arch grid --stages`, H100, batch
@@ -329,13 +451,12 @@ impl<B: NetOps> GridModel<B> {
         let dv = linear(&self.head_out, h).reshape([b, n_p, 2]);
         let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
         // Integrate (trapezoid) in physical units.
-        let v = vel.narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
+        let v = vel.clone().narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
         let v_next = v.clone() + dv;
-        let dt = input.dt.reshape([b, 1, 1]);
-        let pos = input.pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
+        let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
         let dx = 1.0 / self.n as f32;
         let pos = pos.clamp(0.5 * dx, 1.0 - 1.5 * dx);
-        (StepOutput { pos, vel: v_next }, state)
+        StepOutput { pos, vel: v_next }
     }
 }
 

@@ -3,8 +3,8 @@
 //! ELU) on the last time step. `mlp` replaces the recurrent layers by per-step Linear + ELU
 //! layers and is stateless (the paper's MLP baseline). Used by [`crate::model::Model`].
 
-use super::minrnn::{last_step, MinGru, MinLstm};
-use super::rnn::{Gru, Lstm, LstmState};
+use crate::model::minrnn::{last_step, MinGru, MinLstm};
+use crate::model::rnn::{Gru, Lstm, LstmState};
 use crate::ops::{linear_elu, NetOps};
 use burn::config::Config;
 use burn::module::Module;

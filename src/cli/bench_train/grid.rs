@@ -14,8 +14,8 @@ use burn::module::Module;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Distribution, Tensor};
 
-use super::bench_train::{synthetic, EpochMeans, TrainBenchArgs};
-use super::Outcome;
+use super::paper::{synthetic, EpochMeans, TrainBenchArgs};
+use crate::cli::Outcome;
 use crate::data::{Scaler, WindowIndex};
 use crate::model::grid::{
     one_hot, transfer, GridConfig, Memory, MemoryKind, MemoryState, StepInput, UNetConfig,
@@ -209,14 +209,14 @@ fn stages<B: AutodiffBackend + NetOps>(
 /// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
-    use super::bench_train::{kernels, peak_mib};
-    use super::train::CpuTrain;
+    use super::paper::{kernels, peak_mib};
+    use crate::cli::train::CpuTrain;
     let kernels = kernels(args)?;
     match args.device.parse()?.single("bench train --arch grid")? {
         None => bench::<CpuTrain>(args, Default::default(), "host", &|reset| peak_mib(reset)),
         #[cfg(feature = "cuda")]
         Some(id) => {
-            use super::device::cuda::{device, reserved_bytes, CudaTrain};
+            use crate::cli::device::cuda::{device, reserved_bytes, CudaTrain};
             let device = device(id, kernels)?;
             let peak = |reset: bool| {
                 if reset {

@@ -1,20 +1,13 @@
-//! `minflow train --data DIR --model mingru --out runs/NAME`: loads trajectories from bags,
-//! splits them 80:10:10 by scene (seeded), fits the scaler on the training scenes, trains
-//! with a progress bar per epoch, and leaves in the run folder: `model.json` + `model.mpk`
-//! (best epoch), `checkpoint/` (last epoch, for `--resume`), `metrics.csv`, `loss.png`,
-//! `split.json` and `train.json` (the options). `--device` picks the backend: the CPU (burn
-//! ndarray, default) or a GPU (burn CUDA, feature `cuda`). A dataset of more than
-//! `--max-resident-frames` frames is streamed from the bags each epoch.
-//!
-//! This file dispatches (`--arch grid` goes to `train_grid.rs`) and runs the paper's
-//! architecture; the flags live in `train_args.rs`, the run folder's files in
-//! `run_folder.rs`.
+//! `minflow train --arch paper`: the paper's architecture. Loads trajectories from bags
+//! (streamed from the bags each epoch when the dataset has more than
+//! `--max-resident-frames` frames), fits the scaler on the training scenes and trains with
+//! [`crate::train::paper::Trainer`] on the CPU or one or more GPUs (data-parallel).
 
-pub use super::train_args::{CpuTrain, TrainArgs};
+use super::args::{CpuTrain, TrainArgs};
 
-use super::device::Device;
-use super::run_folder::{check_resume, print_best, run_split, write_run_files, Progress};
-use super::Outcome;
+use crate::cli::device::Device;
+use crate::cli::run_folder::{check_resume, print_best, run_split, write_run_files, Progress};
+use crate::cli::Outcome;
 use crate::data::{
     self, LoadReport, Part, Scaler, SceneInfo, StreamingLoader, Trajectory, WindowIndex,
 };
@@ -26,13 +19,14 @@ use anyhow::{bail, Context};
 use burn::tensor::backend::AutodiffBackend;
 use std::path::PathBuf;
 
+/// Runs `train --arch paper`.
+///
+/// # Errors
+/// Bad flags (before any data is read), unreadable bags, no training scenes, training errors.
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
-    if args.arch == "grid" {
-        return super::train_grid::run(args);
-    }
     // The flags' names and ranges, before any bag is read (the particle count comes later).
     args.model_config(1)
-        .map_err(|e| super::UsageError(format!("{e:#}")))?;
+        .map_err(|e| crate::cli::UsageError(format!("{e:#}")))?;
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
     let (infos, resident, scanned) = read_data(&args, topic)?;
@@ -54,7 +48,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     // nothing (it once saved a model with validation loss 0).
     let longest = train_infos.iter().map(|s| s.frames).max().unwrap_or(0);
     if longest <= args.window {
-        return Err(super::UsageError(format!(
+        return Err(crate::cli::UsageError(format!(
             "--window {}: no training samples: the longest training scene has {longest} frames, \
              a sample needs T + 1 = {}",
             args.window,
@@ -64,7 +58,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let config = args
         .model_config(particles)
-        .map_err(|e| super::UsageError(format!("{e:#}")))?;
+        .map_err(|e| crate::cli::UsageError(format!("{e:#}")))?;
     if args.resume {
         check_resume(&args.out, &NetConfig::Paper(config.clone()))?;
     }
@@ -123,7 +117,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         fit(&mut train_ref, val, &scaler, &mut progress)?
     };
     print_best(&history, "val loss", &args.out);
-    Ok(super::read_to_damage(&scanned.truncated))
+    Ok(crate::cli::read_to_damage(&scanned.truncated))
 }
 
 /// The paper path's scene index, with the trajectories themselves when the bags fit in
@@ -199,7 +193,7 @@ fn fit_on(
         )?,
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
-            use super::device::cuda::{devices, CudaTrain};
+            use crate::cli::device::cuda::{devices, CudaTrain};
             on::<CudaTrain>(
                 devices(ids, kernels)?,
                 args,

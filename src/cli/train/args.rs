@@ -1,14 +1,14 @@
 //! `minflow train`'s flags ([`TrainArgs`], with the grid architecture's [`GridArgs`] and
 //! [`GridNetArgs`], which `report` shares) and the configurations they describe for each
-//! architecture. `train.rs` runs the paper's architecture and dispatches, `train_grid.rs` runs
-//! the grid architecture, `run_folder.rs` holds what both leave in the run folder.
+//! architecture. `mod.rs` dispatches on `--arch`, `paper.rs` and `grid.rs` run each
+//! architecture, `cli/run_folder.rs` holds what both leave in the run folder.
 
 use anyhow::{bail, Context};
 use burn::backend::{Autodiff, NdArray};
 use clap::Args;
 use std::path::PathBuf;
 
-use super::device::DeviceArgs;
+use crate::cli::device::DeviceArgs;
 use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::train::grid::GridTrainOptions;
@@ -34,57 +34,57 @@ pub struct TrainArgs {
     #[arg(short, long)]
     pub out: PathBuf,
     /// Epochs (at most; early stopping may end sooner).
-    #[arg(long, default_value_t = 30, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 30, value_parser = crate::cli::flags::at_least_one)]
     pub epochs: usize,
     /// Effective batch size (windows per optimizer step).
-    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 16, value_parser = crate::cli::flags::at_least_one)]
     pub batch_size: usize,
     /// Windows per forward pass; gradients accumulate up to --batch-size.
-    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 16, value_parser = crate::cli::flags::at_least_one)]
     pub micro_batch: usize,
     /// Input frames per sample T.
-    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 2, value_parser = crate::cli::flags::at_least_one)]
     pub window: usize,
     /// Seed of the split, the weights, the data order and dropout.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Adam learning rate.
-    #[arg(long, default_value_t = 1e-3, value_parser = super::flags::positive)]
+    #[arg(long, default_value_t = 1e-3, value_parser = crate::cli::flags::positive)]
     pub lr: f64,
     /// Stop after this many epochs without a better validation loss (0: never).
     #[arg(long, default_value_t = 5)]
     pub patience: usize,
     /// Latent and core width W (the paper: 1250).
-    #[arg(long, default_value_t = 1250, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 1250, value_parser = crate::cli::flags::at_least_one)]
     pub width: usize,
     /// Encoder hidden width (the paper: 256).
-    #[arg(long, default_value_t = 256, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 256, value_parser = crate::cli::flags::at_least_one)]
     pub encoder_hidden: usize,
     /// Activation after the encoder's last Linear: elu (the paper's text) | none (with mean
     /// pooling the encoder is then ~200x cheaper, exactly).
-    #[arg(long, default_value = "none")]
+    #[arg(long, default_value = "none", value_parser = ["none", "elu"])]
     pub encoder_last_activation: String,
     /// Pooling over particles: mean | max | mean-max.
-    #[arg(long, default_value = "mean")]
+    #[arg(long, default_value = "mean", value_parser = ["mean", "max", "mean-max"])]
     pub pooling: String,
     /// Recurrent layers.
-    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 2, value_parser = crate::cli::flags::at_least_one)]
     pub layers: usize,
     /// Dropout after each recurrent layer.
-    #[arg(long, default_value_t = 0.1, value_parser = super::flags::dropout)]
+    #[arg(long, default_value_t = 0.1, value_parser = crate::cli::flags::dropout)]
     pub dropout: f64,
     /// Decoder: global (the paper's, fixed N) | pointwise (any N).
-    #[arg(long, default_value = "global")]
+    #[arg(long, default_value = "global", value_parser = ["global", "pointwise"])]
     pub decoder: String,
     /// Initial decoder output layer: zero (an untrained model is the constant-velocity
     /// baseline) | random (burn's default Kaiming-uniform, as in the paper's PyTorch code).
-    #[arg(long, default_value = "zero")]
+    #[arg(long, default_value = "zero", value_parser = ["zero", "random"])]
     pub decoder_init: String,
     /// Density-map grid G for the loss.
-    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 32, value_parser = crate::cli::flags::at_least_one)]
     pub density_grid: usize,
     /// Weight of the density-map loss.
-    #[arg(long, default_value_t = 0.1, value_parser = super::flags::non_negative_f32)]
+    #[arg(long, default_value_t = 0.1, value_parser = crate::cli::flags::non_negative_f32)]
     pub density_weight: f32,
     /// Topic to read frames from.
     #[arg(long, default_value = crate::bag::FRAMES_TOPIC)]
@@ -153,6 +153,54 @@ impl TrainArgs {
             .with_decoder_zero_init(zero_init))
     }
 
+    /// For `--arch grid`: an error naming every flag of the paper's architecture that was
+    /// set away from its default (the grid run would ignore it), checked before any work.
+    /// Values the paper's architecture would refuse (`--decoder banana`) are refused too.
+    ///
+    /// # Errors
+    /// A [`crate::cli::UsageError`] naming the flags.
+    pub fn refuse_paper_flags(&self) -> anyhow::Result<()> {
+        let d = Self::defaults(self.data.clone(), self.out.clone());
+        let set: Vec<&str> = [
+            ("--width", self.width != d.width),
+            ("--encoder-hidden", self.encoder_hidden != d.encoder_hidden),
+            (
+                "--encoder-last-activation",
+                self.encoder_last_activation != d.encoder_last_activation,
+            ),
+            ("--pooling", self.pooling != d.pooling),
+            ("--layers", self.layers != d.layers),
+            ("--dropout", self.dropout != d.dropout),
+            ("--decoder", self.decoder != d.decoder),
+            ("--decoder-init", self.decoder_init != d.decoder_init),
+            ("--micro-batch", self.micro_batch != d.micro_batch),
+            ("--density-grid", self.density_grid != d.density_grid),
+            ("--density-weight", self.density_weight != d.density_weight),
+            (
+                "--max-resident-frames",
+                self.max_resident_frames != d.max_resident_frames,
+            ),
+        ]
+        .into_iter()
+        .filter_map(|(flag, differs)| differs.then_some(flag))
+        .collect();
+        if set.is_empty() {
+            return Ok(());
+        }
+        Err(crate::cli::UsageError(format!(
+            "{} {} of --arch paper; --arch {} does not use {}",
+            set.join(", "),
+            if set.len() == 1 {
+                "is a flag"
+            } else {
+                "are flags"
+            },
+            self.arch,
+            if set.len() == 1 { "it" } else { "them" }
+        ))
+        .into())
+    }
+
     /// The optimisation settings these flags describe.
     pub fn options(&self) -> TrainOptions {
         TrainOptions {
@@ -172,23 +220,28 @@ impl TrainArgs {
 #[derive(Debug, Clone, Args)]
 pub struct GridNetArgs {
     /// Grid size n of P2G / U-Net / G2P (a multiple of 2^(levels - 1)).
-    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 64, value_parser = crate::cli::flags::at_least_one)]
     pub grid: usize,
     /// U-Net first-level width (channels).
-    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 32, value_parser = crate::cli::flags::at_least_one)]
     pub unet_width: usize,
     /// U-Net resolutions.
-    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
     pub levels: usize,
     /// Channels the U-Net hands back to the particles.
-    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 32, value_parser = crate::cli::flags::at_least_one)]
     pub latent: usize,
     /// Hidden state values per particle (memory cores).
-    #[arg(long, default_value_t = 32, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 32, value_parser = crate::cli::flags::at_least_one)]
     pub hidden: usize,
     /// Per-particle head width.
-    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 64, value_parser = crate::cli::flags::at_least_one)]
     pub head_hidden: usize,
+    /// Frames predicted per network call, K (temporal bundling: the U-Net emits K latent
+    /// fields, each particle integrates K frames, a rollout of H frames costs ceil(H / K)
+    /// calls). 1: the single-frame model.
+    #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::bundle)]
+    pub bundle: usize,
     /// Reference positions: first-frame (each particle remembers where it was in the first
     /// frame of its stream, MPM's reference configuration, and the grid sees its
     /// displacement from there; `--init-from` a model without it grows the two input
@@ -216,6 +269,7 @@ impl GridNetArgs {
             ("--latent", self.latent),
             ("--hidden", self.hidden),
             ("--head-hidden", self.head_hidden),
+            ("--bundle", self.bundle),
         ]
         .into_iter()
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
@@ -236,17 +290,17 @@ pub struct GridArgs {
     pub net: GridNetArgs,
     /// How the U-Net's convolutions run: auto (gather: single-kernel im2col on the CPU and CUDA) | burn |
     /// gather | shift (the same weights and results; `bench train --arch grid` compares them).
-    #[arg(long, default_value = "auto", value_parser = super::flags::conv_kernel)]
+    #[arg(long, default_value = "auto", value_parser = crate::cli::flags::conv_kernel)]
     pub conv: ConvKernel,
     /// Steps per training sample P (a short rollout; the loss averages them).
-    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
     pub rollout_steps: usize,
     /// Of those, steps that read the true frame (the rest read the model's own predictions).
-    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::at_least_one)]
     pub teacher_steps: usize,
     /// Gaussian noise on the true input velocities, in units of the velocity change's
     /// standard deviation.
-    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative_f32)]
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub noise: f32,
     /// Train on each sample or, with probability 1/2, its mirror image about the box's
     /// vertical midline (x -> 1 - x, vx -> -vx): a symmetry of MPM's box, walls and gravity,
@@ -254,23 +308,23 @@ pub struct GridArgs {
     #[arg(long)]
     pub mirror: bool,
     /// Gradient-norm clipping threshold (0: off).
-    #[arg(long, default_value_t = 1.0, value_parser = super::flags::non_negative_f32)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub clip: f32,
     /// Learning rate at the end of the cosine decay.
-    #[arg(long, default_value_t = 1e-5, value_parser = super::flags::non_negative)]
+    #[arg(long, default_value_t = 1e-5, value_parser = crate::cli::flags::non_negative)]
     pub lr_final: f64,
     /// Samples per epoch at most (0: every window).
     #[arg(long, default_value_t = 0)]
     pub samples_per_epoch: usize,
     /// Validation rollouts per validation scene.
-    #[arg(long, default_value_t = 3, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 3, value_parser = crate::cli::flags::at_least_one)]
     pub val_starts: usize,
     /// Validation rollout length (frames).
-    #[arg(long, default_value_t = 20, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 20, value_parser = crate::cli::flags::at_least_one)]
     pub val_horizon: usize,
     /// Stop after this many minutes of training (the epoch in progress is cut short,
     /// validated and kept; 0: no limit).
-    #[arg(long, default_value_t = 0.0, value_parser = super::flags::non_negative)]
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative)]
     pub max_minutes: f64,
     /// Start from the weights of this run folder (fine-tuning, or continuing a finished run
     /// with a new learning-rate schedule) instead of fresh ones. Its architecture must be the
@@ -280,14 +334,31 @@ pub struct GridArgs {
 }
 
 impl TrainArgs {
+    /// Every flag at its default, training on `data` into `out` (what `minflow train --data
+    /// DATA --out OUT` parses to): for callers that set the fields they need, as `demo` does.
+    ///
+    /// # Panics
+    /// Never for paths clap accepts (every other flag has a default).
+    pub fn defaults(data: Vec<PathBuf>, out: PathBuf) -> Self {
+        #[derive(clap::Parser)]
+        struct Defaults {
+            #[command(flatten)]
+            args: TrainArgs,
+        }
+        let mut argv: Vec<std::ffi::OsString> = vec!["train".into(), "--data".into()];
+        argv.extend(data.into_iter().map(Into::into));
+        argv.extend(["--out".into(), out.into()]);
+        <Defaults as clap::Parser>::parse_from(argv).args
+    }
+
     /// The grid network these flags describe (normalisation constants still at their
     /// defaults: [`fit_stats`] fills them from the training split).
     ///
     /// # Errors
-    /// An unknown core or a size out of range, naming the flag (a [`super::UsageError`]).
+    /// An unknown core or a size out of range, naming the flag (a [`crate::cli::UsageError`]).
     pub fn grid_config(&self) -> anyhow::Result<GridConfig> {
         self.checked_grid_config()
-            .map_err(|e| super::UsageError(format!("{e:#}")).into())
+            .map_err(|e| crate::cli::UsageError(format!("{e:#}")).into())
     }
 
     fn checked_grid_config(&self) -> anyhow::Result<GridConfig> {
@@ -306,6 +377,7 @@ impl TrainArgs {
             .with_latent(g.net.latent)
             .with_hidden(g.net.hidden)
             .with_head_hidden(g.net.head_hidden)
+            .with_bundle(g.net.bundle)
             .with_conv(g.conv)
             .with_reference(g.net.reference == Reference::FirstFrame);
         config

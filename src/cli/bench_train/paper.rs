@@ -1,4 +1,4 @@
-//! `minflow bench train`: the paper's Table 4 on this machine, in one run: for each core,
+//! `minflow bench train --arch paper`: the paper's Table 4 on this machine, in one run: for each core,
 //! trainable parameters, seconds per epoch (mean and max), microseconds per sample and peak
 //! memory, on one fixed synthetic dataset, at each window length T; then the ratios
 //! LSTM/minLSTM and GRU/minGRU (how much faster the minimal cores train).
@@ -8,12 +8,11 @@
 //! means (JIT compilation and autotuning on the GPU); their time is its own column. `wait %`
 //! is the share of the epoch the host spent waiting for the device (near 100: device-bound;
 //! low: bound by issuing the work); `data %` the share it waited for host batches (windows
-//! assembled and scaled on a second thread). `--arch grid` measures the grid architecture
-//! instead ([`super::bench_train_grid`]).
+//! assembled and scaled on a second thread). Used for `--arch paper`.
 
-use super::device::{Device, DeviceArgs};
-use super::train::CpuTrain;
-use super::Outcome;
+use crate::cli::device::{Device, DeviceArgs};
+use crate::cli::train::CpuTrain;
+use crate::cli::Outcome;
 use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::{CoreKind, LastActivation, ModelConfig};
 use crate::ops::NetOps;
@@ -34,25 +33,25 @@ pub struct TrainBenchArgs {
     #[arg(long, value_delimiter = ',')]
     pub(super) cores: Option<Vec<String>>,
     /// Samples (windows) per epoch.
-    #[arg(long, default_value_t = 16, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 16, value_parser = crate::cli::flags::at_least_one)]
     pub(super) samples: usize,
     /// Epochs per core (the first includes warm-up).
-    #[arg(long, default_value_t = 2, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 2, value_parser = crate::cli::flags::at_least_one)]
     pub(super) epochs: usize,
     /// Micro-batch (= batch) size.
-    #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 8, value_parser = crate::cli::flags::at_least_one)]
     pub(super) micro_batch: usize,
     /// Particles N.
-    #[arg(long, default_value_t = 2500, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 2500, value_parser = crate::cli::flags::at_least_one)]
     pub(super) particles: usize,
     /// Grid size n (grid).
-    #[arg(long, default_value_t = 64, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 64, value_parser = crate::cli::flags::at_least_one)]
     pub(super) grid: usize,
     /// Rollout steps per sample P (grid).
-    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
     pub(super) rollout_steps: usize,
     /// Convolution kernels to measure (grid): auto | burn | gather | shift.
-    #[arg(long, value_delimiter = ',', default_value = "auto", value_parser = super::flags::conv_kernel)]
+    #[arg(long, value_delimiter = ',', default_value = "auto", value_parser = crate::cli::flags::conv_kernel)]
     pub(super) conv: Vec<crate::model::grid::ConvKernel>,
     /// Also time each stage of one step, forward + backward (grid).
     #[arg(long)]
@@ -164,7 +163,7 @@ pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
         }),
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
-            use super::device::cuda::{devices, reserved_bytes, CudaTrain};
+            use crate::cli::device::cuda::{devices, reserved_bytes, CudaTrain};
             let devices = devices(&ids, kernels)?;
             // The largest pool on any one device.
             let peak = |reset: bool| {

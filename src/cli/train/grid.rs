@@ -11,12 +11,12 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use burn::tensor::backend::AutodiffBackend;
 
-use super::device::Device;
-use super::run_folder::{
+use super::args::{CpuTrain, TrainArgs};
+use crate::cli::device::Device;
+use crate::cli::run_folder::{
     check_resume, differences, print_best, run_split, write_run_files, Progress,
 };
-use super::train_args::{CpuTrain, TrainArgs};
-use super::Outcome;
+use crate::cli::Outcome;
 use crate::data::{self, Scaler, Trajectory, WindowIndex};
 use crate::model::grid::GridConfig;
 use crate::model::store::NetConfig;
@@ -29,6 +29,7 @@ use crate::train::{EpochRecord, Observer, TrainError};
 /// # Errors
 /// Bad flags (before any data is read), unreadable bags, no training scenes, training errors.
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
+    args.refuse_paper_flags()?;
     let mut config = args.grid_config()?;
     let opts = args.grid_options();
     let device = args.device.parse()?;
@@ -68,10 +69,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
     }
     write_run_files(&args.out, &split, &opts)?;
-    let index = WindowIndex::new(train, config.window + opts.steps - 1, Scaler::default())?;
+    let frames = config.window + opts.steps * config.bundle - 1;
+    let index = WindowIndex::new(train, frames, Scaler::default())?;
     let counts: Vec<usize> = index.particle_counts();
     eprintln!(
-        "{} scenes: {} train ({} samples), {} val, {} test; grid architecture, {} memory, n = {}, T = {}, P = {} (teacher {}), N = {counts:?}",
+        "{} scenes: {} train ({} samples), {} val, {} test; grid architecture, {} memory, n = {}, T = {}, P = {} (teacher {}), K = {}, N = {counts:?}",
         scenes.len(),
         index.trajectories().len(),
         index.len(),
@@ -82,11 +84,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         config.window,
         opts.steps,
         opts.teacher,
+        config.bundle,
     );
     if index.is_empty() {
-        return Err(super::UsageError(format!(
-            "--window {}: no training samples: every training scene has fewer than the T + P - \
-             1 = {} frames a sample needs (lower --window or --rollout-steps)",
+        return Err(crate::cli::UsageError(format!(
+            "--window {}: no training samples: every training scene has fewer than the T + P K \
+             = {} frames a sample needs (lower --window, --rollout-steps or --bundle)",
             config.window,
             index.t()
         ))
@@ -108,7 +111,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         &mut progress,
     )?;
     print_best(&history, "validation rollout MSE", &args.out);
-    Ok(super::read_to_damage(&report.truncated))
+    Ok(crate::cli::read_to_damage(&report.truncated))
 }
 
 /// The normalisation constants `(vel_scale, dv_mean, dv_scale)` and the min-max scaler of the
@@ -124,15 +127,22 @@ fn init_normalisation(
 ) -> anyhow::Result<(([f32; 2], [f32; 2], [f32; 2]), Scaler)> {
     let (path, meta) = crate::model::store::read_meta(dir)
         .with_context(|| format!("--init-from {}", dir.display()))?;
-    // A model without reference channels may grow them (`GridModel::with_reference`).
-    let grows = matches!(&meta.net, NetConfig::Grid(saved) if !saved.reference);
-    let compared = config.clone().with_reference(config.reference && !grows);
+    // A model without reference channels may grow them (`GridModel::with_reference`), and a
+    // single-frame model its bundle (`GridModel::with_bundle`).
+    let (grows, bundles) = match &meta.net {
+        NetConfig::Grid(saved) => (!saved.reference, saved.bundle == 1),
+        NetConfig::Paper(_) => (false, false),
+    };
+    let compared = config
+        .clone()
+        .with_reference(config.reference && !grows)
+        .with_bundle(if bundles { 1 } else { config.bundle });
     let differ = differences(
         &serde_json::to_value(&meta.net)?,
         &NetConfig::Grid(compared),
     )?;
     if !differ.is_empty() {
-        return Err(super::UsageError(format!(
+        return Err(crate::cli::UsageError(format!(
             "--init-from {}: its network differs from the one these flags describe ({}); \
              give the flags it was trained with",
             dir.display(),
@@ -195,7 +205,7 @@ fn fit_on(
         )?,
         #[cfg(feature = "cuda")]
         Some(id) => {
-            use super::device::cuda::{device as cuda_device, CudaTrain};
+            use crate::cli::device::cuda::{device as cuda_device, CudaTrain};
             on::<CudaTrain>(
                 cuda_device(id, kernels)?,
                 run,

@@ -1,0 +1,221 @@
+//! `minflow bench rollout`: what a surrogate costs against the solver it stands in for, in
+//! one run (docs/design.md, "Metrics": cost). On scenes of one family generated with
+//! `--seed` (other than the training seed: unseen scenes), the MLS-MPM solver simulates
+//! W + H frames of each scene, one scene per thread of the pool; then each model, on the same
+//! pool (or a GPU), rolls every scene out closed-loop for H frames from the solver's first W
+//! frames, `--batch` scenes per network call. Printed per row: frames per call (K), calls per
+//! rollout (ceil(H / K)), milliseconds per predicted frame (wall time over scenes x frames),
+//! its ratio to the solver's milliseconds per simulated frame, and the rollout's mean scaled
+//! MSE against the simulated frames (`avgH`, the model's scaler). The ratio comes from one run,
+//! so it holds on a noisy machine; quote it rather than the milliseconds.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use clap::Args;
+use rayon::prelude::*;
+
+use super::device::{Device, DeviceArgs};
+use super::Outcome;
+use crate::model::store::Surrogate;
+use crate::ops::NetOps;
+use crate::sim::families::{self, Family};
+use crate::sim::SceneRun;
+
+#[derive(Debug, Args)]
+pub struct RolloutBenchArgs {
+    /// Run folders of trained models (repeatable), e.g. models/all-grid-mingru.
+    #[arg(long = "model", value_name = "DIR", required = true)]
+    models: Vec<PathBuf>,
+    /// Scene family: multi (64^2 grid, 20 substeps) | fluid (128^2, 80 substeps).
+    #[arg(long, default_value = "multi", value_parser = ["multi", "fluid"])]
+    family: String,
+    /// Scenes, ids 0..N of `simulate --seed`.
+    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    scenes: usize,
+    /// Seed of the scenes (the shipped models trained on seed 1: 7 gives unseen scenes).
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Frames predicted per rollout, H.
+    #[arg(long, default_value_t = 100, value_parser = super::flags::at_least_one)]
+    frames: usize,
+    /// Scenes per network call (a batch of rollouts at once; 1: one scene after another).
+    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
+    batch: usize,
+    /// Threads of the pool the solver and the CPU models run on (default: all cores).
+    #[arg(long, value_parser = super::flags::at_least_one)]
+    threads: Option<usize>,
+    #[command(flatten)]
+    device: DeviceArgs,
+}
+
+/// The frames a scene's solver produced, `[N, 4]` physical each, and its materials.
+struct Simulated {
+    frames: Vec<Vec<f32>>,
+    material: Vec<u8>,
+    dt: f32,
+}
+
+/// Simulates `frames` frames (frame 0 included) of scene `id`.
+fn simulate(family: Family, id: u32, seed: u64, frames: usize) -> anyhow::Result<Simulated> {
+    let mut run = SceneRun::new(families::scene(family, id, seed))?;
+    let mut out = Vec::with_capacity(frames);
+    let (mut material, mut dt) = (Vec::new(), 0.0);
+    while out.len() < frames {
+        let frame = run.next_frame().context("the scene ended early")??;
+        let state: Vec<f32> = frame
+            .position
+            .chunks_exact(2)
+            .zip(frame.velocity.chunks_exact(2))
+            .flat_map(|(x, v)| [x[0], x[1], v[0], v[1]])
+            .collect();
+        material = frame.material;
+        dt = frame.dt;
+        out.push(state);
+    }
+    Ok(Simulated {
+        frames: out,
+        material,
+        dt,
+    })
+}
+
+/// One model's row: frames per call, seconds of all rollouts, mean scaled MSE.
+struct Row {
+    bundle: usize,
+    seconds: f64,
+    mse: f64,
+}
+
+/// Rolls every scene out with `surrogate`, `batch` scenes per call, and scores it.
+fn roll<B: NetOps>(
+    surrogate: &Surrogate<B>,
+    scenes: &[Simulated],
+    (w, h, batch): (usize, usize, usize),
+) -> anyhow::Result<Row> {
+    let scaler = surrogate.meta().scaler;
+    let (mut sq, mut count) = (0.0f64, 0usize);
+    let mut seconds = 0.0;
+    for chunk in scenes.chunks(batch) {
+        let cat =
+            |k: usize| -> Vec<f32> { chunk.iter().flat_map(|s| s.frames[k].clone()).collect() };
+        let material: Vec<u8> = chunk.iter().flat_map(|s| s.material.clone()).collect();
+        let dt: Vec<f32> = chunk.iter().map(|s| s.dt).collect();
+        let started = Instant::now();
+        let mut state = surrogate.init_state_at(&cat(0), chunk.len())?;
+        for k in 0..w - 1 {
+            state = surrogate.step(&cat(k), &material, &dt, state)?.1;
+        }
+        let mut preds: Vec<Vec<f32>> = Vec::with_capacity(h);
+        while preds.len() < h {
+            let input = preds.last().cloned().unwrap_or_else(|| cat(w - 1));
+            let (bundle, next) = surrogate.step_bundle(&input, &material, &dt, state)?;
+            state = next;
+            preds.extend(bundle);
+        }
+        seconds += started.elapsed().as_secs_f64();
+        for (k, pred) in preds.iter().take(h).enumerate() {
+            for (p, t) in pred.chunks_exact(4).zip(cat(w + k).chunks_exact(4)) {
+                for f in 0..4 {
+                    let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
+                    sq += d * d;
+                }
+                count += 4;
+            }
+        }
+    }
+    Ok(Row {
+        bundle: surrogate.bundle(),
+        seconds,
+        mse: sq / count.max(1) as f64,
+    })
+}
+
+/// Loads `dir` on the device the flags name and rolls the scenes out.
+fn model_row(
+    args: &RolloutBenchArgs,
+    dir: &std::path::Path,
+    scenes: &[Simulated],
+    sizes: (usize, usize, usize),
+) -> anyhow::Result<Row> {
+    match args.device.parse()? {
+        Device::Cpu => {
+            let s = Surrogate::<crate::eval::CpuInfer>::load(dir, &Default::default())?;
+            roll(&s, scenes, sizes)
+        }
+        #[cfg(feature = "cuda")]
+        Device::Cuda(ids) => {
+            use super::device::cuda::{device, CudaInfer};
+            let device = device(ids[0], args.device.kernels())?;
+            let s = Surrogate::<CudaInfer>::load(dir, &device)?;
+            // One untimed rollout first: kernel compilation.
+            roll(&s, &scenes[..1], (sizes.0, sizes.1.min(4), 1))?;
+            roll(&s, scenes, sizes)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Device::Cuda(_) => bail!("built without CUDA"),
+    }
+}
+
+/// Runs `minflow bench rollout`.
+///
+/// # Errors
+/// A model that cannot be loaded or refuses the scenes, a scene the solver cannot run.
+pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
+    let family = match args.family.as_str() {
+        "fluid" => Family::Fluid,
+        _ => Family::Multi,
+    };
+    let mut w = 1;
+    for dir in &args.models {
+        let (_, meta) = crate::model::store::read_meta(dir)?;
+        w = w.max(meta.window());
+    }
+    let (h, frames) = (args.frames, w + args.frames);
+    let threads = args.threads.unwrap_or_else(rayon::current_num_threads);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    // The solver: one scene per thread, frame 0 is the initial state (not simulated).
+    let started = Instant::now();
+    let scenes: anyhow::Result<Vec<Simulated>> = pool.install(|| {
+        (0..args.scenes as u32)
+            .into_par_iter()
+            .map(|id| simulate(family, id, args.seed, frames))
+            .collect()
+    });
+    let scenes = scenes?;
+    let solver_ms = started.elapsed().as_secs_f64() * 1e3 / (scenes.len() * (frames - 1)) as f64;
+    println!(
+        "{} {} scenes (seed {}), H = {h} frames after W = {w} seed frames, {threads} threads, \
+         {} per call",
+        scenes.len(),
+        args.family,
+        args.seed,
+        if args.batch == 1 {
+            "1 scene".to_owned()
+        } else {
+            format!("{} scenes", args.batch)
+        }
+    );
+    println!(
+        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE |\n| --- | ---: | ---: | ---: | ---: | ---: |"
+    );
+    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | |");
+    for dir in &args.models {
+        let row = pool
+            .install(|| model_row(&args, dir, &scenes, (w, h, args.batch)))
+            .with_context(|| format!("rolling out {}", dir.display()))?;
+        let ms = row.seconds * 1e3 / (scenes.len() * h) as f64;
+        println!(
+            "| {} | {} | {} | {ms:.3} | {:.2} | {:.3e} |",
+            dir.display(),
+            row.bundle,
+            h.div_ceil(row.bundle),
+            ms / solver_ms,
+            row.mse
+        );
+    }
+    Ok(Outcome::Done)
+}

@@ -1,0 +1,317 @@
+//! Physical plausibility of a predicted frame, independent of particle order (docs/design.md,
+//! "Metrics"): how much the predicted material still looks like the true one, where the
+//! per-particle MSE only says how far each particle is from its twin.
+//!
+//! - [`sinkhorn_divergence`]: the debiased Sinkhorn divergence between two point clouds with
+//!   uniform weights and the squared Euclidean cost, `S(a, b) = OT(a, b) - OT(a, a) / 2 -
+//!   OT(b, b) / 2` (Feydy et al. 2019, "Interpolating between optimal transport and MMD
+//!   using Sinkhorn divergences", eq. 3), computed per material on the positions in domain
+//!   units (domain units squared; as LagrangeBench, Toshev et al. 2023, section 4.2, reports
+//!   it). `OT` is entropic optimal transport at blur `sqrt(eps)`, by symmetric Sinkhorn
+//!   iterations in the log domain (Feydy's geomloss `sinkhorn_loop`, the averaged update).
+//!   Clouds above [`SINKHORN_POINTS`] points are subsampled evenly by particle index (the
+//!   same particles in both clouds).
+//! - [`Neighbours`] and [`Neighbours::strain_error`]: for the solids (jelly, snow, rope), each
+//!   particle's k nearest neighbours of the same material in the rollout's first frame, and
+//!   the mean over particles and neighbours of `|d_pred / d_0 - d_true / d_0|`, `d` the
+//!   current distance to the neighbour: zero when the prediction is a rigid motion of the
+//!   truth, positive when it stretches, tears or crumples the body (dimensionless).
+//!
+//! [`Plausibility`] holds both per material for one frame. Used by [`super::rollout`]
+//! (`minflow eval`) at the steps [`probe_steps`] picks.
+
+use super::metrics::MATERIALS;
+
+/// At most this many points per cloud enter [`sinkhorn_divergence`] in [`Plausibility::of`].
+pub const SINKHORN_POINTS: usize = 256;
+/// The entropic regularisation `eps` (domain units squared): blur `sqrt(eps)` = 0.02, about
+/// one grid cell of the 64 x 64 MPM grid.
+pub const SINKHORN_EPS: f64 = 4e-4;
+/// Sinkhorn iterations.
+pub const SINKHORN_ITERS: usize = 40;
+/// Neighbours per particle of the strain error.
+pub const NEIGHBOURS: usize = 6;
+
+/// Plausibility of one predicted frame, per material (0 liquid, 1 jelly, 2 snow, 3 rope);
+/// `None` where the scene has no particle of that material (and, for `strain`, for liquid).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Plausibility {
+    /// Sinkhorn divergence of the position clouds, domain units squared.
+    pub sinkhorn: [Option<f64>; MATERIALS],
+    /// Strain error (solids only), dimensionless.
+    pub strain: [Option<f64>; MATERIALS],
+}
+
+impl Plausibility {
+    /// The plausibility of `pred` against `truth` (both `[N, 4]` physical), with `material`
+    /// ids `[N]` and the neighbours of the rollout's first frame.
+    pub fn of(pred: &[f32], truth: &[f32], material: &[u8], neighbours: &Neighbours) -> Self {
+        let mut out = Self::default();
+        for m in 0..MATERIALS {
+            let ids: Vec<usize> = (0..material.len())
+                .filter(|&i| usize::from(material[i]).min(MATERIALS - 1) == m)
+                .collect();
+            if ids.is_empty() {
+                continue;
+            }
+            let stride = ids.len().div_ceil(SINKHORN_POINTS);
+            let cloud = |state: &[f32]| -> Vec<[f64; 2]> {
+                ids.iter()
+                    .step_by(stride)
+                    .map(|&i| [f64::from(state[4 * i]), f64::from(state[4 * i + 1])])
+                    .collect()
+            };
+            out.sinkhorn[m] = Some(sinkhorn_divergence(
+                &cloud(pred),
+                &cloud(truth),
+                SINKHORN_EPS,
+                SINKHORN_ITERS,
+            ));
+            out.strain[m] = neighbours.strain_error(pred, truth, m);
+        }
+        out
+    }
+
+    /// Field-wise mean of `all` (a material's mean over the frames that have it).
+    pub fn mean(all: &[Plausibility]) -> Option<Plausibility> {
+        if all.is_empty() {
+            return None;
+        }
+        let mean = |f: &dyn Fn(&Plausibility) -> Option<f64>| {
+            let v: Vec<f64> = all.iter().filter_map(f).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        Some(Plausibility {
+            sinkhorn: std::array::from_fn(|m| mean(&|p| p.sinkhorn[m])),
+            strain: std::array::from_fn(|m| mean(&|p| p.strain[m])),
+        })
+    }
+}
+
+/// The steps at which a rollout of `steps` steps is probed: 20, 50, 100, 200, 400, ... up to
+/// `steps`, and `steps` itself.
+pub fn probe_steps(steps: usize) -> Vec<usize> {
+    let mut out: Vec<usize> = [20, 50, 100]
+        .into_iter()
+        .chain((0..).map(|i| 200 << i))
+        .take_while(|&k| k < steps)
+        .collect();
+    if steps > 0 {
+        out.push(steps);
+    }
+    out
+}
+
+/// Entropic OT cost `OT_eps(a, b)` between uniform clouds `a` and `b` (domain units squared),
+/// by `iters` symmetric log-domain Sinkhorn iterations (dual potentials `f` on `a`, `g` on
+/// `b`; each iteration averages the old and the new potential, as geomloss does), then
+/// `mean f + mean g`.
+fn entropic_ot(a: &[[f64; 2]], b: &[[f64; 2]], eps: f64, iters: usize) -> f64 {
+    let cost = |p: &[f64; 2], q: &[f64; 2]| (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2);
+    let (log_a, log_b) = (-(a.len() as f64).ln(), -(b.len() as f64).ln());
+    // softmin_eps over the other cloud: -eps log sum_j exp(log w_j + (h_j - C_ij) / eps).
+    let softmin = |x: &[f64; 2], ys: &[[f64; 2]], h: &[f64], log_w: f64| {
+        let terms = ys.iter().zip(h).map(|(y, hj)| (hj - cost(x, y)) / eps);
+        let top = terms.clone().fold(f64::NEG_INFINITY, f64::max);
+        let sum: f64 = terms.map(|t| (t - top).exp()).sum();
+        -eps * (log_w + top + sum.ln())
+    };
+    let (mut f, mut g) = (vec![0.0; a.len()], vec![0.0; b.len()]);
+    for _ in 0..iters {
+        let f_new: Vec<f64> = a.iter().map(|x| softmin(x, b, &g, log_b)).collect();
+        let g_new: Vec<f64> = b.iter().map(|y| softmin(y, a, &f, log_a)).collect();
+        for (old, new) in f.iter_mut().zip(f_new) {
+            *old = 0.5 * (*old + new);
+        }
+        for (old, new) in g.iter_mut().zip(g_new) {
+            *old = 0.5 * (*old + new);
+        }
+    }
+    // A last, undamped update of each potential at the converged other.
+    let f_last: Vec<f64> = a.iter().map(|x| softmin(x, b, &g, log_b)).collect();
+    let g_last: Vec<f64> = b.iter().map(|y| softmin(y, a, &f, log_a)).collect();
+    f_last.iter().sum::<f64>() / a.len() as f64 + g_last.iter().sum::<f64>() / b.len() as f64
+}
+
+/// The debiased Sinkhorn divergence `S(a, b) = OT(a, b) - OT(a, a) / 2 - OT(b, b) / 2`
+/// between uniform point clouds (see the module doc), domain units squared; 0 for two empty
+/// clouds, NaN when only one is empty. Non-negative and 0 for equal clouds; for a cloud and
+/// its translate by `h` it tends to `|h|^2` as `eps` goes to 0.
+pub fn sinkhorn_divergence(a: &[[f64; 2]], b: &[[f64; 2]], eps: f64, iters: usize) -> f64 {
+    match (a.is_empty(), b.is_empty()) {
+        (true, true) => return 0.0,
+        (true, false) | (false, true) => return f64::NAN,
+        _ => {}
+    }
+    let ab = entropic_ot(a, b, eps, iters);
+    let aa = entropic_ot(a, a, eps, iters);
+    let bb = entropic_ot(b, b, eps, iters);
+    (ab - 0.5 * (aa + bb)).max(0.0)
+}
+
+/// Each solid particle's [`NEIGHBOURS`] nearest neighbours of the same material in a reference
+/// frame (the rollout's first), and their distances there.
+#[derive(Debug, Clone, Default)]
+pub struct Neighbours {
+    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
+    of: Vec<Vec<(usize, f64)>>,
+    /// Material id per particle (clamped to `MATERIALS - 1`).
+    material: Vec<usize>,
+}
+
+impl Neighbours {
+    /// The neighbours in `frame` (`[N, 4]` physical) of every particle of a solid material
+    /// (jelly 1, snow 2, rope 3), among the particles of its own material. O(N^2) per
+    /// material: once per rollout.
+    pub fn new(frame: &[f32], material: &[u8]) -> Self {
+        let n = material.len();
+        let material: Vec<usize> = material
+            .iter()
+            .map(|&m| usize::from(m).min(MATERIALS - 1))
+            .collect();
+        let pos = |i: usize| [f64::from(frame[4 * i]), f64::from(frame[4 * i + 1])];
+        let mut of = vec![Vec::new(); n];
+        for m in 1..MATERIALS {
+            let ids: Vec<usize> = (0..n).filter(|&i| material[i] == m).collect();
+            for &i in &ids {
+                let p = pos(i);
+                let mut near: Vec<(usize, f64)> = ids
+                    .iter()
+                    .filter(|&&j| j != i)
+                    .map(|&j| {
+                        let q = pos(j);
+                        (j, (p[0] - q[0]).hypot(p[1] - q[1]))
+                    })
+                    .filter(|&(_, d)| d > 0.0)
+                    .collect();
+                let k = NEIGHBOURS.min(near.len());
+                if k > 0 && k < near.len() {
+                    near.select_nth_unstable_by(k - 1, |x, y| x.1.total_cmp(&y.1));
+                }
+                near.truncate(k);
+                of[i] = near;
+            }
+        }
+        Self { of, material }
+    }
+
+    /// The strain error of material `m` (see the module doc): the mean over its particles
+    /// and their neighbours of `|d_pred / d_0 - d_true / d_0|`; `None` for liquid or a
+    /// material without neighbour pairs.
+    pub fn strain_error(&self, pred: &[f32], truth: &[f32], m: usize) -> Option<f64> {
+        if m == 0 {
+            return None;
+        }
+        let dist = |s: &[f32], i: usize, j: usize| {
+            let (dx, dy) = (s[4 * i] - s[4 * j], s[4 * i + 1] - s[4 * j + 1]);
+            f64::from(dx).hypot(f64::from(dy))
+        };
+        let (mut sum, mut count) = (0.0, 0usize);
+        for (i, near) in self.of.iter().enumerate() {
+            if self.material[i] != m {
+                continue;
+            }
+            for &(j, d0) in near {
+                sum += (dist(pred, i, j) - dist(truth, i, j)).abs() / d0;
+                count += 1;
+            }
+        }
+        (count > 0).then(|| sum / count as f64)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One point against one point: the only plan moves all mass, OT(a, b) = |a - b|^2 and
+    /// OT(a, a) = 0 whatever eps, so S = |a - b|^2 = 0.3^2 + 0.4^2 = 0.25.
+    #[test]
+    fn single_points_give_the_squared_distance() {
+        let s = sinkhorn_divergence(&[[0.1, 0.2]], &[[0.4, 0.6]], 1e-3, 20);
+        assert!((s - 0.25).abs() < 1e-9, "{s}");
+    }
+
+    /// Two points 0.5 apart against their translate by h = (0, 0.01): with eps far below the
+    /// spacing squared each point is matched to its own translate, S -> h^2 = 1e-4. Equal
+    /// clouds give 0.
+    #[test]
+    fn a_translated_cloud_gives_its_squared_shift() {
+        let a = [[0.2, 0.5], [0.7, 0.5]];
+        let b = [[0.2, 0.51], [0.7, 0.51]];
+        let s = sinkhorn_divergence(&a, &b, 1e-5, 50);
+        assert!((s - 1e-4).abs() < 2e-6, "{s}");
+        assert!(sinkhorn_divergence(&a, &a, 1e-5, 50).abs() < 1e-12);
+    }
+
+    /// The order of the particles does not matter.
+    #[test]
+    fn particle_order_does_not_matter() {
+        let a: Vec<[f64; 2]> = (0..30)
+            .map(|i| [0.1 + 0.02 * i as f64, 0.3 + 0.01 * (i % 7) as f64])
+            .collect();
+        let b: Vec<[f64; 2]> = a.iter().map(|p| [p[0] + 0.03, p[1]]).collect();
+        let mut rev = b.clone();
+        rev.reverse();
+        let (s, r) = (
+            sinkhorn_divergence(&a, &b, 4e-4, 40),
+            sinkhorn_divergence(&a, &rev, 4e-4, 40),
+        );
+        assert!((s - r).abs() < 1e-12 && s > 0.0, "{s} {r}");
+    }
+
+    /// A jelly square of 5 x 5 particles: rotating and translating the prediction leaves the
+    /// strain error at 0; stretching it by 10 % along x gives a positive error, at most 0.1
+    /// (no neighbour distance changes by more than 10 %).
+    #[test]
+    fn strain_is_zero_for_rigid_motion_and_positive_for_a_stretch() {
+        let frame: Vec<f32> = (0..25)
+            .flat_map(|i| {
+                [
+                    0.4 + 0.01 * (i % 5) as f32,
+                    0.4 + 0.01 * (i / 5) as f32,
+                    0.,
+                    0.,
+                ]
+            })
+            .collect();
+        let material = vec![1u8; 25];
+        let nb = Neighbours::new(&frame, &material);
+        let (c, s) = (0.3f32.cos(), 0.3f32.sin());
+        let rigid: Vec<f32> = frame
+            .chunks_exact(4)
+            .flat_map(|r| {
+                [
+                    c * r[0] - s * r[1] + 0.1,
+                    s * r[0] + c * r[1] - 0.05,
+                    0.,
+                    0.,
+                ]
+            })
+            .collect();
+        let stretched: Vec<f32> = frame
+            .chunks_exact(4)
+            .flat_map(|r| [0.4 + 1.1 * (r[0] - 0.4), r[1], 0., 0.])
+            .collect();
+        let rigid_err = nb.strain_error(&rigid, &frame, 1).unwrap();
+        let stretch_err = nb.strain_error(&stretched, &frame, 1).unwrap();
+        assert!(rigid_err < 1e-5, "{rigid_err}");
+        assert!(
+            stretch_err > 0.02 && stretch_err <= 0.1 + 1e-5,
+            "{stretch_err}"
+        );
+        assert_eq!(
+            nb.strain_error(&frame, &frame, 0),
+            None,
+            "liquid has no strain"
+        );
+    }
+
+    #[test]
+    fn probe_steps_cover_the_horizon() {
+        assert_eq!(probe_steps(20), vec![20]);
+        assert_eq!(probe_steps(5), vec![5]);
+        assert_eq!(probe_steps(100), vec![20, 50, 100]);
+        assert_eq!(probe_steps(623), vec![20, 50, 100, 200, 400, 623]);
+    }
+}

@@ -1,0 +1,102 @@
+//! The plausibility tables of an [`Evaluation`] ([`super::plausibility`]): per predictor and
+//! probe step, the Sinkhorn divergence per material and the strain error per solid, each the
+//! mean over the scenes that have the material. Markdown for `table.md`, CSV (one row per
+//! scene, predictor, probe and material) for `plausibility.csv`. Used by [`super::output`].
+
+use std::collections::BTreeSet;
+use std::fmt::Write;
+
+use super::{Evaluation, Probe};
+use crate::msgs::MATERIAL_NAMES;
+
+/// The probes any scene was scored at, in order.
+fn probes(eval: &Evaluation) -> BTreeSet<Probe> {
+    eval.scenes
+        .iter()
+        .flat_map(|s| s.probes.iter().flatten().map(|(probe, _)| *probe))
+        .collect()
+}
+
+/// Mean over scenes of `value` for predictor `p` at `probe` and material `m`.
+fn mean_over_scenes(
+    eval: &Evaluation,
+    p: usize,
+    probe: Probe,
+    value: impl Fn(&super::Plausibility) -> Option<f64>,
+) -> Option<f64> {
+    let all: Vec<f64> = eval
+        .scenes
+        .iter()
+        .filter_map(|s| s.probes.get(p))
+        .filter_map(|per| per.iter().find(|(q, _)| *q == probe))
+        .filter_map(|(_, v)| value(v))
+        .collect();
+    (!all.is_empty()).then(|| all.iter().sum::<f64>() / all.len() as f64)
+}
+
+/// The Markdown section, empty when nothing was probed.
+pub fn markdown(eval: &Evaluation) -> String {
+    let probes = probes(eval);
+    if probes.is_empty() {
+        return String::new();
+    }
+    let fmt = |v: Option<f64>| v.map_or("n/a".to_owned(), |v| format!("{v:.3e}"));
+    let mut s = String::from(
+        "\nPlausibility, order-independent (mean over scenes). Sinkhorn divergence of the \
+         position clouds per material (domain units^2; blur 0.02, at most 256 particles per \
+         material) and strain error of the solids (mean |d_pred / d_0 - d_true / d_0| over \
+         each particle's 6 nearest neighbours of the rollout's first frame; 0 for a rigid \
+         motion), at step k of the rollouts (`end`: each rollout's last step):\n\n",
+    );
+    s.push_str("| predictor | step |");
+    for m in MATERIAL_NAMES {
+        let _ = write!(s, " sinkhorn {m} |");
+    }
+    for m in &MATERIAL_NAMES[1..] {
+        let _ = write!(s, " strain {m} |");
+    }
+    s.push_str("\n| --- | --- |");
+    s.push_str(&" ---: |".repeat(2 * MATERIAL_NAMES.len() - 1));
+    s.push('\n');
+    for (p, name) in eval.predictors.iter().enumerate() {
+        for &probe in &probes {
+            let _ = write!(s, "| {name} | {probe} |");
+            for m in 0..MATERIAL_NAMES.len() {
+                let v = mean_over_scenes(eval, p, probe, |x| x.sinkhorn[m]);
+                let _ = write!(s, " {} |", fmt(v));
+            }
+            for m in 1..MATERIAL_NAMES.len() {
+                let v = mean_over_scenes(eval, p, probe, |x| x.strain[m]);
+                let _ = write!(s, " {} |", fmt(v));
+            }
+            s.push('\n');
+        }
+    }
+    s
+}
+
+/// `scene,predictor,probe,material,sinkhorn,strain`, one row per scored material (empty
+/// cells where a value does not apply).
+pub fn csv(eval: &Evaluation) -> String {
+    let mut s = String::from("scene,predictor,probe,material,sinkhorn,strain\n");
+    let cell = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:e}"));
+    for scene in &eval.scenes {
+        for (name, per) in eval.predictors.iter().zip(&scene.probes) {
+            for (probe, v) in per {
+                for (m, material) in MATERIAL_NAMES.iter().enumerate() {
+                    if v.sinkhorn[m].is_none() && v.strain[m].is_none() {
+                        continue;
+                    }
+                    let _ = writeln!(
+                        s,
+                        "{},{name},{probe},{material},{},{}",
+                        scene.scene,
+                        cell(v.sinkhorn[m]),
+                        cell(v.strain[m])
+                    );
+                }
+            }
+        }
+    }
+    s
+}

@@ -1,0 +1,139 @@
+//! The epoch loop both architectures train with ([`run_epochs`]): per epoch, one pass over
+//! the training batches, a validation score, the model saved when that score is the best so
+//! far (`model.json` + `model.mpk`, the run's kept model), a resumable checkpoint
+//! (`checkpoint/`), and the observer told; it stops after `epochs`, after `patience` epochs
+//! without a better score, or when a pass ran out of time. Early stopping on the validation
+//! score and best-checkpoint selection as LagrangeBench (Toshev et al. 2023) and GNS
+//! (Sanchez-Gonzalez et al. 2020) train. What differs between the architectures (the pass,
+//! the score) is an [`EpochRun`]: [`super::paper::Trainer`] and [`super::grid::GridTrainer`].
+
+use std::time::Instant;
+
+use super::{EpochRecord, Observer, TrainError};
+
+/// What one pass over an epoch's training batches summed up.
+#[derive(Debug, Default, Clone)]
+pub struct EpochPass {
+    /// Sum over batches of the batch-mean loss times the batch size.
+    pub sum: f64,
+    /// Samples (windows) trained on.
+    pub seen: usize,
+    /// Seconds waiting for host batches.
+    pub data_seconds: f64,
+    /// Seconds waiting for the device (reading the loss back).
+    pub wait_seconds: f64,
+    /// The run's time limit ran out during the pass: the loop stops after this epoch.
+    pub out_of_time: bool,
+}
+
+/// One architecture's training run, as [`run_epochs`] drives it.
+pub trait EpochRun {
+    /// The network being trained (on the autodiff backend).
+    type Model;
+    /// Its optimizer.
+    type Optim;
+
+    /// Epochs at most, and epochs without a better validation score before stopping (0:
+    /// never).
+    fn limits(&self) -> (usize, usize);
+
+    /// One pass over the training batches of `epoch` (0-based): the trained model and the
+    /// pass's sums; `observer` is told after each optimizer step.
+    ///
+    /// # Errors
+    /// A non-finite loss, unreadable data.
+    fn train_epoch(
+        &mut self,
+        model: Self::Model,
+        optim: &mut Self::Optim,
+        epoch: usize,
+        observer: &mut dyn Observer,
+    ) -> Result<(Self::Model, EpochPass), TrainError>;
+
+    /// The validation score of `model` after `epoch` epochs (lower is better);
+    /// `train_loss` where there is nothing to validate on.
+    ///
+    /// # Errors
+    /// Unreadable data, a failed validation step.
+    fn validate(
+        &mut self,
+        model: &Self::Model,
+        epoch: usize,
+        train_loss: f64,
+    ) -> Result<f64, TrainError>;
+
+    /// Saves `model` as the run's kept model (`model.json` + `model.mpk`).
+    ///
+    /// # Errors
+    /// The files could not be written.
+    fn save_best(&self, model: &Self::Model, epoch: usize, val_loss: f64)
+        -> Result<(), TrainError>;
+
+    /// Writes the resumable checkpoint after the epochs in `history`.
+    ///
+    /// # Errors
+    /// The files could not be written.
+    fn checkpoint(
+        &self,
+        model: &Self::Model,
+        optim: &Self::Optim,
+        history: &[EpochRecord],
+    ) -> Result<(), TrainError>;
+}
+
+/// Trains `run` from `model`, `optim` and the epochs already done (`history`, non-empty when
+/// resumed), one [`EpochRun::train_epoch`] per epoch; see the module doc. Returns every
+/// epoch's record, the resumed ones included.
+///
+/// # Errors
+/// The first error of a pass, a validation, a save or a checkpoint.
+pub fn run_epochs<R: EpochRun>(
+    run: &mut R,
+    (mut model, mut optim, mut history): (R::Model, R::Optim, Vec<EpochRecord>),
+    observer: &mut dyn Observer,
+) -> Result<Vec<EpochRecord>, TrainError> {
+    let (epochs, patience) = run.limits();
+    let mut best = history
+        .iter()
+        .map(|r| r.val_loss)
+        .fold(f64::INFINITY, f64::min);
+    let mut since_best = history
+        .iter()
+        .rev()
+        .take_while(|r| r.val_loss > best)
+        .count();
+    for epoch in history.len()..epochs {
+        if patience > 0 && since_best >= patience {
+            break;
+        }
+        let started = Instant::now();
+        let (trained, pass) = run.train_epoch(model, &mut optim, epoch, observer)?;
+        model = trained;
+        let seconds = started.elapsed().as_secs_f64();
+        let train_loss = pass.sum / pass.seen.max(1) as f64;
+        let val_loss = run.validate(&model, epoch + 1, train_loss)?;
+        let record = EpochRecord {
+            epoch: epoch + 1,
+            train_loss,
+            val_loss,
+            seconds,
+            samples_per_sec: pass.seen as f64 / seconds.max(1e-9),
+            data_seconds: pass.data_seconds,
+            wait_seconds: pass.wait_seconds,
+        };
+        if val_loss < best {
+            best = val_loss;
+            since_best = 0;
+            run.save_best(&model, epoch + 1, val_loss)?;
+        } else {
+            since_best += 1;
+        }
+        history.push(record.clone());
+        run.checkpoint(&model, &optim, &history)?;
+        observer.epoch(&record, &history);
+        if pass.out_of_time {
+            break;
+        }
+    }
+    Ok(history)
+}
