@@ -47,8 +47,10 @@ pub struct NodeArgs {
     /// Pending frames per scene before the oldest is dropped.
     #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
     queue_depth: usize,
-    /// Closed loop: after the first T frames of a scene, publish K predicted frames.
-    #[arg(long, value_name = "K", value_parser = super::flags::at_least_one)]
+    /// Closed loop: after the first T frames of a scene, publish R predicted frames (a model
+    /// trained with --bundle K makes ceil(R / K) network calls). Without it, each input
+    /// frame gets its next frame (for a bundled model, the first of its bundle).
+    #[arg(long, value_name = "R", value_parser = super::flags::at_least_one)]
     rollout: Option<usize>,
     /// Closed-loop pacing factor (1 = the scene's own frame rate); 0 = as fast as possible.
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::rate)]

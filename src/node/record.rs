@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 use crate::bag::{BagError, BagWriter, DEFAULT_QOS_YAML, MESSAGE_ENCODING};
 use crate::msgs::{ParticleFrame, TYPE_NAME};
 use crate::transport::{Counters, Sample, Transport, TransportError};
+use crate::viz::cloud::WritePoints;
 
 /// What to record and when to split or stop.
 #[derive(Debug, Clone)]

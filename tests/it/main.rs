@@ -27,6 +27,7 @@ mod interop_import_h5py;
 mod interop_npz;
 mod model_cells;
 mod model_grid;
+mod models_shipped;
 mod msgs_cdr;
 mod node_surrogate;
 mod plot_png;

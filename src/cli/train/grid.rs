@@ -1,5 +1,5 @@
 //! `minflow train --arch grid` (the default): the grid architecture's run (its flags,
-//! `GridArgs`, live in `train_args.rs`): load the bags, split 80:10:10 by scene, fit the
+//! `GridArgs`, live in `args.rs`): load the bags, split 80:10:10 by scene, fit the
 //! min-max scaler and the velocity statistics on the training split, train with
 //! [`crate::train::grid::GridTrainer`] (rollout loss, clipping, cosine decay, best
 //! checkpoint by validation rollout error) and leave the run folder as `train --arch paper`
