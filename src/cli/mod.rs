@@ -106,6 +106,8 @@ enum TrainBenchCommand {
     Train(bench_train::TrainBenchArgs),
     /// GPU dense-layer products per kernel (as `minflow bench gemm`).
     Gemm(bench_gemm::GemmBenchArgs),
+    /// Rollout cost per frame against the MPM solver (as `minflow bench rollout`).
+    Rollout(bench_rollout::RolloutBenchArgs),
 }
 
 /// Runs a parsed [`TrainCli`] command.
@@ -116,6 +118,7 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Eval(args) => eval::run(args),
         TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench_train::run(args),
         TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench_gemm::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench_rollout::run(args),
     }
 }
 

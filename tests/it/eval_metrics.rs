@@ -74,6 +74,7 @@ fn opts(horizon: usize) -> RolloutOptions {
         window: 2,
         density_grid: 8,
         snapshots: true,
+        ..RolloutOptions::default()
     }
 }
 

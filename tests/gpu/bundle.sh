@@ -1,0 +1,96 @@
+#!/usr/bin/env bash
+# Temporal bundling on a GPU machine (issue 32; docs/results.md, "Whole scenes"): the K = 1,
+# 2, 4, 8 ablation at equal training time, the memory-against-none ablation at K = 4, and
+# the small candidates, all trained at once on one GPU; then the evaluation on unseen
+# scenes (simulate --seed 7, both families, every scene kind) at horizon 20 and over whole
+# scenes, with renders. CI has no GPU and does not run this. From the repository root, with
+# `minflow-cuda` built with `--features cuda` in gpu/ (plain or gpu/minflow-cuda.xz):
+#
+#   tests/gpu/bundle.sh data              # seed 1 (training: 60 multi + 40 fluid scenes)
+#                                         # and seed 7 (unseen: 10 multi + 6 fluid scenes)
+#   tests/gpu/bundle.sh start MINUTES     # every run below, in the background (setsid)
+#   tests/gpu/bundle.sh wait              # until they have ended, a line a minute
+#   tests/gpu/bundle.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
+#
+# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
+set -uo pipefail
+OUT=${OUT:-/tmp/minflow-gpu}
+DATA=${DATA:-/tmp/data}
+mkdir -p "$OUT" runs
+export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
+BIN=gpu/minflow-cuda
+if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
+    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
+    chmod +x "$BIN"
+fi
+SMALL=(--grid 32 --unet-width 16 --levels 3 --reference none)
+COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirror
+    --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
+
+# One training run in the background: NAME MINUTES FLAGS...
+start() {
+    local name=$1 minutes=$2
+    shift 2
+    setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
+        --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
+    echo $! >>"$OUT/started.pids"
+}
+
+case "${1:-}" in
+data)
+    for family in multi fluid; do
+        "$BIN" simulate --family "$family" --seed 1 --jobs "$(nproc)" --out "$DATA/$family" \
+            2>&1 | tail -n 2
+    done
+    "$BIN" simulate --family multi --seed 7 --scenes 0..10 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+    "$BIN" simulate --family fluid --seed 7 --scenes 0..6 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+    ;;
+start)
+    m=$2
+    # K at equal time, each from the shipped single-frame minGRU (its head tiled K times),
+    # P calls per sample so a sample covers 8-16 frames.
+    start k1 "$m" --model mingru --init-from models/all-grid-mingru --bundle 1 --rollout-steps 8
+    start k2 "$m" --model mingru --init-from models/all-grid-mingru --bundle 2 --rollout-steps 6
+    start k4 "$m" --model mingru --init-from models/all-grid-mingru --bundle 4 --rollout-steps 4
+    start k8 "$m" --model mingru --init-from models/all-grid-mingru --bundle 8 --rollout-steps 2
+    # The small network (the CPU's budget) at K = 4 and 8, from the shipped small minGRU.
+    start s4 "$m" --model mingru --init-from models/all-grid-mingru-small --bundle 4 \
+        --rollout-steps 4 "${SMALL[@]}"
+    start s8 "$m" --model mingru --init-from models/all-grid-mingru-small --bundle 8 \
+        --rollout-steps 2 "${SMALL[@]}"
+    # Memory against none at K = 4, both from fresh weights.
+    start m4 "$m" --model mingru --bundle 4 --rollout-steps 4
+    start n4 "$m" --model none --bundle 4 --rollout-steps 4
+    ;;
+wait)
+    while true; do
+        running=0
+        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
+            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
+        done
+        for log in "$OUT"/train-*.log; do
+            printf '%s: %s\n' "$(basename "$log" .log)" \
+                "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
+        done
+        [ "$running" -eq 0 ] && break
+        sleep 60
+    done
+    ;;
+eval)
+    shift
+    models=()
+    for name in "$@"; do models+=(--model "runs/$name"); done
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all --starts 5 \
+        --horizon 20 --no-render --out "$OUT/unseen-h20" >"$OUT/unseen-h20.log" 2>&1
+    echo "horizon 20: exit $?"
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all \
+        --horizon full --out "$OUT/unseen-full" >"$OUT/unseen-full.log" 2>&1
+    echo "horizon full: exit $?"
+    ;;
+*)
+    sed -n 2,15p "$0"
+    exit 2
+    ;;
+esac

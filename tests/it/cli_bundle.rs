@@ -1,0 +1,186 @@
+//! A bundled grid model end to end (issue 32): `train --bundle 2` on the bundled bags, `eval
+//! --horizon full` (whole-scene blocks, plausibility table and CSV), `bench rollout` on a tiny
+//! setting (its table against the solver; no timing asserted), and the node in closed loop
+//! over zenoh, whose rollout equals the offline `Surrogate::rollout` to 1e-5.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use crate::transport_support::*;
+use burn::backend::NdArray;
+use minflow::bag::read_frames;
+use minflow::model::store::Surrogate;
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// A tiny grid minGRU predicting 2 frames per call, trained one short epoch on the bundled
+/// bags (once per test binary).
+fn bundled_model() -> PathBuf {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("k2");
+        let data = repo("bags");
+        let mut args = vec![
+            "train",
+            "--data",
+            data.to_str().unwrap(),
+            "--epochs",
+            "1",
+            "--bundle",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(crate::TINY_GRID_NET);
+        args.extend(crate::TINY_GRID_SCHEDULE);
+        let o = Node::spawn("train", &args).wait(Duration::from_secs(300));
+        let err = ok(&o, "train");
+        assert!(err.contains("K = 2"), "train reports the bundle: {err}");
+        dir
+    })
+    .path()
+    .join("k2")
+}
+
+#[test]
+fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
+    let model = bundled_model();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("eval");
+    let bag = repo("bags/multi_rope+snow_001.mcap");
+    let args = [
+        "eval",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        bag.to_str().unwrap(),
+        "--split",
+        "all",
+        "--horizon",
+        "full",
+        "--no-render",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    ok(&Node::spawn("eval", &args).wait(Duration::from_secs(300)), "eval");
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.contains("avg_full") && table.contains("f_full"), "{table}");
+    assert!(table.contains("Plausibility") && table.contains("strain rope"), "{table}");
+    let csv = std::fs::read_to_string(out.join("plausibility.csv")).unwrap();
+    // The bag's 25 frames after 2 seed frames: 23 steps, probed at 20 and at the end.
+    for probe in [",20,rope,", ",end,rope,", ",end,snow,"] {
+        assert!(csv.contains(probe), "{probe} in {csv}");
+    }
+    let metrics = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+    assert!(metrics.lines().any(|l| l.contains(",23,")), "23 steps scored");
+}
+
+#[test]
+fn bench_rollout_prints_the_model_against_the_solver() {
+    let model = bundled_model();
+    let args = [
+        "bench",
+        "rollout",
+        "--model",
+        model.to_str().unwrap(),
+        "--scenes",
+        "1",
+        "--frames",
+        "5",
+    ];
+    let o = Node::spawn("bench", &args).wait(Duration::from_secs(300));
+    ok(&o, "bench rollout");
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("MPM solver"), "{table}");
+    let row = table
+        .lines()
+        .find(|l| l.contains("k2"))
+        .unwrap_or_else(|| panic!("a row for the model: {table}"));
+    // | model | K | calls/rollout | ms/frame | x solver | avg5 MSE |
+    let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+    assert_eq!((cells[2], cells[3]), ("2", "3"), "K = 2: 3 calls for 5 frames");
+    let ratio: f64 = cells[5].parse().unwrap();
+    assert!(ratio.is_finite() && ratio > 0.0, "{row}");
+}
+
+/// `node --rollout 9` with a K = 2 model: after the scene's two seed frames, 9 frames from 5
+/// calls, equal to the offline rollout seeded with the same frames.
+#[test]
+fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
+    let model = bundled_model();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pred");
+    let (input, output) = (unique_topic("bundle_in"), unique_topic("bundle_out"));
+    let bag = repo("bags/multi_rope+snow_001.mcap");
+    let recorder = Node::spawn(
+        "record",
+        &["record", "--topic", &output, "-o", out.to_str().unwrap(), "--count", "9"],
+    );
+    let node = Node::spawn(
+        "node",
+        &[
+            "node",
+            "--model",
+            model.to_str().unwrap(),
+            "--in",
+            &input,
+            "--out",
+            &output,
+            "--rollout",
+            "9",
+            "--wait-for-subscribers",
+            "1",
+            "--status",
+            "none",
+            "--queue-depth",
+            "32",
+        ],
+    );
+    let replay = ["replay", "--topic", &input, bag.to_str().unwrap()];
+    ok(&Node::spawn("replay", &replay).wait(Duration::from_secs(120)), "replay");
+    let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
+    node.signal("INT");
+    ok(&node.wait(Duration::from_secs(30)), "node");
+
+    let frames: Vec<_> = read_frames(&bag, None)
+        .unwrap()
+        .frames
+        .into_iter()
+        .map(|m| m.2)
+        .collect();
+    let rows = |i: usize| -> Vec<f32> {
+        let f = &frames[i];
+        (0..f.len())
+            .flat_map(|p| {
+                [f.position[2 * p], f.position[2 * p + 1], f.velocity[2 * p], f.velocity[2 * p + 1]]
+            })
+            .collect()
+    };
+    let s = Surrogate::<NdArray<f32>>::load(&model, &Default::default()).unwrap();
+    assert_eq!(s.bundle(), 2);
+    let want = s
+        .rollout(Some(&rows(0)), &[rows(0), rows(1)], &frames[0].material, frames[0].dt, 9)
+        .unwrap();
+    let mut compared = 0;
+    for bytes in raw_messages(&out, Some(&output)) {
+        let f = minflow::msgs::decode(&bytes).unwrap();
+        let k = f.frame_index as usize - 2;
+        let got: Vec<f32> = (0..f.len())
+            .flat_map(|p| {
+                [f.position[2 * p], f.position[2 * p + 1], f.velocity[2 * p], f.velocity[2 * p + 1]]
+            })
+            .collect();
+        let worst = got
+            .iter()
+            .zip(&want[k])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst <= 1e-5, "frame {}: max |diff| {worst}", f.frame_index);
+        compared += 1;
+    }
+    assert_eq!(compared, 9, "recorded: {rec}");
+}
