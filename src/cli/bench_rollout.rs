@@ -12,7 +12,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use clap::Args;
 use rayon::prelude::*;
 
@@ -154,7 +154,7 @@ fn model_row(
             roll(&s, scenes, sizes)
         }
         #[cfg(not(feature = "cuda"))]
-        Device::Cuda(_) => bail!("built without CUDA"),
+        Device::Cuda(_) => anyhow::bail!("built without CUDA"),
     }
 }
 

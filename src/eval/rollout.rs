@@ -103,17 +103,64 @@ pub fn evaluate(
         false => opts.horizon,
     }
     .max(1);
+    let (plan, notes) = plan(trajs, w, h, opts);
+    if plan.is_empty() {
+        return Err(EvalError::Empty(format!(
+            "no trajectory has more than {w} frames"
+        )));
+    }
+    progress.set_length((plan.len() * predictors.len()) as u64);
+    let mut scenes: BTreeMap<String, SceneSums> = BTreeMap::new();
+    for rollout in plan {
+        let sums = scenes
+            .entry(rollout.traj.scene.clone())
+            .or_insert_with(|| SceneSums::new(&rollout.traj.scene, predictors.len(), h));
+        sums.add(&rollout, predictors, (scaler, opts, w, h), progress)?;
+    }
+    Ok(Evaluation {
+        predictors: predictors.iter().map(|p| p.name().to_owned()).collect(),
+        horizon: h,
+        full: opts.full,
+        scaler: *scaler,
+        scaler_source: scaler_source.to_owned(),
+        scenes: scenes.into_values().map(|s| s.finish(opts.full)).collect(),
+        notes,
+    })
+}
+
+/// One rollout to make: trajectory, start offset, steps.
+struct Rollout<'a> {
+    traj: &'a Trajectory,
+    start: usize,
+    steps: usize,
+}
+
+/// The rollouts of every trajectory with `w` seed frames and `h` steps (one from the start
+/// with `opts.full`, else `opts.starts` of them), and notes on the trajectories that are
+/// skipped or cut short.
+fn plan<'a>(
+    trajs: &'a [Trajectory],
+    w: usize,
+    h: usize,
+    opts: &RolloutOptions,
+) -> (Vec<Rollout<'a>>, Vec<String>) {
     let mut notes = Vec::new();
     let mut plan = Vec::new();
     for traj in trajs {
+        let span = |t: &Trajectory| {
+            format!(
+                "scene {:?} (frames {}..{})",
+                t.scene,
+                t.start_index,
+                t.start_index as usize + t.frames
+            )
+        };
         let starts = if opts.full { 1 } else { opts.starts };
         let offsets = start_offsets(traj.frames, w, h, starts);
         if offsets.is_empty() {
             notes.push(format!(
-                "scene {:?} (frames {}..{}): {} frames, too short for {w} seed frames; skipped",
-                traj.scene,
-                traj.start_index,
-                traj.start_index as usize + traj.frames,
+                "{}: {} frames, too short for {w} seed frames; skipped",
+                span(traj),
                 traj.frames
             ));
             continue;
@@ -121,38 +168,55 @@ pub fn evaluate(
         let steps = h.min(traj.frames - w);
         if steps < h && !opts.full {
             notes.push(format!(
-                "scene {:?} (frames {}..{}): only {steps} of {h} steps after {w} seed frames",
-                traj.scene,
-                traj.start_index,
-                traj.start_index as usize + traj.frames
+                "{}: only {steps} of {h} steps after {w} seed frames",
+                span(traj)
             ));
         }
-        plan.extend(offsets.into_iter().map(|s| (traj, s, steps)));
+        plan.extend(
+            offsets
+                .into_iter()
+                .map(|start| Rollout { traj, start, steps }),
+        );
     }
-    if plan.is_empty() {
-        return Err(EvalError::Empty(format!(
-            "no trajectory has more than {w} frames"
-        )));
-    }
-    progress.set_length((plan.len() * predictors.len()) as u64);
-    let mut scenes: BTreeMap<String, (SceneResult, Vec<StepSums>, Vec<ProbeSums>)> =
-        BTreeMap::new();
-    for (traj, start, steps) in plan {
-        let first = start + w;
-        let (result, sums, probes) = scenes.entry(traj.scene.clone()).or_insert_with(|| {
-            let result = SceneResult {
-                scene: traj.scene.clone(),
-                missing: vec![0; predictors.len()],
+    (plan, notes)
+}
+
+/// What the rollouts of one scene added up to so far, per predictor.
+struct SceneSums {
+    result: SceneResult,
+    steps: Vec<StepSums>,
+    probes: Vec<ProbeSums>,
+}
+
+impl SceneSums {
+    fn new(scene: &str, predictors: usize, h: usize) -> Self {
+        Self {
+            result: SceneResult {
+                scene: scene.to_owned(),
+                missing: vec![0; predictors],
                 ..SceneResult::default()
-            };
-            let probes = vec![ProbeSums::default(); predictors.len()];
-            (result, vec![StepSums::new(h); predictors.len()], probes)
-        });
+            },
+            steps: vec![StepSums::new(h); predictors],
+            probes: vec![ProbeSums::default(); predictors],
+        }
+    }
+
+    /// Rolls every predictor out once from `w` seed frames and scores it; the scene's first
+    /// rollout is kept for the renders when `opts.snapshots`.
+    fn add(
+        &mut self,
+        rollout: &Rollout<'_>,
+        predictors: &[&dyn Predictor],
+        (scaler, opts, w, h): (&Scaler, &RolloutOptions, usize, usize),
+        progress: &indicatif::ProgressBar,
+    ) -> Result<(), EvalError> {
+        let (traj, steps) = (rollout.traj, rollout.steps);
+        let first = rollout.start + w;
         let neighbours = opts
             .plausibility
             .then(|| Neighbours::new(traj.state(first - 1), &traj.material));
-        result.rollouts += 1;
-        let keep = opts.snapshots && result.snapshots.is_none();
+        self.result.rollouts += 1;
+        let keep = opts.snapshots && self.result.snapshots.is_none();
         let mut snap = keep.then(|| Snapshots {
             material: traj.material.clone(),
             truth: (0..=h)
@@ -163,18 +227,13 @@ pub fn evaluate(
         for (p, predictor) in predictors.iter().enumerate() {
             let frames = predictor.rollout(traj, first, steps)?;
             for (k, pred) in frames.iter().enumerate().take(steps) {
-                let truth = traj.state(first + k);
                 check_len(traj, first + k, pred.len(), predictor.name())?;
-                sums[p].steps[k].push(frame_metrics(
-                    pred,
-                    truth,
-                    &traj.material,
-                    scaler,
-                    opts.density_grid,
-                ));
+                let truth = traj.state(first + k);
+                let m = frame_metrics(pred, truth, &traj.material, scaler, opts.density_grid);
+                self.steps[p].steps[k].push(m);
             }
             if let Some(nb) = &neighbours {
-                probes[p].add(traj, first, &frames, steps, nb);
+                self.probes[p].add(traj, first, &frames, steps, nb);
             }
             if let Some(snap) = snap.as_mut() {
                 let mut row = vec![Some(traj.state(first - 1).to_vec())];
@@ -185,34 +244,26 @@ pub fn evaluate(
             progress.inc(1);
         }
         if snap.is_some() {
-            result.snapshots = snap;
+            self.result.snapshots = snap;
         }
+        Ok(())
     }
-    let scenes = scenes
-        .into_values()
-        .map(|(mut result, sums, probes)| {
-            result.curves = sums.iter().map(StepSums::curve).collect();
-            if opts.full {
-                // Each scene's curve ends at its own last frame.
-                for curve in &mut result.curves {
-                    while curve.steps.len() > 1 && curve.steps.last() == Some(&None) {
-                        curve.steps.pop();
-                    }
+
+    /// The scene's result: per predictor its curve (ending at the scene's own last frame
+    /// when `full`) and its mean plausibility per probe.
+    fn finish(self, full: bool) -> SceneResult {
+        let mut result = self.result;
+        result.curves = self.steps.iter().map(StepSums::curve).collect();
+        if full {
+            for curve in &mut result.curves {
+                while curve.steps.len() > 1 && curve.steps.last() == Some(&None) {
+                    curve.steps.pop();
                 }
             }
-            result.probes = probes.iter().map(ProbeSums::means).collect();
-            result
-        })
-        .collect();
-    Ok(Evaluation {
-        predictors: predictors.iter().map(|p| p.name().to_owned()).collect(),
-        horizon: h,
-        full: opts.full,
-        scaler: *scaler,
-        scaler_source: scaler_source.to_owned(),
-        scenes,
-        notes,
-    })
+        }
+        result.probes = self.probes.iter().map(ProbeSums::means).collect();
+        result
+    }
 }
 
 /// A predicted frame must have the trajectory's `[N, 4]` shape.

@@ -233,6 +233,13 @@ pub fn details(eval: &Evaluation) -> String {
             v[12]
         );
     }
+    s.push_str(&missing_and_notes(eval));
+    s
+}
+
+/// The summary's last part: missing predicted frames per scene and the notes.
+fn missing_and_notes(eval: &Evaluation) -> String {
+    let mut s = String::new();
     let missing: Vec<String> = eval
         .scenes
         .iter()

@@ -66,17 +66,29 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
         "--out",
         out.to_str().unwrap(),
     ];
-    ok(&Node::spawn("eval", &args).wait(Duration::from_secs(300)), "eval");
+    ok(
+        &Node::spawn("eval", &args).wait(Duration::from_secs(300)),
+        "eval",
+    );
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
-    assert!(table.contains("avg_full") && table.contains("f_full"), "{table}");
-    assert!(table.contains("Plausibility") && table.contains("strain rope"), "{table}");
+    assert!(
+        table.contains("avg_full") && table.contains("f_full"),
+        "{table}"
+    );
+    assert!(
+        table.contains("Plausibility") && table.contains("strain rope"),
+        "{table}"
+    );
     let csv = std::fs::read_to_string(out.join("plausibility.csv")).unwrap();
     // The bag's 25 frames after 2 seed frames: 23 steps, probed at 20 and at the end.
     for probe in [",20,rope,", ",end,rope,", ",end,snow,"] {
         assert!(csv.contains(probe), "{probe} in {csv}");
     }
     let metrics = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
-    assert!(metrics.lines().any(|l| l.contains(",23,")), "23 steps scored");
+    assert!(
+        metrics.lines().any(|l| l.contains(",23,")),
+        "23 steps scored"
+    );
 }
 
 #[test]
@@ -102,7 +114,11 @@ fn bench_rollout_prints_the_model_against_the_solver() {
         .unwrap_or_else(|| panic!("a row for the model: {table}"));
     // | model | K | calls/rollout | ms/frame | x solver | avg5 MSE |
     let cells: Vec<&str> = row.split('|').map(str::trim).collect();
-    assert_eq!((cells[2], cells[3]), ("2", "3"), "K = 2: 3 calls for 5 frames");
+    assert_eq!(
+        (cells[2], cells[3]),
+        ("2", "3"),
+        "K = 2: 3 calls for 5 frames"
+    );
     let ratio: f64 = cells[5].parse().unwrap();
     assert!(ratio.is_finite() && ratio > 0.0, "{row}");
 }
@@ -118,7 +134,15 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
     let bag = repo("bags/multi_rope+snow_001.mcap");
     let recorder = Node::spawn(
         "record",
-        &["record", "--topic", &output, "-o", out.to_str().unwrap(), "--count", "9"],
+        &[
+            "record",
+            "--topic",
+            &output,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            "9",
+        ],
     );
     let node = Node::spawn(
         "node",
@@ -141,7 +165,10 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
         ],
     );
     let replay = ["replay", "--topic", &input, bag.to_str().unwrap()];
-    ok(&Node::spawn("replay", &replay).wait(Duration::from_secs(120)), "replay");
+    ok(
+        &Node::spawn("replay", &replay).wait(Duration::from_secs(120)),
+        "replay",
+    );
     let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
     node.signal("INT");
     ok(&node.wait(Duration::from_secs(30)), "node");
@@ -156,14 +183,25 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
         let f = &frames[i];
         (0..f.len())
             .flat_map(|p| {
-                [f.position[2 * p], f.position[2 * p + 1], f.velocity[2 * p], f.velocity[2 * p + 1]]
+                [
+                    f.position[2 * p],
+                    f.position[2 * p + 1],
+                    f.velocity[2 * p],
+                    f.velocity[2 * p + 1],
+                ]
             })
             .collect()
     };
     let s = Surrogate::<NdArray<f32>>::load(&model, &Default::default()).unwrap();
     assert_eq!(s.bundle(), 2);
     let want = s
-        .rollout(Some(&rows(0)), &[rows(0), rows(1)], &frames[0].material, frames[0].dt, 9)
+        .rollout(
+            Some(&rows(0)),
+            &[rows(0), rows(1)],
+            &frames[0].material,
+            frames[0].dt,
+            9,
+        )
         .unwrap();
     let mut compared = 0;
     for bytes in raw_messages(&out, Some(&output)) {
@@ -171,7 +209,12 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
         let k = f.frame_index as usize - 2;
         let got: Vec<f32> = (0..f.len())
             .flat_map(|p| {
-                [f.position[2 * p], f.position[2 * p + 1], f.velocity[2 * p], f.velocity[2 * p + 1]]
+                [
+                    f.position[2 * p],
+                    f.position[2 * p + 1],
+                    f.velocity[2 * p],
+                    f.velocity[2 * p + 1],
+                ]
             })
             .collect();
         let worst = got

@@ -41,7 +41,12 @@ fn frame(n: usize) -> (Vec<f32>, Vec<u8>) {
     let state = (0..n)
         .flat_map(|i| {
             let (a, b) = ((i * 37 % 101) as f32 / 101.0, (i * 53 % 97) as f32 / 97.0);
-            [0.3 + 0.4 * a, 0.3 + 0.4 * b, 0.2 * (b - 0.5), 0.2 * (a - 0.5)]
+            [
+                0.3 + 0.4 * a,
+                0.3 + 0.4 * b,
+                0.2 * (b - 0.5),
+                0.2 * (a - 0.5),
+            ]
         })
         .collect();
     (state, (0..n).map(|i| (i % 4) as u8).collect())
@@ -82,7 +87,11 @@ fn a_grown_bundle_predicts_the_single_frame_model_first() {
         assert_eq!(three.len(), 3);
         for (a, b) in [(one.pos, &three[0].pos), (one.vel, &three[0].vel)] {
             let (a, b) = (host(a), host(b.clone()));
-            let diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+            let diff = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
             assert!(diff < 1e-6, "{memory:?}: first frame differs by {diff}");
         }
         assert_ne!(
@@ -109,7 +118,10 @@ fn the_k_frames_of_a_bundle_are_integrated_in_order() {
             for c in 0..2 {
                 let want = prev[4 * i + c] + 0.016 * (prev[4 * i + 2 + c] + vel[2 * i + c]) / 2.0;
                 let got = pos[2 * i + c];
-                assert!((want - got).abs() < 1e-6, "frame {k}, particle {i}: {got} vs {want}");
+                assert!(
+                    (want - got).abs() < 1e-6,
+                    "frame {k}, particle {i}: {got} vs {want}"
+                );
             }
         }
         prev = (0..material.len())

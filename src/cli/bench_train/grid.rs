@@ -75,55 +75,7 @@ where
                 .with_dv_scale(dv_scale)
                 .with_conv(kernel);
             config.validate().map_err(anyhow::Error::msg)?;
-            let params = config.init::<B>(&device).num_params();
-            let opts = GridTrainOptions {
-                epochs: args.warmup_epochs + args.epochs,
-                batch_size: args.micro_batch,
-                samples_per_epoch: 0,
-                lr: 1e-3,
-                lr_final: 1e-5,
-                clip: 1.0,
-                steps: p,
-                teacher: 1,
-                noise: 0.0,
-                mirror: false,
-                seed: 0,
-                patience: 0,
-                val_starts: 1,
-                val_horizon: 1,
-                max_minutes: 0.0,
-            };
-            let dir = tempfile::tempdir()?;
-            let mut high = peak(true).unwrap_or(0.0);
-            let trainer = GridTrainer::<B> {
-                config: config.clone(),
-                opts,
-                out: dir.path().into(),
-                device: device.clone(),
-                init_from: None,
-            };
-            let history = trainer.fit(&index, &[], &Scaler::default(), false, &mut Quiet)?;
-            high = high.max(peak(false).unwrap_or(f64::NAN));
-            let EpochMeans {
-                warmup,
-                mean,
-                wait,
-                data,
-                ..
-            } = EpochMeans::of(&history, args.warmup_epochs);
-            println!(
-                "{:<8} {:<7} {:>9} {:>10.3} {:>10.1} {:>10.2} {:>7.0} {:>7.0} {:>9.0} {:>12.6e}",
-                memory_kind.name(),
-                kernel.resolve::<B>().name(),
-                params,
-                mean,
-                index.len() as f64 / mean,
-                warmup,
-                100.0 * wait / mean.max(1e-12),
-                100.0 * data / mean.max(1e-12),
-                high,
-                history.first().map_or(f64::NAN, |e| e.train_loss)
-            );
+            bench_config::<B>(args, &config, (&index, &device), p, peak)?;
             if args.stages {
                 stages::<B>(&config, args.micro_batch, args.particles, &device);
             }
@@ -131,6 +83,70 @@ where
     }
     println!("peak MiB: {memory} memory");
     Ok(Outcome::Done)
+}
+
+/// One row of the grid table: trains `config` for the benchmark's epochs on `index` (P =
+/// `p` rollout steps) and prints its speed, memory and first loss.
+fn bench_config<B: AutodiffBackend + NetOps>(
+    args: &TrainBenchArgs,
+    config: &GridConfig,
+    (index, device): (&WindowIndex, &B::Device),
+    p: usize,
+    peak: &dyn Fn(bool) -> Option<f64>,
+) -> anyhow::Result<()>
+where
+    B::InnerBackend: NetOps,
+{
+    let params = config.init::<B>(device).num_params();
+    let opts = GridTrainOptions {
+        epochs: args.warmup_epochs + args.epochs,
+        batch_size: args.micro_batch,
+        samples_per_epoch: 0,
+        lr: 1e-3,
+        lr_final: 1e-5,
+        clip: 1.0,
+        steps: p,
+        teacher: 1,
+        noise: 0.0,
+        mirror: false,
+        seed: 0,
+        patience: 0,
+        val_starts: 1,
+        val_horizon: 1,
+        max_minutes: 0.0,
+    };
+    let dir = tempfile::tempdir()?;
+    let mut high = peak(true).unwrap_or(0.0);
+    let trainer = GridTrainer::<B> {
+        config: config.clone(),
+        opts,
+        out: dir.path().into(),
+        device: device.clone(),
+        init_from: None,
+    };
+    let history = trainer.fit(index, &[], &Scaler::default(), false, &mut Quiet)?;
+    high = high.max(peak(false).unwrap_or(f64::NAN));
+    let EpochMeans {
+        warmup,
+        mean,
+        wait,
+        data,
+        ..
+    } = EpochMeans::of(&history, args.warmup_epochs);
+    println!(
+        "{:<8} {:<7} {:>9} {:>10.3} {:>10.1} {:>10.2} {:>7.0} {:>7.0} {:>9.0} {:>12.6e}",
+        config.memory.name(),
+        config.conv.resolve::<B>().name(),
+        params,
+        mean,
+        index.len() as f64 / mean,
+        warmup,
+        100.0 * wait / mean.max(1e-12),
+        100.0 * data / mean.max(1e-12),
+        high,
+        history.first().map_or(f64::NAN, |e| e.train_loss)
+    );
+    Ok(())
 }
 
 /// Milliseconds per call of `f`, after one untimed call, synchronised with the device.

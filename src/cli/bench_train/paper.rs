@@ -244,56 +244,8 @@ where
         for name in args.cores.as_deref().unwrap_or(&default_cores) {
             let core =
                 CoreKind::parse(name).ok_or_else(|| anyhow::anyhow!("unknown core {name:?}"))?;
-            let config = ModelConfig::new(core, args.particles)
-                .with_window(t)
-                .with_width(args.width)
-                .with_encoder_hidden(args.encoder_hidden)
-                .with_encoder_last_activation(last);
-            let params = config.init::<CpuTrain>(&Default::default()).num_params();
-            let opts = TrainOptions {
-                epochs: args.warmup_epochs + args.epochs,
-                batch_size: args.micro_batch,
-                micro_batch: args.micro_batch,
-                lr: 1e-3,
-                seed: 0,
-                patience: 0,
-                density_grid: 32,
-                density_weight: 0.1,
-            };
-            let dir = tempfile::tempdir()?;
-            let mut high = peak(true).unwrap_or(0.0);
-            let history = Trainer::<B>::data_parallel(
-                config,
-                opts,
-                dir.path().into(),
-                devices.clone(),
-            )
-            .fit(&index, None, &scaler, false, |_, _| {
-                high = high.max(peak(false).unwrap_or(f64::NAN));
-            })?;
-            let EpochMeans {
-                warmup,
-                mean,
-                max,
-                wait,
-                data,
-            } = EpochMeans::of(&history, args.warmup_epochs);
-            let us = mean * 1e6 / index.len() as f64;
+            let mean = bench_core::<B>(args, core, (&index, &scaler, t), &devices, (last, peak))?;
             times.insert(core.name(), mean);
-            println!(
-                "{:<8} {:>3} {:>11} {:>10.3} {:>10.3} {:>10.0} {:>10.0} {:>10.2} {:>7.0} {:>7.0} {:>9.0}",
-                core.name(),
-                t,
-                params,
-                mean,
-                max,
-                us,
-                index.len() as f64 / mean,
-                warmup,
-                100.0 * wait / mean.max(1e-12),
-                100.0 * data / mean.max(1e-12),
-                high
-            );
         }
         for (classic, minimal) in [("lstm", "minlstm"), ("gru", "mingru")] {
             if let (Some(a), Some(b)) = (times.get(classic), times.get(minimal)) {
@@ -306,4 +258,63 @@ where
     }
     println!("peak MiB: {memory} memory");
     Ok(Outcome::Done)
+}
+
+/// One row of the paper table: trains `core` at window `t` for the benchmark's epochs on
+/// `index` and prints its speed and memory; returns the mean seconds per epoch.
+fn bench_core<B: AutodiffBackend + NetOps>(
+    args: &TrainBenchArgs,
+    core: CoreKind,
+    (index, scaler, t): (&WindowIndex, &Scaler, usize),
+    devices: &[B::Device],
+    (last, peak): (LastActivation, &dyn Fn(bool) -> Option<f64>),
+) -> anyhow::Result<f64>
+where
+    B::InnerBackend: NetOps,
+{
+    let config = ModelConfig::new(core, args.particles)
+        .with_window(t)
+        .with_width(args.width)
+        .with_encoder_hidden(args.encoder_hidden)
+        .with_encoder_last_activation(last);
+    let params = config.init::<CpuTrain>(&Default::default()).num_params();
+    let opts = TrainOptions {
+        epochs: args.warmup_epochs + args.epochs,
+        batch_size: args.micro_batch,
+        micro_batch: args.micro_batch,
+        lr: 1e-3,
+        seed: 0,
+        patience: 0,
+        density_grid: 32,
+        density_weight: 0.1,
+    };
+    let dir = tempfile::tempdir()?;
+    let mut high = peak(true).unwrap_or(0.0);
+    let history = Trainer::<B>::data_parallel(config, opts, dir.path().into(), devices.clone())
+        .fit(&index, None, &scaler, false, |_, _| {
+            high = high.max(peak(false).unwrap_or(f64::NAN));
+        })?;
+    let EpochMeans {
+        warmup,
+        mean,
+        max,
+        wait,
+        data,
+    } = EpochMeans::of(&history, args.warmup_epochs);
+    let us = mean * 1e6 / index.len() as f64;
+    println!(
+        "{:<8} {:>3} {:>11} {:>10.3} {:>10.3} {:>10.0} {:>10.0} {:>10.2} {:>7.0} {:>7.0} {:>9.0}",
+        core.name(),
+        t,
+        params,
+        mean,
+        max,
+        us,
+        index.len() as f64 / mean,
+        warmup,
+        100.0 * wait / mean.max(1e-12),
+        100.0 * data / mean.max(1e-12),
+        high
+    );
+    Ok(mean)
 }

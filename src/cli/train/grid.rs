@@ -71,30 +71,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     write_run_files(&args.out, &split, &opts)?;
     let frames = config.window + opts.steps * config.bundle - 1;
     let index = WindowIndex::new(train, frames, Scaler::default())?;
-    let counts: Vec<usize> = index.particle_counts();
-    eprintln!(
-        "{} scenes: {} train ({} samples), {} val, {} test; grid architecture, {} memory, n = {}, T = {}, P = {} (teacher {}), K = {}, N = {counts:?}",
+    print_summary(
         scenes.len(),
-        index.trajectories().len(),
-        index.len(),
-        val.len(),
-        test.len(),
-        config.memory.name(),
-        config.grid,
-        config.window,
-        opts.steps,
-        opts.teacher,
-        config.bundle,
-    );
-    if index.is_empty() {
-        return Err(crate::cli::UsageError(format!(
-            "--window {}: no training samples: every training scene has fewer than the T + P K \
-             = {} frames a sample needs (lower --window, --rollout-steps or --bundle)",
-            config.window,
-            index.t()
-        ))
-        .into());
-    }
+        &index,
+        (val.len(), test.len()),
+        (&config, &opts),
+    )?;
     let mut progress = Progress::new(args.out.clone());
     let history = fit_on(
         (&device, args.device.kernels()),
@@ -112,6 +94,39 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     )?;
     print_best(&history, "validation rollout MSE", &args.out);
     Ok(crate::cli::read_to_damage(&report.truncated))
+}
+
+/// The run's one-line summary on stderr (scenes, samples, the network, P, K, N); a usage
+/// error when no training scene holds a sample.
+fn print_summary(
+    scenes: usize,
+    index: &WindowIndex,
+    (val, test): (usize, usize),
+    (config, opts): (&GridConfig, &crate::train::grid::GridTrainOptions),
+) -> anyhow::Result<()> {
+    eprintln!(
+        "{scenes} scenes: {} train ({} samples), {val} val, {test} test; grid architecture, {} \
+         memory, n = {}, T = {}, P = {} (teacher {}), K = {}, N = {:?}",
+        index.trajectories().len(),
+        index.len(),
+        config.memory.name(),
+        config.grid,
+        config.window,
+        opts.steps,
+        opts.teacher,
+        config.bundle,
+        index.particle_counts(),
+    );
+    if !index.is_empty() {
+        return Ok(());
+    }
+    Err(crate::cli::UsageError(format!(
+        "--window {}: no training samples: every training scene has fewer than the T + P K = \
+         {} frames a sample needs (lower --window, --rollout-steps or --bundle)",
+        config.window,
+        index.t()
+    ))
+    .into())
 }
 
 /// The normalisation constants `(vel_scale, dv_mean, dv_scale)` and the min-max scaler of the

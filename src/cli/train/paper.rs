@@ -44,18 +44,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         bail!("no training scenes in {:?}", args.data);
     };
     let particles = first.n;
-    // A sample is T input frames and the next: a window no training scene can hold trains on
-    // nothing (it once saved a model with validation loss 0).
-    let longest = train_infos.iter().map(|s| s.frames).max().unwrap_or(0);
-    if longest <= args.window {
-        return Err(crate::cli::UsageError(format!(
-            "--window {}: no training samples: the longest training scene has {longest} frames, \
-             a sample needs T + 1 = {}",
-            args.window,
-            args.window + 1
-        ))
-        .into());
-    }
+    check_samples(&train_infos, args.window)?;
     let config = args
         .model_config(particles)
         .map_err(|e| crate::cli::UsageError(format!("{e:#}")))?;
@@ -65,17 +54,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     write_run_files(&args.out, &split, &args.options())?;
     let total: usize = infos.iter().map(|s| s.frames).sum();
     let streamed = total > args.max_resident_frames;
-    eprintln!(
-        "{} scenes, {total} frames: {} train, {} val, {} test ({}){}; core {}, N = {particles}, T = {}",
-        scenes.len(),
-        split.scenes(Part::Train).len(),
-        split.scenes(Part::Val).len(),
-        split.scenes(Part::Test).len(),
-        args.out.join("split.json").display(),
-        if streamed { ", streamed from the bags" } else { "" },
-        config.core.name(),
-        config.window
-    );
+    print_summary((scenes.len(), &split), &args.out, total, streamed, &config);
     let fit = |train: &mut dyn BatchSource,
                val: Option<&mut dyn BatchSource>,
                scaler: &Scaler,
@@ -118,6 +97,47 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     };
     print_best(&history, "val loss", &args.out);
     Ok(crate::cli::read_to_damage(&scanned.truncated))
+}
+
+/// A sample is T input frames and the next: a window no training scene can hold trains on
+/// nothing (it once saved a model with validation loss 0), a usage error.
+fn check_samples(train: &[SceneInfo], window: usize) -> anyhow::Result<()> {
+    let longest = train.iter().map(|s| s.frames).max().unwrap_or(0);
+    if longest > window {
+        return Ok(());
+    }
+    Err(crate::cli::UsageError(format!(
+        "--window {window}: no training samples: the longest training scene has {longest} \
+         frames, a sample needs T + 1 = {}",
+        window + 1
+    ))
+    .into())
+}
+
+/// The run's one-line summary on stderr: scenes and frames per part, the core, N and T.
+fn print_summary(
+    (scenes, split): (usize, &crate::data::Split),
+    out: &std::path::Path,
+    total: usize,
+    streamed: bool,
+    config: &crate::model::ModelConfig,
+) {
+    eprintln!(
+        "{} scenes, {total} frames: {} train, {} val, {} test ({}){}; core {}, N = {}, T = {}",
+        scenes,
+        split.scenes(Part::Train).len(),
+        split.scenes(Part::Val).len(),
+        split.scenes(Part::Test).len(),
+        out.join("split.json").display(),
+        if streamed {
+            ", streamed from the bags"
+        } else {
+            ""
+        },
+        config.core.name(),
+        config.particles,
+        config.window
+    );
 }
 
 /// The paper path's scene index, with the trajectories themselves when the bags fit in

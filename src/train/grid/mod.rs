@@ -20,6 +20,18 @@
 //! A checkpoint is written every epoch; a resumed run continues bit for bit (the noise and
 //! the data order are reseeded from (seed, epoch)) unless a time limit (`max_minutes`) set
 //! the learning-rate decay by the clock. Used by `minflow train --arch grid`.
+//!
+//! Files: this one holds the trainer and its run over the shared epoch loop;
+//! `rollout_loss.rs` the batch upload and the rollout loss, `validate.rs` the validation
+//! rollouts, `schedule.rs` the normalisation statistics, the learning-rate schedule and the
+//! run's clock.
+
+mod rollout_loss;
+mod schedule;
+mod validate;
+
+pub use schedule::{fit_stats, learning_rate};
+pub use validate::validation_rollout;
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -28,19 +40,19 @@ use burn::grad_clipping::GradientClippingConfig;
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{Adam, AdamConfig, GradientsParams, Optimizer};
-use burn::tensor::backend::{AutodiffBackend, Backend};
-use burn::tensor::{Distribution, ElementConversion, Tensor};
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::ElementConversion;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::epochs::{run_epochs, EpochPass, EpochRun};
 use super::{checkpoint, EpochRecord, Observer, TrainError};
-use crate::data::{Batch, Scaler, Trajectory, WindowIndex};
-use crate::eval::rollout::start_offsets;
-use crate::model::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use crate::data::{Scaler, Trajectory, WindowIndex};
+use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
-use crate::model::upload;
 use crate::ops::NetOps;
+use rollout_loss::{sequence_loss, upload_batch};
+use schedule::RunClock;
 
 /// Optimisation settings of a grid run.
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
@@ -80,53 +92,6 @@ pub struct GridTrainOptions {
     pub max_minutes: f64,
 }
 
-/// Velocity and velocity-change statistics of `trajs` (the training split): per component
-/// `vel_scale` = the velocities' standard deviation, `dv_mean` and `dv_scale` = the mean
-/// and standard deviation of the change over one frame. Used to fill [`GridConfig`].
-pub fn fit_stats(trajs: &[&Trajectory]) -> ([f32; 2], [f32; 2], [f32; 2]) {
-    let mut v = [[0.0f64; 3]; 2]; // count, sum, sum of squares
-    let mut dv = [[0.0f64; 3]; 2];
-    for traj in trajs {
-        for k in 0..traj.frames {
-            let now = traj.state(k);
-            let next = (k + 1 < traj.frames).then(|| traj.state(k + 1));
-            for (p, row) in now.chunks_exact(4).enumerate() {
-                for c in 0..2 {
-                    let x = f64::from(row[2 + c]);
-                    v[c][0] += 1.0;
-                    v[c][1] += x;
-                    v[c][2] += x * x;
-                    if let Some(next) = next {
-                        let d = f64::from(next[4 * p + 2 + c]) - x;
-                        dv[c][0] += 1.0;
-                        dv[c][1] += d;
-                        dv[c][2] += d * d;
-                    }
-                }
-            }
-        }
-    }
-    let mean = |s: [f64; 3]| if s[0] > 0.0 { s[1] / s[0] } else { 0.0 };
-    let std = |s: [f64; 3]| {
-        let m = mean(s);
-        let var = if s[0] > 0.0 { s[2] / s[0] - m * m } else { 1.0 };
-        (var.max(0.0).sqrt() as f32).max(1e-6)
-    };
-    (
-        [std(v[0]), std(v[1])],
-        [mean(dv[0]) as f32, mean(dv[1]) as f32],
-        [std(dv[0]), std(dv[1])],
-    )
-}
-
-/// The learning rate at `progress` (0 to 1) through the run: cosine from `lr` to `lr_final`
-/// (Loshchilov and Hutter 2017, "SGDR", eq. 5, one cycle).
-pub fn learning_rate(opts: &GridTrainOptions, progress: f64) -> f64 {
-    let progress = progress.clamp(0.0, 1.0);
-    opts.lr_final
-        + 0.5 * (opts.lr - opts.lr_final) * (1.0 + (std::f64::consts::PI * progress).cos())
-}
-
 /// A grid training run.
 pub struct GridTrainer<B: AutodiffBackend> {
     /// The network (with its normalisation constants filled in).
@@ -140,188 +105,6 @@ pub struct GridTrainer<B: AutodiffBackend> {
     /// A run folder whose weights replace the fresh ones (`--init-from`; its architecture
     /// is `config`'s). A resumed checkpoint takes precedence.
     pub init_from: Option<PathBuf>,
-}
-
-/// What [`sequence_loss`] reads of one batch, on the device, physical units.
-struct BatchTensors<B: Backend> {
-    /// `[B, S, N, 4]`: the window's frames and its target frame.
-    frames: Tensor<B, 4>,
-    /// `[B, N, 4]`: material one-hot.
-    material: Tensor<B, 3>,
-    /// `[B]`: frame spacing.
-    dt: Tensor<B, 1>,
-    /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
-    first_pos: Tensor<B, 3>,
-}
-
-/// The tensors of a batch of windows built with the identity scaler (inputs then hold
-/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]).
-fn upload_batch<B: Backend>(batch: Batch, mirror: &[bool], device: &B::Device) -> BatchTensors<B> {
-    let (b, t, n) = (batch.b, batch.t, batch.n);
-    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
-    let mut first_pos = batch.first_pos;
-    for w in 0..b {
-        let start = frames.len();
-        for k in 0..t {
-            let start = ((w * t + k) * n) * 5;
-            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
-                frames.extend_from_slice(&row[..4]);
-            }
-        }
-        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
-        if mirror.get(w).copied().unwrap_or(false) {
-            mirror_rows(&mut frames[start..], 4);
-            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
-        }
-    }
-    BatchTensors {
-        frames: upload(frames, [b, t + 1, n, 4], device),
-        material: one_hot(&batch.material, b, n, device),
-        dt: upload(batch.dt, [b], device),
-        first_pos: upload(first_pos, [b, n, 2], device),
-    }
-}
-
-/// The training loss of one batch (see the module doc).
-fn sequence_loss<B: NetOps>(
-    model: &GridModel<B>,
-    config: &GridConfig,
-    opts: &GridTrainOptions,
-    batch: BatchTensors<B>,
-) -> Tensor<B, 1> {
-    let BatchTensors {
-        frames,
-        material,
-        dt,
-        first_pos,
-    } = batch;
-    let [b, _, n, _] = frames.dims();
-    let t = config.window;
-    let device = frames.device();
-    let truth = |k: usize| frames.clone().narrow(1, k, 1).reshape([b, n, 4]);
-    let dv_scale = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
-    let noisy = |v: Tensor<B, 3>| {
-        if opts.noise > 0.0 {
-            let e = Tensor::random([b, n, 2], Distribution::Normal(0.0, 1.0), &device);
-            v + e * dv_scale.clone().mul_scalar(opts.noise)
-        } else {
-            v
-        }
-    };
-    let mut history: Vec<Tensor<B, 3>> = (0..t).map(|k| noisy(truth(k).narrow(2, 2, 2))).collect();
-    let mut pos = truth(t - 1).narrow(2, 0, 2);
-    let mut state = MemoryState::Empty;
-    let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
-    let bundle = config.bundle.max(1);
-    let mut total: Option<Tensor<B, 1>> = None;
-    for p in 0..opts.steps {
-        let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
-        let input = StepInput {
-            pos,
-            vel,
-            material: material.clone(),
-            dt: dt.clone(),
-            reference: Some(first_pos.clone()),
-        };
-        let (outs, next_state) = model.step_bundle(input, state);
-        state = next_state;
-        let mut last_pos = None;
-        for (k, out) in outs.into_iter().enumerate() {
-            let target = truth(t + p * bundle + k);
-            let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
-                .powi_scalar(2)
-                .mean();
-            let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
-                .powi_scalar(2)
-                .mean();
-            let step = lv + lx;
-            total = Some(match total {
-                Some(acc) => acc + step,
-                None => step,
-            });
-            // The next call reads the truth (teacher steps) or the bundle's own frames.
-            if p + 1 < opts.teacher {
-                last_pos = Some(target.clone().narrow(2, 0, 2));
-                history.push(noisy(target.narrow(2, 2, 2)));
-            } else {
-                last_pos = Some(out.pos);
-                history.push(out.vel);
-            }
-        }
-        pos = last_pos.expect("a bundle has at least one frame");
-    }
-    total
-        .expect("at least one step")
-        .div_scalar((opts.steps.max(1) * bundle) as f32)
-}
-
-/// Mean scaled MSE of `horizon`-frame rollouts of `surrogate` from `starts` starts of every
-/// trajectory (all starts of a scene as one batch).
-///
-/// # Errors
-/// A step failed ([`store::StoreError`]).
-pub fn validation_rollout<B: NetOps>(
-    surrogate: &Surrogate<B>,
-    trajs: &[Trajectory],
-    scaler: &Scaler,
-    starts: usize,
-    horizon: usize,
-) -> Result<f64, store::StoreError> {
-    let window = surrogate.meta().window();
-    let (mut sum, mut count) = (0.0f64, 0usize);
-    for traj in trajs {
-        let offsets = start_offsets(traj.frames, window, horizon, starts);
-        let offsets: Vec<usize> = offsets
-            .into_iter()
-            .filter(|&o| o + window + horizon <= traj.frames)
-            .collect();
-        if offsets.is_empty() {
-            continue;
-        }
-        let (b, n) = (offsets.len(), traj.n);
-        let material: Vec<u8> = (0..b).flat_map(|_| traj.material.iter().copied()).collect();
-        let dt = vec![traj.dt; b];
-        let first: Vec<f32> = (0..b).flat_map(|_| traj.state(0).iter().copied()).collect();
-        let mut state = surrogate.init_state_at(&first, b)?;
-        for k in 0..window - 1 {
-            let frame: Vec<f32> = offsets
-                .iter()
-                .flat_map(|&o| traj.state(o + k).iter().copied())
-                .collect();
-            state = surrogate.step(&frame, &material, &dt, state)?.1;
-        }
-        // ceil(horizon / K) calls, each from the last frame the one before predicted.
-        let mut next: Vec<f32> = offsets
-            .iter()
-            .flat_map(|&o| traj.state(o + window - 1).iter().copied())
-            .collect();
-        let mut k = 0;
-        while k < horizon {
-            let (bundle, s) = surrogate.step_bundle(&next, &material, &dt, state)?;
-            state = s;
-            for pred in bundle.into_iter().take(horizon - k) {
-                for (row, &o) in offsets.iter().enumerate() {
-                    let truth = traj.state(o + window + k);
-                    let pred = &pred[row * n * 4..(row + 1) * n * 4];
-                    for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
-                        for f in 0..4 {
-                            let d =
-                                f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
-                            sum += d * d;
-                        }
-                    }
-                    count += n * 4;
-                }
-                k += 1;
-                next = pred;
-            }
-        }
-    }
-    Ok(if count == 0 {
-        f64::NAN
-    } else {
-        sum / count as f64
-    })
 }
 
 impl<B: AutodiffBackend + NetOps> GridTrainer<B>
@@ -499,32 +282,6 @@ type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 
-/// Where a run is in its schedule.
-struct RunClock {
-    started: Instant,
-    /// Batches per epoch, and over all epochs.
-    batches: usize,
-    total_steps: usize,
-}
-
-impl RunClock {
-    /// Progress through the run (0 to 1) at batch `k` of `epoch`: by steps, or by time when
-    /// a time limit ends the run first (the decay then finishes at the limit).
-    fn progress(&self, opts: &GridTrainOptions, epoch: usize, k: usize) -> f64 {
-        let steps = (epoch * self.batches + k) as f64 / self.total_steps.max(1) as f64;
-        if opts.max_minutes > 0.0 {
-            steps.max(self.started.elapsed().as_secs_f64() / (opts.max_minutes * 60.0))
-        } else {
-            steps
-        }
-    }
-
-    /// Whether `--max-minutes` have passed since the run began.
-    fn out_of_time(&self, opts: &GridTrainOptions) -> bool {
-        opts.max_minutes > 0.0 && self.started.elapsed().as_secs_f64() > opts.max_minutes * 60.0
-    }
-}
-
 /// A grid run in progress: the trainer, its data and its clock, as [`run_epochs`] drives it.
 struct GridRun<'a, B: AutodiffBackend> {
     trainer: &'a GridTrainer<B>,
@@ -615,52 +372,4 @@ pub fn initial_grid_model<B: NetOps>(
         config.init::<B>(device),
         device,
     )
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use burn::backend::NdArray;
-
-    /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
-    /// 1/2 (x -> 1 - x, vx -> -vx, y and vy kept); an unflagged one is uploaded as it is.
-    #[test]
-    fn mirrored_windows_are_uploaded_mirrored() {
-        let (b, t, n) = (2, 2, 3);
-        let value = |i: usize| 0.01 * i as f32 + 0.1;
-        let batch = Batch {
-            b,
-            t,
-            n,
-            inputs: (0..b * t * n * 5).map(value).collect(),
-            targets: vec![0.0; b * n * 4],
-            last: vec![0.0; b * n * 4],
-            target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
-            dt: vec![0.016; b],
-            material: vec![0; b * n],
-            ids: vec![(0, 0); b],
-            first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
-        };
-        let device = Default::default();
-        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], &device);
-        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], &device);
-        let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
-        let (p, m) = (host(plain.frames), host(mirrored.frames));
-        let per_window = (t + 1) * n * 4;
-        assert_eq!(p[..per_window], m[..per_window], "window 0 is not flagged");
-        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(per_window) {
-            let want = match i % 4 {
-                0 => 1.0 - x,
-                2 => -x,
-                _ => *x,
-            };
-            assert_eq!(*y, want, "value {i}");
-        }
-        let host3 = |t: Tensor<NdArray<f32>, 3>| t.into_data().to_vec::<f32>().unwrap();
-        let (p, m) = (host3(plain.first_pos), host3(mirrored.first_pos));
-        assert_eq!(p[..n * 2], m[..n * 2]);
-        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(n * 2) {
-            assert_eq!(*y, if i % 2 == 0 { 1.0 - x } else { *x }, "reference {i}");
-        }
-    }
 }

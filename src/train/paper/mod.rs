@@ -9,17 +9,25 @@
 //! one ahead of the device, and the loss is read back once per optimizer step (after the
 //! step is queued), so an accelerator is not left waiting on the host between micro-batches.
 //! Used by `minflow train --arch paper` and `minflow bench train --arch paper`.
+//!
+//! Files: this one holds the trainer and its run over the shared epoch loop, `step.rs` an
+//! epoch's pass and its optimizer steps, `slices.rs` the micro-batches and their loss.
+
+mod slices;
+mod step;
+
+pub use slices::evaluate;
 
 use super::epochs::{run_epochs, EpochPass, EpochRun};
-use super::{adam, checkpoint, drawn_on_cpu, loss, BatchSource, EpochRecord, Observer, TrainError};
-use crate::data::{Batch, Scaler, WindowIndex};
+use super::{adam, checkpoint, drawn_on_cpu, BatchSource, EpochRecord, Observer, TrainError};
+use crate::data::{Scaler, WindowIndex};
 use crate::model::store::{self, ModelMeta};
-use crate::model::{upload, Model, ModelConfig, Scaling};
-use burn::module::{AutodiffModule, Module};
+use crate::model::{Model, ModelConfig, Scaling};
+use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
-use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
-use burn::tensor::backend::{AutodiffBackend, Backend, DeviceOps};
-use burn::tensor::{ElementConversion, StreamId, Tensor};
+use burn::optim::Optimizer;
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::StreamId;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -44,81 +52,6 @@ pub struct TrainOptions {
     pub density_weight: f32,
 }
 
-/// Host data of a batch slice `[start, start + len)`, ready to upload.
-struct HostSlice {
-    len: usize,
-    t: usize,
-    n: usize,
-    inputs: Vec<f32>,
-    targets: Vec<f32>,
-    target_pos: Vec<f32>,
-    dt: Vec<f32>,
-}
-
-/// Tensors of a batch slice.
-struct Slice<B: Backend> {
-    inputs: Tensor<B, 4>,
-    targets: Tensor<B, 3>,
-    target_pos: Tensor<B, 3>,
-    dt: Tensor<B, 1>,
-}
-
-/// Deals micro-batches to `k` devices in turn (the first devices get one more when they do
-/// not divide evenly).
-fn deal(slices: Vec<HostSlice>, k: usize) -> Vec<Vec<HostSlice>> {
-    let mut shards: Vec<Vec<HostSlice>> = (0..k).map(|_| Vec::new()).collect();
-    for (i, s) in slices.into_iter().enumerate() {
-        shards[i % k].push(s);
-    }
-    shards
-}
-
-/// Cuts `batch` into micro-batches of at most `micro` windows (host side).
-fn host_slices(batch: Batch, micro: usize) -> Vec<HostSlice> {
-    let (t, n, b) = (batch.t, batch.n, batch.b);
-    let micro = micro.clamp(1, b.max(1));
-    let mut out = Vec::with_capacity(b.div_ceil(micro));
-    let mut start = 0;
-    while start < b {
-        let len = micro.min(b - start);
-        let target_pos = batch.target_phys[start * n * 4..(start + len) * n * 4]
-            .chunks_exact(4)
-            .flat_map(|r| [r[0], r[1]])
-            .collect();
-        let (inputs, targets) = if len == b {
-            (batch.inputs.clone(), batch.targets.clone())
-        } else {
-            (
-                batch.inputs[start * t * n * 5..(start + len) * t * n * 5].to_vec(),
-                batch.targets[start * n * 4..(start + len) * n * 4].to_vec(),
-            )
-        };
-        out.push(HostSlice {
-            len,
-            t,
-            n,
-            inputs,
-            targets,
-            target_pos,
-            dt: batch.dt[start..start + len].to_vec(),
-        });
-        start += len;
-    }
-    out
-}
-
-impl HostSlice {
-    fn upload<B: Backend>(self, device: &B::Device) -> Slice<B> {
-        let (len, t, n) = (self.len, self.t, self.n);
-        Slice {
-            inputs: upload(self.inputs, [len, t, n, 5], device),
-            targets: upload(self.targets, [len, n, 4], device),
-            target_pos: upload(self.target_pos, [len, n, 2], device),
-            dt: upload(self.dt, [len], device),
-        }
-    }
-}
-
 /// Fresh weights from `seed`, drawn on the CPU backend whatever `B` is and moved to `device`
 /// through an f32 record, so runs on different backends start from identical weights. (For
 /// `B` on ndarray these are the weights `config.init::<B>` draws after seeding.)
@@ -133,59 +66,6 @@ pub fn initial_model<B: crate::ops::NetOps>(
         config.init::<B>(device),
         device,
     )
-}
-
-/// Predicted positions in domain units from a scaled prediction `[B, N, 4]`.
-fn positions<B: burn::tensor::backend::Backend>(
-    pred: Tensor<B, 3>,
-    scaling: &Scaling,
-) -> Tensor<B, 3> {
-    let (min, range) = scaling.tensors::<B>(&pred.device());
-    (pred * range + min).narrow(2, 0, 2)
-}
-
-/// The model's prediction for a batch slice and its loss (train and validation alike).
-fn slice_loss<B: crate::ops::NetOps>(
-    model: &Model<B>,
-    s: Slice<B>,
-    scaling: &Scaling,
-    opts: &TrainOptions,
-) -> loss::LossParts<B> {
-    let pred = model.forward(s.inputs, s.dt, scaling);
-    loss::loss(
-        pred.clone(),
-        s.targets,
-        positions(pred, scaling),
-        s.target_pos,
-        opts.density_grid,
-        opts.density_weight,
-    )
-}
-
-/// Mean loss of `model` over `index` (no gradients, no dropout).
-pub fn evaluate<B: crate::ops::NetOps>(
-    model: &Model<B>,
-    index: &mut dyn BatchSource,
-    scaling: &Scaling,
-    opts: &TrainOptions,
-    device: &B::Device,
-) -> Result<f64, TrainError> {
-    let (mut sum, mut count) = (0.0, 0usize);
-    for batch in index.batches(opts.micro_batch.max(1), None, 0)? {
-        let batch = batch?;
-        let b = batch.b;
-        for host in host_slices(batch, b) {
-            let len = host.len;
-            let parts = slice_loss(model, host.upload::<B>(device), scaling, opts);
-            sum += parts.total.into_scalar().elem::<f64>() * len as f64;
-            count += len;
-        }
-    }
-    Ok(if count == 0 {
-        f64::NAN
-    } else {
-        sum / count as f64
-    })
 }
 
 /// A training run over in-memory windows.
@@ -243,37 +123,6 @@ where
     /// The main device.
     fn main(&self) -> &B::Device {
         &self.devices[0]
-    }
-
-    /// Forward and backward of `slices` (micro-batches of one optimizer step of `b`
-    /// windows) on `device`: the accumulated gradients (scaled so that the shares of all
-    /// devices sum to the batch mean) and the summed, window-weighted loss (not read back).
-    fn shard_step(
-        &self,
-        model: &Model<B>,
-        slices: Vec<HostSlice>,
-        b: usize,
-        scaling: &Scaling,
-        device: &B::Device,
-    ) -> (GradientsParams, Option<Tensor<B::InnerBackend, 1>>) {
-        let mut accumulator = GradientsAccumulator::new();
-        let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
-        let started = Instant::now();
-        for host in slices {
-            let len = host.len;
-            let parts = slice_loss(model, host.upload::<B>(device), scaling, &self.opts);
-            let weighted = parts.total.clone().inner().mul_scalar(len as f32);
-            batch_loss = Some(match batch_loss {
-                Some(acc) => acc + weighted,
-                None => weighted,
-            });
-            let forward = started.elapsed();
-            let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
-            let backward = started.elapsed();
-            accumulator.accumulate(model, GradientsParams::from_grads(grads, model));
-            tracing::trace!(?forward, ?backward, accumulated = ?started.elapsed(), "micro-batch");
-        }
-        (accumulator.grads(), batch_loss)
     }
 
     /// Trains on `train`, validating on `val`; resumes from `out/checkpoint` when `resume`.
@@ -403,142 +252,6 @@ where
                     .wrapping_add((k as u64) << 32),
             );
         }
-    }
-
-    /// One epoch over `train` (0-based `epoch`, started at `started`): host batches are
-    /// assembled one ahead on a second thread; each is one optimizer step, its loss read
-    /// back once. Returns the trained model (on the main device) and the epoch's totals.
-    #[allow(clippy::too_many_arguments)]
-    fn train_epoch(
-        &self,
-        model: Model<B>,
-        optim: &mut Optim<B>,
-        train: &mut dyn BatchSource,
-        epoch: usize,
-        scaling: &Scaling,
-        streams: &[StreamId],
-        observer: &mut dyn Observer,
-        started: Instant,
-    ) -> Result<(Model<B>, EpochPass), TrainError> {
-        let total = train.num_batches(self.opts.batch_size.max(1));
-        let batches = train.batches(
-            self.opts.batch_size.max(1),
-            Some(self.opts.seed),
-            epoch as u64,
-        )?;
-        let micro = self.opts.micro_batch;
-        let parallel = self.devices.len();
-        // The model moves into the step loop and back out (`optim.step` consumes it, so
-        // the parameters are updated in place when nothing else holds them).
-        let mut slot = Some(model);
-        let totals = std::thread::scope(|scope| {
-            // Host batches are assembled (and cut into micro-batches) one ahead.
-            let (tx, rx) = std::sync::mpsc::sync_channel(1);
-            scope.spawn(move || {
-                for batch in batches {
-                    // Data parallel: at least one micro-batch per device.
-                    let item = batch.map(|b| {
-                        let micro = micro.min(b.b.div_ceil(parallel));
-                        (b.b, host_slices(b, micro))
-                    });
-                    if tx.send(item).is_err() {
-                        break;
-                    }
-                }
-            });
-            let mut totals = EpochPass::default();
-            let mut k = 0;
-            loop {
-                let waited = Instant::now();
-                let Ok(item) = rx.recv() else { break };
-                totals.data_seconds += waited.elapsed().as_secs_f64();
-                let (b, slices) = item?;
-                let model = slot.take().expect("the model is put back after every step");
-                let step_started = Instant::now();
-                let (model, losses) =
-                    self.optimizer_step(model, optim, slices, b, scaling, streams);
-                slot = Some(model);
-                tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
-                // One read per step, after the step is queued: the host waits here for
-                // the device to finish it.
-                let waited = Instant::now();
-                let value: f64 = losses
-                    .into_iter()
-                    .flatten()
-                    .map(|l| l.into_scalar().elem::<f64>())
-                    .sum::<f64>()
-                    / b.max(1) as f64;
-                totals.wait_seconds += waited.elapsed().as_secs_f64();
-                if !value.is_finite() {
-                    return Err(TrainError::NonFinite {
-                        epoch: epoch + 1,
-                        batch: k,
-                        loss: value as f32,
-                    });
-                }
-                totals.sum += value * b as f64;
-                totals.seen += b;
-                k += 1;
-                let rate = totals.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-                observer.batch(epoch + 1, k, total, totals.sum / totals.seen as f64, rate);
-            }
-            Ok(totals)
-        })?;
-        let mut model = slot.expect("the model is put back after every step");
-        if parallel > 1 {
-            // `step_multi` left each parameter on the device that updated it.
-            model = model.fork(self.main());
-        }
-        Ok((model, totals))
-    }
-
-    /// One optimizer step on a batch of `b` windows cut into `slices`: on the main device,
-    /// or data-parallel with the slices dealt over the devices. Returns the updated model
-    /// and the summed losses of each device (not read back).
-    fn optimizer_step(
-        &self,
-        model: Model<B>,
-        optim: &mut Optim<B>,
-        slices: Vec<HostSlice>,
-        b: usize,
-        scaling: &Scaling,
-        streams: &[StreamId],
-    ) -> (Model<B>, Vec<Option<Tensor<B::InnerBackend, 1>>>) {
-        let parallel = self.devices.len();
-        if parallel == 1 {
-            let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
-            return (optim.step(self.opts.lr, model, grads), vec![loss]);
-        }
-        let shards = deal(slices, parallel);
-        // The workers are new threads every step, on the run's fixed stream ids (see
-        // `stream_ids`).
-        let results: Vec<_> = std::thread::scope(|workers| {
-            let handles: Vec<_> = shards
-                .into_iter()
-                .zip(self.devices.iter().zip(streams))
-                .map(|(shard, (device, &stream))| {
-                    let model = &model;
-                    workers.spawn(move || {
-                        stream.executes(|| {
-                            let local = model.clone().fork(device);
-                            let (grads, loss) = self.shard_step(&local, shard, b, scaling, device);
-                            (grads, device.id(), loss)
-                        })
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| h.join().expect("a data-parallel worker panicked"))
-                .collect()
-        });
-        let mut multi = MultiGradientsParams::default();
-        let mut losses = Vec::new();
-        for (grads, id, loss) in results {
-            multi.grads.push((grads, id));
-            losses.push(loss);
-        }
-        (optim.step_multi(self.opts.lr, model, multi), losses)
     }
 }
 

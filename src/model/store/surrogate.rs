@@ -1,320 +1,18 @@
-//! A trained model on disk and the stateful inference API every consumer uses
-//! (`eval`, `node`, `report`): [`Surrogate`] with `init_state`, `step`, `rollout` in
-//! physical units (scaling inside).
-//!
-//! A run folder holds `model.json` (the architecture and its config, [`NetConfig`], the
-//! scaler, the window T) and `model.mpk` (weights, burn's named MessagePack, full
-//! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
-//! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
-//! ([`GridModel`]), are served by one [`Surrogate`].
+//! [`Surrogate`]: a trained model of either architecture ready for step-by-step prediction in
+//! physical units (scaling inside), with one [`State`] per batch of trajectories: the paper
+//! core's layer states, or the grid model's per-particle memory, velocity history and
+//! reference positions. `step` predicts the next frame, `step_bundle` the K frames of one
+//! network call (temporal bundling), `rollout` feeds predictions back; a mirror ensemble
+//! steps each frame beside its mirror image. Used by `eval`, `node`, `report`, `bench` and
+//! the grid trainer's validation.
 
-use super::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
-use super::{LayerState, Model, ModelConfig, Scaling};
-use crate::data::Scaler;
+use super::{load_net, ModelMeta, Net, StoreError};
+use crate::model::grid::{mirror_rows, one_hot, GridModel, MemoryState, StepInput};
+use crate::model::{LayerState, Model, Scaling};
 use crate::ops::NetOps;
-use burn::module::Module;
-use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
-
-/// Errors loading or saving a model.
-#[derive(Debug, thiserror::Error)]
-pub enum StoreError {
-    /// A file could not be read or written, or its contents could not be decoded.
-    #[error("{path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What failed: the OS, JSON or weight-recorder error.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-    /// A saved file that cannot be read back into the network it should hold.
-    #[error("{path} is damaged or belongs to another network ({source})")]
-    Damaged {
-        /// The file.
-        path: PathBuf,
-        /// The recorder's, OS or JSON error.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-    /// Input that does not fit the model.
-    #[error("{0}")]
-    Shape(String),
-    /// The prediction could not be read back from the device.
-    #[error(transparent)]
-    Download(#[from] super::DownloadError),
-}
-
-/// The architecture and its hyper-parameters (`"arch": "paper" | "grid"` in `model.json`).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(tag = "arch", rename_all = "lowercase")]
-pub enum NetConfig {
-    /// The paper's encoder - core - decoder ([`Model`]).
-    Paper(ModelConfig),
-    /// The grid architecture ([`GridModel`]).
-    Grid(GridConfig),
-}
-
-/// A network of either architecture.
-#[derive(Module, Debug)]
-pub enum Net<B: Backend> {
-    /// The paper's.
-    Paper(Model<B>),
-    /// The grid architecture.
-    Grid(GridModel<B>),
-}
-
-impl NetConfig {
-    /// A network with fresh weights.
-    pub fn init<B: NetOps>(&self, device: &B::Device) -> Net<B> {
-        match self {
-            NetConfig::Paper(c) => Net::Paper(c.init(device)),
-            NetConfig::Grid(c) => Net::Grid(c.init(device)),
-        }
-    }
-}
-
-/// `model.json`: everything needed to rebuild the network and use it.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct ModelMeta {
-    /// Architecture and hyper-parameters.
-    #[serde(flatten)]
-    pub net: NetConfig,
-    /// The scaler fitted on the training split.
-    pub scaler: Scaler,
-    /// Epoch the weights come from.
-    pub epoch: usize,
-    /// Validation loss at that epoch.
-    pub val_loss: f64,
-}
-
-impl ModelMeta {
-    /// Input frames a prediction reads (T).
-    pub fn window(&self) -> usize {
-        match &self.net {
-            NetConfig::Paper(c) => c.window,
-            NetConfig::Grid(c) => c.window,
-        }
-    }
-
-    /// `paper` or `grid`.
-    pub fn arch_name(&self) -> &'static str {
-        match &self.net {
-            NetConfig::Paper(_) => "paper",
-            NetConfig::Grid(_) => "grid",
-        }
-    }
-
-    /// The temporal core's or memory's command-line name.
-    pub fn core_name(&self) -> &'static str {
-        match &self.net {
-            NetConfig::Paper(c) => c.core.name(),
-            NetConfig::Grid(c) => c.memory.name(),
-        }
-    }
-
-    /// The particle count the model is tied to (the paper's global decoder), if any.
-    pub fn fixed_particles(&self) -> Option<usize> {
-        match &self.net {
-            NetConfig::Paper(c) if c.decoder == super::DecoderKind::Global => Some(c.particles),
-            _ => None,
-        }
-    }
-
-    /// The scaling constants as the network uses them.
-    pub fn scaling(&self) -> Scaling {
-        let mut range = [1.0; 5];
-        for (f, r) in range.iter_mut().enumerate() {
-            *r = self.scaler.range(f);
-        }
-        Scaling {
-            min: self.scaler.min,
-            range,
-        }
-    }
-}
-
-/// [`StoreError::Io`] for `path`, keeping `source`.
-pub(crate) fn io(
-    path: &Path,
-    source: impl Into<Box<dyn std::error::Error + Send + Sync>>,
-) -> StoreError {
-    StoreError::Io {
-        path: path.to_path_buf(),
-        source: source.into(),
-    }
-}
-
-/// Writes `model.json` + `model.mpk` into `dir` (via temporary names, renamed at the end).
-pub fn save<B: Backend, M: Module<B>>(
-    dir: &Path,
-    model: &M,
-    meta: &ModelMeta,
-) -> Result<(), StoreError> {
-    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
-    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-    // The recorder appends `.mpk`, replacing any extension: `model-tmp` -> `model-tmp.mpk`.
-    let tmp = dir.join("model-tmp");
-    model
-        .clone()
-        .save_file(tmp.clone(), &recorder)
-        .map_err(|e| io(&tmp, e))?;
-    let json = serde_json::to_string_pretty(meta).map_err(|e| io(dir, e))?;
-    std::fs::write(dir.join("model.json.tmp"), json).map_err(|e| io(dir, e))?;
-    std::fs::rename(dir.join("model-tmp.mpk"), dir.join("model.mpk")).map_err(|e| io(dir, e))?;
-    std::fs::rename(dir.join("model.json.tmp"), dir.join("model.json")).map_err(|e| io(dir, e))?;
-    Ok(())
-}
-
-/// A run folder (`minflow train --out`) as every command reads it: `model.json` with the
-/// fields added since older folders were saved filled in ([`meta_value`]), `split.json`
-/// where there is one, and the weights `model.mpk` on demand. `eval`, `node`, `bench node`,
-/// `report` and `train --init-from` all open run folders through this.
-#[derive(Clone, Debug)]
-pub struct RunFolder {
-    /// The folder.
-    pub dir: PathBuf,
-    /// `model.json`, older fields defaulted.
-    pub meta: ModelMeta,
-    /// `split.json` (the scenes the model was trained, validated and tested on); None when
-    /// the folder has none or it does not parse.
-    pub split: Option<crate::data::Split>,
-}
-
-impl RunFolder {
-    /// Reads `dir/model.json` (and `dir/split.json` where present); the weights are read
-    /// by [`RunFolder::net`] or [`RunFolder::surrogate`].
-    ///
-    /// # Errors
-    /// [`StoreError::Io`] naming `model.json` when it is missing, unreadable or not a model
-    /// description.
-    pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        let path = dir.join("model.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
-        let meta = parse_meta(&text).map_err(|e| io(&path, e))?;
-        let split = std::fs::read_to_string(dir.join("split.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok());
-        Ok(Self {
-            dir: dir.to_path_buf(),
-            meta,
-            split,
-        })
-    }
-
-    /// The network with the weights of `model.mpk`, of either architecture, on `device`.
-    ///
-    /// # Errors
-    /// [`StoreError::Io`] naming `model.mpk` when it is missing or does not fit the network.
-    pub fn net<B: NetOps>(&self, device: &B::Device) -> Result<Net<B>, StoreError> {
-        let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-        let weights = self.dir.join("model.mpk");
-        // Each architecture's weights are saved as its own module (not as a `Net`).
-        Ok(match self.meta.net.init::<B>(device) {
-            Net::Paper(m) => Net::Paper(
-                m.load_file(weights.clone(), &recorder, device)
-                    .map_err(|e| io(&weights, e))?,
-            ),
-            Net::Grid(m) => Net::Grid(
-                m.load_file(weights.clone(), &recorder, device)
-                    .map_err(|e| io(&weights, e))?,
-            ),
-        })
-    }
-
-    /// The trained model ready to step, on `device`.
-    ///
-    /// # Errors
-    /// As [`RunFolder::net`].
-    pub fn surrogate<B: NetOps>(&self, device: &B::Device) -> Result<Surrogate<B>, StoreError> {
-        Ok(Surrogate::from_net(
-            self.net(device)?,
-            self.meta.clone(),
-            device,
-        ))
-    }
-}
-
-/// Reads `dir/model.json`: its path and contents ([`RunFolder::open`]'s reading).
-///
-/// # Errors
-/// [`StoreError::Io`] when it is missing, unreadable or not a model description.
-pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreError> {
-    let folder = RunFolder::open(dir)?;
-    Ok((dir.join("model.json"), folder.meta))
-}
-
-/// A `model.json`'s text as a [`ModelMeta`], older fields defaulted ([`meta_value`]).
-///
-/// # Errors
-/// The text is not JSON or not a model description.
-pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
-    serde_json::from_value(meta_value(text)?)
-}
-
-/// Fields added to `model.json` after run folders were first saved, per architecture, at
-/// the values that mean "as before": a grid model without `reference` reads no reference
-/// channels, one without `bundle` predicts one frame per call; `conv` picks the kernel only (same weights, same results); the zero-initialised
-/// last layers only matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 5] = [
-    ("grid", "reference", || serde_json::Value::Bool(false)),
-    ("grid", "bundle", || serde_json::Value::from(1)),
-    ("grid", "conv", || serde_json::Value::from("auto")),
-    ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
-    ("paper", "decoder_zero_init", || {
-        serde_json::Value::Bool(false)
-    }),
-];
-
-/// A `model.json`'s text as JSON, with the fields added since it was saved filled in
-/// ([`ADDED_FIELDS`]). [`parse_meta`] and the comparison of a run folder's settings
-/// (`train --resume`) both read it through this.
-///
-/// # Errors
-/// The text is not JSON.
-pub fn meta_value(text: &str) -> Result<serde_json::Value, serde_json::Error> {
-    let mut value: serde_json::Value = serde_json::from_str(text)?;
-    // The network's fields sit at the top level (`ModelMeta::net` is flattened).
-    if let Some(meta) = value.as_object_mut() {
-        let arch = meta
-            .get("arch")
-            .and_then(|a| a.as_str())
-            .unwrap_or_default()
-            .to_owned();
-        for (of, field, default) in ADDED_FIELDS {
-            if arch == of {
-                meta.entry(field).or_insert_with(default);
-            }
-        }
-    }
-    Ok(value)
-}
-
-/// Reads `model.json` and the weights from `dir`, of either architecture.
-pub fn load_net<B: NetOps>(
-    dir: &Path,
-    device: &B::Device,
-) -> Result<(Net<B>, ModelMeta), StoreError> {
-    let folder = RunFolder::open(dir)?;
-    Ok((folder.net(device)?, folder.meta))
-}
-
-/// Reads a `paper` model (`model.json` and the weights) from `dir`.
-pub fn load<B: NetOps>(
-    dir: &Path,
-    device: &B::Device,
-) -> Result<(Model<B>, ModelMeta), StoreError> {
-    match load_net(dir, device)? {
-        (Net::Paper(model), meta) => Ok((model, meta)),
-        (Net::Grid(_), _) => Err(StoreError::Shape(format!(
-            "{}: a grid model, where a paper model was expected",
-            dir.display()
-        ))),
-    }
-}
+use std::path::Path;
 
 /// A trained model ready for step-by-step prediction in physical units.
 pub struct Surrogate<B: Backend> {
@@ -449,7 +147,7 @@ impl<B: NetOps> Surrogate<B> {
                 (first.to_vec(), b)
             };
             let n = first.len() / (4 * b);
-            let frame = super::upload::<B, 3>(first, [b, n, 4], &self.device);
+            let frame = crate::model::upload::<B, 3>(first, [b, n, 4], &self.device);
             *reference = Some(frame.narrow(2, 0, 2));
         }
         Ok(state)
@@ -536,10 +234,10 @@ impl<B: NetOps> Surrogate<B> {
                 // The training batches' own scaling (data::Scaler), so inputs match training.
                 let mut feats = Vec::with_capacity(b * n * 5);
                 self.meta.scaler.scale_into(frames, material, &mut feats);
-                let x = super::upload::<B, 3>(feats, [b, n, 5], &self.device);
-                let dt_t = super::upload::<B, 1>(dt.to_vec(), [b], &self.device);
+                let x = crate::model::upload::<B, 3>(feats, [b, n, 5], &self.device);
+                let dt_t = crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device);
                 let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
-                let mut out = super::download(out)?;
+                let mut out = crate::model::download(out)?;
                 self.meta.scaler.unscale_rows(&mut out, 4);
                 (vec![out], NetState::Paper(layers))
             }
@@ -589,7 +287,7 @@ impl<B: NetOps> Surrogate<B> {
     ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
         let n = material.len() / b;
-        let frame = super::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
+        let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let history = history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]);
@@ -608,7 +306,7 @@ impl<B: NetOps> Surrogate<B> {
             pos,
             vel: vel_hist.clone(),
             material: one_hot(material, b, n, &self.device),
-            dt: super::upload::<B, 1>(dt.to_vec(), [b], &self.device),
+            dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference.clone()),
         };
         let (mut outs, memory) = model.step_bundle(input, memory);
@@ -632,7 +330,7 @@ impl<B: NetOps> Surrogate<B> {
                 .collect(),
             0,
         ); // [K B, N, 4]
-        let out = super::download(next)?;
+        let out = crate::model::download(next)?;
         let per_frame = b * n * 4;
         let out = (0..k)
             .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())

@@ -1,0 +1,179 @@
+//! The grid architecture's training loss (see [`super`]): a batch of windows uploaded as
+//! physical frames (mirrored where drawn so), and the loss of P network calls of K frames
+//! each over it, from the true frame `T - 1`, teacher-forced for the first calls, then on the
+//! model's own predictions, the memory state carried through. Used by
+//! [`super::GridTrainer`].
+
+use burn::tensor::backend::Backend;
+use burn::tensor::{Distribution, Tensor};
+
+use super::GridTrainOptions;
+use crate::data::Batch;
+use crate::model::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use crate::model::upload;
+use crate::ops::NetOps;
+
+/// What [`sequence_loss`] reads of one batch, on the device, physical units.
+pub(super) struct BatchTensors<B: Backend> {
+    /// `[B, S, N, 4]`: the window's frames and its target frame.
+    frames: Tensor<B, 4>,
+    /// `[B, N, 4]`: material one-hot.
+    material: Tensor<B, 3>,
+    /// `[B]`: frame spacing.
+    dt: Tensor<B, 1>,
+    /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
+    first_pos: Tensor<B, 3>,
+}
+
+/// The tensors of a batch of windows built with the identity scaler (inputs then hold
+/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]).
+pub(super) fn upload_batch<B: Backend>(
+    batch: Batch,
+    mirror: &[bool],
+    device: &B::Device,
+) -> BatchTensors<B> {
+    let (b, t, n) = (batch.b, batch.t, batch.n);
+    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
+    let mut first_pos = batch.first_pos;
+    for w in 0..b {
+        let start = frames.len();
+        for k in 0..t {
+            let start = ((w * t + k) * n) * 5;
+            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
+                frames.extend_from_slice(&row[..4]);
+            }
+        }
+        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
+        if mirror.get(w).copied().unwrap_or(false) {
+            mirror_rows(&mut frames[start..], 4);
+            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
+        }
+    }
+    BatchTensors {
+        frames: upload(frames, [b, t + 1, n, 4], device),
+        material: one_hot(&batch.material, b, n, device),
+        dt: upload(batch.dt, [b], device),
+        first_pos: upload(first_pos, [b, n, 2], device),
+    }
+}
+
+/// The training loss of one batch (see the module doc).
+pub(super) fn sequence_loss<B: NetOps>(
+    model: &GridModel<B>,
+    config: &GridConfig,
+    opts: &GridTrainOptions,
+    batch: BatchTensors<B>,
+) -> Tensor<B, 1> {
+    let BatchTensors {
+        frames,
+        material,
+        dt,
+        first_pos,
+    } = batch;
+    let [b, _, n, _] = frames.dims();
+    let t = config.window;
+    let device = frames.device();
+    let truth = |k: usize| frames.clone().narrow(1, k, 1).reshape([b, n, 4]);
+    let dv_scale = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
+    let noisy = |v: Tensor<B, 3>| {
+        if opts.noise > 0.0 {
+            let e = Tensor::random([b, n, 2], Distribution::Normal(0.0, 1.0), &device);
+            v + e * dv_scale.clone().mul_scalar(opts.noise)
+        } else {
+            v
+        }
+    };
+    let mut history: Vec<Tensor<B, 3>> = (0..t).map(|k| noisy(truth(k).narrow(2, 2, 2))).collect();
+    let mut pos = truth(t - 1).narrow(2, 0, 2);
+    let mut state = MemoryState::Empty;
+    let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
+    let bundle = config.bundle.max(1);
+    let mut total: Option<Tensor<B, 1>> = None;
+    for p in 0..opts.steps {
+        let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
+        let input = StepInput {
+            pos,
+            vel,
+            material: material.clone(),
+            dt: dt.clone(),
+            reference: Some(first_pos.clone()),
+        };
+        let (outs, next_state) = model.step_bundle(input, state);
+        state = next_state;
+        let mut last_pos = None;
+        for (k, out) in outs.into_iter().enumerate() {
+            let target = truth(t + p * bundle + k);
+            let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
+                .powi_scalar(2)
+                .mean();
+            let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
+                .powi_scalar(2)
+                .mean();
+            let step = lv + lx;
+            total = Some(match total {
+                Some(acc) => acc + step,
+                None => step,
+            });
+            // The next call reads the truth (teacher steps) or the bundle's own frames.
+            if p + 1 < opts.teacher {
+                last_pos = Some(target.clone().narrow(2, 0, 2));
+                history.push(noisy(target.narrow(2, 2, 2)));
+            } else {
+                last_pos = Some(out.pos);
+                history.push(out.vel);
+            }
+        }
+        pos = last_pos.expect("a bundle has at least one frame");
+    }
+    total
+        .expect("at least one step")
+        .div_scalar((opts.steps.max(1) * bundle) as f32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
+    /// 1/2 (x -> 1 - x, vx -> -vx, y and vy kept); an unflagged one is uploaded as it is.
+    #[test]
+    fn mirrored_windows_are_uploaded_mirrored() {
+        let (b, t, n) = (2, 2, 3);
+        let value = |i: usize| 0.01 * i as f32 + 0.1;
+        let batch = Batch {
+            b,
+            t,
+            n,
+            inputs: (0..b * t * n * 5).map(value).collect(),
+            targets: vec![0.0; b * n * 4],
+            last: vec![0.0; b * n * 4],
+            target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
+            dt: vec![0.016; b],
+            material: vec![0; b * n],
+            ids: vec![(0, 0); b],
+            first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
+        };
+        let device = Default::default();
+        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], &device);
+        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], &device);
+        let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host(plain.frames), host(mirrored.frames));
+        let per_window = (t + 1) * n * 4;
+        assert_eq!(p[..per_window], m[..per_window], "window 0 is not flagged");
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(per_window) {
+            let want = match i % 4 {
+                0 => 1.0 - x,
+                2 => -x,
+                _ => *x,
+            };
+            assert_eq!(*y, want, "value {i}");
+        }
+        let host3 = |t: Tensor<NdArray<f32>, 3>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host3(plain.first_pos), host3(mirrored.first_pos));
+        assert_eq!(p[..n * 2], m[..n * 2]);
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(n * 2) {
+            assert_eq!(*y, if i % 2 == 0 { 1.0 - x } else { *x }, "reference {i}");
+        }
+    }
+}

@@ -1,0 +1,194 @@
+//! One epoch of a paper run and its optimizer steps: host batches assembled one ahead on a
+//! second thread, each batch one optimizer step (on the main device, or data-parallel over
+//! several with burn's `step_multi`), the loss read back once per step. Part of
+//! [`super::Trainer`].
+
+use std::time::Instant;
+
+use burn::module::{AutodiffModule, Module};
+use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
+use burn::tensor::backend::{AutodiffBackend, DeviceOps};
+use burn::tensor::{ElementConversion, StreamId, Tensor};
+
+use super::slices::{deal, host_slices, slice_loss, HostSlice};
+use super::{Optim, Trainer};
+use crate::model::{Model, Scaling};
+use crate::train::{BatchSource, EpochPass, Observer, TrainError};
+
+impl<B: AutodiffBackend + crate::ops::NetOps> Trainer<B>
+where
+    B::InnerBackend: crate::ops::NetOps,
+{
+    /// Forward and backward of `slices` (micro-batches of one optimizer step of `b`
+    /// windows) on `device`: the accumulated gradients (scaled so that the shares of all
+    /// devices sum to the batch mean) and the summed, window-weighted loss (not read back).
+    fn shard_step(
+        &self,
+        model: &Model<B>,
+        slices: Vec<HostSlice>,
+        b: usize,
+        scaling: &Scaling,
+        device: &B::Device,
+    ) -> (GradientsParams, Option<Tensor<B::InnerBackend, 1>>) {
+        let mut accumulator = GradientsAccumulator::new();
+        let mut batch_loss: Option<Tensor<B::InnerBackend, 1>> = None;
+        let started = Instant::now();
+        for host in slices {
+            let len = host.len;
+            let parts = slice_loss(model, host.upload::<B>(device), scaling, &self.opts);
+            let weighted = parts.total.clone().inner().mul_scalar(len as f32);
+            batch_loss = Some(match batch_loss {
+                Some(acc) => acc + weighted,
+                None => weighted,
+            });
+            let forward = started.elapsed();
+            let grads = parts.total.mul_scalar(len as f32 / b as f32).backward();
+            let backward = started.elapsed();
+            accumulator.accumulate(model, GradientsParams::from_grads(grads, model));
+            tracing::trace!(?forward, ?backward, accumulated = ?started.elapsed(), "micro-batch");
+        }
+        (accumulator.grads(), batch_loss)
+    }
+
+    /// One epoch over `train` (0-based `epoch`, started at `started`): host batches are
+    /// assembled one ahead on a second thread; each is one optimizer step, its loss read
+    /// back once. Returns the trained model (on the main device) and the epoch's totals.
+    #[allow(clippy::too_many_arguments)]
+    fn train_epoch(
+        &self,
+        model: Model<B>,
+        optim: &mut Optim<B>,
+        train: &mut dyn BatchSource,
+        epoch: usize,
+        scaling: &Scaling,
+        streams: &[StreamId],
+        observer: &mut dyn Observer,
+        started: Instant,
+    ) -> Result<(Model<B>, EpochPass), TrainError> {
+        let batch_size = self.opts.batch_size.max(1);
+        let total = train.num_batches(batch_size);
+        let batches = train.batches(batch_size, Some(self.opts.seed), epoch as u64)?;
+        let micro = self.opts.micro_batch;
+        let parallel = self.devices.len();
+        // The model moves into the step loop and back out (`optim.step` consumes it, so
+        // the parameters are updated in place when nothing else holds them).
+        let mut slot = Some(model);
+        let totals = std::thread::scope(|scope| {
+            // Host batches are assembled (and cut into micro-batches) one ahead.
+            let (tx, rx) = std::sync::mpsc::sync_channel(1);
+            scope.spawn(move || {
+                for batch in batches {
+                    // Data parallel: at least one micro-batch per device.
+                    let item = batch.map(|b| {
+                        let micro = micro.min(b.b.div_ceil(parallel));
+                        (b.b, host_slices(b, micro))
+                    });
+                    if tx.send(item).is_err() {
+                        break;
+                    }
+                }
+            });
+            let mut totals = EpochPass::default();
+            let mut k = 0;
+            loop {
+                let waited = Instant::now();
+                let Ok(item) = rx.recv() else { break };
+                totals.data_seconds += waited.elapsed().as_secs_f64();
+                let (b, slices) = item?;
+                let model = slot.take().expect("the model is put back after every step");
+                let step_started = Instant::now();
+                let (model, losses) =
+                    self.optimizer_step(model, optim, slices, b, scaling, streams);
+                slot = Some(model);
+                tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
+                // One read per step, after the step is queued: the host waits here for
+                // the device to finish it.
+                let waited = Instant::now();
+                let value = mean_loss(losses, b);
+                totals.wait_seconds += waited.elapsed().as_secs_f64();
+                if !value.is_finite() {
+                    return Err(TrainError::NonFinite {
+                        epoch: epoch + 1,
+                        batch: k,
+                        loss: value as f32,
+                    });
+                }
+                totals.sum += value * b as f64;
+                totals.seen += b;
+                k += 1;
+                let rate = totals.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                observer.batch(epoch + 1, k, total, totals.sum / totals.seen as f64, rate);
+            }
+            Ok(totals)
+        })?;
+        let mut model = slot.expect("the model is put back after every step");
+        if parallel > 1 {
+            // `step_multi` left each parameter on the device that updated it.
+            model = model.fork(self.main());
+        }
+        Ok((model, totals))
+    }
+
+    /// One optimizer step on a batch of `b` windows cut into `slices`: on the main device,
+    /// or data-parallel with the slices dealt over the devices. Returns the updated model
+    /// and the summed losses of each device (not read back).
+    fn optimizer_step(
+        &self,
+        model: Model<B>,
+        optim: &mut Optim<B>,
+        slices: Vec<HostSlice>,
+        b: usize,
+        scaling: &Scaling,
+        streams: &[StreamId],
+    ) -> (Model<B>, Vec<Option<Tensor<B::InnerBackend, 1>>>) {
+        let parallel = self.devices.len();
+        if parallel == 1 {
+            let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
+            return (optim.step(self.opts.lr, model, grads), vec![loss]);
+        }
+        let shards = deal(slices, parallel);
+        // The workers are new threads every step, on the run's fixed stream ids (see
+        // `stream_ids`).
+        let results: Vec<_> = std::thread::scope(|workers| {
+            let handles: Vec<_> = shards
+                .into_iter()
+                .zip(self.devices.iter().zip(streams))
+                .map(|(shard, (device, &stream))| {
+                    let model = &model;
+                    workers.spawn(move || {
+                        stream.executes(|| {
+                            let local = model.clone().fork(device);
+                            let (grads, loss) = self.shard_step(&local, shard, b, scaling, device);
+                            (grads, device.id(), loss)
+                        })
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().expect("a data-parallel worker panicked"))
+                .collect()
+        });
+        let mut multi = MultiGradientsParams::default();
+        let mut losses = Vec::new();
+        for (grads, id, loss) in results {
+            multi.grads.push((grads, id));
+            losses.push(loss);
+        }
+        (optim.step_multi(self.opts.lr, model, multi), losses)
+    }
+}
+
+/// The batch-mean loss of one optimizer step from each device's summed, window-weighted
+/// loss over its share of the `b` windows (read back from the device).
+fn mean_loss<B: burn::tensor::backend::Backend>(
+    losses: Vec<Option<Tensor<B, 1>>>,
+    b: usize,
+) -> f64 {
+    losses
+        .into_iter()
+        .flatten()
+        .map(|l| l.into_scalar().elem::<f64>())
+        .sum::<f64>()
+        / b.max(1) as f64
+}
