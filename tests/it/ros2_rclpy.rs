@@ -353,6 +353,9 @@ fn rclpy_to_node_to_rclpy_with_status() {
             "rclpy_test",
             "--wait-for-subscribers",
             "1",
+            // Every frame predicted however busy the machine (the default 8 drops the oldest).
+            "--queue-depth",
+            "64",
         ],
     );
     let publisher = Peer::spawn(

@@ -10,8 +10,8 @@
 //! repair drops the frames it withheld meanwhile (docs/ros2.md has the numbers). Fast DDS
 //! acknowledges within its 5 ms heartbeat response delay, so the window costs a few
 //! milliseconds per burst. A reader that does not acknowledge within [`WAIT`] (stalled, or
-//! gone without saying so) turns the window off for [`BACKOFF`], so it cannot throttle the
-//! publisher below ten messages a second.
+//! gone without saying so) turns the window off for [`BACKOFF`]: it costs the publisher at
+//! most one [`WAIT`] pause per [`BACKOFF`] until DDS discovery drops it.
 
 use std::time::{Duration, Instant};
 
@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 /// the kernel's per-datagram overhead is counted).
 pub(super) const WINDOW_BYTES: usize = 128 * 1024;
 /// Longest wait for acknowledgements after one message.
-pub(super) const WAIT: Duration = Duration::from_millis(100);
+pub(super) const WAIT: Duration = Duration::from_millis(250);
 /// How long the window stays off after a wait ran out.
 pub(super) const BACKOFF: Duration = Duration::from_secs(1);
 
