@@ -528,11 +528,11 @@ mod tests {
     let neighbour = IpAddr::V4(Ipv4Addr::new(192, 0, 2, 3));
     assert_eq!(
       path_mtu_payload_for_peer(&ifaces, own),
-      payload_budget_for_mtu(65535)
+      super::payload_budget_for_mtu(65535)
     );
     assert_eq!(
       path_mtu_payload_for_peer(&ifaces, neighbour),
-      payload_budget_for_mtu(1400)
+      super::payload_budget_for_mtu(1400)
     );
   }
 
