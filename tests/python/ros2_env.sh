@@ -21,7 +21,11 @@ flock -w 900 9 || { echo "timed out waiting for $venv.lock" >&2; exit 1; }
 : > "$log"
 
 # Compilers for the generated C/C++ type support (the machine's own packages).
-if ! command -v g++ >/dev/null || ! command -v make >/dev/null; then
+has_python_h() {
+  python3 -c 'import os, sys, sysconfig
+sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'
+}
+if ! command -v g++ >/dev/null || ! command -v make >/dev/null || ! has_python_h; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     { apt-get update && apt-get install -y g++ make python3-dev; } >>"$log" 2>&1
   fi
