@@ -53,8 +53,8 @@ impl BenchTransportOptions {
     /// The options to open `kind` with in this process.
     pub fn options(&self, kind: TransportKind) -> TransportOptions {
         TransportOptions {
-            transport: kind,
             zenoh_config: self.zenoh_config.clone(),
+            ..TransportOptions::new(kind)
         }
     }
 

@@ -14,7 +14,8 @@ use crate::msgs::status::STATUS_TOPIC;
 use crate::node::shutdown_flag;
 use crate::node::surrogate::{self, NodeOptions, OnGap};
 use crate::ops::NetOps;
-use crate::transport::{self, TransportOptions};
+use crate::transport::ros2::PointCloud2Args;
+use crate::transport::TransportOptions;
 
 #[derive(Debug, Args)]
 pub struct NodeArgs {
@@ -73,6 +74,8 @@ pub struct NodeArgs {
     device: super::device::DeviceArgs,
     #[command(flatten)]
     foxglove: super::foxglove::FoxgloveArgs,
+    #[command(flatten)]
+    pointcloud2: PointCloud2Args,
 }
 
 pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
@@ -116,7 +119,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         foxglove,
     };
     let stop = shutdown_flag();
-    let session = transport::open(&args.transport)?;
+    let session = args.pointcloud2.open(&args.transport)?;
     let report = surrogate::run(&options, &model, session.as_ref(), &stop)?;
     eprintln!("{}", surrogate::summary(&report));
     Ok(Outcome::Done)

@@ -10,7 +10,8 @@ use clap::Args;
 use super::Outcome;
 use crate::bag::FRAMES_TOPIC;
 use crate::node::{replay, shutdown_flag};
-use crate::transport::{self, Counters, TransportOptions};
+use crate::transport::ros2::PointCloud2Args;
+use crate::transport::{Counters, TransportOptions};
 use crate::viz::VizPublisher;
 
 #[derive(Debug, Args)]
@@ -49,6 +50,8 @@ pub struct ReplayArgs {
     stats_interval: Option<f64>,
     #[command(flatten)]
     foxglove: super::foxglove::FoxgloveArgs,
+    #[command(flatten)]
+    pointcloud2: PointCloud2Args,
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
@@ -68,7 +71,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<Outcome> {
         wait_timeout: Duration::from_secs_f64(args.wait_timeout.max(0.0)),
     };
     let stop = shutdown_flag();
-    let session = transport::open(&args.transport)?;
+    let session = args.pointcloud2.open(&args.transport)?;
     let mut publisher = session.publisher(&args.topic)?;
     if let Some(view) = args.foxglove.start("minflow replay")? {
         // A Foxglove client watching the points counts as a subscriber (docs/design.md).

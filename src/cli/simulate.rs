@@ -62,6 +62,9 @@ pub struct SimulateArgs {
     /// With --publish.
     #[command(flatten)]
     foxglove: super::foxglove::FoxgloveArgs,
+    /// With --publish.
+    #[command(flatten)]
+    pointcloud2: crate::transport::ros2::PointCloud2Args,
 }
 
 /// Parses `A..B`, `A..=B`, `a,b,c` or `a` into ids.
@@ -104,6 +107,9 @@ fn simulate(
 ) -> anyhow::Result<Outcome> {
     if args.foxglove.foxglove.is_some() && !args.publish {
         return Err(UsageError("--foxglove needs --publish".into()).into());
+    }
+    if args.pointcloud2.pointcloud2.is_some() && !args.publish {
+        return Err(UsageError("--pointcloud2 needs --publish".into()).into());
     }
     let mut scenes: Vec<Scene> = Vec::new();
     if args.scene_file.is_empty() {
@@ -205,7 +211,7 @@ impl Live {
             args.rate >= 0.0 && args.rate.is_finite(),
             "--rate must be >= 0"
         );
-        let session = crate::transport::open(&args.transport)?;
+        let session = args.pointcloud2.open(&args.transport)?;
         let mut publisher = session.publisher(&args.topic)?;
         if let Some(view) = args.foxglove.start("minflow simulate")? {
             publisher = Box::new(VizPublisher::new(publisher, view.points(&args.topic)));

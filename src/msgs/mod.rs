@@ -12,6 +12,7 @@
 //! frames: `simulate`, `bag`, `train`, `replay`, `record`, `surrogate`, `eval`.
 
 pub mod cdr;
+pub mod pointcloud2;
 pub mod status;
 pub mod type_hash;
 

@@ -65,6 +65,11 @@ pub struct TransportOptions {
     /// control, shared memory); without it, an embedded peer session that needs no router.
     #[arg(long, value_name = "FILE")]
     pub zenoh_config: Option<PathBuf>,
+    /// With --transport ros2 or ros2-zenoh: the ROS 2 distribution of the peers, jazzy or
+    /// kilted (the same wire format; type hashes on DDS endpoints either way). Default:
+    /// $ROS_DISTRO when it names one of them, else kilted.
+    #[arg(long, value_enum, value_name = "DISTRO")]
+    pub ros_distro: Option<ros2::RosDistro>,
 }
 
 impl TransportOptions {
@@ -73,6 +78,7 @@ impl TransportOptions {
         TransportOptions {
             transport: kind,
             zenoh_config: None,
+            ros_distro: None,
         }
     }
 }
@@ -300,8 +306,14 @@ pub fn open(options: &TransportOptions) -> Result<Box<dyn Transport>, TransportE
             options.zenoh_config.as_deref(),
         )?)),
         TransportKind::Iceoryx2 => Ok(Box::new(iceoryx2::IceoryxTransport::open()?)),
-        TransportKind::Ros2 => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Dds)?)),
-        TransportKind::Ros2Zenoh => Ok(Box::new(ros2::Ros2Transport::open(ros2::Backend::Zenoh)?)),
+        TransportKind::Ros2 | TransportKind::Ros2Zenoh => {
+            ros2::select_distro(options.ros_distro);
+            let backend = match options.transport {
+                TransportKind::Ros2 => ros2::Backend::Dds,
+                _ => ros2::Backend::Zenoh,
+            };
+            Ok(Box::new(ros2::Ros2Transport::open(backend)?))
+        }
     }
 }
 

@@ -33,6 +33,7 @@ mod models_shipped;
 mod msgs_cdr;
 mod node_surrogate;
 mod plot_png;
+mod ros2_rclpy;
 mod sim_scenes;
 mod sim_validation;
 mod train_loop;

@@ -38,6 +38,7 @@ impl Drop for DdsNode {
 /// A DDS node in `domain_id` with its spinner thread started.
 pub(super) fn open_dds(domain_id: u16) -> Result<DdsNode, OpenError> {
     use ros2_client::dds::{Context, ContextOptions};
+    super::distro::register_dds_type_hashes()?;
     let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
         .map_err(|e| OpenError::middleware(format!("DDS participant in domain {domain_id}"), e))?;
     let mut node = context

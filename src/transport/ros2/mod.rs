@@ -43,12 +43,26 @@
 //! never leave those threads or the `Send` wrappers here, so the caller's thread never runs
 //! middleware code except for `publish`.
 //!
+//! Distribution: Jazzy or Kilted (`--ros-distro`, else `ROS_DISTRO`, default Kilted; the
+//! same wire format). Every DDS endpoint announces its type's REP-2016 hash in USER_DATA
+//! (`typehash=RIHS01_...;`), as `rmw_fastrtps_cpp` does (`distro.rs`).
+//!
+//! Delivery: `flush` waits (bounded) until every matched reliable reader acknowledged what
+//! was published (`wait_for_all_acked`). A peer on this host that advertises its LAN
+//! address gets loopback-sized datagrams (a 42 KB frame is one UDP datagram, not ~33), a
+//! change in our vendored RustDDS (`vendor/README.md`, docs/ros2.md).
+//!
 //! Files: `names.rs` (type names, topic names, QoS, `ROS_DOMAIN_ID`), `wire.rs` (the serde
 //! mirror of the message), `dds.rs` and `rmw_zenoh.rs` (opening a node on each backend),
-//! `publish.rs` (frame and status publishers), `subscribe.rs` (subscriptions and their
-//! delivery threads); this file holds [`Ros2Transport`] and its [`Transport`] impl.
+//! `distro.rs` (distribution, type hashes on DDS), `publish.rs` (frame and status
+//! publishers), `subscribe.rs` (subscriptions and their delivery threads), `cloud.rs`
+//! (`sensor_msgs/PointCloud2` beside the frames); this file holds [`Ros2Transport`] and its
+//! [`Transport`] impl.
 
+mod cloud;
 mod dds;
+mod distro;
+mod flow;
 mod names;
 mod publish;
 mod rmw_zenoh;
@@ -61,7 +75,9 @@ use std::sync::Arc;
 use super::{
     FramePublisher, Sample, StatusPublisher, Subscription, Transport, TransportError, TransportKind,
 };
+pub use cloud::{with_pointcloud2, CloudPublisher, PointCloud2Args};
 use dds::{open_dds, DdsNode};
+pub use distro::{select as select_distro, type_hash_user_data, RosDistro};
 pub use names::{domain_id_from_env, OpenError, MAX_DOMAIN_ID, MESSAGE, PACKAGE, QOS};
 use rmw_zenoh::{open_zenoh, ZenohNode};
 
@@ -119,6 +135,7 @@ impl Ros2Transport {
             reason: e.to_string(),
         };
         let domain_id = domain_id_from_env().map_err(open_err)?;
+        distro::select_if_unset();
         let node = match backend {
             Backend::Dds => NodeRef::Dds(Arc::new(open_dds(domain_id).map_err(open_err)?)),
             Backend::Zenoh => NodeRef::Zenoh(Arc::new(open_zenoh(domain_id).map_err(open_err)?)),

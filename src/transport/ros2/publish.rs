@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::dds::DdsNode;
+use super::flow::{frame_bytes, AckWindow};
 use super::names::{ros_name, status_type_name, type_name, QOS};
 use super::rmw_zenoh::ZenohNode;
 use super::wire::WireFrame;
@@ -40,6 +41,7 @@ impl Ros2Transport {
                     topic: topic.to_owned(),
                     publisher,
                     node: Arc::clone(dds),
+                    window: AckWindow::default(),
                 }))
             }
             NodeRef::Zenoh(z) => {
@@ -128,9 +130,12 @@ struct DdsPublisher {
     topic: String,
     publisher: ros2_client::dds::Publisher<WireFrame>,
     node: Arc<DdsNode>,
+    window: AckWindow,
 }
 
 impl FramePublisher for DdsPublisher {
+    /// Publishes, then waits (briefly) for the readers' acknowledgements to keep at most
+    /// 128 KiB unacknowledged (`flow.rs`).
     fn publish(&mut self, frame: &ParticleFrame) -> Result<(), TransportError> {
         self.publisher
             .publish(WireFrame::from(frame.clone()))
@@ -138,13 +143,18 @@ impl FramePublisher for DdsPublisher {
                 transport: TransportKind::Ros2,
                 topic: self.topic.clone(),
                 reason: e.to_string(),
-            })
+            })?;
+        let bytes = frame_bytes(frame.material.len());
+        self.window
+            .after_publish(&self.publisher, bytes, &self.topic);
+        Ok(())
     }
 
-    /// Reliable DDS retransmits what readers missed after the write returns: give it time
-    /// before the writer goes away (ros2-client does not expose acknowledgement waits).
+    /// Reliable DDS retransmits what readers missed after the write returns: wait until
+    /// every matched reader acknowledged everything (rclcpp's `wait_for_all_acked`), at most
+    /// `timeout`; a reader that did not in time is logged.
     fn flush(&mut self, timeout: Duration) {
-        std::thread::sleep(timeout.min(Duration::from_secs(1)));
+        wait_for_all_acked(&self.publisher, &self.topic, timeout);
     }
 
     /// Matched DDS subscriptions (readers matched through SEDP with compatible QoS), as
@@ -184,5 +194,19 @@ impl FramePublisher for ZenohPublisher {
     /// Subscriptions on the topic in the ROS graph (rmw_zenoh liveliness tokens).
     fn subscriber_count(&self) -> usize {
         self.publisher.get_subscription_count(&self.node.node)
+    }
+}
+
+/// Waits until every matched reliable reader of `publisher` acknowledged all it published, at
+/// most `timeout`; warns when they did not.
+pub(super) fn wait_for_all_acked<M: serde::Serialize>(
+    publisher: &ros2_client::dds::Publisher<M>,
+    topic: &str,
+    timeout: Duration,
+) {
+    match publisher.wait_for_all_acked(timeout) {
+        Ok(true) => {}
+        Ok(false) => tracing::warn!("{topic}: not every reader acknowledged within {timeout:?}"),
+        Err(e) => tracing::warn!("{topic}: waiting for acknowledgements: {e}"),
     }
 }

@@ -69,6 +69,16 @@ fn register_type_hashes() -> Result<(), OpenError> {
         let hash = minflow_type_hash(ros_type).map_err(|e| err(e.to_string()))?;
         ros2_client::zenoh::register_type_hash(&dds_type.dds_msg_type(), &hash).map_err(err)?;
     }
+    // `--pointcloud2`'s sensor_msgs/msg/PointCloud2.
+    let cloud = crate::msgs::pointcloud2::type_hash().map_err(|e| OpenError::TypeHash {
+        ros_type: crate::msgs::pointcloud2::TYPE_NAME.to_owned(),
+        reason: e.to_string(),
+    })?;
+    ros2_client::zenoh::register_type_hash("sensor_msgs::msg::dds_::PointCloud2_", &cloud)
+        .map_err(|reason| OpenError::TypeHash {
+            ros_type: crate::msgs::pointcloud2::TYPE_NAME.to_owned(),
+            reason,
+        })?;
     Ok(())
 }
 

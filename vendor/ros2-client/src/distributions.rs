@@ -82,6 +82,19 @@ const fn compiled_distro() -> RosDistro {
 /// * anything else -> error (likely wire-incompatible, e.g. wrong Gid format).
 pub fn verify_ros_distro_env() {
   let built = COMPILED_ROS_DISTRO;
+  // minflow patch: a distribution chosen by the program overrides the
+  // environment; one with the same wire format as the build is fine.
+  if let Some(selected) = *SELECTED.lock().unwrap_or_else(|e| e.into_inner()) {
+    if same_wire_format(selected, built) {
+      info!("ROS 2 '{selected}' selected; ros2-client ('{built}' build) speaks its wire format.");
+    } else {
+      error!(
+        "ROS 2 '{selected}' selected but ros2-client was built for '{built}', whose wire \
+         format differs (Gid size); rebuild with --features {selected}."
+      );
+    }
+    return;
+  }
   match std::env::var("ROS_DISTRO") {
     Err(_) => warn!("ROS_DISTRO is not set; ros2-client was built for '{built}'."),
     Ok(distro) if distro == built.as_str() => {
@@ -100,4 +113,22 @@ pub fn verify_ros_distro_env() {
       );
     }
   }
+}
+
+// minflow patch: the program's choice of distribution (`select_ros_distro`).
+static SELECTED: std::sync::Mutex<Option<RosDistro>> = std::sync::Mutex::new(None);
+
+/// Tells ros2-client which ROS 2 distribution the program talks to, instead of
+/// the `ROS_DISTRO` environment variable: [`verify_ros_distro_env`] (run once,
+/// when the first [`crate::Context`] opens) then logs at info level when
+/// `distro` has the wire format of this build (Iron, Jazzy, Kilted and newer
+/// share it: 16-byte Gids) and an error when it does not. (minflow patch.)
+pub fn select_ros_distro(distro: RosDistro) {
+  *SELECTED.lock().unwrap_or_else(|e| e.into_inner()) = Some(distro);
+}
+
+/// Whether two distributions put the same bytes on the wire for what
+/// ros2-client does: Gids are 24 bytes before Iron, 16 from Iron on.
+fn same_wire_format(a: RosDistro, b: RosDistro) -> bool {
+  (a >= RosDistro::Iron) == (b >= RosDistro::Iron)
 }

@@ -252,7 +252,7 @@ pub mod zenoh {
 
 // Re-exports from crate root to simplify usage
 #[doc(inline)]
-pub use distributions::{COMPILED_ROS_DISTRO, RosDistro};
+pub use distributions::{COMPILED_ROS_DISTRO, RosDistro, select_ros_distro};
 #[doc(inline)]
 pub use message::Message;
 #[doc(inline)]

@@ -41,6 +41,31 @@ impl<M: Serialize> Publisher<M> {
     self.datawriter.assert_liveliness().map_err(Into::into)
   }
 
+  /// Waits until every matched reliable subscription has acknowledged all
+  /// messages published so far, at most `max_wait`; `Ok(true)` if they did
+  /// (also at once for best-effort QoS). rclcpp's `wait_for_all_acked`.
+  /// (minflow patch: RustDDS's `DataWriter::wait_for_acknowledgments`.)
+  pub fn wait_for_all_acked(&self, max_wait: std::time::Duration) -> WriteResult<bool, ()> {
+    self
+      .datawriter
+      .wait_for_acknowledgments(max_wait)
+      .map_err(Into::into)
+  }
+
+  /// Waits until at most `unacked` of the messages published so far are
+  /// unacknowledged by some matched reliable subscription, at most `max_wait`.
+  /// (minflow patch: RustDDS's `wait_for_acknowledgments_within`.)
+  pub fn wait_for_acked_within(
+    &self,
+    unacked: usize,
+    max_wait: std::time::Duration,
+  ) -> WriteResult<bool, ()> {
+    self
+      .datawriter
+      .wait_for_acknowledgments_within(unacked, max_wait)
+      .map_err(Into::into)
+  }
+
   pub fn guid(&self) -> rustdds::GUID {
     self.datawriter.guid()
   }
