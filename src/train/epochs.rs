@@ -26,6 +26,35 @@ pub struct EpochPass {
     pub out_of_time: bool,
 }
 
+impl EpochPass {
+    /// Adds one optimizer step's batch-mean `loss` over `b` samples (step `k`, 0-based, of
+    /// `total` in `epoch`, 0-based, begun at `started`) and tells `observer`.
+    ///
+    /// # Errors
+    /// [`TrainError::NonFinite`] for a NaN or infinite loss.
+    pub fn add_step(
+        &mut self,
+        loss: f64,
+        b: usize,
+        (epoch, k, total): (usize, usize, usize),
+        started: Instant,
+        observer: &mut dyn Observer,
+    ) -> Result<(), TrainError> {
+        if !loss.is_finite() {
+            return Err(TrainError::NonFinite {
+                epoch: epoch + 1,
+                batch: k,
+                loss: loss as f32,
+            });
+        }
+        self.sum += loss * b as f64;
+        self.seen += b;
+        let rate = self.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
+        observer.batch(epoch + 1, k + 1, total, self.sum / self.seen as f64, rate);
+        Ok(())
+    }
+}
+
 /// One architecture's training run, as [`run_epochs`] drives it.
 pub trait EpochRun {
     /// The network being trained (on the autodiff backend).

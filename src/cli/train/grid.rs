@@ -11,8 +11,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use burn::tensor::backend::AutodiffBackend;
 
-use super::args::{CpuTrain, TrainArgs};
-use crate::cli::device::Device;
+use super::args::TrainArgs;
 use crate::cli::run_folder::{
     check_resume, differences, print_best, run_split, write_run_files, Progress,
 };
@@ -78,20 +77,22 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         (&config, &opts),
     )?;
     let mut progress = Progress::new(args.out.clone());
-    let history = fit_on(
-        (&device, args.device.kernels()),
-        (
+    // One device: a data-parallel list is refused.
+    device.single("train --arch grid")?;
+    let run = GridFit {
+        run: (
             config,
             opts,
             args.out.clone(),
             args.grid_args.init_from.clone(),
         ),
-        &index,
-        &val,
-        &scaler,
-        args.resume,
-        &mut progress,
-    )?;
+        train: &index,
+        val: &val,
+        scaler: &scaler,
+        resume: args.resume,
+        observer: &mut progress,
+    };
+    let history = super::fit_on(&device, args.device.kernels(), run)?;
     print_best(&history, "validation rollout MSE", &args.out);
     Ok(crate::cli::read_to_damage(&report.truncated))
 }
@@ -174,65 +175,38 @@ fn init_normalisation(
     }
 }
 
-/// Trains on `device` (the CPU, or one GPU opened with the kernel choices).
-#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
-fn fit_on(
-    (device, kernels): (&Device, crate::ops::Kernels),
+/// A grid run as [`super::fit_on`] starts it.
+struct GridFit<'a> {
     run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
-    train: &WindowIndex,
-    val: &[Trajectory],
-    scaler: &Scaler,
+    train: &'a WindowIndex,
+    val: &'a [Trajectory],
+    scaler: &'a Scaler,
     resume: bool,
-    observer: &mut dyn Observer,
-) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + NetOps>(
-        device: B::Device,
-        run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
-        train: &WindowIndex,
-        val: &[Trajectory],
-        scaler: &Scaler,
-        resume: bool,
-        observer: &mut dyn Observer,
+    observer: &'a mut dyn Observer,
+}
+
+impl super::FitOn for GridFit<'_> {
+    fn fit<B: AutodiffBackend + NetOps>(
+        self,
+        mut devices: Vec<B::Device>,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
         B::InnerBackend: NetOps,
     {
-        let (config, opts, out, init_from) = run;
+        let (config, opts, out, init_from) = self.run;
         GridTrainer::<B> {
             config,
             opts,
             out,
-            device,
+            device: devices.swap_remove(0),
             init_from,
         }
-        .fit(train, val, scaler, resume, observer)
+        .fit(
+            self.train,
+            self.val,
+            self.scaler,
+            self.resume,
+            self.observer,
+        )
     }
-    let ordinal = device.single("train --arch grid")?;
-    let history = match ordinal {
-        None => on::<CpuTrain>(
-            Default::default(),
-            run,
-            train,
-            val,
-            scaler,
-            resume,
-            observer,
-        )?,
-        #[cfg(feature = "cuda")]
-        Some(id) => {
-            use crate::cli::device::cuda::{device as cuda_device, CudaTrain};
-            on::<CudaTrain>(
-                cuda_device(id, kernels)?,
-                run,
-                train,
-                val,
-                scaler,
-                resume,
-                observer,
-            )?
-        }
-        #[cfg(not(feature = "cuda"))]
-        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
-    };
-    Ok(history)
 }

@@ -16,7 +16,11 @@ mod paper;
 
 pub use args::{CpuTrain, TrainArgs};
 
+use crate::cli::device::Device;
 use crate::cli::Outcome;
+use crate::ops::NetOps;
+use crate::train::{EpochRecord, TrainError};
+use burn::tensor::backend::AutodiffBackend;
 
 /// Runs `minflow train`: the architecture `--arch` names.
 ///
@@ -27,4 +31,42 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         "paper" => paper::run(args),
         _ => grid::run(args),
     }
+}
+
+/// A training run that can start on any backend: each architecture's run in [`grid`] and
+/// [`paper`] implements it, and [`fit_on`] picks the backend `--device` names.
+trait FitOn {
+    /// Trains on `devices` of backend `B` (one, or several for a data-parallel run).
+    ///
+    /// # Errors
+    /// The run's [`TrainError`].
+    fn fit<B: AutodiffBackend + NetOps>(
+        self,
+        devices: Vec<B::Device>,
+    ) -> Result<Vec<EpochRecord>, TrainError>
+    where
+        B::InnerBackend: NetOps;
+}
+
+/// Runs `run` on the CPU backend, or on the GPUs `device` names opened with `kernels` (a
+/// build with the `cuda` feature).
+///
+/// # Errors
+/// The GPUs cannot be opened, or the run fails.
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
+fn fit_on(
+    device: &Device,
+    kernels: crate::ops::Kernels,
+    run: impl FitOn,
+) -> anyhow::Result<Vec<EpochRecord>> {
+    Ok(match device {
+        Device::Cpu => run.fit::<CpuTrain>(vec![Default::default()])?,
+        #[cfg(feature = "cuda")]
+        Device::Cuda(ids) => {
+            use crate::cli::device::cuda::{devices, CudaTrain};
+            run.fit::<CudaTrain>(devices(ids, kernels)?)?
+        }
+        #[cfg(not(feature = "cuda"))]
+        Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
+    })
 }

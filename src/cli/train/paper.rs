@@ -3,9 +3,8 @@
 //! `--max-resident-frames` frames), fits the scaler on the training scenes and trains with
 //! [`crate::train::paper::Trainer`] on the CPU or one or more GPUs (data-parallel).
 
-use super::args::{CpuTrain, TrainArgs};
+use super::args::TrainArgs;
 
-use crate::cli::device::Device;
 use crate::cli::run_folder::{check_resume, print_best, run_split, write_run_files, Progress};
 use crate::cli::Outcome;
 use crate::data::{
@@ -59,18 +58,15 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
                val: Option<&mut dyn BatchSource>,
                scaler: &Scaler,
                progress: &mut Progress| {
-        let (opts, out) = (args.options(), args.out.clone());
-        fit_on(
-            (&device, args.device.kernels()),
-            config.clone(),
-            opts,
-            out,
+        let run = PaperFit {
+            run: (config.clone(), args.options(), args.out.clone()),
             train,
             val,
             scaler,
-            args.resume,
-            progress,
-        )
+            resume: args.resume,
+            observer: progress,
+        };
+        super::fit_on(&device, args.device.kernels(), run)
     };
     let mut progress = Progress::new(args.out.clone());
     let history = if streamed {
@@ -169,63 +165,31 @@ fn load(inputs: &[PathBuf], topic: Option<&str>) -> anyhow::Result<(Vec<Trajecto
     Ok((trajs, report))
 }
 
-/// Trains on `device`: the CPU backend, or burn's CUDA backend (one GPU; several train
-/// data-parallel).
-#[allow(clippy::too_many_arguments)]
-#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
-fn fit_on(
-    (device, kernels): (&Device, crate::ops::Kernels),
-    config: ModelConfig,
-    opts: TrainOptions,
-    out: PathBuf,
-    train: &mut dyn BatchSource,
-    val: Option<&mut dyn BatchSource>,
-    scaler: &Scaler,
+/// A paper run as [`super::fit_on`] starts it.
+struct PaperFit<'a, 't, 'v> {
+    run: (ModelConfig, TrainOptions, PathBuf),
+    train: &'t mut dyn BatchSource,
+    val: Option<&'v mut dyn BatchSource>,
+    scaler: &'a Scaler,
     resume: bool,
-    observer: &mut dyn Observer,
-) -> anyhow::Result<Vec<EpochRecord>> {
-    fn on<B: AutodiffBackend + NetOps>(
+    observer: &'a mut dyn Observer,
+}
+
+impl super::FitOn for PaperFit<'_, '_, '_> {
+    fn fit<B: AutodiffBackend + NetOps>(
+        self,
         devices: Vec<B::Device>,
-        args: (ModelConfig, TrainOptions, PathBuf),
-        train: &mut dyn BatchSource,
-        val: Option<&mut dyn BatchSource>,
-        scaler: &Scaler,
-        resume: bool,
-        observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError>
     where
         B::InnerBackend: NetOps,
     {
-        let (config, opts, out) = args;
-        Trainer::<B>::data_parallel(config, opts, out, devices)
-            .fit_observed(train, val, scaler, resume, observer)
+        let (config, opts, out) = self.run;
+        Trainer::<B>::data_parallel(config, opts, out, devices).fit_observed(
+            self.train,
+            self.val,
+            self.scaler,
+            self.resume,
+            self.observer,
+        )
     }
-    let args = (config, opts, out);
-    let history = match device {
-        Device::Cpu => on::<CpuTrain>(
-            vec![Default::default()],
-            args,
-            train,
-            val,
-            scaler,
-            resume,
-            observer,
-        )?,
-        #[cfg(feature = "cuda")]
-        Device::Cuda(ids) => {
-            use crate::cli::device::cuda::{devices, CudaTrain};
-            on::<CudaTrain>(
-                devices(ids, kernels)?,
-                args,
-                train,
-                val,
-                scaler,
-                resume,
-                observer,
-            )?
-        }
-        #[cfg(not(feature = "cuda"))]
-        Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
-    };
-    Ok(history)
 }

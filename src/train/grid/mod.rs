@@ -245,18 +245,7 @@ where
             let waited = Instant::now();
             let value: f64 = loss.into_scalar().elem();
             pass.wait_seconds += waited.elapsed().as_secs_f64();
-            if !value.is_finite() {
-                return Err(TrainError::NonFinite {
-                    epoch: epoch + 1,
-                    batch: k,
-                    loss: value as f32,
-                });
-            }
-            pass.sum += value * b as f64;
-            pass.seen += b;
-            let rate = pass.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-            let mean = pass.sum / pass.seen as f64;
-            observer.batch(epoch + 1, k + 1, clock.batches, mean, rate);
+            pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
             if clock.out_of_time(opts) {
                 pass.out_of_time = true;
                 break;

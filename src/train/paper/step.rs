@@ -106,18 +106,8 @@ where
                 let waited = Instant::now();
                 let value = mean_loss(losses, b);
                 totals.wait_seconds += waited.elapsed().as_secs_f64();
-                if !value.is_finite() {
-                    return Err(TrainError::NonFinite {
-                        epoch: epoch + 1,
-                        batch: k,
-                        loss: value as f32,
-                    });
-                }
-                totals.sum += value * b as f64;
-                totals.seen += b;
+                totals.add_step(value, b, (epoch, k, total), started, &mut *observer)?;
                 k += 1;
-                let rate = totals.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-                observer.batch(epoch + 1, k, total, totals.sum / totals.seen as f64, rate);
             }
             Ok(totals)
         })?;
