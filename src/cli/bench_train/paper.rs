@@ -290,7 +290,7 @@ where
     };
     let dir = tempfile::tempdir()?;
     let mut high = peak(true).unwrap_or(0.0);
-    let history = Trainer::<B>::data_parallel(config, opts, dir.path().into(), devices.clone())
+    let history = Trainer::<B>::data_parallel(config, opts, dir.path().into(), devices.to_vec())
         .fit(&index, None, &scaler, false, |_, _| {
             high = high.max(peak(false).unwrap_or(f64::NAN));
         })?;

@@ -6,7 +6,7 @@
 //! steps each frame beside its mirror image. Used by `eval`, `node`, `report`, `bench` and
 //! the grid trainer's validation.
 
-use super::{load_net, ModelMeta, Net, StoreError};
+use super::{ModelMeta, Net, RunFolder, StoreError};
 use crate::model::grid::{mirror_rows, one_hot, GridModel, MemoryState, StepInput};
 use crate::model::{LayerState, Model, Scaling};
 use crate::ops::NetOps;

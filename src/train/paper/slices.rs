@@ -13,13 +13,13 @@ use crate::train::{loss, BatchSource, TrainError};
 
 /// Host data of a batch slice `[start, start + len)`, ready to upload.
 pub(super) struct HostSlice {
-    len: usize,
-    t: usize,
-    n: usize,
-    inputs: Vec<f32>,
-    targets: Vec<f32>,
-    target_pos: Vec<f32>,
-    dt: Vec<f32>,
+    pub(super) len: usize,
+    pub(super) t: usize,
+    pub(super) n: usize,
+    pub(super) inputs: Vec<f32>,
+    pub(super) targets: Vec<f32>,
+    pub(super) target_pos: Vec<f32>,
+    pub(super) dt: Vec<f32>,
 }
 
 /// Tensors of a batch slice.

@@ -5,7 +5,7 @@
 
 use std::time::Instant;
 
-use burn::module::{AutodiffModule, Module};
+use burn::module::Module;
 use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, DeviceOps};
 use burn::tensor::{ElementConversion, StreamId, Tensor};
@@ -54,7 +54,7 @@ where
     /// assembled one ahead on a second thread; each is one optimizer step, its loss read
     /// back once. Returns the trained model (on the main device) and the epoch's totals.
     #[allow(clippy::too_many_arguments)]
-    fn train_epoch(
+    pub(super) fn train_epoch(
         &self,
         model: Model<B>,
         optim: &mut Optim<B>,
@@ -109,7 +109,7 @@ where
                 totals.add_step(value, b, (epoch, k, total), started, &mut *observer)?;
                 k += 1;
             }
-            Ok(totals)
+            Ok::<EpochPass, TrainError>(totals)
         })?;
         let mut model = slot.expect("the model is put back after every step");
         if parallel > 1 {
