@@ -91,6 +91,23 @@ pub enum RecordError {
         #[source]
         source: std::io::Error,
     },
+    /// Writing the open bag failed (a full disk): it was closed at its last flush, so the
+    /// frames flushed before stay a complete bag; those after were lost.
+    #[error(
+        "recording into {path} stopped: {kept} frames kept in it, the {lost} written since its \
+         last flush lost"
+    )]
+    Lost {
+        /// The bag that was being written.
+        path: PathBuf,
+        /// Frames in the bag as it was closed.
+        kept: u64,
+        /// Frames written into it after its last flush.
+        lost: u64,
+        /// What failed.
+        #[source]
+        source: Box<RecordError>,
+    },
     /// metadata.yaml could not be serialised.
     #[error("{path}: {source}")]
     Metadata {
@@ -107,6 +124,8 @@ struct OpenBag {
     /// Uncompressed bytes written since the last flush (the file size lags until then).
     pending: u64,
     info: FileInfo,
+    /// `info` as of the last flush: what a failed write leaves in the file.
+    flushed: FileInfo,
 }
 
 /// Per-file numbers for metadata.yaml.
@@ -190,7 +209,7 @@ pub fn record(
     transport: &dyn Transport,
     counters: &Counters,
     stop: &AtomicBool,
-    mut progress: impl FnMut(u64),
+    progress: impl FnMut(u64),
 ) -> Result<RecordReport, RecordError> {
     let out = &options.out;
     let _lock = prepare_folder(options)?;
@@ -208,6 +227,32 @@ pub fn record(
     );
 
     let mut files = Files::new(options);
+    let pumped = pump(
+        options,
+        &rx,
+        &mut subscriptions,
+        &mut files,
+        counters,
+        stop,
+        progress,
+    );
+    drop(subscriptions);
+    match pumped.and_then(|()| files.finish()) {
+        Ok(report) => Ok(report),
+        Err(e) => Err(files.salvage(e)),
+    }
+}
+
+/// Receives and writes until a stop condition, then drains what already arrived.
+fn pump(
+    options: &RecordOptions,
+    rx: &std::sync::mpsc::Receiver<Sample>,
+    subscriptions: &mut Vec<Box<dyn crate::transport::Subscription>>,
+    files: &mut Files,
+    counters: &Counters,
+    stop: &AtomicBool,
+    mut progress: impl FnMut(u64),
+) -> Result<(), RecordError> {
     let started = Instant::now();
     let mut done = false;
     let mut last_message: Option<Instant> = None;
@@ -254,8 +299,7 @@ pub fn record(
         progress(files.report.written);
         files.flush_if_due()?;
     }
-    drop(subscriptions);
-    files.finish()
+    Ok(())
 }
 
 /// Creates the output folder and takes its lock (held while the returned file is open);
@@ -377,8 +421,7 @@ impl<'a> Files<'a> {
                     .is_some_and(|d| b.opened.elapsed() >= d)
         });
         if split {
-            let done_bag = self.bag.take().expect("checked above");
-            self.infos.push(close(done_bag, &mut self.report)?);
+            self.close_open()?;
         }
         let open = match &mut self.bag {
             Some(b) => b,
@@ -387,14 +430,16 @@ impl<'a> Files<'a> {
                     .out
                     .join(format!("{}_{}.mcap", self.base, self.infos.len()));
                 tracing::info!("writing {}", path.display());
+                let info = FileInfo {
+                    path: path.clone(),
+                    ..FileInfo::default()
+                };
                 self.bag.insert(OpenBag {
                     writer: BagWriter::create(&path)?,
                     opened: Instant::now(),
                     pending: 0,
-                    info: FileInfo {
-                        path,
-                        ..FileInfo::default()
-                    },
+                    flushed: info.clone(),
+                    info,
                 })
             }
         };
@@ -430,14 +475,55 @@ impl<'a> Files<'a> {
         )
     }
 
-    /// Finishes the open file and writes metadata.yaml; returns the totals.
-    fn finish(mut self) -> Result<RecordReport, RecordError> {
+    /// Flushes the open file (a failure leaves it open for [`Files::salvage`]), then
+    /// finishes it.
+    fn close_open(&mut self) -> Result<(), RecordError> {
+        if let Some(b) = self.bag.as_mut() {
+            b.writer.flush()?;
+            b.pending = 0;
+            b.flushed = b.info.clone();
+        }
         if let Some(b) = self.bag.take() {
             self.infos.push(close(b, &mut self.report)?);
         }
-        let out = &self.options.out;
-        write_metadata(out, &self.infos)?;
-        Ok(self.report)
+        Ok(())
+    }
+
+    /// Finishes the open file and writes metadata.yaml; returns the totals.
+    fn finish(&mut self) -> Result<RecordReport, RecordError> {
+        self.close_open()?;
+        write_metadata(&self.options.out, &self.infos)?;
+        Ok(std::mem::take(&mut self.report))
+    }
+
+    /// After `error` stopped the recording: closes the open bag at its last flush
+    /// ([`BagWriter::abandon`]), writes metadata.yaml for what the bags keep (both as far as
+    /// the disk allows, failures logged) and returns [`RecordError::Lost`] naming the bag;
+    /// `error` itself when no bag was open.
+    fn salvage(&mut self, error: RecordError) -> RecordError {
+        let Some(bag) = self.bag.take() else {
+            return error;
+        };
+        let (path, kept) = (bag.info.path.clone(), bag.flushed.count);
+        let lost = bag.info.count - kept;
+        match bag.writer.abandon() {
+            Ok(bytes) => tracing::warn!(
+                "{}: closed at its last flush ({bytes} bytes, {kept} frames)",
+                path.display()
+            ),
+            Err(e) => tracing::warn!("{e}; the bag ends at its last flush without a footer"),
+        }
+        self.report.files.push(path.clone());
+        self.infos.push(bag.flushed);
+        if let Err(e) = write_metadata(&self.options.out, &self.infos) {
+            tracing::warn!("{e}");
+        }
+        RecordError::Lost {
+            path,
+            kept,
+            lost,
+            source: Box::new(error),
+        }
     }
 }
 
@@ -455,6 +541,7 @@ fn flush_if_due(
         if b.pending > 0 {
             b.writer.flush()?;
             b.pending = 0;
+            b.flushed = b.info.clone();
         }
     }
     Ok(())
