@@ -23,6 +23,7 @@ mod eval_render;
 mod eval_replay;
 mod eval_report;
 mod fault_full_disk;
+mod fault_input;
 mod interop_import;
 mod interop_import_h5py;
 mod interop_npz;
