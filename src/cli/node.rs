@@ -47,6 +47,11 @@ pub struct NodeArgs {
     /// Pending frames per scene before the oldest is dropped.
     #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
     queue_depth: usize,
+    /// Frames whose payload is larger than this many bytes are rejected before they are
+    /// decoded (counted as `rejected`, logged), so one publisher cannot make the node
+    /// allocate without bound. The default, 64 MiB, holds 4 million particles.
+    #[arg(long, default_value_t = 64 << 20, value_parser = super::flags::at_least_one)]
+    max_frame_bytes: usize,
     /// Closed loop: after the first T frames of a scene, publish K predicted frames.
     #[arg(long, value_name = "K", value_parser = super::flags::at_least_one)]
     rollout: Option<usize>,
@@ -104,6 +109,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         idle_timeout: Duration::from_secs_f64(args.idle_timeout.max(0.0)),
         max_scenes: args.max_scenes,
         queue_depth: args.queue_depth,
+        max_frame_bytes: args.max_frame_bytes,
         rollout: args.rollout,
         rate: args.rate,
         max_published: args.max_published,

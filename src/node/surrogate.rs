@@ -17,9 +17,10 @@
 //! first-frame` takes the first frame of a scene as its reference positions and keeps them
 //! over a gap reset (the stream goes on), not over a restart.
 //!
-//! Bad input is never predicted on: a payload that does not decode is `malformed`; a frame
-//! with a particle count other than the model's N, non-finite values or a material id
-//! above 3 is `rejected`. Each is counted, logged once per scene and reason, and reported in
+//! Bad input is never predicted on: a payload larger than `max_frame_bytes` is `rejected`
+//! before it is decoded; a payload that does not decode is `malformed`; a frame with a
+//! particle count other than the model's N, non-finite values or a material id above 3 is
+//! `rejected`. Each is counted, logged once per scene and reason, and reported in
 //! [`SurrogateStatus`] (published once per second); other scenes are served as usual.
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
@@ -62,6 +63,8 @@ pub struct NodeOptions {
     pub max_scenes: usize,
     /// Pending frames per scene before the oldest is dropped.
     pub queue_depth: usize,
+    /// Payloads larger than this (bytes) are rejected before decoding (`--max-frame-bytes`).
+    pub max_frame_bytes: usize,
     /// Closed loop: after the first T frames of a scene, publish K predicted frames.
     pub rollout: Option<usize>,
     /// Closed-loop pacing: predicted frames per simulated second times this factor
@@ -313,9 +316,15 @@ struct NodeLoop<'a, B: NetOps> {
     cursor: String,
     next_status: Instant,
     next_stats: Option<Instant>,
+    /// Arrival -> publication latencies, us: the last [`LATENCY_WINDOW`] to 2x that many.
     latencies_us: Vec<f64>,
     view: Option<PredictionView>,
+    /// Scene states dropped: (at `max_scenes`, least recently seen; idle past `idle_timeout`).
+    evicted: (u64, u64),
 }
+
+/// Latencies kept for the percentiles logged at exit (bounded memory over hours).
+const LATENCY_WINDOW: usize = 100_000;
 
 impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// An empty loop state for the node.
@@ -347,6 +356,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             next_status: Instant::now(),
             next_stats: options.stats_interval.map(|d| Instant::now() + d),
             latencies_us: Vec::new(),
+            evicted: (0, 0),
             view: options
                 .foxglove
                 .as_ref()
@@ -365,7 +375,15 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                     tracing::warn!("status: {e}");
                 }
             }
-            evict_idle(&mut self.scenes, self.options.idle_timeout);
+            let idle = evict_idle(&mut self.scenes, self.options.idle_timeout);
+            if idle > 0 {
+                self.evicted.1 += idle as u64;
+                tracing::info!(
+                    "{}: {idle} scene state(s) idle over --idle-timeout dropped ({} so far)",
+                    self.options.name,
+                    self.evicted.1
+                );
+            }
         }
         if let (Some(due), Some(every)) = (self.next_stats, self.options.stats_interval) {
             if Instant::now() >= due {
@@ -408,6 +426,14 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// pending frame past `queue_depth`); bad input is counted and noted.
     fn accept(&mut self, sample: Sample) {
         self.tally.report.received += 1;
+        let bytes = payload_bytes(&sample.payload);
+        if bytes > self.options.max_frame_bytes {
+            self.tally.report.rejected += 1;
+            let limit = self.options.max_frame_bytes;
+            let reason = format!("payload of {bytes} bytes over --max-frame-bytes {limit}");
+            self.tally.note("?", reason);
+            return;
+        }
         let frame = match sample.decode() {
             Ok(f) => f,
             Err(reason) => {
@@ -482,6 +508,9 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             None => {
                 self.emit(&predicted_frame(&frame, &next, 1));
                 if let Some(t) = arrived {
+                    if self.latencies_us.len() >= 2 * LATENCY_WINDOW {
+                        self.latencies_us.drain(..LATENCY_WINDOW);
+                    }
                     self.latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
                 }
                 Some(state)
@@ -511,6 +540,17 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                 .map(|(k, _)| k.clone())
             {
                 self.scenes.remove(&oldest);
+                self.evicted.0 += 1;
+                // The first, then every 100th: a stream of new scenes must not flood the log.
+                if self.evicted.0 == 1 || self.evicted.0 % 100 == 0 {
+                    tracing::info!(
+                        "{}: scene {oldest:?} evicted at --max-scenes {} ({} so far; a scene \
+                         that comes back starts again)",
+                        self.options.name,
+                        self.options.max_scenes,
+                        self.evicted.0
+                    );
+                }
             }
         }
     }
@@ -640,6 +680,12 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             let _ = p.publish(&self.tally.report);
         }
         log_latencies(&self.options.name, &mut self.latencies_us);
+        let (full, idle) = self.evicted;
+        tracing::info!(
+            "{}: evicted={} scene states ({full} at --max-scenes, {idle} idle)",
+            self.options.name,
+            full + idle
+        );
         self.tally.report
     }
 }
@@ -703,11 +749,26 @@ fn next_scene(pending: &BTreeMap<String, VecDeque<ParticleFrame>>, cursor: &str)
         .map(|(k, _)| k.clone())
 }
 
+/// Drops the scene states not seen for longer than `idle`; returns how many.
 fn evict_idle<B: burn::tensor::backend::Backend>(
     scenes: &mut BTreeMap<String, SceneState<B>>,
     idle: Duration,
-) {
+) -> usize {
+    let before = scenes.len();
     scenes.retain(|_, s| s.last_seen.elapsed() <= idle);
+    before - scenes.len()
+}
+
+/// The size of a payload in bytes, as it travelled (CDR) or as its arrays take in memory.
+fn payload_bytes(payload: &crate::transport::Payload) -> usize {
+    use crate::transport::Payload;
+    match payload {
+        Payload::Cdr(bytes) => bytes.len(),
+        Payload::Frame(f) => {
+            4 * (f.position.len() + f.velocity.len()) + f.material.len() + f.scene.len()
+        }
+        Payload::Malformed(_) => 0,
+    }
 }
 
 fn wall_time() -> Time {

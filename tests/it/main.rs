@@ -24,6 +24,7 @@ mod eval_replay;
 mod eval_report;
 mod fault_full_disk;
 mod fault_input;
+mod fault_network;
 mod fault_peers;
 mod interop_import;
 mod interop_import_h5py;
