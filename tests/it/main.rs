@@ -36,6 +36,7 @@ mod node_surrogate;
 mod plot_png;
 mod sim_scenes;
 mod sim_validation;
+mod soak;
 mod train_loop;
 mod train_parallel;
 mod train_resume;
