@@ -29,6 +29,7 @@ mod fault_peers;
 mod interop_import;
 mod interop_import_h5py;
 mod interop_npz;
+mod many_streams;
 mod model_cells;
 mod model_grid;
 mod msgs_cdr;
