@@ -66,7 +66,7 @@ impl BagWriter {
                 msgs::schema_text().as_bytes(),
             )
             .map_err(mcap_err)?;
-        let mut bag = Self {
+        Ok(Self {
             path,
             writer,
             schema_id,
@@ -74,10 +74,7 @@ impl BagWriter {
             points_schema: None,
             scratch: Vec::new(),
             flushed_len: 0,
-        };
-        // The header and schema on disk: a bag abandoned before its first flush keeps them.
-        bag.flush()?;
-        Ok(bag)
+        })
     }
 
     /// The bag's path.
@@ -240,7 +237,8 @@ impl BagWriter {
     /// flush, so that what was flushed stays a complete bag that every reader opens without
     /// error. Everything written since that flush is cut off; a Data End record and a footer
     /// without summary (valid MCAP: readers then read the messages in file order) follow.
-    /// Returns the bag's new length in bytes.
+    /// Returns the bag's new length in bytes; 0 when it was never flushed, and then the file
+    /// is removed (it holds no whole message).
     ///
     /// # Errors
     /// [`BagError::Io`] when the file cannot be cut or the footer not written (the disk is
@@ -249,6 +247,11 @@ impl BagWriter {
         let (path, keep) = (self.path.clone(), self.flushed_len);
         // Dropping the writer tries to flush its buffer; what it adds is cut off below.
         drop(self);
+        if keep == 0 {
+            return std::fs::remove_file(&path)
+                .map(|()| 0)
+                .map_err(|e| BagError::io(&path, "removing the unflushed bag", e));
+        }
         let fail = |e| BagError::io(&path, "closing the bag at its last flush", e);
         let mut file = std::fs::OpenOptions::new()
             .write(true)
