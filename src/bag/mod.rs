@@ -24,7 +24,7 @@ pub use check::{check, CheckReport};
 pub use frames::{read_frames, read_frames_with, BagMessage, Frames, ReadOptions, ReadOutcome};
 pub use inspect::{info, BagInfo};
 pub use read::{decode_checked, BagReader, RawMessage, Truncation};
-pub use write::BagWriter;
+pub use write::{BagWriter, ForeignSchema};
 
 use crate::msgs::{CdrError, FrameError};
 

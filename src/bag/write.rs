@@ -7,8 +7,9 @@
 //! YAML; profile `ros2`; zstd chunks of 1 MiB. `log_time` = `publish_time` = the frame's stamp
 //! in ns; `sequence` counts messages per channel from 0. Output is deterministic: the same
 //! frames give byte-identical files (the header's library string carries versions only, and
-//! zstd runs single-threaded). Used by `simulate` and the `record` node. `record --points`
-//! adds `foxglove.PointCloud` channels (schema and message encoding `protobuf`) beside them.
+//! zstd runs single-threaded). Used by `simulate` and the `record` node. Other message types
+//! (`record --points`' `foxglove.PointCloud`s, encoded by `viz`) go beside them through
+//! [`BagWriter::write_foreign`]; this module knows none of them.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -23,6 +24,20 @@ use crate::msgs::{self, ParticleFrame};
 /// Uncompressed size at which a chunk is closed (as mcap's default).
 const CHUNK_BYTES: u64 = 1024 * 1024;
 
+/// The schema of messages other than `ParticleFrame` in a bag, as MCAP stores it (e.g.
+/// `foxglove.PointCloud`, `protobuf`, its file descriptor set, message encoding `protobuf`).
+#[derive(Debug, Clone, Copy)]
+pub struct ForeignSchema<'a> {
+    /// Schema name, e.g. `foxglove.PointCloud`.
+    pub name: &'a str,
+    /// Schema encoding, e.g. `protobuf`.
+    pub encoding: &'a str,
+    /// The schema itself (for `protobuf`, a serialised `FileDescriptorSet`).
+    pub data: &'a [u8],
+    /// The messages' encoding, e.g. `protobuf`.
+    pub message_encoding: &'a str,
+}
+
 /// Writes ParticleFrames to one MCAP bag. Call [`BagWriter::finish`] to write the summary and
 /// footer and to see errors; a writer dropped without it still tries to finish the file.
 pub struct BagWriter {
@@ -31,8 +46,8 @@ pub struct BagWriter {
     schema_id: u16,
     /// topic -> (channel id, messages written on it)
     channels: BTreeMap<String, (u16, u32)>,
-    /// The `foxglove.PointCloud` schema, once a points channel exists.
-    points_schema: Option<u16>,
+    /// Schemas of other message types ([`BagWriter::write_foreign`]) by name -> schema id.
+    foreign_schemas: BTreeMap<String, u16>,
     scratch: Vec<u8>,
     /// File length after the last successful [`BagWriter::flush`]: everything before it is
     /// whole records, where [`BagWriter::abandon`] cuts the file.
@@ -71,7 +86,7 @@ impl BagWriter {
             writer,
             schema_id,
             channels: BTreeMap::new(),
-            points_schema: None,
+            foreign_schemas: BTreeMap::new(),
             scratch: Vec::new(),
             flushed_len: 0,
         })
@@ -117,23 +132,19 @@ impl BagWriter {
         self.write_message(channel, stamp_ns, cdr)
     }
 
-    /// Writes `frame` as a `foxglove.PointCloud` (protobuf, Foxglove's schema; coloured by
-    /// material, [`crate::viz::cloud`]) on `topic` at `stamp_ns`, for Foxglove's 3D panel
-    /// (`record --points`). The frame is not checked.
-    pub fn write_points(
+    /// Writes already-encoded bytes of another message type on `topic` at `stamp_ns`: the
+    /// channel is added on first use with `schema` and `message_encoding` (no QoS metadata:
+    /// ROS 2 does not play these). `record --points` writes its `foxglove.PointCloud`s
+    /// through this (`viz::cloud` encodes them). The bytes are not checked.
+    pub fn write_foreign(
         &mut self,
         topic: &str,
         stamp_ns: u64,
-        frame: &ParticleFrame,
+        schema: &ForeignSchema<'_>,
+        bytes: &[u8],
     ) -> Result<(), BagError> {
-        let channel = self.points_channel(topic)?;
-        let mut bytes = std::mem::take(&mut self.scratch);
-        bytes.clear();
-        // Into a Vec, which grows: encoding cannot run out of room.
-        let _ = foxglove::Encode::encode(&crate::viz::cloud::by_material(frame), &mut bytes);
-        let result = self.write_message(channel, stamp_ns, &bytes);
-        self.scratch = bytes;
-        result
+        let channel = self.foreign_channel(topic, schema)?;
+        self.write_message(channel, stamp_ns, bytes)
     }
 
     /// Writes one message on a known channel, `log_time` = `publish_time` = `stamp_ns`.
@@ -169,28 +180,31 @@ impl BagWriter {
         self.add_channel(topic, self.schema_id, MESSAGE_ENCODING, &metadata)
     }
 
-    /// As [`BagWriter::channel`] for a `foxglove.PointCloud` channel (message encoding
-    /// `protobuf`, no QoS metadata: ROS 2 does not play these).
-    fn points_channel(&mut self, topic: &str) -> Result<(u16, u32), BagError> {
+    /// As [`BagWriter::channel`] for a channel of another message type: its schema is added
+    /// once per schema name.
+    fn foreign_channel(
+        &mut self,
+        topic: &str,
+        schema: &ForeignSchema<'_>,
+    ) -> Result<(u16, u32), BagError> {
         if let Some(next) = self.next_sequence(topic) {
             return Ok(next);
         }
-        let schema_id = match self.points_schema {
-            Some(id) => id,
+        let schema_id = match self.foreign_schemas.get(schema.name) {
+            Some(&id) => id,
             None => {
-                let schema = <foxglove::messages::PointCloud as foxglove::Encode>::get_schema()
-                    .expect("foxglove.PointCloud has a schema");
                 let id = self
                     .writer
-                    .add_schema(&schema.name, &schema.encoding, &schema.data)
+                    .add_schema(schema.name, schema.encoding, schema.data)
                     .map_err(|source| BagError::Mcap {
                         path: self.path.clone(),
                         source,
                     })?;
-                *self.points_schema.insert(id)
+                self.foreign_schemas.insert(schema.name.to_owned(), id);
+                id
             }
         };
-        self.add_channel(topic, schema_id, "protobuf", &BTreeMap::new())
+        self.add_channel(topic, schema_id, schema.message_encoding, &BTreeMap::new())
     }
 
     /// The channel of `topic` and the sequence number of its next message, if it exists.

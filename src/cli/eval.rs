@@ -21,7 +21,7 @@ use crate::eval::{
     self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReferenceFrom,
     ReplayOptions, RolloutOptions,
 };
-use crate::model::store::ModelMeta;
+use crate::model::store::RunFolder;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -127,13 +127,9 @@ pub(crate) fn scaler_for(
     seed: u64,
 ) -> anyhow::Result<(Scaler, String)> {
     if let Some(dir) = models.first() {
-        let path = dir.join("model.json");
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("reading {}", path.display()))?;
-        let meta: ModelMeta =
-            serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        let folder = RunFolder::open(dir).context("reading the model")?;
         return Ok((
-            meta.scaler,
+            folder.meta.scaler,
             format!("scaled with the scaler stored in {}", dir.display()),
         ));
     }
@@ -250,10 +246,7 @@ fn load_model(
 
 /// Warns when a run folder's `split.json` puts other scenes in the test part.
 fn warn_if_split_differs(dir: &Path, split: &Split) {
-    let Ok(text) = std::fs::read_to_string(dir.join("split.json")) else {
-        return;
-    };
-    if let Ok(theirs) = serde_json::from_str::<Split>(&text) {
+    if let Some(theirs) = RunFolder::open(dir).ok().and_then(|f| f.split) {
         if theirs.test != split.test {
             tracing::warn!(
                 "{}: the model's test scenes {:?} differ from this split's {:?} (check --seed and --data)",

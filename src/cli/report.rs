@@ -23,7 +23,7 @@ use super::eval::{direct, EvalArgs};
 use super::train::TrainArgs;
 use super::Outcome;
 use crate::eval::{output, table, CpuInfer, Evaluation};
-use crate::model::store::ModelMeta;
+use crate::model::store::RunFolder;
 
 #[derive(Debug, Args)]
 pub struct ReportArgs {
@@ -134,11 +134,7 @@ fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
             rate += f[4];
         }
     }
-    let meta_path = dir.join("model.json");
-    let meta: ModelMeta = crate::model::store::parse_meta(
-        &std::fs::read_to_string(&meta_path)
-            .with_context(|| format!("reading {}", meta_path.display()))?,
-    )?;
+    let meta = RunFolder::open(dir)?.meta;
     let params = meta.net.init::<CpuInfer>(&Default::default()).num_params();
     let rate = rate / epochs.max(1) as f64;
     Ok(Speed {

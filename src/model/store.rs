@@ -207,19 +207,85 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
     })
 }
 
-/// Reads `dir/model.json`: its path and contents.
+/// A run folder (`minflow train --out`) as every command reads it: `model.json` with the
+/// fields added since older folders were saved filled in ([`meta_value`]), `split.json`
+/// where there is one, and the weights `model.mpk` on demand. `eval`, `node`, `bench node`,
+/// `report` and `train --init-from` all open run folders through this.
+#[derive(Clone, Debug)]
+pub struct RunFolder {
+    /// The folder.
+    pub dir: PathBuf,
+    /// `model.json`, older fields defaulted.
+    pub meta: ModelMeta,
+    /// `split.json` (the scenes the model was trained, validated and tested on); None when
+    /// the folder has none or it does not parse.
+    pub split: Option<crate::data::Split>,
+}
+
+impl RunFolder {
+    /// Reads `dir/model.json` (and `dir/split.json` where present); the weights are read
+    /// by [`RunFolder::net`] or [`RunFolder::surrogate`].
+    ///
+    /// # Errors
+    /// [`StoreError::Io`] naming `model.json` when it is missing, unreadable or not a model
+    /// description.
+    pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        let path = dir.join("model.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
+        let meta = parse_meta(&text).map_err(|e| io(&path, e))?;
+        let split = std::fs::read_to_string(dir.join("split.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok());
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            meta,
+            split,
+        })
+    }
+
+    /// The network with the weights of `model.mpk`, of either architecture, on `device`.
+    ///
+    /// # Errors
+    /// [`StoreError::Io`] naming `model.mpk` when it is missing or does not fit the network.
+    pub fn net<B: NetOps>(&self, device: &B::Device) -> Result<Net<B>, StoreError> {
+        let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
+        let weights = self.dir.join("model.mpk");
+        // Each architecture's weights are saved as its own module (not as a `Net`).
+        Ok(match self.meta.net.init::<B>(device) {
+            Net::Paper(m) => Net::Paper(
+                m.load_file(weights.clone(), &recorder, device)
+                    .map_err(|e| io(&weights, e))?,
+            ),
+            Net::Grid(m) => Net::Grid(
+                m.load_file(weights.clone(), &recorder, device)
+                    .map_err(|e| io(&weights, e))?,
+            ),
+        })
+    }
+
+    /// The trained model ready to step, on `device`.
+    ///
+    /// # Errors
+    /// As [`RunFolder::net`].
+    pub fn surrogate<B: NetOps>(&self, device: &B::Device) -> Result<Surrogate<B>, StoreError> {
+        Ok(Surrogate::from_net(
+            self.net(device)?,
+            self.meta.clone(),
+            device,
+        ))
+    }
+}
+
+/// Reads `dir/model.json`: its path and contents ([`RunFolder::open`]'s reading).
 ///
 /// # Errors
 /// [`StoreError::Io`] when it is missing, unreadable or not a model description.
 pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreError> {
-    let path = dir.join("model.json");
-    let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
-    let meta = parse_meta(&text).map_err(|e| io(&path, e))?;
-    Ok((path, meta))
+    let folder = RunFolder::open(dir)?;
+    Ok((dir.join("model.json"), folder.meta))
 }
 
-/// A `model.json`'s text as a [`ModelMeta`]. A grid model saved before
-/// [`GridConfig::reference`] existed reads as one without it.
+/// A `model.json`'s text as a [`ModelMeta`], older fields defaulted ([`meta_value`]).
 ///
 /// # Errors
 /// The text is not JSON or not a model description.
@@ -227,9 +293,22 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
     serde_json::from_value(meta_value(text)?)
 }
 
-/// A `model.json`'s text as JSON, with the fields added since it was saved filled in at the
-/// values that mean "as before" (a grid model's `reference`: false). [`parse_meta`] and the
-/// comparison of a run folder's settings (`train --resume`) both read it through this.
+/// Fields added to `model.json` after run folders were first saved, per architecture, at
+/// the values that mean "as before": a grid model without `reference` reads no reference
+/// channels; `conv` picks the kernel only (same weights, same results); the zero-initialised
+/// last layers only matter for fresh weights.
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 4] = [
+    ("grid", "reference", || serde_json::Value::Bool(false)),
+    ("grid", "conv", || serde_json::Value::from("auto")),
+    ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
+    ("paper", "decoder_zero_init", || {
+        serde_json::Value::Bool(false)
+    }),
+];
+
+/// A `model.json`'s text as JSON, with the fields added since it was saved filled in
+/// ([`ADDED_FIELDS`]). [`parse_meta`] and the comparison of a run folder's settings
+/// (`train --resume`) both read it through this.
 ///
 /// # Errors
 /// The text is not JSON.
@@ -237,9 +316,15 @@ pub fn meta_value(text: &str) -> Result<serde_json::Value, serde_json::Error> {
     let mut value: serde_json::Value = serde_json::from_str(text)?;
     // The network's fields sit at the top level (`ModelMeta::net` is flattened).
     if let Some(meta) = value.as_object_mut() {
-        if meta.get("arch").and_then(|a| a.as_str()) == Some("grid") {
-            meta.entry("reference")
-                .or_insert(serde_json::Value::Bool(false));
+        let arch = meta
+            .get("arch")
+            .and_then(|a| a.as_str())
+            .unwrap_or_default()
+            .to_owned();
+        for (of, field, default) in ADDED_FIELDS {
+            if arch == of {
+                meta.entry(field).or_insert_with(default);
+            }
         }
     }
     Ok(value)
@@ -250,21 +335,8 @@ pub fn load_net<B: NetOps>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Net<B>, ModelMeta), StoreError> {
-    let (_, meta) = read_meta(dir)?;
-    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-    let weights = dir.join("model.mpk");
-    // Each architecture's weights are saved as its own module (not as a `Net`).
-    let net = match meta.net.init::<B>(device) {
-        Net::Paper(m) => Net::Paper(
-            m.load_file(weights.clone(), &recorder, device)
-                .map_err(|e| io(&weights, e))?,
-        ),
-        Net::Grid(m) => Net::Grid(
-            m.load_file(weights.clone(), &recorder, device)
-                .map_err(|e| io(&weights, e))?,
-        ),
-    };
-    Ok((net, meta))
+    let folder = RunFolder::open(dir)?;
+    Ok((folder.net(device)?, folder.meta))
 }
 
 /// Reads a `paper` model (`model.json` and the weights) from `dir`.
@@ -318,8 +390,7 @@ enum NetState<B: Backend> {
 impl<B: NetOps> Surrogate<B> {
     /// Loads a run folder (either architecture).
     pub fn load(dir: &Path, device: &B::Device) -> Result<Self, StoreError> {
-        let (net, meta) = load_net(dir, device)?;
-        Ok(Self::from_net(net, meta, device))
+        RunFolder::open(dir)?.surrogate(device)
     }
 
     /// Wraps an in-memory paper model.

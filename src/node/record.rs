@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 use crate::bag::{BagError, BagWriter};
 use crate::msgs::ParticleFrame;
 use crate::transport::{Counters, Sample, Transport, TransportError};
+use crate::viz::cloud::WritePoints;
 
 mod folder;
 mod metadata;

@@ -19,6 +19,8 @@
 //! - [`scan`]: the recurrence in burn's tensor operations (Heinsen's log-space parallel scan,
 //!   the default, and its reverse-loop backward).
 //! - [`adam`]: [`AdamStep`], the scalars of one Adam step, and its composed default.
+//! - [`prepared`]: [`PreparedWeights`], a convolution's weights as a backend prepared them
+//!   for inference, kept by the module that owns the convolution.
 //! - `autodiff.rs`: the impl for `Autodiff<B>`: one graph node per fused forward, whose
 //!   backward calls the inner backend's backward operation; `autodiff_grid.rs`: the nodes of
 //!   the grid model's operations.
@@ -50,10 +52,12 @@ mod cuda;
 mod cuda_conv;
 pub mod mingru;
 mod ndarray;
+pub mod prepared;
 pub mod scan;
 mod tensor;
 
 pub use adam::AdamStep;
+pub use prepared::PreparedWeights;
 pub use tensor::{
     elu, gather, grid_channels, im2col, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool,
     pool2, recurrence, silu, splat, upsample2,
@@ -251,14 +255,17 @@ pub trait NetOps: Backend {
     /// that track gradients; the grid model then runs im2col and a product. The CPU computes
     /// it by Winograd's F(4x4, 3x3) (Lavin & Gray 2016; `cpu/winograd.rs`). With `silu`, the
     /// result is `x sigmoid(x)` of the convolution, applied as it is written (the U-Net's
-    /// convolutions are all followed by SiLU but its last).
+    /// convolutions are all followed by SiLU but its last). `prepared` is the convolution's
+    /// own slot for weights the backend transforms once and reuses while they stay the same
+    /// ([`PreparedWeights`]; the CPU keeps its Winograd transform there).
     fn conv3x3_forward(
         parts: &[FloatTensor<Self>],
         weight: &FloatTensor<Self>,
         bias: Option<&FloatTensor<Self>>,
         silu: bool,
+        prepared: &PreparedWeights,
     ) -> Option<FloatTensor<Self>> {
-        let _ = (parts, weight, bias, silu);
+        let _ = (parts, weight, bias, silu, prepared);
         None
     }
 

@@ -86,8 +86,9 @@ impl NetOps for NdArray<f32> {
         weight: &FloatTensor<Self>,
         bias: Option<&FloatTensor<Self>>,
         silu: bool,
+        prepared: &super::PreparedWeights,
     ) -> Option<FloatTensor<Self>> {
-        cpu::winograd::conv3x3(parts, weight, bias, silu)
+        cpu::winograd::conv3x3(parts, weight, bias, silu, prepared)
     }
 
     fn silu(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -3,7 +3,7 @@
 //! material, or for a prediction by its position error against the ground truth) and the
 //! raw values as fields Foxglove's 3D panel can colour by itself (`material`, `error`).
 //! Used by the live view ([`super::live`]) of `replay`, `node` and `simulate --publish`, and
-//! by `record --points`.
+//! by `record --points` ([`WritePoints`]).
 //!
 //! Point layout (little-endian, [`POINT_STRIDE`] bytes): `x` f32 @0, `y` f32 @4, `z` f32 @8,
 //! `error` f32 @12 (domain units; 0 when not known), `red` `green` `blue` `alpha` u8
@@ -13,6 +13,7 @@ use foxglove::bytes::Bytes;
 use foxglove::messages::packed_element_field::NumericType;
 use foxglove::messages::{PackedElementField, PointCloud, Timestamp};
 
+use crate::bag::{BagError, BagWriter, ForeignSchema};
 use crate::msgs::ParticleFrame;
 
 /// Bytes per point in [`PointCloud::data`].
@@ -66,6 +67,45 @@ pub fn position_errors(predicted: &ParticleFrame, truth: &ParticleFrame) -> Opti
 /// The frame as a point cloud coloured by material.
 pub fn by_material(frame: &ParticleFrame) -> PointCloud {
     build(frame, None)
+}
+
+/// Point clouds in a bag (`record --points`): each frame as a `foxglove.PointCloud` coloured
+/// by material, beside the frames, for Foxglove's 3D panel. Implemented here, not in `bag`:
+/// storage knows no visualisation.
+pub trait WritePoints {
+    /// Writes `frame` as a `foxglove.PointCloud` (protobuf, Foxglove's schema; coloured by
+    /// material) on `topic` at `stamp_ns` (log and publish time). The frame is not checked.
+    ///
+    /// # Errors
+    /// Writing the bag fails ([`BagError::Mcap`]).
+    fn write_points(
+        &mut self,
+        topic: &str,
+        stamp_ns: u64,
+        frame: &ParticleFrame,
+    ) -> Result<(), BagError>;
+}
+
+impl WritePoints for BagWriter {
+    fn write_points(
+        &mut self,
+        topic: &str,
+        stamp_ns: u64,
+        frame: &ParticleFrame,
+    ) -> Result<(), BagError> {
+        let schema = <PointCloud as foxglove::Encode>::get_schema()
+            .expect("foxglove.PointCloud has a schema");
+        let mut bytes = Vec::new();
+        // Into a Vec, which grows: encoding cannot run out of room.
+        let _ = foxglove::Encode::encode(&by_material(frame), &mut bytes);
+        let schema = ForeignSchema {
+            name: &schema.name,
+            encoding: &schema.encoding,
+            data: &schema.data,
+            message_encoding: "protobuf",
+        };
+        self.write_foreign(topic, stamp_ns, &schema, &bytes)
+    }
 }
 
 /// The predicted frame as a point cloud coloured by its position error against `truth`

@@ -32,6 +32,7 @@ mod interop_npz;
 mod many_streams;
 mod model_cells;
 mod model_grid;
+mod models_shipped;
 mod msgs_cdr;
 mod node_surrogate;
 mod plot_png;

@@ -21,7 +21,7 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
-use crate::ops::{im2col, pool2 as pool, silu, upsample2 as upsample, NetOps};
+use crate::ops::{im2col, pool2 as pool, silu, upsample2 as upsample, NetOps, PreparedWeights};
 
 /// How the U-Net's convolutions are computed; the weights and the result are the same.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -138,6 +138,10 @@ pub struct ConvBlock<B: Backend> {
     b: Conv2d<B>,
     #[module(skip)]
     kernel: ConvKernel,
+    /// The inference backend's prepared weights of `a` and `b` (the CPU's Winograd
+    /// transform), owned here so they live and die with the weights.
+    #[module(skip)]
+    prepared: [PreparedWeights; 2],
 }
 
 impl<B: Backend> ConvBlock<B> {
@@ -151,6 +155,7 @@ impl<B: Backend> ConvBlock<B> {
             a: conv(c_in, c_out),
             b: conv(c_out, c_out),
             kernel,
+            prepared: Default::default(),
         }
     }
 }
@@ -181,8 +186,8 @@ impl<B: NetOps> ConvBlock<B> {
     /// The block on the channel concatenation of `parts` (see [`conv_parts`]).
     fn forward_parts(&self, parts: Vec<Tensor<B, 4>>) -> Tensor<B, 4> {
         let k = self.kernel;
-        let a = conv_silu_parts(&self.a, parts, k);
-        conv_silu_parts(&self.b, vec![a], k)
+        let a = conv_silu_parts_prepared(&self.a, parts, k, &self.prepared[0]);
+        conv_silu_parts_prepared(&self.b, vec![a], k, &self.prepared[1])
     }
 }
 
@@ -251,12 +256,22 @@ pub fn conv_silu_parts<B: NetOps>(
     parts: Vec<Tensor<B, 4>>,
     kernel: ConvKernel,
 ) -> Tensor<B, 4> {
+    conv_silu_parts_prepared(conv, parts, kernel, &PreparedWeights::default())
+}
+
+/// [`conv_silu_parts`] with the backend's prepared weights of `conv` kept in `prepared`.
+fn conv_silu_parts_prepared<B: NetOps>(
+    conv: &Conv2d<B>,
+    parts: Vec<Tensor<B, 4>>,
+    kernel: ConvKernel,
+    prepared: &PreparedWeights,
+) -> Tensor<B, 4> {
     if kernel.resolve::<B>() == ConvKernel::Gather && B::NATIVE_CONV_OPS {
-        if let Some(y) = conv3x3_forward(conv, &parts, true) {
+        if let Some(y) = conv3x3_forward(conv, &parts, true, prepared) {
             return y;
         }
     }
-    silu(conv_parts(conv, parts, kernel))
+    silu(conv_parts_prepared(conv, parts, kernel, prepared))
 }
 
 /// [`NetOps::conv3x3_forward`] of `conv` (then SiLU when `silu`); None for another kernel
@@ -265,6 +280,7 @@ fn conv3x3_forward<B: NetOps>(
     conv: &Conv2d<B>,
     parts: &[Tensor<B, 4>],
     silu: bool,
+    prepared: &PreparedWeights,
 ) -> Option<Tensor<B, 4>> {
     if conv.weight.dims()[2] != 3 {
         return None;
@@ -278,7 +294,7 @@ fn conv3x3_forward<B: NetOps>(
         .as_ref()
         .map(|p| p.val().into_primitive().tensor());
     let weight = conv.weight.val().into_primitive().tensor();
-    let y = B::conv3x3_forward(&inputs, &weight, bias.as_ref(), silu)?;
+    let y = B::conv3x3_forward(&inputs, &weight, bias.as_ref(), silu, prepared)?;
     Some(Tensor::from_primitive(TensorPrimitive::Float(y)))
 }
 
@@ -291,8 +307,18 @@ fn conv3x3_forward<B: NetOps>(
 /// - `parts`: `[B, H, W, C_p]` each, `sum C_p = C_in` -> `[B, H, W, C_out]`
 pub fn conv_parts<B: NetOps>(
     conv: &Conv2d<B>,
+    parts: Vec<Tensor<B, 4>>,
+    kernel: ConvKernel,
+) -> Tensor<B, 4> {
+    conv_parts_prepared(conv, parts, kernel, &PreparedWeights::default())
+}
+
+/// [`conv_parts`] with the backend's prepared weights of `conv` kept in `prepared`.
+fn conv_parts_prepared<B: NetOps>(
+    conv: &Conv2d<B>,
     mut parts: Vec<Tensor<B, 4>>,
     kernel: ConvKernel,
+    prepared: &PreparedWeights,
 ) -> Tensor<B, 4> {
     let kernel = kernel.resolve::<B>();
     if kernel != ConvKernel::Gather {
@@ -309,7 +335,7 @@ pub fn conv_parts<B: NetOps>(
     let device = parts[0].device();
     let [c_out, c_in, k, _] = conv.weight.dims();
     if B::NATIVE_CONV_OPS {
-        return conv_parts_native(conv, parts, [b, h, w, c_out, c_in, k]);
+        return conv_parts_native(conv, parts, [b, h, w, c_out, c_in, k], prepared);
     }
     let index = (k > 1).then(|| im2col_index::<B>(b, h, w, k, &device));
     let mut bias = conv.bias.as_ref().map(|p| p.val());
@@ -343,8 +369,9 @@ fn conv_parts_native<B: NetOps>(
     conv: &Conv2d<B>,
     parts: Vec<Tensor<B, 4>>,
     [b, h, w, c_out, c_in, k]: [usize; 6],
+    prepared: &PreparedWeights,
 ) -> Tensor<B, 4> {
-    if let Some(y) = conv3x3_forward(conv, &parts, false) {
+    if let Some(y) = conv3x3_forward(conv, &parts, false, prepared) {
         return y;
     }
     let weight = conv.weight.val().reshape([c_out, c_in * k * k]);
@@ -374,7 +401,9 @@ fn conv_parts_native<B: NetOps>(
 /// The im2col gather of a `k x k` same-padding convolution over `[B, H, W]` positions: for
 /// output row `(b H + y) W + x` and offset `s = ky k + kx`, entry `9 row + s` is the input row
 /// `(b H + y + ky - k/2) W + x + kx - k/2`, or `B H W` (a zero row appended to the input)
-/// outside the grid. Built once per shape and thread.
+/// outside the grid. Built per call, not cached: one integer per gathered row, a small
+/// fraction of the gather of `C` channels it indexes (and only on backends without native
+/// im2col, where `--conv gather` was asked for).
 fn im2col_index<B: Backend>(
     b: usize,
     h: usize,
@@ -382,41 +411,25 @@ fn im2col_index<B: Backend>(
     k: usize,
     device: &B::Device,
 ) -> Tensor<B, 1, burn::tensor::Int> {
-    use std::cell::RefCell;
-    use std::collections::HashMap;
-    thread_local! {
-        static CACHE: RefCell<HashMap<[usize; 4], Vec<i64>>> = RefCell::new(HashMap::new());
-    }
-    let index = CACHE.with(|cache| {
-        cache
-            .borrow_mut()
-            .entry([b, h, w, k])
-            .or_insert_with(|| {
-                let zero = (b * h * w) as i64;
-                let half = (k / 2) as isize;
-                let mut index = Vec::with_capacity(b * h * w * k * k);
-                for bb in 0..b {
-                    for y in 0..h as isize {
-                        for x in 0..w as isize {
-                            for s in 0..(k * k) as isize {
-                                let (yy, xx) =
-                                    (y + s / k as isize - half, x + s % k as isize - half);
-                                index.push(
-                                    if yy < 0 || xx < 0 || yy >= h as isize || xx >= w as isize {
-                                        zero
-                                    } else {
-                                        ((bb * h) as isize * w as isize + yy * w as isize + xx)
-                                            as i64
-                                    },
-                                );
-                            }
-                        }
-                    }
+    let zero = (b * h * w) as i64;
+    let half = (k / 2) as isize;
+    let mut index = Vec::with_capacity(b * h * w * k * k);
+    for bb in 0..b {
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                for s in 0..(k * k) as isize {
+                    let (yy, xx) = (y + s / k as isize - half, x + s % k as isize - half);
+                    index.push(
+                        if yy < 0 || xx < 0 || yy >= h as isize || xx >= w as isize {
+                            zero
+                        } else {
+                            ((bb * h) as isize * w as isize + yy * w as isize + xx) as i64
+                        },
+                    );
                 }
-                index
-            })
-            .clone()
-    });
+            }
+        }
+    }
     let n = index.len();
     Tensor::from_data(burn::tensor::TensorData::new(index, [n]), device)
 }

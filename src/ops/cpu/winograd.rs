@@ -21,7 +21,7 @@
 
 use std::borrow::Cow;
 use std::mem::MaybeUninit;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use burn::backend::ndarray::NdArrayTensor;
 
@@ -31,6 +31,7 @@ use rayon::prelude::*;
 use super::activation::sigmoid1;
 use super::gemm::gemm_serial;
 use super::{dense, slice1, tensor, CpuTensor, PrimitiveInfo, PARALLEL_WORK};
+use crate::ops::PreparedWeights;
 
 /// Outputs per tile side (the m of F(m x m, 3x3)).
 const TILE: usize = 4;
@@ -52,13 +53,15 @@ const LANES: usize = 16;
 /// - `weight`: `[C_out, C_in, 3, 3]` (burn's `Conv2d` layout), `bias`: `[C_out]`
 /// - returns `[B, H, W, C_out]`
 ///
-/// None for operands it does not take (not f32, other ranks or sizes); the caller then runs
-/// im2col.
+/// The transformed weight comes from `prepared` while `weight` is the tensor it was made
+/// from ([`transformed_weight`]). None for operands it does not take (not f32, other ranks or
+/// sizes); the caller then runs im2col.
 pub(crate) fn conv3x3(
     parts: &[CpuTensor],
     weight: &CpuTensor,
     bias: Option<&CpuTensor>,
     silu: bool,
+    prepared: &PreparedWeights,
 ) -> Option<CpuTensor> {
     let parts: Vec<(Cow<'_, [f32]>, Vec<usize>)> =
         parts.iter().map(dense).collect::<Option<_>>()?;
@@ -81,7 +84,7 @@ pub(crate) fn conv3x3(
         return None;
     }
     let c_out = wshape[0];
-    let u = transformed_weight(weight, c_in, c_out)?;
+    let u = transformed_weight(weight, c_in, c_out, prepared)?;
     let bias = match bias {
         Some(bias) => Some(slice1(bias)?.to_vec()),
         None => None,
@@ -179,18 +182,17 @@ fn for_chunks(
     }
 }
 
-/// Weights seen lately, each with its transform: inference runs the same weights step after
-/// step, and transforming them every step wrote as many bytes as the products read.
-static WEIGHTS: Mutex<Vec<(CpuTensor, Arc<Vec<f32>>)>> = Mutex::new(Vec::new());
-
-/// Most weights kept in [`WEIGHTS`] (the full-size U-Net has 14 3x3 convolutions).
-const KEPT_WEIGHTS: usize = 64;
-
-/// [`transform_weight`] of `weight` (`[C_out, C_in, 3, 3]`), from [`WEIGHTS`] when the same
-/// buffer was transformed before. A kept entry holds a reference to the buffer, so the
-/// buffer stays allocated and unchanged (burn-ndarray copies a shared or borrowed buffer
-/// before writing to it): the same address, shape and strides are the same values.
-fn transformed_weight(weight: &CpuTensor, c_in: usize, c_out: usize) -> Option<Arc<Vec<f32>>> {
+/// [`transform_weight`] of `weight` (`[C_out, C_in, 3, 3]`), kept in the convolution's
+/// `prepared` slot with a handle on `weight` (inference runs the same weights step after
+/// step). The handle keeps the buffer allocated and unchanged (burn-ndarray copies a shared
+/// buffer before writing to it), so the same address, shape and strides are the same
+/// values; other weights replace the entry.
+fn transformed_weight(
+    weight: &CpuTensor,
+    c_in: usize,
+    c_out: usize,
+    prepared: &PreparedWeights,
+) -> Option<Arc<Vec<f32>>> {
     let NdArrayTensor::F32(storage) = weight else {
         return None;
     };
@@ -204,17 +206,10 @@ fn transformed_weight(weight: &CpuTensor, c_in: usize, c_out: usize) -> Option<A
         }
         _ => false,
     };
-    let mut kept = WEIGHTS.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some((_, u)) = kept.iter().find(|(w, _)| same(w)) {
-        return Some(Arc::clone(u));
-    }
-    let (data, _) = dense(weight)?;
-    let u = Arc::new(transform_weight(&data, c_in, c_out));
-    if kept.len() == KEPT_WEIGHTS {
-        kept.remove(0);
-    }
-    kept.push((weight.clone(), Arc::clone(&u)));
-    Some(u)
+    prepared.get_or_prepare(same, || {
+        let (data, _) = dense(weight)?;
+        Some((weight.clone(), transform_weight(&data, c_in, c_out)))
+    })
 }
 
 /// `U = G g G^T` for every (input, output) channel pair: `[36, C_in, C_out]`, point

@@ -1,0 +1,87 @@
+//! What the surrogate node counts and logs: the run's counters ([`Tally`], the
+//! [`NodeReport`] published as status), each (scene, reason) logged once, the start line,
+//! the latency percentiles at the end and the wall-clock stamp of each report. Used by
+//! [`super::run`] (`minflow node`).
+
+use std::collections::HashSet;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use crate::model::store::Surrogate;
+use crate::msgs::Time;
+use crate::ops::NetOps;
+use crate::transport::Transport;
+
+use super::{NodeOptions, NodeReport};
+
+/// The run's counters, and which (scene, reason kind) pairs were already logged.
+pub(super) struct Tally {
+    pub(super) report: NodeReport,
+    pub(super) logged: HashSet<(String, String)>,
+}
+
+impl Tally {
+    /// Records `reason` as the last error; logs it once per scene and reason kind (the
+    /// reason's text up to its first digit).
+    pub(super) fn note(&mut self, scene: &str, reason: String) {
+        let kind: String = reason
+            .split(|c: char| c.is_ascii_digit())
+            .next()
+            .unwrap_or("")
+            .to_owned();
+        if self.logged.insert((scene.to_owned(), kind)) {
+            tracing::warn!(
+                "{}: scene {scene:?}: {reason} (logged once per scene and reason)",
+                self.report.node
+            );
+        }
+        self.report.last_error = format!("{scene}: {reason}");
+    }
+}
+
+/// Logs the model and topics the node serves, once at start.
+pub(super) fn log_start<B: NetOps>(
+    options: &NodeOptions,
+    surrogate: &Surrogate<B>,
+    transport: &dyn Transport,
+) {
+    let meta = surrogate.meta();
+    tracing::info!(
+        "{}: {} architecture, {} core, T = {}, {} -> {} over {}{}",
+        options.name,
+        meta.arch_name(),
+        meta.core_name(),
+        meta.window().max(1),
+        options.input,
+        options.output,
+        transport.kind(),
+        options
+            .rollout
+            .map_or(String::new(), |k| format!(", closed loop {k} frames"))
+    );
+}
+
+/// Logs the arrival -> publication latency percentiles (nothing when no frame was timed).
+pub(super) fn log_latencies(name: &str, latencies_us: &mut [f64]) {
+    if latencies_us.is_empty() {
+        return;
+    }
+    latencies_us.sort_by(f64::total_cmp);
+    let pct = |p: f64| latencies_us[((latencies_us.len() - 1) as f64 * p).round() as usize];
+    tracing::info!(
+        "{}: arrival -> publication latency over {} frames: p50 {:.0} us, p99 {:.0} us, max {:.0} us",
+        name,
+        latencies_us.len(),
+        pct(0.5),
+        pct(0.99),
+        pct(1.0)
+    );
+}
+
+/// Now, as a message stamp (ns since the Unix epoch; 0 before it).
+pub(super) fn wall_time() -> Time {
+    Time::from_nanos(
+        SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64),
+    )
+}
