@@ -99,20 +99,19 @@ fn rss_kib(pid: u32) -> u64 {
         .unwrap()
 }
 
-#[test]
-fn many_scenes_into_one_node_are_bounded_and_evicted_cleanly() {
-    let (input, output) = (unique_topic("many_in"), unique_topic("many_out"));
+/// The node under test: `--max-scenes 64 --idle-timeout 3`, room for every pending frame.
+fn spawn_node(input: &str, output: &str) -> Node {
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/all-grid-mingru-small");
-    let node = Node::spawn(
+    Node::spawn(
         "node",
         &[
             "node",
             "--model",
             model.to_str().unwrap(),
             "--in",
-            &input,
+            input,
             "--out",
-            &output,
+            output,
             "--status",
             "none",
             "--max-scenes",
@@ -122,16 +121,52 @@ fn many_scenes_into_one_node_are_bounded_and_evicted_cleanly() {
             "--queue-depth",
             "1024",
         ],
-    );
+    )
+}
+
+/// Scene `k` of the 256: its name and particle count (500 to 2,499, at most `n_max`).
+fn many(k: usize, n_max: usize) -> (String, usize) {
+    (format!("many/{k:03}"), (500 + (k * 379) % 2000).min(n_max))
+}
+
+/// Frames `rounds` of wave `w` (scenes 64w to 64w + 63), interleaved scene by scene.
+fn wave(base: &[ParticleFrame], w: usize, rounds: std::ops::Range<u32>) -> Vec<ParticleFrame> {
+    let n_max = base[0].material.len();
+    let mut v = Vec::new();
+    for i in rounds {
+        for k in 64 * w..64 * (w + 1) {
+            let (scene, n) = many(k, n_max);
+            v.push(frame_of(&base[(i as usize + k) % base.len()], &scene, n, i));
+        }
+    }
+    v
+}
+
+/// The node's closing counters: every frame predicted, nothing lost, at most 64 scenes
+/// kept, at least `min_evicted` evictions logged.
+fn check_counters(log: &str, sent: u64, min_evicted: u64) {
+    assert_eq!(counter(log, "received"), Some(sent), "{log}");
+    assert_eq!(counter(log, "predicted"), Some(sent), "{log}");
+    for c in ["dropped", "rejected", "malformed"] {
+        assert_eq!(counter(log, c), Some(0), "{c}\n{log}");
+    }
+    assert!(counter(log, "scenes").unwrap() <= 64, "{log}");
+    let evicted = counter(log, "evicted").unwrap();
+    assert!(evicted >= min_evicted, "evicted {evicted}\n{log}");
+    assert!(log.contains("evicted at --max-scenes 64"), "{log}");
+}
+
+#[test]
+fn many_scenes_into_one_node_are_bounded_and_evicted_cleanly() {
+    let (input, output) = (unique_topic("many_in"), unique_topic("many_out"));
+    let node = spawn_node(&input, &output);
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
     let (tx, rx) = channel();
     let _sub = session.subscribe(&output, tx).unwrap();
     let publisher = session.publisher(&input).unwrap();
-    assert!(transport::wait_for_subscribers(
-        publisher.as_ref(),
-        1,
-        Duration::from_secs(30)
-    ));
+    let subscribed =
+        transport::wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(30));
+    assert!(subscribed, "the node never subscribed");
     let mut s = Stream {
         publisher,
         rx,
@@ -151,34 +186,26 @@ fn many_scenes_into_one_node_are_bounded_and_evicted_cleanly() {
     s.run(&one[..50], 125.0);
     let (p50_one, p99_one, _) = s.run(&one[50..250], 125.0);
     let (_, _, burst_one) = s.run(&one[250..], 0.0);
-    // 256 scenes in four waves of 64, four frames each, interleaved.
-    let scene = |k: usize| format!("many/{k:03}");
-    let count = |k: usize| 500 + (k * 379) % 2000;
-    let wave = |w: usize, rounds: std::ops::Range<u32>| -> Vec<ParticleFrame> {
-        let mut v = Vec::new();
-        for i in rounds {
-            for k in 64 * w..64 * (w + 1) {
-                let b = &base[(i as usize + k) % base.len()];
-                v.push(frame_of(b, &scene(k), count(k).min(n_max), i));
-            }
-        }
-        v
-    };
+    // 256 scenes in four waves of 64, four frames each.
     let pid = node.child.as_ref().unwrap().id();
-    let (p50_many, p99_many, _) = s.run(&wave(0, 0..4), 125.0);
+    let (p50_many, p99_many, _) = s.run(&wave(&base, 0, 0..4), 125.0);
     let rss_first_wave = rss_kib(pid);
     for w in 1..4 {
-        s.run(&wave(w, 0..4), 125.0);
+        s.run(&wave(&base, w, 0..4), 125.0);
     }
     let rss_last_wave = rss_kib(pid);
     // Scene 0 comes back mid-stream (frames 4..8) after it was evicted.
+    let (scene0, n0) = many(0, n_max);
     let back: Vec<_> = (4..8u32)
-        .map(|i| frame_of(&base[i as usize], &scene(0), count(0), i))
+        .map(|i| frame_of(&base[i as usize], &scene0, n0, i))
         .collect();
     s.run(&back, 125.0);
     // Throughput over 256 scenes: one frame each, as fast as the transport accepts.
     let burst: Vec<_> = (0..256)
-        .map(|k| frame_of(&base[k % base.len()], &scene(k), count(k).min(n_max), 8))
+        .map(|k| {
+            let (scene, n) = many(k, n_max);
+            frame_of(&base[k % base.len()], &scene, n, 8)
+        })
         .collect();
     let (_, _, burst_many) = s.run(&burst, 0.0);
     node.signal("INT");
@@ -193,17 +220,9 @@ fn many_scenes_into_one_node_are_bounded_and_evicted_cleanly() {
          {rss_last_wave} KiB after the fourth"
     );
     let sent = s.sent.len() as u64;
-    assert_eq!(counter(&log, "received"), Some(sent), "{log}");
-    assert_eq!(counter(&log, "predicted"), Some(sent), "{log}");
-    for c in ["dropped", "rejected", "malformed"] {
-        assert_eq!(counter(&log, c), Some(0), "{c}\n{log}");
-    }
+    check_counters(&log, sent, 192);
     assert_eq!(s.latencies.len() as u64, sent, "every prediction arrived");
-    assert!(counter(&log, "scenes").unwrap() <= 64, "{log}");
-    let evicted = counter(&log, "evicted").unwrap();
-    assert!(evicted >= 192, "evicted {evicted}\n{log}");
-    assert!(log.contains("evicted at --max-scenes 64"), "{log}");
-    assert_eq!(s.predicted[&scene(0)], [1, 2, 3, 4, 5, 6, 7, 8, 9]);
+    assert_eq!(s.predicted[&scene0], [1, 2, 3, 4, 5, 6, 7, 8, 9]);
     assert!(
         rss_last_wave <= rss_first_wave + rss_first_wave / 4,
         "memory grew from {rss_first_wave} to {rss_last_wave} KiB over three more waves"

@@ -12,10 +12,10 @@
 
 use std::collections::HashMap;
 use std::path::Path;
-use std::sync::mpsc::channel;
+use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
-use minflow::transport::{self, Transport};
+use minflow::transport::{self, Sample, Transport};
 
 use crate::transport_support::*;
 
@@ -48,19 +48,12 @@ fn growth(samples: &[u64], warm: usize) -> (u64, u64, f64) {
     (base, max, (max as f64 - base as f64) / base as f64)
 }
 
-#[test]
-fn soak_replay_loop_into_node_and_record() {
-    let secs: u64 = std::env::var("MINFLOW_SOAK_SECS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(30);
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("soak");
-    let (input, output) = (unique_topic("soak_in"), unique_topic("soak_out"));
+/// The soak's three processes: replay (looping), node, recorder (of the input topic).
+fn spawn(input: &str, output: &str, out: &Path) -> [Node; 3] {
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/all-grid-mingru-small");
     let recorder = Node::spawn(
         "record",
-        &["record", "--topic", &input, "-o", out.to_str().unwrap()],
+        &["record", "--topic", input, "-o", out.to_str().unwrap()],
     );
     let node = Node::spawn(
         "node",
@@ -69,21 +62,15 @@ fn soak_replay_loop_into_node_and_record() {
             "--model",
             model.to_str().unwrap(),
             "--in",
-            &input,
+            input,
             "--out",
-            &output,
+            output,
             "--status",
             "none",
             "--queue-depth",
             "64",
         ],
     );
-    let session = transport::zenoh::ZenohTransport::open(None).unwrap();
-    let (tx, rx) = channel();
-    let _subs = [
-        session.subscribe(&input, tx.clone()).unwrap(),
-        session.subscribe(&output, tx).unwrap(),
-    ];
     let source = source_bag();
     let player = Node::spawn(
         "replay",
@@ -91,17 +78,30 @@ fn soak_replay_loop_into_node_and_record() {
             "replay",
             source.to_str().unwrap(),
             "--topic",
-            &input,
+            input,
             "--loop",
+            // The node, the recorder and this test.
             "--wait-for-subscribers",
             "3",
         ],
     );
-    let pids = [&player, &node, &recorder].map(|n| n.child.as_ref().unwrap().id());
-    let mut memory: [Vec<u64>; 3] = Default::default();
+    [player, node, recorder]
+}
+
+/// What this test saw during the soak.
+#[derive(Default)]
+struct Watch {
+    /// VmRSS (KiB) of replay, node and recorder, one sample a second.
+    memory: [Vec<u64>; 3],
+    /// (seconds since the first input frame, input arrival -> prediction arrival in ms).
+    latencies: Vec<(f64, f64)>,
+}
+
+/// Samples memory every second and times every prediction for `secs` seconds from the
+/// first input frame (`rx` delivers both topics).
+fn watch(rx: &Receiver<Sample>, input: &str, pids: [u32; 3], secs: u64) -> Watch {
+    let mut w = Watch::default();
     let mut arrivals: HashMap<(String, u32), Instant> = HashMap::new();
-    // (seconds since the first input frame, latency ms)
-    let mut latencies: Vec<(f64, f64)> = Vec::new();
     let mut first_input: Option<Instant> = None;
     let mut next_sample = Instant::now();
     let deadline = Instant::now() + Duration::from_secs(secs + 60);
@@ -113,7 +113,7 @@ fn soak_replay_loop_into_node_and_record() {
         if Instant::now() >= next_sample && first_input.is_some() {
             next_sample += Duration::from_secs(1);
             for (k, pid) in pids.iter().enumerate() {
-                memory[k].push(rss_kib(*pid).expect("a process of the soak died"));
+                w.memory[k].push(rss_kib(*pid).expect("a process of the soak died"));
             }
         }
         let Ok(sample) = rx.recv_timeout(Duration::from_millis(100)) else {
@@ -129,21 +129,18 @@ fn soak_replay_loop_into_node_and_record() {
         } else if let Some(sent) = arrivals.get(&(frame.scene, frame.frame_index.wrapping_sub(1))) {
             let at = sent.duration_since(first_input.unwrap()).as_secs_f64();
             let ms = sample.received.duration_since(*sent).as_secs_f64() * 1e3;
-            latencies.push((at, ms));
+            w.latencies.push((at, ms));
         }
     }
     assert!(first_input.is_some(), "no frame arrived");
-    player.signal("INT");
-    let _ = player.wait(Duration::from_secs(30));
-    std::thread::sleep(Duration::from_secs(2));
-    node.signal("INT");
-    let node_log = ok(&node.wait(Duration::from_secs(30)), "node");
-    recorder.signal("INT");
-    ok(&recorder.wait(Duration::from_secs(30)), "record");
+    w
+}
 
+/// Prints p50/p99 of the first and last third; returns their p99s (ms).
+fn latency_thirds(w: &Watch, secs: u64) -> (f64, f64) {
     let third = secs as f64 / 3.0;
     let part = |lo: f64, hi: f64| -> Vec<f64> {
-        latencies
+        w.latencies
             .iter()
             .filter(|(t, _)| *t >= lo && *t < hi)
             .map(|(_, ms)| *ms)
@@ -152,14 +149,6 @@ fn soak_replay_loop_into_node_and_record() {
     let (mut first, mut last) = (part(1.0, third), part(secs as f64 - third, f64::MAX));
     let (p50_first, p99_first) = (quantile(&mut first, 0.5), quantile(&mut first, 0.99));
     let (p50_last, p99_last) = (quantile(&mut last, 0.5), quantile(&mut last, 0.99));
-    let received = counter(&node_log, "received").unwrap();
-    let recorded = raw_messages(&out, Some(&input)).len() as u64;
-    println!(
-        "soak {secs} s: {received} frames received by the node ({:.1} Hz), {recorded} recorded, \
-         {} predictions timed here",
-        received as f64 / secs as f64,
-        latencies.len()
-    );
     println!(
         "latency ms: first third p50 {p50_first:.2} p99 {p99_first:.2} ({} frames); last third \
          p50 {p50_last:.2} p99 {p99_last:.2} ({} frames); p99 ratio {:.3}",
@@ -167,9 +156,47 @@ fn soak_replay_loop_into_node_and_record() {
         last.len(),
         p99_last / p99_first
     );
+    (p99_first, p99_last)
+}
+
+#[test]
+fn soak_replay_loop_into_node_and_record() {
+    let secs: u64 = std::env::var("MINFLOW_SOAK_SECS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(30);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("soak");
+    let (input, output) = (unique_topic("soak_in"), unique_topic("soak_out"));
+    let session = transport::zenoh::ZenohTransport::open(None).unwrap();
+    let (tx, rx) = channel();
+    let _subs = [
+        session.subscribe(&input, tx.clone()).unwrap(),
+        session.subscribe(&output, tx).unwrap(),
+    ];
+    let [player, node, recorder] = spawn(&input, &output, &out);
+    let pids = [&player, &node, &recorder].map(|n| n.child.as_ref().unwrap().id());
+    let w = watch(&rx, &input, pids, secs);
+    player.signal("INT");
+    let _ = player.wait(Duration::from_secs(30));
+    std::thread::sleep(Duration::from_secs(2));
+    node.signal("INT");
+    let node_log = ok(&node.wait(Duration::from_secs(30)), "node");
+    recorder.signal("INT");
+    ok(&recorder.wait(Duration::from_secs(30)), "record");
+
+    let received = counter(&node_log, "received").unwrap();
+    let recorded = raw_messages(&out, Some(&input)).len() as u64;
+    println!(
+        "soak {secs} s: {received} frames received by the node ({:.1} Hz), {recorded} recorded, \
+         {} predictions timed here",
+        received as f64 / secs as f64,
+        w.latencies.len()
+    );
+    let (p99_first, p99_last) = latency_thirds(&w, secs);
     let warm = ((secs / 3).min(60)) as usize;
     let mut growths = Vec::new();
-    for (name, samples) in ["replay", "node", "record"].iter().zip(&memory) {
+    for (name, samples) in ["replay", "node", "record"].iter().zip(&w.memory) {
         let (base, max, g) = growth(samples, warm);
         println!(
             "{name}: VmRSS {base} KiB at {warm} s, max {max} KiB after ({:+.2} %), {} samples",
