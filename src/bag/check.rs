@@ -261,6 +261,10 @@ fn check_sequence(
         frame.frame_index
     );
     let stamp_ns = frame.header.stamp.as_nanos();
+    if frame.scene.trim().is_empty() && !scenes.contains_key(&key) {
+        // Once per topic: the node keys its hidden states by scene, eval and train too.
+        report.problem(format!("{at}: empty scene name"));
+    }
     if let Some(prev) = scenes.get(&key) {
         let expected = u64::from(prev.frame_index) + 1;
         if u64::from(frame.frame_index) != expected {

@@ -49,6 +49,9 @@ pub struct BagWriter {
     /// Schemas of other message types ([`BagWriter::write_foreign`]) by name -> schema id.
     foreign_schemas: BTreeMap<String, u16>,
     scratch: Vec<u8>,
+    /// File length after the last successful [`BagWriter::flush`]: everything before it is
+    /// whole records, where [`BagWriter::abandon`] cuts the file.
+    flushed_len: u64,
 }
 
 impl BagWriter {
@@ -85,6 +88,7 @@ impl BagWriter {
             channels: BTreeMap::new(),
             foreign_schemas: BTreeMap::new(),
             scratch: Vec::new(),
+            flushed_len: 0,
         })
     }
 
@@ -238,7 +242,40 @@ impl BagWriter {
         self.writer.flush().map_err(|source| BagError::Mcap {
             path: self.path.clone(),
             source,
-        })
+        })?;
+        self.flushed_len = self.bytes_written();
+        Ok(())
+    }
+
+    /// After a failed write (a full disk): gives up the writer and closes the file at its last
+    /// flush, so that what was flushed stays a complete bag that every reader opens without
+    /// error. Everything written since that flush is cut off; a Data End record and a footer
+    /// without summary (valid MCAP: readers then read the messages in file order) follow.
+    /// Returns the bag's new length in bytes; 0 when it was never flushed, and then the file
+    /// is removed (it holds no whole message).
+    ///
+    /// # Errors
+    /// [`BagError::Io`] when the file cannot be cut or the footer not written (the disk is
+    /// still full): the file then ends at the cut, readable as a truncated bag.
+    pub fn abandon(self) -> Result<u64, BagError> {
+        let (path, keep) = (self.path.clone(), self.flushed_len);
+        // Dropping the writer tries to flush its buffer; what it adds is cut off below.
+        drop(self);
+        if keep == 0 {
+            return std::fs::remove_file(&path)
+                .map(|()| 0)
+                .map_err(|e| BagError::io(&path, "removing the unflushed bag", e));
+        }
+        let fail = |e| BagError::io(&path, "closing the bag at its last flush", e);
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .map_err(fail)?;
+        file.set_len(keep).map_err(fail)?;
+        std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(keep)).map_err(fail)?;
+        file.write_all(&closing_records()).map_err(fail)?;
+        file.sync_all().map_err(fail)?;
+        Ok(keep + closing_records().len() as u64)
     }
 
     /// Bytes written to the file so far (chunks closed by [`BagWriter::flush`] or by size).
@@ -262,4 +299,22 @@ impl BagWriter {
         file.sync_all()
             .map_err(|e| BagError::io(&path, "syncing bag", e))
     }
+}
+
+/// A Data End record (data section CRC 0: not computed), a Footer pointing at no summary,
+/// and the closing magic: what [`BagWriter::abandon`] appends after the last whole record.
+fn closing_records() -> Vec<u8> {
+    const DATA_END: u8 = 0x0F;
+    const FOOTER: u8 = 0x02;
+    let mut out = Vec::with_capacity(58);
+    out.push(DATA_END);
+    out.extend_from_slice(&4u64.to_le_bytes());
+    out.extend_from_slice(&0u32.to_le_bytes());
+    out.push(FOOTER);
+    out.extend_from_slice(&20u64.to_le_bytes());
+    out.extend_from_slice(&0u64.to_le_bytes()); // summary start: none
+    out.extend_from_slice(&0u64.to_le_bytes()); // summary offset start: none
+    out.extend_from_slice(&0u32.to_le_bytes()); // summary CRC: none
+    out.extend_from_slice(mcap::MAGIC);
+    out
 }

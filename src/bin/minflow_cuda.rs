@@ -8,6 +8,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> std::process::ExitCode {
     minflow::cli::tune_allocator();
+    minflow::cli::ignore_file_size_signal();
     minflow::cli::flush_denormals();
     let cli: minflow::cli::TrainCli = minflow::cli::parse();
     minflow::cli::init_logging(cli.verbose);

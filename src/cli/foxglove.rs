@@ -11,8 +11,10 @@ use crate::viz::{Endpoint, LiveView};
 pub struct FoxgloveArgs {
     /// Serve every frame live to Foxglove as a foxglove.PointCloud on `<topic>/points`, from a
     /// WebSocket server on HOST:PORT (port 0: any free port; Foxglove: "Open connection",
-    /// ws://HOST:PORT, then a 3D panel). Off by default.
-    #[arg(long, value_name = "HOST:PORT")]
+    /// ws://HOST:PORT, then a 3D panel). A bare PORT binds to loopback (127.0.0.1) only; the
+    /// server has no TLS and no authentication, so give a public HOST only on a trusted
+    /// network. Off by default.
+    #[arg(long, value_name = "[HOST:]PORT")]
     pub foxglove: Option<Endpoint>,
 }
 

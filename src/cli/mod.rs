@@ -141,8 +141,10 @@ pub fn parse<P: clap::Parser>() -> P {
 #[error("{0}")]
 pub struct UsageError(pub String);
 
-/// The process exit code of a command's result: 0 done, 3 data lost, 2 a [`UsageError`]
-/// anywhere in the error chain, 1 any other error (printed to stderr with its causes).
+/// The process exit code of a command's result: 0 done, 3 data lost (also an error whose
+/// cause is a write that ran out of room, [`out_of_room`]: what the command produced after its
+/// last complete file is lost), 2 a [`UsageError`] anywhere in the error chain, 1 any other
+/// error (printed to stderr with its causes).
 pub fn exit_code(result: anyhow::Result<Outcome>) -> std::process::ExitCode {
     use std::process::ExitCode;
     match result {
@@ -150,12 +152,27 @@ pub fn exit_code(result: anyhow::Result<Outcome>) -> std::process::ExitCode {
         Ok(Outcome::DataLost) => ExitCode::from(3),
         Err(err) => {
             eprintln!("error: {}", error_text(&err));
-            match err.chain().any(|e| e.is::<UsageError>()) {
-                true => ExitCode::from(2),
-                false => ExitCode::FAILURE,
+            if err.chain().any(|e| e.is::<UsageError>()) {
+                ExitCode::from(2)
+            } else if out_of_room(&err) {
+                ExitCode::from(3)
+            } else {
+                ExitCode::FAILURE
             }
         }
     }
+}
+
+/// Whether a cause in `err`'s chain is an OS error of a write that ran out of room: no
+/// space left on the device (ENOSPC), a file over the size limit (EFBIG, `RLIMIT_FSIZE`) or
+/// a disk quota exceeded (EDQUOT).
+pub fn out_of_room(err: &anyhow::Error) -> bool {
+    err.chain().any(|cause| {
+        cause
+            .downcast_ref::<std::io::Error>()
+            .and_then(std::io::Error::raw_os_error)
+            .is_some_and(|code| [libc::ENOSPC, libc::EFBIG, libc::EDQUOT].contains(&code))
+    })
 }
 
 /// The error and its causes joined by ": ", as `{:#}` prints them, but leaving out a cause
@@ -178,6 +195,18 @@ fn error_text(err: &anyhow::Error) -> String {
 
 #[cfg(test)]
 mod error_text_tests {
+    /// A full disk, however deep in the chain, exits 3; other OS errors exit 1.
+    #[test]
+    fn a_write_out_of_room_is_data_lost() {
+        let full = std::io::Error::from_raw_os_error(libc::ENOSPC);
+        let store = crate::model::store::io(std::path::Path::new("m/model.mpk"), full);
+        let err = anyhow::Error::new(store).context("training");
+        assert!(super::out_of_room(&err));
+        assert!(super::error_text(&err).contains("No space left on device"));
+        let gone = std::io::Error::from_raw_os_error(libc::ENOENT);
+        assert!(!super::out_of_room(&anyhow::Error::new(gone)));
+    }
+
     /// A cause already printed by the error above it appears once; context is kept.
     #[test]
     fn a_cause_is_printed_once() {
@@ -248,6 +277,16 @@ pub fn tune_allocator() {
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: sets a process-wide integer option; mimalloc reads it on later frees.
         unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
+    }
+}
+
+/// Ignores SIGXFSZ, so that a write past the file size limit (`ulimit -f`, `RLIMIT_FSIZE`)
+/// fails with EFBIG ("File too large"), which the command reports naming the file (exit 3),
+/// instead of the signal killing the process with a core dump mid-write.
+pub fn ignore_file_size_signal() {
+    // SAFETY: sets the disposition of one signal to "ignore"; no handler runs.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
     }
 }
 

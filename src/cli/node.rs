@@ -48,6 +48,11 @@ pub struct NodeArgs {
     /// Pending frames per scene before the oldest is dropped.
     #[arg(long, default_value_t = 8, value_parser = super::flags::at_least_one)]
     queue_depth: usize,
+    /// Frames whose payload is larger than this many bytes are rejected before they are
+    /// decoded (counted as `rejected`, logged), so one publisher cannot make the node
+    /// allocate without bound. The default, 64 MiB, holds 4 million particles.
+    #[arg(long, default_value_t = 64 << 20, value_parser = super::flags::at_least_one)]
+    max_frame_bytes: usize,
     /// Closed loop: after the first T frames of a scene, publish R predicted frames (a model
     /// trained with --bundle K makes ceil(R / K) network calls). Without it, each input
     /// frame gets its next frame (for a bundled model, the first of its bundle).
@@ -109,6 +114,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         idle_timeout: Duration::from_secs_f64(args.idle_timeout.max(0.0)),
         max_scenes: args.max_scenes,
         queue_depth: args.queue_depth,
+        max_frame_bytes: args.max_frame_bytes,
         rollout: args.rollout,
         rate: args.rate,
         max_published: args.max_published,

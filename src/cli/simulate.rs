@@ -192,7 +192,13 @@ fn simulate(
         }
     }
     if failed > 0 {
-        bail!("{failed} of {} scene(s) failed", results.len());
+        let summary = format!("{failed} of {} scene(s) failed", results.len());
+        // A write that ran out of room keeps its cause in the chain: exit 3, data lost.
+        let mut errors = results.into_iter().filter_map(|(_, r)| r.err());
+        if let Some(full) = errors.find(super::out_of_room) {
+            return Err(full.context(summary));
+        }
+        bail!(summary);
     }
     Ok(Outcome::Done)
 }

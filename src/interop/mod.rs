@@ -20,6 +20,15 @@ pub enum InteropError {
     /// Reading the input bags failed.
     #[error(transparent)]
     Data(#[from] DataError),
+    /// The file system refused to create or write an output file (a full disk).
+    #[error("writing {path}: {source}")]
+    WriteIo {
+        /// The output file.
+        path: PathBuf,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
     /// Creating, writing or finishing an output file failed.
     #[error("writing {path}: {reason}")]
     Write {

@@ -14,7 +14,7 @@
 //! per contiguous segment.
 
 use std::fs::File;
-use std::io::BufWriter;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use ndarray::{arr0, Array1, Array3};
@@ -33,10 +33,14 @@ pub fn file_name(traj: &Trajectory, segmented: bool) -> String {
     }
 }
 
-/// Writes `traj` to `path` as described in the module documentation.
+/// Writes `traj` to `path` as described in the module documentation: into `path` + `.part`,
+/// renamed to `path` once the archive is complete, so a file under the final name is always
+/// a finished archive.
 ///
 /// # Errors
-/// [`InteropError::Write`] when the file cannot be created or written.
+/// [`InteropError::WriteIo`] (a full disk: the OS error, "No space left on device") or
+/// [`InteropError::Write`] when the file cannot be created, written or renamed; the `.part`
+/// file is then removed.
 pub fn write_trajectory(traj: &Trajectory, path: &Path) -> Result<(), InteropError> {
     let fail = |reason: String| InteropError::Write {
         path: path.to_owned(),
@@ -53,8 +57,21 @@ pub fn write_trajectory(traj: &Trajectory, path: &Path) -> Result<(), InteropErr
     let position = Array3::from_shape_vec(shape, position).map_err(|e| fail(e.to_string()))?;
     let velocity = Array3::from_shape_vec(shape, velocity).map_err(|e| fail(e.to_string()))?;
     let frame_index: Array1<u32> = (0..t).map(|k| traj.frame_index(k)).collect();
-    let file = File::create(path).map_err(|e| fail(e.to_string()))?;
-    let mut npz = NpzWriter::new(BufWriter::new(file));
+    let mut part = path.as_os_str().to_owned();
+    part.push(".part");
+    let part = PathBuf::from(part);
+    let file = File::create(&part).map_err(|source| InteropError::WriteIo {
+        path: part.clone(),
+        source,
+    })?;
+    let sink = Sink {
+        file: BufWriter::new(file),
+        failed: std::rc::Rc::new(std::cell::RefCell::new(None)),
+        pos: 0,
+        len: 0,
+    };
+    let failed = std::rc::Rc::clone(&sink.failed);
+    let mut npz = NpzWriter::new(sink);
     let write = |npz: &mut NpzWriter<_>| -> Result<(), ndarray_npy::WriteNpzError> {
         npz.add_array("position", &position)?;
         npz.add_array("velocity", &velocity)?;
@@ -62,8 +79,90 @@ pub fn write_trajectory(traj: &Trajectory, path: &Path) -> Result<(), InteropErr
         npz.add_array("frame_index", &frame_index)?;
         npz.add_array("dt", &arr0(traj.dt))
     };
-    write(&mut npz).map_err(|e| fail(e.to_string()))?;
-    npz.finish().map(drop).map_err(|e| fail(e.to_string()))
+    let result = write(&mut npz).and_then(|()| npz.finish()).map(|mut sink| {
+        // Errors are kept in `failed`.
+        let _ = sink.flush();
+        if !sink.broken() {
+            if let Err(e) = sink.file.get_ref().sync_all() {
+                sink.keep(e);
+            }
+        }
+    });
+    let os_error = failed.borrow_mut().take();
+    let result = match (result, os_error) {
+        (Ok(()), None) => std::fs::rename(&part, path).map_err(|e| fail(e.to_string())),
+        (_, Some(source)) => Err(InteropError::WriteIo {
+            path: part.clone(),
+            source,
+        }),
+        (Err(e), None) => Err(fail(e.to_string())),
+    };
+    if result.is_err() {
+        let _ = std::fs::remove_file(&part);
+    }
+    result
+}
+
+/// The archive's file: after its first failed write, later writes and seeks only move a
+/// virtual position (and report success), so the zip writer dropped after an error finishes
+/// quietly instead of printing "ZipWriter drop failed" (the `.part` file is removed anyway);
+/// the first OS error is kept for the caller.
+struct Sink {
+    file: BufWriter<File>,
+    failed: std::rc::Rc<std::cell::RefCell<Option<std::io::Error>>>,
+    /// Position and length as the zip writer sees them.
+    pos: u64,
+    len: u64,
+}
+
+impl Sink {
+    /// Whether a write failed before.
+    fn broken(&self) -> bool {
+        self.failed.borrow().is_some()
+    }
+
+    /// Keeps the first OS error; returns a copy for the zip writer.
+    fn keep(&mut self, e: std::io::Error) -> std::io::Error {
+        let copy = std::io::Error::new(e.kind(), e.to_string());
+        *self.failed.borrow_mut() = Some(e);
+        copy
+    }
+}
+
+impl Write for Sink {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = match self.broken() {
+            true => buf.len(),
+            false => self.file.write(buf).map_err(|e| self.keep(e))?,
+        };
+        self.pos += n as u64;
+        self.len = self.len.max(self.pos);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self.broken() {
+            true => Ok(()),
+            false => self.file.flush().map_err(|e| self.keep(e)),
+        }
+    }
+}
+
+impl Seek for Sink {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        if !self.broken() {
+            let at = self.file.seek(pos).map_err(|e| self.keep(e))?;
+            self.pos = at;
+            return Ok(at);
+        }
+        let at = match pos {
+            SeekFrom::Start(n) => Some(n),
+            SeekFrom::Current(d) => self.pos.checked_add_signed(d),
+            SeekFrom::End(d) => self.len.checked_add_signed(d),
+        };
+        self.pos = at.ok_or_else(|| std::io::Error::from(std::io::ErrorKind::InvalidInput))?;
+        Ok(self.pos)
+    }
 }
 
 /// Writes every trajectory of `trajs` into `out_dir` (created if missing), named by

@@ -75,6 +75,13 @@ pub struct NodeDecl {
     /// Seconds between `stop_after` and the SIGINT.
     #[serde(default)]
     pub grace: f64,
+    /// Start the node again whenever it exits, crashed or not (ROS 2 launch's `respawn`),
+    /// until the launch stops; its exits never stop the launch.
+    #[serde(default)]
+    pub respawn: bool,
+    /// Seconds between an exit and the respawn.
+    #[serde(default)]
+    pub respawn_delay: f64,
     /// Extra environment variables.
     #[serde(default)]
     pub env: BTreeMap<String, String>,
@@ -170,6 +177,16 @@ fn check_nodes(path: &Path, nodes: &[NodeDecl]) -> Result<(), LaunchError> {
         });
     }
     for n in nodes {
+        for (field, value) in [("grace", n.grace), ("respawn_delay", n.respawn_delay)] {
+            if !(0.0..=1e6).contains(&value) {
+                return Err(LaunchError::BadSeconds {
+                    path: path.to_path_buf(),
+                    node: n.name.clone(),
+                    field,
+                    value,
+                });
+            }
+        }
         for (list, deps) in [("after", &n.after), ("stop_after", &n.stop_after)] {
             if let Some(bad) = deps.iter().find(|d| !names.contains(d.as_str())) {
                 return Err(LaunchError::UnknownNode {

@@ -12,6 +12,8 @@
 //!       required: true             # when it exits, everything stops
 //!       stop_after: [replay]       # SIGINT once these have exited (after `grace` seconds)
 //!       grace: 2.0
+//!       respawn: true              # started again whenever it exits (ROS 2 launch's respawn)
+//!       respawn_delay: 1.0         # seconds before each restart
 //!   - node: {name: eval, exec: eval, args: [...], after: [recorder], output: plain}
 //! ```
 //!
@@ -19,7 +21,8 @@
 //! them exited successfully (never, if one failed). Child output is printed line by line
 //! with a `[name]` prefix (`output: plain` passes stdout through unprefixed). Ctrl-C or
 //! SIGTERM, a `required` node exiting, or a node failing stops every running node (SIGINT,
-//! then SIGKILL after 10 s). The launch exits 0 only if every node that ran exited 0 and
+//! then SIGKILL after 10 s), except a `respawn` node: whatever its exit, it is started again
+//! `respawn_delay` seconds later, until the launch stops or a `stop_after` SIGINT stopped it. The launch exits 0 only if every node that ran exited 0 and
 //! every node started; a node stopped by the launch itself counts by its own exit code.
 //!
 //! Layout: `file.rs` reads and checks a launch file ([`load`]), `supervise.rs` runs its
@@ -118,6 +121,18 @@ pub enum LaunchError {
         path: PathBuf,
         /// The names along the cycle, the first repeated at the end.
         cycle: Vec<String>,
+    },
+    /// A node's `grace` or `respawn_delay` is not a number of seconds from 0 to 1e6.
+    #[error("{}: node {node:?}: `{field}` must be seconds from 0 to 1e6, not {value}", path.display())]
+    BadSeconds {
+        /// The launch file.
+        path: PathBuf,
+        /// The node.
+        node: String,
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: f64,
     },
     /// A `$(var ...)` substitution without its closing parenthesis.
     #[error("unclosed $(var ...) in {text:?}")]

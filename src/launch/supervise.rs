@@ -45,6 +45,7 @@ pub fn run(
     loop {
         if !sup.shutting_down {
             sup.start_ready()?;
+            sup.respawn_due()?;
         }
         sup.reap()?;
         if stop.load(Ordering::Relaxed) && !sup.shutting_down {
@@ -73,6 +74,8 @@ struct Supervisor<'a> {
     exited_at: BTreeMap<String, Instant>,
     stop_sent: BTreeMap<String, Instant>,
     never_started: BTreeSet<String>,
+    /// `respawn` nodes that exited, and when they start again.
+    respawn_at: BTreeMap<String, Instant>,
     shutting_down: bool,
 }
 
@@ -86,6 +89,7 @@ impl<'a> Supervisor<'a> {
             exited_at: BTreeMap::new(),
             stop_sent: BTreeMap::new(),
             never_started: BTreeSet::new(),
+            respawn_at: BTreeMap::new(),
             shutting_down: false,
         }
     }
@@ -95,6 +99,33 @@ impl<'a> Supervisor<'a> {
         !self.running.contains_key(name)
             && !self.finished.contains_key(name)
             && !self.never_started.contains(name)
+            && !self.respawn_at.contains_key(name)
+    }
+
+    /// Starts again every `respawn` node whose delay has passed.
+    fn respawn_due(&mut self) -> Result<(), LaunchError> {
+        let due: Vec<String> = self
+            .respawn_at
+            .iter()
+            .filter(|(_, at)| Instant::now() >= **at)
+            .map(|(name, _)| name.clone())
+            .collect();
+        for name in due {
+            self.respawn_at.remove(&name);
+            self.finished.remove(&name);
+            let decl = self.decl(&name);
+            launch_log(&format!("respawning {name}"));
+            self.running.insert(name, start(decl, self.exe)?);
+        }
+        Ok(())
+    }
+
+    /// The declaration of node `name`.
+    fn decl(&self, name: &str) -> &'a NodeDecl {
+        self.nodes
+            .iter()
+            .find(|n| n.name == name)
+            .expect("declared")
     }
 
     /// Starts every waiting node whose `after` nodes all succeeded; a node one of whose
@@ -143,11 +174,15 @@ impl<'a> Supervisor<'a> {
                 "{name} exited: {status} after {:.1} s",
                 r.started.elapsed().as_secs_f64()
             ));
-            let decl = self
-                .nodes
-                .iter()
-                .find(|n| n.name == name)
-                .expect("declared");
+            let decl = self.decl(&name);
+            if decl.respawn && !self.shutting_down && !self.stop_sent.contains_key(&name) {
+                launch_log(&format!("{name}: respawn in {:.1} s", decl.respawn_delay));
+                let delay = Duration::from_secs_f64(decl.respawn_delay);
+                self.respawn_at.insert(name.clone(), Instant::now() + delay);
+                // Its last status, should the launch stop before the respawn.
+                self.finished.insert(name, status);
+                continue;
+            }
             let failed = !status.success();
             if (decl.required || failed)
                 && !self.shutting_down
@@ -214,7 +249,8 @@ impl<'a> Supervisor<'a> {
 
     /// Whether some node may still start.
     fn pending_start(&self) -> bool {
-        !self.shutting_down && self.nodes.iter().any(|n| self.waiting(&n.name))
+        !self.shutting_down
+            && (!self.respawn_at.is_empty() || self.nodes.iter().any(|n| self.waiting(&n.name)))
     }
 
     /// Every node's result, in declaration order.

@@ -18,10 +18,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{channel, RecvTimeoutError};
 use std::time::{Duration, Instant};
 
-use crate::bag::{BagError, BagWriter, DEFAULT_QOS_YAML, MESSAGE_ENCODING};
-use crate::msgs::{ParticleFrame, TYPE_NAME};
+use crate::bag::{BagError, BagWriter};
+use crate::msgs::ParticleFrame;
 use crate::transport::{Counters, Sample, Transport, TransportError};
 use crate::viz::cloud::WritePoints;
+
+mod folder;
+mod metadata;
+use folder::prepare_folder;
+pub use folder::LOCK_FILE;
+use metadata::write_metadata;
 
 /// What to record and when to split or stop.
 #[derive(Debug, Clone)]
@@ -92,6 +98,23 @@ pub enum RecordError {
         #[source]
         source: std::io::Error,
     },
+    /// Writing the open bag failed (a full disk): it was closed at its last flush, so the
+    /// frames flushed before stay a complete bag; those after were lost.
+    #[error(
+        "recording into {path} stopped: {kept} frames kept in it, the {lost} written since its \
+         last flush lost"
+    )]
+    Lost {
+        /// The bag that was being written.
+        path: PathBuf,
+        /// Frames in the bag as it was closed.
+        kept: u64,
+        /// Frames written into it after its last flush.
+        lost: u64,
+        /// What failed.
+        #[source]
+        source: Box<RecordError>,
+    },
     /// metadata.yaml could not be serialised.
     #[error("{path}: {source}")]
     Metadata {
@@ -108,6 +131,8 @@ struct OpenBag {
     /// Uncompressed bytes written since the last flush (the file size lags until then).
     pending: u64,
     info: FileInfo,
+    /// `info` as of the last flush: what a failed write leaves in the file.
+    flushed: FileInfo,
 }
 
 /// Per-file numbers for metadata.yaml.
@@ -137,49 +162,6 @@ fn base_name(out: &Path) -> String {
     )
 }
 
-/// The name of the lock file a recorder holds in its output folder.
-pub const LOCK_FILE: &str = ".minflow-record.lock";
-
-/// Takes the output folder's exclusive lock (an OS advisory lock on [`LOCK_FILE`], released
-/// by the kernel when the process ends, however it ends) and writes this process's id
-/// into it, so a second recorder on the same folder fails naming the holder instead of
-/// interleaving writes or deleting the first one's open bag.
-///
-/// # Errors
-/// [`RecordError::Locked`]: the folder is held by another process (its id);
-/// [`RecordError::File`]: the lock file could not be opened or locked.
-fn lock_folder(out: &Path) -> Result<std::fs::File, RecordError> {
-    use std::io::{Read, Seek, Write};
-    let path = out.join(LOCK_FILE);
-    let mut file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&path)
-        .map_err(|source| RecordError::File {
-            path: path.clone(),
-            source,
-        })?;
-    if let Err(e) = file.try_lock() {
-        let mut holder = String::new();
-        let _ = file.read_to_string(&mut holder);
-        let holder = holder.trim();
-        return Err(match e {
-            std::fs::TryLockError::WouldBlock => RecordError::Locked {
-                path: out.to_path_buf(),
-                holder: if holder.is_empty() { "unknown" } else { holder }.to_owned(),
-            },
-            std::fs::TryLockError::Error(source) => RecordError::File { path, source },
-        });
-    }
-    let _ = file.set_len(0);
-    let _ = file.rewind();
-    let _ = write!(file, "{}", std::process::id());
-    let _ = file.flush();
-    Ok(file)
-}
-
 /// Records until `stop`, `--duration` or `--count`. `progress` is called with the frames
 /// written so far after each one.
 ///
@@ -191,7 +173,7 @@ pub fn record(
     transport: &dyn Transport,
     counters: &Counters,
     stop: &AtomicBool,
-    mut progress: impl FnMut(u64),
+    progress: impl FnMut(u64),
 ) -> Result<RecordReport, RecordError> {
     let out = &options.out;
     let _lock = prepare_folder(options)?;
@@ -209,6 +191,32 @@ pub fn record(
     );
 
     let mut files = Files::new(options);
+    let pumped = pump(
+        options,
+        &rx,
+        &mut subscriptions,
+        &mut files,
+        counters,
+        stop,
+        progress,
+    );
+    drop(subscriptions);
+    match pumped.and_then(|()| files.finish()) {
+        Ok(report) => Ok(report),
+        Err(e) => Err(files.salvage(e)),
+    }
+}
+
+/// Receives and writes until a stop condition, then drains what already arrived.
+fn pump(
+    options: &RecordOptions,
+    rx: &std::sync::mpsc::Receiver<Sample>,
+    subscriptions: &mut Vec<Box<dyn crate::transport::Subscription>>,
+    files: &mut Files,
+    counters: &Counters,
+    stop: &AtomicBool,
+    mut progress: impl FnMut(u64),
+) -> Result<(), RecordError> {
     let started = Instant::now();
     let mut done = false;
     let mut last_message: Option<Instant> = None;
@@ -255,50 +263,7 @@ pub fn record(
         progress(files.report.written);
         files.flush_if_due()?;
     }
-    drop(subscriptions);
-    files.finish()
-}
-
-/// Creates the output folder and takes its lock (held while the returned file is open);
-/// with `overwrite`, deletes its bags and metadata.yaml.
-///
-/// # Errors
-/// [`RecordError::Out`]: the folder cannot be created or read, or still holds bags;
-/// [`RecordError::Locked`]: another recorder holds it.
-fn prepare_folder(options: &RecordOptions) -> Result<std::fs::File, RecordError> {
-    let out = &options.out;
-    let out_err = |reason: String| RecordError::Out {
-        path: out.clone(),
-        reason,
-    };
-    std::fs::create_dir_all(out).map_err(|e| out_err(e.to_string()))?;
-    let lock = lock_folder(out)?;
-    if options.overwrite {
-        for entry in std::fs::read_dir(out)
-            .map_err(|e| out_err(e.to_string()))?
-            .filter_map(Result::ok)
-        {
-            let path = entry.path();
-            let name = path
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            if name.ends_with(".mcap") || name == "metadata.yaml" {
-                std::fs::remove_file(&path)
-                    .map_err(|e| out_err(format!("removing {}: {e}", path.display())))?;
-            }
-        }
-    }
-    let has_bags = std::fs::read_dir(out)
-        .map_err(|e| out_err(e.to_string()))?
-        .filter_map(Result::ok)
-        .any(|e| e.path().extension().is_some_and(|x| x == "mcap"));
-    if has_bags {
-        return Err(out_err(
-            "holds .mcap files already; choose a new folder or --overwrite".into(),
-        ));
-    }
-    Ok(lock)
+    Ok(())
 }
 
 /// The bag files of a recording: the one being written, those finished, and the counts.
@@ -378,8 +343,7 @@ impl<'a> Files<'a> {
                     .is_some_and(|d| b.opened.elapsed() >= d)
         });
         if split {
-            let done_bag = self.bag.take().expect("checked above");
-            self.infos.push(close(done_bag, &mut self.report)?);
+            self.close_open()?;
         }
         let open = match &mut self.bag {
             Some(b) => b,
@@ -388,14 +352,16 @@ impl<'a> Files<'a> {
                     .out
                     .join(format!("{}_{}.mcap", self.base, self.infos.len()));
                 tracing::info!("writing {}", path.display());
+                let info = FileInfo {
+                    path: path.clone(),
+                    ..FileInfo::default()
+                };
                 self.bag.insert(OpenBag {
                     writer: BagWriter::create(&path)?,
                     opened: Instant::now(),
                     pending: 0,
-                    info: FileInfo {
-                        path,
-                        ..FileInfo::default()
-                    },
+                    flushed: info.clone(),
+                    info,
                 })
             }
         };
@@ -431,14 +397,57 @@ impl<'a> Files<'a> {
         )
     }
 
-    /// Finishes the open file and writes metadata.yaml; returns the totals.
-    fn finish(mut self) -> Result<RecordReport, RecordError> {
+    /// Flushes the open file (a failure leaves it open for [`Files::salvage`]), then
+    /// finishes it.
+    fn close_open(&mut self) -> Result<(), RecordError> {
+        if let Some(b) = self.bag.as_mut() {
+            b.writer.flush()?;
+            b.pending = 0;
+            b.flushed = b.info.clone();
+        }
         if let Some(b) = self.bag.take() {
             self.infos.push(close(b, &mut self.report)?);
         }
-        let out = &self.options.out;
-        write_metadata(out, &self.infos)?;
-        Ok(self.report)
+        Ok(())
+    }
+
+    /// Finishes the open file and writes metadata.yaml; returns the totals.
+    fn finish(&mut self) -> Result<RecordReport, RecordError> {
+        self.close_open()?;
+        write_metadata(&self.options.out, &self.infos)?;
+        Ok(std::mem::take(&mut self.report))
+    }
+
+    /// After `error` stopped the recording: closes the open bag at its last flush
+    /// ([`BagWriter::abandon`]), writes metadata.yaml for what the bags keep (both as far as
+    /// the disk allows, failures logged) and returns [`RecordError::Lost`] naming the bag;
+    /// `error` itself when no bag was open.
+    fn salvage(&mut self, error: RecordError) -> RecordError {
+        let Some(bag) = self.bag.take() else {
+            return error;
+        };
+        let (path, kept) = (bag.info.path.clone(), bag.flushed.count);
+        let lost = bag.info.count - kept;
+        match bag.writer.abandon() {
+            Ok(bytes) => tracing::warn!(
+                "{}: closed at its last flush ({bytes} bytes, {kept} frames)",
+                path.display()
+            ),
+            Err(e) => tracing::warn!("{e}; the bag ends at its last flush without a footer"),
+        }
+        if kept > 0 {
+            self.report.files.push(path.clone());
+            self.infos.push(bag.flushed);
+        }
+        if let Err(e) = write_metadata(&self.options.out, &self.infos) {
+            tracing::warn!("{e}");
+        }
+        RecordError::Lost {
+            path,
+            kept,
+            lost,
+            source: Box::new(error),
+        }
     }
 }
 
@@ -456,6 +465,7 @@ fn flush_if_due(
         if b.pending > 0 {
             b.writer.flush()?;
             b.pending = 0;
+            b.flushed = b.info.clone();
         }
     }
     Ok(())
@@ -466,121 +476,4 @@ fn close(bag: OpenBag, report: &mut RecordReport) -> Result<FileInfo, RecordErro
     bag.writer.finish()?;
     report.files.push(bag.info.path.clone());
     Ok(bag.info)
-}
-
-/// rosbag2's `metadata.yaml` (bag information, version 5 as written by Humble).
-#[derive(serde::Serialize)]
-struct Metadata {
-    rosbag2_bagfile_information: BagInformation,
-}
-
-#[derive(serde::Serialize)]
-struct BagInformation {
-    version: u32,
-    storage_identifier: &'static str,
-    duration: Nanoseconds,
-    starting_time: SinceEpoch,
-    message_count: u64,
-    topics_with_message_count: Vec<TopicCount>,
-    compression_format: &'static str,
-    compression_mode: &'static str,
-    relative_file_paths: Vec<String>,
-    files: Vec<FileEntry>,
-}
-
-#[derive(serde::Serialize)]
-struct Nanoseconds {
-    nanoseconds: u64,
-}
-
-#[derive(serde::Serialize)]
-struct SinceEpoch {
-    nanoseconds_since_epoch: u64,
-}
-
-#[derive(serde::Serialize)]
-struct TopicCount {
-    topic_metadata: TopicMetadata,
-    message_count: u64,
-}
-
-#[derive(serde::Serialize)]
-struct TopicMetadata {
-    name: String,
-    #[serde(rename = "type")]
-    type_name: &'static str,
-    serialization_format: &'static str,
-    offered_qos_profiles: &'static str,
-}
-
-#[derive(serde::Serialize)]
-struct FileEntry {
-    path: String,
-    starting_time: SinceEpoch,
-    duration: Nanoseconds,
-    message_count: u64,
-}
-
-fn write_metadata(out: &Path, files: &[FileInfo]) -> Result<(), RecordError> {
-    let first = files.iter().filter_map(|f| f.first_ns).min().unwrap_or(0);
-    let last = files.iter().map(|f| f.last_ns).max().unwrap_or(0);
-    let mut topics: BTreeMap<&str, u64> = BTreeMap::new();
-    for f in files {
-        for (t, n) in &f.per_topic {
-            *topics.entry(t).or_default() += n;
-        }
-    }
-    let name = |f: &FileInfo| {
-        f.path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    };
-    let meta = Metadata {
-        rosbag2_bagfile_information: BagInformation {
-            version: 5,
-            storage_identifier: "mcap",
-            duration: Nanoseconds {
-                nanoseconds: last.saturating_sub(first),
-            },
-            starting_time: SinceEpoch {
-                nanoseconds_since_epoch: first,
-            },
-            message_count: files.iter().map(|f| f.count).sum(),
-            topics_with_message_count: topics
-                .into_iter()
-                .map(|(t, n)| TopicCount {
-                    topic_metadata: TopicMetadata {
-                        name: t.to_owned(),
-                        type_name: TYPE_NAME,
-                        serialization_format: MESSAGE_ENCODING,
-                        offered_qos_profiles: DEFAULT_QOS_YAML,
-                    },
-                    message_count: n,
-                })
-                .collect(),
-            compression_format: "",
-            compression_mode: "",
-            relative_file_paths: files.iter().map(name).collect(),
-            files: files
-                .iter()
-                .map(|f| FileEntry {
-                    path: name(f),
-                    starting_time: SinceEpoch {
-                        nanoseconds_since_epoch: f.first_ns.unwrap_or(0),
-                    },
-                    duration: Nanoseconds {
-                        nanoseconds: f.last_ns.saturating_sub(f.first_ns.unwrap_or(0)),
-                    },
-                    message_count: f.count,
-                })
-                .collect(),
-        },
-    };
-    let path = out.join("metadata.yaml");
-    let text = serde_yaml_ng::to_string(&meta).map_err(|source| RecordError::Metadata {
-        path: path.clone(),
-        source,
-    })?;
-    std::fs::write(&path, text).map_err(|source| RecordError::File { path, source })
 }

@@ -37,11 +37,13 @@ pub struct Body {
     /// Material.
     pub material: Material,
     /// Centre, domain units.
+    #[serde(deserialize_with = "pair")]
     pub position: [f32; 2],
     /// Extent `[width, height]`, domain units.
+    #[serde(deserialize_with = "pair")]
     pub size: [f32; 2],
     /// Initial velocity, domain units per time unit.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "pair")]
     pub velocity: [f32; 2],
     /// Initial angular velocity about the centre, radians per time unit.
     #[serde(default)]
@@ -68,7 +70,7 @@ pub struct Scene {
     /// Saved frames, counting frame 0 (the initial state).
     pub frames: u32,
     /// Gravity, domain units per time unit squared.
-    #[serde(default = "default_gravity")]
+    #[serde(default = "default_gravity", deserialize_with = "pair")]
     pub gravity: [f32; 2],
     /// E0 and nu.
     #[serde(default)]
@@ -79,6 +81,18 @@ pub struct Scene {
     /// The bodies, in particle order.
     #[serde(rename = "body")]
     pub bodies: Vec<Body>,
+}
+
+/// A 2D vector of a scene file: exactly two numbers (TOML's arrays would otherwise give the
+/// first two of `[0.5, 0.5, 0.5]` and silently drop the rest).
+fn pair<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f32; 2], D::Error> {
+    let values = Vec::<f32>::deserialize(d)?;
+    <[f32; 2]>::try_from(values.as_slice()).map_err(|_| {
+        serde::de::Error::custom(format!(
+            "expected 2 values [x, y] (2D), found {}",
+            values.len()
+        ))
+    })
 }
 
 fn default_grid() -> usize {

@@ -29,15 +29,20 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     let old = out.join("checkpoint.old");
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| err(&tmp, e))?;
-    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-    model
-        .clone()
-        .save_file(tmp.join("model"), &recorder)
-        .map_err(|e| err(&tmp, e))?;
-    Recorder::<B>::record(&recorder, optim.to_record(), tmp.join("optim"))
-        .map_err(|e| err(&tmp, e))?;
-    let json = serde_json::to_string_pretty(history).map_err(|e| err(&tmp, e))?;
-    std::fs::write(tmp.join("history.json"), json).map_err(|e| err(&tmp, e))?;
+    // Through store::write_record: a full disk is named ("No space left on device"), and the
+    // unfinished checkpoint.tmp/ is removed; the previous checkpoint/ stays for a resume.
+    let written = store::write_record::<B, _>(&tmp.join("model.mpk"), model.clone().into_record())
+        .and_then(|()| store::write_record::<B, _>(&tmp.join("optim.mpk"), optim.to_record()))
+        .map_err(TrainError::Store)
+        .and_then(|()| {
+            let json = serde_json::to_string_pretty(history).map_err(|e| err(&tmp, e))?;
+            std::fs::write(tmp.join("history.json"), json)
+                .map_err(|e| err(&tmp.join("history.json"), e))
+        });
+    if let Err(e) = written {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
     let _ = std::fs::remove_dir_all(&old);
     if dir.exists() {
         std::fs::rename(&dir, &old).map_err(|e| err(&dir, e))?;

@@ -36,6 +36,14 @@ impl std::str::FromStr for Endpoint {
 
     /// `HOST:PORT`, IPv6 hosts in brackets (`[::1]:8765`).
     fn from_str(s: &str) -> Result<Self, String> {
+        // A bare port binds to loopback only: other machines see the frames only when a
+        // host is given (`0.0.0.0:8765`).
+        if let Ok(port) = s.parse::<u16>() {
+            return Ok(Endpoint {
+                host: "127.0.0.1".to_owned(),
+                port,
+            });
+        }
         let (host, port) = s
             .rsplit_once(':')
             .ok_or_else(|| format!("{s:?} is not HOST:PORT"))?;
@@ -80,7 +88,9 @@ mod tests {
             (e.host.as_str(), e.port, e.to_string()),
             ("::1", 0, "[::1]:0".into())
         );
-        for bad in ["8765", ":8765", "localhost:", "localhost:70000", "h:-1"] {
+        let e: Endpoint = "8765".parse().unwrap();
+        assert_eq!((e.host.as_str(), e.port), ("127.0.0.1", 8765));
+        for bad in ["70000", ":8765", "localhost:", "localhost:70000", "h:-1"] {
             assert!(bad.parse::<Endpoint>().is_err(), "{bad}");
         }
         assert_eq!(points_topic("/mpm/frames"), "/mpm/frames/points");

@@ -149,7 +149,7 @@ fn bad_foxglove_addresses_are_usage_errors() {
     let bag = source_bag();
     for (args, what) in [
         (
-            vec!["replay", bag.to_str().unwrap(), "--foxglove", "8765"],
+            vec!["replay", bag.to_str().unwrap(), "--foxglove", ":8765"],
             "no host",
         ),
         (

@@ -152,25 +152,64 @@ pub(crate) fn io(
 }
 
 /// Writes `model.json` + `model.mpk` into `dir` (via temporary names, renamed at the end).
+///
+/// # Errors
+/// [`StoreError::Io`] naming the file and keeping the OS error (a full disk: "No space left on
+/// device"); the temporary files are removed, and a model saved there before stays whole.
 pub fn save<B: Backend, M: Module<B>>(
     dir: &Path,
     model: &M,
     meta: &ModelMeta,
 ) -> Result<(), StoreError> {
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
-    let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-    // The recorder appends `.mpk`, replacing any extension: `model-tmp` -> `model-tmp.mpk`.
-    let tmp = dir.join("model-tmp");
-    model
-        .clone()
-        .save_file(tmp.clone(), &recorder)
-        .map_err(|e| io(&tmp, e))?;
-    let json = serde_json::to_string_pretty(meta).map_err(|e| io(dir, e))?;
-    std::fs::write(dir.join("model.json.tmp"), json).map_err(|e| io(dir, e))?;
-    std::fs::rename(dir.join("model-tmp.mpk"), dir.join("model.mpk")).map_err(|e| io(dir, e))?;
-    std::fs::rename(dir.join("model.json.tmp"), dir.join("model.json")).map_err(|e| io(dir, e))?;
+    let (tmp_mpk, tmp_json) = (dir.join("model-tmp.mpk"), dir.join("model.json.tmp"));
+    let written = write_record::<B, _>(&tmp_mpk, model.clone().into_record()).and_then(|()| {
+        let json = serde_json::to_string_pretty(meta).map_err(|e| io(dir, e))?;
+        write_file(&tmp_json, json.as_bytes())
+    });
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp_mpk);
+        let _ = std::fs::remove_file(&tmp_json);
+        return Err(e);
+    }
+    std::fs::rename(&tmp_mpk, dir.join("model.mpk")).map_err(|e| io(dir, e))?;
+    std::fs::rename(&tmp_json, dir.join("model.json")).map_err(|e| io(dir, e))?;
     Ok(())
 }
+
+/// Writes `record` to `path` in the format of burn's `NamedMpkFileRecorder` with full
+/// precision (byte for byte, so its `load` reads it), encoded in memory first so that a
+/// failed write names its OS error instead of the encoder's "error while writing
+/// multi-byte MessagePack value". Used for `model.mpk` and the training checkpoint.
+///
+/// # Errors
+/// [`StoreError::Io`] naming `path`, with the OS error as its source; `path` is removed.
+pub fn write_record<B: Backend, R: burn::record::Record<B>>(
+    path: &Path,
+    record: R,
+) -> Result<(), StoreError> {
+    use burn::record::{BurnRecord, NamedMpkBytesRecorder, Recorder};
+    type Settings = FullPrecisionSettings;
+    let item = record.into_item::<Settings>();
+    let item = BurnRecord::<_, B>::new::<NamedMpkFileRecorder<Settings>>(item);
+    let bytes = Recorder::<B>::save_item(&NamedMpkBytesRecorder::<Settings>::new(), item, ())
+        .map_err(|e| io(path, e))?;
+    write_file(path, &bytes)
+}
+
+/// Creates `path` with `bytes` and syncs it; on failure removes it and returns the OS error.
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    use std::io::Write;
+    let written = std::fs::File::create(path).and_then(|mut f| {
+        f.write_all(bytes)?;
+        f.sync_all()
+    });
+    written.map_err(|e| {
+        let _ = std::fs::remove_file(path);
+        io(path, e)
+    })
+}
+
 
 /// A run folder (`minflow train --out`) as every command reads it: `model.json` with the
 /// fields added since older folders were saved filled in ([`meta_value`]), `split.json`

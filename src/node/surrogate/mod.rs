@@ -22,9 +22,10 @@
 //! first-frame` takes the first frame of a scene as its reference positions and keeps them
 //! over a gap reset (the stream goes on), not over a restart.
 //!
-//! Bad input is never predicted on: a payload that does not decode is `malformed`; a frame
-//! with a particle count other than the model's N, non-finite values or a material id
-//! above 3 is `rejected`. Each is counted, logged once per scene and reason, and reported in
+//! Bad input is never predicted on: a payload larger than `max_frame_bytes` is `rejected`
+//! before it is decoded; a payload that does not decode is `malformed`; a frame with a
+//! particle count other than the model's N, non-finite values or a material id above 3 is
+//! `rejected`. Each is counted, logged once per scene and reason, and reported in
 //! [`SurrogateStatus`] (published once per second); other scenes are served as usual.
 //!
 //! Files: [`admission`] holds the rules (which frames are taken, what a frame does to its
@@ -71,6 +72,8 @@ pub struct NodeOptions {
     pub max_scenes: usize,
     /// Pending frames per scene before the oldest is dropped.
     pub queue_depth: usize,
+    /// Payloads larger than this (bytes) are rejected before decoding (`--max-frame-bytes`).
+    pub max_frame_bytes: usize,
     /// Closed loop: after the first T frames of a scene, publish K predicted frames.
     pub rollout: Option<usize>,
     /// Closed-loop pacing: predicted frames per simulated second times this factor
@@ -103,6 +106,18 @@ pub fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
         ]);
     }
     rows
+}
+
+/// The size of a payload in bytes, as it travelled (CDR) or as its arrays take in memory.
+fn payload_bytes(payload: &crate::transport::Payload) -> usize {
+    use crate::transport::Payload;
+    match payload {
+        Payload::Cdr(bytes) => bytes.len(),
+        Payload::Frame(f) => {
+            4 * (f.position.len() + f.velocity.len()) + f.material.len() + f.scene.len()
+        }
+        Payload::Malformed(_) => 0,
+    }
 }
 
 /// The frame `steps` frames after `input`, carrying `rows` (`[N, 4]`).

@@ -19,7 +19,7 @@ use crate::viz::PredictionView;
 use super::admission::check_frame;
 use super::report::{log_latencies, log_start, wall_time, Tally};
 use super::scenes::{Admitted, Scenes};
-use super::{predicted_frame, state_rows, summary, NodeOptions, NodeReport};
+use super::{payload_bytes, predicted_frame, state_rows, summary, NodeOptions, NodeReport};
 
 /// Runs the node until `stop` turns true (or `max_published` is reached). Returns totals.
 ///
@@ -121,9 +121,15 @@ struct NodeLoop<'a, B: NetOps> {
     cursor: String,
     next_status: Instant,
     next_stats: Option<Instant>,
+    /// Arrival -> publication latencies, us: the last [`LATENCY_WINDOW`] to 2x that many.
     latencies_us: Vec<f64>,
     view: Option<PredictionView>,
+    /// Scene states dropped: (at `max_scenes`, least recently seen; idle past `idle_timeout`).
+    evicted: (u64, u64),
 }
+
+/// Latencies kept for the percentiles logged at exit (bounded memory over hours).
+const LATENCY_WINDOW: usize = 100_000;
 
 impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// An empty loop state for the node.
@@ -155,6 +161,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             next_status: Instant::now(),
             next_stats: options.stats_interval.map(|d| Instant::now() + d),
             latencies_us: Vec::new(),
+            evicted: (0, 0),
             view: options
                 .foxglove
                 .as_ref()
@@ -173,7 +180,15 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
                     tracing::warn!("status: {e}");
                 }
             }
-            self.scenes.evict_idle(self.options.idle_timeout);
+            let idle = self.scenes.evict_idle(self.options.idle_timeout);
+            if idle > 0 {
+                self.evicted.1 += idle as u64;
+                tracing::info!(
+                    "{}: {idle} scene state(s) idle over --idle-timeout dropped ({} so far)",
+                    self.options.name,
+                    self.evicted.1
+                );
+            }
         }
         if let (Some(due), Some(every)) = (self.next_stats, self.options.stats_interval) {
             if Instant::now() >= due {
@@ -216,6 +231,14 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// pending frame past `queue_depth`); bad input is counted and noted.
     fn accept(&mut self, sample: Sample) {
         self.tally.report.received += 1;
+        let bytes = payload_bytes(&sample.payload);
+        if bytes > self.options.max_frame_bytes {
+            self.tally.report.rejected += 1;
+            let limit = self.options.max_frame_bytes;
+            let reason = format!("payload of {bytes} bytes over --max-frame-bytes {limit}");
+            self.tally.note("?", reason);
+            return;
+        }
         let frame = match sample.decode() {
             Ok(f) => f,
             Err(reason) => {
@@ -269,7 +292,19 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
         let arrived = self
             .arrivals
             .remove(&(frame.scene.clone(), frame.frame_index));
-        self.scenes.make_room_for(&scene, self.options.max_scenes);
+        if let Some(evicted) = self.scenes.make_room_for(&scene, self.options.max_scenes) {
+            self.evicted.0 += 1;
+            // The first, then every 100th: a stream of new scenes must not flood the log.
+            if self.evicted.0 == 1 || self.evicted.0 % 100 == 0 {
+                tracing::info!(
+                    "{}: scene {evicted:?} evicted at --max-scenes {} ({} so far; a scene that \
+                     comes back starts again)",
+                    self.options.name,
+                    self.options.max_scenes,
+                    self.evicted.0
+                );
+            }
+        }
         let state = match self
             .scenes
             .admit(&scene, frame.frame_index, self.options, self.surrogate)
@@ -306,6 +341,9 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             None => {
                 self.emit(&predicted_frame(&frame, &bundle.swap_remove(0), 1));
                 if let Some(t) = arrived {
+                    if self.latencies_us.len() >= 2 * LATENCY_WINDOW {
+                        self.latencies_us.drain(..LATENCY_WINDOW);
+                    }
                     self.latencies_us.push(t.elapsed().as_secs_f64() * 1e6);
                 }
                 Some(state)
@@ -392,6 +430,12 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             let _ = p.publish(&self.tally.report);
         }
         log_latencies(&self.options.name, &mut self.latencies_us);
+        let (full, idle) = self.evicted;
+        tracing::info!(
+            "{}: evicted={} scene states ({full} at --max-scenes, {idle} idle)",
+            self.options.name,
+            full + idle
+        );
         self.tally.report
     }
 }

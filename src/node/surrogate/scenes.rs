@@ -70,23 +70,26 @@ impl<B: NetOps> Scenes<B> {
         }
     }
 
-    /// Before a new scene is admitted at `max_scenes`, evicts the least recently seen one.
-    pub(super) fn make_room_for(&mut self, scene: &str, max_scenes: usize) {
-        if self.map.len() >= max_scenes.max(1) && !self.map.contains_key(scene) {
-            if let Some(oldest) = self
-                .map
-                .iter()
-                .min_by_key(|(_, s)| s.last_seen)
-                .map(|(k, _)| k.clone())
-            {
-                self.map.remove(&oldest);
-            }
+    /// Before a new scene is admitted at `max_scenes`, evicts the least recently seen one;
+    /// returns its name.
+    pub(super) fn make_room_for(&mut self, scene: &str, max_scenes: usize) -> Option<String> {
+        if self.map.len() < max_scenes.max(1) || self.map.contains_key(scene) {
+            return None;
         }
+        let oldest = self
+            .map
+            .iter()
+            .min_by_key(|(_, s)| s.last_seen)
+            .map(|(k, _)| k.clone())?;
+        self.map.remove(&oldest);
+        Some(oldest)
     }
 
-    /// Drops the scenes without a frame for longer than `idle`.
-    pub(super) fn evict_idle(&mut self, idle: Duration) {
+    /// Drops the scenes without a frame for longer than `idle`; returns how many.
+    pub(super) fn evict_idle(&mut self, idle: Duration) -> usize {
+        let before = self.map.len();
         self.map.retain(|_, s| s.last_seen.elapsed() <= idle);
+        before - self.map.len()
     }
 
     /// Applies the state rules to frame `index` of `scene` (seen now): the hidden state to

@@ -16,9 +16,17 @@ pub struct Node {
     pub name: String,
 }
 
+/// The `minflow` binary the tests run: `$MINFLOW_BIN` when set (a copy of this build's
+/// binary, where several worktrees share one target folder), else cargo's.
+pub fn minflow_bin() -> PathBuf {
+    std::env::var_os("MINFLOW_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_minflow")))
+}
+
 impl Node {
     pub fn spawn(name: &str, args: &[&str]) -> Node {
-        let child = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        let child = Command::new(minflow_bin())
             .args(args)
             .env("RUST_LOG", "info")
             .stdout(Stdio::piped())
