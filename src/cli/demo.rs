@@ -1,5 +1,5 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). On the bundled bags
-//! in `bags/`: uses the shipped grid minGRU in `models/` (`--train` trains one on the bundled
+//! in `bags/`: uses the shipped small bundled grid minGRU in `models/` (`--train` trains one on the bundled
 //! bags instead, in this process, as it does when `--model` holds no model), then launches
 //! `launch_configs/replay_eval.yaml` over zenoh with an embedded peer (replay -> surrogate
 //! node in closed loop -> recorder -> `eval --pred --truth`) and prints the replay
@@ -19,9 +19,10 @@ pub struct DemoArgs {
     /// Bundled ground-truth bags.
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
-    /// Run folder of the model (the shipped grid minGRU by default); trained here first if
-    /// it holds no model.
-    #[arg(long, default_value = "models/all-grid-mingru")]
+    /// Run folder of the model (by default the shipped small grid minGRU that predicts 4
+    /// frames per network call, the cheapest shipped model; `models/all-grid-mingru` is the
+    /// most accurate); trained here first if it holds no model.
+    #[arg(long, default_value = "models/all-grid-mingru-small-k4")]
     model: PathBuf,
     /// Where `--train` (or a missing model) trains the demo's own model.
     #[arg(long, default_value = "runs/demo-grid-mingru")]

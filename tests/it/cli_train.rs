@@ -537,3 +537,37 @@ fn bench_train_measures_the_grid_architecture() {
         "{stdout}"
     );
 }
+
+/// Issue 35: an invalid value of a paper-architecture flag is a usage error whatever the
+/// architecture, and a paper-only flag set with `--arch grid` (the default) is refused
+/// before any bag is read, naming the flag.
+#[test]
+fn paper_flags_are_checked_and_refused_with_the_grid_architecture() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let bags = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags");
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--data",
+            bags.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .args(&args)
+            .output()
+            .unwrap()
+    };
+    let banana = run(&["--decoder", "banana"]);
+    assert_eq!(banana.status.code(), Some(2), "{banana:?}");
+    let grid = run(&["--width", "48", "--pooling", "max"]);
+    assert_eq!(grid.status.code(), Some(2), "{grid:?}");
+    let err = String::from_utf8_lossy(&grid.stderr);
+    assert!(
+        err.contains("--width, --pooling are flags of --arch paper"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written before the refusal");
+}

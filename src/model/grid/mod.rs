@@ -373,7 +373,8 @@ impl<B: NetOps> GridModel<B> {
             k => (0..k)
                 .map(|i| {
                     let view = out.clone().narrow(2, i * latent, latent);
-                    view.reshape([b * cells * latent]).reshape([b, cells, latent])
+                    view.reshape([b * cells * latent])
+                        .reshape([b, cells, latent])
                 })
                 .collect(),
         };

@@ -455,20 +455,17 @@ impl<B: Backend> UNet<B> {
         self
     }
 
-    /// This U-Net with its output repeated `k` times along the channels (the head's weights
-    /// and bias tiled): field j of the result equals the single output for every j. A
-    /// bundled model grown from a single-frame one starts out reading the same field for each
-    /// of its K frames (see [`super::GridModel::with_bundle`]).
+    /// This U-Net with its output tiled `k` times along the channels (head weights and bias
+    /// repeated), as [`super::GridModel::with_bundle`] grows a bundled model.
     pub fn tile_output(self, k: usize) -> Self {
-        let weight = self.head.weight.val(); // [C_out, C_in, 1, 1]
-        let weight = Tensor::cat(vec![weight; k], 0).detach();
-        let bias =
-            self.head.bias.as_ref().map(|b| {
-                burn::module::Param::from_tensor(Tensor::cat(vec![b.val(); k], 0).detach())
-            });
+        use burn::module::Param;
+        let tile = |t: Tensor<B, 4>| Tensor::cat(vec![t; k], 0).detach(); // [k C_out, C_in, 1, 1]
+        let weight = Param::from_tensor(tile(self.head.weight.val()));
+        let bias = (self.head.bias.as_ref())
+            .map(|b| Param::from_tensor(Tensor::cat(vec![b.val(); k], 0).detach()));
         Self {
             head: Conv2d {
-                weight: burn::module::Param::from_tensor(weight),
+                weight,
                 bias,
                 ..self.head
             },

@@ -210,7 +210,6 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
     })
 }
 
-
 /// A run folder (`minflow train --out`) as every command reads it: `model.json` with the
 /// fields added since older folders were saved filled in ([`meta_value`]), `split.json`
 /// where there is one, and the weights `model.mpk` on demand. `eval`, `node`, `bench node`,

@@ -316,19 +316,10 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             }
             Admitted::Ignored => return,
         };
-        let rows = state_rows(&frame);
         // In closed loop the scene's T-th frame starts the rollout: a whole network call
         // (K frames for a bundled model); before it, and fed live frames, one step.
         let closing = self.options.rollout.is_some() && state.frames + 1 >= self.window;
-        let stepped = if closing {
-            self.surrogate
-                .step_bundle(&rows, &frame.material, &[frame.dt], state)
-        } else {
-            self.surrogate
-                .step(&rows, &frame.material, &[frame.dt], state)
-                .map(|(next, state)| (vec![next], state))
-        };
-        let (mut bundle, state) = match stepped {
+        let (mut bundle, state) = match self.step_frame(&frame, state, closing) {
             Ok(v) => v,
             Err(e) => {
                 self.tally.report.rejected += 1;
@@ -357,6 +348,23 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             Some(_) => Some(state),
         };
         self.scenes.keep(&scene, keep);
+    }
+
+    /// One network call on `frame`: its whole bundle (`whole`, where a closed loop starts)
+    /// or the next frame alone.
+    fn step_frame(
+        &self,
+        frame: &ParticleFrame,
+        state: State<B>,
+        whole: bool,
+    ) -> Result<(Vec<Vec<f32>>, State<B>), crate::model::store::StoreError> {
+        let rows = state_rows(frame);
+        let (material, dt) = (&frame.material, &[frame.dt]);
+        if whole {
+            return self.surrogate.step_bundle(&rows, material, dt, state);
+        }
+        let (next, state) = self.surrogate.step(&rows, material, dt, state)?;
+        Ok((vec![next], state))
     }
 
     /// Closed loop: publishes `k` frames after `frame`, those of `bundle` first, then those
