@@ -362,6 +362,24 @@ fn report_text(
     eval: &Evaluation,
     speeds: &[Speed],
 ) -> String {
+    let mut s = report_header(args, eval);
+    s.push_str(&family_tables(eval));
+    let _ = writeln!(
+        s,
+        "## Table 4: training speed\n\nMeasured during the runs above (`metrics.csv`): total \
+         training time is the sum of the epochs' training time (validation and checkpoints \
+         excluded), s / epoch its mean, us / sample the inverse of the mean training \
+         throughput.\n\n{}",
+        speed_table(speeds)
+    );
+    let _ = writeln!(s, "## All scenes, details\n\n{}", table::markdown(eval));
+    let _ = writeln!(s, "{}", table::details(eval));
+    s.push_str(&figures_and_commands(eval, names, train_argv, eval_argv));
+    s
+}
+
+/// REPORT.md's title, introduction and machine and configuration section.
+fn report_header(args: &ReportArgs, eval: &Evaluation) -> String {
     let (cpu, cores) = machine();
     let mut s = String::from("# minflow report\n\n");
     let _ = writeln!(
@@ -416,6 +434,12 @@ fn report_text(
             args.eval_split
         );
     }
+    s
+}
+
+/// REPORT.md's Tables 2 and 3 (fluid and multi scenes) and any other scenes.
+fn family_tables(eval: &Evaluation) -> String {
+    let mut s = String::new();
     let h = eval.horizon;
     let families = [
         ("Table 2: fluid scenes", "fluid/"),
@@ -438,16 +462,17 @@ fn report_text(
     if !others.scenes.is_empty() {
         let _ = writeln!(s, "## Other scenes\n\n{}", table::markdown(&others));
     }
-    let _ = writeln!(
-        s,
-        "## Table 4: training speed\n\nMeasured during the runs above (`metrics.csv`): total \
-         training time is the sum of the epochs' training time (validation and checkpoints \
-         excluded), s / epoch its mean, us / sample the inverse of the mean training \
-         throughput.\n\n{}",
-        speed_table(speeds)
-    );
-    let _ = writeln!(s, "## All scenes, details\n\n{}", table::markdown(eval));
-    let _ = writeln!(s, "{}", table::details(eval));
+    s
+}
+
+/// REPORT.md's figures, loss-curve links and the commands that reproduce it.
+fn figures_and_commands(
+    eval: &Evaluation,
+    names: &[String],
+    train_argv: &[Vec<String>],
+    eval_argv: &[String],
+) -> String {
+    let mut s = String::new();
     s.push_str("## Figures\n\nPer-scene MSE curves (Figures 4, 8, 9):\n\n![MSE curves](eval/mse_curves.png)\n\n");
     s.push_str("Ground truth beside each model (Figures 1, 7; GIF: every step):\n\n");
     for scene in eval.scenes.iter().filter(|sc| sc.snapshots.is_some()) {

@@ -158,7 +158,7 @@ pub fn render_grid(
     snap: &Snapshots,
     models: usize,
 ) -> Result<(), EvalError> {
-    let h = eval.horizon;
+    let h = scene_horizon(eval, snap);
     let rows = rows(eval, snap, models);
     let size = grid_size(rows.len() - 1, h);
     let mut c = Canvas::new(size);
@@ -178,6 +178,20 @@ pub fn render_grid(
         }
     }
     write_png(path, size, &c.pixels)
+}
+
+/// The last step a scene's renders show: the horizon, or with whole-scene rollouts
+/// (`--horizon full`) the scene's own last true frame, so a shorter scene is not drawn as
+/// "missing" up to the longest one's end.
+fn scene_horizon(eval: &Evaluation, snap: &Snapshots) -> usize {
+    if !eval.full {
+        return eval.horizon;
+    }
+    snap.truth
+        .iter()
+        .rposition(Option::is_some)
+        .unwrap_or(0)
+        .max(1)
 }
 
 fn write_png(path: &Path, size: (u32, u32), pixels: &[u8]) -> Result<(), EvalError> {
@@ -234,7 +248,7 @@ pub fn render_gif(
         .set_repeat(gif::Repeat::Infinite)
         .map_err(|e| out_err(path, e))?;
     let mut cache = std::collections::HashMap::new();
-    for step in 0..=eval.horizon {
+    for step in 0..=scene_horizon(eval, snap) {
         let mut c = Canvas::new(size);
         for (i, (label, frames)) in rows.iter().enumerate() {
             let x = i as u32 * CELL;

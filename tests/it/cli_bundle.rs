@@ -11,6 +11,7 @@ use crate::transport_support::*;
 use burn::backend::NdArray;
 use minflow::bag::read_frames;
 use minflow::model::store::Surrogate;
+use minflow::node::surrogate::state_rows;
 
 fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -179,19 +180,7 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
         .into_iter()
         .map(|m| m.2)
         .collect();
-    let rows = |i: usize| -> Vec<f32> {
-        let f = &frames[i];
-        (0..f.len())
-            .flat_map(|p| {
-                [
-                    f.position[2 * p],
-                    f.position[2 * p + 1],
-                    f.velocity[2 * p],
-                    f.velocity[2 * p + 1],
-                ]
-            })
-            .collect()
-    };
+    let rows = |i: usize| state_rows(&frames[i]);
     let s = Surrogate::<NdArray<f32>>::load(&model, &Default::default()).unwrap();
     assert_eq!(s.bundle(), 2);
     let want = s
@@ -207,16 +196,7 @@ fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
     for bytes in raw_messages(&out, Some(&output)) {
         let f = minflow::msgs::decode(&bytes).unwrap();
         let k = f.frame_index as usize - 2;
-        let got: Vec<f32> = (0..f.len())
-            .flat_map(|p| {
-                [
-                    f.position[2 * p],
-                    f.position[2 * p + 1],
-                    f.velocity[2 * p],
-                    f.velocity[2 * p + 1],
-                ]
-            })
-            .collect();
+        let got = state_rows(&f);
         let worst = got
             .iter()
             .zip(&want[k])

@@ -17,6 +17,7 @@ use burn::backend::NdArray;
 use minflow::bag::{read_frames, FRAMES_TOPIC};
 use minflow::model::store::Surrogate;
 use minflow::msgs::ParticleFrame;
+use minflow::node::surrogate::state_rows;
 
 const SCENES: [&str; 2] = [
     "bags/multi_rope+snow_001.mcap",
@@ -95,34 +96,12 @@ fn offline(model: &Path, bag: &Path, mirror: bool) -> (String, BTreeMap<u32, Vec
     let mut state = s.init_state();
     let mut out = BTreeMap::new();
     for f in &frames {
-        let rows: Vec<f32> = (0..f.len())
-            .flat_map(|i| {
-                [
-                    f.position[2 * i],
-                    f.position[2 * i + 1],
-                    f.velocity[2 * i],
-                    f.velocity[2 * i + 1],
-                ]
-            })
-            .collect();
+        let rows = state_rows(f);
         let (next, st) = s.step(&rows, &f.material, &[f.dt], state).unwrap();
         state = st;
         out.insert(f.frame_index + 1, next);
     }
     (frames[0].scene.clone(), out)
-}
-
-fn rows_of(f: &ParticleFrame) -> Vec<f32> {
-    (0..f.len())
-        .flat_map(|i| {
-            [
-                f.position[2 * i],
-                f.position[2 * i + 1],
-                f.velocity[2 * i],
-                f.velocity[2 * i + 1],
-            ]
-        })
-        .collect()
 }
 
 /// Compares recorded predictions with the offline ones; returns how many were compared.
@@ -141,7 +120,7 @@ fn assert_matches_offline(
     for bytes in raw_messages(pred_dir, Some(topic)) {
         let f = minflow::msgs::decode(&bytes).unwrap();
         let expect = &want[&f.scene][&f.frame_index];
-        let got = rows_of(&f);
+        let got = state_rows(&f);
         let worst = got
             .iter()
             .zip(expect)

@@ -365,19 +365,7 @@ impl<B: NetOps> GridModel<B> {
         let out = self.unet.forward(grid);
         let channels = out.dims()[3];
         let out = out.reshape([b, cells, channels]); // [B, n^2, K L]
-        let latent = channels / self.bundle;
-        // Each field as its own contiguous `[B, n^2, L]` tensor: the CPU's one-pass gather
-        // reads only dense inputs (a strided view would take the composed path, ~10x slower).
-        let fields: Vec<Tensor<B, 3>> = match self.bundle {
-            1 => vec![out],
-            k => (0..k)
-                .map(|i| {
-                    let view = out.clone().narrow(2, i * latent, latent);
-                    view.reshape([b * cells * latent])
-                        .reshape([b, cells, latent])
-                })
-                .collect(),
-        };
+        let fields = self.fields(out, [b, cells]);
         let field = |k: usize| fields[k].clone();
 
         // Memory, once per call, on the first frame's inputs.
@@ -413,6 +401,23 @@ impl<B: NetOps> GridModel<B> {
             frames.push(next);
         }
         (frames, state)
+    }
+
+    /// The U-Net's output `[B, n^2, K L]` as K fields of `[B, n^2, L]`, each its own
+    /// contiguous tensor: the CPU's one-pass gather reads only dense inputs (a strided view
+    /// would take the composed path).
+    fn fields(&self, out: Tensor<B, 3>, [b, cells]: [usize; 2]) -> Vec<Tensor<B, 3>> {
+        if self.bundle == 1 {
+            return vec![out];
+        }
+        let latent = out.dims()[2] / self.bundle;
+        (0..self.bundle)
+            .map(|i| {
+                let view = out.clone().narrow(2, i * latent, latent);
+                view.reshape([b * cells * latent])
+                    .reshape([b, cells, latent])
+            })
+            .collect()
     }
 
     /// `[B N, L + 2T + 4 + 2]` rows `u_i = [gathered_i, own_i]`: the gathered latent features,
