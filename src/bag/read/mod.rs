@@ -15,7 +15,7 @@
 //! skipped as unknown (as the specification tells readers to), and only the count shows the
 //! loss, which is then reported the same way. Damage past the Data End record, in the summary
 //! section, loses no message: it is logged and reading ends normally. Used by `train`,
-//! `replay`, `eval` and `bag info/check`.
+//! `replay`, `eval` and `bag info/check`. The recovery's chunk reader lives in `chunk.rs`.
 
 use std::collections::{HashMap, VecDeque};
 use std::fmt;
@@ -27,8 +27,11 @@ use std::sync::Arc;
 
 use mcap::sans_io::LinearReaderOptions;
 
+mod chunk;
+
 use super::{BagError, MESSAGE_ENCODING};
 use crate::msgs::{self, ParticleFrame};
+use chunk::read_chunk;
 
 /// Records up to this size are accepted even in small files (a chunk may hold a record larger
 /// than the file); beyond it a record must fit in the file. Keeps a corrupt length from making
@@ -482,55 +485,4 @@ impl BagReader {
         self.truncation = Some(truncation);
         self.next_recovered()
     }
-}
-
-/// The messages of one indexed chunk, or None when the chunk is damaged (bad CRC, bad
-/// compression, a bad record inside, an unknown channel): all or nothing, so no message of a
-/// damaged chunk is used. The chunk record is fed alone to a linear reader that checks its CRC
-/// before yielding and bounds every record length (a damaged length must not allocate).
-fn read_chunk(
-    summary: &mcap::Summary,
-    bytes: &[u8],
-    index: &mcap::records::ChunkIndex,
-) -> Option<Vec<Recovered>> {
-    use mcap::records::{op, Record};
-    use mcap::sans_io::{LinearReadEvent, LinearReader};
-    // A damaged index may point anywhere: keep the record inside the file.
-    let end = index.chunk_start_offset.checked_add(index.chunk_length)?;
-    if index.chunk_length < 9 || end > bytes.len() as u64 {
-        return None;
-    }
-    let mut record = &bytes[index.chunk_start_offset as usize..end as usize];
-    if record[0] != op::CHUNK {
-        return None;
-    }
-    let options = LinearReaderOptions::default()
-        .with_skip_start_magic(true)
-        .with_skip_end_magic(true)
-        .with_validate_chunk_crcs(true)
-        .with_prevalidate_chunk_crcs(true)
-        .with_record_length_limit(MAX_RECORD_BYTES);
-    let mut reader = LinearReader::new_with_options(options);
-    let mut out = Vec::new();
-    while let Some(event) = reader.next_event() {
-        match event.ok()? {
-            LinearReadEvent::ReadRequest(need) => {
-                let n = need.min(record.len());
-                reader.insert(n).copy_from_slice(&record[..n]);
-                reader.notify_read(n);
-                record = &record[n..];
-            }
-            LinearReadEvent::Record { opcode, data } => {
-                if let Record::Message { header, data } = mcap::parse_record(opcode, data).ok()? {
-                    out.push(Recovered {
-                        channel: Arc::clone(summary.channels.get(&header.channel_id)?),
-                        log_time: header.log_time,
-                        publish_time: header.publish_time,
-                        data: data.into_owned(),
-                    });
-                }
-            }
-        }
-    }
-    Some(out)
 }
