@@ -197,32 +197,7 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
         let session = transport::open(&args.transport.options(kind))?;
         let (tx, rx) = channel();
         let subscription = session.subscribe(&topic, tx)?;
-        let mut child = Command::new(&exe);
-        child.args([
-            "bench",
-            "transport",
-            "--role",
-            "publisher",
-            "--topic",
-            &topic,
-        ]);
-        child.args(args.transport.child_args(kind));
-        child.args([
-            "--frames",
-            &args.frames.to_string(),
-            "--hz",
-            &args.hz.to_string(),
-        ]);
-        child.args([
-            "--burst",
-            &args.burst.to_string(),
-            "--particles",
-            &args.particles.to_string(),
-        ]);
-        let mut child = child
-            .stdout(Stdio::null())
-            .spawn()
-            .context("starting the publisher process")?;
+        let mut child = spawn_publisher(&exe, args, kind, &topic)?;
         let mut latencies = Vec::with_capacity(args.frames as usize);
         let mut seen: BTreeMap<&str, u32> = BTreeMap::new();
         let (mut burst_first, mut burst_last) = (None, None);
@@ -276,6 +251,47 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
             burst_fps,
         });
     }
+    print_rows(args, &rows);
+    Ok(Outcome::Done)
+}
+
+/// Starts this binary as the publisher process of the benchmark of `kind` on `topic`.
+fn spawn_publisher(
+    exe: &std::path::Path,
+    args: &TransportBenchArgs,
+    kind: TransportKind,
+    topic: &str,
+) -> anyhow::Result<std::process::Child> {
+    let mut child = Command::new(&exe);
+    child.args([
+        "bench",
+        "transport",
+        "--role",
+        "publisher",
+        "--topic",
+        topic,
+    ]);
+    child.args(args.transport.child_args(kind));
+    child.args([
+        "--frames",
+        &args.frames.to_string(),
+        "--hz",
+        &args.hz.to_string(),
+    ]);
+    child.args([
+        "--burst",
+        &args.burst.to_string(),
+        "--particles",
+        &args.particles.to_string(),
+    ]);
+    child
+        .stdout(Stdio::null())
+        .spawn()
+        .context("starting the publisher process")
+}
+
+/// Prints the latency and burst table (Markdown) of `rows` on stdout.
+fn print_rows(args: &TransportBenchArgs, rows: &[Row]) {
     println!(
         "\nTransport latency, {} particles ({} KB CDR), two processes on loopback, {} frames at {} Hz; burst of {}:",
         args.particles,
@@ -286,7 +302,7 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
     );
     println!("| transport | received | lost | p50 us | p99 us | max us | burst received | burst frames/s |");
     println!("|---|---|---|---|---|---|---|---|");
-    for r in &rows {
+    for r in rows {
         println!(
             "| {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {:.0} |",
             r.kind,
@@ -299,5 +315,4 @@ fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {
             r.burst_fps
         );
     }
-    Ok(Outcome::Done)
 }

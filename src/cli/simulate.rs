@@ -100,17 +100,9 @@ pub(super) fn run_offline(args: SimulateArgs) -> anyhow::Result<Outcome> {
     simulate(args, |_| bail!("--publish needs the full minflow binary"))
 }
 
-/// Simulates the scenes `args` names; `open` starts live publishing for `--publish`.
-fn simulate(
-    args: SimulateArgs,
-    open: impl Fn(&SimulateArgs) -> anyhow::Result<Live>,
-) -> anyhow::Result<Outcome> {
-    if args.foxglove.foxglove.is_some() && !args.publish {
-        return Err(UsageError("--foxglove needs --publish".into()).into());
-    }
-    if args.pointcloud2.pointcloud2.is_some() && !args.publish {
-        return Err(UsageError("--pointcloud2 needs --publish".into()).into());
-    }
+/// The scenes `args` names: `--scene-file`s, or ids of a family; a usage error for a bad
+/// file or two scenes with one bag name.
+fn scenes_of(args: &SimulateArgs) -> anyhow::Result<Vec<Scene>> {
     let mut scenes: Vec<Scene> = Vec::new();
     if args.scene_file.is_empty() {
         let family: Family = args.family.parse()?;
@@ -146,6 +138,21 @@ fn simulate(
         ))
         .into());
     }
+    Ok(scenes)
+}
+
+/// Simulates the scenes `args` names; `open` starts live publishing for `--publish`.
+fn simulate(
+    args: SimulateArgs,
+    open: impl Fn(&SimulateArgs) -> anyhow::Result<Live>,
+) -> anyhow::Result<Outcome> {
+    if args.foxglove.foxglove.is_some() && !args.publish {
+        return Err(UsageError("--foxglove needs --publish".into()).into());
+    }
+    if args.pointcloud2.pointcloud2.is_some() && !args.publish {
+        return Err(UsageError("--pointcloud2 needs --publish".into()).into());
+    }
+    let mut scenes = scenes_of(&args)?;
     if let Some(n) = args.frames {
         scenes.iter_mut().for_each(|s| s.frames = s.frames.min(n));
     }

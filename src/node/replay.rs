@@ -186,23 +186,7 @@ pub fn play(
 ) -> Result<ReplayReport, ReplayError> {
     let paths = bag_paths(&options.inputs)?;
     let mut report = ReplayReport::default();
-    if options.wait_for_subscribers > 0 {
-        tracing::info!("waiting for {} subscriber(s)", options.wait_for_subscribers);
-        if !wait_for_subscribers(
-            publisher,
-            options.wait_for_subscribers,
-            options.wait_timeout,
-        ) {
-            return Err(ReplayError::NoSubscribers {
-                wanted: options.wait_for_subscribers,
-                have: publisher.subscriber_count(),
-                timeout: options.wait_timeout,
-            });
-        }
-        // Matching is seen from the publisher's side first; give the subscriber's side (DDS
-        // readers accept data only from writers they matched) a moment too.
-        std::thread::sleep(Duration::from_millis(300));
-    }
+    wait_for_readers(options, publisher)?;
     // `--start-offset` counts from the earliest log time in the bags; without it nothing is
     // filtered by time (a frame logged before the first one in file order still plays).
     let offset_ns = (options.start_offset.max(0.0) * 1e9) as u64;
@@ -269,6 +253,35 @@ pub fn play(
     report.elapsed = first_start.map_or(Duration::ZERO, |t| t.elapsed());
     publisher.flush(Duration::from_secs(5));
     Ok(report)
+}
+
+/// Waits for `--wait-for-subscribers` subscribers (none: at once), then a moment more so
+/// the subscribers' side has matched too.
+///
+/// # Errors
+/// [`ReplayError::NoSubscribers`] when they do not come in time.
+fn wait_for_readers(
+    options: &ReplayOptions,
+    publisher: &mut dyn FramePublisher,
+) -> Result<(), ReplayError> {
+    if options.wait_for_subscribers > 0 {
+        tracing::info!("waiting for {} subscriber(s)", options.wait_for_subscribers);
+        if !wait_for_subscribers(
+            publisher,
+            options.wait_for_subscribers,
+            options.wait_timeout,
+        ) {
+            return Err(ReplayError::NoSubscribers {
+                wanted: options.wait_for_subscribers,
+                have: publisher.subscriber_count(),
+                timeout: options.wait_timeout,
+            });
+        }
+        // Matching is seen from the publisher's side first; give the subscriber's side (DDS
+        // readers accept data only from writers they matched) a moment too.
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    Ok(())
 }
 
 /// Sleeps until `due`, waking early if `stop` turns true. Sleeps in slices and spins for

@@ -189,7 +189,24 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         body.velocity = random_velocity(rng, 2.0);
         bodies.push(body);
     }
-    // Split the particles over the solid bodies in proportion to their area.
+    assign_counts(&mut bodies, rope);
+    let names: Vec<&str> = materials.iter().map(|m| m.name()).collect();
+    Scene {
+        name: format!("multi/{}/{id:03}", names.join("+")),
+        grid: 64,
+        dt: 8e-4,
+        substeps: 20,
+        frames: 625,
+        gravity: [0.0, -9.8],
+        elasticity: Elasticity::default(),
+        seed: rng.random(),
+        bodies,
+    }
+}
+
+/// Splits the particles a `multi` scene's solid bodies share (all of [`PARTICLES`] but the
+/// rope's) over them in proportion to their area, the last taking the remainder.
+fn assign_counts(bodies: &mut [Body], rope: bool) {
     let left = PARTICLES - if rope { ROPE_PARTICLES } else { 0 };
     let area = |b: &Body| {
         b.size[0]
@@ -217,18 +234,6 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         };
         bodies[k].count = count;
         assigned += count;
-    }
-    let names: Vec<&str> = materials.iter().map(|m| m.name()).collect();
-    Scene {
-        name: format!("multi/{}/{id:03}", names.join("+")),
-        grid: 64,
-        dt: 8e-4,
-        substeps: 20,
-        frames: 625,
-        gravity: [0.0, -9.8],
-        elasticity: Elasticity::default(),
-        seed: rng.random(),
-        bodies,
     }
 }
 
