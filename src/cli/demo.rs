@@ -69,7 +69,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
             args.bags.display(),
             args.epochs
         );
-        let mut train = TrainArgs::defaults(vec![args.bags.clone()], args.train_out.clone());
+        let mut train: TrainArgs = super::flags::defaults(&["--data", "--out"])?;
+        train.data = vec![args.bags.clone()];
+        train.out = args.train_out.clone();
         train.epochs = args.epochs as usize;
         train.batch_size = 4;
         train.patience = 0;

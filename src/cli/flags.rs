@@ -121,6 +121,22 @@ pub fn conv_kernel(s: &str) -> Result<crate::model::grid::ConvKernel, String> {
         .ok_or_else(|| format!("{s:?} is not one of auto | burn | gather | shift"))
 }
 
+/// A subcommand's flag values with its own defaults for every flag but `required` (values
+/// the caller sets itself next, each parsed as `-`), so `report` and `demo` run what `train`
+/// and `eval` would.
+///
+/// # Errors
+/// A flag of `T` without a default that `required` does not name.
+pub fn defaults<T: clap::Args>(required: &[&str]) -> anyhow::Result<T> {
+    #[derive(clap::Parser)]
+    struct Wrap<T: clap::Args> {
+        #[command(flatten)]
+        inner: T,
+    }
+    let argv = std::iter::once("minflow").chain(required.iter().flat_map(|f| [*f, "-"]));
+    Ok(<Wrap<T> as clap::Parser>::try_parse_from(argv)?.inner)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

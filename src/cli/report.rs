@@ -17,7 +17,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use burn::module::Module;
-use clap::{Args, Parser};
+use clap::Args;
 
 use super::eval::{direct, EvalArgs};
 use super::train::TrainArgs;
@@ -92,18 +92,6 @@ pub struct ReportArgs {
     /// Keep runs that already hold a model.json instead of training again.
     #[arg(long)]
     pub reuse: bool,
-}
-
-/// A subcommand's flag values with its own defaults for every flag but `required` (the
-/// values report sets itself next), so the report runs what `train` and `eval` would.
-fn defaults<T: Args>(required: &[&str]) -> anyhow::Result<T> {
-    #[derive(Parser)]
-    struct Wrap<T: Args> {
-        #[command(flatten)]
-        inner: T,
-    }
-    let argv = std::iter::once("minflow").chain(required.iter().flat_map(|f| [*f, "-"]));
-    Ok(Wrap::<T>::try_parse_from(argv)?.inner)
 }
 
 fn path(p: &Path) -> String {
@@ -194,7 +182,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
         names.push(name);
     }
     let eval_dir = args.out.join("eval");
-    let mut eval_args: EvalArgs = defaults(&["--model", "--data"])?;
+    let mut eval_args: EvalArgs = super::flags::defaults(&["--model", "--data"])?;
     eval_args.models = dirs.clone();
     eval_args.data = args.data.clone();
     eval_args.split = args.eval_split.clone();
@@ -232,7 +220,7 @@ fn run_name(arch: &str, core: &str) -> String {
 
 /// The `train` flags of one run: train's defaults, with what the report's flags set.
 fn train_args(args: &ReportArgs, arch: &str, core: &str, dir: &Path) -> anyhow::Result<TrainArgs> {
-    let mut t: TrainArgs = defaults(&["--data", "--out"])?;
+    let mut t: TrainArgs = super::flags::defaults(&["--data", "--out"])?;
     t.data = args.data.clone();
     t.out = dir.to_path_buf();
     t.arch = arch.to_owned();

@@ -160,7 +160,7 @@ impl TrainArgs {
     /// # Errors
     /// A [`crate::cli::UsageError`] naming the flags.
     pub fn refuse_paper_flags(&self) -> anyhow::Result<()> {
-        let d = Self::defaults(self.data.clone(), self.out.clone());
+        let d: Self = crate::cli::flags::defaults(&["--data", "--out"])?;
         let set: Vec<&str> = [
             ("--width", self.width != d.width),
             ("--encoder-hidden", self.encoder_hidden != d.encoder_hidden),
@@ -334,23 +334,6 @@ pub struct GridArgs {
 }
 
 impl TrainArgs {
-    /// Every flag at its default, training on `data` into `out` (what `minflow train --data
-    /// DATA --out OUT` parses to): for callers that set the fields they need, as `demo` does.
-    ///
-    /// # Panics
-    /// Never for paths clap accepts (every other flag has a default).
-    pub fn defaults(data: Vec<PathBuf>, out: PathBuf) -> Self {
-        #[derive(clap::Parser)]
-        struct Defaults {
-            #[command(flatten)]
-            args: TrainArgs,
-        }
-        let mut argv: Vec<std::ffi::OsString> = vec!["train".into(), "--data".into()];
-        argv.extend(data.into_iter().map(Into::into));
-        argv.extend(["--out".into(), out.into()]);
-        <Defaults as clap::Parser>::parse_from(argv).args
-    }
-
     /// The grid network these flags describe (normalisation constants still at their
     /// defaults: [`fit_stats`] fills them from the training split).
     ///
