@@ -18,6 +18,7 @@ use rayon::prelude::*;
 
 use super::device::{Device, DeviceArgs};
 use super::Outcome;
+use crate::eval::frame_metrics;
 use crate::model::store::Surrogate;
 use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
@@ -95,7 +96,7 @@ fn roll<B: NetOps>(
     (w, h, batch): (usize, usize, usize),
 ) -> anyhow::Result<Row> {
     let scaler = surrogate.meta().scaler;
-    let (mut sq, mut count) = (0.0f64, 0usize);
+    let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
     for chunk in scenes.chunks(batch) {
         let cat =
@@ -115,20 +116,17 @@ fn roll<B: NetOps>(
             preds.extend(bundle);
         }
         seconds += started.elapsed().as_secs_f64();
+        // Each predicted frame of the batch scored as one frame of all its particles: the mean
+        // over particles and scaled features that `eval` reports as MSE.
         for (k, pred) in preds.iter().take(h).enumerate() {
-            for (p, t) in pred.chunks_exact(4).zip(cat(w + k).chunks_exact(4)) {
-                for f in 0..4 {
-                    let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
-                    sq += d * d;
-                }
-                count += 4;
-            }
+            sum += frame_metrics(pred, &cat(w + k), &material, &scaler, 0).mse;
+            count += 1;
         }
     }
     Ok(Row {
         bundle: surrogate.bundle(),
         seconds,
-        mse: sq / count.max(1) as f64,
+        mse: sum / count.max(1) as f64,
     })
 }
 
