@@ -104,17 +104,10 @@ fn roll<B: NetOps>(
         let material: Vec<u8> = chunk.iter().flat_map(|s| s.material.clone()).collect();
         let dt: Vec<f32> = chunk.iter().map(|s| s.dt).collect();
         let started = Instant::now();
-        let mut state = surrogate.init_state_at(&cat(0), chunk.len())?;
-        for k in 0..w - 1 {
-            state = surrogate.step(&cat(k), &material, &dt, state)?.1;
-        }
+        let seed: Vec<Vec<f32>> = (0..w).map(cat).collect();
         let mut preds: Vec<Vec<f32>> = Vec::with_capacity(h);
-        while preds.len() < h {
-            let input = preds.last().cloned().unwrap_or_else(|| cat(w - 1));
-            let (bundle, next) = surrogate.step_bundle(&input, &material, &dt, state)?;
-            state = next;
-            preds.extend(bundle);
-        }
+        let keep = |_, f: &[f32]| preds.push(f.to_vec());
+        surrogate.rollout_batch(Some(&cat(0)), &seed, &material, &dt, h, keep)?;
         seconds += started.elapsed().as_secs_f64();
         // Each predicted frame of the batch scored as one frame of all its particles: the mean
         // over particles and scaled features that `eval` reports as MSE.

@@ -361,26 +361,50 @@ impl<B: NetOps> Surrogate<B> {
         dt: f32,
         k: usize,
     ) -> Result<Vec<Vec<f32>>, StoreError> {
+        let mut frames = Vec::with_capacity(k);
+        self.rollout_batch(first, seed, material, &[dt], k, |_, f| {
+            frames.push(f.to_vec())
+        })?;
+        Ok(frames)
+    }
+
+    /// [`Surrogate::rollout`] of a batch of B trajectories at once (`seed` frames, `first`,
+    /// `material` and the results `[B, N, 4]`, `dt` `[B]`): the seed frames but the last are
+    /// stepped on, then ceil(k / K) network calls each start from the last frame the call
+    /// before predicted; `each(i, frame)` sees predicted frame i (0-based) of the `k`.
+    ///
+    /// # Errors
+    /// A step's [`StoreError`]; no seed frame.
+    pub fn rollout_batch(
+        &self,
+        first: Option<&[f32]>,
+        seed: &[Vec<f32>],
+        material: &[u8],
+        dt: &[f32],
+        k: usize,
+        mut each: impl FnMut(usize, &[f32]),
+    ) -> Result<(), StoreError> {
         let mut state = match first {
-            Some(frame) => self.init_state_at(frame, 1)?,
+            Some(frame) => self.init_state_at(frame, dt.len())?,
             None => self.init_state(),
         };
         let Some((last, before)) = seed.split_last() else {
             return Err(StoreError::Shape("rollout: no seed frame".into()));
         };
         for frame in before {
-            state = self.step(frame, material, &[dt], state)?.1;
+            state = self.step(frame, material, dt, state)?.1;
         }
-        // ceil(k / K) calls, each from the last frame the one before predicted.
-        let mut frames: Vec<Vec<f32>> = Vec::with_capacity(k);
-        while frames.len() < k {
-            let input: &[f32] = frames.last().map_or(last.as_slice(), Vec::as_slice);
-            let (bundle, s) = self.step_bundle(input, material, &[dt], state)?;
+        let (mut done, mut input) = (0, last.clone());
+        while done < k {
+            let (bundle, s) = self.step_bundle(&input, material, dt, state)?;
             state = s;
-            frames.extend(bundle);
+            for frame in bundle.into_iter().take(k - done) {
+                each(done, &frame);
+                done += 1;
+                input = frame;
+            }
         }
-        frames.truncate(k);
-        Ok(frames)
+        Ok(())
     }
 }
 

@@ -35,40 +35,28 @@ pub fn validation_rollout<B: NetOps>(
         let material: Vec<u8> = (0..b).flat_map(|_| traj.material.iter().copied()).collect();
         let dt = vec![traj.dt; b];
         let first: Vec<f32> = (0..b).flat_map(|_| traj.state(0).iter().copied()).collect();
-        let mut state = surrogate.init_state_at(&first, b)?;
-        for k in 0..window - 1 {
-            let frame: Vec<f32> = offsets
-                .iter()
-                .flat_map(|&o| traj.state(o + k).iter().copied())
-                .collect();
-            state = surrogate.step(&frame, &material, &dt, state)?.1;
-        }
-        // ceil(horizon / K) calls, each from the last frame the one before predicted.
-        let mut next: Vec<f32> = offsets
-            .iter()
-            .flat_map(|&o| traj.state(o + window - 1).iter().copied())
+        let seed: Vec<Vec<f32>> = (0..window)
+            .map(|k| {
+                offsets
+                    .iter()
+                    .flat_map(|&o| traj.state(o + k).iter().copied())
+                    .collect()
+            })
             .collect();
-        let mut k = 0;
-        while k < horizon {
-            let (bundle, s) = surrogate.step_bundle(&next, &material, &dt, state)?;
-            state = s;
-            for pred in bundle.into_iter().take(horizon - k) {
-                for (row, &o) in offsets.iter().enumerate() {
-                    let truth = traj.state(o + window + k);
-                    let pred = &pred[row * n * 4..(row + 1) * n * 4];
-                    for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
-                        for f in 0..4 {
-                            let d =
-                                f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
-                            sum += d * d;
-                        }
+        let score = |k: usize, pred: &[f32]| {
+            for (row, &o) in offsets.iter().enumerate() {
+                let truth = traj.state(o + window + k);
+                let pred = &pred[row * n * 4..(row + 1) * n * 4];
+                for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
+                    for f in 0..4 {
+                        let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
+                        sum += d * d;
                     }
-                    count += n * 4;
                 }
-                k += 1;
-                next = pred;
+                count += n * 4;
             }
-        }
+        };
+        surrogate.rollout_batch(Some(&first), &seed, &material, &dt, horizon, score)?;
     }
     Ok(if count == 0 {
         f64::NAN
