@@ -72,6 +72,11 @@ pub struct EvalArgs {
     /// from the truth too (default: a closed-loop rollout, baselines roll out as well).
     #[arg(long)]
     pub one_step: bool,
+    /// Write each rollout's predicted frames as an MCAP bag on /surrogate/frames under DIR
+    /// (`DIR/<predictor>/<scene>_from<frame>.mcap`): view them in Foxglove, score them with
+    /// `eval --pred` (--data only).
+    #[arg(long, value_name = "DIR", conflicts_with = "pred")]
+    pub save_pred: Option<PathBuf>,
     /// Output folder (tables, curves, renders).
     #[arg(short, long, default_value = "eval")]
     pub out: PathBuf,
@@ -219,6 +224,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
         snapshots: !args.no_render,
         full: args.horizon == Horizon::Full,
         plausibility: !args.no_plausibility,
+        save_pred: args.save_pred.clone(),
     };
     let bar = super::progress(0, "rollouts");
     let eval = eval::evaluate(&trajs, &predictors, &scaler, &source, &opts, &bar)?;

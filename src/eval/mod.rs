@@ -13,6 +13,8 @@
 //! - [`table`]: the Markdown and CSV tables (Tables 2/3 layout and the detailed metrics).
 //! - [`render`]: particle renders (PNG grid and animated GIF) and the per-scene MSE curves.
 //! - [`output`]: writes all of them into one folder ([`output::write_all`]).
+//! - [`save_pred`]: each rollout's predicted frames as an MCAP bag (`eval --save-pred`).
+//! - [`structure`]: volume ratio, intact fraction and connectivity of a predicted frame.
 //!
 //! Both ways of evaluating produce one [`Evaluation`]: per scene and per predictor a
 //! [`Curve`] of per-step metrics, step `k` = the k-th predicted frame (k = 1 is the frame
@@ -29,6 +31,8 @@ pub mod probe_table;
 pub mod render;
 pub mod replay;
 pub mod rollout;
+pub mod save_pred;
+pub mod structure;
 pub mod table;
 
 use std::path::PathBuf;

@@ -17,10 +17,15 @@
 //!   current distance to the neighbour: zero when the prediction is a rigid motion of the
 //!   truth, positive when it stretches, tears or crumples the body (dimensionless).
 //!
-//! [`Plausibility`] holds both per material for one frame. Used by [`super::rollout`]
+//! - Structure ([`super::structure`]): the volume ratio (area covered, prediction over truth),
+//!   the intact fraction of the solids' rest-neighbour pairs and the rope's connected share,
+//!   prediction beside truth.
+//!
+//! [`Plausibility`] holds all of them per material for one frame. Used by [`super::rollout`]
 //! (`minflow eval`) at the steps [`probe_steps`] picks.
 
 use super::metrics::MATERIALS;
+use super::structure::covered_area;
 
 /// At most this many points per cloud enter [`sinkhorn_divergence`] in [`Plausibility::of`].
 pub const SINKHORN_POINTS: usize = 256;
@@ -40,6 +45,16 @@ pub struct Plausibility {
     pub sinkhorn: [Option<f64>; MATERIALS],
     /// Strain error (solids only), dimensionless.
     pub strain: [Option<f64>; MATERIALS],
+    /// Area covered, prediction over truth ([`super::structure::covered_area`]).
+    pub volume: [Option<f64>; MATERIALS],
+    /// Intact fraction of the rest-neighbour pairs (solids only), prediction.
+    pub intact: [Option<f64>; MATERIALS],
+    /// The same of the truth.
+    pub intact_truth: [Option<f64>; MATERIALS],
+    /// Share of the particles in the largest intact piece (solids only), prediction.
+    pub connected: [Option<f64>; MATERIALS],
+    /// The same of the truth.
+    pub connected_truth: [Option<f64>; MATERIALS],
 }
 
 impl Plausibility {
@@ -68,6 +83,14 @@ impl Plausibility {
                 SINKHORN_ITERS,
             ));
             out.strain[m] = neighbours.strain_error(pred, truth, m);
+            let of_m = |i: usize| usize::from(material[i]).min(MATERIALS - 1) == m;
+            let area = |state: &[f32]| covered_area(state, of_m);
+            let true_area = area(truth);
+            out.volume[m] = (true_area > 0).then(|| area(pred) as f64 / true_area as f64);
+            out.intact[m] = neighbours.intact_fraction(pred, m);
+            out.intact_truth[m] = neighbours.intact_fraction(truth, m);
+            out.connected[m] = neighbours.connected_share(pred, m);
+            out.connected_truth[m] = neighbours.connected_share(truth, m);
         }
         out
     }
@@ -84,6 +107,11 @@ impl Plausibility {
         Some(Plausibility {
             sinkhorn: std::array::from_fn(|m| mean(&|p| p.sinkhorn[m])),
             strain: std::array::from_fn(|m| mean(&|p| p.strain[m])),
+            volume: std::array::from_fn(|m| mean(&|p| p.volume[m])),
+            intact: std::array::from_fn(|m| mean(&|p| p.intact[m])),
+            intact_truth: std::array::from_fn(|m| mean(&|p| p.intact_truth[m])),
+            connected: std::array::from_fn(|m| mean(&|p| p.connected[m])),
+            connected_truth: std::array::from_fn(|m| mean(&|p| p.connected_truth[m])),
         })
     }
 }
@@ -193,6 +221,16 @@ impl Neighbours {
             }
         }
         Self { of, material }
+    }
+
+    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
+    pub(super) fn of(&self) -> &[Vec<(usize, f64)>] {
+        &self.of
+    }
+
+    /// Material id of particle `i` (clamped to `MATERIALS - 1`).
+    pub(super) fn material_of(&self, i: usize) -> usize {
+        self.material[i]
     }
 
     /// The strain error of material `m` (see the module doc): the mean over its particles

@@ -1,6 +1,7 @@
 //! The plausibility tables of an [`Evaluation`] ([`super::plausibility`]): per predictor and
-//! probe step, the Sinkhorn divergence per material and the strain error per solid, each the
-//! mean over the scenes that have the material. Markdown for `table.md`, CSV (one row per
+//! probe step, the Sinkhorn divergence per material and the strain error per solid, then the
+//! structure (volume ratio, intact fraction, rope connectivity), each the mean over the
+//! scenes that have the material. Markdown for `table.md`, CSV (one row per
 //! scene, predictor, probe and material) for `plausibility.csv`. Used by [`super::output`].
 
 use std::collections::BTreeSet;
@@ -72,13 +73,63 @@ pub fn markdown(eval: &Evaluation) -> String {
             s.push('\n');
         }
     }
+    s.push_str(&structure_markdown(eval, &probes));
     s
 }
 
-/// `scene,predictor,probe,material,sinkhorn,strain`, one row per scored material (empty
+/// The structure section of [`markdown`]: per predictor and probe, the volume ratio of each
+/// material, the intact fraction of each solid and the share of the rope in its largest
+/// piece, the truth's own value in brackets ([`super::structure`]).
+fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
+    let fmt = |v: Option<f64>| v.map_or("n/a".to_owned(), |v| format!("{v:.3}"));
+    let mut s = String::from(
+        "\nStructure (mean over scenes): volume = area covered on a 64 x 64 grid, prediction / \
+         truth; intact = share of the solids' rest-neighbour pairs (6 nearest of the rollout's \
+         first frame) within 1.5x their rest distance, and rope connected = share of the rope \
+         in its largest intact piece, prediction (truth):\n\n| predictor | step |",
+    );
+    for m in MATERIAL_NAMES {
+        let _ = write!(s, " volume {m} |");
+    }
+    for m in &MATERIAL_NAMES[1..] {
+        let _ = write!(s, " intact {m} |");
+    }
+    s.push_str(" rope connected |\n| --- | --- |");
+    s.push_str(&" ---: |".repeat(2 * MATERIAL_NAMES.len()));
+    s.push('\n');
+    let rope = MATERIAL_NAMES.len() - 1;
+    for (p, name) in eval.predictors.iter().enumerate() {
+        for &probe in probes {
+            let mean = |f: &dyn Fn(&super::Plausibility) -> Option<f64>| {
+                mean_over_scenes(eval, p, probe, f)
+            };
+            let _ = write!(s, "| {name} | {probe} |");
+            for m in 0..MATERIAL_NAMES.len() {
+                let _ = write!(s, " {} |", fmt(mean(&|x| x.volume[m])));
+            }
+            let pair = |pred: Option<f64>, truth: Option<f64>| match (pred, truth) {
+                (Some(_), _) => format!("{} ({})", fmt(pred), fmt(truth)),
+                _ => "n/a".to_owned(),
+            };
+            for m in 1..MATERIAL_NAMES.len() {
+                let v = pair(mean(&|x| x.intact[m]), mean(&|x| x.intact_truth[m]));
+                let _ = write!(s, " {v} |");
+            }
+            let v = pair(mean(&|x| x.connected[rope]), mean(&|x| x.connected_truth[rope]));
+            let _ = writeln!(s, " {v} |");
+        }
+    }
+    s
+}
+
+/// `scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,
+/// connected_truth`, one row per scored material (empty
 /// cells where a value does not apply).
 pub fn csv(eval: &Evaluation) -> String {
-    let mut s = String::from("scene,predictor,probe,material,sinkhorn,strain\n");
+    let mut s = String::from(
+        "scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,\
+         connected_truth\n",
+    );
     let cell = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:e}"));
     for scene in &eval.scenes {
         for (name, per) in eval.predictors.iter().zip(&scene.probes) {
@@ -89,10 +140,15 @@ pub fn csv(eval: &Evaluation) -> String {
                     }
                     let _ = writeln!(
                         s,
-                        "{},{name},{probe},{material},{},{}",
+                        "{},{name},{probe},{material},{},{},{},{},{},{},{}",
                         scene.scene,
                         cell(v.sinkhorn[m]),
-                        cell(v.strain[m])
+                        cell(v.strain[m]),
+                        cell(v.volume[m]),
+                        cell(v.intact[m]),
+                        cell(v.intact_truth[m]),
+                        cell(v.connected[m]),
+                        cell(v.connected_truth[m]),
                     );
                 }
             }

@@ -42,6 +42,9 @@ pub struct RolloutOptions {
     pub full: bool,
     /// Score plausibility ([`super::plausibility`]) at the [`probe_steps`].
     pub plausibility: bool,
+    /// Write each rollout's predicted frames as an MCAP bag under this folder
+    /// ([`super::save_pred`], `eval --save-pred DIR`).
+    pub save_pred: Option<std::path::PathBuf>,
 }
 
 impl Default for RolloutOptions {
@@ -54,6 +57,7 @@ impl Default for RolloutOptions {
             snapshots: true,
             full: false,
             plausibility: true,
+            save_pred: None,
         }
     }
 }
@@ -226,6 +230,9 @@ impl SceneSums {
         });
         for (p, predictor) in predictors.iter().enumerate() {
             let frames = predictor.rollout(traj, first, steps)?;
+            if let Some(dir) = &opts.save_pred {
+                super::save_pred::write_rollout(dir, predictor.name(), traj, first, &frames)?;
+            }
             for (k, pred) in frames.iter().enumerate().take(steps) {
                 check_len(traj, first + k, pred.len(), predictor.name())?;
                 let truth = traj.state(first + k);

@@ -63,6 +63,7 @@ fn input(state: &[f32], material: &[u8]) -> StepInput<B> {
         material: one_hot(material, 1, n, &device),
         dt: Tensor::from_data(TensorData::new(vec![0.016f32], [1]), &device),
         reference: None,
+        rest: None,
     }
 }
 

@@ -109,6 +109,8 @@ where
         teacher: 1,
         noise: 0.0,
         mirror: false,
+        strain_weight: 0.0,
+        volume_weight: 0.0,
         seed: 0,
         patience: 0,
         val_starts: 1,
@@ -212,6 +214,7 @@ fn stages<B: AutodiffBackend + NetOps>(
         material: one_hot(&material, b, n_p, device),
         dt: Tensor::ones([b], device).mul_scalar(0.016),
         reference: None,
+        rest: None,
     };
     let step = timed::<B>(device, repeats, || {
         let (out, _) = model.step(input.clone(), MemoryState::Empty);

@@ -9,7 +9,7 @@ use clap::Args;
 use std::path::PathBuf;
 
 use crate::cli::device::DeviceArgs;
-use crate::model::grid::{ConvKernel, GridConfig, MemoryKind};
+use crate::model::grid::{ConvKernel, GridConfig, MemoryKind, Update};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::train::grid::GridTrainOptions;
 use crate::train::TrainOptions;
@@ -248,6 +248,33 @@ pub struct GridNetArgs {
     /// channels at zero) | none (as models saved before the flag).
     #[arg(long, value_enum, default_value_t = Reference::FirstFrame)]
     pub reference: Reference,
+    /// Rest-shape features of the solids: fit (each jelly, snow and rope particle's
+    /// deformation gradient fitted to its 8 nearest neighbours of the same material in the
+    /// first frame of its stream; Green strain, J - 1 and shape matching's restoring offset
+    /// into P2G and the head; `--init-from` a model without them grows them at zero) | none.
+    #[arg(long, value_enum, default_value_t = RestShape::None)]
+    pub rest_shape: RestShape,
+    /// The particle update: free (a per-particle head predicts each velocity change) | grid
+    /// (the G2P of a grid velocity-change field the U-Net predicts: a body moves as a body) |
+    /// grid+head (the grid field plus the head's per-particle correction). `--init-from` a
+    /// free model grows the field's output channels at zero.
+    #[arg(long, default_value = "free", value_parser = parse_update)]
+    pub update: Update,
+}
+
+/// `--rest-shape`: whether the grid model measures the solids' deformation from their rest
+/// neighbours.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum RestShape {
+    /// No rest-shape features (models saved before the flag existed).
+    None,
+    /// The deformation gradient fitted to the rest neighbours (`model::grid::rest`).
+    Fit,
+}
+
+/// Parses `--update`.
+fn parse_update(s: &str) -> Result<Update, String> {
+    Update::parse(s).ok_or_else(|| format!("unknown --update {s:?} (free | grid | grid+head)"))
 }
 
 /// `--reference`: what the grid model takes as each particle's reference position.
@@ -279,6 +306,18 @@ impl GridNetArgs {
                 .into_iter()
                 .flatten(),
         )
+        .chain(
+            (self.rest_shape == RestShape::Fit)
+                .then(|| ["--rest-shape".to_owned(), "fit".to_owned()])
+                .into_iter()
+                .flatten(),
+        )
+        .chain(
+            (self.update != Update::Free)
+                .then(|| ["--update".to_owned(), self.update.name().to_owned()])
+                .into_iter()
+                .flatten(),
+        )
         .collect()
     }
 }
@@ -307,6 +346,17 @@ pub struct GridArgs {
     /// so twice the scenes.
     #[arg(long)]
     pub mirror: bool,
+    /// Weight of the strain loss: the squared error of each solid rest-neighbour pair's
+    /// length |x_i - x_j| in units of the particle's rest neighbour distance (8 nearest of the
+    /// same material in the scene's first frame), prediction against truth, beside the
+    /// position and velocity MSE (0: off).
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
+    pub strain_loss: f32,
+    /// Weight of the volume loss: the squared error of each liquid particle's J (the area
+    /// change of its 8 nearest liquid neighbours since the sample's first frame, fitted by
+    /// least squares), prediction against truth (0: off).
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
+    pub volume_loss: f32,
     /// Gradient-norm clipping threshold (0: off).
     #[arg(long, default_value_t = 1.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub clip: f32,
@@ -362,7 +412,9 @@ impl TrainArgs {
             .with_head_hidden(g.net.head_hidden)
             .with_bundle(g.net.bundle)
             .with_conv(g.conv)
-            .with_reference(g.net.reference == Reference::FirstFrame);
+            .with_reference(g.net.reference == Reference::FirstFrame)
+            .with_rest_shape(g.net.rest_shape == RestShape::Fit)
+            .with_update(g.net.update);
         config
             .validate()
             .map_err(|e| anyhow::anyhow!("--arch grid: {e}"))?;
@@ -392,6 +444,8 @@ impl TrainArgs {
             teacher: g.teacher_steps,
             noise: g.noise,
             mirror: g.mirror,
+            strain_weight: g.strain_loss,
+            volume_weight: g.volume_loss,
             seed: self.seed,
             patience: self.patience,
             val_starts: g.val_starts,

@@ -17,7 +17,7 @@ use crate::cli::run_folder::{
 };
 use crate::cli::Outcome;
 use crate::data::{self, Scaler, Trajectory, WindowIndex};
-use crate::model::grid::GridConfig;
+use crate::model::grid::{GridConfig, Update};
 use crate::model::store::NetConfig;
 use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
@@ -143,16 +143,18 @@ fn init_normalisation(
 ) -> anyhow::Result<(([f32; 2], [f32; 2], [f32; 2]), Scaler)> {
     let (path, meta) = crate::model::store::read_meta(dir)
         .with_context(|| format!("--init-from {}", dir.display()))?;
-    // A model without reference channels may grow them (`GridModel::with_reference`), and a
-    // single-frame model its bundle (`GridModel::with_bundle`).
-    let (grows, bundles) = match &meta.net {
-        NetConfig::Grid(saved) => (!saved.reference, saved.bundle == 1),
-        NetConfig::Paper(_) => (false, false),
+    // A model without reference channels may grow them (`GridModel::with_reference`), a
+    // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape
+    // or with the free update those (`model::grid::grow`).
+    let compared = match &meta.net {
+        NetConfig::Grid(saved) => config
+            .clone()
+            .with_reference(config.reference && saved.reference)
+            .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
+            .with_rest_shape(config.rest_shape && saved.rest_shape)
+            .with_update(if saved.update == Update::Free { Update::Free } else { config.update }),
+        NetConfig::Paper(_) => config.clone(),
     };
-    let compared = config
-        .clone()
-        .with_reference(config.reference && !grows)
-        .with_bundle(if bundles { 1 } else { config.bundle });
     let differ = differences(
         &serde_json::to_value(&meta.net)?,
         &NetConfig::Grid(compared),

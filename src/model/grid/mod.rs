@@ -15,21 +15,32 @@
 //!    particle's position after k - 1 predicted frames).
 //! 4. Memory ([`memory`]): `u_i = [g_i, own_i]` (own = normalised velocities, material
 //!    one-hot, position) drives a per-particle minGRU | minLSTM | GRU | LSTM, or nothing.
+//!    With [`GridConfig::rest_shape`] each solid particle also measures its deformation from
+//!    its rest neighbours ([`rest`]: Green strain, `J - 1`, shape matching's restoring offset,
+//!    6 values): splatted as 6 more P2G channels (after the reference ones) and fed to the head.
 //! 5. Head: an MLP on `[u_i, memory output]` predicts the normalised velocity change;
 //!    `dv = dv_mean + dv_scale * out` (physical), `v' = v + dv`, and the trapezoid
 //!    `x' = x + dt (v + v') / 2` (its floor against MPM frames is 1.5e-6 / 1.3e-6 MSE, the
 //!    explicit `x + v' dt` 8e-6 / 2e-5: docs/design.md, "Models"), clamped into the box MPM
-//!    keeps its particles in.
+//!    keeps its particles in. With [`GridConfig::update`] = [`Update::Grid`] the velocity
+//!    change is instead the G2P of a grid velocity-change field the U-Net predicts (two more
+//!    output channels per frame): neighbours of one body read one smooth field and move as a
+//!    body, as MPM's G2P moves them (PIC; NeuralMPM, Rochman-Sharabi et al. 2024, section 3,
+//!    predicts grid velocities the same way); [`Update::GridHead`] adds the head's output to
+//!    it as a per-particle correction.
 //!
 //! Any N, any particle order: every per-particle operation is row-wise and the grid sums are
 //! order-free. The normalisation constants are fitted on the training split and saved in
 //! [`GridConfig`]. Used by [`crate::model::store::Surrogate`] and [`crate::train::grid`].
 
+mod grow;
 pub mod memory;
+pub mod rest;
 pub mod transfer;
 pub mod unet;
 
 pub use memory::{Memory, MemoryKind, MemoryState};
+pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
 pub use unet::{ConvKernel, UNet, UNetConfig};
 
 use burn::config::Config;
@@ -42,6 +53,37 @@ use crate::ops::{grid_channels, linear, silu, NetOps};
 
 /// Materials (one-hot width).
 pub const MATERIALS: usize = 4;
+
+/// How a grid model turns its outputs into each particle's velocity change
+/// ([`GridConfig::update`]; the module doc, step 5).
+#[derive(Config, Debug, Copy, PartialEq, Eq)]
+pub enum Update {
+    /// The per-particle head alone (every model saved before this existed).
+    Free,
+    /// The G2P of a grid velocity-change field alone: no head, no memory in the output.
+    Grid,
+    /// The G2P of the grid field plus the head's per-particle correction.
+    GridHead,
+}
+
+impl Update {
+    /// Every update.
+    pub const ALL: [Update; 3] = [Update::Free, Update::Grid, Update::GridHead];
+
+    /// Command-line name: `free`, `grid`, `grid+head`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Update::Free => "free",
+            Update::Grid => "grid",
+            Update::GridHead => "grid+head",
+        }
+    }
+
+    /// The update named `name`.
+    pub fn parse(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|u| u.name() == name)
+    }
+}
 
 /// Every size and normalisation constant of a grid model; saved with each checkpoint.
 #[derive(Config, Debug)]
@@ -100,6 +142,16 @@ pub struct GridConfig {
     /// 1 (the single-frame model) in models saved before it existed.
     #[config(default = 1)]
     pub bundle: usize,
+    /// Rest-shape features (`train --rest-shape`): each solid particle's deformation fitted to
+    /// its 8 nearest neighbours of the same material in the first frame of its stream
+    /// ([`rest`]), 6 values into P2G (6 more channels after the reference ones) and into the
+    /// head (through their own layer). Off in models saved before it existed.
+    #[config(default = false)]
+    pub rest_shape: bool,
+    /// The particle update (`train --update`, the module doc's step 5). [`Update::Free`] in
+    /// models saved before it existed.
+    #[config(default = "Update::Free")]
+    pub update: Update,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -128,7 +180,11 @@ impl GridConfig {
     /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls, and the
     /// displacement from the reference position when `reference`).
     pub fn grid_channels(&self) -> usize {
-        1 + 2 * self.window + MATERIALS + 2 + if self.reference { 2 } else { 0 }
+        1 + 2 * self.window
+            + MATERIALS
+            + 2
+            + if self.reference { 2 } else { 0 }
+            + if self.rest_shape { REST_FEATURES } else { 0 }
     }
 
     /// Per-particle own features (T velocities, material one-hot, position).
@@ -172,12 +228,21 @@ impl GridConfig {
             } else {
                 self.hidden
             };
+        let k = self.bundle.max(1);
+        let unet = UNetConfig::new(self.grid_channels(), self.latent * k)
+            .with_width(self.unet_width)
+            .with_levels(self.levels)
+            .with_conv(self.conv)
+            .init(device);
         GridModel {
-            unet: UNetConfig::new(self.grid_channels(), self.latent * self.bundle.max(1))
-                .with_width(self.unet_width)
-                .with_levels(self.levels)
-                .with_conv(self.conv)
-                .init(device),
+            // The velocity-change fields start at zero, like the head's last layer.
+            unet: match self.update {
+                Update::Free => unet,
+                _ => unet.widen_output(2 * k),
+            },
+            rest_in: self
+                .rest_shape
+                .then(|| LinearConfig::new(REST_FEATURES, self.head_hidden).init(device)),
             memory: Memory::new(self.memory, d_u, self.hidden, device),
             head_a: LinearConfig::new(d_head, self.head_hidden).init(device),
             head_b: LinearConfig::new(self.head_hidden, self.head_hidden).init(device),
@@ -192,6 +257,7 @@ impl GridConfig {
             window: self.window,
             bundle: self.bundle.max(1),
             reference: self.reference,
+            update: self.update,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,
@@ -207,10 +273,14 @@ pub struct GridModel<B: Backend> {
     head_a: Linear<B>,
     head_b: Linear<B>,
     head_out: Linear<B>,
+    /// The rest-shape features' own first head layer ([`GridConfig::rest_shape`]).
+    rest_in: Option<Linear<B>>,
     n: usize,
     window: usize,
     bundle: usize,
     reference: bool,
+    #[module(skip)]
+    update: Update,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
     dv_scale: [f32; 2],
@@ -231,6 +301,10 @@ pub struct StepInput<B: Backend> {
     /// its stream), domain units; read only by a model with [`GridConfig::reference`], which
     /// takes `pos` (no displacement) when it is `None`.
     pub reference: Option<Tensor<B, 3>>,
+    /// The rest neighbourhoods of the `B N` particles (built from the reference positions,
+    /// [`Neighbourhood::build`]); read only by a model with [`GridConfig::rest_shape`], whose
+    /// rest-shape features are 0 when it is `None`.
+    pub rest: Option<NeighbourTensors<B>>,
 }
 
 /// A step's prediction, physical units.
@@ -278,36 +352,14 @@ impl<B: NetOps> GridModel<B> {
         self.reference
     }
 
-    /// This model with [`GridConfig::reference`] on: the U-Net's first convolution gets two
-    /// input channels (the displacement from the reference position) whose weights start at
-    /// zero, so the result predicts exactly what `self` does until it is trained further
-    /// (`train --init-from` a model without them). A model that has them is returned as is.
-    pub fn with_reference(self) -> Self {
-        if self.reference {
-            return self;
-        }
-        Self {
-            unet: self.unet.widen_input(2),
-            reference: true,
-            ..self
-        }
+    /// Whether the model reads rest-shape features ([`GridConfig::rest_shape`]).
+    pub fn uses_rest_shape(&self) -> bool {
+        self.rest_in.is_some()
     }
 
-    /// This single-frame model as a bundled one predicting `k` frames per call
-    /// ([`GridConfig::bundle`]): the U-Net's output head is tiled `k` times, so every frame
-    /// of a bundle starts out reading the same latent field at the particle's position after
-    /// the frames before it (the single-frame model's prediction, applied again where the
-    /// particle went). `train --bundle K --init-from` a single-frame model starts from this.
-    /// A model that is already bundled, or `k` = 1, is returned as is.
-    pub fn with_bundle(self, k: usize) -> Self {
-        if self.bundle != 1 || k <= 1 {
-            return self;
-        }
-        Self {
-            unet: self.unet.tile_output(k),
-            bundle: k,
-            ..self
-        }
+    /// The particle update ([`GridConfig::update`]).
+    pub fn update(&self) -> Update {
+        self.update
     }
 
     /// One step for a batch of scenes: the next frame and the new memory state. For a
@@ -342,6 +394,7 @@ impl<B: NetOps> GridModel<B> {
         let t = self.window;
         let device = input.pos.device();
         let vel = input.vel.clone() / pairs(self.vel_scale, t, &device); // [B, N, 2T], normalised
+        let rest = |pos: &Tensor<B, 3>| self.rest_features(input.rest.as_ref(), pos);
 
         // P2G: the separable dense transfers on accelerators, the sparse ones on the CPU.
         let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
@@ -352,43 +405,56 @@ impl<B: NetOps> GridModel<B> {
             let x0 = input.reference.clone().unwrap_or_else(|| input.pos.clone());
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
-        // [B, n^2, 1 + 2T + 4 (+ 2)], then the channels [m / 4, velocities and materials per
-        // mass, walls, displacement per mass]: the reference channels after the walls, so a
-        // model grown by `with_reference` keeps its channel order.
+        let mut features = rest(&input.pos);
+        if let Some(r) = &features {
+            values.push(r.clone());
+        }
+        // [B, n^2, 1 + 2T + 4 (+ 2) (+ 6)], then the channels [m / 4, velocities and materials
+        // per mass, walls, displacement per mass, rest shape per mass]: the grown channels
+        // after the walls, so a model grown by `with_reference` / `with_rest_shape` keeps its
+        // channel order.
         let splat = transfer::p2g(&s, Tensor::cat(values, 2));
         let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
 
-        // U-Net: K latent fields of L channels each.
+        // U-Net: K latent fields of L channels each (and K velocity-change fields).
         let out = self.unet.forward(grid);
         let channels = out.dims()[3];
-        let out = out.reshape([b, cells, channels]); // [B, n^2, K L]
-        let fields = self.fields(out, [b, cells]);
+        let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
+        let (fields, dv_fields) = self.fields(out, [b, cells]);
         let field = |k: usize| fields[k].clone();
 
-        // Memory, once per call, on the first frame's inputs.
+        // Memory, once per call, on the first frame's inputs (not in the output of the grid
+        // update: left as it is).
         let u = self.particle_inputs(
             transfer::g2p(&s, field(0)),
             &vel,
             &input.material,
             &input.pos,
         );
-        let (memory, state) = self.memory.step(u.clone(), state);
+        let (memory, state) = match self.update {
+            Update::Grid => (None, state),
+            _ => self.memory.step(u.clone(), state),
+        };
         let dt = input.dt.clone().reshape([b, 1, 1]);
-        let (mut pos, mut vel, mut u) = (input.pos.clone(), vel, u);
+        let (mut pos, mut vel, mut u, mut s) = (input.pos.clone(), vel, u, s);
         let mut frames = Vec::with_capacity(self.bundle);
         for k in 0..self.bundle {
             if k > 0 {
-                let s = transfer::stencil(pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
+                s = transfer::stencil(pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
                 u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
+                features = rest(&pos);
             }
-            let features = match &memory {
+            let head_in = match &memory {
                 Some(m) => Tensor::cat(vec![u.clone(), m.clone()], 1),
                 None => u.clone(),
             };
-            let next = self.head_step(features, &vel, pos, dt.clone(), [b, n_p]);
+            let grid_dv = dv_fields.get(k).map(|f| transfer::g2p(&s, f.clone()));
+            let rest_rows = features.clone().map(|r| r.reshape([b * n_p, REST_FEATURES]));
+            let out = self.head_out(head_in, rest_rows, grid_dv, [b, n_p]);
+            let next = self.integrate(out, &vel, pos, dt.clone());
             if k + 1 < self.bundle {
                 // The velocity window moves on by the frame just predicted (normalised).
                 let v = next.vel.clone() / pairs(self.vel_scale, 1, &device);
@@ -403,21 +469,46 @@ impl<B: NetOps> GridModel<B> {
         (frames, state)
     }
 
-    /// The U-Net's output `[B, n^2, K L]` as K fields of `[B, n^2, L]`, each its own
-    /// contiguous tensor: the CPU's one-pass gather reads only dense inputs (a strided view
-    /// would take the composed path).
-    fn fields(&self, out: Tensor<B, 3>, [b, cells]: [usize; 2]) -> Vec<Tensor<B, 3>> {
-        if self.bundle == 1 {
-            return vec![out];
+    /// `[B, N, REST_FEATURES]`: the rest-shape features of positions `pos` from the
+    /// neighbourhoods `rest` (0 without them), or `None` for a model without rest shape.
+    fn rest_features(
+        &self,
+        rest: Option<&NeighbourTensors<B>>,
+        pos: &Tensor<B, 3>,
+    ) -> Option<Tensor<B, 3>> {
+        self.rest_in.as_ref()?;
+        let [b, n_p, _] = pos.dims();
+        Some(match rest.filter(|r| r.dims() == [b, n_p]) {
+            Some(r) => r.features(pos.clone()),
+            None => Tensor::zeros([b, n_p, REST_FEATURES], &pos.device()),
+        })
+    }
+
+    /// The U-Net's output `[B, n^2, K L (+ 2 K)]` as K latent fields of `[B, n^2, L]` and, for
+    /// a grid update, K velocity-change fields of `[B, n^2, 2]`, each its own contiguous
+    /// tensor: the CPU's one-pass gather reads only dense inputs (a strided view would take
+    /// the composed path).
+    fn fields(
+        &self,
+        out: Tensor<B, 3>,
+        [b, cells]: [usize; 2],
+    ) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 3>>) {
+        let k = self.bundle;
+        let dv_channels = if self.update == Update::Free { 0 } else { 2 * k };
+        if k == 1 && dv_channels == 0 {
+            return (vec![out], Vec::new());
         }
-        let latent = out.dims()[2] / self.bundle;
-        (0..self.bundle)
-            .map(|i| {
-                let view = out.clone().narrow(2, i * latent, latent);
-                view.reshape([b * cells * latent])
-                    .reshape([b, cells, latent])
-            })
-            .collect()
+        let latent = (out.dims()[2] - dv_channels) / k;
+        let part = |at: usize, width: usize| {
+            let view = out.clone().narrow(2, at, width);
+            view.reshape([b * cells * width]).reshape([b, cells, width])
+        };
+        let fields = (0..k).map(|i| part(i * latent, latent)).collect();
+        let dv = match dv_channels {
+            0 => Vec::new(),
+            _ => (0..k).map(|i| part(k * latent + 2 * i, 2)).collect(),
+        };
+        (fields, dv)
     }
 
     /// `[B N, L + 2T + 4 + 2]` rows `u_i = [gathered_i, own_i]`: the gathered latent features,
@@ -439,29 +530,51 @@ impl<B: NetOps> GridModel<B> {
         u.reshape([b * n_p, d_u])
     }
 
-    /// The head on `features` (`[B N, D]` rows) and the integration of one frame from the
+    /// `[B, N, 2]`: the normalised velocity change of one frame: the head on `features`
+    /// (`[B N, D]` rows; the rest-shape rows `rest`, `[B N, 6]`, through their own first
+    /// layer), the gathered grid field `grid_dv` (`[B, N, 2]`), or their sum, as
+    /// [`GridConfig::update`] says.
+    fn head_out(
+        &self,
+        features: Tensor<B, 2>,
+        rest: Option<Tensor<B, 2>>,
+        grid_dv: Option<Tensor<B, 3>>,
+        [b, n_p]: [usize; 2],
+    ) -> Tensor<B, 3> {
+        let head = (self.update != Update::Grid).then(|| {
+            // Through the backend-ops dense layer, as every per-particle layer: its weight
+            // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with
+            // a handful of output tiles on a GPU (`bench train --arch grid --stages`, H100,
+            // batch 64: 62 ms of a 110 ms step outside the timed stages).
+            let mut pre = linear(&self.head_a, features);
+            if let (Some(layer), Some(rest)) = (&self.rest_in, rest) {
+                pre = pre + linear(layer, rest);
+            }
+            let h = silu(linear(&self.head_b, silu(pre)));
+            linear(&self.head_out, h).reshape([b, n_p, 2])
+        });
+        match (head, grid_dv) {
+            (Some(h), Some(g)) => h + g,
+            (Some(h), None) => h,
+            (None, Some(g)) => g,
+            (None, None) => Tensor::zeros([b, n_p, 2], &self.head_out.weight.device()),
+        }
+    }
+
+    /// One frame integrated from the normalised velocity change `dv` (`[B, N, 2]`), the
     /// normalised velocity window `vel` and positions `pos`, physical units: `dv = dv_mean +
     /// dv_scale * out`, `v' = v + dv`, the trapezoid `x' = x + dt (v + v') / 2`, clamped into
     /// the box MPM keeps its particles in.
-    fn head_step(
+    fn integrate(
         &self,
-        features: Tensor<B, 2>,
+        dv: Tensor<B, 3>,
         vel: &Tensor<B, 3>,
         pos: Tensor<B, 3>,
         dt: Tensor<B, 3>,
-        [b, n_p]: [usize; 2],
     ) -> StepOutput<B> {
         let device = pos.device();
         let t = self.window;
-        // Through the backend-ops dense layer, as every per-particle layer: its weight
-        // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with a
-        // handful of output tiles on a GPU (`bench train --arch grid --stages`, H100, batch
-        // 64: 62 ms of a 110 ms step outside the timed stages).
-        let h = silu(linear(&self.head_a, features));
-        let h = silu(linear(&self.head_b, h));
-        let dv = linear(&self.head_out, h).reshape([b, n_p, 2]);
         let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
-        // Integrate (trapezoid) in physical units.
         let v = vel.clone().narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
         let v_next = v.clone() + dv;
         let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);

@@ -439,7 +439,8 @@ fn im2col_index<B: Backend>(
 pub struct UNet<B: Backend> {
     down: Vec<ConvBlock<B>>,
     up: Vec<ConvBlock<B>>,
-    head: Conv2d<B>,
+    /// The 1 x 1 output convolution (grown by `super::grow`).
+    pub(super) head: Conv2d<B>,
     #[module(skip)]
     kernel: ConvKernel,
 }
@@ -453,24 +454,6 @@ impl<B: Backend> UNet<B> {
             *first = first.clone().widen_input(extra);
         }
         self
-    }
-
-    /// This U-Net with its output tiled `k` times along the channels (head weights and bias
-    /// repeated), as [`super::GridModel::with_bundle`] grows a bundled model.
-    pub fn tile_output(self, k: usize) -> Self {
-        use burn::module::Param;
-        let tile = |t: Tensor<B, 4>| Tensor::cat(vec![t; k], 0).detach(); // [k C_out, C_in, 1, 1]
-        let weight = Param::from_tensor(tile(self.head.weight.val()));
-        let bias = (self.head.bias.as_ref())
-            .map(|b| Param::from_tensor(Tensor::cat(vec![b.val(); k], 0).detach()));
-        Self {
-            head: Conv2d {
-                weight,
-                bias,
-                ..self.head
-            },
-            ..self
-        }
     }
 }
 

@@ -298,11 +298,15 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 
 /// Fields added to `model.json` after run folders were first saved, per architecture, at
 /// the values that mean "as before": a grid model without `reference` reads no reference
-/// channels, one without `bundle` predicts one frame per call; `conv` picks the kernel only (same weights, same results); the zero-initialised
-/// last layers only matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 5] = [
+/// channels, one without `bundle` predicts one frame per call, one without `rest_shape`
+/// reads no rest-shape features, one without `update` has the free per-particle head; `conv`
+/// picks the kernel only (same weights, same results); the zero-initialised last layers only
+/// matter for fresh weights.
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 7] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
+    ("grid", "rest_shape", || serde_json::Value::Bool(false)),
+    ("grid", "update", || serde_json::Value::from("Free")),
     ("grid", "conv", || serde_json::Value::from("auto")),
     ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
     ("paper", "decoder_zero_init", || {

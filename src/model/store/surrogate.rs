@@ -7,7 +7,9 @@
 //! the grid trainer's validation.
 
 use super::{ModelMeta, Net, RunFolder, StoreError};
-use crate::model::grid::{mirror_rows, one_hot, GridModel, MemoryState, StepInput};
+use crate::model::grid::{
+    mirror_rows, one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
+};
 use crate::model::{LayerState, Model, Scaling};
 use crate::ops::NetOps;
 use burn::tensor::backend::Backend;
@@ -23,8 +25,14 @@ pub struct Surrogate<B: Backend> {
     mirror: bool,
 }
 
-/// What a grid model carries between steps: memory, velocity history, reference positions.
-type GridCarry<B> = (MemoryState<B>, Option<Tensor<B, 3>>, Option<Tensor<B, 3>>);
+/// What a grid model carries between steps: memory, velocity history, reference positions
+/// and the rest neighbourhoods built from them.
+type GridCarry<B> = (
+    MemoryState<B>,
+    Option<Tensor<B, 3>>,
+    Option<Tensor<B, 3>>,
+    Option<NeighbourTensors<B>>,
+);
 
 /// Per-trajectory state (one batch row per trajectory).
 pub struct State<B: Backend> {
@@ -40,11 +48,14 @@ enum NetState<B: Backend> {
     /// The grid model's per-particle memory, the velocities of the last T - 1 frames
     /// (`[B, N, 2 (T - 1)]`, oldest first; `None` before the first frame or when T = 1) and
     /// the reference positions (`[B, N, 2]`: the first frame's, unless set by
-    /// [`Surrogate::init_state_at`]; read only by a model with `reference`).
+    /// [`Surrogate::init_state_at`]; read only by a model with `reference`), and the rest
+    /// neighbourhoods of the reference positions (built on the first step of a model with
+    /// `rest_shape`: the scene's physical state beside its memory, kept across a restart).
     Grid {
         memory: MemoryState<B>,
         history: Option<Tensor<B, 3>>,
         reference: Option<Tensor<B, 3>>,
+        rest: Option<NeighbourTensors<B>>,
     },
 }
 
@@ -102,24 +113,30 @@ impl<B: NetOps> Surrogate<B> {
                 memory: MemoryState::Empty,
                 history: None,
                 reference: None,
+                rest: None,
             },
         };
         State { inner, frames: 0 }
     }
 
     /// `state` reset as at the start of a stream (memory, velocity history, frame count),
-    /// except that a grid model's reference positions are kept: what the node does over a
-    /// gap in a stream that goes on.
+    /// except that a grid model's reference positions and rest neighbourhoods are kept: what
+    /// the node does over a gap in a stream that goes on.
     pub fn restart(&self, state: State<B>) -> State<B> {
         let mut fresh = self.init_state();
         if let (
-            NetState::Grid { reference, .. },
             NetState::Grid {
-                reference: kept, ..
+                reference, rest, ..
+            },
+            NetState::Grid {
+                reference: kept,
+                rest: kept_rest,
+                ..
             },
         ) = (&mut fresh.inner, state.inner)
         {
             *reference = kept;
+            *rest = kept_rest;
         }
         fresh
     }
@@ -247,9 +264,10 @@ impl<B: NetOps> Surrogate<B> {
                     memory,
                     history,
                     reference,
+                    rest,
                 },
             ) => {
-                let carry = (memory, history, reference);
+                let carry = (memory, history, reference, rest);
                 if self.mirror {
                     let (material, dt) = ([material, material].concat(), [dt, dt].concat());
                     let frames = with_mirror_rows(frames);
@@ -282,7 +300,7 @@ impl<B: NetOps> Surrogate<B> {
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
-        (memory, history, reference): GridCarry<B>,
+        (memory, history, reference, rest): GridCarry<B>,
         whole: bool,
     ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
@@ -302,12 +320,18 @@ impl<B: NetOps> Surrogate<B> {
             Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
             None => vel.repeat_dim(2, t),
         };
+        let rest = match rest.filter(|r| r.dims() == [b, n]) {
+            Some(rest) => Some(rest),
+            None if model.uses_rest_shape() => Some(self.rest_of(&reference, material, [b, n])?),
+            None => None,
+        };
         let input = StepInput {
             pos,
             vel: vel_hist.clone(),
             material: one_hot(material, b, n, &self.device),
             dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference.clone()),
+            rest: rest.clone(),
         };
         let (mut outs, memory) = model.step_bundle(input, memory);
         if !whole {
@@ -342,8 +366,22 @@ impl<B: NetOps> Surrogate<B> {
                 memory,
                 history,
                 reference,
+                rest,
             },
         ))
+    }
+
+    /// The rest neighbourhoods of the solids' particles in `reference` (`[B, N, 2]`),
+    /// materials `material` (`[B N]`): built once per scene on the host
+    /// ([`Neighbourhood::build`]) and uploaded.
+    fn rest_of(
+        &self,
+        reference: &Tensor<B, 3>,
+        material: &[u8],
+        [b, n]: [usize; 2],
+    ) -> Result<NeighbourTensors<B>, StoreError> {
+        let host = crate::model::download(reference.clone())?;
+        Ok(Neighbourhood::build(&host, material, [b, n], |m| m != 0).upload(&self.device))
     }
 
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`

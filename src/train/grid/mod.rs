@@ -51,7 +51,7 @@ use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use rollout_loss::{sequence_loss, upload_batch};
+use rollout_loss::{sequence_loss, upload_batch, Needs};
 use schedule::RunClock;
 
 /// Optimisation settings of a grid run.
@@ -80,6 +80,12 @@ pub struct GridTrainOptions {
     /// [`crate::model::grid::mirror_rows`]).
     #[serde(default)]
     pub mirror: bool,
+    /// Weight of the strain loss (solids' rest-neighbour stretch; [`rollout_loss`]).
+    #[serde(default)]
+    pub strain_weight: f32,
+    /// Weight of the volume loss (liquid particles' fitted J; [`rollout_loss`]).
+    #[serde(default)]
+    pub volume_weight: f32,
     /// Seed of the weights, data order and noise.
     pub seed: u64,
     /// Stop after this many epochs without a better validation rollout (0: never).
@@ -155,6 +161,22 @@ where
         run_epochs(&mut run, start, observer)
     }
 
+    /// `model` (`--init-from`) grown into what [`GridTrainer::config`] asks for, in the order
+    /// the channels are laid out: reference, bundle, rest shape, update.
+    fn grown(&self, model: GridModel<B>) -> GridModel<B> {
+        let c = &self.config;
+        let model = match c.reference {
+            true => model.with_reference(),
+            false => model,
+        };
+        let model = model.with_bundle(c.bundle);
+        let model = match c.rest_shape {
+            true => model.with_rest_shape(),
+            false => model,
+        };
+        model.with_update(c.update)
+    }
+
     /// The run's starting point: the weights (fresh, or `init_from`'s), Adam (with clipping
     /// when `clip > 0`) and the epochs done so far, all three from `out/checkpoint` when
     /// `resume` finds one.
@@ -167,11 +189,9 @@ where
         let mut model: GridModel<B> = match &self.init_from {
             Some(dir) => match store::load_net::<B>(dir, &self.device)? {
                 // A model without reference channels grows them, their weights zero; a
-                // single-frame model grows its bundle (`GridModel::with_bundle`).
-                (Net::Grid(model), _) if self.config.reference => {
-                    model.with_reference().with_bundle(self.config.bundle)
-                }
-                (Net::Grid(model), _) => model.with_bundle(self.config.bundle),
+                // single-frame model grows its bundle (`GridModel::with_bundle`), then the
+                // rest shape and the grid update (`model::grid::grow`).
+                (Net::Grid(model), _) => self.grown(model),
                 (Net::Paper(_), _) => {
                     return Err(TrainError::Mismatch(format!(
                         "{}: a paper model, where a grid model was expected",
@@ -236,7 +256,11 @@ where
             let mirror: Vec<bool> = (0..b)
                 .map(|_| opts.mirror && flips.random_bool(0.5))
                 .collect();
-            let tensors = upload_batch::<B>(batch, &mirror, &self.device);
+            let needs = Needs {
+                rest: self.config.rest_shape || opts.strain_weight > 0.0,
+                liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
+            };
+            let tensors = upload_batch::<B>(batch, &mirror, needs, &self.device);
             pass.data_seconds += fetch.elapsed().as_secs_f64();
             let loss = sequence_loss(&model, &self.config, opts, tensors);
             let grads = GradientsParams::from_grads(loss.backward(), &model);

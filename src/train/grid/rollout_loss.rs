@@ -3,13 +3,28 @@
 //! each over it, from the true frame `T - 1`, teacher-forced for the first calls, then on the
 //! model's own predictions, the memory state carried through. Used by
 //! [`super::GridTrainer`].
+//!
+//! Beside the velocity and position MSE, two structure terms ([`crate::model::grid::rest`]):
+//! - strain (`strain_weight`): for every solid rest-neighbour pair (8 nearest of the same
+//!   material in the scene's first frame), the squared difference of the pair's length
+//!   `|x_i - x_j| / d0_i` (`d0_i` the particle's rest neighbour distance), prediction
+//!   against truth, averaged over the pairs: a body torn apart or crumpled pays for it even
+//!   where each particle's own error is small;
+//! - volume (`volume_weight`): for every liquid particle with liquid neighbours in the
+//!   sample's first input frame, the squared difference of its fitted `J = det F` relative to
+//!   that frame (clamped to `[0, 2]`), prediction against truth: liquid pressed together
+//!   (J < 1 where the truth keeps 1) pays for it. MPM's liquid keeps its volume through J (docs/mpm.md); the paper
+//!   adds a density-map loss for the same reason (section 3).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Tensor};
 
 use super::GridTrainOptions;
 use crate::data::Batch;
-use crate::model::grid::{mirror_rows, one_hot, GridConfig, GridModel, MemoryState, StepInput};
+use crate::model::grid::{
+    mirror_rows, one_hot, GridConfig, GridModel, MemoryState, NeighbourTensors, Neighbourhood,
+    StepInput,
+};
 use crate::model::upload;
 use crate::ops::NetOps;
 
@@ -23,6 +38,21 @@ pub(super) struct BatchTensors<B: Backend> {
     dt: Tensor<B, 1>,
     /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
     first_pos: Tensor<B, 3>,
+    /// The solids' rest neighbourhoods in `first_pos`, when a model or the strain loss needs
+    /// them, with the number of rest-neighbour pairs.
+    rest: Option<(NeighbourTensors<B>, f32)>,
+    /// The liquid's neighbourhoods in the first input frame, for the volume loss, with the
+    /// number of liquid particles that have neighbours.
+    liquid: Option<(NeighbourTensors<B>, f32)>,
+}
+
+/// Which neighbourhoods [`upload_batch`] builds.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Needs {
+    /// The solids' rest neighbourhoods (rest-shape features, strain loss).
+    pub rest: bool,
+    /// The liquid's neighbourhoods in this frame of the window (volume loss): `T - 1`.
+    pub liquid_at: Option<usize>,
 }
 
 /// The tensors of a batch of windows built with the identity scaler (inputs then hold
@@ -30,6 +60,7 @@ pub(super) struct BatchTensors<B: Backend> {
 pub(super) fn upload_batch<B: Backend>(
     batch: Batch,
     mirror: &[bool],
+    needs: Needs,
     device: &B::Device,
 ) -> BatchTensors<B> {
     let (b, t, n) = (batch.b, batch.t, batch.n);
@@ -49,11 +80,33 @@ pub(super) fn upload_batch<B: Backend>(
             mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
         }
     }
+    let with_count = |nb: Neighbourhood, count: f32| (nb.upload(device), count.max(1.0));
+    let rest = needs.rest.then(|| {
+        let nb = Neighbourhood::build(&first_pos, &batch.material, [b, n], |m| m != 0);
+        let pairs = nb.weight.iter().sum::<f32>();
+        with_count(nb, pairs)
+    });
+    let liquid = needs.liquid_at.map(|k| {
+        let pos: Vec<f32> = (0..b)
+            .flat_map(|w| {
+                let at = (w * (t + 1) + k) * n * 4;
+                frames[at..at + n * 4]
+                    .chunks_exact(4)
+                    .flat_map(|r| [r[0], r[1]])
+                    .collect::<Vec<f32>>()
+            })
+            .collect();
+        let nb = Neighbourhood::build(&pos, &batch.material, [b, n], |m| m == 0);
+        let particles = nb.inv_d0.iter().filter(|&&v| v > 0.0).count() as f32;
+        with_count(nb, particles)
+    });
     BatchTensors {
         frames: upload(frames, [b, t + 1, n, 4], device),
         material: one_hot(&batch.material, b, n, device),
         dt: upload(batch.dt, [b], device),
         first_pos: upload(first_pos, [b, n, 2], device),
+        rest,
+        liquid,
     }
 }
 
@@ -69,6 +122,8 @@ pub(super) fn sequence_loss<B: NetOps>(
         material,
         dt,
         first_pos,
+        rest,
+        liquid,
     } = batch;
     let [b, _, n, _] = frames.dims();
     let t = config.window;
@@ -97,6 +152,7 @@ pub(super) fn sequence_loss<B: NetOps>(
             material: material.clone(),
             dt: dt.clone(),
             reference: Some(first_pos.clone()),
+            rest: rest.as_ref().map(|(r, _)| r.clone()),
         };
         let (outs, next_state) = model.step_bundle(input, state);
         state = next_state;
@@ -109,7 +165,10 @@ pub(super) fn sequence_loss<B: NetOps>(
             let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
                 .powi_scalar(2)
                 .mean();
-            let step = lv + lx;
+            let target_pos = target.clone().narrow(2, 0, 2);
+            let step = lv
+                + lx
+                + structure_loss(opts, rest.as_ref(), liquid.as_ref(), &out.pos, &target_pos);
             total = Some(match total {
                 Some(acc) => acc + step,
                 None => step,
@@ -128,6 +187,31 @@ pub(super) fn sequence_loss<B: NetOps>(
     total
         .expect("at least one step")
         .div_scalar((opts.steps.max(1) * bundle) as f32)
+}
+
+/// The strain and volume terms of one predicted frame (see the module doc), weighted; 0
+/// when both weights are 0.
+fn structure_loss<B: Backend>(
+    opts: &GridTrainOptions,
+    rest: Option<&(NeighbourTensors<B>, f32)>,
+    liquid: Option<&(NeighbourTensors<B>, f32)>,
+    pred: &Tensor<B, 3>,
+    truth: &Tensor<B, 3>,
+) -> Tensor<B, 1> {
+    let mut loss = Tensor::zeros([1], &pred.device());
+    if let (Some((nb, pairs)), true) = (rest, opts.strain_weight > 0.0) {
+        let stretch = |x: &Tensor<B, 3>| nb.lengths(nb.offsets(x.clone()));
+        let err = (stretch(pred) - stretch(&truth.clone().detach())).powi_scalar(2);
+        loss = loss + err.sum().div_scalar(*pairs).mul_scalar(opts.strain_weight);
+    }
+    if let (Some((nb, count)), true) = (liquid, opts.volume_weight > 0.0) {
+        // J clamped to [0, 2]: a pair of particles sampled next to each other can make a
+        // fitted J huge, and one such particle would outweigh the rest.
+        let j = |x: &Tensor<B, 3>| nb.det(nb.offsets(x.clone())).clamp(0.0, 2.0);
+        let err = (j(pred) - j(&truth.clone().detach())).powi_scalar(2);
+        loss = loss + err.sum().div_scalar(*count).mul_scalar(opts.volume_weight);
+    }
+    loss
 }
 
 #[cfg(test)]
@@ -155,8 +239,9 @@ mod tests {
             first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
         };
         let device = Default::default();
-        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], &device);
-        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], &device);
+        let none = Needs::default();
+        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], none, &device);
+        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], none, &device);
         let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
         let (p, m) = (host(plain.frames), host(mirrored.frames));
         let per_window = (t + 1) * n * 4;

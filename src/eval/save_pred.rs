@@ -1,0 +1,76 @@
+//! `eval --save-pred DIR`: each rollout's predicted frames written as an MCAP bag on
+//! `/surrogate/frames`, the node's topic and schema (docs/design.md, "Bags"), so Foxglove,
+//! `eval --pred` and any MCAP reader can view and score a rollout that `eval` made offline.
+//!
+//! Layout: `DIR/<predictor>/<scene>_from<frame>.mcap`, the scene id with `/` and `+` made
+//! `_` and `p`, `<frame>` the `frame_index` of the first predicted frame (a scene rolled out
+//! from several starts gets one bag per start). Frames carry the truth's `frame_index` and
+//! stamps (`frame_index * dt`), the scene id and its materials. Used by [`super::rollout`].
+
+use std::path::{Path, PathBuf};
+
+use super::EvalError;
+use crate::bag::{BagWriter, PREDICTED_TOPIC};
+use crate::data::Trajectory;
+use crate::msgs::ParticleFrame;
+
+/// The bag a rollout of `predictor` on `scene` whose first predicted frame is `frame_index`
+/// goes to, under `dir`.
+pub fn bag_path(dir: &Path, predictor: &str, scene: &str, frame_index: u32) -> PathBuf {
+    let safe = |s: &str| -> String {
+        s.chars()
+            .map(|c| match c {
+                '+' => 'p',
+                c if c.is_ascii_alphanumeric() || c == '-' || c == '.' => c,
+                _ => '_',
+            })
+            .collect()
+    };
+    dir.join(safe(predictor))
+        .join(format!("{}_from{frame_index}.mcap", safe(scene)))
+}
+
+/// Writes `frames` (`[N, 4]` physical each; step k predicts trajectory frame `first + k`) of
+/// `predictor`'s rollout of `traj` as one bag (see the module doc). A frame that is not a
+/// valid message (a non-finite value: the rollout blew up) ends the bag there, with a
+/// warning; the frames before it are kept.
+///
+/// # Errors
+/// [`EvalError::Bag`] when the folder or the bag cannot be written.
+pub fn write_rollout(
+    dir: &Path,
+    predictor: &str,
+    traj: &Trajectory,
+    first: usize,
+    frames: &[Vec<f32>],
+) -> Result<(), EvalError> {
+    let path = bag_path(dir, predictor, &traj.scene, traj.frame_index(first));
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent)
+            .map_err(|e| crate::bag::BagError::io(parent, "creating the --save-pred folder", e))?;
+    }
+    let period_ns = (f64::from(traj.dt) * 1e9).round() as u64;
+    let mut writer = BagWriter::create(&path)?;
+    for (k, state) in frames.iter().enumerate() {
+        let (mut position, mut velocity) = (Vec::with_capacity(2 * traj.n), Vec::new());
+        velocity.reserve(2 * traj.n);
+        for row in state.chunks_exact(4) {
+            position.extend_from_slice(&row[..2]);
+            velocity.extend_from_slice(&row[2..]);
+        }
+        let frame = ParticleFrame::on_clock(
+            traj.scene.clone(),
+            traj.frame_index(first + k),
+            period_ns,
+            position,
+            velocity,
+            traj.material.clone(),
+        );
+        if let Err(e) = writer.write(PREDICTED_TOPIC, &frame) {
+            tracing::warn!("{}: rollout ends at step {}: {e}", path.display(), k + 1);
+            break;
+        }
+    }
+    writer.finish()?;
+    Ok(())
+}
