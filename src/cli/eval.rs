@@ -43,7 +43,8 @@ pub struct EvalArgs {
     #[arg(long, default_value = "20", value_parser = super::flags::horizon)]
     pub horizon: super::flags::Horizon,
     /// Skip the plausibility metrics (Sinkhorn divergence per material, strain error of the
-    /// solids) at steps 20, 50, 100, 200, ... and the rollout's end.
+    /// solids; structure: volume ratio, intact fraction, rope connectivity) at steps 20, 50,
+    /// 100, 200, ... and the rollout's end.
     #[arg(long)]
     pub no_plausibility: bool,
     /// Rollouts per trajectory from evenly spaced start frames (1: from the first frame).

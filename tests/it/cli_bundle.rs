@@ -1,7 +1,9 @@
-//! A bundled grid model end to end (issue 32): `train --bundle 2` on the bundled bags, `eval
-//! --horizon full` (whole-scene blocks, plausibility table and CSV), `bench rollout` on a tiny
-//! setting (its table against the solver; no timing asserted), and the node in closed loop
-//! over zenoh, whose rollout equals the offline `Surrogate::rollout` to 1e-5.
+//! A bundled grid model with rest-shape features end to end: `train --bundle 2 --rest-shape
+//! fit --update grid+head` with the structure losses on the bundled bags, `eval --horizon
+//! full` (whole-scene blocks, plausibility and structure tables and CSV, `--save-pred` bags),
+//! `bench rollout` on a tiny setting (its table against the solver; no timing asserted), and
+//! the node in closed loop over zenoh, whose rollout (rest neighbourhoods kept per scene)
+//! equals the offline `Surrogate::rollout` to 1e-5.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -17,8 +19,10 @@ fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }
 
-/// A tiny grid minGRU predicting 2 frames per call, trained one short epoch on the bundled
-/// bags (once per test binary).
+/// A tiny grid minGRU predicting 2 frames per call, with rest-shape features, the grid+head
+/// update and the strain and volume losses, trained one short epoch on the bundled bags (once
+/// per test binary): the tests below take its rest neighbourhoods through eval, bench and the
+/// node's closed loop.
 fn bundled_model() -> PathBuf {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| {
@@ -33,6 +37,14 @@ fn bundled_model() -> PathBuf {
             "1",
             "--bundle",
             "2",
+            "--rest-shape",
+            "fit",
+            "--update",
+            "grid+head",
+            "--strain-loss",
+            "100",
+            "--volume-loss",
+            "10",
             "--out",
             out.to_str().unwrap(),
         ];
@@ -52,6 +64,7 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
     let model = bundled_model();
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("eval");
+    let pred = dir.path().join("pred");
     let bag = repo("bags/multi_rope+snow_001.mcap");
     let args = [
         "eval",
@@ -66,6 +79,8 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
         "--no-render",
         "--out",
         out.to_str().unwrap(),
+        "--save-pred",
+        pred.to_str().unwrap(),
     ];
     ok(
         &Node::spawn("eval", &args).wait(Duration::from_secs(300)),
@@ -90,6 +105,33 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
         metrics.lines().any(|l| l.contains(",23,")),
         "23 steps scored"
     );
+    assert_structure(&table, &csv);
+    // --save-pred: the model's rollout as a bag of its 23 predicted frames on the node's
+    // topic, frame indices 2..=24 (after the 2 seed frames), the scene's materials.
+    let saved = pred.join("k2").join("multi_ropepsnow_001_from2.mcap");
+    let read = read_frames(&saved, Some(minflow::bag::PREDICTED_TOPIC)).unwrap();
+    let indices: Vec<u32> = read.frames.iter().map(|(_, _, f)| f.frame_index).collect();
+    assert_eq!(indices, (2..25).collect::<Vec<u32>>(), "{}", saved.display());
+    assert!(read.frames.iter().all(|(_, _, f)| f.scene == "multi/rope+snow/001"));
+}
+
+/// The structure section and columns of `eval`'s tables: `persist` copies the rollout's
+/// first frame, so every rest-neighbour pair of the rope is intact and the rope one piece.
+fn assert_structure(table: &str, csv: &str) {
+    assert!(table.contains("Structure") && table.contains("rope connected"), "{table}");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let persist_rope = lines
+        .map(|l| l.split(',').collect::<Vec<_>>())
+        .find(|row| row[1] == "persist" && row[2] == "end" && row[3] == "rope")
+        .expect("persist's rope row at the end");
+    for name in ["intact", "connected"] {
+        let v: f64 = persist_rope[col(name)].parse().unwrap();
+        assert_eq!(v, 1.0, "persist's rope {name}");
+    }
+    let volume: f64 = persist_rope[col("volume")].parse().unwrap();
+    assert!(volume > 0.0, "rope volume ratio {volume}");
 }
 
 #[test]

@@ -34,6 +34,7 @@ mod many_streams;
 mod model_bundle;
 mod model_cells;
 mod model_grid;
+mod model_structure;
 mod models_shipped;
 mod msgs_cdr;
 mod node_surrogate;

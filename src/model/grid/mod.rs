@@ -33,19 +33,20 @@
 //! order-free. The normalisation constants are fitted on the training split and saved in
 //! [`GridConfig`]. Used by [`crate::model::store::Surrogate`] and [`crate::train::grid`].
 
+mod config;
 mod grow;
 pub mod memory;
 pub mod rest;
 pub mod transfer;
 pub mod unet;
 
+pub use config::{GridConfig, GridConfigError, Update};
 pub use memory::{Memory, MemoryKind, MemoryState};
 pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
 pub use unet::{ConvKernel, UNet, UNetConfig};
 
-use burn::config::Config;
 use burn::module::Module;
-use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::nn::Linear;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
@@ -53,217 +54,6 @@ use crate::ops::{grid_channels, linear, silu, NetOps};
 
 /// Materials (one-hot width).
 pub const MATERIALS: usize = 4;
-
-/// How a grid model turns its outputs into each particle's velocity change
-/// ([`GridConfig::update`]; the module doc, step 5).
-#[derive(Config, Debug, Copy, PartialEq, Eq)]
-pub enum Update {
-    /// The per-particle head alone (every model saved before this existed).
-    Free,
-    /// The G2P of a grid velocity-change field alone: no head, no memory in the output.
-    Grid,
-    /// The G2P of the grid field plus the head's per-particle correction.
-    GridHead,
-}
-
-impl Update {
-    /// Every update.
-    pub const ALL: [Update; 3] = [Update::Free, Update::Grid, Update::GridHead];
-
-    /// Command-line name: `free`, `grid`, `grid+head`.
-    pub fn name(self) -> &'static str {
-        match self {
-            Update::Free => "free",
-            Update::Grid => "grid",
-            Update::GridHead => "grid+head",
-        }
-    }
-
-    /// The update named `name`.
-    pub fn parse(name: &str) -> Option<Self> {
-        Self::ALL.into_iter().find(|u| u.name() == name)
-    }
-}
-
-/// Every size and normalisation constant of a grid model; saved with each checkpoint.
-#[derive(Config, Debug)]
-pub struct GridConfig {
-    /// Per-particle memory.
-    pub memory: MemoryKind,
-    /// Grid size n (a multiple of `2^(levels - 1)`).
-    #[config(default = 64)]
-    pub grid: usize,
-    /// Velocity frames per particle as input, T (the current one and T - 1 before it).
-    #[config(default = 2)]
-    pub window: usize,
-    /// U-Net first-level width.
-    #[config(default = 32)]
-    pub unet_width: usize,
-    /// U-Net resolutions.
-    #[config(default = 4)]
-    pub levels: usize,
-    /// Channels the U-Net returns to the particles.
-    #[config(default = 32)]
-    pub latent: usize,
-    /// Hidden state values per particle.
-    #[config(default = 32)]
-    pub hidden: usize,
-    /// Head MLP width.
-    #[config(default = 64)]
-    pub head_hidden: usize,
-    /// Velocity normalisation (x, y), domain units per time unit.
-    #[config(default = "[1.0, 1.0]")]
-    pub vel_scale: [f32; 2],
-    /// Mean velocity change per frame (x, y): gravity's share.
-    #[config(default = "[0.0, 0.0]")]
-    pub dv_mean: [f32; 2],
-    /// Standard deviation of the velocity change per frame (x, y).
-    #[config(default = "[1.0, 1.0]")]
-    pub dv_scale: [f32; 2],
-    /// Start the head's last layer at zero (an untrained model is then constant velocity
-    /// plus the mean acceleration; Goyal et al. 2017, section 5.1); tests turn it off.
-    #[config(default = true)]
-    pub head_zero_init: bool,
-    /// How the U-Net's convolutions are computed (same weights and results either way).
-    #[config(default = "ConvKernel::Auto")]
-    pub conv: ConvKernel,
-    /// Give the grid each particle's displacement from its reference position X, its
-    /// position in the first frame of its stream (`--reference first-frame`): two more P2G
-    /// channels, `sum w (x - X) n / m` (grid cells). MPM measures its deformation gradient
-    /// `F = dx/dX` from that configuration; the U-Net can read `I - F^-1` as the displacement
-    /// field's gradient across cells. Off in models saved before it existed.
-    #[config(default = false)]
-    pub reference: bool,
-    /// Frames predicted per call, K (temporal bundling, `train --bundle K`): the U-Net emits
-    /// K latent fields (`K latent` channels) and each particle reads field k at its position
-    /// after k - 1 integrated frames (NeuralMPM's multi-step grid velocities, Rochman-Sharabi
-    /// et al. 2024, section 3; Brandstetter et al. 2022, "Message passing neural PDE
-    /// solvers", section 2.3, temporal bundling). The memory is updated once per call.
-    /// 1 (the single-frame model) in models saved before it existed.
-    #[config(default = 1)]
-    pub bundle: usize,
-    /// Rest-shape features (`train --rest-shape`): each solid particle's deformation fitted to
-    /// its 8 nearest neighbours of the same material in the first frame of its stream
-    /// ([`rest`]), 6 values into P2G (6 more channels after the reference ones) and into the
-    /// head (through their own layer). Off in models saved before it existed.
-    #[config(default = false)]
-    pub rest_shape: bool,
-    /// The particle update (`train --update`, the module doc's step 5). [`Update::Free`] in
-    /// models saved before it existed.
-    #[config(default = "Update::Free")]
-    pub update: Update,
-}
-
-/// A [`GridConfig`] setting out of range; each message names the command-line flag.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum GridConfigError {
-    /// `window` is 0.
-    #[error("--window must be at least 1")]
-    Window,
-    /// `grid` is below 8 or not divisible by the coarsest U-Net level's factor.
-    #[error("--grid {grid} must be at least 8 and a multiple of 2^(--levels - 1) = {multiple}")]
-    Grid {
-        /// The grid side asked for.
-        grid: usize,
-        /// `2^(levels - 1)`, which it must be a multiple of.
-        multiple: usize,
-    },
-    /// One of the layer widths is 0.
-    #[error("widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1")]
-    Width,
-    /// `bundle` is 0 or above 16.
-    #[error("--bundle must be in 1..=16")]
-    Bundle,
-}
-
-impl GridConfig {
-    /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls, and the
-    /// displacement from the reference position when `reference`).
-    pub fn grid_channels(&self) -> usize {
-        1 + 2 * self.window
-            + MATERIALS
-            + 2
-            + if self.reference { 2 } else { 0 }
-            + if self.rest_shape { REST_FEATURES } else { 0 }
-    }
-
-    /// Per-particle own features (T velocities, material one-hot, position).
-    pub fn own_features(&self) -> usize {
-        2 * self.window + MATERIALS + 2
-    }
-
-    /// Checks the sizes.
-    ///
-    /// # Errors
-    /// The first setting out of range, as a [`GridConfigError`] whose message names its flag.
-    pub fn validate(&self) -> Result<(), GridConfigError> {
-        let levels = self.levels.max(1);
-        if self.window == 0 {
-            return Err(GridConfigError::Window);
-        }
-        let multiple = 1 << (levels - 1);
-        if self.grid < 8 || self.grid % multiple != 0 {
-            return Err(GridConfigError::Grid {
-                grid: self.grid,
-                multiple,
-            });
-        }
-        if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
-            return Err(GridConfigError::Width);
-        }
-        if !(1..=16).contains(&self.bundle) {
-            return Err(GridConfigError::Bundle);
-        }
-        Ok(())
-    }
-
-    /// A model with fresh weights; the head's last layer starts at zero, so an untrained
-    /// model predicts `dv = dv_mean` (constant velocity plus the mean acceleration).
-    pub fn init<B: NetOps>(&self, device: &B::Device) -> GridModel<B> {
-        let own = self.own_features();
-        let d_u = self.latent + own;
-        let d_head = d_u
-            + if self.memory == MemoryKind::None {
-                0
-            } else {
-                self.hidden
-            };
-        let k = self.bundle.max(1);
-        let unet = UNetConfig::new(self.grid_channels(), self.latent * k)
-            .with_width(self.unet_width)
-            .with_levels(self.levels)
-            .with_conv(self.conv)
-            .init(device);
-        GridModel {
-            // The velocity-change fields start at zero, like the head's last layer.
-            unet: match self.update {
-                Update::Free => unet,
-                _ => unet.widen_output(2 * k),
-            },
-            rest_in: self
-                .rest_shape
-                .then(|| LinearConfig::new(REST_FEATURES, self.head_hidden).init(device)),
-            memory: Memory::new(self.memory, d_u, self.hidden, device),
-            head_a: LinearConfig::new(d_head, self.head_hidden).init(device),
-            head_b: LinearConfig::new(self.head_hidden, self.head_hidden).init(device),
-            head_out: if self.head_zero_init {
-                LinearConfig::new(self.head_hidden, 2)
-                    .with_initializer(Initializer::Zeros)
-                    .init(device)
-            } else {
-                LinearConfig::new(self.head_hidden, 2).init(device)
-            },
-            n: self.grid,
-            window: self.window,
-            bundle: self.bundle.max(1),
-            reference: self.reference,
-            update: self.update,
-            vel_scale: self.vel_scale,
-            dv_mean: self.dv_mean,
-            dv_scale: self.dv_scale,
-        }
-    }
-}
 
 /// The network (see the module doc).
 #[derive(Module, Debug)]

@@ -326,7 +326,8 @@ where
             .train_epoch(model, optim, self.train, epoch, &self.clock, observer)
     }
 
-    /// The mean scaled MSE of validation rollouts ([`validation_rollout`]).
+    /// The mean scaled MSE of validation rollouts ([`validation_rollout`]), times their
+    /// structure factor when the run trains with a structure loss.
     fn validate(
         &mut self,
         model: &GridModel<B>,
@@ -340,12 +341,13 @@ where
         let meta = t.meta(&self.scaler, epoch, 0.0);
         let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
         let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
+        let structure = t.opts.strain_weight > 0.0 || t.opts.volume_weight > 0.0;
         Ok(validation_rollout(
             &surrogate,
             self.val,
             &self.scaler,
-            starts,
-            horizon,
+            (starts, horizon),
+            structure,
         )?)
     }
 

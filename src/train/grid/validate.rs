@@ -1,15 +1,21 @@
 //! The grid run's validation score: the mean scaled MSE of closed-loop rollouts of the
 //! validation scenes (as `eval` scores them, with the training split's min-max scaler), all
-//! starts of a scene as one batch, ceil(H / K) network calls each. Used by
+//! starts of a scene as one batch, ceil(H / K) network calls each; with `structure`, times
+//! `1 + strain + |1 - volume|` of the rollouts' last frames (`eval`'s strain error of the
+//! solids and volume ratio of the liquid, [`crate::eval::structure`]), so a checkpoint that
+//! tears a body or presses the liquid together scores worse than its MSE alone says. Used by
 //! [`super::GridTrainer`] to pick the kept model.
 
 use crate::data::{Scaler, Trajectory};
+use crate::eval::plausibility::Neighbours;
 use crate::eval::rollout::start_offsets;
+use crate::eval::structure::covered_area;
 use crate::model::store::{self, Surrogate};
 use crate::ops::NetOps;
 
 /// Mean scaled MSE of `horizon`-frame rollouts of `surrogate` from `starts` starts of every
-/// trajectory (all starts of a scene as one batch).
+/// trajectory (all starts of a scene as one batch); with `structure`, times the structure
+/// factor of the module doc.
 ///
 /// # Errors
 /// A step failed ([`store::StoreError`]).
@@ -17,11 +23,12 @@ pub fn validation_rollout<B: NetOps>(
     surrogate: &Surrogate<B>,
     trajs: &[Trajectory],
     scaler: &Scaler,
-    starts: usize,
-    horizon: usize,
+    (starts, horizon): (usize, usize),
+    structure: bool,
 ) -> Result<f64, store::StoreError> {
     let window = surrogate.meta().window();
     let (mut sum, mut count) = (0.0f64, 0usize);
+    let mut damage = Damage::default();
     for traj in trajs {
         let offsets = start_offsets(traj.frames, window, horizon, starts);
         let offsets: Vec<usize> = offsets
@@ -54,6 +61,10 @@ pub fn validation_rollout<B: NetOps>(
                     }
                 }
                 count += n * 4;
+                if structure && k + 1 == horizon {
+                    let seed = traj.state(o + window - 1);
+                    damage.add(traj, seed, pred, truth);
+                }
             }
         };
         surrogate.rollout_batch(Some(&first), &seed, &material, &dt, horizon, score)?;
@@ -61,6 +72,43 @@ pub fn validation_rollout<B: NetOps>(
     Ok(if count == 0 {
         f64::NAN
     } else {
-        sum / count as f64
+        sum / count as f64 * damage.factor()
     })
+}
+
+/// Sums of the structure errors of the rollouts' last frames.
+#[derive(Debug, Default)]
+struct Damage {
+    strain: (f64, usize),
+    volume: (f64, usize),
+}
+
+impl Damage {
+    /// Adds one rollout's last frame `pred` against `truth` (`[N, 4]` each), its solids'
+    /// neighbours taken in the seed frame `seed`.
+    fn add(&mut self, traj: &Trajectory, seed: &[f32], pred: &[f32], truth: &[f32]) {
+        let solids = traj.material.iter().any(|&m| m != 0);
+        if solids {
+            let nb = Neighbours::new(seed, &traj.material);
+            for m in 1..crate::eval::MATERIALS {
+                if let Some(e) = nb.strain_error(pred, truth, m) {
+                    self.strain.0 += e;
+                    self.strain.1 += 1;
+                }
+            }
+        }
+        let liquid = |i: usize| traj.material[i] == 0;
+        let true_area = covered_area(truth, liquid);
+        if true_area > 0 {
+            let ratio = covered_area(pred, liquid) as f64 / true_area as f64;
+            self.volume.0 += (1.0 - ratio).abs();
+            self.volume.1 += 1;
+        }
+    }
+
+    /// `1 + mean strain error + mean |1 - volume ratio|` (1 with nothing added).
+    fn factor(&self) -> f64 {
+        let mean = |(s, c): (f64, usize)| if c == 0 { 0.0 } else { s / c as f64 };
+        1.0 + mean(self.strain) + mean(self.volume)
+    }
 }

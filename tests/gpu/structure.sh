@@ -1,0 +1,127 @@
+#!/usr/bin/env bash
+# Structure on a GPU machine (docs/results.md, "Structure"): the ablation at equal training
+# time of the rest-shape features (fitted F), the grid velocity update (grid, grid+head
+# against the free head) and the strain and volume losses, every run fine-tuned from a
+# shipped model and all trained at once on one GPU; then the evaluation on unseen scenes
+# (simulate --seed 7, both families, every scene kind) at horizon 20 and over whole scenes,
+# with renders and structure metrics. CI has no GPU and does not run this. From the
+# repository root, with `minflow-cuda` built with `--features cuda` in gpu/:
+#
+#   tests/gpu/structure.sh data              # seed 1 (training: 60 multi + 40 fluid scenes)
+#                                            # and seed 7 (unseen: 10 multi + 6 fluid scenes)
+#   tests/gpu/structure.sh start MINUTES     # every run below, in the background (setsid)
+#   tests/gpu/structure.sh wait              # until they have ended, a line a minute
+#   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
+#   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
+#                                            # (OUT/NAME/unseen-h20, OUT/NAME/unseen-full)
+#
+# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
+set -uo pipefail
+OUT=${OUT:-/tmp/minflow-gpu}
+DATA=${DATA:-/tmp/data}
+mkdir -p "$OUT" runs
+export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
+BIN=gpu/minflow-cuda
+if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
+    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
+    chmod +x "$BIN"
+fi
+SMALL=(--grid 32 --unet-width 16 --levels 3 --reference none --bundle 4 --rollout-steps 4)
+COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirror
+    --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
+# The structure losses' weights: at the shipped models' start each adds about 5 % to the
+# rollout loss (measured on bags/ with the small model: strain 0.04, volume 0.33 per unit
+# weight, beside an MSE term of about 2,100).
+STRAIN=(--strain-loss 3000)
+VOLUME=(--volume-loss 300)
+
+# One training run in the background: NAME MINUTES FLAGS...
+start() {
+    local name=$1 minutes=$2
+    shift 2
+    setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
+        --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
+    echo $! >>"$OUT/started.pids"
+}
+
+case "${1:-}" in
+data)
+    for family in multi fluid; do
+        "$BIN" simulate --family "$family" --seed 1 --jobs "$(nproc)" --out "$DATA/$family" \
+            2>&1 | tail -n 2
+    done
+    "$BIN" simulate --family multi --seed 7 --scenes 0..10 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+    "$BIN" simulate --family fluid --seed 7 --scenes 0..6 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+    ;;
+start)
+    m=$2
+    full=(--model mingru --init-from models/all-grid-mingru --rollout-steps 8)
+    # Control: the same fine-tune without features or structure losses.
+    start c0 "$m" "${full[@]}"
+    # Rest-shape features alone, with the strain loss, with strain and volume losses.
+    start f1 "$m" "${full[@]}" --rest-shape fit
+    start fs "$m" "${full[@]}" --rest-shape fit "${STRAIN[@]}"
+    start fsv "$m" "${full[@]}" --rest-shape fit "${STRAIN[@]}" "${VOLUME[@]}"
+    # The losses without the features.
+    start sv "$m" "${full[@]}" "${STRAIN[@]}" "${VOLUME[@]}"
+    # Ten times the loss weights.
+    start fsv10 "$m" "${full[@]}" --rest-shape fit --strain-loss 30000 --volume-loss 3000
+    # The structured update: grid + the head's correction, and the grid field alone.
+    start gh "$m" "${full[@]}" --rest-shape fit "${STRAIN[@]}" "${VOLUME[@]}" --update grid+head
+    start g "$m" "${full[@]}" --rest-shape fit "${STRAIN[@]}" "${VOLUME[@]}" --update grid
+    # The small bundled model with features and losses, and its control.
+    start s4 "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
+        --rest-shape fit "${STRAIN[@]}" "${VOLUME[@]}"
+    start s4c "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}"
+    ;;
+wait)
+    while true; do
+        running=0
+        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
+            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
+        done
+        for log in "$OUT"/train-*.log; do
+            printf '%s: %s\n' "$(basename "$log" .log)" \
+                "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
+        done
+        [ "$running" -eq 0 ] && break
+        sleep 60
+    done
+    ;;
+eval)
+    shift
+    models=()
+    for name in "$@"; do
+        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
+    done
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all --starts 5 \
+        --horizon 20 --no-render --out "$OUT/unseen-h20" >"$OUT/unseen-h20.log" 2>&1
+    echo "horizon 20: exit $?"
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all \
+        --horizon full --out "$OUT/unseen-full" >"$OUT/unseen-full.log" 2>&1
+    echo "horizon full: exit $?"
+    ;;
+eval-each)
+    shift
+    for name in "$@"; do
+        model=runs/$name
+        [ -d "$model" ] || model=$name
+        dir="$OUT/$(basename "$name")"
+        mkdir -p "$dir"
+        (
+            "$BIN" eval --model "$model" --device cuda --data "$DATA"/unseen --split all \
+                --starts 5 --horizon 20 --no-render --out "$dir/unseen-h20" >"$dir/h20.log" 2>&1
+            "$BIN" eval --model "$model" --device cuda --data "$DATA"/unseen --split all \
+                --horizon full --out "$dir/unseen-full" >"$dir/full.log" 2>&1
+            echo "$name: exit $?"
+        ) &
+    done
+    wait
+    ;;
+*)
+    sed -n 2,18p "$0"
+    exit 2
+    ;;
+esac

@@ -1,0 +1,202 @@
+//! The physical state and the structured update of the grid model (`train --rest-shape fit`,
+//! `--update grid|grid+head`; `model::grid::rest`, `model::grid::grow`): a model grown with
+//! them at zero weights predicts exactly what its parent did; the rest neighbourhoods are the
+//! scene's state, built from its first frame and kept across a restart; the features see a
+//! deformation of the body and not a rigid motion; with the grid update two particles at one
+//! place get one velocity change; and the features keep the model's independence of the
+//! particle order.
+
+use burn::backend::NdArray;
+use minflow::data::Scaler;
+use minflow::model::grid::{GridConfig, MemoryKind, Neighbourhood, Update};
+use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
+use minflow::train::grid::initial_grid_model;
+
+type B = NdArray<f32>;
+
+fn config(rest_shape: bool, update: Update) -> GridConfig {
+    GridConfig::new(MemoryKind::MinGru)
+        .with_grid(16)
+        .with_levels(2)
+        .with_unet_width(4)
+        .with_latent(4)
+        .with_hidden(4)
+        .with_head_hidden(8)
+        .with_dv_scale([0.1, 0.1])
+        .with_head_zero_init(false)
+        .with_rest_shape(rest_shape)
+        .with_update(update)
+}
+
+fn surrogate(config: GridConfig, seed: u64) -> Surrogate<B> {
+    let device = Default::default();
+    let model = initial_grid_model::<B>(&config, seed, &device).unwrap();
+    let meta = ModelMeta {
+        net: NetConfig::Grid(config),
+        scaler: Scaler::default(),
+        epoch: 0,
+        val_loss: 0.0,
+    };
+    Surrogate::from_net(store::Net::Grid(model), meta, &device)
+}
+
+/// A jelly block of 12 x 12 particles 0.01 apart (slightly jittered, so no two distances
+/// tie) beside 60 liquid particles, all moving slowly.
+fn scene() -> (Vec<f32>, Vec<u8>) {
+    let jitter = |i: usize| 1e-3 * ((i * 7919 % 101) as f32 / 101.0 - 0.5);
+    let mut state = Vec::new();
+    let mut material = Vec::new();
+    for i in 0..144 {
+        let (a, b) = ((i % 12) as f32, (i / 12) as f32);
+        state.extend([0.3 + 0.01 * a + jitter(i), 0.4 + 0.01 * b + jitter(i + 1), 0.1, -0.2]);
+        material.push(1);
+    }
+    for i in 0..60 {
+        let (a, b) = ((i % 10) as f32, (i / 10) as f32);
+        state.extend([0.6 + 0.01 * a + jitter(i + 2), 0.3 + 0.01 * b, -0.1, 0.0]);
+        material.push(0);
+    }
+    (state, material)
+}
+
+fn max_abs_diff(a: &[Vec<f32>], b: &[Vec<f32>]) -> f32 {
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+/// Growing the rest-shape features and then the grid+head update, both at zero weights,
+/// leaves a trained model's rollout as it was.
+#[test]
+fn grown_rest_shape_and_grid_head_predict_what_the_parent_did() {
+    let device = Default::default();
+    let parent = initial_grid_model::<B>(&config(false, Update::Free), 5, &device).unwrap();
+    let grown = parent.clone().with_rest_shape().with_update(Update::GridHead);
+    assert!(grown.uses_rest_shape() && grown.update() == Update::GridHead);
+    let meta = |c: GridConfig| ModelMeta {
+        net: NetConfig::Grid(c),
+        scaler: Scaler::default(),
+        epoch: 0,
+        val_loss: 0.0,
+    };
+    let parent = Surrogate::from_net(
+        store::Net::Grid(parent),
+        meta(config(false, Update::Free)),
+        &device,
+    );
+    let grown = Surrogate::from_net(
+        store::Net::Grid(grown),
+        meta(config(true, Update::GridHead)),
+        &device,
+    );
+    let (state, material) = scene();
+    let a = parent.rollout(None, &[state.clone()], &material, 0.016, 4).unwrap();
+    let b = grown.rollout(None, &[state], &material, 0.016, 4).unwrap();
+    assert!(max_abs_diff(&a, &b) < 1e-6, "{}", max_abs_diff(&a, &b));
+}
+
+/// A model with rest-shape features predicts another frame when the body it is given has
+/// been stretched since its reference frame than when it has only been moved rigidly; a
+/// rigid motion of the reference changes nothing the features see (the prediction differs
+/// only through the velocities and positions themselves, which are the same here).
+#[test]
+fn rest_shape_features_see_a_stretch_not_a_rigid_motion() {
+    let model = surrogate(config(true, Update::Free), 9);
+    let (state, material) = scene();
+    // The same current frame, with three references: itself, itself shifted, itself
+    // squeezed by 20 % along x about the block's middle (so the current frame is stretched).
+    let shifted: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [r[0] - 0.05, r[1] + 0.02, r[2], r[3]])
+        .collect();
+    let squeezed: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [0.355 + 0.8 * (r[0] - 0.355), r[1], r[2], r[3]])
+        .collect();
+    let roll = |first: &[f32]| {
+        model
+            .rollout(Some(first), &[state.clone()], &material, 0.016, 1)
+            .unwrap()
+    };
+    let own = roll(&state);
+    assert!(max_abs_diff(&own, &roll(&shifted)) < 1e-5, "a rigid shift of the reference");
+    assert!(max_abs_diff(&own, &roll(&squeezed)) > 1e-4, "a stretch since the reference");
+}
+
+/// The grid update: every particle's velocity change is the G2P of one field, so two
+/// particles at the same place (whatever their velocities and materials) get the same one.
+#[test]
+fn grid_update_gives_particles_at_one_place_one_velocity_change() {
+    let model = surrogate(config(true, Update::Grid), 11);
+    let (mut state, mut material) = scene();
+    // A twin of particle 0 at its place, with another velocity and material.
+    state.extend([state[0], state[1], -0.3, 0.4]);
+    material.push(2);
+    let out = model.rollout(None, &[state.clone()], &material, 0.016, 1).unwrap();
+    let n = material.len();
+    let dv = |i: usize| [out[0][4 * i + 2] - state[4 * i + 2], out[0][4 * i + 3] - state[4 * i + 3]];
+    let (a, b) = (dv(0), dv(n - 1));
+    assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6, "{a:?} {b:?}");
+}
+
+/// Permuting the particles permutes the predictions of a model with rest-shape features
+/// and the grid+head update, over three steps.
+#[test]
+fn rest_shape_model_is_independent_of_particle_order() {
+    let model = surrogate(config(true, Update::GridHead), 13);
+    let (state, material) = scene();
+    let n = material.len();
+    let perm: Vec<usize> = (0..n).map(|i| (i * 37 + 11) % n).collect();
+    let p_state: Vec<f32> = perm.iter().flat_map(|&i| state[4 * i..4 * i + 4].to_vec()).collect();
+    let p_material: Vec<u8> = perm.iter().map(|&i| material[i]).collect();
+    let a = model.rollout(None, &[state], &material, 0.016, 3).unwrap();
+    let b = model.rollout(None, &[p_state], &p_material, 0.016, 3).unwrap();
+    for (fa, fb) in a.iter().zip(&b) {
+        for (k, &i) in perm.iter().enumerate() {
+            for c in 0..4 {
+                let (x, y) = (fa[4 * i + c], fb[4 * k + c]);
+                assert!((x - y).abs() < 1e-5, "particle {i} value {c}: {x} vs {y}");
+            }
+        }
+    }
+}
+
+/// The node keeps the rest neighbourhoods as the scene's state: a stream restarted over a
+/// gap (`Surrogate::restart`) predicts from the same reference as before it, not from the
+/// frame after the gap.
+#[test]
+fn restart_keeps_the_rest_state() {
+    let model = surrogate(config(true, Update::Free), 17);
+    let (state, material) = scene();
+    let stretched: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [0.355 + 1.2 * (r[0] - 0.355), r[1], r[2], r[3]])
+        .collect();
+    let dt = [0.016f32];
+    let (_, first) = model.step(&state, &material, &dt, model.init_state()).unwrap();
+    let kept = model.restart(first);
+    let (after_gap, _) = model.step(&stretched, &material, &dt, kept).unwrap();
+    let (fresh, _) = model.step(&stretched, &material, &dt, model.init_state()).unwrap();
+    let (given, _) = model
+        .step(&stretched, &material, &dt, model.init_state_at(&state, 1).unwrap())
+        .unwrap();
+    assert_eq!(after_gap, given, "the kept reference is the stream's first frame");
+    let diff = after_gap.iter().zip(&fresh).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+    assert!(diff > 1e-5, "a fresh stream takes the stretched frame as its rest shape");
+}
+
+/// The neighbourhoods of a batch of two scenes index each scene's own rows.
+#[test]
+fn neighbourhoods_stay_in_their_scene() {
+    let (state, material) = scene();
+    let n = material.len();
+    let pos: Vec<f32> = state.chunks(4).flat_map(|r| [r[0], r[1]]).collect();
+    let both = [pos.clone(), pos].concat();
+    let nb = Neighbourhood::build(&both, &[material.clone(), material].concat(), [2, n], |m| m != 0);
+    for (row, near) in nb.index.chunks(8).enumerate() {
+        let scene = row / n;
+        assert!(near.iter().all(|&j| j as usize / n == scene), "row {row}: {near:?}");
+    }
+}
