@@ -14,6 +14,9 @@
 #   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
 #   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
 #                                            # (OUT/NAME/unseen-h20, OUT/NAME/unseen-full)
+#   tests/gpu/structure.sh pack DEST NAME... # run folders, tables and logs (renders of the
+#                                            # NAMEs only) as DEST/results.tgz.part-*, 15 MB
+#                                            # pieces (what a size-capped copy takes back)
 #
 # Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
 set -uo pipefail
@@ -120,8 +123,21 @@ eval-each)
     done
     wait
     ;;
+pack)
+    dest=$2
+    shift 2
+    list=$(mktemp)
+    find runs -maxdepth 2 \( -name model.json -o -name model.mpk -o -name metrics.csv \
+        -o -name split.json -o -name train.json -o -name loss.png \) >"$list"
+    find "$OUT" \( -name '*.md' -o -name '*.csv' -o -name '*.log' \) >>"$list"
+    for name in "$@"; do find "$OUT/$name" -name '*.png' >>"$list"; done
+    tar -czf /tmp/results.tgz -T "$list"
+    mkdir -p "$dest"
+    split -b 15m /tmp/results.tgz "$dest/results.tgz.part-"
+    ls -la "$dest"
+    ;;
 *)
-    sed -n 2,18p "$0"
+    sed -n 2,21p "$0"
     exit 2
     ;;
 esac
