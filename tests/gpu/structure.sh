@@ -42,6 +42,8 @@ VOLUME=(--volume-loss 300)
 start() {
     local name=$1 minutes=$2
     shift 2
+    # ONLY="a b": start only these runs (ten full-size runs at once do not fit in 80 GB).
+    if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return; fi
     setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
         --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
     echo $! >>"$OUT/started.pids"
@@ -78,6 +80,18 @@ start)
     start s4 "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
         --rest-shape fit "${STRAIN[@]}" "${VOLUME[@]}"
     start s4c "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}"
+    ;;
+start2)
+    # The second round, from the first round's features-only run (runs/f1, carried back):
+    # it longer, a tenth of the strain weight alone, a tenth of the volume weight alone, and
+    # the small bundled model with the features alone.
+    m=$2
+    f1=(--model mingru --init-from runs/f1 --rollout-steps 8 --rest-shape fit)
+    start f1b "$m" "${f1[@]}"
+    start fs3 "$m" "${f1[@]}" --strain-loss 300
+    start fv30 "$m" "${f1[@]}" --volume-loss 30
+    start s4f "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
+        --rest-shape fit
     ;;
 wait)
     while true; do
