@@ -7,7 +7,7 @@ use std::collections::BTreeSet;
 use std::fmt::Write;
 
 use super::{Evaluation, Probe};
-use crate::msgs::MATERIAL_NAMES;
+use crate::material;
 
 /// The probes any scene was scored at, in order.
 fn probes(eval: &Evaluation) -> BTreeSet<Probe> {
@@ -49,23 +49,23 @@ pub fn markdown(eval: &Evaluation) -> String {
          motion), at step k of the rollouts (`end`: each rollout's last step):\n\n",
     );
     s.push_str("| predictor | step |");
-    for m in MATERIAL_NAMES {
+    for m in material::names() {
         let _ = write!(s, " sinkhorn {m} |");
     }
-    for m in &MATERIAL_NAMES[1..] {
+    for m in material::names().skip(1) {
         let _ = write!(s, " strain {m} |");
     }
     s.push_str("\n| --- | --- |");
-    s.push_str(&" ---: |".repeat(2 * MATERIAL_NAMES.len() - 1));
+    s.push_str(&" ---: |".repeat(2 * material::COUNT - 1));
     s.push('\n');
     for (p, name) in eval.predictors.iter().enumerate() {
         for &probe in &probes {
             let _ = write!(s, "| {name} | {probe} |");
-            for m in 0..MATERIAL_NAMES.len() {
+            for m in 0..material::COUNT {
                 let v = mean_over_scenes(eval, p, probe, |x| x.sinkhorn[m]);
                 let _ = write!(s, " {} |", fmt(v));
             }
-            for m in 1..MATERIAL_NAMES.len() {
+            for m in 1..material::COUNT {
                 let v = mean_over_scenes(eval, p, probe, |x| x.strain[m]);
                 let _ = write!(s, " {} |", fmt(v));
             }
@@ -83,7 +83,7 @@ pub fn csv(eval: &Evaluation) -> String {
     for scene in &eval.scenes {
         for (name, per) in eval.predictors.iter().zip(&scene.probes) {
             for (probe, v) in per {
-                for (m, material) in MATERIAL_NAMES.iter().enumerate() {
+                for (m, material) in material::names().enumerate() {
                     if v.sinkhorn[m].is_none() && v.strain[m].is_none() {
                         continue;
                     }

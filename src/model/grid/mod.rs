@@ -40,9 +40,6 @@ use burn::tensor::{Tensor, TensorData};
 
 use crate::ops::{grid_channels, linear, silu, NetOps};
 
-/// Materials (one-hot width).
-pub const MATERIALS: usize = 4;
-
 /// Every size and normalisation constant of a grid model; saved with each checkpoint.
 #[derive(Config, Debug)]
 pub struct GridConfig {
@@ -100,6 +97,11 @@ pub struct GridConfig {
     /// 1 (the single-frame model) in models saved before it existed.
     #[config(default = 1)]
     pub bundle: usize,
+    /// Material one-hot width: the materials the model tells apart, ids `0..materials`
+    /// ([`crate::material::COUNT`] when it was made). 4 in models saved before it existed
+    /// (`model::store`'s added fields), so they keep their width when a material is added.
+    #[config(default = "crate::material::COUNT")]
+    pub materials: usize,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -128,12 +130,12 @@ impl GridConfig {
     /// Grid channels of P2G's output (mass, T velocities, materials, 2 walls, and the
     /// displacement from the reference position when `reference`).
     pub fn grid_channels(&self) -> usize {
-        1 + 2 * self.window + MATERIALS + 2 + if self.reference { 2 } else { 0 }
+        1 + 2 * self.window + self.materials + 2 + if self.reference { 2 } else { 0 }
     }
 
     /// Per-particle own features (T velocities, material one-hot, position).
     pub fn own_features(&self) -> usize {
-        2 * self.window + MATERIALS + 2
+        2 * self.window + self.materials + 2
     }
 
     /// Checks the sizes.
@@ -223,7 +225,7 @@ pub struct StepInput<B: Backend> {
     pub pos: Tensor<B, 3>,
     /// `[B, N, 2 T]` velocities of the last T frames, oldest first, domain units per time unit.
     pub vel: Tensor<B, 3>,
-    /// `[B, N, 4]` material one-hot.
+    /// `[B, N, M]` material one-hot ([`one_hot`], M = [`GridConfig::materials`]).
     pub material: Tensor<B, 3>,
     /// `[B]` frame spacing, time units.
     pub dt: Tensor<B, 1>,
@@ -248,18 +250,20 @@ fn pairs<B: Backend>(v: [f32; 2], k: usize, device: &B::Device) -> Tensor<B, 3> 
     Tensor::from_data(TensorData::new(data, [1, 1, 2 * k]), device)
 }
 
-/// `[B, N, 4]` one-hot of material ids `[B N]` (ids above 3 count as 3).
+/// `[B, N, width]` one-hot of material ids `[B N]` (ids above `width - 1` count as
+/// `width - 1`); `width` is the model's [`GridConfig::materials`].
 pub fn one_hot<B: Backend>(
     material: &[u8],
+    width: usize,
     b: usize,
     n: usize,
     device: &B::Device,
 ) -> Tensor<B, 3> {
-    let mut data = vec![0.0f32; b * n * MATERIALS];
-    for (row, &m) in data.chunks_exact_mut(MATERIALS).zip(material) {
-        row[usize::from(m).min(MATERIALS - 1)] = 1.0;
+    let mut data = vec![0.0f32; b * n * width];
+    for (row, &m) in data.chunks_exact_mut(width).zip(material) {
+        row[usize::from(m).min(width - 1)] = 1.0;
     }
-    Tensor::from_data(TensorData::new(data, [b, n, MATERIALS]), device)
+    Tensor::from_data(TensorData::new(data, [b, n, width]), device)
 }
 
 impl<B: NetOps> GridModel<B> {
@@ -352,11 +356,11 @@ impl<B: NetOps> GridModel<B> {
             let x0 = input.reference.clone().unwrap_or_else(|| input.pos.clone());
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
-        // [B, n^2, 1 + 2T + 4 (+ 2)], then the channels [m / 4, velocities and materials per
+        // [B, n^2, 1 + 2T + M (+ 2)], then the channels [m / 4, velocities and materials per
         // mass, walls, displacement per mass]: the reference channels after the walls, so a
         // model grown by `with_reference` keeps its channel order.
         let splat = transfer::p2g(&s, Tensor::cat(values, 2));
-        let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
+        let grid = grid_channels(splat, self.n, 2 * t + input.material.dims()[2]); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]

@@ -236,7 +236,7 @@ where
             let mirror: Vec<bool> = (0..b)
                 .map(|_| opts.mirror && flips.random_bool(0.5))
                 .collect();
-            let tensors = upload_batch::<B>(batch, &mirror, &self.device);
+            let tensors = upload_batch::<B>(batch, &mirror, self.config.materials, &self.device);
             pass.data_seconds += fetch.elapsed().as_secs_f64();
             let loss = sequence_loss(&model, &self.config, opts, tensors);
             let grads = GradientsParams::from_grads(loss.backward(), &model);

@@ -26,10 +26,12 @@ pub(super) struct BatchTensors<B: Backend> {
 }
 
 /// The tensors of a batch of windows built with the identity scaler (inputs then hold
-/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]).
+/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]);
+/// `materials` is the model's one-hot width ([`GridConfig::materials`]).
 pub(super) fn upload_batch<B: Backend>(
     batch: Batch,
     mirror: &[bool],
+    materials: usize,
     device: &B::Device,
 ) -> BatchTensors<B> {
     let (b, t, n) = (batch.b, batch.t, batch.n);
@@ -51,7 +53,7 @@ pub(super) fn upload_batch<B: Backend>(
     }
     BatchTensors {
         frames: upload(frames, [b, t + 1, n, 4], device),
-        material: one_hot(&batch.material, b, n, device),
+        material: one_hot(&batch.material, materials, b, n, device),
         dt: upload(batch.dt, [b], device),
         first_pos: upload(first_pos, [b, n, 2], device),
     }
@@ -155,8 +157,8 @@ mod tests {
             first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
         };
         let device = Default::default();
-        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], &device);
-        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], &device);
+        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], 4, &device);
+        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], 4, &device);
         let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
         let (p, m) = (host(plain.frames), host(mirrored.frames));
         let per_window = (t + 1) * n * 4;
