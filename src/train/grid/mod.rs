@@ -45,11 +45,12 @@ use burn::tensor::ElementConversion;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
-use super::{checkpoint, EpochRecord, Observer, TrainError};
+use super::{EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::grid::{GridConfig, GridModel};
-use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
+use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
 use rollout_loss::{sequence_loss, upload_batch};
 use schedule::RunClock;
@@ -149,7 +150,13 @@ where
             trainer: self,
             train,
             val,
-            scaler: *scaler,
+            output: RunOutput {
+                out: self.out.clone(),
+                net: NetConfig::Grid(self.config.clone()),
+                scaler: *scaler,
+                epochs: opts.epochs,
+                patience: opts.patience,
+            },
             clock,
         };
         run_epochs(&mut run, start, observer)
@@ -254,16 +261,6 @@ where
         }
         Ok((model, pass))
     }
-
-    /// What `model.json` says of a checkpoint of epoch `epoch` with `val_loss`.
-    fn meta(&self, scaler: &Scaler, epoch: usize, val_loss: f64) -> ModelMeta {
-        ModelMeta {
-            net: NetConfig::Grid(self.config.clone()),
-            scaler: *scaler,
-            epoch,
-            val_loss,
-        }
-    }
 }
 
 /// Adam over a grid model, as [`GridTrainer`] builds it.
@@ -271,12 +268,13 @@ type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 
-/// A grid run in progress: the trainer, its data and its clock, as [`run_epochs`] drives it.
+/// A grid run in progress: the trainer, its data, its output and its clock, as
+/// [`run_epochs`] drives it.
 struct GridRun<'a, B: AutodiffBackend> {
     trainer: &'a GridTrainer<B>,
     train: &'a WindowIndex,
     val: &'a [Trajectory],
-    scaler: Scaler,
+    output: RunOutput,
     clock: RunClock,
 }
 
@@ -284,11 +282,12 @@ impl<B: AutodiffBackend + NetOps> EpochRun for GridRun<'_, B>
 where
     B::InnerBackend: NetOps,
 {
+    type Backend = B;
     type Model = GridModel<B>;
     type Optim = GridOptim<B>;
 
-    fn limits(&self) -> (usize, usize) {
-        (self.trainer.opts.epochs, self.trainer.opts.patience)
+    fn output(&self) -> &RunOutput {
+        &self.output
     }
 
     fn train_epoch(
@@ -313,35 +312,16 @@ where
         if self.val.is_empty() {
             return Ok(train_loss);
         }
-        let meta = t.meta(&self.scaler, epoch, 0.0);
+        let meta = self.output.meta(epoch, 0.0);
         let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
         let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
         Ok(validation_rollout(
             &surrogate,
             self.val,
-            &self.scaler,
+            &self.output.scaler,
             starts,
             horizon,
         )?)
-    }
-
-    fn save_best(
-        &self,
-        model: &GridModel<B>,
-        epoch: usize,
-        val_loss: f64,
-    ) -> Result<(), TrainError> {
-        let meta = self.trainer.meta(&self.scaler, epoch, val_loss);
-        Ok(store::save(&self.trainer.out, model, &meta)?)
-    }
-
-    fn checkpoint(
-        &self,
-        model: &GridModel<B>,
-        optim: &GridOptim<B>,
-        history: &[EpochRecord],
-    ) -> Result<(), TrainError> {
-        checkpoint::save(&self.trainer.out, model, optim, history)
     }
 }
 
