@@ -38,31 +38,26 @@ pub struct Row {
     pub colour: [u8; 3],
 }
 
+impl Row {
+    /// A row of [`TABLE`].
+    const fn new(material: Material, name: &'static str, colour: [u8; 3]) -> Self {
+        Row {
+            material,
+            name,
+            colour,
+        }
+    }
+}
+
 /// Materials there are (the length of [`TABLE`]).
 pub const COUNT: usize = 4;
 
 /// Every material, in id order: the one place its name and colour are written.
 pub const TABLE: [Row; COUNT] = [
-    Row {
-        material: Material::Liquid,
-        name: "liquid",
-        colour: [40, 120, 255],
-    },
-    Row {
-        material: Material::Jelly,
-        name: "jelly",
-        colour: [230, 60, 90],
-    },
-    Row {
-        material: Material::Snow,
-        name: "snow",
-        colour: [235, 235, 245],
-    },
-    Row {
-        material: Material::Rope,
-        name: "rope",
-        colour: [240, 160, 40],
-    },
+    Row::new(Material::Liquid, "liquid", [40, 120, 255]),
+    Row::new(Material::Jelly, "jelly", [230, 60, 90]),
+    Row::new(Material::Snow, "snow", [235, 235, 245]),
+    Row::new(Material::Rope, "rope", [240, 160, 40]),
 ];
 
 /// The colour of ids outside [`TABLE`] (grey).
