@@ -6,7 +6,7 @@ GRU / LSTM core of width 1250 with dropout 0.1 and an ELU Linear on the last ste
 decoder 1250 -> 2 N, semi-implicit Euler, MSE plus 0.1 x the density-map MSE on a 32 x 32
 grid), trained with Adam on random inputs, so that burn's CUDA backend and PyTorch are timed
 on the same GPU in one run. Written for this comparison from the equations in
-src/model/*.rs and src/train/loss.rs; it is not minflow's model and is not used to train.
+src/model/*.rs and src/train/paper/loss.rs; it is not minflow's model and is not used to train.
 
     python3 docs/torch_reference.py --cores mingru,gru --batch 80 --window 2 --steps 30
 

@@ -3,6 +3,7 @@
 //! The library behind the `minflow` binary and the tests. Modules follow the pipeline
 //! (`docs/design.md`, "Pipeline"):
 //!
+//! - [`material`]: the table of materials (id, name, colour) every module reads;
 //! - [`sim`]: the MLS-MPM solver and its scenes, which make the ground truth;
 //! - [`msgs`]: the `ParticleFrame` and `SurrogateStatus` messages and their CDR encoding;
 //! - [`bag`]: MCAP bags: writer, reader (foreign and truncated bags), `info`, `check`;
@@ -28,6 +29,7 @@ pub mod data;
 pub mod eval;
 pub mod interop;
 pub mod launch;
+pub mod material;
 pub mod model;
 pub mod msgs;
 pub mod node;

@@ -14,7 +14,8 @@ use std::path::{Path, PathBuf};
 pub use super::check::{check, CheckReport};
 use super::read::{BagReader, Truncation};
 use super::BagError;
-use crate::msgs::{self, MATERIAL_NAMES};
+use crate::material;
+use crate::msgs;
 
 /// Scenes listed by name in the info table (the rest are counted).
 const SCENES_LISTED: usize = 8;
@@ -40,7 +41,7 @@ pub struct SceneInfo {
     /// Particle count N of its first frame.
     pub particles: usize,
     /// Particles per material id of its first frame.
-    pub materials: [u64; 4],
+    pub materials: [u64; material::COUNT],
 }
 
 /// What one bag holds.
@@ -135,8 +136,8 @@ pub fn info_file(path: &Path) -> Result<FileInfo, BagError> {
 
 impl FileInfo {
     /// Particles per material over the first frame of every scene.
-    pub fn materials(&self) -> [u64; 4] {
-        let mut total = [0u64; 4];
+    pub fn materials(&self) -> [u64; material::COUNT] {
+        let mut total = [0u64; material::COUNT];
         for scene in self.scenes.values() {
             for (t, m) in total.iter_mut().zip(scene.materials) {
                 *t += m;
@@ -222,7 +223,7 @@ impl fmt::Display for FileInfo {
             .map(|(n, frames)| format!("{n} particles: {frames} frames"))
             .collect();
         rows(f, "Particle counts", &counts)?;
-        let materials: Vec<String> = (MATERIAL_NAMES.iter().zip(self.materials()))
+        let materials: Vec<String> = (material::names().zip(self.materials()))
             .map(|(name, n)| format!("{name} {n}"))
             .collect();
         let materials = format!(

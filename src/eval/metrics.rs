@@ -23,18 +23,13 @@
 
 use crate::data::Scaler;
 
-/// Material count (0 liquid, 1 jelly, 2 snow, 3 rope).
-pub const MATERIALS: usize = 4;
+/// Material count ([`crate::material::COUNT`]): the per-material slots of [`FrameMetrics`].
+pub const MATERIALS: usize = crate::material::COUNT;
 
-/// The metric names in the order of [`FrameMetrics::values`], as CSV column names.
-pub const METRIC_NAMES: [&str; 14] = [
-    "mse",
-    "mse_pos",
-    "mse_vel",
-    "mse_liquid",
-    "mse_jelly",
-    "mse_snow",
-    "mse_rope",
+/// The metric columns before the per-material ones (see [`metric_names`]).
+const HEAD: [&str; 3] = ["mse", "mse_pos", "mse_vel"];
+/// The metric columns after the per-material ones.
+const TAIL: [&str; 7] = [
     "phys_pos",
     "phys_vel",
     "ke_err",
@@ -43,6 +38,20 @@ pub const METRIC_NAMES: [&str; 14] = [
     "outside",
     "outside_truth",
 ];
+/// Metrics per frame: the columns of [`metric_names`] and [`FrameMetrics::values`].
+pub const METRIC_COUNT: usize = HEAD.len() + MATERIALS + TAIL.len();
+
+/// The metric names in the order of [`FrameMetrics::values`], as CSV column names: `mse`,
+/// `mse_pos`, `mse_vel`, `mse_<material>` per material in id order (`mse_liquid`, ...),
+/// `phys_pos`, `phys_vel`, `ke_err`, `com_err`, `density_err`, `outside`, `outside_truth`.
+pub fn metric_names() -> Vec<String> {
+    let materials = crate::material::names().map(|m| format!("mse_{m}"));
+    HEAD.iter()
+        .map(|&h| h.to_owned())
+        .chain(materials)
+        .chain(TAIL.iter().map(|&t| t.to_owned()))
+        .collect()
+}
 
 /// Errors of one predicted frame against the truth (see the module doc for each field's
 /// definition and units). Averages over several frames are [`FrameMetrics::mean`]s.
@@ -74,17 +83,12 @@ pub struct FrameMetrics {
 }
 
 impl FrameMetrics {
-    /// The fields as one row, in [`METRIC_NAMES`] order (`NaN` for an absent material).
-    pub fn values(&self) -> [f64; 14] {
-        let m = |i: usize| self.mse_material[i].unwrap_or(f64::NAN);
-        [
-            self.mse,
-            self.mse_pos,
-            self.mse_vel,
-            m(0),
-            m(1),
-            m(2),
-            m(3),
+    /// The fields as one row, in [`metric_names`] order (`NaN` for an absent material).
+    pub fn values(&self) -> Vec<f64> {
+        let mut row = Vec::with_capacity(METRIC_COUNT);
+        row.extend([self.mse, self.mse_pos, self.mse_vel]);
+        row.extend(self.mse_material.map(|m| m.unwrap_or(f64::NAN)));
+        row.extend([
             self.phys_pos,
             self.phys_vel,
             self.ke_err,
@@ -92,7 +96,26 @@ impl FrameMetrics {
             self.density_err,
             self.outside,
             self.outside_truth,
-        ]
+        ]);
+        row
+    }
+
+    /// Every field `NaN` and no material: the row of a predictor with nothing scored.
+    pub fn absent() -> FrameMetrics {
+        let nan = f64::NAN;
+        FrameMetrics {
+            mse: nan,
+            mse_pos: nan,
+            mse_vel: nan,
+            mse_material: [None; MATERIALS],
+            phys_pos: nan,
+            phys_vel: nan,
+            ke_err: nan,
+            com_err: nan,
+            density_err: nan,
+            outside: nan,
+            outside_truth: nan,
+        }
     }
 
     /// Field-wise mean of `all` (a material's mean over the frames that have it); `None` for
@@ -214,7 +237,7 @@ pub fn frame_metrics(
 /// square, `[g, g]` row-major with index `[ix * g + iy]`: each particle is splatted with the
 /// tent kernel `w(u) = max(0, 1 - |u g - (i + 1/2)|)` per axis and weight `g^2 / N`, so a
 /// uniform distribution has mean 1 (the same map as the training loss,
-/// `crate::train::loss::density_map`, in f64 without tensors).
+/// `crate::train::paper::loss::density_map`, in f64 without tensors).
 pub fn density_map(state: &[f32], g: usize) -> Vec<f64> {
     let n = state.len() / 4;
     let mut map = vec![0.0f64; g * g];

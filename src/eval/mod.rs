@@ -37,7 +37,9 @@ pub mod table;
 
 use std::path::PathBuf;
 
-pub use metrics::{density_map, frame_metrics, FrameMetrics, MATERIALS, METRIC_NAMES};
+pub use metrics::{
+    density_map, frame_metrics, metric_names, FrameMetrics, MATERIALS, METRIC_COUNT,
+};
 pub use plausibility::Plausibility;
 pub use predictor::{ConstVel, CpuInfer, ModelPredictor, Persist, Predictor, ReferenceFrom};
 pub use replay::{read_predictions, score_predictions, Predictions, ReplayOptions};

@@ -8,7 +8,7 @@ use std::collections::BTreeSet;
 use std::fmt::Write;
 
 use super::{Evaluation, Probe};
-use crate::msgs::MATERIAL_NAMES;
+use crate::material;
 
 /// The probes any scene was scored at, in order.
 fn probes(eval: &Evaluation) -> BTreeSet<Probe> {
@@ -50,23 +50,23 @@ pub fn markdown(eval: &Evaluation) -> String {
          motion), at step k of the rollouts (`end`: each rollout's last step):\n\n",
     );
     s.push_str("| predictor | step |");
-    for m in MATERIAL_NAMES {
+    for m in material::names() {
         let _ = write!(s, " sinkhorn {m} |");
     }
-    for m in &MATERIAL_NAMES[1..] {
+    for m in material::names().skip(1) {
         let _ = write!(s, " strain {m} |");
     }
     s.push_str("\n| --- | --- |");
-    s.push_str(&" ---: |".repeat(2 * MATERIAL_NAMES.len() - 1));
+    s.push_str(&" ---: |".repeat(2 * material::COUNT - 1));
     s.push('\n');
     for (p, name) in eval.predictors.iter().enumerate() {
         for &probe in &probes {
             let _ = write!(s, "| {name} | {probe} |");
-            for m in 0..MATERIAL_NAMES.len() {
+            for m in 0..material::COUNT {
                 let v = mean_over_scenes(eval, p, probe, |x| x.sinkhorn[m]);
                 let _ = write!(s, " {} |", fmt(v));
             }
-            for m in 1..MATERIAL_NAMES.len() {
+            for m in 1..material::COUNT {
                 let v = mean_over_scenes(eval, p, probe, |x| x.strain[m]);
                 let _ = write!(s, " {} |", fmt(v));
             }
@@ -88,30 +88,30 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
          first frame) within 1.5x their rest distance, and rope connected = share of the rope \
          in its largest intact piece, prediction (truth):\n\n| predictor | step |",
     );
-    for m in MATERIAL_NAMES {
+    for m in material::names() {
         let _ = write!(s, " volume {m} |");
     }
-    for m in &MATERIAL_NAMES[1..] {
+    for m in material::names().skip(1) {
         let _ = write!(s, " intact {m} |");
     }
     s.push_str(" rope connected |\n| --- | --- |");
-    s.push_str(&" ---: |".repeat(2 * MATERIAL_NAMES.len()));
+    s.push_str(&" ---: |".repeat(2 * material::COUNT));
     s.push('\n');
-    let rope = MATERIAL_NAMES.len() - 1;
+    let rope = usize::from(material::Material::Rope.id());
     for (p, name) in eval.predictors.iter().enumerate() {
         for &probe in probes {
             let mean = |f: &dyn Fn(&super::Plausibility) -> Option<f64>| {
                 mean_over_scenes(eval, p, probe, f)
             };
             let _ = write!(s, "| {name} | {probe} |");
-            for m in 0..MATERIAL_NAMES.len() {
+            for m in 0..material::COUNT {
                 let _ = write!(s, " {} |", fmt(mean(&|x| x.volume[m])));
             }
             let pair = |pred: Option<f64>, truth: Option<f64>| match (pred, truth) {
                 (Some(_), _) => format!("{} ({})", fmt(pred), fmt(truth)),
                 _ => "n/a".to_owned(),
             };
-            for m in 1..MATERIAL_NAMES.len() {
+            for m in 1..material::COUNT {
                 let v = pair(mean(&|x| x.intact[m]), mean(&|x| x.intact_truth[m]));
                 let _ = write!(s, " {v} |");
             }
@@ -134,7 +134,7 @@ pub fn csv(eval: &Evaluation) -> String {
     for scene in &eval.scenes {
         for (name, per) in eval.predictors.iter().zip(&scene.probes) {
             for (probe, v) in per {
-                for (m, material) in MATERIAL_NAMES.iter().enumerate() {
+                for (m, material) in material::names().enumerate() {
                     if v.sinkhorn[m].is_none() && v.strain[m].is_none() {
                         continue;
                     }

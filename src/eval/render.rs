@@ -11,7 +11,7 @@
 //!   one frame per step 0..=H ([`gif_size`]), 10 frames per second, looping.
 //!
 //! The domain is the unit square (y up); each particle is a 2 x 2 pixel square coloured by
-//! material ([`MATERIAL_COLOURS`]) on a dark background; particles outside the box are not
+//! material ([`crate::material`]'s palette, the Foxglove view's) on a dark background; particles outside the box are not
 //! drawn. Used by `minflow eval` and `minflow report`.
 
 use std::borrow::Cow;
@@ -20,6 +20,7 @@ use std::io::BufWriter;
 use std::path::Path;
 
 use super::{EvalError, Evaluation, Snapshots};
+use crate::material;
 use crate::plot::{draw_text, panels, Series};
 
 /// Side of one particle panel, pixels.
@@ -28,14 +29,6 @@ pub const CELL: u32 = 200;
 pub const LABEL_W: u32 = 110;
 /// Height of the header row (column labels), pixels.
 pub const HEADER: u32 = 28;
-/// Particle colours (RGB) by material id: liquid blue, jelly red-orange, snow light grey,
-/// rope green.
-pub const MATERIAL_COLOURS: [(u8, u8, u8); 4] = [
-    (66, 135, 245),
-    (240, 90, 40),
-    (225, 228, 235),
-    (110, 200, 70),
-];
 const BACKGROUND: (u8, u8, u8) = (14, 14, 18);
 const PANEL: (u8, u8, u8) = (30, 32, 40);
 const BORDER: (u8, u8, u8) = (90, 92, 104);
@@ -117,7 +110,7 @@ impl Canvas {
             }
             let px = x0 + 1 + (x * inner) as i64;
             let py = y0 + 1 + ((1.0 - y) * inner) as i64;
-            let c = MATERIAL_COLOURS[usize::from(m).min(3)];
+            let c = material_colour(m);
             for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
                 let (qx, qy) = (px + dx, py + dy);
                 if qx > x0 && qy > y0 && qx < x0 + side - 1 && qy < y0 + side - 1 {
@@ -206,14 +199,22 @@ fn write_png(path: &Path, size: (u32, u32), pixels: &[u8]) -> Result<(), EvalErr
     writer.finish().map_err(|e| out_err(path, e))
 }
 
-/// The GIF palette: background, panel, border, the materials, then 16 greys for text.
+/// The colour a particle of material id `m` is drawn in ([`material::colour_of`]).
+fn material_colour(m: u8) -> (u8, u8, u8) {
+    let [r, g, b] = material::colour_of(m);
+    (r, g, b)
+}
+
+/// The GIF palette: background, panel, border, the materials, 16 greys for text, then the
+/// colour of unknown material ids.
 fn palette() -> Vec<(u8, u8, u8)> {
     let mut p = vec![BACKGROUND, PANEL, BORDER];
-    p.extend(MATERIAL_COLOURS);
+    p.extend(material::Material::ALL.map(|m| material_colour(m.id())));
     p.extend((0..16u8).map(|i| {
         let v = 14 + (i as u32 * (235 - 14) / 15) as u8;
         (v, v, v)
     }));
+    p.push(material_colour(u8::MAX));
     p
 }
 

@@ -8,8 +8,8 @@
 
 use std::fmt::Write;
 
-use super::{Evaluation, FrameMetrics, METRIC_NAMES};
-use crate::msgs::MATERIAL_NAMES;
+use super::{metric_names, Evaluation, FrameMetrics};
+use crate::material;
 
 /// Block names for a horizon H: `avgH` and `fH` (the paper's `avg20` and `f20`).
 pub fn block_names(horizon: usize) -> (String, String) {
@@ -140,10 +140,10 @@ fn csv_field(s: &str) -> String {
 }
 
 /// Every metric at every step, long format:
-/// `scene,predictor,step,rollouts,<METRIC_NAMES...>`; steps not scored are left out.
+/// `scene,predictor,step,rollouts,<metric_names()...>`; steps not scored are left out.
 pub fn metrics_csv(eval: &Evaluation) -> String {
     let mut s = String::from("scene,predictor,step,rollouts");
-    for name in METRIC_NAMES {
+    for name in metric_names() {
         let _ = write!(s, ",{name}");
     }
     s.push('\n');
@@ -192,26 +192,19 @@ pub fn details(eval: &Evaluation) -> String {
          scaled features unless marked phys):\n"
     );
     let _ = write!(s, "| predictor | pos | vel |");
-    for m in MATERIAL_NAMES {
+    for m in material::names() {
         let _ = write!(s, " {m} |");
     }
     s.push_str(" phys pos (domain units^2) | phys vel ((units/time)^2) |\n| --- |");
-    s.push_str(&" ---: |".repeat(4 + MATERIAL_NAMES.len()));
+    s.push_str(&" ---: |".repeat(4 + material::COUNT));
     s.push('\n');
     for (p, (a, _)) in eval.predictors.iter().zip(&averages) {
-        let v = a.map(|m| m.values()).unwrap_or([f64::NAN; 14]);
-        let _ = writeln!(
-            s,
-            "| {p} | {} | {} | {} | {} | {} | {} | {} | {} |",
-            fmt(v[1]),
-            fmt(v[2]),
-            fmt(v[3]),
-            fmt(v[4]),
-            fmt(v[5]),
-            fmt(v[6]),
-            fmt(v[7]),
-            fmt(v[8])
-        );
+        let v = a.unwrap_or_else(FrameMetrics::absent);
+        let _ = write!(s, "| {p} | {} | {} |", fmt(v.mse_pos), fmt(v.mse_vel));
+        for m in v.mse_material {
+            let _ = write!(s, " {} |", fmt(m.unwrap_or(f64::NAN)));
+        }
+        let _ = writeln!(s, " {} | {} |", fmt(v.phys_pos), fmt(v.phys_vel));
     }
     let _ = writeln!(
         s,
@@ -223,14 +216,14 @@ pub fn details(eval: &Evaluation) -> String {
     s.push_str("| predictor | KE error | CoM error | density error | outside |\n");
     s.push_str("| --- | ---: | ---: | ---: | ---: |\n");
     for (p, (a, _)) in eval.predictors.iter().zip(&averages) {
-        let v = a.map(|m| m.values()).unwrap_or([f64::NAN; 14]);
+        let v = a.unwrap_or_else(FrameMetrics::absent);
         let _ = writeln!(
             s,
             "| {p} | {} | {} | {} | {:.1} |",
-            fmt(v[9]),
-            fmt(v[10]),
-            fmt(v[11]),
-            v[12]
+            fmt(v.ke_err),
+            fmt(v.com_err),
+            fmt(v.density_err),
+            v.outside
         );
     }
     s.push_str(&missing_and_notes(eval));

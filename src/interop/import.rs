@@ -13,7 +13,8 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use crate::bag::{BagError, BagWriter};
-use crate::msgs::{ParticleFrame, MATERIAL_NAMES};
+use crate::material::{self, Material};
+use crate::msgs::ParticleFrame;
 
 /// Why an import failed.
 #[derive(Debug, thiserror::Error)]
@@ -126,7 +127,7 @@ pub(crate) fn read_error(path: &Path, what: &str) -> impl Fn(hdf5_pure::Error) -
 }
 
 /// Which material each particle type becomes: `TYPE=MATERIAL` pairs separated by commas,
-/// materials by name (`liquid`, `jelly`, `snow`, `rope`) or id (0..=3), e.g.
+/// materials by name (`liquid`, `jelly`, `snow`, `rope`: [`crate::material`]) or id, e.g.
 /// `0=liquid,1=rope`. The default maps type 0 to liquid and nothing else.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct MaterialMap(BTreeMap<i64, u8>);
@@ -157,12 +158,10 @@ impl FromStr for MaterialMap {
                 .parse()
                 .map_err(|_| fail("the particle type is not an integer"))?;
             let material = material.trim();
-            let id = MATERIAL_NAMES
-                .iter()
-                .position(|&m| m == material)
-                .or_else(|| material.parse::<usize>().ok().filter(|&i| i < 4))
-                .ok_or_else(|| fail("materials are liquid, jelly, snow, rope (or 0..=3)"))?;
-            if map.insert(ty, id as u8).is_some() {
+            let id = Material::from_name(material)
+                .or_else(|| material.parse::<u8>().ok().and_then(Material::from_id))
+                .ok_or_else(|| fail(&format!("materials are {}", material::id_list())))?;
+            if map.insert(ty, id.id()).is_some() {
                 return Err(fail("the particle type is mapped twice"));
             }
         }
@@ -175,7 +174,7 @@ impl fmt::Display for MaterialMap {
         let pairs: Vec<String> = self
             .0
             .iter()
-            .map(|(ty, &m)| format!("{ty}={}", MATERIAL_NAMES[usize::from(m)]))
+            .map(|(ty, &m)| format!("{ty}={}", Material::from_id(m).map_or("?", Material::name)))
             .collect();
         f.write_str(&pairs.join(","))
     }

@@ -1,6 +1,6 @@
-//! Datasets in and out of minflow's bags for other tools (issue 17, part 3). Export: the
-//! trajectories of bags as numpy `.npz` archives, one per trajectory ([`npz`]), for Python
-//! users (`np.load`). Used by `minflow export`. Import: HDF5 datasets of other tools as one
+//! Datasets in and out of minflow's bags for other tools. Export: the trajectories of bags
+//! as numpy `.npz` archives, one per trajectory ([`npz`]), for Python users (`np.load`).
+//! Used by `minflow export`. Import: HDF5 datasets of other tools as one
 //! bag per trajectory — LagrangeBench's layout ([`lagrangebench`]) and the paper's
 //! ([`paper`]), with what they share in [`import`]; read with the pure-Rust `hdf5-pure`, so no
 //! system HDF5 library is needed. Used by `minflow import`.

@@ -1,9 +1,9 @@
 //! `minflow import --format paper FILE`: the paper's HDF5 layout as bags. The file holds a
 //! float dataset of shape (T, N, F) — one trajectory — or (S, T, N, F) — S trajectories —
 //! with F >= 5 features per particle and frame: x, y (domain units, the unit square, as
-//! minflow's), vx, vy (domain units per time unit), m (the material id as a float: 0 liquid,
-//! 1 jelly, 2 snow, 3 rope); further features are ignored. Positions and velocities are
-//! copied as stored (to f32); the material is `round(m)`, which must be one of 0..=3 and the
+//! minflow's), vx, vy (domain units per time unit), m (the material id as a float, as
+//! [`crate::material`] numbers them); further features are ignored. Positions and velocities
+//! are copied as stored (to f32); the material is `round(m)`, which must be a known id and the
 //! same in every frame.
 //!
 //! The frame spacing is not in the file: `--dt`, by default [`DEFAULT_DT`] (the paper's
@@ -223,7 +223,8 @@ fn materials(frame: &[f64], f: usize) -> Vec<Option<u8>> {
         .chunks_exact(f)
         .map(|p| {
             let m = p[4].round();
-            (m.is_finite() && (0.0..=3.0).contains(&m)).then_some(m as u8)
+            let known = m.is_finite() && (0.0..crate::material::COUNT as f64).contains(&m);
+            known.then_some(m as u8)
         })
         .collect()
 }

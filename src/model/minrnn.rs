@@ -8,7 +8,7 @@
 //!          `f_t = sigmoid(W_f x_t)`, `i_t = sigmoid(W_i x_t)`
 //! with `g(x) = x + 0.5` for `x >= 0`, `sigmoid(x)` otherwise (keeps h positive, so the scan
 //! can run on `log h`), then `out_t = W_o h_t` (the reference's `to_out`).
-//! A missing initial state means `h_0 = 0`. Used by [`crate::model::temporal`].
+//! A missing initial state means `h_0 = 0`. Used by [`crate::model::paper::temporal`].
 
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};

@@ -7,7 +7,7 @@
 //! LSTM (Hochreiter & Schmidhuber 1997): `[i, f, o, c~] = W x + U h`,
 //! `c' = sigmoid(f) c + sigmoid(i) tanh(c~)`, `h' = sigmoid(o) tanh(c')`.
 //! The W projections carry the biases; U has none. A missing state means zeros.
-//! Used by [`crate::model::temporal`].
+//! Used by [`crate::model::paper::temporal`].
 
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};

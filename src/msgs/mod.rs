@@ -4,7 +4,7 @@
 //! A [`ParticleFrame`] is one frame of a 2D particle simulation: N particles with interleaved
 //! positions (2N values, domain units, domain = unit square), interleaved velocities (2N values,
 //! domain units per simulation time unit) and one material id each (N values, see
-//! [`MATERIAL_NAMES`]); `dt` is in simulation time units, the header stamp is the simulation
+//! [`crate::material`]); `dt` is in simulation time units, the header stamp is the simulation
 //! time of the frame (sec + nanosec, i.e. stamps in ns). The `.msg` files in the repository's
 //! `msgs/` folder are the single source of truth: [`schema_text`] is built from them with
 //! `include_str!`. The wire format (CDR) lives in [`cdr`], the REP-2016 type hashes
@@ -22,8 +22,6 @@ pub use cdr::{decode, encode, encode_into, CdrError};
 pub const TYPE_NAME: &str = "minflow_msgs/msg/ParticleFrame";
 /// DDS type name of [`ParticleFrame`] under the ROS 2 name mangling.
 pub const DDS_TYPE_NAME: &str = "minflow_msgs::msg::dds_::ParticleFrame_";
-/// Material names, indexed by the material id stored in [`ParticleFrame::material`].
-pub const MATERIAL_NAMES: [&str; 4] = ["liquid", "jelly", "snow", "rope"];
 
 /// `msgs/ParticleFrame.msg`, verbatim.
 pub const PARTICLE_FRAME_MSG: &str = include_str!("../../msgs/ParticleFrame.msg");
@@ -145,7 +143,7 @@ pub struct ParticleFrame {
     pub position: Vec<f32>,
     /// Interleaved `vx0, vy0, ...`: 2N values, domain units per time unit.
     pub velocity: Vec<f32>,
-    /// N material ids, indexes into [`MATERIAL_NAMES`].
+    /// N material ids, indexes into [`crate::material::TABLE`].
     pub material: Vec<u8>,
 }
 
@@ -177,9 +175,10 @@ pub enum FrameError {
     /// `dt` is zero or negative.
     #[error("dt is {0}, must be positive")]
     NonPositiveDt(f32),
-    /// A material id outside `0..=3`.
+    /// A material id outside [`crate::material::TABLE`].
     #[error(
-        "material[{index}] is {value}, not a known material (0 liquid, 1 jelly, 2 snow, 3 rope)"
+        "material[{index}] is {value}, not a known material ({})",
+        crate::material::id_list()
     )]
     UnknownMaterial {
         /// Particle index.
@@ -264,8 +263,8 @@ impl ParticleFrame {
                 }
             }
         }
-        let limit = MATERIAL_NAMES.len() as u8;
-        if let Some((index, &value)) = self.material.iter().enumerate().find(|(_, &m)| m >= limit) {
+        let known = |m: u8| crate::material::Material::from_id(m).is_some();
+        if let Some((index, &value)) = self.material.iter().enumerate().find(|(_, &m)| !known(m)) {
             return Err(FrameError::UnknownMaterial { index, value });
         }
         Ok(())

@@ -6,8 +6,8 @@
 //! point: `x`, `y` (float32, domain units, the particle's position), `z` (float32, always 0)
 //! and `rgb` (float32 at offset 12), the colour by material packed as PCL packs it: the
 //! 32-bit word `0x00RRGGBB` stored as the bits of a float32 (so the bytes are `B G R 0`),
-//! which RViz's "RGB8" colour transformer unpacks. Colours are the Foxglove view's
-//! ([`material_colour`]: liquid blue, jelly red, snow white, rope orange). The header is the
+//! which RViz's "RGB8" colour transformer unpacks. Colours are the one palette of
+//! [`crate::material`], as in the Foxglove view and `eval`'s renders. The header is the
 //! frame's (stamp = simulation time, `frame_id` as published, "world" in minflow's bags).
 //!
 //! The `.msg` definitions (`msgs/sensor_msgs/`, verbatim from `sensor_msgs` 5.5) give the
@@ -16,7 +16,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::{ParticleFrame, Time};
-use crate::viz::cloud::material_colour;
+use crate::material;
 
 /// Full ROS 2 type name of [`PointCloud2`].
 pub const TYPE_NAME: &str = "sensor_msgs/msg/PointCloud2";
@@ -98,8 +98,8 @@ pub fn fields() -> Vec<PointField> {
 }
 
 /// The PCL packing of a colour: `0x00RRGGBB` as the bits of a float32, little-endian bytes.
-pub fn packed_rgb(rgba: [u8; 4]) -> [u8; 4] {
-    let word = (u32::from(rgba[0]) << 16) | (u32::from(rgba[1]) << 8) | u32::from(rgba[2]);
+pub fn packed_rgb(rgb: [u8; 3]) -> [u8; 4] {
+    let word = (u32::from(rgb[0]) << 16) | (u32::from(rgb[1]) << 8) | u32::from(rgb[2]);
     f32::from_bits(word).to_le_bytes()
 }
 
@@ -113,7 +113,7 @@ impl PointCloud2 {
             data.extend_from_slice(&frame.position[2 * i].to_le_bytes());
             data.extend_from_slice(&frame.position[2 * i + 1].to_le_bytes());
             data.extend_from_slice(&0f32.to_le_bytes());
-            data.extend_from_slice(&packed_rgb(material_colour(frame.material[i])));
+            data.extend_from_slice(&packed_rgb(material::colour_of(frame.material[i])));
         }
         let Time { sec, nanosec } = frame.header.stamp;
         let width = n as u32;

@@ -127,7 +127,8 @@ fn template(material: Material, rng: &mut ChaCha8Rng) -> (Shape, [f32; 2]) {
             let s = rng.random_range(0.22..0.28);
             (Shape::Rectangle, [s, s])
         }
-        _ => {
+        // Rope is a line (see `multi`) and never asks; a new material needs its own arm.
+        Material::Jelly | Material::Rope => {
             let d = 2.0 * rng.random_range(0.08..0.10);
             (Shape::Disk, [d, d])
         }

@@ -1,6 +1,7 @@
-//! The four materials of the ground truth and their constitutive update: given a particle's
-//! updated deformation gradient `F` (and plastic volume ratio `Jp`), apply plasticity and
-//! return the Kirchhoff stress `tau` (domain units: rho = 1, so stress is energy per area).
+//! The constitutive update of each material of the ground truth ([`Material`], whose ids,
+//! names and colours live in [`crate::material`]): given a particle's updated deformation
+//! gradient `F` (and plastic volume ratio `Jp`), apply plasticity and return the Kirchhoff
+//! stress `tau` (domain units: rho = 1, so stress is energy per area).
 //!
 //! Models follow Taichi's mpm99 example and `docs/mpm.md` ("Materials"): fixed-corotated elasticity
 //! `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation), liquid with
@@ -8,52 +9,15 @@
 //! `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)), 0.1, 5)`.
 
 use super::linalg::{self, Mat2};
+pub use crate::material::Material;
 use serde::{Deserialize, Serialize};
 
-/// Material id as carried in `ParticleFrame.material`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-#[repr(u8)]
-pub enum Material {
-    /// 0: weakly compressible liquid (mu = 0).
-    Liquid = 0,
-    /// 1: elastic jelly, fixed-corotated, hardening 0.3.
-    Jelly = 1,
-    /// 2: snow, fixed-corotated with plasticity and hardening.
-    Snow = 2,
-    /// 3: rope, a thin line of the elastic model, hardening 0.5.
-    Rope = 3,
-}
-
-impl Material {
-    /// All materials in id order.
-    pub const ALL: [Material; 4] = [
-        Material::Liquid,
-        Material::Jelly,
-        Material::Snow,
-        Material::Rope,
-    ];
-
-    /// The id stored in frames (0..=3).
-    pub fn id(self) -> u8 {
-        self as u8
-    }
-
-    /// Parses an id; `None` for unknown ids.
-    pub fn from_id(id: u8) -> Option<Self> {
-        Self::ALL.get(id as usize).copied()
-    }
-
-    /// Lower-case name, as used in scene ids and scene files.
-    pub fn name(self) -> &'static str {
-        match self {
-            Material::Liquid => "liquid",
-            Material::Jelly => "jelly",
-            Material::Snow => "snow",
-            Material::Rope => "rope",
-        }
-    }
-}
+// `project`, `hardening` and `kirchhoff_stress` below match on the four ids; a new material
+// needs its arms there first (docs/guide.md, "Adding a material").
+const _: () = assert!(
+    crate::material::COUNT == 4,
+    "give the new material its constitutive update here"
+);
 
 /// Lamé parameters and snow plasticity limits, shared by every material of a scene.
 ///

@@ -128,7 +128,7 @@ impl Solver {
                     x[0], x[1]
                 )));
             }
-            if m > 3 {
+            if super::Material::from_id(m).is_none() {
                 return Err(SimError::Invalid(format!("particle {p}: material {m}")));
             }
         }

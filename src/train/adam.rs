@@ -13,8 +13,8 @@ use burn::record::Record;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Tensor, TensorPrimitive};
 
-/// Adam's hyper-parameters (burn's defaults for the betas; epsilon 1e-8 as PyTorch's, not
-/// burn's 1e-5, per the learning issue).
+/// Adam's hyper-parameters (burn's defaults for the betas; epsilon 1e-8, PyTorch's default,
+/// not burn's 1e-5).
 #[derive(Clone, Copy, Debug)]
 pub struct FusedAdam {
     /// First-moment decay (0.9).

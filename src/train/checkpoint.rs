@@ -1,17 +1,76 @@
-//! The resumable checkpoint of a training run: `OUT/checkpoint/` holds the model and the
+//! What a training run writes, the same for both architectures: [`RunOutput`] (the run
+//! folder, the `model.json` of the kept model, the epoch limits) and the resumable
+//! checkpoint. `OUT/checkpoint/` holds the model and the
 //! optimizer state (burn named MessagePack, full precision) and `history.json` (every epoch
 //! so far). It is written to `checkpoint.tmp/` and swapped in with renames, so a run killed
 //! at any moment leaves either the previous or the new checkpoint, never a torn one; the
 //! previous epoch's stays as `checkpoint.old/`, and a resume whose checkpoint was damaged
 //! afterwards (a truncated copy, a full disk) falls back to it with a warning naming the file.
+//! Used by [`super::epochs::run_epochs`] for `minflow train` of either architecture.
 
 use super::{EpochRecord, TrainError};
-use crate::model::store;
+use crate::data::Scaler;
+use crate::model::store::{self, ModelMeta, NetConfig};
 use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// A run's folder, what its `model.json` says, and how long it may run: everything
+/// [`super::epochs::run_epochs`] needs to keep the best model and checkpoint each epoch,
+/// whatever the architecture.
+#[derive(Clone, Debug)]
+pub struct RunOutput {
+    /// The run folder (`train --out`).
+    pub out: PathBuf,
+    /// The network's architecture and hyper-parameters.
+    pub net: NetConfig,
+    /// The training split's scaler, saved with the model.
+    pub scaler: Scaler,
+    /// Epochs at most.
+    pub epochs: usize,
+    /// Epochs without a better validation score before stopping (0: never).
+    pub patience: usize,
+}
+
+impl RunOutput {
+    /// What `model.json` says of the model after `epoch` epochs with `val_loss`.
+    pub fn meta(&self, epoch: usize, val_loss: f64) -> ModelMeta {
+        ModelMeta {
+            net: self.net.clone(),
+            scaler: self.scaler,
+            epoch,
+            val_loss,
+        }
+    }
+
+    /// Saves `model` as the run's kept model (`model.json` + `model.mpk`).
+    ///
+    /// # Errors
+    /// The files could not be written.
+    pub fn save_best<B: burn::tensor::backend::Backend, M: burn::module::Module<B>>(
+        &self,
+        model: &M,
+        epoch: usize,
+        val_loss: f64,
+    ) -> Result<(), TrainError> {
+        Ok(store::save(&self.out, model, &self.meta(epoch, val_loss))?)
+    }
+
+    /// Writes the resumable checkpoint after the epochs in `history` ([`save`]).
+    ///
+    /// # Errors
+    /// The files could not be written.
+    pub fn checkpoint<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
+        &self,
+        model: &M,
+        optim: &O,
+        history: &[EpochRecord],
+    ) -> Result<(), TrainError> {
+        save(&self.out, model, optim, history)
+    }
+}
 
 fn err(path: &Path, source: impl Into<Box<dyn std::error::Error + Send + Sync>>) -> TrainError {
     TrainError::Store(store::io(path, source))

@@ -5,10 +5,17 @@
 //! without a better score, or when a pass ran out of time. Early stopping on the validation
 //! score and best-checkpoint selection as LagrangeBench (Toshev et al. 2023) and GNS
 //! (Sanchez-Gonzalez et al. 2020) train. What differs between the architectures (the pass,
-//! the score) is an [`EpochRun`]: [`super::paper::Trainer`] and [`super::grid::GridTrainer`].
+//! the score) is an [`EpochRun`]: [`super::paper::Trainer`] and [`super::grid::GridTrainer`];
+//! what is the same (the run folder, the kept model, the checkpoint, the limits) is the
+//! run's [`RunOutput`].
 
 use std::time::Instant;
 
+use burn::module::AutodiffModule;
+use burn::optim::Optimizer;
+use burn::tensor::backend::AutodiffBackend;
+
+use super::checkpoint::RunOutput;
 use super::{EpochRecord, Observer, TrainError};
 
 /// What one pass over an epoch's training batches summed up.
@@ -57,14 +64,15 @@ impl EpochPass {
 
 /// One architecture's training run, as [`run_epochs`] drives it.
 pub trait EpochRun {
-    /// The network being trained (on the autodiff backend).
-    type Model;
+    /// The autodiff backend it trains on.
+    type Backend: AutodiffBackend;
+    /// The network being trained.
+    type Model: AutodiffModule<Self::Backend>;
     /// Its optimizer.
-    type Optim;
+    type Optim: Optimizer<Self::Model, Self::Backend>;
 
-    /// Epochs at most, and epochs without a better validation score before stopping (0:
-    /// never).
-    fn limits(&self) -> (usize, usize);
+    /// The run folder, the kept model's `model.json` and the epoch limits.
+    fn output(&self) -> &RunOutput;
 
     /// One pass over the training batches of `epoch` (0-based): the trained model and the
     /// pass's sums; `observer` is told after each optimizer step.
@@ -90,24 +98,6 @@ pub trait EpochRun {
         epoch: usize,
         train_loss: f64,
     ) -> Result<f64, TrainError>;
-
-    /// Saves `model` as the run's kept model (`model.json` + `model.mpk`).
-    ///
-    /// # Errors
-    /// The files could not be written.
-    fn save_best(&self, model: &Self::Model, epoch: usize, val_loss: f64)
-        -> Result<(), TrainError>;
-
-    /// Writes the resumable checkpoint after the epochs in `history`.
-    ///
-    /// # Errors
-    /// The files could not be written.
-    fn checkpoint(
-        &self,
-        model: &Self::Model,
-        optim: &Self::Optim,
-        history: &[EpochRecord],
-    ) -> Result<(), TrainError>;
 }
 
 /// Trains `run` from `model`, `optim` and the epochs already done (`history`, non-empty when
@@ -121,7 +111,7 @@ pub fn run_epochs<R: EpochRun>(
     (mut model, mut optim, mut history): (R::Model, R::Optim, Vec<EpochRecord>),
     observer: &mut dyn Observer,
 ) -> Result<Vec<EpochRecord>, TrainError> {
-    let (epochs, patience) = run.limits();
+    let (epochs, patience) = (run.output().epochs, run.output().patience);
     let mut best = history
         .iter()
         .map(|r| r.val_loss)
@@ -153,12 +143,13 @@ pub fn run_epochs<R: EpochRun>(
         if val_loss < best {
             best = val_loss;
             since_best = 0;
-            run.save_best(&model, epoch + 1, val_loss)?;
+            run.output()
+                .save_best::<R::Backend, _>(&model, epoch + 1, val_loss)?;
         } else {
             since_best += 1;
         }
         history.push(record.clone());
-        run.checkpoint(&model, &optim, &history)?;
+        run.output().checkpoint(&model, &optim, &history)?;
         observer.epoch(&record, &history);
         if pass.out_of_time {
             break;

@@ -3,20 +3,19 @@
 //! architecture brings its pass over the batches and its validation score:
 //!
 //! - [`paper`]: the paper's network ([`paper::Trainer`]): one-frame windows, the loss on the
-//!   next frame, data-parallel on several devices;
+//!   next frame ([`paper::loss`]), data-parallel on several devices;
 //! - [`grid`]: the grid architecture ([`grid::GridTrainer`]): short rollouts on the model's
 //!   own predictions, validation by rollouts.
 //!
 //! Shared here: the error type, the per-epoch record, the progress observer and the seeded
-//! CPU draw of initial weights. [`checkpoint`] is the resumable checkpoint, [`adam`] the
-//! fused Adam step, [`loss`] the paper's loss, [`source`] the batch sources. Used by
-//! `minflow train` and `minflow bench train`.
+//! CPU draw of initial weights. [`checkpoint`] is what a run writes (the kept model, the
+//! resumable checkpoint, [`checkpoint::RunOutput`]), [`adam`] the fused Adam step,
+//! [`source`] the batch sources. Used by `minflow train` and `minflow bench train`.
 
 pub mod adam;
 pub mod checkpoint;
 pub mod epochs;
 pub mod grid;
-pub mod loss;
 pub mod paper;
 pub mod source;
 

@@ -23,16 +23,10 @@ pub const POINT_STRIDE: u32 = 24;
 /// fully red; 0 is green, half of it yellow.
 pub const ERROR_FULL_SCALE: f32 = 0.01;
 
-/// RGBA colour of a material id (0 liquid blue, 1 jelly red, 2 snow white, 3 rope
-/// orange; unknown ids grey).
+/// RGBA colour of a material id: its [`crate::material`] colour, opaque (unknown ids grey).
 pub fn material_colour(material: u8) -> [u8; 4] {
-    match material {
-        0 => [40, 120, 255, 255],
-        1 => [230, 60, 90, 255],
-        2 => [235, 235, 245, 255],
-        3 => [240, 160, 40, 255],
-        _ => [128, 128, 128, 255],
-    }
+    let [r, g, b] = crate::material::colour_of(material);
+    [r, g, b, 255]
 }
 
 /// RGBA colour of a position error (domain units): green at 0, yellow at half of

@@ -1,4 +1,4 @@
-//! Live view and recorded view of frames in Foxglove (issue 17): every `ParticleFrame` as a
+//! Live view and recorded view of frames in Foxglove: every `ParticleFrame` as a
 //! `foxglove.PointCloud` (protobuf, the schema Foxglove publishes) on a topic named after
 //! the frame topic (`/mpm/frames` -> `/mpm/frames/points`), coloured by material or, for
 //! predictions, by their error against the ground truth.

@@ -8,8 +8,9 @@ use std::path::Path;
 
 use indicatif::ProgressBar;
 use minflow::data::{Scaler, Trajectory};
-use minflow::eval::render::{gif_size, grid_size, grid_steps, CELL, MATERIAL_COLOURS};
+use minflow::eval::render::{gif_size, grid_size, grid_steps, CELL};
 use minflow::eval::{evaluate, output, ConstVel, Persist, Predictor, RolloutOptions};
+use minflow::material::Material;
 
 /// Two scenes of 400 particles (liquid and snow), 30 frames of a slow drift.
 fn trajectories() -> Vec<Trajectory> {
@@ -81,7 +82,7 @@ fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
         assert_eq!((w, h), grid_size(2, 20));
         assert_eq!((w, h), (110 + 5 * CELL, 28 + 3 * CELL));
         // Liquid and snow particles are drawn in their colours.
-        for (r, g, b) in [MATERIAL_COLOURS[0], MATERIAL_COLOURS[2]] {
+        for [r, g, b] in [Material::Liquid.colour(), Material::Snow.colour()] {
             let hits = pixels.chunks_exact(3).filter(|p| p == &[r, g, b]).count();
             assert!(hits > 1000, "colour {:?}: {hits} pixels", (r, g, b));
         }

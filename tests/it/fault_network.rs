@@ -1,7 +1,7 @@
 //! Issue 35, a locked-down network: the node and the replays run with zenoh configs (passed
 //! through `--zenoh-config` as they are) that use TLS with mutual authentication (a test CA
-//! and certificates made at test time with the `openssl` command; the test is skipped when
-//! it is missing) and zenoh's access control on the node: only the certificate named
+//! and certificates made at test time with the `openssl` command; without it the test fails
+//! unless told to skip, [`crate::unavailable`]) and zenoh's access control on the node: only the certificate named
 //! `replay` may put on the input key. A second publisher with a valid certificate of another
 //! name (`intruder`) is connected and sees the node's subscriber, but its frames never reach
 //! the node. And `--max-frame-bytes`: larger payloads are rejected before decoding.
@@ -11,6 +11,7 @@ use std::process::Command;
 use std::time::Duration;
 
 use crate::transport_support::*;
+use crate::unavailable::cannot_run;
 
 /// A CA and, for each name, a key and a certificate signed by it (CN = name, SAN 127.0.0.1 and
 /// localhost, usable as server and client); None when `openssl` cannot be run.
@@ -162,8 +163,7 @@ fn small_model() -> PathBuf {
 fn locked_down_zenoh_predicts_only_on_the_authorised_publisher() {
     let dir = tempfile::tempdir().unwrap();
     if make_certs(dir.path(), &["node", "replay", "intruder"]).is_none() {
-        eprintln!("skipped: no openssl command to make the test certificates");
-        return;
+        return cannot_run("no `openssl` command to make the test certificates");
     }
     let port = free_port();
     let input = unique_topic("acl_in");

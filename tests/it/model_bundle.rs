@@ -60,7 +60,7 @@ fn input(state: &[f32], material: &[u8]) -> StepInput<B> {
     StepInput {
         pos: frame.narrow(2, 0, 2),
         vel: Tensor::cat(vec![vel.clone(), vel], 2),
-        material: one_hot(material, 1, n, &device),
+        material: one_hot(material, minflow::material::COUNT, 1, n, &device),
         dt: Tensor::from_data(TensorData::new(vec![0.016f32], [1]), &device),
         reference: None,
         rest: None,

@@ -11,7 +11,8 @@
 //! - rclpy -> node -> rclpy: a prediction per input frame at 62.5 Hz, and status reports;
 //! - replay `--pointcloud2` -> rclpy: `sensor_msgs/PointCloud2` of every frame.
 //!
-//! The only reason to skip: pip cannot reach the package registry (printed).
+//! When pip cannot reach the package registry the tests fail, saying so, unless told to skip
+//! ([`crate::unavailable`]).
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
@@ -22,6 +23,7 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use crate::transport_support::{ok, raw_messages, source_bag, unique_topic, Node};
+use crate::unavailable::cannot_run;
 use minflow::msgs::type_hash::minflow_type_hash;
 use minflow::msgs::TYPE_NAME;
 
@@ -29,10 +31,11 @@ use minflow::msgs::TYPE_NAME;
 const NO_REGISTRY: i32 = 4;
 
 /// The environment lines of `tests/python/ros2_env.sh` (runs once per test process), or None
-/// when the wheels cannot be had because the registry is unreachable.
+/// when the wheels cannot be had because the registry is unreachable: the calling test then
+/// fails, or returns where the user opted out ([`cannot_run`]).
 fn ros2_env() -> Option<&'static HashMap<String, String>> {
-    static ENV: OnceLock<Option<HashMap<String, String>>> = OnceLock::new();
-    ENV.get_or_init(|| {
+    static ENV: OnceLock<Result<HashMap<String, String>, String>> = OnceLock::new();
+    let env = ENV.get_or_init(|| {
         let script = root().join("tests/python/ros2_env.sh");
         let out = Command::new("bash")
             .arg(&script)
@@ -40,8 +43,10 @@ fn ros2_env() -> Option<&'static HashMap<String, String>> {
             .expect("running tests/python/ros2_env.sh");
         let stderr = String::from_utf8_lossy(&out.stderr);
         if out.status.code() == Some(NO_REGISTRY) {
-            println!("SKIPPED (ROS 2 interop): {}", stderr.trim());
-            return None;
+            return Err(format!(
+                "ROS 2 interop needs the PyPI wheels: {}",
+                stderr.trim()
+            ));
         }
         assert!(out.status.success(), "ros2_env.sh failed:\n{stderr}");
         let vars = String::from_utf8_lossy(&out.stdout)
@@ -50,9 +55,15 @@ fn ros2_env() -> Option<&'static HashMap<String, String>> {
             .filter_map(|l| l.split_once('='))
             .map(|(k, v)| (k.to_owned(), v.trim_matches('\'').to_owned()))
             .collect();
-        Some(vars)
-    })
-    .as_ref()
+        Ok(vars)
+    });
+    match env {
+        Ok(vars) => Some(vars),
+        Err(why) => {
+            cannot_run(why);
+            None
+        }
+    }
 }
 
 fn root() -> PathBuf {

@@ -211,7 +211,7 @@ fn stages<B: AutodiffBackend + NetOps>(
     let input = StepInput {
         pos: pos.clone(),
         vel: Tensor::random([b, n_p, 2 * config.window], normal, device).require_grad(),
-        material: one_hot(&material, b, n_p, device),
+        material: one_hot(&material, config.materials, b, n_p, device),
         dt: Tensor::ones([b], device).mul_scalar(0.016),
         reference: None,
         rest: None,

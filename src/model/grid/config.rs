@@ -7,7 +7,7 @@ use burn::nn::{Initializer, LinearConfig};
 
 use super::memory::{Memory, MemoryKind};
 use super::unet::{ConvKernel, UNetConfig};
-use super::{GridModel, MATERIALS, REST_FEATURES};
+use super::{GridModel, REST_FEATURES};
 use crate::ops::NetOps;
 
 /// How a grid model turns its outputs into each particle's velocity change
@@ -98,6 +98,11 @@ pub struct GridConfig {
     /// 1 (the single-frame model) in models saved before it existed.
     #[config(default = 1)]
     pub bundle: usize,
+    /// Material one-hot width: the materials the model tells apart, ids `0..materials`
+    /// ([`crate::material::COUNT`] when it was made). 4 in models saved before it existed
+    /// (`model::store`'s added fields), so they keep their width when a material is added.
+    #[config(default = "crate::material::COUNT")]
+    pub materials: usize,
     /// Rest-shape features (`train --rest-shape`): each solid particle's deformation fitted to
     /// its 8 nearest neighbours of the same material in the first frame of its stream
     /// ([`rest`]), 6 values into P2G (6 more channels after the reference ones) and into the
@@ -137,7 +142,7 @@ impl GridConfig {
     /// displacement from the reference position when `reference`).
     pub fn grid_channels(&self) -> usize {
         1 + 2 * self.window
-            + MATERIALS
+            + self.materials
             + 2
             + if self.reference { 2 } else { 0 }
             + if self.rest_shape { REST_FEATURES } else { 0 }
@@ -145,7 +150,7 @@ impl GridConfig {
 
     /// Per-particle own features (T velocities, material one-hot, position).
     pub fn own_features(&self) -> usize {
-        2 * self.window + MATERIALS + 2
+        2 * self.window + self.materials + 2
     }
 
     /// Checks the sizes.

@@ -52,8 +52,6 @@ use burn::tensor::{Tensor, TensorData};
 
 use crate::ops::{grid_channels, linear, silu, NetOps};
 
-/// Materials (one-hot width).
-pub const MATERIALS: usize = 4;
 
 /// The network (see the module doc).
 #[derive(Module, Debug)]
@@ -83,7 +81,7 @@ pub struct StepInput<B: Backend> {
     pub pos: Tensor<B, 3>,
     /// `[B, N, 2 T]` velocities of the last T frames, oldest first, domain units per time unit.
     pub vel: Tensor<B, 3>,
-    /// `[B, N, 4]` material one-hot.
+    /// `[B, N, M]` material one-hot ([`one_hot`], M = [`GridConfig::materials`]).
     pub material: Tensor<B, 3>,
     /// `[B]` frame spacing, time units.
     pub dt: Tensor<B, 1>,
@@ -112,18 +110,20 @@ fn pairs<B: Backend>(v: [f32; 2], k: usize, device: &B::Device) -> Tensor<B, 3> 
     Tensor::from_data(TensorData::new(data, [1, 1, 2 * k]), device)
 }
 
-/// `[B, N, 4]` one-hot of material ids `[B N]` (ids above 3 count as 3).
+/// `[B, N, width]` one-hot of material ids `[B N]` (ids above `width - 1` count as
+/// `width - 1`); `width` is the model's [`GridConfig::materials`].
 pub fn one_hot<B: Backend>(
     material: &[u8],
+    width: usize,
     b: usize,
     n: usize,
     device: &B::Device,
 ) -> Tensor<B, 3> {
-    let mut data = vec![0.0f32; b * n * MATERIALS];
-    for (row, &m) in data.chunks_exact_mut(MATERIALS).zip(material) {
-        row[usize::from(m).min(MATERIALS - 1)] = 1.0;
+    let mut data = vec![0.0f32; b * n * width];
+    for (row, &m) in data.chunks_exact_mut(width).zip(material) {
+        row[usize::from(m).min(width - 1)] = 1.0;
     }
-    Tensor::from_data(TensorData::new(data, [b, n, MATERIALS]), device)
+    Tensor::from_data(TensorData::new(data, [b, n, width]), device)
 }
 
 impl<B: NetOps> GridModel<B> {
@@ -199,12 +199,12 @@ impl<B: NetOps> GridModel<B> {
         if let Some(r) = &features {
             values.push(r.clone());
         }
-        // [B, n^2, 1 + 2T + 4 (+ 2) (+ 6)], then the channels [m / 4, velocities and materials
+        // [B, n^2, 1 + 2T + M (+ 2) (+ 6)], then the channels [m / 4, velocities and materials
         // per mass, walls, displacement per mass, rest shape per mass]: the grown channels
         // after the walls, so a model grown by `with_reference` / `with_rest_shape` keeps its
         // channel order.
         let splat = transfer::p2g(&s, Tensor::cat(values, 2));
-        let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
+        let grid = grid_channels(splat, self.n, 2 * t + input.material.dims()[2]); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]

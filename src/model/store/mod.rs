@@ -119,6 +119,16 @@ impl ModelMeta {
         }
     }
 
+    /// The materials the model tells apart (ids `0..materials`): a grid model's one-hot
+    /// width ([`GridConfig::materials`]); the paper's reads the id as one scaled feature and
+    /// takes every material of [`crate::material`].
+    pub fn materials(&self) -> usize {
+        match &self.net {
+            NetConfig::Paper(_) => crate::material::COUNT,
+            NetConfig::Grid(c) => c.materials,
+        }
+    }
+
     /// The particle count the model is tied to (the paper's global decoder), if any.
     pub fn fixed_particles(&self) -> Option<usize> {
         match &self.net {
@@ -298,13 +308,15 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 
 /// Fields added to `model.json` after run folders were first saved, per architecture, at
 /// the values that mean "as before": a grid model without `reference` reads no reference
-/// channels, one without `bundle` predicts one frame per call, one without `rest_shape`
-/// reads no rest-shape features, one without `update` has the free per-particle head; `conv`
-/// picks the kernel only (same weights, same results); the zero-initialised last layers only
+/// channels, one without `bundle` predicts one frame per call, one without `materials` has
+/// the one-hot width of the four materials there were, one without `rest_shape` reads no
+/// rest-shape features, one without `update` has the free per-particle head; `conv` picks
+/// the kernel only (same weights, same results); the zero-initialised last layers only
 /// matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 7] = [
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 8] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
+    ("grid", "materials", || serde_json::Value::from(4)),
     ("grid", "rest_shape", || serde_json::Value::Bool(false)),
     ("grid", "update", || serde_json::Value::from("Free")),
     ("grid", "conv", || serde_json::Value::from("auto")),

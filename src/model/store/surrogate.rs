@@ -246,6 +246,12 @@ impl<B: NetOps> Surrogate<B> {
                 "model was trained for N = {expected} particles, frame has {n}"
             )));
         }
+        let known = self.meta.materials();
+        if let Some(&m) = material.iter().find(|&&m| usize::from(m) >= known) {
+            return Err(StoreError::Shape(format!(
+                "material id {m}: the model knows {known} materials (ids 0..{known})"
+            )));
+        }
         let (out, inner) = match (&self.net, state.inner) {
             (Net::Paper(model), NetState::Paper(layers)) => {
                 // The training batches' own scaling (data::Scaler), so inputs match training.
@@ -328,7 +334,7 @@ impl<B: NetOps> Surrogate<B> {
         let input = StepInput {
             pos,
             vel: vel_hist.clone(),
-            material: one_hot(material, b, n, &self.device),
+            material: one_hot(material, self.meta.materials(), b, n, &self.device),
             dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference.clone()),
             rest: rest.clone(),

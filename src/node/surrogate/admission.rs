@@ -15,8 +15,8 @@ pub(super) enum Rejection {
     /// The model takes a fixed particle count (the paper's architecture) and this is another.
     #[error("{got} particles, the model was trained for N = {model}")]
     ParticleCount { got: usize, model: usize },
-    /// A material id beyond the four the models know.
-    #[error("unknown material id {0} (0 liquid, 1 jelly, 2 snow, 3 rope)")]
+    /// A material id outside [`crate::material::TABLE`].
+    #[error("unknown material id {0} ({known})", known = crate::material::id_list())]
     Material(u8),
     /// A NaN or infinity in the state.
     #[error("non-finite position, velocity or dt")]
@@ -35,7 +35,8 @@ pub(super) fn check_frame(frame: &ParticleFrame, model_n: Option<usize>) -> Resu
             model,
         });
     }
-    if let Some(&m) = frame.material.iter().find(|&&m| m > 3) {
+    let known = |m: u8| crate::material::Material::from_id(m).is_some();
+    if let Some(&m) = frame.material.iter().find(|&&m| !known(m)) {
         return Err(Rejection::Material(m));
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());

@@ -24,7 +24,7 @@
 //!
 //! Bad input is never predicted on: a payload larger than `max_frame_bytes` is `rejected`
 //! before it is decoded; a payload that does not decode is `malformed`; a frame with a
-//! particle count other than the model's N, non-finite values or a material id above 3 is
+//! particle count other than the model's N, non-finite values or an unknown material id is
 //! `rejected`. Each is counted, logged once per scene and reason, and reported in
 //! [`SurrogateStatus`] (published once per second); other scenes are served as usual.
 //!

@@ -45,11 +45,12 @@ use burn::tensor::ElementConversion;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
-use super::{checkpoint, EpochRecord, Observer, TrainError};
+use super::{EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::grid::{GridConfig, GridModel};
-use crate::model::store::{self, ModelMeta, Net, NetConfig, Surrogate};
+use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
 use rollout_loss::{sequence_loss, upload_batch, Needs};
 use schedule::RunClock;
@@ -155,7 +156,13 @@ where
             trainer: self,
             train,
             val,
-            scaler: *scaler,
+            output: RunOutput {
+                out: self.out.clone(),
+                net: NetConfig::Grid(self.config.clone()),
+                scaler: *scaler,
+                epochs: opts.epochs,
+                patience: opts.patience,
+            },
             clock,
         };
         run_epochs(&mut run, start, observer)
@@ -259,6 +266,7 @@ where
             let needs = Needs {
                 rest: self.config.rest_shape || opts.strain_weight > 0.0,
                 liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
+                materials: self.config.materials,
             };
             let tensors = upload_batch::<B>(batch, &mirror, needs, &self.device);
             pass.data_seconds += fetch.elapsed().as_secs_f64();
@@ -278,16 +286,6 @@ where
         }
         Ok((model, pass))
     }
-
-    /// What `model.json` says of a checkpoint of epoch `epoch` with `val_loss`.
-    fn meta(&self, scaler: &Scaler, epoch: usize, val_loss: f64) -> ModelMeta {
-        ModelMeta {
-            net: NetConfig::Grid(self.config.clone()),
-            scaler: *scaler,
-            epoch,
-            val_loss,
-        }
-    }
 }
 
 /// Adam over a grid model, as [`GridTrainer`] builds it.
@@ -295,12 +293,13 @@ type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 
-/// A grid run in progress: the trainer, its data and its clock, as [`run_epochs`] drives it.
+/// A grid run in progress: the trainer, its data, its output and its clock, as
+/// [`run_epochs`] drives it.
 struct GridRun<'a, B: AutodiffBackend> {
     trainer: &'a GridTrainer<B>,
     train: &'a WindowIndex,
     val: &'a [Trajectory],
-    scaler: Scaler,
+    output: RunOutput,
     clock: RunClock,
 }
 
@@ -308,11 +307,12 @@ impl<B: AutodiffBackend + NetOps> EpochRun for GridRun<'_, B>
 where
     B::InnerBackend: NetOps,
 {
+    type Backend = B;
     type Model = GridModel<B>;
     type Optim = GridOptim<B>;
 
-    fn limits(&self) -> (usize, usize) {
-        (self.trainer.opts.epochs, self.trainer.opts.patience)
+    fn output(&self) -> &RunOutput {
+        &self.output
     }
 
     fn train_epoch(
@@ -338,36 +338,17 @@ where
         if self.val.is_empty() {
             return Ok(train_loss);
         }
-        let meta = t.meta(&self.scaler, epoch, 0.0);
+        let meta = self.output.meta(epoch, 0.0);
         let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
         let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
         let structure = t.opts.strain_weight > 0.0 || t.opts.volume_weight > 0.0;
         Ok(validation_rollout(
             &surrogate,
             self.val,
-            &self.scaler,
+            &self.output.scaler,
             (starts, horizon),
             structure,
         )?)
-    }
-
-    fn save_best(
-        &self,
-        model: &GridModel<B>,
-        epoch: usize,
-        val_loss: f64,
-    ) -> Result<(), TrainError> {
-        let meta = self.trainer.meta(&self.scaler, epoch, val_loss);
-        Ok(store::save(&self.trainer.out, model, &meta)?)
-    }
-
-    fn checkpoint(
-        &self,
-        model: &GridModel<B>,
-        optim: &GridOptim<B>,
-        history: &[EpochRecord],
-    ) -> Result<(), TrainError> {
-        checkpoint::save(&self.trainer.out, model, optim, history)
     }
 }
 

@@ -53,10 +53,13 @@ pub(super) struct Needs {
     pub rest: bool,
     /// The liquid's neighbourhoods in this frame of the window (volume loss): `T - 1`.
     pub liquid_at: Option<usize>,
+    /// The model's material one-hot width ([`GridConfig::materials`]).
+    pub materials: usize,
 }
 
 /// The tensors of a batch of windows built with the identity scaler (inputs then hold
-/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]).
+/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]);
+/// `needs` says which neighbourhoods to build and the model's one-hot width.
 pub(super) fn upload_batch<B: Backend>(
     batch: Batch,
     mirror: &[bool],
@@ -102,7 +105,7 @@ pub(super) fn upload_batch<B: Backend>(
     });
     BatchTensors {
         frames: upload(frames, [b, t + 1, n, 4], device),
-        material: one_hot(&batch.material, b, n, device),
+        material: one_hot(&batch.material, needs.materials, b, n, device),
         dt: upload(batch.dt, [b], device),
         first_pos: upload(first_pos, [b, n, 2], device),
         rest,
@@ -239,7 +242,10 @@ mod tests {
             first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
         };
         let device = Default::default();
-        let none = Needs::default();
+        let none = Needs {
+            materials: 4,
+            ..Needs::default()
+        };
         let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], none, &device);
         let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], none, &device);
         let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();

@@ -1,6 +1,6 @@
 //! Training of the paper's architecture ([`crate::model::paper`]; docs/design.md, "Models"):
 //! Adam (lr 1e-3, epsilon 1e-8 as PyTorch), effective batch reached by micro-batches with
-//! gradient accumulation, the loss on the next frame ([`super::loss`]), and the shared epoch
+//! gradient accumulation, the loss on the next frame ([`loss`]), and the shared epoch
 //! loop ([`super::epochs`]: early stopping on the validation loss, best model kept,
 //! checkpoint every epoch so a killed run resumes bit for bit; the backend RNG and the data
 //! order are reseeded from (seed, epoch)). Backend-generic: the initial weights are always
@@ -11,17 +11,19 @@
 //! Used by `minflow train --arch paper` and `minflow bench train --arch paper`.
 //!
 //! Files: this one holds the trainer and its run over the shared epoch loop, `step.rs` an
-//! epoch's pass and its optimizer steps, `slices.rs` the micro-batches and their loss.
+//! epoch's pass and its optimizer steps, `slices.rs` the micro-batches, `loss.rs` their loss.
 
+pub mod loss;
 mod slices;
 mod step;
 
 pub use slices::evaluate;
 
+use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
-use super::{adam, checkpoint, drawn_on_cpu, BatchSource, EpochRecord, Observer, TrainError};
+use super::{adam, drawn_on_cpu, BatchSource, EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, WindowIndex};
-use crate::model::store::{self, ModelMeta};
+use crate::model::store::NetConfig;
 use crate::model::{Model, ModelConfig, Scaling};
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
@@ -169,11 +171,18 @@ where
     ) -> Result<Vec<EpochRecord>, TrainError> {
         self.check_particle_counts(&train.particle_counts())?;
         let start = self.start(resume)?;
+        let output = RunOutput {
+            out: self.out.clone(),
+            net: NetConfig::Paper(self.config.clone()),
+            scaler: *scaler,
+            epochs: self.opts.epochs,
+            patience: self.opts.patience,
+        };
         let mut run = PaperRun {
             trainer: self,
-            scaling: self.meta(scaler, 0, 0.0).scaling(),
+            scaling: output.meta(0, 0.0).scaling(),
             streams: self.stream_ids(),
-            scaler: *scaler,
+            output,
             train,
             val,
         };
@@ -191,16 +200,6 @@ where
             )));
         }
         Ok(())
-    }
-
-    /// The stored metadata of this run's model after `epoch` epochs.
-    fn meta(&self, scaler: &Scaler, epoch: usize, val_loss: f64) -> ModelMeta {
-        ModelMeta {
-            net: store::NetConfig::Paper(self.config.clone()),
-            scaler: *scaler,
-            epoch,
-            val_loss,
-        }
     }
 
     /// The model, optimizer and history to start from: freshly initialised (seeded), or
@@ -258,12 +257,13 @@ where
 /// The optimizer of a run: [`adam::FusedAdam`] through burn's adaptor.
 type Optim<B> = OptimizerAdaptor<adam::FusedAdam, Model<B>, B>;
 
-/// A paper run in progress: the trainer and the batch sources, as [`run_epochs`] drives it.
+/// A paper run in progress: the trainer, its output and the batch sources, as
+/// [`run_epochs`] drives it.
 struct PaperRun<'a, 't, 'v, B: AutodiffBackend> {
     trainer: &'a Trainer<B>,
     scaling: Scaling,
     streams: Vec<StreamId>,
-    scaler: Scaler,
+    output: RunOutput,
     train: &'t mut dyn BatchSource,
     val: Option<&'v mut dyn BatchSource>,
 }
@@ -272,11 +272,12 @@ impl<B: AutodiffBackend + crate::ops::NetOps> EpochRun for PaperRun<'_, '_, '_, 
 where
     B::InnerBackend: crate::ops::NetOps,
 {
+    type Backend = B;
     type Model = Model<B>;
     type Optim = Optim<B>;
 
-    fn limits(&self) -> (usize, usize) {
-        (self.trainer.opts.epochs, self.trainer.opts.patience)
+    fn output(&self) -> &RunOutput {
+        &self.output
     }
 
     fn train_epoch(
@@ -308,19 +309,5 @@ where
             }
             _ => Ok(train_loss),
         }
-    }
-
-    fn save_best(&self, model: &Model<B>, epoch: usize, val_loss: f64) -> Result<(), TrainError> {
-        let meta = self.trainer.meta(&self.scaler, epoch, val_loss);
-        Ok(store::save(&self.trainer.out, model, &meta)?)
-    }
-
-    fn checkpoint(
-        &self,
-        model: &Model<B>,
-        optim: &Optim<B>,
-        history: &[EpochRecord],
-    ) -> Result<(), TrainError> {
-        checkpoint::save(&self.trainer.out, model, optim, history)
     }
 }

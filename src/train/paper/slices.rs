@@ -6,10 +6,10 @@
 use burn::tensor::backend::Backend;
 use burn::tensor::{ElementConversion, Tensor};
 
-use super::TrainOptions;
+use super::{loss, TrainOptions};
 use crate::data::Batch;
 use crate::model::{upload, Model, Scaling};
-use crate::train::{loss, BatchSource, TrainError};
+use crate::train::{BatchSource, TrainError};
 
 /// Host data of a batch slice `[start, start + len)`, ready to upload.
 pub(super) struct HostSlice {

@@ -1,12 +1,14 @@
-//! The training loss (docs/design.md, "Models"; the paper's eq. 2 plus its density term): MSE over
-//! the next frame's scaled (x, y, vx, vy), plus `weight` times the MSE between density maps of
-//! the predicted and true positions.
+//! The paper trainer's loss (`train --arch paper`; docs/design.md, "Models"; the paper's eq. 2
+//! plus its density term): MSE over the next frame's scaled (x, y, vx, vy), plus `weight`
+//! times the MSE between density maps of the predicted and true positions. The grid trainer
+//! has its own, over short rollouts ([`crate::train::grid`], `rollout_loss.rs`).
 //!
 //! The density map splats each particle onto a G x G grid over the unit square with the
 //! bilinear (tent) kernel `w(x) = max(0, 1 - |x G - (i + 1/2)|)` per axis. The kernel is
 //! separable, so the map is one batched matrix product `Kx^T Ky` (`[B, G, N] x [B, N, G]`),
 //! differentiable in the positions, with no scatter. Maps are normalised to mean 1 for a
-//! uniform distribution (`G^2 / N` per particle). Used by `minflow train`.
+//! uniform distribution (`G^2 / N` per particle). Used by [`super::Trainer`] (`minflow train
+//! --arch paper`, `minflow bench train --arch paper`).
 
 use burn::tensor::activation::relu;
 use burn::tensor::backend::Backend;
