@@ -36,6 +36,7 @@ mod model_cells;
 mod model_grid;
 mod models_shipped;
 mod msgs_cdr;
+mod node_batching;
 mod node_surrogate;
 mod plot_png;
 mod ros2_rclpy;
