@@ -355,7 +355,7 @@ impl<B: NetOps> GridModel<B> {
         // [B, n^2, 1 + 2T + 4 (+ 2)], then the channels [m / 4, velocities and materials per
         // mass, walls, displacement per mass]: the reference channels after the walls, so a
         // model grown by `with_reference` keeps its channel order.
-        let splat = transfer::p2g(&s, Tensor::cat(values, 2));
+        let splat = transfer::p2g(&s, cat_rows(values));
         let grid = grid_channels(splat, self.n, 2 * t + MATERIALS); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];
@@ -431,10 +431,7 @@ impl<B: NetOps> GridModel<B> {
         pos: &Tensor<B, 3>,
     ) -> Tensor<B, 2> {
         let [b, n_p, _] = pos.dims();
-        let u = Tensor::cat(
-            vec![gathered, vel.clone(), material.clone(), pos.clone()],
-            2,
-        );
+        let u = cat_rows(vec![gathered, vel.clone(), material.clone(), pos.clone()]);
         let d_u = u.dims()[2];
         u.reshape([b * n_p, d_u])
     }
@@ -484,4 +481,21 @@ pub fn mirror_rows(rows: &mut [f32], width: usize) {
             r[2] = -r[2];
         }
     }
+}
+
+/// `parts` (`[B, N, C_i]` each) concatenated along the channels: `[B, N, sum C_i]`. As rows
+/// `[B N, C_i]`, so the CPU backend copies rows (its concatenation along the last of three
+/// axes goes element by element once B > 1: a batch of scenes cost 2-7x a scene alone).
+fn cat_rows<B: Backend>(parts: Vec<Tensor<B, 3>>) -> Tensor<B, 3> {
+    let [b, n, _] = parts[0].dims();
+    let rows = parts
+        .into_iter()
+        .map(|p| {
+            let c = p.dims()[2];
+            p.reshape([b * n, c])
+        })
+        .collect();
+    let out = Tensor::cat(rows, 1);
+    let c = out.dims()[1];
+    out.reshape([b, n, c])
 }
