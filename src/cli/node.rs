@@ -62,9 +62,11 @@ pub struct NodeArgs {
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::rate)]
     rate: f64,
     /// Dynamic batching (as NVIDIA Triton's dynamic batcher): most scenes stepped by one
-    /// network call, each with its own state (1: one scene a call, no batching).
-    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=4096))]
-    max_batch: u32,
+    /// network call, each with its own state (1: one scene a call, no batching). Default:
+    /// 4 on the CPU (a call of more scenes costs more per scene there: docs/scale.md), 64 on
+    /// a GPU.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    max_batch: Option<u32>,
     /// Dynamic batching: milliseconds the oldest waiting frame may wait for frames of other
     /// scenes to join its call (0-1000; a small fraction of the frame period). A call goes
     /// at once when every scene that could join has.
@@ -113,6 +115,8 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 
 /// Loads the model onto `device` of backend `B` and serves until stopped.
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
+    let on_cpu = args.device.parse()?.single("node")?.is_none();
+    let max_batch = args.max_batch.unwrap_or(if on_cpu { 4 } else { 64 });
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?
         .with_mirror(args.mirror);
@@ -131,7 +135,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         max_frame_bytes: args.max_frame_bytes,
         rollout: args.rollout,
         rate: args.rate,
-        max_batch: args.max_batch as usize,
+        max_batch: max_batch as usize,
         max_batch_delay: Duration::from_secs_f64(args.max_batch_delay / 1e3),
         shard: args.shard,
         max_published: args.max_published,

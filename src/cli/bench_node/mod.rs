@@ -93,7 +93,7 @@ pub struct NodeBenchArgs {
     #[arg(long, default_value_t = 3.0, value_parser = super::flags::seconds)]
     warm_up: f64,
     /// `--streams`: the node's `--max-batch` per row (comma-separated, each 1-4096).
-    #[arg(long, value_delimiter = ',', default_value = "1,32",
+    #[arg(long, value_delimiter = ',', default_value = "1,4",
           value_parser = clap::value_parser!(u32).range(1..=4096))]
     max_batch: Vec<u32>,
     /// `--streams`: the node's `--max-batch-delay`, ms (0-1000).
