@@ -61,6 +61,22 @@ pub struct NodeArgs {
     /// Closed-loop pacing factor (1 = the scene's own frame rate); 0 = as fast as possible.
     #[arg(long, default_value_t = 0.0, value_parser = super::flags::rate)]
     rate: f64,
+    /// Dynamic batching (as NVIDIA Triton's dynamic batcher): most scenes stepped by one
+    /// network call, each with its own state (1: one scene a call, no batching). Default:
+    /// 4 on the CPU (a call of more scenes costs more per scene there: docs/scale.md), 64 on
+    /// a GPU.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    max_batch: Option<u32>,
+    /// Dynamic batching: milliseconds the oldest waiting frame may wait for frames of other
+    /// scenes to join its call (0-1000; a small fraction of the frame period). A call goes
+    /// at once when every scene that could join has.
+    #[arg(long, default_value_t = 2.0, value_name = "MS", value_parser = batch_delay_ms)]
+    max_batch_delay: f64,
+    /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a
+    /// zenoh liveliness token, a scene is predicted by the live node of highest rendezvous
+    /// hash, and a dead node's scenes move to the others (restarting from the next frame).
+    #[arg(long, value_name = "GROUP", value_parser = shard_group)]
+    shard: Option<String>,
     /// Exit after publishing this many predicted frames.
     #[arg(long)]
     max_published: Option<u64>,
@@ -99,6 +115,8 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 
 /// Loads the model onto `device` of backend `B` and serves until stopped.
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
+    let on_cpu = args.device.parse()?.single("node")?.is_none();
+    let max_batch = args.max_batch.unwrap_or(if on_cpu { 4 } else { 64 });
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?
         .with_mirror(args.mirror);
@@ -117,6 +135,9 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         max_frame_bytes: args.max_frame_bytes,
         rollout: args.rollout,
         rate: args.rate,
+        max_batch: max_batch as usize,
+        max_batch_delay: Duration::from_secs_f64(args.max_batch_delay / 1e3),
+        shard: args.shard,
         max_published: args.max_published,
         wait_for_subscribers: args.wait_for_subscribers,
         stats_interval: args
@@ -129,4 +150,24 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
     let report = surrogate::run(&options, &model, session.as_ref(), &stop)?;
     eprintln!("{}", surrogate::summary(&report));
     Ok(Outcome::Done)
+}
+
+/// `--max-batch-delay`: milliseconds from 0 to 1000.
+fn batch_delay_ms(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
+    if (0.0..=1000.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v} ms is outside 0..=1000"))
+    }
+}
+
+/// `--shard`: a group name usable as one zenoh key chunk (letters, digits, `-`, `_`, `.`).
+fn shard_group(s: &str) -> Result<String, String> {
+    let ok = |c: char| c.is_ascii_alphanumeric() || "-_.".contains(c);
+    if !s.is_empty() && s.chars().all(ok) {
+        Ok(s.to_owned())
+    } else {
+        Err(format!("{s:?}: use letters, digits, '-', '_' and '.'"))
+    }
 }

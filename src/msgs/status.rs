@@ -1,7 +1,9 @@
 //! `minflow_msgs/msg/SurrogateStatus` (msgs/SurrogateStatus.msg): a surrogate node's
 //! counters and last error, published once per second on `/surrogate/status`, with its CDR
 //! encoding (XCDR1 little-endian, encapsulation header, 8-byte alignment for `uint64`,
-//! byte-identical to a ROS 2 node's). Decoding never panics.
+//! byte-identical to a ROS 2 node's). Decoding never panics. The batching fields (`calls`,
+//! `batched`, `batch_max`, issue 40) come last: a message of an older node, which ends at
+//! `last_error`, decodes with them 0, and an older reader stops before them.
 
 use super::Time;
 
@@ -35,6 +37,23 @@ pub struct SurrogateStatus {
     pub active_scenes: u32,
     /// Most recent reason a frame was not predicted on, empty if none.
     pub last_error: String,
+    /// Network calls made; each steps one or more scenes (dynamic batching).
+    pub calls: u64,
+    /// Scenes stepped by those calls.
+    pub batched: u64,
+    /// Most scenes stepped by one call.
+    pub batch_max: u32,
+}
+
+impl SurrogateStatus {
+    /// Mean scenes per network call (0 before the first call).
+    pub fn batch_mean(&self) -> f64 {
+        if self.calls == 0 {
+            0.0
+        } else {
+            self.batched as f64 / self.calls as f64
+        }
+    }
 }
 
 /// Encodes `status` as CDR little-endian with the encapsulation header.
@@ -67,6 +86,12 @@ pub fn encode_status(status: &SurrogateStatus) -> Vec<u8> {
     align(&mut out, 4);
     out.extend_from_slice(&status.active_scenes.to_le_bytes());
     string(&mut out, &status.last_error);
+    for v in [status.calls, status.batched] {
+        align(&mut out, 8);
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    align(&mut out, 4);
+    out.extend_from_slice(&status.batch_max.to_le_bytes());
     out
 }
 
@@ -123,10 +148,16 @@ pub fn decode_status(bytes: &[u8]) -> Result<SurrogateStatus, StatusError> {
         "malformed",
         "rejected",
     ]) {
-        *v = u64::from_le_bytes(r.take(8, 8, field)?.try_into().expect("8 bytes"));
+        *v = r.u64(field)?;
     }
     let active_scenes = r.u32("active_scenes")?;
     let last_error = r.string("last_error")?;
+    // An older node's message ends here (module doc).
+    let (calls, batched, batch_max) = if r.pos < r.body.len() {
+        (r.u64("calls")?, r.u64("batched")?, r.u32("batch_max")?)
+    } else {
+        (0, 0, 0)
+    };
     Ok(SurrogateStatus {
         stamp: Time { sec, nanosec },
         node,
@@ -138,6 +169,9 @@ pub fn decode_status(bytes: &[u8]) -> Result<SurrogateStatus, StatusError> {
         rejected: c[5],
         active_scenes,
         last_error,
+        calls,
+        batched,
+        batch_max,
     })
 }
 
@@ -168,6 +202,12 @@ impl<'a> Reader<'a> {
         ))
     }
 
+    fn u64(&mut self, field: &'static str) -> Result<u64, StatusError> {
+        Ok(u64::from_le_bytes(
+            self.take(8, 8, field)?.try_into().expect("8 bytes"),
+        ))
+    }
+
     fn string(&mut self, field: &'static str) -> Result<String, StatusError> {
         let len = self.u32(field)? as usize;
         let raw = self.take(len, 1, field)?;
@@ -193,6 +233,9 @@ mod tests {
             rejected: 6,
             active_scenes: 2,
             last_error: "wrong N".into(),
+            calls: 9,
+            batched: 27,
+            batch_max: 5,
         };
         let bytes = encode_status(&s);
         // stamp (8) + "abc\0" with length (8) = 16, already 8-aligned: first u64 at body 16.
@@ -200,10 +243,15 @@ mod tests {
         assert_eq!(decode_status(&bytes).unwrap(), s);
         assert_eq!(
             decode_status(&bytes[..bytes.len() - 3]),
-            Err(StatusError::Truncated {
-                field: "last_error"
-            })
+            Err(StatusError::Truncated { field: "batch_max" })
         );
+        // An older node's message: ends after last_error; the batching fields read 0.
+        // calls and batched (8 each; last_error ends 8-aligned at body 80) and batch_max (4).
+        let old_len = bytes.len() - 20;
+        let old = decode_status(&bytes[..old_len]).unwrap();
+        assert_eq!((old.calls, old.batched, old.batch_max), (0, 0, 0));
+        assert_eq!(old.last_error, "wrong N");
+        assert_eq!(s.batch_mean(), 3.0);
         assert_eq!(decode_status(&[1, 0, 0, 0]), Err(StatusError::NotCdrLe));
         let mut odd = s.clone();
         odd.node = "ab".into(); // body 15 -> padded to 16

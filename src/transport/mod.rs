@@ -277,6 +277,12 @@ pub trait Transport: Send + Sync {
         })
     }
 
+    /// The zenoh session under this transport, for callers that need zenoh beyond frames
+    /// (the node's `--shard` liveliness tokens); None for other middleware.
+    fn zenoh_session(&self) -> Option<::zenoh::Session> {
+        None
+    }
+
     /// Subscribes to status reports on `topic`; undecodable ones are logged and skipped.
     ///
     /// # Errors

@@ -76,6 +76,10 @@ impl Transport for ZenohTransport {
         KIND
     }
 
+    fn zenoh_session(&self) -> Option<zenoh::Session> {
+        Some(self.session.clone())
+    }
+
     fn publisher(&self, topic: &str) -> Result<Box<dyn FramePublisher>, TransportError> {
         let key = topic_key(topic)?.to_owned();
         let declare_err = |reason: String| TransportError::Declare {

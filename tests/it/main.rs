@@ -37,6 +37,8 @@ mod model_grid;
 mod model_structure;
 mod models_shipped;
 mod msgs_cdr;
+mod node_batching;
+mod node_shard;
 mod node_surrogate;
 mod plot_png;
 mod ros2_rclpy;

@@ -14,8 +14,10 @@
 //! process and in the node, on a GPU (a build with the `cuda` feature). `--batch 1,16,64`
 //! adds a table of the model's step on that many scenes at once (frames per second a batching
 //! node could sustain); `--skip-node` measures in this process only. The node process and
-//! its paced and burst runs live in `through.rs`.
+//! its paced and burst runs live in `through.rs`. `--streams N --rate HZ` measures instead
+//! one node serving N live streams, one row per `--max-batch` (`streams.rs`).
 
+mod streams;
 mod through;
 
 use std::path::{Path, PathBuf};
@@ -77,8 +79,43 @@ pub struct NodeBenchArgs {
     /// Run the `--model` grid models as mirror ensembles (`node --mirror`: twice the work).
     #[arg(long)]
     mirror: bool,
+    /// Many streams into one node (zenoh): this many scenes, interleaved, from one
+    /// publisher process; one row per `--max-batch` value (1-4096).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    streams: Option<u32>,
+    /// `--streams`: frames per second of each stream (0.1-1000).
+    #[arg(long, default_value_t = 12.5, value_parser = rate_hz)]
+    rate: f64,
+    /// `--streams`: seconds timed (1-3600), after `--warm-up`.
+    #[arg(long, default_value_t = 10.0, value_parser = seconds_1h)]
+    seconds: f64,
+    /// `--streams`: seconds sent first and not counted (0-3600).
+    #[arg(long, default_value_t = 3.0, value_parser = super::flags::seconds)]
+    warm_up: f64,
+    /// `--streams`: the node's `--max-batch` per row (comma-separated, each 1-4096).
+    #[arg(long, value_delimiter = ',', default_value = "1,4",
+          value_parser = clap::value_parser!(u32).range(1..=4096))]
+    max_batch: Vec<u32>,
+    /// `--streams`: the node's `--max-batch-delay`, ms (0-1000).
+    #[arg(long, default_value_t = 2.0)]
+    max_batch_delay: f64,
+    /// Internal: be the publisher process of `--streams`, publishing to this topic.
+    #[arg(long, hide = true)]
+    publish_to: Option<String>,
     #[command(flatten)]
     device: super::device::DeviceArgs,
+}
+
+/// `--rate`: frames per second per stream, 0.1 to 1000.
+fn rate_hz(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
+    (0.1..=1000.0).contains(&v).then_some(v).ok_or(format!("{v} Hz is outside 0.1..=1000"))
+}
+
+/// `--seconds`: 1 to 3600.
+fn seconds_1h(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
+    (1.0..=3600.0).contains(&v).then_some(v).ok_or(format!("{v} s is outside 1..=3600"))
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.
@@ -123,6 +160,25 @@ struct Row {
 }
 
 pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
+    if let Some(topic) = &args.publish_to {
+        streams::publish(&args, topic)?;
+        return Ok(Outcome::Done);
+    }
+    if args.streams.is_some() {
+        anyhow::ensure!(
+            (0.0..=1000.0).contains(&args.max_batch_delay),
+            "--max-batch-delay {} ms is outside 0..=1000",
+            args.max_batch_delay
+        );
+        let exe = std::env::current_exe().context("locating the minflow binary")?;
+        let model = args
+            .models
+            .first()
+            .cloned()
+            .unwrap_or_else(|| PathBuf::from("models/all-grid-mingru-small"));
+        streams::run(&args, &exe, &model)?;
+        return Ok(Outcome::Done);
+    }
     let last = match args.encoder_last_activation.as_str() {
         "none" => LastActivation::None,
         "elu" => LastActivation::Elu,

@@ -203,7 +203,7 @@ impl<B: NetOps> GridModel<B> {
         // per mass, walls, displacement per mass, rest shape per mass]: the grown channels
         // after the walls, so a model grown by `with_reference` / `with_rest_shape` keeps its
         // channel order.
-        let splat = transfer::p2g(&s, Tensor::cat(values, 2));
+        let splat = transfer::p2g(&s, cat_rows(values));
         let grid = grid_channels(splat, self.n, 2 * t + input.material.dims()[2]); // [B, n^2, C]
         let cells = self.n * self.n;
         let c = grid.dims()[2];
@@ -312,10 +312,7 @@ impl<B: NetOps> GridModel<B> {
         pos: &Tensor<B, 3>,
     ) -> Tensor<B, 2> {
         let [b, n_p, _] = pos.dims();
-        let u = Tensor::cat(
-            vec![gathered, vel.clone(), material.clone(), pos.clone()],
-            2,
-        );
+        let u = cat_rows(vec![gathered, vel.clone(), material.clone(), pos.clone()]);
         let d_u = u.dims()[2];
         u.reshape([b * n_p, d_u])
     }
@@ -387,4 +384,21 @@ pub fn mirror_rows(rows: &mut [f32], width: usize) {
             r[2] = -r[2];
         }
     }
+}
+
+/// `parts` (`[B, N, C_i]` each) concatenated along the channels: `[B, N, sum C_i]`. As rows
+/// `[B N, C_i]`, so the CPU backend copies rows (its concatenation along the last of three
+/// axes goes element by element once B > 1: a batch of scenes cost 2-7x a scene alone).
+fn cat_rows<B: Backend>(parts: Vec<Tensor<B, 3>>) -> Tensor<B, 3> {
+    let [b, n, _] = parts[0].dims();
+    let rows = parts
+        .into_iter()
+        .map(|p| {
+            let c = p.dims()[2];
+            p.reshape([b * n, c])
+        })
+        .collect();
+    let out = Tensor::cat(rows, 1);
+    let c = out.dims()[1];
+    out.reshape([b, n, c])
 }

@@ -156,8 +156,10 @@ impl Neighbourhood {
         let f = |v: &[f32], shape: [usize; 3]| {
             Tensor::<B, 3>::from_data(TensorData::new(v.to_vec(), shape), device)
         };
+        // Indices within each scene: scenes' neighbourhoods then stack and split as rows.
+        let local: Vec<i64> = self.index.iter().map(|&j| j % n.max(1) as i64).collect();
         NeighbourTensors {
-            index: Tensor::from_data(TensorData::new(self.index.clone(), [b * n * k]), device),
+            index: Tensor::from_data(TensorData::new(local, [b * n * k]), device),
             offset: f(&self.offset, [b * n, k, 2]),
             weight: f(&self.weight, [b * n, k, 1]),
             binv: f(&self.binv, [b, n, 4]),
@@ -221,21 +223,24 @@ impl Bins {
     }
 }
 
-/// A [`Neighbourhood`] on a device: measures configurations of its `B N` particles.
+/// A [`Neighbourhood`] on a device: measures configurations of its `B N` particles. Every
+/// tensor's leading axis runs over the scenes (indices are within each scene), so the
+/// neighbourhoods of several scenes stack into one batch and split back as rows
+/// (`model::store`'s batched node step).
 #[derive(Debug, Clone)]
 pub struct NeighbourTensors<B: Backend> {
-    /// `[B N K]` neighbour rows.
-    index: Tensor<B, 1, Int>,
+    /// `[B N K]` neighbour index within its scene.
+    pub(crate) index: Tensor<B, 1, Int>,
     /// `[B N, K, 2]` rest offsets.
-    offset: Tensor<B, 3>,
+    pub(crate) offset: Tensor<B, 3>,
     /// `[B N, K, 1]` neighbour weights.
-    weight: Tensor<B, 3>,
+    pub(crate) weight: Tensor<B, 3>,
     /// `[B, N, 4]` `B_i^-1`.
-    binv: Tensor<B, 3>,
+    pub(crate) binv: Tensor<B, 3>,
     /// `[B, N, 1]` `1 / d0`.
-    inv_d0: Tensor<B, 3>,
+    pub(crate) inv_d0: Tensor<B, 3>,
     /// `[B, N]`.
-    dims: [usize; 2],
+    pub(crate) dims: [usize; 2],
 }
 
 impl<B: Backend> NeighbourTensors<B> {
@@ -249,7 +254,15 @@ impl<B: Backend> NeighbourTensors<B> {
         let [b, n] = self.dims;
         let k = REST_NEIGHBOURS;
         let rows = pos.reshape([b * n, 2]);
-        let near = rows.clone().select(0, self.index.clone()).reshape([b * n, k, 2]);
+        let scene = Tensor::<B, 1, Int>::arange(0..b as i64, &rows.device())
+            .mul_scalar(n as i64)
+            .reshape([b, 1])
+            .repeat_dim(1, n * k)
+            .reshape([b * n * k]);
+        let near = rows
+            .clone()
+            .select(0, self.index.clone() + scene)
+            .reshape([b * n, k, 2]);
         (near - rows.unsqueeze_dim::<3>(1)) * self.weight.clone()
     }
 

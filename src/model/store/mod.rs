@@ -8,8 +8,11 @@
 //! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
 //! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`).
 
+mod batch;
+mod stack;
 mod surrogate;
 
+pub use batch::{SceneStep, SceneSteps};
 pub use surrogate::{State, Surrogate};
 
 use super::grid::{GridConfig, GridModel};

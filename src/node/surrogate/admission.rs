@@ -60,8 +60,8 @@ pub(super) enum Admission {
     GapReset,
     /// An older frame under [`OnGap::Skip`]: not predicted on, counted as dropped.
     DropOlder,
-    /// Closed loop, the scene was already rolled out and does not restart: not predicted
-    /// on, not counted.
+    /// Closed loop, the scene was already rolled out (even if its state was since dropped
+    /// as idle or evicted) and this is not its frame 0: not predicted on, not counted.
     Ignore,
 }
 
@@ -72,7 +72,7 @@ pub(super) struct SceneView {
     pub last_index: Option<u32>,
     /// No frame for longer than the idle timeout.
     pub idle_too_long: bool,
-    /// Closed loop: the scene's rollout was published.
+    /// Closed loop: the scene's rollout was started (remembered beyond its state).
     pub rolled_out: bool,
 }
 
@@ -84,12 +84,14 @@ pub(super) fn admission(
     closed_loop: bool,
     on_gap: OnGap,
 ) -> Admission {
+    // Closed loop: one rollout per scene, however long the scene was idle or forgotten;
+    // only its start again (frame 0, a replay looping) rolls it out again.
+    if closed_loop && view.rolled_out && index != 0 {
+        return Admission::Ignore;
+    }
     let restart = index == 0 || view.last_index.is_none() || view.idle_too_long;
     if restart {
         return Admission::Restart;
-    }
-    if closed_loop && view.rolled_out {
-        return Admission::Ignore;
     }
     let follows = view
         .last_index
@@ -163,6 +165,9 @@ mod tests {
             (seen(4), 4, false, OnGap::Skip, DropOlder),
             (seen(4), 7, false, OnGap::Skip, Continue),
             (rolled, 5, true, OnGap::Reset, Ignore),
+            // Issue 40: a rolled-out scene idle past the timeout or forgotten stays done.
+            (SceneView { idle_too_long: true, ..rolled }, 9, true, OnGap::Reset, Ignore),
+            (SceneView { last_index: None, ..rolled }, 9, true, OnGap::Reset, Ignore),
             (rolled, 0, true, OnGap::Reset, Restart),
             (rolled, 5, false, OnGap::Reset, Continue),
         ];

@@ -2,7 +2,8 @@
 //! state per `scene`, and for every input frame publishes the predicted next frame
 //! (docs/design.md, "Messages": same scene and material, `frame_index` + 1, stamp + `dt`).
 //! In closed loop (`rollout` R), after the first T frames of a scene it publishes R predicted
-//! frames by feeding its own predictions back. A bundled grid model (`train --bundle K`)
+//! frames by feeding its own predictions back, one network call at a time between the
+//! other scenes' work. A bundled grid model (`train --bundle K`)
 //! predicts K frames per network call there, so R frames cost ceil(R / K) calls, each from
 //! the last frame of the call before. Fed live frames, a bundled model makes one call per
 //! input frame and publishes the first frame of its bundle (the next frame, as a
@@ -17,7 +18,9 @@
 //! State rules: a scene's hidden state is reset when the scene starts (frame_index 0 or an
 //! unseen scene id), on a gap or out-of-order frame ([`OnGap::Reset`]; [`OnGap::Skip`]
 //! drops out-of-order frames and carries on over gaps), and after `idle_timeout` without
-//! frames; states idle that long are dropped, and at most `max_scenes` are kept (least
+//! activity (a frame arriving, or a prediction of its rollout published); states idle that
+//! long are dropped; in closed loop a scene is rolled out once (until its frame 0 comes
+//! again), even if its state was dropped meanwhile, and at most `max_scenes` are kept (least
 //! recently seen evicted), so memory stays bounded. A grid model with `--reference
 //! first-frame` takes the first frame of a scene as its reference positions and keeps them
 //! over a gap reset (the stream goes on), not over a restart.
@@ -28,14 +31,27 @@
 //! `rejected`. Each is counted, logged once per scene and reason, and reported in
 //! [`SurrogateStatus`] (published once per second); other scenes are served as usual.
 //!
+//! Dynamic batching (`max_batch`, `max_batch_delay`; [`batcher`]): frames of different
+//! scenes that wait together go through one network call, each scene's state stacked into
+//! the call's batch and split back, as NVIDIA Triton Inference Server's dynamic batcher
+//! does for requests. Closed-loop rollouts ([`closed`]) are calls like any other, so a long
+//! rollout never holds the other scenes up. Sharding (`shard`; [`shard`]): nodes of one
+//! group divide the scenes among the live ones over zenoh liveliness.
+//!
 //! Files: [`admission`] holds the rules (which frames are taken, what a frame does to its
-//! scene's state), [`scenes`] the per-scene states under those rules, [`run`] the loop
-//! (gather, predict, publish), [`report`] the counters and logs. This file holds the options and the frame helpers.
+//! scene's state), [`scenes`] the per-scene states under those rules, [`intake`] the
+//! arrival of frames, [`batcher`] the calls, [`closed`] the rollouts, [`shard`] the group,
+//! [`run`] the loop, [`report`] the counters and logs. This file holds the options and the
+//! frame helpers.
 
 mod admission;
+mod batcher;
+mod closed;
+mod intake;
 mod report;
 mod run;
 mod scenes;
+pub mod shard;
 
 use std::time::Duration;
 
@@ -79,6 +95,13 @@ pub struct NodeOptions {
     /// Closed-loop pacing: predicted frames per simulated second times this factor
     /// (1 = the scene's own pace); 0 = as fast as possible.
     pub rate: f64,
+    /// Dynamic batching: most scenes stepped by one network call (1: one scene a call).
+    pub max_batch: usize,
+    /// Dynamic batching: how long the oldest waiting frame may wait for others to join
+    /// its call (Triton's `max_queue_delay_microseconds`).
+    pub max_batch_delay: Duration,
+    /// Sharding over zenoh: the group whose live nodes divide the scenes among them.
+    pub shard: Option<String>,
     /// Stop after this many predicted frames were published (tests, benchmarks).
     pub max_published: Option<u64>,
     /// Log the counters as one line this often.
@@ -147,7 +170,8 @@ fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleF
 /// The counters as one line.
 pub fn summary(r: &NodeReport) -> String {
     format!(
-        "{}: received={} predicted={} published={} dropped={} malformed={} rejected={} scenes={}{}",
+        "{}: received={} predicted={} published={} dropped={} malformed={} rejected={} scenes={} \
+         calls={} batch_mean={:.2} batch_max={}{}",
         r.node,
         r.received,
         r.predicted,
@@ -156,6 +180,9 @@ pub fn summary(r: &NodeReport) -> String {
         r.malformed,
         r.rejected,
         r.active_scenes,
+        r.calls,
+        r.batch_mean(),
+        r.batch_max,
         if r.last_error.is_empty() {
             String::new()
         } else {

@@ -1,6 +1,7 @@
 //! What the surrogate node counts and logs: the run's counters ([`Tally`], the
-//! [`NodeReport`] published as status), each (scene, reason) logged once, the start line,
-//! the latency percentiles at the end and the wall-clock stamp of each report. Used by
+//! [`NodeReport`] published as status), the sizes of its batched calls ([`BatchStats`]),
+//! each (scene, reason) logged once, the start line, the latency percentiles at the end and
+//! the wall-clock stamp of each report. Used by
 //! [`super::run`] (`minflow node`).
 
 use std::collections::HashSet;
@@ -38,6 +39,41 @@ impl Tally {
     }
 }
 
+/// Scenes per network call (dynamic batching), as the status reports them.
+#[derive(Debug, Default)]
+pub(super) struct BatchStats {
+    calls: u64,
+    scenes: u64,
+    max: u32,
+}
+
+impl BatchStats {
+    /// Records the calls of one batch: scenes per call.
+    pub(super) fn record(&mut self, calls: &[usize]) {
+        for &c in calls {
+            self.calls += 1;
+            self.scenes += c as u64;
+            self.max = self.max.max(c as u32);
+        }
+    }
+
+    /// Writes the totals into `report`.
+    pub(super) fn fill(&self, report: &mut NodeReport) {
+        report.calls = self.calls;
+        report.batched = self.scenes;
+        report.batch_max = self.max;
+    }
+
+    /// The totals as one log line.
+    pub(super) fn line(&self) -> String {
+        let mean = self.scenes as f64 / self.calls.max(1) as f64;
+        format!(
+            "calls={} batch_mean={mean:.2} batch_max={}",
+            self.calls, self.max
+        )
+    }
+}
+
 /// Logs the model and topics the node serves, once at start.
 pub(super) fn log_start<B: NetOps>(
     options: &NodeOptions,
@@ -57,6 +93,12 @@ pub(super) fn log_start<B: NetOps>(
         options
             .rollout
             .map_or(String::new(), |k| format!(", closed loop {k} frames"))
+    );
+    tracing::info!(
+        "{}: dynamic batching: up to {} scene(s) a call, waiting up to {:.1} ms",
+        options.name,
+        options.max_batch,
+        options.max_batch_delay.as_secs_f64() * 1e3
     );
 }
 

@@ -1,10 +1,12 @@
 //! The surrogate node's per-scene state: one hidden state per `scene` id, with the index
-//! and time of its last frame and whether its closed-loop rollout was published. Applies
-//! [`super::admission`]'s rules to each frame, evicts the least recently seen scene before
-//! a new one would pass `max_scenes`, and drops scenes idle past `idle_timeout`, so memory
-//! stays bounded. Used by [`super::run`] (`minflow node`).
+//! of its last frame and the time of its last activity (a frame arrived, or a prediction of
+//! its rollout was published). Applies [`super::admission`]'s rules to each frame, evicts
+//! the least recently active scene before a new one would pass `max_scenes`, and drops
+//! scenes idle past `idle_timeout`, so memory stays bounded. In closed loop it remembers
+//! which scenes were rolled out beyond their states (the last [`ROLLED_OUT_KEPT`]), so a
+//! scene gets one rollout however long it waited. Used by [`super::run`] (`minflow node`).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use crate::model::store::{State, Surrogate};
@@ -18,10 +20,14 @@ struct SceneState<B: burn::tensor::backend::Backend> {
     /// None before the first step and after a restart.
     state: Option<State<B>>,
     last_index: Option<u32>,
+    /// Last activity: a frame of the scene arrived, was admitted, or a prediction of its
+    /// rollout was published.
     last_seen: Instant,
-    /// Closed loop: the rollout of this scene was published.
-    rolled_out: bool,
 }
+
+/// Names of rolled-out scenes remembered (closed loop): memory stays bounded, and a scene
+/// that comes back after this many others were rolled out is rolled out again.
+pub(super) const ROLLED_OUT_KEPT: usize = 65_536;
 
 /// What [`Scenes::admit`] decided for a frame.
 pub(super) enum Admitted<B: burn::tensor::backend::Backend> {
@@ -36,6 +42,9 @@ pub(super) enum Admitted<B: burn::tensor::backend::Backend> {
 /// The hidden states of the scenes a node serves, by scene id.
 pub(super) struct Scenes<B: burn::tensor::backend::Backend> {
     map: BTreeMap<String, SceneState<B>>,
+    /// Closed loop: scenes whose rollout started, oldest first (at most [`ROLLED_OUT_KEPT`]).
+    rolled: HashSet<String>,
+    rolled_order: VecDeque<String>,
 }
 
 impl<B: NetOps> Scenes<B> {
@@ -43,6 +52,8 @@ impl<B: NetOps> Scenes<B> {
     pub(super) fn new() -> Self {
         Scenes {
             map: BTreeMap::new(),
+            rolled: HashSet::new(),
+            rolled_order: VecDeque::new(),
         }
     }
 
@@ -51,16 +62,54 @@ impl<B: NetOps> Scenes<B> {
         self.map.len()
     }
 
-    /// True when `scene`'s closed-loop rollout was published (it waits for a restart).
-    pub(super) fn rolled_out(&self, scene: &str) -> bool {
-        self.map.get(scene).is_some_and(|s| s.rolled_out)
+    /// Scenes held now that have not been rolled out: those that may still send frames
+    /// to step (the dynamic batcher waits for them).
+    pub(super) fn live(&self) -> usize {
+        self.map.keys().filter(|k| !self.rolled.contains(*k)).count()
     }
 
-    /// Marks `scene`'s rollout as published.
+    /// True when `scene`'s closed-loop rollout started (it waits for its frame 0).
+    pub(super) fn rolled_out(&self, scene: &str) -> bool {
+        self.rolled.contains(scene)
+    }
+
+    /// Marks `scene`'s rollout as started; forgets the oldest past [`ROLLED_OUT_KEPT`].
     pub(super) fn mark_rolled_out(&mut self, scene: &str) {
-        if let Some(entry) = self.map.get_mut(scene) {
-            entry.rolled_out = true;
+        if self.rolled.insert(scene.to_owned()) {
+            self.rolled_order.push_back(scene.to_owned());
         }
+        while self.rolled_order.len() > ROLLED_OUT_KEPT {
+            if let Some(old) = self.rolled_order.pop_front() {
+                self.rolled.remove(&old);
+            }
+        }
+    }
+
+    /// Forgets that `scene` was rolled out (it starts again at frame 0).
+    fn unmark_rolled_out(&mut self, scene: &str) {
+        if self.rolled.remove(scene) {
+            self.rolled_order.retain(|s| s != scene);
+        }
+    }
+
+    /// Notes activity of `scene` (a frame arrived, a prediction was published). A scene
+    /// idle past `idle` is dropped first (true: counted as idle), as the periodic sweep
+    /// would have done.
+    pub(super) fn touch(&mut self, scene: &str, idle: Duration) -> bool {
+        let Some(entry) = self.map.get_mut(scene) else {
+            return false;
+        };
+        if entry.last_seen.elapsed() > idle {
+            self.map.remove(scene);
+            return true;
+        }
+        entry.last_seen = Instant::now();
+        false
+    }
+
+    /// True when `scene` has a state entry.
+    pub(super) fn contains(&self, scene: &str) -> bool {
+        self.map.contains_key(scene)
     }
 
     /// Keeps `state` (None: start again at the next frame) as `scene`'s hidden state.
@@ -108,12 +157,11 @@ impl<B: NetOps> Scenes<B> {
                 state: None,
                 last_index: None,
                 last_seen: Instant::now(),
-                rolled_out: false,
             });
         let view = SceneView {
             last_index: entry.last_index,
             idle_too_long: entry.last_seen.elapsed() > options.idle_timeout,
-            rolled_out: entry.rolled_out,
+            rolled_out: self.rolled.contains(scene),
         };
         entry.last_seen = Instant::now();
         match admission(view, index, options.rollout.is_some(), options.on_gap) {
@@ -122,7 +170,9 @@ impl<B: NetOps> Scenes<B> {
             Admission::Continue => {}
             Admission::Restart => {
                 entry.state = None;
-                entry.rolled_out = false;
+                entry.last_index = Some(index);
+                self.unmark_rolled_out(scene);
+                return Admitted::Step(surrogate.init_state());
             }
             Admission::GapReset => {
                 tracing::debug!(
@@ -131,7 +181,6 @@ impl<B: NetOps> Scenes<B> {
                 );
                 // The stream goes on: its reference positions are kept.
                 entry.state = entry.state.take().map(|s| surrogate.restart(s));
-                entry.rolled_out = false;
             }
         }
         entry.last_index = Some(index);

@@ -181,6 +181,10 @@ impl Transport for CloudTransport {
         self.inner.status_publisher(topic)
     }
 
+    fn zenoh_session(&self) -> Option<zenoh::Session> {
+        self.inner.zenoh_session()
+    }
+
     fn subscribe_status(
         &self,
         topic: &str,

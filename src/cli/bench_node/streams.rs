@@ -1,0 +1,255 @@
+//! `minflow bench node --streams N --rate HZ`: one node serving many live streams, per
+//! `--max-batch` value (one row each, same model, one run). Three processes on loopback
+//! over zenoh: a publisher process (this binary, `--publish-to`) sends N scenes
+//! interleaved, each at HZ frames per second (the bag's frames looped, consecutive frame
+//! indices, frames spread evenly over each period, each stamped with its wall-clock
+//! publication time), a `minflow node` predicts, and this process subscribes and counts.
+//! The first `--warm-up` seconds are not counted (the node's first calls of each batch
+//! shape are slow). Printed per row: frames sent and predictions delivered, frames dropped
+//! (sent, never predicted: the node's per-scene queues overflowed), the publish ->
+//! prediction latency p50/p99 (both hops and the node; the stamp carries the publication
+//! time), predictions per second, and the node's mean and largest scenes per call (its
+//! closing counters). Used by [`super::run`].
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::channel;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+
+use super::NodeBenchArgs;
+use crate::cli::bench_transport::{percentile as pct, wall_ns};
+use crate::msgs::{ParticleFrame, Time};
+use crate::transport::{self, wait_for_subscribers, TransportKind};
+
+/// One row: a node with one `--max-batch`.
+struct Row {
+    max_batch: u32,
+    sent: u64,
+    delivered: u64,
+    latency_ms: Vec<f64>,
+    per_s: f64,
+    batch_mean: f64,
+    batch_max: u64,
+}
+
+/// Runs the streams benchmark: one row per `--max-batch` value, the table on stdout.
+///
+/// # Errors
+/// A process that cannot start, a node that never subscribes, a transport error.
+pub(super) fn run(args: &NodeBenchArgs, exe: &Path, model: &Path) -> anyhow::Result<()> {
+    let mut rows = Vec::new();
+    for &max_batch in &args.max_batch {
+        eprintln!(
+            "bench node: {} streams at {} Hz, --max-batch {max_batch} ...",
+            args.streams.unwrap_or(0),
+            args.rate
+        );
+        rows.push(one_row(args, exe, model, max_batch)?);
+    }
+    print_rows(args, model, &rows);
+    Ok(())
+}
+
+/// Frame `index` of stream `k`: the bag's frames looped from offset `k`.
+fn stream_frame(frames: &[ParticleFrame], k: usize, index: u32) -> ParticleFrame {
+    let mut f = frames[(k + index as usize) % frames.len()].clone();
+    f.scene = format!("stream/{k:04}");
+    f.frame_index = index;
+    f
+}
+
+/// The publisher process (`--publish-to TOPIC`): waits for the node, then sends `--streams`
+/// scenes at `--rate` each for `--warm-up` + `--seconds`, stamped with wall-clock time.
+///
+/// # Errors
+/// The transport, or no subscriber within 60 s.
+pub(super) fn publish(args: &NodeBenchArgs, topic: &str) -> anyhow::Result<()> {
+    let frames = super::bag_frames(&args.bag)?;
+    let kind = TransportKind::Zenoh;
+    let session = transport::open(&args.transport.options(kind))?;
+    let mut publisher = session.publisher(topic)?;
+    if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(60)) {
+        bail!("no node subscribed to {topic} within 60 s");
+    }
+    let streams = args.streams.unwrap_or(1) as usize;
+    let ticks = ((args.warm_up + args.seconds) * args.rate).ceil() as u32;
+    let gap = Duration::from_secs_f64(1.0 / (args.rate * streams as f64));
+    let start = Instant::now();
+    let mut sent = 0u32;
+    for i in 0..ticks {
+        for k in 0..streams {
+            let due = start + gap * sent;
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            let mut f = stream_frame(&frames, k, i);
+            f.header.stamp = Time::from_nanos(wall_ns());
+            publisher.publish(&f)?;
+            sent += 1;
+        }
+    }
+    publisher.flush(Duration::from_secs(5));
+    Ok(())
+}
+
+/// Starts the node and the publisher, counts the predictions of the timed frames, stops
+/// the node and reads its closing counters.
+fn one_row(
+    args: &NodeBenchArgs,
+    exe: &Path,
+    model: &Path,
+    max_batch: u32,
+) -> anyhow::Result<Row> {
+    let tag = format!("{}_{max_batch}", std::process::id());
+    let (input, output) = (format!("/minflow_streams_{tag}/in"), format!("/minflow_streams_{tag}/out"));
+    let kind = TransportKind::Zenoh;
+    let session = transport::open(&args.transport.options(kind))?;
+    let (tx, rx) = channel();
+    let _sub = session.subscribe(&output, tx)?;
+    let mut node = spawn_node(args, exe, model, (&input, &output), max_batch)?;
+    // The node's log, read as it comes (a full pipe would stall the node).
+    let err = node.stderr.take().context("the node's stderr")?;
+    let log = std::thread::spawn(move || {
+        let mut log = String::new();
+        let _ = std::io::Read::read_to_string(&mut std::io::BufReader::new(err), &mut log);
+        log
+    });
+    let mut publisher = Command::new(exe)
+        .args(["bench", "node", "--publish-to", &input])
+        .args(args.transport.child_args(kind))
+        .args(["--streams", &args.streams.unwrap_or(1).to_string()])
+        .args(["--rate", &args.rate.to_string(), "--seconds", &args.seconds.to_string()])
+        .args(["--warm-up", &args.warm_up.to_string(), "--bag"])
+        .arg(&args.bag)
+        .stdout(Stdio::null())
+        .spawn()
+        .context("starting the publisher process")?;
+    let warm_ticks = (args.warm_up * args.rate).ceil() as u32;
+    let (mut latency_ms, mut first, mut last) = (Vec::new(), None, Instant::now());
+    let mut published = false;
+    // Until the publisher is done and 2 s pass without a prediction.
+    loop {
+        match rx.recv_timeout(Duration::from_secs(2)) {
+            Ok(s) => {
+                let Ok(f) = s.decode() else { continue };
+                if f.frame_index <= warm_ticks {
+                    continue;
+                }
+                let arrived = wall_ns().saturating_sub(s.received.elapsed().as_nanos() as u64);
+                let sent_ns = f.header.stamp.as_nanos() - (f64::from(f.dt) * 1e9).round() as i64;
+                latency_ms.push(arrived.saturating_sub(sent_ns.max(0) as u64) as f64 / 1e6);
+                first.get_or_insert(s.received);
+                last = s.received;
+            }
+            Err(_) if published => break,
+            Err(_) => {}
+        }
+        if !published {
+            if let Some(status) = publisher.try_wait()? {
+                anyhow::ensure!(status.success(), "the publisher process failed ({status})");
+                published = true;
+            }
+        }
+    }
+    stop_node(&mut node)?;
+    let log = log.join().unwrap_or_default();
+    let timed_ticks = ((args.warm_up + args.seconds) * args.rate).ceil() as u32 - warm_ticks;
+    latency_ms.sort_by(f64::total_cmp);
+    let span = first.map_or(0.0, |f| (last - f).as_secs_f64());
+    Ok(Row {
+        max_batch,
+        sent: u64::from(timed_ticks) * u64::from(args.streams.unwrap_or(1)),
+        delivered: latency_ms.len() as u64,
+        per_s: latency_ms.len() as f64 / span.max(1e-9),
+        latency_ms,
+        batch_mean: log_value(&log, "batch_mean").unwrap_or(f64::NAN),
+        batch_max: log_value(&log, "batch_max").map_or(0, |v| v as u64),
+    })
+}
+
+/// The node of one row (stderr kept for its closing counters).
+fn spawn_node(
+    args: &NodeBenchArgs,
+    exe: &Path,
+    model: &Path,
+    (input, output): (&str, &str),
+    max_batch: u32,
+) -> anyhow::Result<Child> {
+    Command::new(exe)
+        .args(["node", "--model"])
+        .arg(model)
+        .args(args.transport.child_args(TransportKind::Zenoh))
+        .args(["--in", input, "--out", output, "--status", "none"])
+        .args(["--max-batch", &max_batch.to_string()])
+        .args(["--max-batch-delay", &args.max_batch_delay.to_string()])
+        .args(["--device", &args.device.device, "--gpu-gemm", &args.device.gpu_gemm])
+        .args(if args.mirror { &["--mirror"][..] } else { &[] })
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .context("starting the node")
+}
+
+/// Stops the node with SIGINT (killed after 30 s).
+fn stop_node(node: &mut Child) -> anyhow::Result<()> {
+    // SAFETY: kill(2) with the pid of our own child and a valid signal number.
+    unsafe {
+        libc::kill(node.id() as libc::pid_t, libc::SIGINT);
+    }
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while node.try_wait()?.is_none() {
+        if Instant::now() > deadline {
+            let _ = node.kill();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = node.wait();
+    Ok(())
+}
+
+/// The decimal value of `name=` in the last line of `log` that has it.
+fn log_value(log: &str, name: &str) -> Option<f64> {
+    let key = format!("{name}=");
+    log.lines().rev().find_map(|line| {
+        let at = line.find(&key)?;
+        line[at + key.len()..]
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .next()?
+            .parse()
+            .ok()
+    })
+}
+
+/// Prints the table (Markdown) on stdout.
+fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
+    let streams = args.streams.unwrap_or(1);
+    println!(
+        "\nOne node, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
+         {} s warm-up, model {}, on {}, --max-batch-delay {} ms:",
+        args.rate,
+        args.rate * f64::from(streams),
+        args.seconds,
+        args.warm_up,
+        model.display(),
+        args.device.device,
+        args.max_batch_delay
+    );
+    println!("| --max-batch | sent | delivered | dropped | p50 ms | p99 ms | predictions/s | mean batch | max batch |");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in rows {
+        println!(
+            "| {} | {} | {} | {} | {:.1} | {:.1} | {:.0} | {:.2} | {} |",
+            r.max_batch,
+            r.sent,
+            r.delivered,
+            r.sent.saturating_sub(r.delivered),
+            pct(&r.latency_ms, 0.5),
+            pct(&r.latency_ms, 0.99),
+            r.per_s,
+            r.batch_mean,
+            r.batch_max
+        );
+    }
+}

@@ -1,0 +1,375 @@
+//! Stacking per-scene states into one batch state and splitting it back, for dynamic
+//! batching (`Surrogate::step_scenes`, used by `minflow node`). Every piece a state carries
+//! is [`Rows`]: tensors whose first dimension is `copies x B x m` rows (B trajectories of m
+//! rows each: m = 1 for `[B, ...]` tensors, m = N for the grid memory's `[B N, H]` rows;
+//! `copies` = 2 for a mirror ensemble, whose direct rows come first and its mirrored rows
+//! second), optional pieces, and the architectures' recurrent states built from them. A
+//! stacked piece holds the scenes' rows in order, copy by copy, so a mirror ensemble's
+//! stacked state is again all direct rows, then all mirrored rows.
+//!
+//! `State::stack` and `State::split` in `surrogate.rs` take a state apart field by field
+//! and call these; a new field of a state needs one line in each (and a [`Rows`] impl if it
+//! is a new kind of piece).
+
+use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
+
+use crate::model::grid::{mirror_rows, MemoryState, NeighbourTensors};
+use crate::model::rnn::LstmState;
+use crate::model::LayerState;
+
+use super::StoreError;
+
+/// Why pieces could not be stacked ([`StoreError::Shape`]): they differ in kind or shape.
+type StackError = StoreError;
+
+/// A [`StoreError::Shape`] saying `reason`.
+pub(super) fn shape(reason: &str) -> StoreError {
+    StoreError::Shape(reason.into())
+}
+
+/// A piece of per-trajectory state that stacks along its batch rows.
+pub(super) trait Rows: Sized {
+    /// Appends what must be equal for two pieces to stack (kind tags and shapes) to `key`.
+    fn rows_key(&self, key: &mut Vec<usize>);
+    /// The pieces of several states as one, rows in order (copy by copy).
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError>;
+    /// The piece of a stacked state back as one piece per part, part i holding `sizes[i]`
+    /// trajectories (the sizes sum to the stacked piece's trajectories).
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self>;
+}
+
+impl<B: Backend, const D: usize, K> Rows for Tensor<B, D, K>
+where
+    K: burn::tensor::BasicOps<B> + burn::tensor::TensorKind<B>,
+{
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        key.push(D);
+        key.extend(self.dims());
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        if copies <= 1 || parts.len() <= 1 {
+            return Ok(Tensor::cat(parts, 0));
+        }
+        let mut rows = Vec::with_capacity(parts.len() * copies);
+        for c in 0..copies {
+            for p in &parts {
+                let r = p.dims()[0] / copies;
+                rows.push(p.clone().narrow(0, c * r, r));
+            }
+        }
+        Ok(Tensor::cat(rows, 0))
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        let total: usize = sizes.iter().sum();
+        let copies = copies.max(1);
+        let per_copy = self.dims()[0] / copies;
+        let m = per_copy / total.max(1);
+        let mut out = Vec::with_capacity(sizes.len());
+        let mut start = 0;
+        for &b in sizes {
+            let pieces: Vec<_> = (0..copies)
+                .map(|c| self.clone().narrow(0, c * per_copy + start * m, b * m))
+                .collect();
+            out.push(Tensor::cat(pieces, 0));
+            start += b;
+        }
+        out
+    }
+}
+
+impl<T: Rows> Rows for Option<T> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        key.push(usize::from(self.is_some()));
+        if let Some(t) = self {
+            t.rows_key(key);
+        }
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        if parts.iter().all(Option::is_none) {
+            return Ok(None);
+        }
+        let some: Option<Vec<T>> = parts.into_iter().collect();
+        let some = some.ok_or_else(|| shape("stack: a piece some states lack"))?;
+        Ok(Some(T::stack_rows(some, copies)?))
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        match self {
+            None => sizes.iter().map(|_| None).collect(),
+            Some(t) => t.split_rows(sizes, copies).into_iter().map(Some).collect(),
+        }
+    }
+}
+
+impl<B: Backend> Rows for LstmState<B> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        self.h.rows_key(key);
+        self.c.rows_key(key);
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let (h, c): (Vec<_>, Vec<_>) = parts.into_iter().map(|s| (s.h, s.c)).unzip();
+        Ok(LstmState {
+            h: Rows::stack_rows(h, copies)?,
+            c: Rows::stack_rows(c, copies)?,
+        })
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        let h = self.h.split_rows(sizes, copies);
+        let c = self.c.split_rows(sizes, copies);
+        h.into_iter()
+            .zip(c)
+            .map(|(h, c)| LstmState { h, c })
+            .collect()
+    }
+}
+
+/// The three shapes of a recurrent state (the grid's [`MemoryState`] and the paper core's
+/// [`LayerState`] both have them): nothing, a hidden state, an LSTM's hidden and cell state.
+enum Recurrent<B: Backend> {
+    Empty,
+    Hidden(Tensor<B, 2>),
+    Lstm(LstmState<B>),
+}
+
+impl<B: Backend> Recurrent<B> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        match self {
+            Recurrent::Empty => key.push(0),
+            Recurrent::Hidden(h) => {
+                key.push(1);
+                h.rows_key(key);
+            }
+            Recurrent::Lstm(s) => {
+                key.push(2);
+                s.rows_key(key);
+            }
+        }
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let mut hidden = Vec::new();
+        let mut lstm = Vec::new();
+        let mut empty = 0;
+        for p in parts {
+            match p {
+                Recurrent::Empty => empty += 1,
+                Recurrent::Hidden(h) => hidden.push(h),
+                Recurrent::Lstm(s) => lstm.push(s),
+            }
+        }
+        match (empty, hidden.is_empty(), lstm.is_empty()) {
+            (_, true, true) => Ok(Recurrent::Empty),
+            (0, false, true) => Ok(Recurrent::Hidden(Rows::stack_rows(hidden, copies)?)),
+            (0, true, false) => Ok(Recurrent::Lstm(Rows::stack_rows(lstm, copies)?)),
+            _ => Err(shape("stack: recurrent states of different kinds")),
+        }
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        match self {
+            Recurrent::Empty => sizes.iter().map(|_| Recurrent::Empty).collect(),
+            Recurrent::Hidden(h) => h
+                .split_rows(sizes, copies)
+                .into_iter()
+                .map(Recurrent::Hidden)
+                .collect(),
+            Recurrent::Lstm(s) => s
+                .split_rows(sizes, copies)
+                .into_iter()
+                .map(Recurrent::Lstm)
+                .collect(),
+        }
+    }
+}
+
+/// [`Rows`] for a type that converts to and from [`Recurrent`].
+macro_rules! recurrent_rows {
+    ($ty:ident, $empty:ident) => {
+        impl<B: Backend> Rows for $ty<B> {
+            fn rows_key(&self, key: &mut Vec<usize>) {
+                Recurrent::from(self.clone()).rows_key(key);
+            }
+            fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+                let parts = parts.into_iter().map(Recurrent::from).collect();
+                Ok(Recurrent::stack_rows(parts, copies)?.into())
+            }
+            fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+                let parts = Recurrent::from(self).split_rows(sizes, copies);
+                parts.into_iter().map(Into::into).collect()
+            }
+        }
+        impl<B: Backend> From<$ty<B>> for Recurrent<B> {
+            fn from(s: $ty<B>) -> Self {
+                match s {
+                    $ty::$empty => Recurrent::Empty,
+                    $ty::Hidden(h) => Recurrent::Hidden(h),
+                    $ty::Lstm(s) => Recurrent::Lstm(s),
+                }
+            }
+        }
+        impl<B: Backend> From<Recurrent<B>> for $ty<B> {
+            fn from(s: Recurrent<B>) -> Self {
+                match s {
+                    Recurrent::Empty => $ty::$empty,
+                    Recurrent::Hidden(h) => $ty::Hidden(h),
+                    Recurrent::Lstm(s) => $ty::Lstm(s),
+                }
+            }
+        }
+    };
+}
+
+recurrent_rows!(MemoryState, Empty);
+recurrent_rows!(LayerState, None);
+
+impl<B: Backend> Rows for NeighbourTensors<B> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        key.extend(self.dims);
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let n = parts.first().map_or(0, |p| p.dims[1]);
+        let scenes = parts.iter().map(|p| p.dims[0]).sum();
+        let field = |f: fn(&Self) -> Tensor<B, 3>| {
+            Rows::stack_rows(parts.iter().map(f).collect::<Vec<_>>(), copies)
+        };
+        let index = Rows::stack_rows(parts.iter().map(|p| p.index.clone()).collect(), copies)?;
+        Ok(NeighbourTensors {
+            index,
+            offset: field(|p| p.offset.clone())?,
+            weight: field(|p| p.weight.clone())?,
+            binv: field(|p| p.binv.clone())?,
+            inv_d0: field(|p| p.inv_d0.clone())?,
+            dims: [scenes, n],
+        })
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        let per_scene = copies.max(1);
+        let n = self.dims[1];
+        let mut index = self.index.split_rows(sizes, copies).into_iter();
+        let mut offset = self.offset.split_rows(sizes, copies).into_iter();
+        let mut weight = self.weight.split_rows(sizes, copies).into_iter();
+        let mut binv = self.binv.split_rows(sizes, copies).into_iter();
+        let mut inv_d0 = self.inv_d0.split_rows(sizes, copies).into_iter();
+        sizes
+            .iter()
+            .filter_map(|&b| {
+                Some(NeighbourTensors {
+                    index: index.next()?,
+                    offset: offset.next()?,
+                    weight: weight.next()?,
+                    binv: binv.next()?,
+                    inv_d0: inv_d0.next()?,
+                    dims: [b * per_scene, n],
+                })
+            })
+            .collect()
+    }
+}
+
+impl<T: Rows> Rows for Vec<T> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        key.push(self.len());
+        for t in self {
+            t.rows_key(key);
+        }
+    }
+
+    /// Element-wise: element j of the result stacks element j of every part (the paper
+    /// core's layers).
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let len = parts.first().map_or(0, Vec::len);
+        if parts.iter().any(|p| p.len() != len) {
+            return Err(shape("stack: states with different numbers of layers"));
+        }
+        let mut columns: Vec<Vec<T>> = (0..len).map(|_| Vec::new()).collect();
+        for part in parts {
+            for (column, t) in columns.iter_mut().zip(part) {
+                column.push(t);
+            }
+        }
+        columns.into_iter().map(|c| T::stack_rows(c, copies)).collect()
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        let mut out: Vec<Vec<T>> = sizes.iter().map(|_| Vec::new()).collect();
+        for t in self {
+            for (o, piece) in out.iter_mut().zip(t.split_rows(sizes, copies)) {
+                o.push(piece);
+            }
+        }
+        out
+    }
+}
+
+/// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
+pub(super) fn with_mirror_rows(frames: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * frames.len());
+    out.extend_from_slice(frames);
+    out.extend_from_slice(frames);
+    mirror_rows(&mut out[frames.len()..], 4);
+    out
+}
+
+/// The mean of the first half of `out` (`[2B, N, 4]`) and its second half mirrored back.
+pub(super) fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
+    let (direct, mirrored) = out.split_at(out.len() / 2);
+    let mut back = mirrored.to_vec();
+    mirror_rows(&mut back, 4);
+    direct
+        .iter()
+        .zip(&back)
+        .map(|(a, b)| 0.5 * (a + b))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    type B = NdArray<f32>;
+
+    fn rows(values: &[f32], width: usize) -> Tensor<B, 2> {
+        let t = Tensor::<B, 1>::from_floats(values, &Default::default());
+        t.reshape([values.len() / width, width])
+    }
+
+    #[test]
+    fn mirror_rows_stack_copy_by_copy_and_split_back() {
+        // Two scenes, one trajectory each, mirror ensemble: [direct; mirrored] rows each.
+        let a = rows(&[1.0, 2.0], 1); // a direct, a mirrored
+        let b = rows(&[3.0, 4.0], 1);
+        let stacked = Rows::stack_rows(vec![a, b], 2).unwrap();
+        // All direct rows first, then all mirrored ones.
+        let got: Vec<f32> = stacked.clone().into_data().to_vec().unwrap();
+        assert_eq!(got, [1.0, 3.0, 2.0, 4.0]);
+        let back = stacked.split_rows(&[1, 1], 2);
+        let a: Vec<f32> = back[0].clone().into_data().to_vec().unwrap();
+        let b: Vec<f32> = back[1].clone().into_data().to_vec().unwrap();
+        assert_eq!((a, b), (vec![1.0, 2.0], vec![3.0, 4.0]));
+    }
+
+    #[test]
+    fn memory_of_several_rows_per_trajectory_splits_by_trajectory() {
+        // m = 2 rows (particles) per trajectory; scenes of 1 and 2 trajectories.
+        let a = MemoryState::Hidden(rows(&[1.0, 2.0], 1));
+        let b = MemoryState::Hidden(rows(&[3.0, 4.0, 5.0, 6.0], 1));
+        let stacked = Rows::stack_rows(vec![a, b], 1).unwrap();
+        let back = stacked.split_rows(&[1, 2], 1);
+        let MemoryState::Hidden(b) = &back[1] else {
+            panic!("hidden")
+        };
+        let b: Vec<f32> = b.clone().into_data().to_vec().unwrap();
+        assert_eq!(b, [3.0, 4.0, 5.0, 6.0]);
+        let mixed = Rows::stack_rows(vec![MemoryState::<B>::Empty, back[1].clone()], 1);
+        assert!(mixed.is_err());
+    }
+}

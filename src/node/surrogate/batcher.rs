@@ -1,0 +1,241 @@
+//! The surrogate node's dynamic batcher, after NVIDIA Triton Inference Server's dynamic
+//! batcher (docs.nvidia.com/deeplearning/triton-inference-server, "Dynamic Batcher":
+//! `max_batch_size`, `max_queue_delay_microseconds`): work waits in a queue until either
+//! a full batch is there or the oldest item has waited `--max-batch-delay`, and then up to
+//! `--max-batch` items, oldest first, go through one network call. The items are scenes: a
+//! scene's next pending frame, or the next call of its closed-loop rollout; a scene has at
+//! most one item per call (its state is sequential). "Full" is `--max-batch`, or every
+//! scene that could take part (scenes the node holds that are not rolled out, and
+//! rollouts under way) when there are fewer: a single stream is never held back.
+//! [`Surrogate::step_scenes`](crate::model::store::Surrogate::step_scenes) stacks the
+//! scenes' states and splits them back; scenes of different particle counts go through
+//! separate calls. Used by [`super::run`].
+
+use std::time::Instant;
+
+use crate::model::store::{SceneStep, SceneSteps, State, StoreError};
+use crate::ops::NetOps;
+
+use super::run::{NodeLoop, Pending};
+use super::scenes::Admitted;
+use super::{predicted_frame, state_rows};
+
+/// When the next batch is due.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Due {
+    /// Now: full, or its oldest item waited `--max-batch-delay`.
+    Now,
+    /// At this time, unless it fills up before.
+    At(Instant),
+    /// Nothing waits.
+    Nothing,
+}
+
+impl Due {
+    /// True for [`Due::Now`].
+    pub(super) fn is_now(self) -> bool {
+        self == Due::Now
+    }
+}
+
+/// One scene's part of a batch.
+struct Job<B: burn::tensor::backend::Backend> {
+    scene: String,
+    rows: Vec<f32>,
+    material: Vec<u8>,
+    dt: f32,
+    state: State<B>,
+    /// A whole network call (K frames: a rollout's) or the next frame alone.
+    whole: bool,
+    /// The input frame of a live job; None for a rollout's call.
+    input: Option<Pending>,
+}
+
+impl<B: NetOps> NodeLoop<'_, B> {
+    /// Triton's rule (module doc) on what waits now.
+    pub(super) fn batch_due(&self, now: Instant) -> Due {
+        let heads = self.pending.values().filter_map(|q| q.front());
+        let oldest = heads
+            .map(|p| p.arrived)
+            .chain(self.rollouts.waiting().map(|(t, _)| t))
+            .min();
+        let Some(oldest) = oldest else {
+            return Due::Nothing;
+        };
+        let ready = self.pending.len() + self.rollouts.waiting().count();
+        let could_join = (self.scenes.live() + self.rollouts.len()).max(ready);
+        if ready >= self.options.max_batch.min(could_join).max(1) {
+            return Due::Now;
+        }
+        match oldest.checked_add(self.options.max_batch_delay) {
+            Some(t) if t > now => Due::At(t),
+            _ => Due::Now,
+        }
+    }
+
+    /// Takes up to `--max-batch` items, oldest first, and steps them: the single-frame
+    /// items through one set of calls, whole calls (rollouts) through another.
+    pub(super) fn step_batch(&mut self) {
+        let mut waiting: Vec<(Instant, bool, String)> = self
+            .pending
+            .iter()
+            .filter_map(|(k, q)| Some((q.front()?.arrived, false, k.clone())))
+            .chain(
+                self.rollouts
+                    .waiting()
+                    .map(|(t, k)| (t, true, k.to_owned())),
+            )
+            .collect();
+        waiting.sort();
+        let mut jobs = Vec::new();
+        for (_, rollout, scene) in waiting {
+            if jobs.len() >= self.options.max_batch.max(1) {
+                break;
+            }
+            let job = match rollout {
+                true => self.rollout_job(&scene),
+                false => self.live_job(&scene),
+            };
+            jobs.extend(job);
+        }
+        let (whole, single): (Vec<_>, Vec<_>) = jobs.into_iter().partition(|j| j.whole);
+        for (group, whole) in [(single, false), (whole, true)] {
+            if !group.is_empty() {
+                self.run_jobs(group, whole);
+            }
+        }
+        self.publish_due_rollouts();
+    }
+
+    /// `scene`'s next pending frame as a job, under the state rules (None: dropped or
+    /// ignored, counted as they say).
+    fn live_job(&mut self, scene: &str) -> Option<Job<B>> {
+        let queue = self.pending.get_mut(scene)?;
+        let input = queue.pop_front()?;
+        if queue.is_empty() {
+            self.pending.remove(scene);
+        }
+        self.make_room_for(scene);
+        let index = input.frame.frame_index;
+        let state = match self
+            .scenes
+            .admit(scene, index, self.options, self.surrogate)
+        {
+            Admitted::Step(state) => state,
+            Admitted::Dropped => {
+                self.tally.report.dropped += 1;
+                return None;
+            }
+            Admitted::Ignored => return None,
+        };
+        // In closed loop the scene's T-th frame starts the rollout: a whole network call
+        // (K frames for a bundled model); before it, and fed live frames, one step.
+        let whole = self.options.rollout.is_some() && state.frames + 1 >= self.window;
+        if whole {
+            self.scenes.mark_rolled_out(scene);
+        }
+        Some(Job {
+            scene: scene.to_owned(),
+            rows: state_rows(&input.frame),
+            material: input.frame.material.clone(),
+            dt: input.frame.dt,
+            state,
+            whole,
+            input: Some(input),
+        })
+    }
+
+    /// The call `scene`'s rollout waits for, as a job.
+    fn rollout_job(&mut self, scene: &str) -> Option<Job<B>> {
+        let call = self.rollouts.take_call(scene)?;
+        Some(Job {
+            scene: scene.to_owned(),
+            rows: call.rows,
+            material: call.material,
+            dt: call.dt,
+            state: call.state,
+            whole: true,
+            input: None,
+        })
+    }
+
+    /// Before a new scene is admitted at `--max-scenes`, evicts the least recently active
+    /// one (counted; the first and every 100th logged).
+    fn make_room_for(&mut self, scene: &str) {
+        let Some(evicted) = self.scenes.make_room_for(scene, self.options.max_scenes) else {
+            return;
+        };
+        self.evicted.0 += 1;
+        // The first, then every 100th: a stream of new scenes must not flood the log.
+        if self.evicted.0 == 1 || self.evicted.0 % 100 == 0 {
+            tracing::info!(
+                "{}: scene {evicted:?} evicted at --max-scenes {} ({} so far; a scene that \
+                 comes back starts again)",
+                self.options.name,
+                self.options.max_scenes,
+                self.evicted.0
+            );
+        }
+    }
+
+    /// Steps `jobs` (all `whole` or none) through `Surrogate::step_scenes` and hands each
+    /// its result.
+    fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, whole: bool) {
+        let placeholder = || self.surrogate.init_state();
+        let steps: Vec<SceneStep<'_, B>> = jobs
+            .iter_mut()
+            .map(|j| SceneStep {
+                rows: std::mem::take(&mut j.rows),
+                material: &j.material,
+                dt: j.dt,
+                state: std::mem::replace(&mut j.state, placeholder()),
+            })
+            .collect();
+        let SceneSteps { results, calls } = self.surrogate.step_scenes(steps, whole);
+        self.batches.record(&calls);
+        for (job, result) in jobs.into_iter().zip(results) {
+            self.finish_job(job, result);
+        }
+    }
+
+    /// Publishes, keeps or hands on what a job's call returned.
+    fn finish_job(
+        &mut self,
+        job: Job<B>,
+        result: Result<(Vec<Vec<f32>>, State<B>), StoreError>,
+    ) {
+        let (mut bundle, state) = match result {
+            Ok(v) => v,
+            Err(e) => {
+                match job.input {
+                    Some(_) => {
+                        self.tally.report.rejected += 1;
+                        self.scenes.keep(&job.scene, None);
+                    }
+                    None => self.rollouts.cancel(&job.scene),
+                }
+                self.tally.note(&job.scene, e.to_string());
+                return;
+            }
+        };
+        self.tally.report.predicted += 1;
+        let Some(input) = job.input else {
+            self.rollouts.feed(&job.scene, bundle, state);
+            return;
+        };
+        let keep = match self.options.rollout {
+            None => {
+                let next = predicted_frame(&input.frame, &bundle.swap_remove(0), 1);
+                self.emit_timed(&next, input.arrived);
+                Some(state)
+            }
+            Some(k) if job.whole => {
+                let rate = self.options.rate;
+                self.rollouts.start(&input.frame, bundle, state, k, rate);
+                None
+            }
+            Some(_) => Some(state),
+        };
+        self.scenes.keep(&job.scene, keep);
+    }
+}

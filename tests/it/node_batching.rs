@@ -1,0 +1,252 @@
+//! Issue 40, one node and many live streams: `Surrogate::step_scenes` (several scenes' states
+//! stacked into one network call and split back) predicts what stepping each scene alone
+//! does, within 1e-5 on the CPU, for single-frame and bundled models, mirror ensembles and
+//! scenes of different particle counts (one call per count); a node batching up to 8 scenes
+//! a call publishes the predictions of a node stepping one scene a call; and in closed loop
+//! under load (long scenes arriving faster than they are rolled out, an idle timeout shorter
+//! than the rollouts) every scene gets exactly one rollout.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{channel, Receiver};
+use std::time::{Duration, Instant};
+
+use burn::backend::NdArray;
+use minflow::model::store::{SceneStep, Surrogate};
+use minflow::msgs::{ParticleFrame, Time};
+use minflow::node::surrogate::state_rows;
+use minflow::transport::{self, Sample, Transport};
+
+use crate::transport_support::*;
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// The frames of the bundled bag `name`.
+fn bag(name: &str) -> Vec<ParticleFrame> {
+    raw_messages(&repo(&format!("bags/{name}.mcap")), Some(minflow::bag::FRAMES_TOPIC))
+        .iter()
+        .map(|b| minflow::msgs::decode(b).unwrap())
+        .collect()
+}
+
+/// Frame `index` of scene `scene`: the `base` frames looped, the first `n` particles.
+fn frame_of(base: &[ParticleFrame], scene: &str, n: usize, index: u32) -> ParticleFrame {
+    let mut f = base[index as usize % base.len()].clone();
+    f.scene = scene.to_owned();
+    f.frame_index = index;
+    f.header.stamp = Time::from_nanos((f64::from(index) * f64::from(f.dt) * 1e9) as u64);
+    f.position.truncate(2 * n);
+    f.velocity.truncate(2 * n);
+    f.material.truncate(n);
+    f
+}
+
+/// Four scenes of 6 frames: three bags of 2,500 particles and one of 1,000.
+fn four_scenes() -> Vec<Vec<ParticleFrame>> {
+    let names = ["multi_rope+snow_001", "fluid_circle_000", "multi_jelly+liquid_002"];
+    let mut scenes: Vec<Vec<ParticleFrame>> = names
+        .iter()
+        .map(|n| (0..6).map(|i| frame_of(&bag(n), n, 2500, i)).collect())
+        .collect();
+    let small = bag("multi_liquid+snow_000");
+    scenes.push((0..6).map(|i| frame_of(&small, "small", 1000, i)).collect());
+    scenes
+}
+
+fn worst(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+#[test]
+fn batched_steps_equal_steps_one_scene_at_a_time() {
+    let scenes = four_scenes();
+    for (model, mirror) in [
+        ("all-grid-mingru-small", false),
+        ("all-grid-mingru-small", true),
+        ("all-grid-mingru-small-k4", false),
+    ] {
+        let s = Surrogate::<NdArray<f32>>::load(&repo(&format!("models/{model}")), &Default::default())
+            .unwrap()
+            .with_mirror(mirror);
+        let whole = s.bundle() > 1;
+        // Alone: each scene its own calls.
+        let mut alone = Vec::new();
+        for frames in &scenes {
+            let mut state = s.init_state();
+            let mut outs = Vec::new();
+            for f in frames {
+                let (out, st) = s.step_bundle(&state_rows(f), &f.material, &[f.dt], state).unwrap();
+                let out = if whole { out } else { out[..1].to_vec() };
+                outs.push(out);
+                state = st;
+            }
+            alone.push(outs);
+        }
+        // Batched: every scene's frame i in one step_scenes.
+        let mut states: Vec<_> = scenes.iter().map(|_| Some(s.init_state())).collect();
+        for i in 0..6 {
+            let steps = scenes
+                .iter()
+                .zip(states.iter_mut())
+                .map(|(frames, st)| SceneStep {
+                    rows: state_rows(&frames[i]),
+                    material: &frames[i].material,
+                    dt: frames[i].dt,
+                    state: st.take().unwrap(),
+                })
+                .collect();
+            let batch = s.step_scenes(steps, whole);
+            assert_eq!(batch.calls, [1, 3], "{model}: one call per particle count");
+            for (k, result) in batch.results.into_iter().enumerate() {
+                let (out, st) = result.unwrap();
+                assert_eq!(st.frames, i + 1);
+                assert_eq!(out.len(), alone[k][i].len());
+                for (got, want) in out.iter().zip(&alone[k][i]) {
+                    let w = worst(got, want);
+                    assert!(w <= 1e-5, "{model} mirror {mirror}: scene {k} frame {i}: {w}");
+                }
+                states[k] = Some(st);
+            }
+        }
+    }
+}
+
+/// A `minflow node` of the shipped small model on `input` -> `output` with `extra` flags.
+fn node(input: &str, output: &str, extra: &[&str]) -> Node {
+    let model = repo("models/all-grid-mingru-small");
+    let mut args = vec![
+        "node",
+        "--model",
+        model.to_str().unwrap(),
+        "--in",
+        input,
+        "--out",
+        output,
+        "--status",
+        "none",
+        "--queue-depth",
+        "1024",
+    ];
+    args.extend_from_slice(extra);
+    Node::spawn("node", &args)
+}
+
+/// Collects frames from `rx` until `done` says so or `timeout` passes.
+fn collect(
+    rx: &Receiver<Sample>,
+    timeout: Duration,
+    mut done: impl FnMut(&[ParticleFrame]) -> bool,
+) -> Vec<ParticleFrame> {
+    let deadline = Instant::now() + timeout;
+    let mut got = Vec::new();
+    while Instant::now() < deadline && !done(&got) {
+        if let Ok(s) = rx.recv_timeout(Duration::from_millis(50)) {
+            got.push(s.decode().unwrap());
+        }
+    }
+    got
+}
+
+#[test]
+fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
+    let input = unique_topic("batch_in");
+    let (out_one, out_many) = (unique_topic("batch_one"), unique_topic("batch_many"));
+    let one = node(&input, &out_one, &["--max-batch", "1"]);
+    let many = node(&input, &out_many, &["--max-batch", "8", "--max-batch-delay", "20"]);
+    let session = transport::zenoh::ZenohTransport::open(None).unwrap();
+    let (tx1, rx1) = channel();
+    let (tx8, rx8) = channel();
+    let _s1 = session.subscribe(&out_one, tx1).unwrap();
+    let _s8 = session.subscribe(&out_many, tx8).unwrap();
+    let mut publisher = session.publisher(&input).unwrap();
+    assert!(
+        transport::wait_for_subscribers(publisher.as_ref(), 2, Duration::from_secs(30)),
+        "the nodes never subscribed"
+    );
+    // Eight scenes (two particle counts), ten frames each, interleaved, as fast as possible.
+    let base = bag("multi_rope+snow_001");
+    let sent: Vec<ParticleFrame> = (0..10u32)
+        .flat_map(|i| {
+            let base = &base;
+            (0..8).map(move |k| frame_of(base, &format!("s{k}"), [2500, 1200][k % 2], i))
+        })
+        .collect();
+    for f in &sent {
+        publisher.publish(f).unwrap();
+    }
+    let enough = |got: &[ParticleFrame]| got.len() >= sent.len();
+    let got_one = collect(&rx1, Duration::from_secs(120), enough);
+    let got_many = collect(&rx8, Duration::from_secs(120), enough);
+    one.signal("INT");
+    many.signal("INT");
+    let log_one = ok(&one.wait(Duration::from_secs(30)), "node --max-batch 1");
+    let log_many = ok(&many.wait(Duration::from_secs(30)), "node --max-batch 8");
+    assert_eq!(got_one.len(), sent.len(), "{log_one}");
+    assert_eq!(got_many.len(), sent.len(), "{log_many}");
+    let by_key = |v: &[ParticleFrame]| -> BTreeMap<(String, u32), Vec<f32>> {
+        v.iter()
+            .map(|f| ((f.scene.clone(), f.frame_index), state_rows(f)))
+            .collect()
+    };
+    let (a, b) = (by_key(&got_one), by_key(&got_many));
+    assert_eq!(a.len(), sent.len());
+    for (key, want) in &a {
+        let w = worst(&b[key], want);
+        assert!(w <= 1e-5, "{key:?}: batched differs from unbatched by {w}");
+    }
+    assert_eq!(counter(&log_one, "batch_max"), Some(1), "{log_one}");
+    let max = counter(&log_many, "batch_max").unwrap();
+    assert!((2..=8).contains(&max), "batch_max {max}\n{log_many}");
+}
+
+#[test]
+fn in_closed_loop_under_load_every_scene_gets_one_rollout() {
+    // Issue 40: eight 150-frame scenes arrive at 125 Hz each while the node rolls each out
+    // 120 frames; the idle timeout (1 s) is shorter than the node needs for the rollouts.
+    let (input, output) = (unique_topic("closed_in"), unique_topic("closed_out"));
+    let horizon = 120u32;
+    let n = node(
+        &input,
+        &output,
+        &["--rollout", &horizon.to_string(), "--idle-timeout", "1"],
+    );
+    let session = transport::zenoh::ZenohTransport::open(None).unwrap();
+    let (tx, rx) = channel();
+    let _sub = session.subscribe(&output, tx).unwrap();
+    let mut publisher = session.publisher(&input).unwrap();
+    assert!(
+        transport::wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(30)),
+        "the node never subscribed"
+    );
+    let base = bag("multi_liquid+snow_000");
+    let scenes = 8;
+    let start = Instant::now();
+    for i in 0..150u32 {
+        for k in 0..scenes {
+            publisher
+                .publish(&frame_of(&base, &format!("long{k}"), 2500, i))
+                .unwrap();
+        }
+        let due = start + Duration::from_secs_f64(f64::from(i + 1) / 125.0);
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+    let want = scenes * horizon as usize;
+    let mut got = collect(&rx, Duration::from_secs(180), |g| g.len() >= want);
+    // Anything more (a second rollout) would come within the next seconds.
+    got.extend(collect(&rx, Duration::from_secs(3), |_| false));
+    n.signal("INT");
+    let log = ok(&n.wait(Duration::from_secs(30)), "node");
+    let mut per: BTreeMap<String, Vec<u32>> = BTreeMap::new();
+    for f in &got {
+        per.entry(f.scene.clone()).or_default().push(f.frame_index);
+    }
+    assert_eq!(per.len(), scenes, "{log}");
+    for (scene, indices) in &per {
+        // T = 2: the rollout follows frame 1 and predicts frames 2 ..= horizon + 1, once.
+        let expect: Vec<u32> = (2..horizon + 2).collect();
+        assert_eq!(indices, &expect, "{scene}: one rollout, in order\n{log}");
+    }
+}
