@@ -67,6 +67,9 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
         ("all-grid-mingru-small", false),
         ("all-grid-mingru-small", true),
         ("all-grid-mingru-small-k4", false),
+        // Rest neighbourhoods stack and split with the other per-scene state.
+        ("all-grid-mingru-small-k4-rest", false),
+        ("all-grid-mingru-small-k4-rest", true),
     ] {
         let s = Surrogate::<NdArray<f32>>::load(&repo(&format!("models/{model}")), &Default::default())
             .unwrap()
