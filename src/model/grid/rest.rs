@@ -77,15 +77,21 @@ impl Neighbourhood {
                 Self::scene(pos, &material[s * n..(s + 1) * n], &select)
             })
             .collect();
+        Self::concat(scenes, n)
+    }
+
+    /// The neighbourhoods of several batches of scenes of `n` particles each as one batch,
+    /// scenes in order (neighbour rows offset by the scenes before).
+    pub fn concat(parts: Vec<Self>, n: usize) -> Self {
         let mut out = Self::empty(0, n);
-        out.b = b;
-        for (s, scene) in scenes.into_iter().enumerate() {
-            let base = (s * n) as i64;
-            out.index.extend(scene.index.iter().map(|&j| j + base));
-            out.offset.extend(scene.offset);
-            out.weight.extend(scene.weight);
-            out.binv.extend(scene.binv);
-            out.inv_d0.extend(scene.inv_d0);
+        for part in parts {
+            let base = (out.b * n) as i64;
+            out.b += part.b;
+            out.index.extend(part.index.iter().map(|&j| j + base));
+            out.offset.extend(part.offset);
+            out.weight.extend(part.weight);
+            out.binv.extend(part.binv);
+            out.inv_d0.extend(part.inv_d0);
         }
         out
     }
