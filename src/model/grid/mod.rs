@@ -269,6 +269,8 @@ impl<B: NetOps> GridModel<B> {
         self.rest_in.as_ref()?;
         let [b, n_p, _] = pos.dims();
         Some(match rest.filter(|r| r.dims() == [b, n_p]) {
+            // Inference on the CPU: one host pass (the same values; no gradient needed).
+            Some(r) if B::SEQUENTIAL_SCAN && !pos.is_require_grad() => r.features_host(pos.clone()),
             Some(r) => r.features(pos.clone()),
             None => Tensor::zeros([b, n_p, REST_FEATURES], &pos.device()),
         })
