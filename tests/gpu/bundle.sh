@@ -14,38 +14,12 @@
 #
 # Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
 set -uo pipefail
-OUT=${OUT:-/tmp/minflow-gpu}
-DATA=${DATA:-/tmp/data}
-mkdir -p "$OUT" runs
-export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
-BIN=gpu/minflow-cuda
-if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
-    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
-    chmod +x "$BIN"
-fi
+. "$(dirname "$0")/common.sh"
 SMALL=(--grid 32 --unet-width 16 --levels 3 --reference none)
-COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirror
-    --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
-
-# One training run in the background: NAME MINUTES FLAGS...
-start() {
-    local name=$1 minutes=$2
-    shift 2
-    setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
-        --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
-    echo $! >>"$OUT/started.pids"
-}
 
 case "${1:-}" in
 data)
-    for family in multi fluid; do
-        "$BIN" simulate --family "$family" --seed 1 --jobs "$(nproc)" --out "$DATA/$family" \
-            2>&1 | tail -n 2
-    done
-    "$BIN" simulate --family multi --seed 7 --scenes 0..10 --jobs "$(nproc)" --out "$DATA/unseen" \
-        2>&1 | tail -n 2
-    "$BIN" simulate --family fluid --seed 7 --scenes 0..6 --jobs "$(nproc)" --out "$DATA/unseen" \
-        2>&1 | tail -n 2
+    make_data
     ;;
 start)
     m=$2
@@ -65,18 +39,7 @@ start)
     start n4 "$m" --model none --bundle 4 --rollout-steps 4
     ;;
 wait)
-    while true; do
-        running=0
-        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
-            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
-        done
-        for log in "$OUT"/train-*.log; do
-            printf '%s: %s\n' "$(basename "$log" .log)" \
-                "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
-        done
-        [ "$running" -eq 0 ] && break
-        sleep 60
-    done
+    wait_runs
     ;;
 eval)
     shift

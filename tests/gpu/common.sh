@@ -1,0 +1,53 @@
+# Shared by the GPU experiment scripts (bundle.sh, structure.sh): the binary, the training
+# data, one background training run, waiting for the runs, and a subset of them (ONLY).
+# Sourced, not run. Sets OUT, DATA, BIN and COMMON; the caller may add to COMMON after.
+OUT=${OUT:-/tmp/minflow-gpu}
+DATA=${DATA:-/tmp/data}
+mkdir -p "$OUT" runs
+export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
+BIN=gpu/minflow-cuda
+if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
+    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
+    chmod +x "$BIN"
+fi
+COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirror
+    --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
+
+# One training run in the background: NAME MINUTES FLAGS... With ONLY="a b" set, only the
+# runs named there start (ten full-size runs at once do not fit in an H100's 80 GB).
+start() {
+    local name=$1 minutes=$2
+    shift 2
+    if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return; fi
+    setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
+        --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
+    echo $! >>"$OUT/started.pids"
+}
+
+# Seed 1 (training: 60 multi + 40 fluid scenes) and seed 7 (unseen: 10 multi + 6 fluid).
+make_data() {
+    for family in multi fluid; do
+        "$BIN" simulate --family "$family" --seed 1 --jobs "$(nproc)" --out "$DATA/$family" \
+            2>&1 | tail -n 2
+    done
+    "$BIN" simulate --family multi --seed 7 --scenes 0..10 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+    "$BIN" simulate --family fluid --seed 7 --scenes 0..6 --jobs "$(nproc)" --out "$DATA/unseen" \
+        2>&1 | tail -n 2
+}
+
+# Until every started run has ended, a line per run each minute.
+wait_runs() {
+    while true; do
+        running=0
+        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
+            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
+        done
+        for log in "$OUT"/train-*.log; do
+            printf '%s: %s\n' "$(basename "$log" .log)" \
+                "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
+        done
+        [ "$running" -eq 0 ] && break
+        sleep 60
+    done
+}
