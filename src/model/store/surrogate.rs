@@ -6,7 +6,7 @@
 //! steps each frame beside its mirror image. Used by `eval`, `node`, `report`, `bench` and
 //! the grid trainer's validation.
 
-use super::stack::{mean_of_mirror_rows, shape, with_mirror_rows, Rows};
+use super::stack::{mean_of_mirror_rows, with_mirror_rows};
 use super::{ModelMeta, Net, RunFolder, StoreError};
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
@@ -37,13 +37,13 @@ type GridCarry<B> = (
 
 /// Per-trajectory state (one batch row per trajectory).
 pub struct State<B: Backend> {
-    inner: NetState<B>,
+    pub(super) inner: NetState<B>,
     /// Frames consumed since the state was reset.
     pub frames: usize,
 }
 
-/// What each architecture carries between frames.
-enum NetState<B: Backend> {
+/// What each architecture carries between frames (stacked and split in `stack.rs`).
+pub(super) enum NetState<B: Backend> {
     /// The paper core's layer states.
     Paper(Vec<LayerState<B>>),
     /// The grid model's per-particle memory, the velocities of the last T - 1 frames
@@ -58,101 +58,6 @@ enum NetState<B: Backend> {
         reference: Option<Tensor<B, 3>>,
         rest: Option<NeighbourTensors<B>>,
     },
-}
-
-impl<B: Backend> State<B> {
-    /// What must be equal for states to stack ([`State::stack`]): each field's kind and
-    /// shape. States with equal keys and frames with equal particle counts share a call.
-    pub(super) fn shape_key(&self) -> Vec<usize> {
-        let mut key = Vec::new();
-        match &self.inner {
-            NetState::Paper(layers) => layers.rows_key(&mut key),
-            NetState::Grid {
-                memory,
-                history,
-                reference,
-                rest,
-            } => {
-                key.push(usize::MAX);
-                memory.rows_key(&mut key); // one line per field, here and in `stack` and `split`
-                history.rows_key(&mut key);
-                reference.rows_key(&mut key);
-                rest.rows_key(&mut key);
-            }
-        }
-        key
-    }
-
-    /// Several scenes' states (of equal [`State::shape_key`]) as one batch state, rows in
-    /// order, copy by copy (`copies` = 2 for a mirror ensemble; `stack.rs`). Frame counts
-    /// are the caller's to keep.
-    pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
-        let (mut paper, mut memory, mut history, mut reference) = (vec![], vec![], vec![], vec![]);
-        let mut rest = vec![];
-        for state in states {
-            match state.inner {
-                NetState::Paper(layers) => paper.push(layers),
-                NetState::Grid {
-                    memory: m,
-                    history: h,
-                    reference: r,
-                    rest: n,
-                } => {
-                    (memory.push(m), history.push(h), reference.push(r), rest.push(n));
-                }
-            }
-        }
-        let inner = match (paper.is_empty(), memory.is_empty()) {
-            (false, true) => NetState::Paper(Rows::stack_rows(paper, copies)?),
-            (true, false) => NetState::Grid {
-                memory: Rows::stack_rows(memory, copies)?,
-                history: Rows::stack_rows(history, copies)?,
-                reference: Rows::stack_rows(reference, copies)?,
-                rest: Rows::stack_rows(rest, copies)?,
-            },
-            _ => return Err(shape("stack: no states, or of both kinds")),
-        };
-        Ok(State { inner, frames: 0 })
-    }
-
-    /// A stacked state back as one state per scene, scene i of `sizes[i]` trajectories (1
-    /// for a node's scene): the inverse of [`State::stack`]. Frame counts are 0.
-    pub(super) fn split(self, sizes: &[usize], copies: usize) -> Vec<State<B>> {
-        let inner: Vec<NetState<B>> = match self.inner {
-            NetState::Paper(layers) => layers
-                .split_rows(sizes, copies)
-                .into_iter()
-                .map(NetState::Paper)
-                .collect(),
-            NetState::Grid {
-                memory,
-                history,
-                reference,
-                rest,
-            } => {
-                let mut history = history.split_rows(sizes, copies).into_iter();
-                let mut reference = reference.split_rows(sizes, copies).into_iter();
-                let mut rest = rest.split_rows(sizes, copies).into_iter();
-                let mut grid = |memory| -> Option<NetState<B>> {
-                    Some(NetState::Grid {
-                        memory,
-                        history: history.next()?,
-                        reference: reference.next()?,
-                        rest: rest.next()?,
-                    })
-                };
-                memory
-                    .split_rows(sizes, copies)
-                    .into_iter()
-                    .filter_map(|m| grid(m))
-                    .collect()
-            }
-        };
-        inner
-            .into_iter()
-            .map(|inner| State { inner, frames: 0 })
-            .collect()
-    }
 }
 
 impl<B: NetOps> Surrogate<B> {
