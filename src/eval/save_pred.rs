@@ -2,32 +2,25 @@
 //! `/surrogate/frames`, the node's topic and schema (docs/design.md, "Bags"), so Foxglove,
 //! `eval --pred` and any MCAP reader can view and score a rollout that `eval` made offline.
 //!
-//! Layout: `DIR/<predictor>/<scene>_from<frame>.mcap`, the scene id with `/` and `+` made
-//! `_` and `p`, `<frame>` the `frame_index` of the first predicted frame (a scene rolled out
-//! from several starts gets one bag per start). Frames carry the truth's `frame_index` and
+//! Layout: `DIR/<predictor>/<scene>_from<frame>.mcap`, the predictor's name and the scene id
+//! as the other files of a scene are named (`eval`'s renders, [`crate::bag::scene_file_stem`]:
+//! `multi/rope+snow/001` -> `multi_rope+snow_001`), `<frame>` the `frame_index` of the first
+//! predicted frame (a scene rolled out from several starts gets one bag per start). Frames carry the truth's `frame_index` and
 //! stamps (`frame_index * dt`), the scene id and its materials. Used by [`super::rollout`].
 
 use std::path::{Path, PathBuf};
 
+use super::render::file_stem;
 use super::EvalError;
-use crate::bag::{BagWriter, PREDICTED_TOPIC};
+use crate::bag::{scene_file_stem, BagWriter, PREDICTED_TOPIC};
 use crate::data::Trajectory;
 use crate::msgs::ParticleFrame;
 
 /// The bag a rollout of `predictor` on `scene` whose first predicted frame is `frame_index`
 /// goes to, under `dir`.
 pub fn bag_path(dir: &Path, predictor: &str, scene: &str, frame_index: u32) -> PathBuf {
-    let safe = |s: &str| -> String {
-        s.chars()
-            .map(|c| match c {
-                '+' => 'p',
-                c if c.is_ascii_alphanumeric() || c == '-' || c == '.' => c,
-                _ => '_',
-            })
-            .collect()
-    };
-    dir.join(safe(predictor))
-        .join(format!("{}_from{frame_index}.mcap", safe(scene)))
+    dir.join(file_stem(predictor))
+        .join(format!("{}_from{frame_index}.mcap", scene_file_stem(scene)))
 }
 
 /// Writes `frames` (`[N, 4]` physical each; step k predicts trajectory frame `first + k`) of

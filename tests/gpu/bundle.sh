@@ -43,14 +43,7 @@ wait)
     ;;
 eval)
     shift
-    models=()
-    for name in "$@"; do models+=(--model "runs/$name"); done
-    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all --starts 5 \
-        --horizon 20 --no-render --out "$OUT/unseen-h20" >"$OUT/unseen-h20.log" 2>&1
-    echo "horizon 20: exit $?"
-    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all \
-        --horizon full --out "$OUT/unseen-full" >"$OUT/unseen-full.log" 2>&1
-    echo "horizon full: exit $?"
+    eval_models "$@"
     ;;
 *)
     sed -n 2,15p "$0"

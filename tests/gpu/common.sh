@@ -1,11 +1,12 @@
 # Shared by the GPU experiment scripts (bundle.sh, structure.sh): the binary, the training
 # data, one background training run, waiting for the runs, and a subset of them (ONLY).
-# Sourced, not run. Sets OUT, DATA, BIN and COMMON; the caller may add to COMMON after.
+# Sourced, not run. Sets OUT, DATA, BIN (unless the caller set it: gpu/minflow-cuda by
+# default) and COMMON; the caller may add to COMMON after.
 OUT=${OUT:-/tmp/minflow-gpu}
 DATA=${DATA:-/tmp/data}
 mkdir -p "$OUT" runs
 export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
-BIN=gpu/minflow-cuda
+BIN=${BIN:-gpu/minflow-cuda}
 if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
@@ -44,10 +45,26 @@ wait_runs() {
             kill -0 "$pid" 2>/dev/null && running=$((running + 1))
         done
         for log in "$OUT"/train-*.log; do
+            [ -f "$log" ] || continue
             printf '%s: %s\n' "$(basename "$log" .log)" \
                 "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
         done
         [ "$running" -eq 0 ] && break
         sleep 60
     done
+}
+
+# Every model NAME... (runs/NAME, or a path) on the unseen scenes at once: horizon 20 from 5
+# starts (OUT/unseen-h20) and whole scenes with renders (OUT/unseen-full).
+eval_models() {
+    local models=()
+    for name in "$@"; do
+        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
+    done
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all --starts 5 \
+        --horizon 20 --no-render --out "$OUT/unseen-h20" >"$OUT/unseen-h20.log" 2>&1
+    echo "horizon 20: exit $?"
+    "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all \
+        --horizon full --out "$OUT/unseen-full" >"$OUT/unseen-full.log" 2>&1
+    echo "horizon full: exit $?"
 }

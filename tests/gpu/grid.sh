@@ -20,15 +20,8 @@
 # GPU (the device ordinal of train/start/eval, default 0), EVAL_OUT (eval's folder name),
 # EXTRA (non-empty: train also on $DATA/multi-extra).
 set -uo pipefail
-OUT=${OUT:-/tmp/minflow-gpu}
-DATA=${DATA:-/tmp/data}
-mkdir -p "$OUT"
-export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
 BIN=gpu/minflow
-if [ ! -x "$BIN" ] && [ -f gpu/minflow.xz ]; then
-    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/minflow.xz'), open('$BIN', 'wb'))"
-    chmod +x "$BIN"
-fi
+. "$(dirname "$0")/common.sh"
 
 case "${1:-}" in
 data)
@@ -56,18 +49,7 @@ start)
     echo "started $1 on GPU ${GPU:-0} (pid $!)"
     ;;
 wait)
-    while true; do
-        running=0
-        for pid in $(cat "$OUT/started.pids" 2>/dev/null); do
-            kill -0 "$pid" 2>/dev/null && running=$((running + 1))
-        done
-        for log in "$OUT"/train-*.log; do
-            [ -f "$log" ] || continue
-            printf '%s: %s\n' "$(basename "$log" .log)" "$(tail -c 300 "$log" | tr '\r' '\n' | grep -v '^$' | tail -n 1)"
-        done
-        [ "$running" -eq 0 ] && break
-        sleep 60
-    done
+    wait_runs
     ;;
 pack)
     dest=$2

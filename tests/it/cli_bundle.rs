@@ -108,7 +108,7 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
     assert_structure(&table, &csv);
     // --save-pred: the model's rollout as a bag of its 23 predicted frames on the node's
     // topic, frame indices 2..=24 (after the 2 seed frames), the scene's materials.
-    let saved = pred.join("k2").join("multi_ropepsnow_001_from2.mcap");
+    let saved = pred.join("k2").join("multi_rope+snow_001_from2.mcap");
     let read = read_frames(&saved, Some(minflow::bag::PREDICTED_TOPIC)).unwrap();
     let indices: Vec<u32> = read.frames.iter().map(|(_, _, f)| f.frame_index).collect();
     assert_eq!(indices, (2..25).collect::<Vec<u32>>(), "{}", saved.display());

@@ -153,10 +153,6 @@ impl<B: Backend> NeighbourTensors<B> {
         len * self.inv_d0.clone().reshape([b * n, 1, 1]) * self.weight.clone()
     }
 
-    /// `[B N, K, 1]`: the neighbour weights (1 for a pair, 0 for padding).
-    pub fn weight(&self) -> Tensor<B, 3> {
-        self.weight.clone()
-    }
 }
 
 /// `[B, N, 4]`: the row-major 2 x 2 products `a b` of `[B, N, 4]` row-major matrices.

@@ -225,16 +225,16 @@ impl<B: Backend> NeighbourTensors<B> {
         let mut out = vec![0.0f32; b * n * REST_FEATURES];
         for (row, feats) in out.chunks_exact_mut(REST_FEATURES).enumerate() {
             let base = (row / n.max(1)) * n;
-            let near = (0..k).map(|j| {
+            let near: [Pair; REST_NEIGHBOURS] = std::array::from_fn(|j| {
                 let slot = row * k + j;
                 let other = base + index[slot] as usize;
                 let w = weight[slot];
                 let dx = [(x[2 * other] - x[2 * row]) * w, (x[2 * other + 1] - x[2 * row + 1]) * w];
                 (dx, [offset[2 * slot], offset[2 * slot + 1]], w)
             });
-            let g = Geometry::of(near.clone(), &binv[row * 4..row * 4 + 4], inv_d0[row]);
+            let g = Geometry::of(&near, &binv[row * 4..row * 4 + 4], inv_d0[row]);
             let mut o = [0.0f32; 2];
-            for (dx, x0, w) in near {
+            for &(dx, x0, w) in &near {
                 o[0] += dx[0] - (g.cos * x0[0] - g.sin * x0[1]) * w;
                 o[1] += dx[1] - (g.sin * x0[0] + g.cos * x0[1]) * w;
             }
@@ -249,6 +249,9 @@ impl<B: Backend> NeighbourTensors<B> {
 
 }
 
+/// One neighbour pair on the host: current offset `dx`, rest offset `dX`, weight.
+type Pair = ([f32; 2], [f32; 2], f32);
+
 /// One particle's fit on the host ([`NeighbourTensors::features_host`]): the strain, `J - 1`
 /// and the rotation of shape matching, as [`NeighbourTensors::features`] computes them.
 struct Geometry {
@@ -262,9 +265,9 @@ struct Geometry {
 
 impl Geometry {
     /// From the particle's neighbours `(dx, dX, weight)`, its `B^-1` (row-major) and `1 / d0`.
-    fn of(near: impl Iterator<Item = ([f32; 2], [f32; 2], f32)>, binv: &[f32], inv_d0: f32) -> Self {
+    fn of(near: &[Pair], binv: &[f32], inv_d0: f32) -> Self {
         let mut a = [0.0f32; 4];
-        for (dx, x0, _) in near {
+        for &(dx, x0, _) in near {
             a[0] += dx[0] * x0[0];
             a[1] += dx[0] * x0[1];
             a[2] += dx[1] * x0[0];
