@@ -115,7 +115,10 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
                 let v = pair(mean(&|x| x.intact[m]), mean(&|x| x.intact_truth[m]));
                 let _ = write!(s, " {v} |");
             }
-            let v = pair(mean(&|x| x.connected[rope]), mean(&|x| x.connected_truth[rope]));
+            let v = pair(
+                mean(&|x| x.connected[rope]),
+                mean(&|x| x.connected_truth[rope]),
+            );
             let _ = writeln!(s, " {v} |");
         }
     }

@@ -92,8 +92,15 @@ impl Neighbours {
             .filter(move |&(i, _)| self.material_of(i) == m)
             .flat_map(move |(i, near)| {
                 near.iter().map(move |&(j, d0)| {
-                    let (dx, dy) = (state[4 * i] - state[4 * j], state[4 * i + 1] - state[4 * j + 1]);
-                    (i, j, f64::from(dx).hypot(f64::from(dy)) <= INTACT_STRETCH * d0)
+                    let (dx, dy) = (
+                        state[4 * i] - state[4 * j],
+                        state[4 * i + 1] - state[4 * j + 1],
+                    );
+                    (
+                        i,
+                        j,
+                        f64::from(dx).hypot(f64::from(dy)) <= INTACT_STRETCH * d0,
+                    )
                 })
             })
     }

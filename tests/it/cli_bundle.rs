@@ -111,14 +111,25 @@ fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
     let saved = pred.join("k2").join("multi_rope+snow_001_from2.mcap");
     let read = read_frames(&saved, Some(minflow::bag::PREDICTED_TOPIC)).unwrap();
     let indices: Vec<u32> = read.frames.iter().map(|(_, _, f)| f.frame_index).collect();
-    assert_eq!(indices, (2..25).collect::<Vec<u32>>(), "{}", saved.display());
-    assert!(read.frames.iter().all(|(_, _, f)| f.scene == "multi/rope+snow/001"));
+    assert_eq!(
+        indices,
+        (2..25).collect::<Vec<u32>>(),
+        "{}",
+        saved.display()
+    );
+    assert!(read
+        .frames
+        .iter()
+        .all(|(_, _, f)| f.scene == "multi/rope+snow/001"));
 }
 
 /// The structure section and columns of `eval`'s tables: `persist` copies the rollout's
 /// first frame, so every rest-neighbour pair of the rope is intact and the rope one piece.
 fn assert_structure(table: &str, csv: &str) {
-    assert!(table.contains("Structure") && table.contains("rope connected"), "{table}");
+    assert!(
+        table.contains("Structure") && table.contains("rope connected"),
+        "{table}"
+    );
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).unwrap();

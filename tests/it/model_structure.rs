@@ -48,7 +48,12 @@ fn scene() -> (Vec<f32>, Vec<u8>) {
     let mut material = Vec::new();
     for i in 0..144 {
         let (a, b) = ((i % 12) as f32, (i / 12) as f32);
-        state.extend([0.3 + 0.01 * a + jitter(i), 0.4 + 0.01 * b + jitter(i + 1), 0.1, -0.2]);
+        state.extend([
+            0.3 + 0.01 * a + jitter(i),
+            0.4 + 0.01 * b + jitter(i + 1),
+            0.1,
+            -0.2,
+        ]);
         material.push(1);
     }
     for i in 0..60 {
@@ -73,7 +78,10 @@ fn max_abs_diff(a: &[Vec<f32>], b: &[Vec<f32>]) -> f32 {
 fn grown_rest_shape_and_grid_head_predict_what_the_parent_did() {
     let device = Default::default();
     let parent = initial_grid_model::<B>(&config(false, Update::Free), 5, &device).unwrap();
-    let grown = parent.clone().with_rest_shape().with_update(Update::GridHead);
+    let grown = parent
+        .clone()
+        .with_rest_shape()
+        .with_update(Update::GridHead);
     assert!(grown.uses_rest_shape() && grown.update() == Update::GridHead);
     let meta = |c: GridConfig| ModelMeta {
         net: NetConfig::Grid(c),
@@ -92,7 +100,9 @@ fn grown_rest_shape_and_grid_head_predict_what_the_parent_did() {
         &device,
     );
     let (state, material) = scene();
-    let a = parent.rollout(None, &[state.clone()], &material, 0.016, 4).unwrap();
+    let a = parent
+        .rollout(None, &[state.clone()], &material, 0.016, 4)
+        .unwrap();
     let b = grown.rollout(None, &[state], &material, 0.016, 4).unwrap();
     assert!(max_abs_diff(&a, &b) < 1e-6, "{}", max_abs_diff(&a, &b));
 }
@@ -121,8 +131,14 @@ fn rest_shape_features_see_a_stretch_not_a_rigid_motion() {
             .unwrap()
     };
     let own = roll(&state);
-    assert!(max_abs_diff(&own, &roll(&shifted)) < 1e-5, "a rigid shift of the reference");
-    assert!(max_abs_diff(&own, &roll(&squeezed)) > 1e-4, "a stretch since the reference");
+    assert!(
+        max_abs_diff(&own, &roll(&shifted)) < 1e-5,
+        "a rigid shift of the reference"
+    );
+    assert!(
+        max_abs_diff(&own, &roll(&squeezed)) > 1e-4,
+        "a stretch since the reference"
+    );
 }
 
 /// The grid update: every particle's velocity change is the G2P of one field, so two
@@ -134,11 +150,21 @@ fn grid_update_gives_particles_at_one_place_one_velocity_change() {
     // A twin of particle 0 at its place, with another velocity and material.
     state.extend([state[0], state[1], -0.3, 0.4]);
     material.push(2);
-    let out = model.rollout(None, &[state.clone()], &material, 0.016, 1).unwrap();
+    let out = model
+        .rollout(None, &[state.clone()], &material, 0.016, 1)
+        .unwrap();
     let n = material.len();
-    let dv = |i: usize| [out[0][4 * i + 2] - state[4 * i + 2], out[0][4 * i + 3] - state[4 * i + 3]];
+    let dv = |i: usize| {
+        [
+            out[0][4 * i + 2] - state[4 * i + 2],
+            out[0][4 * i + 3] - state[4 * i + 3],
+        ]
+    };
     let (a, b) = (dv(0), dv(n - 1));
-    assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6, "{a:?} {b:?}");
+    assert!(
+        (a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6,
+        "{a:?} {b:?}"
+    );
 }
 
 /// Permuting the particles permutes the predictions of a model with rest-shape features
@@ -149,10 +175,15 @@ fn rest_shape_model_is_independent_of_particle_order() {
     let (state, material) = scene();
     let n = material.len();
     let perm: Vec<usize> = (0..n).map(|i| (i * 37 + 11) % n).collect();
-    let p_state: Vec<f32> = perm.iter().flat_map(|&i| state[4 * i..4 * i + 4].to_vec()).collect();
+    let p_state: Vec<f32> = perm
+        .iter()
+        .flat_map(|&i| state[4 * i..4 * i + 4].to_vec())
+        .collect();
     let p_material: Vec<u8> = perm.iter().map(|&i| material[i]).collect();
     let a = model.rollout(None, &[state], &material, 0.016, 3).unwrap();
-    let b = model.rollout(None, &[p_state], &p_material, 0.016, 3).unwrap();
+    let b = model
+        .rollout(None, &[p_state], &p_material, 0.016, 3)
+        .unwrap();
     for (fa, fb) in a.iter().zip(&b) {
         for (k, &i) in perm.iter().enumerate() {
             for c in 0..4 {
@@ -175,16 +206,35 @@ fn restart_keeps_the_rest_state() {
         .flat_map(|r| [0.355 + 1.2 * (r[0] - 0.355), r[1], r[2], r[3]])
         .collect();
     let dt = [0.016f32];
-    let (_, first) = model.step(&state, &material, &dt, model.init_state()).unwrap();
+    let (_, first) = model
+        .step(&state, &material, &dt, model.init_state())
+        .unwrap();
     let kept = model.restart(first);
     let (after_gap, _) = model.step(&stretched, &material, &dt, kept).unwrap();
-    let (fresh, _) = model.step(&stretched, &material, &dt, model.init_state()).unwrap();
-    let (given, _) = model
-        .step(&stretched, &material, &dt, model.init_state_at(&state, 1).unwrap())
+    let (fresh, _) = model
+        .step(&stretched, &material, &dt, model.init_state())
         .unwrap();
-    assert_eq!(after_gap, given, "the kept reference is the stream's first frame");
-    let diff = after_gap.iter().zip(&fresh).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
-    assert!(diff > 1e-5, "a fresh stream takes the stretched frame as its rest shape");
+    let (given, _) = model
+        .step(
+            &stretched,
+            &material,
+            &dt,
+            model.init_state_at(&state, 1).unwrap(),
+        )
+        .unwrap();
+    assert_eq!(
+        after_gap, given,
+        "the kept reference is the stream's first frame"
+    );
+    let diff = after_gap
+        .iter()
+        .zip(&fresh)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        diff > 1e-5,
+        "a fresh stream takes the stretched frame as its rest shape"
+    );
 }
 
 /// The neighbourhoods of a batch of two scenes index each scene's own rows.
@@ -194,9 +244,14 @@ fn neighbourhoods_stay_in_their_scene() {
     let n = material.len();
     let pos: Vec<f32> = state.chunks(4).flat_map(|r| [r[0], r[1]]).collect();
     let both = [pos.clone(), pos].concat();
-    let nb = Neighbourhood::build(&both, &[material.clone(), material].concat(), [2, n], |m| m != 0);
+    let nb = Neighbourhood::build(&both, &[material.clone(), material].concat(), [2, n], |m| {
+        m != 0
+    });
     for (row, near) in nb.index.chunks(8).enumerate() {
         let scene = row / n;
-        assert!(near.iter().all(|&j| j as usize / n == scene), "row {row}: {near:?}");
+        assert!(
+            near.iter().all(|&j| j as usize / n == scene),
+            "row {row}: {near:?}"
+        );
     }
 }

@@ -25,10 +25,13 @@ fn repo(p: &str) -> PathBuf {
 
 /// The frames of the bundled bag `name`.
 fn bag(name: &str) -> Vec<ParticleFrame> {
-    raw_messages(&repo(&format!("bags/{name}.mcap")), Some(minflow::bag::FRAMES_TOPIC))
-        .iter()
-        .map(|b| minflow::msgs::decode(b).unwrap())
-        .collect()
+    raw_messages(
+        &repo(&format!("bags/{name}.mcap")),
+        Some(minflow::bag::FRAMES_TOPIC),
+    )
+    .iter()
+    .map(|b| minflow::msgs::decode(b).unwrap())
+    .collect()
 }
 
 /// Frame `index` of scene `scene`: the `base` frames looped, the first `n` particles.
@@ -45,7 +48,11 @@ fn frame_of(base: &[ParticleFrame], scene: &str, n: usize, index: u32) -> Partic
 
 /// Four scenes of 6 frames: three bags of 2,500 particles and one of 1,000.
 fn four_scenes() -> Vec<Vec<ParticleFrame>> {
-    let names = ["multi_rope+snow_001", "fluid_circle_000", "multi_jelly+liquid_002"];
+    let names = [
+        "multi_rope+snow_001",
+        "fluid_circle_000",
+        "multi_jelly+liquid_002",
+    ];
     let mut scenes: Vec<Vec<ParticleFrame>> = names
         .iter()
         .map(|n| (0..6).map(|i| frame_of(&bag(n), n, 2500, i)).collect())
@@ -57,7 +64,10 @@ fn four_scenes() -> Vec<Vec<ParticleFrame>> {
 
 fn worst(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 #[test]
@@ -71,9 +81,10 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
         ("all-grid-mingru-small-k4-rest", false),
         ("all-grid-mingru-small-k4-rest", true),
     ] {
-        let s = Surrogate::<NdArray<f32>>::load(&repo(&format!("models/{model}")), &Default::default())
-            .unwrap()
-            .with_mirror(mirror);
+        let s =
+            Surrogate::<NdArray<f32>>::load(&repo(&format!("models/{model}")), &Default::default())
+                .unwrap()
+                .with_mirror(mirror);
         let whole = s.bundle() > 1;
         // Alone: each scene its own calls.
         let mut alone = Vec::new();
@@ -81,7 +92,9 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
             let mut state = s.init_state();
             let mut outs = Vec::new();
             for f in frames {
-                let (out, st) = s.step_bundle(&state_rows(f), &f.material, &[f.dt], state).unwrap();
+                let (out, st) = s
+                    .step_bundle(&state_rows(f), &f.material, &[f.dt], state)
+                    .unwrap();
                 let out = if whole { out } else { out[..1].to_vec() };
                 outs.push(out);
                 state = st;
@@ -109,7 +122,10 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
                 assert_eq!(out.len(), alone[k][i].len());
                 for (got, want) in out.iter().zip(&alone[k][i]) {
                     let w = worst(got, want);
-                    assert!(w <= 1e-5, "{model} mirror {mirror}: scene {k} frame {i}: {w}");
+                    assert!(
+                        w <= 1e-5,
+                        "{model} mirror {mirror}: scene {k} frame {i}: {w}"
+                    );
                 }
                 states[k] = Some(st);
             }
@@ -158,7 +174,11 @@ fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
     let input = unique_topic("batch_in");
     let (out_one, out_many) = (unique_topic("batch_one"), unique_topic("batch_many"));
     let one = node(&input, &out_one, &["--max-batch", "1"]);
-    let many = node(&input, &out_many, &["--max-batch", "8", "--max-batch-delay", "20"]);
+    let many = node(
+        &input,
+        &out_many,
+        &["--max-batch", "8", "--max-batch-delay", "20"],
+    );
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
     let (tx1, rx1) = channel();
     let (tx8, rx8) = channel();

@@ -77,7 +77,10 @@ fn wait_for_members(session: &zenoh::Session, group: &str, n: usize) {
         if alive >= n {
             return;
         }
-        assert!(Instant::now() < deadline, "{alive} of {n} shard members alive after 60 s");
+        assert!(
+            Instant::now() < deadline,
+            "{alive} of {n} shard members alive after 60 s"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
 }
@@ -93,8 +96,21 @@ fn sharded_nodes_predict_each_frame_once_and_take_over_a_killed_nodes_scenes() {
             Node::spawn(
                 &name,
                 &[
-                    "node", "--model", model.to_str().unwrap(), "--in", &input, "--out", &output,
-                    "--status", "none", "--queue-depth", "1024", "--shard", &group, "--name", &name,
+                    "node",
+                    "--model",
+                    model.to_str().unwrap(),
+                    "--in",
+                    &input,
+                    "--out",
+                    &output,
+                    "--status",
+                    "none",
+                    "--queue-depth",
+                    "1024",
+                    "--shard",
+                    &group,
+                    "--name",
+                    &name,
                 ],
             )
         })
@@ -118,10 +134,22 @@ fn sharded_nodes_predict_each_frame_once_and_take_over_a_killed_nodes_scenes() {
     let period = Duration::from_millis(200);
     let first = publish_rounds(publisher.as_mut(), &base, 0..5, period);
     let mut seen = BTreeMap::new();
-    count(&rx, &mut seen, |s| s.len() >= first.len(), Duration::from_secs(120));
+    count(
+        &rx,
+        &mut seen,
+        |s| s.len() >= first.len(),
+        Duration::from_secs(120),
+    );
     count(&rx, &mut seen, |_| false, Duration::from_secs(1));
-    assert_eq!(seen.len(), first.len(), "every frame predicted while all three were alive");
-    assert!(seen.values().all(|&c| c == 1), "a frame predicted twice: {seen:?}");
+    assert_eq!(
+        seen.len(),
+        first.len(),
+        "every frame predicted while all three were alive"
+    );
+    assert!(
+        seen.values().all(|&c| c == 1),
+        "a frame predicted twice: {seen:?}"
+    );
     // Phase 2: kill -9 one node, 20 more rounds (4 s).
     nodes[0].signal("KILL");
     let killed = Instant::now();
@@ -131,7 +159,11 @@ fn sharded_nodes_predict_each_frame_once_and_take_over_a_killed_nodes_scenes() {
         .filter(|(_, &t)| t >= killed + Duration::from_secs(1))
         .map(|(k, _)| k.clone())
         .collect();
-    assert!(must.len() >= 10 * STREAMS, "{} frames after the first second", must.len());
+    assert!(
+        must.len() >= 10 * STREAMS,
+        "{} frames after the first second",
+        must.len()
+    );
     let all_in = |s: &BTreeMap<(String, u32), u32>| must.iter().all(|k| s.contains_key(k));
     count(&rx, &mut seen, all_in, Duration::from_secs(120));
     count(&rx, &mut seen, |_| false, Duration::from_secs(1));
@@ -141,11 +173,14 @@ fn sharded_nodes_predict_each_frame_once_and_take_over_a_killed_nodes_scenes() {
         logs += &ok(&n.wait(Duration::from_secs(30)), "node");
     }
     let missing: Vec<_> = must.iter().filter(|k| !seen.contains_key(*k)).collect();
-    assert!(missing.is_empty(), "not predicted 1 s after the kill: {missing:?}\n{logs}");
-    assert!(seen.values().all(|&c| c == 1), "a frame predicted twice\n{logs}");
-    let taken: u64 = logs
-        .lines()
-        .filter_map(|l| counter(l, "taken_over"))
-        .sum();
+    assert!(
+        missing.is_empty(),
+        "not predicted 1 s after the kill: {missing:?}\n{logs}"
+    );
+    assert!(
+        seen.values().all(|&c| c == 1),
+        "a frame predicted twice\n{logs}"
+    );
+    let taken: u64 = logs.lines().filter_map(|l| counter(l, "taken_over")).sum();
     assert!(taken >= 1, "no takeover counted\n{logs}");
 }

@@ -109,13 +109,19 @@ pub struct NodeBenchArgs {
 /// `--rate`: frames per second per stream, 0.1 to 1000.
 fn rate_hz(s: &str) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
-    (0.1..=1000.0).contains(&v).then_some(v).ok_or(format!("{v} Hz is outside 0.1..=1000"))
+    (0.1..=1000.0)
+        .contains(&v)
+        .then_some(v)
+        .ok_or(format!("{v} Hz is outside 0.1..=1000"))
 }
 
 /// `--seconds`: 1 to 3600.
 fn seconds_1h(s: &str) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
-    (1.0..=3600.0).contains(&v).then_some(v).ok_or(format!("{v} s is outside 1..=3600"))
+    (1.0..=3600.0)
+        .contains(&v)
+        .then_some(v)
+        .ok_or(format!("{v} s is outside 1..=3600"))
 }
 
 /// Saves an untrained paper-sized model for `core` into `dir`.

@@ -94,14 +94,12 @@ pub(super) fn publish(args: &NodeBenchArgs, topic: &str) -> anyhow::Result<()> {
 
 /// Starts the node and the publisher, counts the predictions of the timed frames, stops
 /// the node and reads its closing counters.
-fn one_row(
-    args: &NodeBenchArgs,
-    exe: &Path,
-    model: &Path,
-    max_batch: u32,
-) -> anyhow::Result<Row> {
+fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> anyhow::Result<Row> {
     let tag = format!("{}_{max_batch}", std::process::id());
-    let (input, output) = (format!("/minflow_streams_{tag}/in"), format!("/minflow_streams_{tag}/out"));
+    let (input, output) = (
+        format!("/minflow_streams_{tag}/in"),
+        format!("/minflow_streams_{tag}/out"),
+    );
     let kind = TransportKind::Zenoh;
     let session = transport::open(&args.transport.options(kind))?;
     let (tx, rx) = channel();
@@ -118,7 +116,12 @@ fn one_row(
         .args(["bench", "node", "--publish-to", &input])
         .args(args.transport.child_args(kind))
         .args(["--streams", &args.streams.unwrap_or(1).to_string()])
-        .args(["--rate", &args.rate.to_string(), "--seconds", &args.seconds.to_string()])
+        .args([
+            "--rate",
+            &args.rate.to_string(),
+            "--seconds",
+            &args.seconds.to_string(),
+        ])
         .args(["--warm-up", &args.warm_up.to_string(), "--bag"])
         .arg(&args.bag)
         .stdout(Stdio::null())
@@ -182,7 +185,12 @@ fn spawn_node(
         .args(["--in", input, "--out", output, "--status", "none"])
         .args(["--max-batch", &max_batch.to_string()])
         .args(["--max-batch-delay", &args.max_batch_delay.to_string()])
-        .args(["--device", &args.device.device, "--gpu-gemm", &args.device.gpu_gemm])
+        .args([
+            "--device",
+            &args.device.device,
+            "--gpu-gemm",
+            &args.device.gpu_gemm,
+        ])
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())

@@ -152,7 +152,11 @@ fn init_normalisation(
             .with_reference(config.reference && saved.reference)
             .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
             .with_rest_shape(config.rest_shape && saved.rest_shape)
-            .with_update(if saved.update == Update::Free { Update::Free } else { config.update }),
+            .with_update(if saved.update == Update::Free {
+                Update::Free
+            } else {
+                config.update
+            }),
         NetConfig::Paper(_) => config.clone(),
     };
     let differ = differences(

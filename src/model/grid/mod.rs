@@ -52,7 +52,6 @@ use burn::tensor::{Tensor, TensorData};
 
 use crate::ops::{grid_channels, linear, silu, NetOps};
 
-
 /// The network (see the module doc).
 #[derive(Module, Debug)]
 pub struct GridModel<B: Backend> {
@@ -242,7 +241,9 @@ impl<B: NetOps> GridModel<B> {
                 None => u.clone(),
             };
             let grid_dv = dv_fields.get(k).map(|f| transfer::g2p(&s, f.clone()));
-            let rest_rows = features.clone().map(|r| r.reshape([b * n_p, REST_FEATURES]));
+            let rest_rows = features
+                .clone()
+                .map(|r| r.reshape([b * n_p, REST_FEATURES]));
             let out = self.head_out(head_in, rest_rows, grid_dv, [b, n_p]);
             let next = self.integrate(out, &vel, pos, dt.clone());
             if k + 1 < self.bundle {
@@ -286,7 +287,11 @@ impl<B: NetOps> GridModel<B> {
         [b, cells]: [usize; 2],
     ) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 3>>) {
         let k = self.bundle;
-        let dv_channels = if self.update == Update::Free { 0 } else { 2 * k };
+        let dv_channels = if self.update == Update::Free {
+            0
+        } else {
+            2 * k
+        };
         if k == 1 && dv_channels == 0 {
             return (vec![out], Vec::new());
         }

@@ -130,7 +130,9 @@ impl<B: Backend> NeighbourTensors<B> {
         let j = f00 * f11 - f01 * f10 - has;
         // Shape matching's rotation from A: angle atan2(A10 - A01, A00 + A11).
         let (p, q) = (c(&a, 0) + c(&a, 3), c(&a, 2) - c(&a, 1));
-        let r = (p.clone().powi_scalar(2) + q.clone().powi_scalar(2)).add_scalar(1e-20).sqrt();
+        let r = (p.clone().powi_scalar(2) + q.clone().powi_scalar(2))
+            .add_scalar(1e-20)
+            .sqrt();
         let (cos, sin) = (p / r.clone(), q / r);
         let (cos, sin) = (cos.reshape([b * n, 1, 1]), sin.reshape([b * n, 1, 1]));
         let x0 = self.offset.clone().narrow(2, 0, 1);
@@ -138,7 +140,10 @@ impl<B: Backend> NeighbourTensors<B> {
         let rx = cos.clone() * x0.clone() - sin.clone() * y0.clone();
         let ry = sin * x0 + cos * y0;
         let rotated = Tensor::cat(vec![rx, ry], 2) * self.weight.clone(); // [B N, K, 2]
-        let o = (dx - rotated).sum_dim(1).reshape([b, n, 2]).div_scalar(k as f32)
+        let o = (dx - rotated)
+            .sum_dim(1)
+            .reshape([b, n, 2])
+            .div_scalar(k as f32)
             * self.inv_d0.clone();
         Tensor::cat(vec![exx, exy, eyy, j, o], 2).clamp(-REST_CLAMP, REST_CLAMP)
     }
@@ -152,7 +157,6 @@ impl<B: Backend> NeighbourTensors<B> {
         let len = dx.powi_scalar(2).sum_dim(2).add_scalar(1e-20).sqrt(); // [B N, K, 1]
         len * self.inv_d0.clone().reshape([b * n, 1, 1]) * self.weight.clone()
     }
-
 }
 
 /// `[B, N, 4]`: the row-major 2 x 2 products `a b` of `[B, N, 4]` row-major matrices.
@@ -172,8 +176,8 @@ fn matmul2<B: Backend>(a: Tensor<B, 3>, b: Tensor<B, 3>) -> Tensor<B, 3> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::tensor::TensorData;
     use burn::backend::NdArray;
+    use burn::tensor::TensorData;
 
     type Nd = NdArray<f32>;
 
@@ -202,11 +206,16 @@ mod tests {
             .chunks_exact(2)
             .flat_map(|p| [c * p[0] - s * p[1] + 0.2, s * p[0] + c * p[1] - 0.1])
             .collect();
-        let up = |v: &[f32]| Tensor::<Nd, 3>::from_data(TensorData::new(v.to_vec(), [1, 36, 2]), &Default::default());
+        let up = |v: &[f32]| {
+            Tensor::<Nd, 3>::from_data(TensorData::new(v.to_vec(), [1, 36, 2]), &Default::default())
+        };
         let rigid = host(t.features(up(&moved)));
         // lambda = 1e-3 tr B / 2 biases F by about 0.1 %: E and J - 1 near -0.002, not 0.
         assert!(rigid.iter().all(|v| v.abs() < 0.02), "{rigid:?}");
-        let stretched: Vec<f32> = pos.chunks_exact(2).flat_map(|p| [0.4 + 1.1 * (p[0] - 0.4), p[1]]).collect();
+        let stretched: Vec<f32> = pos
+            .chunks_exact(2)
+            .flat_map(|p| [0.4 + 1.1 * (p[0] - 0.4), p[1]])
+            .collect();
         let f = host(t.features(up(&stretched)));
         let interior = 2 * 6 + 2; // particle (2, 2)
         let row = &f[interior * 6..interior * 6 + 6];
@@ -221,18 +230,33 @@ mod tests {
     fn host_features_equal_the_tensor_ones() {
         let (pos, mut mat) = block();
         mat[..6].iter_mut().for_each(|m| *m = 0);
-        let nb = Neighbourhood::build(&[pos.clone(), pos.clone()].concat(), &[mat.clone(), mat].concat(), [2, 36], |m| m != 0);
+        let nb = Neighbourhood::build(
+            &[pos.clone(), pos.clone()].concat(),
+            &[mat.clone(), mat].concat(),
+            [2, 36],
+            |m| m != 0,
+        );
         let t = nb.upload::<Nd>(&Default::default());
         let moved: Vec<f32> = pos
             .iter()
             .enumerate()
             .map(|(i, v)| v + 0.003 * ((i * 7919 % 13) as f32 - 6.0) / 6.0)
             .collect();
-        let up = Tensor::<Nd, 3>::from_data(TensorData::new([pos, moved].concat(), [2, 36, 2]), &Default::default());
+        let up = Tensor::<Nd, 3>::from_data(
+            TensorData::new([pos, moved].concat(), [2, 36, 2]),
+            &Default::default(),
+        );
         let (a, b) = (host(t.features(up.clone())), host(t.features_host(up)));
-        let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
         assert!(worst < 1e-4, "{worst}");
-        assert!(a.iter().any(|v| v.abs() > 1e-2), "the random moves strain the block");
+        assert!(
+            a.iter().any(|v| v.abs() > 1e-2),
+            "the random moves strain the block"
+        );
     }
 
     /// Liquid particles are not selected: no neighbours, features 0.
@@ -245,6 +269,4 @@ mod tests {
         let up = Tensor::<Nd, 3>::from_data(TensorData::new(pos, [1, 36, 2]), &Default::default());
         assert!(host(t.features(up)).iter().all(|&v| v == 0.0));
     }
-
-
 }

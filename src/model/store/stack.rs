@@ -296,7 +296,10 @@ impl<T: Rows> Rows for Vec<T> {
                 column.push(t);
             }
         }
-        columns.into_iter().map(|c| T::stack_rows(c, copies)).collect()
+        columns
+            .into_iter()
+            .map(|c| T::stack_rows(c, copies))
+            .collect()
     }
 
     fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
@@ -413,7 +416,12 @@ impl<B: Backend> State<B> {
                     reference: r,
                     rest: n,
                 } => {
-                    (memory.push(m), history.push(h), reference.push(r), rest.push(n));
+                    (
+                        memory.push(m),
+                        history.push(h),
+                        reference.push(r),
+                        rest.push(n),
+                    );
                 }
             }
         }

@@ -166,8 +166,26 @@ mod tests {
             (seen(4), 7, false, OnGap::Skip, Continue),
             (rolled, 5, true, OnGap::Reset, Ignore),
             // Issue 40: a rolled-out scene idle past the timeout or forgotten stays done.
-            (SceneView { idle_too_long: true, ..rolled }, 9, true, OnGap::Reset, Ignore),
-            (SceneView { last_index: None, ..rolled }, 9, true, OnGap::Reset, Ignore),
+            (
+                SceneView {
+                    idle_too_long: true,
+                    ..rolled
+                },
+                9,
+                true,
+                OnGap::Reset,
+                Ignore,
+            ),
+            (
+                SceneView {
+                    last_index: None,
+                    ..rolled
+                },
+                9,
+                true,
+                OnGap::Reset,
+                Ignore,
+            ),
             (rolled, 0, true, OnGap::Reset, Restart),
             (rolled, 5, false, OnGap::Reset, Continue),
         ];

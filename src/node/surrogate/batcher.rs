@@ -199,11 +199,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     }
 
     /// Publishes, keeps or hands on what a job's call returned.
-    fn finish_job(
-        &mut self,
-        job: Job<B>,
-        result: Result<(Vec<Vec<f32>>, State<B>), StoreError>,
-    ) {
+    fn finish_job(&mut self, job: Job<B>, result: Result<(Vec<Vec<f32>>, State<B>), StoreError>) {
         let (mut bundle, state) = match result {
             Ok(v) => v,
             Err(e) => {

@@ -163,7 +163,8 @@ impl<B: burn::tensor::backend::Backend> Rollout<B> {
     /// When the next frame is due; None when unpaced.
     fn due_at(&self) -> Option<Instant> {
         let p = self.period?;
-        self.start.checked_add(p.checked_mul(u32::try_from(self.published).ok()?)?)
+        self.start
+            .checked_add(p.checked_mul(u32::try_from(self.published).ok()?)?)
     }
 
     /// Published all it has, more to come, and its state is here.

@@ -262,9 +262,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// Publishes the rollout frames due now (each counts as activity of its scene).
     pub(super) fn publish_due_rollouts(&mut self) {
         for frame in self.rollouts.due(Instant::now()) {
-            let idle = self
-                .scenes
-                .touch(&frame.scene, self.options.idle_timeout);
+            let idle = self.scenes.touch(&frame.scene, self.options.idle_timeout);
             self.note_idle(u64::from(idle));
             self.emit(&frame);
         }

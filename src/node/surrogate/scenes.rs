@@ -65,7 +65,10 @@ impl<B: NetOps> Scenes<B> {
     /// Scenes held now that have not been rolled out: those that may still send frames
     /// to step (the dynamic batcher waits for them).
     pub(super) fn live(&self) -> usize {
-        self.map.keys().filter(|k| !self.rolled.contains(*k)).count()
+        self.map
+            .keys()
+            .filter(|k| !self.rolled.contains(*k))
+            .count()
     }
 
     /// True when `scene`'s closed-loop rollout started (it waits for its frame 0).

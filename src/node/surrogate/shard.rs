@@ -48,7 +48,11 @@ impl Shard {
             topic: format!("{PREFIX}/{group}"),
             reason,
         };
-        let me = format!("{}-{}", name.replace(['/', '*', '$', '?', '#'], "_"), session.zid());
+        let me = format!(
+            "{}-{}",
+            name.replace(['/', '*', '$', '?', '#'], "_"),
+            session.zid()
+        );
         let members = Arc::new(Mutex::new(BTreeSet::from([me.clone()])));
         let seen = Arc::clone(&members);
         let prefix = format!("{PREFIX}/{group}/");
@@ -67,8 +71,15 @@ impl Shard {
                     SampleKind::Delete => member != own && set.remove(member),
                 };
                 if changed {
-                    let how = if sample.kind() == SampleKind::Put { "joined" } else { "left" };
-                    tracing::info!("{log_name}: shard member {member} {how}; {} alive", set.len());
+                    let how = if sample.kind() == SampleKind::Put {
+                        "joined"
+                    } else {
+                        "left"
+                    };
+                    tracing::info!(
+                        "{log_name}: shard member {member} {how}; {} alive",
+                        set.len()
+                    );
                 }
             })
             .wait()
@@ -89,7 +100,10 @@ impl Shard {
         while let Ok(reply) = replies.recv() {
             let key = reply.result().map(|s| s.key_expr().as_str().to_owned());
             if let Some(member) = key.ok().as_deref().and_then(|k| k.strip_prefix(&prefix)) {
-                members.lock().expect("member set poisoned").insert(member.to_owned());
+                members
+                    .lock()
+                    .expect("member set poisoned")
+                    .insert(member.to_owned());
             }
         }
         Ok(Shard {
@@ -115,9 +129,7 @@ impl Shard {
 /// The member with the highest rendezvous score for `scene` (ties: the larger name); None
 /// without members.
 pub fn owner<'a>(members: impl IntoIterator<Item = &'a str>, scene: &str) -> Option<&'a str> {
-    members
-        .into_iter()
-        .max_by_key(|m| (score(m, scene), *m))
+    members.into_iter().max_by_key(|m| (score(m, scene), *m))
 }
 
 /// A stable 64-bit score of (member, scene): FNV-1a over both, separated, then the
@@ -149,7 +161,10 @@ mod tests {
             let n = before.iter().filter(|o| **o == m).count();
             assert!((60..=140).contains(&n), "{m} owns {n} of 300");
         }
-        let after: Vec<&str> = scenes.iter().map(|s| owner(["a", "c"], s).unwrap()).collect();
+        let after: Vec<&str> = scenes
+            .iter()
+            .map(|s| owner(["a", "c"], s).unwrap())
+            .collect();
         for (b, a) in before.iter().zip(&after) {
             if *b != "b" {
                 assert_eq!(b, a, "a scene of a staying member moved");

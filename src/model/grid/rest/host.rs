@@ -218,7 +218,13 @@ impl<B: Backend> NeighbourTensors<B> {
         ) else {
             return self.features(pos);
         };
-        let Ok(index) = self.index.clone().into_data().convert::<i64>().to_vec::<i64>() else {
+        let Ok(index) = self
+            .index
+            .clone()
+            .into_data()
+            .convert::<i64>()
+            .to_vec::<i64>()
+        else {
             return self.features(pos);
         };
         let k = REST_NEIGHBOURS;
@@ -229,7 +235,10 @@ impl<B: Backend> NeighbourTensors<B> {
                 let slot = row * k + j;
                 let other = base + index[slot] as usize;
                 let w = weight[slot];
-                let dx = [(x[2 * other] - x[2 * row]) * w, (x[2 * other + 1] - x[2 * row + 1]) * w];
+                let dx = [
+                    (x[2 * other] - x[2 * row]) * w,
+                    (x[2 * other + 1] - x[2 * row + 1]) * w,
+                ];
                 (dx, [offset[2 * slot], offset[2 * slot + 1]], w)
             });
             let g = Geometry::of(&near, &binv[row * 4..row * 4 + 4], inv_d0[row]);
@@ -246,7 +255,6 @@ impl<B: Backend> NeighbourTensors<B> {
         }
         Tensor::from_data(TensorData::new(out, [b, n, REST_FEATURES]), &device)
     }
-
 }
 
 /// One neighbour pair on the host: current offset `dx`, rest offset `dX`, weight.
@@ -312,7 +320,12 @@ mod tests {
             let got = bins.nearest(&pos, i, 8, |_| true);
             let mut all: Vec<(f32, usize)> = (0..200)
                 .filter(|&j| j != i)
-                .map(|j| ((pos[2 * j] - pos[2 * i]).hypot(pos[2 * j + 1] - pos[2 * i + 1]), j))
+                .map(|j| {
+                    (
+                        (pos[2 * j] - pos[2 * i]).hypot(pos[2 * j + 1] - pos[2 * i + 1]),
+                        j,
+                    )
+                })
                 .collect();
             all.sort_by(|a, b| a.0.total_cmp(&b.0));
             let want: Vec<usize> = all[..8].iter().map(|x| x.1).collect();
