@@ -64,6 +64,7 @@ fn input(state: &[f32], material: &[u8]) -> StepInput<B> {
         dt: Tensor::from_data(TensorData::new(vec![0.016f32], [1]), &device),
         reference: None,
         rest: None,
+        deformation: None,
     }
 }
 

@@ -3,12 +3,12 @@
 //! them at zero weights predicts exactly what its parent did; the rest neighbourhoods are the
 //! scene's state, built from its first frame and kept across a restart; the features see a
 //! deformation of the body and not a rigid motion; with the grid update two particles at one
-//! place get one velocity change; and the features keep the model's independence of the
-//! particle order.
+//! place get one velocity change; the features keep the model's independence of the
+//! particle order; and an advected F (`--rest-shape advect`) is state the scene carries.
 
 use burn::backend::NdArray;
 use minflow::data::Scaler;
-use minflow::model::grid::{GridConfig, MemoryKind, Neighbourhood, Update};
+use minflow::model::grid::{Deformation, GridConfig, MemoryKind, Neighbourhood, Update};
 use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
 use minflow::train::grid::initial_grid_model;
 
@@ -235,6 +235,38 @@ fn restart_keeps_the_rest_state() {
         diff > 1e-5,
         "a fresh stream takes the stretched frame as its rest shape"
     );
+}
+
+/// `--rest-shape advect`: F is carried from step to step. A model without memory and with one
+/// velocity frame carries nothing else a restart drops, so stepping a stretched frame after a
+/// restart (F fitted to it: it sees the stretch) predicts otherwise than stepping it with the
+/// F carried from the step before (advected by the predicted velocities: it does not);
+/// with the fitted F (variant (b)) the two are equal, bit for bit.
+#[test]
+fn advected_deformation_is_carried_state() {
+    let (state, material) = scene();
+    let stretched: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [0.355 + 1.2 * (r[0] - 0.355), r[1], r[2], r[3]])
+        .collect();
+    let dt = [0.016f32];
+    let mut diffs = Vec::new();
+    for deformation in [Deformation::Fit, Deformation::Advect] {
+        let mut c = config(true, Update::Free)
+            .with_window(1)
+            .with_deformation(deformation);
+        c.memory = MemoryKind::None;
+        let model = surrogate(c, 23);
+        let (_, after_first) = model
+            .step(&state, &material, &dt, model.init_state())
+            .unwrap();
+        let restarted = model.restart(model.step(&state, &material, &dt, model.init_state()).unwrap().1);
+        let (carried, _) = model.step(&stretched, &material, &dt, after_first).unwrap();
+        let (refitted, _) = model.step(&stretched, &material, &dt, restarted).unwrap();
+        diffs.push(max_abs_diff(&[carried], &[refitted]));
+    }
+    assert_eq!(diffs[0], 0.0, "the fitted F is no state");
+    assert!(diffs[1] > 1e-5, "the advected F is: {}", diffs[1]);
 }
 
 /// The neighbourhoods of a batch of two scenes index each scene's own rows.

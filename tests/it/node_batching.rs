@@ -62,6 +62,19 @@ fn four_scenes() -> Vec<Vec<ParticleFrame>> {
     scenes
 }
 
+/// A copy of the shipped model `name` that advects its rest-shape features' F
+/// (`"deformation": "Advect"` in its model.json): the same weights, another physical state.
+fn advected(name: &str) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let from = repo(&format!("models/{name}"));
+    std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
+    let mut meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(from.join("model.json")).unwrap()).unwrap();
+    meta["deformation"] = "Advect".into();
+    std::fs::write(dir.path().join("model.json"), meta.to_string()).unwrap();
+    dir
+}
+
 fn worst(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
@@ -73,6 +86,7 @@ fn worst(a: &[f32], b: &[f32]) -> f32 {
 #[test]
 fn batched_steps_equal_steps_one_scene_at_a_time() {
     let scenes = four_scenes();
+    let advected = advected("all-grid-mingru-small-k4-rest");
     for (model, mirror) in [
         ("all-grid-mingru-small", false),
         ("all-grid-mingru-small", true),
@@ -80,11 +94,17 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
         // Rest neighbourhoods stack and split with the other per-scene state.
         ("all-grid-mingru-small-k4-rest", false),
         ("all-grid-mingru-small-k4-rest", true),
+        // So does the advected deformation gradient.
+        ("advected", false),
+        ("advected", true),
     ] {
-        let s =
-            Surrogate::<NdArray<f32>>::load(&repo(&format!("models/{model}")), &Default::default())
-                .unwrap()
-                .with_mirror(mirror);
+        let dir = match model {
+            "advected" => advected.path().to_path_buf(),
+            _ => repo(&format!("models/{model}")),
+        };
+        let s = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())
+            .unwrap()
+            .with_mirror(mirror);
         let whole = s.bundle() > 1;
         // Alone: each scene its own calls.
         let mut alone = Vec::new();

@@ -215,6 +215,7 @@ fn stages<B: AutodiffBackend + NetOps>(
         dt: Tensor::ones([b], device).mul_scalar(0.016),
         reference: None,
         rest: None,
+        deformation: None,
     };
     let step = timed::<B>(device, repeats, || {
         let (out, _) = model.step(input.clone(), MemoryState::Empty);

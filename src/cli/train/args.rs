@@ -9,7 +9,7 @@ use clap::Args;
 use std::path::PathBuf;
 
 use crate::cli::device::DeviceArgs;
-use crate::model::grid::{ConvKernel, GridConfig, MemoryKind, Update};
+use crate::model::grid::{ConvKernel, Deformation, GridConfig, MemoryKind, Update};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::train::grid::GridTrainOptions;
 use crate::train::TrainOptions;
@@ -251,7 +251,9 @@ pub struct GridNetArgs {
     /// Rest-shape features of the solids: fit (each jelly, snow and rope particle's
     /// deformation gradient fitted to its 8 nearest neighbours of the same material in the
     /// first frame of its stream; Green strain, J - 1 and shape matching's restoring offset
-    /// into P2G and the head; `--init-from` a model without them grows them at zero) | none.
+    /// into P2G and the head; `--init-from` a model without them grows them at zero) |
+    /// advect (F carried per particle and advected with the predicted velocities' APIC
+    /// gradient, F <- (I + dt C) F, started from the fit; the liquid carries J) | none.
     #[arg(long, value_enum, default_value_t = RestShape::None)]
     pub rest_shape: RestShape,
     /// The particle update: free (a per-particle head predicts each velocity change) | grid
@@ -270,6 +272,9 @@ pub enum RestShape {
     None,
     /// The deformation gradient fitted to the rest neighbours (`model::grid::rest`).
     Fit,
+    /// The deformation gradient advected with the predicted velocity field
+    /// (`model::grid::rest::advect`).
+    Advect,
 }
 
 /// Parses `--update`.
@@ -307,8 +312,11 @@ impl GridNetArgs {
                 .flatten(),
         )
         .chain(
-            (self.rest_shape == RestShape::Fit)
-                .then(|| ["--rest-shape".to_owned(), "fit".to_owned()])
+            match self.rest_shape {
+                RestShape::None => None,
+                RestShape::Fit => Some(["--rest-shape".to_owned(), "fit".to_owned()]),
+                RestShape::Advect => Some(["--rest-shape".to_owned(), "advect".to_owned()]),
+            }
                 .into_iter()
                 .flatten(),
         )
@@ -413,7 +421,11 @@ impl TrainArgs {
             .with_bundle(g.net.bundle)
             .with_conv(g.conv)
             .with_reference(g.net.reference == Reference::FirstFrame)
-            .with_rest_shape(g.net.rest_shape == RestShape::Fit)
+            .with_rest_shape(g.net.rest_shape != RestShape::None)
+            .with_deformation(match g.net.rest_shape {
+                RestShape::Advect => Deformation::Advect,
+                _ => Deformation::Fit,
+            })
             .with_update(g.net.update);
         config
             .validate()

@@ -152,6 +152,8 @@ fn init_normalisation(
             .with_reference(config.reference && saved.reference)
             .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
             .with_rest_shape(config.rest_shape && saved.rest_shape)
+            // A fitted-F model may be fine-tuned into an advected-F one and back.
+            .with_deformation(saved.deformation)
             .with_update(if saved.update == Update::Free {
                 Update::Free
             } else {

@@ -1,6 +1,7 @@
 //! [`GridConfig`]: every size, switch and normalisation constant of a grid model (saved in
 //! its `model.json`), its checks ([`GridConfigError`]) and fresh weights
-//! ([`GridConfig::init`]); [`Update`], how the model turns its outputs into velocity changes.
+//! ([`GridConfig::init`]); [`Update`], how the model turns its outputs into velocity changes;
+//! [`Deformation`], where its rest-shape features' deformation gradient comes from.
 
 use burn::config::Config;
 use burn::nn::{Initializer, LinearConfig};
@@ -39,6 +40,21 @@ impl Update {
     pub fn parse(name: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|u| u.name() == name)
     }
+}
+
+/// Where a rest-shape model's deformation gradient F comes from ([`GridConfig::deformation`];
+/// [`super::rest`]).
+#[derive(Config, Debug, Copy, PartialEq, Eq)]
+pub enum Deformation {
+    /// Fitted each frame by least squares to the particle's rest neighbours (variant (b);
+    /// every rest-shape model saved before this existed).
+    Fit,
+    /// Carried per particle and advected with the predicted velocity field,
+    /// `F <- (I + dt C) F`, `C` the APIC / MLS-MPM affine velocity gradient gathered from the
+    /// P2G of the predicted velocities (variant (a); [`super::rest::advect`]). It starts as
+    /// the fit where a rollout starts (the identity in a stream's first frame); the liquid
+    /// carries only `J` (`F = sqrt(J) I`, as MPM resets its fluid's F).
+    Advect,
 }
 
 /// Every size and normalisation constant of a grid model; saved with each checkpoint.
@@ -113,6 +129,10 @@ pub struct GridConfig {
     /// models saved before it existed.
     #[config(default = "Update::Free")]
     pub update: Update,
+    /// Where the rest-shape features' F comes from (`train --rest-shape fit | advect`).
+    /// [`Deformation::Fit`] in models saved before it existed.
+    #[config(default = "Deformation::Fit")]
+    pub deformation: Deformation,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -219,6 +239,7 @@ impl GridConfig {
             bundle: self.bundle.max(1),
             reference: self.reference,
             update: self.update,
+            deformation: self.deformation,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,

@@ -10,7 +10,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
 use super::unet::UNet;
-use super::{GridModel, Update, REST_FEATURES};
+use super::{Deformation, GridModel, Update, REST_FEATURES};
 use crate::ops::NetOps;
 
 impl<B: NetOps> GridModel<B> {
@@ -80,6 +80,16 @@ impl<B: NetOps> GridModel<B> {
         Self {
             unet: self.unet.widen_output(2 * self.bundle),
             update,
+            ..self
+        }
+    }
+
+    /// This model with its rest-shape features' F taken as `deformation` says
+    /// ([`super::GridConfig::deformation`]): the same weights, the six features read from
+    /// another F (fine-tuning a fitted-F model into an advected-F one).
+    pub fn with_deformation(self, deformation: Deformation) -> Self {
+        Self {
+            deformation,
             ..self
         }
     }

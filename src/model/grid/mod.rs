@@ -18,6 +18,9 @@
 //!    With [`GridConfig::rest_shape`] each solid particle also measures its deformation from
 //!    its rest neighbours ([`rest`]: Green strain, `J - 1`, shape matching's restoring offset,
 //!    6 values): splatted as 6 more P2G channels (after the reference ones) and fed to the head.
+//!    With [`Deformation::Advect`] the features' F is instead carried per particle and
+//!    advected with the predicted velocities' APIC gradient after every frame
+//!    ([`rest::advect`]; started from the fit where a rollout starts).
 //! 5. Head: an MLP on `[u_i, memory output]` predicts the normalised velocity change;
 //!    `dv = dv_mean + dv_scale * out` (physical), `v' = v + dv`, and the trapezoid
 //!    `x' = x + dt (v + v') / 2` (its floor against MPM frames is 1.5e-6 / 1.3e-6 MSE, the
@@ -40,7 +43,7 @@ pub mod rest;
 pub mod transfer;
 pub mod unet;
 
-pub use config::{GridConfig, GridConfigError, Update};
+pub use config::{Deformation, GridConfig, GridConfigError, Update};
 pub use memory::{Memory, MemoryKind, MemoryState};
 pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
 pub use unet::{ConvKernel, UNet, UNetConfig};
@@ -68,6 +71,8 @@ pub struct GridModel<B: Backend> {
     reference: bool,
     #[module(skip)]
     update: Update,
+    #[module(skip)]
+    deformation: Deformation,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
     dv_scale: [f32; 2],
@@ -92,6 +97,10 @@ pub struct StepInput<B: Backend> {
     /// [`Neighbourhood::build`]); read only by a model with [`GridConfig::rest_shape`], whose
     /// rest-shape features are 0 when it is `None`.
     pub rest: Option<NeighbourTensors<B>>,
+    /// `[B, N, 4]` each particle's carried deformation gradient (row-major), read only by a
+    /// model with [`Deformation::Advect`]: a [`StepOutput::deformation`] of the step before,
+    /// or `None` at a rollout's start (then the fit to `rest`, [`NeighbourTensors::fitted`]).
+    pub deformation: Option<Tensor<B, 3>>,
 }
 
 /// A step's prediction, physical units.
@@ -101,6 +110,9 @@ pub struct StepOutput<B: Backend> {
     pub pos: Tensor<B, 3>,
     /// `[B, N, 2]` next velocities.
     pub vel: Tensor<B, 3>,
+    /// `[B, N, 4]` the advected deformation gradient at the next frame (a model with
+    /// [`Deformation::Advect`]; `None` otherwise).
+    pub deformation: Option<Tensor<B, 3>>,
 }
 
 /// `[1, 1, 2k]`: `v` repeated k times (per-component constants for interleaved x, y).
@@ -151,6 +163,11 @@ impl<B: NetOps> GridModel<B> {
         self.update
     }
 
+    /// Whether the model carries an advected F ([`Deformation::Advect`] with rest shape).
+    pub fn advects(&self) -> bool {
+        self.rest_in.is_some() && self.deformation == Deformation::Advect
+    }
+
     /// One step for a batch of scenes: the next frame and the new memory state. For a
     /// bundled model (K > 1) this is the first frame of [`GridModel::step_bundle`].
     ///
@@ -184,6 +201,8 @@ impl<B: NetOps> GridModel<B> {
         let device = input.pos.device();
         let vel = input.vel.clone() / pairs(self.vel_scale, t, &device); // [B, N, 2T], normalised
         let rest = |pos: &Tensor<B, 3>| self.rest_features(input.rest.as_ref(), pos);
+        // Variant (a): F carried, advected after every frame; its features replace the fit's.
+        let mut carried = self.advects().then(|| self.carried(&input, [b, n_p]));
 
         // P2G: the separable dense transfers on accelerators, the sparse ones on the CPU.
         let s = transfer::stencil(input.pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
@@ -194,7 +213,10 @@ impl<B: NetOps> GridModel<B> {
             let x0 = input.reference.clone().unwrap_or_else(|| input.pos.clone());
             values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
         }
-        let mut features = rest(&input.pos);
+        let mut features = match &carried {
+            Some((f, _)) => Some(rest::advect::features_of(f.clone())),
+            None => rest(&input.pos),
+        };
         if let Some(r) = &features {
             values.push(r.clone());
         }
@@ -234,7 +256,10 @@ impl<B: NetOps> GridModel<B> {
             if k > 0 {
                 s = transfer::stencil(pos.clone(), self.n, !B::SEQUENTIAL_SCAN);
                 u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
-                features = rest(&pos);
+                features = match &carried {
+                    Some((f, _)) => Some(rest::advect::features_of(f.clone())),
+                    None => rest(&pos),
+                };
             }
             let head_in = match &memory {
                 Some(m) => Tensor::cat(vec![u.clone(), m.clone()], 1),
@@ -245,7 +270,13 @@ impl<B: NetOps> GridModel<B> {
                 .clone()
                 .map(|r| r.reshape([b * n_p, REST_FEATURES]));
             let out = self.head_out(head_in, rest_rows, grid_dv, [b, n_p]);
-            let next = self.integrate(out, &vel, pos, dt.clone());
+            let mut next = self.integrate(out, &vel, pos.clone(), dt.clone());
+            if let Some((f, has)) = carried.as_mut() {
+                // APIC's gradient at the frame's start positions (the stencil `s`).
+                let c = rest::advect::velocity_gradient(&s, &pos, next.vel.clone());
+                *f = rest::advect::advect(f.clone(), c, dt.clone(), has.clone());
+                next.deformation = Some(f.clone());
+            }
             if k + 1 < self.bundle {
                 // The velocity window moves on by the frame just predicted (normalised).
                 let v = next.vel.clone() / pairs(self.vel_scale, 1, &device);
@@ -258,6 +289,24 @@ impl<B: NetOps> GridModel<B> {
             frames.push(next);
         }
         (frames, state)
+    }
+
+    /// The carried F of `input` (`[B, N, 4]`; the fit to its rest neighbourhoods, the
+    /// identity without them, where it carries none of this shape) and the `[B, N, 1]` mask of
+    /// particles with rest neighbours (the others carry only J).
+    fn carried(&self, input: &StepInput<B>, [b, n_p]: [usize; 2]) -> (Tensor<B, 3>, Tensor<B, 3>) {
+        let device = input.pos.device();
+        let rest = input.rest.as_ref().filter(|r| r.dims() == [b, n_p]);
+        let has = match rest {
+            Some(r) => r.has_neighbours(),
+            None => Tensor::zeros([b, n_p, 1], &device),
+        };
+        let f = match (input.deformation.clone(), rest) {
+            (Some(f), _) if f.dims() == [b, n_p, 4] => f,
+            (_, Some(r)) => r.fitted(input.pos.clone()),
+            _ => rest::advect::identity([b, n_p], &device),
+        };
+        (f, has)
     }
 
     /// `[B, N, REST_FEATURES]`: the rest-shape features of positions `pos` from the
@@ -374,7 +423,11 @@ impl<B: NetOps> GridModel<B> {
         let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
         let dx = 1.0 / self.n as f32;
         let pos = pos.clamp(0.5 * dx, 1.0 - 1.5 * dx);
-        StepOutput { pos, vel: v_next }
+        StepOutput {
+            pos,
+            vel: v_next,
+            deformation: None,
+        }
     }
 }
 

@@ -24,10 +24,14 @@
 //!   strain loss).
 //!
 //! Liquid particles (and any particle not selected) have no neighbours: their features are 0.
+//!
+//! [`advect`] holds the other source of F (variant (a), [`super::Deformation::Advect`]): F
+//! carried per particle and advected with the predicted velocity field, started from the fit.
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 
+pub mod advect;
 mod host;
 pub use host::Neighbourhood;
 

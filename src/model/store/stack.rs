@@ -390,12 +390,14 @@ impl<B: Backend> State<B> {
                 history,
                 reference,
                 rest,
+                deformation,
             } => {
                 key.push(usize::MAX);
                 memory.rows_key(&mut key); // one line per field, here and in `stack` and `split`
                 history.rows_key(&mut key);
                 reference.rows_key(&mut key);
                 rest.rows_key(&mut key);
+                deformation.rows_key(&mut key);
             }
         }
         key
@@ -406,7 +408,7 @@ impl<B: Backend> State<B> {
     /// are the caller's to keep.
     pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
         let (mut paper, mut memory, mut history, mut reference) = (vec![], vec![], vec![], vec![]);
-        let mut rest = vec![];
+        let (mut rest, mut deformation) = (vec![], vec![]);
         for state in states {
             match state.inner {
                 NetState::Paper(layers) => paper.push(layers),
@@ -415,12 +417,14 @@ impl<B: Backend> State<B> {
                     history: h,
                     reference: r,
                     rest: n,
+                    deformation: f,
                 } => {
                     (
                         memory.push(m),
                         history.push(h),
                         reference.push(r),
                         rest.push(n),
+                        deformation.push(f),
                     );
                 }
             }
@@ -432,6 +436,7 @@ impl<B: Backend> State<B> {
                 history: Rows::stack_rows(history, copies)?,
                 reference: Rows::stack_rows(reference, copies)?,
                 rest: Rows::stack_rows(rest, copies)?,
+                deformation: Rows::stack_rows(deformation, copies)?,
             },
             _ => return Err(shape("stack: no states, or of both kinds")),
         };
@@ -452,16 +457,19 @@ impl<B: Backend> State<B> {
                 history,
                 reference,
                 rest,
+                deformation,
             } => {
                 let mut history = history.split_rows(sizes, copies).into_iter();
                 let mut reference = reference.split_rows(sizes, copies).into_iter();
                 let mut rest = rest.split_rows(sizes, copies).into_iter();
+                let mut deformation = deformation.split_rows(sizes, copies).into_iter();
                 let mut grid = |memory| -> Option<NetState<B>> {
                     Some(NetState::Grid {
                         memory,
                         history: history.next()?,
                         reference: reference.next()?,
                         rest: rest.next()?,
+                        deformation: deformation.next()?,
                     })
                 };
                 memory

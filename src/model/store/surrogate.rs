@@ -26,13 +26,14 @@ pub struct Surrogate<B: Backend> {
     mirror: bool,
 }
 
-/// What a grid model carries between steps: memory, velocity history, reference positions
-/// and the rest neighbourhoods built from them.
+/// What a grid model carries between steps: memory, velocity history, reference positions,
+/// the rest neighbourhoods built from them and the advected deformation gradient.
 type GridCarry<B> = (
     MemoryState<B>,
     Option<Tensor<B, 3>>,
     Option<Tensor<B, 3>>,
     Option<NeighbourTensors<B>>,
+    Option<Tensor<B, 3>>,
 );
 
 /// Per-trajectory state (one batch row per trajectory).
@@ -51,12 +52,16 @@ pub(super) enum NetState<B: Backend> {
     /// the reference positions (`[B, N, 2]`: the first frame's, unless set by
     /// [`Surrogate::init_state_at`]; read only by a model with `reference`), and the rest
     /// neighbourhoods of the reference positions (built on the first step of a model with
-    /// `rest_shape`: the scene's physical state beside its memory, kept across a restart).
+    /// `rest_shape`: the scene's physical state beside its memory, kept across a restart),
+    /// and the advected deformation gradient (`[B, N, 4]`, a model with `Deformation::Advect`:
+    /// the F of the frame the next step reads; `None` before the first step and after a
+    /// restart, when the step starts it from the fit to the rest neighbourhoods).
     Grid {
         memory: MemoryState<B>,
         history: Option<Tensor<B, 3>>,
         reference: Option<Tensor<B, 3>>,
         rest: Option<NeighbourTensors<B>>,
+        deformation: Option<Tensor<B, 3>>,
     },
 }
 
@@ -115,14 +120,16 @@ impl<B: NetOps> Surrogate<B> {
                 history: None,
                 reference: None,
                 rest: None,
+                deformation: None,
             },
         };
         State { inner, frames: 0 }
     }
 
-    /// `state` reset as at the start of a stream (memory, velocity history, frame count),
-    /// except that a grid model's reference positions and rest neighbourhoods are kept: what
-    /// the node does over a gap in a stream that goes on.
+    /// `state` reset as at the start of a stream (memory, velocity history, frame count,
+    /// advected F: fitted again to the rest neighbourhoods from the next frame), except that a
+    /// grid model's reference positions and rest neighbourhoods are kept: what the node does
+    /// over a gap in a stream that goes on.
     pub fn restart(&self, state: State<B>) -> State<B> {
         let mut fresh = self.init_state();
         if let (
@@ -272,9 +279,10 @@ impl<B: NetOps> Surrogate<B> {
                     history,
                     reference,
                     rest,
+                    deformation,
                 },
             ) => {
-                let carry = (memory, history, reference, rest);
+                let carry = (memory, history, reference, rest, deformation);
                 if self.mirror {
                     let (material, dt) = ([material, material].concat(), [dt, dt].concat());
                     let frames = with_mirror_rows(frames);
@@ -307,7 +315,7 @@ impl<B: NetOps> Surrogate<B> {
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
-        (memory, history, reference, rest): GridCarry<B>,
+        (memory, history, reference, rest, deformation): GridCarry<B>,
         whole: bool,
     ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
@@ -339,11 +347,14 @@ impl<B: NetOps> Surrogate<B> {
             dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference.clone()),
             rest: rest.clone(),
+            deformation: deformation.filter(|f| f.dims() == [b, n, 4]),
         };
         let (mut outs, memory) = model.step_bundle(input, memory);
         if !whole {
             outs.truncate(1);
         }
+        // The F of the frame the next call reads: the last one returned.
+        let deformation = outs.last().and_then(|o| o.deformation.clone());
         // The T - 1 velocities before the next call's input frame: the input frame's own
         // window (the next observed frame follows it), or that window continued by the
         // bundle's frames but its last (the next call's input is that last frame).
@@ -374,6 +385,7 @@ impl<B: NetOps> Surrogate<B> {
                 history,
                 reference,
                 rest,
+                deformation,
             },
         ))
     }

@@ -178,7 +178,7 @@ where
         };
         let model = model.with_bundle(c.bundle);
         let model = match c.rest_shape {
-            true => model.with_rest_shape(),
+            true => model.with_rest_shape().with_deformation(c.deformation),
             false => model,
         };
         model.with_update(c.update)

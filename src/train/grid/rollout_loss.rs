@@ -144,6 +144,9 @@ pub(super) fn sequence_loss<B: NetOps>(
     let mut history: Vec<Tensor<B, 3>> = (0..t).map(|k| noisy(truth(k).narrow(2, 2, 2))).collect();
     let mut pos = truth(t - 1).narrow(2, 0, 2);
     let mut state = MemoryState::Empty;
+    // The advected F ([`crate::model::grid::Deformation::Advect`]): fitted to the true frame
+    // T - 1 by the first call, then carried.
+    let mut deformation = None;
     let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
     let bundle = config.bundle.max(1);
     let mut total: Option<Tensor<B, 1>> = None;
@@ -156,9 +159,11 @@ pub(super) fn sequence_loss<B: NetOps>(
             dt: dt.clone(),
             reference: Some(first_pos.clone()),
             rest: rest.as_ref().map(|(r, _)| r.clone()),
+            deformation: deformation.take(),
         };
         let (outs, next_state) = model.step_bundle(input, state);
         state = next_state;
+        deformation = outs.last().and_then(|o| o.deformation.clone());
         let mut last_pos = None;
         for (k, out) in outs.into_iter().enumerate() {
             let target = truth(t + p * bundle + k);
