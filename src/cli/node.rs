@@ -73,6 +73,12 @@ pub struct NodeArgs {
     /// at once when every scene that could join has.
     #[arg(long, default_value_t = 2.0, value_name = "MS", value_parser = batch_delay_ms)]
     max_batch_delay: f64,
+    /// Dynamic batching: pad each call to a power-of-two number of scenes (copies of its
+    /// last scene, their results dropped), so calls come in log2(--max-batch) shapes, not
+    /// --max-batch of them. Default: true on a GPU (each new batch shape compiles and
+    /// autotunes kernels there), false on the CPU (padding is only extra work there).
+    #[arg(long, value_name = "BOOL")]
+    pad_batches: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a
     /// zenoh liveliness token, a scene is predicted by the live node of highest rendezvous
     /// hash, and a dead node's scenes move to the others (restarting from the next frame).
@@ -120,7 +126,8 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
     let max_batch = args.max_batch.unwrap_or(if on_cpu { 4 } else { 1 });
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?
-        .with_mirror(args.mirror);
+        .with_mirror(args.mirror)
+        .with_padded_batches(args.pad_batches.unwrap_or(!on_cpu));
     let foxglove = args
         .foxglove
         .start(&format!("minflow node {}", args.name))?;

@@ -97,14 +97,18 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
         // So does the advected deformation gradient.
         ("advected", false),
         ("advected", true),
+        // Calls padded to a power of two (copies of the last scene, dropped).
+        ("padded", false),
     ] {
         let dir = match model {
             "advected" => advected.path().to_path_buf(),
+            "padded" => repo("models/all-grid-mingru-small"),
             _ => repo(&format!("models/{model}")),
         };
         let s = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())
             .unwrap()
-            .with_mirror(mirror);
+            .with_mirror(mirror)
+            .with_padded_batches(model == "padded");
         let whole = s.bundle() > 1;
         // Alone: each scene its own calls.
         let mut alone = Vec::new();

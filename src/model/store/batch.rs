@@ -5,7 +5,9 @@
 //! state (`State::stack`), stepped as one `[B, N, 4]` batch and split back
 //! (`State::split`); other scenes go through calls of their own. Scenes of different N are
 //! not padded into one call: a grid model's cost grows with the particles a call carries,
-//! and padding particles would change P2G's splat, so grouping by N is exact. Used by the
+//! and padding particles would change P2G's splat, so grouping by N is exact. A call may be
+//! padded with copies of its last scene to a power-of-two batch
+//! ([`Surrogate::with_padded_batches`]: on a GPU each new batch shape compiles kernels). Used by the
 //! surrogate node (`minflow node --max-batch`), whose scheduler follows NVIDIA Triton
 //! Inference Server's dynamic batcher.
 
@@ -81,7 +83,9 @@ impl<B: NetOps> Surrogate<B> {
     }
 
     /// One network call on `group` (scenes of one N and one state shape): frames, materials
-    /// and time steps concatenated, states stacked, outputs and states split back.
+    /// and time steps concatenated, states stacked, outputs and states split back. With
+    /// padded batches the call carries copies of the last scene up to the next power of
+    /// two, whose outputs and states are dropped.
     #[allow(clippy::type_complexity)]
     fn step_group(
         &self,
@@ -101,11 +105,23 @@ impl<B: NetOps> Surrogate<B> {
             counts.push(s.state.frames);
             states.push(s.state);
         }
+        let padded = self.padded(b);
+        if padded > b {
+            let rows = frames[(b - 1) * per_scene..].to_vec();
+            let ids = material[(b - 1) * per_scene / 4..].to_vec();
+            let (last_dt, last) = (dt[b - 1], states[b - 1].clone());
+            for _ in b..padded {
+                frames.extend_from_slice(&rows);
+                material.extend_from_slice(&ids);
+                dt.push(last_dt);
+                states.push(last.clone());
+            }
+        }
         let stacked = State::stack(states, copies)?;
         let (outs, after) =
             B::run_step(|| self.step_here(&frames, &material, &dt, stacked, whole))?;
         let mut per: Vec<(Vec<Vec<f32>>, State<B>)> = after
-            .split(&vec![1; b], copies)
+            .split(&vec![1; padded], copies)
             .into_iter()
             .zip(counts)
             .map(|(mut state, frames)| {

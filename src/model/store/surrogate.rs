@@ -24,6 +24,7 @@ pub struct Surrogate<B: Backend> {
     scaling: Scaling,
     device: B::Device,
     mirror: bool,
+    pad_batches: bool,
 }
 
 /// What a grid model carries between steps: memory, velocity history, reference positions,
@@ -37,6 +38,7 @@ type GridCarry<B> = (
 );
 
 /// Per-trajectory state (one batch row per trajectory).
+#[derive(Clone)]
 pub struct State<B: Backend> {
     pub(super) inner: NetState<B>,
     /// Frames consumed since the state was reset.
@@ -44,6 +46,7 @@ pub struct State<B: Backend> {
 }
 
 /// What each architecture carries between frames (stacked and split in `stack.rs`).
+#[derive(Clone)]
 pub(super) enum NetState<B: Backend> {
     /// The paper core's layer states.
     Paper(Vec<LayerState<B>>),
@@ -85,6 +88,7 @@ impl<B: NetOps> Surrogate<B> {
             scaling,
             device: device.clone(),
             mirror: false,
+            pad_batches: false,
         }
     }
 
@@ -99,6 +103,27 @@ impl<B: NetOps> Surrogate<B> {
     /// switched do not fit: switch it before [`Surrogate::init_state`].
     pub fn with_mirror(self, mirror: bool) -> Self {
         Self { mirror, ..self }
+    }
+
+    /// This surrogate padding each call of [`Surrogate::step_scenes`] to a power-of-two
+    /// number of scenes (copies of its last scene, their results dropped): on a GPU every new
+    /// batch shape costs kernel compilation and autotuning, and a dynamic batcher's calls
+    /// come in every size from 1 to `--max-batch`; padded, they come in log2 of that many
+    /// (Triton's "preferred batch sizes" do the same). The predictions are unchanged.
+    pub fn with_padded_batches(self, pad_batches: bool) -> Self {
+        Self {
+            pad_batches,
+            ..self
+        }
+    }
+
+    /// The scenes a call of `b` scenes carries: `b`, or the next power of two when
+    /// [`Surrogate::with_padded_batches`] is on.
+    pub(super) fn padded(&self, b: usize) -> usize {
+        match self.pad_batches {
+            true => b.next_power_of_two(),
+            false => b,
+        }
     }
 
     /// Whether [`Surrogate::with_mirror`] is on (and the model is a grid model).
