@@ -10,6 +10,8 @@
 #   tests/gpu/structure.sh data              # seed 1 (training: 60 multi + 40 fluid scenes)
 #                                            # and seed 7 (unseen: 10 multi + 6 fluid scenes)
 #   tests/gpu/structure.sh start MINUTES     # every run below, in the background (setsid)
+#   tests/gpu/structure.sh start3 MINUTES    # the third round: advected F against fitted F
+#   tests/gpu/structure.sh start4 MINUTES    # the fourth: longer training rollouts
 #   tests/gpu/structure.sh wait              # until they have ended, a line a minute
 #   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
 #   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
@@ -66,6 +68,34 @@ start2)
     start s4f "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
         --rest-shape fit
     ;;
+start3)
+    # The third round: F advected with the predicted velocities (variant (a)) against F
+    # fitted to the rest neighbours (variant (b)), at equal time, from the same parents.
+    m=$2
+    full=(--model mingru --init-from models/all-grid-mingru --rollout-steps 8)
+    start a1 "$m" "${full[@]}" --rest-shape advect
+    start b1 "$m" "${full[@]}" --rest-shape fit
+    # The advected liquid J with the volume loss (the lever the liquid's volume lacked).
+    start av "$m" "${full[@]}" --rest-shape advect --volume-loss 30
+    # The shipped fitted-F model switched to the advected F.
+    start ra "$m" --model mingru --init-from models/all-grid-mingru-rest --rollout-steps 8 \
+        --rest-shape advect
+    # The small bundled model, each variant.
+    start s4a "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
+        --rest-shape advect
+    start s4b "$m" --model mingru --init-from models/all-grid-mingru-small-k4 "${SMALL[@]}" \
+        --rest-shape fit
+    ;;
+start4)
+    # The fourth round: longer rollouts in training (P calls, the loss over all of them),
+    # from the shipped fitted-F model, at equal time; r8 is the same continuation at today's P.
+    m=$2
+    rest=(--model mingru --init-from models/all-grid-mingru-rest --rest-shape fit)
+    start r8 "$m" "${rest[@]}" --rollout-steps 8
+    start r16 "$m" "${rest[@]}" --rollout-steps 16
+    start r32 "$m" "${rest[@]}" --rollout-steps 32
+    start r32t "$m" "${rest[@]}" --rollout-steps 32 --teacher-steps 8
+    ;;
 wait)
     wait_runs
     ;;
@@ -104,7 +134,7 @@ pack)
     ls -la "$dest"
     ;;
 *)
-    sed -n 2,21p "$0"
+    sed -n 2,23p "$0"
     exit 2
     ;;
 esac
