@@ -12,6 +12,7 @@
 #   tests/gpu/structure.sh start MINUTES     # every run below, in the background (setsid)
 #   tests/gpu/structure.sh start3 MINUTES    # the third round: advected F against fitted F
 #   tests/gpu/structure.sh start4 MINUTES    # the fourth: longer training rollouts
+#   tests/gpu/structure.sh start5 MINUTES    # the fifth: push-forward
 #   tests/gpu/structure.sh wait              # until they have ended, a line a minute
 #   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
 #   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
@@ -96,6 +97,19 @@ start4)
     start r32 "$m" "${rest[@]}" --rollout-steps 32
     start r32t "$m" "${rest[@]}" --rollout-steps 32 --teacher-steps 8
     ;;
+start5)
+    # The fifth round: push-forward (calls on the model's own predictions before the loss's,
+    # no gradient), from the shipped fitted-F models, at equal time; p0 and s4c the controls.
+    m=$2
+    rest=(--model mingru --init-from models/all-grid-mingru-rest --rest-shape fit --rollout-steps 8)
+    start p0 "$m" "${rest[@]}"
+    start p24 "$m" "${rest[@]}" --pushforward 24
+    start p56 "$m" "${rest[@]}" --pushforward 56
+    start p120 "$m" "${rest[@]}" --pushforward 120
+    small=(--model mingru --init-from models/all-grid-mingru-small-k4-rest "${SMALL[@]}" --rest-shape fit)
+    start s4c "$m" "${small[@]}"
+    start s4p "$m" "${small[@]}" --pushforward 14
+    ;;
 wait)
     wait_runs
     ;;
@@ -134,7 +148,7 @@ pack)
     ls -la "$dest"
     ;;
 *)
-    sed -n 2,23p "$0"
+    sed -n 2,24p "$0"
     exit 2
     ;;
 esac

@@ -1,5 +1,5 @@
 //! A bundled grid model with rest-shape features end to end: `train --bundle 2 --rest-shape
-//! fit --update grid+head` with the structure losses on the bundled bags, `eval --horizon
+//! fit --update grid+head --pushforward 1` with the structure losses on the bundled bags, `eval --horizon
 //! full` (whole-scene blocks, plausibility and structure tables and CSV, `--save-pred` bags),
 //! `bench rollout` on a tiny setting (its table against the solver; no timing asserted), and
 //! the node in closed loop over zenoh, whose rollout (rest neighbourhoods kept per scene)
@@ -41,6 +41,9 @@ fn bundled_model() -> PathBuf {
             "fit",
             "--update",
             "grid+head",
+            // One push-forward call before the loss's: the sample's path through it.
+            "--pushforward",
+            "1",
             "--strain-loss",
             "100",
             "--volume-loss",

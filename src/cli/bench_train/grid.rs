@@ -107,6 +107,7 @@ where
         clip: 1.0,
         steps: p,
         teacher: 1,
+        pushforward: 0,
         noise: 0.0,
         mirror: false,
         strain_weight: 0.0,

@@ -345,6 +345,12 @@ pub struct GridArgs {
     /// Of those, steps that read the true frame (the rest read the model's own predictions).
     #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::at_least_one)]
     pub teacher_steps: usize,
+    /// Push-forward: network calls made before the --rollout-steps ones, on the model's own
+    /// predictions, without gradient or loss (memory and state carried into the others), so
+    /// training sees the inputs of a longer rollout at the cost of forward passes only
+    /// (Brandstetter et al. 2022). Samples grow by this many calls' frames.
+    #[arg(long, default_value_t = 0, value_name = "CALLS")]
+    pub pushforward: usize,
     /// Gaussian noise on the true input velocities, in units of the velocity change's
     /// standard deviation.
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
@@ -454,6 +460,7 @@ impl TrainArgs {
             clip: g.clip,
             steps: g.rollout_steps,
             teacher: g.teacher_steps,
+            pushforward: g.pushforward,
             noise: g.noise,
             mirror: g.mirror,
             strain_weight: g.strain_loss,

@@ -68,7 +68,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
     }
     write_run_files(&args.out, &split, &opts)?;
-    let frames = config.window + opts.steps * config.bundle - 1;
+    let frames = config.window + opts.calls() * config.bundle - 1;
     let index = WindowIndex::new(train, frames, Scaler::default())?;
     print_summary(
         scenes.len(),
@@ -107,7 +107,7 @@ fn print_summary(
 ) -> anyhow::Result<()> {
     eprintln!(
         "{scenes} scenes: {} train ({} samples), {val} val, {test} test; grid architecture, {} \
-         memory, n = {}, T = {}, P = {} (teacher {}), K = {}, N = {:?}",
+         memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}), K = {}, N = {:?}",
         index.trajectories().len(),
         index.len(),
         config.memory.name(),
@@ -115,6 +115,7 @@ fn print_summary(
         config.window,
         opts.steps,
         opts.teacher,
+        opts.pushforward,
         config.bundle,
         index.particle_counts(),
     );

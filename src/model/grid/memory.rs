@@ -69,6 +69,19 @@ pub enum MemoryState<B: Backend> {
 }
 
 impl<B: Backend> MemoryState<B> {
+    /// The same state cut from the autodiff graph (push-forward training carries it on
+    /// without a gradient through the calls that made it).
+    pub fn detach(self) -> Self {
+        match self {
+            MemoryState::Empty => MemoryState::Empty,
+            MemoryState::Hidden(h) => MemoryState::Hidden(h.detach()),
+            MemoryState::Lstm(s) => MemoryState::Lstm(LstmState {
+                h: s.h.detach(),
+                c: s.c.detach(),
+            }),
+        }
+    }
+
     /// Rows (particles times scenes) the state holds, `None` when empty.
     pub fn rows(&self) -> Option<usize> {
         match self {

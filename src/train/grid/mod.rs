@@ -4,8 +4,10 @@
 //! et al. 2024: loss over short autoregressive rollouts) and LagrangeBench (Toshev et al.
 //! 2023: push-forward, best checkpoint by validation rollout error).
 //!
-//! A sample is `T + P K` consecutive frames of one scene (K = [`GridConfig::bundle`], the
-//! frames one call predicts). The model makes P calls from frame `T - 1`, each predicting K
+//! A sample is `T + (M + P) K` consecutive frames of one scene (K = [`GridConfig::bundle`],
+//! the frames one call predicts; M the push-forward calls, `pushforward`, 0 by default: made
+//! first, on the model's own predictions, without gradient or loss, the memory carried into
+//! the P). The model makes P calls from frame `T - 1` (or after the M), each predicting K
 //! frames: the first `teacher` calls read the true frames (velocities with Gaussian noise of
 //! `noise * dv_scale`), the rest read the model's own previous predictions, and the memory
 //! state runs through all P calls, so gradients flow through the state and through the
@@ -74,6 +76,12 @@ pub struct GridTrainOptions {
     pub steps: usize,
     /// Of those, steps that read the true frame.
     pub teacher: usize,
+    /// Calls made before the P, without gradient and without loss (push-forward, Brandstetter
+    /// et al. 2022, "Message passing neural PDE solvers", section 2.3): the P calls start
+    /// from the model's own rollout of `pushforward` calls, its memory and state carried, so
+    /// the loss sees the inputs a long rollout produces. 0 in runs saved before it existed.
+    #[serde(default)]
+    pub pushforward: usize,
     /// Input-velocity noise, in units of `dv_scale`.
     pub noise: f32,
     /// Train on each sample or, with probability 1/2, its mirror image about the box's
@@ -97,6 +105,13 @@ pub struct GridTrainOptions {
     pub val_horizon: usize,
     /// Stop (after validating) once training has run this many minutes (0: no limit).
     pub max_minutes: f64,
+}
+
+impl GridTrainOptions {
+    /// Network calls per training sample: the push-forward ones and the P with a loss.
+    pub fn calls(&self) -> usize {
+        self.pushforward + self.steps
+    }
 }
 
 /// A grid training run.
@@ -134,10 +149,10 @@ where
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError> {
         let opts = &self.opts;
-        let needed = self.config.window + opts.steps * self.config.bundle.max(1) - 1;
+        let needed = self.config.window + opts.calls() * self.config.bundle.max(1) - 1;
         if train.t() != needed {
             return Err(TrainError::Mismatch(format!(
-                "windows of {} frames, the run needs T + P K - 1 = {needed}",
+                "windows of {} frames, the run needs T + (M + P) K - 1 = {needed}",
                 train.t(),
             )));
         }

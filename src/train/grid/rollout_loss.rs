@@ -1,6 +1,7 @@
 //! The grid architecture's training loss (see [`super`]): a batch of windows uploaded as
 //! physical frames (mirrored where drawn so), and the loss of P network calls of K frames
-//! each over it, from the true frame `T - 1`, teacher-forced for the first calls, then on the
+//! each over it (after M push-forward calls without gradient or loss, when asked), from the
+//! true frame `T - 1`, teacher-forced for the first calls, then on the
 //! model's own predictions, the memory state carried through. Used by
 //! [`super::GridTrainer`].
 //!
@@ -150,7 +151,8 @@ pub(super) fn sequence_loss<B: NetOps>(
     let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
     let bundle = config.bundle.max(1);
     let mut total: Option<Tensor<B, 1>> = None;
-    for p in 0..opts.steps {
+    let warm = opts.pushforward;
+    for p in 0..opts.calls() {
         let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
         let input = StepInput {
             pos,
@@ -167,6 +169,12 @@ pub(super) fn sequence_loss<B: NetOps>(
         let mut last_pos = None;
         for (k, out) in outs.into_iter().enumerate() {
             let target = truth(t + p * bundle + k);
+            if p < warm {
+                // Push-forward: the model's own frames, carried on without gradient or loss.
+                last_pos = Some(out.pos.detach());
+                history.push(out.vel.detach());
+                continue;
+            }
             let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
                 .powi_scalar(2)
                 .mean();
@@ -191,6 +199,10 @@ pub(super) fn sequence_loss<B: NetOps>(
             }
         }
         pos = last_pos.expect("a bundle has at least one frame");
+        if p < warm {
+            state = state.detach();
+            deformation = deformation.map(|f| f.detach());
+        }
     }
     total
         .expect("at least one step")
