@@ -17,6 +17,7 @@
 //!   (J < 1 where the truth keeps 1) pays for it. MPM's liquid keeps its volume through J (docs/mpm.md); the paper
 //!   adds a density-map loss for the same reason (section 3).
 
+use burn::module::Module;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Tensor};
 
@@ -152,6 +153,10 @@ pub(super) fn sequence_loss<B: NetOps>(
     let bundle = config.bundle.max(1);
     let mut total: Option<Tensor<B, 1>> = None;
     let warm = opts.pushforward;
+    // The push-forward calls run on a copy of the model whose parameters track no gradient,
+    // so they record no autodiff graph (detaching their outputs alone left every call's
+    // activations held until the backward pass: 3x the GPU memory at 24 calls).
+    let frozen = (warm > 0).then(|| model.clone().no_grad());
     for p in 0..opts.calls() {
         let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
         let input = StepInput {
@@ -163,7 +168,11 @@ pub(super) fn sequence_loss<B: NetOps>(
             rest: rest.as_ref().map(|(r, _)| r.clone()),
             deformation: deformation.take(),
         };
-        let (outs, next_state) = model.step_bundle(input, state);
+        let net = match &frozen {
+            Some(f) if p < warm => f,
+            _ => model,
+        };
+        let (outs, next_state) = net.step_bundle(input, state);
         state = next_state;
         deformation = outs.last().and_then(|o| o.deformation.clone());
         let mut last_pos = None;

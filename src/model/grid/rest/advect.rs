@@ -73,10 +73,16 @@ pub fn velocity_gradient<B: NetOps>(
     let splat = transfer::p2g(s, Tensor::cat(vec![ones, vel], 2)); // [B, n^2, 3]
     let mass = splat.clone().narrow(2, 0, 1);
     let v = splat.narrow(2, 1, 2) / mass.add_scalar(1e-12); // 0 where no particle splats
-    // Node i n + j at (i dx, j dx).
+                                                            // Node i n + j at (i dx, j dx).
     let index = Tensor::<B, 1, Int>::arange(0..(n * n) as i64, &device);
-    let xi = index.clone().div_scalar(n as i64).float().div_scalar(n as f32);
-    let yi = (index.remainder_scalar(n as i64)).float().div_scalar(n as f32);
+    let xi = index
+        .clone()
+        .div_scalar(n as i64)
+        .float()
+        .div_scalar(n as f32);
+    let yi = (index.remainder_scalar(n as i64))
+        .float()
+        .div_scalar(n as f32);
     let (xi, yi) = (xi.reshape([1, n * n, 1]), yi.reshape([1, n * n, 1]));
     let (vx, vy) = (v.clone().narrow(2, 0, 1), v.clone().narrow(2, 1, 1));
     let field = Tensor::cat(
@@ -143,13 +149,15 @@ mod tests {
     fn block(v: impl Fn(f32, f32) -> [f32; 2]) -> (Tensor<Nd, 3>, Tensor<Nd, 3>) {
         let (mut pos, mut vel) = (vec![], vec![]);
         for i in 0..COUNT {
-            let (x, y) = (0.44 + 0.004 * (i % SIDE) as f32, 0.44 + 0.004 * (i / SIDE) as f32);
+            let (x, y) = (
+                0.44 + 0.004 * (i % SIDE) as f32,
+                0.44 + 0.004 * (i / SIDE) as f32,
+            );
             pos.extend([x, y]);
             vel.extend(v(x, y));
         }
-        let up = |d: Vec<f32>| {
-            Tensor::from_data(TensorData::new(d, [1, COUNT, 2]), &Default::default())
-        };
+        let up =
+            |d: Vec<f32>| Tensor::from_data(TensorData::new(d, [1, COUNT, 2]), &Default::default());
         (up(pos), up(vel))
     }
 
@@ -194,7 +202,10 @@ mod tests {
         // Explicit integration of a rotation grows |F| by (1 + dt^2)^(frames / 2): 0.5 %.
         assert!(e[..4].iter().all(|v| v.abs() < 0.02), "{e:?}");
         let fr = row(f, INNER);
-        assert!((fr[0] - 1.0f32.cos()).abs() < 0.02 && (fr[2] - 1.0f32.sin()).abs() < 0.02, "{fr:?}");
+        assert!(
+            (fr[0] - 1.0f32.cos()).abs() < 0.02 && (fr[2] - 1.0f32.sin()).abs() < 0.02,
+            "{fr:?}"
+        );
 
         let (pos, vel) = block(|x, _| [0.5 * (x - 0.5), 0.0]);
         let s = transfer::stencil(pos.clone(), 64, false);
@@ -209,9 +220,15 @@ mod tests {
             let want = 1.005f32.powi(20);
             assert!((j - want).abs() < 0.01, "J {j} against {want}");
             if has.clone().sum().into_scalar() == 0.0 {
-                assert!((fr[0] - fr[3]).abs() < 1e-5 && fr[1] == 0.0, "isotropic: {fr:?}");
+                assert!(
+                    (fr[0] - fr[3]).abs() < 1e-5 && fr[1] == 0.0,
+                    "isotropic: {fr:?}"
+                );
             } else {
-                assert!((fr[0] - want).abs() < 0.01 && (fr[3] - 1.0).abs() < 0.01, "{fr:?}");
+                assert!(
+                    (fr[0] - want).abs() < 0.01 && (fr[3] - 1.0).abs() < 0.01,
+                    "{fr:?}"
+                );
             }
         }
     }
