@@ -317,8 +317,8 @@ impl GridNetArgs {
                 RestShape::Fit => Some(["--rest-shape".to_owned(), "fit".to_owned()]),
                 RestShape::Advect => Some(["--rest-shape".to_owned(), "advect".to_owned()]),
             }
-                .into_iter()
-                .flatten(),
+            .into_iter()
+            .flatten(),
         )
         .chain(
             (self.update != Update::Free)
