@@ -348,7 +348,9 @@ pub struct GridArgs {
     /// Push-forward: network calls made before the --rollout-steps ones, on the model's own
     /// predictions, without gradient or loss (memory and state carried into the others), so
     /// training sees the inputs of a longer rollout at the cost of forward passes only
-    /// (Brandstetter et al. 2022). Samples grow by this many calls' frames.
+    /// (Brandstetter et al. 2022). Samples grow by this many calls' frames. The push-forward
+    /// calls always feed their own predictions on; --teacher-steps counts from the first of
+    /// them.
     #[arg(long, default_value_t = 0, value_name = "CALLS")]
     pub pushforward: usize,
     /// Gaussian noise on the true input velocities, in units of the velocity change's
