@@ -246,7 +246,88 @@ fn structure_loss<B: Backend>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::backend::NdArray;
+    use burn::backend::{Autodiff, NdArray};
+
+    /// Push-forward: the M calls without loss are the model's own rollout (the frozen copy
+    /// predicts what the model does) and the loss covers the P calls after them only. So,
+    /// from one sample, `(M + P) L(P = M + P) = M L(P = M) + P L(P, push-forward M)`.
+    #[test]
+    fn pushforward_loss_is_the_tail_of_the_rollout_loss() {
+        type B = Autodiff<NdArray<f32>>;
+        let (t, n, m, p) = (2, 30, 2, 2);
+        let frames = t + m + p; // the inputs and the target
+        let row = |f: usize, i: usize| {
+            let (x0, y0) = (0.3 + 0.013 * (i % 6) as f32, 0.4 + 0.011 * (i / 6) as f32);
+            let (vx, vy) = (0.2 + 0.01 * i as f32, -0.3 * f as f32 * 0.016);
+            [
+                x0 + vx * 0.016 * f as f32,
+                y0 + vy * 0.016 * f as f32,
+                vx,
+                vy,
+            ]
+        };
+        let batch = Batch {
+            b: 1,
+            t: frames - 1,
+            n,
+            inputs: (0..frames - 1)
+                .flat_map(|f| (0..n).flat_map(move |i| [row(f, i).as_slice(), &[1.0]].concat()))
+                .collect(),
+            targets: vec![0.0; n * 4],
+            last: vec![0.0; n * 4],
+            target_phys: (0..n).flat_map(|i| row(frames - 1, i)).collect(),
+            dt: vec![0.016],
+            material: (0..n).map(|i| (i % 2) as u8).collect(),
+            ids: vec![(0, 0)],
+            first_pos: (0..n).flat_map(|i| [row(0, i)[0], row(0, i)[1]]).collect(),
+        };
+        let config = GridConfig::new(crate::model::grid::MemoryKind::MinGru)
+            .with_grid(16)
+            .with_levels(2)
+            .with_unet_width(4)
+            .with_latent(4)
+            .with_hidden(4)
+            .with_head_hidden(8)
+            .with_dv_scale([0.1, 0.1])
+            .with_head_zero_init(false);
+        let device = Default::default();
+        let model = config.init::<B>(&device);
+        let loss = |steps: usize, pushforward: usize| {
+            let opts = GridTrainOptions {
+                epochs: 1,
+                batch_size: 1,
+                samples_per_epoch: 0,
+                lr: 1e-3,
+                lr_final: 0.0,
+                clip: 0.0,
+                steps,
+                teacher: 1,
+                pushforward,
+                noise: 0.0,
+                mirror: false,
+                strain_weight: 0.0,
+                volume_weight: 0.0,
+                seed: 0,
+                patience: 0,
+                val_starts: 1,
+                val_horizon: 1,
+                max_minutes: 0.0,
+            };
+            let needs = Needs {
+                materials: config.materials,
+                ..Needs::default()
+            };
+            let tensors = upload_batch::<B>(batch.clone(), &[false], needs, &device);
+            sequence_loss(&model, &config, &opts, tensors).into_scalar()
+        };
+        let (all, head, tail) = (loss(m + p, 0), loss(m, 0), loss(p, m));
+        let (lhs, rhs) = ((m + p) as f32 * all, m as f32 * head + p as f32 * tail);
+        assert!((lhs - rhs).abs() <= 1e-4 * lhs.abs(), "{lhs} against {rhs}");
+        assert!(
+            (tail - all).abs() > 1e-3 * all.abs(),
+            "the tail's loss is its own: {tail}, {all}"
+        );
+    }
 
     /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
     /// 1/2 (x -> 1 - x, vx -> -vx, y and vy kept); an unflagged one is uploaded as it is.
