@@ -11,7 +11,7 @@
 //! fluid's (docs/mpm.md).
 
 use burn::tensor::backend::Backend;
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Int, Tensor, TensorData};
 
 use super::{matmul2, NeighbourTensors, REST_CLAMP};
 use crate::model::grid::transfer::{self, Stencil};
@@ -59,8 +59,12 @@ pub fn features_of<B: Backend>(f: Tensor<B, 3>) -> Tensor<B, 3> {
 
 /// `[B, N, 4]`: the affine velocity gradient `C` (row-major, `C_ab = dv_a / dx_b`, per time
 /// unit) of every particle at positions `pos` (`[B, N, 2]`, the stencil `s`'s), gathered from
-/// the P2G of velocities `vel` (`[B, N, 2]`): `C_p = 4 n^2 sum_i w_ip v_i (x_i - x_p)^T`, with
-/// `sum_i w_ip v_i x_i^T` the G2P of the field `v_i x_i^T` and `sum_i w_ip = 1`.
+/// the P2G of velocities `vel` (`[B, N, 2]`): `C_p = 4 n^2 sum_i w_ip v_i (x_i - x_p)^T`.
+/// The offsets `x_i - x_p` go into the stencil's weights (two G2Ps with weights
+/// `w_ip (x_i - x_p)_b n`, each offset within 1.5 cells), so nothing cancels: the same sum
+/// written as `G2P(v x_i^T) - G2P(v) x_p^T` subtracts two values of size `|v| x` and, with a
+/// GPU's TF32 matrix products (10-bit mantissa), loses C entirely. The offsets come from the
+/// stencil's own (detached, clamped) positions, so no gradient flows through them.
 pub fn velocity_gradient<B: NetOps>(
     s: &Stencil<B>,
     pos: &Tensor<B, 3>,
@@ -73,41 +77,49 @@ pub fn velocity_gradient<B: NetOps>(
     let splat = transfer::p2g(s, Tensor::cat(vec![ones, vel], 2)); // [B, n^2, 3]
     let mass = splat.clone().narrow(2, 0, 1);
     let v = splat.narrow(2, 1, 2) / mass.add_scalar(1e-12); // 0 where no particle splats
-                                                            // Node i n + j at (i dx, j dx).
-    let index = Tensor::<B, 1, Int>::arange(0..(n * n) as i64, &device);
-    let xi = index
-        .clone()
-        .div_scalar(n as i64)
-        .float()
-        .div_scalar(n as f32);
-    let yi = (index.remainder_scalar(n as i64))
-        .float()
-        .div_scalar(n as f32);
-    let (xi, yi) = (xi.reshape([1, n * n, 1]), yi.reshape([1, n * n, 1]));
-    let (vx, vy) = (v.clone().narrow(2, 0, 1), v.clone().narrow(2, 1, 1));
-    let field = Tensor::cat(
-        vec![
-            v,
-            vx.clone() * xi.clone(),
-            vx * yi.clone(),
-            vy.clone() * xi,
-            vy * yi,
-        ],
-        2,
-    ); // [B, n^2, 6]
-    let g = transfer::g2p(s, field); // [B, N, 6]
-    let c = |i: usize| g.clone().narrow(2, i, 1);
-    let (x, y) = (pos.clone().narrow(2, 0, 1), pos.clone().narrow(2, 1, 1));
-    Tensor::cat(
-        vec![
-            c(2) - c(0) * x.clone(),
-            c(3) - c(0) * y.clone(),
-            c(4) - c(1) * x,
-            c(5) - c(1) * y,
-        ],
-        2,
-    )
-    .mul_scalar(4.0 * (n * n) as f32)
+    let [along_x, along_y] = offset_stencils(s, pos);
+    // sum_i w_ip (x_i - x_p)_b n v_i, per axis b: [B, N, 2] each (v_x, v_y).
+    let (gx, gy) = (
+        transfer::g2p(&along_x, v.clone()),
+        transfer::g2p(&along_y, v),
+    );
+    let c = |g: &Tensor<B, 3>, a: usize| g.clone().narrow(2, a, 1);
+    Tensor::cat(vec![c(&gx, 0), c(&gy, 0), c(&gx, 1), c(&gy, 1)], 2).mul_scalar(4.0 * n as f32)
+}
+
+/// The stencil `s` of positions `pos` with each weight `w_ip` times the node's offset from
+/// the particle along x, then along y, in cells: `w_ip (x_i - x_p) n` (the stencil's
+/// clamped, detached positions; the sparse and the dense form alike).
+fn offset_stencils<B: NetOps>(s: &Stencil<B>, pos: &Tensor<B, 3>) -> [Stencil<B>; 2] {
+    let n = s.n;
+    let device = pos.device();
+    let (lo, hi) = crate::ops::stencil_bounds(n);
+    let g = pos.clone().detach().clamp(lo, hi).mul_scalar(n as f32); // [B, N, 2], cells
+    let f = g.clone() - g.clone().sub_scalar(0.5).floor(); // from the stencil's first node
+    let axis = |a: usize| -> Stencil<B> {
+        let mut out = s.clone();
+        let (ga, fa) = (g.clone().narrow(2, a, 1), f.clone().narrow(2, a, 1));
+        // Sparse: node k of the nine is (k / 3, k % 3) from the first node.
+        let steps: Vec<f32> = (0..9)
+            .map(|k| if a == 0 { k / 3 } else { k % 3 } as f32)
+            .collect();
+        let steps =
+            Tensor::<B, 1>::from_data(TensorData::new(steps, [9]), &device).reshape([1, 1, 9]);
+        out.weight = s.weight.clone() * (steps - fa);
+        // Dense: node i of the axis at i cells.
+        if let Some((wx, wy)) = &s.dense {
+            let nodes = Tensor::<B, 1, Int>::arange(0..n as i64, &device)
+                .float()
+                .reshape([1, 1, n]);
+            let offset = nodes - ga;
+            out.dense = Some(match a {
+                0 => (wx.clone() * offset, wy.clone()),
+                _ => (wx.clone(), wy.clone() * offset),
+            });
+        }
+        out
+    };
+    [axis(0), axis(1)]
 }
 
 /// `[B, N, 4]`: `f` (`[B, N, 4]`) advected over one frame of `dt` (`[B, 1, 1]`) by the
@@ -166,20 +178,31 @@ mod tests {
         t.into_data().to_vec::<f32>().unwrap()[i * w..(i + 1) * w].to_vec()
     }
 
-    /// A linear velocity field `v = A (x - x0)` has gradient `A` inside the body: the P2G of
-    /// a linear field is linear where the stencils are full, and APIC's gather recovers it.
+    /// A linear velocity field `v = v0 + A (x - x0)` has gradient `A` inside the body: the P2G
+    /// of a linear field is linear where the stencils are full, and APIC's gather recovers it
+    /// (the uniform part `v0` adds nothing).
     #[test]
     fn velocity_gradient_of_a_linear_field() {
         let a = [[0.3, -1.2], [0.7, 0.4]];
         let (pos, vel) = block(|x, y| {
             let (dx, dy) = (x - 0.5, y - 0.5);
-            [a[0][0] * dx + a[0][1] * dy, a[1][0] * dx + a[1][1] * dy]
+            // A uniform part far larger than the gradient's: it must not leak into C.
+            [
+                3.0 + a[0][0] * dx + a[0][1] * dy,
+                -5.0 + a[1][0] * dx + a[1][1] * dy,
+            ]
         });
-        let s = transfer::stencil(pos.clone(), 64, false);
-        let c = row(velocity_gradient(&s, &pos, vel), INNER);
-        let want = [a[0][0], a[0][1], a[1][0], a[1][1]];
-        for (got, want) in c.iter().zip(want) {
-            assert!((got - want).abs() < 0.02, "{c:?} against {want:?}");
+        // The sparse stencil (the CPU's) and the separable dense one (an accelerator's).
+        for dense in [false, true] {
+            let s = transfer::stencil(pos.clone(), 64, dense);
+            let c = row(velocity_gradient(&s, &pos, vel.clone()), INNER);
+            let want = [a[0][0], a[0][1], a[1][0], a[1][1]];
+            for (got, want) in c.iter().zip(want) {
+                assert!(
+                    (got - want).abs() < 0.02,
+                    "dense {dense}: {c:?} against {want:?}"
+                );
+            }
         }
     }
 
