@@ -101,22 +101,10 @@ where
     let opts = GridTrainOptions {
         epochs: args.warmup_epochs + args.epochs,
         batch_size: args.micro_batch,
-        samples_per_epoch: 0,
-        lr: 1e-3,
         lr_final: 1e-5,
         clip: 1.0,
         steps: p,
-        teacher: 1,
-        pushforward: 0,
-        noise: 0.0,
-        mirror: false,
-        strain_weight: 0.0,
-        volume_weight: 0.0,
-        seed: 0,
-        patience: 0,
-        val_starts: 1,
-        val_horizon: 1,
-        max_minutes: 0.0,
+        ..GridTrainOptions::default()
     };
     let dir = tempfile::tempdir()?;
     let mut high = peak(true).unwrap_or(0.0);

@@ -107,6 +107,34 @@ pub struct GridTrainOptions {
     pub max_minutes: f64,
 }
 
+impl Default for GridTrainOptions {
+    /// A plain run: one epoch of every window, batch 1, one call per sample from the true
+    /// frame, Adam at 1e-3 without decay floor or clipping, no noise, mirror, structure loss,
+    /// push-forward or limits (tests and `bench train` override what they measure).
+    fn default() -> Self {
+        Self {
+            epochs: 1,
+            batch_size: 1,
+            samples_per_epoch: 0,
+            lr: 1e-3,
+            lr_final: 0.0,
+            clip: 0.0,
+            steps: 1,
+            teacher: 1,
+            pushforward: 0,
+            noise: 0.0,
+            mirror: false,
+            strain_weight: 0.0,
+            volume_weight: 0.0,
+            seed: 0,
+            patience: 0,
+            val_starts: 1,
+            val_horizon: 1,
+            max_minutes: 0.0,
+        }
+    }
+}
+
 impl GridTrainOptions {
     /// Network calls per training sample: the push-forward ones and the P with a loss.
     pub fn calls(&self) -> usize {

@@ -294,24 +294,9 @@ mod tests {
         let model = config.init::<B>(&device);
         let loss = |steps: usize, pushforward: usize| {
             let opts = GridTrainOptions {
-                epochs: 1,
-                batch_size: 1,
-                samples_per_epoch: 0,
-                lr: 1e-3,
-                lr_final: 0.0,
-                clip: 0.0,
                 steps,
-                teacher: 1,
                 pushforward,
-                noise: 0.0,
-                mirror: false,
-                strain_weight: 0.0,
-                volume_weight: 0.0,
-                seed: 0,
-                patience: 0,
-                val_starts: 1,
-                val_horizon: 1,
-                max_minutes: 0.0,
+                ..GridTrainOptions::default()
             };
             let needs = Needs {
                 materials: config.materials,
