@@ -1,5 +1,5 @@
 //! A bundled grid model with rest-shape features end to end: `train --bundle 2 --rest-shape
-//! fit --update grid+head --pushforward 1` with the structure losses on the bundled bags, `eval --horizon
+//! fit --update grid+head --pushforward 1 --chunks 2` with the structure losses on the bundled bags, `eval --horizon
 //! full` (whole-scene blocks, plausibility and structure tables and CSV, `--save-pred` bags),
 //! `bench rollout` on a tiny setting (its table against the solver; no timing asserted), and
 //! the node in closed loop over zenoh, whose rollout (rest neighbourhoods kept per scene)
@@ -41,9 +41,12 @@ fn bundled_model() -> PathBuf {
             "fit",
             "--update",
             "grid+head",
-            // One push-forward call before the loss's: the sample's path through it.
+            // One push-forward call before the loss's, and the loss's calls in two chunks
+            // (truncated backpropagation through time): the sample's path through both.
             "--pushforward",
             "1",
+            "--chunks",
+            "2",
             "--strain-loss",
             "100",
             "--volume-loss",
@@ -56,6 +59,7 @@ fn bundled_model() -> PathBuf {
         let o = Node::spawn("train", &args).wait(Duration::from_secs(300));
         let err = ok(&o, "train");
         assert!(err.contains("K = 2"), "train reports the bundle: {err}");
+        assert!(err.contains("push-forward 1, chunks 2"), "and the chunks: {err}");
         dir
     })
     .path()

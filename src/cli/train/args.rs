@@ -353,6 +353,13 @@ pub struct GridArgs {
     /// them.
     #[arg(long, default_value_t = 0, value_name = "CALLS")]
     pub pushforward: usize,
+    /// Truncated backpropagation through time: the --rollout-steps calls are made this many
+    /// times in a row per sample, an optimizer step after each, the rollout (frames, memory
+    /// state, F) carried on from one chunk to the next with its gradient cut between them.
+    /// Training sees CHUNKS x --rollout-steps calls of the model's own rollout at the GPU
+    /// memory of --rollout-steps; samples grow to match.
+    #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::at_least_one)]
+    pub chunks: usize,
     /// Gaussian noise on the true input velocities, in units of the velocity change's
     /// standard deviation.
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
@@ -463,6 +470,7 @@ impl TrainArgs {
             steps: g.rollout_steps,
             teacher: g.teacher_steps,
             pushforward: g.pushforward,
+            chunks: g.chunks,
             noise: g.noise,
             mirror: g.mirror,
             strain_weight: g.strain_loss,

@@ -107,7 +107,7 @@ fn print_summary(
 ) -> anyhow::Result<()> {
     eprintln!(
         "{scenes} scenes: {} train ({} samples), {val} val, {test} test; grid architecture, {} \
-         memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}), K = {}, N = {:?}",
+         memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks {}), K = {}, N = {:?}",
         index.trajectories().len(),
         index.len(),
         config.memory.name(),
@@ -116,6 +116,7 @@ fn print_summary(
         opts.steps,
         opts.teacher,
         opts.pushforward,
+        opts.chunks(),
         config.bundle,
         index.particle_counts(),
     );
@@ -123,10 +124,11 @@ fn print_summary(
         return Ok(());
     }
     Err(crate::cli::UsageError(format!(
-        "--window {}: no training samples: every training scene has fewer than the T + P K = \
-         {} frames a sample needs (lower --window, --rollout-steps or --bundle)",
+        "--window {}: no training samples: every training scene has fewer than the T + (M + C P) \
+         K = {} frames a sample needs (lower --window, --rollout-steps, --pushforward, --chunks \
+         or --bundle)",
         config.window,
-        index.t()
+        index.t() + 1
     ))
     .into())
 }

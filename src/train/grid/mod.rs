@@ -4,10 +4,11 @@
 //! et al. 2024: loss over short autoregressive rollouts) and LagrangeBench (Toshev et al.
 //! 2023: push-forward, best checkpoint by validation rollout error).
 //!
-//! A sample is `T + (M + P) K` consecutive frames of one scene (K = [`GridConfig::bundle`],
+//! A sample is `T + (M + C P) K` consecutive frames of one scene (K = [`GridConfig::bundle`],
 //! the frames one call predicts; M the push-forward calls, `pushforward`, 0 by default: made
 //! first, on the model's own predictions, without gradient or loss, the memory carried into
-//! the P). The model makes P calls from frame `T - 1` (or after the M), each predicting K
+//! the P; C the chunks, `chunks`, 1 by default: the P calls made C times in a row, an
+//! optimizer step after each, the rollout carried on with its gradient cut between them). The model makes P calls from frame `T - 1` (or after the M), each predicting K
 //! frames: the first `teacher` calls read the true frames (velocities with Gaussian noise of
 //! `noise * dv_scale`), the rest read the model's own previous predictions, and the memory
 //! state runs through all P calls, so gradients flow through the state and through the
@@ -54,7 +55,7 @@ use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use rollout_loss::{sequence_loss, upload_batch, Needs};
+use rollout_loss::{upload_batch, Needs, Rollout};
 use schedule::RunClock;
 
 /// Optimisation settings of a grid run.
@@ -82,6 +83,14 @@ pub struct GridTrainOptions {
     /// the loss sees the inputs a long rollout produces. 0 in runs saved before it existed.
     #[serde(default)]
     pub pushforward: usize,
+    /// Chunks of P calls per sample (truncated backpropagation through time, Williams &
+    /// Peng 1990): the P calls with a loss are made `chunks` times in a row, an optimizer
+    /// step after each, the rollout (frames, memory state, F) carried on from one chunk to
+    /// the next with its gradient cut there, so training sees `chunks P K` frames of the
+    /// model's own rollout at the memory cost of P calls. 0 (runs saved before it existed)
+    /// and 1: one chunk.
+    #[serde(default)]
+    pub chunks: usize,
     /// Input-velocity noise, in units of `dv_scale`.
     pub noise: f32,
     /// Train on each sample or, with probability 1/2, its mirror image about the box's
@@ -122,6 +131,7 @@ impl Default for GridTrainOptions {
             steps: 1,
             teacher: 1,
             pushforward: 0,
+            chunks: 1,
             noise: 0.0,
             mirror: false,
             strain_weight: 0.0,
@@ -136,9 +146,15 @@ impl Default for GridTrainOptions {
 }
 
 impl GridTrainOptions {
-    /// Network calls per training sample: the push-forward ones and the P with a loss.
+    /// Network calls per training sample: the push-forward ones and the P with a loss in
+    /// each chunk.
     pub fn calls(&self) -> usize {
-        self.pushforward + self.steps
+        self.pushforward + self.steps * self.chunks()
+    }
+
+    /// Chunks of P calls per sample (at least 1; [`GridTrainOptions::chunks`]).
+    pub fn chunks(&self) -> usize {
+        self.chunks.max(1)
     }
 }
 
@@ -161,7 +177,7 @@ impl<B: AutodiffBackend + NetOps> GridTrainer<B>
 where
     B::InnerBackend: NetOps,
 {
-    /// Trains on `train` (windows of `T + P - 1` input frames built with the identity
+    /// Trains on `train` (windows of `T + (M + C P) K - 1` input frames built with the identity
     /// scaler), validating by rollouts of `val`; `scaler` is the training split's min-max
     /// scaler (saved with the model, used for the validation score). Resumes from
     /// `out/checkpoint` when `resume`.
@@ -180,7 +196,7 @@ where
         let needed = self.config.window + opts.calls() * self.config.bundle.max(1) - 1;
         if train.t() != needed {
             return Err(TrainError::Mismatch(format!(
-                "windows of {} frames, the run needs T + (M + P) K - 1 = {needed}",
+                "windows of {} frames, the run needs T + (M + C P) K - 1 = {needed}",
                 train.t(),
             )));
         }
@@ -313,13 +329,21 @@ where
             };
             let tensors = upload_batch::<B>(batch, &mirror, needs, &self.device);
             pass.data_seconds += fetch.elapsed().as_secs_f64();
-            let loss = sequence_loss(&model, &self.config, opts, tensors);
-            let grads = GradientsParams::from_grads(loss.backward(), &model);
             let lr = learning_rate(opts, clock.progress(opts, epoch, k));
-            model = optim.step(lr, model, grads);
-            let waited = Instant::now();
-            let value: f64 = loss.into_scalar().elem();
-            pass.wait_seconds += waited.elapsed().as_secs_f64();
+            let mut rollout = Rollout::new(&self.config, opts, tensors);
+            rollout.pushforward(&model);
+            let mut value = 0.0;
+            for chunk in 0..opts.chunks() {
+                if chunk > 0 {
+                    rollout.detach();
+                }
+                let loss = rollout.chunk_loss(&model);
+                let grads = GradientsParams::from_grads(loss.backward(), &model);
+                model = optim.step(lr, model, grads);
+                let waited = Instant::now();
+                value += loss.into_scalar().elem::<f64>() / opts.chunks() as f64;
+                pass.wait_seconds += waited.elapsed().as_secs_f64();
+            }
             pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
             if clock.out_of_time(opts) {
                 pass.out_of_time = true;

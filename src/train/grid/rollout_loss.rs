@@ -2,8 +2,9 @@
 //! physical frames (mirrored where drawn so), and the loss of P network calls of K frames
 //! each over it (after M push-forward calls without gradient or loss, when asked), from the
 //! true frame `T - 1`, teacher-forced for the first calls, then on the
-//! model's own predictions, the memory state carried through. Used by
-//! [`super::GridTrainer`].
+//! model's own predictions, the memory state carried through; with C chunks the P calls run C
+//! times in a row, the rollout carried from one chunk into the next with its gradient cut
+//! ([`Rollout`]). Used by [`super::GridTrainer`].
 //!
 //! Beside the velocity and position MSE, two structure terms ([`crate::model::grid::rest`]):
 //! - strain (`strain_weight`): for every solid rest-neighbour pair (8 nearest of the same
@@ -30,7 +31,7 @@ use crate::model::grid::{
 use crate::model::upload;
 use crate::ops::NetOps;
 
-/// What [`sequence_loss`] reads of one batch, on the device, physical units.
+/// What a [`Rollout`] reads of one batch, on the device, physical units.
 pub(super) struct BatchTensors<B: Backend> {
     /// `[B, S, N, 4]`: the window's frames and its target frame.
     frames: Tensor<B, 4>,
@@ -115,107 +116,189 @@ pub(super) fn upload_batch<B: Backend>(
     }
 }
 
-/// The training loss of one batch (see the module doc).
-pub(super) fn sequence_loss<B: NetOps>(
-    model: &GridModel<B>,
-    config: &GridConfig,
-    opts: &GridTrainOptions,
+/// One batch's rollout in progress (see the module doc): the frames predicted so far, the
+/// memory state and the carried F, so the P calls of the loss can run as several chunks of
+/// P with an optimizer step after each (truncated backpropagation through time: the
+/// rollout carried on from where the last chunk left it, its gradient cut there;
+/// `--chunks`), as well as in one.
+pub(super) struct Rollout<'a, B: Backend> {
+    config: &'a GridConfig,
+    opts: &'a GridTrainOptions,
     batch: BatchTensors<B>,
-) -> Tensor<B, 1> {
-    let BatchTensors {
-        frames,
-        material,
-        dt,
-        first_pos,
-        rest,
-        liquid,
-    } = batch;
-    let [b, _, n, _] = frames.dims();
-    let t = config.window;
-    let device = frames.device();
-    let truth = |k: usize| frames.clone().narrow(1, k, 1).reshape([b, n, 4]);
-    let dv_scale = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
-    let noisy = |v: Tensor<B, 3>| {
-        if opts.noise > 0.0 {
-            let e = Tensor::random([b, n, 2], Distribution::Normal(0.0, 1.0), &device);
-            v + e * dv_scale.clone().mul_scalar(opts.noise)
-        } else {
-            v
-        }
-    };
-    let mut history: Vec<Tensor<B, 3>> = (0..t).map(|k| noisy(truth(k).narrow(2, 2, 2))).collect();
-    let mut pos = truth(t - 1).narrow(2, 0, 2);
-    let mut state = MemoryState::Empty;
-    // The advected F ([`crate::model::grid::Deformation::Advect`]): fitted to the true frame
-    // T - 1 by the first call, then carried.
-    let mut deformation = None;
-    let pos_scale = dv_scale.clone() * dt.clone().reshape([b, 1, 1]);
-    let bundle = config.bundle.max(1);
-    let mut total: Option<Tensor<B, 1>> = None;
-    let warm = opts.pushforward;
-    // The push-forward calls run on a copy of the model whose parameters track no gradient,
-    // so they record no autodiff graph (detaching their outputs alone left every call's
-    // activations held until the backward pass: 3x the GPU memory at 24 calls).
-    let frozen = (warm > 0).then(|| model.clone().no_grad());
-    for p in 0..opts.calls() {
-        let vel = Tensor::cat(history[history.len() - t..].to_vec(), 2);
-        let input = StepInput {
+    /// `[B, N, 2]` velocity frames, oldest first: the T true input frames (noisy), then the
+    /// frames the calls so far fed on.
+    history: Vec<Tensor<B, 3>>,
+    /// `[B, N, 2]` the positions the next call starts from.
+    pos: Tensor<B, 3>,
+    state: MemoryState<B>,
+    /// The advected F ([`crate::model::grid::Deformation::Advect`]): fitted to the true
+    /// frame T - 1 by the first call, then carried.
+    deformation: Option<Tensor<B, 3>>,
+    /// Network calls made so far (push-forward ones included).
+    calls: usize,
+}
+
+impl<'a, B: NetOps> Rollout<'a, B> {
+    /// A rollout of `batch` about to make its first call from the true frame `T - 1`.
+    pub(super) fn new(config: &'a GridConfig, opts: &'a GridTrainOptions, batch: BatchTensors<B>) -> Self {
+        let t = config.window;
+        let history = (0..t)
+            .map(|k| {
+                let v = batch.truth(k).narrow(2, 2, 2);
+                noisy(opts, config, &batch.dt.device(), v)
+            })
+            .collect();
+        let pos = batch.truth(t - 1).narrow(2, 0, 2);
+        Self {
+            config,
+            opts,
+            batch,
+            history,
             pos,
-            vel,
-            material: material.clone(),
-            dt: dt.clone(),
-            reference: Some(first_pos.clone()),
-            rest: rest.as_ref().map(|(r, _)| r.clone()),
-            deformation: deformation.take(),
-        };
-        let net = match &frozen {
-            Some(f) if p < warm => f,
-            _ => model,
-        };
-        let (outs, next_state) = net.step_bundle(input, state);
-        state = next_state;
-        deformation = outs.last().and_then(|o| o.deformation.clone());
-        let mut last_pos = None;
-        for (k, out) in outs.into_iter().enumerate() {
-            let target = truth(t + p * bundle + k);
-            if p < warm {
-                // Push-forward: the model's own frames, carried on without gradient or loss.
-                last_pos = Some(out.pos.detach());
-                history.push(out.vel.detach());
-                continue;
-            }
-            let lv = ((out.vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
-                .powi_scalar(2)
-                .mean();
-            let lx = ((out.pos.clone() - target.clone().narrow(2, 0, 2)) / pos_scale.clone())
-                .powi_scalar(2)
-                .mean();
-            let target_pos = target.clone().narrow(2, 0, 2);
-            let step = lv
-                + lx
-                + structure_loss(opts, rest.as_ref(), liquid.as_ref(), &out.pos, &target_pos);
-            total = Some(match total {
-                Some(acc) => acc + step,
-                None => step,
-            });
-            // The next call reads the truth (teacher steps) or the bundle's own frames.
-            if p + 1 < opts.teacher {
-                last_pos = Some(target.clone().narrow(2, 0, 2));
-                history.push(noisy(target.narrow(2, 2, 2)));
-            } else {
-                last_pos = Some(out.pos);
-                history.push(out.vel);
-            }
-        }
-        pos = last_pos.expect("a bundle has at least one frame");
-        if p < warm {
-            state = state.detach();
-            deformation = deformation.map(|f| f.detach());
+            state: MemoryState::Empty,
+            deformation: None,
+            calls: 0,
         }
     }
-    total
-        .expect("at least one step")
-        .div_scalar((opts.steps.max(1) * bundle) as f32)
+
+    /// The M push-forward calls, on a copy of `model` whose parameters track no gradient, so
+    /// they record no autodiff graph (detaching their outputs alone left every call's
+    /// activations held until the backward pass: 3x the GPU memory at 24 calls); their
+    /// frames, memory and F carried on detached.
+    pub(super) fn pushforward(&mut self, model: &GridModel<B>) {
+        if self.opts.pushforward == 0 {
+            return;
+        }
+        let frozen = model.clone().no_grad();
+        for _ in 0..self.opts.pushforward {
+            for out in self.call(&frozen) {
+                self.pos = out.pos.detach();
+                self.history.push(out.vel.detach());
+            }
+        }
+        self.detach();
+    }
+
+    /// The loss of the next P calls (`steps`), averaged over their P K frames, the rollout
+    /// carried on past them: teacher-forced while the call count is below `teacher`, then on
+    /// the model's own predictions.
+    pub(super) fn chunk_loss(&mut self, model: &GridModel<B>) -> Tensor<B, 1> {
+        let opts = self.opts;
+        let bundle = self.config.bundle.max(1);
+        let scale = self.batch.scales(self.config);
+        let mut total: Option<Tensor<B, 1>> = None;
+        for _ in 0..opts.steps {
+            let first = self.config.window + self.calls * bundle;
+            let teacher = self.calls + 1 < opts.teacher;
+            for (k, out) in self.call(model).into_iter().enumerate() {
+                let target = self.batch.truth(first + k);
+                let step = frame_loss(opts, &self.batch, &scale, &out.pos, &out.vel, &target);
+                total = Some(match total {
+                    Some(acc) => acc + step,
+                    None => step,
+                });
+                // The next call reads the truth (teacher steps) or the bundle's own frames.
+                if teacher {
+                    self.pos = target.clone().narrow(2, 0, 2);
+                    let v = target.narrow(2, 2, 2);
+                    self.history.push(noisy(opts, self.config, &self.pos.device(), v));
+                } else {
+                    self.pos = out.pos;
+                    self.history.push(out.vel);
+                }
+            }
+        }
+        total
+            .expect("at least one step")
+            .div_scalar((opts.steps.max(1) * bundle) as f32)
+    }
+
+    /// Cuts the gradient at the rollout's current point: what the next chunk reads (frames,
+    /// memory state, F) is kept detached, and frames it no longer reads are dropped.
+    pub(super) fn detach(&mut self) {
+        let t = self.config.window;
+        let keep = self.history.split_off(self.history.len() - t);
+        self.history = keep.into_iter().map(|v| v.detach()).collect();
+        self.pos = self.pos.clone().detach();
+        self.state = std::mem::replace(&mut self.state, MemoryState::Empty).detach();
+        self.deformation = self.deformation.take().map(|f| f.detach());
+    }
+
+    /// One network call of `net` from the rollout's current point: its K frames; the memory
+    /// state and F move on (the frames are the caller's to feed on).
+    fn call(&mut self, net: &GridModel<B>) -> Vec<crate::model::grid::StepOutput<B>> {
+        let t = self.config.window;
+        let b = &self.batch;
+        let input = StepInput {
+            pos: self.pos.clone(),
+            vel: Tensor::cat(self.history[self.history.len() - t..].to_vec(), 2),
+            material: b.material.clone(),
+            dt: b.dt.clone(),
+            reference: Some(b.first_pos.clone()),
+            rest: b.rest.as_ref().map(|(r, _)| r.clone()),
+            deformation: self.deformation.take(),
+        };
+        let state = std::mem::replace(&mut self.state, MemoryState::Empty);
+        let (outs, state) = net.step_bundle(input, state);
+        self.state = state;
+        self.deformation = outs.last().and_then(|o| o.deformation.clone());
+        self.calls += 1;
+        outs
+    }
+}
+
+impl<B: Backend> BatchTensors<B> {
+    /// `[B, N, 4]`: frame `k` of the window (the target frame last).
+    fn truth(&self, k: usize) -> Tensor<B, 3> {
+        let [b, _, n, _] = self.frames.dims();
+        self.frames.clone().narrow(1, k, 1).reshape([b, n, 4])
+    }
+
+    /// The loss's units: `dv_scale` (`[1, 1, 2]`) for velocities, `dv_scale dt` (`[B, 1, 2]`)
+    /// for positions.
+    fn scales(&self, config: &GridConfig) -> (Tensor<B, 3>, Tensor<B, 3>) {
+        let device = self.frames.device();
+        let b = self.frames.dims()[0];
+        let dv = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
+        let pos = dv.clone() * self.dt.clone().reshape([b, 1, 1]);
+        (dv, pos)
+    }
+}
+
+/// `v` (`[B, N, 2]`) with Gaussian noise of `noise * dv_scale` added (as it is without noise).
+fn noisy<B: Backend>(
+    opts: &GridTrainOptions,
+    config: &GridConfig,
+    device: &B::Device,
+    v: Tensor<B, 3>,
+) -> Tensor<B, 3> {
+    if opts.noise <= 0.0 {
+        return v;
+    }
+    let dv = Tensor::<B, 1>::from_floats(config.dv_scale, device).reshape([1, 1, 2]);
+    let e = Tensor::random(v.dims(), Distribution::Normal(0.0, 1.0), device);
+    v + e * dv.mul_scalar(opts.noise)
+}
+
+/// One predicted frame's loss: velocity and position MSE in the loss's units (`scale`,
+/// [`BatchTensors::scales`]) plus the structure terms, against `target` (`[B, N, 4]`).
+fn frame_loss<B: Backend>(
+    opts: &GridTrainOptions,
+    batch: &BatchTensors<B>,
+    (dv_scale, pos_scale): &(Tensor<B, 3>, Tensor<B, 3>),
+    pos: &Tensor<B, 3>,
+    vel: &Tensor<B, 3>,
+    target: &Tensor<B, 3>,
+) -> Tensor<B, 1> {
+    let lv = ((vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
+        .powi_scalar(2)
+        .mean();
+    let target_pos = target.clone().narrow(2, 0, 2);
+    let lx = ((pos.clone() - target_pos.clone()) / pos_scale.clone())
+        .powi_scalar(2)
+        .mean();
+    let rest = batch.rest.as_ref();
+    lv + lx + structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
 }
 
 /// The strain and volume terms of one predicted frame (see the module doc), weighted; 0
@@ -248,14 +331,11 @@ mod tests {
     use super::*;
     use burn::backend::{Autodiff, NdArray};
 
-    /// Push-forward: the M calls without loss are the model's own rollout (the frozen copy
-    /// predicts what the model does) and the loss covers the P calls after them only. So,
-    /// from one sample, `(M + P) L(P = M + P) = M L(P = M) + P L(P, push-forward M)`.
-    #[test]
-    fn pushforward_loss_is_the_tail_of_the_rollout_loss() {
-        type B = Autodiff<NdArray<f32>>;
-        let (t, n, m, p) = (2, 30, 2, 2);
-        let frames = t + m + p; // the inputs and the target
+    /// One sample of `calls` single-frame calls (T = 2, 30 particles of two materials moving
+    /// uniformly under gravity) and a tiny grid model.
+    fn sample(calls: usize) -> (Batch, GridConfig) {
+        let (t, n) = (2, 30);
+        let frames = t + calls; // the inputs and the target
         let row = |f: usize, i: usize| {
             let (x0, y0) = (0.3 + 0.013 * (i % 6) as f32, 0.4 + 0.011 * (i / 6) as f32);
             let (vx, vy) = (0.2 + 0.01 * i as f32, -0.3 * f as f32 * 0.016);
@@ -290,6 +370,29 @@ mod tests {
             .with_head_hidden(8)
             .with_dv_scale([0.1, 0.1])
             .with_head_zero_init(false);
+        (batch, config)
+    }
+
+    /// The push-forward calls, then the P calls with a loss, in one graph.
+    fn sequence_loss<B: NetOps>(
+        model: &GridModel<B>,
+        config: &GridConfig,
+        opts: &GridTrainOptions,
+        batch: BatchTensors<B>,
+    ) -> Tensor<B, 1> {
+        let mut rollout = Rollout::new(config, opts, batch);
+        rollout.pushforward(model);
+        rollout.chunk_loss(model)
+    }
+
+    /// Push-forward: the M calls without loss are the model's own rollout (the frozen copy
+    /// predicts what the model does) and the loss covers the P calls after them only. So,
+    /// from one sample, `(M + P) L(P = M + P) = M L(P = M) + P L(P, push-forward M)`.
+    #[test]
+    fn pushforward_loss_is_the_tail_of_the_rollout_loss() {
+        type B = Autodiff<NdArray<f32>>;
+        let (m, p) = (2, 2);
+        let (batch, config) = sample(m + p);
         let device = Default::default();
         let model = config.init::<B>(&device);
         let loss = |steps: usize, pushforward: usize| {
@@ -312,6 +415,58 @@ mod tests {
             (tail - all).abs() > 1e-3 * all.abs(),
             "the tail's loss is its own: {tail}, {all}"
         );
+    }
+
+    /// Chunks: cutting the gradient between chunks changes no value, so the C chunks'
+    /// losses of one sample average to the loss of its C P calls made in one piece, the
+    /// memory state carried across the cuts (a chunk restarted from an empty state would
+    /// read other inputs and give another loss).
+    #[test]
+    fn chunked_losses_average_to_the_whole_rollout_loss() {
+        type B = Autodiff<NdArray<f32>>;
+        let (chunks, p) = (3, 2);
+        let (batch, config) = sample(chunks * p);
+        let device = Default::default();
+        let model = config.init::<B>(&device);
+        let needs = Needs {
+            materials: config.materials,
+            ..Needs::default()
+        };
+        let tensors = || upload_batch::<B>(batch.clone(), &[false], needs, &device);
+        let whole = GridTrainOptions {
+            steps: chunks * p,
+            ..GridTrainOptions::default()
+        };
+        let all = sequence_loss(&model, &config, &whole, tensors()).into_scalar();
+        let opts = GridTrainOptions {
+            steps: p,
+            chunks,
+            ..GridTrainOptions::default()
+        };
+        let mut rollout = Rollout::new(&config, &opts, tensors());
+        let mut losses = Vec::new();
+        for c in 0..chunks {
+            if c > 0 {
+                rollout.detach();
+            }
+            let loss = rollout.chunk_loss(&model);
+            let grads = loss.backward();
+            let params = burn::optim::GradientsParams::from_grads(grads, &model);
+            assert!(!params.is_empty(), "chunk {c} has a gradient");
+            losses.push(loss.into_scalar());
+        }
+        let mean = losses.iter().sum::<f32>() / chunks as f32;
+        assert!((mean - all).abs() <= 1e-4 * all.abs(), "{losses:?}: {mean} against {all}");
+        // The last chunk from an empty memory state reads other inputs.
+        let mut fresh = Rollout::new(&config, &opts, tensors());
+        for _ in 0..chunks - 1 {
+            fresh.chunk_loss(&model);
+            fresh.detach();
+        }
+        fresh.state = MemoryState::Empty;
+        let restarted = fresh.chunk_loss(&model).into_scalar();
+        let last = losses[chunks - 1];
+        assert!((restarted - last).abs() > 1e-4 * last.abs(), "{restarted} against {last}");
     }
 
     /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
