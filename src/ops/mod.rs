@@ -59,8 +59,8 @@ mod tensor;
 pub use adam::AdamStep;
 pub use prepared::PreparedWeights;
 pub use tensor::{
-    elu, gather, grid_channels, im2col, linear, linear_elu, linear_elu_mean, linear_elu_mean_pool,
-    pool2, recurrence, silu, splat, upsample2,
+    elu, gather, grid_channels, host_indices, host_values, im2col, linear, linear_elu,
+    linear_elu_mean, linear_elu_mean_pool, pool2, recurrence, silu, splat, upsample2,
 };
 
 use burn::tensor::backend::Backend;
@@ -72,6 +72,30 @@ use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 pub(crate) const STENCIL_NODES: usize = 9;
 
 pub use cpu::transfer::{bspline_axis, stencil_bounds};
+
+/// Plain-f32 kernels for host passes outside the tensor operations (the grid model's CPU
+/// inference pass, `model/grid/fused.rs`): the CPU backend's own product and SiLU, so such a
+/// pass computes what the tensor path computes.
+pub mod host {
+    use ndarray::ArrayView2;
+
+    /// `dst = a @ b`, or `dst += a @ b` with `accumulate`, on the calling thread: row-major
+    /// `a` `[m, k]`, `b` `[k, n]`, `dst` `[m, n]`.
+    ///
+    /// # Panics
+    /// When a slice's length is not its shape's.
+    pub fn matmul(dst: &mut [f32], a: &[f32], b: &[f32], [m, k, n]: [usize; 3], accumulate: bool) {
+        let a = ArrayView2::from_shape((m, k), a).expect("a is [m, k]");
+        let b = ArrayView2::from_shape((k, n), b).expect("b is [k, n]");
+        super::cpu::gemm::gemm_serial_acc(dst, &a, &b, accumulate);
+    }
+
+    /// SiLU, `v sigmoid(v)`, as the CPU backend's [`super::NetOps::silu`] computes it.
+    #[inline(always)]
+    pub fn silu(v: f32) -> f32 {
+        v * super::cpu::activation::sigmoid1(v)
+    }
+}
 
 /// The kernel choices of one device (see the module doc): fixed when the device is opened,
 /// read by its ops. The default is what every command runs unless a flag says otherwise.
@@ -199,6 +223,22 @@ pub trait NetOps: Backend {
     /// burn's operations by default; one pass on the CPU (equal to the composed result).
     fn grid_channels(splat: FloatTensor<Self>, n: usize, own: usize) -> FloatTensor<Self> {
         composed_grid::composed_grid_channels::<Self>(splat, n, own)
+    }
+
+    /// The f32 elements of `x` in row-major order, read where that costs one copy (the CPU:
+    /// its buffer, which burn's `into_data` walks element by element when it is shared, as a
+    /// parameter's or a cloned tensor's is), or None (the default) for `into_data`
+    /// ([`host_values`]).
+    fn host_values(x: &FloatTensor<Self>) -> Option<Vec<f32>> {
+        let _ = x;
+        None
+    }
+
+    /// [`NetOps::host_values`] for an integer tensor (as i64), or None (the default) for
+    /// `into_data` ([`host_indices`]).
+    fn host_indices(x: &IntTensor<Self>) -> Option<Vec<i64>> {
+        let _ = x;
+        None
     }
 
     /// The grid model's sparse stencil (`model::grid::transfer`) computed where reading the

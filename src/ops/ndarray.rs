@@ -100,6 +100,21 @@ impl NetOps for NdArray<f32> {
             .unwrap_or_else(|| composed_grid_channels::<Self>(splat, n, own))
     }
 
+    fn host_values(x: &FloatTensor<Self>) -> Option<Vec<f32>> {
+        cpu::dense(x).map(|(data, _)| data.into_owned())
+    }
+
+    fn host_indices(x: &IntTensor<Self>) -> Option<Vec<i64>> {
+        let burn::backend::ndarray::NdArrayTensor::I64(s) = x else {
+            return None;
+        };
+        let v = s.view();
+        Some(match v.as_slice() {
+            Some(flat) => flat.to_vec(),
+            None => v.iter().copied().collect(),
+        })
+    }
+
     fn sparse_stencil(
         pos: &FloatTensor<Self>,
         n: usize,

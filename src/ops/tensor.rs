@@ -15,6 +15,34 @@ fn wrap<B: NetOps, const D: usize>(x: FloatTensor<B>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(x))
 }
 
+/// The f32 elements of `t` in row-major order on the host, through [`NetOps::host_values`]
+/// where the backend reads them in one copy, else burn's `into_data` (empty if they cannot be
+/// read as f32).
+pub fn host_values<B: NetOps, const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
+    let x = t.into_primitive().tensor();
+    match B::host_values(&x) {
+        Some(v) => v,
+        None => wrap::<B, D>(x)
+            .into_data()
+            .convert::<f32>()
+            .to_vec::<f32>()
+            .unwrap_or_default(),
+    }
+}
+
+/// [`host_values`] of an integer tensor, as i64, through [`NetOps::host_indices`].
+pub fn host_indices<B: NetOps, const D: usize>(t: Tensor<B, D, Int>) -> Vec<i64> {
+    let x = t.into_primitive();
+    match B::host_indices(&x) {
+        Some(v) => v,
+        None => Tensor::<B, D, Int>::from_primitive(x)
+            .into_data()
+            .convert::<i64>()
+            .to_vec::<i64>()
+            .unwrap_or_default(),
+    }
+}
+
 /// `linear.forward(x)` through [`NetOps::linear_forward`]: any leading dims, the last one
 /// `in`; returns the same leading dims and `out`. Equal to burn's `Linear::forward` up to
 /// float summation order (the CPU backend's streamed product for a few rows).

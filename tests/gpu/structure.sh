@@ -13,6 +13,7 @@
 #   tests/gpu/structure.sh start3 MINUTES    # the third round: advected F against fitted F
 #   tests/gpu/structure.sh start4 MINUTES    # the fourth: longer training rollouts
 #   tests/gpu/structure.sh start5 MINUTES    # the fifth: push-forward
+#   tests/gpu/structure.sh start7 MINUTES    # the seventh: chunks (truncated BPTT), memory
 #   tests/gpu/structure.sh wait              # until they have ended, a line a minute
 #   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
 #   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
@@ -109,6 +110,21 @@ start5)
     small=(--model mingru --init-from models/all-grid-mingru-small-k4-rest "${SMALL[@]}" --rest-shape fit)
     start s4c "$m" "${small[@]}"
     start s4p "$m" "${small[@]}" --pushforward 14
+    ;;
+start7)
+    # The seventh round: truncated backpropagation through time (the 8 loss calls made C times
+    # per sample, an optimizer step after each, the rollout carried across: 64 and 128
+    # frames) against today's one chunk, from the shipped fitted-F model; and the memory
+    # ablation, minGRU against no memory, the small network from scratch (a fresh run's rate).
+    m=$2
+    rest=(--model mingru --init-from models/all-grid-mingru-rest --rest-shape fit --rollout-steps 8)
+    start p0 "$m" "${rest[@]}"
+    start c8 "$m" "${rest[@]}" --chunks 8
+    start c16 "$m" "${rest[@]}" --chunks 16
+    COMMON=("${COMMON[@]/#1e-4/1e-3}")
+    scratch=(--grid 32 --unet-width 16 --levels 3 --rest-shape fit --rollout-steps 4)
+    start sm0 "$m" --model mingru "${scratch[@]}"
+    start smn "$m" --model none "${scratch[@]}"
     ;;
 wait)
     wait_runs

@@ -59,7 +59,10 @@ fn bundled_model() -> PathBuf {
         let o = Node::spawn("train", &args).wait(Duration::from_secs(300));
         let err = ok(&o, "train");
         assert!(err.contains("K = 2"), "train reports the bundle: {err}");
-        assert!(err.contains("push-forward 1, chunks 2"), "and the chunks: {err}");
+        assert!(
+            err.contains("push-forward 1, chunks 2"),
+            "and the chunks: {err}"
+        );
         dir
     })
     .path()

@@ -289,3 +289,56 @@ fn neighbourhoods_stay_in_their_scene() {
         );
     }
 }
+
+/// CPU inference's per-particle host passes (`model/grid/fused.rs`: the input rows, the head,
+/// the integration) predict what the tensor path predicts, to 1e-5, over a rollout that
+/// carries the memory: minGRU, minLSTM and no memory, one frame and three frames a call,
+/// with and without the rest-shape features, two scenes of different dt in one batch.
+#[test]
+fn host_pass_predicts_what_the_tensor_path_does() {
+    let device = Default::default();
+    let (state, material) = scene();
+    let moved: Vec<f32> = state
+        .chunks(4)
+        .flat_map(|r| [r[0] + 0.05, r[1] - 0.02, -r[2], r[3] + 0.1])
+        .collect();
+    let both = [material.clone(), material].concat();
+    let seed = vec![
+        [state.clone(), moved.clone()].concat(),
+        [stretched(&state), moved].concat(),
+    ];
+    let first = seed[0].clone();
+    for (memory, bundle, rest) in [
+        (MemoryKind::MinGru, 1, true),
+        (MemoryKind::MinGru, 3, true),
+        (MemoryKind::MinLstm, 1, false),
+        (MemoryKind::None, 2, false),
+    ] {
+        let mut c = config(rest, Update::Free).with_bundle(bundle);
+        c.memory = memory;
+        let model = initial_grid_model::<B>(&c, 31, &device).unwrap();
+        let meta = ModelMeta {
+            net: NetConfig::Grid(c),
+            scaler: Scaler::default(),
+            epoch: 0,
+            val_loss: 0.0,
+        };
+        let run = |host_pass: bool| {
+            let net = store::Net::Grid(model.clone().with_host_pass(host_pass));
+            let s = Surrogate::from_net(net, meta.clone(), &device);
+            let mut frames = Vec::new();
+            s.rollout_batch(Some(&first), &seed, &both, &[0.016, 0.008], 6, |_, f| {
+                frames.push(f.to_vec())
+            })
+            .unwrap();
+            frames
+        };
+        let (fused, tensor) = (run(true), run(false));
+        let what = format!("{memory:?}, K = {bundle}, rest shape {rest}");
+        assert_eq!(fused.len(), 6, "{what}");
+        let diff = max_abs_diff(&fused, &tensor);
+        assert!(diff < 1e-5, "{what}: {diff}");
+        let moved = max_abs_diff(&fused[5..], &[seed[1].clone()]);
+        assert!(moved > 1e-3, "{what}: the rollout moves ({moved})");
+    }
+}

@@ -240,6 +240,7 @@ impl GridConfig {
             reference: self.reference,
             update: self.update,
             deformation: self.deformation,
+            host_pass: true,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,

@@ -84,6 +84,12 @@ impl<B: NetOps> GridModel<B> {
         }
     }
 
+    /// This model with CPU inference's per-particle host passes on or off (`false`: the
+    /// tensor path everywhere; for the test that holds the two equal and for measuring them).
+    pub fn with_host_pass(self, host_pass: bool) -> Self {
+        Self { host_pass, ..self }
+    }
+
     /// This model with its rest-shape features' F taken as `deformation` says
     /// ([`super::GridConfig::deformation`]): the same weights, the six features read from
     /// another F (fine-tuning a fitted-F model into an advected-F one).

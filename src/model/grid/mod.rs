@@ -37,6 +37,7 @@
 //! [`GridConfig`]. Used by [`crate::model::store::Surrogate`] and [`crate::train::grid`].
 
 mod config;
+mod fused;
 mod grow;
 pub mod memory;
 pub mod rest;
@@ -53,7 +54,7 @@ use burn::nn::Linear;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
-use crate::ops::{grid_channels, linear, silu, NetOps};
+use crate::ops::{grid_channels, host_values, linear, silu, NetOps};
 
 /// The network (see the module doc).
 #[derive(Module, Debug)]
@@ -73,6 +74,10 @@ pub struct GridModel<B: Backend> {
     update: Update,
     #[module(skip)]
     deformation: Deformation,
+    /// Whether CPU inference takes the per-particle host passes ([`fused`]; true unless a
+    /// test asks for the tensor path with [`GridModel::with_host_pass`]).
+    #[module(skip)]
+    host_pass: bool,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
     dv_scale: [f32; 2],
@@ -235,6 +240,9 @@ impl<B: NetOps> GridModel<B> {
         let channels = out.dims()[3];
         let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
         let (fields, dv_fields) = self.fields(out, [b, cells]);
+        if self.takes_host_pass(&input) {
+            return self.host_frames(&input, vel, &fields, state);
+        }
         let field = |k: usize| fields[k].clone();
 
         // Memory, once per call, on the first frame's inputs (not in the output of the grid
@@ -287,6 +295,77 @@ impl<B: NetOps> GridModel<B> {
             }
             pos = next.pos.clone();
             frames.push(next);
+        }
+        (frames, state)
+    }
+
+    /// Whether this call's per-particle part runs as host passes ([`fused`]): inference on
+    /// the CPU (no gradient anywhere) with the free head and no advected F.
+    fn takes_host_pass(&self, input: &StepInput<B>) -> bool {
+        self.host_pass
+            && B::SEQUENTIAL_SCAN
+            && self.update == Update::Free
+            && !self.advects()
+            && !input.pos.is_require_grad()
+            && !self.head_out.weight.val().is_require_grad()
+    }
+
+    /// [`GridModel::step_bundle`]'s frames from the U-Net's latent `fields` on, through the
+    /// host passes of [`fused`]: the input rows, the memory (as tensors, on the first frame's
+    /// rows), then per frame the head and the integration. `vel` is the normalised window.
+    fn host_frames(
+        &self,
+        input: &StepInput<B>,
+        vel: Tensor<B, 3>,
+        fields: &[Tensor<B, 3>],
+        state: MemoryState<B>,
+    ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
+        let [b, n_p, _] = input.pos.dims();
+        let device = input.pos.device();
+        let c = fused::Constants {
+            n: self.n,
+            window: self.window,
+            vel_scale: self.vel_scale,
+            dv_mean: self.dv_mean,
+            dv_scale: self.dv_scale,
+        };
+        let mut particles = fused::Particles {
+            pos: host_values(input.pos.clone()),
+            vel: host_values(vel),
+            material: host_values(input.material.clone()),
+            dt: host_values(input.dt.clone()),
+            particles: n_p,
+        };
+        let head = fused::Head::of(
+            &self.head_a,
+            self.rest_in.as_ref(),
+            &self.head_b,
+            &self.head_out,
+        );
+        let rest = input
+            .rest
+            .as_ref()
+            .filter(|r| r.dims() == [b, n_p] && self.rest_in.is_some());
+        let rest_rows = |pos: &[f32]| rest.and_then(|r| r.features_rows(pos));
+        let latent = fields[0].dims()[2];
+        let mut u = particles.inputs(&host_values(fields[0].clone()), latent, c);
+        let width = u.len() / (b * n_p).max(1);
+        let (memory, state) = self
+            .memory
+            .step(fused::upload(u.clone(), [b * n_p, width], &device), state);
+        let memory = memory.map(host_values);
+        let mut frames = Vec::with_capacity(self.bundle);
+        for (k, field) in fields.iter().enumerate().take(self.bundle) {
+            if k > 0 {
+                u = particles.inputs(&host_values(field.clone()), latent, c);
+            }
+            let features = rest_rows(&particles.pos);
+            let v = particles.advance(&head, &u, memory.as_deref(), features.as_deref(), c);
+            frames.push(StepOutput {
+                pos: fused::upload(particles.pos.clone(), [b, n_p, 2], &device),
+                vel: fused::upload(v, [b, n_p, 2], &device),
+                deformation: None,
+            });
         }
         (frames, state)
     }

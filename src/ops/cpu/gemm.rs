@@ -28,6 +28,17 @@ pub(crate) fn gemm_serial(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f
     gemm_with(dst, a, b, false, gemm::Parallelism::None);
 }
 
+/// `dst = a @ b`, or `dst += a @ b` with `accumulate`, on the calling thread; shapes as
+/// [`gemm_into`].
+pub(crate) fn gemm_serial_acc(
+    dst: &mut [f32],
+    a: &ArrayView2<f32>,
+    b: &ArrayView2<f32>,
+    accumulate: bool,
+) {
+    gemm_with(dst, a, b, accumulate, gemm::Parallelism::None);
+}
+
 fn gemm_with(
     dst: &mut [f32],
     a: &ArrayView2<f32>,

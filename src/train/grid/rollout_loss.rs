@@ -140,7 +140,11 @@ pub(super) struct Rollout<'a, B: Backend> {
 
 impl<'a, B: NetOps> Rollout<'a, B> {
     /// A rollout of `batch` about to make its first call from the true frame `T - 1`.
-    pub(super) fn new(config: &'a GridConfig, opts: &'a GridTrainOptions, batch: BatchTensors<B>) -> Self {
+    pub(super) fn new(
+        config: &'a GridConfig,
+        opts: &'a GridTrainOptions,
+        batch: BatchTensors<B>,
+    ) -> Self {
         let t = config.window;
         let history = (0..t)
             .map(|k| {
@@ -201,7 +205,8 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                 if teacher {
                     self.pos = target.clone().narrow(2, 0, 2);
                     let v = target.narrow(2, 2, 2);
-                    self.history.push(noisy(opts, self.config, &self.pos.device(), v));
+                    self.history
+                        .push(noisy(opts, self.config, &self.pos.device(), v));
                 } else {
                     self.pos = out.pos;
                     self.history.push(out.vel);
@@ -456,7 +461,10 @@ mod tests {
             losses.push(loss.into_scalar());
         }
         let mean = losses.iter().sum::<f32>() / chunks as f32;
-        assert!((mean - all).abs() <= 1e-4 * all.abs(), "{losses:?}: {mean} against {all}");
+        assert!(
+            (mean - all).abs() <= 1e-4 * all.abs(),
+            "{losses:?}: {mean} against {all}"
+        );
         // The last chunk from an empty memory state reads other inputs.
         let mut fresh = Rollout::new(&config, &opts, tensors());
         for _ in 0..chunks - 1 {
@@ -466,7 +474,10 @@ mod tests {
         fresh.state = MemoryState::Empty;
         let restarted = fresh.chunk_loss(&model).into_scalar();
         let last = losses[chunks - 1];
-        assert!((restarted - last).abs() > 1e-4 * last.abs(), "{restarted} against {last}");
+        assert!(
+            (restarted - last).abs() > 1e-4 * last.abs(),
+            "{restarted} against {last}"
+        );
     }
 
     /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =

@@ -7,6 +7,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
 use super::{NeighbourTensors, REST_CLAMP, REST_FEATURES, REST_NEIGHBOURS};
+use crate::ops::{host_indices, host_values, NetOps};
 
 /// Each selected particle's neighbours in a reference configuration, on the host (see the
 /// module doc). Rows of the batch's `B N` particles, scene-major.
@@ -201,32 +202,40 @@ impl Bins {
     }
 }
 
-impl<B: Backend> NeighbourTensors<B> {
+impl<B: NetOps> NeighbourTensors<B> {
     /// [`Self::features`] computed on the host in one pass over the particles, for inference
     /// on the CPU (about 40 small tensor operations per frame cost a 2,500-particle step more
     /// than the network did; this is one loop): the same values, no gradient.
     pub fn features_host(&self, pos: Tensor<B, 3>) -> Tensor<B, 3> {
         let [b, n] = self.dims;
         let device = pos.device();
-        let host = |t: Tensor<B, 3>| t.into_data().convert::<f32>().to_vec::<f32>();
-        let (Ok(x), Ok(offset), Ok(weight), Ok(binv), Ok(inv_d0)) = (
-            host(pos.clone()),
-            host(self.offset.clone()),
-            host(self.weight.clone()),
-            host(self.binv.clone()),
-            host(self.inv_d0.clone()),
-        ) else {
-            return self.features(pos);
-        };
-        let Ok(index) = self
-            .index
+        let rows = pos
             .clone()
             .into_data()
-            .convert::<i64>()
-            .to_vec::<i64>()
-        else {
-            return self.features(pos);
-        };
+            .convert::<f32>()
+            .to_vec::<f32>()
+            .ok()
+            .and_then(|x| self.features_rows(&x));
+        match rows {
+            Some(out) => Tensor::from_data(TensorData::new(out, [b, n, REST_FEATURES]), &device),
+            None => self.features(pos),
+        }
+    }
+
+    /// [`Self::features_host`] of the host positions `x` (`[B N, 2]`, row-major): `[B N, 6]`
+    /// rows; None where the neighbourhoods cannot be read back as f32 and i64 or `x` is not
+    /// `B N` rows.
+    pub fn features_rows(&self, x: &[f32]) -> Option<Vec<f32>> {
+        let [b, n] = self.dims;
+        if x.len() != b * n * 2 {
+            return None;
+        }
+        let host = |t: &Tensor<B, 3>| Some(host_values(t.clone())).filter(|v| !v.is_empty());
+        let offset = host(&self.offset)?;
+        let weight = host(&self.weight)?;
+        let binv = host(&self.binv)?;
+        let inv_d0 = host(&self.inv_d0)?;
+        let index = Some(host_indices(self.index.clone())).filter(|v| !v.is_empty())?;
         let k = REST_NEIGHBOURS;
         let mut out = vec![0.0f32; b * n * REST_FEATURES];
         for (row, feats) in out.chunks_exact_mut(REST_FEATURES).enumerate() {
@@ -253,7 +262,7 @@ impl<B: Backend> NeighbourTensors<B> {
                 *f = v.clamp(-REST_CLAMP, REST_CLAMP);
             }
         }
-        Tensor::from_data(TensorData::new(out, [b, n, REST_FEATURES]), &device)
+        Some(out)
     }
 }
 
