@@ -14,6 +14,7 @@
 #   tests/gpu/structure.sh start4 MINUTES    # the fourth: longer training rollouts
 #   tests/gpu/structure.sh start5 MINUTES    # the fifth: push-forward
 #   tests/gpu/structure.sh start7 MINUTES    # the seventh: chunks (truncated BPTT), memory
+#   tests/gpu/structure.sh start8 MINUTES    # the eighth: the seventh's runs trained on
 #   tests/gpu/structure.sh wait              # until they have ended, a line a minute
 #   tests/gpu/structure.sh eval NAME...      # unseen scenes: horizon 20 (--starts 5) and full
 #   tests/gpu/structure.sh eval-each NAME... # the same, one eval process per model, at once
@@ -125,6 +126,16 @@ start7)
     scratch=(--grid 32 --unet-width 16 --levels 3 --rest-shape fit --rollout-steps 4)
     start sm0 "$m" --model mingru "${scratch[@]}"
     start smn "$m" --model none "${scratch[@]}"
+    ;;
+start8)
+    # The eighth round: round 7's p0, c8 and c16 (their run folders carried back to the GPU
+    # machine as gpu/r7/NAME) each trained MINUTES more on ordinary samples, so the chunks
+    # are a first stage, at equal total time.
+    m=$2
+    for name in p0 c8 c16; do
+        start "${name}p" "$m" --model mingru --init-from "gpu/r7/$name" --rest-shape fit \
+            --rollout-steps 8
+    done
     ;;
 wait)
     wait_runs

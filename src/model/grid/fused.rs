@@ -113,8 +113,11 @@ pub struct Constants {
     pub n: usize,
     /// Velocity frames per particle, T.
     pub window: usize,
+    /// Velocity normalisation (domain units per time unit), per component.
     pub vel_scale: [f32; 2],
+    /// Mean velocity change, physical, per component.
     pub dv_mean: [f32; 2],
+    /// Velocity-change scale the head's output is in, per component.
     pub dv_scale: [f32; 2],
 }
 
