@@ -140,10 +140,11 @@ fn model_row(
             use super::device::cuda::{device, CudaInfer};
             let device = device(ids[0], args.device.kernels())?;
             let s = Surrogate::<CudaInfer>::load(dir, &device)?;
-            // One untimed rollout of a whole call's scenes first: the kernels are compiled
+            // One untimed rollout of a full call's scenes first: the kernels are compiled
             // (and autotuned) per tensor shape, so a warm-up with one scene left the timed
             // batches' compilation to the first model timed (a single-frame model listed
-            // first read 2.3 ms a frame, the same model listed after another 0.5 ms).
+            // first read 2.3 ms a frame, the same model listed after another 0.5 ms). A
+            // smaller last call (scenes not a multiple of --batch) still compiles its own.
             let (w, h, batch) = sizes;
             roll(&s, &scenes[..batch.min(scenes.len())], (w, h.min(8), batch))?;
             roll(&s, scenes, sizes)

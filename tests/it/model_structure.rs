@@ -7,8 +7,11 @@
 //! particle order; and an advected F (`--rest-shape advect`) is state the scene carries.
 
 use burn::backend::NdArray;
+use burn::tensor::{Tensor, TensorData};
 use minflow::data::Scaler;
-use minflow::model::grid::{Deformation, GridConfig, MemoryKind, Neighbourhood, Update};
+use minflow::model::grid::{
+    one_hot, Deformation, GridConfig, MemoryKind, MemoryState, Neighbourhood, StepInput, Update,
+};
 use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
 use minflow::train::grid::initial_grid_model;
 
@@ -293,7 +296,8 @@ fn neighbourhoods_stay_in_their_scene() {
 /// CPU inference's per-particle host passes (`model/grid/fused.rs`: the input rows, the head,
 /// the integration) predict what the tensor path predicts, to 1e-5, over a rollout that
 /// carries the memory: minGRU, minLSTM and no memory, one frame and three frames a call,
-/// with and without the rest-shape features, two scenes of different dt in one batch.
+/// with and without the rest-shape features, two scenes of different dt in one batch; and a
+/// rest-shape model given no neighbourhoods.
 #[test]
 fn host_pass_predicts_what_the_tensor_path_does() {
     let device = Default::default();
@@ -340,5 +344,33 @@ fn host_pass_predicts_what_the_tensor_path_does() {
         assert!(diff < 1e-5, "{what}: {diff}");
         let moved = max_abs_diff(&fused[5..], &[seed[1].clone()]);
         assert!(moved > 1e-3, "{what}: the rollout moves ({moved})");
+    }
+    // A rest-shape model stepped without neighbourhoods reads zero features on both paths
+    // (its rest layer's bias included).
+    let c = config(true, Update::Free);
+    let model = initial_grid_model::<B>(&c, 37, &device).unwrap();
+    for n in [state.len() / 4, 60] {
+        let step = |host_pass: bool| {
+            let rows = &state[..n * 4];
+            let frame =
+                Tensor::<B, 3>::from_data(TensorData::new(rows.to_vec(), [1, n, 4]), &device);
+            let vel = frame.clone().narrow(2, 2, 2);
+            let input = StepInput {
+                pos: frame.narrow(2, 0, 2),
+                vel: Tensor::cat(vec![vel.clone(), vel], 2),
+                material: one_hot(&both[..n], c.materials, 1, n, &device),
+                dt: Tensor::from_data(TensorData::new(vec![0.016f32], [1]), &device),
+                reference: None,
+                rest: None,
+                deformation: None,
+            };
+            let net = model.clone().with_host_pass(host_pass);
+            let (out, _) = net.step(input, MemoryState::Empty);
+            out.pos.into_data().to_vec::<f32>().unwrap()
+        };
+        let (fused, tensor) = (step(true), step(false));
+        assert_eq!(fused.len(), n * 2);
+        let diff = max_abs_diff(&[fused], &[tensor]);
+        assert!(diff < 1e-5, "no neighbourhoods, N = {n}: {diff}");
     }
 }

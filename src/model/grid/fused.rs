@@ -1,21 +1,25 @@
-//! The per-particle part of a grid step on the CPU in host passes over the particles, for
-//! inference: after P2G and the U-Net (tensors, as everywhere), each frame k of a call is
+//! The per-particle part of a grid step on the CPU in host passes over the particles, where
+//! nothing needs a gradient: after P2G and the U-Net (tensors, as everywhere), each frame k
+//! of a call is
 //! - one pass building every particle's input row `u = [G2P of latent field k, normalised
 //!   velocities, material one-hot, position]` (its quadratic B-spline stencil taken on the
-//!   spot, [`crate::ops::bspline_axis`]), and
+//!   spot, [`crate::ops::bspline_axis`]),
 //! - one pass over blocks of [`BLOCK`] particles on the rayon pool: the head MLP on
 //!   `[u, memory output]` (the rest-shape features through their own first layer) as small
-//!   products on the cache-resident block, SiLU, and the trapezoid integration with the
-//!   clamp into MPM's box, writing the next positions and velocities.
+//!   products on the cache-resident block, and SiLU, and
+//! - the trapezoid integration with the clamp into MPM's box, writing the next positions,
+//!   velocities and velocity window (a serial pass over the particles: a few flops each).
 //!
 //! The same arithmetic as [`super::GridModel::step_bundle`]'s tensor path (the module doc of
-//! [`super`], steps 3 to 5) in the same f32 kernels ([`crate::ops::host`]); a test holds the
-//! two to 1e-5. The tensor path makes about twenty tensors a frame here (stencil, gather,
-//! concatenations, each layer's output, each integration term), each a fresh buffer and a
-//! pass of its own: on 2 cores they cost the small bundled model more than its products.
-//! The memory cell still runs as tensors, once per call, on the rows of the first pass.
-//! Taken by [`super::GridModel::step_bundle`] for inference on the CPU with the free head
-//! ([`super::Update::Free`]) and the fitted or no rest shape (not the advected F).
+//! [`super`], steps 3 to 5) with the CPU backend's own product and SiLU
+//! ([`crate::ops::host`]), equal to rounding (the products sum in another order); a test
+//! holds the two to 1e-5. The tensor path makes about twenty tensors a frame here (stencil,
+//! gather, concatenations, each layer's output, each integration term), each a fresh buffer
+//! and a pass of its own: on 2 cores they cost the small bundled model more than its
+//! products. The memory cell still runs as tensors, once per call, on the rows of the first
+//! pass. Taken by [`super::GridModel::step_bundle`] on the CPU for inference and for CPU
+//! training's push-forward calls, with the free head ([`super::Update::Free`]) and the
+//! fitted or no rest shape (not the advected F).
 
 use burn::nn::Linear;
 use burn::tensor::backend::Backend;

@@ -299,14 +299,17 @@ impl<B: NetOps> GridModel<B> {
         (frames, state)
     }
 
-    /// Whether this call's per-particle part runs as host passes ([`fused`]): inference on
-    /// the CPU (no gradient anywhere) with the free head and no advected F.
+    /// Whether this call's per-particle part runs as host passes ([`fused`]): on the CPU
+    /// where nothing needs a gradient (inference, and the push-forward calls of CPU
+    /// training), with the free head and no advected F.
     fn takes_host_pass(&self, input: &StepInput<B>) -> bool {
         self.host_pass
             && B::SEQUENTIAL_SCAN
             && self.update == Update::Free
             && !self.advects()
             && !input.pos.is_require_grad()
+            && !input.vel.is_require_grad()
+            && !self.head_a.weight.val().is_require_grad()
             && !self.head_out.weight.val().is_require_grad()
     }
 
@@ -346,10 +349,16 @@ impl<B: NetOps> GridModel<B> {
             .rest
             .as_ref()
             .filter(|r| r.dims() == [b, n_p] && self.rest_in.is_some());
-        let rest_rows = |pos: &[f32]| rest.and_then(|r| r.features_rows(pos));
+        // Without neighbourhoods a rest-shape model reads zero features (its first layer's
+        // bias still counts), as the tensor path does.
+        let rest_rows = |pos: &[f32]| {
+            let rows = rest.and_then(|r| r.features_rows(pos));
+            let zeros = || vec![0.0; b * n_p * REST_FEATURES];
+            rows.or_else(|| self.rest_in.as_ref().map(|_| zeros()))
+        };
         let latent = fields[0].dims()[2];
         let mut u = particles.inputs(&host_values(fields[0].clone()), latent, c);
-        let width = u.len() / (b * n_p).max(1);
+        let width = latent + 2 * self.window + input.material.dims()[2] + 2;
         let (memory, state) = self
             .memory
             .step(fused::upload(u.clone(), [b * n_p, width], &device), state);

@@ -289,7 +289,8 @@ where
     }
 
     /// One pass over `clock.batches` batches of `train` (epoch `epoch`, 0-based): a step of
-    /// Adam per batch at the decayed learning rate, the observer told after each. Stops
+    /// Adam per batch and chunk (`chunks`, [`Rollout`]) at the batch's decayed learning
+    /// rate, the observer told after each batch. Stops
     /// early, with `out_of_time` set, once `--max-minutes` have passed since the run began.
     ///
     /// # Errors

@@ -209,13 +209,7 @@ impl<B: NetOps> NeighbourTensors<B> {
     pub fn features_host(&self, pos: Tensor<B, 3>) -> Tensor<B, 3> {
         let [b, n] = self.dims;
         let device = pos.device();
-        let rows = pos
-            .clone()
-            .into_data()
-            .convert::<f32>()
-            .to_vec::<f32>()
-            .ok()
-            .and_then(|x| self.features_rows(&x));
+        let rows = self.features_rows(&host_values(pos.clone()));
         match rows {
             Some(out) => Tensor::from_data(TensorData::new(out, [b, n, REST_FEATURES]), &device),
             None => self.features(pos),
