@@ -87,7 +87,7 @@ pub mod host {
     pub fn matmul(dst: &mut [f32], a: &[f32], b: &[f32], [m, k, n]: [usize; 3], accumulate: bool) {
         let a = ArrayView2::from_shape((m, k), a).expect("a is [m, k]");
         let b = ArrayView2::from_shape((k, n), b).expect("b is [k, n]");
-        super::cpu::gemm::gemm_serial_acc(dst, &a, &b, accumulate);
+        super::cpu::gemm::gemm_serial(dst, &a, &b, accumulate);
     }
 
     /// SiLU, `v sigmoid(v)`, as the CPU backend's [`super::NetOps::silu`] computes it.

@@ -22,8 +22,6 @@
 //! fitted or no rest shape (not the advected F).
 
 use burn::nn::Linear;
-use burn::tensor::backend::Backend;
-use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
 use crate::ops::{bspline_axis, host, host_values, NetOps};
@@ -234,13 +232,4 @@ impl Particles {
         }
         next
     }
-}
-
-/// `data` as a tensor of `shape` on `device`.
-pub fn upload<B: Backend, const D: usize>(
-    data: Vec<f32>,
-    shape: [usize; D],
-    device: &B::Device,
-) -> Tensor<B, D> {
-    Tensor::from_data(TensorData::new(data, shape), device)
 }

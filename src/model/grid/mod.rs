@@ -241,7 +241,7 @@ impl<B: NetOps> GridModel<B> {
         let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
         let (fields, dv_fields) = self.fields(out, [b, cells]);
         if self.takes_host_pass(&input) {
-            return self.host_frames(&input, vel, &fields, state);
+            return self.host_frames(&input, vel, &fields, features, state);
         }
         let field = |k: usize| fields[k].clone();
 
@@ -315,12 +315,15 @@ impl<B: NetOps> GridModel<B> {
 
     /// [`GridModel::step_bundle`]'s frames from the U-Net's latent `fields` on, through the
     /// host passes of [`fused`]: the input rows, the memory (as tensors, on the first frame's
-    /// rows), then per frame the head and the integration. `vel` is the normalised window.
+    /// rows), then per frame the head and the integration. `vel` is the normalised window;
+    /// `features` the rest-shape features at the call's positions (`[B, N, 6]`, as P2G read
+    /// them; `None` for a model without rest shape).
     fn host_frames(
         &self,
         input: &StepInput<B>,
         vel: Tensor<B, 3>,
         fields: &[Tensor<B, 3>],
+        features: Option<Tensor<B, 3>>,
         state: MemoryState<B>,
     ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
         let [b, n_p, _] = input.pos.dims();
@@ -359,20 +362,22 @@ impl<B: NetOps> GridModel<B> {
         let latent = fields[0].dims()[2];
         let mut u = particles.inputs(&host_values(fields[0].clone()), latent, c);
         let width = latent + 2 * self.window + input.material.dims()[2] + 2;
-        let (memory, state) = self
-            .memory
-            .step(fused::upload(u.clone(), [b * n_p, width], &device), state);
+        let (memory, state) = self.memory.step(
+            crate::model::upload(u.clone(), [b * n_p, width], &device),
+            state,
+        );
         let memory = memory.map(host_values);
+        let mut features = features.map(host_values);
         let mut frames = Vec::with_capacity(self.bundle);
         for (k, field) in fields.iter().enumerate().take(self.bundle) {
             if k > 0 {
                 u = particles.inputs(&host_values(field.clone()), latent, c);
+                features = rest_rows(&particles.pos);
             }
-            let features = rest_rows(&particles.pos);
             let v = particles.advance(&head, &u, memory.as_deref(), features.as_deref(), c);
             frames.push(StepOutput {
-                pos: fused::upload(particles.pos.clone(), [b, n_p, 2], &device),
-                vel: fused::upload(v, [b, n_p, 2], &device),
+                pos: crate::model::upload(particles.pos.clone(), [b, n_p, 2], &device),
+                vel: crate::model::upload(v, [b, n_p, 2], &device),
                 deformation: None,
             });
         }

@@ -22,15 +22,9 @@ fn gemm_into(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f32>, accumula
     gemm_with(dst, a, b, accumulate, parallelism);
 }
 
-/// `dst = a @ b` on the calling thread, for callers that run several products in parallel
-/// themselves; shapes as [`gemm_into`].
-pub(crate) fn gemm_serial(dst: &mut [f32], a: &ArrayView2<f32>, b: &ArrayView2<f32>) {
-    gemm_with(dst, a, b, false, gemm::Parallelism::None);
-}
-
-/// `dst = a @ b`, or `dst += a @ b` with `accumulate`, on the calling thread; shapes as
-/// [`gemm_into`].
-pub(crate) fn gemm_serial_acc(
+/// `dst = a @ b`, or `dst += a @ b` with `accumulate`, on the calling thread, for callers
+/// that run several products in parallel themselves; shapes as [`gemm_into`].
+pub(crate) fn gemm_serial(
     dst: &mut [f32],
     a: &ArrayView2<f32>,
     b: &ArrayView2<f32>,

@@ -367,7 +367,7 @@ fn products(v: &[f32], u: &[f32], size: Size, m: &mut [f32]) {
             .expect("V holds every tile's 36 points");
         let us = ArrayView2::from_shape((c_in, c_out), &u[s * c_in * c_out..][..c_in * c_out])
             .expect("U holds 36 C_in x C_out matrices");
-        gemm_serial(dst, &vs, &us);
+        gemm_serial(dst, &vs, &us, false);
     };
     let parallel = tiles * c_in * c_out * POINTS >= PARALLEL_WORK;
     for_chunks(m, tiles * c_out, parallel, product);
