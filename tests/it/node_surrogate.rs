@@ -201,6 +201,26 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
         n, expected,
         "predictions recorded\nrecord: {rec}\nnode: {node_err}"
     );
+    assert_stage_times(&node_err);
+}
+
+/// The node's closing `time:` line: every stage named, the model's calls and the decoder
+/// busy, the loop's stages within its wall time.
+fn assert_stage_times(log: &str) {
+    let line = log
+        .lines()
+        .rev()
+        .find(|l| l.contains("time: wall_s="))
+        .unwrap_or_else(|| panic!("no time: line\n{log}"));
+    let value = |name: &str| -> f64 {
+        let key = format!(" {name}_s=");
+        let at = line.find(&key).unwrap_or_else(|| panic!("{name} in {line}")) + key.len();
+        line[at..].split(' ').next().unwrap().parse().unwrap()
+    };
+    let loop_stages = ["wait", "intake", "stack", "call", "split", "publish", "other"];
+    let sum: f64 = loop_stages.iter().map(|n| value(n)).sum();
+    assert!((sum - value("wall")).abs() < 0.01, "{line}");
+    assert!(value("call") > 0.0 && value("decode") > 0.0, "{line}");
 }
 
 #[test]

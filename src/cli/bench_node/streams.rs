@@ -9,7 +9,8 @@
 //! (sent, never predicted: the node's per-scene queues overflowed), the publish ->
 //! prediction latency p50/p99 (both hops and the node; the stamp carries the publication
 //! time), predictions per second, and the node's mean and largest scenes per call (its
-//! closing counters). Used by [`super::run`].
+//! closing counters); then a second table of where the node's wall time went, by stage (its
+//! closing `time:` line). Used by [`super::run`].
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -32,7 +33,14 @@ struct Row {
     per_s: f64,
     batch_mean: f64,
     batch_max: u64,
+    /// The node's seconds per stage, in [`STAGES`]' order (NaN: not in its log).
+    stages: Vec<f64>,
 }
+
+/// The stages of the node's closing `time:` line (`node/surrogate/report.rs`, `StageTimes`).
+const STAGES: [&str; 9] = [
+    "wall", "wait", "intake", "stack", "call", "split", "publish", "other", "decode",
+];
 
 /// Runs the streams benchmark: one row per `--max-batch` value, the table on stdout.
 ///
@@ -167,6 +175,10 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
         latency_ms,
         batch_mean: log_value(&log, "batch_mean").unwrap_or(f64::NAN),
         batch_max: log_value(&log, "batch_max").map_or(0, |v| v as u64),
+        stages: STAGES
+            .iter()
+            .map(|n| log_value(&log, &format!("{n}_s")).unwrap_or(f64::NAN))
+            .collect(),
     })
 }
 
@@ -259,5 +271,16 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
             r.batch_mean,
             r.batch_max
         );
+    }
+    println!(
+        "\nWhere the node's wall time went, seconds (wait: blocked with nothing due; intake: \
+         count, queue; stack / call / split: the model's calls; publish: encode, send; \
+         decode: the decoder thread's busy time beside the loop, decode and check):"
+    );
+    println!("| --max-batch | {} |", STAGES.join(" | "));
+    println!("|---:|{}", "---:|".repeat(STAGES.len()));
+    for r in rows {
+        let cells: Vec<String> = r.stages.iter().map(|v| format!("{v:.2}")).collect();
+        println!("| {} | {} |", r.max_batch, cells.join(" | "));
     }
 }

@@ -12,6 +12,8 @@
 //! Inference Server's dynamic batcher.
 
 use std::collections::BTreeMap;
+use std::ops::AddAssign;
+use std::time::{Duration, Instant};
 
 use super::{State, StoreError, Surrogate};
 use crate::ops::NetOps;
@@ -35,6 +37,32 @@ pub struct SceneSteps<B: burn::tensor::backend::Backend> {
     pub results: Vec<Result<(Vec<Vec<f32>>, State<B>), StoreError>>,
     /// Scenes per network call, one entry per call.
     pub calls: Vec<usize>,
+    /// Where the calls' wall time went.
+    pub times: StepTimes,
+}
+
+/// Wall time of [`Surrogate::step_scenes`] by stage, summed over its calls: `stack` gathers
+/// the scenes' frames and stacks their states (`State::stack`), `call` runs the network and
+/// reads its predictions back to the host (on a GPU this waits for the kernels, so it holds
+/// the device's work too), `split` splits the state back per scene (`State::split`) and
+/// cuts the predictions per scene. On a GPU the split's kernels are queued, not waited for:
+/// their device time lands in the next call.
+#[derive(Debug, Default, Clone, Copy, PartialEq)]
+pub struct StepTimes {
+    /// Frames gathered and states stacked.
+    pub stack: Duration,
+    /// The network call, predictions read back.
+    pub call: Duration,
+    /// States split and predictions cut per scene.
+    pub split: Duration,
+}
+
+impl AddAssign for StepTimes {
+    fn add_assign(&mut self, other: Self) {
+        self.stack += other.stack;
+        self.call += other.call;
+        self.split += other.split;
+    }
 }
 
 impl<B: NetOps> Surrogate<B> {
@@ -58,11 +86,12 @@ impl<B: NetOps> Surrogate<B> {
         let mut slots: Vec<Option<SceneStep<'_, B>>> = scenes.into_iter().map(Some).collect();
         let mut results: Vec<Option<Result<_, StoreError>>> = slots.iter().map(|_| None).collect();
         let mut calls = Vec::with_capacity(groups.len());
+        let mut times = StepTimes::default();
         for members in groups.into_values() {
             let group: Vec<SceneStep<'_, B>> =
                 members.iter().filter_map(|&i| slots[i].take()).collect();
             calls.push(group.len());
-            match self.step_group(group, whole) {
+            match self.step_group(group, whole, &mut times) {
                 Ok(outs) => {
                     for (&i, out) in members.iter().zip(outs) {
                         results[i] = Some(Ok(out));
@@ -79,19 +108,25 @@ impl<B: NetOps> Surrogate<B> {
             .into_iter()
             .map(|r| r.unwrap_or_else(|| Err(StoreError::Shape("scene not stepped".into()))))
             .collect();
-        SceneSteps { results, calls }
+        SceneSteps {
+            results,
+            calls,
+            times,
+        }
     }
 
     /// One network call on `group` (scenes of one N and one state shape): frames, materials
     /// and time steps concatenated, states stacked, outputs and states split back. With
     /// padded batches the call carries copies of the last scene up to the next power of
-    /// two, whose outputs and states are dropped.
+    /// two, whose outputs and states are dropped. Its stages' wall time is added to `times`.
     #[allow(clippy::type_complexity)]
     fn step_group(
         &self,
         group: Vec<SceneStep<'_, B>>,
         whole: bool,
+        times: &mut StepTimes,
     ) -> Result<Vec<(Vec<Vec<f32>>, State<B>)>, StoreError> {
+        let start = Instant::now();
         let b = group.len();
         let per_scene = group.first().map_or(0, |s| s.rows.len());
         let copies = if self.mirrored() { 2 } else { 1 };
@@ -118,8 +153,12 @@ impl<B: NetOps> Surrogate<B> {
             }
         }
         let stacked = State::stack(states, copies)?;
+        let called = Instant::now();
+        times.stack += called - start;
         let (outs, after) =
             B::run_step(|| self.step_here(&frames, &material, &dt, stacked, whole))?;
+        let returned = Instant::now();
+        times.call += returned - called;
         let mut per: Vec<(Vec<Vec<f32>>, State<B>)> = after
             .split(&vec![1; padded], copies)
             .into_iter()
@@ -134,6 +173,7 @@ impl<B: NetOps> Surrogate<B> {
                 scene.0.push(chunk.to_vec());
             }
         }
+        times.split += returned.elapsed();
         Ok(per)
     }
 }

@@ -12,7 +12,7 @@ mod batch;
 mod stack;
 mod surrogate;
 
-pub use batch::{SceneStep, SceneSteps};
+pub use batch::{SceneStep, SceneSteps, StepTimes};
 pub use surrogate::{State, Surrogate};
 
 use super::grid::{GridConfig, GridModel};

@@ -191,8 +191,13 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 state: std::mem::replace(&mut j.state, placeholder()),
             })
             .collect();
-        let SceneSteps { results, calls } = self.surrogate.step_scenes(steps, whole);
+        let SceneSteps {
+            results,
+            calls,
+            times,
+        } = self.surrogate.step_scenes(steps, whole);
         self.batches.record(&calls);
+        self.times.step += times;
         for (job, result) in jobs.into_iter().zip(results) {
             self.finish_job(job, result);
         }

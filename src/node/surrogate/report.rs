@@ -1,13 +1,15 @@
 //! What the surrogate node counts and logs: the run's counters ([`Tally`], the
 //! [`NodeReport`] published as status), the sizes of its batched calls ([`BatchStats`]),
-//! each (scene, reason) logged once, the start line, the latency percentiles at the end and
+//! where its loop's wall time went ([`StageTimes`]), each (scene, reason) logged once, the start line, the latency percentiles at the end and
 //! the wall-clock stamp of each report. Used by
 //! [`super::run`] (`minflow node`).
 
 use std::collections::HashSet;
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::model::store::Surrogate;
+use crate::model::store::{StepTimes, Surrogate};
 use crate::msgs::Time;
 use crate::ops::NetOps;
 use crate::transport::Transport;
@@ -70,6 +72,66 @@ impl BatchStats {
         format!(
             "calls={} batch_mean={mean:.2} batch_max={}",
             self.calls, self.max
+        )
+    }
+}
+
+/// Where the node's loop spent its wall time since it subscribed, by stage (the closing
+/// log line; `bench node` reads it): blocked on the transport with nothing due, taking
+/// decoded samples in (count, queue: [`super::intake`]), the model's calls by
+/// [`StepTimes`] stage, publishing predictions (encode, send), and the rest (choosing the
+/// batch, building jobs and predicted frames, rollouts' bookkeeping, status); beside them,
+/// the decoder thread's busy time (decode and check).
+#[derive(Debug)]
+pub(super) struct StageTimes {
+    since: Instant,
+    /// The decoder thread's busy time, ns (beside the loop, not part of its wall time).
+    pub(super) decode: Arc<AtomicU64>,
+    pub(super) wait: Duration,
+    pub(super) intake: Duration,
+    pub(super) step: StepTimes,
+    pub(super) publish: Duration,
+}
+
+impl StageTimes {
+    /// Zero times, the wall clock counted from now.
+    pub(super) fn new() -> Self {
+        StageTimes {
+            since: Instant::now(),
+            decode: Arc::default(),
+            wait: Duration::ZERO,
+            intake: Duration::ZERO,
+            step: StepTimes::default(),
+            publish: Duration::ZERO,
+        }
+    }
+
+    /// The times as one log line of `name=seconds` pairs, `other_s` the loop's wall time no
+    /// stage holds, `decode_s` the decoder thread's.
+    pub(super) fn line(&self) -> String {
+        let wall = self.since.elapsed();
+        let staged = [
+            self.wait,
+            self.intake,
+            self.step.stack,
+            self.step.call,
+            self.step.split,
+            self.publish,
+        ];
+        let other = wall.saturating_sub(staged.iter().sum());
+        let names = [
+            "wait", "intake", "stack", "call", "split", "publish", "other",
+        ];
+        let fields: Vec<String> = names
+            .iter()
+            .zip(staged.iter().chain([&other]))
+            .map(|(n, d)| format!("{n}_s={:.3}", d.as_secs_f64()))
+            .collect();
+        let decode = self.decode.load(Ordering::Relaxed) as f64 / 1e9;
+        format!(
+            "time: wall_s={:.3} {} decode_s={decode:.3}",
+            wall.as_secs_f64(),
+            fields.join(" ")
         )
     }
 }

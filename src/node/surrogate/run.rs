@@ -1,7 +1,7 @@
 //! The surrogate node's loop (`minflow node`): declare the output and status publishers,
 //! wait for the output's subscribers, join the shard group (`--shard`), subscribe to the
-//! input, then repeat { periodic status and counters, gather the waiting samples into
-//! per-scene queues ([`super::intake`]), publish the rollout frames that are due
+//! input (its samples decoded on a thread of their own), then repeat { periodic status and
+//! counters, gather the decoded samples into per-scene queues ([`super::intake`]), publish the rollout frames that are due
 //! ([`super::closed`]), and when a batch is due step it ([`super::batcher`]) }. The totals
 //! come back as a [`NodeReport`].
 
@@ -17,7 +17,8 @@ use crate::transport::{FramePublisher, StatusPublisher, Transport, TransportErro
 use crate::viz::PredictionView;
 
 use super::closed::Rollouts;
-use super::report::{log_latencies, log_start, wall_time, BatchStats, Tally};
+use super::intake::spawn_decoder;
+use super::report::{log_latencies, log_start, wall_time, BatchStats, StageTimes, Tally};
 use super::scenes::Scenes;
 use super::shard::Shard;
 use super::{summary, NodeOptions, NodeReport};
@@ -51,6 +52,12 @@ pub fn run<B: NetOps>(
     log_start(options, surrogate, transport);
     let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
     node.shard = shard;
+    let rx = spawn_decoder(
+        rx,
+        options.max_frame_bytes,
+        node.model_n,
+        node.times.decode.clone(),
+    );
     while !stop.load(Ordering::Relaxed) && !node.done() {
         node.periodic();
         if !node.gather(&rx) {
@@ -152,6 +159,8 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) pending: BTreeMap<String, VecDeque<Pending>>,
     pub(super) rollouts: Rollouts<B>,
     pub(super) batches: BatchStats,
+    /// Where the loop's wall time went.
+    pub(super) times: StageTimes,
     /// The shard group (`--shard`), and the counts of frames of other nodes' scenes and of
     /// scenes this node took over.
     pub(super) shard: Option<Shard>,
@@ -197,6 +206,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             pending: BTreeMap::new(),
             rollouts: Rollouts::new(),
             batches: BatchStats::default(),
+            times: StageTimes::new(),
             shard: None,
             others: 0,
             adopted: 0,
@@ -281,7 +291,10 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
 
     /// Publishes a predicted frame (counted) and hands it to the live view.
     pub(super) fn emit(&mut self, frame: &ParticleFrame) {
-        match self.publisher.publish(frame) {
+        let start = Instant::now();
+        let sent = self.publisher.publish(frame);
+        self.times.publish += start.elapsed();
+        match sent {
             Ok(()) => self.tally.report.published += 1,
             Err(e) => {
                 self.tally.report.dropped += 1;
@@ -313,6 +326,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             full + idle
         );
         tracing::info!("{}: {}", self.options.name, self.batches.line());
+        tracing::info!("{}: {}", self.options.name, self.times.line());
         if self.shard.is_some() {
             tracing::info!(
                 "{}: shard: taken_over={} scene(s) (state started again from the next \
