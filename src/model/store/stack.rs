@@ -71,10 +71,14 @@ where
         let mut out = Vec::with_capacity(sizes.len());
         let mut start = 0;
         for &b in sizes {
-            let pieces: Vec<_> = (0..copies)
+            let mut pieces: Vec<_> = (0..copies)
                 .map(|c| self.clone().narrow(0, c * per_copy + start * m, b * m))
                 .collect();
-            out.push(Tensor::cat(pieces, 0));
+            // One copy: its rows are the part (a cat of one would copy them again).
+            out.push(match pieces.len() {
+                1 => pieces.pop().expect("one piece"),
+                _ => Tensor::cat(pieces, 0),
+            });
             start += b;
         }
         out
