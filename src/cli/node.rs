@@ -63,9 +63,10 @@ pub struct NodeArgs {
     rate: f64,
     /// Dynamic batching (as NVIDIA Triton's dynamic batcher): most scenes stepped by one
     /// network call, each with its own state (1: one scene a call, no batching). Default:
-    /// 4 on the CPU (a call of more scenes costs more per scene there: docs/scale.md), 64 on
-    /// a GPU (calls padded to powers of two, `--pad-batches`: 9x the predictions/s of one
-    /// scene a call in `bench node` on an H100; docs/scale.md, "On one H100").
+    /// 4 on the CPU (a call of more scenes costs more per scene there: docs/scale.md), 256
+    /// on a GPU (calls padded to powers of two, `--pad-batches`; in `bench node` on an H100,
+    /// 256 gave 1.1-1.8x the predictions/s of 64 when overloaded: docs/scale.md, "Where the
+    /// node's time goes").
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
     max_batch: Option<u32>,
     /// Dynamic batching: milliseconds the oldest waiting frame may wait for frames of other
@@ -123,7 +124,7 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 /// Loads the model onto `device` of backend `B` and serves until stopped.
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let on_cpu = args.device.parse()?.single("node")?.is_none();
-    let max_batch = args.max_batch.unwrap_or(if on_cpu { 4 } else { 64 });
+    let max_batch = args.max_batch.unwrap_or(if on_cpu { 4 } else { 256 });
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?
         .with_mirror(args.mirror)
