@@ -71,14 +71,15 @@ where
         let mut out = Vec::with_capacity(sizes.len());
         let mut start = 0;
         for &b in sizes {
-            let mut pieces: Vec<_> = (0..copies)
+            let pieces: Vec<_> = (0..copies)
                 .map(|c| self.clone().narrow(0, c * per_copy + start * m, b * m))
                 .collect();
-            // One copy: its rows are the part (a cat of one would copy them again).
-            out.push(match pieces.len() {
-                1 => pieces.pop().expect("one piece"),
-                _ => Tensor::cat(pieces, 0),
-            });
+            // Even one piece is copied: a narrow is a view (burn-ndarray; burn-cubecl at
+            // aligned offsets), and a view would keep the whole batch's buffer alive for as
+            // long as this part lives (a stream that stops would hold its last call's batch
+            // until --idle-timeout). Without the copy the split took half the time on a GPU
+            // (docs/scale.md, "The split").
+            out.push(Tensor::cat(pieces, 0));
             start += b;
         }
         out
