@@ -65,8 +65,8 @@ pub struct NodeArgs {
     /// network call, each with its own state (1: one scene a call, no batching). Default:
     /// 4 on the CPU (a call of more scenes costs more per scene there: docs/scale.md), 256
     /// on a GPU (calls padded to powers of two, `--pad-batches`; in `bench node` on an H100,
-    /// 256 gave 1.1-1.8x the predictions/s of 64 when overloaded: docs/scale.md, "Where the
-    /// node's time goes").
+    /// 256 gave 1.1-1.8x the predictions/s of 64 when overloaded, at a higher p50:
+    /// docs/scale.md, "Where the node's time goes").
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
     max_batch: Option<u32>,
     /// Dynamic batching: milliseconds the oldest waiting frame may wait for frames of other

@@ -45,8 +45,9 @@ pub struct SceneSteps<B: burn::tensor::backend::Backend> {
 /// the scenes' frames and stacks their states (`State::stack`), `call` runs the network and
 /// reads its predictions back to the host (on a GPU this waits for the kernels, so it holds
 /// the device's work too), `split` splits the state back per scene (`State::split`) and
-/// cuts the predictions per scene. On a GPU the split's kernels are queued, not waited for:
-/// their device time lands in the next call.
+/// cuts the predictions per scene. On a GPU kernels are queued, not waited for: the stack's
+/// concatenations and uploads land in `call`, which waits for them, and the split's in the
+/// next call. A call that fails adds nothing.
 #[derive(Debug, Default, Clone, Copy, PartialEq)]
 pub struct StepTimes {
     /// Frames gathered and states stacked.

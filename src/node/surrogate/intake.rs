@@ -10,6 +10,7 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, RecvTimeoutError};
 use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::msgs::ParticleFrame;
@@ -44,13 +45,17 @@ enum Decoded {
 /// Starts the decoder thread: every sample of `samples`, in order, decoded and checked
 /// (`max_frame_bytes`, the model's fixed particle count `model_n`) onto the returned
 /// channel; its busy time is added to `busy_ns`. The thread ends when `samples` closes
-/// (the subscription is dropped), and the returned channel then closes too.
+/// (the subscription is dropped) or the returned channel's receiver is dropped; the
+/// returned channel closes when it ends (or panics: join the handle to tell).
+///
+/// # Panics
+/// When the thread cannot be spawned (as `std::thread::spawn`).
 pub(super) fn spawn_decoder(
     samples: Receiver<Sample>,
     max_frame_bytes: usize,
     model_n: Option<usize>,
     busy_ns: Arc<AtomicU64>,
-) -> Receiver<Arrival> {
+) -> (Receiver<Arrival>, JoinHandle<()>) {
     let (tx, rx) = channel();
     let decode = move || {
         for sample in samples {
@@ -65,11 +70,11 @@ pub(super) fn spawn_decoder(
             }
         }
     };
-    std::thread::Builder::new()
+    let handle = std::thread::Builder::new()
         .name("minflow-decode".into())
         .spawn(decode)
         .expect("spawning the node's decoder thread");
-    rx
+    (rx, handle)
 }
 
 /// The decoder's work on one sample: size limit, CDR decode, [`check_frame`].
@@ -92,7 +97,7 @@ fn decode(sample: &Sample, max_frame_bytes: usize, model_n: Option<usize>) -> De
 impl<B: NetOps> NodeLoop<'_, B> {
     /// Takes every decoded sample waiting in `rx` into the per-scene queues; blocks until
     /// the next batch, rollout frame or status is due (at most 100 ms) for the first one.
-    /// False when the transport is gone.
+    /// False when the decoder thread has ended (the transport is gone, or it panicked).
     pub(super) fn gather(&mut self, rx: &Receiver<Arrival>) -> bool {
         let now = Instant::now();
         let mut wait = match self.batch_due(now) {

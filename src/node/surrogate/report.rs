@@ -1,8 +1,8 @@
 //! What the surrogate node counts and logs: the run's counters ([`Tally`], the
 //! [`NodeReport`] published as status), the sizes of its batched calls ([`BatchStats`]),
-//! where its loop's wall time went ([`StageTimes`]), each (scene, reason) logged once, the start line, the latency percentiles at the end and
-//! the wall-clock stamp of each report. Used by
-//! [`super::run`] (`minflow node`).
+//! where its loop's wall time went ([`StageTimes`]), each (scene, reason) logged once, the
+//! start line, the latency percentiles at the end and the wall-clock stamp of each report.
+//! Used by [`super::run`] (`minflow node`).
 
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -85,6 +85,8 @@ impl BatchStats {
 #[derive(Debug)]
 pub(super) struct StageTimes {
     since: Instant,
+    /// When the loop ended ([`StageTimes::stop`]); None while it runs.
+    until: Option<Instant>,
     /// The decoder thread's busy time, ns (beside the loop, not part of its wall time).
     pub(super) decode: Arc<AtomicU64>,
     pub(super) wait: Duration,
@@ -98,6 +100,7 @@ impl StageTimes {
     pub(super) fn new() -> Self {
         StageTimes {
             since: Instant::now(),
+            until: None,
             decode: Arc::default(),
             wait: Duration::ZERO,
             intake: Duration::ZERO,
@@ -106,10 +109,15 @@ impl StageTimes {
         }
     }
 
+    /// Ends the loop's wall time here (the closing flush and reports are not the loop's).
+    pub(super) fn stop(&mut self) {
+        self.until = Some(Instant::now());
+    }
+
     /// The times as one log line of `name=seconds` pairs, `other_s` the loop's wall time no
     /// stage holds, `decode_s` the decoder thread's.
     pub(super) fn line(&self) -> String {
-        let wall = self.since.elapsed();
+        let wall = self.until.unwrap_or_else(Instant::now) - self.since;
         let staged = [
             self.wait,
             self.intake,

@@ -1,9 +1,9 @@
 //! The surrogate node's loop (`minflow node`): declare the output and status publishers,
 //! wait for the output's subscribers, join the shard group (`--shard`), subscribe to the
 //! input (its samples decoded on a thread of their own), then repeat { periodic status and
-//! counters, gather the decoded samples into per-scene queues ([`super::intake`]), publish the rollout frames that are due
-//! ([`super::closed`]), and when a batch is due step it ([`super::batcher`]) }. The totals
-//! come back as a [`NodeReport`].
+//! counters, gather the decoded samples into per-scene queues ([`super::intake`]), publish
+//! the rollout frames that are due ([`super::closed`]), and when a batch is due step it
+//! ([`super::batcher`]) }. The totals come back as a [`NodeReport`].
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -52,7 +52,7 @@ pub fn run<B: NetOps>(
     log_start(options, surrogate, transport);
     let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
     node.shard = shard;
-    let rx = spawn_decoder(
+    let (rx, decoder) = spawn_decoder(
         rx,
         options.max_frame_bytes,
         node.model_n,
@@ -61,6 +61,11 @@ pub fn run<B: NetOps>(
     while !stop.load(Ordering::Relaxed) && !node.done() {
         node.periodic();
         if !node.gather(&rx) {
+            // The decoder ended: the transport closed the subscription, or it panicked
+            // (then so does the node, not a clean stop).
+            if let Err(panic) = decoder.join() {
+                std::panic::resume_unwind(panic);
+            }
             break;
         }
         node.publish_due_rollouts();
@@ -68,6 +73,7 @@ pub fn run<B: NetOps>(
             node.step_batch();
         }
     }
+    node.times.stop();
     Ok(node.finish())
 }
 
