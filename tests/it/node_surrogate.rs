@@ -151,7 +151,8 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
     let output = unique_topic(&format!("{transport}_out"));
     let bags: Vec<PathBuf> = SCENES.iter().map(|s| repo(s)).collect();
     let expected = 2 * 25;
-    let recorder = Node::spawn(
+    let env = domain_env(transport, 1);
+    let recorder = Node::spawn_env(
         "record",
         &[
             "record",
@@ -164,6 +165,7 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
             "--count",
             &expected.to_string(),
         ],
+        &env,
     );
     let mut node_args = vec![
         "node",
@@ -186,11 +188,11 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
     if mirror {
         node_args.push("--mirror");
     }
-    let node = Node::spawn("node", &node_args);
+    let node = Node::spawn_env("node", &node_args, &env);
     let mut replay = vec!["replay", "--transport", transport, "--topic", &input];
     replay.extend(bags.iter().map(|b| b.to_str().unwrap()));
     ok(
-        &Node::spawn("replay", &replay).wait(Duration::from_secs(120)),
+        &Node::spawn_env("replay", &replay, &env).wait(Duration::from_secs(120)),
         "replay",
     );
     let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");

@@ -30,7 +30,8 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     ];
     rec_args.extend_from_slice(&["--count", "25"]);
     rec_args.extend_from_slice(extra_record);
-    let recorder = Node::spawn("record", &rec_args);
+    let env = domain_env(transport, 0);
+    let recorder = Node::spawn_env("record", &rec_args, &env);
     let source = source_bag();
     let mut play_args = vec![
         "replay",
@@ -41,7 +42,7 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
         &topic,
     ];
     play_args.extend_from_slice(extra_replay);
-    let player = Node::spawn("replay", &play_args);
+    let player = Node::spawn_env("replay", &play_args, &env);
     let play_err = ok(&player.wait(Duration::from_secs(90)), "replay");
     let rec_err = ok(&recorder.wait(Duration::from_secs(30)), "record");
     let want = raw_messages(&source, Some(FRAMES_TOPIC));

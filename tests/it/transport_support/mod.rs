@@ -24,11 +24,34 @@ pub fn minflow_bin() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_minflow")))
 }
 
+/// A ROS domain of its own for the DDS processes of test `index` (0..4) of this process:
+/// 200..=231 by pid (the rclpy tests take 100..=199), so DDS tests running at once do not
+/// share discovery in domain 0 (a full run once saw a node's participant find port 7400
+/// taken by another test's).
+pub fn test_domain(index: u32) -> String {
+    (200 + (std::process::id() % 8) * 4 + index).to_string()
+}
+
+/// `ROS_DOMAIN_ID` of test `index`'s own domain ([`test_domain`]) for the ros2 transport,
+/// nothing for the others.
+pub fn domain_env(transport: &str, index: u32) -> Vec<(&'static str, String)> {
+    match transport {
+        "ros2" => vec![("ROS_DOMAIN_ID", test_domain(index))],
+        _ => vec![],
+    }
+}
+
 impl Node {
     pub fn spawn(name: &str, args: &[&str]) -> Node {
+        Node::spawn_env(name, args, &[])
+    }
+
+    /// [`Node::spawn`] with more environment variables.
+    pub fn spawn_env(name: &str, args: &[&str], env: &[(&str, String)]) -> Node {
         let child = Command::new(minflow_bin())
             .args(args)
             .env("RUST_LOG", "info")
+            .envs(env.iter().map(|(k, v)| (k, v)))
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
