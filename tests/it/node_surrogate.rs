@@ -151,7 +151,7 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
     let output = unique_topic(&format!("{transport}_out"));
     let bags: Vec<PathBuf> = SCENES.iter().map(|s| repo(s)).collect();
     let expected = 2 * 25;
-    let env = domain_env(transport, 1);
+    let env = domain_env(transport, 5);
     let recorder = Node::spawn_env(
         "record",
         &[

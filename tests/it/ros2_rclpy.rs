@@ -22,7 +22,7 @@ use std::sync::mpsc::{channel, Receiver};
 use std::sync::OnceLock;
 use std::time::Duration;
 
-use crate::transport_support::{ok, raw_messages, source_bag, unique_topic, Node};
+use crate::transport_support::{ok, raw_messages, source_bag, test_domain, unique_topic, Node};
 use crate::unavailable::cannot_run;
 use minflow::msgs::type_hash::minflow_type_hash;
 use minflow::msgs::TYPE_NAME;
@@ -68,12 +68,6 @@ fn ros2_env() -> Option<&'static HashMap<String, String>> {
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-/// A ROS domain for test `index` (0..5) of this process: 100..=199, by pid, so test runs of
-/// several checkouts on one machine rarely share one.
-fn domain(index: u32) -> String {
-    (100 + (std::process::id() % 20) * 5 + index).to_string()
 }
 
 /// An rclpy process of `tests/python/ros2_peer.py` in `domain`, stdout piped by lines.
@@ -196,7 +190,7 @@ const WAIT: Duration = Duration::from_secs(60);
 #[test]
 fn replay_reaches_a_default_qos_rclpy_subscriber_every_frame() {
     let Some(env) = ros2_env() else { return };
-    let dom = domain(0);
+    let dom = test_domain(0);
     let topic = unique_topic("rclpy_replay");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("frames.bin");
@@ -254,7 +248,7 @@ fn replay_reaches_a_default_qos_rclpy_subscriber_every_frame() {
 #[test]
 fn rclpy_publisher_to_record_every_frame() {
     let Some(env) = ros2_env() else { return };
-    let dom = domain(1);
+    let dom = test_domain(1);
     let topic = unique_topic("rclpy_record");
     let dir = tempfile::tempdir().unwrap();
     let frames = raw_messages(&root().join("bags"), Some("/mpm/frames"));
@@ -305,7 +299,7 @@ fn rclpy_publisher_to_record_every_frame() {
 #[test]
 fn rclpy_to_node_to_rclpy_with_status() {
     let Some(env) = ros2_env() else { return };
-    let dom = domain(2);
+    let dom = test_domain(2);
     let input = unique_topic("rclpy_node_in");
     let output = unique_topic("rclpy_node_out");
     let status = format!("{}/status", output.trim_end_matches("/frames"));
@@ -396,7 +390,7 @@ fn rclpy_to_node_to_rclpy_with_status() {
 #[test]
 fn replay_pointcloud2_reaches_rclpy() {
     let Some(env) = ros2_env() else { return };
-    let dom = domain(3);
+    let dom = test_domain(3);
     let topic = unique_topic("rclpy_cloud_frames");
     let cloud = unique_topic("rclpy_cloud").replace("/frames", "/cloud");
     let sub = Peer::spawn(

@@ -30,7 +30,7 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     ];
     rec_args.extend_from_slice(&["--count", "25"]);
     rec_args.extend_from_slice(extra_record);
-    let env = domain_env(transport, 0);
+    let env = domain_env(transport, 4);
     let recorder = Node::spawn_env("record", &rec_args, &env);
     let source = source_bag();
     let mut play_args = vec![

@@ -22,6 +22,7 @@ use anyhow::{bail, Context};
 use super::NodeBenchArgs;
 use crate::cli::bench_transport::{percentile as pct, wall_ns};
 use crate::msgs::{ParticleFrame, Time};
+use crate::node::surrogate::LOOP_STAGES;
 use crate::transport::{self, wait_for_subscribers, TransportKind};
 
 /// One row: a node with one `--max-batch`.
@@ -33,14 +34,18 @@ struct Row {
     per_s: f64,
     batch_mean: f64,
     batch_max: u64,
-    /// The node's seconds per stage, in [`STAGES`]' order (NaN: not in its log).
+    /// The node's seconds per stage, in [`stages`]' order (NaN: not in its log).
     stages: Vec<f64>,
 }
 
-/// The stages of the node's closing `time:` line (`node/surrogate/report.rs`, `StageTimes`).
-const STAGES: [&str; 9] = [
-    "wall", "wait", "intake", "stack", "call", "split", "publish", "other", "decode",
-];
+/// The fields of the node's closing `time:` line: its wall time, the loop's stages
+/// ([`LOOP_STAGES`]), the decoder thread's busy time.
+fn stages() -> Vec<&'static str> {
+    let mut names = vec!["wall"];
+    names.extend(LOOP_STAGES);
+    names.push("decode");
+    names
+}
 
 /// Runs the streams benchmark: one row per `--max-batch` value, the table on stdout.
 ///
@@ -175,7 +180,7 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
         latency_ms,
         batch_mean: log_value(&log, "batch_mean").unwrap_or(f64::NAN),
         batch_max: log_value(&log, "batch_max").map_or(0, |v| v as u64),
-        stages: STAGES
+        stages: stages()
             .iter()
             .map(|n| log_value(&log, &format!("{n}_s")).unwrap_or(f64::NAN))
             .collect(),
@@ -277,8 +282,9 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
          count, queue; stack / call / split: the model's calls; publish: encode, send; \
          decode: the decoder thread's busy time beside the loop, decode and check):"
     );
-    println!("| --max-batch | {} |", STAGES.join(" | "));
-    println!("|---:|{}", "---:|".repeat(STAGES.len()));
+    let names = stages();
+    println!("| --max-batch | {} |", names.join(" | "));
+    println!("|---:|{}", "---:|".repeat(names.len()));
     for r in rows {
         let cells: Vec<String> = r.stages.iter().map(|v| format!("{v:.2}")).collect();
         println!("| {} | {} |", r.max_batch, cells.join(" | "));

@@ -58,6 +58,7 @@ use std::time::Duration;
 use crate::msgs::status::SurrogateStatus;
 use crate::msgs::{ParticleFrame, Time};
 
+pub use report::LOOP_STAGES;
 pub use run::run;
 
 /// What to do with a frame that does not follow the previous one of its scene.

@@ -76,6 +76,12 @@ impl BatchStats {
     }
 }
 
+/// The loop's stages in [`StageTimes::line`]'s order, `other` last (`bench node` reads them
+/// back).
+pub const LOOP_STAGES: [&str; 7] = [
+    "wait", "intake", "stack", "call", "split", "publish", "other",
+];
+
 /// Where the node's loop spent its wall time since it subscribed, by stage (the closing
 /// log line; `bench node` reads it): blocked on the transport with nothing due, taking
 /// decoded samples in (count, queue: [`super::intake`]), the model's calls by
@@ -85,8 +91,6 @@ impl BatchStats {
 #[derive(Debug)]
 pub(super) struct StageTimes {
     since: Instant,
-    /// When the loop ended ([`StageTimes::stop`]); None while it runs.
-    until: Option<Instant>,
     /// The decoder thread's busy time, ns (beside the loop, not part of its wall time).
     pub(super) decode: Arc<AtomicU64>,
     pub(super) wait: Duration,
@@ -100,7 +104,6 @@ impl StageTimes {
     pub(super) fn new() -> Self {
         StageTimes {
             since: Instant::now(),
-            until: None,
             decode: Arc::default(),
             wait: Duration::ZERO,
             intake: Duration::ZERO,
@@ -109,15 +112,10 @@ impl StageTimes {
         }
     }
 
-    /// Ends the loop's wall time here (the closing flush and reports are not the loop's).
-    pub(super) fn stop(&mut self) {
-        self.until = Some(Instant::now());
-    }
-
-    /// The times as one log line of `name=seconds` pairs, `other_s` the loop's wall time no
-    /// stage holds, `decode_s` the decoder thread's.
-    pub(super) fn line(&self) -> String {
-        let wall = self.until.unwrap_or_else(Instant::now) - self.since;
+    /// The times as one log line of `name=seconds` pairs, the loop's wall time counted up
+    /// to `end`, `other_s` the part of it no stage holds, `decode_s` the decoder thread's.
+    pub(super) fn line(&self, end: Instant) -> String {
+        let wall = end - self.since;
         let staged = [
             self.wait,
             self.intake,
@@ -127,10 +125,7 @@ impl StageTimes {
             self.publish,
         ];
         let other = wall.saturating_sub(staged.iter().sum());
-        let names = [
-            "wait", "intake", "stack", "call", "split", "publish", "other",
-        ];
-        let fields: Vec<String> = names
+        let fields: Vec<String> = LOOP_STAGES
             .iter()
             .zip(staged.iter().chain([&other]))
             .map(|(n, d)| format!("{n}_s={:.3}", d.as_secs_f64()))

@@ -73,7 +73,6 @@ pub fn run<B: NetOps>(
             node.step_batch();
         }
     }
-    node.times.stop();
     Ok(node.finish())
 }
 
@@ -316,6 +315,8 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// Flushes the output, publishes the final status, logs the latency percentiles and
     /// returns the totals.
     fn finish(mut self) -> NodeReport {
+        // The loop's wall time ends here: the closing flush and reports are not the loop's.
+        let loop_end = Instant::now();
         self.publisher.flush(Duration::from_secs(5));
         if let Some(view) = self.view.as_mut() {
             view.finish();
@@ -332,7 +333,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             full + idle
         );
         tracing::info!("{}: {}", self.options.name, self.batches.line());
-        tracing::info!("{}: {}", self.options.name, self.times.line());
+        tracing::info!("{}: {}", self.options.name, self.times.line(loop_end));
         if self.shard.is_some() {
             tracing::info!(
                 "{}: shard: taken_over={} scene(s) (state started again from the next \

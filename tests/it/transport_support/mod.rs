@@ -24,12 +24,13 @@ pub fn minflow_bin() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_minflow")))
 }
 
-/// A ROS domain of its own for the DDS processes of test `index` (0..4) of this process:
-/// 200..=231 by pid (the rclpy tests take 100..=199), so DDS tests running at once do not
-/// share discovery in domain 0 (a full run once saw a node's participant find port 7400
-/// taken by another test's).
+/// A ROS domain of its own for the DDS processes of test `index` (0..8) of this process:
+/// 100..=227 by pid, so DDS tests running at once do not share discovery in domain 0 (a
+/// full run once saw a node's participant find port 7400 taken by another test's), and
+/// test runs of several checkouts on one machine rarely share one. Indices: 0..4 the rclpy
+/// tests, 4 the record/replay round trip, 5 the node against offline predictions.
 pub fn test_domain(index: u32) -> String {
-    (200 + (std::process::id() % 8) * 4 + index).to_string()
+    (100 + (std::process::id() % 16) * 8 + index).to_string()
 }
 
 /// `ROS_DOMAIN_ID` of test `index`'s own domain ([`test_domain`]) for the ros2 transport,
