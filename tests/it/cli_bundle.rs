@@ -1,9 +1,9 @@
 //! A bundled grid model with rest-shape features end to end: `train --bundle 2 --rest-shape
-//! fit --update grid+head --pushforward 1 --chunks 2` with the structure losses on the bundled bags, `eval --horizon
-//! full` (whole-scene blocks, plausibility and structure tables and CSV, `--save-pred` bags),
-//! `bench rollout` on a tiny setting (its table against the solver; no timing asserted), and
-//! the node in closed loop over zenoh, whose rollout (rest neighbourhoods kept per scene)
-//! equals the offline `Surrogate::rollout` to 1e-5.
+//! fit --update grid+head --pushforward 1 --chunks 2` with the structure losses on the
+//! bundled bags, `eval --horizon full` (whole-scene blocks, plausibility and structure
+//! tables and CSV, `--save-pred` bags), `bench rollout` on a tiny setting (its table against
+//! the solver; no timing asserted), and the node in closed loop over zenoh, whose rollout
+//! (rest neighbourhoods kept per scene) equals the offline `Surrogate::rollout` to 1e-5.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;

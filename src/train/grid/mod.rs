@@ -8,8 +8,9 @@
 //! the frames one call predicts; M the push-forward calls, `pushforward`, 0 by default: made
 //! first, on the model's own predictions, without gradient or loss, the memory carried into
 //! the P; C the chunks, `chunks`, 1 by default: the P calls made C times in a row, an
-//! optimizer step after each, the rollout carried on with its gradient cut between them). The model makes P calls from frame `T - 1` (or after the M), each predicting K
-//! frames: the first `teacher` calls read the true frames (velocities with Gaussian noise of
+//! optimizer step after each, the rollout carried on with its gradient cut between them).
+//! The model makes P calls from frame `T - 1` (or after the M), each predicting K frames:
+//! the first `teacher` calls read the true frames (velocities with Gaussian noise of
 //! `noise * dv_scale`), the rest read the model's own previous predictions, and the memory
 //! state runs through all P calls, so gradients flow through the state and through the
 //! fed-back predictions (backpropagation through the short rollout). Loss per frame: the MSE
