@@ -3,15 +3,16 @@
 //! a truncated bag). Results go to stdout, logs and progress bars to stderr.
 
 /// mimalloc reuses freed large buffers instead of returning them to the kernel, so the
-/// model's per-step activations stop page-faulting (see `bench train`).
+/// model's per-step activations stop page-faulting (see `bench train`); the nodes give back
+/// what stays unused for a second (`cli::FreedMemory`).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> std::process::ExitCode {
-    minflow::cli::tune_allocator();
     minflow::cli::ignore_file_size_signal();
     minflow::cli::flush_denormals();
     let cli: minflow::cli::Cli = minflow::cli::parse();
+    minflow::cli::tune_allocator(cli.freed_memory());
     minflow::cli::init_logging(cli.verbose);
     minflow::cli::exit_code(minflow::cli::run(cli))
 }

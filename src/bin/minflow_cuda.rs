@@ -7,10 +7,10 @@
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> std::process::ExitCode {
-    minflow::cli::tune_allocator();
     minflow::cli::ignore_file_size_signal();
     minflow::cli::flush_denormals();
     let cli: minflow::cli::TrainCli = minflow::cli::parse();
+    minflow::cli::tune_allocator(minflow::cli::FreedMemory::Kept);
     minflow::cli::init_logging(cli.verbose);
     minflow::cli::exit_code(minflow::cli::run_train(cli))
 }

@@ -263,20 +263,51 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
     }
 }
 
-/// Tells mimalloc (the binaries' global allocator) to keep freed memory committed instead of
-/// returning it to the kernel 10 ms later (`mi_option_purge_delay = -1`; the environment's
-/// `MIMALLOC_PURGE_DELAY` still wins when set). Training frees and reallocates activations of
-/// tens of MB every step; returned pages come back zero-filled by page faults, which cost
-/// ~10 % of a CPU training step (`bench train`). The price: the process keeps its peak memory.
-pub fn tune_allocator() {
+/// How long mimalloc (the binaries' global allocator) keeps freed memory committed before
+/// returning it to the kernel (`mi_option_purge_delay`, ms; -1 never; mimalloc's own default
+/// is 10 ms).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FreedMemory {
+    /// Never returned (-1): for batch work. Training frees and reallocates activations of
+    /// tens of MB every step; returned pages come back zero-filled by page faults, which cost
+    /// ~10 % of a CPU training step (`bench train`). The price: the process keeps its peak.
+    Kept,
+    /// Returned after 1 s unused: for the long-running nodes (`node`, `replay`, `record`,
+    /// `launch`). Buffers reused every frame or call stay committed, while what a burst
+    /// or a queue left behind goes back. Kept forever, the node's resident memory crept
+    /// up ~2 MB every 5 s over a 30 s soak on a loaded machine (113 -> 120 MB; 10 ms and
+    /// 1 s held it flat at 92-105 MB: `tests/it/soak.rs`).
+    ReturnedAfterOneSecond,
+}
+
+impl Cli {
+    /// The allocator setting for this command: [`FreedMemory::ReturnedAfterOneSecond`] for
+    /// the nodes that run until stopped, [`FreedMemory::Kept`] for the rest.
+    pub fn freed_memory(&self) -> FreedMemory {
+        match self.command {
+            Command::Node(_) | Command::Replay(_) | Command::Record(_) | Command::Launch(_) => {
+                FreedMemory::ReturnedAfterOneSecond
+            }
+            _ => FreedMemory::Kept,
+        }
+    }
+}
+
+/// Sets mimalloc's purge delay to `freed` (see [`FreedMemory`]); the environment's
+/// `MIMALLOC_PURGE_DELAY` still wins when set.
+pub fn tune_allocator(freed: FreedMemory) {
     // mimalloc v2's `mi_option_t` value of `mi_option_purge_delay` (include/mimalloc.h).
     const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
     extern "C" {
         fn mi_option_set(option: std::ffi::c_int, value: std::ffi::c_long);
     }
+    let delay_ms = match freed {
+        FreedMemory::Kept => -1,
+        FreedMemory::ReturnedAfterOneSecond => 1000,
+    };
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: sets a process-wide integer option; mimalloc reads it on later frees.
-        unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
+        unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, delay_ms) };
     }
 }
 

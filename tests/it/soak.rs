@@ -208,6 +208,7 @@ fn soak_replay_loop_into_node_and_record() {
             samples.len()
         );
         growths.push((name, g));
+        println!("{name}: VmRSS KiB by second {samples:?}");
     }
     assert_eq!(counter(&node_log, "dropped"), Some(0), "{node_log}");
     assert_eq!(
