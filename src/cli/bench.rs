@@ -26,6 +26,9 @@ pub enum BenchCommand {
     Gemm(super::bench_gemm::GemmBenchArgs),
     /// Closed-loop rollout cost per frame of models against the MPM solver, as a ratio.
     Rollout(super::bench_rollout::RolloutBenchArgs),
+    /// GPU particle-grid transfers (P2G, G2P): sparse kernels vs dense products, checked
+    /// against the host, ms.
+    Transfer(super::bench_transfer::TransferBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -49,6 +52,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
         BenchCommand::Node(args) => super::bench_node::run(args),
         BenchCommand::Gemm(args) => super::bench_gemm::run(args),
         BenchCommand::Rollout(args) => super::bench_rollout::run(args),
+        BenchCommand::Transfer(args) => super::bench_transfer::run(args),
     }
 }
 

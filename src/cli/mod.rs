@@ -8,6 +8,7 @@ mod bench_gemm;
 mod bench_node;
 mod bench_rollout;
 mod bench_train;
+mod bench_transfer;
 mod bench_transport;
 mod demo;
 pub mod device;

@@ -23,6 +23,10 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
     const SEQUENTIAL_SCAN: bool = B::SEQUENTIAL_SCAN;
     const FUSED_ELU_MEAN: bool = B::FUSED_ELU_MEAN;
     const NATIVE_CONV_OPS: bool = B::NATIVE_CONV_OPS;
+    /// Training on a GPU keeps the dense products whatever the inner backend's inference
+    /// does: they are deterministic, where CUDA's sparse P2G adds with atomics in no fixed
+    /// order (`cuda_stencil.rs`), and they are what every shipped model trained with.
+    const DENSE_STENCIL: bool = !B::SEQUENTIAL_SCAN;
 
     fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
         match B::NATIVE_CONV_OPS {

@@ -50,6 +50,8 @@ pub mod cublas;
 mod cuda;
 #[cfg(feature = "cuda")]
 mod cuda_conv;
+#[cfg(feature = "cuda")]
+mod cuda_stencil;
 pub mod mingru;
 mod ndarray;
 pub mod prepared;
@@ -408,6 +410,13 @@ pub trait NetOps: Backend {
     /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
     /// log-space parallel scan, which is what pays on a GPU.
     const SEQUENTIAL_SCAN: bool = false;
+
+    /// True where the grid model applies its particle-grid stencils in their separable dense
+    /// form, two batched products per transfer (`model::grid::transfer`), instead of
+    /// [`NetOps::stencil_gather`] / [`NetOps::stencil_splat`]. By default wherever the scan is
+    /// parallel (an accelerator without its own transfer kernels: burn's composed scatter is
+    /// far slower there); false on the CPU, which has its own.
+    const DENSE_STENCIL: bool = !Self::SEQUENTIAL_SCAN;
 
     /// The linear recurrence `h_t = a_t h_{t-1} + b_t` along T (`h_{-1}` = `h0` or 0), with
     /// `a`, `b` positive: `a`, `b` `[B, T, H]`, `h0` `[B, H]` -> `h` `[B, T, H]`. By default the

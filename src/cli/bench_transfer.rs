@@ -1,0 +1,221 @@
+//! `minflow bench transfer --device cuda`: the grid model's particle-grid transfers on a GPU,
+//! P2G and G2P, in their two forms (`model::grid::transfer`): the separable dense products
+//! (what training uses) and the sparse kernels of inference (`ops/cuda_stencil.rs`). Prints,
+//! first, the check against the host: a small batch's stencil (nodes and weights as
+//! `stencil_host` computes them), P2G and G2P of random values, each form and each way of
+//! building the stencil (on the host, uploaded; the GPU's kernel; burn's composed tensor
+//! operations), as the largest
+//! difference relative to the largest entry (f32 rounding is ~1e-6; a wrong node or layout is
+//! O(1)); then milliseconds a transfer at the node's size (`--scenes` x `--particles` on an
+//! `--grid`^2 grid, `--channels` values per particle).
+
+use super::device::DeviceArgs;
+use super::Outcome;
+use clap::Args;
+
+/// Flags of `bench transfer`.
+#[derive(Debug, Args)]
+pub struct TransferBenchArgs {
+    /// Scenes in one call (B).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    scenes: u32,
+    /// Particles per scene (N).
+    #[arg(long, default_value_t = 2500, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    particles: u32,
+    /// Grid size n (n x n nodes).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(8..=512))]
+    grid: u32,
+    /// Values per particle (C, the P2G channels; `all-grid-mingru` splats 12).
+    #[arg(long, default_value_t = 12, value_parser = clap::value_parser!(u32).range(1..=256))]
+    channels: u32,
+    /// Timed repetitions of each transfer (after one untimed).
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    reps: u32,
+    #[command(flatten)]
+    device: DeviceArgs,
+}
+
+/// Runs the check and the table (CUDA builds only).
+///
+/// # Errors
+/// A CPU device, a build without `cuda`, no usable GPU, or a check that failed (a
+/// difference above 1e-4 of the largest entry).
+pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
+    let device = args.device.parse()?;
+    #[cfg(feature = "cuda")]
+    {
+        let Some(index) = device.single("bench transfer")? else {
+            anyhow::bail!("bench transfer measures GPU kernels: give --device cuda[:N]");
+        };
+        cuda::run(&args, super::device::cuda::device(index, args.device.kernels())?)
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        let _ = device;
+        anyhow::bail!("bench transfer needs --device cuda (a build with --features cuda)")
+    }
+}
+
+#[cfg(feature = "cuda")]
+mod cuda {
+    use super::super::device::cuda::{CudaDevice, CudaInfer};
+    use super::{Outcome, TransferBenchArgs};
+    use crate::model::grid::transfer::{self, stencil_host, Stencil};
+    use burn::tensor::backend::Backend;
+    use burn::tensor::{Distribution, Int, Tensor, TensorData};
+    use std::time::Instant;
+
+    type B = CudaInfer;
+
+    /// Host values of a GPU tensor.
+    fn host<const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
+        t.into_data().convert::<f32>().into_vec().expect("f32 data")
+    }
+
+    /// Largest `|a - b|` over the largest `|b|`.
+    fn rel_diff(a: &[f32], b: &[f32]) -> f64 {
+        let scale = b.iter().fold(1e-30f32, |m, v| m.max(v.abs()));
+        let d = a
+            .iter()
+            .zip(b)
+            .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        f64::from(d / scale)
+    }
+
+    /// The host's stencil of `pos` (`[b][n_p]` positions): `(index, weight)` in the sparse
+    /// layout (`[B N 9]` flat rows `b n^2 + node`, weights `[B, N, 9]`).
+    fn host_stencil(pos: &[f32], b: usize, n_p: usize, n: usize) -> (Vec<i32>, Vec<f32>) {
+        let (mut index, mut weight) = (Vec::new(), Vec::new());
+        for s in 0..b {
+            for p in 0..n_p {
+                let at = 2 * (s * n_p + p);
+                for (i, j, w) in stencil_host(pos[at], pos[at + 1], n) {
+                    index.push((s * n * n + i * n + j) as i32);
+                    weight.push(w);
+                }
+            }
+        }
+        (index, weight)
+    }
+
+    /// The check: one line per quantity, its relative difference from the host; false
+    /// when one is above 1e-4.
+    fn check(device: &CudaDevice) -> bool {
+        let (b, n_p, n, c) = (3usize, 400usize, 16usize, 5usize);
+        let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.0, 1.0), device);
+        let values = Tensor::<B, 3>::random([b, n_p, c], Distribution::Uniform(-1.0, 1.0), device);
+        let grid = Tensor::<B, 3>::random([b, n * n, c], Distribution::Uniform(-1.0, 1.0), device);
+        let (pos_h, values_h, grid_h) = (
+            host(pos.clone()),
+            host(values.clone()),
+            host(grid.clone()),
+        );
+        let (index_h, weight_h) = host_stencil(&pos_h, b, n_p, n);
+        // The host's P2G and G2P.
+        let mut p2g_h = vec![0f32; b * n * n * c];
+        let mut g2p_h = vec![0f32; b * n_p * c];
+        for p in 0..b * n_p {
+            for k in 0..9 {
+                let (row, w) = (index_h[p * 9 + k] as usize, weight_h[p * 9 + k]);
+                for j in 0..c {
+                    p2g_h[row * c + j] += w * values_h[p * c + j];
+                    g2p_h[p * c + j] += w * grid_h[row * c + j];
+                }
+            }
+        }
+        let uploaded = Stencil::<B> {
+            index: Tensor::<B, 1, Int>::from_data(
+                TensorData::new(index_h.clone(), [b * n_p * 9]),
+                device,
+            ),
+            weight: Tensor::from_data(TensorData::new(weight_h.clone(), [b, n_p, 9]), device),
+            dense: None,
+            n,
+            batch: b,
+            particles: n_p,
+        };
+        let kernel = transfer::stencil(pos.clone(), n, false);
+        let composed = transfer::composed_stencil(pos.clone(), n, false);
+        let dense = transfer::stencil(pos, n, true);
+        println!(
+            "check ({b} scenes x {n_p} particles, {n}^2 grid, {c} channels), largest difference \
+             / largest entry against the host:"
+        );
+        let mut ok = true;
+        for (what, s) in [("kernel", &kernel), ("composed", &composed)] {
+            let nodes: Vec<i32> = s
+                .index
+                .clone()
+                .into_data()
+                .convert::<i32>()
+                .into_vec()
+                .expect("i32 data");
+            let wrong = nodes.iter().zip(&index_h).filter(|(a, b)| a != b).count();
+            ok &= wrong == 0 && nodes.len() == index_h.len();
+            println!("  {what} stencil: {wrong} of {} nodes differ", index_h.len());
+        }
+        let mut line = |what: &str, got: Vec<f32>, want: &[f32]| {
+            let d = rel_diff(&got, want);
+            ok &= d <= 1e-4;
+            println!("  {what:<36} {d:.2e}");
+        };
+        line("kernel stencil weights", host(kernel.weight.clone()), &weight_h);
+        line("composed stencil weights", host(composed.weight.clone()), &weight_h);
+        for (form, s) in [
+            ("sparse, host stencil", &uploaded),
+            ("sparse, kernel stencil", &kernel),
+            ("sparse, composed stencil", &composed),
+            ("dense", &dense),
+        ] {
+            line(&format!("P2G {form}"), host(transfer::p2g(s, values.clone())), &p2g_h);
+            line(&format!("G2P {form}"), host(transfer::g2p(s, grid.clone())), &g2p_h);
+        }
+        ok
+    }
+
+    /// Milliseconds of `f`, mean over `reps` after one untimed call.
+    fn timed(device: &CudaDevice, reps: u32, f: impl Fn() -> Tensor<B, 3>) -> anyhow::Result<f64> {
+        drop(f());
+        B::sync(device)?;
+        let start = Instant::now();
+        for _ in 0..reps {
+            drop(f());
+        }
+        B::sync(device)?;
+        Ok(start.elapsed().as_secs_f64() * 1e3 / f64::from(reps))
+    }
+
+    /// The check, then the table.
+    pub(super) fn run(args: &TransferBenchArgs, device: CudaDevice) -> anyhow::Result<Outcome> {
+        let ok = check(&device);
+        let (b, n_p, n, c) = (
+            args.scenes as usize,
+            args.particles as usize,
+            args.grid as usize,
+            args.channels as usize,
+        );
+        let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.0, 1.0), &device);
+        let values =
+            Tensor::<B, 3>::random([b, n_p, c], Distribution::Uniform(-1.0, 1.0), &device);
+        let grid =
+            Tensor::<B, 3>::random([b, n * n, c], Distribution::Uniform(-1.0, 1.0), &device);
+        println!(
+            "\n{b} scenes x {n_p} particles, {n}^2 grid, {c} channels, {} reps, {}",
+            args.reps,
+            B::name(&device)
+        );
+        println!("| form | stencil ms | P2G ms | G2P ms |\n| --- | ---: | ---: | ---: |");
+        for (form, dense) in [("dense products", true), ("sparse kernels", false)] {
+            let st = timed(&device, args.reps, || {
+                let s = transfer::stencil(pos.clone(), n, dense);
+                s.weight
+            })?;
+            let s = transfer::stencil(pos.clone(), n, dense);
+            let p2g = timed(&device, args.reps, || transfer::p2g(&s, values.clone()))?;
+            let g2p = timed(&device, args.reps, || transfer::g2p(&s, grid.clone()))?;
+            println!("| {form} | {st:.3} | {p2g:.3} | {g2p:.3} |");
+        }
+        anyhow::ensure!(ok, "the GPU's transfers differ from the host's (above)");
+        Ok(Outcome::Done)
+    }
+}
