@@ -1,14 +1,13 @@
 //! `minflow bench transfer --device cuda`: the grid model's particle-grid transfers on a GPU,
 //! P2G and G2P, in their two forms (`model::grid::transfer`): the separable dense products
-//! (what training uses) and the sparse kernels of inference (`ops/cuda_stencil.rs`). Prints,
-//! first, the check against the host: a small batch's stencil (nodes and weights as
-//! `stencil_host` computes them), P2G and G2P of random values, each form and each way of
-//! building the stencil (on the host, uploaded; the GPU's kernel; burn's composed tensor
-//! operations), as the largest
-//! difference relative to the largest entry (f32 rounding is ~1e-6; a wrong node or layout is
-//! O(1)); then milliseconds a transfer at the node's size (`--scenes` x `--particles` on an
-//! `--grid`^2 grid, `--channels` values splatted, `--latent` gathered), and the two forms'
-//! difference there.
+//! (what training uses) and the sparse kernels of `ops/cuda_stencil.rs`. Prints, first, the
+//! check against the CPU backend (whose stencil and transfers are tested against
+//! `stencil_host`): a small batch's stencil (nodes and weights), then P2G and G2P of random
+//! values in each form and from each stencil (the CPU's, uploaded; the GPU's kernel; burn's
+//! composed tensor operations), as the largest difference relative to the largest entry (f32
+//! rounding is ~1e-6; a wrong node or layout is O(1)); then milliseconds a transfer at the
+//! node's size (`--scenes` x `--particles` on an `--grid`^2 grid, `--channels` values
+//! splatted, `--latent` gathered), and the two forms' difference there.
 
 use super::device::DeviceArgs;
 use super::Outcome;
@@ -43,7 +42,7 @@ pub struct TransferBenchArgs {
 ///
 /// # Errors
 /// A CPU device, a build without `cuda`, no usable GPU, or a check that failed (a
-/// difference above 1e-4 of the largest entry against the host, or above 1e-2 between the
+/// difference above 1e-4 of the largest entry against the CPU, or above 1e-2 between the
 /// two forms at the timed size).
 pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
     let device = args.device.parse()?;
@@ -52,7 +51,10 @@ pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
         let Some(index) = device.single("bench transfer")? else {
             anyhow::bail!("bench transfer measures GPU kernels: give --device cuda[:N]");
         };
-        cuda::run(&args, super::device::cuda::device(index, args.device.kernels())?)
+        cuda::run(
+            &args,
+            super::device::cuda::device(index, args.device.kernels())?,
+        )
     }
     #[cfg(not(feature = "cuda"))]
     {
@@ -65,69 +67,53 @@ pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
 mod cuda {
     use super::super::device::cuda::{CudaDevice, CudaInfer};
     use super::{Outcome, TransferBenchArgs};
-    use crate::model::grid::transfer::{self, stencil_host, Stencil};
+    use crate::model::grid::transfer::{self, Stencil};
     use burn::tensor::backend::Backend;
     use burn::tensor::{Distribution, Int, Tensor, TensorData};
     use std::time::Instant;
 
     type B = CudaInfer;
 
-    /// Host values of a GPU tensor.
-    fn host<const D: usize>(t: Tensor<B, D>) -> Vec<f32> {
+    /// The CPU backend, the check's reference (its stencil and transfers are tested against
+    /// `transfer::stencil_host`).
+    type Cpu = burn::backend::NdArray<f32>;
+
+    /// Host values of a tensor on either backend.
+    fn host<K: Backend, const D: usize>(t: Tensor<K, D>) -> Vec<f32> {
         t.into_data().convert::<f32>().into_vec().expect("f32 data")
+    }
+
+    /// A stencil's node indices on the host, as i32 (the CPU backend's are i64).
+    fn nodes<K: Backend>(index: Tensor<K, 1, Int>) -> Vec<i32> {
+        index
+            .into_data()
+            .convert::<i32>()
+            .into_vec()
+            .expect("i32 data")
     }
 
     /// Largest `|a - b|` over the largest `|b|`.
     fn rel_diff(a: &[f32], b: &[f32]) -> f64 {
         let scale = b.iter().fold(1e-30f32, |m, v| m.max(v.abs()));
-        let d = a
-            .iter()
-            .zip(b)
-            .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        let d = a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
         f64::from(d / scale)
     }
 
-    /// The host's stencil of `pos` (`[b][n_p]` positions): `(index, weight)` in the sparse
-    /// layout (`[B N 9]` flat rows `b n^2 + node`, weights `[B, N, 9]`).
-    fn host_stencil(pos: &[f32], b: usize, n_p: usize, n: usize) -> (Vec<i32>, Vec<f32>) {
-        let (mut index, mut weight) = (Vec::new(), Vec::new());
-        for s in 0..b {
-            for p in 0..n_p {
-                let at = 2 * (s * n_p + p);
-                for (i, j, w) in stencil_host(pos[at], pos[at + 1], n) {
-                    index.push((s * n * n + i * n + j) as i32);
-                    weight.push(w);
-                }
-            }
-        }
-        (index, weight)
-    }
-
-    /// The check: one line per quantity, its relative difference from the host; false
+    /// The check: one line per quantity, its relative difference from the CPU backend's; false
     /// when one is above 1e-4.
     fn check(device: &CudaDevice) -> bool {
         let (b, n_p, n, c) = (3usize, 400usize, 16usize, 5usize);
         let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.0, 1.0), device);
         let values = Tensor::<B, 3>::random([b, n_p, c], Distribution::Uniform(-1.0, 1.0), device);
         let grid = Tensor::<B, 3>::random([b, n * n, c], Distribution::Uniform(-1.0, 1.0), device);
-        let (pos_h, values_h, grid_h) = (
-            host(pos.clone()),
-            host(values.clone()),
-            host(grid.clone()),
-        );
-        let (index_h, weight_h) = host_stencil(&pos_h, b, n_p, n);
-        // The host's P2G and G2P.
-        let mut p2g_h = vec![0f32; b * n * n * c];
-        let mut g2p_h = vec![0f32; b * n_p * c];
-        for p in 0..b * n_p {
-            for k in 0..9 {
-                let (row, w) = (index_h[p * 9 + k] as usize, weight_h[p * 9 + k]);
-                for j in 0..c {
-                    p2g_h[row * c + j] += w * values_h[p * c + j];
-                    g2p_h[p * c + j] += w * grid_h[row * c + j];
-                }
-            }
-        }
+        // The reference: the same inputs through the CPU backend's own stencil and transfers.
+        let on_cpu =
+            |t: &Tensor<B, 3>| Tensor::<Cpu, 3>::from_data(t.to_data(), &Default::default());
+        let cpu = transfer::stencil(on_cpu(&pos), n, false);
+        let index_h = nodes(cpu.index.clone());
+        let weight_h = host(cpu.weight.clone());
+        let p2g_h = host(transfer::p2g(&cpu, on_cpu(&values)));
+        let g2p_h = host(transfer::g2p(&cpu, on_cpu(&grid)));
         let uploaded = Stencil::<B> {
             index: Tensor::<B, 1, Int>::from_data(
                 TensorData::new(index_h.clone(), [b * n_p * 9]),
@@ -144,36 +130,49 @@ mod cuda {
         let dense = transfer::stencil(pos, n, true);
         println!(
             "check ({b} scenes x {n_p} particles, {n}^2 grid, {c} channels), largest difference \
-             / largest entry against the host:"
+             / largest entry against the CPU backend:"
         );
         let mut ok = true;
         for (what, s) in [("kernel", &kernel), ("composed", &composed)] {
-            let nodes: Vec<i32> = s
-                .index
-                .clone()
-                .into_data()
-                .convert::<i32>()
-                .into_vec()
-                .expect("i32 data");
+            let nodes = nodes(s.index.clone());
             let wrong = nodes.iter().zip(&index_h).filter(|(a, b)| a != b).count();
             ok &= wrong == 0 && nodes.len() == index_h.len();
-            println!("  {what} stencil: {wrong} of {} nodes differ", index_h.len());
+            println!(
+                "  {what} stencil: {wrong} of {} nodes differ",
+                index_h.len()
+            );
         }
         let mut line = |what: &str, got: Vec<f32>, want: &[f32]| {
             let d = rel_diff(&got, want);
             ok &= d <= 1e-4;
             println!("  {what:<36} {d:.2e}");
         };
-        line("kernel stencil weights", host(kernel.weight.clone()), &weight_h);
-        line("composed stencil weights", host(composed.weight.clone()), &weight_h);
+        line(
+            "kernel stencil weights",
+            host(kernel.weight.clone()),
+            &weight_h,
+        );
+        line(
+            "composed stencil weights",
+            host(composed.weight.clone()),
+            &weight_h,
+        );
         for (form, s) in [
-            ("sparse, host stencil", &uploaded),
+            ("sparse, CPU stencil", &uploaded),
             ("sparse, kernel stencil", &kernel),
             ("sparse, composed stencil", &composed),
             ("dense", &dense),
         ] {
-            line(&format!("P2G {form}"), host(transfer::p2g(s, values.clone())), &p2g_h);
-            line(&format!("G2P {form}"), host(transfer::g2p(s, grid.clone())), &g2p_h);
+            line(
+                &format!("P2G {form}"),
+                host(transfer::p2g(s, values.clone())),
+                &p2g_h,
+            );
+            line(
+                &format!("G2P {form}"),
+                host(transfer::g2p(s, grid.clone())),
+                &g2p_h,
+            );
         }
         ok
     }
@@ -201,10 +200,8 @@ mod cuda {
             args.latent as usize,
         );
         let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.0, 1.0), &device);
-        let values =
-            Tensor::<B, 3>::random([b, n_p, c], Distribution::Uniform(-1.0, 1.0), &device);
-        let grid =
-            Tensor::<B, 3>::random([b, n * n, l], Distribution::Uniform(-1.0, 1.0), &device);
+        let values = Tensor::<B, 3>::random([b, n_p, c], Distribution::Uniform(-1.0, 1.0), &device);
+        let grid = Tensor::<B, 3>::random([b, n * n, l], Distribution::Uniform(-1.0, 1.0), &device);
         println!(
             "\n{b} scenes x {n_p} particles, {n}^2 grid, P2G of {c} and G2P of {l} channels, {} \
              reps, {}",
@@ -235,7 +232,7 @@ mod cuda {
         );
         println!("sparse against dense at this size: P2G {p2g:.2e}, G2P {g2p:.2e}");
         let ok = ok && p2g <= 1e-2 && g2p <= 1e-2;
-        anyhow::ensure!(ok, "the GPU's transfers differ from the host's (above)");
+        anyhow::ensure!(ok, "the GPU's transfers differ from the CPU's (above)");
         Ok(Outcome::Done)
     }
 }

@@ -16,7 +16,7 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     /// The model keeps the dense products (the default): its first GPU run on the sparse
     /// kernels of [`super::cuda_stencil`] was 1.7x faster but its rollouts diverged (avg20
     /// MSE NaN, docs/scale.md), so they stay off until `bench transfer`, which checks each
-    /// part against the host, passes on a GPU.
+    /// part against the CPU backend, passes on a GPU.
     const DENSE_STENCIL: bool = true;
 
     fn sparse_stencil(

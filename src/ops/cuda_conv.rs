@@ -27,12 +27,20 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, prelude::*};
 
-/// The backend under burn's fusion layer for `Cuda<f32, i32>`.
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+/// The backend under burn's fusion layer for `Cuda<f32, i32>` (also `cuda_stencil.rs`'s).
+pub(super) type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
 /// burn's CUDA backend with fusion.
-type Cuda = burn::backend::Cuda<f32, i32>;
+pub(super) type Cuda = burn::backend::Cuda<f32, i32>;
 /// The fusion runtime of [`Inner`].
-type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+pub(super) type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+
+/// `t` itself when contiguous, else a contiguous copy: what the custom kernels index.
+pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
+    match t.is_contiguous() {
+        true => t,
+        false => burn_cubecl::kernel::into_contiguous(t),
+    }
+}
 
 /// im2col: `input` `[B, H, W, C]` (contiguous) -> `output` `[B H W, C k^2]`. Output element
 /// `(row, i k^2 + ky k + kx)`, row = `(b H + y) W + x`, is channel `i` of input position
@@ -151,10 +159,7 @@ fn launch(
     k: usize,
 ) -> CubeTensor<CudaRuntime> {
     let [_, h, w, c] = dims;
-    let x = match x.is_contiguous() {
-        true => x,
-        false => burn_cubecl::kernel::into_contiguous(x),
-    };
+    let x = contiguous(x);
     let shape = kind.out_shape(dims, k);
     let client = x.client.clone();
     let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(

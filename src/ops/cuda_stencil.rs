@@ -17,7 +17,7 @@
 //! Status: not yet taken by the model ([`NetOps::DENSE_STENCIL`] is true on CUDA). The first
 //! GPU run, with burn's composed stencil in front of these transfers, made a network call of
 //! 256 scenes 1.7x faster and its rollouts diverge (docs/scale.md); the stencil kernel and
-//! `minflow bench transfer --device cuda` (each part against the host) were written after it
+//! `minflow bench transfer --device cuda` (each part against the CPU backend) were written after it
 //! and have not run on a GPU yet. The same kernels on burn's wgpu backend (a software Vulkan
 //! device) matched the host to 5e-7, so the fault is yet to be found on CUDA.
 //!
@@ -31,18 +31,12 @@ use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorMetadata};
 use burn_cubecl::cubecl;
 use burn_cubecl::tensor::CubeTensor;
-use burn_cubecl::CubeBackend;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, prelude::*};
 
-/// The backend under burn's fusion layer for `Cuda<f32, i32>`.
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-/// burn's CUDA backend with fusion.
-type Cuda = burn::backend::Cuda<f32, i32>;
-/// The fusion runtime of [`Inner`].
-type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 
 /// G2P: `out[p, j] = sum_k weight[p, k] grid[index[p, k], j]` for every particle `p` of the
 /// batch (`B N` of them) and channel `j < c`; `grid` `[B n^2, c]`, `index` and `weight`
@@ -197,14 +191,6 @@ impl Operation<Runtime> for StencilOp {
     }
 }
 
-/// `t` itself when contiguous, else a contiguous copy.
-fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
-    match t.is_contiguous() {
-        true => t,
-        false => burn_cubecl::kernel::into_contiguous(t),
-    }
-}
-
 /// Launches `op`'s kernel; returns its new contiguous output.
 fn launch(
     x: CubeTensor<CudaRuntime>,
@@ -227,9 +213,12 @@ fn launch(
             op.out_shape.clone(),
             dtype,
         ),
-        Kind::Splat => {
-            burn_cubecl::ops::numeric::zeros_client(client.clone(), device, op.out_shape.clone(), dtype)
-        }
+        Kind::Splat => burn_cubecl::ops::numeric::zeros_client(
+            client.clone(),
+            device,
+            op.out_shape.clone(),
+            dtype,
+        ),
     };
     // One thread per output element (gather) or per value (splat).
     let units = match op.kind {
@@ -274,7 +263,11 @@ fn record(
     let dtype = x.dtype();
     let streams = OperationStreams::with_inputs([&x, &index, &weight]);
     let out = TensorIr::uninit(client.create_empty_handle(), out_shape.clone(), dtype);
-    let desc = CustomOpIr::new(name, &[x.into_ir(), index.into_ir(), weight.into_ir()], &[out]);
+    let desc = CustomOpIr::new(
+        name,
+        &[x.into_ir(), index.into_ir(), weight.into_ir()],
+        &[out],
+    );
     let op = StencilOp {
         desc: desc.clone(),
         kind,
@@ -312,7 +305,10 @@ pub(crate) fn gather(
 ) -> FloatTensor<Cuda> {
     let (b, n) = stencil_dims(&index, &weight);
     let g = grid.shape();
-    assert!(g.num_dims() == 3 && g[0] == b, "gather: grid {g:?} for a batch of {b}");
+    assert!(
+        g.num_dims() == 3 && g[0] == b,
+        "gather: grid {g:?} for a batch of {b}"
+    );
     let c = g[2];
     record(Kind::Gather, grid, index, weight, Shape::new([b, n, c]), c)
 }
@@ -337,7 +333,14 @@ pub(crate) fn splat(
         "splat: values {v:?} for a stencil of [{b}, {n}, 9]"
     );
     let c = v[2];
-    record(Kind::Splat, values, index, weight, Shape::new([b, nodes, c]), c)
+    record(
+        Kind::Splat,
+        values,
+        index,
+        weight,
+        Shape::new([b, nodes, c]),
+        c,
+    )
 }
 
 /// The recorded stencil operation: input `[pos]`, outputs `[index, weight]`.
@@ -396,12 +399,19 @@ impl Operation<Runtime> for BuildOp {
 /// `pos` is not `[B, N, 2]`.
 pub(crate) fn stencil(pos: FloatTensor<Cuda>, n: usize) -> (IntTensor<Cuda>, FloatTensor<Cuda>) {
     let s = pos.shape();
-    assert!(s.num_dims() == 3 && s[2] == 2, "stencil: positions {s:?} are not [B, N, 2]");
+    assert!(
+        s.num_dims() == 3 && s[2] == 2,
+        "stencil: positions {s:?} are not [B, N, 2]"
+    );
     let (b, n_p) = (s[0], s[1]);
     let client = pos.client.clone();
     let dtype = pos.dtype();
     let streams = OperationStreams::with_inputs([&pos]);
-    let index = TensorIr::uninit(client.create_empty_handle(), Shape::new([b * n_p * 9]), DType::I32);
+    let index = TensorIr::uninit(
+        client.create_empty_handle(),
+        Shape::new([b * n_p * 9]),
+        DType::I32,
+    );
     let weight = TensorIr::uninit(client.create_empty_handle(), Shape::new([b, n_p, 9]), dtype);
     let desc = CustomOpIr::new("minflow_stencil", &[pos.into_ir()], &[index, weight]);
     let op = BuildOp {
