@@ -20,8 +20,8 @@ pub struct DemoArgs {
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
     /// Run folder of the model (by default the shipped small grid minGRU that predicts 4
-    /// frames per network call, the cheapest shipped model; `models/all-grid-mingru` is the
-    /// most accurate); trained here first if it holds no model.
+    /// frames per network call, the cheapest shipped model; `models/all-grid-mingru-rest` has
+    /// the lowest errors); trained here first if it holds no model.
     #[arg(long, default_value = "models/all-grid-mingru-small-k4")]
     model: PathBuf,
     /// Where `--train` (or a missing model) trains the demo's own model.

@@ -1,7 +1,11 @@
-//! Nodes: long-running processes around a transport. [`replay`] plays the ground truth from
+//! Nodes: long-running processes around a transport. [`surrogate`] is the surrogate node
+//! (`minflow node`): one hidden state per scene, the next frame predicted for every frame
+//! that arrives, closed-loop rollouts, dynamic batching of many scenes into one network call
+//! and sharding of the scenes over a group of nodes. [`replay`] plays the ground truth from
 //! bags (like `ros2 bag play`), [`record`] writes what arrives on topics into bags (like
-//! `ros2 bag record`). Both count what they handle ([`crate::transport::Counters`]) and stop
-//! cleanly on SIGINT/SIGTERM ([`shutdown_flag`]).
+//! `ros2 bag record`). All three count what they handle ([`crate::transport::Counters`] for
+//! replay and record, the surrogate's status message and counters) and stop cleanly on
+//! SIGINT/SIGTERM ([`shutdown_flag`]).
 
 pub mod record;
 pub mod replay;

@@ -24,13 +24,22 @@
 //! - `autodiff.rs`: the impl for `Autodiff<B>`: one graph node per fused forward, whose
 //!   backward calls the inner backend's backward operation; `autodiff_grid.rs`: the nodes of
 //!   the grid model's operations.
-//! - `ndarray.rs`: the impl for `NdArray<f32>` (the CPU), on the kernels of `cpu/`: `gemm.rs`
-//!   (dense layers), `activation.rs` (ELU, SiLU), `elu_mean.rs` (the encoder's first layer
-//!   and pooling in one pass), `scan.rs` (the sequential recurrence), `adam.rs`, `conv.rs`
-//!   (im2col, col2im) and `transfer.rs` (the stencil gather and scatter-add).
+//! - `ndarray.rs`: the impl for `NdArray<f32>` (the CPU), on the kernels of `cpu/` (`mod.rs`:
+//!   their shared helpers): `gemm.rs` (dense layers), `activation.rs` (ELU, SiLU),
+//!   `elu_mean.rs` (the encoder's first layer and pooling in one pass), `scan.rs` (the
+//!   sequential recurrence), `mingru.rs` (the minGRU's and minLSTM's inference updates in one
+//!   pass), `adam.rs`, `conv.rs` (im2col, col2im), `winograd.rs` (the inference forward of the
+//!   3x3 convolutions by Winograd F(4x4, 3x3)), `grid.rs` (the grid channels, 2x2 pooling and
+//!   2x upsampling for inference), `transfer.rs` (the stencil, its gather and scatter-add) and
+//!   `pool.rs` (a whole inference step on the rayon pool with a worker kept awake).
+//! - [`cublas`]: the choice of the GPU's large-product kernel ([`cublas::GpuGemm`],
+//!   `--gpu-gemm`) and its layout logic, always built; with the feature `cuda`, those products
+//!   through cuBLAS as custom operations of burn's fusion layer.
 //! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults,
 //!   whose element-wise chains burn's fusion layer compiles into single kernels, with the
-//!   large products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels.
+//!   large products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
+//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, not yet taken by the model
+//!   ([`NetOps::DENSE_STENCIL`] is true on CUDA).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
