@@ -46,7 +46,7 @@ check() { # name command...
 speed() {
     nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv
     # PyTorch on the same GPU, the paper's configuration (ELU encoder, batch 80, T = 2).
-    check torch "$PY" docs/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20 --warmup 3
+    check torch "$PY" tools/torch_reference.py --cores mingru,gru,minlstm,lstm,mlp --steps 20 --warmup 3
     # The encoder's products alone: cubecl vs cuBLAS TF32 / FP32.
     check gemm "$BIN" bench gemm --device cuda
     # The paper's model per product kernel (cubecl: with and without split-K), then the
@@ -117,7 +117,7 @@ node() {
     done
 }
 
-batched() { # frames per second of one step over many scenes (README, "On a GPU")
+batched() { # one step over many scenes, frames/s (docs/speed.md, "The node on one GPU")
     nvidia-smi --query-gpu=name,driver_version --format=csv
     check batched "$BIN" bench node --device cuda --skip-node --batch 1,4,16,64,256 \
         --model models/all-grid-mingru --model models/all-grid-minlstm \
@@ -157,7 +157,7 @@ grid() { # docs/grid.md, "GPU speed"
                       print "first-epoch losses differ:", loss["shift"], loss["gather"]; exit 1 }
                   print "first-epoch losses agree:", loss["shift"], loss["gather"] }' \
             "$OUT/grid-conv-$b.log"
-        check "grid-torch-$b" "$PY" docs/torch_grid_reference.py --memory mingru \
+        check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
             --precision fp32,tf32 --batch "$b"
     done
 }

@@ -8,7 +8,7 @@ grid), trained with Adam on random inputs, so that burn's CUDA backend and PyTor
 on the same GPU in one run. Written for this comparison from the equations in
 src/model/*.rs and src/train/paper/loss.rs; it is not minflow's model and is not used to train.
 
-    python3 docs/torch_reference.py --cores mingru,gru --batch 80 --window 2 --steps 30
+    python3 tools/torch_reference.py --cores mingru,gru --batch 80 --window 2 --steps 30
 
 prints one line per (core, precision): samples per second (median step time, after warm-up
 steps), peak allocated GPU memory and the parameter count (to check against minflow's table).

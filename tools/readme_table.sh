@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# Prints the README's results table on this machine: every run folder under models/ against
-# the persist and constvel baselines on the bundled bags (held-out scenes: the models were
+# Prints a results table on this machine: every run folder under models/ against the
+# persist and constvel baselines on the bundled bags (held-out scenes: the models were
 # trained on `simulate --seed 1` data), and each model's step against the simulator's frame.
 # Each column names the command it comes from; the table is what those commands printed.
+# (The README's Results table is measured on 16 unseen scenes instead; its commands are
+# under it, and docs/results.md says how each column was made.)
 #
-#   docs/readme_table.sh                          # builds and runs target/release/minflow
-#   MINFLOW=/path/to/minflow docs/readme_table.sh
+#   tools/readme_table.sh                          # builds and runs target/release/minflow
+#   MINFLOW=/path/to/minflow tools/readme_table.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [[ -z "${MINFLOW:-}" ]]; then

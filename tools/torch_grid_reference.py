@@ -1,6 +1,6 @@
 """PyTorch timing reference for minflow's grid architecture (`train --arch grid`, docs/grid.md).
 
-The same network and training step as src/model/grid/ and src/train/grid.rs, on synthetic data
+The same network and training step as src/model/grid/ and src/train/grid/, on synthetic data
 already on the GPU, so that burn's CUDA backend and PyTorch are timed on the same GPU at the
 same precision. One optimizer step (`GridTrainer::fit`) is `sequence_loss` (P rollout steps of
 `GridModel::step`, the first `teacher` reading the true frame, the rest the model's own
@@ -11,7 +11,7 @@ masks] -> U-Net (unet.rs) -> G2P -> per-particle memory (memory.rs: minGRU / min
 LSTM / none) -> SiLU head MLP -> trapezoid integration, clamped into the box. Written for this
 comparison from the Rust sources; it is not minflow's model and is not used to train.
 
-    python3 docs/torch_grid_reference.py --memory none,mingru,minlstm --precision fp32 --batch 16
+    python3 tools/torch_grid_reference.py --memory none,mingru,minlstm --precision fp32 --batch 16
 
 prints one line per (memory, precision): samples per second from the median step time (after
 `--warmup` steps, which are left out), with the parameter count (to check against minflow's)
@@ -230,7 +230,7 @@ class GridModel(nn.Module):
 
 
 def sequence_loss(model, frames, material, dt, steps, teacher, noise):
-    """src/train/grid.rs sequence_loss; frames [B, T + P, N, 4] (x, y, vx, vy)."""
+    """src/train/grid/rollout_loss.rs sequence_loss; frames [B, T + P, N, 4] (x, y, vx, vy)."""
     t = model.t
     b = frames.shape[0]
     dv_scale = model.dv_scale
