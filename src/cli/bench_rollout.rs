@@ -7,7 +7,9 @@
 //! rollout (ceil(H / K)), milliseconds per predicted frame (wall time over scenes x frames),
 //! its ratio to the solver's milliseconds per simulated frame, and the rollout's mean scaled
 //! MSE against the simulated frames (`avgH`, the model's scaler). The ratio comes from one run,
-//! so it holds on a noisy machine; quote it rather than the milliseconds.
+//! so it holds on a noisy machine; quote it rather than the milliseconds. With several
+//! `--constraints` settings each model gets a row per setting (`DIR[setting]`): the
+//! projection's own cost is the difference of its `on` and `off` rows.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -19,6 +21,7 @@ use rayon::prelude::*;
 use super::device::{Device, DeviceArgs};
 use super::Outcome;
 use crate::eval::frame_metrics;
+use crate::model::constraints::Parts;
 use crate::model::store::Surrogate;
 use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
@@ -47,6 +50,10 @@ pub struct RolloutBenchArgs {
     /// Threads of the pool the solver and the CPU models run on (default: all cores).
     #[arg(long, value_parser = super::flags::at_least_one)]
     threads: Option<usize>,
+    /// Which parts of each model's material constraints the rollouts project onto: on |
+    /// off | a list of rope, jelly, snow, liquid, walls. Repeat for a row per setting.
+    #[arg(long = "constraints", value_name = "PARTS", default_value = "on")]
+    constraints: Vec<Parts>,
     #[command(flatten)]
     device: DeviceArgs,
 }
@@ -126,20 +133,21 @@ fn roll<B: NetOps>(
 /// Loads `dir` on the device the flags name and rolls the scenes out.
 fn model_row(
     args: &RolloutBenchArgs,
-    dir: &std::path::Path,
+    (dir, parts): (&std::path::Path, Parts),
     scenes: &[Simulated],
     sizes: (usize, usize, usize),
 ) -> anyhow::Result<Row> {
     match args.device.parse()? {
         Device::Cpu => {
-            let s = Surrogate::<crate::eval::CpuInfer>::load(dir, &Default::default())?;
+            let s = Surrogate::<crate::eval::CpuInfer>::load(dir, &Default::default())?
+                .with_constraints(parts);
             roll(&s, scenes, sizes)
         }
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
             use super::device::cuda::{device, CudaInfer};
             let device = device(ids[0], args.device.kernels())?;
-            let s = Surrogate::<CudaInfer>::load(dir, &device)?;
+            let s = Surrogate::<CudaInfer>::load(dir, &device)?.with_constraints(parts);
             // One untimed rollout of a full call's scenes first: the kernels are compiled
             // (and autotuned) per tensor shape, so a warm-up with one scene left the timed
             // batches' compilation to the first model timed (a single-frame model listed
@@ -199,14 +207,23 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE |\n| --- | ---: | ---: | ---: | ---: | ---: |"
     );
     println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | |");
-    for dir in &args.models {
+    let mut settings = args.constraints.clone();
+    settings.dedup();
+    let rows = args
+        .models
+        .iter()
+        .flat_map(|dir| settings.iter().map(move |&parts| (dir, parts)));
+    for (dir, parts) in rows {
         let row = pool
-            .install(|| model_row(&args, dir, &scenes, (w, h, args.batch)))
+            .install(|| model_row(&args, (dir, parts), &scenes, (w, h, args.batch)))
             .with_context(|| format!("rolling out {}", dir.display()))?;
         let ms = row.seconds * 1e3 / (scenes.len() * h) as f64;
+        let name = match settings.len() {
+            1 => dir.display().to_string(),
+            _ => format!("{}[{parts}]", dir.display()),
+        };
         println!(
-            "| {} | {} | {} | {ms:.3} | {:.2} | {:.3e} |",
-            dir.display(),
+            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} |",
             row.bundle,
             h.div_ceil(row.bundle),
             ms / solver_ms,

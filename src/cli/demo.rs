@@ -36,6 +36,10 @@ pub struct DemoArgs {
     /// Frames the node predicts per scene in closed loop.
     #[arg(long, default_value_t = 20)]
     horizon: u32,
+    /// Which parts of the model's material constraints the node projects every predicted
+    /// frame onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls.
+    #[arg(long, value_name = "PARTS", default_value = "on")]
+    constraints: crate::model::constraints::Parts,
     /// Training epochs when a model is trained.
     #[arg(long, default_value_t = 6)]
     epochs: u32,
@@ -98,6 +102,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
         ("bags", args.bags.display().to_string()),
         ("transport", args.transport.clone()),
         ("horizon", args.horizon.to_string()),
+        ("constraints", args.constraints.to_string()),
         ("out", args.out.display().to_string()),
     ]
     .into_iter()

@@ -22,6 +22,7 @@ use crate::eval::{
     self, output, ConstVel, Evaluation, ModelPredictor, Persist, Predictor, ReferenceFrom,
     ReplayOptions, RolloutOptions,
 };
+use crate::model::constraints::Parts;
 use crate::model::store::RunFolder;
 
 #[derive(Debug, Args)]
@@ -97,6 +98,12 @@ pub struct EvalArgs {
     /// MPM's box; twice the work of a step).
     #[arg(long)]
     pub mirror: bool,
+    /// Which parts of each model's material constraints every predicted frame is projected
+    /// onto: on (all the model has; `minflow constraints fit` writes them) | off | a list of
+    /// rope, jelly, snow, liquid, walls. Repeat to evaluate each model once per setting
+    /// (columns `NAME[setting]`): an ablation in one run.
+    #[arg(long = "constraints", value_name = "PARTS", default_value = "on")]
+    pub constraints: Vec<Parts>,
     #[command(flatten)]
     pub device: super::device::DeviceArgs,
 }
@@ -178,14 +185,23 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let device = args.device.parse()?.single("eval")?;
     let device = device.map(|id| (id, args.device.kernels()));
     let mut models: Vec<Box<dyn Predictor>> = Vec::new();
+    let mut settings = args.constraints.clone();
+    settings.dedup();
     for (dir, name) in args.models.iter().zip(&names) {
-        models.push(load_model(
-            dir,
-            name,
-            device,
-            args.reference_from,
-            args.mirror,
-        )?);
+        let has = RunFolder::open(dir)
+            .context("reading the model")?
+            .meta
+            .constraints
+            .is_some_and(|c| !c.is_empty());
+        let settings = if has { &settings[..] } else { &settings[..1] };
+        for &parts in settings {
+            let name = match settings.len() {
+                1 => name.clone(),
+                _ => format!("{name}[{parts}]"),
+            };
+            let opened = (args.reference_from, args.mirror, parts);
+            models.push(load_model(dir, &name, device, opened)?);
+        }
     }
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
@@ -239,14 +255,14 @@ fn load_model(
     dir: &Path,
     name: &str,
     cuda: Option<(usize, crate::ops::Kernels)>,
-    reference: ReferenceFrom,
-    mirror: bool,
+    (reference, mirror, parts): (ReferenceFrom, bool, Parts),
 ) -> anyhow::Result<Box<dyn Predictor>> {
     Ok(match cuda {
         None => Box::new(
             ModelPredictor::load(dir, name)?
                 .with_reference_from(reference)
-                .with_mirror(mirror),
+                .with_mirror(mirror)
+                .with_constraints(parts),
         ),
         #[cfg(feature = "cuda")]
         Some((id, kernels)) => {
@@ -254,7 +270,8 @@ fn load_model(
             Box::new(
                 ModelPredictor::<CudaInfer>::load_on(dir, name, &device(id, kernels)?)?
                     .with_reference_from(reference)
-                    .with_mirror(mirror),
+                    .with_mirror(mirror)
+                    .with_constraints(parts),
             )
         }
         #[cfg(not(feature = "cuda"))]

@@ -10,6 +10,7 @@ mod bench_rollout;
 mod bench_train;
 mod bench_transfer;
 mod bench_transport;
+mod constraints;
 mod demo;
 pub mod device;
 pub mod eval;
@@ -73,6 +74,9 @@ enum Command {
     /// Benchmarks that print a table.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// A model's material constraints (projected onto after every predicted frame).
+    #[command(subcommand)]
+    Constraints(constraints::ConstraintsCommand),
 }
 
 /// `minflow-cuda`: the subset of `minflow` a GPU machine needs (`simulate`, `train`, `eval`,
@@ -99,6 +103,9 @@ enum TrainCommand {
     /// Benchmarks that print a table.
     #[command(subcommand)]
     Bench(TrainBenchCommand),
+    /// A model's material constraints (as `minflow constraints`).
+    #[command(subcommand)]
+    Constraints(constraints::ConstraintsCommand),
 }
 
 #[derive(Debug, Subcommand)]
@@ -120,6 +127,7 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench_train::run(args),
         TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench_gemm::run(args),
         TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench_rollout::run(args),
+        TrainCommand::Constraints(cmd) => constraints::run(cmd),
     }
 }
 
@@ -258,6 +266,7 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Node(args) => node::run(args),
         Command::Launch(args) => launch::run(args),
         Command::Train(args) => train::run(args),
+        Command::Constraints(cmd) => constraints::run(cmd),
         Command::Eval(args) => eval::run(args),
         Command::Report(args) => report::run(args),
         Command::Bench(cmd) => bench::run(cmd),

@@ -99,6 +99,10 @@ pub struct NodeArgs {
     /// step, two memory states per scene).
     #[arg(long)]
     mirror: bool,
+    /// Which parts of the model's material constraints every predicted frame is projected
+    /// onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls.
+    #[arg(long, value_name = "PARTS", default_value = "on")]
+    constraints: crate::model::constraints::Parts,
     #[command(flatten)]
     device: super::device::DeviceArgs,
     #[command(flatten)]
@@ -128,6 +132,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
     let model = Surrogate::<B>::load(&args.model, &device)
         .with_context(|| format!("loading the model in {}", args.model.display()))?
         .with_mirror(args.mirror)
+        .with_constraints(args.constraints)
         .with_padded_batches(args.pad_batches.unwrap_or(!on_cpu));
     let foxglove = args
         .foxglove

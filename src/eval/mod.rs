@@ -196,6 +196,9 @@ pub struct Evaluation {
     pub scenes: Vec<SceneResult>,
     /// Things worth telling (short trajectories, missing frames, skipped scenes).
     pub notes: Vec<String>,
+    /// Per predictor: how far its constraint projection moved each material over the
+    /// rollouts (None for predictors without one).
+    pub corrections: Vec<Option<crate::model::constraints::Correction>>,
 }
 
 impl Evaluation {

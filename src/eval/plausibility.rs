@@ -55,6 +55,12 @@ pub struct Plausibility {
     pub connected: [Option<f64>; MATERIALS],
     /// The same of the truth.
     pub connected_truth: [Option<f64>; MATERIALS],
+    /// Kinetic energy `sum 1/2 |v|^2` summed over the rollout's frames up to this one,
+    /// prediction over truth (equal particle masses; [`kinetic_energy`]): 1 when the rollout
+    /// keeps the truth's motion, below 1 when it loses energy.
+    pub energy: [Option<f64>; MATERIALS],
+    /// The same over every particle.
+    pub energy_all: Option<f64>,
 }
 
 impl Plausibility {
@@ -112,8 +118,22 @@ impl Plausibility {
             intact_truth: std::array::from_fn(|m| mean(&|p| p.intact_truth[m])),
             connected: std::array::from_fn(|m| mean(&|p| p.connected[m])),
             connected_truth: std::array::from_fn(|m| mean(&|p| p.connected_truth[m])),
+            energy: std::array::from_fn(|m| mean(&|p| p.energy[m])),
+            energy_all: mean(&|p| p.energy_all),
         })
     }
+}
+
+/// The kinetic energy `sum_i 1/2 |v_i|^2` of `state` (`[N, 4]` physical) per material id
+/// (ids past the last in the last entry) and over all particles, with unit particle mass
+/// (MPM gives every particle of a scene the same mass).
+pub fn kinetic_energy(state: &[f32], material: &[u8]) -> ([f64; MATERIALS], f64) {
+    let mut per = [0.0f64; MATERIALS];
+    for (row, &m) in state.chunks_exact(4).zip(material) {
+        let (vx, vy) = (f64::from(row[2]), f64::from(row[3]));
+        per[usize::from(m).min(MATERIALS - 1)] += 0.5 * (vx * vx + vy * vy);
+    }
+    (per, per.iter().sum())
 }
 
 /// The steps at which a rollout of `steps` steps is probed: 20, 50, 100, 200, 400, ... up to

@@ -17,6 +17,7 @@ use burn::backend::NdArray;
 
 use super::EvalError;
 use crate::data::Trajectory;
+use crate::model::constraints::{Correction, Parts};
 use crate::model::store::Surrogate;
 use crate::ops::NetOps;
 
@@ -40,6 +41,12 @@ pub trait Predictor {
         first: usize,
         steps: usize,
     ) -> Result<Vec<Vec<f32>>, EvalError>;
+
+    /// How far a constraint projection moved each material in the rollouts since the last
+    /// call (resets the sums); None for a predictor that projects nothing.
+    fn corrections(&self) -> Option<Correction> {
+        None
+    }
 }
 
 /// Baseline: every predicted frame is the last seed frame.
@@ -161,6 +168,13 @@ impl<B: NetOps> ModelPredictor<B> {
         Self { surrogate, ..self }
     }
 
+    /// This predictor projecting onto the `parts` of its model's constraints
+    /// ([`Surrogate::with_constraints`], `eval --constraints`).
+    pub fn with_constraints(self, parts: Parts) -> Self {
+        let surrogate = self.surrogate.with_constraints(parts);
+        Self { surrogate, ..self }
+    }
+
     /// The model (its [`crate::model::store::ModelMeta`] holds the scaler and the config).
     pub fn surrogate(&self) -> &Surrogate<B> {
         &self.surrogate
@@ -195,5 +209,11 @@ impl<B: NetOps> Predictor for ModelPredictor<B> {
                 scene: traj.scene.clone(),
                 what: e.to_string(),
             })
+    }
+
+    fn corrections(&self) -> Option<Correction> {
+        self.surrogate
+            .constraints()
+            .map(|_| self.surrogate.take_corrections())
     }
 }

@@ -1,8 +1,9 @@
 //! The plausibility tables of an [`Evaluation`] ([`super::plausibility`]): per predictor and
 //! probe step, the Sinkhorn divergence per material and the strain error per solid, then the
-//! structure (volume ratio, intact fraction, rope connectivity), each the mean over the
-//! scenes that have the material. Markdown for `table.md`, CSV (one row per
-//! scene, predictor, probe and material) for `plausibility.csv`. Used by [`super::output`].
+//! structure (volume ratio, intact fraction, rope connectivity, kinetic energy), each the
+//! mean over the scenes that have the material, and how far each model's constraint
+//! projection moved each material. Markdown for `table.md`, CSV (one row per scene,
+//! predictor, probe and material) for `plausibility.csv`. Used by [`super::output`].
 
 use std::collections::BTreeSet;
 use std::fmt::Write;
@@ -74,6 +75,38 @@ pub fn markdown(eval: &Evaluation) -> String {
         }
     }
     s.push_str(&structure_markdown(eval, &probes));
+    s.push_str(&correction_markdown(eval));
+    s
+}
+
+/// The projection section of [`markdown`]: per predictor that projects its frames, the mean
+/// move of each material per particle and frame, in particle spacings of the scene's rest
+/// frame (empty when no predictor projects).
+fn correction_markdown(eval: &Evaluation) -> String {
+    if eval.corrections.iter().all(Option::is_none) {
+        return String::new();
+    }
+    let mut s = String::from(
+        "\nConstraint projection: mean move per particle and predicted frame, in particle \
+         spacings of the scene's rest frame (how far the network's own step was from the \
+         material's constraints):\n\n| predictor |",
+    );
+    for m in material::names() {
+        let _ = write!(s, " {m} |");
+    }
+    s.push_str("\n| --- |");
+    s.push_str(&" ---: |".repeat(material::COUNT));
+    s.push('\n');
+    for (name, c) in eval.predictors.iter().zip(&eval.corrections) {
+        if let Some(c) = c {
+            let _ = write!(s, "| {name} |");
+            for m in 0..material::COUNT {
+                let v = c.mean(m).map_or("n/a".to_owned(), |v| format!("{v:.3}"));
+                let _ = write!(s, " {v} |");
+            }
+            s.push('\n');
+        }
+    }
     s
 }
 
@@ -85,8 +118,9 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
     let mut s = String::from(
         "\nStructure (mean over scenes): volume = area covered on a 64 x 64 grid, prediction / \
          truth; intact = share of the solids' rest-neighbour pairs (6 nearest of the rollout's \
-         first frame) within 1.5x their rest distance, and rope connected = share of the rope \
-         in its largest intact piece, prediction (truth):\n\n| predictor | step |",
+         first frame) within 1.5x their rest distance, rope connected = share of the rope \
+         in its largest intact piece, prediction (truth); energy = kinetic energy summed over \
+         the rollout's frames up to the step, prediction / truth:\n\n| predictor | step |",
     );
     for m in material::names() {
         let _ = write!(s, " volume {m} |");
@@ -94,8 +128,8 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
     for m in material::names().skip(1) {
         let _ = write!(s, " intact {m} |");
     }
-    s.push_str(" rope connected |\n| --- | --- |");
-    s.push_str(&" ---: |".repeat(2 * material::COUNT));
+    s.push_str(" rope connected | energy |\n| --- | --- |");
+    s.push_str(&" ---: |".repeat(2 * material::COUNT + 1));
     s.push('\n');
     let rope = usize::from(material::Material::Rope.id());
     for (p, name) in eval.predictors.iter().enumerate() {
@@ -119,19 +153,19 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
                 mean(&|x| x.connected[rope]),
                 mean(&|x| x.connected_truth[rope]),
             );
-            let _ = writeln!(s, " {v} |");
+            let _ = writeln!(s, " {v} | {} |", fmt(mean(&|x| x.energy_all)));
         }
     }
     s
 }
 
 /// `scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,
-/// connected_truth`, one row per scored material (empty
+/// connected_truth,energy`, one row per scored material (empty
 /// cells where a value does not apply).
 pub fn csv(eval: &Evaluation) -> String {
     let mut s = String::from(
         "scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,\
-         connected_truth\n",
+         connected_truth,energy\n",
     );
     let cell = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:e}"));
     for scene in &eval.scenes {
@@ -143,7 +177,7 @@ pub fn csv(eval: &Evaluation) -> String {
                     }
                     let _ = writeln!(
                         s,
-                        "{},{name},{probe},{material},{},{},{},{},{},{},{}",
+                        "{},{name},{probe},{material},{},{},{},{},{},{},{},{}",
                         scene.scene,
                         cell(v.sinkhorn[m]),
                         cell(v.strain[m]),
@@ -152,6 +186,7 @@ pub fn csv(eval: &Evaluation) -> String {
                         cell(v.intact_truth[m]),
                         cell(v.connected[m]),
                         cell(v.connected_truth[m]),
+                        cell(v.energy[m]),
                     );
                 }
             }

@@ -182,6 +182,7 @@ pub fn score_predictions(
         scaler_source: scaler_source.to_owned(),
         scenes,
         notes,
+        corrections: Vec::new(),
     })
 }
 

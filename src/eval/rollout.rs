@@ -17,7 +17,8 @@ use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 
-use super::plausibility::{probe_steps, Neighbours, Plausibility};
+use super::metrics::MATERIALS;
+use super::plausibility::{kinetic_energy, probe_steps, Neighbours, Plausibility};
 use super::{
     frame_metrics, EvalError, Evaluation, Predictor, Probe, SceneResult, Snapshots, StepSums,
 };
@@ -129,6 +130,7 @@ pub fn evaluate(
         scaler_source: scaler_source.to_owned(),
         scenes: scenes.into_values().map(|s| s.finish(opts.full)).collect(),
         notes,
+        corrections: predictors.iter().map(|p| p.corrections()).collect(),
     })
 }
 
@@ -288,6 +290,51 @@ fn check_len(traj: &Trajectory, offset: usize, len: usize, who: &str) -> Result<
     })
 }
 
+/// A rollout's kinetic energy summed over its first k frames, prediction and truth, per
+/// material and over all particles ([`super::plausibility::kinetic_energy`]).
+struct EnergySums {
+    /// `[steps]`: cumulative (per material, all) of the prediction.
+    pred: Vec<([f64; MATERIALS], f64)>,
+    /// The same of the truth.
+    truth: Vec<([f64; MATERIALS], f64)>,
+}
+
+impl EnergySums {
+    /// The sums of `frames` (a rollout whose step k is trajectory frame `first + k - 1`).
+    fn of(traj: &Trajectory, first: usize, frames: &[Vec<f32>], steps: usize) -> Self {
+        let cumulate = |f: &dyn Fn(usize) -> ([f64; MATERIALS], f64)| {
+            let mut acc = ([0.0; MATERIALS], 0.0);
+            (1..=steps)
+                .map(|k| {
+                    let (per, all) = f(k);
+                    for m in 0..MATERIALS {
+                        acc.0[m] += per[m];
+                    }
+                    acc.1 += all;
+                    acc
+                })
+                .collect()
+        };
+        Self {
+            pred: cumulate(&|k| kinetic_energy(&frames[k - 1], &traj.material)),
+            truth: cumulate(&|k| kinetic_energy(traj.state(first + k - 1), &traj.material)),
+        }
+    }
+
+    /// Prediction over truth of the sums up to step `k` (1-based), per material and over all;
+    /// None where the truth's is 0 or the scene has no such particle.
+    fn ratio_at(&self, k: usize) -> ([Option<f64>; MATERIALS], Option<f64>) {
+        let ratio = |p: f64, t: f64| (t > 0.0).then(|| p / t);
+        match (self.pred.get(k - 1), self.truth.get(k - 1)) {
+            (Some(p), Some(t)) => (
+                std::array::from_fn(|m| ratio(p.0[m], t.0[m])),
+                ratio(p.1, t.1),
+            ),
+            _ => ([None; MATERIALS], None),
+        }
+    }
+}
+
 /// The plausibility of one predictor's rollouts of one scene, by probe.
 #[derive(Debug, Clone, Default)]
 struct ProbeSums {
@@ -308,14 +355,14 @@ impl ProbeSums {
         nb: &Neighbours,
     ) {
         let steps = steps.min(frames.len());
+        let energy = EnergySums::of(traj, first, frames, steps);
         let scored: Vec<(usize, Plausibility)> = probe_steps(steps)
             .into_par_iter()
             .map(|k| {
                 let truth = traj.state(first + k - 1);
-                (
-                    k,
-                    Plausibility::of(&frames[k - 1], truth, &traj.material, nb),
-                )
+                let mut value = Plausibility::of(&frames[k - 1], truth, &traj.material, nb);
+                (value.energy, value.energy_all) = energy.ratio_at(k);
+                (k, value)
             })
             .collect();
         for (k, value) in scored {

@@ -11,6 +11,7 @@
 //! constants. The networks' kernels (fused dense layers, the recurrence scans, im2col,
 //! P2G/G2P) live in [`crate::ops`] behind [`crate::ops::NetOps`].
 
+pub mod constraints;
 pub mod grid;
 pub mod minrnn;
 pub mod paper;

@@ -19,6 +19,15 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     /// part against the CPU backend, passes on a GPU.
     const DENSE_STENCIL: bool = true;
 
+    /// `MINFLOW_CUDA_TRANSFERS=sparse` takes the sparse kernels of [`super::cuda_stencil`]
+    /// for inference (training, on the autodiff backend, stays dense): the switch `bench
+    /// transfer` and `bench rollout` compare the two forms with, in one binary.
+    fn dense_stencil() -> bool {
+        static DENSE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *DENSE
+            .get_or_init(|| std::env::var("MINFLOW_CUDA_TRANSFERS").map_or(true, |v| v != "sparse"))
+    }
+
     fn sparse_stencil(
         pos: &FloatTensor<Self>,
         n: usize,

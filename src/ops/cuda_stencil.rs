@@ -163,6 +163,19 @@ fn splat_kernel<F: Float>(
     }
 }
 
+/// `out[i] = 0` for every element of a contiguous `out`: P2G's output before its atomic adds.
+/// (burn-cubecl's `zeros_client` allocates through the runtime's layout policy, which on CUDA
+/// pitches each innermost row to a power of two bytes: `[B, n^2, 12]` f32 gets row stride
+/// 16, not 12, and [`splat_kernel`]'s flat `row * c + j` then lands in the wrong rows. wgpu's
+/// policy is contiguous, which is why the same kernels matched there.)
+#[cube(launch)]
+fn zero_kernel<F: Float>(out: &mut Tensor<F>, #[define(F)] _dtype: StorageType) {
+    if ABSOLUTE_POS >= out.len() {
+        terminate!();
+    }
+    out[ABSOLUTE_POS] = F::new(0.0);
+}
+
 /// Which of the two kernels a recorded operation launches.
 #[derive(Clone, Copy, Debug)]
 enum Kind {
@@ -206,20 +219,31 @@ fn launch(
     let (x, index, weight) = (contiguous(x), contiguous(index), contiguous(weight));
     let client = x.client.clone();
     let (device, dtype) = (x.device.clone(), x.dtype);
-    let out = match op.kind {
-        Kind::Gather => burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-            client.clone(),
-            device,
-            op.out_shape.clone(),
-            dtype,
-        ),
-        Kind::Splat => burn_cubecl::ops::numeric::zeros_client(
-            client.clone(),
-            device,
-            op.out_shape.clone(),
-            dtype,
-        ),
-    };
+    // Both kernels index `out` flat (`row * c + j`), so it must be contiguous: never
+    // `zeros_client` / `empty_device_dtype`, whose CUDA layout is pitched (see `zero_kernel`).
+    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+        client.clone(),
+        device,
+        op.out_shape.clone(),
+        dtype,
+    );
+    debug_assert!(
+        out.is_contiguous(),
+        "stencil output {:?} is not contiguous",
+        out.meta
+    );
+    if let Kind::Splat = op.kind {
+        let units = out.meta.num_elements();
+        let cube_dim = CubeDim::new(&client, units);
+        let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
+        zero_kernel::launch::<CudaRuntime>(
+            &client,
+            cube_count,
+            cube_dim,
+            out.clone().into_tensor_arg(),
+            dtype.into(),
+        );
+    }
     // One thread per output element (gather) or per value (splat).
     let units = match op.kind {
         Kind::Gather => out.meta.num_elements(),

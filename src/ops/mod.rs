@@ -427,6 +427,12 @@ pub trait NetOps: Backend {
     /// far slower there); false on the CPU, which has its own.
     const DENSE_STENCIL: bool = !Self::SEQUENTIAL_SCAN;
 
+    /// Whether the model takes the dense transfers this run: [`NetOps::DENSE_STENCIL`],
+    /// unless a backend lets the environment choose (CUDA inference: `MINFLOW_CUDA_TRANSFERS`).
+    fn dense_stencil() -> bool {
+        Self::DENSE_STENCIL
+    }
+
     /// The linear recurrence `h_t = a_t h_{t-1} + b_t` along T (`h_{-1}` = `h0` or 0), with
     /// `a`, `b` positive: `a`, `b` `[B, T, H]`, `h0` `[B, H]` -> `h` `[B, T, H]`. By default the
     /// log-space parallel scan (Heinsen 2023) of `log a`, `log b`.

@@ -32,6 +32,8 @@ pub struct RunOutput {
     pub epochs: usize,
     /// Epochs without a better validation score before stopping (0: never).
     pub patience: usize,
+    /// The material constraints the model projects its frames onto, saved with it.
+    pub constraints: Option<crate::model::constraints::Constraints>,
 }
 
 impl RunOutput {
@@ -42,6 +44,7 @@ impl RunOutput {
             scaler: self.scaler,
             epoch,
             val_loss,
+            constraints: self.constraints.clone(),
         }
     }
 

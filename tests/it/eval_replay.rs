@@ -39,6 +39,7 @@ fn tiny_model(dir: &Path) {
         scaler,
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     };
     store::save(dir, &model, &meta).unwrap();
 }

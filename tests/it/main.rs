@@ -33,6 +33,7 @@ mod interop_npz;
 mod many_streams;
 mod model_bundle;
 mod model_cells;
+mod model_constraints;
 mod model_grid;
 mod model_structure;
 mod models_shipped;

@@ -32,6 +32,7 @@ fn meta(config: GridConfig) -> ModelMeta {
         scaler: Scaler::default(),
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     }
 }
 

@@ -174,6 +174,7 @@ fn meta_with(memory: MemoryKind, reference: bool) -> ModelMeta {
         scaler: Scaler::default(),
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     }
 }
 

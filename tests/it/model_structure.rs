@@ -39,6 +39,7 @@ fn surrogate(config: GridConfig, seed: u64) -> Surrogate<B> {
         scaler: Scaler::default(),
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     };
     Surrogate::from_net(store::Net::Grid(model), meta, &device)
 }
@@ -99,6 +100,7 @@ fn grown_rest_shape_and_grid_head_predict_what_the_parent_did() {
         scaler: Scaler::default(),
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     };
     let parent = Surrogate::from_net(
         store::Net::Grid(parent),
@@ -326,6 +328,7 @@ fn host_pass_predicts_what_the_tensor_path_does() {
             scaler: Scaler::default(),
             epoch: 0,
             val_loss: 0.0,
+            constraints: None,
         };
         let run = |host_pass: bool| {
             let net = store::Net::Grid(model.clone().with_host_pass(host_pass));

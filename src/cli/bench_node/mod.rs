@@ -141,6 +141,7 @@ fn make_model(
         scaler: *scaler,
         epoch: 0,
         val_loss: 0.0,
+        constraints: None,
     };
     save(dir, &model, &meta)?;
     Ok(())

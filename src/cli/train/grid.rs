@@ -17,8 +17,9 @@ use crate::cli::run_folder::{
 };
 use crate::cli::Outcome;
 use crate::data::{self, Scaler, Trajectory, WindowIndex};
+use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
-use crate::model::store::NetConfig;
+use crate::model::store::{NetConfig, RunFolder};
 use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::{EpochRecord, Observer, TrainError};
@@ -30,7 +31,8 @@ use crate::train::{EpochRecord, Observer, TrainError};
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     args.refuse_paper_flags()?;
     let mut config = args.grid_config()?;
-    let opts = args.grid_options();
+    let mut opts = args.grid_options();
+    opts.constraints = training_constraints(&args)?;
     let device = args.device.parse()?;
     let init = match &args.grid_args.init_from {
         Some(dir) => Some(init_normalisation(dir, &config)?),
@@ -95,6 +97,26 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let history = super::fit_on(&device, args.device.kernels(), run)?;
     print_best(&history, "validation rollout MSE", &args.out);
     Ok(crate::cli::read_to_damage(&report.truncated))
+}
+
+/// The constraints `--constraints` asks the training rollouts to project onto: the parts
+/// of `--init-from`'s fitted ones, else of the defaults; None for `off`.
+fn training_constraints(args: &TrainArgs) -> anyhow::Result<Option<Constraints>> {
+    let parts = args.grid_args.constraints;
+    if parts == Parts::NONE {
+        return Ok(None);
+    }
+    let fitted = match &args.grid_args.init_from {
+        Some(dir) => {
+            RunFolder::open(dir)
+                .with_context(|| format!("--init-from {}", dir.display()))?
+                .meta
+                .constraints
+        }
+        None => None,
+    };
+    let c = fitted.unwrap_or_else(Constraints::defaults).select(parts);
+    Ok((!c.is_empty()).then_some(c))
 }
 
 /// The run's one-line summary on stderr (scenes, samples, the network, P, K, N); a usage

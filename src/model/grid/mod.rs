@@ -210,7 +210,7 @@ impl<B: NetOps> GridModel<B> {
         let mut carried = self.advects().then(|| self.carried(&input, [b, n_p]));
 
         // P2G: the separable dense transfers where the backend has no sparse ones.
-        let s = transfer::stencil(input.pos.clone(), self.n, B::DENSE_STENCIL);
+        let s = transfer::stencil(input.pos.clone(), self.n, B::dense_stencil());
         let ones = Tensor::ones([b, n_p, 1], &device);
         let mut values = vec![ones, vel.clone(), input.material.clone()];
         if self.reference {
@@ -262,7 +262,7 @@ impl<B: NetOps> GridModel<B> {
         let mut frames = Vec::with_capacity(self.bundle);
         for k in 0..self.bundle {
             if k > 0 {
-                s = transfer::stencil(pos.clone(), self.n, B::DENSE_STENCIL);
+                s = transfer::stencil(pos.clone(), self.n, B::dense_stencil());
                 u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
                 features = match &carried {
                     Some((f, _)) => Some(rest::advect::features_of(f.clone())),

@@ -95,6 +95,11 @@ pub struct ModelMeta {
     pub epoch: usize,
     /// Validation loss at that epoch.
     pub val_loss: f64,
+    /// The material constraints each predicted frame is projected onto
+    /// ([`crate::model::constraints`]; `minflow constraints fit` writes them); none in
+    /// folders saved before, or never fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub constraints: Option<crate::model::constraints::Constraints>,
 }
 
 impl ModelMeta {

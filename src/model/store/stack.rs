@@ -410,11 +410,17 @@ impl<B: Backend> State<B> {
 
     /// Several scenes' states (of equal [`State::shape_key`]) as one batch state, rows in
     /// order, copy by copy (`copies` = 2 for a mirror ensemble; `stack.rs`). Frame counts
-    /// are the caller's to keep.
+    /// are the caller's to keep. The constraint data stacks per trajectory: a state that has
+    /// none yet counts as one trajectory (a node's scene), and the stacked state keeps no
+    /// rest frames (a node's states have none).
     pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
         let (mut paper, mut memory, mut history, mut reference) = (vec![], vec![], vec![], vec![]);
-        let (mut rest, mut deformation) = (vec![], vec![]);
+        let (mut rest, mut deformation, mut shapes) = (vec![], vec![], vec![]);
         for state in states {
+            match state.shapes.is_empty() {
+                true => shapes.push(None),
+                false => shapes.extend(state.shapes),
+            }
             match state.inner {
                 NetState::Paper(layers) => paper.push(layers),
                 NetState::Grid {
@@ -445,12 +451,23 @@ impl<B: Backend> State<B> {
             },
             _ => return Err(shape("stack: no states, or of both kinds")),
         };
-        Ok(State { inner, frames: 0 })
+        if shapes.iter().all(Option::is_none) {
+            shapes.clear();
+        }
+        Ok(State {
+            inner,
+            shapes,
+            rest_frames: None,
+            frames: 0,
+        })
     }
 
     /// A stacked state back as one state per scene, scene i of `sizes[i]` trajectories (1
     /// for a node's scene): the inverse of [`State::stack`]. Frame counts are 0.
     pub(super) fn split(self, sizes: &[usize], copies: usize) -> Vec<State<B>> {
+        let mut shapes = self.shapes.into_iter();
+        let total: usize = sizes.iter().sum();
+        let has_shapes = shapes.len() == total;
         let inner: Vec<NetState<B>> = match self.inner {
             NetState::Paper(layers) => layers
                 .split_rows(sizes, copies)
@@ -486,7 +503,16 @@ impl<B: Backend> State<B> {
         };
         inner
             .into_iter()
-            .map(|inner| State { inner, frames: 0 })
+            .zip(sizes)
+            .map(|(inner, &size)| State {
+                inner,
+                shapes: match has_shapes {
+                    true => shapes.by_ref().take(size).collect(),
+                    false => Vec::new(),
+                },
+                rest_frames: None,
+                frames: 0,
+            })
             .collect()
     }
 }

@@ -3,11 +3,15 @@
 //! core's layer states, or the grid model's per-particle memory, velocity history and
 //! reference positions. `step` predicts the next frame, `step_bundle` the K frames of one
 //! network call (temporal bundling), `rollout` feeds predictions back; a mirror ensemble
-//! steps each frame beside its mirror image. Used by `eval`, `node`, `report`, `bench` and
-//! the grid trainer's validation.
+//! steps each frame beside its mirror image. Every predicted frame is then projected onto
+//! the model's material constraints ([`crate::model::constraints`]) where the model has
+//! them and they are on ([`Surrogate::with_constraints`]); a scene's constraint data lives
+//! in its [`State`] beside the network's. Used by `eval`, `node`, `report`, `bench` and the
+//! grid trainer's validation.
 
 use super::stack::{mean_of_mirror_rows, with_mirror_rows};
 use super::{ModelMeta, Net, RunFolder, StoreError};
+use crate::model::constraints::{Constraints, Correction, Parts, SceneShape};
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
 };
@@ -25,6 +29,10 @@ pub struct Surrogate<B: Backend> {
     device: B::Device,
     mirror: bool,
     pad_batches: bool,
+    /// The constraint parts applied after each predicted frame (None: no projection).
+    constraints: Option<Constraints>,
+    /// How far the projection has moved each material since [`Surrogate::take_corrections`].
+    corrections: std::sync::Mutex<Correction>,
 }
 
 /// What a grid model carries between steps: memory, velocity history, reference positions,
@@ -41,6 +49,12 @@ type GridCarry<B> = (
 #[derive(Clone)]
 pub struct State<B: Backend> {
     pub(super) inner: NetState<B>,
+    /// Per trajectory (batch row): its constraint data, built from its rest frame on the
+    /// first projected step (empty before; see [`Surrogate::with_constraints`]).
+    pub(super) shapes: Vec<Option<SceneShape>>,
+    /// The rest frames (`[B, N, 4]`) set by [`Surrogate::init_state_at`] that the first
+    /// projected step builds `shapes` from; without them it takes its input frame.
+    pub(super) rest_frames: Option<Vec<f32>>,
     /// Frames consumed since the state was reset.
     pub frames: usize,
 }
@@ -82,6 +96,7 @@ impl<B: NetOps> Surrogate<B> {
     /// Wraps an in-memory network of either architecture.
     pub fn from_net(net: Net<B>, meta: ModelMeta, device: &B::Device) -> Self {
         let scaling = meta.scaling();
+        let constraints = meta.constraints.clone().filter(|c| !c.is_empty());
         Self {
             net,
             meta,
@@ -89,7 +104,32 @@ impl<B: NetOps> Surrogate<B> {
             device: device.clone(),
             mirror: false,
             pad_batches: false,
+            constraints,
+            corrections: Default::default(),
         }
+    }
+
+    /// This surrogate projecting its predictions onto the `parts` of the model's constraints
+    /// (`--constraints`; all of them by default, when `model.json` has any). Applies from
+    /// the next step; states made before keep their scenes' constraint data.
+    pub fn with_constraints(self, parts: Parts) -> Self {
+        let constraints = self.meta.constraints.as_ref().map(|c| c.select(parts));
+        Self {
+            constraints: constraints.filter(|c| !c.is_empty()),
+            ..self
+        }
+    }
+
+    /// The constraints applied after each predicted frame, if any.
+    pub fn constraints(&self) -> Option<&Constraints> {
+        self.constraints.as_ref()
+    }
+
+    /// How far the projection moved each material since the last call (particle spacings,
+    /// summed over particles and frames, with their count); resets the sums.
+    pub fn take_corrections(&self) -> Correction {
+        let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
+        std::mem::take(&mut *sums)
     }
 
     /// This surrogate as a mirror ensemble (`--mirror`): a grid model steps each frame and
@@ -148,15 +188,21 @@ impl<B: NetOps> Surrogate<B> {
                 deformation: None,
             },
         };
-        State { inner, frames: 0 }
+        State {
+            inner,
+            shapes: Vec::new(),
+            rest_frames: None,
+            frames: 0,
+        }
     }
 
     /// `state` reset as at the start of a stream (memory, velocity history, frame count,
     /// advected F: fitted again to the rest neighbourhoods from the next frame), except that a
-    /// grid model's reference positions and rest neighbourhoods are kept: what the node does
-    /// over a gap in a stream that goes on.
+    /// grid model's reference positions and rest neighbourhoods, and the constraint data, are
+    /// kept: what the node does over a gap in a stream that goes on.
     pub fn restart(&self, state: State<B>) -> State<B> {
         let mut fresh = self.init_state();
+        (fresh.shapes, fresh.rest_frames) = (state.shapes, state.rest_frames);
         if let (
             NetState::Grid {
                 reference, rest, ..
@@ -190,6 +236,7 @@ impl<B: NetOps> Surrogate<B> {
                 first.len()
             )));
         }
+        state.rest_frames = Some(first.to_vec());
         if let NetState::Grid { reference, .. } = &mut state.inner {
             let (first, b) = if self.mirror {
                 (with_mirror_rows(first), 2 * b)
@@ -285,7 +332,7 @@ impl<B: NetOps> Surrogate<B> {
                 "material id {m}: the model knows {known} materials (ids 0..{known})"
             )));
         }
-        let (out, inner) = match (&self.net, state.inner) {
+        let (mut out, mut inner) = match (&self.net, state.inner) {
             (Net::Paper(model), NetState::Paper(layers)) => {
                 // The training batches' own scaling (data::Scaler), so inputs match training.
                 let mut feats = Vec::with_capacity(b * n * 5);
@@ -320,13 +367,124 @@ impl<B: NetOps> Surrogate<B> {
             }
             _ => return Err(StoreError::Shape("state of another architecture".into())),
         };
+        let shapes = match &self.constraints {
+            Some(c) => {
+                let rest = state.rest_frames.as_deref();
+                let shapes = self.project(c, (frames, material, dt), &mut out, state.shapes, rest);
+                if whole {
+                    self.history_of_projected(&mut inner, &out, [b, n]);
+                }
+                shapes
+            }
+            None => state.shapes,
+        };
         Ok((
             out,
             State {
                 inner,
+                shapes,
+                rest_frames: None,
                 frames: state.frames + 1,
             },
         ))
+    }
+
+    /// Projects the predicted frames `out` (K frames of `[B, N, 4]`) of the input `frames`
+    /// (`[B, N, 4]`, materials `[B N]`, time steps `[B]`) onto `c`, scene by scene in
+    /// parallel; returns the scenes' constraint data, each built on its first projection from
+    /// its row of `rest` (`[B, N, 4]`) or else of `frames`. Within a bundle, frame k + 1 is
+    /// first moved by frame k's correction (the network integrated it from its own frame k),
+    /// then projected. The moves are added to the surrogate's correction sums.
+    fn project(
+        &self,
+        c: &Constraints,
+        (frames, material, dt): (&[f32], &[u8], &[f32]),
+        out: &mut [Vec<f32>],
+        mut shapes: Vec<Option<SceneShape>>,
+        rest: Option<&[f32]>,
+    ) -> Vec<Option<SceneShape>> {
+        use rayon::prelude::*;
+        let b = dt.len();
+        let n = material.len() / b;
+        let per = n * 4;
+        if shapes.len() != b {
+            shapes = (0..b).map(|_| None).collect();
+        }
+        let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
+        let mut rows: Vec<Vec<&mut [f32]>> =
+            (0..b).map(|_| Vec::with_capacity(out.len())).collect();
+        for frame in out.iter_mut() {
+            for (row, chunk) in rows.iter_mut().zip(frame.chunks_exact_mut(per)) {
+                row.push(chunk);
+            }
+        }
+        let moved: Vec<Correction> = shapes
+            .par_iter_mut()
+            .zip(rows.par_iter_mut())
+            .enumerate()
+            .map(|(i, (shape, row))| {
+                let ids = &material[i * n..(i + 1) * n];
+                let shape = shape.get_or_insert_with(|| {
+                    SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
+                });
+                let mut total = Correction::default();
+                let mut carried: Option<Vec<f32>> = None;
+                for frame in row.iter_mut() {
+                    let own: Vec<f32> = frame.iter().copied().collect();
+                    if let Some(offset) = &carried {
+                        for (v, o) in frame.iter_mut().zip(offset) {
+                            *v += o;
+                        }
+                    }
+                    total.add(&shape.project(c, frame, ids, dt[i]));
+                    // The position correction relative to the network's own frame.
+                    let mut offset: Vec<f32> = frame.iter().zip(&own).map(|(a, b)| a - b).collect();
+                    for o in offset.chunks_exact_mut(4) {
+                        (o[2], o[3]) = (0.0, 0.0);
+                    }
+                    carried = Some(offset);
+                }
+                total
+            })
+            .collect();
+        let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
+        for m in &moved {
+            sums.add(m);
+        }
+        shapes
+    }
+
+    /// After a projected bundle (K frames `out`, `[B, N, 4]` each) of a grid model: its
+    /// velocity history (`[copies B, N, 2 (T - 1)]`: the T - 1 frames before the next call's
+    /// input, the bundle's last) taken from the projected frames, so the next call reads the
+    /// velocities a caller feeding back the projected frames sees. Left as is when K <= T - 1.
+    fn history_of_projected(&self, inner: &mut NetState<B>, out: &[Vec<f32>], [b, n]: [usize; 2]) {
+        let NetState::Grid {
+            history: Some(history),
+            ..
+        } = inner
+        else {
+            return;
+        };
+        let [rows, _, width] = history.dims();
+        let (t1, k) = (width / 2, out.len());
+        let copies = rows / b.max(1);
+        if k <= t1 || rows != copies * b || !(1..=2).contains(&copies) {
+            return;
+        }
+        let window = &out[k - 1 - t1..k - 1];
+        let mut host = vec![0.0f32; rows * n * width];
+        for copy in 0..copies {
+            let sign = if copy == 1 { -1.0 } else { 1.0 };
+            for p in 0..b * n {
+                for (w, frame) in window.iter().enumerate() {
+                    let at = ((copy * b * n + p) * t1 + w) * 2;
+                    host[at] = sign * frame[4 * p + 2];
+                    host[at + 1] = frame[4 * p + 3];
+                }
+            }
+        }
+        *history = crate::model::upload::<B, 3>(host, [rows, n, width], &self.device);
     }
 
     /// [`Surrogate::step`] (`whole`: false) or [`Surrogate::step_bundle`] (true) of a grid

@@ -115,6 +115,13 @@ pub struct GridTrainOptions {
     pub val_horizon: usize,
     /// Stop (after validating) once training has run this many minutes (0: no limit).
     pub max_minutes: f64,
+    /// Project every frame the training rollouts feed on (after the teacher-forced calls)
+    /// onto these material constraints ([`crate::model::constraints`]), with a
+    /// straight-through gradient: the loss and the next call read the projected frame, the
+    /// gradient passes the projection as the identity. The trained model keeps them in its
+    /// `model.json`. None: no projection.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub constraints: Option<crate::model::constraints::Constraints>,
 }
 
 impl Default for GridTrainOptions {
@@ -142,6 +149,7 @@ impl Default for GridTrainOptions {
             val_starts: 1,
             val_horizon: 1,
             max_minutes: 0.0,
+            constraints: None,
         }
     }
 }
@@ -222,6 +230,7 @@ where
                 scaler: *scaler,
                 epochs: opts.epochs,
                 patience: opts.patience,
+                constraints: opts.constraints.clone(),
             },
             clock,
         };

@@ -24,6 +24,7 @@ use burn::tensor::{Distribution, Tensor};
 
 use super::GridTrainOptions;
 use crate::data::Batch;
+use crate::model::constraints::SceneShape;
 use crate::model::grid::{
     mirror_rows, one_hot, GridConfig, GridModel, MemoryState, NeighbourTensors, Neighbourhood,
     StepInput,
@@ -47,6 +48,9 @@ pub(super) struct BatchTensors<B: Backend> {
     /// The liquid's neighbourhoods in the first input frame, for the volume loss, with the
     /// number of liquid particles that have neighbours.
     liquid: Option<(NeighbourTensors<B>, f32)>,
+    /// On the host, for the constraint projection: `[B, N, 2]` first positions, `[B N]`
+    /// material ids, `[B]` frame spacings.
+    host: (Vec<f32>, Vec<u8>, Vec<f32>),
 }
 
 /// Which neighbourhoods [`upload_batch`] builds.
@@ -109,10 +113,11 @@ pub(super) fn upload_batch<B: Backend>(
     BatchTensors {
         frames: upload(frames, [b, t + 1, n, 4], device),
         material: one_hot(&batch.material, needs.materials, b, n, device),
-        dt: upload(batch.dt, [b], device),
-        first_pos: upload(first_pos, [b, n, 2], device),
+        dt: upload(batch.dt.clone(), [b], device),
+        first_pos: upload(first_pos.clone(), [b, n, 2], device),
         rest,
         liquid,
+        host: (first_pos, batch.material, batch.dt),
     }
 }
 
@@ -136,6 +141,8 @@ pub(super) struct Rollout<'a, B: Backend> {
     deformation: Option<Tensor<B, 3>>,
     /// Network calls made so far (push-forward ones included).
     calls: usize,
+    /// Each sample's constraint data (built from its first frame) when the options project.
+    shapes: Vec<SceneShape>,
 }
 
 impl<'a, B: NetOps> Rollout<'a, B> {
@@ -153,6 +160,19 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             })
             .collect();
         let pos = batch.truth(t - 1).narrow(2, 0, 2);
+        let shapes = match &opts.constraints {
+            Some(c) => {
+                let (first, material, dt) = &batch.host;
+                let n = material.len() / dt.len().max(1);
+                (0..dt.len())
+                    .map(|i| {
+                        let rest = &first[i * n * 2..(i + 1) * n * 2];
+                        SceneShape::new(rest, 2, &material[i * n..(i + 1) * n], c)
+                    })
+                    .collect()
+            }
+            None => Vec::new(),
+        };
         Self {
             config,
             opts,
@@ -162,7 +182,47 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             state: MemoryState::Empty,
             deformation: None,
             calls: 0,
+            shapes,
         }
+    }
+
+    /// A predicted frame (`pos`, `vel`: `[B, N, 2]`) projected onto the options' constraints
+    /// with a straight-through gradient (`x + (P(x) - x)` with the move a constant); as it is
+    /// without constraints or when it cannot be read back.
+    fn projected(&mut self, pos: Tensor<B, 3>, vel: Tensor<B, 3>) -> (Tensor<B, 3>, Tensor<B, 3>) {
+        let Some(c) = self.opts.constraints.as_ref() else {
+            return (pos, vel);
+        };
+        let [b, n, _] = pos.dims();
+        let frame = Tensor::cat(vec![pos.clone().detach(), vel.clone().detach()], 2);
+        let Ok(host) = crate::model::download(frame) else {
+            return (pos, vel);
+        };
+        // [B, N, 4] rows from the [B, N, 2 | 2] layout of the cat.
+        let mut rows = host.clone();
+        let (_, material, dt) = &self.batch.host;
+        let mut moved = vec![0.0f32; b * n * 4];
+        for (i, shape) in self.shapes.iter_mut().enumerate() {
+            let span = i * n * 4..(i + 1) * n * 4;
+            shape.project(
+                c,
+                &mut rows[span.clone()],
+                &material[i * n..(i + 1) * n],
+                dt[i],
+            );
+            for ((m, a), o) in moved[span.clone()]
+                .iter_mut()
+                .zip(&rows[span.clone()])
+                .zip(&host[span])
+            {
+                *m = a - o;
+            }
+        }
+        let moved = upload::<B, 3>(moved, [b, n, 4], &pos.device());
+        (
+            pos + moved.clone().narrow(2, 0, 2),
+            vel + moved.narrow(2, 2, 2),
+        )
     }
 
     /// The M push-forward calls, on a copy of `model` whose parameters track no gradient, so
@@ -176,8 +236,9 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         let frozen = model.clone().no_grad();
         for _ in 0..self.opts.pushforward {
             for out in self.call(&frozen) {
-                self.pos = out.pos.detach();
-                self.history.push(out.vel.detach());
+                let (pos, vel) = self.projected(out.pos.detach(), out.vel.detach());
+                self.pos = pos;
+                self.history.push(vel);
             }
         }
         self.detach();
@@ -196,7 +257,11 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             let teacher = self.calls + 1 < opts.teacher;
             for (k, out) in self.call(model).into_iter().enumerate() {
                 let target = self.batch.truth(first + k);
-                let step = frame_loss(opts, &self.batch, &scale, &out.pos, &out.vel, &target);
+                let (pos, vel) = match teacher {
+                    true => (out.pos, out.vel),
+                    false => self.projected(out.pos, out.vel),
+                };
+                let step = frame_loss(opts, &self.batch, &scale, &pos, &vel, &target);
                 total = Some(match total {
                     Some(acc) => acc + step,
                     None => step,
@@ -208,8 +273,8 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     self.history
                         .push(noisy(opts, self.config, &self.pos.device(), v));
                 } else {
-                    self.pos = out.pos;
-                    self.history.push(out.vel);
+                    self.pos = pos;
+                    self.history.push(vel);
                 }
             }
         }

@@ -177,6 +177,7 @@ where
             scaler: *scaler,
             epochs: self.opts.epochs,
             patience: self.opts.patience,
+            constraints: None,
         };
         let mut run = PaperRun {
             trainer: self,

@@ -1,0 +1,174 @@
+//! `minflow constraints fit`: fits the material constraints a model projects its predicted
+//! frames onto ([`crate::model::constraints`]) on the ground truth of its training split, and
+//! writes them into the model's `model.json` (`"constraints"`). `eval`, `node`, `bench
+//! rollout` and `demo` then project by default (`--constraints off` turns it off).
+//!
+//! The training scenes are those of the first model's `split.json` (else the seeded
+//! 80:10:10 split of the data, `--seed`); test scenes are never read. Prints what it fitted
+//! and what it measured on the truth.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::{Args, Subcommand};
+
+use super::Outcome;
+use crate::bag::FRAMES_TOPIC;
+use crate::data::{self, Part, Split};
+use crate::model::constraints::{self, Constraints, Parts};
+use crate::model::store::{parse_meta, RunFolder};
+
+#[derive(Debug, Subcommand)]
+pub enum ConstraintsCommand {
+    /// Fit the constraints on the training split's truth and write them into model.json.
+    Fit(FitArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct FitArgs {
+    /// Run folders to write the fitted constraints into (repeatable); the first one's
+    /// `split.json` names the training scenes.
+    #[arg(long = "model", value_name = "DIR", required = true)]
+    models: Vec<PathBuf>,
+    /// Ground-truth bags or folders holding the training scenes.
+    #[arg(long, num_args = 1.., required = true)]
+    data: Vec<PathBuf>,
+    /// The parts to fit and write: on (rope, jelly, liquid, walls; snow stays off, as the
+    /// ablation chose) | a list of rope, jelly, snow, liquid, walls.
+    #[arg(long, value_name = "PARTS", default_value = "rope,jelly,liquid,walls")]
+    parts: Parts,
+    /// Training scenes read at most (evenly spaced over the split's list; 0: all).
+    #[arg(long, default_value_t = 0)]
+    max_scenes: usize,
+    /// Seed of the split when the first model has no `split.json`.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Topic of the ground-truth frames.
+    #[arg(long, default_value = FRAMES_TOPIC)]
+    topic: String,
+    /// Print the fit without writing model.json.
+    #[arg(long)]
+    dry_run: bool,
+    /// The cell of the liquid's density grid, in particle spacings of the rest frame.
+    #[arg(long, default_value_t = 3.0, value_parser = super::flags::positive)]
+    liquid_radius: f64,
+}
+
+/// Runs `minflow constraints`.
+pub fn run(cmd: ConstraintsCommand) -> anyhow::Result<Outcome> {
+    match cmd {
+        ConstraintsCommand::Fit(args) => fit(args),
+    }
+}
+
+fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
+    let first = RunFolder::open(&args.models[0]).context("reading the model")?;
+    let scenes = training_scenes(&args, first.split)?;
+    let (trajs, report) = data::load_scenes(&args.data, Some(&args.topic), &scenes)
+        .context("loading the training scenes")?;
+    if trajs.is_empty() {
+        bail!(
+            "none of the {} training scenes is in {:?} (simulate them first: README, \"Constraints\")",
+            scenes.len(),
+            args.data
+        );
+    }
+    let base = Constraints::defaults().select(args.parts);
+    let mut base = Constraints {
+        snow: base.snow.or(args.parts.snow.then_some(SNOW)),
+        ..base
+    };
+    if let Some(p) = base.liquid.as_mut() {
+        p.radius = args.liquid_radius as f32;
+    }
+    let (fitted, measured) = constraints::fit(&trajs, &base);
+    println!(
+        "Fitted on {} training scenes ({} frames) of {}:",
+        trajs.len(),
+        trajs.iter().map(|t| t.frames).sum::<usize>(),
+        args.models[0].display()
+    );
+    if let Some(p) = fitted.rope {
+        println!(
+            "- rope: stretch <= {:.4} (the truth's link stretch, {:.1}th percentile of {} \
+             link-frames; largest {:.3})",
+            p.stretch,
+            constraints::fit::STRETCH_QUANTILE_PERCENT,
+            measured.rope_links,
+            measured.rope_max_stretch
+        );
+    }
+    if let Some(p) = fitted.liquid {
+        println!(
+            "- liquid: rest mass {:.2}x the rest frame's, grid cell {} spacings{} \
+             (the truth's own frames move, spacings per frame, on {} frames: {})",
+            p.rest,
+            p.radius,
+            match measured.liquid_met {
+                true => "",
+                false => " (NOT MET: no rest density tried moves the truth less than 0.02)",
+            },
+            measured.liquid_frames,
+            measured
+                .liquid_moves
+                .iter()
+                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    if let Some(w) = fitted.walls {
+        println!("- walls: [{:.5}, {:.5}]", w.lo, w.hi);
+    }
+    println!("{}", serde_json::to_string_pretty(&fitted)?);
+    if !args.dry_run {
+        for dir in &args.models {
+            write_constraints(dir, &fitted)?;
+            println!("wrote {}", dir.join("model.json").display());
+        }
+    }
+    Ok(super::read_to_damage(&report.truncated))
+}
+
+/// Snow shape matching when `--parts` asks for snow: a rest shape that yields half its
+/// remaining deformation a frame.
+const SNOW: constraints::ShapeParams = constraints::ShapeParams {
+    stiffness: 1.0,
+    linear: 0.0,
+    plastic: 0.5,
+};
+
+/// The training scenes: the model's `split.json`, else the seeded split of the data;
+/// thinned evenly to `--max-scenes`.
+fn training_scenes(args: &FitArgs, split: Option<Split>) -> anyhow::Result<Vec<String>> {
+    let mut scenes = match split {
+        Some(split) => split.train,
+        None => {
+            let infos = data::scan(&args.data, Some(&args.topic))
+                .context("reading the ground-truth bags")?;
+            let split = Split::new(infos.iter().map(|s| &s.scene), args.seed);
+            split.scenes(Part::Train).to_vec()
+        }
+    };
+    if args.max_scenes > 0 && scenes.len() > args.max_scenes {
+        let every = scenes.len() as f64 / args.max_scenes as f64;
+        scenes = (0..args.max_scenes)
+            .map(|i| scenes[(i as f64 * every) as usize].clone())
+            .collect();
+    }
+    Ok(scenes)
+}
+
+/// Rewrites `dir/model.json` with `constraints` (through a temporary file, renamed).
+fn write_constraints(dir: &Path, constraints: &Constraints) -> anyhow::Result<()> {
+    let path = dir.join("model.json");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut meta = parse_meta(&text).with_context(|| format!("parsing {}", path.display()))?;
+    meta.constraints = Some(constraints.clone());
+    let tmp = dir.join("model.json.tmp");
+    std::fs::write(&tmp, serde_json::to_string_pretty(&meta)? + "\n")
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}

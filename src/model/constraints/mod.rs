@@ -1,0 +1,436 @@
+//! `model::constraints`: structure by construction. After the network predicts a frame, its
+//! positions are projected onto the material's constraints, as position-based dynamics does
+//! after each step (Müller et al. 2007, "Position Based Dynamics"; the method behind NVIDIA
+//! Flex), and the velocities take the correction: `v_c = v' + (x_c - x') / dt`.
+//!
+//! Per material, each part switchable ([`Parts`]) and with its parameters in `model.json`
+//! ([`Constraints`], written by `minflow constraints fit`):
+//! - rope ([`rope`]): distance constraints along the chain plus unilateral long-range pairs
+//!   `i -> i + 2^m`, applied coarse to fine (Kim, Chentanez & Müller 2012, "Long Range
+//!   Attachments"), so a rope stretches at most as far as the solver's does;
+//! - jelly and snow ([`shape`]): shape matching of each body to its rest shape (Müller et
+//!   al. 2005, "Meshless Deformations Based on Shape Matching"), with an optional linear
+//!   part and, for snow, a rest shape that yields (plasticity);
+//! - liquid ([`density`]): a unilateral density constraint, `rho_i <= rho_0` (Macklin &
+//!   Müller 2013, "Position Based Fluids"), the density measured on a grid as MPM does
+//!   (Kugelstadt et al. 2019), its rest density fitted so that it leaves the truth's frames
+//!   in place;
+//! - the box walls: positions clamped into the range the solver's particles stay in.
+//!
+//! A scene's constraint data ([`SceneShape`]: rope chains, bodies and their rest shapes, the
+//! liquid's kernel radius and rest density, the particle spacing of each material) is built
+//! once from its rest frame (the first frame the model sees) and carried in the surrogate's
+//! per-scene state. The projection is a host pass, one scene at a time and deterministic:
+//! the node and offline `eval` project alike, batched and unbatched alike.
+
+mod cells;
+mod density;
+pub mod fit;
+mod rope;
+mod shape;
+
+pub use fit::{fit, FitReport};
+
+use serde::{Deserialize, Serialize};
+
+use crate::material::{Material, COUNT};
+
+/// The constraint parameters of a model, per material (`"constraints"` in `model.json`). A
+/// part that is `None` is never applied.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Constraints {
+    /// Rope: chain and long-range distance limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rope: Option<RopeParams>,
+    /// Jelly: shape matching.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jelly: Option<ShapeParams>,
+    /// Snow: shape matching with a yielding rest shape.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub snow: Option<ShapeParams>,
+    /// Liquid: the unilateral density constraint.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub liquid: Option<DensityParams>,
+    /// The box walls.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub walls: Option<WallParams>,
+}
+
+/// Rope parameters ([`rope`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RopeParams {
+    /// Largest distance between two rope particles as a multiple of their rest distance
+    /// along the chain (dimensionless, >= 1): the solver's ropes stretch 10-23 %.
+    pub stretch: f32,
+    /// Coarse-to-fine sweeps per frame.
+    pub iterations: usize,
+    /// Long-range pairs `i -> i + 2^m` (m >= 1) beside the chain's own links.
+    pub long_range: bool,
+}
+
+/// Shape-matching parameters ([`shape`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShapeParams {
+    /// Share of the way to the goal positions a frame moves (0..=1; Müller 2005's alpha).
+    pub stiffness: f32,
+    /// Share of the linear fit in the goal, the rest a rotation (0..=1; Müller 2005's beta,
+    /// section 4.2): 0 keeps the rest shape rigid, higher lets it shear and squash.
+    pub linear: f32,
+    /// Share of the remaining deformation the rest shape takes on per frame (0..=1):
+    /// 0 elastic, above 0 plastic (snow).
+    pub plastic: f32,
+}
+
+/// Liquid density parameters ([`density`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DensityParams {
+    /// Cell of the density grid in particle spacings of the rest frame.
+    pub radius: f32,
+    /// Rest mass of a grid node over the rest frame's (90th percentile of its occupied
+    /// nodes): above it a node counts as compressed and its particles are pushed out
+    /// (fitted: `minflow constraints fit`).
+    pub rest: f32,
+    /// Jacobi iterations per frame.
+    pub iterations: usize,
+}
+
+/// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WallParams {
+    /// Lowest coordinate a particle may take.
+    pub lo: f32,
+    /// Highest coordinate a particle may take.
+    pub hi: f32,
+}
+
+impl Constraints {
+    /// Parameters for a model none were fitted for: rope stretch 1.25, rigid jelly, no snow
+    /// part, liquid rest mass 3x the rest frame's (what the fit finds: the `fluid` family's
+    /// liquid starts at a third of the solver's rest density), walls at the solver's
+    /// `[0.5 dx, 1 - 0.5 dx]` of the 128 x 128 grid. `minflow constraints fit` replaces the
+    /// fitted values from a model's training split.
+    pub fn defaults() -> Self {
+        Self {
+            rope: Some(RopeParams {
+                stretch: 1.25,
+                iterations: 2,
+                long_range: true,
+            }),
+            jelly: Some(ShapeParams {
+                stiffness: 1.0,
+                linear: 0.0,
+                plastic: 0.0,
+            }),
+            snow: None,
+            liquid: Some(DensityParams {
+                radius: 3.0,
+                rest: 3.0,
+                iterations: 2,
+            }),
+            walls: Some(WallParams {
+                lo: 0.5 / 128.0,
+                hi: 1.0 - 0.5 / 128.0,
+            }),
+        }
+    }
+
+    /// These constraints with the parts `parts` leaves out removed.
+    pub fn select(&self, parts: Parts) -> Self {
+        Self {
+            rope: self.rope.filter(|_| parts.rope),
+            jelly: self.jelly.filter(|_| parts.jelly),
+            snow: self.snow.filter(|_| parts.snow),
+            liquid: self.liquid.filter(|_| parts.liquid),
+            walls: self.walls.filter(|_| parts.walls),
+        }
+    }
+
+    /// Whether no part is on.
+    pub fn is_empty(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The shape parameters of a shape-matched material (jelly, snow), if that part is on.
+    fn shape_of(&self, m: u8) -> Option<&ShapeParams> {
+        match Material::from_id(m) {
+            Some(Material::Jelly) => self.jelly.as_ref(),
+            Some(Material::Snow) => self.snow.as_ref(),
+            _ => None,
+        }
+    }
+}
+
+/// Which parts of a model's [`Constraints`] to apply (`--constraints`): `on` (every part the
+/// model has), `off`, or a comma-separated list of `rope`, `jelly`, `snow`, `liquid`,
+/// `walls`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Parts {
+    /// Rope chain and long-range pairs.
+    pub rope: bool,
+    /// Jelly shape matching.
+    pub jelly: bool,
+    /// Snow shape matching.
+    pub snow: bool,
+    /// Liquid density.
+    pub liquid: bool,
+    /// Box walls.
+    pub walls: bool,
+}
+
+impl Parts {
+    /// Every part.
+    pub const ALL: Parts = Parts {
+        rope: true,
+        jelly: true,
+        snow: true,
+        liquid: true,
+        walls: true,
+    };
+    /// No part.
+    pub const NONE: Parts = Parts {
+        rope: false,
+        jelly: false,
+        snow: false,
+        liquid: false,
+        walls: false,
+    };
+}
+
+impl Default for Parts {
+    fn default() -> Self {
+        Parts::ALL
+    }
+}
+
+impl std::str::FromStr for Parts {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim() {
+            "on" | "all" => return Ok(Parts::ALL),
+            "off" | "none" => return Ok(Parts::NONE),
+            _ => {}
+        }
+        let mut parts = Parts::NONE;
+        for name in s.split(',').map(str::trim) {
+            let flag = match name {
+                "rope" => &mut parts.rope,
+                "jelly" => &mut parts.jelly,
+                "snow" => &mut parts.snow,
+                "liquid" => &mut parts.liquid,
+                "walls" => &mut parts.walls,
+                other => {
+                    return Err(format!(
+                        "unknown constraint part {other:?}: expected on, off or a list of \
+                         rope, jelly, snow, liquid, walls"
+                    ))
+                }
+            };
+            *flag = true;
+        }
+        Ok(parts)
+    }
+}
+
+impl std::fmt::Display for Parts {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if *self == Parts::ALL {
+            return f.write_str("on");
+        }
+        if *self == Parts::NONE {
+            return f.write_str("off");
+        }
+        let names = [
+            (self.rope, "rope"),
+            (self.jelly, "jelly"),
+            (self.snow, "snow"),
+            (self.liquid, "liquid"),
+            (self.walls, "walls"),
+        ];
+        let on: Vec<&str> = names.iter().filter(|(b, _)| *b).map(|(_, n)| *n).collect();
+        f.write_str(&on.join(","))
+    }
+}
+
+/// How far a projection moved each material: the sum over moved frames and particles of the
+/// displacement in particle spacings of the rest frame, and the particle-frames counted.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Correction {
+    /// Per material id: summed displacement, spacings.
+    pub sum: [f64; COUNT],
+    /// Per material id: particle-frames.
+    pub count: [u64; COUNT],
+}
+
+impl Correction {
+    /// Adds `other`'s sums and counts.
+    pub fn add(&mut self, other: &Correction) {
+        for m in 0..COUNT {
+            self.sum[m] += other.sum[m];
+            self.count[m] += other.count[m];
+        }
+    }
+
+    /// The mean displacement per particle and frame of material `m`, in spacings; None where
+    /// none was counted.
+    pub fn mean(&self, m: usize) -> Option<f64> {
+        (self.count[m] > 0).then(|| self.sum[m] / self.count[m] as f64)
+    }
+}
+
+/// One scene's constraint data, built from its rest frame (see the module doc).
+#[derive(Clone, Debug)]
+pub struct SceneShape {
+    n: usize,
+    /// Per material id: the particle spacing of the rest frame (domain units).
+    spacing: [f32; COUNT],
+    chains: Vec<rope::Chain>,
+    bodies: Vec<shape::Body>,
+    liquid: Option<density::Liquid>,
+}
+
+impl SceneShape {
+    /// The constraint data of a scene whose rest frame is `rest` (`[N, stride]` rows, x and
+    /// y first, domain units) with material ids `material` (`[N]`), for the parts of `c`
+    /// that are on.
+    pub fn new(rest: &[f32], stride: usize, material: &[u8], c: &Constraints) -> Self {
+        let n = material.len();
+        let mut spacing = [0.0f32; COUNT];
+        for (m, s) in spacing.iter_mut().enumerate() {
+            *s = shape::spacing_of(rest, stride, material, m as u8);
+        }
+        let chains = match c.rope {
+            Some(_) => rope::chains(rest, stride, material, Material::Rope.id()),
+            None => Vec::new(),
+        };
+        if let Some(link) = rope::median_link(&chains) {
+            spacing[usize::from(Material::Rope.id())] = link;
+        }
+        let mut bodies = Vec::new();
+        for m in [Material::Jelly.id(), Material::Snow.id()] {
+            if c.shape_of(m).is_some() {
+                let s = spacing[usize::from(m)];
+                bodies.extend(shape::bodies(rest, stride, material, m, s));
+            }
+        }
+        let liquid = c.liquid.as_ref().and_then(|p| {
+            let s = spacing[usize::from(Material::Liquid.id())];
+            density::Liquid::new(rest, stride, material, s, p)
+        });
+        Self {
+            n,
+            spacing,
+            chains,
+            bodies,
+            liquid,
+        }
+    }
+
+    /// Particles of the scene.
+    pub fn particles(&self) -> usize {
+        self.n
+    }
+
+    /// The particle spacing of material `m` in the rest frame (domain units; 0 where the
+    /// scene has none of it).
+    pub fn spacing(&self, m: u8) -> f32 {
+        self.spacing.get(usize::from(m)).copied().unwrap_or(0.0)
+    }
+
+    /// Projects `frame` (`[N, 4]` physical x, y, vx, vy) onto the constraints of `c` in
+    /// place: positions moved, velocities given the move over `dt`. Snow's rest shapes yield
+    /// (the scene's data changes). Returns how far each material moved.
+    ///
+    /// # Panics
+    /// When `frame` is not `N` rows of 4.
+    pub fn project(
+        &mut self,
+        c: &Constraints,
+        frame: &mut [f32],
+        material: &[u8],
+        dt: f32,
+    ) -> Correction {
+        assert_eq!(
+            frame.len(),
+            self.n * 4,
+            "projection of a frame of another scene"
+        );
+        let before = frame.to_vec();
+        if let Some(p) = &c.rope {
+            for chain in &self.chains {
+                chain.project(p, frame);
+            }
+        }
+        for body in &mut self.bodies {
+            if let Some(p) = c.shape_of(body.material) {
+                body.project(p, frame);
+            }
+        }
+        if let (Some(p), Some(liquid)) = (&c.liquid, &self.liquid) {
+            liquid.project(p, frame);
+        }
+        if let Some(w) = &c.walls {
+            for row in frame.chunks_exact_mut(4) {
+                row[0] = row[0].clamp(w.lo, w.hi);
+                row[1] = row[1].clamp(w.lo, w.hi);
+            }
+        }
+        let mut out = Correction::default();
+        let inv_dt = if dt > 0.0 { 1.0 / dt } else { 0.0 };
+        for (i, (row, old)) in frame
+            .chunks_exact_mut(4)
+            .zip(before.chunks_exact(4))
+            .enumerate()
+        {
+            let (dx, dy) = (row[0] - old[0], row[1] - old[1]);
+            row[2] += dx * inv_dt;
+            row[3] += dy * inv_dt;
+            let m = usize::from(material[i]).min(COUNT - 1);
+            let s = self.spacing[m];
+            if s > 0.0 {
+                out.sum[m] += f64::from(dx.hypot(dy) / s);
+            }
+            out.count[m] += 1;
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parts_parse_and_print() {
+        assert_eq!("on".parse::<Parts>().unwrap(), Parts::ALL);
+        assert_eq!("off".parse::<Parts>().unwrap(), Parts::NONE);
+        let p: Parts = "rope,liquid".parse().unwrap();
+        assert!(p.rope && p.liquid && !p.jelly && !p.snow && !p.walls);
+        assert_eq!(p.to_string(), "rope,liquid");
+        assert!("ropes".parse::<Parts>().is_err());
+    }
+
+    #[test]
+    fn selecting_no_part_leaves_nothing() {
+        let c = Constraints::defaults();
+        assert!(c.select(Parts::NONE).is_empty());
+        assert!(!c.select("jelly".parse().unwrap()).is_empty());
+        assert!(c.select("snow".parse().unwrap()).is_empty()); // the defaults have no snow
+    }
+
+    #[test]
+    fn walls_clamp_and_the_velocity_takes_the_move() {
+        let c = Constraints {
+            walls: Some(WallParams { lo: 0.1, hi: 0.9 }),
+            ..Default::default()
+        };
+        let rest = [0.5, 0.5, 0.0, 0.0];
+        let mut shape = SceneShape::new(&rest, 4, &[0], &c);
+        let mut frame = [0.95, 0.5, 1.0, 0.0];
+        let corr = shape.project(&c, &mut frame, &[0], 0.01);
+        assert!((frame[0] - 0.9).abs() < 1e-6);
+        // v = 1 + (0.9 - 0.95) / 0.01 = -4.
+        assert!((frame[2] + 4.0).abs() < 1e-3, "{}", frame[2]);
+        assert_eq!(corr.count[0], 1);
+    }
+}
