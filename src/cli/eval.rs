@@ -189,7 +189,7 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     settings.dedup();
     for (dir, name) in args.models.iter().zip(&names) {
         let has = RunFolder::open(dir)
-            .context("reading the model")?
+            .with_context(|| format!("loading model {}", dir.display()))?
             .meta
             .constraints
             .is_some_and(|c| !c.is_empty());

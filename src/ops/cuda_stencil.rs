@@ -14,16 +14,16 @@
 //! inference only; training on a GPU keeps the dense products. The stencil itself
 //! ([`NetOps::sparse_stencil`]) is one kernel too.
 //!
-//! Status: not yet taken by the model ([`NetOps::DENSE_STENCIL`] is true on CUDA). The first
-//! GPU run, with burn's composed stencil in front of these transfers, made a network call of
-//! 256 scenes 1.7x faster and its rollouts diverge (docs/scale.md); the stencil kernel and
-//! `minflow bench transfer --device cuda` (each part against the CPU backend) were written after it
-//! and have not run on a GPU yet. The same kernels on burn's wgpu backend (a software Vulkan
-//! device) matched the host to 5e-7, so the fault is yet to be found on CUDA.
+//! Status: inference on CUDA takes these ([`NetOps::dense_stencil`]). The first GPU run
+//! diverged (avg20 NaN): P2G's output came from `zeros_client`, whose CUDA memory layout
+//! pitches each innermost row to a power of two bytes (12 f32 channels -> a row stride of 16),
+//! while the kernel writes flat `row * c + j`; wgpu's layout is contiguous, so the kernels
+//! matched there. The output is now allocated contiguous and zeroed by [`zero_kernel`]; on one
+//! H100 every form matches the CPU backend to 1.2e-7 (`minflow bench transfer --device cuda`).
 //!
 //! [`NetOps::stencil_gather`]: super::NetOps::stencil_gather
 //! [`NetOps::stencil_splat`]: super::NetOps::stencil_splat
-//! [`NetOps::DENSE_STENCIL`]: super::NetOps::DENSE_STENCIL
+//! [`NetOps::dense_stencil`]: super::NetOps::dense_stencil
 //! [`NetOps::sparse_stencil`]: super::NetOps::sparse_stencil
 
 use burn::cubecl::cuda::CudaRuntime;

@@ -13,6 +13,10 @@
 #   tests/gpu/constraints.sh wait               # until they have ended
 #   tests/gpu/constraints.sh ablation NAME...   # unseen scenes, every projection setting of
 #                                               # each model: OUT/ablation-h20, OUT/ablation-full
+#   tests/gpu/constraints.sh each NAME...       # each model in its own eval process, at once:
+#                                               # off and on, horizon 20 (5 starts) and full
+#                                               # (OUT/NAME-h20, OUT/NAME-full)
+#   tests/gpu/constraints.sh pack               # the tables of OUT as OUT/tables.tgz
 #
 # Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
 set -uo pipefail
@@ -28,6 +32,11 @@ data)
     ;;
 transfer)
     "$BIN" bench transfer --device cuda 2>&1 | tail -n 30
+    # The network call with the dense and the sparse transfers, one model, the same scenes.
+    for form in dense sparse; do
+        MINFLOW_CUDA_TRANSFERS=$form "$BIN" bench rollout --device cuda --model models/all-grid-mingru \
+            --constraints off --scenes 16 --batch 16 --threads 16 --frames 100 2>&1 | tail -n 2
+    done
     ;;
 start)
     m=$2
@@ -54,8 +63,28 @@ ablation)
         >"$OUT/ablation-full.log" 2>&1
     echo "horizon full: exit $?"
     ;;
+each)
+    shift
+    for name in "$@"; do
+        model=$name
+        [ -d "runs/$name" ] && model=runs/$name
+        tag=$(basename "$name")
+        for h in 20 full; do
+            starts=(--starts 5 --no-render)
+            [ "$h" = full ] && starts=()
+            "$BIN" eval --model "$model" --constraints off --constraints on --device cuda \
+                --data "$DATA"/unseen --split all --horizon "$h" "${starts[@]}" \
+                --out "$OUT/$tag-h$h" >"$OUT/$tag-h$h.log" 2>&1 &
+        done
+    done
+    wait
+    ;;
+pack)
+    (cd "$OUT" && tar czf tables.tgz --exclude='*.gif' --exclude='*.png' */table.md */table.csv \
+        */plausibility.csv */metrics.csv *.log 2>/dev/null; ls -la tables.tgz)
+    ;;
 *)
-    sed -n '2,17p' "$0"
+    sed -n '2,22p' "$0"
     exit 2
     ;;
 esac

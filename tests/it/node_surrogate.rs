@@ -250,6 +250,22 @@ fn zenoh_node_with_mirror_equals_offline_mirror_ensemble() {
     node_with_model_matches_offline(&grid_model(), "zenoh", true);
 }
 
+/// Issue 46: a model with material constraints projects every predicted frame in the node
+/// as it does offline (the scene's constraint data built from its first frame, kept with its
+/// state).
+#[test]
+fn zenoh_node_with_constraints_equals_offline_projected_predictions() {
+    let dir = tempfile::tempdir().unwrap();
+    let from = grid_model();
+    std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
+    let text = std::fs::read_to_string(from.join("model.json")).unwrap();
+    let mut meta = minflow::model::store::parse_meta(&text).unwrap();
+    meta.constraints = Some(minflow::model::constraints::Constraints::defaults());
+    let json = serde_json::to_string(&meta).unwrap();
+    std::fs::write(dir.path().join("model.json"), json).unwrap();
+    node_with_model_matches_offline(dir.path(), "zenoh", false);
+}
+
 #[test]
 fn iceoryx2_node_equals_offline_stateful_predictions() {
     node_matches_offline("iceoryx2");
