@@ -29,6 +29,17 @@ pub(super) struct Liquid {
     h: f32,
     /// Rest mass of a node (particles).
     m0: f32,
+    /// Scratch of [`Liquid::project`], reused from frame to frame.
+    scratch: Scratch,
+}
+
+/// The grid and buffers one projection uses.
+#[derive(Clone, Debug, Default)]
+struct Scratch {
+    mass: Vec<f32>,
+    lambda: Vec<f32>,
+    denom: Vec<f32>,
+    stencils: Vec<Stencil>,
 }
 
 /// Quantile of the rest frame's occupied node masses that `rest` multiplies.
@@ -38,6 +49,7 @@ const OCCUPIED: f32 = 0.5;
 
 /// A particle's 3 x 3 nodes: the lower-left node and the weights and their derivatives
 /// along each axis (MPM's quadratic B-spline, `docs/mpm.md`).
+#[derive(Clone, Debug)]
 struct Stencil {
     base: [i32; 2],
     w: [[f32; 3]; 2],
@@ -74,11 +86,15 @@ struct Grid {
 
 impl Grid {
     fn new(h: f32) -> Self {
+        Self::with_buffer(h, Vec::new())
+    }
+
+    /// The grid of cell `h`, its masses in `buffer` (resized and zeroed).
+    fn with_buffer(h: f32, mut mass: Vec<f32>) -> Self {
         let side = (1.0 / h).ceil() as i32 + 3;
-        Self {
-            side,
-            mass: vec![0.0; (side * side) as usize],
-        }
+        mass.clear();
+        mass.resize((side * side) as usize, 0.0);
+        Self { side, mass }
     }
 
     /// Visits the 9 nodes of `s`: node index, weight and weight gradient.
@@ -88,22 +104,33 @@ impl Grid {
 
     /// The node masses of the particles `ids` of `frame` (`[N, stride]` rows).
     fn splat(&mut self, frame: &[f32], stride: usize, ids: &[u32], h: f32) -> Vec<Stencil> {
+        let mut stencils = Vec::with_capacity(ids.len());
+        self.splat_into(frame, stride, ids, h, &mut stencils);
+        stencils
+    }
+
+    /// [`Grid::splat`] with the particles' stencils written into `stencils`.
+    fn splat_into(
+        &mut self,
+        frame: &[f32],
+        stride: usize,
+        ids: &[u32],
+        h: f32,
+        stencils: &mut Vec<Stencil>,
+    ) {
         self.mass.iter_mut().for_each(|m| *m = 0.0);
-        let stencils: Vec<Stencil> = ids
-            .iter()
-            .map(|&i| {
-                Stencil::at(
-                    frame[stride * i as usize],
-                    frame[stride * i as usize + 1],
-                    h,
-                )
-            })
-            .collect();
+        stencils.clear();
+        stencils.extend(ids.iter().map(|&i| {
+            Stencil::at(
+                frame[stride * i as usize],
+                frame[stride * i as usize + 1],
+                h,
+            )
+        }));
         let mass = &mut self.mass;
-        for s in &stencils {
+        for s in stencils.iter() {
             each_node(self.side, s, |n, w, _| mass[n] += w);
         }
-        stencils
     }
 }
 
@@ -152,18 +179,29 @@ impl Liquid {
         let q = ((occupied.len() - 1) as f32 * REST_QUANTILE) as usize;
         occupied.select_nth_unstable_by(q, f32::total_cmp);
         let m0 = p.rest * occupied[q];
-        Some(Self { ids, h, m0 })
+        Some(Self {
+            ids,
+            h,
+            m0,
+            scratch: Scratch::default(),
+        })
     }
 
     /// Projects the liquid's particles in `frame` (`[N, 4]` rows): `p.iterations` Jacobi
     /// iterations over the compressed nodes (module doc).
-    pub(super) fn project(&self, p: &DensityParams, frame: &mut [f32]) {
-        let mut grid = Grid::new(self.h);
+    pub(super) fn project(&mut self, p: &DensityParams, frame: &mut [f32]) {
+        let Scratch {
+            mass,
+            mut lambda,
+            mut denom,
+            mut stencils,
+        } = std::mem::take(&mut self.scratch);
+        let mut grid = Grid::with_buffer(self.h, mass);
         let inv_m0 = 1.0 / self.m0;
-        let mut lambda = vec![0.0f32; grid.mass.len()];
-        let mut denom = vec![0.0f32; grid.mass.len()];
+        lambda.resize(grid.mass.len(), 0.0);
+        denom.resize(grid.mass.len(), 0.0);
         for _ in 0..p.iterations {
-            let stencils = grid.splat(frame, 4, &self.ids, self.h);
+            grid.splat_into(frame, 4, &self.ids, self.h, &mut stencils);
             if grid.mass.iter().all(|&m| m <= self.m0) {
                 break;
             }
@@ -191,6 +229,12 @@ impl Liquid {
                 frame[4 * i as usize + 1] += d[1];
             }
         }
+        self.scratch = Scratch {
+            mass: grid.mass,
+            lambda,
+            denom,
+            stencils,
+        };
     }
 
     /// The node masses of the liquid in `frame` over the rest mass (for tests).
@@ -241,7 +285,7 @@ mod tests {
         };
         let material = vec![0u8; 900];
         let rest = pool(0.01);
-        let liquid = Liquid::new(&rest, 4, &material, 0.01, &p).unwrap();
+        let mut liquid = Liquid::new(&rest, 4, &material, 0.01, &p).unwrap();
         let mut same = rest.clone();
         liquid.project(&p, &mut same);
         assert_eq!(same, rest, "the rest frame is below the rest mass");

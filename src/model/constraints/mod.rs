@@ -287,6 +287,8 @@ pub struct SceneShape {
     chains: Vec<rope::Chain>,
     bodies: Vec<shape::Body>,
     liquid: Option<density::Liquid>,
+    /// The frame before the projection (reused from frame to frame).
+    before: Vec<f32>,
 }
 
 impl SceneShape {
@@ -323,6 +325,7 @@ impl SceneShape {
             chains,
             bodies,
             liquid,
+            before: Vec::new(),
         }
     }
 
@@ -355,7 +358,9 @@ impl SceneShape {
             self.n * 4,
             "projection of a frame of another scene"
         );
-        let before = frame.to_vec();
+        let mut before = std::mem::take(&mut self.before);
+        before.clear();
+        before.extend_from_slice(frame);
         if let Some(p) = &c.rope {
             for chain in &self.chains {
                 chain.project(p, frame);
@@ -366,7 +371,7 @@ impl SceneShape {
                 body.project(p, frame);
             }
         }
-        if let (Some(p), Some(liquid)) = (&c.liquid, &self.liquid) {
+        if let (Some(p), Some(liquid)) = (&c.liquid, &mut self.liquid) {
             liquid.project(p, frame);
         }
         if let Some(w) = &c.walls {
@@ -392,6 +397,7 @@ impl SceneShape {
             }
             out.count[m] += 1;
         }
+        self.before = before;
         out
     }
 }

@@ -429,8 +429,19 @@ impl<B: NetOps> Surrogate<B> {
                 });
                 let mut total = Correction::default();
                 let mut carried: Option<Vec<f32>> = None;
-                for frame in row.iter_mut() {
-                    let own: Vec<f32> = frame.iter().copied().collect();
+                let last = row.len().saturating_sub(1);
+                for (k, frame) in row.iter_mut().enumerate() {
+                    if k == last {
+                        // The last frame's correction carries into no other frame.
+                        if let Some(offset) = &carried {
+                            for (v, o) in frame.iter_mut().zip(offset) {
+                                *v += o;
+                            }
+                        }
+                        total.add(&shape.project(c, frame, ids, dt[i]));
+                        break;
+                    }
+                    let own: Vec<f32> = frame.to_vec();
                     if let Some(offset) = &carried {
                         for (v, o) in frame.iter_mut().zip(offset) {
                             *v += o;
