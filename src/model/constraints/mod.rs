@@ -329,11 +329,6 @@ impl SceneShape {
         }
     }
 
-    /// Particles of the scene.
-    pub fn particles(&self) -> usize {
-        self.n
-    }
-
     /// The particle spacing of material `m` in the rest frame (domain units; 0 where the
     /// scene has none of it).
     pub fn spacing(&self, m: u8) -> f32 {

@@ -431,17 +431,9 @@ impl<B: NetOps> Surrogate<B> {
                 let mut carried: Option<Vec<f32>> = None;
                 let last = row.len().saturating_sub(1);
                 for (k, frame) in row.iter_mut().enumerate() {
-                    if k == last {
-                        // The last frame's correction carries into no other frame.
-                        if let Some(offset) = &carried {
-                            for (v, o) in frame.iter_mut().zip(offset) {
-                                *v += o;
-                            }
-                        }
-                        total.add(&shape.project(c, frame, ids, dt[i]));
-                        break;
-                    }
-                    let own: Vec<f32> = frame.to_vec();
+                    // The network's own frame, kept where its correction carries into the
+                    // next frame (not after the bundle's last).
+                    let own = (k < last).then(|| frame.to_vec());
                     if let Some(offset) = &carried {
                         for (v, o) in frame.iter_mut().zip(offset) {
                             *v += o;
@@ -449,11 +441,14 @@ impl<B: NetOps> Surrogate<B> {
                     }
                     total.add(&shape.project(c, frame, ids, dt[i]));
                     // The position correction relative to the network's own frame.
-                    let mut offset: Vec<f32> = frame.iter().zip(&own).map(|(a, b)| a - b).collect();
-                    for o in offset.chunks_exact_mut(4) {
-                        (o[2], o[3]) = (0.0, 0.0);
-                    }
-                    carried = Some(offset);
+                    carried = own.map(|own| {
+                        let mut offset: Vec<f32> =
+                            frame.iter().zip(&own).map(|(a, b)| a - b).collect();
+                        for o in offset.chunks_exact_mut(4) {
+                            (o[2], o[3]) = (0.0, 0.0);
+                        }
+                        offset
+                    });
                 }
                 total
             })
