@@ -20,11 +20,13 @@ use std::time::Duration;
 
 #[derive(Debug, Args)]
 pub struct SimulateArgs {
-    /// Scene family: `multi` (64^2 grid, 60 scenes) or `fluid` (128^2 grid, 40 scenes).
+    /// Scene family: `multi` (64^2 grid, 60 scenes), `fluid` (128^2 grid, 40 scenes) or
+    /// `mixed` (1-4 bodies of any material and shape, either grid, 400 frames; 100 scenes by
+    /// default, any number with `--scenes`).
     #[arg(long, default_value = "multi")]
     family: String,
     /// Scene ids: `A..B` (B excluded), `A..=B`, a list `0,3,7`, or one id. Default: the
-    /// family's 60 (multi) or 40 (fluid); ids beyond them keep cycling through its scene kinds
+    /// family's 60 (multi), 40 (fluid) or 100 (mixed); ids beyond them keep cycling through its scene kinds
     /// with new random placements (more training scenes: `--scenes 60..180`).
     #[arg(long)]
     scenes: Option<String>,

@@ -23,6 +23,7 @@
 //! 80:10:10 split, as `minflow train`) of the ground-truth data. Used by `minflow eval` and
 //! `minflow report`.
 
+pub mod conservation;
 pub mod metrics;
 pub mod output;
 pub mod plausibility;

@@ -20,6 +20,8 @@
 //! - Structure ([`super::structure`]): the volume ratio (area covered, prediction over truth),
 //!   the intact fraction of the solids' rest-neighbour pairs and the rope's connected share,
 //!   prediction beside truth.
+//! - Conservation ([`super::conservation`]): each body's centre-of-mass error and the
+//!   momentum drift, prediction beside truth.
 //!
 //! [`Plausibility`] holds all of them per material for one frame. Used by [`super::rollout`]
 //! (`minflow eval`) at the steps [`probe_steps`] picks.
@@ -61,6 +63,16 @@ pub struct Plausibility {
     pub energy: [Option<f64>; MATERIALS],
     /// The same over every particle.
     pub energy_all: Option<f64>,
+    /// Centre-of-mass error: per material, the mean over its bodies of the distance between
+    /// the predicted and the true centre of mass, domain units
+    /// ([`super::conservation::Bodies::com_error`]).
+    pub com: [Option<f64>; MATERIALS],
+    /// Momentum drift of the prediction up to this step, domain units per time unit per
+    /// frame ([`super::conservation::MomentumDrift`]); `None` when no transition was free of
+    /// the walls.
+    pub momentum: Option<f64>,
+    /// The same of the truth (about 1e-6: MPM conserves momentum).
+    pub momentum_truth: Option<f64>,
 }
 
 impl Plausibility {
@@ -120,6 +132,9 @@ impl Plausibility {
             connected_truth: std::array::from_fn(|m| mean(&|p| p.connected_truth[m])),
             energy: std::array::from_fn(|m| mean(&|p| p.energy[m])),
             energy_all: mean(&|p| p.energy_all),
+            com: std::array::from_fn(|m| mean(&|p| p.com[m])),
+            momentum: mean(&|p| p.momentum),
+            momentum_truth: mean(&|p| p.momentum_truth),
         })
     }
 }

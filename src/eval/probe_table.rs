@@ -1,6 +1,7 @@
 //! The plausibility tables of an [`Evaluation`] ([`super::plausibility`]): per predictor and
 //! probe step, the Sinkhorn divergence per material and the strain error per solid, then the
-//! structure (volume ratio, intact fraction, rope connectivity, kinetic energy), each the
+//! structure (volume ratio, intact fraction, rope connectivity, kinetic energy), the
+//! conservation diagnostics (centre-of-mass error, momentum drift), each the
 //! mean over the scenes that have the material, and how far each model's constraint
 //! projection moved each material. Markdown for `table.md`, CSV (one row per scene,
 //! predictor, probe and material) for `plausibility.csv`. Used by [`super::output`].
@@ -75,6 +76,7 @@ pub fn markdown(eval: &Evaluation) -> String {
         }
     }
     s.push_str(&structure_markdown(eval, &probes));
+    s.push_str(&conservation_markdown(eval, &probes));
     s.push_str(&correction_markdown(eval));
     s
 }
@@ -159,13 +161,49 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
     s
 }
 
+/// The conservation section of [`markdown`]: per predictor and probe, the centre-of-mass
+/// error of each material's bodies and the momentum drift, the truth's own in brackets
+/// ([`super::conservation`]).
+fn conservation_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
+    let fmt = |v: Option<f64>| v.map_or("n/a".to_owned(), |v| format!("{v:.3e}"));
+    let mut s = String::from(
+        "\nConservation (mean over scenes): com = distance between the predicted and the true \
+         centre of mass of each body of the rollout's first frame, mean over the material's \
+         bodies (domain units); momentum drift = mean over the frames with no particle within \
+         0.08 of a wall (per free axis) of |change of the mean velocity - g dt| (domain units \
+         per time unit per frame; MPM conserves momentum there), prediction (truth):\n\n\
+         | predictor | step |",
+    );
+    for m in material::names() {
+        let _ = write!(s, " com {m} |");
+    }
+    s.push_str(" momentum drift |\n| --- | --- |");
+    s.push_str(&" ---: |".repeat(material::COUNT + 1));
+    s.push('\n');
+    for (p, name) in eval.predictors.iter().enumerate() {
+        for &probe in probes {
+            let mean = |f: &dyn Fn(&super::Plausibility) -> Option<f64>| {
+                mean_over_scenes(eval, p, probe, f)
+            };
+            let _ = write!(s, "| {name} | {probe} |");
+            for m in 0..material::COUNT {
+                let _ = write!(s, " {} |", fmt(mean(&|x| x.com[m])));
+            }
+            let (pred, truth) = (mean(&|x| x.momentum), mean(&|x| x.momentum_truth));
+            let _ = writeln!(s, " {} ({}) |", fmt(pred), fmt(truth));
+        }
+    }
+    s
+}
+
 /// `scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,
-/// connected_truth,energy`, one row per scored material (empty
-/// cells where a value does not apply).
+/// connected_truth,energy,com,momentum,momentum_truth`, one row per scored material (empty
+/// cells where a value does not apply; `momentum` and `momentum_truth` are the scene's,
+/// repeated on each of its rows).
 pub fn csv(eval: &Evaluation) -> String {
     let mut s = String::from(
         "scene,predictor,probe,material,sinkhorn,strain,volume,intact,intact_truth,connected,\
-         connected_truth,energy\n",
+         connected_truth,energy,com,momentum,momentum_truth\n",
     );
     let cell = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:e}"));
     for scene in &eval.scenes {
@@ -177,7 +215,7 @@ pub fn csv(eval: &Evaluation) -> String {
                     }
                     let _ = writeln!(
                         s,
-                        "{},{name},{probe},{material},{},{},{},{},{},{},{},{}",
+                        "{},{name},{probe},{material},{},{},{},{},{},{},{},{},{},{},{}",
                         scene.scene,
                         cell(v.sinkhorn[m]),
                         cell(v.strain[m]),
@@ -187,6 +225,9 @@ pub fn csv(eval: &Evaluation) -> String {
                         cell(v.connected[m]),
                         cell(v.connected_truth[m]),
                         cell(v.energy[m]),
+                        cell(v.com[m]),
+                        cell(v.momentum),
+                        cell(v.momentum_truth),
                     );
                 }
             }

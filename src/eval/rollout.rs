@@ -17,6 +17,7 @@ use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 
+use super::conservation::{Bodies, MomentumDrift};
 use super::metrics::MATERIALS;
 use super::plausibility::{kinetic_energy, probe_steps, Neighbours, Plausibility};
 use super::{
@@ -218,9 +219,13 @@ impl SceneSums {
     ) -> Result<(), EvalError> {
         let (traj, steps) = (rollout.traj, rollout.steps);
         let first = rollout.start + w;
-        let neighbours = opts
-            .plausibility
-            .then(|| Neighbours::new(traj.state(first - 1), &traj.material));
+        let neighbours = opts.plausibility.then(|| {
+            let start = traj.state(first - 1);
+            (
+                Neighbours::new(start, &traj.material),
+                Bodies::new(start, &traj.material),
+            )
+        });
         self.result.rollouts += 1;
         let keep = opts.snapshots && self.result.snapshots.is_none();
         let mut snap = keep.then(|| Snapshots {
@@ -241,8 +246,8 @@ impl SceneSums {
                 let m = frame_metrics(pred, truth, &traj.material, scaler, opts.density_grid);
                 self.steps[p].steps[k].push(m);
             }
-            if let Some(nb) = &neighbours {
-                self.probes[p].add(traj, first, &frames, steps, nb);
+            if let Some(reference) = &neighbours {
+                self.probes[p].add(traj, first, &frames, steps, reference);
             }
             if let Some(snap) = snap.as_mut() {
                 let mut row = vec![Some(traj.state(first - 1).to_vec())];
@@ -344,24 +349,34 @@ struct ProbeSums {
 
 impl ProbeSums {
     /// Scores `frames` (a rollout of `steps` steps whose step k is trajectory frame
-    /// `first + k - 1`) at its [`probe_steps`], the last as [`Probe::End`]; the probes run in
-    /// parallel.
+    /// `first + k - 1`) at its [`probe_steps`], the last as [`Probe::End`], against the
+    /// neighbours and bodies of the rollout's first frame; the probes run in parallel.
     fn add(
         &mut self,
         traj: &Trajectory,
         first: usize,
         frames: &[Vec<f32>],
         steps: usize,
-        nb: &Neighbours,
+        (nb, bodies): &(Neighbours, Bodies),
     ) {
         let steps = steps.min(frames.len());
         let energy = EnergySums::of(traj, first, frames, steps);
+        let seed = traj.state(first - 1);
+        let drift = MomentumDrift::of(
+            |k| if k == 0 { seed } else { &frames[k - 1] },
+            steps,
+            traj.dt,
+        );
+        let drift_truth = MomentumDrift::of(|k| traj.state(first + k - 1), steps, traj.dt);
         let scored: Vec<(usize, Plausibility)> = probe_steps(steps)
             .into_par_iter()
             .map(|k| {
                 let truth = traj.state(first + k - 1);
                 let mut value = Plausibility::of(&frames[k - 1], truth, &traj.material, nb);
                 (value.energy, value.energy_all) = energy.ratio_at(k);
+                value.com = bodies.com_error(&frames[k - 1], truth);
+                value.momentum = drift.mean_to(k);
+                value.momentum_truth = drift_truth.mean_to(k);
                 (k, value)
             })
             .collect();

@@ -1,6 +1,7 @@
-//! The two generated scene families of the paper's dataset, as deterministic functions of
-//! (family, scene id, seed): `multi` (60 ids, 64 x 64 grid, dt 8e-4 x 20 substeps, 625
-//! frames) and `fluid` (40 ids, 128 x 128 grid, dt 2e-4 x 80 substeps, 313-1563 frames).
+//! The generated scene families, as deterministic functions of (family, scene id, seed): the
+//! paper's `multi` (60 ids, 64 x 64 grid, dt 8e-4 x 20 substeps, 625 frames) and `fluid`
+//! (40 ids, 128 x 128 grid, dt 2e-4 x 80 substeps, 313-1563 frames), and minflow's `mixed`
+//! (1-4 bodies of any material and shape, either grid; [`super::mixed`]).
 //!
 //! Body sizes and placements follow `docs/mpm.md` ("Scene families"): liquid block
 //! 0.2 x 0.4, snow block ~0.25^2, jelly disk r 0.08-0.1, rope 0.4 long at y 0.6-0.9 with
@@ -23,22 +24,27 @@ pub enum Family {
     Multi,
     /// Liquid-only scenes on a 128 x 128 grid.
     Fluid,
+    /// 1-4 bodies of random materials, shapes and motions on either grid ([`super::mixed`]).
+    Mixed,
 }
 
 impl Family {
-    /// Number of scene ids in the paper's dataset (60 and 40).
+    /// Number of scene ids `simulate` makes by default: the paper's 60 and 40, and 100
+    /// `mixed` scenes.
     pub fn scene_count(self) -> u32 {
         match self {
             Family::Multi => 60,
             Family::Fluid => 40,
+            Family::Mixed => 100,
         }
     }
 
-    /// `multi` or `fluid`.
+    /// `multi`, `fluid` or `mixed`.
     pub fn name(self) -> &'static str {
         match self {
             Family::Multi => "multi",
             Family::Fluid => "fluid",
+            Family::Mixed => "mixed",
         }
     }
 }
@@ -55,8 +61,9 @@ impl FromStr for Family {
         match s {
             "multi" => Ok(Family::Multi),
             "fluid" => Ok(Family::Fluid),
+            "mixed" => Ok(Family::Mixed),
             _ => Err(SimError::Invalid(format!(
-                "unknown family {s:?} (multi | fluid)"
+                "unknown family {s:?} (multi | fluid | mixed)"
             ))),
         }
     }
@@ -98,6 +105,7 @@ pub fn scene(family: Family, id: u32, seed: u64) -> Scene {
     match family {
         Family::Multi => multi(id, &mut rng),
         Family::Fluid => fluid(id, &mut rng),
+        Family::Mixed => super::mixed::scene(id, &mut rng),
     }
 }
 

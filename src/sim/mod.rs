@@ -3,14 +3,15 @@
 //! is saved (0.016 time units for both families).
 //!
 //! Layout: [`linalg`] (2x2 polar decomposition and signed SVD), [`material`] (constitutive
-//! models), [`mpm`] (the solver), [`scene`] (bodies and sampling), [`families`] (`multi` and
-//! `fluid`), [`diagnostics`] (conservation sums), [`sanity`] (per-frame checks),
+//! models), [`mpm`] (the solver), [`scene`] (bodies and sampling), [`families`] (`multi`,
+//! `fluid` and `mixed`, the last in [`mixed`]), [`diagnostics`] (conservation sums), [`sanity`] (per-frame checks),
 //! [`run`] (a scene to `ParticleFrame`s). Used by `minflow simulate` and `minflow bench sim`.
 
 pub mod diagnostics;
 pub mod families;
 pub mod linalg;
 pub mod material;
+pub mod mixed;
 pub mod mpm;
 pub mod run;
 pub mod sanity;

@@ -15,12 +15,15 @@ COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirro
     --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
 
 # One training run in the background: NAME MINUTES FLAGS... With ONLY="a b" set, only the
-# runs named there start (ten full-size runs at once do not fit in an H100's 80 GB).
+# runs named there start (ten full-size runs at once do not fit in an H100's 80 GB). The
+# training folders: TRAIN_DATA (space-separated), default the paper's two families.
 start() {
     local name=$1 minutes=$2
     shift 2
     if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return; fi
-    setsid nohup "$BIN" train --device cuda --data "$DATA"/multi "$DATA"/fluid --out "runs/$name" \
+    local data
+    read -r -a data <<<"${TRAIN_DATA:-$DATA/multi $DATA/fluid}"
+    setsid nohup "$BIN" train --device cuda --data "${data[@]}" --out "runs/$name" \
         --max-minutes "$minutes" "${COMMON[@]}" "$@" >"$OUT/train-$name.log" 2>&1 &
     echo $! >>"$OUT/started.pids"
 }

@@ -35,6 +35,25 @@ use serde::{Deserialize, Serialize};
 
 use crate::material::{Material, COUNT};
 
+/// The bodies of a frame (`[N, stride]` rows, x and y first, domain units; material ids
+/// `material`, `[N]`): for each material, its connected pieces, particles closer than 2.5
+/// of that material's particle spacings joined (the pieces shape matching projects, found
+/// the same way for every material). Each piece is `(material id, particle indices in
+/// increasing order)`, of 3 particles or more; in material order, then by lowest index.
+/// Used by `eval`'s conservation diagnostics ([`crate::eval::conservation`]).
+pub fn pieces(frame: &[f32], stride: usize, material: &[u8]) -> Vec<(u8, Vec<u32>)> {
+    let mut out = Vec::new();
+    for m in 0..COUNT as u8 {
+        let spacing = shape::spacing_of(frame, stride, material, m);
+        out.extend(
+            shape::pieces(frame, stride, material, m, spacing)
+                .into_iter()
+                .map(|p| (m, p)),
+        );
+    }
+    out
+}
+
 /// The constraint parameters of a model, per material (`"constraints"` in `model.json`). A
 /// part that is `None` is never applied.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

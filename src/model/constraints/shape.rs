@@ -75,8 +75,7 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
 }
 
 /// The bodies of material `m` in `rest` (`[N, stride]` rows) whose spacing is `spacing`:
-/// connected pieces at [`LINK`] spacings, each of 3 particles or more, in order of their
-/// lowest particle index.
+/// [`pieces`] turned into shape-matching bodies.
 pub(super) fn bodies(
     rest: &[f32],
     stride: usize,
@@ -84,6 +83,23 @@ pub(super) fn bodies(
     m: u8,
     spacing: f32,
 ) -> Vec<Body> {
+    pieces(rest, stride, material, m, spacing)
+        .into_iter()
+        .map(|p| Body::new(rest, stride, m, p))
+        .collect()
+}
+
+/// The connected pieces of material `m` in `rest` (`[N, stride]` rows) whose spacing is
+/// `spacing`: particles closer than [`LINK`] spacings are joined (union-find over a
+/// [`CellList`]); pieces of 3 particles or more, each its particle indices in increasing
+/// order, the pieces in order of their lowest index.
+pub(super) fn pieces(
+    rest: &[f32],
+    stride: usize,
+    material: &[u8],
+    m: u8,
+    spacing: f32,
+) -> Vec<Vec<u32>> {
     let ids: Vec<u32> = (0..material.len() as u32)
         .filter(|&i| material[i as usize] == m)
         .collect();
@@ -116,11 +132,7 @@ pub(super) fn bodies(
         let r = root(&mut parent, i as usize);
         pieces.entry(r).or_default().push(i);
     }
-    pieces
-        .into_values()
-        .filter(|p| p.len() >= 3)
-        .map(|p| Body::new(rest, stride, m, p))
-        .collect()
+    pieces.into_values().filter(|p| p.len() >= 3).collect()
 }
 
 impl Body {

@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# Scenes beyond the paper's families on a GPU machine (docs/results.md, "Your own scenes"):
+# the shipped models fine-tuned on the paper's scenes plus the `mixed` family, against the
+# same fine-tune on the paper's scenes alone at equal time, then scored on held-out scene
+# kinds (launch_configs/scenes/heldout/), on unseen scenes of the paper's families and on
+# unseen `mixed` scenes, whole scenes and 20-step rollouts. CI has no GPU and does not run
+# this. From the repository root, with minflow built with `--features cuda` in gpu/:
+#
+#   tests/gpu/scenes.sh data MIXED       # seed 1 (training: paper + MIXED mixed scenes),
+#                                        # seed 7 (unseen), the held-out scene files
+#   tests/gpu/scenes.sh start MINUTES    # the fine-tunes, in the background
+#   tests/gpu/scenes.sh wait             # until they have ended
+#   tests/gpu/scenes.sh fit              # the new runs' constraints (constraints fit)
+#   tests/gpu/scenes.sh eval NAME...     # models (runs/NAME or a path) on the three test
+#                                        # sets, h20 and full: OUT/{heldout,unseen,mixed}-h*
+#   tests/gpu/scenes.sh pack             # the tables of OUT as OUT/tables.tgz
+#
+# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
+set -uo pipefail
+. "$(dirname "$0")/common.sh"
+SMALL=(--model mingru --init-from models/all-grid-mingru-small-k4 --grid 32 --unet-width 16
+    --levels 3 --reference none --bundle 4 --rollout-steps 4)
+REST=(--model mingru --init-from models/all-grid-mingru-rest --rest-shape fit --rollout-steps 8)
+
+case "${1:-}" in
+data)
+    make_data
+    "$BIN" simulate --family mixed --seed 1 --scenes "0..${2:-500}" --jobs "$(nproc)" \
+        --out "$DATA/mixed" 2>&1 | tail -n 1
+    "$BIN" simulate --family mixed --seed 7 --scenes 0..16 --jobs "$(nproc)" \
+        --out "$DATA/unseen_mixed" 2>&1 | tail -n 1
+    "$BIN" simulate --scene-file launch_configs/scenes/heldout/*.toml --jobs "$(nproc)" \
+        --out "$DATA/heldout" 2>&1 | tail -n 1
+    ;;
+start)
+    m=$2
+    TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start mx-rest "$m" "${REST[@]}"
+    TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start mx-small "$m" "${SMALL[@]}"
+    start pc-rest "$m" "${REST[@]}"
+    ;;
+wait)
+    wait_runs
+    ;;
+fit)
+    for run in mx-rest mx-small; do
+        "$BIN" constraints fit --model "runs/$run" --data "$DATA"/multi "$DATA"/fluid \
+            "$DATA"/mixed --max-scenes 160 2>&1 | tail -n 8 &
+    done
+    wait
+    # The paper-only control keeps its parent's fitted constraints.
+    python3 - <<'PY'
+import json
+parent = json.load(open("models/all-grid-mingru-rest/model.json"))["constraints"]
+path = "runs/pc-rest/model.json"
+meta = json.load(open(path))
+meta["constraints"] = parent
+json.dump(meta, open(path, "w"), indent=2)
+PY
+    ;;
+eval)
+    shift
+    models=()
+    for name in "$@"; do
+        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
+    done
+    for set in heldout:heldout unseen:unseen mixed:unseen_mixed; do
+        tag=${set%%:*}
+        dir=$DATA/${set#*:}
+        "$BIN" eval "${models[@]}" --device cuda --data "$dir" --split all --starts 5 \
+            --horizon 20 --no-render --out "$OUT/$tag-h20" >"$OUT/$tag-h20.log" 2>&1 &
+        "$BIN" eval "${models[@]}" --device cuda --data "$dir" --split all --horizon full \
+            --out "$OUT/$tag-full" >"$OUT/$tag-full.log" 2>&1 &
+    done
+    wait
+    find "$OUT" -name '*.gif' -delete
+    for log in "$OUT"/*-h20.log "$OUT"/*-full.log; do
+        echo "== $log"
+        tail -n 3 "$log"
+    done
+    ;;
+pack)
+    (cd "$OUT" && tar czf tables.tgz --exclude='*.gif' */table.md */table.csv \
+        */plausibility.csv */metrics.csv heldout-full/*.png mixed-full/*.png *.log \
+        2>/dev/null; ls -la tables.tgz)
+    ;;
+*)
+    sed -n '2,18p' "$0"
+    exit 2
+    ;;
+esac
