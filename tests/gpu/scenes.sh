@@ -29,8 +29,9 @@ data)
         --out "$DATA/mixed" 2>&1 | tail -n 1
     "$BIN" simulate --family mixed --seed 7 --scenes 0..16 --jobs "$(nproc)" \
         --out "$DATA/unseen_mixed" 2>&1 | tail -n 1
-    "$BIN" simulate --scene-file launch_configs/scenes/heldout/*.toml --jobs "$(nproc)" \
-        --out "$DATA/heldout" 2>&1 | tail -n 1
+    files=()
+    for f in launch_configs/scenes/heldout/*.toml; do files+=(--scene-file "$f"); done
+    "$BIN" simulate "${files[@]}" --jobs "$(nproc)" --out "$DATA/heldout" 2>&1 | tail -n 4
     ;;
 start)
     m=$2
@@ -44,7 +45,7 @@ wait)
 fit)
     for run in mx-rest mx-small; do
         "$BIN" constraints fit --model "runs/$run" --data "$DATA"/multi "$DATA"/fluid \
-            "$DATA"/mixed --max-scenes 160 2>&1 | tail -n 8 &
+            "$DATA"/mixed --max-scenes 80 2>&1 | tail -n 8 &
     done
     wait
     # The paper-only control keeps its parent's fitted constraints.

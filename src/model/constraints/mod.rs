@@ -15,7 +15,9 @@
 //!   Müller 2013, "Position Based Fluids"), the density measured on a grid as MPM does
 //!   (Kugelstadt et al. 2019), its rest density fitted so that it leaves the truth's frames
 //!   in place;
-//! - the box walls: positions clamped into the range the solver's particles stay in.
+//! - the box walls: positions clamped into the range the solver's particles stay in;
+//! - contact ([`contact`]): shape-matched bodies pushed apart where they overlap, each as a
+//!   rigid translation, before their shape matching.
 //!
 //! A scene's constraint data ([`SceneShape`]: rope chains, bodies and their rest shapes, the
 //! liquid's kernel radius and rest density, the particle spacing of each material) is built
@@ -24,6 +26,7 @@
 //! the node and offline `eval` project alike, batched and unbatched alike.
 
 mod cells;
+mod contact;
 mod density;
 pub mod fit;
 mod rope;
@@ -73,6 +76,23 @@ pub struct Constraints {
     /// The box walls.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub walls: Option<WallParams>,
+    /// Contact between shape-matched bodies (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contact: Option<ContactParams>,
+}
+
+/// Contact parameters ([`contact`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ContactParams {
+    /// Closest two particles of different bodies may come, in particle spacings of the rest
+    /// frame (the largest of the bodies' materials').
+    pub distance: f32,
+    /// Push-apart passes per frame.
+    pub iterations: usize,
+    /// Share of the closing speed two bodies leave a contact with (0 sticks, 1 is elastic;
+    /// the solver's jelly disks rebound at 0.7-0.9, docs/mpm.md check 4).
+    #[serde(default)]
+    pub restitution: f32,
 }
 
 /// Rope parameters ([`rope`]).
@@ -150,6 +170,11 @@ impl Constraints {
                 lo: 0.5 / 128.0,
                 hi: 1.0 - 0.5 / 128.0,
             }),
+            contact: Some(ContactParams {
+                distance: 1.0,
+                iterations: 3,
+                restitution: 0.8,
+            }),
         }
     }
 
@@ -161,6 +186,7 @@ impl Constraints {
             snow: self.snow.filter(|_| parts.snow),
             liquid: self.liquid.filter(|_| parts.liquid),
             walls: self.walls.filter(|_| parts.walls),
+            contact: self.contact.filter(|_| parts.contact),
         }
     }
 
@@ -194,6 +220,8 @@ pub struct Parts {
     pub liquid: bool,
     /// Box walls.
     pub walls: bool,
+    /// Contact between shape-matched bodies.
+    pub contact: bool,
 }
 
 impl Parts {
@@ -204,6 +232,7 @@ impl Parts {
         snow: true,
         liquid: true,
         walls: true,
+        contact: true,
     };
     /// No part.
     pub const NONE: Parts = Parts {
@@ -212,6 +241,7 @@ impl Parts {
         snow: false,
         liquid: false,
         walls: false,
+        contact: false,
     };
 }
 
@@ -238,10 +268,11 @@ impl std::str::FromStr for Parts {
                 "snow" => &mut parts.snow,
                 "liquid" => &mut parts.liquid,
                 "walls" => &mut parts.walls,
+                "contact" => &mut parts.contact,
                 other => {
                     return Err(format!(
                         "unknown constraint part {other:?}: expected on, off or a list of \
-                         rope, jelly, snow, liquid, walls"
+                         rope, jelly, snow, liquid, walls, contact"
                     ))
                 }
             };
@@ -265,6 +296,7 @@ impl std::fmt::Display for Parts {
             (self.snow, "snow"),
             (self.liquid, "liquid"),
             (self.walls, "walls"),
+            (self.contact, "contact"),
         ];
         let on: Vec<&str> = names.iter().filter(|(b, _)| *b).map(|(_, n)| *n).collect();
         f.write_str(&on.join(","))
@@ -305,6 +337,8 @@ pub struct SceneShape {
     spacing: [f32; COUNT],
     chains: Vec<rope::Chain>,
     bodies: Vec<shape::Body>,
+    /// Contact between the bodies (two or more of them, the part on).
+    contact: Option<contact::Contact>,
     liquid: Option<density::Liquid>,
     /// The frame before the projection (reused from frame to frame).
     before: Vec<f32>,
@@ -334,6 +368,9 @@ impl SceneShape {
                 bodies.extend(shape::bodies(rest, stride, material, m, s));
             }
         }
+        let contact = c
+            .contact
+            .and_then(|_| contact::Contact::new(&bodies, n, &spacing));
         let liquid = c.liquid.as_ref().and_then(|p| {
             let s = spacing[usize::from(Material::Liquid.id())];
             density::Liquid::new(rest, stride, material, s, p)
@@ -343,6 +380,7 @@ impl SceneShape {
             spacing,
             chains,
             bodies,
+            contact,
             liquid,
             before: Vec::new(),
         }
@@ -379,6 +417,9 @@ impl SceneShape {
             for chain in &self.chains {
                 chain.project(p, frame);
             }
+        }
+        if let (Some(p), Some(contact)) = (&c.contact, &self.contact) {
+            contact.separate(p, frame, dt);
         }
         for body in &mut self.bodies {
             if let Some(p) = c.shape_of(body.material) {

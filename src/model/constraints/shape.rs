@@ -136,6 +136,11 @@ pub(super) fn pieces(
 }
 
 impl Body {
+    /// The body's particles, in increasing order.
+    pub(super) fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+
     fn new(rest: &[f32], stride: usize, material: u8, ids: Vec<u32>) -> Self {
         let at = |i: u32| [rest[stride * i as usize], rest[stride * i as usize + 1]];
         let c = centre(ids.iter().map(|&i| at(i)), ids.len());

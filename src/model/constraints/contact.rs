@@ -1,0 +1,266 @@
+//! Contact between shape-matched bodies: two bodies never overlap. Each pair of bodies
+//! whose particles come closer than `distance` particle spacings is pushed apart along the
+//! mean direction between its close particle pairs, by the deepest overlap, the two bodies
+//! sharing the move in inverse proportion to their particle counts (equal particle masses,
+//! so momentum is kept), as a rigid translation of each body. Applied before shape matching,
+//! which then keeps each body's shape. This is position-based dynamics' rigid-body contact
+//! resolved at the body level (Müller et al. 2007, section 3.5 "Collisions"; Macklin et al.
+//! 2014, "Unified Particle Physics for Real-Time Applications", section 5: rigid bodies as
+//! shape-matched particle sets with particle-particle contacts), not per particle: a per-
+//! particle push on a few boundary particles would move a body by a fraction of its overlap.
+
+use super::cells::CellList;
+use super::shape::Body;
+use super::ContactParams;
+
+/// Closing speeds below this (domain units per time unit; about three frames of gravity at
+/// 0.016 time units a frame) are resting contact: stopped, not bounced.
+pub const RESTING: f32 = 0.5;
+
+/// A scene's bodies for contact: which body each particle belongs to.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Contact {
+    /// `[N]`: body index per particle, `u32::MAX` for particles of no shape-matched body.
+    body_of: Vec<u32>,
+    /// The particles of all bodies.
+    ids: Vec<u32>,
+    /// Per body: particle count.
+    sizes: Vec<usize>,
+    /// The contact distance: the largest spacing among the bodies' materials (domain units).
+    spacing: f32,
+}
+
+impl Contact {
+    /// The contact data of `bodies` in a scene of `n` particles, with `spacing` the particle
+    /// spacing of each material id; None with fewer than two bodies.
+    pub(super) fn new(bodies: &[Body], n: usize, spacing: &[f32]) -> Option<Self> {
+        if bodies.len() < 2 {
+            return None;
+        }
+        let mut body_of = vec![u32::MAX; n];
+        let mut ids = Vec::new();
+        let mut sizes = Vec::with_capacity(bodies.len());
+        let mut widest = 0.0f32;
+        for (b, body) in bodies.iter().enumerate() {
+            for &i in body.ids() {
+                body_of[i as usize] = b as u32;
+            }
+            ids.extend_from_slice(body.ids());
+            sizes.push(body.ids().len());
+            widest = widest.max(spacing[usize::from(body.material)]);
+        }
+        (widest > 0.0).then_some(Self {
+            body_of,
+            ids,
+            sizes,
+            spacing: widest,
+        })
+    }
+
+    /// Pushes overlapping bodies of `frame` (`[N, 4]` rows, `dt` time units after the last)
+    /// apart (module doc) and sets their velocities by an impulse along each contact normal:
+    /// a pair closing faster than [`RESTING`] leaves at `restitution` times that speed, a
+    /// slower one stops closing. The push itself does not count as velocity (the velocity
+    /// the projection gives every move, `dx / dt`, is taken back from it here).
+    pub(super) fn separate(&self, p: &ContactParams, frame: &mut [f32], dt: f32) {
+        let d = p.distance * self.spacing;
+        let mut total = vec![[0.0f32; 2]; self.sizes.len()];
+        let mut normals = std::collections::BTreeMap::new();
+        for _ in 0..p.iterations.max(1) {
+            let pushes = self.overlaps(frame, d);
+            if pushes.is_empty() {
+                break;
+            }
+            let mut shift = vec![[0.0f32; 2]; self.sizes.len()];
+            for ((a, b), (normal, depth)) in pushes {
+                normals.entry((a, b)).or_insert(normal);
+                let (na, nb) = (self.sizes[a] as f32, self.sizes[b] as f32);
+                let (wa, wb) = (nb / (na + nb), na / (na + nb));
+                for k in 0..2 {
+                    shift[a][k] += normal[k] * depth * wa;
+                    shift[b][k] -= normal[k] * depth * wb;
+                }
+            }
+            for (t, s) in total.iter_mut().zip(&shift) {
+                t[0] += s[0];
+                t[1] += s[1];
+            }
+            self.add(frame, &shift, 0);
+        }
+        if normals.is_empty() || dt <= 0.0 {
+            return;
+        }
+        let mut dv: Vec<[f32; 2]> = total.iter().map(|s| [-s[0] / dt, -s[1] / dt]).collect();
+        let mean = self.mean_velocities(frame);
+        for ((a, b), n) in normals {
+            let (ma, mb) = (self.sizes[a] as f32, self.sizes[b] as f32);
+            let rel = (mean[a][0] - mean[b][0]) * n[0] + (mean[a][1] - mean[b][1]) * n[1];
+            if rel >= 0.0 {
+                continue;
+            }
+            let target = if -rel > RESTING {
+                -p.restitution * rel
+            } else {
+                0.0
+            };
+            let j = (target - rel) / (1.0 / ma + 1.0 / mb);
+            for k in 0..2 {
+                dv[a][k] += j / ma * n[k];
+                dv[b][k] -= j / mb * n[k];
+            }
+        }
+        self.add(frame, &dv, 2);
+    }
+
+    /// Adds `by[body]` to columns `col, col + 1` of every body particle's row.
+    fn add(&self, frame: &mut [f32], by: &[[f32; 2]], col: usize) {
+        for &i in &self.ids {
+            let s = by[self.body_of[i as usize] as usize];
+            frame[4 * i as usize + col] += s[0];
+            frame[4 * i as usize + col + 1] += s[1];
+        }
+    }
+
+    /// Each body's mean velocity in `frame`.
+    fn mean_velocities(&self, frame: &[f32]) -> Vec<[f32; 2]> {
+        let mut v = vec![[0.0f32; 2]; self.sizes.len()];
+        for &i in &self.ids {
+            let b = self.body_of[i as usize] as usize;
+            v[b][0] += frame[4 * i as usize + 2];
+            v[b][1] += frame[4 * i as usize + 3];
+        }
+        for (v, &n) in v.iter_mut().zip(&self.sizes) {
+            v[0] /= n as f32;
+            v[1] /= n as f32;
+        }
+        v
+    }
+
+    /// Per pair of bodies `(a, b)`, `a < b`, with particles closer than `d`: the unit normal
+    /// from `b` towards `a` (the mean of the close pairs' directions) and the deepest overlap
+    /// `d - |x_i - x_j|`.
+    fn overlaps(
+        &self,
+        frame: &[f32],
+        d: f32,
+    ) -> std::collections::BTreeMap<(usize, usize), ([f32; 2], f32)> {
+        let list = CellList::new(frame, 4, &self.ids, d);
+        let mut acc: std::collections::BTreeMap<(usize, usize), ([f32; 2], f32)> =
+            Default::default();
+        for &i in &self.ids {
+            let bi = self.body_of[i as usize] as usize;
+            let (x, y) = (frame[4 * i as usize], frame[4 * i as usize + 1]);
+            list.around(x, y, |j| {
+                let bj = self.body_of[j] as usize;
+                if bj <= bi {
+                    return;
+                }
+                let (dx, dy) = (x - frame[4 * j], y - frame[4 * j + 1]);
+                let r = dx.hypot(dy);
+                if r < d && r > 0.0 {
+                    let e = acc.entry((bi, bj)).or_insert(([0.0; 2], 0.0));
+                    e.0[0] += dx / r;
+                    e.0[1] += dy / r;
+                    e.1 = e.1.max(d - r);
+                }
+            });
+        }
+        acc.into_iter()
+            .filter_map(|(pair, (n, depth))| {
+                let len = n[0].hypot(n[1]);
+                (len > 0.0).then(|| (pair, ([n[0] / len, n[1] / len], depth)))
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::shape;
+    use super::*;
+
+    /// Two 6 x 6 lattices of jelly (spacing 0.01), the second `gap` to the right of the first.
+    fn two_blocks(gap: f32) -> (Vec<f32>, Vec<u8>) {
+        let mut frame = Vec::new();
+        for x0 in [0.3f32, 0.3 + 0.05 + gap] {
+            for i in 0..6 {
+                for j in 0..6 {
+                    frame.extend([x0 + 0.01 * i as f32, 0.5 + 0.01 * j as f32, 0.0, 0.0]);
+                }
+            }
+        }
+        let material = vec![1u8; frame.len() / 4];
+        (frame, material)
+    }
+
+    #[test]
+    fn overlapping_bodies_are_pushed_apart_and_their_centre_stays() {
+        let (rest, material) = two_blocks(0.04);
+        let bodies = shape::bodies(&rest, 4, &material, 1, 0.01);
+        assert_eq!(bodies.len(), 2);
+        let contact = Contact::new(&bodies, material.len(), &[0.0, 0.01, 0.0, 0.0]).unwrap();
+        // The second block moved 0.035 left: its first column 0.005 from the first's last.
+        let mut frame = rest.clone();
+        for row in frame.chunks_exact_mut(4).skip(36) {
+            row[0] -= 0.035;
+        }
+        let before: f32 = frame.chunks_exact(4).map(|r| r[0]).sum();
+        let p = ContactParams {
+            distance: 1.0,
+            iterations: 4,
+            restitution: 0.8,
+        };
+        contact.separate(&p, &mut frame, 0.016);
+        let gap = frame
+            .chunks_exact(4)
+            .skip(36)
+            .map(|r| r[0])
+            .fold(1.0, f32::min)
+            - frame
+                .chunks_exact(4)
+                .take(36)
+                .map(|r| r[0])
+                .fold(0.0, f32::max);
+        assert!(gap >= 0.01 - 1e-5, "gap {gap}");
+        let after: f32 = frame.chunks_exact(4).map(|r| r[0]).sum();
+        assert!((after - before).abs() < 1e-3, "{before} -> {after}");
+        // Bodies apart are left alone.
+        let mut apart = rest.clone();
+        contact.separate(&p, &mut apart, 0.016);
+        assert_eq!(apart, rest);
+    }
+
+    #[test]
+    fn closing_bodies_bounce_with_the_restitution_and_resting_ones_stop() {
+        let (rest, material) = two_blocks(0.04);
+        let bodies = shape::bodies(&rest, 4, &material, 1, 0.01);
+        let contact = Contact::new(&bodies, material.len(), &[0.0, 0.01, 0.0, 0.0]).unwrap();
+        let p = ContactParams {
+            distance: 1.0,
+            iterations: 3,
+            restitution: 0.8,
+        };
+        let close = |speed: f32| {
+            let mut frame = rest.clone();
+            for (k, row) in frame.chunks_exact_mut(4).enumerate() {
+                if k >= 36 {
+                    row[0] -= 0.035;
+                }
+                row[2] = if k < 36 { speed } else { -speed };
+            }
+            contact.separate(&p, &mut frame, 0.016);
+            let mean =
+                |rows: &mut dyn Iterator<Item = &[f32]>| rows.map(|r| r[2]).sum::<f32>() / 36.0;
+            (
+                mean(&mut frame.chunks_exact(4).take(36)),
+                mean(&mut frame.chunks_exact(4).skip(36)),
+            )
+        };
+        // Closing at 2 (1 each): they leave at 1.6; the push took no velocity.
+        let (a, b) = close(1.0);
+        assert!((a + 0.8).abs() < 1e-3 && (b - 0.8).abs() < 1e-3, "{a} {b}");
+        // Closing at 0.2: resting contact, stopped.
+        let (a, b) = close(0.1);
+        assert!(a.abs() < 1e-3 && b.abs() < 1e-3, "{a} {b}");
+    }
+}
