@@ -13,7 +13,7 @@
 
 use std::time::Instant;
 
-use crate::model::store::{SceneStep, SceneSteps, State, StoreError};
+use crate::model::store::{Predict, SceneStep, SceneSteps, State, StoreError};
 use crate::ops::NetOps;
 
 use super::run::{NodeLoop, Pending};
@@ -46,7 +46,7 @@ struct Job<B: burn::tensor::backend::Backend> {
     dt: f32,
     state: State<B>,
     /// A whole network call (K frames: a rollout's) or the next frame alone.
-    whole: bool,
+    predict: Predict,
     /// The input frame of a live job; None for a rollout's call.
     input: Option<Pending>,
 }
@@ -98,10 +98,11 @@ impl<B: NetOps> NodeLoop<'_, B> {
             };
             jobs.extend(job);
         }
-        let (whole, single): (Vec<_>, Vec<_>) = jobs.into_iter().partition(|j| j.whole);
-        for (group, whole) in [(single, false), (whole, true)] {
+        let (bundles, single): (Vec<_>, Vec<_>) =
+            jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
+        for (group, predict) in [(single, Predict::Next), (bundles, Predict::Bundle)] {
             if !group.is_empty() {
-                self.run_jobs(group, whole);
+                self.run_jobs(group, predict);
             }
         }
         self.publish_due_rollouts();
@@ -130,17 +131,21 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         // In closed loop the scene's T-th frame starts the rollout: a whole network call
         // (K frames for a bundled model); before it, and fed live frames, one step.
-        let whole = self.options.rollout.is_some() && state.frames + 1 >= self.window;
-        if whole {
+        let starts_rollout = self.options.rollout.is_some() && state.frames + 1 >= self.window;
+        if starts_rollout {
             self.scenes.mark_rolled_out(scene);
         }
+        let predict = match starts_rollout {
+            true => Predict::Bundle,
+            false => Predict::Next,
+        };
         Some(Job {
             scene: scene.to_owned(),
             rows: state_rows(&input.frame),
             material: input.frame.material.clone(),
             dt: input.frame.dt,
             state,
-            whole,
+            predict,
             input: Some(input),
         })
     }
@@ -154,7 +159,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             material: call.material,
             dt: call.dt,
             state: call.state,
-            whole: true,
+            predict: Predict::Bundle,
             input: None,
         })
     }
@@ -178,9 +183,9 @@ impl<B: NetOps> NodeLoop<'_, B> {
         }
     }
 
-    /// Steps `jobs` (all `whole` or none) through `Surrogate::step_scenes` and hands each
+    /// Steps `jobs` (all of them `predict`) through `Surrogate::step_scenes` and hands each
     /// its result.
-    fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, whole: bool) {
+    fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, predict: Predict) {
         let placeholder = || self.surrogate.init_state();
         let steps: Vec<SceneStep<'_, B>> = jobs
             .iter_mut()
@@ -195,7 +200,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             results,
             calls,
             times,
-        } = self.surrogate.step_scenes(steps, whole);
+        } = self.surrogate.step_scenes(steps, predict);
         self.batches.record(&calls);
         self.times.step += times;
         for (job, result) in jobs.into_iter().zip(results) {
@@ -230,7 +235,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 self.emit_timed(&next, input.arrived);
                 Some(state)
             }
-            Some(k) if job.whole => {
+            Some(k) if job.predict == Predict::Bundle => {
                 let rate = self.options.rate;
                 self.rollouts.start(&input.frame, bundle, state, k, rate);
                 None
