@@ -16,27 +16,10 @@ use std::time::Instant;
 use crate::model::store::{Predict, SceneStep, SceneSteps, State, StoreError};
 use crate::ops::NetOps;
 
-use super::run::{NodeLoop, Pending};
+use super::frames::{predicted_frame, state_rows};
+use super::node_loop::NodeLoop;
 use super::scenes::Admitted;
-use super::{predicted_frame, state_rows};
-
-/// When the next batch is due.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Due {
-    /// Now: full, or its oldest item waited `--max-batch-delay`.
-    Now,
-    /// At this time, unless it fills up before.
-    At(Instant),
-    /// Nothing waits.
-    Nothing,
-}
-
-impl Due {
-    /// True for [`Due::Now`].
-    pub(super) fn is_now(self) -> bool {
-        self == Due::Now
-    }
-}
+use super::schedule::{Due, Pending, Waiting};
 
 /// One scene's part of a batch.
 struct Job<B: burn::tensor::backend::Backend> {
@@ -52,49 +35,24 @@ struct Job<B: burn::tensor::backend::Backend> {
 }
 
 impl<B: NetOps> NodeLoop<'_, B> {
-    /// Triton's rule (module doc) on what waits now.
+    /// Triton's rule (module doc) on what waits now ([`super::schedule::Schedule::due`]).
     pub(super) fn batch_due(&self, now: Instant) -> Due {
-        let heads = self.pending.values().filter_map(|q| q.front());
-        let oldest = heads
-            .map(|p| p.arrived)
-            .chain(self.rollouts.waiting().map(|(t, _)| t))
-            .min();
-        let Some(oldest) = oldest else {
-            return Due::Nothing;
-        };
-        let ready = self.pending.len() + self.rollouts.waiting().count();
-        let could_join = (self.scenes.live() + self.rollouts.len()).max(ready);
-        if ready >= self.options.max_batch.min(could_join).max(1) {
-            return Due::Now;
-        }
-        match oldest.checked_add(self.options.max_batch_delay) {
-            Some(t) if t > now => Due::At(t),
-            _ => Due::Now,
-        }
+        let (max_batch, delay) = (self.options.max_batch, self.options.max_batch_delay);
+        self.schedule
+            .due(now, self.scenes.live(), max_batch, delay)
     }
 
     /// Takes up to `--max-batch` items, oldest first, and steps them: the single-frame
     /// items through one set of calls, whole calls (rollouts) through another.
     pub(super) fn step_batch(&mut self) {
-        let mut waiting: Vec<(Instant, bool, String)> = self
-            .pending
-            .iter()
-            .filter_map(|(k, q)| Some((q.front()?.arrived, false, k.clone())))
-            .chain(
-                self.rollouts
-                    .waiting()
-                    .map(|(t, k)| (t, true, k.to_owned())),
-            )
-            .collect();
-        waiting.sort();
         let mut jobs = Vec::new();
-        for (_, rollout, scene) in waiting {
+        for waiting in self.schedule.oldest_first() {
             if jobs.len() >= self.options.max_batch.max(1) {
                 break;
             }
-            let job = match rollout {
-                true => self.rollout_job(&scene),
-                false => self.live_job(&scene),
+            let job = match waiting {
+                Waiting::Rollout(scene) => self.rollout_job(&scene),
+                Waiting::Live(scene) => self.live_job(&scene),
             };
             jobs.extend(job);
         }
@@ -111,11 +69,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// `scene`'s next pending frame as a job, under the state rules (None: dropped or
     /// ignored, counted as they say).
     fn live_job(&mut self, scene: &str) -> Option<Job<B>> {
-        let queue = self.pending.get_mut(scene)?;
-        let input = queue.pop_front()?;
-        if queue.is_empty() {
-            self.pending.remove(scene);
-        }
+        let input = self.schedule.take_pending(scene)?;
         self.make_room_for(scene);
         let index = input.frame.frame_index;
         let state = match self
@@ -152,7 +106,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
 
     /// The call `scene`'s rollout waits for, as a job.
     fn rollout_job(&mut self, scene: &str) -> Option<Job<B>> {
-        let call = self.rollouts.take_call(scene)?;
+        let call = self.schedule.rollouts.take_call(scene)?;
         Some(Job {
             scene: scene.to_owned(),
             rows: call.rows,
@@ -170,15 +124,15 @@ impl<B: NetOps> NodeLoop<'_, B> {
         let Some(evicted) = self.scenes.make_room_for(scene, self.options.max_scenes) else {
             return;
         };
-        self.evicted.0 += 1;
+        self.evicted.full += 1;
         // The first, then every 100th: a stream of new scenes must not flood the log.
-        if self.evicted.0 == 1 || self.evicted.0 % 100 == 0 {
+        if self.evicted.full == 1 || self.evicted.full % 100 == 0 {
             tracing::info!(
                 "{}: scene {evicted:?} evicted at --max-scenes {} ({} so far; a scene that \
                  comes back starts again)",
                 self.options.name,
                 self.options.max_scenes,
-                self.evicted.0
+                self.evicted.full
             );
         }
     }
@@ -218,7 +172,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
                         self.tally.report.rejected += 1;
                         self.scenes.keep(&job.scene, None);
                     }
-                    None => self.rollouts.cancel(&job.scene),
+                    None => self.schedule.rollouts.cancel(&job.scene),
                 }
                 self.tally.note(&job.scene, e.to_string());
                 return;
@@ -226,7 +180,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         self.tally.report.predicted += 1;
         let Some(input) = job.input else {
-            self.rollouts.feed(&job.scene, bundle, state);
+            self.schedule.rollouts.feed(&job.scene, bundle, state);
             return;
         };
         let keep = match self.options.rollout {
@@ -237,7 +191,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             }
             Some(k) if job.predict == Predict::Bundle => {
                 let rate = self.options.rate;
-                self.rollouts.start(&input.frame, bundle, state, k, rate);
+                self.schedule.rollouts.start(&input.frame, bundle, state, k, rate);
                 None
             }
             Some(_) => Some(state),
