@@ -12,10 +12,10 @@
 //! resumable checkpoint, [`checkpoint::RunOutput`]), [`optimizer`] the fused Adam optimizer,
 //! [`source`] the batch sources. Used by `minflow train` and `minflow bench train`.
 
-pub mod optimizer;
 pub mod checkpoint;
 pub mod epochs;
 pub mod grid;
+pub mod optimizer;
 pub mod paper;
 pub mod source;
 

@@ -138,7 +138,11 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
                     state: st.take().unwrap(),
                 })
                 .collect();
-            let predict = if whole { Predict::Bundle } else { Predict::Next };
+            let predict = if whole {
+                Predict::Bundle
+            } else {
+                Predict::Next
+            };
             let batch = s.step_scenes(steps, predict);
             assert_eq!(batch.calls, [1, 3], "{model}: one call per particle count");
             for (k, result) in batch.results.into_iter().enumerate() {

@@ -42,7 +42,7 @@ impl<B: NetOps> GridModel<B> {
         let [b, n_p, _] = input.pos.dims();
         let device = input.pos.device();
         let vel = input.vel.clone() / pairs(self.vel_scale, self.window, &device); // [B, N, 2T], normalised
-        // Variant (a): F carried, advected after every frame; its features replace the fit's.
+                                                                                   // Variant (a): F carried, advected after every frame; its features replace the fit's.
         let carried = self.advects().then(|| self.carried(&input, [b, n_p]));
         // P2G: the separable dense transfers where the backend has no sparse ones.
         let s = transfer::stencil(input.pos.clone(), self.n, B::dense_stencil());

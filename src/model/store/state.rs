@@ -211,7 +211,12 @@ impl<B: Backend> GridState<B> {
     /// bundle's last) taken from the projected frames, so the next call reads the
     /// velocities a caller feeding back the projected frames sees; a mirror ensemble's
     /// second copy mirrored. Left as is when K <= T - 1.
-    pub(super) fn history_from(&mut self, out: &[Vec<f32>], [b, n]: [usize; 2], device: &B::Device) {
+    pub(super) fn history_from(
+        &mut self,
+        out: &[Vec<f32>],
+        [b, n]: [usize; 2],
+        device: &B::Device,
+    ) {
         let Some(history) = &self.history else {
             return;
         };

@@ -210,7 +210,8 @@ impl<B: NetOps> Surrogate<B> {
         state: State<B>,
     ) -> Result<(Vec<f32>, State<B>), StoreError> {
         // On the CPU: on the rayon pool with a worker awake (`NetOps::run_step`).
-        let (mut out, state) = B::run_step(|| self.step_here(frames, material, dt, state, Predict::Next))?;
+        let (mut out, state) =
+            B::run_step(|| self.step_here(frames, material, dt, state, Predict::Next))?;
         Ok((out.swap_remove(0), state))
     }
 

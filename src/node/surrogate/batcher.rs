@@ -38,8 +38,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// Triton's rule (module doc) on what waits now ([`super::schedule::Schedule::due`]).
     pub(super) fn batch_due(&self, now: Instant) -> Due {
         let (max_batch, delay) = (self.options.max_batch, self.options.max_batch_delay);
-        self.schedule
-            .due(now, self.scenes.live(), max_batch, delay)
+        self.schedule.due(now, self.scenes.live(), max_batch, delay)
     }
 
     /// Takes up to `--max-batch` items, oldest first, and steps them: the single-frame
@@ -191,7 +190,9 @@ impl<B: NetOps> NodeLoop<'_, B> {
             }
             Some(k) if job.predict == Predict::Bundle => {
                 let rate = self.options.rate;
-                self.schedule.rollouts.start(&input.frame, bundle, state, k, rate);
+                self.schedule
+                    .rollouts
+                    .start(&input.frame, bundle, state, k, rate);
                 None
             }
             Some(_) => Some(state),

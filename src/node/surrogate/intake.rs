@@ -182,8 +182,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// Sharded: counts and logs a scene this node meets mid-stream (it owns it now: a
     /// member left, or this node joined), whose state starts again from this frame.
     fn note_takeover(&mut self, scene: &str, index: u32) {
-        let fresh =
-            index != 0 && !self.scenes.contains(scene) && !self.schedule.has_pending(scene);
+        let fresh = index != 0 && !self.scenes.contains(scene) && !self.schedule.has_pending(scene);
         if self.shard.is_none() || !fresh {
             return;
         }

@@ -62,4 +62,3 @@ pub use frames::state_rows;
 pub use options::{summary, NodeOptions, NodeReport, OnGap};
 pub use report::LOOP_STAGES;
 pub use run::run;
-

@@ -15,8 +15,8 @@ use crate::viz::PredictionView;
 
 use super::options::{summary, NodeOptions, NodeReport};
 use super::report::{log_latencies, wall_time, BatchStats, StageTimes, Tally};
-use super::schedule::Schedule;
 use super::scenes::Scenes;
+use super::schedule::Schedule;
 use super::shard::Shard;
 
 /// The node's state between loop iterations: per-scene hidden states, pending frames,

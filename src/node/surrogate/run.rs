@@ -81,12 +81,12 @@ fn join_shard(
         return Ok(None);
     };
     let Some(session) = transport.zenoh_session() else {
-        return Err(TransportError::Declare {
-            transport: transport.kind(),
-            what: "shard group",
-            topic: group.clone(),
-            reason: "--shard needs --transport zenoh (zenoh liveliness tokens)".into(),
-        });
+        return Err(TransportError::declare(
+            transport.kind(),
+            "shard group",
+            group.clone(),
+            "--shard needs --transport zenoh (zenoh liveliness tokens)",
+        ));
     };
     let shard = Shard::join(&session, group, &options.name)?;
     tracing::info!(
