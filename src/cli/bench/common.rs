@@ -97,10 +97,15 @@ pub(crate) fn synthetic(n: usize, frames: usize) -> Trajectory {
 /// Seconds per epoch of a benchmark run: the warm-up epochs' total, then the timed ones'
 /// mean and maximum, and the mean seconds waiting for the device and for host batches.
 pub(crate) struct EpochMeans {
+    /// The warm-up epochs' total seconds.
     pub warmup: f64,
+    /// Mean seconds of a timed epoch.
     pub mean: f64,
+    /// The longest timed epoch, seconds.
     pub max: f64,
+    /// Mean seconds per epoch waiting for the device.
     pub wait: f64,
+    /// Mean seconds per epoch waiting for host batches.
     pub data: f64,
 }
 

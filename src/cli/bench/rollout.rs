@@ -27,6 +27,7 @@ use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
 use crate::sim::SceneRun;
 
+/// The flags of `minflow bench rollout`.
 #[derive(Debug, Args)]
 pub struct RolloutBenchArgs {
     /// Run folders of trained models (repeatable), e.g. models/all-grid-mingru.

@@ -21,6 +21,7 @@ use crate::cli::Outcome;
 use crate::msgs::{Header, ParticleFrame, Time};
 use crate::transport::{self, wait_for_subscribers, TransportKind};
 
+/// Which side of `bench transport` a process is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Role {
     /// Subscribe, start the publisher process, print the table.
@@ -29,6 +30,7 @@ pub enum Role {
     Publisher,
 }
 
+/// The flags of `minflow bench transport`.
 #[derive(Debug, Args)]
 pub struct TransportBenchArgs {
     #[command(flatten)]
@@ -70,6 +72,10 @@ fn frame(n: usize, scene: &str, index: u32) -> ParticleFrame {
     }
 }
 
+/// Runs `minflow bench transport` as its `--role` says.
+///
+/// # Errors
+/// A transport that cannot be opened, a publisher process that fails.
 pub fn run(args: TransportBenchArgs) -> anyhow::Result<Outcome> {
     match args.role {
         Role::Publisher => publish(&args),

@@ -33,8 +33,10 @@ pub enum Predict {
 /// A trained model ready for step-by-step prediction in physical units.
 pub struct Surrogate<B: Backend> {
     net: Net<B>,
+    /// The model's description (`model.json`).
     pub(super) meta: ModelMeta,
     scaling: Scaling,
+    /// Where the network runs.
     pub(super) device: B::Device,
     mirror: bool,
     pad_batches: bool,

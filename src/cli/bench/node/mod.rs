@@ -40,6 +40,7 @@ use crate::ops::NetOps;
 use crate::transport::TransportKind;
 use through::through_node;
 
+/// The flags of `minflow bench node`.
 #[derive(Debug, Args)]
 pub struct NodeBenchArgs {
     /// Cores to measure (comma-separated): mlp, lstm, gru, minlstm, mingru.

@@ -22,6 +22,10 @@ use crate::train::{TrainOptions, Trainer};
 use burn::module::Module;
 use burn::tensor::backend::AutodiffBackend;
 
+/// Runs `minflow bench train --arch paper`: the table on `--device`.
+///
+/// # Errors
+/// Bad flags, a failed training epoch.
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
     let kernels = kernels(&args)?;
