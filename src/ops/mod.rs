@@ -85,7 +85,7 @@ pub(crate) const STENCIL_NODES: usize = 9;
 pub use cpu::transfer::{bspline_axis, stencil_bounds};
 
 /// Plain-f32 kernels for host passes outside the tensor operations (the grid model's CPU
-/// inference pass, `model/grid/fused.rs`): the CPU backend's own product and SiLU, so such a
+/// inference pass, `model/grid/host_pass.rs`): the CPU backend's own product and SiLU, so such a
 /// pass computes what the tensor path computes up to the summation order of its products.
 pub mod host {
     use ndarray::ArrayView2;
