@@ -4,12 +4,6 @@
 
 mod bag;
 mod bench;
-mod bench_gemm;
-mod bench_node;
-mod bench_rollout;
-mod bench_train;
-mod bench_transfer;
-mod bench_transport;
 mod constraints;
 mod demo;
 pub mod device;
@@ -111,11 +105,11 @@ enum TrainCommand {
 #[derive(Debug, Subcommand)]
 enum TrainBenchCommand {
     /// Training speed per core (as `minflow bench train`).
-    Train(bench_train::TrainBenchArgs),
+    Train(bench::train::TrainBenchArgs),
     /// GPU dense-layer products per kernel (as `minflow bench gemm`).
-    Gemm(bench_gemm::GemmBenchArgs),
+    Gemm(bench::gemm::GemmBenchArgs),
     /// Rollout cost per frame against the MPM solver (as `minflow bench rollout`).
-    Rollout(bench_rollout::RolloutBenchArgs),
+    Rollout(bench::rollout::RolloutBenchArgs),
 }
 
 /// Runs a parsed [`TrainCli`] command.
@@ -124,9 +118,9 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Simulate(args) => simulate::run_offline(args),
         TrainCommand::Train(args) => train::run(args),
         TrainCommand::Eval(args) => eval::run(args),
-        TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench_train::run(args),
-        TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench_gemm::run(args),
-        TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench_rollout::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench::train::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench::gemm::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench::rollout::run(args),
         TrainCommand::Constraints(cmd) => constraints::run(cmd),
     }
 }

@@ -81,7 +81,7 @@ impl<B: NetOps> MinGru<B> {
     }
 
     /// Whole window at once: the log-space parallel scan, or on a backend with
-    /// [`NetOps::SEQUENTIAL_SCAN`] (the CPU) the same recurrence in linear space as one
+    /// [`NetOps::ON_HOST`] (the CPU) the same recurrence in linear space as one
     /// fused pass (`a = 1 - z`, `b = z g(h~)`; equal up to float rounding).
     ///
     /// # Shapes
@@ -92,7 +92,7 @@ impl<B: NetOps> MinGru<B> {
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,
     ) -> (Tensor<B, 3>, Tensor<B, 2>) {
-        if !B::SEQUENTIAL_SCAN {
+        if !B::ON_HOST {
             return self.forward_log_scan(x, h0);
         }
         let hg = linear(&self.to_hidden_and_gate, x);
@@ -159,7 +159,7 @@ impl<B: NetOps> MinLstm<B> {
         x: Tensor<B, 3>,
         h0: Option<Tensor<B, 2>>,
     ) -> (Tensor<B, 3>, Tensor<B, 2>) {
-        if !B::SEQUENTIAL_SCAN {
+        if !B::ON_HOST {
             return self.forward_log_scan(x, h0);
         }
         let hfi = linear(&self.to_hidden_and_gates, x);

@@ -20,13 +20,13 @@ use super::scan::log_scan_recurrence;
 use super::{autodiff_grid, composed_grid, NetOps};
 
 impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
-    const SEQUENTIAL_SCAN: bool = B::SEQUENTIAL_SCAN;
+    const ON_HOST: bool = B::ON_HOST;
     const FUSED_ELU_MEAN: bool = B::FUSED_ELU_MEAN;
     const NATIVE_CONV_OPS: bool = B::NATIVE_CONV_OPS;
     /// Training on a GPU keeps the dense products whatever the inner backend's inference
     /// does: they are deterministic, where CUDA's sparse P2G adds with atomics in no fixed
     /// order (`cuda_stencil.rs`), and they are what every shipped model trained with.
-    const DENSE_STENCIL: bool = !B::SEQUENTIAL_SCAN;
+    const DENSE_STENCIL: bool = !B::ON_HOST;
 
     fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
         match B::NATIVE_CONV_OPS {
@@ -99,7 +99,7 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
         b: FloatTensor<Self>,
         h0: Option<FloatTensor<Self>>,
     ) -> FloatTensor<Self> {
-        if !B::SEQUENTIAL_SCAN {
+        if !B::ON_HOST {
             return log_scan_recurrence::<Self>(a, b, h0);
         }
         macro_rules! node {

@@ -4,7 +4,7 @@
 //! pooling, the linear recurrence of minGRU / minLSTM, one Adam step, and the grid model's
 //! im2col / col2im, SiLU and particle <-> grid stencil transfers. `model/` builds its networks
 //! on these (through the tensor-level functions re-exported here, [`linear`], [`elu`],
-//! [`recurrence`], ...), and `train::adam` on [`NetOps::adam_step`]. Nothing here imports
+//! [`recurrence`], ...), and `train::optimizer` on [`NetOps::adam_step`]. Nothing here imports
 //! `model`.
 //!
 //! Every method has a default composed from burn's tensor operations, so any backend opts in
@@ -18,7 +18,7 @@
 //! - [`mingru`]: the minGRU's activation `g` and its inference update.
 //! - [`scan`]: the recurrence in burn's tensor operations (Heinsen's log-space parallel scan,
 //!   the default, and its reverse-loop backward).
-//! - [`adam`]: [`AdamStep`], the scalars of one Adam step, and its composed default.
+//! - [`adam_step`]: [`AdamStep`], the scalars of one Adam step, and its composed default.
 //! - [`prepared`]: [`PreparedWeights`], a convolution's weights as a backend prepared them
 //!   for inference, kept by the module that owns the convolution.
 //! - `autodiff.rs`: the impl for `Autodiff<B>`: one graph node per fused forward, whose
@@ -28,7 +28,7 @@
 //!   their shared helpers): `gemm.rs` (dense layers), `activation.rs` (ELU, SiLU),
 //!   `elu_mean.rs` (the encoder's first layer and pooling in one pass), `scan.rs` (the
 //!   sequential recurrence), `mingru.rs` (the minGRU's and minLSTM's inference updates in one
-//!   pass), `adam.rs`, `conv.rs` (im2col, col2im), `winograd.rs` (the inference forward of the
+//!   pass), `adam_pass.rs` (one Adam step), `conv.rs` (im2col, col2im), `winograd.rs` (the inference forward of the
 //!   3x3 convolutions by Winograd F(4x4, 3x3)), `grid.rs` (the grid channels, 2x2 pooling and
 //!   2x upsampling for inference), `transfer.rs` (the stencil, its gather and scatter-add) and
 //!   `pool.rs` (a whole inference step on the rayon pool with a worker kept awake).
@@ -47,7 +47,7 @@
 //! GPU ([`cublas::open`]) and read back through [`NetOps::kernels`] from a tensor's device;
 //! the CPU has none to choose.
 
-pub mod adam;
+pub mod adam_step;
 mod autodiff;
 mod autodiff_grid;
 pub mod composed;
@@ -67,7 +67,7 @@ pub mod prepared;
 pub mod scan;
 mod tensor;
 
-pub use adam::AdamStep;
+pub use adam_step::AdamStep;
 pub use prepared::PreparedWeights;
 pub use tensor::{
     elu, gather, grid_channels, host_indices, host_values, im2col, linear, linear_elu,
@@ -85,7 +85,7 @@ pub(crate) const STENCIL_NODES: usize = 9;
 pub use cpu::transfer::{bspline_axis, stencil_bounds};
 
 /// Plain-f32 kernels for host passes outside the tensor operations (the grid model's CPU
-/// inference pass, `model/grid/fused.rs`): the CPU backend's own product and SiLU, so such a
+/// inference pass, `model/grid/host_pass.rs`): the CPU backend's own product and SiLU, so such a
 /// pass computes what the tensor path computes up to the summation order of its products.
 pub mod host {
     use ndarray::ArrayView2;
@@ -216,7 +216,7 @@ pub trait NetOps: Backend {
         v: Option<FloatTensor<Self>>,
         c: &AdamStep,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        adam::composed_adam::<Self>(param, grad, m, v, c)
+        adam_step::composed_adam::<Self>(param, grad, m, v, c)
     }
 
     /// Runs one inference step `f` where this backend's kernels start their parallel passes
@@ -415,17 +415,19 @@ pub trait NetOps: Backend {
         composed::composed_elu_mean::<Self>(x, w, b)
     }
 
-    /// True where [`NetOps::recurrence`] is a fused sequential pass (the CPU backend):
-    /// minGRU and minLSTM then train through it in linear space; elsewhere they use the
-    /// log-space parallel scan, which is what pays on a GPU.
-    const SEQUENTIAL_SCAN: bool = false;
+    /// True where the backend computes on the host (the CPU backend). Then
+    /// [`NetOps::recurrence`] is a fused sequential pass, through which minGRU and minLSTM
+    /// train in linear space (elsewhere they use the log-space parallel scan, which is what
+    /// pays on a GPU), and the grid model's inference takes its host passes (the
+    /// per-particle part, the rest-shape features).
+    const ON_HOST: bool = false;
 
     /// True where the grid model applies its particle-grid stencils in their separable dense
     /// form, two batched products per transfer (`model::grid::transfer`), instead of
-    /// [`NetOps::stencil_gather`] / [`NetOps::stencil_splat`]. By default wherever the scan is
-    /// parallel (an accelerator without its own transfer kernels: burn's composed scatter is
-    /// far slower there); false on the CPU, which has its own.
-    const DENSE_STENCIL: bool = !Self::SEQUENTIAL_SCAN;
+    /// [`NetOps::stencil_gather`] / [`NetOps::stencil_splat`]. By default off the host (an
+    /// accelerator without its own transfer kernels: burn's composed scatter is far slower
+    /// there); false on the CPU, which has its own.
+    const DENSE_STENCIL: bool = !Self::ON_HOST;
 
     /// Whether the model takes the dense transfers this run: [`NetOps::DENSE_STENCIL`],
     /// unless a backend lets the environment choose (CUDA inference: `MINFLOW_CUDA_TRANSFERS`).

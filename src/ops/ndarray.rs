@@ -7,7 +7,7 @@
 use burn::backend::NdArray;
 use burn::tensor::ops::{FloatTensor, IntTensor};
 
-use super::adam::{composed_adam, AdamStep};
+use super::adam_step::{composed_adam, AdamStep};
 use super::composed::{
     composed_elu_backward, composed_elu_mean, composed_linear, composed_linear_backward,
 };
@@ -62,13 +62,13 @@ impl NetOps for NdArray<f32> {
         v: Option<FloatTensor<Self>>,
         c: &AdamStep,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        match cpu::adam::adam(param, &grad, m, v, c) {
+        match cpu::adam_pass::adam(param, &grad, m, v, c) {
             Ok(out) => out,
             Err((param, m, v)) => composed_adam::<Self>(param, grad, m, v, c),
         }
     }
 
-    const SEQUENTIAL_SCAN: bool = true;
+    const ON_HOST: bool = true;
     const FUSED_ELU_MEAN: bool = true;
     const NATIVE_CONV_OPS: bool = true;
 

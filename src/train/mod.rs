@@ -9,13 +9,13 @@
 //!
 //! Shared here: the error type, the per-epoch record, the progress observer and the seeded
 //! CPU draw of initial weights. [`checkpoint`] is what a run writes (the kept model, the
-//! resumable checkpoint, [`checkpoint::RunOutput`]), [`adam`] the fused Adam step,
+//! resumable checkpoint, [`checkpoint::RunOutput`]), [`optimizer`] the fused Adam optimizer,
 //! [`source`] the batch sources. Used by `minflow train` and `minflow bench train`.
 
-pub mod adam;
 pub mod checkpoint;
 pub mod epochs;
 pub mod grid;
+pub mod optimizer;
 pub mod paper;
 pub mod source;
 

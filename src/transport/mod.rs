@@ -119,6 +119,25 @@ pub enum TransportError {
     Topic(String),
 }
 
+impl TransportError {
+    /// [`TransportError::Declare`]: `what` (a publisher, a subscriber, ...) could not be
+    /// declared on `topic` over `transport`, because `reason`. Every transport builds its
+    /// declaration errors through this.
+    pub fn declare(
+        transport: TransportKind,
+        what: &'static str,
+        topic: impl Into<String>,
+        reason: impl Into<String>,
+    ) -> Self {
+        TransportError::Declare {
+            transport,
+            what,
+            topic: topic.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
 /// Why a received message is not a usable frame ([`Sample::frame`], [`Sample::decode`],
 /// [`Sample::cdr`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -269,12 +288,12 @@ pub trait Transport: Send + Sync {
     /// # Errors
     /// [`TransportError::Declare`]; the default says the transport has none.
     fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
-        Err(TransportError::Declare {
-            transport: self.kind(),
-            what: "status publisher",
-            topic: topic.to_owned(),
-            reason: "not supported by this transport".into(),
-        })
+        Err(TransportError::declare(
+            self.kind(),
+            "status publisher",
+            topic.to_owned(),
+            "not supported by this transport",
+        ))
     }
 
     /// The zenoh session under this transport, for callers that need zenoh beyond frames
@@ -293,12 +312,12 @@ pub trait Transport: Send + Sync {
         sink: Sender<SurrogateStatus>,
     ) -> Result<Box<dyn Subscription>, TransportError> {
         let _ = sink;
-        Err(TransportError::Declare {
-            transport: self.kind(),
-            what: "status subscriber",
-            topic: topic.to_owned(),
-            reason: "not supported by this transport".into(),
-        })
+        Err(TransportError::declare(
+            self.kind(),
+            "status subscriber",
+            topic.to_owned(),
+            "not supported by this transport",
+        ))
     }
 }
 

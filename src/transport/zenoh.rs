@@ -82,12 +82,8 @@ impl Transport for ZenohTransport {
 
     fn publisher(&self, topic: &str) -> Result<Box<dyn FramePublisher>, TransportError> {
         let key = topic_key(topic)?.to_owned();
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what: "publisher",
-            topic: topic.to_owned(),
-            reason,
-        };
+        let declare_err =
+            |reason: String| TransportError::declare(KIND, "publisher", topic.to_owned(), reason);
         let publisher = self
             .session
             .declare_publisher(key.clone())
@@ -127,12 +123,8 @@ impl Transport for ZenohTransport {
         sink: Sender<Sample>,
     ) -> Result<Box<dyn Subscription>, TransportError> {
         let key = topic_key(topic)?.to_owned();
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what: "subscriber",
-            topic: topic.to_owned(),
-            reason,
-        };
+        let declare_err =
+            |reason: String| TransportError::declare(KIND, "subscriber", topic.to_owned(), reason);
         let name = topic.to_owned();
         let subscriber = self
             .session
@@ -169,16 +161,9 @@ impl Transport for ZenohTransport {
 
     fn status_publisher(&self, topic: &str) -> Result<Box<dyn StatusPublisher>, TransportError> {
         let key = topic_key(topic)?.to_owned();
-        let publisher =
-            self.session
-                .declare_publisher(key)
-                .wait()
-                .map_err(|e| TransportError::Declare {
-                    transport: KIND,
-                    what: "status publisher",
-                    topic: topic.to_owned(),
-                    reason: e.to_string(),
-                })?;
+        let publisher = self.session.declare_publisher(key).wait().map_err(|e| {
+            TransportError::declare(KIND, "status publisher", topic.to_owned(), e.to_string())
+        })?;
         Ok(Box::new(ZenohStatusPublisher {
             topic: topic.to_owned(),
             publisher,
@@ -204,11 +189,8 @@ impl Transport for ZenohTransport {
                 },
             )
             .wait()
-            .map_err(|e| TransportError::Declare {
-                transport: KIND,
-                what: "status subscriber",
-                topic: topic.to_owned(),
-                reason: e.to_string(),
+            .map_err(|e| {
+                TransportError::declare(KIND, "status subscriber", topic.to_owned(), e.to_string())
             })?;
         Ok(Box::new(ZenohSubscription {
             _subscriber: subscriber,

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use burn::backend::NdArray;
 use minflow::data::Trajectory;
 use minflow::model::constraints::{self, Constraints, Parts};
-use minflow::model::store::{parse_meta, SceneStep, Surrogate};
+use minflow::model::store::{parse_meta, Predict, SceneStep, Surrogate};
 
 fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -173,7 +173,7 @@ fn batched_projected_steps_equal_steps_one_scene_at_a_time() {
                 state: st.take().unwrap(),
             })
             .collect();
-        let batch = s.step_scenes(steps, false);
+        let batch = s.step_scenes(steps, Predict::Next);
         assert_eq!(batch.calls, [3]);
         for (i, result) in batch.results.into_iter().enumerate() {
             let (out, st) = result.unwrap();

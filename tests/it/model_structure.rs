@@ -295,7 +295,7 @@ fn neighbourhoods_stay_in_their_scene() {
     }
 }
 
-/// CPU inference's per-particle host passes (`model/grid/fused.rs`: the input rows, the head,
+/// CPU inference's per-particle host passes (`model/grid/host_pass.rs`: the input rows, the head,
 /// the integration) predict what the tensor path predicts, to 1e-5, over a rollout that
 /// carries the memory: minGRU, minLSTM and no memory, one frame and three frames a call,
 /// with and without the rest-shape features, two scenes of different dt in one batch; and a

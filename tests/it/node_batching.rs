@@ -12,7 +12,7 @@ use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
 use burn::backend::NdArray;
-use minflow::model::store::{SceneStep, Surrogate};
+use minflow::model::store::{Predict, SceneStep, Surrogate};
 use minflow::msgs::{ParticleFrame, Time};
 use minflow::node::surrogate::state_rows;
 use minflow::transport::{self, Sample, Transport};
@@ -138,7 +138,12 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
                     state: st.take().unwrap(),
                 })
                 .collect();
-            let batch = s.step_scenes(steps, whole);
+            let predict = if whole {
+                Predict::Bundle
+            } else {
+                Predict::Next
+            };
+            let batch = s.step_scenes(steps, predict);
             assert_eq!(batch.calls, [1, 3], "{model}: one call per particle count");
             for (k, result) in batch.results.into_iter().enumerate() {
                 let (out, st) = result.unwrap();

@@ -82,12 +82,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     // One device: a data-parallel list is refused.
     device.single("train --arch grid")?;
     let run = GridFit {
-        run: (
-            config,
-            opts,
-            args.out.clone(),
-            args.grid_args.init_from.clone(),
-        ),
+        config,
+        opts,
+        out: args.out.clone(),
+        init_from: args.grid_args.init_from.clone(),
         train: &index,
         val: &val,
         scaler: &scaler,
@@ -210,7 +208,14 @@ fn init_normalisation(
 
 /// A grid run as [`super::fit_on`] starts it.
 struct GridFit<'a> {
-    run: (GridConfig, GridTrainOptions, PathBuf, Option<PathBuf>),
+    /// The architecture, as fitted to the training scenes.
+    config: GridConfig,
+    /// The training options.
+    opts: GridTrainOptions,
+    /// The run folder.
+    out: PathBuf,
+    /// The run folder of the model to start from (`--init-from`).
+    init_from: Option<PathBuf>,
     train: &'a WindowIndex,
     val: &'a [Trajectory],
     scaler: &'a Scaler,
@@ -226,13 +231,12 @@ impl super::FitOn for GridFit<'_> {
     where
         B::InnerBackend: NetOps,
     {
-        let (config, opts, out, init_from) = self.run;
         GridTrainer::<B> {
-            config,
-            opts,
-            out,
+            config: self.config,
+            opts: self.opts,
+            out: self.out,
             device: devices.swap_remove(0),
-            init_from,
+            init_from: self.init_from,
         }
         .fit(
             self.train,

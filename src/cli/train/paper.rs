@@ -59,7 +59,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
                scaler: &Scaler,
                progress: &mut Progress| {
         let run = PaperFit {
-            run: (config.clone(), args.options(), args.out.clone()),
+            config: config.clone(),
+            opts: args.options(),
+            out: args.out.clone(),
             train,
             val,
             scaler,
@@ -167,7 +169,12 @@ fn load(inputs: &[PathBuf], topic: Option<&str>) -> anyhow::Result<(Vec<Trajecto
 
 /// A paper run as [`super::fit_on`] starts it.
 struct PaperFit<'a, 't, 'v> {
-    run: (ModelConfig, TrainOptions, PathBuf),
+    /// The architecture.
+    config: ModelConfig,
+    /// The training options.
+    opts: TrainOptions,
+    /// The run folder.
+    out: PathBuf,
     train: &'t mut dyn BatchSource,
     val: Option<&'v mut dyn BatchSource>,
     scaler: &'a Scaler,
@@ -183,8 +190,7 @@ impl super::FitOn for PaperFit<'_, '_, '_> {
     where
         B::InnerBackend: NetOps,
     {
-        let (config, opts, out) = self.run;
-        Trainer::<B>::data_parallel(config, opts, out, devices).fit_observed(
+        Trainer::<B>::data_parallel(self.config, self.opts, self.out, devices).fit_observed(
             self.train,
             self.val,
             self.scaler,

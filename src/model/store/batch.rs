@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::ops::AddAssign;
 use std::time::{Duration, Instant};
 
-use super::{State, StoreError, Surrogate};
+use super::{Predict, State, StoreError, Surrogate};
 use crate::ops::NetOps;
 
 /// One scene's input to [`Surrogate::step_scenes`].
@@ -32,8 +32,8 @@ pub struct SceneStep<'a, B: burn::tensor::backend::Backend> {
 
 /// What [`Surrogate::step_scenes`] returns.
 pub struct SceneSteps<B: burn::tensor::backend::Backend> {
-    /// Per scene, in the input's order: the predicted frames (`[N, 4]` each; K of them when
-    /// `whole`, else the next one) and the scene's state after them, or why not.
+    /// Per scene, in the input's order: the predicted frames (`[N, 4]` each; K of them for
+    /// [`Predict::Bundle`], else the next one) and the scene's state after them, or why not.
     pub results: Vec<Result<(Vec<Vec<f32>>, State<B>), StoreError>>,
     /// Scenes per network call, one entry per call.
     pub calls: Vec<usize>,
@@ -67,8 +67,8 @@ impl AddAssign for StepTimes {
 }
 
 impl<B: NetOps> Surrogate<B> {
-    /// Steps every scene of `scenes` once: [`Surrogate::step`] (`whole`: false) or
-    /// [`Surrogate::step_bundle`] (true) on each, with scenes of equal particle count and
+    /// Steps every scene of `scenes` once: [`Surrogate::step`] ([`Predict::Next`]) or
+    /// [`Surrogate::step_bundle`] ([`Predict::Bundle`]) on each, with scenes of equal particle count and
     /// state shape stacked into one network call (module doc). The predictions equal those
     /// of stepping each scene alone (to float rounding: about 1e-6).
     ///
@@ -78,7 +78,7 @@ impl<B: NetOps> Surrogate<B> {
     /// # Errors
     /// Per scene, in `results`: a step's [`StoreError`] (every scene of a failed call gets
     /// its message).
-    pub fn step_scenes(&self, scenes: Vec<SceneStep<'_, B>>, whole: bool) -> SceneSteps<B> {
+    pub fn step_scenes(&self, scenes: Vec<SceneStep<'_, B>>, predict: Predict) -> SceneSteps<B> {
         let mut groups: BTreeMap<(usize, Vec<usize>), Vec<usize>> = BTreeMap::new();
         for (i, s) in scenes.iter().enumerate() {
             let key = (s.material.len(), s.state.shape_key());
@@ -92,7 +92,7 @@ impl<B: NetOps> Surrogate<B> {
             let group: Vec<SceneStep<'_, B>> =
                 members.iter().filter_map(|&i| slots[i].take()).collect();
             calls.push(group.len());
-            match self.step_group(group, whole, &mut times) {
+            match self.step_group(group, predict, &mut times) {
                 Ok(outs) => {
                     for (&i, out) in members.iter().zip(outs) {
                         results[i] = Some(Ok(out));
@@ -124,7 +124,7 @@ impl<B: NetOps> Surrogate<B> {
     fn step_group(
         &self,
         group: Vec<SceneStep<'_, B>>,
-        whole: bool,
+        predict: Predict,
         times: &mut StepTimes,
     ) -> Result<Vec<(Vec<Vec<f32>>, State<B>)>, StoreError> {
         let start = Instant::now();
@@ -157,7 +157,7 @@ impl<B: NetOps> Surrogate<B> {
         let called = Instant::now();
         times.stack += called - start;
         let (outs, after) =
-            B::run_step(|| self.step_here(&frames, &material, &dt, stacked, whole))?;
+            B::run_step(|| self.step_here(&frames, &material, &dt, stacked, predict))?;
         let returned = Instant::now();
         times.call += returned - called;
         let mut per: Vec<(Vec<Vec<f32>>, State<B>)> = after

@@ -6,14 +6,20 @@
 //! scaler, the window T) and `model.mpk` (weights, burn's named MessagePack, full
 //! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
 //! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
-//! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`).
+//! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; a grid model's step in
+//! `grid_step.rs`, dynamic batching in `batch.rs`), whose per-batch [`State`] lives in
+//! `state.rs` (stacked and split by `stack.rs`; its constraint data in `constrained.rs`).
 
 mod batch;
+mod constrained;
+mod grid_step;
 mod stack;
+mod state;
 mod surrogate;
 
 pub use batch::{SceneStep, SceneSteps, StepTimes};
-pub use surrogate::{State, Surrogate};
+pub use state::State;
+pub use surrogate::{Predict, Surrogate};
 
 use super::grid::{GridConfig, GridModel};
 use super::{Model, ModelConfig, Scaling};

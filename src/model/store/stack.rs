@@ -7,22 +7,20 @@
 //! stacked piece holds the scenes' rows in order, copy by copy, so a mirror ensemble's
 //! stacked state is again all direct rows, then all mirrored rows.
 //!
-//! `State::stack` and `State::split` (at the end of this file) take a state apart field by field
-//! and call these; a new field of a state needs one line in each (and a [`Rows`] impl if it
-//! is a new kind of piece).
+//! `State::stack` and `State::split` (`state.rs`) take a state apart field by field and
+//! call these; a new kind of piece needs a [`Rows`] impl here.
 
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-use crate::model::grid::{mirror_rows, MemoryState, NeighbourTensors};
+use crate::model::grid::{MemoryState, NeighbourTensors};
 use crate::model::rnn::LstmState;
 use crate::model::LayerState;
 
-use super::surrogate::{NetState, State};
 use super::StoreError;
 
 /// Why pieces could not be stacked ([`StoreError::Shape`]): they differ in kind or shape.
-type StackError = StoreError;
+pub(super) type StackError = StoreError;
 
 /// A [`StoreError::Shape`] saying `reason`.
 pub(super) fn shape(reason: &str) -> StoreError {
@@ -318,27 +316,6 @@ impl<T: Rows> Rows for Vec<T> {
     }
 }
 
-/// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
-pub(super) fn with_mirror_rows(frames: &[f32]) -> Vec<f32> {
-    let mut out = Vec::with_capacity(2 * frames.len());
-    out.extend_from_slice(frames);
-    out.extend_from_slice(frames);
-    mirror_rows(&mut out[frames.len()..], 4);
-    out
-}
-
-/// The mean of the first half of `out` (`[2B, N, 4]`) and its second half mirrored back.
-pub(super) fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
-    let (direct, mirrored) = out.split_at(out.len() / 2);
-    let mut back = mirrored.to_vec();
-    mirror_rows(&mut back, 4);
-    direct
-        .iter()
-        .zip(&back)
-        .map(|(a, b)| 0.5 * (a + b))
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -380,139 +357,5 @@ mod tests {
         assert_eq!(b, [3.0, 4.0, 5.0, 6.0]);
         let mixed = Rows::stack_rows(vec![MemoryState::<B>::Empty, back[1].clone()], 1);
         assert!(mixed.is_err());
-    }
-}
-
-impl<B: Backend> State<B> {
-    /// What must be equal for states to stack ([`State::stack`]): each field's kind and
-    /// shape. States with equal keys and frames with equal particle counts share a call.
-    pub(super) fn shape_key(&self) -> Vec<usize> {
-        let mut key = Vec::new();
-        match &self.inner {
-            NetState::Paper(layers) => layers.rows_key(&mut key),
-            NetState::Grid {
-                memory,
-                history,
-                reference,
-                rest,
-                deformation,
-            } => {
-                key.push(usize::MAX);
-                memory.rows_key(&mut key); // one line per field, here and in `stack` and `split`
-                history.rows_key(&mut key);
-                reference.rows_key(&mut key);
-                rest.rows_key(&mut key);
-                deformation.rows_key(&mut key);
-            }
-        }
-        key
-    }
-
-    /// Several scenes' states (of equal [`State::shape_key`]) as one batch state, rows in
-    /// order, copy by copy (`copies` = 2 for a mirror ensemble; `stack.rs`). Frame counts
-    /// are the caller's to keep. The constraint data stacks per trajectory: a state that has
-    /// none yet counts as one trajectory (a node's scene), and the stacked state keeps no
-    /// rest frames (a node's states have none).
-    pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
-        let (mut paper, mut memory, mut history, mut reference) = (vec![], vec![], vec![], vec![]);
-        let (mut rest, mut deformation, mut shapes) = (vec![], vec![], vec![]);
-        for state in states {
-            match state.shapes.is_empty() {
-                true => shapes.push(None),
-                false => shapes.extend(state.shapes),
-            }
-            match state.inner {
-                NetState::Paper(layers) => paper.push(layers),
-                NetState::Grid {
-                    memory: m,
-                    history: h,
-                    reference: r,
-                    rest: n,
-                    deformation: f,
-                } => {
-                    (
-                        memory.push(m),
-                        history.push(h),
-                        reference.push(r),
-                        rest.push(n),
-                        deformation.push(f),
-                    );
-                }
-            }
-        }
-        let inner = match (paper.is_empty(), memory.is_empty()) {
-            (false, true) => NetState::Paper(Rows::stack_rows(paper, copies)?),
-            (true, false) => NetState::Grid {
-                memory: Rows::stack_rows(memory, copies)?,
-                history: Rows::stack_rows(history, copies)?,
-                reference: Rows::stack_rows(reference, copies)?,
-                rest: Rows::stack_rows(rest, copies)?,
-                deformation: Rows::stack_rows(deformation, copies)?,
-            },
-            _ => return Err(shape("stack: no states, or of both kinds")),
-        };
-        if shapes.iter().all(Option::is_none) {
-            shapes.clear();
-        }
-        Ok(State {
-            inner,
-            shapes,
-            rest_frames: None,
-            frames: 0,
-        })
-    }
-
-    /// A stacked state back as one state per scene, scene i of `sizes[i]` trajectories (1
-    /// for a node's scene): the inverse of [`State::stack`]. Frame counts are 0.
-    pub(super) fn split(self, sizes: &[usize], copies: usize) -> Vec<State<B>> {
-        let mut shapes = self.shapes.into_iter();
-        let total: usize = sizes.iter().sum();
-        let has_shapes = shapes.len() == total;
-        let inner: Vec<NetState<B>> = match self.inner {
-            NetState::Paper(layers) => layers
-                .split_rows(sizes, copies)
-                .into_iter()
-                .map(NetState::Paper)
-                .collect(),
-            NetState::Grid {
-                memory,
-                history,
-                reference,
-                rest,
-                deformation,
-            } => {
-                let mut history = history.split_rows(sizes, copies).into_iter();
-                let mut reference = reference.split_rows(sizes, copies).into_iter();
-                let mut rest = rest.split_rows(sizes, copies).into_iter();
-                let mut deformation = deformation.split_rows(sizes, copies).into_iter();
-                let mut grid = |memory| -> Option<NetState<B>> {
-                    Some(NetState::Grid {
-                        memory,
-                        history: history.next()?,
-                        reference: reference.next()?,
-                        rest: rest.next()?,
-                        deformation: deformation.next()?,
-                    })
-                };
-                memory
-                    .split_rows(sizes, copies)
-                    .into_iter()
-                    .filter_map(|m| grid(m))
-                    .collect()
-            }
-        };
-        inner
-            .into_iter()
-            .zip(sizes)
-            .map(|(inner, &size)| State {
-                inner,
-                shapes: match has_shapes {
-                    true => shapes.by_ref().take(size).collect(),
-                    false => Vec::new(),
-                },
-                rest_frames: None,
-                frames: 0,
-            })
-            .collect()
     }
 }

@@ -1,85 +1,49 @@
 //! [`Surrogate`]: a trained model of either architecture ready for step-by-step prediction in
-//! physical units (scaling inside), with one [`State`] per batch of trajectories: the paper
-//! core's layer states, or the grid model's per-particle memory, velocity history and
-//! reference positions. `step` predicts the next frame, `step_bundle` the K frames of one
-//! network call (temporal bundling), `rollout` feeds predictions back; a mirror ensemble
-//! steps each frame beside its mirror image. Every predicted frame is then projected onto
-//! the model's material constraints ([`crate::model::constraints`]) where the model has
-//! them and they are on ([`Surrogate::with_constraints`]); a scene's constraint data lives
-//! in its [`State`] beside the network's. Used by `eval`, `node`, `report`, `bench` and the
+//! physical units (scaling inside), with one [`State`] per batch of trajectories
+//! (`state.rs`): the paper core's layer states, or the grid model's per-particle memory,
+//! velocity history and reference positions. `step` predicts the next frame, `step_bundle`
+//! the K frames of one network call (temporal bundling; [`Predict`] says which of the two),
+//! `rollout` feeds predictions back; a mirror ensemble steps each frame beside its mirror
+//! image. Every predicted frame is then projected onto the model's material constraints
+//! ([`crate::model::constraints`]) where the model has them and they are on
+//! ([`Surrogate::with_constraints`]); a scene's constraint data lives in its [`State`]
+//! beside the network's (`constrained.rs`). Used by `eval`, `node`, `report`, `bench` and the
 //! grid trainer's validation.
 
-use super::stack::{mean_of_mirror_rows, with_mirror_rows};
+use super::state::{mean_of_mirror_rows, with_mirror_rows, GridState, NetState, State};
 use super::{ModelMeta, Net, RunFolder, StoreError};
-use crate::model::constraints::{Constraints, Correction, Parts, SceneShape};
-use crate::model::grid::{
-    one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
-};
+use crate::model::constraints::{Constraints, Correction, Parts};
 use crate::model::{LayerState, Model, Scaling};
 use crate::ops::NetOps;
 use burn::tensor::backend::Backend;
-use burn::tensor::Tensor;
 use std::path::Path;
+
+/// Which frames of a network call a step returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Predict {
+    /// The next frame alone ([`Surrogate::step`]): a bundled model makes its whole call and
+    /// returns the first frame; its state goes on from the input (the next observed frame
+    /// follows).
+    Next,
+    /// All K frames of the call ([`Surrogate::step_bundle`]): the state goes on from the
+    /// bundle's last frame.
+    Bundle,
+}
 
 /// A trained model ready for step-by-step prediction in physical units.
 pub struct Surrogate<B: Backend> {
     net: Net<B>,
-    meta: ModelMeta,
+    /// The model's description (`model.json`).
+    pub(super) meta: ModelMeta,
     scaling: Scaling,
-    device: B::Device,
+    /// Where the network runs.
+    pub(super) device: B::Device,
     mirror: bool,
     pad_batches: bool,
     /// The constraint parts applied after each predicted frame (None: no projection).
     constraints: Option<Constraints>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
     corrections: std::sync::Mutex<Correction>,
-}
-
-/// What a grid model carries between steps: memory, velocity history, reference positions,
-/// the rest neighbourhoods built from them and the advected deformation gradient.
-type GridCarry<B> = (
-    MemoryState<B>,
-    Option<Tensor<B, 3>>,
-    Option<Tensor<B, 3>>,
-    Option<NeighbourTensors<B>>,
-    Option<Tensor<B, 3>>,
-);
-
-/// Per-trajectory state (one batch row per trajectory).
-#[derive(Clone)]
-pub struct State<B: Backend> {
-    pub(super) inner: NetState<B>,
-    /// Per trajectory (batch row): its constraint data, built from its rest frame on the
-    /// first projected step (empty before; see [`Surrogate::with_constraints`]).
-    pub(super) shapes: Vec<Option<SceneShape>>,
-    /// The rest frames (`[B, N, 4]`) set by [`Surrogate::init_state_at`] that the first
-    /// projected step builds `shapes` from; without them it takes its input frame.
-    pub(super) rest_frames: Option<Vec<f32>>,
-    /// Frames consumed since the state was reset.
-    pub frames: usize,
-}
-
-/// What each architecture carries between frames (stacked and split in `stack.rs`).
-#[derive(Clone)]
-pub(super) enum NetState<B: Backend> {
-    /// The paper core's layer states.
-    Paper(Vec<LayerState<B>>),
-    /// The grid model's per-particle memory, the velocities of the last T - 1 frames
-    /// (`[B, N, 2 (T - 1)]`, oldest first; `None` before the first frame or when T = 1) and
-    /// the reference positions (`[B, N, 2]`: the first frame's, unless set by
-    /// [`Surrogate::init_state_at`]; read only by a model with `reference`), and the rest
-    /// neighbourhoods of the reference positions (built on the first step of a model with
-    /// `rest_shape`: the scene's physical state beside its memory, kept across a restart),
-    /// and the advected deformation gradient (`[B, N, 4]`, a model with `Deformation::Advect`:
-    /// the F of the frame the next step reads; `None` before the first step and after a
-    /// restart, when the step starts it from the fit to the rest neighbourhoods).
-    Grid {
-        memory: MemoryState<B>,
-        history: Option<Tensor<B, 3>>,
-        reference: Option<Tensor<B, 3>>,
-        rest: Option<NeighbourTensors<B>>,
-        deformation: Option<Tensor<B, 3>>,
-    },
 }
 
 impl<B: NetOps> Surrogate<B> {
@@ -178,21 +142,14 @@ impl<B: NetOps> Surrogate<B> {
 
     /// A fresh (empty) state. The batch size is set by the first `step`.
     pub fn init_state(&self) -> State<B> {
-        let inner = match &self.net {
+        State::new(self.fresh_net_state())
+    }
+
+    /// The network's part of a fresh state.
+    fn fresh_net_state(&self) -> NetState<B> {
+        match &self.net {
             Net::Paper(model) => NetState::Paper(model.core.init_state()),
-            Net::Grid(_) => NetState::Grid {
-                memory: MemoryState::Empty,
-                history: None,
-                reference: None,
-                rest: None,
-                deformation: None,
-            },
-        };
-        State {
-            inner,
-            shapes: Vec::new(),
-            rest_frames: None,
-            frames: 0,
+            Net::Grid(_) => NetState::Grid(GridState::new()),
         }
     }
 
@@ -201,23 +158,7 @@ impl<B: NetOps> Surrogate<B> {
     /// grid model's reference positions and rest neighbourhoods, and the constraint data, are
     /// kept: what the node does over a gap in a stream that goes on.
     pub fn restart(&self, state: State<B>) -> State<B> {
-        let mut fresh = self.init_state();
-        (fresh.shapes, fresh.rest_frames) = (state.shapes, state.rest_frames);
-        if let (
-            NetState::Grid {
-                reference, rest, ..
-            },
-            NetState::Grid {
-                reference: kept,
-                rest: kept_rest,
-                ..
-            },
-        ) = (&mut fresh.inner, state.inner)
-        {
-            *reference = kept;
-            *rest = kept_rest;
-        }
-        fresh
+        state.restart(self.fresh_net_state())
     }
 
     /// A fresh state whose reference positions are those of `first` (`[B, N, 4]` physical
@@ -236,16 +177,9 @@ impl<B: NetOps> Surrogate<B> {
                 first.len()
             )));
         }
-        state.rest_frames = Some(first.to_vec());
-        if let NetState::Grid { reference, .. } = &mut state.inner {
-            let (first, b) = if self.mirror {
-                (with_mirror_rows(first), 2 * b)
-            } else {
-                (first.to_vec(), b)
-            };
-            let n = first.len() / (4 * b);
-            let frame = crate::model::upload::<B, 3>(first, [b, n, 4], &self.device);
-            *reference = Some(frame.narrow(2, 0, 2));
+        state.constraints.rest_frames = Some(first.to_vec());
+        if let NetState::Grid(grid) = &mut state.net {
+            grid.set_reference(first, b, self.mirror, &self.device);
         }
         Ok(state)
     }
@@ -278,7 +212,8 @@ impl<B: NetOps> Surrogate<B> {
         state: State<B>,
     ) -> Result<(Vec<f32>, State<B>), StoreError> {
         // On the CPU: on the rayon pool with a worker awake (`NetOps::run_step`).
-        let (mut out, state) = B::run_step(|| self.step_here(frames, material, dt, state, false))?;
+        let (mut out, state) =
+            B::run_step(|| self.step_here(frames, material, dt, state, Predict::Next))?;
         Ok((out.swap_remove(0), state))
     }
 
@@ -299,19 +234,57 @@ impl<B: NetOps> Surrogate<B> {
         dt: &[f32],
         state: State<B>,
     ) -> Result<(Vec<Vec<f32>>, State<B>), StoreError> {
-        B::run_step(|| self.step_here(frames, material, dt, state, true))
+        B::run_step(|| self.step_here(frames, material, dt, state, Predict::Bundle))
     }
 
-    /// [`Surrogate::step`] (`whole`: false) or [`Surrogate::step_bundle`] (true) on the
-    /// calling thread.
+    /// [`Surrogate::step`] ([`Predict::Next`]) or [`Surrogate::step_bundle`]
+    /// ([`Predict::Bundle`]) on the calling thread: the network's step, then the projection
+    /// onto the constraints where they are on.
     pub(super) fn step_here(
         &self,
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
         state: State<B>,
-        whole: bool,
+        predict: Predict,
     ) -> Result<(Vec<Vec<f32>>, State<B>), StoreError> {
+        let [b, n] = self.check_step(frames, material, dt)?;
+        let State {
+            net,
+            mut constraints,
+            frames: count,
+        } = state;
+        let (mut out, mut net) = self.net_step(frames, material, dt, net, predict)?;
+        if let Some(c) = &self.constraints {
+            let moved = constraints.project(c, (frames, material, dt), &mut out);
+            let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
+            for m in &moved {
+                sums.add(m);
+            }
+            if let (Predict::Bundle, NetState::Grid(grid)) = (predict, &mut net) {
+                grid.history_from(&out, [b, n], &self.device);
+            }
+        }
+        constraints.rest_frames = None;
+        let state = State {
+            net,
+            constraints,
+            frames: count + 1,
+        };
+        Ok((out, state))
+    }
+
+    /// `[B, N]` of a step's input (`frames` `[B, N, 4]`, `material` `[B N]`, `dt` `[B]`).
+    ///
+    /// # Errors
+    /// [`StoreError::Shape`] when the lengths disagree, the model is tied to another N or a
+    /// material id is one the model does not know.
+    fn check_step(
+        &self,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+    ) -> Result<[usize; 2], StoreError> {
         let b = dt.len();
         let n = material.len().checked_div(b).unwrap_or(0);
         if b == 0 || frames.len() != b * n * 4 || material.len() != b * n {
@@ -332,264 +305,61 @@ impl<B: NetOps> Surrogate<B> {
                 "material id {m}: the model knows {known} materials (ids 0..{known})"
             )));
         }
-        let (mut out, mut inner) = match (&self.net, state.inner) {
-            (Net::Paper(model), NetState::Paper(layers)) => {
-                // The training batches' own scaling (data::Scaler), so inputs match training.
-                let mut feats = Vec::with_capacity(b * n * 5);
-                self.meta.scaler.scale_into(frames, material, &mut feats);
-                let x = crate::model::upload::<B, 3>(feats, [b, n, 5], &self.device);
-                let dt_t = crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device);
-                let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
-                let mut out = crate::model::download(out)?;
-                self.meta.scaler.unscale_rows(&mut out, 4);
-                (vec![out], NetState::Paper(layers))
-            }
-            (
-                Net::Grid(model),
-                NetState::Grid {
-                    memory,
-                    history,
-                    reference,
-                    rest,
-                    deformation,
-                },
-            ) => {
-                let carry = (memory, history, reference, rest, deformation);
-                if self.mirror {
-                    let (material, dt) = ([material, material].concat(), [dt, dt].concat());
-                    let frames = with_mirror_rows(frames);
-                    let (out, inner) =
-                        self.grid_step(model, &frames, &material, &dt, carry, whole)?;
-                    (out.iter().map(|o| mean_of_mirror_rows(o)).collect(), inner)
-                } else {
-                    self.grid_step(model, frames, material, dt, carry, whole)?
-                }
-            }
-            _ => return Err(StoreError::Shape("state of another architecture".into())),
-        };
-        let shapes = match &self.constraints {
-            Some(c) => {
-                let rest = state.rest_frames.as_deref();
-                let shapes = self.project(c, (frames, material, dt), &mut out, state.shapes, rest);
-                if whole {
-                    self.history_of_projected(&mut inner, &out, [b, n]);
-                }
-                shapes
-            }
-            None => state.shapes,
-        };
-        Ok((
-            out,
-            State {
-                inner,
-                shapes,
-                rest_frames: None,
-                frames: state.frames + 1,
-            },
-        ))
+        Ok([b, n])
     }
 
-    /// Projects the predicted frames `out` (K frames of `[B, N, 4]`) of the input `frames`
-    /// (`[B, N, 4]`, materials `[B N]`, time steps `[B]`) onto `c`, scene by scene in
-    /// parallel; returns the scenes' constraint data, each built on its first projection from
-    /// its row of `rest` (`[B, N, 4]`) or else of `frames`. Within a bundle, frame k + 1 is
-    /// first moved by frame k's correction (the network integrated it from its own frame k),
-    /// then projected. The moves are added to the surrogate's correction sums.
-    fn project(
+    /// The network's part of a step: the predicted frames and the network's next state; a
+    /// mirror ensemble's grid model steps each frame beside its mirror image and returns
+    /// their mean.
+    fn net_step(
         &self,
-        c: &Constraints,
-        (frames, material, dt): (&[f32], &[u8], &[f32]),
-        out: &mut [Vec<f32>],
-        mut shapes: Vec<Option<SceneShape>>,
-        rest: Option<&[f32]>,
-    ) -> Vec<Option<SceneShape>> {
-        use rayon::prelude::*;
-        let b = dt.len();
-        let n = material.len() / b;
-        let per = n * 4;
-        if shapes.len() != b {
-            shapes = (0..b).map(|_| None).collect();
-        }
-        let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
-        let mut rows: Vec<Vec<&mut [f32]>> =
-            (0..b).map(|_| Vec::with_capacity(out.len())).collect();
-        for frame in out.iter_mut() {
-            for (row, chunk) in rows.iter_mut().zip(frame.chunks_exact_mut(per)) {
-                row.push(chunk);
-            }
-        }
-        let moved: Vec<Correction> = shapes
-            .par_iter_mut()
-            .zip(rows.par_iter_mut())
-            .enumerate()
-            .map(|(i, (shape, row))| {
-                let ids = &material[i * n..(i + 1) * n];
-                let shape = shape.get_or_insert_with(|| {
-                    SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
-                });
-                let mut total = Correction::default();
-                let mut carried: Option<Vec<f32>> = None;
-                let last = row.len().saturating_sub(1);
-                for (k, frame) in row.iter_mut().enumerate() {
-                    // The network's own frame, kept where its correction carries into the
-                    // next frame (not after the bundle's last).
-                    let own = (k < last).then(|| frame.to_vec());
-                    if let Some(offset) = &carried {
-                        for (v, o) in frame.iter_mut().zip(offset) {
-                            *v += o;
-                        }
-                    }
-                    total.add(&shape.project(c, frame, ids, dt[i]));
-                    // The position correction relative to the network's own frame.
-                    carried = own.map(|own| {
-                        let mut offset: Vec<f32> =
-                            frame.iter().zip(&own).map(|(a, b)| a - b).collect();
-                        for o in offset.chunks_exact_mut(4) {
-                            (o[2], o[3]) = (0.0, 0.0);
-                        }
-                        offset
-                    });
-                }
-                total
-            })
-            .collect();
-        let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
-        for m in &moved {
-            sums.add(m);
-        }
-        shapes
-    }
-
-    /// After a projected bundle (K frames `out`, `[B, N, 4]` each) of a grid model: its
-    /// velocity history (`[copies B, N, 2 (T - 1)]`: the T - 1 frames before the next call's
-    /// input, the bundle's last) taken from the projected frames, so the next call reads the
-    /// velocities a caller feeding back the projected frames sees. Left as is when K <= T - 1.
-    fn history_of_projected(&self, inner: &mut NetState<B>, out: &[Vec<f32>], [b, n]: [usize; 2]) {
-        let NetState::Grid {
-            history: Some(history),
-            ..
-        } = inner
-        else {
-            return;
-        };
-        let [rows, _, width] = history.dims();
-        let (t1, k) = (width / 2, out.len());
-        let copies = rows / b.max(1);
-        if k <= t1 || rows != copies * b || !(1..=2).contains(&copies) {
-            return;
-        }
-        let window = &out[k - 1 - t1..k - 1];
-        let mut host = vec![0.0f32; rows * n * width];
-        for copy in 0..copies {
-            let sign = if copy == 1 { -1.0 } else { 1.0 };
-            for p in 0..b * n {
-                for (w, frame) in window.iter().enumerate() {
-                    let at = ((copy * b * n + p) * t1 + w) * 2;
-                    host[at] = sign * frame[4 * p + 2];
-                    host[at + 1] = frame[4 * p + 3];
-                }
-            }
-        }
-        *history = crate::model::upload::<B, 3>(host, [rows, n, width], &self.device);
-    }
-
-    /// [`Surrogate::step`] (`whole`: false) or [`Surrogate::step_bundle`] (true) of a grid
-    /// model: the velocity history is completed from the state (the current velocity
-    /// repeated before T frames were seen, or when B or N changed), and the reference
-    /// positions are this frame's when the state has none of this shape. Returns the K
-    /// predicted frames (the first alone unless `whole`).
-    fn grid_step(
-        &self,
-        model: &GridModel<B>,
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
-        (memory, history, reference, rest, deformation): GridCarry<B>,
-        whole: bool,
+        net: NetState<B>,
+        predict: Predict,
     ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
-        let (b, t) = (dt.len(), model.window());
-        let n = material.len() / b;
-        let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
-        let pos = frame.clone().narrow(2, 0, 2);
-        let vel = frame.narrow(2, 2, 2);
-        let history = history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]);
-        let reference = reference
-            .filter(|r| r.dims() == [b, n, 2])
-            .unwrap_or_else(|| pos.clone());
-        let memory = match memory.rows() {
-            Some(rows) if rows != b * n => MemoryState::Empty,
-            _ => memory,
-        };
-        let vel_hist = match history {
-            Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
-            None => vel.repeat_dim(2, t),
-        };
-        let rest = match rest.filter(|r| r.dims() == [b, n]) {
-            Some(rest) => Some(rest),
-            None if model.uses_rest_shape() => Some(self.rest_of(&reference, material, [b, n])?),
-            None => None,
-        };
-        let input = StepInput {
-            pos,
-            vel: vel_hist.clone(),
-            material: one_hot(material, self.meta.materials(), b, n, &self.device),
-            dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
-            reference: Some(reference.clone()),
-            rest: rest.clone(),
-            deformation: deformation.filter(|f| f.dims() == [b, n, 4]),
-        };
-        let (mut outs, memory) = model.step_bundle(input, memory);
-        if !whole {
-            outs.truncate(1);
+        match (&self.net, net) {
+            (Net::Paper(model), NetState::Paper(layers)) => {
+                let (out, layers) = self.paper_step(model, frames, material, dt, layers)?;
+                Ok((vec![out], NetState::Paper(layers)))
+            }
+            (Net::Grid(model), NetState::Grid(grid)) if self.mirror => {
+                let (material, dt) = ([material, material].concat(), [dt, dt].concat());
+                let frames = with_mirror_rows(frames);
+                let (out, grid) = self.grid_step(model, &frames, &material, &dt, grid, predict)?;
+                let out = out.iter().map(|o| mean_of_mirror_rows(o)).collect();
+                Ok((out, NetState::Grid(grid)))
+            }
+            (Net::Grid(model), NetState::Grid(grid)) => {
+                let (out, grid) = self.grid_step(model, frames, material, dt, grid, predict)?;
+                Ok((out, NetState::Grid(grid)))
+            }
+            _ => Err(StoreError::Shape("state of another architecture".into())),
         }
-        // The F of the frame the next call reads: the last one returned.
-        let deformation = outs.last().and_then(|o| o.deformation.clone());
-        // The T - 1 velocities before the next call's input frame: the input frame's own
-        // window (the next observed frame follows it), or that window continued by the
-        // bundle's frames but its last (the next call's input is that last frame).
-        let mut window = vec![vel_hist];
-        if whole {
-            window.extend(outs[..outs.len() - 1].iter().map(|o| o.vel.clone()));
-        }
-        let window = Tensor::cat(window, 2);
-        let width = window.dims()[2];
-        let history = (t > 1).then(|| window.narrow(2, width - 2 * (t - 1), 2 * (t - 1)));
-        let k = outs.len();
-        let next = Tensor::cat(
-            outs.into_iter()
-                .map(|o| Tensor::cat(vec![o.pos, o.vel], 2))
-                .collect(),
-            0,
-        ); // [K B, N, 4]
-        let out = crate::model::download(next)?;
-        let per_frame = b * n * 4;
-        let out = (0..k)
-            .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())
-            .collect();
-        let reference = Some(reference);
-        Ok((
-            out,
-            NetState::Grid {
-                memory,
-                history,
-                reference,
-                rest,
-                deformation,
-            },
-        ))
     }
 
-    /// The rest neighbourhoods of the solids' particles in `reference` (`[B, N, 2]`),
-    /// materials `material` (`[B N]`): built once per scene on the host
-    /// ([`Neighbourhood::build`]) and uploaded.
-    fn rest_of(
+    /// One step of the paper's model: the next frame (`[B, N, 4]` physical) and the core's
+    /// next layer states.
+    fn paper_step(
         &self,
-        reference: &Tensor<B, 3>,
+        model: &Model<B>,
+        frames: &[f32],
         material: &[u8],
-        [b, n]: [usize; 2],
-    ) -> Result<NeighbourTensors<B>, StoreError> {
-        let host = crate::model::download(reference.clone())?;
-        Ok(Neighbourhood::build(&host, material, [b, n], |m| m != 0).upload(&self.device))
+        dt: &[f32],
+        layers: Vec<LayerState<B>>,
+    ) -> Result<(Vec<f32>, Vec<LayerState<B>>), StoreError> {
+        let b = dt.len();
+        let n = material.len() / b;
+        // The training batches' own scaling (data::Scaler), so inputs match training.
+        let mut feats = Vec::with_capacity(b * n * 5);
+        self.meta.scaler.scale_into(frames, material, &mut feats);
+        let x = crate::model::upload::<B, 3>(feats, [b, n, 5], &self.device);
+        let dt_t = crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device);
+        let (out, layers) = model.step(x, dt_t, layers, &self.scaling);
+        let mut out = crate::model::download(out)?;
+        self.meta.scaler.unscale_rows(&mut out, 4);
+        Ok((out, layers))
     }
 
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`

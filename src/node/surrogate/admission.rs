@@ -7,7 +7,7 @@
 
 use crate::msgs::ParticleFrame;
 
-use super::OnGap;
+use super::options::OnGap;
 
 /// Why the node rejects a decoded frame (counted and logged; the node keeps serving).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -13,30 +13,13 @@
 
 use std::time::Instant;
 
-use crate::model::store::{SceneStep, SceneSteps, State, StoreError};
+use crate::model::store::{Predict, SceneStep, SceneSteps, State, StoreError};
 use crate::ops::NetOps;
 
-use super::run::{NodeLoop, Pending};
+use super::frames::{predicted_frame, state_rows};
+use super::node_loop::NodeLoop;
 use super::scenes::Admitted;
-use super::{predicted_frame, state_rows};
-
-/// When the next batch is due.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Due {
-    /// Now: full, or its oldest item waited `--max-batch-delay`.
-    Now,
-    /// At this time, unless it fills up before.
-    At(Instant),
-    /// Nothing waits.
-    Nothing,
-}
-
-impl Due {
-    /// True for [`Due::Now`].
-    pub(super) fn is_now(self) -> bool {
-        self == Due::Now
-    }
-}
+use super::schedule::{Due, Pending, Waiting};
 
 /// One scene's part of a batch.
 struct Job<B: burn::tensor::backend::Backend> {
@@ -46,62 +29,37 @@ struct Job<B: burn::tensor::backend::Backend> {
     dt: f32,
     state: State<B>,
     /// A whole network call (K frames: a rollout's) or the next frame alone.
-    whole: bool,
+    predict: Predict,
     /// The input frame of a live job; None for a rollout's call.
     input: Option<Pending>,
 }
 
 impl<B: NetOps> NodeLoop<'_, B> {
-    /// Triton's rule (module doc) on what waits now.
+    /// Triton's rule (module doc) on what waits now ([`super::schedule::Schedule::due`]).
     pub(super) fn batch_due(&self, now: Instant) -> Due {
-        let heads = self.pending.values().filter_map(|q| q.front());
-        let oldest = heads
-            .map(|p| p.arrived)
-            .chain(self.rollouts.waiting().map(|(t, _)| t))
-            .min();
-        let Some(oldest) = oldest else {
-            return Due::Nothing;
-        };
-        let ready = self.pending.len() + self.rollouts.waiting().count();
-        let could_join = (self.scenes.live() + self.rollouts.len()).max(ready);
-        if ready >= self.options.max_batch.min(could_join).max(1) {
-            return Due::Now;
-        }
-        match oldest.checked_add(self.options.max_batch_delay) {
-            Some(t) if t > now => Due::At(t),
-            _ => Due::Now,
-        }
+        let (max_batch, delay) = (self.options.max_batch, self.options.max_batch_delay);
+        self.schedule.due(now, self.scenes.live(), max_batch, delay)
     }
 
     /// Takes up to `--max-batch` items, oldest first, and steps them: the single-frame
     /// items through one set of calls, whole calls (rollouts) through another.
     pub(super) fn step_batch(&mut self) {
-        let mut waiting: Vec<(Instant, bool, String)> = self
-            .pending
-            .iter()
-            .filter_map(|(k, q)| Some((q.front()?.arrived, false, k.clone())))
-            .chain(
-                self.rollouts
-                    .waiting()
-                    .map(|(t, k)| (t, true, k.to_owned())),
-            )
-            .collect();
-        waiting.sort();
         let mut jobs = Vec::new();
-        for (_, rollout, scene) in waiting {
+        for waiting in self.schedule.oldest_first() {
             if jobs.len() >= self.options.max_batch.max(1) {
                 break;
             }
-            let job = match rollout {
-                true => self.rollout_job(&scene),
-                false => self.live_job(&scene),
+            let job = match waiting {
+                Waiting::Rollout(scene) => self.rollout_job(&scene),
+                Waiting::Live(scene) => self.live_job(&scene),
             };
             jobs.extend(job);
         }
-        let (whole, single): (Vec<_>, Vec<_>) = jobs.into_iter().partition(|j| j.whole);
-        for (group, whole) in [(single, false), (whole, true)] {
+        let (bundles, single): (Vec<_>, Vec<_>) =
+            jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
+        for (group, predict) in [(single, Predict::Next), (bundles, Predict::Bundle)] {
             if !group.is_empty() {
-                self.run_jobs(group, whole);
+                self.run_jobs(group, predict);
             }
         }
         self.publish_due_rollouts();
@@ -110,11 +68,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// `scene`'s next pending frame as a job, under the state rules (None: dropped or
     /// ignored, counted as they say).
     fn live_job(&mut self, scene: &str) -> Option<Job<B>> {
-        let queue = self.pending.get_mut(scene)?;
-        let input = queue.pop_front()?;
-        if queue.is_empty() {
-            self.pending.remove(scene);
-        }
+        let input = self.schedule.take_pending(scene)?;
         self.make_room_for(scene);
         let index = input.frame.frame_index;
         let state = match self
@@ -130,31 +84,35 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         // In closed loop the scene's T-th frame starts the rollout: a whole network call
         // (K frames for a bundled model); before it, and fed live frames, one step.
-        let whole = self.options.rollout.is_some() && state.frames + 1 >= self.window;
-        if whole {
+        let starts_rollout = self.options.rollout.is_some() && state.frames + 1 >= self.window;
+        if starts_rollout {
             self.scenes.mark_rolled_out(scene);
         }
+        let predict = match starts_rollout {
+            true => Predict::Bundle,
+            false => Predict::Next,
+        };
         Some(Job {
             scene: scene.to_owned(),
             rows: state_rows(&input.frame),
             material: input.frame.material.clone(),
             dt: input.frame.dt,
             state,
-            whole,
+            predict,
             input: Some(input),
         })
     }
 
     /// The call `scene`'s rollout waits for, as a job.
     fn rollout_job(&mut self, scene: &str) -> Option<Job<B>> {
-        let call = self.rollouts.take_call(scene)?;
+        let call = self.schedule.rollouts.take_call(scene)?;
         Some(Job {
             scene: scene.to_owned(),
             rows: call.rows,
             material: call.material,
             dt: call.dt,
             state: call.state,
-            whole: true,
+            predict: Predict::Bundle,
             input: None,
         })
     }
@@ -165,22 +123,22 @@ impl<B: NetOps> NodeLoop<'_, B> {
         let Some(evicted) = self.scenes.make_room_for(scene, self.options.max_scenes) else {
             return;
         };
-        self.evicted.0 += 1;
+        self.evicted.full += 1;
         // The first, then every 100th: a stream of new scenes must not flood the log.
-        if self.evicted.0 == 1 || self.evicted.0 % 100 == 0 {
+        if self.evicted.full == 1 || self.evicted.full % 100 == 0 {
             tracing::info!(
                 "{}: scene {evicted:?} evicted at --max-scenes {} ({} so far; a scene that \
                  comes back starts again)",
                 self.options.name,
                 self.options.max_scenes,
-                self.evicted.0
+                self.evicted.full
             );
         }
     }
 
-    /// Steps `jobs` (all `whole` or none) through `Surrogate::step_scenes` and hands each
+    /// Steps `jobs` (all of them `predict`) through `Surrogate::step_scenes` and hands each
     /// its result.
-    fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, whole: bool) {
+    fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, predict: Predict) {
         let placeholder = || self.surrogate.init_state();
         let steps: Vec<SceneStep<'_, B>> = jobs
             .iter_mut()
@@ -195,7 +153,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             results,
             calls,
             times,
-        } = self.surrogate.step_scenes(steps, whole);
+        } = self.surrogate.step_scenes(steps, predict);
         self.batches.record(&calls);
         self.times.step += times;
         for (job, result) in jobs.into_iter().zip(results) {
@@ -213,7 +171,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
                         self.tally.report.rejected += 1;
                         self.scenes.keep(&job.scene, None);
                     }
-                    None => self.rollouts.cancel(&job.scene),
+                    None => self.schedule.rollouts.cancel(&job.scene),
                 }
                 self.tally.note(&job.scene, e.to_string());
                 return;
@@ -221,7 +179,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         self.tally.report.predicted += 1;
         let Some(input) = job.input else {
-            self.rollouts.feed(&job.scene, bundle, state);
+            self.schedule.rollouts.feed(&job.scene, bundle, state);
             return;
         };
         let keep = match self.options.rollout {
@@ -230,9 +188,11 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 self.emit_timed(&next, input.arrived);
                 Some(state)
             }
-            Some(k) if job.whole => {
+            Some(k) if job.predict == Predict::Bundle => {
                 let rate = self.options.rate;
-                self.rollouts.start(&input.frame, bundle, state, k, rate);
+                self.schedule
+                    .rollouts
+                    .start(&input.frame, bundle, state, k, rate);
                 None
             }
             Some(_) => Some(state),

@@ -3,7 +3,8 @@
 //! call (K frames for a bundled model) at a time, and the node's loop interleaves those
 //! calls with every other scene's work (batched with them, `super::batcher`) instead of
 //! rolling one scene out from start to end while the others wait. Frames are published
-//! when due: at once, or paced at the scene's `dt` over `--rate`. Used by [`super::run`].
+//! when due: at once, or paced at the scene's `dt` over `--rate`. Held by the node's queues
+//! ([`super::schedule`]).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -11,7 +12,7 @@ use std::time::{Duration, Instant};
 use crate::model::store::State;
 use crate::msgs::ParticleFrame;
 
-use super::predicted_frame;
+use super::frames::predicted_frame;
 
 /// One scene's rollout under way.
 struct Rollout<B: burn::tensor::backend::Backend> {

@@ -5,7 +5,7 @@
 //! decoded (blocking only until the next thing is due: a batch, a rollout frame, the
 //! status), and [`NodeLoop::accept`] counts bad input, passes over the scenes another
 //! shard member owns, notes the scene's activity and queues the frame (the scene's oldest
-//! pending frame dropped past `queue_depth`). Used by [`super::run`].
+//! pending frame dropped past `queue_depth`; [`super::schedule`]). Used by [`super::run`].
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, RecvTimeoutError};
@@ -18,9 +18,9 @@ use crate::ops::NetOps;
 use crate::transport::Sample;
 
 use super::admission::{check_frame, Rejection};
-use super::batcher::Due;
-use super::payload_bytes;
-use super::run::{NodeLoop, Pending};
+use super::frames::payload_bytes;
+use super::node_loop::NodeLoop;
+use super::schedule::{Due, Pending};
 
 /// The longest the loop blocks on the transport with nothing due.
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -106,7 +106,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             Due::Nothing => MAX_WAIT,
         };
         wait = wait.min(self.next_status.saturating_duration_since(now));
-        if let Some(t) = self.rollouts.next_due() {
+        if let Some(t) = self.schedule.rollouts.next_due() {
             wait = wait.min(t.saturating_duration_since(now));
         }
         let blocked = Instant::now();
@@ -170,13 +170,11 @@ impl<B: NetOps> NodeLoop<'_, B> {
         let idle = self.scenes.touch(&frame.scene, self.options.idle_timeout);
         self.note_idle(u64::from(idle));
         self.note_takeover(&frame.scene, frame.frame_index);
-        let queue = self.pending.entry(frame.scene.clone()).or_default();
-        queue.push_back(Pending {
+        let pending = Pending {
             frame,
             arrived: arrival.received,
-        });
-        if queue.len() > self.options.queue_depth.max(1) {
-            queue.pop_front();
+        };
+        if self.schedule.queue(pending, self.options.queue_depth) {
             self.tally.report.dropped += 1;
         }
     }
@@ -184,7 +182,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// Sharded: counts and logs a scene this node meets mid-stream (it owns it now: a
     /// member left, or this node joined), whose state starts again from this frame.
     fn note_takeover(&mut self, scene: &str, index: u32) {
-        let fresh = index != 0 && !self.scenes.contains(scene) && !self.pending.contains_key(scene);
+        let fresh = index != 0 && !self.scenes.contains(scene) && !self.schedule.has_pending(scene);
         if self.shard.is_none() || !fresh {
             return;
         }

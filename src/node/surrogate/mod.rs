@@ -38,156 +38,27 @@
 //! rollout never holds the other scenes up. Sharding (`shard`; [`shard`]): nodes of one
 //! group divide the scenes among the live ones over zenoh liveliness.
 //!
-//! Files: [`admission`] holds the rules (which frames are taken, what a frame does to its
-//! scene's state), [`scenes`] the per-scene states under those rules, [`intake`] the
-//! arrival of frames, [`batcher`] the calls, [`closed`] the rollouts, [`shard`] the group,
-//! [`run`] the loop, [`report`] the counters and logs. This file holds the options and the
-//! frame helpers.
+//! Files: [`options`] holds the options and the report, [`admission`] the rules (which
+//! frames are taken, what a frame does to its scene's state), [`scenes`] the per-scene
+//! states under those rules, [`schedule`] the queues (pending frames, rollouts under way)
+//! and when a batch is due, [`node_loop`] the loop's state, [`intake`] the arrival of
+//! frames, [`batcher`] the calls, [`closed`] the rollouts, [`shard`] the group, [`run`] the
+//! loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
 
 mod admission;
 mod batcher;
 mod closed;
+mod frames;
 mod intake;
+mod node_loop;
+mod options;
 mod report;
 mod run;
 mod scenes;
+mod schedule;
 pub mod shard;
 
-use std::time::Duration;
-
-use crate::msgs::status::SurrogateStatus;
-use crate::msgs::{ParticleFrame, Time};
-
+pub use frames::state_rows;
+pub use options::{summary, NodeOptions, NodeReport, OnGap};
 pub use report::LOOP_STAGES;
 pub use run::run;
-
-/// What to do with a frame that does not follow the previous one of its scene.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum OnGap {
-    /// Reset the scene's hidden state and start again from this frame.
-    Reset,
-    /// Drop frames older than the last one; carry the state over forward gaps.
-    Skip,
-}
-
-/// How the node runs.
-#[derive(Debug, Clone)]
-pub struct NodeOptions {
-    /// Node name (in logs and status reports).
-    pub name: String,
-    /// Input topic (ground-truth frames).
-    pub input: String,
-    /// Output topic (predicted frames).
-    pub output: String,
-    /// Status topic; None for no status reports.
-    pub status: Option<String>,
-    /// Gap policy.
-    pub on_gap: OnGap,
-    /// Reset and drop a scene's state after this long without frames.
-    pub idle_timeout: Duration,
-    /// Most scene states kept at once.
-    pub max_scenes: usize,
-    /// Pending frames per scene before the oldest is dropped.
-    pub queue_depth: usize,
-    /// Payloads larger than this (bytes) are rejected before decoding (`--max-frame-bytes`).
-    pub max_frame_bytes: usize,
-    /// Closed loop: after the first T frames of a scene, publish K predicted frames.
-    pub rollout: Option<usize>,
-    /// Closed-loop pacing: predicted frames per simulated second times this factor
-    /// (1 = the scene's own pace); 0 = as fast as possible.
-    pub rate: f64,
-    /// Dynamic batching: most scenes stepped by one network call (1: one scene a call).
-    pub max_batch: usize,
-    /// Dynamic batching: how long the oldest waiting frame may wait for others to join
-    /// its call (Triton's `max_queue_delay_microseconds`).
-    pub max_batch_delay: Duration,
-    /// Sharding over zenoh: the group whose live nodes divide the scenes among them.
-    pub shard: Option<String>,
-    /// Stop after this many predicted frames were published (tests, benchmarks).
-    pub max_published: Option<u64>,
-    /// Log the counters as one line this often.
-    pub stats_interval: Option<Duration>,
-    /// Subscribe to the input only once the output has this many subscribers (so a
-    /// recorder started alongside misses nothing).
-    pub wait_for_subscribers: usize,
-    /// Live view (`--foxglove`): the input on `<input>/points`, predictions on
-    /// `<output>/points` coloured by their error against the ground truth.
-    pub foxglove: Option<crate::viz::LiveView>,
-}
-
-/// Totals of a node run, as in the status message.
-pub type NodeReport = SurrogateStatus;
-
-/// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy), as `Surrogate::step` takes them.
-pub fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
-    let mut rows = Vec::with_capacity(frame.len() * 4);
-    for i in 0..frame.len() {
-        rows.extend_from_slice(&[
-            frame.position[2 * i],
-            frame.position[2 * i + 1],
-            frame.velocity[2 * i],
-            frame.velocity[2 * i + 1],
-        ]);
-    }
-    rows
-}
-
-/// The size of a payload in bytes, as it travelled (CDR) or as its arrays take in memory.
-fn payload_bytes(payload: &crate::transport::Payload) -> usize {
-    use crate::transport::Payload;
-    match payload {
-        Payload::Cdr(bytes) => bytes.len(),
-        Payload::Frame(f) => {
-            4 * (f.position.len() + f.velocity.len()) + f.material.len() + f.scene.len()
-        }
-        Payload::Malformed(_) => 0,
-    }
-}
-
-/// The frame `steps` frames after `input`, carrying `rows` (`[N, 4]`).
-fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleFrame {
-    let n = rows.len() / 4;
-    let mut position = Vec::with_capacity(2 * n);
-    let mut velocity = Vec::with_capacity(2 * n);
-    for r in rows.chunks_exact(4) {
-        position.extend_from_slice(&r[..2]);
-        velocity.extend_from_slice(&r[2..]);
-    }
-    let stamp_ns = input.header.stamp.as_nanos()
-        + (f64::from(input.dt) * 1e9).round() as i64 * i64::from(steps);
-    let mut header = input.header.clone();
-    header.stamp = Time::from_nanos(stamp_ns.max(0) as u64);
-    ParticleFrame {
-        header,
-        scene: input.scene.clone(),
-        frame_index: input.frame_index + steps,
-        dt: input.dt,
-        position,
-        velocity,
-        material: input.material.clone(),
-    }
-}
-
-/// The counters as one line.
-pub fn summary(r: &NodeReport) -> String {
-    format!(
-        "{}: received={} predicted={} published={} dropped={} malformed={} rejected={} scenes={} \
-         calls={} batch_mean={:.2} batch_max={}{}",
-        r.node,
-        r.received,
-        r.predicted,
-        r.published,
-        r.dropped,
-        r.malformed,
-        r.rejected,
-        r.active_scenes,
-        r.calls,
-        r.batch_mean(),
-        r.batch_max,
-        if r.last_error.is_empty() {
-            String::new()
-        } else {
-            format!("; last error: {}", r.last_error)
-        }
-    )
-}

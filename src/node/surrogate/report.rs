@@ -14,7 +14,7 @@ use crate::msgs::Time;
 use crate::ops::NetOps;
 use crate::transport::Transport;
 
-use super::{NodeOptions, NodeReport};
+use super::options::{NodeOptions, NodeReport};
 
 /// The run's counters, and which (scene, reason kind) pairs were already logged.
 pub(super) struct Tally {

@@ -13,7 +13,7 @@ use crate::model::store::{State, Surrogate};
 use crate::ops::NetOps;
 
 use super::admission::{admission, Admission, SceneView};
-use super::NodeOptions;
+use super::options::NodeOptions;
 
 /// One scene's hidden state and bookkeeping.
 struct SceneState<B: burn::tensor::backend::Backend> {

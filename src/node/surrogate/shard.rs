@@ -42,11 +42,13 @@ impl Shard {
         group: &str,
         name: &str,
     ) -> Result<Shard, TransportError> {
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: TransportKind::Zenoh,
-            what: "shard liveliness",
-            topic: format!("{PREFIX}/{group}"),
-            reason,
+        let declare_err = |reason: String| {
+            TransportError::declare(
+                TransportKind::Zenoh,
+                "shard liveliness",
+                format!("{PREFIX}/{group}"),
+                reason,
+            )
         };
         let me = format!(
             "{}-{}",

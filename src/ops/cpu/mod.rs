@@ -16,7 +16,7 @@
 //! - `grid.rs`: the grid model's input channels, 2x2 pooling and 2x upsampling (inference).
 //! - `mingru.rs`: the minGRU's inference update in one pass.
 //! - `scan.rs`: the linear recurrence of minGRU / minLSTM as one sequential pass.
-//! - `adam.rs`: one Adam step in one pass, in place.
+//! - `adam_pass.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.
 //! - `transfer.rs`: the grid model's P2G scatter-add and G2P gather, and its sparse stencil.
 //! - `pool.rs`: a whole inference step on the rayon pool with a worker kept awake.
@@ -29,7 +29,7 @@
 //! in a fixed order.
 
 pub(crate) mod activation;
-pub(crate) mod adam;
+pub(crate) mod adam_pass;
 pub(crate) mod conv;
 pub(crate) mod elu_mean;
 pub(crate) mod gemm;

@@ -1,6 +1,6 @@
 //! The linear recurrence `h_t = a_t h_{t-1} + b_t` of minGRU and minLSTM on the CPU, as one
 //! sequential pass per batch item, and its reverse pass (the CPU's `NetOps::recurrence`,
-//! with `SEQUENTIAL_SCAN`: minGRU and minLSTM then train through it in linear space; the
+//! with `ON_HOST`: minGRU and minLSTM then train through it in linear space; the
 //! log-space parallel scan, `ops::scan`, is what pays on a GPU).
 
 use rayon::prelude::*;

@@ -26,10 +26,11 @@
 //! the learning-rate decay by the clock. Used by `minflow train --arch grid`.
 //!
 //! Files: this one holds the trainer and its run over the shared epoch loop;
-//! `rollout_loss.rs` the batch upload and the rollout loss, `validate.rs` the validation
+//! `batch.rs` the batch upload, `rollout_loss.rs` the rollout loss, `validate.rs` the validation
 //! rollouts, `schedule.rs` the normalisation statistics, the learning-rate schedule and the
 //! run's clock.
 
+mod batch;
 mod rollout_loss;
 mod schedule;
 mod validate;
@@ -56,7 +57,8 @@ use crate::data::{Scaler, Trajectory, WindowIndex};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use rollout_loss::{upload_batch, Needs, Rollout};
+use batch::{upload_batch, Needs};
+use rollout_loss::Rollout;
 use schedule::RunClock;
 
 /// Optimisation settings of a grid run.

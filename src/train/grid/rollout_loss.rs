@@ -4,7 +4,8 @@
 //! true frame `T - 1`, teacher-forced for the first calls, then on the
 //! model's own predictions, the memory state carried through; with C chunks the P calls run C
 //! times in a row, the rollout carried from one chunk into the next with its gradient cut
-//! ([`Rollout`]). Used by [`super::GridTrainer`].
+//! ([`Rollout`]). Used by [`super::GridTrainer`]; the batch it reads is uploaded by
+//! `batch.rs`.
 //!
 //! Beside the velocity and position MSE, two structure terms ([`crate::model::grid::rest`]):
 //! - strain (`strain_weight`): for every solid rest-neighbour pair (8 nearest of the same
@@ -22,104 +23,12 @@ use burn::module::Module;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Tensor};
 
+use super::batch::{BatchTensors, HostRows};
 use super::GridTrainOptions;
-use crate::data::Batch;
 use crate::model::constraints::SceneShape;
-use crate::model::grid::{
-    mirror_rows, one_hot, GridConfig, GridModel, MemoryState, NeighbourTensors, Neighbourhood,
-    StepInput,
-};
+use crate::model::grid::{GridConfig, GridModel, MemoryState, NeighbourTensors, StepInput};
 use crate::model::upload;
 use crate::ops::NetOps;
-
-/// What a [`Rollout`] reads of one batch, on the device, physical units.
-pub(super) struct BatchTensors<B: Backend> {
-    /// `[B, S, N, 4]`: the window's frames and its target frame.
-    frames: Tensor<B, 4>,
-    /// `[B, N, 4]`: material one-hot.
-    material: Tensor<B, 3>,
-    /// `[B]`: frame spacing.
-    dt: Tensor<B, 1>,
-    /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
-    first_pos: Tensor<B, 3>,
-    /// The solids' rest neighbourhoods in `first_pos`, when a model or the strain loss needs
-    /// them, with the number of rest-neighbour pairs.
-    rest: Option<(NeighbourTensors<B>, f32)>,
-    /// The liquid's neighbourhoods in the first input frame, for the volume loss, with the
-    /// number of liquid particles that have neighbours.
-    liquid: Option<(NeighbourTensors<B>, f32)>,
-    /// On the host, for the constraint projection: `[B, N, 2]` first positions, `[B N]`
-    /// material ids, `[B]` frame spacings.
-    host: (Vec<f32>, Vec<u8>, Vec<f32>),
-}
-
-/// Which neighbourhoods [`upload_batch`] builds.
-#[derive(Debug, Clone, Copy, Default)]
-pub(super) struct Needs {
-    /// The solids' rest neighbourhoods (rest-shape features, strain loss).
-    pub rest: bool,
-    /// The liquid's neighbourhoods in this frame of the window (volume loss): `T - 1`.
-    pub liquid_at: Option<usize>,
-    /// The model's material one-hot width ([`GridConfig::materials`]).
-    pub materials: usize,
-}
-
-/// The tensors of a batch of windows built with the identity scaler (inputs then hold
-/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]);
-/// `needs` says which neighbourhoods to build and the model's one-hot width.
-pub(super) fn upload_batch<B: Backend>(
-    batch: Batch,
-    mirror: &[bool],
-    needs: Needs,
-    device: &B::Device,
-) -> BatchTensors<B> {
-    let (b, t, n) = (batch.b, batch.t, batch.n);
-    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
-    let mut first_pos = batch.first_pos;
-    for w in 0..b {
-        let start = frames.len();
-        for k in 0..t {
-            let start = ((w * t + k) * n) * 5;
-            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
-                frames.extend_from_slice(&row[..4]);
-            }
-        }
-        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
-        if mirror.get(w).copied().unwrap_or(false) {
-            mirror_rows(&mut frames[start..], 4);
-            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
-        }
-    }
-    let with_count = |nb: Neighbourhood, count: f32| (nb.upload(device), count.max(1.0));
-    let rest = needs.rest.then(|| {
-        let nb = Neighbourhood::build(&first_pos, &batch.material, [b, n], |m| m != 0);
-        let pairs = nb.weight.iter().sum::<f32>();
-        with_count(nb, pairs)
-    });
-    let liquid = needs.liquid_at.map(|k| {
-        let pos: Vec<f32> = (0..b)
-            .flat_map(|w| {
-                let at = (w * (t + 1) + k) * n * 4;
-                frames[at..at + n * 4]
-                    .chunks_exact(4)
-                    .flat_map(|r| [r[0], r[1]])
-                    .collect::<Vec<f32>>()
-            })
-            .collect();
-        let nb = Neighbourhood::build(&pos, &batch.material, [b, n], |m| m == 0);
-        let particles = nb.inv_d0.iter().filter(|&&v| v > 0.0).count() as f32;
-        with_count(nb, particles)
-    });
-    BatchTensors {
-        frames: upload(frames, [b, t + 1, n, 4], device),
-        material: one_hot(&batch.material, needs.materials, b, n, device),
-        dt: upload(batch.dt.clone(), [b], device),
-        first_pos: upload(first_pos.clone(), [b, n, 2], device),
-        rest,
-        liquid,
-        host: (first_pos, batch.material, batch.dt),
-    }
-}
 
 /// One batch's rollout in progress (see the module doc): the frames predicted so far, the
 /// memory state and the carried F, so the P calls of the loss can run as several chunks of
@@ -162,7 +71,11 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         let pos = batch.truth(t - 1).narrow(2, 0, 2);
         let shapes = match &opts.constraints {
             Some(c) => {
-                let (first, material, dt) = &batch.host;
+                let HostRows {
+                    first_pos: first,
+                    material,
+                    dt,
+                } = &batch.host;
                 let n = material.len() / dt.len().max(1);
                 (0..dt.len())
                     .map(|i| {
@@ -200,7 +113,7 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         };
         // [B, N, 4] rows from the [B, N, 2 | 2] layout of the cat.
         let mut rows = host.clone();
-        let (_, material, dt) = &self.batch.host;
+        let HostRows { material, dt, .. } = &self.batch.host;
         let mut moved = vec![0.0f32; b * n * 4];
         for (i, shape) in self.shapes.iter_mut().enumerate() {
             let span = i * n * 4..(i + 1) * n * 4;
@@ -317,24 +230,6 @@ impl<'a, B: NetOps> Rollout<'a, B> {
     }
 }
 
-impl<B: Backend> BatchTensors<B> {
-    /// `[B, N, 4]`: frame `k` of the window (the target frame last).
-    fn truth(&self, k: usize) -> Tensor<B, 3> {
-        let [b, _, n, _] = self.frames.dims();
-        self.frames.clone().narrow(1, k, 1).reshape([b, n, 4])
-    }
-
-    /// The loss's units: `dv_scale` (`[1, 1, 2]`) for velocities, `dv_scale dt` (`[B, 1, 2]`)
-    /// for positions.
-    fn scales(&self, config: &GridConfig) -> (Tensor<B, 3>, Tensor<B, 3>) {
-        let device = self.frames.device();
-        let b = self.frames.dims()[0];
-        let dv = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
-        let pos = dv.clone() * self.dt.clone().reshape([b, 1, 1]);
-        (dv, pos)
-    }
-}
-
 /// `v` (`[B, N, 2]`) with Gaussian noise of `noise * dv_scale` added (as it is without noise).
 fn noisy<B: Backend>(
     opts: &GridTrainOptions,
@@ -398,7 +293,9 @@ fn structure_loss<B: Backend>(
 
 #[cfg(test)]
 mod tests {
+    use super::super::batch::{upload_batch, Needs};
     use super::*;
+    use crate::data::Batch;
     use burn::backend::{Autodiff, NdArray};
 
     /// One sample of `calls` single-frame calls (T = 2, 30 particles of two materials moving

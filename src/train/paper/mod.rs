@@ -21,7 +21,7 @@ pub use slices::evaluate;
 
 use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
-use super::{adam, drawn_on_cpu, BatchSource, EpochRecord, Observer, TrainError};
+use super::{drawn_on_cpu, optimizer, BatchSource, EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, WindowIndex};
 use crate::model::store::NetConfig;
 use crate::model::{Model, ModelConfig, Scaling};
@@ -208,7 +208,7 @@ where
     fn start(&self, resume: bool) -> Result<(Model<B>, Optim<B>, Vec<EpochRecord>), TrainError> {
         B::seed(self.main(), self.opts.seed);
         let model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
-        let optim = adam::FusedAdam::default().init::<B, Model<B>>();
+        let optim = optimizer::FusedAdam::default().init::<B, Model<B>>();
         if resume {
             if let Some(state) = checkpoint::load::<B, _, _>(
                 &self.out,
@@ -255,8 +255,8 @@ where
     }
 }
 
-/// The optimizer of a run: [`adam::FusedAdam`] through burn's adaptor.
-type Optim<B> = OptimizerAdaptor<adam::FusedAdam, Model<B>, B>;
+/// The optimizer of a run: [`optimizer::FusedAdam`] through burn's adaptor.
+type Optim<B> = OptimizerAdaptor<optimizer::FusedAdam, Model<B>, B>;
 
 /// A paper run in progress: the trainer, its output and the batch sources, as
 /// [`run_epochs`] drives it.

@@ -98,12 +98,7 @@ impl IceoryxTransport {
     }
 
     fn services(&self, topic: &str, what: &'static str) -> Result<Services, TransportError> {
-        let err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what,
-            topic: topic.to_owned(),
-            reason,
-        };
+        let err = |reason: String| TransportError::declare(KIND, what, topic.to_owned(), reason);
         let name: ServiceName = topic_key(topic)?
             .try_into()
             .map_err(|e| err(format!("service name: {e:?}")))?;
@@ -133,12 +128,8 @@ impl Transport for IceoryxTransport {
     }
 
     fn publisher(&self, topic: &str) -> Result<Box<dyn FramePublisher>, TransportError> {
-        let err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what: "publisher",
-            topic: topic.to_owned(),
-            reason,
-        };
+        let err =
+            |reason: String| TransportError::declare(KIND, "publisher", topic.to_owned(), reason);
         let (service, event) = self.services(topic, "publisher")?;
         let publisher = service
             .publisher_builder()
@@ -164,12 +155,8 @@ impl Transport for IceoryxTransport {
         topic: &str,
         sink: Sender<Sample>,
     ) -> Result<Box<dyn Subscription>, TransportError> {
-        let err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what: "subscriber",
-            topic: topic.to_owned(),
-            reason,
-        };
+        let err =
+            |reason: String| TransportError::declare(KIND, "subscriber", topic.to_owned(), reason);
         let (service, event) = self.services(topic, "subscriber")?;
         let subscriber = service
             .subscriber_builder()
@@ -236,11 +223,13 @@ impl Transport for IceoryxTransport {
             .initial_max_slice_len(512)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
-            .map_err(|e| TransportError::Declare {
-                transport: KIND,
-                what: "status publisher",
-                topic: topic.to_owned(),
-                reason: format!("{e:?}"),
+            .map_err(|e| {
+                TransportError::declare(
+                    KIND,
+                    "status publisher",
+                    topic.to_owned(),
+                    format!("{e:?}"),
+                )
             })?;
         Ok(Box::new(IceoryxStatusPublisher {
             topic: topic.to_owned(),
@@ -255,16 +244,14 @@ impl Transport for IceoryxTransport {
         sink: Sender<SurrogateStatus>,
     ) -> Result<Box<dyn Subscription>, TransportError> {
         let service = self.status_service(topic, "status subscriber")?;
-        let subscriber =
-            service
-                .subscriber_builder()
-                .create()
-                .map_err(|e| TransportError::Declare {
-                    transport: KIND,
-                    what: "status subscriber",
-                    topic: topic.to_owned(),
-                    reason: format!("{e:?}"),
-                })?;
+        let subscriber = service.subscriber_builder().create().map_err(|e| {
+            TransportError::declare(
+                KIND,
+                "status subscriber",
+                topic.to_owned(),
+                format!("{e:?}"),
+            )
+        })?;
         let stop = Arc::new(AtomicBool::new(false));
         let stopping = Arc::clone(&stop);
         let name = topic.to_owned();
@@ -287,11 +274,8 @@ impl Transport for IceoryxTransport {
                     std::thread::sleep(Duration::from_millis(20));
                 }
             })
-            .map_err(|e| TransportError::Declare {
-                transport: KIND,
-                what: "status subscriber",
-                topic: topic.to_owned(),
-                reason: e.to_string(),
+            .map_err(|e| {
+                TransportError::declare(KIND, "status subscriber", topic.to_owned(), e.to_string())
             })?;
         Ok(Box::new(IceoryxSubscription {
             stop,

@@ -48,12 +48,7 @@ impl IceoryxTransport {
         iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>,
         TransportError,
     > {
-        let err = |reason: String| TransportError::Declare {
-            transport: KIND,
-            what,
-            topic: topic.to_owned(),
-            reason,
-        };
+        let err = |reason: String| TransportError::declare(KIND, what, topic.to_owned(), reason);
         let name: ServiceName = topic_key(topic)?
             .try_into()
             .map_err(|e| err(format!("service name: {e:?}")))?;

@@ -46,11 +46,13 @@ impl CloudPublisher {
         let transport = Ros2Transport::open(backend)?;
         let name = ros_name(topic)?;
         let type_name = ros2_client::MessageTypeName::new("sensor_msgs", "PointCloud2");
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: backend.kind(),
-            what: "PointCloud2 publisher",
-            topic: topic.to_owned(),
-            reason,
+        let declare_err = |reason: String| {
+            TransportError::declare(
+                backend.kind(),
+                "PointCloud2 publisher",
+                topic.to_owned(),
+                reason,
+            )
         };
         let sink = match &transport.node {
             NodeRef::Dds(dds) => {

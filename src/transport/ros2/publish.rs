@@ -23,11 +23,8 @@ impl Ros2Transport {
         topic: &str,
     ) -> Result<Box<dyn FramePublisher>, TransportError> {
         let name = ros_name(topic)?;
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: self.backend.kind(),
-            what: "publisher",
-            topic: topic.to_owned(),
-            reason,
+        let declare_err = |reason: String| {
+            TransportError::declare(self.backend.kind(), "publisher", topic.to_owned(), reason)
         };
         match &self.node {
             NodeRef::Dds(dds) => {
@@ -67,11 +64,8 @@ impl Ros2Transport {
     ) -> Result<Box<dyn StatusPublisher>, TransportError> {
         let name = ros_name(topic)?;
         let kind = self.backend.kind();
-        let declare_err = |reason: String| TransportError::Declare {
-            transport: kind,
-            what: "status publisher",
-            topic: topic.to_owned(),
-            reason,
+        let declare_err = |reason: String| {
+            TransportError::declare(kind, "status publisher", topic.to_owned(), reason)
         };
         let type_name = status_type_name();
         match &self.node {

@@ -62,11 +62,13 @@ impl Ros2Transport {
                     drop(z);
                 }
             })
-            .map_err(|e| TransportError::Declare {
-                transport: kind,
-                what: "subscription",
-                topic: topic.to_owned(),
-                reason: format!("delivery thread: {e}"),
+            .map_err(|e| {
+                TransportError::declare(
+                    kind,
+                    "subscription",
+                    topic.to_owned(),
+                    format!("delivery thread: {e}"),
+                )
             })?;
         let created = ready_rx
             .recv()
@@ -79,12 +81,12 @@ impl Ros2Transport {
             Ok(()) => Ok(Box::new(handle)),
             Err(reason) => {
                 drop(handle);
-                Err(TransportError::Declare {
-                    transport: kind,
-                    what: "subscription",
-                    topic: topic.to_owned(),
+                Err(TransportError::declare(
+                    kind,
+                    "subscription",
+                    topic.to_owned(),
                     reason,
-                })
+                ))
             }
         }
     }

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::bail;
 
 use super::NodeBenchArgs;
-use crate::cli::bench_transport::wall_ns;
+use crate::cli::bench::common::wall_ns;
 use crate::msgs::{ParticleFrame, Time};
 use crate::transport::{self, wait_for_subscribers, FramePublisher, Sample, TransportKind};
 

@@ -1,6 +1,6 @@
-//! One Adam step as a backend operation ([`NetOps::adam_step`], the step of `train::adam`'s
+//! One Adam step as a backend operation ([`NetOps::adam_step`], the step of `train::optimizer`'s
 //! optimizer): [`AdamStep`], its scalars, and the default in burn's tensor operations. The
-//! CPU does it in one pass, in place (`cpu/adam.rs`).
+//! CPU does it in one pass, in place (`cpu/adam_pass.rs`).
 //!
 //! [`NetOps::adam_step`]: super::NetOps::adam_step
 

@@ -6,7 +6,7 @@ use burn::backend::ndarray::NdArrayTensor;
 use rayon::prelude::*;
 
 use super::{into_vec, tensor, CpuTensor, PrimitiveInfo, PARALLEL_WORK};
-use crate::ops::adam::AdamStep;
+use crate::ops::adam_step::AdamStep;
 
 /// One Adam step over a parameter (Kingma & Ba 2015, Algorithm 1, in the `eps * sqrt(bias
 /// correction 2)` form PyTorch and burn use), one pass over `param`, `grad`, `m` and `v`:

@@ -1,36 +1,18 @@
-//! `minflow bench`: the subcommands (train, transport, node, rollout and gemm live in their own
-//! files). `bench sim`: milliseconds per saved frame of the MLS-MPM ground truth for the
+//! `minflow bench sim`: milliseconds per saved frame of the MLS-MPM ground truth for the
 //! `multi` setting (2,500 particles, 64^2 grid, 20 substeps) and the `fluid` setting
 //! (128^2 grid, 80 substeps), on one thread and on all threads (one scene per thread), in
 //! one run so the ratios are comparable on a noisy machine. Taichi 1.7.4's CPU backend needs
-//! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (docs/mpm.md, "Speed anchor").
+//! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (docs/mpm.md,
+//! "Speed anchor").
 
-use super::Outcome;
+use crate::cli::Outcome;
 use crate::sim::families::{self, Family};
 use crate::sim::Scene;
-use clap::{Args, Subcommand};
+use clap::Args;
 use rayon::prelude::*;
 use std::time::Instant;
 
-#[derive(Debug, Subcommand)]
-pub enum BenchCommand {
-    /// Simulator speed: ms per saved frame, one thread and all threads.
-    Sim(SimBenchArgs),
-    /// Training speed per core (the paper's Table 4): parameters, s/epoch, us/sample, memory.
-    Train(super::bench_train::TrainBenchArgs),
-    /// Transport latency between two processes (p50/p99/max) and burst throughput.
-    Transport(super::bench_transport::TransportBenchArgs),
-    /// Surrogate node latency and throughput per core and transport (two processes).
-    Node(super::bench_node::NodeBenchArgs),
-    /// GPU dense-layer products: cubecl vs cuBLAS TF32 / FP32, ms, TFLOP/s, difference.
-    Gemm(super::bench_gemm::GemmBenchArgs),
-    /// Closed-loop rollout cost per frame of models against the MPM solver, as a ratio.
-    Rollout(super::bench_rollout::RolloutBenchArgs),
-    /// GPU particle-grid transfers (P2G, G2P): sparse kernels vs dense products, checked
-    /// against the host, ms.
-    Transfer(super::bench_transfer::TransferBenchArgs),
-}
-
+/// The flags of `minflow bench sim`.
 #[derive(Debug, Args)]
 pub struct SimBenchArgs {
     /// Frames simulated per scene (after frame 0).
@@ -44,18 +26,6 @@ pub struct SimBenchArgs {
     threads: Option<usize>,
 }
 
-pub fn run(cmd: BenchCommand) -> anyhow::Result<Outcome> {
-    match cmd {
-        BenchCommand::Sim(args) => sim(args),
-        BenchCommand::Train(args) => super::bench_train::run(args),
-        BenchCommand::Transport(args) => super::bench_transport::run(args),
-        BenchCommand::Node(args) => super::bench_node::run(args),
-        BenchCommand::Gemm(args) => super::bench_gemm::run(args),
-        BenchCommand::Rollout(args) => super::bench_rollout::run(args),
-        BenchCommand::Transfer(args) => super::bench_transfer::run(args),
-    }
-}
-
 /// Simulates `frames` frames of each scene; returns the substep splits taken.
 fn simulate(scene: &Scene, frames: u32) -> anyhow::Result<u64> {
     let (mut solver, _) = scene.solver()?;
@@ -65,7 +35,11 @@ fn simulate(scene: &Scene, frames: u32) -> anyhow::Result<u64> {
     Ok(solver.splits)
 }
 
-fn sim(args: SimBenchArgs) -> anyhow::Result<Outcome> {
+/// Runs `minflow bench sim`: prints the table.
+///
+/// # Errors
+/// A scene that cannot be built, or no thread pool.
+pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
     let threads = args
         .threads
         .unwrap_or_else(rayon::current_num_threads)

@@ -9,8 +9,8 @@
 //! node's size (`--scenes` x `--particles` on an `--grid`^2 grid, `--channels` values
 //! splatted, `--latent` gathered), and the two forms' difference there.
 
-use super::device::DeviceArgs;
-use super::Outcome;
+use crate::cli::device::DeviceArgs;
+use crate::cli::Outcome;
 use clap::Args;
 
 /// Flags of `bench transfer`.
@@ -53,7 +53,7 @@ pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
         };
         cuda::run(
             &args,
-            super::device::cuda::device(index, args.device.kernels())?,
+            crate::cli::device::cuda::device(index, args.device.kernels())?,
         )
     }
     #[cfg(not(feature = "cuda"))]
@@ -65,8 +65,8 @@ pub fn run(args: TransferBenchArgs) -> anyhow::Result<Outcome> {
 
 #[cfg(feature = "cuda")]
 mod cuda {
-    use super::super::device::cuda::{CudaDevice, CudaInfer};
     use super::{Outcome, TransferBenchArgs};
+    use crate::cli::device::cuda::{CudaDevice, CudaInfer};
     use crate::model::grid::transfer::{self, Stencil};
     use burn::tensor::backend::Backend;
     use burn::tensor::{Distribution, Int, Tensor, TensorData};

@@ -27,9 +27,9 @@ use anyhow::{bail, Context};
 use burn::backend::NdArray;
 use clap::Args;
 
-use super::bench_transport::{percentile as pct, BenchTransportOptions};
-use super::Outcome;
+use super::common::{percentile as pct, BenchTransportOptions};
 use crate::bag::{read_frames, FRAMES_TOPIC};
+use crate::cli::Outcome;
 use crate::data::{self, Scaler};
 use crate::model::store::{save, ModelMeta, Surrogate};
 use crate::model::CoreKind;
@@ -40,6 +40,7 @@ use crate::ops::NetOps;
 use crate::transport::TransportKind;
 use through::through_node;
 
+/// The flags of `minflow bench node`.
 #[derive(Debug, Args)]
 pub struct NodeBenchArgs {
     /// Cores to measure (comma-separated): mlp, lstm, gru, minlstm, mingru.
@@ -90,7 +91,7 @@ pub struct NodeBenchArgs {
     #[arg(long, default_value_t = 10.0, value_parser = seconds_1h)]
     seconds: f64,
     /// `--streams`: seconds sent first and not counted (0-3600).
-    #[arg(long, default_value_t = 3.0, value_parser = super::flags::seconds)]
+    #[arg(long, default_value_t = 3.0, value_parser = crate::cli::flags::seconds)]
     warm_up: f64,
     /// `--streams`: the node's `--max-batch` per row (comma-separated, each 1-4096).
     #[arg(long, value_delimiter = ',', default_value = "1,4",
@@ -103,7 +104,7 @@ pub struct NodeBenchArgs {
     #[arg(long, hide = true)]
     publish_to: Option<String>,
     #[command(flatten)]
-    device: super::device::DeviceArgs,
+    device: crate::cli::device::DeviceArgs,
 }
 
 /// `--rate`: frames per second per stream, 0.1 to 1000.
@@ -166,6 +167,11 @@ struct Row {
     burst_fps: f64,
 }
 
+/// Runs `minflow bench node`: the publisher of a streams run (`--publish-to`), the streams
+/// table (`--streams`), or the per-core tables.
+///
+/// # Errors
+/// Bad flags, a bag that cannot be read, a model or node process that fails.
 pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
     if let Some(topic) = &args.publish_to {
         streams::publish(&args, topic)?;
@@ -186,37 +192,28 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
         streams::run(&args, &exe, &model)?;
         return Ok(Outcome::Done);
     }
+    per_core(&args)
+}
+
+/// The per-core tables: each model's step in this process (alone and in `--batch` sizes),
+/// then through a node process per transport unless `--skip-node`.
+fn per_core(args: &NodeBenchArgs) -> anyhow::Result<Outcome> {
     let last = match args.encoder_last_activation.as_str() {
         "none" => LastActivation::None,
         "elu" => LastActivation::Elu,
         other => bail!("unknown --encoder-last-activation {other:?} (none | elu)"),
     };
     let gpu = args.device.parse()?.single("bench node")?;
-    let transports = args.transport.kinds();
     let frames = bag_frames(&args.bag)?;
     let (trajs, _) = data::load(std::slice::from_ref(&args.bag), Some(FRAMES_TOPIC))?;
     let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
     let exe = std::env::current_exe().context("locating the minflow binary")?;
     let tmp = tempfile::tempdir()?;
-    let runs = model_runs(&args, tmp.path(), last, &scaler)?;
+    let runs = model_runs(args, tmp.path(), last, &scaler)?;
     let mut table = Vec::new();
     let mut batched = Vec::new();
     for (name, dir) in &runs {
-        let step_us = |b: usize| -> anyhow::Result<Vec<f64>> {
-            match gpu {
-                None => {
-                    model_step_us::<NdArray<f32>>(dir, &frames, b, args.mirror, &Default::default())
-                }
-                #[cfg(feature = "cuda")]
-                Some(id) => {
-                    use super::device::cuda::{device, CudaInfer};
-                    let device = device(id, args.device.kernels())?;
-                    model_step_us::<CudaInfer>(dir, &frames, b, args.mirror, &device)
-                }
-                #[cfg(not(feature = "cuda"))]
-                Some(_) => bail!("built without CUDA"),
-            }
-        };
+        let step_us = |b: usize| model_step_on(args, gpu, dir, &frames, b);
         let model_us = step_us(1)?;
         for &b in &args.batch {
             eprintln!("bench node: {name}, {b} scenes per step ...");
@@ -227,34 +224,71 @@ pub fn run(args: NodeBenchArgs) -> anyhow::Result<Outcome> {
             table.push(Row::in_process(name, &model_us));
             continue;
         }
-        let variants: &[bool] = if args.foxglove_idle {
-            &[false, true]
-        } else {
-            &[false]
-        };
-        for (&kind, &foxglove) in transports
-            .iter()
-            .flat_map(|k| variants.iter().map(move |f| (k, f)))
-        {
-            eprintln!("bench node: {name} over {kind}{} ...", suffix(foxglove));
-            let (received, latency, burst_fps) =
-                through_node(&args, &exe, dir, (kind, foxglove), &frames)?;
-            table.push(Row {
-                name: name.clone(),
-                kind: Some(kind),
-                foxglove,
-                model_p50: pct(&model_us, 0.5),
-                model_p99: pct(&model_us, 0.99),
-                received,
-                e2e_p50: pct(&latency, 0.5),
-                e2e_p99: pct(&latency, 0.99),
-                burst_fps,
-            });
-        }
+        table.extend(node_rows(args, &exe, (name, dir), &model_us, &frames)?);
     }
-    print_table(&args, &table);
-    print_batched(&args, &batched);
+    print_table(args, &table);
+    print_batched(args, &batched);
     Ok(Outcome::Done)
+}
+
+/// [`model_step_us`] of the model in `dir` on `b` scenes, on the CPU or the GPU `gpu`.
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
+fn model_step_on(
+    args: &NodeBenchArgs,
+    gpu: Option<usize>,
+    dir: &Path,
+    frames: &[ParticleFrame],
+    b: usize,
+) -> anyhow::Result<Vec<f64>> {
+    match gpu {
+        None => model_step_us::<NdArray<f32>>(dir, frames, b, args.mirror, &Default::default()),
+        #[cfg(feature = "cuda")]
+        Some(id) => {
+            use crate::cli::device::cuda::{device, CudaInfer};
+            let device = device(id, args.device.kernels())?;
+            model_step_us::<CudaInfer>(dir, frames, b, args.mirror, &device)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Some(_) => bail!("built without CUDA"),
+    }
+}
+
+/// The rows of the model `name` in `dir` through a node process, per transport (and with
+/// the idle live view, `--foxglove-idle`); `model_us` its step times in this process.
+fn node_rows(
+    args: &NodeBenchArgs,
+    exe: &Path,
+    (name, dir): (&str, &Path),
+    model_us: &[f64],
+    frames: &[ParticleFrame],
+) -> anyhow::Result<Vec<Row>> {
+    let variants: &[bool] = if args.foxglove_idle {
+        &[false, true]
+    } else {
+        &[false]
+    };
+    let transports = args.transport.kinds();
+    let mut rows = Vec::new();
+    for (&kind, &foxglove) in transports
+        .iter()
+        .flat_map(|k| variants.iter().map(move |f| (k, f)))
+    {
+        eprintln!("bench node: {name} over {kind}{} ...", suffix(foxglove));
+        let (received, latency, burst_fps) =
+            through_node(args, exe, dir, (kind, foxglove), frames)?;
+        rows.push(Row {
+            name: name.to_owned(),
+            kind: Some(kind),
+            foxglove,
+            model_p50: pct(model_us, 0.5),
+            model_p99: pct(model_us, 0.99),
+            received,
+            e2e_p50: pct(&latency, 0.5),
+            e2e_p99: pct(&latency, 0.99),
+            burst_fps,
+        });
+    }
+    Ok(rows)
 }
 
 /// How a row's transport column names the idle live view.

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 
 use super::NodeBenchArgs;
-use crate::cli::bench_transport::{percentile as pct, wall_ns};
+use crate::cli::bench::common::{percentile as pct, wall_ns};
 use crate::msgs::{ParticleFrame, Time};
 use crate::node::surrogate::LOOP_STAGES;
 use crate::transport::{self, wait_for_subscribers, TransportKind};

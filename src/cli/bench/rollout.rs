@@ -18,8 +18,8 @@ use anyhow::Context;
 use clap::Args;
 use rayon::prelude::*;
 
-use super::device::{Device, DeviceArgs};
-use super::Outcome;
+use crate::cli::device::{Device, DeviceArgs};
+use crate::cli::Outcome;
 use crate::eval::frame_metrics;
 use crate::model::constraints::Parts;
 use crate::model::store::Surrogate;
@@ -27,6 +27,7 @@ use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
 use crate::sim::SceneRun;
 
+/// The flags of `minflow bench rollout`.
 #[derive(Debug, Args)]
 pub struct RolloutBenchArgs {
     /// Run folders of trained models (repeatable), e.g. models/all-grid-mingru.
@@ -36,19 +37,19 @@ pub struct RolloutBenchArgs {
     #[arg(long, default_value = "multi", value_parser = ["multi", "fluid"])]
     family: String,
     /// Scenes, ids 0..N of `simulate --seed`.
-    #[arg(long, default_value_t = 4, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
     scenes: usize,
     /// Seed of the scenes (the shipped models trained on seed 1: 7 gives unseen scenes).
     #[arg(long, default_value_t = 7)]
     seed: u64,
     /// Frames predicted per rollout, H.
-    #[arg(long, default_value_t = 100, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 100, value_parser = crate::cli::flags::at_least_one)]
     frames: usize,
     /// Scenes per network call (a batch of rollouts at once; 1: one scene after another).
-    #[arg(long, default_value_t = 1, value_parser = super::flags::at_least_one)]
+    #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::at_least_one)]
     batch: usize,
     /// Threads of the pool the solver and the CPU models run on (default: all cores).
-    #[arg(long, value_parser = super::flags::at_least_one)]
+    #[arg(long, value_parser = crate::cli::flags::at_least_one)]
     threads: Option<usize>,
     /// Which parts of each model's material constraints the rollouts project onto: on |
     /// off | a list of rope, jelly, snow, liquid, walls. Repeat for a row per setting.
@@ -145,7 +146,7 @@ fn model_row(
         }
         #[cfg(feature = "cuda")]
         Device::Cuda(ids) => {
-            use super::device::cuda::{device, CudaInfer};
+            use crate::cli::device::cuda::{device, CudaInfer};
             let device = device(ids[0], args.device.kernels())?;
             let s = Surrogate::<CudaInfer>::load(dir, &device)?.with_constraints(parts);
             // One untimed rollout of a full call's scenes first: the kernels are compiled

@@ -14,7 +14,8 @@ use burn::module::Module;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Distribution, Tensor};
 
-use super::paper::{synthetic, EpochMeans, TrainBenchArgs};
+use super::{kernels, TrainBenchArgs};
+use crate::cli::bench::common::{peak_mib, synthetic, EpochMeans};
 use crate::cli::Outcome;
 use crate::data::{Scaler, WindowIndex};
 use crate::model::grid::{
@@ -218,7 +219,6 @@ fn stages<B: AutodiffBackend + NetOps>(
 /// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
-    use super::paper::{kernels, peak_mib};
     use crate::cli::train::CpuTrain;
     let kernels = kernels(args)?;
     match args.device.parse()?.single("bench train --arch grid")? {

@@ -137,7 +137,7 @@ mod tests {
         };
         let prim = |t: Tensor<C, 2>| t.into_primitive().tensor();
         let wrap = |t| Tensor::<C, 2>::from_primitive(TensorPrimitive::Float(t));
-        let (pa, ma, va) = crate::ops::adam::composed_adam::<C>(
+        let (pa, ma, va) = crate::ops::adam_step::composed_adam::<C>(
             prim(p2.clone()),
             prim(g.clone()),
             Some(prim(s.moment_1.clone())),

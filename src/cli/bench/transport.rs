@@ -11,64 +11,17 @@
 use std::collections::BTreeMap;
 use std::process::{Command, Stdio};
 use std::sync::mpsc::channel;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 
-use super::Outcome;
+use super::common::{percentile, wall_ns, BenchTransportOptions};
+use crate::cli::Outcome;
 use crate::msgs::{Header, ParticleFrame, Time};
-use crate::transport::{self, wait_for_subscribers, TransportKind, TransportOptions};
-use std::ffi::OsString;
-use std::path::PathBuf;
+use crate::transport::{self, wait_for_subscribers, TransportKind};
 
-/// The transport flags of `bench transport` and `bench node`, flattened into both: the
-/// shared [`TransportOptions`] flags, except that `--transport` is repeatable because a
-/// benchmark measures several transports in one run.
-#[derive(Debug, Clone, Args)]
-pub struct BenchTransportOptions {
-    /// Transports to measure (repeatable; default: zenoh, iceoryx2, ros2).
-    #[arg(long = "transport", value_enum)]
-    pub transports: Vec<TransportKind>,
-    /// A standard zenoh JSON5 config file for every process of the benchmark; without it,
-    /// embedded peer sessions that need no router.
-    #[arg(long, value_name = "FILE")]
-    pub zenoh_config: Option<PathBuf>,
-}
-
-impl BenchTransportOptions {
-    /// The transports to measure: those given, or zenoh, iceoryx2 and ros2.
-    pub fn kinds(&self) -> Vec<TransportKind> {
-        if self.transports.is_empty() {
-            vec![
-                TransportKind::Zenoh,
-                TransportKind::Iceoryx2,
-                TransportKind::Ros2,
-            ]
-        } else {
-            self.transports.clone()
-        }
-    }
-
-    /// The options to open `kind` with in this process.
-    pub fn options(&self, kind: TransportKind) -> TransportOptions {
-        TransportOptions {
-            zenoh_config: self.zenoh_config.clone(),
-            ..TransportOptions::new(kind)
-        }
-    }
-
-    /// The same flags for a `minflow` child process that opens `kind`.
-    pub fn child_args(&self, kind: TransportKind) -> Vec<OsString> {
-        let mut args = vec!["--transport".into(), kind.to_string().into()];
-        if let Some(cfg) = &self.zenoh_config {
-            args.push("--zenoh-config".into());
-            args.push(cfg.clone().into());
-        }
-        args
-    }
-}
-
+/// Which side of `bench transport` a process is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Role {
     /// Subscribe, start the publisher process, print the table.
@@ -77,6 +30,7 @@ pub enum Role {
     Publisher,
 }
 
+/// The flags of `minflow bench transport`.
 #[derive(Debug, Args)]
 pub struct TransportBenchArgs {
     #[command(flatten)]
@@ -102,13 +56,6 @@ pub struct TransportBenchArgs {
 const LATENCY_SCENE: &str = "bench/latency";
 const BURST_SCENE: &str = "bench/burst";
 
-/// Wall-clock time, ns since the Unix epoch (the same clock in every process).
-pub(super) fn wall_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
 /// A frame of `n` particles with deterministic contents.
 fn frame(n: usize, scene: &str, index: u32) -> ParticleFrame {
     ParticleFrame {
@@ -125,6 +72,10 @@ fn frame(n: usize, scene: &str, index: u32) -> ParticleFrame {
     }
 }
 
+/// Runs `minflow bench transport` as its `--role` says.
+///
+/// # Errors
+/// A transport that cannot be opened, a publisher process that fails.
 pub fn run(args: TransportBenchArgs) -> anyhow::Result<Outcome> {
     match args.role {
         Role::Publisher => publish(&args),
@@ -177,14 +128,6 @@ struct Row {
     max: f64,
     burst_received: u32,
     burst_fps: f64,
-}
-
-/// The `p` quantile (0..=1) of sorted values, nearest rank; NaN when empty.
-pub(super) fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
 fn bench(args: &TransportBenchArgs) -> anyhow::Result<Outcome> {

@@ -19,15 +19,91 @@
 //! products. The memory cell still runs as tensors, once per call, on the rows of the first
 //! pass. Taken by [`super::GridModel::step_bundle`] on the CPU for inference and for CPU
 //! training's push-forward calls, with the free head ([`super::Update::Free`]) and the
-//! fitted or no rest shape (not the advected F).
+//! fitted or no rest shape (not the advected F), through `GridModel::host_frames` (here).
 
 use burn::nn::Linear;
+use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use crate::ops::{bspline_axis, host, host_values, NetOps};
 
+use super::{GridModel, MemoryState, StepInput, StepOutput, REST_FEATURES};
+
 /// Particles per task of the head pass: a block's rows of every layer stay in L1/L2.
 pub const BLOCK: usize = 128;
+
+impl<B: NetOps> GridModel<B> {
+    /// [`GridModel::step_bundle`]'s frames from the U-Net's latent `fields` on, through the
+    /// host passes of this file: the input rows, the memory (as tensors, on the first frame's
+    /// rows), then per frame the head and the integration. `vel` is the normalised window;
+    /// `features` the rest-shape features at the call's positions (`[B, N, 6]`, as P2G read
+    /// them; `None` for a model without rest shape).
+    pub(super) fn host_frames(
+        &self,
+        input: &StepInput<B>,
+        vel: Tensor<B, 3>,
+        fields: &[Tensor<B, 3>],
+        features: Option<Tensor<B, 3>>,
+        state: MemoryState<B>,
+    ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
+        let [b, n_p, _] = input.pos.dims();
+        let device = input.pos.device();
+        let c = Constants {
+            n: self.n,
+            window: self.window,
+            vel_scale: self.vel_scale,
+            dv_mean: self.dv_mean,
+            dv_scale: self.dv_scale,
+        };
+        let mut particles = Particles {
+            pos: host_values(input.pos.clone()),
+            vel: host_values(vel),
+            material: host_values(input.material.clone()),
+            dt: host_values(input.dt.clone()),
+            particles: n_p,
+        };
+        let head = Head::of(
+            &self.head_a,
+            self.rest_in.as_ref(),
+            &self.head_b,
+            &self.head_out,
+        );
+        let rest = input
+            .rest
+            .as_ref()
+            .filter(|r| r.dims() == [b, n_p] && self.rest_in.is_some());
+        // Without neighbourhoods a rest-shape model reads zero features (its first layer's
+        // bias still counts), as the tensor path does.
+        let rest_rows = |pos: &[f32]| {
+            let rows = rest.and_then(|r| r.features_rows(pos));
+            let zeros = || vec![0.0; b * n_p * REST_FEATURES];
+            rows.or_else(|| self.rest_in.as_ref().map(|_| zeros()))
+        };
+        let latent = fields[0].dims()[2];
+        let mut u = particles.inputs(&host_values(fields[0].clone()), latent, c);
+        let width = latent + 2 * self.window + input.material.dims()[2] + 2;
+        let (memory, state) = self.memory.step(
+            crate::model::upload(u.clone(), [b * n_p, width], &device),
+            state,
+        );
+        let memory = memory.map(host_values);
+        let mut features = features.map(host_values);
+        let mut frames = Vec::with_capacity(self.bundle);
+        for (k, field) in fields.iter().enumerate().take(self.bundle) {
+            if k > 0 {
+                u = particles.inputs(&host_values(field.clone()), latent, c);
+                features = rest_rows(&particles.pos);
+            }
+            let v = particles.advance(&head, &u, memory.as_deref(), features.as_deref(), c);
+            frames.push(StepOutput {
+                pos: crate::model::upload(particles.pos.clone(), [b, n_p, 2], &device),
+                vel: crate::model::upload(v, [b, n_p, 2], &device),
+                deformation: None,
+            });
+        }
+        (frames, state)
+    }
+}
 
 /// A dense layer's weights on the host: `w` `[in, out]` row-major (burn's `Linear` layout),
 /// `b` `[out]` (zeros without a bias).

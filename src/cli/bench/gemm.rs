@@ -6,8 +6,8 @@
 //! column is also the check that the cuBLAS path reads transposed views right: a wrong
 //! layout differs by O(1), TF32 rounding by ~1e-3.
 
-use super::device::DeviceArgs;
-use super::Outcome;
+use crate::cli::device::DeviceArgs;
+use crate::cli::Outcome;
 use clap::Args;
 
 /// Flags of `bench gemm`.
@@ -43,7 +43,7 @@ pub fn run(args: GemmBenchArgs) -> anyhow::Result<Outcome> {
         cuda::table(
             &args,
             index,
-            super::device::cuda::device(index, args.device.kernels())?,
+            crate::cli::device::cuda::device(index, args.device.kernels())?,
         )
     }
     #[cfg(not(feature = "cuda"))]
@@ -55,8 +55,8 @@ pub fn run(args: GemmBenchArgs) -> anyhow::Result<Outcome> {
 
 #[cfg(feature = "cuda")]
 mod cuda {
-    use super::super::device::cuda::{CudaDevice, CudaInfer};
     use super::{GemmBenchArgs, Outcome};
+    use crate::cli::device::cuda::{CudaDevice, CudaInfer};
     use crate::ops::cublas::{kernels, open, GpuGemm};
     use crate::ops::Kernels;
     use crate::ops::NetOps;

@@ -10,150 +10,22 @@
 //! low: bound by issuing the work); `data %` the share it waited for host batches (windows
 //! assembled and scaled on a second thread). Used for `--arch paper`.
 
-use crate::cli::device::{Device, DeviceArgs};
+use super::{kernels, TrainBenchArgs};
+use crate::cli::bench::common::{peak_mib, synthetic, EpochMeans};
+use crate::cli::device::Device;
 use crate::cli::train::CpuTrain;
 use crate::cli::Outcome;
-use crate::data::{Scaler, Trajectory, WindowIndex};
+use crate::data::{Scaler, WindowIndex};
 use crate::model::{CoreKind, LastActivation, ModelConfig};
 use crate::ops::NetOps;
 use crate::train::{TrainOptions, Trainer};
 use burn::module::Module;
 use burn::tensor::backend::AutodiffBackend;
-use clap::Args;
 
-#[derive(Debug, Args)]
-pub struct TrainBenchArgs {
-    /// Architecture: paper (the paper's Table 4) | grid (P2G -> U-Net -> G2P, docs/grid.md).
-    #[arg(long, default_value = "paper", value_parser = ["paper", "grid"])]
-    pub(super) arch: String,
-    /// Window lengths T to measure (paper).
-    #[arg(long, value_delimiter = ',', default_value = "2,32")]
-    windows: Vec<usize>,
-    /// Cores to measure [paper: mlp,lstm,gru,minlstm,mingru; grid: none,mingru,minlstm].
-    #[arg(long, value_delimiter = ',')]
-    pub(super) cores: Option<Vec<String>>,
-    /// Samples (windows) per epoch.
-    #[arg(long, default_value_t = 16, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) samples: usize,
-    /// Epochs per core (the first includes warm-up).
-    #[arg(long, default_value_t = 2, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) epochs: usize,
-    /// Micro-batch (= batch) size.
-    #[arg(long, default_value_t = 8, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) micro_batch: usize,
-    /// Particles N.
-    #[arg(long, default_value_t = 2500, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) particles: usize,
-    /// Grid size n (grid).
-    #[arg(long, default_value_t = 64, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) grid: usize,
-    /// Rollout steps per sample P (grid).
-    #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
-    pub(super) rollout_steps: usize,
-    /// Convolution kernels to measure (grid): auto | burn | gather | shift.
-    #[arg(long, value_delimiter = ',', default_value = "auto", value_parser = crate::cli::flags::conv_kernel)]
-    pub(super) conv: Vec<crate::model::grid::ConvKernel>,
-    /// Also time each stage of one step, forward + backward (grid).
-    #[arg(long)]
-    pub(super) stages: bool,
-    /// Latent and core width W.
-    #[arg(long, default_value_t = 1250)]
-    width: usize,
-    /// Encoder hidden width.
-    #[arg(long, default_value_t = 256)]
-    encoder_hidden: usize,
-    /// Encoder's last activation: none (pool-then-project, cheap) | elu (the paper's).
-    #[arg(long, default_value = "none")]
-    encoder_last_activation: String,
-    /// Epochs run before the measured ones and left out of the means (warm-up).
-    #[arg(long, default_value_t = 0)]
-    pub(super) warmup_epochs: usize,
-    /// Split the long reductions of the per-particle layers' weight gradients into row
-    /// chunks (on) or run each as one product (off: to measure what the split buys; the CPU
-    /// backend has its own kernels and ignores it).
-    #[arg(long, default_value = "on")]
-    split_weight_grad: String,
-    #[command(flatten)]
-    pub(super) device: DeviceArgs,
-}
-
-/// A deterministic synthetic trajectory of `frames` frames (values uniform in [0, 1)).
-pub(super) fn synthetic(n: usize, frames: usize) -> Trajectory {
-    let mut s = 7u64;
-    let mut next = || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (s >> 40) as f32 / (1u64 << 24) as f32
-    };
-    let states = (0..frames * n * 4).map(|_| next()).collect();
-    Trajectory {
-        scene: "bench/synthetic/000".into(),
-        dt: 0.016,
-        material: (0..n).map(|p| (p % 4) as u8).collect(),
-        start_index: 0,
-        states,
-        frames,
-        n,
-    }
-}
-
-/// Seconds per epoch of a benchmark run: the warm-up epochs' total, then the timed ones'
-/// mean and maximum, and the mean seconds waiting for the device and for host batches.
-pub(super) struct EpochMeans {
-    pub warmup: f64,
-    pub mean: f64,
-    pub max: f64,
-    pub wait: f64,
-    pub data: f64,
-}
-
-impl EpochMeans {
-    /// The means of `history` after its first `warmup_epochs`.
-    pub fn of(history: &[crate::train::EpochRecord], warmup_epochs: usize) -> Self {
-        let (warm, timed) = history.split_at(warmup_epochs.min(history.len()));
-        let n = timed.len().max(1) as f64;
-        let mean_of =
-            |f: fn(&crate::train::EpochRecord) -> f64| timed.iter().map(f).sum::<f64>() / n;
-        Self {
-            warmup: warm.iter().map(|r| r.seconds).sum(),
-            mean: mean_of(|r| r.seconds),
-            max: timed.iter().map(|r| r.seconds).fold(0.0, f64::max),
-            wait: mean_of(|r| r.wait_seconds),
-            data: mean_of(|r| r.data_seconds),
-        }
-    }
-}
-
-/// Peak resident memory in MiB since the last reset, and a reset.
-pub(super) fn peak_mib(reset: bool) -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let kb: f64 = status
-        .lines()
-        .find(|l| l.starts_with("VmHWM:"))?
-        .split_whitespace()
-        .nth(1)?
-        .parse()
-        .ok()?;
-    if reset {
-        let _ = std::fs::write("/proc/self/clear_refs", "5");
-    }
-    Some(kb / 1024.0)
-}
-
-/// The kernel choices the GPUs are opened with: `--gpu-gemm` and `--split-weight-grad`.
-pub(super) fn kernels(args: &TrainBenchArgs) -> anyhow::Result<crate::ops::Kernels> {
-    let split_weight_grad = match args.split_weight_grad.as_str() {
-        "on" => true,
-        "off" => false,
-        other => anyhow::bail!("--split-weight-grad {other:?}: expected on | off"),
-    };
-    Ok(crate::ops::Kernels {
-        split_weight_grad,
-        ..args.device.kernels()
-    })
-}
-
+/// Runs `minflow bench train --arch paper`: the table on `--device`.
+///
+/// # Errors
+/// Bad flags, a failed training epoch.
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: TrainBenchArgs) -> anyhow::Result<Outcome> {
     let kernels = kernels(&args)?;

@@ -1,0 +1,323 @@
+//! One network call of [`GridModel`] (the module doc of [`super`], steps 1 to 5):
+//! [`GridModel::step_bundle`] splats the particles onto the grid and runs the U-Net
+//! ([`GridModel::latent_fields`]), then predicts the call's K frames either as tensors
+//! ([`GridModel::tensor_frames`]: memory, G2P, head, integration) or, on the CPU where
+//! nothing needs a gradient, through the host passes of [`super::host_pass`]. The head, the
+//! integration, the carried F and the rest-shape features are this file's helpers.
+
+use burn::tensor::Tensor;
+
+use super::rest::{self, NeighbourTensors, REST_FEATURES};
+use super::{cat_rows, pairs, transfer, GridModel, MemoryState, StepInput, StepOutput, Update};
+use crate::ops::{grid_channels, linear, silu, NetOps};
+
+/// The U-Net's output for one call: K latent fields (`[B, n^2, L]` each) and, for a grid
+/// update, K velocity-change fields (`[B, n^2, 2]` each; empty otherwise).
+pub(super) struct Latent<B: burn::tensor::backend::Backend> {
+    /// Latent field k, gathered by frame k's particles.
+    pub(super) fields: Vec<Tensor<B, 3>>,
+    /// Velocity-change field k ([`Update::Grid`], [`Update::GridHead`]).
+    pub(super) dv: Vec<Tensor<B, 3>>,
+}
+
+/// A carried deformation gradient (`[B, N, 4]`) and the `[B, N, 1]` mask of particles
+/// with rest neighbours ([`GridModel::carried`]).
+type Carried<B> = (Tensor<B, 3>, Tensor<B, 3>);
+
+impl<B: NetOps> GridModel<B> {
+    /// One network call for a batch of scenes: the next K frames (K = [`GridModel::bundle`])
+    /// and the new memory state. P2G, the U-Net and the memory run once; then for k = 1..K
+    /// each particle gathers latent field k at its current position (G2P), the head predicts
+    /// its velocity change and the frame is integrated, so frame k + 1 reads the grid where
+    /// frame k left the particle. K = 1 is the single-frame step.
+    ///
+    /// # Shapes
+    /// See [`StepInput`]; returns K [`StepOutput`]s, oldest first; `state` holds `[B N, H]`
+    /// rows.
+    pub fn step_bundle(
+        &self,
+        input: StepInput<B>,
+        state: MemoryState<B>,
+    ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
+        let [b, n_p, _] = input.pos.dims();
+        let device = input.pos.device();
+        let vel = input.vel.clone() / pairs(self.vel_scale, self.window, &device); // [B, N, 2T], normalised
+                                                                                   // Variant (a): F carried, advected after every frame; its features replace the fit's.
+        let carried = self.advects().then(|| self.carried(&input, [b, n_p]));
+        // P2G: the separable dense transfers where the backend has no sparse ones.
+        let s = transfer::stencil(input.pos.clone(), self.n, B::dense_stencil());
+        let features = match &carried {
+            Some((f, _)) => Some(rest::advect::features_of(f.clone())),
+            None => self.rest_features(input.rest.as_ref(), &input.pos),
+        };
+        let latent = self.latent_fields(&input, &s, &vel, features.as_ref());
+        if self.takes_host_pass(&input) {
+            return self.host_frames(&input, vel, &latent.fields, features, state);
+        }
+        self.tensor_frames(&input, (s, vel), latent, features, carried, state)
+    }
+
+    /// P2G of the particles (stencil `s`, normalised velocity window `vel`, the rest-shape
+    /// `features` where the model reads them) and the U-Net on the grid: the call's
+    /// [`Latent`] fields.
+    fn latent_fields(
+        &self,
+        input: &StepInput<B>,
+        s: &transfer::Stencil<B>,
+        vel: &Tensor<B, 3>,
+        features: Option<&Tensor<B, 3>>,
+    ) -> Latent<B> {
+        let [b, n_p, _] = input.pos.dims();
+        let t = self.window;
+        let ones = Tensor::ones([b, n_p, 1], &input.pos.device());
+        let mut values = vec![ones, vel.clone(), input.material.clone()];
+        if self.reference {
+            // Displacement from the reference position, in grid cells.
+            let x0 = input.reference.clone().unwrap_or_else(|| input.pos.clone());
+            values.push((input.pos.clone() - x0).mul_scalar(self.n as f32));
+        }
+        if let Some(r) = features {
+            values.push(r.clone());
+        }
+        // [B, n^2, 1 + 2T + M (+ 2) (+ 6)], then the channels [m / 4, velocities and materials
+        // per mass, walls, displacement per mass, rest shape per mass]: the grown channels
+        // after the walls, so a model grown by `with_reference` / `with_rest_shape` keeps its
+        // channel order.
+        let splat = transfer::p2g(s, cat_rows(values));
+        let grid = grid_channels(splat, self.n, 2 * t + input.material.dims()[2]); // [B, n^2, C]
+        let cells = self.n * self.n;
+        let c = grid.dims()[2];
+        let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
+
+        // U-Net: K latent fields of L channels each (and K velocity-change fields).
+        let out = self.unet.forward(grid);
+        let channels = out.dims()[3];
+        let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
+        let (fields, dv) = self.fields(out, [b, cells]);
+        Latent { fields, dv }
+    }
+
+    /// [`GridModel::step_bundle`]'s frames from the U-Net's `latent` fields on, as tensors:
+    /// the memory once per call on the first frame's inputs, then per frame G2P at the
+    /// particles' current positions, the head and the integration (the carried F advected
+    /// after each). `s` and `vel` are the call's stencil and normalised velocity window,
+    /// `features` the rest-shape features at the call's positions.
+    fn tensor_frames(
+        &self,
+        input: &StepInput<B>,
+        (mut s, mut vel): (transfer::Stencil<B>, Tensor<B, 3>),
+        latent: Latent<B>,
+        mut features: Option<Tensor<B, 3>>,
+        mut carried: Option<Carried<B>>,
+        state: MemoryState<B>,
+    ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
+        let [b, n_p, _] = input.pos.dims();
+        let (t, device) = (self.window, input.pos.device());
+        let field = |k: usize| latent.fields[k].clone();
+        // Memory, once per call, on the first frame's inputs (not in the output of the grid
+        // update: left as it is).
+        let mut u = self.particle_inputs(
+            transfer::g2p(&s, field(0)),
+            &vel,
+            &input.material,
+            &input.pos,
+        );
+        let (memory, state) = match self.update {
+            Update::Grid => (None, state),
+            _ => self.memory.step(u.clone(), state),
+        };
+        let dt = input.dt.clone().reshape([b, 1, 1]);
+        let mut pos = input.pos.clone();
+        let mut frames = Vec::with_capacity(self.bundle);
+        for k in 0..self.bundle {
+            if k > 0 {
+                s = transfer::stencil(pos.clone(), self.n, B::dense_stencil());
+                u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
+                features = match &carried {
+                    Some((f, _)) => Some(rest::advect::features_of(f.clone())),
+                    None => self.rest_features(input.rest.as_ref(), &pos),
+                };
+            }
+            let head_in = match &memory {
+                Some(m) => Tensor::cat(vec![u.clone(), m.clone()], 1),
+                None => u.clone(),
+            };
+            let grid_dv = latent.dv.get(k).map(|f| transfer::g2p(&s, f.clone()));
+            let rest_rows = features
+                .clone()
+                .map(|r| r.reshape([b * n_p, REST_FEATURES]));
+            let out = self.head_out(head_in, rest_rows, grid_dv, [b, n_p]);
+            let mut next = self.integrate(out, &vel, pos.clone(), dt.clone());
+            if let Some((f, has)) = carried.as_mut() {
+                // APIC's gradient at the frame's start positions (the stencil `s`).
+                let c = rest::advect::velocity_gradient(&s, &pos, next.vel.clone());
+                *f = rest::advect::advect(f.clone(), c, dt.clone(), has.clone());
+                next.deformation = Some(f.clone());
+            }
+            if k + 1 < self.bundle {
+                // The velocity window moves on by the frame just predicted (normalised).
+                let v = next.vel.clone() / pairs(self.vel_scale, 1, &device);
+                vel = match t {
+                    1 => v,
+                    _ => Tensor::cat(vec![vel.narrow(2, 2, 2 * (t - 1)), v], 2),
+                };
+            }
+            pos = next.pos.clone();
+            frames.push(next);
+        }
+        (frames, state)
+    }
+
+    /// Whether this call's per-particle part runs as host passes ([`super::host_pass`]): on the CPU
+    /// where nothing needs a gradient (inference, and the push-forward calls of CPU
+    /// training), with the free head and no advected F.
+    fn takes_host_pass(&self, input: &StepInput<B>) -> bool {
+        self.host_pass
+            && B::ON_HOST
+            && self.update == Update::Free
+            && !self.advects()
+            && !input.pos.is_require_grad()
+            && !input.vel.is_require_grad()
+            && !self.head_a.weight.val().is_require_grad()
+            && !self.head_out.weight.val().is_require_grad()
+    }
+
+    /// The carried F of `input` (`[B, N, 4]`; the fit to its rest neighbourhoods, the
+    /// identity without them, where it carries none of this shape) and the `[B, N, 1]` mask of
+    /// particles with rest neighbours (the others carry only J).
+    fn carried(&self, input: &StepInput<B>, [b, n_p]: [usize; 2]) -> (Tensor<B, 3>, Tensor<B, 3>) {
+        let device = input.pos.device();
+        let rest = input.rest.as_ref().filter(|r| r.dims() == [b, n_p]);
+        let has = match rest {
+            Some(r) => r.has_neighbours(),
+            None => Tensor::zeros([b, n_p, 1], &device),
+        };
+        let f = match (input.deformation.clone(), rest) {
+            (Some(f), _) if f.dims() == [b, n_p, 4] => f,
+            (_, Some(r)) => r.fitted(input.pos.clone()),
+            _ => rest::advect::identity([b, n_p], &device),
+        };
+        (f, has)
+    }
+
+    /// `[B, N, REST_FEATURES]`: the rest-shape features of positions `pos` from the
+    /// neighbourhoods `rest` (0 without them), or `None` for a model without rest shape.
+    fn rest_features(
+        &self,
+        rest: Option<&NeighbourTensors<B>>,
+        pos: &Tensor<B, 3>,
+    ) -> Option<Tensor<B, 3>> {
+        self.rest_in.as_ref()?;
+        let [b, n_p, _] = pos.dims();
+        Some(match rest.filter(|r| r.dims() == [b, n_p]) {
+            // Inference on the CPU: one host pass (the same values; no gradient needed).
+            Some(r) if B::ON_HOST && !pos.is_require_grad() => r.features_host(pos.clone()),
+            Some(r) => r.features(pos.clone()),
+            None => Tensor::zeros([b, n_p, REST_FEATURES], &pos.device()),
+        })
+    }
+
+    /// The U-Net's output `[B, n^2, K L (+ 2 K)]` as K latent fields of `[B, n^2, L]` and, for
+    /// a grid update, K velocity-change fields of `[B, n^2, 2]`, each its own contiguous
+    /// tensor: the CPU's one-pass gather reads only dense inputs (a strided view would take
+    /// the composed path).
+    fn fields(
+        &self,
+        out: Tensor<B, 3>,
+        [b, cells]: [usize; 2],
+    ) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 3>>) {
+        let k = self.bundle;
+        let dv_channels = if self.update == Update::Free {
+            0
+        } else {
+            2 * k
+        };
+        if k == 1 && dv_channels == 0 {
+            return (vec![out], Vec::new());
+        }
+        let latent = (out.dims()[2] - dv_channels) / k;
+        let part = |at: usize, width: usize| {
+            let view = out.clone().narrow(2, at, width);
+            view.reshape([b * cells * width]).reshape([b, cells, width])
+        };
+        let fields = (0..k).map(|i| part(i * latent, latent)).collect();
+        let dv = match dv_channels {
+            0 => Vec::new(),
+            _ => (0..k).map(|i| part(k * latent + 2 * i, 2)).collect(),
+        };
+        (fields, dv)
+    }
+
+    /// `[B N, L + 2T + 4 + 2]` rows `u_i = [gathered_i, own_i]`: the gathered latent features,
+    /// the normalised velocity window `vel` (`[B, N, 2T]`), the material one-hot `material` and the
+    /// position `pos` (`[B, N, 2]`).
+    fn particle_inputs(
+        &self,
+        gathered: Tensor<B, 3>,
+        vel: &Tensor<B, 3>,
+        material: &Tensor<B, 3>,
+        pos: &Tensor<B, 3>,
+    ) -> Tensor<B, 2> {
+        let [b, n_p, _] = pos.dims();
+        let u = cat_rows(vec![gathered, vel.clone(), material.clone(), pos.clone()]);
+        let d_u = u.dims()[2];
+        u.reshape([b * n_p, d_u])
+    }
+
+    /// `[B, N, 2]`: the normalised velocity change of one frame: the head on `features`
+    /// (`[B N, D]` rows; the rest-shape rows `rest`, `[B N, 6]`, through their own first
+    /// layer), the gathered grid field `grid_dv` (`[B, N, 2]`), or their sum, as
+    /// [`GridConfig::update`] says.
+    fn head_out(
+        &self,
+        features: Tensor<B, 2>,
+        rest: Option<Tensor<B, 2>>,
+        grid_dv: Option<Tensor<B, 3>>,
+        [b, n_p]: [usize; 2],
+    ) -> Tensor<B, 3> {
+        let head = (self.update != Update::Grid).then(|| {
+            // Through the backend-ops dense layer, as every per-particle layer: its weight
+            // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with
+            // a handful of output tiles on a GPU (`bench train --arch grid --stages`, H100,
+            // batch 64: 62 ms of a 110 ms step outside the timed stages).
+            let mut pre = linear(&self.head_a, features);
+            if let (Some(layer), Some(rest)) = (&self.rest_in, rest) {
+                pre = pre + linear(layer, rest);
+            }
+            let h = silu(linear(&self.head_b, silu(pre)));
+            linear(&self.head_out, h).reshape([b, n_p, 2])
+        });
+        match (head, grid_dv) {
+            (Some(h), Some(g)) => h + g,
+            (Some(h), None) => h,
+            (None, Some(g)) => g,
+            (None, None) => Tensor::zeros([b, n_p, 2], &self.head_out.weight.device()),
+        }
+    }
+
+    /// One frame integrated from the normalised velocity change `dv` (`[B, N, 2]`), the
+    /// normalised velocity window `vel` and positions `pos`, physical units: `dv = dv_mean +
+    /// dv_scale * out`, `v' = v + dv`, the trapezoid `x' = x + dt (v + v') / 2`, clamped into
+    /// the box MPM keeps its particles in.
+    fn integrate(
+        &self,
+        dv: Tensor<B, 3>,
+        vel: &Tensor<B, 3>,
+        pos: Tensor<B, 3>,
+        dt: Tensor<B, 3>,
+    ) -> StepOutput<B> {
+        let device = pos.device();
+        let t = self.window;
+        let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
+        let v = vel.clone().narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
+        let v_next = v.clone() + dv;
+        let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
+        let dx = 1.0 / self.n as f32;
+        let pos = pos.clamp(0.5 * dx, 1.0 - 1.5 * dx);
+        StepOutput {
+            pos,
+            vel: v_next,
+            deformation: None,
+        }
+    }
+}

@@ -1,0 +1,134 @@
+//! A state's constraint data ([`ConstraintState`]): per trajectory its [`SceneShape`],
+//! built from its rest frame on the first projected step, and the projection of predicted
+//! frames onto the model's [`Constraints`] with it. Part of every [`super::State`], of
+//! either architecture; it stacks and splits per trajectory like the network's state.
+
+use crate::model::constraints::{Constraints, Correction, SceneShape};
+
+/// Per trajectory (batch row): its constraint data, and the rest frames it is built from.
+#[derive(Clone, Default)]
+pub(super) struct ConstraintState {
+    /// Per trajectory: its constraint data, built from its rest frame on the first
+    /// projected step (empty before; see `Surrogate::with_constraints`).
+    pub(super) shapes: Vec<Option<SceneShape>>,
+    /// The rest frames (`[B, N, 4]`) set by `Surrogate::init_state_at` that the first
+    /// projected step builds `shapes` from; without them it takes its input frame.
+    pub(super) rest_frames: Option<Vec<f32>>,
+}
+
+impl ConstraintState {
+    /// Several states' constraint data as one, per trajectory in order: a state that has
+    /// none yet counts as one trajectory (a node's scene). The stacked data keeps no rest
+    /// frames (a node's states have none).
+    pub(super) fn stack(parts: Vec<ConstraintState>) -> ConstraintState {
+        let mut shapes = Vec::new();
+        for part in parts {
+            match part.shapes.is_empty() {
+                true => shapes.push(None),
+                false => shapes.extend(part.shapes),
+            }
+        }
+        if shapes.iter().all(Option::is_none) {
+            shapes.clear();
+        }
+        ConstraintState {
+            shapes,
+            rest_frames: None,
+        }
+    }
+
+    /// Stacked data back per scene, scene i of `sizes[i]` trajectories: the inverse of
+    /// [`ConstraintState::stack`] (every scene empty when the data is not one per
+    /// trajectory).
+    pub(super) fn split(self, sizes: &[usize]) -> Vec<ConstraintState> {
+        let total: usize = sizes.iter().sum();
+        let has_shapes = self.shapes.len() == total;
+        let mut shapes = self.shapes.into_iter();
+        sizes
+            .iter()
+            .map(|&size| ConstraintState {
+                shapes: match has_shapes {
+                    true => shapes.by_ref().take(size).collect(),
+                    false => Vec::new(),
+                },
+                rest_frames: None,
+            })
+            .collect()
+    }
+
+    /// Projects the predicted frames `out` (K frames of `[B, N, 4]`) of the input `frames`
+    /// (`[B, N, 4]`, materials `[B N]`, time steps `[B]`) onto `c`, scene by scene in
+    /// parallel; each scene's constraint data is built on its first projection from its
+    /// row of the rest frames (`[B, N, 4]`) or else of `frames`. Within a bundle, frame
+    /// k + 1 is first moved by frame k's correction (the network integrated it from its own
+    /// frame k), then projected. Returns how far each scene moved.
+    pub(super) fn project(
+        &mut self,
+        c: &Constraints,
+        (frames, material, dt): (&[f32], &[u8], &[f32]),
+        out: &mut [Vec<f32>],
+    ) -> Vec<Correction> {
+        use rayon::prelude::*;
+        let b = dt.len();
+        let n = material.len() / b;
+        let per = n * 4;
+        if self.shapes.len() != b {
+            self.shapes = (0..b).map(|_| None).collect();
+        }
+        let rest = self.rest_frames.as_deref();
+        let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
+        let mut rows: Vec<Vec<&mut [f32]>> =
+            (0..b).map(|_| Vec::with_capacity(out.len())).collect();
+        for frame in out.iter_mut() {
+            for (row, chunk) in rows.iter_mut().zip(frame.chunks_exact_mut(per)) {
+                row.push(chunk);
+            }
+        }
+        self.shapes
+            .par_iter_mut()
+            .zip(rows.par_iter_mut())
+            .enumerate()
+            .map(|(i, (shape, row))| {
+                let ids = &material[i * n..(i + 1) * n];
+                let shape = shape.get_or_insert_with(|| {
+                    SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
+                });
+                project_row(c, shape, row, ids, dt[i])
+            })
+            .collect()
+    }
+}
+
+/// One scene's frames of a bundle (`row`, oldest first) projected onto `c` with its data
+/// `shape`: frame k + 1 first moved by frame k's position correction. Returns the moves.
+fn project_row(
+    c: &Constraints,
+    shape: &mut SceneShape,
+    row: &mut [&mut [f32]],
+    ids: &[u8],
+    dt: f32,
+) -> Correction {
+    let mut total = Correction::default();
+    let mut carried: Option<Vec<f32>> = None;
+    let last = row.len().saturating_sub(1);
+    for (k, frame) in row.iter_mut().enumerate() {
+        // The network's own frame, kept where its correction carries into the
+        // next frame (not after the bundle's last).
+        let own = (k < last).then(|| frame.to_vec());
+        if let Some(offset) = &carried {
+            for (v, o) in frame.iter_mut().zip(offset) {
+                *v += o;
+            }
+        }
+        total.add(&shape.project(c, frame, ids, dt));
+        // The position correction relative to the network's own frame.
+        carried = own.map(|own| {
+            let mut offset: Vec<f32> = frame.iter().zip(&own).map(|(a, b)| a - b).collect();
+            for o in offset.chunks_exact_mut(4) {
+                (o[2], o[3]) = (0.0, 0.0);
+            }
+            offset
+        });
+    }
+    total
+}

@@ -1,0 +1,126 @@
+//! A grid model's step inside [`Surrogate`]: its carried [`GridState`] fitted to the call
+//! and turned into the network's [`StepInput`] (the velocity history completed, the
+//! reference positions and rest neighbourhoods taken or built), the network's call, and the
+//! state it leaves for the next call. Called by `Surrogate::step_here` (`surrogate.rs`).
+
+use burn::tensor::Tensor;
+
+use super::state::GridState;
+use super::{Predict, StoreError, Surrogate};
+use crate::model::grid::{
+    one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
+};
+use crate::ops::NetOps;
+
+impl<B: NetOps> Surrogate<B> {
+    /// [`Surrogate::step`] ([`Predict::Next`]) or [`Surrogate::step_bundle`]
+    /// ([`Predict::Bundle`]) of a grid model: the velocity history is completed from the
+    /// state (the current velocity repeated before T frames were seen, or when B or N
+    /// changed), and the reference positions are this frame's when the state has none of
+    /// this shape. Returns the K predicted frames (the first alone for [`Predict::Next`]).
+    pub(super) fn grid_step(
+        &self,
+        model: &GridModel<B>,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        carry: GridState<B>,
+        predict: Predict,
+    ) -> Result<(Vec<Vec<f32>>, GridState<B>), StoreError> {
+        let (b, t) = (dt.len(), model.window());
+        let n = material.len() / b;
+        let (input, memory) = self.grid_input(model, frames, material, dt, carry)?;
+        let (vel_hist, reference, rest) = (
+            input.vel.clone(),
+            input.reference.clone(),
+            input.rest.clone(),
+        );
+        let (mut outs, memory) = model.step_bundle(input, memory);
+        if predict == Predict::Next {
+            outs.truncate(1);
+        }
+        // The F of the frame the next call reads: the last one returned.
+        let deformation = outs.last().and_then(|o| o.deformation.clone());
+        // The T - 1 velocities before the next call's input frame: the input frame's own
+        // window (the next observed frame follows it), or that window continued by the
+        // bundle's frames but its last (the next call's input is that last frame).
+        let mut window = vec![vel_hist];
+        if predict == Predict::Bundle {
+            window.extend(outs[..outs.len() - 1].iter().map(|o| o.vel.clone()));
+        }
+        let window = Tensor::cat(window, 2);
+        let width = window.dims()[2];
+        let history = (t > 1).then(|| window.narrow(2, width - 2 * (t - 1), 2 * (t - 1)));
+        let k = outs.len();
+        let next = Tensor::cat(
+            outs.into_iter()
+                .map(|o| Tensor::cat(vec![o.pos, o.vel], 2))
+                .collect(),
+            0,
+        ); // [K B, N, 4]
+        let out = crate::model::download(next)?;
+        let per_frame = b * n * 4;
+        let out = (0..k)
+            .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())
+            .collect();
+        let state = GridState {
+            memory,
+            history,
+            reference,
+            rest,
+            deformation,
+        };
+        Ok((out, state))
+    }
+
+    /// A grid model's input for `frames` (`[B, N, 4]` physical) from the state `carry`
+    /// ([`GridState::fit`] to this call's shape), and the memory the call goes on from.
+    fn grid_input(
+        &self,
+        model: &GridModel<B>,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        carry: GridState<B>,
+    ) -> Result<(StepInput<B>, MemoryState<B>), StoreError> {
+        let (b, t) = (dt.len(), model.window());
+        let n = material.len() / b;
+        let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
+        let pos = frame.clone().narrow(2, 0, 2);
+        let vel = frame.narrow(2, 2, 2);
+        let carry = carry.fit([b, n], t);
+        let reference = carry.reference.unwrap_or_else(|| pos.clone());
+        let vel = match carry.history {
+            Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
+            None => vel.repeat_dim(2, t),
+        };
+        let rest = match carry.rest {
+            Some(rest) => Some(rest),
+            None if model.uses_rest_shape() => Some(self.rest_of(&reference, material, [b, n])?),
+            None => None,
+        };
+        let input = StepInput {
+            pos,
+            vel,
+            material: one_hot(material, self.meta.materials(), b, n, &self.device),
+            dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
+            reference: Some(reference),
+            rest,
+            deformation: carry.deformation,
+        };
+        Ok((input, carry.memory))
+    }
+
+    /// The rest neighbourhoods of the solids' particles in `reference` (`[B, N, 2]`),
+    /// materials `material` (`[B N]`): built once per scene on the host
+    /// ([`Neighbourhood::build`]) and uploaded.
+    fn rest_of(
+        &self,
+        reference: &Tensor<B, 3>,
+        material: &[u8],
+        [b, n]: [usize; 2],
+    ) -> Result<NeighbourTensors<B>, StoreError> {
+        let host = crate::model::download(reference.clone())?;
+        Ok(Neighbourhood::build(&host, material, [b, n], |m| m != 0).upload(&self.device))
+    }
+}

@@ -1,0 +1,315 @@
+//! What a [`Surrogate`](super::Surrogate) carries between frames, per batch of
+//! trajectories: [`State`] (the network's state, the scenes' constraint data, the frame
+//! count), [`NetState`] (the paper core's layer states or a grid model's [`GridState`]) and
+//! [`GridState`], the grid model's per-scene fields, which knows how to start, restart,
+//! stack, split, fit and mirror itself. A new carried field of a grid model is one change
+//! here: its declaration and one line in each of `GridState`'s methods below. The stacking
+//! of the pieces ([`Rows`]) lives in `stack.rs`, the constraint data in `constrained.rs`.
+
+use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
+
+use crate::model::grid::{mirror_rows, MemoryState, NeighbourTensors};
+use crate::model::LayerState;
+
+use super::constrained::ConstraintState;
+use super::stack::{shape, Rows, StackError};
+use super::StoreError;
+
+/// Per-trajectory state (one batch row per trajectory).
+#[derive(Clone)]
+pub struct State<B: Backend> {
+    /// The network's state.
+    pub(super) net: NetState<B>,
+    /// Per trajectory: its constraint data, and the rest frames it is built from.
+    pub(super) constraints: ConstraintState,
+    /// Frames consumed since the state was reset.
+    pub frames: usize,
+}
+
+/// What each architecture carries between frames.
+#[derive(Clone)]
+pub(super) enum NetState<B: Backend> {
+    /// The paper core's layer states.
+    Paper(Vec<LayerState<B>>),
+    /// The grid model's per-particle state.
+    Grid(GridState<B>),
+}
+
+/// What a grid model carries between calls, per particle of each trajectory (batch row).
+#[derive(Clone)]
+pub(super) struct GridState<B: Backend> {
+    /// The per-particle memory (`[B N, H]` rows).
+    pub(super) memory: MemoryState<B>,
+    /// The velocities of the last T - 1 frames (`[B, N, 2 (T - 1)]`, oldest first; `None`
+    /// before the first frame or when T = 1).
+    pub(super) history: Option<Tensor<B, 3>>,
+    /// The reference positions (`[B, N, 2]`: the first frame's, unless set by
+    /// [`GridState::set_reference`]; read only by a model with `reference`).
+    pub(super) reference: Option<Tensor<B, 3>>,
+    /// The rest neighbourhoods of the reference positions (built on the first step of a
+    /// model with `rest_shape`: the scene's physical state beside its memory, kept across a
+    /// restart).
+    pub(super) rest: Option<NeighbourTensors<B>>,
+    /// The advected deformation gradient (`[B, N, 4]`, a model with `Deformation::Advect`:
+    /// the F of the frame the next step reads; `None` before the first step and after a
+    /// restart, when the step starts it from the fit to the rest neighbourhoods).
+    pub(super) deformation: Option<Tensor<B, 3>>,
+}
+
+impl<B: Backend> State<B> {
+    /// A fresh state around the network state `net`: no constraint data, no frames.
+    pub(super) fn new(net: NetState<B>) -> Self {
+        State {
+            net,
+            constraints: ConstraintState::default(),
+            frames: 0,
+        }
+    }
+
+    /// This state reset as at the start of a stream, `fresh` the network's fresh state: a
+    /// grid model keeps its reference positions and rest neighbourhoods
+    /// ([`GridState::restart`]), and the constraint data is kept.
+    pub(super) fn restart(self, fresh: NetState<B>) -> Self {
+        let net = match (self.net, fresh) {
+            (NetState::Grid(grid), NetState::Grid(_)) => NetState::Grid(grid.restart()),
+            (_, fresh) => fresh,
+        };
+        State {
+            net,
+            constraints: self.constraints,
+            frames: 0,
+        }
+    }
+
+    /// What must be equal for states to stack ([`State::stack`]): each field's kind and
+    /// shape. States with equal keys and frames with equal particle counts share a call.
+    pub(super) fn shape_key(&self) -> Vec<usize> {
+        let mut key = Vec::new();
+        match &self.net {
+            NetState::Paper(layers) => layers.rows_key(&mut key),
+            NetState::Grid(grid) => {
+                key.push(usize::MAX);
+                grid.rows_key(&mut key);
+            }
+        }
+        key
+    }
+
+    /// Several scenes' states (of equal [`State::shape_key`]) as one batch state, rows in
+    /// order, copy by copy (`copies` = 2 for a mirror ensemble; `stack.rs`). Frame counts
+    /// are the caller's to keep. The constraint data stacks per trajectory
+    /// ([`ConstraintState::stack`]).
+    pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
+        let (mut paper, mut grid, mut constraints) = (vec![], vec![], vec![]);
+        for state in states {
+            constraints.push(state.constraints);
+            match state.net {
+                NetState::Paper(layers) => paper.push(layers),
+                NetState::Grid(g) => grid.push(g),
+            }
+        }
+        let net = match (paper.is_empty(), grid.is_empty()) {
+            (false, true) => NetState::Paper(Rows::stack_rows(paper, copies)?),
+            (true, false) => NetState::Grid(Rows::stack_rows(grid, copies)?),
+            _ => return Err(shape("stack: no states, or of both kinds")),
+        };
+        Ok(State {
+            net,
+            constraints: ConstraintState::stack(constraints),
+            frames: 0,
+        })
+    }
+
+    /// A stacked state back as one state per scene, scene i of `sizes[i]` trajectories (1
+    /// for a node's scene): the inverse of [`State::stack`]. Frame counts are 0.
+    pub(super) fn split(self, sizes: &[usize], copies: usize) -> Vec<State<B>> {
+        let net: Vec<NetState<B>> = match self.net {
+            NetState::Paper(layers) => layers
+                .split_rows(sizes, copies)
+                .into_iter()
+                .map(NetState::Paper)
+                .collect(),
+            NetState::Grid(grid) => grid
+                .split_rows(sizes, copies)
+                .into_iter()
+                .map(NetState::Grid)
+                .collect(),
+        };
+        net.into_iter()
+            .zip(self.constraints.split(sizes))
+            .map(|(net, constraints)| State {
+                net,
+                constraints,
+                frames: 0,
+            })
+            .collect()
+    }
+}
+
+impl<B: Backend> GridState<B> {
+    /// Nothing carried yet.
+    pub(super) fn new() -> Self {
+        GridState {
+            memory: MemoryState::Empty,
+            history: None,
+            reference: None,
+            rest: None,
+            deformation: None,
+        }
+    }
+
+    /// This state reset as at the start of a stream, but for the reference positions and
+    /// rest neighbourhoods (the scene's physical state: what the node keeps over a gap in a
+    /// stream that goes on). The advected F is fitted again from the next frame.
+    pub(super) fn restart(self) -> Self {
+        GridState {
+            reference: self.reference,
+            rest: self.rest,
+            ..GridState::new()
+        }
+    }
+
+    /// This state for a call of `b` trajectories of `n` particles, window `t`: every piece
+    /// of another shape dropped (a velocity history, reference positions, rest
+    /// neighbourhoods or F of another B or N; a memory of another row count), so the step
+    /// starts those afresh.
+    pub(super) fn fit(self, [b, n]: [usize; 2], t: usize) -> Self {
+        GridState {
+            memory: match self.memory.rows() {
+                Some(rows) if rows != b * n => MemoryState::Empty,
+                _ => self.memory,
+            },
+            history: self.history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]),
+            reference: self.reference.filter(|r| r.dims() == [b, n, 2]),
+            rest: self.rest.filter(|r| r.dims() == [b, n]),
+            deformation: self.deformation.filter(|f| f.dims() == [b, n, 4]),
+        }
+    }
+
+    /// Sets the reference positions to those of `first` (`[B, N, 4]` physical frames, `b`
+    /// of them); a mirror ensemble (`mirror`) takes each frame and its mirror image as two
+    /// rows ([`with_mirror_rows`]).
+    pub(super) fn set_reference(
+        &mut self,
+        first: &[f32],
+        b: usize,
+        mirror: bool,
+        device: &B::Device,
+    ) {
+        let (first, b) = match mirror {
+            true => (with_mirror_rows(first), 2 * b),
+            false => (first.to_vec(), b),
+        };
+        let n = first.len() / (4 * b);
+        let frame = crate::model::upload::<B, 3>(first, [b, n, 4], device);
+        self.reference = Some(frame.narrow(2, 0, 2));
+    }
+
+    /// After a projected bundle (K frames `out`, `[B, N, 4]` each): the velocity history
+    /// (`[copies B, N, 2 (T - 1)]`: the T - 1 frames before the next call's input, the
+    /// bundle's last) taken from the projected frames, so the next call reads the
+    /// velocities a caller feeding back the projected frames sees; a mirror ensemble's
+    /// second copy mirrored. Left as is when K <= T - 1.
+    pub(super) fn history_from(
+        &mut self,
+        out: &[Vec<f32>],
+        [b, n]: [usize; 2],
+        device: &B::Device,
+    ) {
+        let Some(history) = &self.history else {
+            return;
+        };
+        let [rows, _, width] = history.dims();
+        let (t1, k) = (width / 2, out.len());
+        let copies = rows / b.max(1);
+        if k <= t1 || rows != copies * b || !(1..=2).contains(&copies) {
+            return;
+        }
+        let window = &out[k - 1 - t1..k - 1];
+        let mut host = vec![0.0f32; rows * n * width];
+        for copy in 0..copies {
+            let sign = if copy == 1 { -1.0 } else { 1.0 };
+            for p in 0..b * n {
+                for (w, frame) in window.iter().enumerate() {
+                    let at = ((copy * b * n + p) * t1 + w) * 2;
+                    host[at] = sign * frame[4 * p + 2];
+                    host[at + 1] = frame[4 * p + 3];
+                }
+            }
+        }
+        self.history = Some(crate::model::upload::<B, 3>(host, [rows, n, width], device));
+    }
+}
+
+/// Each field of a grid state stacks as its own piece: one line per field in each method.
+impl<B: Backend> Rows for GridState<B> {
+    fn rows_key(&self, key: &mut Vec<usize>) {
+        self.memory.rows_key(key);
+        self.history.rows_key(key);
+        self.reference.rows_key(key);
+        self.rest.rows_key(key);
+        self.deformation.rows_key(key);
+    }
+
+    fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let (mut memory, mut history, mut reference) = (vec![], vec![], vec![]);
+        let (mut rest, mut deformation) = (vec![], vec![]);
+        for p in parts {
+            memory.push(p.memory);
+            history.push(p.history);
+            reference.push(p.reference);
+            rest.push(p.rest);
+            deformation.push(p.deformation);
+        }
+        Ok(GridState {
+            memory: Rows::stack_rows(memory, copies)?,
+            history: Rows::stack_rows(history, copies)?,
+            reference: Rows::stack_rows(reference, copies)?,
+            rest: Rows::stack_rows(rest, copies)?,
+            deformation: Rows::stack_rows(deformation, copies)?,
+        })
+    }
+
+    fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
+        let mut history = self.history.split_rows(sizes, copies).into_iter();
+        let mut reference = self.reference.split_rows(sizes, copies).into_iter();
+        let mut rest = self.rest.split_rows(sizes, copies).into_iter();
+        let mut deformation = self.deformation.split_rows(sizes, copies).into_iter();
+        let mut grid = |memory| -> Option<GridState<B>> {
+            Some(GridState {
+                memory,
+                history: history.next()?,
+                reference: reference.next()?,
+                rest: rest.next()?,
+                deformation: deformation.next()?,
+            })
+        };
+        self.memory
+            .split_rows(sizes, copies)
+            .into_iter()
+            .filter_map(|m| grid(m))
+            .collect()
+    }
+}
+
+/// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
+pub(super) fn with_mirror_rows(frames: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * frames.len());
+    out.extend_from_slice(frames);
+    out.extend_from_slice(frames);
+    mirror_rows(&mut out[frames.len()..], 4);
+    out
+}
+
+/// The mean of the first half of `out` (`[2B, N, 4]`) and its second half mirrored back.
+pub(super) fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
+    let (direct, mirrored) = out.split_at(out.len() / 2);
+    let mut back = mirrored.to_vec();
+    mirror_rows(&mut back, 4);
+    direct
+        .iter()
+        .zip(&back)
+        .map(|(a, b)| 0.5 * (a + b))
+        .collect()
+}

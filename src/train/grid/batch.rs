@@ -1,0 +1,132 @@
+//! A batch of training windows on the device for the grid architecture's loss
+//! ([`upload_batch`]): the frames as physical values (mirrored where drawn so), the material
+//! one-hot, the time steps, the reference positions and the neighbourhoods the model and the
+//! structure terms need ([`BatchTensors`]). Read by `rollout_loss.rs`.
+
+use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
+
+use crate::data::Batch;
+use crate::model::grid::{mirror_rows, one_hot, GridConfig, NeighbourTensors, Neighbourhood};
+use crate::model::upload;
+
+/// What a [`super::rollout_loss::Rollout`] reads of one batch, on the device, physical units.
+pub(super) struct BatchTensors<B: Backend> {
+    /// `[B, S, N, 4]`: the window's frames and its target frame.
+    pub(super) frames: Tensor<B, 4>,
+    /// `[B, N, 4]`: material one-hot.
+    pub(super) material: Tensor<B, 3>,
+    /// `[B]`: frame spacing.
+    pub(super) dt: Tensor<B, 1>,
+    /// `[B, N, 2]`: positions in the trajectory's first frame (the reference positions).
+    pub(super) first_pos: Tensor<B, 3>,
+    /// The solids' rest neighbourhoods in `first_pos`, when a model or the strain loss needs
+    /// them, with the number of rest-neighbour pairs.
+    pub(super) rest: Option<(NeighbourTensors<B>, f32)>,
+    /// The liquid's neighbourhoods in the first input frame, for the volume loss, with the
+    /// number of liquid particles that have neighbours.
+    pub(super) liquid: Option<(NeighbourTensors<B>, f32)>,
+    /// On the host, for the constraint projection.
+    pub(super) host: HostRows,
+}
+
+/// What the constraint projection of a [`super::rollout_loss::Rollout`] reads of a batch on
+/// the host.
+pub(super) struct HostRows {
+    /// `[B, N, 2]` positions in the trajectory's first frame.
+    pub(super) first_pos: Vec<f32>,
+    /// `[B N]` material ids.
+    pub(super) material: Vec<u8>,
+    /// `[B]` frame spacings.
+    pub(super) dt: Vec<f32>,
+}
+
+/// Which neighbourhoods [`upload_batch`] builds.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Needs {
+    /// The solids' rest neighbourhoods (rest-shape features, strain loss).
+    pub rest: bool,
+    /// The liquid's neighbourhoods in this frame of the window (volume loss): `T - 1`.
+    pub liquid_at: Option<usize>,
+    /// The model's material one-hot width ([`GridConfig::materials`]).
+    pub materials: usize,
+}
+
+/// The tensors of a batch of windows built with the identity scaler (inputs then hold
+/// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]);
+/// `needs` says which neighbourhoods to build and the model's one-hot width.
+pub(super) fn upload_batch<B: Backend>(
+    batch: Batch,
+    mirror: &[bool],
+    needs: Needs,
+    device: &B::Device,
+) -> BatchTensors<B> {
+    let (b, t, n) = (batch.b, batch.t, batch.n);
+    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
+    let mut first_pos = batch.first_pos;
+    for w in 0..b {
+        let start = frames.len();
+        for k in 0..t {
+            let start = ((w * t + k) * n) * 5;
+            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
+                frames.extend_from_slice(&row[..4]);
+            }
+        }
+        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
+        if mirror.get(w).copied().unwrap_or(false) {
+            mirror_rows(&mut frames[start..], 4);
+            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
+        }
+    }
+    let with_count = |nb: Neighbourhood, count: f32| (nb.upload(device), count.max(1.0));
+    let rest = needs.rest.then(|| {
+        let nb = Neighbourhood::build(&first_pos, &batch.material, [b, n], |m| m != 0);
+        let pairs = nb.weight.iter().sum::<f32>();
+        with_count(nb, pairs)
+    });
+    let liquid = needs.liquid_at.map(|k| {
+        let pos: Vec<f32> = (0..b)
+            .flat_map(|w| {
+                let at = (w * (t + 1) + k) * n * 4;
+                frames[at..at + n * 4]
+                    .chunks_exact(4)
+                    .flat_map(|r| [r[0], r[1]])
+                    .collect::<Vec<f32>>()
+            })
+            .collect();
+        let nb = Neighbourhood::build(&pos, &batch.material, [b, n], |m| m == 0);
+        let particles = nb.inv_d0.iter().filter(|&&v| v > 0.0).count() as f32;
+        with_count(nb, particles)
+    });
+    BatchTensors {
+        frames: upload(frames, [b, t + 1, n, 4], device),
+        material: one_hot(&batch.material, needs.materials, b, n, device),
+        dt: upload(batch.dt.clone(), [b], device),
+        first_pos: upload(first_pos.clone(), [b, n, 2], device),
+        rest,
+        liquid,
+        host: HostRows {
+            first_pos,
+            material: batch.material,
+            dt: batch.dt,
+        },
+    }
+}
+
+impl<B: Backend> BatchTensors<B> {
+    /// `[B, N, 4]`: frame `k` of the window (the target frame last).
+    pub(super) fn truth(&self, k: usize) -> Tensor<B, 3> {
+        let [b, _, n, _] = self.frames.dims();
+        self.frames.clone().narrow(1, k, 1).reshape([b, n, 4])
+    }
+
+    /// The loss's units: `dv_scale` (`[1, 1, 2]`) for velocities, `dv_scale dt` (`[B, 1, 2]`)
+    /// for positions.
+    pub(super) fn scales(&self, config: &GridConfig) -> (Tensor<B, 3>, Tensor<B, 3>) {
+        let device = self.frames.device();
+        let b = self.frames.dims()[0];
+        let dv = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
+        let pos = dv.clone() * self.dt.clone().reshape([b, 1, 1]);
+        (dv, pos)
+    }
+}
