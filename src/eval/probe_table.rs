@@ -9,6 +9,7 @@
 use std::collections::BTreeSet;
 use std::fmt::Write;
 
+use super::table::csv_field;
 use super::{Evaluation, Probe};
 use crate::material;
 
@@ -215,8 +216,9 @@ pub fn csv(eval: &Evaluation) -> String {
                     }
                     let _ = writeln!(
                         s,
-                        "{},{name},{probe},{material},{},{},{},{},{},{},{},{},{},{},{}",
-                        scene.scene,
+                        "{},{},{probe},{material},{},{},{},{},{},{},{},{},{},{},{}",
+                        csv_field(&scene.scene),
+                        csv_field(name),
                         cell(v.sinkhorn[m]),
                         cell(v.strain[m]),
                         cell(v.volume[m]),

@@ -131,7 +131,7 @@ pub fn csv(eval: &Evaluation) -> String {
 }
 
 /// Quotes a CSV field when it holds a comma or a quote.
-fn csv_field(s: &str) -> String {
+pub(super) fn csv_field(s: &str) -> String {
     if s.contains([',', '"']) {
         format!("\"{}\"", s.replace('"', "\"\""))
     } else {

@@ -43,6 +43,7 @@ mod node_shard;
 mod node_surrogate;
 mod plot_png;
 mod ros2_rclpy;
+mod scenes_heldout;
 mod sim_scenes;
 mod sim_validation;
 mod soak;
