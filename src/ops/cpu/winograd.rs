@@ -108,14 +108,17 @@ pub(crate) fn conv3x3(
             offset,
         })
         .collect();
-    let y = SCRATCH.with(|scratch| {
-        let (v, m) = &mut *scratch.borrow_mut();
-        let v = sized(v, size.tiles() * POINTS * c_in);
-        transform_input(&inputs, size, v);
-        let m = sized(m, POINTS * size.tiles() * c_out);
-        products(v, &u, size, m);
-        transform_output(m, bias.as_deref(), silu, size)
-    });
+    // The buffers are taken out of the thread's slot for the call and put back after: the
+    // passes below run on the rayon pool, whose waiting thread may run another convolution
+    // (another scene's, another test's) meanwhile, which then finds the slot empty and
+    // allocates its own instead of borrowing the slot twice.
+    let (mut v_buf, mut m_buf) = SCRATCH.with(|scratch| std::mem::take(&mut *scratch.borrow_mut()));
+    let v = sized(&mut v_buf, size.tiles() * POINTS * c_in);
+    transform_input(&inputs, size, v);
+    let m = sized(&mut m_buf, POINTS * size.tiles() * c_out);
+    products(v, &u, size, m);
+    let y = transform_output(m, bias.as_deref(), silu, size);
+    SCRATCH.with(|scratch| *scratch.borrow_mut() = (v_buf, m_buf));
     Some(tensor(y, &[b, h, w, c_out]))
 }
 
