@@ -135,28 +135,46 @@ fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
     s.push_str(&" ---: |".repeat(2 * material::COUNT + 1));
     s.push('\n');
     let rope = usize::from(material::Material::Rope.id());
+    s.push_str(&probe_rows(eval, probes, |mean| {
+        let mut row = String::new();
+        for m in 0..material::COUNT {
+            let _ = write!(row, " {} |", fmt(mean(&|x| x.volume[m])));
+        }
+        let pair = |pred: Option<f64>, truth: Option<f64>| match (pred, truth) {
+            (Some(_), _) => format!("{} ({})", fmt(pred), fmt(truth)),
+            _ => "n/a".to_owned(),
+        };
+        for m in 1..material::COUNT {
+            let v = pair(mean(&|x| x.intact[m]), mean(&|x| x.intact_truth[m]));
+            let _ = write!(row, " {v} |");
+        }
+        let v = pair(
+            mean(&|x| x.connected[rope]),
+            mean(&|x| x.connected_truth[rope]),
+        );
+        let _ = write!(row, " {v} | {} |", fmt(mean(&|x| x.energy_all)));
+        row
+    }));
+    s
+}
+
+/// The mean over scenes of a plausibility value, for one predictor at one probe.
+type Mean<'a> = dyn Fn(&dyn Fn(&super::Plausibility) -> Option<f64>) -> Option<f64> + 'a;
+
+/// One Markdown row per predictor and probe: `| predictor | probe |` and the cells `cells`
+/// writes from that predictor's [`Mean`] at that probe.
+fn probe_rows(
+    eval: &Evaluation,
+    probes: &BTreeSet<Probe>,
+    cells: impl Fn(&Mean<'_>) -> String,
+) -> String {
+    let mut s = String::new();
     for (p, name) in eval.predictors.iter().enumerate() {
         for &probe in probes {
             let mean = |f: &dyn Fn(&super::Plausibility) -> Option<f64>| {
                 mean_over_scenes(eval, p, probe, f)
             };
-            let _ = write!(s, "| {name} | {probe} |");
-            for m in 0..material::COUNT {
-                let _ = write!(s, " {} |", fmt(mean(&|x| x.volume[m])));
-            }
-            let pair = |pred: Option<f64>, truth: Option<f64>| match (pred, truth) {
-                (Some(_), _) => format!("{} ({})", fmt(pred), fmt(truth)),
-                _ => "n/a".to_owned(),
-            };
-            for m in 1..material::COUNT {
-                let v = pair(mean(&|x| x.intact[m]), mean(&|x| x.intact_truth[m]));
-                let _ = write!(s, " {v} |");
-            }
-            let v = pair(
-                mean(&|x| x.connected[rope]),
-                mean(&|x| x.connected_truth[rope]),
-            );
-            let _ = writeln!(s, " {v} | {} |", fmt(mean(&|x| x.energy_all)));
+            let _ = writeln!(s, "| {name} | {probe} |{}", cells(&mean));
         }
     }
     s
@@ -181,19 +199,15 @@ fn conservation_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String 
     s.push_str(" momentum drift |\n| --- | --- |");
     s.push_str(&" ---: |".repeat(material::COUNT + 1));
     s.push('\n');
-    for (p, name) in eval.predictors.iter().enumerate() {
-        for &probe in probes {
-            let mean = |f: &dyn Fn(&super::Plausibility) -> Option<f64>| {
-                mean_over_scenes(eval, p, probe, f)
-            };
-            let _ = write!(s, "| {name} | {probe} |");
-            for m in 0..material::COUNT {
-                let _ = write!(s, " {} |", fmt(mean(&|x| x.com[m])));
-            }
-            let (pred, truth) = (mean(&|x| x.momentum), mean(&|x| x.momentum_truth));
-            let _ = writeln!(s, " {} ({}) |", fmt(pred), fmt(truth));
+    s.push_str(&probe_rows(eval, probes, |mean| {
+        let mut row = String::new();
+        for m in 0..material::COUNT {
+            let _ = write!(row, " {} |", fmt(mean(&|x| x.com[m])));
         }
-    }
+        let (pred, truth) = (mean(&|x| x.momentum), mean(&|x| x.momentum_truth));
+        let _ = write!(row, " {} ({}) |", fmt(pred), fmt(truth));
+        row
+    }));
     s
 }
 
