@@ -4,6 +4,8 @@
 //! (`docs/design.md`, "Pipeline"):
 //!
 //! - [`material`]: the table of materials (id, name, colour) every module reads;
+//! - [`bspline`]: MLS-MPM's quadratic B-spline weights, one definition for the solver, the
+//!   grid models' transfers and the density constraint;
 //! - [`sim`]: the MLS-MPM solver and its scenes, which make the ground truth;
 //! - [`msgs`]: the `ParticleFrame` and `SurrogateStatus` messages and their CDR encoding;
 //! - [`bag`]: MCAP bags: writer, reader (foreign and truncated bags), `info`, `check`;
@@ -24,6 +26,7 @@
 //! - [`cli`]: the command layer of the `minflow` binary.
 
 pub mod bag;
+pub mod bspline;
 pub mod cli;
 pub mod data;
 pub mod eval;

@@ -4,7 +4,7 @@
 //! A [`Trajectory`] holds a contiguous run of frames (no missing `frame_index`) of one scene:
 //! `states` is `[F, N, 4]` frame-major with per particle x, y (domain units) and vx, vy (domain
 //! units per time unit), copied bit for bit from the messages' interleaved `position` and
-//! `velocity`; `material` is the scene's N material ids; `dt` is the frame spacing in time
+//! `velocity` ([`crate::msgs::state_rows`]); `material` is the scene's N material ids; `dt` is the frame spacing in time
 //! units from the messages. A scene with missing frames becomes several trajectories
 //! (segments), and the missing ranges are reported as [`Gap`]s in the [`LoadReport`].
 //! `SceneFrames` (internal) collects the frames of one scene as they are read (in any order, from any
@@ -207,16 +207,8 @@ impl SceneFrames {
             self.duplicates += 1;
             return Ok(());
         }
-        let n = frame.len();
-        let mut state = Vec::with_capacity(4 * n);
-        for (p, v) in frame
-            .position
-            .chunks_exact(2)
-            .zip(frame.velocity.chunks_exact(2))
-        {
-            state.extend_from_slice(&[p[0], p[1], v[0], v[1]]);
-        }
-        self.frames.insert(frame.frame_index, state);
+        self.frames
+            .insert(frame.frame_index, crate::msgs::state_rows(frame));
         Ok(())
     }
 

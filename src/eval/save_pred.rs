@@ -14,7 +14,7 @@ use super::render::file_stem;
 use super::EvalError;
 use crate::bag::{scene_file_stem, BagWriter, PREDICTED_TOPIC};
 use crate::data::Trajectory;
-use crate::msgs::ParticleFrame;
+use crate::msgs::{split_rows, ParticleFrame};
 
 /// The bag a rollout of `predictor` on `scene` whose first predicted frame is `frame_index`
 /// goes to, under `dir`.
@@ -45,12 +45,7 @@ pub fn write_rollout(
     let period_ns = (f64::from(traj.dt) * 1e9).round() as u64;
     let mut writer = BagWriter::create(&path)?;
     for (k, state) in frames.iter().enumerate() {
-        let (mut position, mut velocity) = (Vec::with_capacity(2 * traj.n), Vec::new());
-        velocity.reserve(2 * traj.n);
-        for row in state.chunks_exact(4) {
-            position.extend_from_slice(&row[..2]);
-            velocity.extend_from_slice(&row[2..]);
-        }
+        let (position, velocity) = split_rows(state);
         let frame = ParticleFrame::on_clock(
             traj.scene.clone(),
             traj.frame_index(first + k),

@@ -8,7 +8,8 @@
 //! time of the frame (sec + nanosec, i.e. stamps in ns). The `.msg` files in the repository's
 //! `msgs/` folder are the single source of truth: [`schema_text`] is built from them with
 //! `include_str!`. The wire format (CDR) lives in [`cdr`], the REP-2016 type hashes
-//! (`RIHS01_…`) in [`type_hash`]. Used by every subcommand that moves
+//! (`RIHS01_…`) in [`type_hash`]. [`state_rows`] and [`split_rows`] convert a frame's arrays
+//! to and from the `[N, 4]` rows (x, y, vx, vy) that trajectories and surrogates use. Used by every subcommand that moves
 //! frames: `simulate`, `bag`, `train`, `replay`, `record`, `surrogate`, `eval`.
 
 pub mod cdr;
@@ -186,6 +187,34 @@ pub enum FrameError {
         /// The offending id.
         value: u8,
     },
+}
+
+/// A frame's particles as `[N, 4]` rows (x, y, vx, vy per particle), copied bit for bit from
+/// its interleaved `position` and `velocity` (`[N * 2]` each): the layout of
+/// `data::Trajectory::states` and of what a surrogate steps on. The inverse of [`split_rows`].
+pub fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
+    let mut rows = Vec::with_capacity(4 * frame.len());
+    for (p, v) in frame
+        .position
+        .chunks_exact(2)
+        .zip(frame.velocity.chunks_exact(2))
+    {
+        rows.extend_from_slice(&[p[0], p[1], v[0], v[1]]);
+    }
+    rows
+}
+
+/// `[N, 4]` rows (x, y, vx, vy per particle) -> a frame's interleaved `position` and
+/// `velocity` (`[N * 2]` each), bit for bit. The inverse of [`state_rows`].
+pub fn split_rows(rows: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let n = rows.len() / 4;
+    let mut position = Vec::with_capacity(2 * n);
+    let mut velocity = Vec::with_capacity(2 * n);
+    for r in rows.chunks_exact(4) {
+        position.extend_from_slice(&r[..2]);
+        velocity.extend_from_slice(&r[2..]);
+    }
+    (position, velocity)
 }
 
 impl ParticleFrame {

@@ -72,8 +72,9 @@ fn atomic_add<F: Float>(slot: &mut Atomic<F>, value: F) {
 }
 
 /// One axis of MLS-MPM's quadratic B-spline at distance `x` (grid units) from a node: `0.75 -
-/// x^2` within 0.5, `0.5 (1.5 - |x|)^2` within 1.5, else 0 (Hu et al. 2018; the weights of
-/// `ops::cpu::transfer::bspline_axis` at distances `f`, `f - 1`, `f - 2`).
+/// x^2` within 0.5, `0.5 (1.5 - |x|)^2` within 1.5, else 0 (Hu et al. 2018; the GPU form of
+/// [`crate::bspline::weights`], which the CPU sites share, at distances `f`, `f - 1`, `f - 2`;
+/// a `#[cube]` function cannot call it).
 #[cube]
 fn bspline<F: Float>(x: F) -> F {
     let a = F::abs(x);

@@ -14,6 +14,7 @@
 use super::linalg::{self, Mat2};
 use super::material::{self, Elasticity};
 use super::SimError;
+use crate::bspline;
 
 /// Numerical settings of one simulation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -398,7 +399,8 @@ fn update_deformation(f: &Mat2, c: &Mat2, dt: f32) -> Mat2 {
 }
 
 /// A particle's 3 x 3 interpolation stencil: base node `(bi, bj)`, fractional offset
-/// `fx = x / dx - base` in `[0.5, 1.5)`, and the quadratic B-spline weights per axis.
+/// `fx = x / dx - base` in `[0.5, 1.5)`, and the quadratic B-spline weights per axis
+/// ([`crate::bspline::weights`]).
 #[derive(Clone, Copy, Debug, Default)]
 struct Stencil {
     bi: usize,
@@ -421,8 +423,8 @@ impl Stencil {
             bi,
             bj,
             fx,
-            wx: weights(fx[0]),
-            wy: weights(fx[1]),
+            wx: bspline::weights(fx[0]),
+            wy: bspline::weights(fx[1]),
             stiffness: 0.0,
         }
     }
@@ -432,14 +434,4 @@ impl Stencil {
     fn row(&self, i: usize, n: usize) -> usize {
         (self.bi + i) * n + self.bj
     }
-}
-
-/// Quadratic B-spline weights for the three nodes `base + 0, 1, 2` at fractional offset
-/// `fx = x / dx - base`, `fx` in `[0.5, 1.5)`.
-#[inline(always)]
-fn weights(fx: f32) -> [f32; 3] {
-    let a = 1.5 - fx;
-    let b = fx - 1.0;
-    let c = fx - 0.5;
-    [0.5 * a * a, 0.75 - b * b, 0.5 * c * c]
 }

@@ -48,7 +48,7 @@ const REST_QUANTILE: f32 = 0.9;
 const OCCUPIED: f32 = 0.5;
 
 /// A particle's 3 x 3 nodes: the lower-left node and the weights and their derivatives
-/// along each axis (MPM's quadratic B-spline, `docs/mpm.md`).
+/// along each axis (MPM's quadratic B-spline, `docs/mpm.md`: [`crate::bspline::weights`]).
 #[derive(Clone, Debug)]
 struct Stencil {
     base: [i32; 2],
@@ -66,11 +66,7 @@ impl Stencil {
             let b = (g - 0.5).floor();
             let f = g - b;
             base[a] = b as i32;
-            w[a] = [
-                0.5 * (1.5 - f) * (1.5 - f),
-                0.75 - (f - 1.0) * (f - 1.0),
-                0.5 * (f - 0.5) * (f - 0.5),
-            ];
+            w[a] = crate::bspline::weights(f);
             dw[a] = [-(1.5 - f) / h, -2.0 * (f - 1.0) / h, (f - 0.5) / h];
         }
         Self { base, w, dw }

@@ -1,22 +1,12 @@
 //! Particle frames as the surrogate node handles them: a frame's `[N, 4]` rows as the model
-//! takes them ([`state_rows`]), the frame a prediction makes ([`predicted_frame`]) and a
-//! payload's size ([`payload_bytes`]).
+//! takes them ([`state_rows`], from `msgs`), the frame a prediction makes ([`predicted_frame`],
+//! its arrays by [`crate::msgs::split_rows`]) and a payload's size ([`payload_bytes`]).
 
-use crate::msgs::{ParticleFrame, Time};
+use crate::msgs::{split_rows, ParticleFrame, Time};
 
-/// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy), as `Surrogate::step` takes them.
-pub fn state_rows(frame: &ParticleFrame) -> Vec<f32> {
-    let mut rows = Vec::with_capacity(frame.len() * 4);
-    for i in 0..frame.len() {
-        rows.extend_from_slice(&[
-            frame.position[2 * i],
-            frame.position[2 * i + 1],
-            frame.velocity[2 * i],
-            frame.velocity[2 * i + 1],
-        ]);
-    }
-    rows
-}
+/// Interleaved position/velocity -> `[N, 4]` rows (x, y, vx, vy), as `Surrogate::step` takes
+/// them: [`crate::msgs::state_rows`].
+pub use crate::msgs::state_rows;
 
 /// The size of a payload in bytes, as it travelled (CDR) or as its arrays take in memory.
 pub(super) fn payload_bytes(payload: &crate::transport::Payload) -> usize {
@@ -32,13 +22,7 @@ pub(super) fn payload_bytes(payload: &crate::transport::Payload) -> usize {
 
 /// The frame `steps` frames after `input`, carrying `rows` (`[N, 4]`).
 pub(super) fn predicted_frame(input: &ParticleFrame, rows: &[f32], steps: u32) -> ParticleFrame {
-    let n = rows.len() / 4;
-    let mut position = Vec::with_capacity(2 * n);
-    let mut velocity = Vec::with_capacity(2 * n);
-    for r in rows.chunks_exact(4) {
-        position.extend_from_slice(&r[..2]);
-        velocity.extend_from_slice(&r[2..]);
-    }
+    let (position, velocity) = split_rows(rows);
     let stamp_ns = input.header.stamp.as_nanos()
         + (f64::from(input.dt) * 1e9).round() as i64 * i64::from(steps);
     let mut header = input.header.clone();

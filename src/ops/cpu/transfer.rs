@@ -77,21 +77,14 @@ pub fn stencil_bounds(n: usize) -> (f32, f32) {
 
 /// One axis of MLS-MPM's quadratic B-spline stencil (Hu et al. 2018; Taichi's mpm99, as in
 /// `sim::mpm`) for a coordinate `p` (domain units) on an `n`-node axis: the first node,
-/// `floor(g - 0.5)` with `g = n clamp(p)`, and the weights
+/// `floor(g - 0.5)` with `g = n clamp(p)`, and the weights ([`crate::bspline::weights`])
 /// `[0.5 (1.5 - f)^2, 0.75 - (f - 1)^2, 0.5 (f - 0.5)^2]` of it and the next two, `f = g - base`.
 pub fn bspline_axis(p: f32, n: usize) -> (usize, [f32; 3]) {
     let (lo, hi) = stencil_bounds(n);
     let g = p.clamp(lo, hi) * n as f32;
     let base = (g - 0.5).floor();
     let f = g - base;
-    (
-        base as usize,
-        [
-            0.5 * (1.5 - f).powi(2),
-            0.75 - (f - 1.0).powi(2),
-            0.5 * (f - 0.5).powi(2),
-        ],
-    )
+    (base as usize, crate::bspline::weights(f))
 }
 
 /// CPU G2P: one task per block of particles, each output row a weighted sum of 9 grid rows.
