@@ -11,7 +11,7 @@
 //!   iterations in the log domain (Feydy's geomloss `sinkhorn_loop`, the averaged update).
 //!   Clouds above [`SINKHORN_POINTS`] points are subsampled evenly by particle index (the
 //!   same particles in both clouds).
-//! - [`Neighbours`] and [`Neighbours::strain_error`]: for the solids (jelly, snow, rope), each
+//! - [`Neighbours`] (in [`super::structure`]) and [`Neighbours::strain_error`]: for the solids (jelly, snow, rope), each
 //!   particle's k nearest neighbours of the same material in the rollout's first frame, and
 //!   the mean over particles and neighbours of `|d_pred / d_0 - d_true / d_0|`, `d` the
 //!   current distance to the neighbour: zero when the prediction is a rigid motion of the
@@ -28,6 +28,7 @@
 
 use super::metrics::MATERIALS;
 use super::structure::covered_area;
+pub use super::structure::{Neighbours, NEIGHBOURS};
 
 /// At most this many points per cloud enter [`sinkhorn_divergence`] in [`Plausibility::of`].
 pub const SINKHORN_POINTS: usize = 256;
@@ -36,8 +37,6 @@ pub const SINKHORN_POINTS: usize = 256;
 pub const SINKHORN_EPS: f64 = 4e-4;
 /// Sinkhorn iterations.
 pub const SINKHORN_ITERS: usize = 40;
-/// Neighbours per particle of the strain error.
-pub const NEIGHBOURS: usize = 6;
 
 /// Plausibility of one predicted frame, per material (0 liquid, 1 jelly, 2 snow, 3 rope);
 /// `None` where the scene has no particle of that material (and, for `strain`, for liquid).
@@ -210,87 +209,6 @@ pub fn sinkhorn_divergence(a: &[[f64; 2]], b: &[[f64; 2]], eps: f64, iters: usiz
     let aa = entropic_ot(a, a, eps, iters);
     let bb = entropic_ot(b, b, eps, iters);
     (ab - 0.5 * (aa + bb)).max(0.0)
-}
-
-/// Each solid particle's [`NEIGHBOURS`] nearest neighbours of the same material in a reference
-/// frame (the rollout's first), and their distances there.
-#[derive(Debug, Clone, Default)]
-pub struct Neighbours {
-    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
-    of: Vec<Vec<(usize, f64)>>,
-    /// Material id per particle (clamped to `MATERIALS - 1`).
-    material: Vec<usize>,
-}
-
-impl Neighbours {
-    /// The neighbours in `frame` (`[N, 4]` physical) of every particle of a solid material
-    /// (jelly 1, snow 2, rope 3), among the particles of its own material. O(N^2) per
-    /// material: once per rollout.
-    pub fn new(frame: &[f32], material: &[u8]) -> Self {
-        let n = material.len();
-        let material: Vec<usize> = material
-            .iter()
-            .map(|&m| usize::from(m).min(MATERIALS - 1))
-            .collect();
-        let pos = |i: usize| [f64::from(frame[4 * i]), f64::from(frame[4 * i + 1])];
-        let mut of = vec![Vec::new(); n];
-        for m in 1..MATERIALS {
-            let ids: Vec<usize> = (0..n).filter(|&i| material[i] == m).collect();
-            for &i in &ids {
-                let p = pos(i);
-                let mut near: Vec<(usize, f64)> = ids
-                    .iter()
-                    .filter(|&&j| j != i)
-                    .map(|&j| {
-                        let q = pos(j);
-                        (j, (p[0] - q[0]).hypot(p[1] - q[1]))
-                    })
-                    .filter(|&(_, d)| d > 0.0)
-                    .collect();
-                let k = NEIGHBOURS.min(near.len());
-                if k > 0 && k < near.len() {
-                    near.select_nth_unstable_by(k - 1, |x, y| x.1.total_cmp(&y.1));
-                }
-                near.truncate(k);
-                of[i] = near;
-            }
-        }
-        Self { of, material }
-    }
-
-    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
-    pub(super) fn of(&self) -> &[Vec<(usize, f64)>] {
-        &self.of
-    }
-
-    /// Material id of particle `i` (clamped to `MATERIALS - 1`).
-    pub(super) fn material_of(&self, i: usize) -> usize {
-        self.material[i]
-    }
-
-    /// The strain error of material `m` (see the module doc): the mean over its particles
-    /// and their neighbours of `|d_pred / d_0 - d_true / d_0|`; `None` for liquid or a
-    /// material without neighbour pairs.
-    pub fn strain_error(&self, pred: &[f32], truth: &[f32], m: usize) -> Option<f64> {
-        if m == 0 {
-            return None;
-        }
-        let dist = |s: &[f32], i: usize, j: usize| {
-            let (dx, dy) = (s[4 * i] - s[4 * j], s[4 * i + 1] - s[4 * j + 1]);
-            f64::from(dx).hypot(f64::from(dy))
-        };
-        let (mut sum, mut count) = (0.0, 0usize);
-        for (i, near) in self.of.iter().enumerate() {
-            if self.material[i] != m {
-                continue;
-            }
-            for &(j, d0) in near {
-                sum += (dist(pred, i, j) - dist(truth, i, j)).abs() / d0;
-                count += 1;
-            }
-        }
-        (count > 0).then(|| sum / count as f64)
-    }
 }
 
 #[cfg(test)]

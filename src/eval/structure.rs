@@ -8,7 +8,7 @@
 //!   liquid keeps its volume through `J = det F`; a surrogate that presses the liquid into a
 //!   layer covers fewer cells.)
 //! - [`Neighbours::intact_fraction`]: the share of the rest-neighbour pairs of a solid (each
-//!   particle's [`super::plausibility::NEIGHBOURS`] nearest of the same material in the
+//!   particle's [`NEIGHBOURS`] nearest of the same material in the
 //!   rollout's first frame) still within [`INTACT_STRETCH`] times their rest distance: 1 for a
 //!   body in one piece, lower where it is torn or crumpled. The truth's own value stands
 //!   beside the prediction's (snow fractures in the truth too).
@@ -16,9 +16,14 @@
 //!   piece of the graph whose edges are the intact rest-neighbour pairs (union-find): 1 for
 //!   one rope, 0.5 for a rope cut in two halves.
 //!
-//! Used by [`super::plausibility::Plausibility::of`].
+//! [`Neighbours`] (each solid particle's nearest neighbours in the rollout's first frame)
+//! lives here whole, with the strain error of [`super::plausibility`]. Used by
+//! [`super::plausibility::Plausibility::of`].
 
-use super::plausibility::Neighbours;
+use super::metrics::MATERIALS;
+
+/// Neighbours per particle of the strain error and the intact fraction.
+pub const NEIGHBOURS: usize = 6;
 
 /// Cells per side of the grid [`covered_area`] counts on: 1/64 of the box, the `multi`
 /// family's MPM cell (docs/design.md, "Ground truth"); a body of 2,500 particles spans
@@ -146,6 +151,87 @@ impl Neighbours {
         }
         let largest = count.values().copied().max().unwrap_or(0);
         Some(largest as f64 / members.len() as f64)
+    }
+}
+
+/// Each solid particle's [`NEIGHBOURS`] nearest neighbours of the same material in a reference
+/// frame (the rollout's first), and their distances there.
+#[derive(Debug, Clone, Default)]
+pub struct Neighbours {
+    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
+    of: Vec<Vec<(usize, f64)>>,
+    /// Material id per particle (clamped to `MATERIALS - 1`).
+    material: Vec<usize>,
+}
+
+impl Neighbours {
+    /// The neighbours in `frame` (`[N, 4]` physical) of every particle of a solid material
+    /// (jelly 1, snow 2, rope 3), among the particles of its own material. O(N^2) per
+    /// material: once per rollout.
+    pub fn new(frame: &[f32], material: &[u8]) -> Self {
+        let n = material.len();
+        let material: Vec<usize> = material
+            .iter()
+            .map(|&m| usize::from(m).min(MATERIALS - 1))
+            .collect();
+        let pos = |i: usize| [f64::from(frame[4 * i]), f64::from(frame[4 * i + 1])];
+        let mut of = vec![Vec::new(); n];
+        for m in 1..MATERIALS {
+            let ids: Vec<usize> = (0..n).filter(|&i| material[i] == m).collect();
+            for &i in &ids {
+                let p = pos(i);
+                let mut near: Vec<(usize, f64)> = ids
+                    .iter()
+                    .filter(|&&j| j != i)
+                    .map(|&j| {
+                        let q = pos(j);
+                        (j, (p[0] - q[0]).hypot(p[1] - q[1]))
+                    })
+                    .filter(|&(_, d)| d > 0.0)
+                    .collect();
+                let k = NEIGHBOURS.min(near.len());
+                if k > 0 && k < near.len() {
+                    near.select_nth_unstable_by(k - 1, |x, y| x.1.total_cmp(&y.1));
+                }
+                near.truncate(k);
+                of[i] = near;
+            }
+        }
+        Self { of, material }
+    }
+
+    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
+    pub(super) fn of(&self) -> &[Vec<(usize, f64)>] {
+        &self.of
+    }
+
+    /// Material id of particle `i` (clamped to `MATERIALS - 1`).
+    pub(super) fn material_of(&self, i: usize) -> usize {
+        self.material[i]
+    }
+
+    /// The strain error of material `m` (see the module doc): the mean over its particles
+    /// and their neighbours of `|d_pred / d_0 - d_true / d_0|`; `None` for liquid or a
+    /// material without neighbour pairs.
+    pub fn strain_error(&self, pred: &[f32], truth: &[f32], m: usize) -> Option<f64> {
+        if m == 0 {
+            return None;
+        }
+        let dist = |s: &[f32], i: usize, j: usize| {
+            let (dx, dy) = (s[4 * i] - s[4 * j], s[4 * i + 1] - s[4 * j + 1]);
+            f64::from(dx).hypot(f64::from(dy))
+        };
+        let (mut sum, mut count) = (0.0, 0usize);
+        for (i, near) in self.of.iter().enumerate() {
+            if self.material[i] != m {
+                continue;
+            }
+            for &(j, d0) in near {
+                sum += (dist(pred, i, j) - dist(truth, i, j)).abs() / d0;
+                count += 1;
+            }
+        }
+        (count > 0).then(|| sum / count as f64)
     }
 }
 
