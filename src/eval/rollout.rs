@@ -219,13 +219,9 @@ impl SceneSums {
     ) -> Result<(), EvalError> {
         let (traj, steps) = (rollout.traj, rollout.steps);
         let first = rollout.start + w;
-        let neighbours = opts.plausibility.then(|| {
-            let start = traj.state(first - 1);
-            (
-                Neighbours::new(start, &traj.material),
-                Bodies::new(start, &traj.material),
-            )
-        });
+        let reference = opts
+            .plausibility
+            .then(|| Reference::new(traj, first, steps));
         self.result.rollouts += 1;
         let keep = opts.snapshots && self.result.snapshots.is_none();
         let mut snap = keep.then(|| Snapshots {
@@ -246,7 +242,7 @@ impl SceneSums {
                 let m = frame_metrics(pred, truth, &traj.material, scaler, opts.density_grid);
                 self.steps[p].steps[k].push(m);
             }
-            if let Some(reference) = &neighbours {
+            if let Some(reference) = &reference {
                 self.probes[p].add(traj, first, &frames, steps, reference);
             }
             if let Some(snap) = snap.as_mut() {
@@ -340,6 +336,27 @@ impl EnergySums {
     }
 }
 
+/// What every predictor's rollout from one start is scored against, made once per start:
+/// the neighbours and bodies of the rollout's first frame and the truth's momentum drift.
+struct Reference {
+    neighbours: Neighbours,
+    bodies: Bodies,
+    drift_truth: MomentumDrift,
+}
+
+impl Reference {
+    /// The reference of a rollout of `steps` steps whose step k is trajectory frame
+    /// `first + k - 1`.
+    fn new(traj: &Trajectory, first: usize, steps: usize) -> Self {
+        let start = traj.state(first - 1);
+        Self {
+            neighbours: Neighbours::new(start, &traj.material),
+            bodies: Bodies::new(start, &traj.material),
+            drift_truth: MomentumDrift::of(|k| traj.state(first + k - 1), steps, traj.dt),
+        }
+    }
+}
+
 /// The plausibility of one predictor's rollouts of one scene, by probe.
 #[derive(Debug, Clone, Default)]
 struct ProbeSums {
@@ -357,7 +374,7 @@ impl ProbeSums {
         first: usize,
         frames: &[Vec<f32>],
         steps: usize,
-        (nb, bodies): &(Neighbours, Bodies),
+        reference: &Reference,
     ) {
         let steps = steps.min(frames.len());
         let energy = EnergySums::of(traj, first, frames, steps);
@@ -367,16 +384,16 @@ impl ProbeSums {
             steps,
             traj.dt,
         );
-        let drift_truth = MomentumDrift::of(|k| traj.state(first + k - 1), steps, traj.dt);
         let scored: Vec<(usize, Plausibility)> = probe_steps(steps)
             .into_par_iter()
             .map(|k| {
                 let truth = traj.state(first + k - 1);
+                let nb = &reference.neighbours;
                 let mut value = Plausibility::of(&frames[k - 1], truth, &traj.material, nb);
                 (value.energy, value.energy_all) = energy.ratio_at(k);
-                value.com = bodies.com_error(&frames[k - 1], truth);
+                value.com = reference.bodies.com_error(&frames[k - 1], truth);
                 value.momentum = drift.mean_to(k);
-                value.momentum_truth = drift_truth.mean_to(k);
+                value.momentum_truth = reference.drift_truth.mean_to(k);
                 (k, value)
             })
             .collect();

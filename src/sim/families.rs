@@ -143,10 +143,6 @@ fn template(material: Material, rng: &mut ChaCha8Rng) -> (Shape, [f32; 2]) {
     }
 }
 
-fn overlaps(a: &Body, b: &Body, margin: f32) -> bool {
-    (0..2).all(|k| (a.position[k] - b.position[k]).abs() < (a.size[k] + b.size[k]) / 2.0 + margin)
-}
-
 fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
     let materials = multi_materials(id);
     let rope = materials.contains(&Material::Rope);
@@ -190,7 +186,7 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
             body.position = [x, y];
             if !bodies
                 .iter()
-                .any(|b| b.shape != Shape::Line && overlaps(b, &body, 0.02))
+                .any(|b| b.shape != Shape::Line && !b.apart(&body, 0.02))
             {
                 break;
             }
@@ -198,7 +194,7 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         body.velocity = random_velocity(rng, 2.0);
         bodies.push(body);
     }
-    assign_counts(&mut bodies, rope);
+    assign_counts(&mut bodies, PARTICLES);
     let names: Vec<&str> = materials.iter().map(|m| m.name()).collect();
     Scene {
         name: format!("multi/{}/{id:03}", names.join("+")),
@@ -213,10 +209,16 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
     }
 }
 
-/// Splits the particles a `multi` scene's solid bodies share (all of [`PARTICLES`] but the
-/// rope's) over them in proportion to their area, the last taking the remainder.
-fn assign_counts(bodies: &mut [Body], rope: bool) {
-    let left = PARTICLES - if rope { ROPE_PARTICLES } else { 0 };
+/// Gives the non-rope bodies the particles the ropes leave of `total` (each rope's count is
+/// its own), in proportion to their area, the last taking the remainder; each other body
+/// gets at least one. Used by the `multi` and `mixed` families.
+pub(super) fn assign_counts(bodies: &mut [Body], total: usize) {
+    let ropes: usize = bodies
+        .iter()
+        .filter(|b| b.shape == Shape::Line)
+        .map(|b| b.count)
+        .sum();
+    let left = total - ropes;
     let area = |b: &Body| {
         b.size[0]
             * b.size[1]
@@ -226,23 +228,18 @@ fn assign_counts(bodies: &mut [Body], rope: bool) {
                 1.0
             }
     };
-    let total: f32 = bodies
-        .iter()
-        .filter(|b| b.shape != Shape::Line)
-        .map(area)
-        .sum();
-    let mut assigned = 0;
     let solid: Vec<usize> = (0..bodies.len())
         .filter(|&k| bodies[k].shape != Shape::Line)
         .collect();
+    let sum: f32 = solid.iter().map(|&k| area(&bodies[k])).sum();
+    let mut given = 0;
     for (n, &k) in solid.iter().enumerate() {
-        let count = if n + 1 == solid.len() {
-            left - assigned
-        } else {
-            (left as f32 * area(&bodies[k]) / total).round() as usize
+        let count = match n + 1 == solid.len() {
+            true => left - given,
+            false => ((left as f32 * area(&bodies[k]) / sum).round() as usize).max(1),
         };
         bodies[k].count = count;
-        assigned += count;
+        given += count;
     }
 }
 

@@ -125,7 +125,7 @@ pub fn scene(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         }
     }
     set_motion(&mut bodies, rng);
-    assign_counts(&mut bodies, total);
+    super::families::assign_counts(&mut bodies, total);
     names.sort();
     Scene {
         name: format!("mixed/{}/{id:04}", names.join("+")),
@@ -239,7 +239,7 @@ fn place(kind: Kind, mut b: Body, placed: &[Body], rng: &mut ChaCha8Rng) -> Opti
                     false => rng.random_range(lo + half[1]..hi - half[1]),
                 };
                 b.position = [x, y];
-                if placed.iter().all(|p| apart(p, &b, GAP)) {
+                if placed.iter().all(|p| p.apart(&b, GAP)) {
                     return Some(b);
                 }
             }
@@ -247,13 +247,6 @@ fn place(kind: Kind, mut b: Body, placed: &[Body], rng: &mut ChaCha8Rng) -> Opti
         b.size = [b.size[0] * 0.85, b.size[1] * 0.85];
     }
     None
-}
-
-/// Whether the boxes of `a` and `b` are at least `gap` apart along some axis.
-fn apart(a: &Body, b: &Body, gap: f32) -> bool {
-    (0..2).any(|k| {
-        (a.position[k] - b.position[k]).abs() >= (a.size[k].abs() + b.size[k].abs()) / 2.0 + gap
-    })
 }
 
 /// Velocities (speed at most [`MAX_SPEED`], redrawn until no pair closes faster than
@@ -288,39 +281,6 @@ fn closing(a: &Body, b: &Body) -> f32 {
     let len = d[0].hypot(d[1]).max(1e-6);
     let dv = [b.velocity[0] - a.velocity[0], b.velocity[1] - a.velocity[1]];
     -(dv[0] * d[0] + dv[1] * d[1]) / len
-}
-
-/// Gives the non-rope bodies the particles the ropes left of `total`, in proportion to
-/// their area, the last taking the remainder.
-fn assign_counts(bodies: &mut [Body], total: usize) {
-    let ropes: usize = bodies
-        .iter()
-        .filter(|b| b.shape == Shape::Line)
-        .map(|b| b.count)
-        .sum();
-    let left = total - ropes;
-    let area = |b: &Body| {
-        b.size[0]
-            * b.size[1]
-            * if b.shape == Shape::Disk {
-                std::f32::consts::FRAC_PI_4
-            } else {
-                1.0
-            }
-    };
-    let solid: Vec<usize> = (0..bodies.len())
-        .filter(|&k| bodies[k].shape != Shape::Line)
-        .collect();
-    let sum: f32 = solid.iter().map(|&k| area(&bodies[k])).sum();
-    let mut given = 0;
-    for (n, &k) in solid.iter().enumerate() {
-        let count = match n + 1 == solid.len() {
-            true => left - given,
-            false => ((left as f32 * area(&bodies[k]) / sum).round() as usize).max(1),
-        };
-        bodies[k].count = count;
-        given += count;
-    }
 }
 
 /// The family's rules that `scene` breaks (empty when it could have been generated):
@@ -371,7 +331,7 @@ pub fn outside(scene: &Scene) -> Vec<String> {
             why.push(format!("body {k}: a pool larger than {POOL_MAX:?}"));
         }
         for (j, a) in scene.bodies[..k].iter().enumerate() {
-            if !apart(a, b, GAP - eps) {
+            if !a.apart(b, GAP - eps) {
                 why.push(format!("bodies {j} and {k} closer than {GAP}"));
             }
             if closing(a, b) > MAX_CLOSING + eps {

@@ -52,6 +52,17 @@ pub struct Body {
     pub count: usize,
 }
 
+impl Body {
+    /// Whether the boxes of `self` and `other` (centre `position`, extent `|size|`) are at
+    /// least `gap` apart along some axis (domain units). Used to place bodies apart.
+    pub fn apart(&self, other: &Body, gap: f32) -> bool {
+        (0..2).any(|k| {
+            (self.position[k] - other.position[k]).abs()
+                >= (self.size[k].abs() + other.size[k].abs()) / 2.0 + gap
+        })
+    }
+}
+
 /// A complete scene description.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
