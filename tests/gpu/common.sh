@@ -11,8 +11,11 @@ if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
 fi
+# SAMPLES (samples per epoch, default 2000), VAL_HORIZON (200) and VAL_STARTS (2) set the
+# epoch's length and its validation rollouts.
 COMMON=(--epochs 1000 --patience 0 --lr 1e-4 --lr-final 1e-6 --noise 0.5 --mirror
-    --batch-size 16 --samples-per-epoch 2000 --val-horizon 200 --val-starts 2)
+    --batch-size 16 --samples-per-epoch "${SAMPLES:-2000}" --val-horizon "${VAL_HORIZON:-200}"
+    --val-starts "${VAL_STARTS:-2}")
 
 # One training run in the background: NAME MINUTES FLAGS... With ONLY="a b" set, only the
 # runs named there start (ten full-size runs at once do not fit in an H100's 80 GB). The
