@@ -63,18 +63,43 @@ impl StreamingLoader {
     /// Fits a [`Scaler`] on `scenes` (the training scenes only) reading them chunk by chunk
     /// under the same budget.
     pub fn fit_scaler(
-        mut scenes: Vec<SceneInfo>,
+        scenes: Vec<SceneInfo>,
         topic: Option<&str>,
         max_resident_frames: usize,
     ) -> Result<Scaler, DataError> {
+        let mut fit = ScalerFit::new();
+        Self::for_each_chunk(scenes, topic, max_resident_frames, |trajs| {
+            trajs.iter().for_each(|t| fit.add(t));
+        })?;
+        Ok(fit.finish())
+    }
+
+    /// One pass over `scenes` in id order, a chunk of at most `max_resident_frames` frames at
+    /// a time: `visit` sees each chunk's trajectories, which are dropped before the next chunk
+    /// is read. For statistics of a dataset larger than memory ([`Self::fit_scaler`], the
+    /// grid model's velocity statistics).
+    ///
+    /// # Errors
+    /// A zero budget, a scene larger than it or listed twice, a bag that is unreadable or
+    /// changed since the scan.
+    pub fn for_each_chunk(
+        mut scenes: Vec<SceneInfo>,
+        topic: Option<&str>,
+        max_resident_frames: usize,
+        mut visit: impl FnMut(&[Trajectory]),
+    ) -> Result<(), DataError> {
         check_scenes(&mut scenes, max_resident_frames)?;
         let order: Vec<usize> = (0..scenes.len()).collect();
-        let mut fit = ScalerFit::new();
         for chunk in pack(&scenes, &order, max_resident_frames) {
             let (trajs, _) = load_chunk(&scenes, &chunk, topic)?;
-            trajs.iter().for_each(|t| fit.add(t));
+            visit(&trajs);
         }
-        Ok(fit.finish())
+        Ok(())
+    }
+
+    /// T, the input frames of a window.
+    pub fn t(&self) -> usize {
+        self.t
     }
 
     /// Frames of all scenes.

@@ -23,6 +23,8 @@ pub trait BatchSource {
     fn particle_counts(&self) -> Vec<usize>;
     /// Windows per epoch.
     fn windows(&self) -> usize;
+    /// T, the frames of a window's input.
+    fn t(&self) -> usize;
 }
 
 impl BatchSource for &WindowIndex {
@@ -45,6 +47,9 @@ impl BatchSource for &WindowIndex {
     fn windows(&self) -> usize {
         self.len()
     }
+    fn t(&self) -> usize {
+        WindowIndex::t(self)
+    }
 }
 
 impl BatchSource for StreamingLoader {
@@ -64,5 +69,8 @@ impl BatchSource for StreamingLoader {
     }
     fn windows(&self) -> usize {
         self.len()
+    }
+    fn t(&self) -> usize {
+        StreamingLoader::t(self)
     }
 }

@@ -171,6 +171,75 @@ fn losses(out: &Path) -> Vec<(String, String)> {
         .collect()
 }
 
+/// A grid dataset larger than `--max-resident-frames` trains from chunks streamed from the
+/// bags, with the normalisation (velocity statistics, min-max scaler) of the in-memory run
+/// fitted chunk by chunk to the same values; a budget below one scene is refused.
+#[test]
+fn grid_train_streams_large_datasets() {
+    let flags = ["--epochs", "2", "--model", "mingru"];
+    let resident = tempfile::tempdir().unwrap();
+    let o = train_grid(resident.path(), &flags);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("streamed"));
+    let streamed = tempfile::tempdir().unwrap();
+    let o = train_grid(
+        streamed.path(),
+        &[&flags[..], &["--max-resident-frames", "50"]].concat(),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("streamed from the bags"), "{err}");
+    let losses = losses(streamed.path());
+    assert_eq!(losses.len(), 2);
+    for (train, val) in &losses {
+        let (t, v): (f64, f64) = (train.parse().unwrap(), val.parse().unwrap());
+        assert!(t.is_finite() && v.is_finite() && v > 0.0, "{train}, {val}");
+    }
+    let meta = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    };
+    let (a, b) = (meta(resident.path()), meta(streamed.path()));
+    let numbers = |v: &serde_json::Value| -> Vec<f64> {
+        let mut out = Vec::new();
+        for key in ["vel_scale", "dv_mean", "dv_scale"] {
+            let field = &v[key];
+            out.extend(
+                field
+                    .as_array()
+                    .unwrap_or_else(|| panic!("{key}: {v}"))
+                    .iter()
+                    .map(|x| x.as_f64().unwrap()),
+            );
+        }
+        for key in ["min", "max"] {
+            out.extend(
+                v["scaler"][key]
+                    .as_array()
+                    .unwrap_or_else(|| panic!("{key}: {v}"))
+                    .iter()
+                    .map(|x| x.as_f64().unwrap()),
+            );
+        }
+        out
+    };
+    let (na, nb) = (numbers(&a), numbers(&b));
+    assert_eq!(na.len(), nb.len());
+    for (x, y) in na.iter().zip(&nb) {
+        assert!(
+            (x - y).abs() <= 1e-6 * x.abs().max(1e-3),
+            "{na:?} against {nb:?}"
+        );
+    }
+    // Every bundled scene has 25 frames: a budget of 10 holds none.
+    let o = train_grid(
+        tempfile::tempdir().unwrap().path(),
+        &[&flags[..], &["--max-resident-frames", "10"]].concat(),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(err.contains("10"), "{err}");
+}
+
 /// The grid run folder is complete (grid is the default architecture), and a run stopped
 /// after one epoch resumes from its checkpoint to the requested epochs.
 #[test]

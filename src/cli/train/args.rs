@@ -100,8 +100,9 @@ pub struct TrainArgs {
     /// whose held-out scenes must stay unseen. Default with --init-from: its run's split.
     #[arg(long, value_name = "DIR")]
     pub split_from: Option<PathBuf>,
-    /// Frames held in memory at most; a larger dataset is streamed from the bags in chunks
-    /// each epoch (a frame of 2,500 particles is 40 kB).
+    /// Frames held in memory at most; a larger dataset's training scenes are streamed from
+    /// the bags in chunks each epoch (a frame of 2,500 particles is 40 kB; `--arch grid`
+    /// keeps its validation scenes in memory).
     #[arg(long, default_value_t = 50_000)]
     pub max_resident_frames: usize,
     #[command(flatten)]
@@ -176,10 +177,6 @@ impl TrainArgs {
             ("--micro-batch", self.micro_batch != d.micro_batch),
             ("--density-grid", self.density_grid != d.density_grid),
             ("--density-weight", self.density_weight != d.density_weight),
-            (
-                "--max-resident-frames",
-                self.max_resident_frames != d.max_resident_frames,
-            ),
         ]
         .into_iter()
         .filter_map(|(flag, differs)| differs.then_some(flag))

@@ -16,13 +16,15 @@ use crate::cli::run_folder::{
     check_resume, differences, print_best, run_split, write_run_files, Progress,
 };
 use crate::cli::Outcome;
-use crate::data::{self, Scaler, Trajectory, WindowIndex};
+use crate::data::{
+    self, Part, Scaler, ScalerFit, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+};
 use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
 use crate::model::store::{NetConfig, RunFolder};
 use crate::ops::NetOps;
-use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
-use crate::train::{EpochRecord, Observer, TrainError};
+use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer, StatsFit};
+use crate::train::{BatchSource, EpochRecord, Observer, TrainError};
 
 /// Runs `train --arch grid`.
 ///
@@ -39,30 +41,30 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         None => None,
     };
     let topic = Some(args.topic.as_str());
-    let (trajs, report) = data::load(&args.data, topic).context("loading trajectories")?;
-    for gap in &report.gaps {
-        tracing::warn!("{gap}");
-    }
-    let mut scenes: Vec<String> = trajs.iter().map(|t| t.scene.clone()).collect();
-    scenes.dedup();
+    let (infos, resident, report) = super::read_data(&args, topic)?;
+    let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = run_split(
         &scenes,
         args.seed,
         args.split_from.as_deref(),
         args.grid_args.init_from.as_deref(),
     )?;
-    let (train, val, test) = split.partition(trajs);
-    if train.is_empty() {
+    let frames = config.window + opts.calls() * config.bundle - 1;
+    let mut data = match infos.iter().map(|s| s.frames).sum::<usize>() > args.max_resident_frames {
+        true => RunData::streamed(&args, infos, &split, frames, init)?,
+        false => {
+            let trajs = match resident {
+                Some(trajs) => trajs,
+                // Bags without summary statistics fit after all: read them once more.
+                None => super::load(&args.data, topic)?.0,
+            };
+            RunData::resident(trajs, &split, frames, init)?
+        }
+    };
+    if data.train_scenes == 0 {
         bail!("no training scenes in {:?}", args.data);
     }
-    let refs: Vec<&Trajectory> = train.iter().collect();
-    // Weights from --init-from were trained against their run's normalisation: keep it, and
-    // its scaler, so validation and `eval` score in the parent's units whatever scenes were
-    // added.
-    let ((vel_scale, dv_mean, dv_scale), scaler) = match init {
-        Some((stats, scaler)) => (stats, scaler),
-        None => (fit_stats(&refs), Scaler::fit(&refs)),
-    };
+    let ((vel_scale, dv_mean, dv_scale), scaler) = data.normalisation;
     config.vel_scale = vel_scale;
     config.dv_mean = dv_mean;
     config.dv_scale = dv_scale;
@@ -70,14 +72,21 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
     }
     write_run_files(&args.out, &split, &opts)?;
-    let frames = config.window + opts.calls() * config.bundle - 1;
-    let index = WindowIndex::new(train, frames, Scaler::default())?;
-    print_summary(
+    let mut index: &WindowIndex;
+    let (train, streamed): (&mut dyn BatchSource, _) = match &mut data.train {
+        TrainWindows::Resident(resident) => {
+            index = resident;
+            (&mut index, false)
+        }
+        TrainWindows::Streamed(loader) => (loader, true),
+    };
+    let counts = (
         scenes.len(),
-        &index,
-        (val.len(), test.len()),
-        (&config, &opts),
-    )?;
+        data.train_scenes,
+        count_scenes(&data.val),
+        data.test_scenes,
+    );
+    print_summary(counts, (&*train, streamed), (&config, &opts))?;
     let mut progress = Progress::new(args.out.clone());
     // One device: a data-parallel list is refused.
     device.single("train --arch grid")?;
@@ -86,8 +95,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         opts,
         out: args.out.clone(),
         init_from: args.grid_args.init_from.clone(),
-        train: &index,
-        val: &val,
+        train,
+        val: &data.val,
         scaler: &scaler,
         resume: args.resume,
         observer: &mut progress,
@@ -95,6 +104,125 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let history = super::fit_on(&device, args.device.kernels(), run)?;
     print_best(&history, "validation rollout MSE", &args.out);
     Ok(crate::cli::read_to_damage(&report.truncated))
+}
+
+/// The normalisation of a run: `(vel_scale, dv_mean, dv_scale)` and the min-max scaler.
+type Normalisation = (([f32; 2], [f32; 2], [f32; 2]), Scaler);
+
+/// A grid run's training windows: in memory, or streamed from the bags a chunk at a time
+/// when the dataset has more than `--max-resident-frames` frames.
+enum TrainWindows {
+    Resident(WindowIndex),
+    Streamed(StreamingLoader),
+}
+
+/// What a grid run trains and validates on.
+struct RunData {
+    train: TrainWindows,
+    /// Scenes in the training split.
+    train_scenes: usize,
+    /// The validation scenes, whole (the validation rollouts read them from frame 0), in
+    /// memory even when the training scenes are streamed.
+    val: Vec<Trajectory>,
+    /// Scenes in the test split.
+    test_scenes: usize,
+    /// `--init-from`'s, or fitted on the training split.
+    normalisation: Normalisation,
+}
+
+impl RunData {
+    /// Every scene in memory (`trajs`), parted by `split`, windows of `frames` frames.
+    fn resident(
+        trajs: Vec<Trajectory>,
+        split: &Split,
+        frames: usize,
+        init: Option<Normalisation>,
+    ) -> anyhow::Result<Self> {
+        let (train, val, test) = split.partition(trajs);
+        let refs: Vec<&Trajectory> = train.iter().collect();
+        // Weights from --init-from were trained against their run's normalisation: keep it,
+        // and its scaler, so validation and `eval` score in the parent's units whatever
+        // scenes were added.
+        let normalisation = init.unwrap_or_else(|| (fit_stats(&refs), Scaler::fit(&refs)));
+        Ok(Self {
+            train_scenes: count_scenes(&train),
+            test_scenes: count_scenes(&test),
+            train: TrainWindows::Resident(WindowIndex::new(train, frames, Scaler::default())?),
+            val,
+            normalisation,
+        })
+    }
+
+    /// The training scenes of `infos` streamed from their bags under `--max-resident-frames`
+    /// ([`StreamingLoader`]); the normalisation, unless `init` gives it, from one chunked
+    /// pass; the validation scenes read whole.
+    fn streamed(
+        args: &TrainArgs,
+        infos: Vec<SceneInfo>,
+        split: &Split,
+        frames: usize,
+        init: Option<Normalisation>,
+    ) -> anyhow::Result<Self> {
+        let topic = Some(args.topic.as_str());
+        let budget = args.max_resident_frames;
+        let part = |p: Part| -> Vec<SceneInfo> {
+            (infos.iter())
+                .filter(|s| split.part_of(&s.scene) == Some(p))
+                .cloned()
+                .collect()
+        };
+        let (train, val) = (part(Part::Train), part(Part::Val));
+        let normalisation = match init {
+            Some(n) => n,
+            None => {
+                let (mut stats, mut scaler) = (StatsFit::default(), ScalerFit::new());
+                StreamingLoader::for_each_chunk(train.clone(), topic, budget, |trajs| {
+                    trajs.iter().for_each(|t| {
+                        stats.add(t);
+                        scaler.add(t);
+                    });
+                })
+                .context("fitting the normalisation on the training scenes")?;
+                (stats.finish(), scaler.finish())
+            }
+        };
+        let mut bags: Vec<PathBuf> = Vec::new();
+        for bag in val.iter().flat_map(|s| &s.bags) {
+            if !bags.contains(bag) {
+                bags.push(bag.clone());
+            }
+        }
+        let names: Vec<String> = val.iter().map(|s| s.scene.clone()).collect();
+        let val = match names.is_empty() {
+            true => Vec::new(),
+            false => {
+                data::load_scenes(&bags, topic, &names)
+                    .context("loading the validation scenes")?
+                    .0
+            }
+        };
+        Ok(Self {
+            train_scenes: train.len(),
+            test_scenes: part(Part::Test).len(),
+            train: TrainWindows::Streamed(StreamingLoader::new(
+                train,
+                topic,
+                frames,
+                Scaler::default(),
+                budget,
+            )?),
+            val,
+            normalisation,
+        })
+    }
+}
+
+/// Distinct scenes of `trajs` (a scene with missing frames holds several trajectories).
+fn count_scenes(trajs: &[Trajectory]) -> usize {
+    let mut scenes: Vec<&str> = trajs.iter().map(|t| t.scene.as_str()).collect();
+    scenes.sort_unstable();
+    scenes.dedup();
+    scenes.len()
 }
 
 /// The constraints `--constraints` asks the training rollouts to project onto: the parts
@@ -117,19 +245,23 @@ fn training_constraints(args: &TrainArgs) -> anyhow::Result<Option<Constraints>>
     Ok((!c.is_empty()).then_some(c))
 }
 
-/// The run's one-line summary on stderr (scenes, samples, the network, P, K, N); a usage
-/// error when no training scene holds a sample.
+/// The run's one-line summary on stderr (scenes: all, train, val, test; samples, the
+/// network, P, K, N); a usage error when no training scene holds a sample.
 fn print_summary(
-    scenes: usize,
-    index: &WindowIndex,
-    (val, test): (usize, usize),
+    (scenes, train, val, test): (usize, usize, usize, usize),
+    (source, streamed): (&dyn BatchSource, bool),
     (config, opts): (&GridConfig, &crate::train::grid::GridTrainOptions),
 ) -> anyhow::Result<()> {
     eprintln!(
-        "{scenes} scenes: {} train ({} samples), {val} val, {test} test; grid architecture, {} \
-         memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks {}), K = {}, N = {:?}",
-        index.trajectories().len(),
-        index.len(),
+        "{scenes} scenes: {train} train ({} samples{}), {val} val, {test} test; grid \
+         architecture, {} memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks \
+         {}), K = {}, N = {:?}",
+        source.windows(),
+        if streamed {
+            ", streamed from the bags"
+        } else {
+            ""
+        },
         config.memory.name(),
         config.grid,
         config.window,
@@ -138,9 +270,9 @@ fn print_summary(
         opts.pushforward,
         opts.chunks(),
         config.bundle,
-        index.particle_counts(),
+        source.particle_counts(),
     );
-    if !index.is_empty() {
+    if source.windows() > 0 {
         return Ok(());
     }
     Err(crate::cli::UsageError(format!(
@@ -148,7 +280,7 @@ fn print_summary(
          K = {} frames a sample needs (lower --window, --rollout-steps, --pushforward, --chunks \
          or --bundle)",
         config.window,
-        index.t() + 1
+        source.t() + 1
     ))
     .into())
 }
@@ -216,7 +348,7 @@ struct GridFit<'a> {
     out: PathBuf,
     /// The run folder of the model to start from (`--init-from`).
     init_from: Option<PathBuf>,
-    train: &'a WindowIndex,
+    train: &'a mut dyn BatchSource,
     val: &'a [Trajectory],
     scaler: &'a Scaler,
     resume: bool,

@@ -16,8 +16,13 @@ mod paper;
 
 pub use args::{CpuTrain, TrainArgs};
 
+use std::path::PathBuf;
+
+use anyhow::Context;
+
 use crate::cli::device::Device;
 use crate::cli::Outcome;
+use crate::data::{self, LoadReport, SceneInfo, Trajectory};
 use crate::ops::NetOps;
 use crate::train::{EpochRecord, TrainError};
 use burn::tensor::backend::AutodiffBackend;
@@ -69,4 +74,36 @@ fn fit_on(
         #[cfg(not(feature = "cuda"))]
         Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
     })
+}
+
+/// The run's scene index, with the trajectories themselves when the bags fit in
+/// memory (`--max-resident-frames`, by their summaries' frame counts): then the bags are
+/// read once. Otherwise (a large dataset, or bags without summary statistics) the index
+/// comes from a decoding pass and the trajectories are streamed or loaded afterwards.
+pub(super) fn read_data(
+    args: &TrainArgs,
+    topic: Option<&str>,
+) -> anyhow::Result<(Vec<SceneInfo>, Option<Vec<Trajectory>>, LoadReport)> {
+    let fits = data::summary_frames(&args.data, topic)
+        .is_some_and(|frames| frames <= args.max_resident_frames as u64);
+    if fits {
+        let (trajs, report) = load(&args.data, topic)?;
+        Ok((SceneInfo::of(&trajs), Some(trajs), report))
+    } else {
+        let (infos, report) =
+            data::scan_with_report(&args.data, topic).context("reading the bags")?;
+        Ok((infos, None, report))
+    }
+}
+
+/// [`data::load`], with its gaps logged.
+pub(super) fn load(
+    inputs: &[PathBuf],
+    topic: Option<&str>,
+) -> anyhow::Result<(Vec<Trajectory>, LoadReport)> {
+    let (trajs, report) = data::load(inputs, topic).context("loading trajectories")?;
+    for gap in &report.gaps {
+        tracing::warn!("{gap}");
+    }
+    Ok((trajs, report))
 }

@@ -7,14 +7,12 @@ use super::args::TrainArgs;
 
 use crate::cli::run_folder::{check_resume, print_best, run_split, write_run_files, Progress};
 use crate::cli::Outcome;
-use crate::data::{
-    self, LoadReport, Part, Scaler, SceneInfo, StreamingLoader, Trajectory, WindowIndex,
-};
+use crate::data::{Part, Scaler, SceneInfo, StreamingLoader, WindowIndex};
 use crate::model::store::NetConfig;
 use crate::model::ModelConfig;
 use crate::ops::NetOps;
 use crate::train::{BatchSource, EpochRecord, Observer, TrainError, TrainOptions, Trainer};
-use anyhow::{bail, Context};
+use anyhow::bail;
 use burn::tensor::backend::AutodiffBackend;
 use std::path::PathBuf;
 
@@ -28,7 +26,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         .map_err(|e| crate::cli::UsageError(format!("{e:#}")))?;
     let device = args.device.parse()?;
     let topic = Some(args.topic.as_str());
-    let (infos, resident, scanned) = read_data(&args, topic)?;
+    let (infos, resident, scanned) = super::read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = run_split(&scenes, args.seed, args.split_from.as_deref(), None)?;
     let in_part = |part: Part| -> Vec<SceneInfo> {
@@ -82,7 +80,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         let trajs = match resident {
             Some(trajs) => trajs,
             // Bags without summary statistics fit after all: read them once more.
-            None => load(&args.data, topic)?.0,
+            None => super::load(&args.data, topic)?.0,
         };
         let (train, val, _test) = split.partition(trajs);
         let scaler = Scaler::fit(&train.iter().collect::<Vec<_>>());
@@ -136,35 +134,6 @@ fn print_summary(
         config.particles,
         config.window
     );
-}
-
-/// The paper path's scene index, with the trajectories themselves when the bags fit in
-/// memory (`--max-resident-frames`, by their summaries' frame counts): then the bags are
-/// read once. Otherwise (a large dataset, or bags without summary statistics) the index
-/// comes from a decoding pass and the trajectories are streamed or loaded afterwards.
-fn read_data(
-    args: &TrainArgs,
-    topic: Option<&str>,
-) -> anyhow::Result<(Vec<SceneInfo>, Option<Vec<Trajectory>>, LoadReport)> {
-    let fits = data::summary_frames(&args.data, topic)
-        .is_some_and(|frames| frames <= args.max_resident_frames as u64);
-    if fits {
-        let (trajs, report) = load(&args.data, topic)?;
-        Ok((SceneInfo::of(&trajs), Some(trajs), report))
-    } else {
-        let (infos, report) =
-            data::scan_with_report(&args.data, topic).context("reading the bags")?;
-        Ok((infos, None, report))
-    }
-}
-
-/// [`data::load`], with its gaps logged.
-fn load(inputs: &[PathBuf], topic: Option<&str>) -> anyhow::Result<(Vec<Trajectory>, LoadReport)> {
-    let (trajs, report) = data::load(inputs, topic).context("loading trajectories")?;
-    for gap in &report.gaps {
-        tracing::warn!("{gap}");
-    }
-    Ok((trajs, report))
 }
 
 /// A paper run as [`super::fit_on`] starts it.

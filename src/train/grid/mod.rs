@@ -35,7 +35,7 @@ mod rollout_loss;
 mod schedule;
 mod validate;
 
-pub use schedule::{fit_stats, learning_rate};
+pub use schedule::{fit_stats, learning_rate, StatsFit};
 pub use validate::validation_rollout;
 
 use std::path::PathBuf;
@@ -52,8 +52,9 @@ use rand_chacha::ChaCha8Rng;
 
 use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
+use super::source::BatchSource;
 use super::{EpochRecord, Observer, TrainError};
-use crate::data::{Scaler, Trajectory, WindowIndex};
+use crate::data::{Scaler, Trajectory};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
@@ -189,15 +190,17 @@ where
     B::InnerBackend: NetOps,
 {
     /// Trains on `train` (windows of `T + (M + C P) K - 1` input frames built with the identity
-    /// scaler), validating by rollouts of `val`; `scaler` is the training split's min-max
+    /// scaler: a [`crate::data::WindowIndex`] in memory or a
+    /// [`crate::data::StreamingLoader`] reading the bags chunk by chunk), validating by rollouts of `val`; `scaler` is the training split's min-max
     /// scaler (saved with the model, used for the validation score). Resumes from
     /// `out/checkpoint` when `resume`.
     ///
     /// # Errors
-    /// A non-finite loss, a failed save or load, a failed validation step.
+    /// A non-finite loss, a failed save or load, a failed validation step, a chunk of
+    /// streamed scenes that could not be read.
     pub fn fit(
         &self,
-        train: &WindowIndex,
+        train: &mut dyn BatchSource,
         val: &[Trajectory],
         scaler: &Scaler,
         resume: bool,
@@ -213,8 +216,8 @@ where
         }
         let start = self.start(resume)?;
         let per_epoch = match opts.samples_per_epoch {
-            0 => train.len(),
-            s => s.min(train.len()),
+            0 => train.windows(),
+            s => s.min(train.windows()),
         };
         let batches = per_epoch.div_ceil(opts.batch_size.max(1));
         let clock = RunClock {
@@ -306,12 +309,13 @@ where
     /// early, with `out_of_time` set, once `--max-minutes` have passed since the run began.
     ///
     /// # Errors
-    /// [`TrainError::NonFinite`] for a NaN or infinite batch loss.
+    /// [`TrainError::NonFinite`] for a NaN or infinite batch loss; [`TrainError::Data`] for a
+    /// streamed chunk that could not be read.
     fn train_epoch(
         &self,
         mut model: GridModel<B>,
         optim: &mut GridOptim<B>,
-        train: &WindowIndex,
+        train: &mut dyn BatchSource,
         epoch: usize,
         clock: &RunClock,
         observer: &mut dyn Observer,
@@ -326,11 +330,9 @@ where
         let mut flips =
             ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
         let mut fetch = Instant::now();
-        for (k, batch) in train
-            .batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)
-            .take(clock.batches)
-            .enumerate()
-        {
+        let batches = train.batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)?;
+        for (k, batch) in batches.take(clock.batches).enumerate() {
+            let batch = batch?;
             let b = batch.b;
             let mirror: Vec<bool> = (0..b)
                 .map(|_| opts.mirror && flips.random_bool(0.5))
@@ -377,7 +379,7 @@ type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 /// [`run_epochs`] drives it.
 struct GridRun<'a, B: AutodiffBackend> {
     trainer: &'a GridTrainer<B>,
-    train: &'a WindowIndex,
+    train: &'a mut dyn BatchSource,
     val: &'a [Trajectory],
     output: RunOutput,
     clock: RunClock,
@@ -403,7 +405,7 @@ where
         observer: &mut dyn Observer,
     ) -> Result<(GridModel<B>, EpochPass), TrainError> {
         self.trainer
-            .train_epoch(model, optim, self.train, epoch, &self.clock, observer)
+            .train_epoch(model, optim, &mut *self.train, epoch, &self.clock, observer)
     }
 
     /// The mean scaled MSE of validation rollouts ([`validation_rollout`]), times their

@@ -1,7 +1,7 @@
 //! What a grid run fixes before and as it trains: the velocity statistics of the training
-//! split that normalise the network ([`fit_stats`]), the cosine learning-rate decay
-//! ([`learning_rate`]) and the run's clock ([`RunClock`]: progress by steps or by the time
-//! limit). Used by [`super::GridTrainer`] and `minflow train`.
+//! split that normalise the network ([`fit_stats`], or [`StatsFit`] a chunk at a time), the
+//! cosine learning-rate decay ([`learning_rate`]) and the run's clock ([`RunClock`]: progress
+//! by steps or by the time limit). Used by [`super::GridTrainer`] and `minflow train`.
 
 use std::time::Instant;
 
@@ -12,9 +12,26 @@ use crate::data::Trajectory;
 /// `vel_scale` = the velocities' standard deviation, `dv_mean` and `dv_scale` = the mean
 /// and standard deviation of the change over one frame. Used to fill [`crate::model::grid::GridConfig`].
 pub fn fit_stats(trajs: &[&Trajectory]) -> ([f32; 2], [f32; 2], [f32; 2]) {
-    let mut v = [[0.0f64; 3]; 2]; // count, sum, sum of squares
-    let mut dv = [[0.0f64; 3]; 2];
-    for traj in trajs {
+    let mut fit = StatsFit::default();
+    trajs.iter().for_each(|t| fit.add(t));
+    fit.finish()
+}
+
+/// [`fit_stats`] a trajectory at a time, for a training split read in chunks
+/// ([`crate::data::StreamingLoader::for_each_chunk`]): the same sums, so the same result as
+/// one call over every trajectory.
+#[derive(Debug, Clone, Default)]
+pub struct StatsFit {
+    /// Per component: count, sum, sum of squares of the velocities.
+    v: [[f64; 3]; 2],
+    /// The same of the change over one frame.
+    dv: [[f64; 3]; 2],
+}
+
+impl StatsFit {
+    /// Adds every frame of `traj`.
+    pub fn add(&mut self, traj: &Trajectory) {
+        let (v, dv) = (&mut self.v, &mut self.dv);
         for k in 0..traj.frames {
             let now = traj.state(k);
             let next = (k + 1 < traj.frames).then(|| traj.state(k + 1));
@@ -34,17 +51,22 @@ pub fn fit_stats(trajs: &[&Trajectory]) -> ([f32; 2], [f32; 2], [f32; 2]) {
             }
         }
     }
-    let mean = |s: [f64; 3]| if s[0] > 0.0 { s[1] / s[0] } else { 0.0 };
-    let std = |s: [f64; 3]| {
-        let m = mean(s);
-        let var = if s[0] > 0.0 { s[2] / s[0] - m * m } else { 1.0 };
-        (var.max(0.0).sqrt() as f32).max(1e-6)
-    };
-    (
-        [std(v[0]), std(v[1])],
-        [mean(dv[0]) as f32, mean(dv[1]) as f32],
-        [std(dv[0]), std(dv[1])],
-    )
+
+    /// `(vel_scale, dv_mean, dv_scale)` of what was added.
+    pub fn finish(&self) -> ([f32; 2], [f32; 2], [f32; 2]) {
+        let mean = |s: [f64; 3]| if s[0] > 0.0 { s[1] / s[0] } else { 0.0 };
+        let std = |s: [f64; 3]| {
+            let m = mean(s);
+            let var = if s[0] > 0.0 { s[2] / s[0] - m * m } else { 1.0 };
+            (var.max(0.0).sqrt() as f32).max(1e-6)
+        };
+        let (v, dv) = (self.v, self.dv);
+        (
+            [std(v[0]), std(v[1])],
+            [mean(dv[0]) as f32, mean(dv[1]) as f32],
+            [std(dv[0]), std(dv[1])],
+        )
+    }
 }
 
 /// The learning rate at `progress` (0 to 1) through the run: cosine from `lr` to `lr_final`

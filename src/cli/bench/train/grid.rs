@@ -116,7 +116,7 @@ where
         device: device.clone(),
         init_from: None,
     };
-    let history = trainer.fit(index, &[], &Scaler::default(), false, &mut Quiet)?;
+    let history = trainer.fit(&mut { index }, &[], &Scaler::default(), false, &mut Quiet)?;
     high = high.max(peak(false).unwrap_or(f64::NAN));
     let EpochMeans {
         warmup,
