@@ -6,8 +6,7 @@
 //! validates, and within each (topic, scene) `frame_index` rises by exactly 1, stamps (ns)
 //! strictly increase, and particle count, materials and `dt` stay constant; and the summary and
 //! message indexes agree with the data ([`super::check_index`]). Damaged or cut files are
-//! problems in the report, not errors. It does not load a whole bag into memory. Also used by
-//! `demo`.
+//! problems in the report, not errors. It does not load a whole bag into memory.
 
 use std::collections::BTreeMap;
 use std::fmt;

@@ -2,7 +2,8 @@
 //! topic (or of every ParticleFrame channel), skipping and counting other topics and schemas,
 //! and [`read_frames`] / [`read_frames_with`] collect a whole bag into a [`ReadOutcome`]
 //! (frames with their topic and `log_time` in ns, truncation, skipped and invalid counts),
-//! strictly or leniently. Used by `train`, `replay` and `eval`.
+//! strictly or leniently. Used by `train` and `eval` (through `data`), `eval --pred` and
+//! `bench node`.
 
 use std::path::Path;
 

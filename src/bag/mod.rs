@@ -5,7 +5,7 @@
 //!
 //! [`mod@write`] creates bags (`simulate`, `record`); [`read`] streams the messages of any bag
 //! that follows the format, whoever wrote it, and survives truncated files; [`frames`] decodes
-//! them into frames (`train`, `replay`, `eval`); [`inspect`] implements `minflow bag info` and
+//! them into frames (`train`, `eval`); [`inspect`] implements `minflow bag info` and
 //! [`mod@check`] `minflow bag check` (with [`check_index`] for the summary and message
 //! indexes); and [`bag_paths`] expands a dataset (a folder of bags) into
 //! files. Every failure is one [`BagError`] that names the file and, where it applies, the topic

@@ -1,6 +1,9 @@
-//! The `minflow-cuda` binary (feature `cuda`): `minflow`'s `simulate`, `train`, `eval` and
-//! `bench train` alone, so that a stripped build with burn's CUDA backend stays small enough
-//! to carry to a GPU machine (docs/cuda.md). Exit codes as `minflow`'s.
+//! The `minflow-cuda` binary (feature `cuda`): `minflow`'s `simulate`, `train`, `eval`,
+//! `bench train`, `bench gemm`, `bench rollout` and `constraints` alone ([`TrainCli`]), so
+//! that a stripped build with burn's CUDA backend stays small enough to carry to a GPU
+//! machine (docs/cuda.md). Exit codes as `minflow`'s.
+//!
+//! [`TrainCli`]: minflow::cli::TrainCli
 
 /// As in `minflow`: mimalloc reuses freed large host buffers.
 #[global_allocator]

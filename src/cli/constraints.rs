@@ -34,7 +34,7 @@ pub struct FitArgs {
     #[arg(long, num_args = 1.., required = true)]
     data: Vec<PathBuf>,
     /// The parts to fit and write: on (rope, jelly, liquid, walls; snow stays off, as the
-    /// ablation chose) | a list of rope, jelly, snow, liquid, walls.
+    /// ablation chose) | a list of rope, jelly, snow, liquid, walls, contact.
     #[arg(long, value_name = "PARTS", default_value = "rope,jelly,liquid,walls")]
     parts: Parts,
     /// Training scenes read at most (evenly spaced over the split's list; 0: all).

@@ -1,9 +1,10 @@
-//! `minflow demo`: the main job on a fresh machine (README, first line). On the bundled bags
-//! in `bags/`: uses the shipped small bundled grid minGRU in `models/` (`--train` trains one on the bundled
-//! bags instead, in this process, as it does when `--model` holds no model), then launches
-//! `launch_configs/replay_eval.yaml` over zenoh with an embedded peer (replay -> surrogate
-//! node in closed loop -> recorder -> `eval --pred --truth`) and prints the replay
-//! evaluation table with the `persist` and `constvel` baselines.
+//! `minflow demo`: the main job on a fresh machine (README, first line). Lists the bundled bags
+//! in `bags/`, takes the shipped small bundled grid minGRU (`models/all-grid-mingru-small-k4`;
+//! `--train`, or a `--model` folder that holds no model, trains one on the bundled bags first,
+//! in this process), then launches `launch_configs/replay_eval.yaml` over zenoh with an
+//! embedded peer (replay -> surrogate node in closed loop -> recorder -> `eval --pred
+//! --truth`), which prints the replay evaluation table beside the `persist` and `constvel`
+//! baselines.
 
 use super::train::TrainArgs;
 use super::Outcome;
@@ -37,7 +38,8 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 20)]
     horizon: u32,
     /// Which parts of the model's material constraints the node projects every predicted
-    /// frame onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls.
+    /// frame onto: on (all the model has) | off | a list of rope, jelly, snow, liquid,
+    /// walls, contact.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
     /// Training epochs when a model is trained.

@@ -1,8 +1,9 @@
-//! `--device`: where a command runs its model, shared by `train`, `eval`, `bench train` and
-//! `node` (each flattens [`DeviceArgs`]). `cpu` is burn's ndarray backend (the default, always
-//! built); `cuda` or `cuda:N` is burn's CUDA backend on GPU N, in a build with the `cuda`
-//! feature (docs/cuda.md); `cuda:0,cuda:1,...` lists several GPUs for data-parallel training
-//! (`train` and `bench train`). Also the backend types of each device and the CUDA memory query the
+//! `--device`: where a command runs its model, shared by `train`, `eval`, `node` and the
+//! benches that run a model (`bench train`, `node`, `rollout`, `gemm`, `transfer`; each
+//! flattens [`DeviceArgs`]). `cpu` is burn's ndarray backend (the default, always built);
+//! `cuda` or `cuda:N` is burn's CUDA backend on GPU N, in a build with the `cuda` feature
+//! (docs/cuda.md); `cuda:0,cuda:1,...` lists several GPUs for data-parallel training (`train`
+//! and `bench train`). Also the backend types of each device and the CUDA memory query the
 //! training benchmark reports.
 
 use anyhow::bail;

@@ -1,6 +1,12 @@
 //! The command layer: clap definitions of every subcommand and [`run`], which reads as the
-//! table of contents of what `minflow` does. Each verb lives in its own file; errors are
-//! `anyhow` with context here, structured error types in the pipeline modules.
+//! table of contents of what `minflow` does. Each verb lives in its own file (`bench` and
+//! `train` in folders of their own: `bench/mod.rs`, `train/mod.rs`): `demo`, `simulate`,
+//! `train`, `eval`, `report`, `replay`, `record`, `node`, `launch`, `bag`, `export`,
+//! `import`, `bench`, `constraints`. Shared by several: [`device`] (`--device`), `flags`
+//! (range checks of numeric flags), `foxglove` (`--foxglove`) and `run_folder` (what a
+//! training run leaves in its folder). This file also holds the `minflow-cuda` subset
+//! ([`TrainCli`]), exit codes, the allocator setting and logging. Errors are `anyhow` with
+//! context here, structured error types in the pipeline modules.
 
 mod bag;
 mod bench;
@@ -38,11 +44,12 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// The main job on the bundled bags (see README): summarise, simulate, check.
+    /// The main job on the bundled bags (see README): the shipped model in closed loop
+    /// (replay -> node -> record -> eval), scored beside the baselines.
     Demo(demo::DemoArgs),
     /// Generate ground-truth scenes with MLS-MPM and write one MCAP bag per scene.
     Simulate(simulate::SimulateArgs),
-    /// Train a surrogate (mlp | lstm | gru | minlstm | mingru) on bags.
+    /// Train a surrogate on bags (the grid architecture, or `--arch paper`).
     Train(train::TrainArgs),
     /// Rollout metrics, tables, curves and renders of models and baselines (or of a bag of
     /// recorded predictions) against the ground truth.
@@ -74,8 +81,9 @@ enum Command {
 }
 
 /// `minflow-cuda`: the subset of `minflow` a GPU machine needs (`simulate`, `train`, `eval`,
-/// `bench train`), the same flags, without the transports, so that its stripped binary is small
-/// enough to carry to the machine (docs/cuda.md). Built with `--features cuda`.
+/// `bench train`, `bench gemm`, `bench rollout`, `constraints`), the same flags, without the
+/// transports, so that its stripped binary is small enough to carry to the machine
+/// (docs/cuda.md). Built with `--features cuda`.
 #[derive(Debug, Parser)]
 #[command(name = "minflow-cuda", version, about, long_about = None)]
 pub struct TrainCli {

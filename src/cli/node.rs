@@ -100,7 +100,8 @@ pub struct NodeArgs {
     #[arg(long)]
     mirror: bool,
     /// Which parts of the model's material constraints every predicted frame is projected
-    /// onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls.
+    /// onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls,
+    /// contact.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
     #[command(flatten)]

@@ -4,12 +4,13 @@
 //! A [`Trajectory`] holds a contiguous run of frames (no missing `frame_index`) of one scene:
 //! `states` is `[F, N, 4]` frame-major with per particle x, y (domain units) and vx, vy (domain
 //! units per time unit), copied bit for bit from the messages' interleaved `position` and
-//! `velocity` ([`crate::msgs::state_rows`]); `material` is the scene's N material ids; `dt` is the frame spacing in time
-//! units from the messages. A scene with missing frames becomes several trajectories
-//! (segments), and the missing ranges are reported as [`Gap`]s in the [`LoadReport`].
-//! `SceneFrames` (internal) collects the frames of one scene as they are read (in any order, from any
-//! number of bags), checks that particle count, materials and `dt` never change, drops
-//! duplicates, and cuts the result into segments. Used by `minflow train` and `minflow eval`.
+//! `velocity` ([`crate::msgs::state_rows`]); `material` is the scene's N material ids; `dt` is
+//! the frame spacing in time units from the messages. A scene with missing frames becomes
+//! several trajectories (segments), and the missing ranges are reported as [`Gap`]s in the
+//! [`LoadReport`]. `SceneFrames` (internal) collects the frames of one scene as they are read
+//! (in any order, from any number of bags), checks that particle count, materials and `dt`
+//! never change, drops duplicates, and cuts the result into segments. Used by `minflow train`
+//! and `minflow eval`.
 
 use std::collections::BTreeMap;
 use std::fmt;

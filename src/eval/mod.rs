@@ -14,7 +14,12 @@
 //! - [`render`]: particle renders (PNG grid and animated GIF) and the per-scene MSE curves.
 //! - [`output`]: writes all of them into one folder ([`output::write_all`]).
 //! - [`save_pred`]: each rollout's predicted frames as an MCAP bag (`eval --save-pred`).
-//! - [`structure`]: volume ratio, intact fraction and connectivity of a predicted frame.
+//! - [`plausibility`]: what the MSE hides, at probe steps ([`plausibility::Plausibility`]:
+//!   Sinkhorn divergence, strain error, kinetic energy, and the two below, per material).
+//! - [`structure`]: volume ratio, intact fraction and connectivity of a predicted frame, and
+//!   the solids' rest neighbours ([`structure::Neighbours`]).
+//! - [`conservation`]: each body's centre-of-mass error and the momentum drift.
+//! - [`probe_table`]: the plausibility tables (`table.md`'s sections, `plausibility.csv`).
 //!
 //! Both ways of evaluating produce one [`Evaluation`]: per scene and per predictor a
 //! [`Curve`] of per-step metrics, step `k` = the k-th predicted frame (k = 1 is the frame

@@ -1,8 +1,8 @@
 //! Writes everything an [`Evaluation`] produced into one folder: `table.md` (the Tables 2/3
-//! layout of the MSE, then the detailed summary), `table.csv`, `metrics.csv` (every metric
-//! at every step), `plausibility.csv` (when probed), `mse_curves.png` (per-scene MSE curves) and, per scene with snapshots,
-//! `render_<scene>.png` and `render_<scene>.gif` (ground truth beside each model). Used by
-//! `minflow eval` and `minflow report`.
+//! layout of the MSE, then the detailed summary), `table.csv`, `metrics.csv` (every metric at
+//! every step), `plausibility.csv` (when probed), `mse_curves.png` (per-scene MSE curves) and,
+//! per scene with snapshots, `render_<scene>.png` and `render_<scene>.gif` (ground truth beside
+//! each model). Used by `minflow eval` and `minflow report`.
 
 use std::path::{Path, PathBuf};
 

@@ -3,25 +3,27 @@
 //! per-particle MSE only says how far each particle is from its twin.
 //!
 //! - [`sinkhorn_divergence`]: the debiased Sinkhorn divergence between two point clouds with
-//!   uniform weights and the squared Euclidean cost, `S(a, b) = OT(a, b) - OT(a, a) / 2 -
-//!   OT(b, b) / 2` (Feydy et al. 2019, "Interpolating between optimal transport and MMD
-//!   using Sinkhorn divergences", eq. 3), computed per material on the positions in domain
-//!   units (domain units squared; as LagrangeBench, Toshev et al. 2023, section 4.2, reports
-//!   it). `OT` is entropic optimal transport at blur `sqrt(eps)`, by symmetric Sinkhorn
-//!   iterations in the log domain (Feydy's geomloss `sinkhorn_loop`, the averaged update).
-//!   Clouds above [`SINKHORN_POINTS`] points are subsampled evenly by particle index (the
-//!   same particles in both clouds).
-//! - [`Neighbours`] (in [`super::structure`]) and [`Neighbours::strain_error`]: for the solids (jelly, snow, rope), each
-//!   particle's k nearest neighbours of the same material in the rollout's first frame, and
-//!   the mean over particles and neighbours of `|d_pred / d_0 - d_true / d_0|`, `d` the
-//!   current distance to the neighbour: zero when the prediction is a rigid motion of the
-//!   truth, positive when it stretches, tears or crumples the body (dimensionless).
-//!
+//!   uniform weights and the squared Euclidean cost, `S(a, b) = OT(a, b) - OT(a, a) / 2 - OT(b,
+//!   b) / 2` (Feydy et al. 2019, "Interpolating between optimal transport and MMD using
+//!   Sinkhorn divergences", eq. 3), computed per material on the positions in domain units
+//!   (domain units squared; as LagrangeBench, Toshev et al. 2023, section 4.2, reports it).
+//!   `OT` is entropic optimal transport at blur `sqrt(eps)`, by symmetric Sinkhorn iterations
+//!   in the log domain (Feydy's geomloss `sinkhorn_loop`, the averaged update). Clouds above
+//!   [`SINKHORN_POINTS`] points are subsampled evenly by particle index (the same particles in
+//!   both clouds).
+//! - [`Neighbours::strain_error`] ([`Neighbours`] lives in [`super::structure`], re-exported
+//!   here): for the solids (jelly, snow, rope), each particle's k nearest neighbours of the
+//!   same material in the rollout's first frame, and the mean over particles and neighbours of
+//!   `|d_pred / d_0 - d_true / d_0|`, `d` the current distance to the neighbour: zero when the
+//!   prediction is a rigid motion of the truth, positive when it stretches, tears or crumples
+//!   the body (dimensionless).
+//! - [`kinetic_energy`]: per material `sum 1/2 |v|^2` (equal particle masses), summed over the
+//!   rollout and taken prediction over truth.
 //! - Structure ([`super::structure`]): the volume ratio (area covered, prediction over truth),
 //!   the intact fraction of the solids' rest-neighbour pairs and the rope's connected share,
 //!   prediction beside truth.
-//! - Conservation ([`super::conservation`]): each body's centre-of-mass error and the
-//!   momentum drift, prediction beside truth.
+//! - Conservation ([`super::conservation`]): each body's centre-of-mass error and the momentum
+//!   drift, prediction beside truth.
 //!
 //! [`Plausibility`] holds all of them per material for one frame. Used by [`super::rollout`]
 //! (`minflow eval`) at the steps [`probe_steps`] picks.

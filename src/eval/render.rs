@@ -7,12 +7,12 @@
 //!   0, H/4, H/2, 3H/4, H (0, 5, 10, 15, 20 for H = 20; step 0 is the last seed frame),
 //!   [`CELL`] pixels per cell plus a [`LABEL_W`]-pixel label column and a [`HEADER`]-pixel
 //!   header row ([`grid_size`]).
-//! - [`render_gif`]: one animated GIF per scene: ground truth and each model side by side,
-//!   one frame per step 0..=H ([`gif_size`]), 10 frames per second, looping.
+//! - [`render_gif`]: one animated GIF per scene: ground truth and each model side by side, one
+//!   frame per step 0..=H ([`gif_size`]), 10 frames per second, looping.
 //!
 //! The domain is the unit square (y up); each particle is a 2 x 2 pixel square coloured by
-//! material ([`crate::material`]'s palette, the Foxglove view's) on a dark background; particles outside the box are not
-//! drawn. Used by `minflow eval` and `minflow report`.
+//! material ([`crate::material`]'s palette, the Foxglove view's) on a dark background;
+//! particles outside the box are not drawn. Used by `minflow eval` and `minflow report`.
 
 use std::borrow::Cow;
 use std::fs::File;

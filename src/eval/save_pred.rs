@@ -2,11 +2,12 @@
 //! `/surrogate/frames`, the node's topic and schema (docs/design.md, "Bags"), so Foxglove,
 //! `eval --pred` and any MCAP reader can view and score a rollout that `eval` made offline.
 //!
-//! Layout: `DIR/<predictor>/<scene>_from<frame>.mcap`, the predictor's name and the scene id
-//! as the other files of a scene are named (`eval`'s renders, [`crate::bag::scene_file_stem`]:
+//! Layout: `DIR/<predictor>/<scene>_from<frame>.mcap`, the predictor's name and the scene id as
+//! the other files of a scene are named (`eval`'s renders, [`crate::bag::scene_file_stem`]:
 //! `multi/rope+snow/001` -> `multi_rope+snow_001`), `<frame>` the `frame_index` of the first
-//! predicted frame (a scene rolled out from several starts gets one bag per start). Frames carry the truth's `frame_index` and
-//! stamps (`frame_index * dt`), the scene id and its materials. Used by [`super::rollout`].
+//! predicted frame (a scene rolled out from several starts gets one bag per start). Frames
+//! carry the truth's `frame_index` and stamps (`frame_index * dt`), the scene id and its
+//! materials. Used by [`super::rollout`].
 
 use std::path::{Path, PathBuf};
 

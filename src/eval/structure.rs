@@ -26,7 +26,7 @@ use super::metrics::MATERIALS;
 pub const NEIGHBOURS: usize = 6;
 
 /// Cells per side of the grid [`covered_area`] counts on: 1/64 of the box, the `multi`
-/// family's MPM cell (docs/design.md, "Ground truth"); a body of 2,500 particles spans
+/// family's MPM cell (docs/mpm.md, "Scene families"); a body of 2,500 particles spans
 /// hundreds of them.
 pub const AREA_GRID: usize = 64;
 

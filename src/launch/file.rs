@@ -36,7 +36,7 @@ pub struct ArgDecl {
     pub name: String,
     /// Value when not given on the command line (required when absent).
     pub default: Option<String>,
-    /// Shown by `launch --help-args`.
+    /// What the argument is for, for readers of the file (minflow does not print it).
     #[serde(default)]
     pub description: String,
 }

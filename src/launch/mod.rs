@@ -22,8 +22,9 @@
 //! with a `[name]` prefix (`output: plain` passes stdout through unprefixed). Ctrl-C or
 //! SIGTERM, a `required` node exiting, or a node failing stops every running node (SIGINT,
 //! then SIGKILL after 10 s), except a `respawn` node: whatever its exit, it is started again
-//! `respawn_delay` seconds later, until the launch stops or a `stop_after` SIGINT stopped it. The launch exits 0 only if every node that ran exited 0 and
-//! every node started; a node stopped by the launch itself counts by its own exit code.
+//! `respawn_delay` seconds later, until the launch stops or a `stop_after` SIGINT stopped it.
+//! The launch exits 0 only if every node that ran exited 0 and every node started; a node
+//! stopped by the launch itself counts by its own exit code.
 //!
 //! Layout: `file.rs` reads and checks a launch file ([`load`]), `supervise.rs` runs its
 //! nodes ([`run`]); both fail with [`LaunchError`].

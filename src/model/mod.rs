@@ -5,7 +5,10 @@
 //! - [`grid`]: P2G -> U-Net -> G2P with a per-particle memory, `--arch grid` (the default);
 //! - [`minrnn`] (minGRU, minLSTM) and [`rnn`] (GRU, LSTM): the cells both use;
 //! - [`store`]: saved models and [`store::Surrogate`], the inference API of `eval`, `node`
-//!   and `report`.
+//!   and `report`;
+//! - [`constraints`]: the projection of every predicted frame onto the material's
+//!   constraints (rope, shape matching, liquid density, walls, contact), of either
+//!   architecture, and its fit (`minflow constraints fit`).
 //!
 //! Here: the host <-> device copies ([`upload`], [`download`]) and the min-max [`Scaling`]
 //! constants. The networks' kernels (fused dense layers, the recurrence scans, im2col,

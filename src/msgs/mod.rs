@@ -2,15 +2,18 @@
 //! text and names a ROS 2 graph or an MCAP bag uses to describe it.
 //!
 //! A [`ParticleFrame`] is one frame of a 2D particle simulation: N particles with interleaved
-//! positions (2N values, domain units, domain = unit square), interleaved velocities (2N values,
-//! domain units per simulation time unit) and one material id each (N values, see
+//! positions (2N values, domain units, domain = unit square), interleaved velocities (2N
+//! values, domain units per simulation time unit) and one material id each (N values, see
 //! [`crate::material`]); `dt` is in simulation time units, the header stamp is the simulation
 //! time of the frame (sec + nanosec, i.e. stamps in ns). The `.msg` files in the repository's
 //! `msgs/` folder are the single source of truth: [`schema_text`] is built from them with
-//! `include_str!`. The wire format (CDR) lives in [`cdr`], the REP-2016 type hashes
-//! (`RIHS01_…`) in [`type_hash`]. [`state_rows`] and [`split_rows`] convert a frame's arrays
-//! to and from the `[N, 4]` rows (x, y, vx, vy) that trajectories and surrogates use. Used by every subcommand that moves
-//! frames: `simulate`, `bag`, `train`, `replay`, `record`, `surrogate`, `eval`.
+//! `include_str!`. [`state_rows`] and [`split_rows`] convert a frame's arrays to and from the
+//! `[N, 4]` rows (x, y, vx, vy) that trajectories and surrogates use.
+//!
+//! Submodules: [`cdr`] the wire format (CDR), [`type_hash`] the REP-2016 type hashes
+//! (`RIHS01_…`), [`status`] the surrogate node's `SurrogateStatus` message, [`pointcloud2`] a
+//! frame as `sensor_msgs/msg/PointCloud2` for RViz. Used by every subcommand that moves frames:
+//! `simulate`, `bag`, `train`, `replay`, `record`, `node`, `eval`.
 
 pub mod cdr;
 pub mod pointcloud2;

@@ -2,7 +2,7 @@
 //! counters and last error, published once per second on `/surrogate/status`, with its CDR
 //! encoding (XCDR1 little-endian, encapsulation header, 8-byte alignment for `uint64`,
 //! byte-identical to a ROS 2 node's). Decoding never panics. The batching fields (`calls`,
-//! `batched`, `batch_max`, issue 40) come last: a message of an older node, which ends at
+//! `batched`, `batch_max`) come last: a message of an older node, which ends at
 //! `last_error`, decodes with them 0, and an older reader stops before them.
 
 use super::Time;

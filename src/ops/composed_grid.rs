@@ -1,8 +1,10 @@
 //! [`NetOps`]'s defaults for the grid model's operations in burn's tensor operations:
 //! im2col as the `k^2` shifted slices of the zero-padded input and its adjoint col2im (column
 //! order in [`NetOps::im2col`]), SiLU (`x sigmoid(x)`, Elfwing et al. 2018) and its gradient,
-//! and the stencil transfers (G2P through burn's row gather `select`, P2G through its
-//! scatter-add `select_assign`). The CPU has single-pass kernels for all of them (`cpu/`).
+//! the stencil transfers (G2P through burn's row gather `select`, P2G through its
+//! scatter-add `select_assign`), and the U-Net's glue: the grid channels from P2G's splat,
+//! 2x2 average pooling and nearest 2x upsampling. The CPU has single-pass kernels for all of
+//! them (`cpu/`).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::{FloatTensor, IntTensor};

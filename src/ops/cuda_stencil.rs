@@ -14,12 +14,11 @@
 //! inference only; training on a GPU keeps the dense products. The stencil itself
 //! ([`NetOps::sparse_stencil`]) is one kernel too.
 //!
-//! Status: inference on CUDA takes these ([`NetOps::dense_stencil`]). The first GPU run
-//! diverged (avg20 NaN): P2G's output came from `zeros_client`, whose CUDA memory layout
-//! pitches each innermost row to a power of two bytes (12 f32 channels -> a row stride of 16),
-//! while the kernel writes flat `row * c + j`; wgpu's layout is contiguous, so the kernels
-//! matched there. The output is now allocated contiguous and zeroed by [`zero_kernel`]; on one
-//! H100 every form matches the CPU backend to 1.2e-7 (`minflow bench transfer --device cuda`).
+//! Inference on CUDA takes these ([`NetOps::dense_stencil`]). P2G's output is allocated
+//! contiguous and zeroed by [`zero_kernel`]: burn's `zeros_client` pitches each innermost row
+//! of CUDA memory to a power of two bytes (12 f32 channels -> a row stride of 16), while the
+//! kernel writes flat `row * c + j`. On one H100 every form matches the CPU backend to 1.2e-7
+//! (`minflow bench transfer --device cuda`).
 //!
 //! [`NetOps::stencil_gather`]: super::NetOps::stencil_gather
 //! [`NetOps::stencil_splat`]: super::NetOps::stencil_splat

@@ -1,8 +1,9 @@
 //! `ops`: the backend operations minflow's networks need beyond burn's, as one backend
 //! extension trait, [`NetOps`]: the dense layer `x @ W + b` (alone or fused with ELU) and its
-//! gradients, the products under it, ELU, the paper encoder's dense layer + ELU + mean
-//! pooling, the linear recurrence of minGRU / minLSTM, one Adam step, and the grid model's
-//! im2col / col2im, SiLU and particle <-> grid stencil transfers. `model/` builds its networks
+//! gradients, the products under it, ELU, the paper encoder's dense layer + ELU + mean pooling,
+//! the linear recurrence of minGRU / minLSTM and their inference updates, one Adam step, and
+//! the grid model's im2col / col2im, SiLU, particle <-> grid stencil transfers, grid channels,
+//! 2x2 pooling and upsampling and its inference 3x3 convolution. `model/` builds its networks
 //! on these (through the tensor-level functions re-exported here, [`linear`], [`elu`],
 //! [`recurrence`], ...), and `train::optimizer` on [`NetOps::adam_step`]. Nothing here imports
 //! `model`.
@@ -10,17 +11,20 @@
 //! Every method has a default composed from burn's tensor operations, so any backend opts in
 //! with an empty impl and overrides what it does faster. Where things live:
 //!
-//! - `mod.rs`: the trait: each operation's contract (shapes, what it computes) and default.
+//! - `mod.rs`: the trait: each operation's contract (shapes, what it computes) and default;
+//!   [`host`], the CPU backend's product and SiLU as plain-f32 kernels for host passes (the
+//!   grid model's CPU inference pass); [`bspline_axis`] and [`stencil_bounds`], a particle's
+//!   quadratic B-spline stencil on the host.
 //! - `tensor.rs`: the operations on burn `Tensor`s that `model/` calls.
 //! - [`composed`]: the defaults in burn's tensor operations for the dense layer, ELU and the
 //!   pooled ELU, with the dense layer's chunked weight gradient; `composed_grid.rs`: those of
-//!   im2col, col2im, SiLU and the stencil transfers.
+//!   im2col, col2im, SiLU, the stencil transfers, the grid channels, pooling and upsampling.
 //! - [`mingru`]: the minGRU's activation `g` and its inference update.
 //! - [`scan`]: the recurrence in burn's tensor operations (Heinsen's log-space parallel scan,
 //!   the default, and its reverse-loop backward).
 //! - [`adam_step`]: [`AdamStep`], the scalars of one Adam step, and its composed default.
-//! - [`prepared`]: [`PreparedWeights`], a convolution's weights as a backend prepared them
-//!   for inference, kept by the module that owns the convolution.
+//! - [`prepared`]: [`PreparedWeights`], a convolution's weights as a backend prepared them for
+//!   inference, kept by the module that owns the convolution.
 //! - `autodiff.rs`: the impl for `Autodiff<B>`: one graph node per fused forward, whose
 //!   backward calls the inner backend's backward operation; `autodiff_grid.rs`: the nodes of
 //!   the grid model's operations.
@@ -28,24 +32,25 @@
 //!   their shared helpers): `gemm.rs` (dense layers), `activation.rs` (ELU, SiLU),
 //!   `elu_mean.rs` (the encoder's first layer and pooling in one pass), `scan.rs` (the
 //!   sequential recurrence), `mingru.rs` (the minGRU's and minLSTM's inference updates in one
-//!   pass), `adam_pass.rs` (one Adam step), `conv.rs` (im2col, col2im), `winograd.rs` (the inference forward of the
-//!   3x3 convolutions by Winograd F(4x4, 3x3)), `grid.rs` (the grid channels, 2x2 pooling and
-//!   2x upsampling for inference), `transfer.rs` (the stencil, its gather and scatter-add) and
-//!   `pool.rs` (a whole inference step on the rayon pool with a worker kept awake).
+//!   pass), `adam_pass.rs` (one Adam step), `conv.rs` (im2col, col2im), `winograd.rs` (the
+//!   inference forward of the 3x3 convolutions by Winograd F(4x4, 3x3)), `grid.rs` (the grid
+//!   channels, 2x2 pooling and 2x upsampling for inference), `transfer.rs` (the stencil, its
+//!   gather and scatter-add) and `pool.rs` (a whole inference step on the rayon pool with a
+//!   worker kept awake).
 //! - [`cublas`]: the choice of the GPU's large-product kernel ([`cublas::GpuGemm`],
 //!   `--gpu-gemm`) and its layout logic, always built; with the feature `cuda`, those products
 //!   through cuBLAS as custom operations of burn's fusion layer.
-//! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults,
-//!   whose element-wise chains burn's fusion layer compiles into single kernels, with the
-//!   large products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
-//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, not yet taken by the model
-//!   ([`NetOps::DENSE_STENCIL`] is true on CUDA).
+//! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults, whose
+//!   element-wise chains burn's fusion layer compiles into single kernels, with the large
+//!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
+//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, which CUDA inference takes
+//!   ([`NetOps::dense_stencil`]; training keeps the dense products).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
-//! reductions (`bench train --split-weight-grad`). They are fixed when a command opens the
-//! GPU ([`cublas::open`]) and read back through [`NetOps::kernels`] from a tensor's device;
-//! the CPU has none to choose.
+//! reductions (`bench train --split-weight-grad`). They are fixed when a command opens the GPU
+//! ([`cublas::open`]) and read back through [`NetOps::kernels`] from a tensor's device; the CPU
+//! has none to choose.
 
 pub mod adam_step;
 mod autodiff;

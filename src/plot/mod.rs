@@ -11,6 +11,9 @@
 //! Non-finite points, points beyond ±1e300 and, on a log y axis, points with y <= 0 (or below
 //! 1e-300) are skipped; a chart with nothing left to draw still gets its axes, on a default
 //! range. Every failure is one [`PlotError`] that names the file.
+//!
+//! Files: `chart.rs` draws one chart on one drawing area, `range.rs` picks the drawable
+//! points and the axis ranges, `ticks.rs` the tick values and labels.
 
 mod chart;
 mod range;

@@ -1,9 +1,10 @@
-//! Conservation diagnostics of a [`Solver`] state, summed in `f64`: mass, linear and
-//! angular momentum (with the APIC term), kinetic, elastic and gravitational energy, and the
-//! centre of mass. Used by the validation tests of `docs/mpm.md` ("Validation checks") and `bench sim`.
+//! Conservation diagnostics of a [`Solver`] state, summed in `f64`: mass, linear and angular
+//! momentum (with the APIC term), kinetic, elastic and gravitational energy, and the centre of
+//! mass. Used by the validation tests of `docs/mpm.md` ("Validation checks",
+//! `tests/it/sim_validation.rs`).
 //!
-//! Units follow the solver: rho = 1, so mass is area; momentum is mass x domain units per
-//! time unit; energies are mass x (domain units / time unit)^2.
+//! Units follow the solver: rho = 1, so mass is area; momentum is mass x domain units per time
+//! unit; energies are mass x (domain units / time unit)^2.
 
 use super::material;
 use super::mpm::Solver;

@@ -2,7 +2,9 @@
 //! deformation gradient and the signed 2x2 SVD used by snow plasticity.
 //!
 //! Matrices are row-major `[m00, m01, m10, m11]` in `f32`, the solver's state precision.
-//! Used by [`crate::sim::material`] (stress) and [`crate::sim::diagnostics`] (elastic energy).
+//! Used by [`crate::sim::material`] (stress, plasticity and the elastic energy density that
+//! [`crate::sim::diagnostics`] sums), [`crate::sim::mpm`] (the `F` update) and
+//! [`crate::sim::sanity`] (liquid `J`).
 
 /// A 2x2 matrix, row-major: `[m00, m01, m10, m11]`.
 pub type Mat2 = [f32; 4];

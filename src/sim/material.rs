@@ -1,12 +1,13 @@
-//! The constitutive update of each material of the ground truth ([`Material`], whose ids,
-//! names and colours live in [`crate::material`]): given a particle's updated deformation
-//! gradient `F` (and plastic volume ratio `Jp`), apply plasticity and return the Kirchhoff
-//! stress `tau` (domain units: rho = 1, so stress is energy per area).
+//! The constitutive update of each material of the ground truth ([`Material`], whose ids, names
+//! and colours live in [`crate::material`]): given a particle's updated deformation gradient
+//! `F` (and plastic volume ratio `Jp`), apply plasticity and return the Kirchhoff stress `tau`
+//! (domain units: rho = 1, so stress is energy per area).
 //!
-//! Models follow Taichi's mpm99 example and `docs/mpm.md` ("Materials"): fixed-corotated elasticity
-//! `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation), liquid with
-//! zero shear modulus and `F` reset to a matrix of determinant J, snow with singular values clamped to
-//! `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)), 0.1, 5)`.
+//! Models follow Taichi's mpm99 example and `docs/mpm.md` ("Materials"): fixed-corotated
+//! elasticity `tau = 2 mu (F - R) F^T + lambda J (J - 1) I` (R = U V^T, the polar rotation),
+//! liquid with zero shear modulus and `F` reset to a matrix of determinant J, snow with
+//! singular values clamped to `[1 - 2.5e-2, 1 + 4.5e-3]` and hardening `clamp(exp(10 (1 - Jp)),
+//! 0.1, 5)`.
 
 use super::linalg::{self, Mat2};
 pub use crate::material::Material;

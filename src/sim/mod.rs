@@ -1,11 +1,12 @@
-//! `sim`: the MLS-MPM ground truth. Scenes (generated families or TOML scene files) are
-//! turned into particles and advanced substep by substep; every `substeps` substeps a frame
-//! is saved (0.016 time units for both families).
+//! `sim`: the MLS-MPM ground truth. Scenes (generated families or TOML scene files) are turned
+//! into particles and advanced substep by substep; every `substeps` substeps a frame is saved
+//! (0.016 time units for both families).
 //!
 //! Layout: [`linalg`] (2x2 polar decomposition and signed SVD), [`material`] (constitutive
 //! models), [`mpm`] (the solver), [`scene`] (bodies and sampling), [`families`] (`multi`,
-//! `fluid` and `mixed`, the last in [`mixed`]), [`diagnostics`] (conservation sums), [`sanity`] (per-frame checks),
-//! [`run`] (a scene to `ParticleFrame`s). Used by `minflow simulate` and `minflow bench sim`.
+//! `fluid` and `mixed`, the last in [`mixed`]), [`diagnostics`] (conservation sums), [`sanity`]
+//! (per-frame checks), [`run`] (a scene to `ParticleFrame`s). Used by `minflow simulate`,
+//! `minflow bench sim` and `minflow bench rollout`.
 
 pub mod diagnostics;
 pub mod families;

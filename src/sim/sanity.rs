@@ -1,8 +1,9 @@
-//! Per-frame sanity checks of a running scene (`docs/mpm.md`, "Validation checks", check 6): no NaN, every
-//! particle inside `[0.5 dx, 1 - 1.5 dx)`, speed `<= 20` domain units per time unit, liquid
-//! `J > 0`, and neighbouring rope particles no more than `dx` apart.
+//! Per-frame sanity checks of a running scene (`docs/mpm.md`, "Validation checks", check 6): no
+//! NaN, every particle inside `[0.5 dx, 1 - 1.5 dx)`, speed `<= 20` domain units per time unit,
+//! liquid `J > 0`, and neighbouring rope particles no more than `dx` apart.
 //!
-//! Used by the validation tests and by `minflow simulate --check`.
+//! Used by [`super::SceneRun`] on every frame it yields (so `minflow simulate` stops a scene
+//! that breaks one, [`super::SimError::Unstable`]) and by the validation tests.
 
 use super::linalg;
 use super::mpm::Solver;

@@ -12,7 +12,8 @@
 //!
 //! Every subscription delivers [`Sample`]s into a channel owned by the caller, from the
 //! transport's own I/O thread: the caller's thread never runs transport code, and a slow
-//! consumer never blocks a publisher.
+//! consumer never blocks a publisher. [`counters`] holds the node counters (received,
+//! published, dropped, malformed) the nodes share between their threads.
 
 pub mod counters;
 pub mod iceoryx2;

@@ -1,11 +1,12 @@
 //! The live view: a Foxglove WebSocket server (the Foxglove SDK's, subprotocol
-//! `foxglove.sdk.v1`, the protocol once named `foxglove.websocket.v1`) with one `foxglove.PointCloud` channel per frame topic, named
-//! `<topic>/points` ([`points_topic`]). `replay` and `simulate --publish` wrap their frame
-//! publisher in a [`VizPublisher`]; `node` shows its input and, through [`PredictionView`],
-//! its predictions coloured by their error once the ground truth of the same frame arrives.
+//! `foxglove.sdk.v1`, the protocol once named `foxglove.websocket.v1`) with one
+//! `foxglove.PointCloud` channel per frame topic, named `<topic>/points` ([`points_topic`]).
+//! `replay` and `simulate --publish` wrap their frame publisher in a [`VizPublisher`]; `node`
+//! shows its input and, through [`PredictionView`], its predictions coloured by their error
+//! once the ground truth of the same frame arrives.
 //!
-//! A cloud is built only while a client subscribes to its channel
-//! ([`PointsChannel::watched`]): with nothing connected a frame costs one lock-free check.
+//! A cloud is built only while a client subscribes to its channel ([`PointsChannel::watched`]):
+//! with nothing connected a frame costs one lock-free check.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;

@@ -1,10 +1,10 @@
-//! `minflow bench gemm --device cuda`: the three large products of a GPU training step of
-//! the paper's encoder (its second layer; batch 80 x T 2 x 2,500 particles = 400,000 rows),
-//! each with cubecl's matmul and with cuBLAS in TF32 and FP32 (`--gpu-gemm`; the first
-//! layer's products, under 2^30 multiply-adds, always run on cubecl): milliseconds, TFLOP/s, and the
+//! `minflow bench gemm --device cuda`: the three large products of a GPU training step of the
+//! paper's encoder (its second layer; batch 80 x T 2 x 2,500 particles = 400,000 rows), each
+//! with cubecl's matmul and with cuBLAS in TF32 and FP32 (`--gpu-gemm`; the first layer's
+//! products, under 2^30 multiply-adds, always run on cubecl): milliseconds, TFLOP/s, and the
 //! largest difference from cuBLAS FP32 relative to the largest FP32 entry. The difference
-//! column is also the check that the cuBLAS path reads transposed views right: a wrong
-//! layout differs by O(1), TF32 rounding by ~1e-3.
+//! column is also the check that the cuBLAS path reads transposed views right: a wrong layout
+//! differs by O(1), TF32 rounding by ~1e-3.
 
 use crate::cli::device::DeviceArgs;
 use crate::cli::Outcome;

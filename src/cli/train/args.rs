@@ -403,8 +403,9 @@ pub struct GridArgs {
     pub init_from: Option<PathBuf>,
     /// Project every frame the training rollouts feed on (after the teacher-forced calls)
     /// onto the material constraints, with a straight-through gradient: on | off | a list of
-    /// rope, jelly, snow, liquid, walls. Parameters: --init-from's `model.json` constraints
-    /// (`minflow constraints fit`), else the defaults; the trained model keeps them.
+    /// rope, jelly, snow, liquid, walls, contact. Parameters: --init-from's `model.json`
+    /// constraints (`minflow constraints fit`), else the defaults; the trained model keeps
+    /// them.
     #[arg(long = "constraints", value_name = "PARTS", default_value = "off")]
     pub constraints: crate::model::constraints::Parts,
 }

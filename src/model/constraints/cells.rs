@@ -1,8 +1,9 @@
-//! A fixed-radius neighbour search on a uniform cell grid over the unit box (a "cell list",
-//! as SPH and position-based fluid codes use; Macklin & Müller 2013, section 6): particles
-//! are counting-sorted by cell once, and a query visits the 3 x 3 cells around a point.
-//! Used by the constraint projection ([`super`]) for the liquid's density and the bodies
-//! found in a scene's rest frame.
+//! A fixed-radius neighbour search on a uniform cell grid over the unit box (a "cell list", as
+//! SPH and position-based fluid codes use; Macklin & Müller 2013, section 6): particles are
+//! counting-sorted by cell once, and a query visits the 3 x 3 cells around a point. Used by the
+//! constraint projection ([`super`]): the bodies found in a scene's rest frame and each
+//! material's particle spacing (`shape.rs`), and the pairs of bodies that come close
+//! (`contact.rs`).
 
 /// Particles of one scene sorted by the cell of a grid of `cells` x `cells` cells over the
 /// unit box (positions outside it fall in the border cells).

@@ -20,10 +20,12 @@
 //!   rigid translation, before their shape matching.
 //!
 //! A scene's constraint data ([`SceneShape`]: rope chains, bodies and their rest shapes, the
-//! liquid's kernel radius and rest density, the particle spacing of each material) is built
-//! once from its rest frame (the first frame the model sees) and carried in the surrogate's
+//! liquid's grid cell and rest mass, the particle spacing of each material) is built once
+//! from its rest frame (the first frame the model sees) and carried in the surrogate's
 //! per-scene state. The projection is a host pass, one scene at a time and deterministic:
-//! the node and offline `eval` project alike, batched and unbatched alike.
+//! the node and offline `eval` project alike, batched and unbatched alike. [`mod@fit`] fits the
+//! parameters on the truth; `cells.rs`, a fixed-radius neighbour search (a cell list), finds
+//! the bodies, their particle spacing and their contacts.
 
 mod cells;
 mod contact;

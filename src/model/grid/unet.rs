@@ -1,18 +1,20 @@
 //! The U-Net of the grid architecture (Ronneberger et al. 2015, as NeuralMPM uses it on its
-//! grid: Rochman-Sharabi et al. 2024, arXiv 2408.15753, section 3): `levels` resolutions,
-//! two 3x3 convolutions + SiLU per level on the way down (2x2 average pooling between
-//! levels) and on the way up (nearest 2x upsampling, concatenated with the skip of the same
-//! level), then a 1x1 convolution to the output channels. Widths double per level up to 4x
-//! the first. The weights are burn's `Conv2d`s. On a GPU they run as im2col by shifted
-//! slices (burn's convolution gradients made the U-Net 8x slower there); on the CPU, where
-//! burn-ndarray's direct convolution loop took 59 % of an inference step (perf, `eval` of a
-//! grid model), as im2col + one matrix product through the CPU's gemm kernels ([`NetOps::linear_forward`]): the nine shifted copies of the zero-padded
-//! input side by side (Chellapilla et al. 2006, "High Performance Convolutional Neural
-//! Networks for Document Processing"), times the weight as a `[9 C_in, C_out]` matrix.
-//! For inference the CPU runs the 3x3 convolutions by Winograd F(4x4, 3x3) instead
-//! ([`NetOps::conv3x3_forward`]).
-//! [`ConvKernel`] picks one of three equal ways per model (tests check them against each
-//! other): burn's convolution, im2col by a row gather, im2col by nine shifted slices.
+//! grid: Rochman-Sharabi et al. 2024, arXiv 2408.15753, section 3): `levels` resolutions, two
+//! 3x3 convolutions + SiLU per level on the way down (2x2 average pooling between levels) and
+//! on the way up (nearest 2x upsampling, concatenated with the skip of the same level), then a
+//! 1x1 convolution to the output channels. Widths double per level up to 4x the first.
+//!
+//! The weights are burn's `Conv2d`s; by default they run as im2col + one matrix product
+//! ([`NetOps::linear_forward`]): the nine shifted copies of the zero-padded input side by side
+//! (Chellapilla et al. 2006, "High Performance Convolutional Neural Networks for Document
+//! Processing"), times the weight as a `[9 C_in, C_out]` matrix, im2col one kernel where the
+//! backend has it ([`NetOps::NATIVE_CONV_OPS`]: the CPU and CUDA) and nine shifted slices
+//! elsewhere. burn's own convolution made the U-Net 8x slower on a GPU (its gradients) and took
+//! 59 % of a CPU inference step (burn-ndarray's direct loop; perf, `eval` of a grid model). For
+//! inference the CPU runs the 3x3 convolutions by Winograd F(4x4, 3x3) instead
+//! ([`NetOps::conv3x3_forward`]). [`ConvKernel`] picks one of three equal ways per model (tests
+//! check them against each other): burn's convolution, im2col by a row gather (or the backend's
+//! kernel), im2col by nine shifted slices.
 
 use burn::config::Config;
 use burn::module::Module;

@@ -1,15 +1,14 @@
-//! Dynamic batching at the model: [`Surrogate::step_scenes`] steps several scenes, each
-//! with its own opaque [`State`], through as few network calls as their shapes allow. Scenes
-//! whose frames have the same particle count N and whose states have the same shape (the
-//! same fields present, the same sizes: `State::shape_key`) are stacked into one batch
-//! state (`State::stack`), stepped as one `[B, N, 4]` batch and split back
-//! (`State::split`); other scenes go through calls of their own. Scenes of different N are
-//! not padded into one call: a grid model's cost grows with the particles a call carries,
-//! and padding particles would change P2G's splat, so grouping by N is exact. A call may be
-//! padded with copies of its last scene to a power-of-two batch
-//! ([`Surrogate::with_padded_batches`]: on a GPU each new batch shape compiles kernels). Used by the
-//! surrogate node (`minflow node --max-batch`), whose scheduler follows NVIDIA Triton
-//! Inference Server's dynamic batcher.
+//! Dynamic batching at the model: [`Surrogate::step_scenes`] steps several scenes, each with
+//! its own opaque [`State`], through as few network calls as their shapes allow. Scenes whose
+//! frames have the same particle count N and whose states have the same shape (the same fields
+//! present, the same sizes: `State::shape_key`) are stacked into one batch state
+//! (`State::stack`), stepped as one `[B, N, 4]` batch and split back (`State::split`); other
+//! scenes go through calls of their own. Scenes of different N are not padded into one call: a
+//! grid model's cost grows with the particles a call carries, and padding particles would
+//! change P2G's splat, so grouping by N is exact. A call may be padded with copies of its last
+//! scene to a power-of-two batch ([`Surrogate::with_padded_batches`]: on a GPU each new batch
+//! shape compiles kernels). Used by the surrogate node (`minflow node --max-batch`), whose
+//! scheduler follows NVIDIA Triton Inference Server's dynamic batcher.
 
 use std::collections::BTreeMap;
 use std::ops::AddAssign;

@@ -76,7 +76,8 @@ where
             // aligned offsets), and a view would keep the whole batch's buffer alive for as
             // long as this part lives (a stream that stops would hold its last call's batch
             // until --idle-timeout). Without the copy the split took 39-55 % less time on a
-            // GPU (docs/scale.md, "The split, tried and not kept").
+            // GPU (docs/scale.md at 61e783e, "The split, tried and not kept"; reverted in
+            // 4d5b8c3).
             out.push(Tensor::cat(pieces, 0));
             start += b;
         }

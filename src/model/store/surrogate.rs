@@ -1,14 +1,14 @@
 //! [`Surrogate`]: a trained model of either architecture ready for step-by-step prediction in
-//! physical units (scaling inside), with one [`State`] per batch of trajectories
-//! (`state.rs`): the paper core's layer states, or the grid model's per-particle memory,
-//! velocity history and reference positions. `step` predicts the next frame, `step_bundle`
-//! the K frames of one network call (temporal bundling; [`Predict`] says which of the two),
-//! `rollout` feeds predictions back; a mirror ensemble steps each frame beside its mirror
-//! image. Every predicted frame is then projected onto the model's material constraints
+//! physical units (scaling inside), with one [`State`] per batch of trajectories (`state.rs`):
+//! the paper core's layer states, or the grid model's per-particle memory, velocity history,
+//! reference positions, rest neighbourhoods and advected `F`. `step` predicts the next frame,
+//! `step_bundle` the K frames of one network call (temporal bundling; [`Predict`] says which of
+//! the two), `rollout` feeds predictions back; a mirror ensemble steps each frame beside its
+//! mirror image. Every predicted frame is then projected onto the model's material constraints
 //! ([`crate::model::constraints`]) where the model has them and they are on
-//! ([`Surrogate::with_constraints`]); a scene's constraint data lives in its [`State`]
-//! beside the network's (`constrained.rs`). Used by `eval`, `node`, `report`, `bench` and the
-//! grid trainer's validation.
+//! ([`Surrogate::with_constraints`]); a scene's constraint data lives in its [`State`] beside
+//! the network's (`constrained.rs`). Used by `eval`, `node`, `report`, `bench` and the grid
+//! trainer's validation.
 
 use super::state::{mean_of_mirror_rows, with_mirror_rows, GridState, NetState, State};
 use super::{ModelMeta, Net, RunFolder, StoreError};

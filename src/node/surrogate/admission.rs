@@ -2,8 +2,9 @@
 //! knows of its scene: [`check_frame`] says whether a decoded frame may be predicted on at
 //! all (particle count, material ids, finite values, the message's own checks);
 //! [`admission`] says what a frame does to its scene's hidden state (start again, go on,
-//! reset over a gap, drop an older frame, ignore a scene already rolled out). Applied by
-//! [`super::scenes`]; used by `minflow node`.
+//! reset over a gap, drop an older frame, ignore a scene already rolled out). The first is
+//! applied by the decoder thread ([`super::intake`]), the second by [`super::scenes`]; used
+//! by `minflow node`.
 
 use crate::msgs::ParticleFrame;
 

@@ -2,7 +2,7 @@
 //! [`NodeReport`] published as status), the sizes of its batched calls ([`BatchStats`]),
 //! where its loop's wall time went ([`StageTimes`]), each (scene, reason) logged once, the
 //! start line, the latency percentiles at the end and the wall-clock stamp of each report.
-//! Used by [`super::run`] (`minflow node`).
+//! Used by [`super::node_loop`] and [`super::run`] (`minflow node`).
 
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};

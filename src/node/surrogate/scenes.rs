@@ -4,7 +4,8 @@
 //! the least recently active scene before a new one would pass `max_scenes`, and drops
 //! scenes idle past `idle_timeout`, so memory stays bounded. In closed loop it remembers
 //! which scenes were rolled out beyond their states (the last [`ROLLED_OUT_KEPT`]), so a
-//! scene gets one rollout however long it waited. Used by [`super::run`] (`minflow node`).
+//! scene gets one rollout however long it waited. Held by the loop's state
+//! ([`super::node_loop`]; `minflow node`).
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};

@@ -14,7 +14,7 @@
 //! - `activation.rs`: ELU and SiLU and their gradients through a vectorisable `expm1`.
 //! - `elu_mean.rs`: the encoder's first layer, ELU and mean pooling in one pass.
 //! - `grid.rs`: the grid model's input channels, 2x2 pooling and 2x upsampling (inference).
-//! - `mingru.rs`: the minGRU's inference update in one pass.
+//! - `mingru.rs`: the minGRU's and the minLSTM's inference updates in one pass each.
 //! - `scan.rs`: the linear recurrence of minGRU / minLSTM as one sequential pass.
 //! - `adam_pass.rs`: one Adam step in one pass, in place.
 //! - `conv.rs`: im2col and col2im of the grid model's convolutions.

@@ -1,23 +1,22 @@
 //! The grid architecture's training loss (see [`super`]): a batch of windows uploaded as
-//! physical frames (mirrored where drawn so), and the loss of P network calls of K frames
-//! each over it (after M push-forward calls without gradient or loss, when asked), from the
-//! true frame `T - 1`, teacher-forced for the first calls, then on the
-//! model's own predictions, the memory state carried through; with C chunks the P calls run C
-//! times in a row, the rollout carried from one chunk into the next with its gradient cut
-//! ([`Rollout`]). Used by [`super::GridTrainer`]; the batch it reads is uploaded by
-//! `batch.rs`.
+//! physical frames (mirrored where drawn so), and the loss of P network calls of K frames each
+//! over it (after M push-forward calls without gradient or loss, when asked), from the true
+//! frame `T - 1`, teacher-forced for the first calls, then on the model's own predictions, the
+//! memory state carried through; with C chunks the P calls run C times in a row, the rollout
+//! carried from one chunk into the next with its gradient cut ([`Rollout`]). Used by
+//! [`super::GridTrainer`]; the batch it reads is uploaded by `batch.rs`.
 //!
 //! Beside the velocity and position MSE, two structure terms ([`crate::model::grid::rest`]):
 //! - strain (`strain_weight`): for every solid rest-neighbour pair (8 nearest of the same
-//!   material in the scene's first frame), the squared difference of the pair's length
-//!   `|x_i - x_j| / d0_i` (`d0_i` the particle's rest neighbour distance), prediction
-//!   against truth, averaged over the pairs: a body torn apart or crumpled pays for it even
-//!   where each particle's own error is small;
-//! - volume (`volume_weight`): for every liquid particle with liquid neighbours in the
-//!   sample's first input frame, the squared difference of its fitted `J = det F` relative to
-//!   that frame (clamped to `[0, 2]`), prediction against truth: liquid pressed together
-//!   (J < 1 where the truth keeps 1) pays for it. MPM's liquid keeps its volume through J (docs/mpm.md); the paper
-//!   adds a density-map loss for the same reason (section 3).
+//!   material in the scene's first frame), the squared difference of the pair's length `|x_i -
+//!   x_j| / d0_i` (`d0_i` the particle's rest neighbour distance), prediction against truth,
+//!   averaged over the pairs: a body torn apart or crumpled pays for it even where each
+//!   particle's own error is small;
+//! - volume (`volume_weight`): for every liquid particle with liquid neighbours in the sample's
+//!   first input frame, the squared difference of its fitted `J = det F` relative to that frame
+//!   (clamped to `[0, 2]`), prediction against truth: liquid pressed together (J < 1 where the
+//!   truth keeps 1) pays for it. MPM's liquid keeps its volume through J (docs/mpm.md); the
+//!   paper adds a density-map loss for the same reason (section 3).
 
 use burn::module::Module;
 use burn::tensor::backend::Backend;

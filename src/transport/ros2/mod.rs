@@ -55,9 +55,9 @@
 //! Files: `names.rs` (type names, topic names, QoS, `ROS_DOMAIN_ID`), `wire.rs` (the serde
 //! mirror of the message), `dds.rs` and `rmw_zenoh.rs` (opening a node on each backend),
 //! `distro.rs` (distribution, type hashes on DDS), `publish.rs` (frame and status
-//! publishers), `subscribe.rs` (subscriptions and their delivery threads), `cloud.rs`
-//! (`sensor_msgs/PointCloud2` beside the frames); this file holds [`Ros2Transport`] and its
-//! [`Transport`] impl.
+//! publishers), `flow.rs` (the DDS writers' flow-control window), `subscribe.rs`
+//! (subscriptions and their delivery threads), `cloud.rs` (`sensor_msgs/PointCloud2` beside
+//! the frames); this file holds [`Ros2Transport`] and its [`Transport`] impl.
 
 mod cloud;
 mod dds;

@@ -1,12 +1,13 @@
 //! `minflow bench train --arch grid`: the grid architecture's training speed on this machine,
-//! in one run: for each memory core and convolution kernel, trainable parameters, seconds
-//! per epoch, samples per second, warm-up, `wait %` / `data %` (as for the paper's model)
-//! peak memory and the first epoch's training loss (kernels that compute the same function,
-//! such as the `--conv` choices, start from the same weights and data, so it agrees between
-//! them to float rounding: a check of the kernels on the device), training with [`GridTrainer`] (rollout loss over P steps, clipping, Adam)
-//! on one fixed synthetic dataset; with `--stages`, the time of one forward + backward pass
-//! of each stage of a step (stencil, P2G, U-Net, G2P, memory, the whole step) at the same
-//! batch size, each synchronised with the device, to show where a step's time goes.
+//! in one run: for each memory core and convolution kernel, trainable parameters, seconds per
+//! epoch, samples per second, warm-up, `wait %` / `data %` (as for the paper's model), peak
+//! memory and the first epoch's training loss (kernels that compute the same function, such as
+//! the `--conv` choices, start from the same weights and data, so it agrees between them to
+//! float rounding: a check of the kernels on the device), training with [`GridTrainer`]
+//! (rollout loss over P steps, clipping, Adam) on one fixed synthetic dataset; with `--stages`,
+//! the time of one forward + backward pass of each stage of a step (stencil, P2G, U-Net, G2P,
+//! memory, the whole step) at the same batch size, each synchronised with the device, to show
+//! where a step's time goes.
 
 use std::time::Instant;
 

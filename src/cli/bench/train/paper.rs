@@ -1,14 +1,14 @@
-//! `minflow bench train --arch paper`: the paper's Table 4 on this machine, in one run: for each core,
-//! trainable parameters, seconds per epoch (mean and max), microseconds per sample and peak
-//! memory, on one fixed synthetic dataset, at each window length T; then the ratios
-//! LSTM/minLSTM and GRU/minGRU (how much faster the minimal cores train).
-//! `--device` picks the backend. Peak memory is the process's VmHWM on the CPU (reset before
-//! each core, Linux `clear_refs`) and the largest pool cubecl holds on the GPU (sampled after
-//! each epoch, freed before each core). `--warmup-epochs` run first and are left out of the
-//! means (JIT compilation and autotuning on the GPU); their time is its own column. `wait %`
-//! is the share of the epoch the host spent waiting for the device (near 100: device-bound;
-//! low: bound by issuing the work); `data %` the share it waited for host batches (windows
-//! assembled and scaled on a second thread). Used for `--arch paper`.
+//! `minflow bench train --arch paper`: the paper's Table 4 on this machine, in one run: for
+//! each core, trainable parameters, seconds per epoch (mean and max), microseconds per sample
+//! and peak memory, on one fixed synthetic dataset, at each window length T; then the ratios
+//! LSTM/minLSTM and GRU/minGRU (how much faster the minimal cores train). `--device` picks the
+//! backend. Peak memory is the process's VmHWM on the CPU (reset before each core, Linux
+//! `clear_refs`) and the largest pool cubecl holds on the GPU (sampled after each epoch, freed
+//! before each core). `--warmup-epochs` run first and are left out of the means (JIT
+//! compilation and autotuning on the GPU); their time is its own column. `wait %` is the share
+//! of the epoch the host spent waiting for the device (near 100: device-bound; low: bound by
+//! issuing the work); `data %` the share it waited for host batches (windows assembled and
+//! scaled on a second thread). Used for `--arch paper`.
 
 use super::{kernels, TrainBenchArgs};
 use crate::cli::bench::common::{peak_mib, synthetic, EpochMeans};
