@@ -33,9 +33,14 @@ pub struct FitArgs {
     /// Ground-truth bags or folders holding the training scenes.
     #[arg(long, num_args = 1.., required = true)]
     data: Vec<PathBuf>,
-    /// The parts to fit and write: on (rope, jelly, liquid, walls; snow stays off, as the
-    /// ablation chose) | a list of rope, jelly, snow, liquid, walls, contact.
-    #[arg(long, value_name = "PARTS", default_value = "rope,jelly,liquid,walls")]
+    /// The parts to fit and write: the default (rope, jelly, liquid, walls, and contact,
+    /// written with its default values; snow stays off, as the ablation chose) | a list of
+    /// rope, jelly, snow, liquid, walls, contact.
+    #[arg(
+        long,
+        value_name = "PARTS",
+        default_value = "rope,jelly,liquid,walls,contact"
+    )]
     parts: Parts,
     /// Training scenes read at most (evenly spaced over the split's list; 0: all).
     #[arg(long, default_value_t = 0)]

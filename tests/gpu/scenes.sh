@@ -44,12 +44,13 @@ wait)
     ;;
 fit)
     for run in mx-rest mx-small; do
+        [ -d "runs/$run" ] || continue
         "$BIN" constraints fit --model "runs/$run" --data "$DATA"/multi "$DATA"/fluid \
             "$DATA"/mixed --max-scenes 80 2>&1 | tail -n 8 &
     done
     wait
     # The paper-only control keeps its parent's fitted constraints.
-    python3 - <<'PY'
+    [ -d runs/pc-rest ] && python3 - <<'PY'
 import json
 parent = json.load(open("models/all-grid-mingru-rest/model.json"))["constraints"]
 path = "runs/pc-rest/model.json"
