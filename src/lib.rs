@@ -6,6 +6,9 @@
 //! - [`material`]: the table of materials (id, name, colour) every module reads;
 //! - [`bspline`]: MLS-MPM's quadratic B-spline weights, one definition for the solver, the
 //!   grid models' transfers and the density constraint;
+//! - [`neighbours`]: the one neighbour search over a scene's particles (a cell list: k
+//!   nearest and fixed radius), for eval's rest neighbours, the grid model's rest
+//!   neighbourhoods and the constraint projection;
 //! - [`sim`]: the MLS-MPM solver and its scenes, which make the ground truth;
 //! - [`msgs`]: the `ParticleFrame` and `SurrogateStatus` messages and their CDR encoding;
 //! - [`bag`]: MCAP bags: writer, reader (foreign and truncated bags), `info`, `check`;
@@ -35,6 +38,7 @@ pub mod launch;
 pub mod material;
 pub mod model;
 pub mod msgs;
+pub mod neighbours;
 pub mod node;
 pub mod ops;
 pub mod plot;

@@ -16,14 +16,19 @@
 //!   piece of the graph whose edges are the intact rest-neighbour pairs (union-find): 1 for
 //!   one rope, 0.5 for a rope cut in two halves.
 //!
-//! [`Neighbours`] (each solid particle's nearest neighbours in the rollout's first frame)
-//! lives here whole, with the strain error of [`super::plausibility`]. Used by
-//! [`super::plausibility::Plausibility::of`].
+//! [`Neighbours`] (each solid particle's nearest neighbours in the rollout's first frame, by
+//! the cell-bin search of [`crate::neighbours`]) lives here whole, with the strain error of
+//! [`super::plausibility`]. Used by [`super::plausibility::Plausibility::of`].
 
 use super::metrics::MATERIALS;
+use crate::neighbours::Bins;
 
 /// Neighbours per particle of the strain error and the intact fraction.
 pub const NEIGHBOURS: usize = 6;
+
+/// Cells per side of [`Neighbours::new`]'s search grid: 1/64 of the box, a few particles of
+/// a body per cell.
+const SEARCH_CELLS: usize = 64;
 
 /// Cells per side of the grid [`covered_area`] counts on: 1/64 of the box, the `multi`
 /// family's MPM cell (docs/mpm.md, "Scene families"); a body of 2,500 particles spans
@@ -155,10 +160,11 @@ impl Neighbours {
 }
 
 /// Each solid particle's [`NEIGHBOURS`] nearest neighbours of the same material in a reference
-/// frame (the rollout's first), and their distances there.
+/// frame (the rollout's first), and their distances there, nearest first.
 #[derive(Debug, Clone, Default)]
 pub struct Neighbours {
-    /// Per particle: `(neighbour index, reference distance)`; empty for liquid particles.
+    /// Per particle: `(neighbour index, reference distance)`, nearest first; empty for liquid
+    /// particles.
     of: Vec<Vec<(usize, f64)>>,
     /// Material id per particle (clamped to `MATERIALS - 1`).
     material: Vec<usize>,
@@ -166,8 +172,10 @@ pub struct Neighbours {
 
 impl Neighbours {
     /// The neighbours in `frame` (`[N, 4]` physical) of every particle of a solid material
-    /// (jelly 1, snow 2, rope 3), among the particles of its own material. O(N^2) per
-    /// material: once per rollout.
+    /// (jelly 1, snow 2, rope 3), among the particles of its own material at a distance above
+    /// 0, nearest first: a cell-bin search per material ([`crate::neighbours::Bins`], cells
+    /// of 1/64 of the box), once per rollout. Of particles at equal distance the one the
+    /// search meets first is taken (see [`crate::neighbours`]).
     pub fn new(frame: &[f32], material: &[u8]) -> Self {
         let n = material.len();
         let material: Vec<usize> = material
@@ -176,25 +184,27 @@ impl Neighbours {
             .collect();
         let pos = |i: usize| [f64::from(frame[4 * i]), f64::from(frame[4 * i + 1])];
         let mut of = vec![Vec::new(); n];
+        let mut near = Vec::with_capacity(NEIGHBOURS);
         for m in 1..MATERIALS {
-            let ids: Vec<usize> = (0..n).filter(|&i| material[i] == m).collect();
+            let ids: Vec<u32> = (0..n as u32)
+                .filter(|&i| material[i as usize] == m)
+                .collect();
+            let bins = Bins::new(frame, 4, &ids, SEARCH_CELLS);
             for &i in &ids {
+                let i = i as usize;
                 let p = pos(i);
-                let mut near: Vec<(usize, f64)> = ids
-                    .iter()
-                    .filter(|&&j| j != i)
-                    .map(|&j| {
-                        let q = pos(j);
-                        (j, (p[0] - q[0]).hypot(p[1] - q[1]))
-                    })
-                    .filter(|&(_, d)| d > 0.0)
-                    .collect();
-                let k = NEIGHBOURS.min(near.len());
-                if k > 0 && k < near.len() {
-                    near.select_nth_unstable_by(k - 1, |x, y| x.1.total_cmp(&y.1));
-                }
-                near.truncate(k);
-                of[i] = near;
+                let distance = |j: usize| {
+                    let q = pos(j);
+                    Some((p[0] - q[0]).hypot(p[1] - q[1])).filter(|&d| j != i && d > 0.0)
+                };
+                bins.nearest(
+                    [frame[4 * i], frame[4 * i + 1]],
+                    NEIGHBOURS,
+                    f64::INFINITY,
+                    distance,
+                    &mut near,
+                );
+                of[i] = near.iter().map(|&(d, j)| (j, d)).collect();
             }
         }
         Self { of, material }

@@ -9,9 +9,9 @@
 //! shape-matched particle sets with particle-particle contacts), not per particle: a per-
 //! particle push on a few boundary particles would move a body by a fraction of its overlap.
 
-use super::cells::CellList;
 use super::shape::Body;
 use super::ContactParams;
+use crate::neighbours::Bins;
 
 /// Closing speeds below this (domain units per time unit; about three frames of gravity at
 /// 0.016 time units a frame) are resting contact: stopped, not bounced.
@@ -151,7 +151,7 @@ impl Contact {
     /// into another in one frame). `n` is the mean direction of the close particle pairs,
     /// or, where those disagree (a deep overlap), the line between the centres of mass.
     fn overlaps(&self, frame: &[f32], d: f32) -> Vec<((usize, usize), ([f32; 2], f32))> {
-        let list = CellList::new(frame, 4, &self.ids, d);
+        let list = Bins::for_radius(frame, 4, &self.ids, d);
         let mut acc: std::collections::BTreeMap<(usize, usize), ([f32; 2], usize)> =
             Default::default();
         for &i in &self.ids {

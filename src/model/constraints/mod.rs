@@ -24,10 +24,9 @@
 //! from its rest frame (the first frame the model sees) and carried in the surrogate's
 //! per-scene state. The projection is a host pass, one scene at a time and deterministic:
 //! the node and offline `eval` project alike, batched and unbatched alike. [`mod@fit`] fits the
-//! parameters on the truth; `cells.rs`, a fixed-radius neighbour search (a cell list), finds
-//! the bodies, their particle spacing and their contacts.
+//! parameters on the truth; the cell list of [`crate::neighbours`] finds the bodies (fixed
+//! radius), their particle spacing (k nearest) and their contacts (fixed radius).
 
-mod cells;
 mod contact;
 mod density;
 pub mod fit;

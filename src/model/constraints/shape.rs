@@ -10,10 +10,10 @@
 //! does (its singular values clamped, docs/mpm.md).
 //!
 //! A body is a connected piece of one material in the scene's rest frame: particles closer
-//! than [`LINK`] spacings are joined (union-find over a [`CellList`]).
+//! than [`LINK`] spacings are joined (union-find over [`Bins`]).
 
-use super::cells::CellList;
 use super::ShapeParams;
+use crate::neighbours::Bins;
 
 /// Particles of one material closer than this many spacings in the rest frame belong to one
 /// body.
@@ -38,7 +38,7 @@ pub(super) struct Body {
 /// particles of the distance to the [`SPACING_NEIGHBOURS`]-th nearest particle of the same
 /// material times `sqrt(pi / 8)` (the spacing `s` of a uniform cloud with one particle per
 /// `s^2` has 8 particles within `s sqrt(8 / pi)`). Neighbours are looked for within 1/64 of
-/// the box; 0 when the scene has none of `m` close enough.
+/// the box ([`Bins::nearest`]); 0 when the scene has none of `m` close enough.
 pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) -> f32 {
     let ids: Vec<u32> = (0..material.len() as u32)
         .filter(|&i| material[i as usize] == m)
@@ -47,23 +47,27 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
         return 0.0;
     }
     let radius = 1.0 / 64.0;
-    let list = CellList::new(rest, stride, &ids, radius);
+    let bins = Bins::for_radius(rest, stride, &ids, radius);
     let mut kth = Vec::with_capacity(ids.len());
-    let mut near = Vec::new();
+    let mut near = Vec::with_capacity(SPACING_NEIGHBOURS);
     for &i in &ids {
-        let (x, y) = (rest[stride * i as usize], rest[stride * i as usize + 1]);
-        near.clear();
-        list.around(x, y, |j| {
-            if j != i as usize {
-                near.push((rest[stride * j] - x).hypot(rest[stride * j + 1] - y));
-            }
-        });
-        if near.len() >= SPACING_NEIGHBOURS {
-            near.select_nth_unstable_by(SPACING_NEIGHBOURS - 1, f32::total_cmp);
-            let d = near[SPACING_NEIGHBOURS - 1];
-            if d <= radius {
-                kth.push(d);
-            }
+        let (i, p) = (
+            i as usize,
+            [rest[stride * i as usize], rest[stride * i as usize + 1]],
+        );
+        let distance = |j: usize| {
+            let d = (rest[stride * j] - p[0]).hypot(rest[stride * j + 1] - p[1]);
+            (j != i && !d.is_nan()).then_some(f64::from(d))
+        };
+        bins.nearest(
+            p,
+            SPACING_NEIGHBOURS,
+            f64::from(radius),
+            distance,
+            &mut near,
+        );
+        if near.len() == SPACING_NEIGHBOURS {
+            kth.push(near[SPACING_NEIGHBOURS - 1].0 as f32);
         }
     }
     if kth.is_empty() {
@@ -90,8 +94,8 @@ pub(super) fn bodies(
 }
 
 /// The connected pieces of material `m` in `rest` (`[N, stride]` rows) whose spacing is
-/// `spacing`: particles closer than [`LINK`] spacings are joined (union-find over a
-/// [`CellList`]); pieces of 3 particles or more, each its particle indices in increasing
+/// `spacing`: particles closer than [`LINK`] spacings are joined (union-find over
+/// [`Bins::around`]); pieces of 3 particles or more, each its particle indices in increasing
 /// order, the pieces in order of their lowest index.
 pub(super) fn pieces(
     rest: &[f32],
@@ -107,7 +111,7 @@ pub(super) fn pieces(
         return Vec::new();
     }
     let link = LINK * spacing;
-    let list = CellList::new(rest, stride, &ids, link);
+    let list = Bins::for_radius(rest, stride, &ids, link);
     let mut parent: Vec<usize> = (0..material.len()).collect();
     fn root(parent: &mut [usize], mut i: usize) -> usize {
         while parent[i] != i {

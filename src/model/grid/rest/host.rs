@@ -1,12 +1,13 @@
-//! The host side of [`super`]: a [`Neighbourhood`] built from a reference configuration (a
-//! ring search on a 1/64 cell grid), uploaded as [`NeighbourTensors`], and the rest-shape
-//! features computed in one pass over the particles for inference on the CPU
-//! ([`NeighbourTensors::features_host`]).
+//! The host side of [`super`]: a [`Neighbourhood`] built from a reference configuration (the
+//! ring search of [`crate::neighbours`] on a 1/64 cell grid), uploaded as
+//! [`NeighbourTensors`], and the rest-shape features computed in one pass over the particles
+//! for inference on the CPU ([`NeighbourTensors::features_host`]).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
 
 use super::{NeighbourTensors, REST_CLAMP, REST_FEATURES, REST_NEIGHBOURS};
+use crate::neighbours::Bins;
 use crate::ops::{host_indices, host_values, NetOps};
 
 /// Each selected particle's neighbours in a reference configuration, on the host (see the
@@ -85,15 +86,32 @@ impl Neighbourhood {
         }
     }
 
-    /// One scene's neighbourhoods (`pos` `[N, 2]`, `mat` `[N]`).
+    /// One scene's neighbourhoods (`pos` `[N, 2]`, `mat` `[N]`): each selected particle's
+    /// [`REST_NEIGHBOURS`] nearest of its material at a distance above 0, nearest first (f32
+    /// distances; of equal ones, the one the search meets first: [`crate::neighbours`]).
     fn scene(pos: &[f32], mat: &[u8], select: &(impl Fn(u8) -> bool + Sync)) -> Self {
         let n = mat.len();
         let mut out = Self::empty(1, n);
-        let bins = Bins::new(pos);
-        for i in (0..n).filter(|&i| select(mat[i])) {
-            let near = bins.nearest(pos, i, REST_NEIGHBOURS, |j| mat[j] == mat[i]);
-            if near.len() >= 2 {
-                out.fill_row(0, i, pos, &near);
+        let mut materials: Vec<u8> = mat.iter().copied().filter(|&m| select(m)).collect();
+        materials.sort_unstable();
+        materials.dedup();
+        let mut near = Vec::with_capacity(REST_NEIGHBOURS);
+        let mut rows = Vec::with_capacity(REST_NEIGHBOURS);
+        for m in materials {
+            let ids: Vec<u32> = (0..n as u32).filter(|&i| mat[i as usize] == m).collect();
+            let bins = Bins::new(pos, 2, &ids, CELLS);
+            for &i in &ids {
+                let (i, p) = (i as usize, [pos[2 * i as usize], pos[2 * i as usize + 1]]);
+                let distance = |j: usize| {
+                    let d = (pos[2 * j] - p[0]).hypot(pos[2 * j + 1] - p[1]);
+                    (j != i && d > 0.0).then_some(f64::from(d))
+                };
+                bins.nearest(p, REST_NEIGHBOURS, f64::INFINITY, distance, &mut near);
+                if near.len() >= 2 {
+                    rows.clear();
+                    rows.extend(near.iter().map(|&(_, j)| j));
+                    out.fill_row(0, i, pos, &rows);
+                }
             }
         }
         out
@@ -145,60 +163,6 @@ impl Neighbourhood {
             inv_d0: f(&self.inv_d0, [b, n, 1]),
             dims: [b, n],
         }
-    }
-}
-
-/// Particles of one scene binned on a [`CELLS`] x [`CELLS`] grid.
-struct Bins {
-    cells: Vec<Vec<u32>>,
-}
-
-impl Bins {
-    fn cell(x: f32) -> usize {
-        ((x * CELLS as f32).floor().max(0.0) as usize).min(CELLS - 1)
-    }
-
-    fn new(pos: &[f32]) -> Self {
-        let mut cells = vec![Vec::new(); CELLS * CELLS];
-        for (i, p) in pos.chunks_exact(2).enumerate() {
-            cells[Self::cell(p[0]) * CELLS + Self::cell(p[1])].push(i as u32);
-        }
-        Self { cells }
-    }
-
-    /// The (at most) `k` nearest particles `j != i` with `keep(j)` and a distance above 0,
-    /// nearest first: rings of cells around `i`'s are searched until the k-th nearest found
-    /// is no farther than the searched rings reach.
-    fn nearest(&self, pos: &[f32], i: usize, k: usize, keep: impl Fn(usize) -> bool) -> Vec<usize> {
-        let (x, y) = (pos[2 * i], pos[2 * i + 1]);
-        let (cx, cy) = (Self::cell(x) as i64, Self::cell(y) as i64);
-        let mut found: Vec<(f32, usize)> = Vec::new();
-        let h = 1.0 / CELLS as f32;
-        for r in 0..CELLS as i64 {
-            for gx in (cx - r)..=(cx + r) {
-                for gy in (cy - r)..=(cy + r) {
-                    let on_ring = (gx - cx).abs() == r || (gy - cy).abs() == r;
-                    let inside = (0..CELLS as i64).contains(&gx) && (0..CELLS as i64).contains(&gy);
-                    if !on_ring || !inside {
-                        continue;
-                    }
-                    for &j in &self.cells[gx as usize * CELLS + gy as usize] {
-                        let j = j as usize;
-                        let d = (pos[2 * j] - x).hypot(pos[2 * j + 1] - y);
-                        if j != i && d > 0.0 && keep(j) {
-                            found.push((d, j));
-                        }
-                    }
-                }
-            }
-            found.sort_by(|a, b| a.0.total_cmp(&b.0));
-            // Every particle within r cells' distance has been seen.
-            if found.len() >= k && found[k - 1].0 <= r as f32 * h {
-                break;
-            }
-        }
-        found.truncate(k);
-        found.into_iter().map(|(_, j)| j).collect()
     }
 }
 
@@ -308,21 +272,23 @@ impl Geometry {
 mod tests {
     use super::*;
 
-    /// The ring search finds the same neighbours as a brute-force sort.
+    /// Each particle's rows are its 8 nearest of its material by a brute-force sort, nearest
+    /// first, on a spiral of two materials (no equal distances).
     #[test]
-    fn ring_search_matches_brute_force() {
-        let pos: Vec<f32> = (0..200)
+    fn rows_are_the_brute_force_neighbours() {
+        let n = 200;
+        let pos: Vec<f32> = (0..n)
             .flat_map(|i| {
                 let a = i as f32 * 2.399;
                 let r = 0.002 * (i as f32).sqrt();
                 [0.5 + r * a.cos(), 0.5 + r * a.sin()]
             })
             .collect();
-        let bins = Bins::new(&pos);
-        for i in [0, 17, 99, 199] {
-            let got = bins.nearest(&pos, i, 8, |_| true);
-            let mut all: Vec<(f32, usize)> = (0..200)
-                .filter(|&j| j != i)
+        let mat: Vec<u8> = (0..n).map(|i| 1 + (i % 7 == 0) as u8).collect();
+        let nb = Neighbourhood::build(&pos, &mat, [1, n], |m| m > 0);
+        for i in 0..n {
+            let mut all: Vec<(f32, usize)> = (0..n)
+                .filter(|&j| j != i && mat[j] == mat[i])
                 .map(|j| {
                     (
                         (pos[2 * j] - pos[2 * i]).hypot(pos[2 * j + 1] - pos[2 * i + 1]),
@@ -331,8 +297,9 @@ mod tests {
                 })
                 .collect();
             all.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let want: Vec<usize> = all[..8].iter().map(|x| x.1).collect();
-            assert_eq!(got, want, "particle {i}");
+            let want: Vec<i64> = all[..REST_NEIGHBOURS].iter().map(|x| x.1 as i64).collect();
+            let k = REST_NEIGHBOURS;
+            assert_eq!(nb.index[i * k..(i + 1) * k], want[..], "particle {i}");
         }
     }
 }
