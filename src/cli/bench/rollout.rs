@@ -98,12 +98,28 @@ struct Row {
     mse: f64,
 }
 
-/// Rolls every scene out with `surrogate`, `batch` scenes per call, and scores it.
+/// The shape of a benchmark rollout.
+#[derive(Debug, Clone, Copy)]
+struct Sizes {
+    /// Seed frames before the first prediction (the model's window T).
+    window: usize,
+    /// Frames predicted per rollout.
+    horizon: usize,
+    /// Scenes per call.
+    batch: usize,
+}
+
+/// Rolls every scene out with `surrogate`, `sizes.batch` scenes per call, and scores it.
 fn roll<B: NetOps>(
     surrogate: &Surrogate<B>,
     scenes: &[Simulated],
-    (w, h, batch): (usize, usize, usize),
+    sizes: Sizes,
 ) -> anyhow::Result<Row> {
+    let Sizes {
+        window: w,
+        horizon: h,
+        batch,
+    } = sizes;
     let scaler = surrogate.meta().scaler;
     let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
@@ -137,7 +153,7 @@ fn model_row(
     args: &RolloutBenchArgs,
     (dir, parts): (&std::path::Path, Parts),
     scenes: &[Simulated],
-    sizes: (usize, usize, usize),
+    sizes: Sizes,
 ) -> anyhow::Result<Row> {
     match args.device.parse()? {
         Device::Cpu => {
@@ -155,8 +171,11 @@ fn model_row(
             // batches' compilation to the first model timed (a single-frame model listed
             // first read 2.3 ms a frame, the same model listed after another 0.5 ms). A
             // smaller last call (scenes not a multiple of --batch) still compiles its own.
-            let (w, h, batch) = sizes;
-            roll(&s, &scenes[..batch.min(scenes.len())], (w, h.min(8), batch))?;
+            let warm = Sizes {
+                horizon: sizes.horizon.min(8),
+                ..sizes
+            };
+            roll(&s, &scenes[..sizes.batch.min(scenes.len())], warm)?;
             roll(&s, scenes, sizes)
         }
         #[cfg(not(feature = "cuda"))]
@@ -215,9 +234,14 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         .models
         .iter()
         .flat_map(|dir| settings.iter().map(move |&parts| (dir, parts)));
+    let sizes = Sizes {
+        window: w,
+        horizon: h,
+        batch: args.batch,
+    };
     for (dir, parts) in rows {
         let row = pool
-            .install(|| model_row(&args, (dir, parts), &scenes, (w, h, args.batch)))
+            .install(|| model_row(&args, (dir, parts), &scenes, sizes))
             .with_context(|| format!("rolling out {}", dir.display()))?;
         let ms = row.seconds * 1e3 / (scenes.len() * h) as f64;
         let name = match settings.len() {

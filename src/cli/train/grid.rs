@@ -23,7 +23,7 @@ use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
 use crate::model::store::{NetConfig, RunFolder};
 use crate::ops::NetOps;
-use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer, StatsFit};
+use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer, StatsFit, VelocityStats};
 use crate::train::{BatchSource, EpochRecord, Observer, TrainError};
 
 /// Runs `train --arch grid`.
@@ -64,10 +64,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     if data.train_scenes == 0 {
         bail!("no training scenes in {:?}", args.data);
     }
-    let ((vel_scale, dv_mean, dv_scale), scaler) = data.normalisation;
-    config.vel_scale = vel_scale;
-    config.dv_mean = dv_mean;
-    config.dv_scale = dv_scale;
+    let Normalisation { stats, scaler } = data.normalisation;
+    stats.apply(&mut config);
     if args.resume {
         check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
     }
@@ -80,13 +78,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         }
         TrainWindows::Streamed(loader) => (loader, true),
     };
-    let counts = (
-        scenes.len(),
-        data.train_scenes,
-        count_scenes(&data.val),
-        data.test_scenes,
-    );
-    print_summary(counts, (&*train, streamed), (&config, &opts))?;
+    let counts = SceneCounts {
+        all: scenes.len(),
+        train: data.train_scenes,
+        val: count_scenes(&data.val),
+        test: data.test_scenes,
+    };
+    print_summary(&counts, (&*train, streamed), (&config, &opts))?;
     let mut progress = Progress::new(args.out.clone());
     // One device: a data-parallel list is refused.
     device.single("train --arch grid")?;
@@ -106,8 +104,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     Ok(crate::cli::read_to_damage(&report.truncated))
 }
 
-/// The normalisation of a run: `(vel_scale, dv_mean, dv_scale)` and the min-max scaler.
-type Normalisation = (([f32; 2], [f32; 2], [f32; 2]), Scaler);
+/// The normalisation of a run: the velocity statistics and the min-max scaler.
+#[derive(Debug, Clone, Copy)]
+struct Normalisation {
+    stats: VelocityStats,
+    scaler: Scaler,
+}
 
 /// A grid run's training windows: in memory, or streamed from the bags a chunk at a time
 /// when the dataset has more than `--max-resident-frames` frames.
@@ -143,7 +145,10 @@ impl RunData {
         // Weights from --init-from were trained against their run's normalisation: keep it,
         // and its scaler, so validation and `eval` score in the parent's units whatever
         // scenes were added.
-        let normalisation = init.unwrap_or_else(|| (fit_stats(&refs), Scaler::fit(&refs)));
+        let normalisation = init.unwrap_or_else(|| Normalisation {
+            stats: fit_stats(&refs),
+            scaler: Scaler::fit(&refs),
+        });
         Ok(Self {
             train_scenes: count_scenes(&train),
             test_scenes: count_scenes(&test),
@@ -183,7 +188,10 @@ impl RunData {
                     });
                 })
                 .context("fitting the normalisation on the training scenes")?;
-                (stats.finish(), scaler.finish())
+                Normalisation {
+                    stats: stats.finish(),
+                    scaler: scaler.finish(),
+                }
             }
         };
         let mut bags: Vec<PathBuf> = Vec::new();
@@ -217,6 +225,14 @@ impl RunData {
     }
 }
 
+/// Scenes in the data and in each part of the split, for the run's summary line.
+struct SceneCounts {
+    all: usize,
+    train: usize,
+    val: usize,
+    test: usize,
+}
+
 /// Distinct scenes of `trajs` (a scene with missing frames holds several trajectories).
 fn count_scenes(trajs: &[Trajectory]) -> usize {
     let mut scenes: Vec<&str> = trajs.iter().map(|t| t.scene.as_str()).collect();
@@ -248,20 +264,23 @@ fn training_constraints(args: &TrainArgs) -> anyhow::Result<Option<Constraints>>
 /// The run's one-line summary on stderr (scenes: all, train, val, test; samples, the
 /// network, P, K, N); a usage error when no training scene holds a sample.
 fn print_summary(
-    (scenes, train, val, test): (usize, usize, usize, usize),
+    counts: &SceneCounts,
     (source, streamed): (&dyn BatchSource, bool),
     (config, opts): (&GridConfig, &crate::train::grid::GridTrainOptions),
 ) -> anyhow::Result<()> {
     eprintln!(
-        "{scenes} scenes: {train} train ({} samples{}), {val} val, {test} test; grid \
-         architecture, {} memory, n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks \
-         {}), K = {}, N = {:?}",
+        "{} scenes: {} train ({} samples{}), {} val, {} test; grid architecture, {} memory, \
+         n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks {}), K = {}, N = {:?}",
+        counts.all,
+        counts.train,
         source.windows(),
         if streamed {
             ", streamed from the bags"
         } else {
             ""
         },
+        counts.val,
+        counts.test,
         config.memory.name(),
         config.grid,
         config.window,
@@ -285,17 +304,14 @@ fn print_summary(
     .into())
 }
 
-/// The normalisation constants `(vel_scale, dv_mean, dv_scale)` and the min-max scaler of the
+/// The normalisation (velocity statistics and min-max scaler) of the
 /// grid model in `dir` (`--init-from`), after checking that it is the architecture `config`
 /// describes.
 ///
 /// # Errors
 /// `dir` has no readable `model.json`, holds another architecture, or one whose
 /// hyper-parameters differ (each named, a usage error).
-fn init_normalisation(
-    dir: &std::path::Path,
-    config: &GridConfig,
-) -> anyhow::Result<(([f32; 2], [f32; 2], [f32; 2]), Scaler)> {
+fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Result<Normalisation> {
     let (path, meta) = crate::model::store::read_meta(dir)
         .with_context(|| format!("--init-from {}", dir.display()))?;
     // A model without reference channels may grow them (`GridModel::with_reference`), a
@@ -330,10 +346,14 @@ fn init_normalisation(
         .into());
     }
     match meta.net {
-        NetConfig::Grid(saved) => Ok((
-            (saved.vel_scale, saved.dv_mean, saved.dv_scale),
-            meta.scaler,
-        )),
+        NetConfig::Grid(saved) => Ok(Normalisation {
+            stats: VelocityStats {
+                vel_scale: saved.vel_scale,
+                dv_mean: saved.dv_mean,
+                dv_scale: saved.dv_scale,
+            },
+            scaler: meta.scaler,
+        }),
         NetConfig::Paper(_) => unreachable!("{}: compared equal to a grid config", path.display()),
     }
 }

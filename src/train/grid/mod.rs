@@ -35,7 +35,7 @@ mod rollout_loss;
 mod schedule;
 mod validate;
 
-pub use schedule::{fit_stats, learning_rate, StatsFit};
+pub use schedule::{fit_stats, learning_rate, StatsFit, VelocityStats};
 pub use validate::validation_rollout;
 
 use std::path::PathBuf;

@@ -8,10 +8,31 @@ use std::time::Instant;
 use super::GridTrainOptions;
 use crate::data::Trajectory;
 
+/// The velocity statistics that normalise a grid model's inputs and outputs (the fields of
+/// the same names in [`crate::model::grid::GridConfig`]), per component x, y.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VelocityStats {
+    /// The velocities' standard deviation (domain units per time unit).
+    pub vel_scale: [f32; 2],
+    /// The mean change of the velocity over one frame.
+    pub dv_mean: [f32; 2],
+    /// The standard deviation of that change.
+    pub dv_scale: [f32; 2],
+}
+
+impl VelocityStats {
+    /// Writes these statistics into `config`.
+    pub fn apply(&self, config: &mut crate::model::grid::GridConfig) {
+        config.vel_scale = self.vel_scale;
+        config.dv_mean = self.dv_mean;
+        config.dv_scale = self.dv_scale;
+    }
+}
+
 /// Velocity and velocity-change statistics of `trajs` (the training split): per component
 /// `vel_scale` = the velocities' standard deviation, `dv_mean` and `dv_scale` = the mean
 /// and standard deviation of the change over one frame. Used to fill [`crate::model::grid::GridConfig`].
-pub fn fit_stats(trajs: &[&Trajectory]) -> ([f32; 2], [f32; 2], [f32; 2]) {
+pub fn fit_stats(trajs: &[&Trajectory]) -> VelocityStats {
     let mut fit = StatsFit::default();
     trajs.iter().for_each(|t| fit.add(t));
     fit.finish()
@@ -52,8 +73,8 @@ impl StatsFit {
         }
     }
 
-    /// `(vel_scale, dv_mean, dv_scale)` of what was added.
-    pub fn finish(&self) -> ([f32; 2], [f32; 2], [f32; 2]) {
+    /// The statistics of what was added.
+    pub fn finish(&self) -> VelocityStats {
         let mean = |s: [f64; 3]| if s[0] > 0.0 { s[1] / s[0] } else { 0.0 };
         let std = |s: [f64; 3]| {
             let m = mean(s);
@@ -61,11 +82,11 @@ impl StatsFit {
             (var.max(0.0).sqrt() as f32).max(1e-6)
         };
         let (v, dv) = (self.v, self.dv);
-        (
-            [std(v[0]), std(v[1])],
-            [mean(dv[0]) as f32, mean(dv[1]) as f32],
-            [std(dv[0]), std(dv[1])],
-        )
+        VelocityStats {
+            vel_scale: [std(v[0]), std(v[1])],
+            dv_mean: [mean(dv[0]) as f32, mean(dv[1]) as f32],
+            dv_scale: [std(dv[0]), std(dv[1])],
+        }
     }
 }
 

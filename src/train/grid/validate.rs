@@ -79,8 +79,31 @@ pub fn validation_rollout<B: NetOps>(
 /// Sums of the structure errors of the rollouts' last frames.
 #[derive(Debug, Default)]
 struct Damage {
-    strain: (f64, usize),
-    volume: (f64, usize),
+    strain: Mean,
+    volume: Mean,
+}
+
+/// A running mean: the sum of what was added and how many.
+#[derive(Debug, Default, Clone, Copy)]
+struct Mean {
+    sum: f64,
+    count: usize,
+}
+
+impl Mean {
+    fn add(&mut self, x: f64) {
+        self.sum += x;
+        self.count += 1;
+    }
+
+    /// The mean, 0 with nothing added.
+    fn value(self) -> f64 {
+        if self.count == 0 {
+            0.0
+        } else {
+            self.sum / self.count as f64
+        }
+    }
 }
 
 impl Damage {
@@ -92,8 +115,7 @@ impl Damage {
             let nb = Neighbours::new(seed, &traj.material);
             for m in 1..crate::eval::MATERIALS {
                 if let Some(e) = nb.strain_error(pred, truth, m) {
-                    self.strain.0 += e;
-                    self.strain.1 += 1;
+                    self.strain.add(e);
                 }
             }
         }
@@ -101,14 +123,12 @@ impl Damage {
         let true_area = covered_area(truth, liquid);
         if true_area > 0 {
             let ratio = covered_area(pred, liquid) as f64 / true_area as f64;
-            self.volume.0 += (1.0 - ratio).abs();
-            self.volume.1 += 1;
+            self.volume.add((1.0 - ratio).abs());
         }
     }
 
     /// `1 + mean strain error + mean |1 - volume ratio|` (1 with nothing added).
     fn factor(&self) -> f64 {
-        let mean = |(s, c): (f64, usize)| if c == 0 { 0.0 } else { s / c as f64 };
-        1.0 + mean(self.strain) + mean(self.volume)
+        1.0 + self.strain.value() + self.volume.value()
     }
 }

@@ -42,7 +42,7 @@ where
     };
     let (t, p) = (2, args.rollout_steps);
     let traj = synthetic(args.particles, args.samples + t + p - 1);
-    let (vel_scale, dv_mean, dv_scale) = fit_stats(&[&traj]);
+    let stats = fit_stats(&[&traj]);
     let index = WindowIndex::new(vec![traj], t + p - 1, Scaler::default())?;
     println!(
         "grid architecture: N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {}",
@@ -72,9 +72,9 @@ where
             let config = GridConfig::new(memory_kind)
                 .with_grid(args.grid)
                 .with_window(t)
-                .with_vel_scale(vel_scale)
-                .with_dv_mean(dv_mean)
-                .with_dv_scale(dv_scale)
+                .with_vel_scale(stats.vel_scale)
+                .with_dv_mean(stats.dv_mean)
+                .with_dv_scale(stats.dv_scale)
                 .with_conv(kernel);
             config.validate().map_err(anyhow::Error::msg)?;
             bench_config::<B>(args, &config, (&index, &device), p, peak)?;
