@@ -194,7 +194,7 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         body.velocity = random_velocity(rng, 2.0);
         bodies.push(body);
     }
-    assign_counts(&mut bodies, PARTICLES);
+    super::scene::assign_counts(&mut bodies, PARTICLES);
     let names: Vec<&str> = materials.iter().map(|m| m.name()).collect();
     Scene {
         name: format!("multi/{}/{id:03}", names.join("+")),
@@ -209,39 +209,6 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
     }
 }
 
-/// Gives the non-rope bodies the particles the ropes leave of `total` (each rope's count is
-/// its own), in proportion to their area, the last taking the remainder; each other body
-/// gets at least one. Used by the `multi` and `mixed` families.
-pub(super) fn assign_counts(bodies: &mut [Body], total: usize) {
-    let ropes: usize = bodies
-        .iter()
-        .filter(|b| b.shape == Shape::Line)
-        .map(|b| b.count)
-        .sum();
-    let left = total - ropes;
-    let area = |b: &Body| {
-        b.size[0]
-            * b.size[1]
-            * if b.shape == Shape::Disk {
-                std::f32::consts::FRAC_PI_4
-            } else {
-                1.0
-            }
-    };
-    let solid: Vec<usize> = (0..bodies.len())
-        .filter(|&k| bodies[k].shape != Shape::Line)
-        .collect();
-    let sum: f32 = solid.iter().map(|&k| area(&bodies[k])).sum();
-    let mut given = 0;
-    for (n, &k) in solid.iter().enumerate() {
-        let count = match n + 1 == solid.len() {
-            true => left - given,
-            false => ((left as f32 * area(&bodies[k]) / sum).round() as usize).max(1),
-        };
-        bodies[k].count = count;
-        given += count;
-    }
-}
 
 /// The three fluid layouts, by `id % 3`.
 pub const FLUID_KINDS: [&str; 3] = ["circle", "rectangle", "splash"];

@@ -125,7 +125,7 @@ pub fn scene(id: u32, rng: &mut ChaCha8Rng) -> Scene {
         }
     }
     set_motion(&mut bodies, rng);
-    super::families::assign_counts(&mut bodies, total);
+    super::scene::assign_counts(&mut bodies, total);
     names.sort();
     Scene {
         name: format!("mixed/{}/{id:04}", names.join("+")),

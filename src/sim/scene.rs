@@ -6,7 +6,9 @@
 //! a rectangle fills the box, a disk is the ellipse inscribed in it, a line runs along the
 //! box's diagonal from `position - size / 2` to `position + size / 2` (so `size = [0.4, 0]`
 //! is a horizontal rope 0.4 long). Rectangles and disks are sampled uniformly at random
-//! from the scene's seed; lines are evenly spaced. Sampling is deterministic.
+//! from the scene's seed; lines are evenly spaced. Sampling is deterministic. The generated
+//! families place their bodies apart with [`Body::apart`] and share a total particle count
+//! among them with `assign_counts`.
 
 use super::material::{Elasticity, Material};
 use super::mpm::{Particles, Solver, SolverConfig};
@@ -266,5 +268,39 @@ impl Scene {
             max_cfl: super::mpm::DEFAULT_MAX_CFL,
         };
         Ok((Solver::new(config, ps)?, spans))
+    }
+}
+
+/// Gives the non-rope bodies the particles the ropes leave of `total` (each rope's count is
+/// its own), in proportion to their area, the last taking the remainder; each other body
+/// gets at least one. Used by the `multi` and `mixed` families.
+pub(super) fn assign_counts(bodies: &mut [Body], total: usize) {
+    let ropes: usize = bodies
+        .iter()
+        .filter(|b| b.shape == Shape::Line)
+        .map(|b| b.count)
+        .sum();
+    let left = total - ropes;
+    let area = |b: &Body| {
+        b.size[0]
+            * b.size[1]
+            * if b.shape == Shape::Disk {
+                std::f32::consts::FRAC_PI_4
+            } else {
+                1.0
+            }
+    };
+    let solid: Vec<usize> = (0..bodies.len())
+        .filter(|&k| bodies[k].shape != Shape::Line)
+        .collect();
+    let sum: f32 = solid.iter().map(|&k| area(&bodies[k])).sum();
+    let mut given = 0;
+    for (n, &k) in solid.iter().enumerate() {
+        let count = match n + 1 == solid.len() {
+            true => left - given,
+            false => ((left as f32 * area(&bodies[k]) / sum).round() as usize).max(1),
+        };
+        bodies[k].count = count;
+        given += count;
     }
 }
