@@ -16,7 +16,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::{DataError, Trajectory};
+use super::{DataError, SceneInfo, Trajectory};
 
 /// Fractions of the scenes in each part; normalised by their sum, so `8:1:1` works too.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -168,6 +168,15 @@ impl Split {
         trajs
             .iter()
             .filter(|t| self.part_of(&t.scene) == Some(part))
+            .collect()
+    }
+
+    /// The scenes of `infos` (a scan's index) in `part`, in their order in `infos`.
+    pub fn select_infos(&self, part: Part, infos: &[SceneInfo]) -> Vec<SceneInfo> {
+        infos
+            .iter()
+            .filter(|s| self.part_of(&s.scene) == Some(part))
+            .cloned()
             .collect()
     }
 

@@ -97,6 +97,24 @@ impl StreamingLoader {
         Ok(())
     }
 
+    /// Every scene of `scenes` (an index from [`scan`](super::scan)) loaded whole from the
+    /// bags that hold it, in id order: a part of a dataset that must be in memory (the grid
+    /// architecture's validation scenes) when the rest is streamed.
+    ///
+    /// # Errors
+    /// A scene listed twice, a bag that is unreadable or changed since the scan.
+    pub fn load_whole(
+        mut scenes: Vec<SceneInfo>,
+        topic: Option<&str>,
+    ) -> Result<Vec<Trajectory>, DataError> {
+        if scenes.is_empty() {
+            return Ok(Vec::new());
+        }
+        check_scenes(&mut scenes, usize::MAX)?;
+        let all: Vec<usize> = (0..scenes.len()).collect();
+        Ok(load_chunk(&scenes, &all, topic)?.0)
+    }
+
     /// T, the input frames of a window.
     pub fn t(&self) -> usize {
         self.t

@@ -209,7 +209,6 @@ fn multi(id: u32, rng: &mut ChaCha8Rng) -> Scene {
     }
 }
 
-
 /// The three fluid layouts, by `id % 3`.
 pub const FLUID_KINDS: [&str; 3] = ["circle", "rectangle", "splash"];
 

@@ -17,7 +17,7 @@ use crate::cli::run_folder::{
 };
 use crate::cli::Outcome;
 use crate::data::{
-    self, Part, Scaler, ScalerFit, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+    Part, Scaler, ScalerFit, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
 };
 use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
@@ -170,13 +170,7 @@ impl RunData {
     ) -> anyhow::Result<Self> {
         let topic = Some(args.topic.as_str());
         let budget = args.max_resident_frames;
-        let part = |p: Part| -> Vec<SceneInfo> {
-            (infos.iter())
-                .filter(|s| split.part_of(&s.scene) == Some(p))
-                .cloned()
-                .collect()
-        };
-        let (train, val) = (part(Part::Train), part(Part::Val));
+        let train = split.select_infos(Part::Train, &infos);
         let normalisation = match init {
             Some(n) => n,
             None => {
@@ -194,24 +188,11 @@ impl RunData {
                 }
             }
         };
-        let mut bags: Vec<PathBuf> = Vec::new();
-        for bag in val.iter().flat_map(|s| &s.bags) {
-            if !bags.contains(bag) {
-                bags.push(bag.clone());
-            }
-        }
-        let names: Vec<String> = val.iter().map(|s| s.scene.clone()).collect();
-        let val = match names.is_empty() {
-            true => Vec::new(),
-            false => {
-                data::load_scenes(&bags, topic, &names)
-                    .context("loading the validation scenes")?
-                    .0
-            }
-        };
+        let val = StreamingLoader::load_whole(split.select_infos(Part::Val, &infos), topic)
+            .context("loading the validation scenes")?;
         Ok(Self {
             train_scenes: train.len(),
-            test_scenes: part(Part::Test).len(),
+            test_scenes: split.select_infos(Part::Test, &infos).len(),
             train: TrainWindows::Streamed(StreamingLoader::new(
                 train,
                 topic,

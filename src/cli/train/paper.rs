@@ -29,14 +29,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let (infos, resident, scanned) = super::read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = run_split(&scenes, args.seed, args.split_from.as_deref(), None)?;
-    let in_part = |part: Part| -> Vec<SceneInfo> {
-        infos
-            .iter()
-            .filter(|s| split.part_of(&s.scene) == Some(part))
-            .cloned()
-            .collect()
-    };
-    let (train_infos, val_infos) = (in_part(Part::Train), in_part(Part::Val));
+    let train_infos = split.select_infos(Part::Train, &infos);
+    let val_infos = split.select_infos(Part::Val, &infos);
     let Some(first) = train_infos.first() else {
         bail!("no training scenes in {:?}", args.data);
     };

@@ -190,10 +190,10 @@ where
     B::InnerBackend: NetOps,
 {
     /// Trains on `train` (windows of `T + (M + C P) K - 1` input frames built with the identity
-    /// scaler: a [`crate::data::WindowIndex`] in memory or a
-    /// [`crate::data::StreamingLoader`] reading the bags chunk by chunk), validating by rollouts of `val`; `scaler` is the training split's min-max
-    /// scaler (saved with the model, used for the validation score). Resumes from
-    /// `out/checkpoint` when `resume`.
+    /// scaler: a [`crate::data::WindowIndex`] in memory or a [`crate::data::StreamingLoader`]
+    /// reading the bags chunk by chunk), validating by rollouts of `val`; `scaler` is the
+    /// training split's min-max scaler (saved with the model, used for the validation score).
+    /// Resumes from `out/checkpoint` when `resume`.
     ///
     /// # Errors
     /// A non-finite loss, a failed save or load, a failed validation step, a chunk of
