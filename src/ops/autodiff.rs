@@ -12,6 +12,7 @@ use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
 use burn::backend::Autodiff;
+use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{Tensor, TensorPrimitive};
 
@@ -23,10 +24,13 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
     const ON_HOST: bool = B::ON_HOST;
     const FUSED_ELU_MEAN: bool = B::FUSED_ELU_MEAN;
     const NATIVE_CONV_OPS: bool = B::NATIVE_CONV_OPS;
-    /// Training on a GPU keeps the dense products whatever the inner backend's inference
-    /// does: they are deterministic, where CUDA's sparse P2G adds with atomics in no fixed
-    /// order (`cuda_stencil.rs`), and they are what every shipped model trained with.
-    const DENSE_STENCIL: bool = !B::ON_HOST;
+    /// The inner backend's: training takes the transfers inference takes (on CUDA the sparse
+    /// kernels, whose P2G sums in fixed point, so gradients are the same on every run).
+    const DENSE_STENCIL: bool = B::DENSE_STENCIL;
+
+    fn dense_stencil() -> bool {
+        B::dense_stencil()
+    }
 
     fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
         match B::NATIVE_CONV_OPS {
@@ -40,6 +44,17 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
             true => autodiff_grid::autodiff_silu::<B, C>(x),
             false => composed_grid::composed_silu::<Self>(x),
         }
+    }
+
+    /// The inner backend's stencil of the detached positions (a constant of the graph, as
+    /// `model::grid::transfer::composed_stencil` builds it), where it has one: on CUDA one
+    /// kernel instead of ~25 tensor operations, on the CPU one pass.
+    fn sparse_stencil(
+        pos: &FloatTensor<Self>,
+        n: usize,
+    ) -> Option<(IntTensor<Self>, FloatTensor<Self>)> {
+        let (index, weight) = B::sparse_stencil(&pos.primitive, n)?;
+        Some((index, <Self as AutodiffBackend>::from_inner(weight)))
     }
 
     fn stencil_gather(

@@ -10,9 +10,9 @@
 //! is [`NetOps::im2col`]'s (that of burn's `Conv2d` weight `[C_out, C_in, k, k]` flattened
 //! over its last three dims), the same as the CPU kernels of `cpu/conv.rs`.
 //!
-//! Each kernel runs one thread per output element and writes it once (col2im gathers the `k^2`
-//! columns that read an input element instead of scattering into it, so it needs no atomics
-//! and is deterministic). How a custom operation joins the fusion stream: see `cublas.rs`.
+//! im2col runs one cube per few rows of columns, staged through shared memory so that both
+//! its reads and its writes are coalesced; col2im one thread per output element, which gathers the `k^2` columns that read it instead of scattering into
+//! it, so it needs no atomics and is deterministic. How a custom operation joins the fusion stream: see `cublas.rs`.
 //!
 //! [`NetOps::im2col`]: super::NetOps::im2col
 
@@ -45,37 +45,64 @@ pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> 
 /// im2col: `input` `[B, H, W, C]` (contiguous) -> `output` `[B H W, C k^2]`. Output element
 /// `(row, i k^2 + ky k + kx)`, row = `(b H + y) W + x`, is channel `i` of input position
 /// `(y + ky - k/2, x + kx - k/2)`, or 0 outside the grid.
+///
+/// One cube per `r` consecutive rows (`rows` in all; cubes laid out 2-D past 65,535), in two
+/// coalesced passes through shared memory: its threads read the rows' `k^2` input positions
+/// channel by channel (adjacent threads, adjacent channels) into the tile in column order,
+/// then write the tile out as the rows' contiguous `r C k^2` columns. The sizes are
+/// compile-time, so every index is a division by a constant. One thread per output element
+/// straight from the input ran at a quarter of the H100's bandwidth (adjacent outputs read
+/// `k^2` different positions); one cube per row was latency-bound (docs/speed.md,
+/// "Roofline").
 #[cube(launch)]
 fn im2col_kernel<F: Float>(
     input: &Tensor<F>,
     output: &mut Tensor<F>,
-    h: u32,
-    w: u32,
-    c: u32,
+    rows: u32,
+    #[comptime] h: u32,
+    #[comptime] w: u32,
+    #[comptime] c: u32,
     #[comptime] k: u32,
+    #[comptime] r: u32,
     #[define(F)] _dtype: StorageType,
 ) {
-    if ABSOLUTE_POS >= output.len() {
+    let rows = rows as usize;
+    let (h, w, c, k, r) = (h as usize, w as usize, c as usize, k as usize, r as usize);
+    let first = (CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X) as usize * r;
+    if first >= rows {
         terminate!();
     }
-    let (h, w, c) = (h as usize, w as usize, c as usize);
-    let k = k as usize;
     let (kk, half) = (k * k, k / 2);
-    let pos = ABSOLUTE_POS;
-    let col = pos % (c * kk);
-    let row = pos / (c * kk);
-    let (i, s) = (col / kk, col % kk);
-    let (ky, kx) = (s / k, s % k);
-    let x = row % w;
-    let y = (row / w) % h;
-    let b = row / (w * h);
-    // Input position (y + ky - half, x + kx - half), kept unsigned: yy = y + ky.
-    let (yy, xx) = (y + ky, x + kx);
-    let mut value = F::new(0.0);
-    if yy >= half && yy < h + half && xx >= half && xx < w + half {
-        value = input[((b * h + yy - half) * w + xx - half) * c + i];
+    let width = c * kk;
+    let mut tile = SharedMemory::<F>::new(r * c * k * k);
+    // Pass 1: element j = (rr, s C + i) of the rows' inputs, offset s = ky k + kx, channel
+    // i; stored at the tile's column i k^2 + s of row rr.
+    let mut j = UNIT_POS_X as usize;
+    while j < r * width {
+        let rr = j / width;
+        let s = (j % width) / c;
+        let i = j % c;
+        let row = first + rr;
+        let (ky, kx) = (s / k, s % k);
+        let (x, y, b) = (row % w, (row / w) % h, row / (w * h));
+        // Input position (y + ky - half, x + kx - half), kept unsigned: yy = y + ky.
+        let (yy, xx) = (y + ky, x + kx);
+        let mut value = F::new(0.0);
+        if row < rows && yy >= half && yy < h + half && xx >= half && xx < w + half {
+            value = input[((b * h + yy - half) * w + xx - half) * c + i];
+        }
+        tile[rr * width + i * kk + s] = value;
+        j += CUBE_DIM_X as usize;
     }
-    output[pos] = value;
+    sync_cube();
+    // Pass 2: the rows' columns, in order.
+    let mut j = UNIT_POS_X as usize;
+    while j < r * width {
+        if first + j / width < rows {
+            output[first * width + j] = tile[j];
+        }
+        j += CUBE_DIM_X as usize;
+    }
 }
 
 /// col2im, the adjoint of [`im2col_kernel`]: `cols` `[B H W, C k^2]` (contiguous) ->
@@ -168,27 +195,52 @@ fn launch(
         shape,
         x.dtype,
     );
-    let units = out.meta.num_elements();
-    let cube_dim = CubeDim::new(&client, units);
-    let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
     let int = |v: usize| u32::try_from(v).expect("grid dimension fits u32");
     let dtype = out.dtype.into();
-    let run = match kind {
-        Kind::Im2col => im2col_kernel::launch::<CudaRuntime>,
-        Kind::Col2im => col2im_kernel::launch::<CudaRuntime>,
-    };
-    run(
-        &client,
-        cube_count,
-        cube_dim,
-        x.into_tensor_arg(),
-        out.clone().into_tensor_arg(),
-        int(h),
-        int(w),
-        int(c),
-        int(k),
-        dtype,
-    );
+    match kind {
+        Kind::Im2col => {
+            // r rows a cube, their tile at most 4,096 values (16 kB of shared memory), 256
+            // threads; the cubes over a 2-D grid when they are more than 65,535.
+            let rows = dims[0] * h * w;
+            let width = c * k * k;
+            let r = (4096 / width).clamp(1, 32);
+            let cubes = rows.div_ceil(r);
+            let x_count = cubes.clamp(1, 65_535);
+            let count = CubeCount::Static(int(x_count), int(cubes.div_ceil(x_count)), 1);
+            im2col_kernel::launch::<CudaRuntime>(
+                &client,
+                count,
+                CubeDim::new_1d(256),
+                x.into_tensor_arg(),
+                out.clone().into_tensor_arg(),
+                int(rows),
+                int(h),
+                int(w),
+                int(c),
+                int(k),
+                int(r),
+                dtype,
+            );
+        }
+        Kind::Col2im => {
+            // One thread per output element.
+            let units = out.meta.num_elements();
+            let cube_dim = CubeDim::new(&client, units);
+            let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
+            col2im_kernel::launch::<CudaRuntime>(
+                &client,
+                cube_count,
+                cube_dim,
+                x.into_tensor_arg(),
+                out.clone().into_tensor_arg(),
+                int(h),
+                int(w),
+                int(c),
+                int(k),
+                dtype,
+            );
+        }
+    }
     out
 }
 

@@ -7,18 +7,21 @@
 //! 2,500 particles on a 64 x 64 grid that intermediate is ~3 GB, and cubecl's kernel profile
 //! of one network call on an H100 put ~45 of its ~104 ms in those passes (docs/scale.md).
 //! The sparse form reads 9 nodes a particle: G2P is a gather (one thread per particle and
-//! channel, no atomics); P2G a scatter-add with one f32 atomic add per node, as MPM codes
-//! do their P2G on GPUs (Hu et al. 2019, "Taichi", the MLS-MPM example; Wang et al. 2020,
-//! "A massively parallel and scalable multi-GPU material point method"). The atomics sum in
-//! no fixed order, so P2G is exact to rounding but not bitwise reproducible: meant for
-//! inference only; training on a GPU keeps the dense products. The stencil itself
-//! ([`NetOps::sparse_stencil`]) is one kernel too.
+//! channel, no atomics); P2G a scatter-add with atomic adds, as MPM codes do their P2G on GPUs
+//! (Hu et al. 2019, "Taichi", the MLS-MPM example; Wang et al. 2020, "A massively parallel and
+//! scalable multi-GPU material point method"). f32 atomics sum in no fixed order, so such a
+//! P2G differs from run to run in its last bits, and so would every gradient that flows
+//! through it (G2P's backward is a P2G). These add in 64-bit fixed point instead
+//! ([`splat_kernel`]): integer sums do not depend on the order, so P2G, and training through
+//! it, is the same to the bit on every run. Inference and training on CUDA both take these
+//! kernels ([`NetOps::dense_stencil`]; `MINFLOW_CUDA_TRANSFERS=dense` takes the dense
+//! products back). The stencil itself ([`NetOps::sparse_stencil`]) is one kernel too.
 //!
-//! Inference on CUDA takes these ([`NetOps::dense_stencil`]). P2G's output is allocated
-//! contiguous and zeroed by [`zero_kernel`]: burn's `zeros_client` pitches each innermost row
-//! of CUDA memory to a power of two bytes (12 f32 channels -> a row stride of 16), while the
-//! kernel writes flat `row * c + j`. On one H100 every form matches the CPU backend to 1.2e-7
-//! (`minflow bench transfer --device cuda`).
+//! Outputs are allocated contiguous ([`contiguous_empty`]; P2G's sums zeroed by
+//! [`clear_kernel`]): burn's `zeros_client` pitches each innermost row of CUDA memory to a
+//! power of two bytes (12 f32 channels -> a row stride of 16), while the kernels write flat
+//! `row * c + j`. `minflow bench transfer --device cuda` checks every form against the CPU
+//! backend, and P2G's bits against the same values in reverse particle order.
 //!
 //! [`NetOps::stencil_gather`]: super::NetOps::stencil_gather
 //! [`NetOps::stencil_splat`]: super::NetOps::stencil_splat
@@ -62,12 +65,6 @@ fn gather_kernel<F: Float>(
         acc += weight[p * 9 + k] * grid[row * c + j];
     }
     out[ABSOLUTE_POS] = acc;
-}
-
-/// `slot += value`, atomically.
-#[cube]
-fn atomic_add<F: Float>(slot: &mut Atomic<F>, value: F) {
-    slot.fetch_add(value);
 }
 
 /// One axis of MLS-MPM's quadratic B-spline at distance `x` (grid units) from a node: `0.75 -
@@ -137,16 +134,38 @@ fn stencil_kernel<F: Float>(
     }
 }
 
-/// P2G, the adjoint of [`gather_kernel`]: `out[index[p, k], j] += weight[p, k] values[p, j]`;
-/// `values` `[B N, c]`, `index` and `weight` `[B N, 9]`, `out` `[B n^2, c]` zeroed first. One
-/// thread per value, nine atomic adds each.
+/// The fixed-point scale of P2G's deterministic sum: `2^61 / (count max)`, so that a node's
+/// sum of at most `count` contributions of at most `max` each stays below `2^61` (an `i64`
+/// holds `2^63`); 1 where `max` is 0. An infinite `max` gives 0 (the output is then NaN).
+#[cube]
+fn fixed_scale<F: Float>(max: F, count: u32) -> F {
+    let mut s = F::new(1.0);
+    if max > F::new(0.0) {
+        s = F::new(2305843009213693952.0) / (F::cast_from(count) * max);
+    }
+    s
+}
+
+/// P2G, the adjoint of [`gather_kernel`]: `acc[index[p, k], j] += weight[p, k] values[p, j]`
+/// in 64-bit fixed point: `values` `[B N, c]`, `index` and `weight` `[B N, 9]`, `max` `[1]`
+/// (the largest `|value|`), `acc` `[B n^2, c]` zeroed first; `count` = `B N` bounds the
+/// contributions to a node. One thread per value, nine atomic integer adds each.
+///
+/// Integer addition is associative, so the sum does not depend on the order the atomics land
+/// in: the result is the same to the bit on every run, which f32 atomics are not (the
+/// fixed-point accumulation of GPU molecular dynamics: Le Grand, Götz and Walker 2013,
+/// "SPFP: Speed without compromise", Comput. Phys. Commun. 184). Each contribution is
+/// truncated to `1 / scale` = `2^-61 count max`, about `3e-13 max` at 256 scenes of 2,500
+/// particles, far below f32's rounding of the sum.
 #[cube(launch)]
 fn splat_kernel<F: Float>(
     values: &Tensor<F>,
     index: &Tensor<i32>,
     weight: &Tensor<F>,
-    out: &mut Tensor<Atomic<F>>,
+    max: &Tensor<F>,
+    acc: &mut Tensor<Atomic<i64>>,
     c: u32,
+    count: u32,
     #[define(F)] _dtype: StorageType,
 ) {
     if ABSOLUTE_POS >= values.len() {
@@ -155,36 +174,57 @@ fn splat_kernel<F: Float>(
     let c = c as usize;
     let p = ABSOLUTE_POS / c;
     let j = ABSOLUTE_POS % c;
-    let v = values[ABSOLUTE_POS];
+    let v = values[ABSOLUTE_POS] * fixed_scale::<F>(max[0], count);
     #[unroll]
     for k in 0..9 {
         let row = usize::cast_from(index[p * 9 + k]);
-        atomic_add::<F>(&mut out[row * c + j], weight[p * 9 + k] * v);
+        acc[row * c + j].fetch_add(i64::cast_from(weight[p * 9 + k] * v));
     }
 }
 
-/// `out[i] = 0` for every element of a contiguous `out`: P2G's output before its atomic adds.
+/// `acc[i] = 0` for every element of a contiguous `acc`: P2G's sums before their atomic adds.
 /// (burn-cubecl's `zeros_client` allocates through the runtime's layout policy, which on CUDA
-/// pitches each innermost row to a power of two bytes: `[B, n^2, 12]` f32 gets row stride
-/// 16, not 12, and [`splat_kernel`]'s flat `row * c + j` then lands in the wrong rows. wgpu's
-/// policy is contiguous, which is why the same kernels matched there.)
+/// pitches each innermost row to a power of two bytes: `[B, n^2, 12]` gets row stride 16,
+/// not 12, and [`splat_kernel`]'s flat `row * c + j` would land in the wrong rows.)
 #[cube(launch)]
-fn zero_kernel<F: Float>(out: &mut Tensor<F>, #[define(F)] _dtype: StorageType) {
+fn clear_kernel(acc: &mut Tensor<i64>) {
+    if ABSOLUTE_POS >= acc.len() {
+        terminate!();
+    }
+    acc[ABSOLUTE_POS] = i64::new(0);
+}
+
+/// P2G's output from its fixed-point sums: `out[i] = acc[i] / scale` (f32); NaN everywhere
+/// when `max` is not finite (a NaN or infinite value went in).
+#[cube(launch)]
+fn unfix_kernel<F: Float>(
+    acc: &Tensor<i64>,
+    max: &Tensor<F>,
+    out: &mut Tensor<F>,
+    count: u32,
+    #[define(F)] _dtype: StorageType,
+) {
     if ABSOLUTE_POS >= out.len() {
         terminate!();
     }
-    out[ABSOLUTE_POS] = F::new(0.0);
+    let m = max[0];
+    let mut v = F::cast_from(acc[ABSOLUTE_POS]) / fixed_scale::<F>(m, count);
+    if m != m {
+        v = m;
+    }
+    out[ABSOLUTE_POS] = v;
 }
 
-/// Which of the two kernels a recorded operation launches.
+/// Which of the two transfers a recorded operation runs.
 #[derive(Clone, Copy, Debug)]
 enum Kind {
     Gather,
     Splat,
 }
 
-/// The recorded operation: inputs `[x, index, weight]` (x the grid or the values), output
-/// `[y]` of `out_shape`; `c` channels.
+/// The recorded operation: inputs `[x, index, weight]` (gather: x the grid) or `[x, index,
+/// weight, max]` (splat: x the values, `max` their largest `|value|`), output `[y]` of
+/// `out_shape`; `c` channels.
 #[derive(Debug)]
 struct StencilOp {
     desc: CustomOpIr,
@@ -195,36 +235,47 @@ struct StencilOp {
 
 impl Operation<Runtime> for StencilOp {
     fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
-        let ([x, index, weight], [y]) = self.desc.as_fixed();
-        let x = handles.get_float_tensor::<Inner>(x);
+        let (x, index, weight, max, y) = match self.kind {
+            Kind::Gather => {
+                let ([x, index, weight], [y]) = self.desc.as_fixed();
+                (x, index, weight, None, y)
+            }
+            Kind::Splat => {
+                let ([x, index, weight, max], [y]) = self.desc.as_fixed();
+                (x, index, weight, Some(max), y)
+            }
+        };
+        let x = contiguous(handles.get_float_tensor::<Inner>(x));
         let index = handles.get_int_tensor::<Inner>(index);
-        let weight = handles.get_float_tensor::<Inner>(weight);
-        let out = launch(x, index, weight, self);
+        // The kernels read 32-bit node indices (`Cuda<f32, i32>`'s); any other is cast.
+        let index = contiguous(match index.dtype {
+            DType::I32 => index,
+            _ => burn_cubecl::kernel::cast(index, DType::I32),
+        });
+        let weight = contiguous(handles.get_float_tensor::<Inner>(weight));
+        let out = match max {
+            None => launch_gather(x, index, weight, self),
+            Some(max) => {
+                let max = handles.get_float_tensor::<Inner>(max);
+                launch_splat(x, index, weight, contiguous(max), self)
+            }
+        };
         handles.register_float_tensor::<Inner>(&y.id, out);
     }
 }
 
-/// Launches `op`'s kernel; returns its new contiguous output.
-fn launch(
-    x: CubeTensor<CudaRuntime>,
-    index: CubeTensor<CudaRuntime>,
-    weight: CubeTensor<CudaRuntime>,
-    op: &StencilOp,
+/// A new contiguous tensor of `shape` and `dtype` on `like`'s device. Both kernels index
+/// their outputs flat (`row * c + j`), so never `zeros_client` / `empty_device_dtype`, whose
+/// CUDA layout is pitched (see [`clear_kernel`]).
+fn contiguous_empty(
+    like: &CubeTensor<CudaRuntime>,
+    shape: Shape,
+    dtype: DType,
 ) -> CubeTensor<CudaRuntime> {
-    // The kernels read 32-bit node indices (`Cuda<f32, i32>`'s); any other is cast.
-    let index = match index.dtype {
-        DType::I32 => index,
-        _ => burn_cubecl::kernel::cast(index, DType::I32),
-    };
-    let (x, index, weight) = (contiguous(x), contiguous(index), contiguous(weight));
-    let client = x.client.clone();
-    let (device, dtype) = (x.device.clone(), x.dtype);
-    // Both kernels index `out` flat (`row * c + j`), so it must be contiguous: never
-    // `zeros_client` / `empty_device_dtype`, whose CUDA layout is pitched (see `zero_kernel`).
     let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-        client.clone(),
-        device,
-        op.out_shape.clone(),
+        like.client.clone(),
+        like.device.clone(),
+        shape,
         dtype,
     );
     debug_assert!(
@@ -232,35 +283,34 @@ fn launch(
         "stencil output {:?} is not contiguous",
         out.meta
     );
-    if let Kind::Splat = op.kind {
-        let units = out.meta.num_elements();
-        let cube_dim = CubeDim::new(&client, units);
-        let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
-        zero_kernel::launch::<CudaRuntime>(
-            &client,
-            cube_count,
-            cube_dim,
-            out.clone().into_tensor_arg(),
-            dtype.into(),
-        );
-    }
-    // One thread per output element (gather) or per value (splat).
-    let units = match op.kind {
-        Kind::Gather => out.meta.num_elements(),
-        Kind::Splat => x.meta.num_elements(),
-    };
-    let cube_dim = CubeDim::new(&client, units);
-    let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
-    let c = u32::try_from(op.c).expect("channel count fits u32");
-    let run = match op.kind {
-        Kind::Gather => gather_kernel::launch::<CudaRuntime>,
-        Kind::Splat => splat_kernel::launch::<CudaRuntime>,
-    };
-    run(
-        &client,
-        cube_count,
+    out
+}
+
+/// The cube count and size of an element-wise launch over `units` threads.
+fn elementwise(client: &ComputeClient<CudaRuntime>, units: usize) -> (CubeCount, CubeDim) {
+    let cube_dim = CubeDim::new(client, units);
+    (
+        calculate_cube_count_elemwise(client, units, cube_dim),
         cube_dim,
-        x.into_tensor_arg(),
+    )
+}
+
+/// Launches [`gather_kernel`], one thread per output element; returns its output.
+fn launch_gather(
+    grid: CubeTensor<CudaRuntime>,
+    index: CubeTensor<CudaRuntime>,
+    weight: CubeTensor<CudaRuntime>,
+    op: &StencilOp,
+) -> CubeTensor<CudaRuntime> {
+    let (client, dtype) = (grid.client.clone(), grid.dtype);
+    let out = contiguous_empty(&grid, op.out_shape.clone(), dtype);
+    let (count, dim) = elementwise(&client, out.meta.num_elements());
+    let c = u32::try_from(op.c).expect("channel count fits u32");
+    gather_kernel::launch::<CudaRuntime>(
+        &client,
+        count,
+        dim,
+        grid.into_tensor_arg(),
         index.into_tensor_arg(),
         weight.into_tensor_arg(),
         out.clone().into_tensor_arg(),
@@ -270,7 +320,55 @@ fn launch(
     out
 }
 
-/// Records `kind` on the fusion stream of its inputs; returns its output of `out_shape`.
+/// Launches P2G's three kernels ([`clear_kernel`], [`splat_kernel`] one thread per value,
+/// [`unfix_kernel`]); returns the f32 output.
+fn launch_splat(
+    values: CubeTensor<CudaRuntime>,
+    index: CubeTensor<CudaRuntime>,
+    weight: CubeTensor<CudaRuntime>,
+    max: CubeTensor<CudaRuntime>,
+    op: &StencilOp,
+) -> CubeTensor<CudaRuntime> {
+    let (client, dtype) = (values.client.clone(), values.dtype);
+    let acc = contiguous_empty(&values, op.out_shape.clone(), DType::I64);
+    let out = contiguous_empty(&values, op.out_shape.clone(), dtype);
+    let nodes = out.meta.num_elements();
+    let c = u32::try_from(op.c).expect("channel count fits u32");
+    let particles = values.meta.num_elements() / op.c.max(1);
+    let count = u32::try_from(particles).expect("particle count fits u32");
+    let (cubes, dim) = elementwise(&client, nodes);
+    clear_kernel::launch::<CudaRuntime>(&client, cubes, dim, acc.clone().into_tensor_arg());
+    let (cubes, dim) = elementwise(&client, values.meta.num_elements());
+    splat_kernel::launch::<CudaRuntime>(
+        &client,
+        cubes,
+        dim,
+        values.into_tensor_arg(),
+        index.into_tensor_arg(),
+        weight.into_tensor_arg(),
+        max.clone().into_tensor_arg(),
+        acc.clone().into_tensor_arg(),
+        c,
+        count,
+        dtype.into(),
+    );
+    let (cubes, dim) = elementwise(&client, nodes);
+    unfix_kernel::launch::<CudaRuntime>(
+        &client,
+        cubes,
+        dim,
+        acc.into_tensor_arg(),
+        max.into_tensor_arg(),
+        out.clone().into_tensor_arg(),
+        count,
+        dtype.into(),
+    );
+    out
+}
+
+/// Records `kind` on the fusion stream of its inputs (`[x, index, weight]`, and for P2G the
+/// values' largest `|value|`, one reduction recorded first); returns its output of
+/// `out_shape`.
 fn record(
     kind: Kind,
     x: FloatTensor<Cuda>,
@@ -279,19 +377,29 @@ fn record(
     out_shape: Shape,
     c: usize,
 ) -> FloatTensor<Cuda> {
-    let name = match kind {
-        Kind::Gather => "minflow_stencil_gather",
-        Kind::Splat => "minflow_stencil_splat",
-    };
+    use burn::tensor::ops::FloatTensorOps;
     let client = x.client.clone();
     let dtype = x.dtype();
-    let streams = OperationStreams::with_inputs([&x, &index, &weight]);
     let out = TensorIr::uninit(client.create_empty_handle(), out_shape.clone(), dtype);
-    let desc = CustomOpIr::new(
-        name,
-        &[x.into_ir(), index.into_ir(), weight.into_ir()],
-        &[out],
-    );
+    let (name, desc, streams) = match kind {
+        Kind::Gather => {
+            let streams = OperationStreams::with_inputs([&x, &index, &weight]);
+            let inputs = [x.into_ir(), index.into_ir(), weight.into_ir()];
+            ("minflow_stencil_gather", inputs.to_vec(), streams)
+        }
+        Kind::Splat => {
+            let max = <Cuda as FloatTensorOps<Cuda>>::float_max_abs(x.clone());
+            let streams = OperationStreams::with_inputs([&x, &index, &weight, &max]);
+            let inputs = [
+                x.into_ir(),
+                index.into_ir(),
+                weight.into_ir(),
+                max.into_ir(),
+            ];
+            ("minflow_stencil_splat", inputs.to_vec(), streams)
+        }
+    };
+    let desc = CustomOpIr::new(name, &desc, &[out]);
     let op = StencilOp {
         desc: desc.clone(),
         kind,
@@ -339,7 +447,8 @@ pub(crate) fn gather(
 
 /// [`NetOps::stencil_splat`](super::NetOps::stencil_splat) on the GPU: `values` `[B, N, C]`,
 /// `index` `[B N 9]` (flat rows of a `[B nodes, C]` grid), `weight` `[B, N, 9]` ->
-/// `[B, nodes, C]`, one kernel after the output's zero fill. The caller's `index` must stay
+/// `[B, nodes, C]`, deterministic to the bit ([`splat_kernel`]: the values' largest
+/// `|value|`, then three kernels). The caller's `index` must stay
 /// below `B nodes` (the stencil's nodes lie on the grid: `model::grid::transfer`).
 ///
 /// # Panics

@@ -43,8 +43,8 @@
 //! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults, whose
 //!   element-wise chains burn's fusion layer compiles into single kernels, with the large
 //!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
-//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, which CUDA inference takes
-//!   ([`NetOps::dense_stencil`]; training keeps the dense products).
+//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, which CUDA inference and
+//!   training take ([`NetOps::dense_stencil`]; P2G sums in fixed point, the same on every run).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
@@ -435,7 +435,7 @@ pub trait NetOps: Backend {
     const DENSE_STENCIL: bool = !Self::ON_HOST;
 
     /// Whether the model takes the dense transfers this run: [`NetOps::DENSE_STENCIL`],
-    /// unless a backend lets the environment choose (CUDA inference: `MINFLOW_CUDA_TRANSFERS`).
+    /// unless a backend lets the environment choose (CUDA: `MINFLOW_CUDA_TRANSFERS=dense`).
     fn dense_stencil() -> bool {
         Self::DENSE_STENCIL
     }

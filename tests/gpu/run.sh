@@ -12,6 +12,14 @@
 #   tests/gpu/run.sh multi     # data parallel on two GPUs: parity with one GPU, throughput
 #   tests/gpu/run.sh grid      # the grid model: the GPU's im2col kernels against the composed
 #                              # ones (same first-epoch loss, samples/s), and PyTorch's step
+#   tests/gpu/run.sh kernels   # cubecl's kernel profile of a grid training step (batch 16) and
+#                              # of a 256-scene network call (docs/speed.md, "Roofline")
+#   tests/gpu/run.sh call256   # every shipped model's 256-scene call against the solver, the
+#                              # node at 256 streams x 62.5 Hz, and eval on the GPU (its
+#                              # metrics.csv to compare with a CPU run of the same command)
+#   tests/gpu/run.sh sparse    # the sparse transfers (bench transfer: CPU, dense, bits), and
+#                              # training and the 256-scene call with sparse against dense
+#                              # transfers, beside PyTorch's training step
 #
 # Logs go to $OUT (default /tmp/minflow-gpu). A part that fails prints FAIL and the script
 # goes on with the next one; the exit code is the number of failed parts.
@@ -159,6 +167,49 @@ grid() { # docs/grid.md, "GPU speed"
             "$OUT/grid-conv-$b.log"
         check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
             --precision fp32,tf32 --batch "$b"
+    done
+}
+
+kernels() { # docs/speed.md, "Roofline": every kernel of a training step and of a network call
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-train16.txt" \
+        check prof-train16 "$BIN" bench train --arch grid --device cuda --cores mingru \
+        --micro-batch 16 --samples 32 --epochs 1 --warmup-epochs 1
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-call256.txt" \
+        check prof-call256 "$BIN" bench rollout --device cuda --model models/all-grid-mingru \
+        --constraints off --scenes 256 --batch 256 --threads 16 --frames 3
+    gzip -f "$OUT"/kernels-*.txt
+}
+
+call256() { # docs/speed.md, "A predicted frame against a solver frame"; docs/scale.md
+    local models=()
+    for m in models/*/; do [ -f "$m/model.json" ] && models+=(--model "${m%/}"); done
+    check rollout-256-all "$BIN" bench rollout --device cuda "${models[@]}" --constraints off \
+        --scenes 256 --batch 256 --threads 16 --frames 20
+    for m in all-grid-mingru all-grid-mingru-small-k4; do
+        check "node-$m" "$BIN" bench node --device cuda --model "models/$m" --streams 256 \
+            --rate 62.5 --max-batch 256 --warm-up 12 --seconds 12
+    done
+    check eval-gpu "$BIN" eval --device cuda --model models/all-grid-mingru \
+        --model models/all-grid-mingru-small-k4 --data bags --split all --starts 3 --no-render \
+        --constraints off --out "$OUT/eval-gpu"
+}
+
+sparse() { # docs/cuda.md, "Sparse transfers"
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    check transfer "$BIN" bench transfer --device cuda
+    for b in 16 32; do
+        for form in sparse dense; do
+            check "grid-$form-$b" env MINFLOW_CUDA_TRANSFERS=$form "$BIN" bench train --arch grid \
+                --device cuda --cores mingru --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
+                --warmup-epochs 1 --stages
+        done
+        check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
+            --precision fp32,tf32 --batch "$b"
+    done
+    for form in sparse dense; do
+        check "rollout-256-$form" env MINFLOW_CUDA_TRANSFERS=$form "$BIN" bench rollout \
+            --device cuda --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 \
+            --constraints off --scenes 256 --batch 256 --threads 16 --frames 20
     done
 }
 

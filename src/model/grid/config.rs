@@ -241,6 +241,7 @@ impl GridConfig {
             update: self.update,
             deformation: self.deformation,
             host_pass: true,
+            dense_transfers: None,
             vel_scale: self.vel_scale,
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,

@@ -90,6 +90,16 @@ impl<B: NetOps> GridModel<B> {
         Self { host_pass, ..self }
     }
 
+    /// This model with its particle-grid transfers in separable dense form (`true`) or sparse
+    /// (`false`) whatever the backend would take ([`crate::ops::NetOps::dense_stencil`]); for
+    /// the test that holds the two equal over a rollout.
+    pub fn with_dense_transfers(self, dense: bool) -> Self {
+        Self {
+            dense_transfers: Some(dense),
+            ..self
+        }
+    }
+
     /// This model with its rest-shape features' F taken as `deformation` says
     /// ([`super::GridConfig::deformation`]): the same weights, the six features read from
     /// another F (fine-tuning a fitted-F model into an advected-F one).

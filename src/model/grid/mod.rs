@@ -84,6 +84,11 @@ pub struct GridModel<B: Backend> {
     /// test asks for the tensor path with [`GridModel::with_host_pass`]).
     #[module(skip)]
     host_pass: bool,
+    /// The particle-grid transfers' form when a test or bench fixes it ([`transfer::stencil`]'s
+    /// `dense`; [`GridModel::with_dense_transfers`]); the backend's choice,
+    /// [`NetOps::dense_stencil`], otherwise.
+    #[module(skip)]
+    dense_transfers: Option<bool>,
     vel_scale: [f32; 2],
     dv_mean: [f32; 2],
     dv_scale: [f32; 2],

@@ -45,7 +45,7 @@ impl<B: NetOps> GridModel<B> {
                                                                                    // Variant (a): F carried, advected after every frame; its features replace the fit's.
         let carried = self.advects().then(|| self.carried(&input, [b, n_p]));
         // P2G: the separable dense transfers where the backend has no sparse ones.
-        let s = transfer::stencil(input.pos.clone(), self.n, B::dense_stencil());
+        let s = transfer::stencil(input.pos.clone(), self.n, self.dense_transfers());
         let features = match &carried {
             Some((f, _)) => Some(rest::advect::features_of(f.clone())),
             None => self.rest_features(input.rest.as_ref(), &input.pos),
@@ -131,7 +131,7 @@ impl<B: NetOps> GridModel<B> {
         let mut frames = Vec::with_capacity(self.bundle);
         for k in 0..self.bundle {
             if k > 0 {
-                s = transfer::stencil(pos.clone(), self.n, B::dense_stencil());
+                s = transfer::stencil(pos.clone(), self.n, self.dense_transfers());
                 u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
                 features = match &carried {
                     Some((f, _)) => Some(rest::advect::features_of(f.clone())),
@@ -172,6 +172,10 @@ impl<B: NetOps> GridModel<B> {
     /// where nothing needs a gradient (inference, and the push-forward calls of CPU
     /// training), with the free head and no advected F.
     fn takes_host_pass(&self, input: &StepInput<B>) -> bool {
+        // A call with the transfers fixed dense runs as tensors, so that it uses them.
+        if self.dense_transfers == Some(true) {
+            return false;
+        }
         self.host_pass
             && B::ON_HOST
             && self.update == Update::Free
@@ -180,6 +184,12 @@ impl<B: NetOps> GridModel<B> {
             && !input.vel.is_require_grad()
             && !self.head_a.weight.val().is_require_grad()
             && !self.head_out.weight.val().is_require_grad()
+    }
+
+    /// Whether this call's transfers take the separable dense form: as fixed by
+    /// [`GridModel::with_dense_transfers`], else the backend's [`NetOps::dense_stencil`].
+    fn dense_transfers(&self) -> bool {
+        self.dense_transfers.unwrap_or_else(B::dense_stencil)
     }
 
     /// The carried F of `input` (`[B, N, 4]`; the fit to its rest neighbourhoods, the

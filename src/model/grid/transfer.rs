@@ -10,15 +10,18 @@
 //! every particle, so P2G conserves what it splats and G2P of a uniform field returns it
 //! exactly. [`stencil_host`] is the same computation in plain f32 for tests.
 //!
-//! Two equal ways to apply a stencil ([`Stencil::dense`] picks):
-//! - sparse, for the CPU: the 9 node indices and weights of each particle, P2G a weighted
-//!   scatter-add and G2P a weighted gather ([`ops::splat`], [`ops::gather`]: one pass each on
-//!   the CPU, burn's `select_assign` / `select` elsewhere);
-//! - separable dense, for the GPU: the weights factor per axis, `w_ip = wx_p[i_x] wy_p[i_y]`,
-//!   so with `Wx, Wy` (`[B, N, n]`, three non-zeros per row) P2G is
-//!   `Wx^T (Wy (x) v)` and G2P `sum_y Wy (Wx G)`: two batched matrix products, no scatter.
-//!   burn-cubecl's `select_assign` made a training step of a batch of 16 take over a second
-//!   on an H100; the products take milliseconds.
+//! Two equal ways to apply a stencil ([`Stencil::dense`] picks; [`NetOps::dense_stencil`]
+//! says which a backend takes):
+//! - sparse, for the CPU and CUDA: the 9 node indices and weights of each particle, P2G a
+//!   weighted scatter-add and G2P a weighted gather ([`ops::splat`], [`ops::gather`]: one
+//!   pass each on the CPU, one kernel each on CUDA, `ops/cuda_stencil.rs`; burn's
+//!   `select_assign` / `select` on other backends);
+//! - separable dense, for accelerators without transfer kernels: the weights factor per
+//!   axis, `w_ip = wx_p[i_x] wy_p[i_y]`, so with `Wx, Wy` (`[B, N, n]`, three non-zeros per
+//!   row) P2G is `Wx^T (Wy (x) v)` and G2P `sum_y Wy (Wx G)`: two batched matrix products, no
+//!   scatter. burn-cubecl's `select_assign` made a training step of a batch of 16 take over
+//!   a second on an H100; the products take milliseconds, the CUDA kernels a tenth of that
+//!   (`MINFLOW_CUDA_TRANSFERS=dense` takes the products there, to compare).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData, TensorPrimitive};

@@ -164,7 +164,7 @@ fn stages<B: AutodiffBackend + NetOps>(
 ) {
     let normal = Distribution::Normal(0.0, 1.0);
     let n = config.grid;
-    let dense = B::DENSE_STENCIL;
+    let dense = B::dense_stencil();
     let pos = Tensor::<B, 3>::random([b, n_p, 2], Distribution::Uniform(0.05, 0.95), device);
     let s = transfer::stencil(pos.clone(), n, dense);
     let repeats = 5;
