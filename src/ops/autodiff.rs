@@ -46,6 +46,18 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
         }
     }
 
+    fn im2col_linear(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        k: usize,
+    ) -> FloatTensor<Self> {
+        match B::NATIVE_CONV_OPS {
+            true => autodiff_grid::autodiff_im2col_linear::<B, C>(x, matrix, bias, k),
+            false => Self::linear_forward(Self::im2col(x, k), matrix, bias),
+        }
+    }
+
     /// The inner backend's stencil of the detached positions (a constant of the graph, as
     /// `model::grid::transfer::composed_stencil` builds it), where it has one: on CUDA one
     /// kernel instead of ~25 tensor operations, on the CPU one pass.

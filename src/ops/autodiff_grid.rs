@@ -1,5 +1,7 @@
 //! The autodiff nodes of the grid model's operations, on backends with native kernels for
-//! them ([`NetOps::NATIVE_CONV_OPS`]): im2col, whose backward is [`NetOps::col2im`]; SiLU,
+//! them ([`NetOps::NATIVE_CONV_OPS`]): im2col, whose backward is [`NetOps::col2im`]; a
+//! convolution's im2col and product as one node that keeps the input, not the columns
+//! ([`NetOps::im2col_linear`]); SiLU,
 //! whose backward is [`NetOps::silu_backward`] of the kept input; and the stencil transfers,
 //! each the other's gradient (G2P's backward is P2G of the output gradient, and P2G's is G2P;
 //! the stencil's nodes and weights are constants, so no gradient flows to them).
@@ -43,6 +45,86 @@ pub(crate) fn autodiff_im2col<B: NetOps, C: CheckpointStrategy>(
     {
         OpsKind::Tracked(prep) => prep.finish((shape, k), B::im2col(x.primitive, k)),
         OpsKind::UnTracked(prep) => prep.finish(B::im2col(x.primitive, k)),
+    }
+}
+
+/// The backward of [`NetOps::im2col_linear`] (`P` = 3 parents with a bias, 2 without): keeps
+/// the input `x` and the matrix, recomputes the columns with [`NetOps::im2col`], takes the
+/// product's gradients from [`NetOps::linear_backward`] and the input's through
+/// [`NetOps::col2im`].
+#[derive(Debug)]
+struct Im2colLinearBackward;
+
+impl<B: NetOps, const P: usize> Backward<B, P> for Im2colLinearBackward {
+    /// (input `[B, H, W, C]`, its dims, matrix `[C k^2, C_out]`, k).
+    type State = (FloatTensor<B>, [usize; 4], FloatTensor<B>, usize);
+
+    fn backward(self, ops: Ops<Self::State, P>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let (x, shape, matrix, k) = ops.state;
+        let grad = grads.consume::<B>(&ops.node);
+        let need = std::array::from_fn(|i| ops.parents.get(i).is_some_and(|p| p.is_some()));
+        let cols = B::im2col(x, k);
+        let [dcols, dmatrix, dbias] = B::linear_backward(cols, matrix, grad, need);
+        let parent_grads = [dcols.map(|d| B::col2im(d, shape, k)), dmatrix, dbias];
+        for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
+            if let (Some(parent), Some(g)) = (parent, g) {
+                grads.register::<B>(parent.id, g);
+            }
+        }
+    }
+}
+
+/// The autodiff node of [`NetOps::im2col_linear`] on backends with native kernels: one node
+/// that keeps `x`, not its columns.
+pub(crate) fn autodiff_im2col_linear<B: NetOps, C: CheckpointStrategy>(
+    x: FloatTensor<Autodiff<B, C>>,
+    matrix: FloatTensor<Autodiff<B, C>>,
+    bias: Option<FloatTensor<Autodiff<B, C>>>,
+    k: usize,
+) -> FloatTensor<Autodiff<B, C>> {
+    let shape = dims4::<B>(&x.primitive);
+    let forward = |x, m, b| B::linear_forward(B::im2col(x, k), m, b);
+    match bias {
+        Some(bias) => {
+            let nodes = [x.node.clone(), matrix.node.clone(), bias.node.clone()];
+            match <Im2colLinearBackward as Backward<B, 3>>::prepare::<C>(
+                Im2colLinearBackward,
+                nodes,
+            )
+            .compute_bound()
+            .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let out = forward(
+                        x.primitive.clone(),
+                        matrix.primitive.clone(),
+                        Some(bias.primitive),
+                    );
+                    prep.finish((x.primitive, shape, matrix.primitive, k), out)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(forward(x.primitive, matrix.primitive, Some(bias.primitive)))
+                }
+            }
+        }
+        None => {
+            let nodes = [x.node.clone(), matrix.node.clone()];
+            match <Im2colLinearBackward as Backward<B, 2>>::prepare::<C>(
+                Im2colLinearBackward,
+                nodes,
+            )
+            .compute_bound()
+            .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let out = forward(x.primitive.clone(), matrix.primitive.clone(), None);
+                    prep.finish((x.primitive, shape, matrix.primitive, k), out)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(forward(x.primitive, matrix.primitive, None))
+                }
+            }
+        }
     }
 }
 

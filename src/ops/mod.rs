@@ -43,8 +43,8 @@
 //! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults, whose
 //!   element-wise chains burn's fusion layer compiles into single kernels, with the large
 //!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
-//!   `cuda_stencil.rs`: sparse P2G / G2P and stencil kernels, which CUDA inference and
-//!   training take ([`NetOps::dense_stencil`]; P2G sums in fixed point, the same on every run).
+//!   `cuda_stencil.rs` (kernels in `cuda_stencil_kernels.rs`): sparse P2G / G2P and stencil
+//!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums in fixed point, the same on every run).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
@@ -66,6 +66,8 @@ mod cuda;
 mod cuda_conv;
 #[cfg(feature = "cuda")]
 mod cuda_stencil;
+#[cfg(feature = "cuda")]
+mod cuda_stencil_kernels;
 pub mod mingru;
 mod ndarray;
 pub mod prepared;
@@ -296,6 +298,22 @@ pub trait NetOps: Backend {
     /// product's weight matrix is a transposed view of it (no copy).
     fn im2col(x: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
         composed_grid::composed_im2col::<Self>(x, k)
+    }
+
+    /// A same-padding `k x k` convolution's product from its input, `im2col(x, k) @ matrix +
+    /// bias`: `x` `[B, H, W, C]`, `matrix` `[C k^2, C_out]` (a transposed view of burn's
+    /// weight, as [`NetOps::im2col`] says), `bias` `[C_out]` -> `[B H W, C_out]`. Composed by
+    /// default; the autodiff backend over a backend with native im2col records it as one node
+    /// that keeps `x` and recomputes the `k^2`-times larger columns in its backward instead of
+    /// keeping them (activation recomputation, Chen et al. 2016, "Training deep nets with
+    /// sublinear memory cost"): the kept columns were most of a GPU training step's memory.
+    fn im2col_linear(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        k: usize,
+    ) -> FloatTensor<Self> {
+        Self::linear_forward(Self::im2col(x, k), matrix, bias)
     }
 
     /// The adjoint of [`NetOps::im2col`] (im2col's gradient): `cols` `[B H W, C k^2]` ->

@@ -23,7 +23,7 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorPrimitive};
 
-use crate::ops::{im2col, pool2 as pool, silu, upsample2 as upsample, NetOps, PreparedWeights};
+use crate::ops::{pool2 as pool, silu, upsample2 as upsample, NetOps, PreparedWeights};
 
 /// How the U-Net's convolutions are computed; the weights and the result are the same.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -213,6 +213,22 @@ fn im2col_weight<B: Backend>(conv: &Conv2d<B>, offset: usize, c: usize) -> Tenso
         .reshape([k * k * c, c_out])
 }
 
+/// `im2col(x, k) @ matrix + bias` through [`NetOps::im2col_linear`].
+fn im2col_product<B: NetOps>(
+    x: Tensor<B, 4>,
+    matrix: Tensor<B, 2>,
+    bias: Option<Tensor<B, 1>>,
+    k: usize,
+) -> Tensor<B, 2> {
+    let y = B::im2col_linear(
+        x.into_primitive().tensor(),
+        matrix.into_primitive().tensor(),
+        bias.map(|b| b.into_primitive().tensor()),
+        k,
+    );
+    Tensor::from_primitive(TensorPrimitive::Float(y))
+}
+
 /// `rows @ matrix + bias` through [`NetOps::linear_forward`].
 fn product<B: NetOps>(
     rows: Tensor<B, 2>,
@@ -364,9 +380,9 @@ fn conv_parts_prepared<B: NetOps>(
 
 /// [`ConvKernel::Gather`] on a backend with native im2col ([`NetOps::NATIVE_CONV_OPS`]):
 /// a 3x3 kernel through [`NetOps::conv3x3_forward`] where the backend has it (the CPU's
-/// inference: Winograd F(4x4, 3x3)); otherwise each part through [`NetOps::im2col`] (one pass, columns ordered as burn's weight
-/// `[C_out, C_in, k, k]` flattens, so the weight matrix is a transposed view of it) and one
-/// product, the products summed.
+/// inference: Winograd F(4x4, 3x3)); otherwise each part through [`NetOps::im2col_linear`]
+/// (columns ordered as burn's weight `[C_out, C_in, k, k]` flattens, so the weight matrix
+/// is a transposed view of it; in training the columns are recomputed), the products summed.
 fn conv_parts_native<B: NetOps>(
     conv: &Conv2d<B>,
     parts: Vec<Tensor<B, 4>>,
@@ -382,15 +398,14 @@ fn conv_parts_native<B: NetOps>(
     let mut sum: Option<Tensor<B, 2>> = None;
     for x in parts {
         let c = x.dims()[3];
-        let cols = match k {
-            1 => x.reshape([b * h * w, c]),
-            _ => im2col(x, k),
-        };
         let matrix = weight
             .clone()
             .narrow(1, offset * k * k, c * k * k)
             .transpose();
-        let y = product(cols, matrix, bias.take());
+        let y = match k {
+            1 => product(x.reshape([b * h * w, c]), matrix, bias.take()),
+            _ => im2col_product(x, matrix, bias.take(), k),
+        };
         offset += c;
         sum = Some(match sum {
             Some(acc) => acc + y,
