@@ -82,49 +82,34 @@ pub(crate) fn autodiff_im2col_linear<B: NetOps, C: CheckpointStrategy>(
     bias: Option<FloatTensor<Autodiff<B, C>>>,
     k: usize,
 ) -> FloatTensor<Autodiff<B, C>> {
-    let shape = dims4::<B>(&x.primitive);
-    let forward = |x, m, b| B::linear_forward(B::im2col(x, k), m, b);
-    match bias {
-        Some(bias) => {
-            let nodes = [x.node.clone(), matrix.node.clone(), bias.node.clone()];
-            match <Im2colLinearBackward as Backward<B, 3>>::prepare::<C>(
-                Im2colLinearBackward,
-                nodes,
-            )
-            .compute_bound()
-            .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = forward(
-                        x.primitive.clone(),
-                        matrix.primitive.clone(),
-                        Some(bias.primitive),
-                    );
-                    prep.finish((x.primitive, shape, matrix.primitive, k), out)
-                }
-                OpsKind::UnTracked(prep) => {
-                    prep.finish(forward(x.primitive, matrix.primitive, Some(bias.primitive)))
-                }
-            }
+    let inner = (x.primitive.clone(), matrix.primitive.clone());
+    match &bias {
+        Some(b) => {
+            im2col_linear_node::<B, C, 3>([&x, &matrix, b], inner, Some(b.primitive.clone()), k)
         }
-        None => {
-            let nodes = [x.node.clone(), matrix.node.clone()];
-            match <Im2colLinearBackward as Backward<B, 2>>::prepare::<C>(
-                Im2colLinearBackward,
-                nodes,
-            )
-            .compute_bound()
-            .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = forward(x.primitive.clone(), matrix.primitive.clone(), None);
-                    prep.finish((x.primitive, shape, matrix.primitive, k), out)
-                }
-                OpsKind::UnTracked(prep) => {
-                    prep.finish(forward(x.primitive, matrix.primitive, None))
-                }
-            }
+        None => im2col_linear_node::<B, C, 2>([&x, &matrix], inner, None, k),
+    }
+}
+
+/// [`autodiff_im2col_linear`] with its `P` parents (`x`, the matrix and, when there is one,
+/// the bias) and their inner tensors.
+fn im2col_linear_node<B: NetOps, C: CheckpointStrategy, const P: usize>(
+    parents: [&FloatTensor<Autodiff<B, C>>; P],
+    (x, matrix): (FloatTensor<B>, FloatTensor<B>),
+    bias: Option<FloatTensor<B>>,
+    k: usize,
+) -> FloatTensor<Autodiff<B, C>> {
+    let nodes = parents.map(|t| t.node.clone());
+    match <Im2colLinearBackward as Backward<B, P>>::prepare::<C>(Im2colLinearBackward, nodes)
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let shape = dims4::<B>(&x);
+            let out = B::linear_forward(B::im2col(x.clone(), k), matrix.clone(), bias);
+            prep.finish((x, shape, matrix, k), out)
         }
+        OpsKind::UnTracked(prep) => prep.finish(B::linear_forward(B::im2col(x, k), matrix, bias)),
     }
 }
 

@@ -276,8 +276,8 @@ pub(crate) fn gather(
 /// [`NetOps::stencil_splat`](super::NetOps::stencil_splat) on the GPU: `values` `[B, N, C]`,
 /// `index` `[B N 9]` (flat rows of a `[B nodes, C]` grid), `weight` `[B, N, 9]` ->
 /// `[B, nodes, C]`, deterministic to the bit ([`splat_kernel`]: the values' largest
-/// `|value|`, then three kernels). The caller's `index` must stay
-/// below `B nodes` (the stencil's nodes lie on the grid: `model::grid::transfer`).
+/// `|value|`, then three kernels). The caller's `index` must stay below `B nodes` (the
+/// stencil's nodes lie on the grid: `model::grid::transfer`).
 ///
 /// # Panics
 /// The shapes do not match.

@@ -44,7 +44,8 @@
 //!   element-wise chains burn's fusion layer compiles into single kernels, with the large
 //!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
 //!   `cuda_stencil.rs` (kernels in `cuda_stencil_kernels.rs`): sparse P2G / G2P and stencil
-//!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums in fixed point, the same on every run).
+//!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums
+//!   in fixed point, the same on every run).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
