@@ -7,7 +7,7 @@
 
 use std::os::unix::process::CommandExt;
 use std::path::Path;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::Duration;
 
 use crate::transport_support::*;
@@ -16,7 +16,7 @@ use crate::transport_support::*;
 /// `timeout`.
 fn minflow_limited(args: &[&str], limit: u64, timeout: Duration) -> Output {
     let mut cmd = Command::new(minflow_bin());
-    cmd.args(args).stdout(Stdio::piped()).stderr(Stdio::piped());
+    cmd.args(args);
     // SAFETY: only async-signal-safe calls between fork and exec.
     unsafe {
         cmd.pre_exec(move || {
@@ -31,12 +31,7 @@ fn minflow_limited(args: &[&str], limit: u64, timeout: Duration) -> Output {
             }
         });
     }
-    let child = cmd.spawn().expect("starting minflow");
-    Node {
-        child: Some(child),
-        name: args[0].to_owned(),
-    }
-    .wait(timeout)
+    Node::start(args[0], &mut cmd).wait(timeout)
 }
 
 /// `minflow args` without a limit.

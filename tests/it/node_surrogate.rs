@@ -195,7 +195,19 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
         &Node::spawn_env("replay", &replay, &env).wait(Duration::from_secs(120)),
         "replay",
     );
-    let rec = ok(&recorder.wait(Duration::from_secs(120)), "record");
+    let rec = match recorder.wait_or_kill(Duration::from_secs(120)) {
+        Ok(rec) => ok(&rec, "record"),
+        Err(rec) => {
+            node.signal("INT");
+            let node_err = node.wait_or_kill(Duration::from_secs(30));
+            let node_err = node_err.unwrap_or_else(|e| e).stderr;
+            panic!(
+                "record did not get {expected} predictions within 120 s\nnode:\n{}\nrecord:\n{}",
+                log_tail(&node_err),
+                log_tail(&rec.stderr)
+            );
+        }
+    };
     node.signal("INT");
     let node_err = ok(&node.wait(Duration::from_secs(30)), "node");
     let n = assert_matches_offline((model, mirror), &out, &output, &bags);

@@ -128,18 +128,11 @@ impl Drop for Peer {
 
 /// A minflow node in `domain`.
 fn minflow(domain: &str, name: &str, args: &[&str]) -> Node {
-    let child = Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .args(args)
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_minflow"));
+    cmd.args(args)
         .env("ROS_DOMAIN_ID", domain)
-        .env_remove("ROS_DISTRO")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap_or_else(|e| panic!("starting {name}: {e}"));
-    Node {
-        child: Some(child),
-        name: name.into(),
-    }
+        .env_remove("ROS_DISTRO");
+    Node::start(name, &mut cmd)
 }
 
 /// Records of `ros2_peer.py --out` (u32 LE length + bytes).

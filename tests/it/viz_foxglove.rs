@@ -60,10 +60,9 @@ fn wait_for_line(
     panic!("{what} never said {prefix:?}:\n{}", all.join().unwrap());
 }
 
-/// The URL `node` serves Foxglove on (its `foxglove: serving on ws://...` line) and its stderr.
-fn served_url(node: &mut Node) -> (String, std::thread::JoinHandle<String>) {
-    let stderr = node.child.as_mut().unwrap().stderr.take().unwrap();
-    wait_for_line(stderr, "foxglove: serving on ", &node.name)
+/// The URL `node` serves Foxglove on (its `foxglove: serving on ws://...` line).
+fn served_url(node: &Node) -> String {
+    node.wait_for_stderr_line("foxglove: serving on ", Duration::from_secs(60))
 }
 
 /// Runs the Python client against `url`: `count` messages of `topic`, as JSON.
@@ -96,7 +95,7 @@ fn replay_serves_every_frame_as_a_point_cloud_to_a_foxglove_client() {
     assert!(n > 100, "{n} particles");
     let topic = unique_topic("viz");
     // The Foxglove client is the one subscriber replay waits for.
-    let mut player = Node::spawn(
+    let player = Node::spawn(
         "replay",
         &[
             "replay",
@@ -111,7 +110,7 @@ fn replay_serves_every_frame_as_a_point_cloud_to_a_foxglove_client() {
             "60",
         ],
     );
-    let (url, stderr) = served_url(&mut player);
+    let url = served_url(&player);
     let points = format!("{topic}/points");
     let got = client(&url, &points, want.len());
     assert_eq!(got["subprotocol"], "foxglove.sdk.v1");
@@ -139,8 +138,7 @@ fn replay_serves_every_frame_as_a_point_cloud_to_a_foxglove_client() {
         assert_eq!(first[7], f64::from(frame.material[0]));
     }
     let out = player.wait(Duration::from_secs(60));
-    let mut log = ok(&out, "replay");
-    log.push_str(&stderr.join().unwrap());
+    let log = ok(&out, "replay");
     assert!(log.contains("replay: 25 frame(s)"), "{log}");
 }
 
@@ -226,7 +224,7 @@ fn node_colours_its_predictions_by_their_error_against_the_truth() {
     let input = unique_topic("vizin");
     let output = unique_topic("vizout");
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/all-grid-mingru-small");
-    let mut node = Node::spawn(
+    let node = Node::spawn(
         "node",
         &[
             "node",
@@ -246,7 +244,7 @@ fn node_colours_its_predictions_by_their_error_against_the_truth() {
             "64",
         ],
     );
-    let (url, _stderr) = served_url(&mut node);
+    let url = served_url(&node);
     // The client subscribes before the first frame is played.
     let python = interpreter();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/foxglove_client.py");

@@ -1,19 +1,62 @@
 //! Helpers for tests that run `minflow` nodes as separate processes: spawning with a kill
-//! guard, waiting with a deadline, reading bags back as raw message bytes.
+//! guard, draining their output while they run, waiting with a deadline, reading bags back
+//! as raw message bytes.
 
 #![allow(dead_code)]
 
+use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use minflow::bag::{bag_paths, BagReader};
 
-/// A child process killed on drop (tests never leak nodes).
+/// A child process killed on drop (tests never leak nodes). Its stdout and stderr are read
+/// by threads of their own while it runs: a child whose output nobody reads stalls once a
+/// pipe's 64 KiB are full (a DDS node at `RUST_LOG=info` logs discovery every few seconds).
 pub struct Node {
     pub child: Option<Child>,
     pub name: String,
+    stdout: Drain,
+    stderr: Drain,
+}
+
+/// Everything one pipe of a child said so far, read by a thread until the pipe closes.
+struct Drain {
+    text: Arc<Mutex<Vec<u8>>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Drain {
+    fn start(mut pipe: impl Read + Send + 'static) -> Drain {
+        let text = Arc::new(Mutex::new(Vec::new()));
+        let sink = Arc::clone(&text);
+        let thread = std::thread::spawn(move || {
+            let mut buf = [0u8; 8192];
+            while let Ok(n @ 1..) = pipe.read(&mut buf) {
+                sink.lock().unwrap().extend_from_slice(&buf[..n]);
+            }
+        });
+        Drain {
+            text,
+            thread: Some(thread),
+        }
+    }
+
+    /// Waits until the pipe closed (the child exited) and returns all it said.
+    fn finish(&mut self) -> Vec<u8> {
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+        std::mem::take(&mut *self.text.lock().unwrap())
+    }
+
+    fn now(&self) -> String {
+        String::from_utf8_lossy(&self.text.lock().unwrap()).into_owned()
+    }
 }
 
 /// The `minflow` binary the tests run: `$MINFLOW_BIN` when set (a copy of this build's
@@ -49,39 +92,89 @@ impl Node {
 
     /// [`Node::spawn`] with more environment variables.
     pub fn spawn_env(name: &str, args: &[&str], env: &[(&str, String)]) -> Node {
-        let child = Command::new(minflow_bin())
-            .args(args)
+        let mut cmd = Command::new(minflow_bin());
+        cmd.args(args)
             .env("RUST_LOG", "info")
-            .envs(env.iter().map(|(k, v)| (k, v)))
+            .envs(env.iter().map(|(k, v)| (k, v)));
+        Node::start(name, &mut cmd)
+    }
+
+    /// Starts `cmd` with its stdout and stderr piped to threads that keep what it says.
+    pub fn start(name: &str, cmd: &mut Command) -> Node {
+        let mut child = cmd
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("starting {name}: {e}"));
+        let stdout = Drain::start(child.stdout.take().unwrap());
+        let stderr = Drain::start(child.stderr.take().unwrap());
         Node {
             child: Some(child),
             name: name.into(),
+            stdout,
+            stderr,
         }
     }
 
     /// Waits for exit (killing the process at the deadline) and returns its output.
-    pub fn wait(mut self, timeout: Duration) -> Output {
+    pub fn wait(self, timeout: Duration) -> Output {
+        let name = self.name.clone();
+        self.wait_or_kill(timeout).unwrap_or_else(|out| {
+            panic!(
+                "{name} did not finish within {timeout:?}; stderr:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            )
+        })
+    }
+
+    /// Waits for exit at most `timeout`: its output, or (`Err`) what it said before it was
+    /// killed at the deadline.
+    pub fn wait_or_kill(mut self, timeout: Duration) -> Result<Output, Output> {
         let mut child = self.child.take().unwrap();
         let deadline = Instant::now() + timeout;
-        loop {
-            if child.try_wait().unwrap().is_some() {
-                return child.wait_with_output().unwrap();
+        let (status, in_time) = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break (status, true);
             }
             if Instant::now() > deadline {
                 let _ = child.kill();
-                let out = child.wait_with_output().unwrap();
-                panic!(
-                    "{} did not finish within {timeout:?}; stderr:\n{}",
-                    self.name,
-                    String::from_utf8_lossy(&out.stderr)
-                );
+                break (child.wait().unwrap(), false);
             }
             std::thread::sleep(Duration::from_millis(20));
+        };
+        let output = Output {
+            status,
+            stdout: self.stdout.finish(),
+            stderr: self.stderr.finish(),
+        };
+        if in_time {
+            Ok(output)
+        } else {
+            Err(output)
         }
+    }
+
+    /// Waits (at most `timeout`) for a line of stderr starting with `prefix` and returns the
+    /// rest of that line; panics with what the process said when none came.
+    pub fn wait_for_stderr_line(&self, prefix: &str, timeout: Duration) -> String {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let said = self.stderr.now();
+            if let Some(rest) = said.lines().find_map(|l| l.strip_prefix(prefix)) {
+                return rest.trim().to_owned();
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{} never said {prefix:?}:\n{said}",
+                self.name
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Everything the process wrote to stderr so far.
+    pub fn stderr_so_far(&self) -> String {
+        self.stderr.now()
     }
 
     /// Sends `signal` (e.g. "KILL", "TERM") to the process.
@@ -103,6 +196,26 @@ impl Drop for Node {
             let _ = child.wait();
         }
     }
+}
+
+/// The last 40 lines of a process's stderr that are not the DDS stack's discovery chatter
+/// (its multi-line locator updates), for a failure message.
+pub fn log_tail(stderr: &[u8]) -> String {
+    let text = String::from_utf8_lossy(stderr);
+    let lines: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            !l.starts_with(' ')
+                && ![
+                    "Locators in ReaderProxy",
+                    "INFO Unicast:",
+                    "INFO Multicast:",
+                ]
+                .iter()
+                .any(|chatter| l.contains(chatter))
+        })
+        .collect();
+    lines[lines.len().saturating_sub(40)..].join("\n")
 }
 
 /// Asserts success and returns stderr.
