@@ -6,8 +6,9 @@
 # unseen `mixed` scenes, whole scenes and 20-step rollouts. CI has no GPU and does not run
 # this. From the repository root, with minflow built with `--features cuda` in gpu/:
 #
-#   tests/gpu/scenes.sh data MIXED       # seed 1 (training: paper + MIXED mixed scenes),
-#                                        # seed 7 (unseen), the held-out scene files
+#   tests/gpu/scenes.sh data MIXED       # seed 1 (training: paper + MIXED mixed scenes, a
+#                                        # count or a range such as 800..1200), seed 7
+#                                        # (unseen), the held-out scene files
 #   tests/gpu/scenes.sh start MINUTES    # the fine-tunes, in the background
 #   tests/gpu/scenes.sh wait             # until they have ended
 #   tests/gpu/scenes.sh fit              # the new runs' constraints (constraints fit)
@@ -15,18 +16,37 @@
 #                                        # sets, h20 and full: OUT/{heldout,unseen,mixed}-h*
 #   tests/gpu/scenes.sh pack             # the tables of OUT as OUT/tables.tgz
 #
-# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data).
+# Environment: OUT (logs and results, default /tmp/minflow-gpu), DATA (default /tmp/data),
+# FROM (the models the fine-tunes start from: `parents`, the default, for -rest and
+# -small-k4; `mixed` to go on from -rest-mixed and -small-k4-mixed), TRAIN_ONLY=1 (`data`
+# makes only the training scenes).
 set -uo pipefail
 . "$(dirname "$0")/common.sh"
-SMALL=(--model mingru --init-from models/all-grid-mingru-small-k4 --grid 32 --unet-width 16
-    --levels 3 --reference none --bundle 4 --rollout-steps 4)
-REST=(--model mingru --init-from models/all-grid-mingru-rest --rest-shape fit --rollout-steps 8)
+case "${FROM:-parents}" in
+parents) suffix= ;;
+mixed) suffix=-mixed ;;
+*) echo "FROM must be parents or mixed" >&2; exit 2 ;;
+esac
+SMALL=(--model mingru --init-from "models/all-grid-mingru-small-k4$suffix" --grid 32
+    --unet-width 16 --levels 3 --reference none --bundle 4 --rollout-steps 4)
+REST=(--model mingru --init-from "models/all-grid-mingru-rest$suffix" --rest-shape fit
+    --rollout-steps 8)
 
 case "${1:-}" in
 data)
-    make_data
-    "$BIN" simulate --family mixed --seed 1 --scenes "0..${2:-500}" --jobs "$(nproc)" \
+    range=${2:-500}
+    [[ $range == *..* ]] || range="0..$range"
+    if [ -n "${TRAIN_ONLY:-}" ]; then
+        for family in multi fluid; do
+            "$BIN" simulate --family "$family" --seed 1 --jobs "$(nproc)" \
+                --out "$DATA/$family" 2>&1 | tail -n 1
+        done
+    else
+        make_data
+    fi
+    "$BIN" simulate --family mixed --seed 1 --scenes "$range" --jobs "$(nproc)" \
         --out "$DATA/mixed" 2>&1 | tail -n 1
+    [ -n "${TRAIN_ONLY:-}" ] && exit 0
     "$BIN" simulate --family mixed --seed 7 --scenes 0..16 --jobs "$(nproc)" \
         --out "$DATA/unseen_mixed" 2>&1 | tail -n 1
     files=()
