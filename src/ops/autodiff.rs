@@ -269,6 +269,23 @@ fn linear_node<B: NetOps, C: CheckpointStrategy>(
     bias: Option<FloatTensor<Autodiff<B, C>>>,
     elu: bool,
 ) -> FloatTensor<Autodiff<B, C>> {
+    let inner = (x.primitive.clone(), weight.primitive.clone());
+    match &bias {
+        Some(b) => {
+            linear_parents_node::<B, C, 3>([&x, &weight, b], inner, Some(b.primitive.clone()), elu)
+        }
+        None => linear_parents_node::<B, C, 2>([&x, &weight], inner, None, elu),
+    }
+}
+
+/// [`linear_node`] with its `P` parents (`x`, the weight and, when there is one, the bias)
+/// and their inner tensors.
+fn linear_parents_node<B: NetOps, C: CheckpointStrategy, const P: usize>(
+    parents: [&FloatTensor<Autodiff<B, C>>; P],
+    (x, weight): (FloatTensor<B>, FloatTensor<B>),
+    bias: Option<FloatTensor<B>>,
+    elu: bool,
+) -> FloatTensor<Autodiff<B, C>> {
     let forward = |x, w, b| {
         if elu {
             B::linear_elu_forward(x, w, b)
@@ -276,43 +293,17 @@ fn linear_node<B: NetOps, C: CheckpointStrategy>(
             B::linear_forward(x, w, b)
         }
     };
-    match bias {
-        Some(bias) => {
-            let nodes = [x.node.clone(), weight.node.clone(), bias.node.clone()];
-            match <LinearBackward as Backward<B, 3>>::prepare::<C>(LinearBackward, nodes)
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = forward(
-                        x.primitive.clone(),
-                        weight.primitive.clone(),
-                        Some(bias.primitive),
-                    );
-                    let keep = elu.then(|| out.clone());
-                    prep.finish((x.primitive, weight.primitive, keep), out)
-                }
-                OpsKind::UnTracked(prep) => {
-                    prep.finish(forward(x.primitive, weight.primitive, Some(bias.primitive)))
-                }
-            }
+    let nodes = parents.map(|t| t.node.clone());
+    match <LinearBackward as Backward<B, P>>::prepare::<C>(LinearBackward, nodes)
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let out = forward(x.clone(), weight.clone(), bias);
+            let keep = elu.then(|| out.clone());
+            prep.finish((x, weight, keep), out)
         }
-        None => {
-            let nodes = [x.node.clone(), weight.node.clone()];
-            match <LinearBackward as Backward<B, 2>>::prepare::<C>(LinearBackward, nodes)
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = forward(x.primitive.clone(), weight.primitive.clone(), None);
-                    let keep = elu.then(|| out.clone());
-                    prep.finish((x.primitive, weight.primitive, keep), out)
-                }
-                OpsKind::UnTracked(prep) => {
-                    prep.finish(forward(x.primitive, weight.primitive, None))
-                }
-            }
-        }
+        OpsKind::UnTracked(prep) => prep.finish(forward(x, weight, bias)),
     }
 }
 
