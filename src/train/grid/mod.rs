@@ -41,10 +41,9 @@ pub use validate::validation_rollout;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use burn::grad_clipping::GradientClippingConfig;
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
-use burn::optim::{Adam, AdamConfig, GradientsParams, Optimizer};
+use burn::optim::{GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ElementConversion;
 use rand::{Rng, SeedableRng};
@@ -52,6 +51,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
+use super::optimizer::FusedAdam;
 use super::source::BatchSource;
 use super::{EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, Trajectory};
@@ -282,11 +282,8 @@ where
             },
             None => initial_grid_model(&self.config, opts.seed, &self.device)?,
         };
-        let mut adam = AdamConfig::new().with_epsilon(1e-8);
-        if opts.clip > 0.0 {
-            adam = adam.with_grad_clipping(Some(GradientClippingConfig::Norm(opts.clip)));
-        }
-        let mut optim = adam.init::<B, GridModel<B>>();
+        let clip = (opts.clip > 0.0).then_some(opts.clip);
+        let mut optim = FusedAdam::default().init_clipped::<B, GridModel<B>>(clip);
         let mut history = Vec::new();
         if resume {
             if let Some(state) = checkpoint::load::<B, _, _>(
@@ -370,8 +367,9 @@ where
     }
 }
 
-/// Adam over a grid model, as [`GridTrainer`] builds it.
-type GridOptim<B> = OptimizerAdaptor<Adam, GridModel<B>, B>;
+/// Adam over a grid model, as [`GridTrainer`] builds it: one fused step per parameter
+/// ([`FusedAdam`]) after burn's per-parameter gradient clipping.
+type GridOptim<B> = OptimizerAdaptor<FusedAdam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
 
