@@ -160,7 +160,9 @@ impl Node {
         let deadline = Instant::now() + timeout;
         loop {
             let said = self.stderr.now();
-            if let Some(rest) = said.lines().find_map(|l| l.strip_prefix(prefix)) {
+            // Whole lines only: the pipe may have delivered half of the last one.
+            let whole = &said[..said.rfind('\n').map_or(0, |i| i + 1)];
+            if let Some(rest) = whole.lines().find_map(|l| l.strip_prefix(prefix)) {
                 return rest.trim().to_owned();
             }
             assert!(
@@ -170,11 +172,6 @@ impl Node {
             );
             std::thread::sleep(Duration::from_millis(20));
         }
-    }
-
-    /// Everything the process wrote to stderr so far.
-    pub fn stderr_so_far(&self) -> String {
-        self.stderr.now()
     }
 
     /// Sends `signal` (e.g. "KILL", "TERM") to the process.
