@@ -54,7 +54,7 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
     ) -> FloatTensor<Self> {
         match B::NATIVE_CONV_OPS {
             true => autodiff_grid::autodiff_im2col_linear::<B, C>(x, matrix, bias, k),
-            false => Self::linear_forward(Self::im2col(x, k), matrix, bias),
+            false => composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k),
         }
     }
 

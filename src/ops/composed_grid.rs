@@ -59,6 +59,21 @@ pub(crate) fn composed_im2col<B: NetOps>(x: FloatTensor<B>, k: usize) -> FloatTe
         .tensor()
 }
 
+/// Composed [`NetOps::im2col_linear`]: the columns materialised, then one product,
+/// `im2col(x, k) @ matrix + bias` (on the autodiff backend both are nodes, and the columns
+/// are kept for the backward).
+///
+/// # Shapes
+/// - `x`: `[B, H, W, C]`, `matrix` `[C k^2, C_out]`, `bias` `[C_out]` -> `[B H W, C_out]`
+pub(crate) fn composed_im2col_linear<B: NetOps>(
+    x: FloatTensor<B>,
+    matrix: FloatTensor<B>,
+    bias: Option<FloatTensor<B>>,
+    k: usize,
+) -> FloatTensor<B> {
+    B::linear_forward(B::im2col(x, k), matrix, bias)
+}
+
 /// Composed col2im, the adjoint of [`composed_im2col`]: each offset's block added back at
 /// its shifted position of a zero-padded grid, which is then cropped.
 ///

@@ -42,6 +42,19 @@ pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> 
     }
 }
 
+/// The cube count and size of an element-wise launch over `units` threads (what the custom
+/// kernels here and in `cuda_stencil.rs` that run one thread per element launch with).
+pub(super) fn elementwise(
+    client: &ComputeClient<CudaRuntime>,
+    units: usize,
+) -> (CubeCount, CubeDim) {
+    let cube_dim = CubeDim::new(client, units);
+    (
+        calculate_cube_count_elemwise(client, units, cube_dim),
+        cube_dim,
+    )
+}
+
 /// im2col: `input` `[B, H, W, C]` (contiguous) -> `output` `[B H W, C k^2]`. Output element
 /// `(row, i k^2 + ky k + kx)`, row = `(b H + y) W + x`, is channel `i` of input position
 /// `(y + ky - k/2, x + kx - k/2)`, or 0 outside the grid.
@@ -224,9 +237,7 @@ fn launch(
         }
         Kind::Col2im => {
             // One thread per output element.
-            let units = out.meta.num_elements();
-            let cube_dim = CubeDim::new(&client, units);
-            let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
+            let (cube_count, cube_dim) = elementwise(&client, out.meta.num_elements());
             col2im_kernel::launch::<CudaRuntime>(
                 &client,
                 cube_count,

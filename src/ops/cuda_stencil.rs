@@ -31,14 +31,12 @@
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorMetadata};
-use burn_cubecl::cubecl;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
-use cubecl::{calculate_cube_count_elemwise, prelude::*};
 
-use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
+use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use super::cuda_stencil_kernels::{
     clear_kernel, gather_kernel, splat_kernel, stencil_kernel, unfix_kernel,
 };
@@ -112,15 +110,6 @@ fn contiguous_empty(
         out.meta
     );
     out
-}
-
-/// The cube count and size of an element-wise launch over `units` threads.
-fn elementwise(client: &ComputeClient<CudaRuntime>, units: usize) -> (CubeCount, CubeDim) {
-    let cube_dim = CubeDim::new(client, units);
-    (
-        calculate_cube_count_elemwise(client, units, cube_dim),
-        cube_dim,
-    )
 }
 
 /// Launches [`gather_kernel`], one thread per output element; returns its output.
@@ -332,9 +321,7 @@ impl Operation<Runtime> for BuildOp {
             Shape::new([b, n_p, 9]),
             dtype,
         );
-        let units = b * n_p;
-        let cube_dim = CubeDim::new(&client, units);
-        let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
+        let (cube_count, cube_dim) = elementwise(&client, b * n_p);
         let int = |v: usize| u32::try_from(v).expect("stencil dimension fits u32");
         stencil_kernel::launch::<CudaRuntime>(
             &client,

@@ -314,7 +314,7 @@ pub trait NetOps: Backend {
         bias: Option<FloatTensor<Self>>,
         k: usize,
     ) -> FloatTensor<Self> {
-        Self::linear_forward(Self::im2col(x, k), matrix, bias)
+        composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k)
     }
 
     /// The adjoint of [`NetOps::im2col`] (im2col's gradient): `cols` `[B H W, C k^2]` ->
