@@ -4,13 +4,14 @@
 //!
 //! [`NetOps::adam_step`]: super::NetOps::adam_step
 
+use burn::grad_clipping::GradientClipping;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 
 /// The scalars of one Adam step (Kingma & Ba 2015, Algorithm 1; epsilon added to
-/// `sqrt(v) * sqrt(1 - b2^t)` as in PyTorch and burn): learning rate, betas, epsilon and the
-/// step number `t` (1 for the first step).
+/// `sqrt(v) * sqrt(1 - b2^t)` as in PyTorch and burn): learning rate, betas, epsilon, the
+/// step number `t` (1 for the first step) and the gradient's norm clipping.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdamStep {
     /// Learning rate.
@@ -23,6 +24,10 @@ pub struct AdamStep {
     pub epsilon: f32,
     /// Step number, from 1.
     pub time: usize,
+    /// The gradient clipped to this L2 norm first (burn's `GradientClipping::Norm`, over the
+    /// parameter tensor: `g * min(1, max_norm / (|g| + f32::MIN_POSITIVE))`); None: not
+    /// clipped.
+    pub max_norm: Option<f32>,
 }
 
 impl AdamStep {
@@ -35,7 +40,7 @@ impl AdamStep {
 }
 
 /// [`NetOps::adam_step`](super::NetOps::adam_step) with burn's tensor ops (the same arithmetic
-/// as `burn::optim::Adam`).
+/// as `burn::optim::Adam` behind burn's `GradientClipping::Norm`).
 pub(crate) fn composed_adam<B: Backend>(
     param: FloatTensor<B>,
     grad: FloatTensor<B>,
@@ -47,7 +52,10 @@ pub(crate) fn composed_adam<B: Backend>(
     let shape = param.shape();
     let n = shape.num_elements();
     let flat = |p| t(B::float_reshape(p, [n].into()));
-    let (param, grad) = (flat(param), flat(grad));
+    let (param, mut grad) = (flat(param), flat(grad));
+    if let Some(norm) = c.max_norm {
+        grad = GradientClipping::Norm(norm).clip_gradient(grad);
+    }
     let m1 = grad.clone().mul_scalar(1.0 - c.beta_1);
     let m2 = grad.square().mul_scalar(1.0 - c.beta_2);
     let m1 = match m {

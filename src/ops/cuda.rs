@@ -1,11 +1,20 @@
 //! [`NetOps`] for burn's CUDA backend (feature `cuda`, `--device cuda`): the composed
 //! defaults, with the large products through cuBLAS ([`super::cublas`]), the grid model's
 //! im2col / col2im as single kernels ([`super::cuda_conv`]), and sparse stencil, P2G and G2P
-//! kernels ([`super::cuda_stencil`]; inference and training take them).
+//! kernels ([`super::cuda_stencil`]; inference and training take them), and the Adam step
+//! with its gradient clipping as one kernel ([`super::cuda_adam`]); inference runs the 3x3
+//! convolutions as implicit GEMMs ([`super::cuda_implicit_conv`]).
 
 use burn::tensor::ops::{FloatTensor, IntTensor};
 
 use super::NetOps;
+
+/// Whether `MINFLOW_CUDA_ADAM=composed` asks for burn's composed Adam step instead of the
+/// kernel of [`super::cuda_adam`], to compare the two in one binary (docs/speed.md).
+fn composed_adam() -> bool {
+    static COMPOSED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *COMPOSED.get_or_init(|| std::env::var("MINFLOW_CUDA_ADAM").is_ok_and(|v| v == "composed"))
+}
 
 /// The composed defaults, whose element-wise chains burn's fusion layer compiles into single
 /// kernels; the large products go to cuBLAS, which also splits their long reductions.
@@ -55,6 +64,34 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
 
     fn col2im(cols: FloatTensor<Self>, shape: [usize; 4], k: usize) -> FloatTensor<Self> {
         super::cuda_conv::col2im(cols, shape, k)
+    }
+
+    fn adam_step(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        m: Option<FloatTensor<Self>>,
+        v: Option<FloatTensor<Self>>,
+        c: &super::AdamStep,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        if composed_adam() {
+            return super::adam_step::composed_adam::<Self>(param, grad, m, v, c);
+        }
+        super::cuda_adam::adam_step(param, grad, m, v, c)
+    }
+
+    fn conv3x3_forward(
+        parts: &[FloatTensor<Self>],
+        weight: &FloatTensor<Self>,
+        bias: Option<&FloatTensor<Self>>,
+        silu: bool,
+        prepared: &super::PreparedWeights,
+    ) -> Option<FloatTensor<Self>> {
+        let _ = prepared;
+        if !super::cuda_implicit_conv::implicit() {
+            return None;
+        }
+        let y = super::cuda_implicit_conv::conv3x3(parts, weight, bias);
+        Some(if silu { Self::silu(y) } else { y })
     }
 
     fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {

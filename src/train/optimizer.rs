@@ -8,7 +8,6 @@
 //! layout of burn's `AdamState`, which grid checkpoints held before.
 
 use crate::ops::{AdamStep, NetOps};
-use burn::grad_clipping::GradientClipping;
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{LearningRate, SimpleOptimizer};
@@ -18,7 +17,8 @@ use burn::tensor::{Tensor, TensorPrimitive};
 use serde::{Deserialize, Serialize};
 
 /// Adam's hyper-parameters (burn's defaults for the betas; epsilon 1e-8, PyTorch's default,
-/// not burn's 1e-5).
+/// not burn's 1e-5) and the gradient's norm clipping, which the step does itself (in the
+/// same pass on the CPU, in the same kernel on CUDA) instead of burn's optimizer adaptor.
 #[derive(Clone, Copy, Debug)]
 pub struct FusedAdam {
     /// First-moment decay (0.9).
@@ -27,6 +27,9 @@ pub struct FusedAdam {
     pub beta_2: f32,
     /// Denominator epsilon (1e-8).
     pub epsilon: f32,
+    /// Each parameter's gradient clipped to this L2 norm first (burn's
+    /// `GradientClipping::Norm`, per parameter tensor); None (the default): not clipped.
+    pub max_norm: Option<f32>,
 }
 
 impl Default for FusedAdam {
@@ -35,6 +38,7 @@ impl Default for FusedAdam {
             beta_1: 0.9,
             beta_2: 0.999,
             epsilon: 1e-8,
+            max_norm: None,
         }
     }
 }
@@ -49,7 +53,8 @@ impl FusedAdam {
     }
 
     /// [`Self::init`] with each parameter's gradient clipped to L2 norm `max_norm` first
-    /// (burn's `GradientClipping::Norm`, per parameter tensor); no clipping for `None`.
+    /// (burn's `GradientClipping::Norm`, per parameter tensor, done by the step itself:
+    /// [`AdamStep::max_norm`]); no clipping for `None`.
     pub fn init_clipped<B: AutodiffBackend, M: AutodiffModule<B>>(
         self,
         max_norm: Option<f32>,
@@ -57,11 +62,7 @@ impl FusedAdam {
     where
         B::InnerBackend: NetOps,
     {
-        let optim = OptimizerAdaptor::from(self);
-        match max_norm {
-            Some(norm) => optim.with_grad_clipping(GradientClipping::Norm(norm)),
-            None => optim,
-        }
+        OptimizerAdaptor::from(Self { max_norm, ..self })
     }
 }
 
@@ -161,6 +162,7 @@ impl<B: NetOps> SimpleOptimizer<B> for FusedAdam {
             beta_2: self.beta_2,
             epsilon: self.epsilon,
             time,
+            max_norm: self.max_norm,
         };
         let prim = |t: Tensor<B, D>| t.into_primitive().tensor();
         let (m, v) = match state {
@@ -272,35 +274,46 @@ mod tests {
             assert!(d <= 1e-6, "step {k}: parameters differ by {d}");
             (p1, s1, p2, s2) = (a, sa, b, sb);
         }
-        // The composed default (what CUDA uses) equals the fused CPU pass too.
+        // The composed default equals the fused CPU pass too, with and without clipping (a
+        // gradient of norm ~190: clipped to 0.5 it is another step).
         let g = Tensor::<C, 2>::random([37, 301], Distribution::Normal(0.0, 1.0), &device);
         let s = s2.unwrap();
-        let c = AdamStep {
-            lr: 1e-2,
-            beta_1: 0.9,
-            beta_2: 0.999,
-            epsilon: 1e-8,
-            time: s.time + 1,
-        };
         let prim = |t: Tensor<C, 2>| t.into_primitive().tensor();
         let wrap = |t| Tensor::<C, 2>::from_primitive(TensorPrimitive::Float(t));
-        let (pa, ma, va) = crate::ops::adam_step::composed_adam::<C>(
-            prim(p2.clone()),
-            prim(g.clone()),
-            Some(prim(s.moment_1.clone())),
-            Some(prim(s.moment_2.clone())),
-            &c,
-        );
-        let (pb, mb, vb) = C::adam_step(
-            prim(p2),
-            prim(g),
-            Some(prim(s.moment_1)),
-            Some(prim(s.moment_2)),
-            &c,
-        );
-        for (x, y) in [(pa, pb), (ma, mb), (va, vb)] {
-            let d: f32 = (wrap(x) - wrap(y)).abs().max().into_scalar();
-            assert!(d <= 1e-6, "composed and fused differ by {d}");
+        let mut params = Vec::new();
+        for max_norm in [None, Some(0.5)] {
+            let c = AdamStep {
+                lr: 1e-2,
+                beta_1: 0.9,
+                beta_2: 0.999,
+                epsilon: 1e-8,
+                time: s.time + 1,
+                max_norm,
+            };
+            let (pa, ma, va) = crate::ops::adam_step::composed_adam::<C>(
+                prim(p2.clone()),
+                prim(g.clone()),
+                Some(prim(s.moment_1.clone())),
+                Some(prim(s.moment_2.clone())),
+                &c,
+            );
+            let (pb, mb, vb) = C::adam_step(
+                prim(p2.clone()),
+                prim(g.clone()),
+                Some(prim(s.moment_1.clone())),
+                Some(prim(s.moment_2.clone())),
+                &c,
+            );
+            params.push(wrap(pb.clone()));
+            for (x, y) in [(pa, pb), (ma, mb), (va, vb)] {
+                let d: f32 = (wrap(x) - wrap(y)).abs().max().into_scalar();
+                assert!(d <= 1e-6, "{max_norm:?}: composed and fused differ by {d}");
+            }
         }
+        let d: f32 = (params[0].clone() - params[1].clone())
+            .abs()
+            .max()
+            .into_scalar();
+        assert!(d > 1e-4, "clipping changed the step by only {d}");
     }
 }

@@ -17,6 +17,9 @@
 #   tests/gpu/run.sh call256   # every shipped model's 256-scene call against the solver, the
 #                              # node at 256 streams x 62.5 Hz, and eval on the GPU (its
 #                              # metrics.csv to compare with a CPU run of the same command)
+#   tests/gpu/run.sh fused     # the Adam kernel against burn's composed step (training, the
+#                              # same first-epoch loss) and the implicit-GEMM convolutions
+#                              # against im2col (the 256-scene call, eval's metrics)
 #   tests/gpu/run.sh sparse    # the sparse transfers (bench transfer: CPU, dense, bits), and
 #                              # training and the 256-scene call with sparse against dense
 #                              # transfers, beside PyTorch's training step
@@ -211,6 +214,62 @@ sparse() { # docs/cuda.md, "Sparse transfers"
             --device cuda --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 \
             --constraints off --scenes 256 --batch 256 --threads 16 --frames 20
     done
+}
+
+agree() { # name log-a log-b: the first-epoch loss (last column of the mingru line) of two
+    # bench train logs agrees to 1e-5 of itself
+    check "$1" awk 'FNR == 1 { f++ } $1 == "mingru" && $NF ~ /^[0-9]/ { loss[f] = $NF }
+        END { d = loss[1] - loss[2]; if (d < 0) d = -d
+              if (!(1 in loss) || !(2 in loss) || d > 1e-5 * loss[1]) {
+                  print "first-epoch losses differ:", loss[1], loss[2]; exit 1 }
+              print "first-epoch losses agree:", loss[1], loss[2] }' "$2" "$3"
+}
+
+fused() { # docs/speed.md, "Training the grid architecture on a GPU" and "Roofline"
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    for b in 16 32; do
+        for adam in kernel composed; do
+            check "grid-adam-$adam-$b" env MINFLOW_CUDA_ADAM=$adam "$BIN" bench train --arch grid \
+                --device cuda --cores mingru --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
+                --warmup-epochs 1 --stages
+        done
+        agree "grid-adam-$b-agree" "$OUT/grid-adam-kernel-$b.log" "$OUT/grid-adam-composed-$b.log"
+        check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
+            --precision fp32,tf32 --batch "$b"
+    done
+    local models=()
+    for m in models/*/; do [ -f "$m/model.json" ] && models+=(--model "${m%/}"); done
+    for conv in implicit im2col; do
+        check "rollout-256-$conv" env MINFLOW_CUDA_CONV=$conv "$BIN" bench rollout --device cuda \
+            "${models[@]}" --constraints off --scenes 256 --batch 256 --threads 16 --frames 20
+        check "eval-gpu-$conv" env MINFLOW_CUDA_CONV=$conv "$BIN" eval --device cuda \
+            --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 --data bags \
+            --split all --starts 3 --no-render --constraints off --out "$OUT/eval-gpu-$conv"
+    done
+    check eval-gpu-agree "$PY" - "$OUT/eval-gpu-implicit" "$OUT/eval-gpu-im2col" <<'PY'
+import csv, glob, os, sys
+worst, tables = 0.0, 0
+a, b = sys.argv[1:3]
+for path in sorted(glob.glob(os.path.join(a, "**", "*.csv"), recursive=True)):
+    tables += 1
+    other = os.path.join(b, os.path.relpath(path, a))
+    for ra, rb in zip(csv.reader(open(path)), csv.reader(open(other))):
+        for x, y in zip(ra, rb):
+            try:
+                x, y = float(x), float(y)
+            except ValueError:
+                continue
+            worst = max(worst, abs(x - y) / max(abs(y), 1e-12))
+print(f"largest relative difference of the {tables} eval tables: {worst:.2e}")
+sys.exit(tables == 0 or worst > 1e-3)
+PY
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-train16.txt" \
+        check prof-train16 "$BIN" bench train --arch grid --device cuda --cores mingru \
+        --micro-batch 16 --samples 32 --epochs 1 --warmup-epochs 1
+    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-call256.txt" \
+        check prof-call256 "$BIN" bench rollout --device cuda --model models/all-grid-mingru \
+        --constraints off --scenes 256 --batch 256 --threads 16 --frames 3
+    gzip -f "$OUT"/kernels-*.txt
 }
 
 for part in "${@:-speed}"; do
