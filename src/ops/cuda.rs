@@ -2,8 +2,9 @@
 //! defaults, with the large products through cuBLAS ([`super::cublas`]), the grid model's
 //! im2col / col2im as single kernels ([`super::cuda_conv`]), and sparse stencil, P2G and G2P
 //! kernels ([`super::cuda_stencil`]; inference and training take them), and the Adam step
-//! with its gradient clipping as one kernel ([`super::cuda_adam`]); inference runs the 3x3
-//! convolutions as implicit GEMMs ([`super::cuda_implicit_conv`]).
+//! with its gradient clipping as one kernel ([`super::cuda_adam`]); the inference 3x3
+//! convolutions can run as implicit GEMMs (`MINFLOW_CUDA_CONV=implicit`,
+//! [`super::cuda_implicit_conv`]; slower than im2col and cuBLAS, so not the default).
 
 use burn::tensor::ops::{FloatTensor, IntTensor};
 

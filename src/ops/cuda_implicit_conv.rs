@@ -10,8 +10,12 @@
 //! accumulation, the bias loaded into the accumulator); it takes NHWC input and `[C_out, 3, 3,
 //! C_in]` weights. im2col + cuBLAS wrote 9x each convolution's input as columns and read them
 //! back: 11.4 GB a 256-scene call of `all-grid-mingru` (docs/speed.md, "Roofline").
-//! `MINFLOW_CUDA_CONV=im2col` keeps im2col and the product, to compare the two in one binary.
-//! Training keeps im2col (its backward is col2im and products: `cuda_conv.rs`).
+//!
+//! Measured slower, so not the default: `MINFLOW_CUDA_CONV=implicit` takes it, to compare
+//! the two in one binary (`tests/gpu/run.sh fused`). On one H200 the 256-scene call of
+//! `all-grid-mingru` took 0.165 ms a scene-frame with it against 0.134 with im2col and
+//! cuBLAS (docs/speed.md, "Roofline"). Training keeps im2col (its backward is col2im and
+//! products: `cuda_conv.rs`).
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{ConvOptions, FloatTensor, FloatTensorOps};
@@ -23,11 +27,11 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 
-/// Whether the inference convolutions take [`conv3x3`] (the default) or im2col and a product
-/// (`MINFLOW_CUDA_CONV=im2col`).
+/// Whether the inference convolutions take [`conv3x3`] (`MINFLOW_CUDA_CONV=implicit`) or
+/// im2col and a product (the default).
 pub(super) fn implicit() -> bool {
     static IMPLICIT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *IMPLICIT.get_or_init(|| std::env::var("MINFLOW_CUDA_CONV").map_or(true, |v| v != "im2col"))
+    *IMPLICIT.get_or_init(|| std::env::var("MINFLOW_CUDA_CONV").is_ok_and(|v| v == "implicit"))
 }
 
 /// The recorded convolution: inputs `[x, weight]` and `[bias]` when it has one, output `[y]`.

@@ -19,7 +19,7 @@
 #                              # metrics.csv to compare with a CPU run of the same command)
 #   tests/gpu/run.sh fused     # the Adam kernel against burn's composed step (training, the
 #                              # same first-epoch loss) and the implicit-GEMM convolutions
-#                              # against im2col (the 256-scene call, eval's metrics)
+#                              # against im2col (the 256-scene call, eval's table within 1e-3)
 #   tests/gpu/run.sh sparse    # the sparse transfers (bench transfer: CPU, dense, bits), and
 #                              # training and the 256-scene call with sparse against dense
 #                              # transfers, beside PyTorch's training step
@@ -250,7 +250,7 @@ fused() { # docs/speed.md, "Training the grid architecture on a GPU" and "Roofli
 import csv, glob, os, sys
 worst, tables = 0.0, 0
 a, b = sys.argv[1:3]
-for path in sorted(glob.glob(os.path.join(a, "**", "*.csv"), recursive=True)):
+for path in sorted(glob.glob(os.path.join(a, "**", "table.csv"), recursive=True)):
     tables += 1
     other = os.path.join(b, os.path.relpath(path, a))
     for ra, rb in zip(csv.reader(open(path)), csv.reader(open(other))):
