@@ -9,7 +9,8 @@
 #   tests/gpu/scenes.sh data MIXED       # seed 1 (training: paper + MIXED mixed scenes, a
 #                                        # count or a range such as 800..1200), seed 7
 #                                        # (unseen), the held-out scene files
-#   tests/gpu/scenes.sh start MINUTES    # the fine-tunes, in the background
+#   tests/gpu/scenes.sh start MINUTES    # the fine-tunes, in the background (ONLY picks:
+#                                        # mx-rest, mx-small, pc-rest, mx-small-longN)
 #   tests/gpu/scenes.sh wait             # until they have ended
 #   tests/gpu/scenes.sh fit              # the new runs' constraints (constraints fit)
 #   tests/gpu/scenes.sh eval NAME...     # models (runs/NAME or a path) on the three test
@@ -27,8 +28,8 @@ parents) suffix= ;;
 mixed) suffix=-mixed ;;
 *) echo "FROM must be parents or mixed" >&2; exit 2 ;;
 esac
-SMALL=(--model mingru --init-from "models/all-grid-mingru-small-k4$suffix" --grid 32
-    --unet-width 16 --levels 3 --reference none --bundle 4 --rollout-steps 4)
+SMALL_BASE=(--model mingru --grid 32 --unet-width 16 --levels 3 --reference none --bundle 4)
+SMALL=(--init-from "models/all-grid-mingru-small-k4$suffix" "${SMALL_BASE[@]}" --rollout-steps 4)
 REST=(--model mingru --init-from "models/all-grid-mingru-rest$suffix" --rest-shape fit
     --rollout-steps 8)
 
@@ -58,12 +59,18 @@ start)
     TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start mx-rest "$m" "${REST[@]}"
     TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start mx-small "$m" "${SMALL[@]}"
     start pc-rest "$m" "${REST[@]}"
+    # The long-horizon loss: -small-k4's fine-tune with LONG_STEPS (12) rollout steps in its
+    # loss instead of 4 (three bundled calls of K = 4), from LONG_FROM (default: as mx-small).
+    long=${LONG_STEPS:-12}
+    TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start "mx-small-long$long" "$m" \
+        --init-from "${LONG_FROM:-models/all-grid-mingru-small-k4$suffix}" "${SMALL_BASE[@]}" \
+        --rollout-steps "$long"
     ;;
 wait)
     wait_runs
     ;;
 fit)
-    for run in mx-rest mx-small; do
+    for run in mx-rest mx-small $(cd runs && ls -d mx-small-long* 2>/dev/null); do
         [ -d "runs/$run" ] || continue
         "$BIN" constraints fit --model "runs/$run" --data "$DATA"/multi "$DATA"/fluid \
             "$DATA"/mixed --max-scenes 80 2>&1 | tail -n 8 &

@@ -44,7 +44,19 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
     play_args.extend_from_slice(extra_replay);
     let player = Node::spawn_env("replay", &play_args, &env);
     let play_err = ok(&player.wait(Duration::from_secs(90)), "replay");
-    let rec_err = ok(&recorder.wait(Duration::from_secs(30)), "record");
+    // A recorder short of its 25 frames says so with both logs' tails (what the replay saw
+    // of its subscribers, what the recorder matched), not the recorder's discovery chatter.
+    let rec = recorder
+        .wait_or_kill(Duration::from_secs(30))
+        .unwrap_or_else(|out| {
+            panic!(
+                "{transport} record did not get {SOURCE_FRAMES} frames within 30 s\n\
+                 replay:\n{}\nrecord:\n{}",
+                log_tail(play_err.as_bytes()),
+                log_tail(&out.stderr)
+            )
+        });
+    let rec_err = ok(&rec, "record");
     let want = raw_messages(&source, Some(FRAMES_TOPIC));
     assert_eq!(want.len(), SOURCE_FRAMES);
     let got = raw_messages(&out, Some(&topic));
