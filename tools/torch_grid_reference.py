@@ -15,7 +15,8 @@ comparison from the Rust sources; it is not minflow's model and is not used to t
 
 prints one line per (memory, precision): samples per second from the median step time (after
 `--warmup` steps, which are left out), with the parameter count (to check against minflow's)
-and the peak allocated GPU memory. Runs on a CPU too (`--device cpu`, small `--steps`), as a
+and the peak allocated GPU memory, then the caching allocator's peak reserved memory (what
+compares with cubecl's pool, `bench train`'s `peak MiB`). Runs on a CPU too (`--device cpu`, small `--steps`), as a
 sanity check only.
 
 Not matched (none changes the work per step): the batch is drawn once on the device (minflow
@@ -295,6 +296,7 @@ def bench(memory, a, tf32, device):
     # Several input sets, rotated, so the timing is not of one cached batch.
     sets = [synthetic(a.batch, a.window + a.rollout_steps, a.particles, device) for _ in range(4)]
     if cuda:
+        torch.cuda.empty_cache()  # the reserved peak then counts this run's pool alone
         torch.cuda.reset_peak_memory_stats()
     times = []
     for k in range(a.warmup + a.steps):
@@ -315,7 +317,8 @@ def bench(memory, a, tf32, device):
             raise RuntimeError(f"non-finite loss {value} at step {k}")
     times.sort()
     median = times[len(times) // 2]
-    peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else float("nan")
+    mib = 2**20
+    peak = (torch.cuda.max_memory_allocated() / mib, torch.cuda.max_memory_reserved() / mib) if cuda else (float("nan"),) * 2
     return a.batch / median, median, peak, sum(q.numel() for q in params), value
 
 
@@ -347,7 +350,8 @@ def main():
                 raise SystemExit(f"unknown precision {prec!r}")
             rate, median, peak, params, loss = bench(memory, a, prec == "tf32", device)
             print(f"torch grid {memory} {prec} batch {a.batch}: {rate:.1f} samples/s "
-                  f"({median * 1e3:.1f} ms/step)  [params {params}, peak {peak:.0f} MiB, "
+                  f"({median * 1e3:.1f} ms/step)  [params {params}, peak {peak[0]:.0f} MiB, "
+                  f"reserved {peak[1]:.0f} MiB, "
                   f"loss {loss:.4g}]", flush=True)
 
 

@@ -197,18 +197,25 @@ call256() { # docs/speed.md, "A predicted frame against a solver frame"; docs/sc
         --constraints off --out "$OUT/eval-gpu"
 }
 
-sparse() { # docs/cuda.md, "Sparse transfers"
-    nvidia-smi --query-gpu=name,driver_version --format=csv
-    check transfer "$BIN" bench transfer --device cuda
+grid_forms() { # VAR TAG FORM...: bench train --arch grid at batch 16 and 32 with VAR set to
+    # each FORM (logs grid-TAG FORM-B), then PyTorch's step at that batch
+    local var=$1 tag=$2
+    shift 2
     for b in 16 32; do
-        for form in sparse dense; do
-            check "grid-$form-$b" env MINFLOW_CUDA_TRANSFERS=$form "$BIN" bench train --arch grid \
+        for form in "$@"; do
+            check "grid-$tag$form-$b" env "$var=$form" "$BIN" bench train --arch grid \
                 --device cuda --cores mingru --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
                 --warmup-epochs 1 --stages
         done
         check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
             --precision fp32,tf32 --batch "$b"
     done
+}
+
+sparse() { # docs/cuda.md, "Sparse transfers"
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    check transfer "$BIN" bench transfer --device cuda
+    grid_forms MINFLOW_CUDA_TRANSFERS "" sparse dense
     for form in sparse dense; do
         check "rollout-256-$form" env MINFLOW_CUDA_TRANSFERS=$form "$BIN" bench rollout \
             --device cuda --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 \
@@ -227,15 +234,9 @@ agree() { # name log-a log-b: the first-epoch loss (last column of the mingru li
 
 fused() { # docs/speed.md, "Training the grid architecture on a GPU" and "Roofline"
     nvidia-smi --query-gpu=name,driver_version --format=csv
+    grid_forms MINFLOW_CUDA_ADAM adam- kernel composed
     for b in 16 32; do
-        for adam in kernel composed; do
-            check "grid-adam-$adam-$b" env MINFLOW_CUDA_ADAM=$adam "$BIN" bench train --arch grid \
-                --device cuda --cores mingru --micro-batch "$b" --samples $((8 * b)) --epochs 3 \
-                --warmup-epochs 1 --stages
-        done
         agree "grid-adam-$b-agree" "$OUT/grid-adam-kernel-$b.log" "$OUT/grid-adam-composed-$b.log"
-        check "grid-torch-$b" "$PY" tools/torch_grid_reference.py --memory mingru \
-            --precision fp32,tf32 --batch "$b"
     done
     local models=()
     for m in models/*/; do [ -f "$m/model.json" ] && models+=(--model "${m%/}"); done
@@ -263,13 +264,7 @@ for path in sorted(glob.glob(os.path.join(a, "**", "table.csv"), recursive=True)
 print(f"largest relative difference of the {tables} eval tables: {worst:.2e}")
 sys.exit(tables == 0 or worst > 1e-3)
 PY
-    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-train16.txt" \
-        check prof-train16 "$BIN" bench train --arch grid --device cuda --cores mingru \
-        --micro-batch 16 --samples 32 --epochs 1 --warmup-epochs 1
-    CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-call256.txt" \
-        check prof-call256 "$BIN" bench rollout --device cuda --model models/all-grid-mingru \
-        --constraints off --scenes 256 --batch 256 --threads 16 --frames 3
-    gzip -f "$OUT"/kernels-*.txt
+    kernels
 }
 
 for part in "${@:-speed}"; do
