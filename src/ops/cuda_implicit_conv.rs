@@ -14,7 +14,7 @@
 //! Measured slower, so not the default: `MINFLOW_CUDA_CONV=implicit` takes it, to compare
 //! the two in one binary (`tests/gpu/run.sh fused`). On one H200 the 256-scene call of
 //! `all-grid-mingru` took 0.165 ms a scene-frame with it against 0.134 with im2col and
-//! cuBLAS (docs/speed.md, "Roofline"). Training keeps im2col (its backward is col2im and
+//! cuBLAS, 0.164 against 0.146 on another (docs/speed.md, "Roofline"). Training keeps im2col (its backward is col2im and
 //! products: `cuda_conv.rs`).
 
 use burn::cubecl::cuda::CudaRuntime;
