@@ -145,7 +145,7 @@ impl Operation<Runtime> for AdamOp {
 /// `c.max_norm` is set; `m` and `v` None for the first step (read as zero).
 ///
 /// # Panics
-/// `grad`, `m` or `v` not shaped like `param`.
+/// `grad`, `m` or `v` not shaped like `param`, or only one of `m` and `v` given.
 pub(crate) fn adam_step(
     param: FloatTensor<Cuda>,
     grad: FloatTensor<Cuda>,
@@ -169,7 +169,12 @@ pub(crate) fn adam_step(
             grad.clone(),
         ))
     });
-    let fresh = m.is_none() || v.is_none();
+    assert_eq!(
+        m.is_none(),
+        v.is_none(),
+        "adam_step: both moments or neither (the first step)"
+    );
+    let fresh = m.is_none();
     let mut inputs = vec![param, grad];
     if !fresh {
         inputs.extend(m.into_iter().chain(v));

@@ -76,7 +76,8 @@ pub(crate) fn adam(
 
 /// The factor that clips `g` to L2 norm `max_norm` as burn's `GradientClipping::Norm` does,
 /// `min(1, max_norm / (|g| + f32::MIN_POSITIVE))`, the squares summed in f64
-/// (chunk by chunk, in order); 1 for None.
+/// (chunk by chunk, in order; burn sums in f32, ~1e-7 apart, and where burn's f32 sum
+/// overflows to infinity and zeroes the gradient this one still clips it); 1 for None.
 fn clip_scale(g: &[f32], max_norm: Option<f32>) -> f32 {
     let Some(max_norm) = max_norm else {
         return 1.0;

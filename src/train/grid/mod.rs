@@ -368,7 +368,8 @@ where
 }
 
 /// Adam over a grid model, as [`GridTrainer`] builds it: one fused step per parameter
-/// ([`FusedAdam`]) after burn's per-parameter gradient clipping.
+/// ([`FusedAdam`]) that clips the parameter's gradient first (`AdamStep::max_norm`, burn's
+/// `GradientClipping::Norm` arithmetic).
 type GridOptim<B> = OptimizerAdaptor<FusedAdam, GridModel<B>, B>;
 /// The weights, the optimiser and the epochs done, where a run starts or resumes.
 type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
