@@ -106,6 +106,15 @@ pub fn rate(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A loss discount, in `(0, 1]`.
+pub fn discount(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v > 0.0 && v <= 1.0 => Ok(v),
+        Ok(v) => Err(format!("{v} is not in (0, 1]")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A probability of dropping, in `[0, 1)`.
 pub fn dropout(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {

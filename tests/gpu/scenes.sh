@@ -61,10 +61,11 @@ start)
     start pc-rest "$m" "${REST[@]}"
     # The long-horizon loss: -small-k4's fine-tune with LONG_STEPS (12) rollout steps in its
     # loss instead of 4 (three bundled calls of K = 4), from LONG_FROM (default: as mx-small).
+    # LONG_DISCOUNT (1) sets --rollout-discount.
     long=${LONG_STEPS:-12}
     TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start "mx-small-long$long" "$m" \
         --init-from "${LONG_FROM:-models/all-grid-mingru-small-k4$suffix}" "${SMALL_BASE[@]}" \
-        --rollout-steps "$long"
+        --rollout-steps "$long" --rollout-discount "${LONG_DISCOUNT:-1}"
     ;;
 wait)
     wait_runs

@@ -128,6 +128,8 @@ fn bad_flags_fail_clearly() {
         &["--dropout", "1.5"][..],
         &["--dropout=-0.5"][..],
         &["--density-grid", "0"][..],
+        &["--rollout-discount", "0"][..],
+        &["--rollout-discount", "1.5"][..],
         // Known only once the bags are scanned: the bundled scenes have 25 frames.
         &["--window", "30"][..],
     ] {

@@ -377,6 +377,11 @@ pub struct GridArgs {
     /// least squares), prediction against truth (0: off).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub volume_loss: f32,
+    /// Discount of the loss along each sample's rollout, in (0, 1]: the rollout's frame j
+    /// (from 0) weighs discount^j, the weights normalised to sum to 1, so a long
+    /// --rollout-steps keeps the first frames' error in view (1: every frame alike).
+    #[arg(long, default_value_t = 1.0, value_parser = crate::cli::flags::discount)]
+    pub rollout_discount: f32,
     /// Gradient-norm clipping threshold (0: off).
     #[arg(long, default_value_t = 1.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub clip: f32,
@@ -479,6 +484,7 @@ impl TrainArgs {
             mirror: g.mirror,
             strain_weight: g.strain_loss,
             volume_weight: g.volume_loss,
+            discount: g.rollout_discount,
             seed: self.seed,
             patience: self.patience,
             val_starts: g.val_starts,

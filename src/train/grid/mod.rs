@@ -108,6 +108,13 @@ pub struct GridTrainOptions {
     /// Weight of the volume loss (liquid particles' fitted J; [`rollout_loss`]).
     #[serde(default)]
     pub volume_weight: f32,
+    /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K
+    /// frames (from 0) weighs `discount^j`, the weights normalised to sum to 1, so a long
+    /// rollout (large P) keeps its first frames' error in view while the later frames still
+    /// teach what only many frames show. 1 (the default, and runs saved before it existed):
+    /// every frame alike, the plain mean.
+    #[serde(default = "no_discount")]
+    pub discount: f32,
     /// Seed of the weights, data order and noise.
     pub seed: u64,
     /// Stop after this many epochs without a better validation rollout (0: never).
@@ -125,6 +132,11 @@ pub struct GridTrainOptions {
     /// `model.json`. None: no projection.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub constraints: Option<crate::model::constraints::Constraints>,
+}
+
+/// [`GridTrainOptions::discount`] of runs saved before it existed: none.
+fn no_discount() -> f32 {
+    1.0
 }
 
 impl Default for GridTrainOptions {
@@ -147,6 +159,7 @@ impl Default for GridTrainOptions {
             mirror: false,
             strain_weight: 0.0,
             volume_weight: 0.0,
+            discount: 1.0,
             seed: 0,
             patience: 0,
             val_starts: 1,

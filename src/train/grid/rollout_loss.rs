@@ -156,13 +156,15 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         self.detach();
     }
 
-    /// The loss of the next P calls (`steps`), averaged over their P K frames, the rollout
-    /// carried on past them: teacher-forced while the call count is below `teacher`, then on
-    /// the model's own predictions.
+    /// The loss of the next P calls (`steps`), averaged over their P K frames (weighted by
+    /// [`frame_weights`] under a discount), the rollout carried on past them: teacher-forced
+    /// while the call count is below `teacher`, then on the model's own predictions.
     pub(super) fn chunk_loss(&mut self, model: &GridModel<B>) -> Tensor<B, 1> {
         let opts = self.opts;
         let bundle = self.config.bundle.max(1);
         let scale = self.batch.scales(self.config);
+        let weights = frame_weights(opts.steps.max(1) * bundle, opts.discount);
+        let mut weight = weights.iter();
         let mut total: Option<Tensor<B, 1>> = None;
         for _ in 0..opts.steps {
             let first = self.config.window + self.calls * bundle;
@@ -173,7 +175,13 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     true => (out.pos, out.vel),
                     false => self.projected(out.pos, out.vel),
                 };
+                let w = *weight.next().expect("one weight a frame");
                 let step = frame_loss(opts, &self.batch, &scale, &pos, &vel, &target);
+                let step = if opts.discount < 1.0 {
+                    step.mul_scalar(w)
+                } else {
+                    step
+                };
                 total = Some(match total {
                     Some(acc) => acc + step,
                     None => step,
@@ -190,9 +198,11 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                 }
             }
         }
-        total
-            .expect("at least one step")
-            .div_scalar((opts.steps.max(1) * bundle) as f32)
+        let total = total.expect("at least one step");
+        match opts.discount < 1.0 {
+            true => total,
+            false => total.div_scalar((opts.steps.max(1) * bundle) as f32),
+        }
     }
 
     /// Cuts the gradient at the rollout's current point: what the next chunk reads (frames,
@@ -263,6 +273,16 @@ fn frame_loss<B: Backend>(
         .mean();
     let rest = batch.rest.as_ref();
     lv + lx + structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
+}
+
+/// The weights of a rollout's `frames` losses under `discount` (in `(0, 1]`): frame `j`'s
+/// is `discount^j / sum_k discount^k`, so they sum to 1; all `1 / frames` for 1.
+fn frame_weights(frames: usize, discount: f32) -> Vec<f32> {
+    let raw: Vec<f64> = (0..frames)
+        .map(|j| f64::from(discount).powi(j as i32))
+        .collect();
+    let sum: f64 = raw.iter().sum();
+    raw.iter().map(|w| (w / sum) as f32).collect()
 }
 
 /// The strain and volume terms of one predicted frame (see the module doc), weighted; 0
@@ -441,6 +461,57 @@ mod tests {
             (restarted - last).abs() > 1e-4 * last.abs(),
             "{restarted} against {last} (diff {})",
             (restarted - last).abs()
+        );
+    }
+
+    /// `--rollout-discount`: the loss of P calls under discount g is each frame's loss
+    /// weighted by `g^j / sum_k g^k`. Frame j's own loss comes from the undiscounted means of
+    /// the first j + 1 and j frames (`(j + 1) L(j + 1) - j L(j)`, the rollout being the same
+    /// for every P); the weights sum to 1.
+    #[test]
+    fn discounted_loss_weighs_each_frame_by_its_discount() {
+        type B = Autodiff<NdArray<f32>>;
+        let p = 3;
+        let (batch, config) = sample(p);
+        let device = Default::default();
+        // Seeded weights: the backend's own generator is shared by the tests running at once.
+        let model = super::super::initial_grid_model::<B>(&config, 11, &device).unwrap();
+        let loss = |steps: usize, discount: f32| {
+            let opts = GridTrainOptions {
+                steps,
+                discount,
+                ..GridTrainOptions::default()
+            };
+            let needs = Needs {
+                materials: config.materials,
+                ..Needs::default()
+            };
+            let tensors = upload_batch::<B>(batch.clone(), &[false], needs, &device);
+            sequence_loss(&model, &config, &opts, tensors).into_scalar()
+        };
+        let means: Vec<f32> = (0..=p)
+            .map(|k| if k == 0 { 0.0 } else { loss(k, 1.0) })
+            .collect();
+        let frames: Vec<f32> = (0..p)
+            .map(|j| (j + 1) as f32 * means[j + 1] - j as f32 * means[j])
+            .collect();
+        let weights = frame_weights(p, 0.5);
+        assert!(
+            (weights.iter().sum::<f32>() - 1.0).abs() < 1e-6,
+            "{weights:?}"
+        );
+        assert!((weights[0] - 4.0 / 7.0).abs() < 1e-6, "{weights:?}");
+        let want: f32 = frames.iter().zip(&weights).map(|(l, w)| l * w).sum();
+        let got = loss(p, 0.5);
+        assert!(
+            (got - want).abs() <= 1e-4 * want.abs(),
+            "{got} against {want}"
+        );
+        // The frames' losses differ, so the discount moves the loss off the plain mean.
+        assert!(
+            (got - means[p]).abs() > 1e-3 * means[p].abs(),
+            "{got} against the mean {}",
+            means[p]
         );
     }
 
