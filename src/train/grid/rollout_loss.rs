@@ -371,29 +371,37 @@ mod tests {
         rollout.chunk_loss(model)
     }
 
-    /// Push-forward: the M calls without loss are the model's own rollout (the frozen copy
-    /// predicts what the model does) and the loss covers the P calls after them only. So,
-    /// from one sample, `(M + P) L(P = M + P) = M L(P = M) + P L(P, push-forward M)`.
-    #[test]
-    fn pushforward_loss_is_the_tail_of_the_rollout_loss() {
+    /// [`sequence_loss`] of `sample(calls)` under the options given, from weights seeded the
+    /// same for every call (the backend's own generator is shared by the tests running at
+    /// once).
+    fn loss_of_sample(calls: usize) -> impl Fn(GridTrainOptions) -> f32 {
         type B = Autodiff<NdArray<f32>>;
-        let (m, p) = (2, 2);
-        let (batch, config) = sample(m + p);
+        let (batch, config) = sample(calls);
         let device = Default::default();
-        // Seeded weights: the backend's own generator is shared by the tests running at once.
         let model = super::super::initial_grid_model::<B>(&config, 11, &device).unwrap();
-        let loss = |steps: usize, pushforward: usize| {
-            let opts = GridTrainOptions {
-                steps,
-                pushforward,
-                ..GridTrainOptions::default()
-            };
+        move |opts| {
             let needs = Needs {
                 materials: config.materials,
                 ..Needs::default()
             };
             let tensors = upload_batch::<B>(batch.clone(), &[false], needs, &device);
             sequence_loss(&model, &config, &opts, tensors).into_scalar()
+        }
+    }
+
+    /// Push-forward: the M calls without loss are the model's own rollout (the frozen copy
+    /// predicts what the model does) and the loss covers the P calls after them only. So,
+    /// from one sample, `(M + P) L(P = M + P) = M L(P = M) + P L(P, push-forward M)`.
+    #[test]
+    fn pushforward_loss_is_the_tail_of_the_rollout_loss() {
+        let (m, p) = (2, 2);
+        let sample_loss = loss_of_sample(m + p);
+        let loss = |steps: usize, pushforward: usize| {
+            sample_loss(GridTrainOptions {
+                steps,
+                pushforward,
+                ..GridTrainOptions::default()
+            })
         };
         let (all, head, tail) = (loss(m + p, 0), loss(m, 0), loss(p, m));
         let (lhs, rhs) = ((m + p) as f32 * all, m as f32 * head + p as f32 * tail);
@@ -470,24 +478,14 @@ mod tests {
     /// for every P); the weights sum to 1.
     #[test]
     fn discounted_loss_weighs_each_frame_by_its_discount() {
-        type B = Autodiff<NdArray<f32>>;
         let p = 3;
-        let (batch, config) = sample(p);
-        let device = Default::default();
-        // Seeded weights: the backend's own generator is shared by the tests running at once.
-        let model = super::super::initial_grid_model::<B>(&config, 11, &device).unwrap();
+        let sample_loss = loss_of_sample(p);
         let loss = |steps: usize, discount: f32| {
-            let opts = GridTrainOptions {
+            sample_loss(GridTrainOptions {
                 steps,
                 discount,
                 ..GridTrainOptions::default()
-            };
-            let needs = Needs {
-                materials: config.materials,
-                ..Needs::default()
-            };
-            let tensors = upload_batch::<B>(batch.clone(), &[false], needs, &device);
-            sequence_loss(&model, &config, &opts, tensors).into_scalar()
+            })
         };
         let means: Vec<f32> = (0..=p)
             .map(|k| if k == 0 { 0.0 } else { loss(k, 1.0) })
