@@ -8,13 +8,22 @@
 
 use burn::tensor::ops::{FloatTensor, IntTensor};
 
+use std::sync::OnceLock;
+
 use super::NetOps;
+
+/// Whether the environment variable `var` is `value`, read once into `cell`: the switches
+/// that pick another form of a CUDA operation, to compare two forms in one binary
+/// (`MINFLOW_CUDA_TRANSFERS`, `MINFLOW_CUDA_ADAM`, `MINFLOW_CUDA_CONV`; docs/cuda.md).
+pub(super) fn env_is(cell: &'static OnceLock<bool>, var: &str, value: &str) -> bool {
+    *cell.get_or_init(|| std::env::var(var).is_ok_and(|v| v == value))
+}
 
 /// Whether `MINFLOW_CUDA_ADAM=composed` asks for burn's composed Adam step instead of the
 /// kernel of [`super::cuda_adam`], to compare the two in one binary (docs/speed.md).
 fn composed_adam() -> bool {
-    static COMPOSED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *COMPOSED.get_or_init(|| std::env::var("MINFLOW_CUDA_ADAM").is_ok_and(|v| v == "composed"))
+    static COMPOSED: OnceLock<bool> = OnceLock::new();
+    env_is(&COMPOSED, "MINFLOW_CUDA_ADAM", "composed")
 }
 
 /// The composed defaults, whose element-wise chains burn's fusion layer compiles into single
@@ -31,8 +40,8 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     /// separable dense products instead, to compare the two in one binary (docs/scale.md,
     /// docs/cuda.md).
     fn dense_stencil() -> bool {
-        static DENSE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        *DENSE.get_or_init(|| std::env::var("MINFLOW_CUDA_TRANSFERS").is_ok_and(|v| v == "dense"))
+        static DENSE: OnceLock<bool> = OnceLock::new();
+        env_is(&DENSE, "MINFLOW_CUDA_TRANSFERS", "dense")
     }
 
     fn sparse_stencil(

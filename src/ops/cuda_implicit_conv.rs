@@ -14,8 +14,8 @@
 //! Measured slower, so not the default: `MINFLOW_CUDA_CONV=implicit` takes it, to compare
 //! the two in one binary (`tests/gpu/run.sh fused`). On one H200 the 256-scene call of
 //! `all-grid-mingru` took 0.165 ms a scene-frame with it against 0.134 with im2col and
-//! cuBLAS, 0.164 against 0.146 on another (docs/speed.md, "Roofline"). Training keeps im2col (its backward is col2im and
-//! products: `cuda_conv.rs`).
+//! cuBLAS, 0.164 against 0.146 on another (docs/speed.md, "Roofline"). Training keeps
+//! im2col (its backward is col2im and products: `cuda_conv.rs`).
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{ConvOptions, FloatTensor, FloatTensorOps};
@@ -31,7 +31,7 @@ use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 /// im2col and a product (the default).
 pub(super) fn implicit() -> bool {
     static IMPLICIT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *IMPLICIT.get_or_init(|| std::env::var("MINFLOW_CUDA_CONV").is_ok_and(|v| v == "implicit"))
+    super::cuda::env_is(&IMPLICIT, "MINFLOW_CUDA_CONV", "implicit")
 }
 
 /// The recorded convolution: inputs `[x, weight]` and `[bias]` when it has one, output `[y]`.

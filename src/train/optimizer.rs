@@ -226,8 +226,7 @@ mod tests {
             .unwrap();
         let fused = FusedAdam::default().init_clipped::<A, Linear<A>>(Some(0.5));
         let mut fused = fused.load_record(recorder.load(path.clone(), &device).unwrap());
-        let fresh = FusedAdam::default().init_clipped::<A, Linear<A>>(Some(0.5));
-        let mut fresh = fresh;
+        let mut fresh = FusedAdam::default().init_clipped::<A, Linear<A>>(Some(0.5));
         let want = weights(&burn_adam.step(1e-2, model.clone(), grads(&model)));
         let got = fused.step(1e-2, model.clone(), grads(&model));
         let unloaded = weights(&fresh.step(1e-2, model.clone(), grads(&model)));

@@ -163,8 +163,11 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         let opts = self.opts;
         let bundle = self.config.bundle.max(1);
         let scale = self.batch.scales(self.config);
-        let weights = frame_weights(opts.steps.max(1) * bundle, opts.discount);
-        let mut weight = weights.iter();
+        let frames = opts.steps.max(1) * bundle;
+        // The discount's weights, or None for the plain mean (one division at the end, no
+        // multiply a frame).
+        let mut weights =
+            (opts.discount < 1.0).then(|| frame_weights(frames, opts.discount).into_iter());
         let mut total: Option<Tensor<B, 1>> = None;
         for _ in 0..opts.steps {
             let first = self.config.window + self.calls * bundle;
@@ -175,12 +178,10 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     true => (out.pos, out.vel),
                     false => self.projected(out.pos, out.vel),
                 };
-                let w = *weight.next().expect("one weight a frame");
                 let step = frame_loss(opts, &self.batch, &scale, &pos, &vel, &target);
-                let step = if opts.discount < 1.0 {
-                    step.mul_scalar(w)
-                } else {
-                    step
+                let step = match weights.as_mut() {
+                    Some(w) => step.mul_scalar(w.next().expect("one weight a frame")),
+                    None => step,
                 };
                 total = Some(match total {
                     Some(acc) => acc + step,
@@ -199,9 +200,9 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             }
         }
         let total = total.expect("at least one step");
-        match opts.discount < 1.0 {
-            true => total,
-            false => total.div_scalar((opts.steps.max(1) * bundle) as f32),
+        match weights {
+            Some(_) => total,
+            None => total.div_scalar(frames as f32),
         }
     }
 
