@@ -283,3 +283,76 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
     // persist keeps the seed frame's velocities: some energy, not the truth's.
     assert!(!energy.is_empty() && energy.iter().all(|e| e.is_finite() && *e > 0.0));
 }
+
+#[test]
+fn the_momentum_part_leaves_the_solvers_free_flight_in_place_and_corrects_a_slowed_body() {
+    use minflow::model::constraints::{MomentumParams, SceneShape};
+    use minflow::sim::scene::Scene;
+    // Two jelly disks thrown at each other (the held-out `collide` kind, fewer particles and
+    // a third of its speed), 12 frames: they fly free, clear of the walls, apart until
+    // frame 7 and one cluster from frame 9 on.
+    let mut scene = Scene::from_toml(
+        &std::fs::read_to_string(repo("launch_configs/scenes/heldout/collide.toml")).unwrap(),
+    )
+    .unwrap();
+    for body in &mut scene.bodies {
+        body.count = 300;
+        body.velocity[0] /= 3.0;
+    }
+    scene.frames = 12;
+    let frames: Vec<Vec<f32>> = minflow::sim::run::SceneRun::new(scene.clone())
+        .unwrap()
+        .map(|f| {
+            let f = f.unwrap();
+            let mut state = Vec::new();
+            for (x, v) in f.position.chunks_exact(2).zip(f.velocity.chunks_exact(2)) {
+                state.extend([x[0], x[1], v[0], v[1]]);
+            }
+            state
+        })
+        .collect();
+    let material = vec![1u8; frames[0].len() / 4];
+    let c = Constraints {
+        momentum: Some(MomentumParams::DEFAULT),
+        ..Default::default()
+    };
+    let dt = scene.frame_dt();
+    let mut shape = SceneShape::new(&frames[0], 4, &material, &c);
+    for k in 1..frames.len() {
+        // The truth's own transition: moved by f32 rounding alone.
+        let mut frame = frames[k].clone();
+        shape.project(&c, (Some(&frames[k - 1]), &mut frame), &material, dt);
+        let worst = frame
+            .iter()
+            .zip(&frames[k])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(worst < 2e-4, "frame {k}: the truth moved by {worst}");
+        let moved = frame
+            .chunks_exact(4)
+            .zip(frames[k].chunks_exact(4))
+            .map(|(a, b)| (a[0] - b[0]).hypot(a[1] - b[1]))
+            .fold(0.0, f32::max);
+        assert!(moved < 2e-6, "frame {k}: positions moved {moved}");
+        if k > 6 {
+            continue;
+        }
+        // The same transition with the left disk slowed by a third: its momentum comes back.
+        let mut slowed = frames[k].clone();
+        for (row, old) in slowed
+            .chunks_exact_mut(4)
+            .zip(frames[k - 1].chunks_exact(4))
+            .take(300)
+        {
+            row[0] = old[0] + (row[0] - old[0]) * 2.0 / 3.0;
+            row[2] *= 2.0 / 3.0;
+        }
+        shape.project(&c, (Some(&frames[k - 1]), &mut slowed), &material, dt);
+        let worst = slowed
+            .iter()
+            .zip(&frames[k])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(worst < 2e-4, "frame {k}: the slowed disk is off by {worst}");
+    }
+}

@@ -123,7 +123,7 @@ fn truth_moves(trajs: &[Trajectory], c: &Constraints) -> (f64, usize) {
             let (mut sum, mut count, mut frames) = (0.0, 0u64, 0);
             for k in (every..t.frames).step_by(every) {
                 let mut frame = t.state(k).to_vec();
-                let corr = shape.project(c, &mut frame, &t.material, t.dt);
+                let corr = shape.project(c, (None, &mut frame), &t.material, t.dt);
                 sum += corr.sum[liquid];
                 count += corr.count[liquid];
                 frames += 1;

@@ -17,7 +17,10 @@
 //!   in place;
 //! - the box walls: positions clamped into the range the solver's particles stay in;
 //! - contact ([`contact`]): shape-matched bodies pushed apart where they overlap, each as a
-//!   rigid translation, before their shape matching.
+//!   rigid translation, before their shape matching;
+//! - momentum ([`momentum`]): each cluster of particles clear of the walls and of the other
+//!   clusters moved rigidly onto free flight (its momentum changed by gravity alone, as MPM
+//!   keeps it), after the other parts and before the walls.
 //!
 //! A scene's constraint data ([`SceneShape`]: rope chains, bodies and their rest shapes, the
 //! liquid's grid cell and rest mass, the particle spacing of each material) is built once
@@ -30,6 +33,7 @@
 mod contact;
 mod density;
 pub mod fit;
+mod momentum;
 mod rope;
 mod shape;
 
@@ -80,6 +84,40 @@ pub struct Constraints {
     /// Contact between shape-matched bodies (none in models saved before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contact: Option<ContactParams>,
+    /// Momentum of free clusters (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub momentum: Option<MomentumParams>,
+}
+
+/// Momentum parameters ([`momentum`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MomentumParams {
+    /// Particles this close in the frame before or the predicted one share a cluster (domain
+    /// units): two particles share a grid node of the 64 x 64 grid up to `3 sqrt(2) dx`
+    /// (0.066) apart.
+    pub reach: f32,
+    /// Distance from a wall a cluster's particles keep on a free axis (domain units): a wall
+    /// zeroes the velocity of the nodes within 3 cells of it, which reach particles 1.5 cells
+    /// farther (docs/mpm.md; [`crate::eval::conservation::WALL_CLEARANCE`]).
+    pub clearance: f32,
+    /// Substeps per frame of the solver (20 on the 64 x 64 grid, 80 on the 128 x 128 one):
+    /// sets the gravity's share in the centre of mass's move, `(1 + 1/S) / 2` of `g dt^2`.
+    pub substeps: u32,
+    /// Gravity (domain units per time unit squared).
+    pub gravity: [f32; 2],
+}
+
+impl MomentumParams {
+    /// Reach 0.07, clearance 0.08, 20 substeps, gravity `(0, -9.8)`: the generated scenes'
+    /// solver on the 64 x 64 grid. On the 128 x 128 grid (80 substeps) the centre of mass
+    /// then lands `g dt^2 (1/20 - 1/80) / 2` (4.7e-5 domain units) low per frame of free
+    /// flight.
+    pub const DEFAULT: MomentumParams = MomentumParams {
+        reach: 0.07,
+        clearance: 0.08,
+        substeps: 20,
+        gravity: [0.0, -9.8],
+    };
 }
 
 /// Contact parameters ([`contact`]).
@@ -176,6 +214,7 @@ impl Constraints {
                 iterations: 3,
                 restitution: 0.8,
             }),
+            momentum: Some(MomentumParams::DEFAULT),
         }
     }
 
@@ -188,6 +227,7 @@ impl Constraints {
             liquid: self.liquid.filter(|_| parts.liquid),
             walls: self.walls.filter(|_| parts.walls),
             contact: self.contact.filter(|_| parts.contact),
+            momentum: self.momentum.filter(|_| parts.momentum),
         }
     }
 
@@ -208,7 +248,7 @@ impl Constraints {
 
 /// Which parts of a model's [`Constraints`] to apply (`--constraints`): `on` (every part the
 /// model has), `off`, or a comma-separated list of `rope`, `jelly`, `snow`, `liquid`,
-/// `walls`.
+/// `walls`, `contact`, `momentum`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Parts {
     /// Rope chain and long-range pairs.
@@ -223,6 +263,8 @@ pub struct Parts {
     pub walls: bool,
     /// Contact between shape-matched bodies.
     pub contact: bool,
+    /// Momentum of free clusters.
+    pub momentum: bool,
 }
 
 impl Parts {
@@ -234,6 +276,7 @@ impl Parts {
         liquid: true,
         walls: true,
         contact: true,
+        momentum: true,
     };
     /// No part.
     pub const NONE: Parts = Parts {
@@ -243,6 +286,7 @@ impl Parts {
         liquid: false,
         walls: false,
         contact: false,
+        momentum: false,
     };
 }
 
@@ -270,10 +314,11 @@ impl std::str::FromStr for Parts {
                 "liquid" => &mut parts.liquid,
                 "walls" => &mut parts.walls,
                 "contact" => &mut parts.contact,
+                "momentum" => &mut parts.momentum,
                 other => {
                     return Err(format!(
                         "unknown constraint part {other:?}: expected on, off or a list of \
-                         rope, jelly, snow, liquid, walls, contact"
+                         rope, jelly, snow, liquid, walls, contact, momentum"
                     ))
                 }
             };
@@ -298,6 +343,7 @@ impl std::fmt::Display for Parts {
             (self.liquid, "liquid"),
             (self.walls, "walls"),
             (self.contact, "contact"),
+            (self.momentum, "momentum"),
         ];
         let on: Vec<&str> = names.iter().filter(|(b, _)| *b).map(|(_, n)| *n).collect();
         f.write_str(&on.join(","))
@@ -393,16 +439,18 @@ impl SceneShape {
         self.spacing.get(usize::from(m)).copied().unwrap_or(0.0)
     }
 
-    /// Projects `frame` (`[N, 4]` physical x, y, vx, vy) onto the constraints of `c` in
-    /// place: positions moved, velocities given the move over `dt`. Snow's rest shapes yield
-    /// (the scene's data changes). Returns how far each material moved.
+    /// Projects `frame` (`[N, 4]` physical x, y, vx, vy), predicted from `prev` (`[N, 4]`,
+    /// the frame `dt` before), onto the constraints of `c` in place: positions moved,
+    /// velocities given the move over `dt`. Without `prev` the momentum part is left out.
+    /// Snow's rest shapes yield (the scene's data changes). Returns how far each material
+    /// moved.
     ///
     /// # Panics
     /// When `frame` is not `N` rows of 4.
     pub fn project(
         &mut self,
         c: &Constraints,
-        frame: &mut [f32],
+        (prev, frame): (Option<&[f32]>, &mut [f32]),
         material: &[u8],
         dt: f32,
     ) -> Correction {
@@ -429,6 +477,9 @@ impl SceneShape {
         }
         if let (Some(p), Some(liquid)) = (&c.liquid, &mut self.liquid) {
             liquid.project(p, frame);
+        }
+        if let (Some(p), Some(prev)) = (&c.momentum, prev) {
+            momentum::conserve(p, prev, &before, frame, dt);
         }
         if let Some(w) = &c.walls {
             for row in frame.chunks_exact_mut(4) {
@@ -489,7 +540,7 @@ mod tests {
         let rest = [0.5, 0.5, 0.0, 0.0];
         let mut shape = SceneShape::new(&rest, 4, &[0], &c);
         let mut frame = [0.95, 0.5, 1.0, 0.0];
-        let corr = shape.project(&c, &mut frame, &[0], 0.01);
+        let corr = shape.project(&c, (None, &mut frame), &[0], 0.01);
         assert!((frame[0] - 0.9).abs() < 1e-6);
         // v = 1 + (0.9 - 0.95) / 0.01 = -4.
         assert!((frame[2] + 4.0).abs() < 1e-3, "{}", frame[2]);

@@ -93,25 +93,29 @@ impl ConstraintState {
                 let shape = shape.get_or_insert_with(|| {
                     SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
                 });
-                project_row(c, shape, row, ids, dt[i])
+                project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })
             .collect()
     }
 }
 
 /// One scene's frames of a bundle (`row`, oldest first) projected onto `c` with its data
-/// `shape`: frame k + 1 first moved by frame k's position correction. Returns the moves.
+/// `shape`: frame k + 1 first moved by frame k's position correction. Frame 0 was predicted
+/// from `input` (`[N, 4]`), frame k + 1 from frame k as projected. Returns the moves.
 fn project_row(
     c: &Constraints,
     shape: &mut SceneShape,
-    row: &mut [&mut [f32]],
+    (input, row): (&[f32], &mut [&mut [f32]]),
     ids: &[u8],
     dt: f32,
 ) -> Correction {
     let mut total = Correction::default();
     let mut carried: Option<Vec<f32>> = None;
     let last = row.len().saturating_sub(1);
-    for (k, frame) in row.iter_mut().enumerate() {
+    for k in 0..row.len() {
+        let (done, rest) = row.split_at_mut(k);
+        let frame = &mut *rest[0];
+        let prev: &[f32] = done.last().map_or(input, |f| &**f);
         // The network's own frame, kept where its correction carries into the
         // next frame (not after the bundle's last).
         let own = (k < last).then(|| frame.to_vec());
@@ -120,7 +124,7 @@ fn project_row(
                 *v += o;
             }
         }
-        total.add(&shape.project(c, frame, ids, dt));
+        total.add(&shape.project(c, (Some(prev), frame), ids, dt));
         // The position correction relative to the network's own frame.
         carried = own.map(|own| {
             let mut offset: Vec<f32> = frame.iter().zip(&own).map(|(a, b)| a - b).collect();

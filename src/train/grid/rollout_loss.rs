@@ -118,7 +118,7 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             let span = i * n * 4..(i + 1) * n * 4;
             shape.project(
                 c,
-                &mut rows[span.clone()],
+                (None, &mut rows[span.clone()]),
                 &material[i * n..(i + 1) * n],
                 dt[i],
             );
