@@ -20,7 +20,10 @@
 //!   rigid translation, before their shape matching;
 //! - momentum ([`momentum`]): each cluster of particles clear of the walls and of the other
 //!   clusters moved rigidly onto free flight (its momentum changed by gravity alone, as MPM
-//!   keeps it), after the other parts and before the walls.
+//!   keeps it), after the other parts and before the walls;
+//! - rebound ([`rebound`]): a jelly body leaving a wall or another jelly body at between
+//!   `restitution` and 1 times the speed it hit it with, each contact remembered from its
+//!   first frame (before the momentum part).
 //!
 //! A scene's constraint data ([`SceneShape`]: rope chains, bodies and their rest shapes, the
 //! liquid's grid cell and rest mass, the particle spacing of each material) is built once
@@ -34,6 +37,7 @@ mod contact;
 mod density;
 pub mod fit;
 mod momentum;
+mod rebound;
 mod rope;
 mod shape;
 
@@ -87,6 +91,46 @@ pub struct Constraints {
     /// Momentum of free clusters (none in models saved before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub momentum: Option<MomentumParams>,
+    /// Rebound of jelly bodies (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rebound: Option<ReboundParams>,
+}
+
+/// Rebound parameters ([`rebound`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReboundParams {
+    /// Least share of the approach speed a jelly body leaves a contact with (the most is 1).
+    /// The solver's jelly leaves at 0.61 (two disks closing at 2 domain units per time
+    /// unit) to 0.87 (closing at 6) of it, and a floor at 0.83-0.95.
+    pub restitution: f32,
+    /// Two bodies are in contact while particles of both are this close (domain units).
+    pub reach: f32,
+    /// A body is in contact with a wall while a particle of it is this close (domain units).
+    pub clearance: f32,
+    /// The gap (to the wall, or between the bodies' nearest particles) beyond which a
+    /// contact's rebound is enforced (domain units, below `reach` and `clearance`).
+    pub release: f32,
+    /// Approach speeds below this are resting contact, never bounced (domain units per time
+    /// unit).
+    pub resting: f32,
+    /// Gravity (domain units per time unit squared): a body leaving a wall across gravity
+    /// slows by `g dt` a frame.
+    pub gravity: [f32; 2],
+}
+
+impl ReboundParams {
+    /// Restitution 0.5 (under the solver's least, 0.61), the momentum part's reach (0.07) and
+    /// clearance (0.08), released at
+    /// 0.05 (3 cells of the 64 x 64 grid), resting below 0.5 (about three frames of
+    /// gravity), gravity `(0, -9.8)`.
+    pub const DEFAULT: ReboundParams = ReboundParams {
+        restitution: 0.5,
+        reach: 0.07,
+        clearance: 0.08,
+        release: 0.05,
+        resting: 0.5,
+        gravity: [0.0, -9.8],
+    };
 }
 
 /// Momentum parameters ([`momentum`]).
@@ -215,6 +259,7 @@ impl Constraints {
                 restitution: 0.8,
             }),
             momentum: Some(MomentumParams::DEFAULT),
+            rebound: Some(ReboundParams::DEFAULT),
         }
     }
 
@@ -228,6 +273,7 @@ impl Constraints {
             walls: self.walls.filter(|_| parts.walls),
             contact: self.contact.filter(|_| parts.contact),
             momentum: self.momentum.filter(|_| parts.momentum),
+            rebound: self.rebound.filter(|_| parts.rebound),
         }
     }
 
@@ -248,7 +294,7 @@ impl Constraints {
 
 /// Which parts of a model's [`Constraints`] to apply (`--constraints`): `on` (every part the
 /// model has), `off`, or a comma-separated list of `rope`, `jelly`, `snow`, `liquid`,
-/// `walls`, `contact`, `momentum`.
+/// `walls`, `contact`, `momentum`, `rebound`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Parts {
     /// Rope chain and long-range pairs.
@@ -265,6 +311,8 @@ pub struct Parts {
     pub contact: bool,
     /// Momentum of free clusters.
     pub momentum: bool,
+    /// Rebound of jelly bodies.
+    pub rebound: bool,
 }
 
 impl Parts {
@@ -277,6 +325,7 @@ impl Parts {
         walls: true,
         contact: true,
         momentum: true,
+        rebound: true,
     };
     /// No part.
     pub const NONE: Parts = Parts {
@@ -287,6 +336,7 @@ impl Parts {
         walls: false,
         contact: false,
         momentum: false,
+        rebound: false,
     };
 }
 
@@ -315,10 +365,11 @@ impl std::str::FromStr for Parts {
                 "walls" => &mut parts.walls,
                 "contact" => &mut parts.contact,
                 "momentum" => &mut parts.momentum,
+                "rebound" => &mut parts.rebound,
                 other => {
                     return Err(format!(
                         "unknown constraint part {other:?}: expected on, off or a list of \
-                         rope, jelly, snow, liquid, walls, contact, momentum"
+                         rope, jelly, snow, liquid, walls, contact, momentum, rebound"
                     ))
                 }
             };
@@ -344,6 +395,7 @@ impl std::fmt::Display for Parts {
             (self.walls, "walls"),
             (self.contact, "contact"),
             (self.momentum, "momentum"),
+            (self.rebound, "rebound"),
         ];
         let on: Vec<&str> = names.iter().filter(|(b, _)| *b).map(|(_, n)| *n).collect();
         f.write_str(&on.join(","))
@@ -387,6 +439,8 @@ pub struct SceneShape {
     /// Contact between the bodies (two or more of them, the part on).
     contact: Option<contact::Contact>,
     liquid: Option<density::Liquid>,
+    /// The jelly bodies' contacts in progress (the rebound part on).
+    rebound: Option<rebound::Rebound>,
     /// The frame before the projection (reused from frame to frame).
     before: Vec<f32>,
 }
@@ -422,6 +476,11 @@ impl SceneShape {
             let s = spacing[usize::from(Material::Liquid.id())];
             density::Liquid::new(rest, stride, material, s, p)
         });
+        let rebound = c.rebound.and_then(|_| {
+            let m = Material::Jelly.id();
+            let s = spacing[usize::from(m)];
+            rebound::Rebound::new(shape::pieces(rest, stride, material, m, s), n)
+        });
         Self {
             n,
             spacing,
@@ -429,6 +488,7 @@ impl SceneShape {
             bodies,
             contact,
             liquid,
+            rebound,
             before: Vec::new(),
         }
     }
@@ -477,6 +537,9 @@ impl SceneShape {
         }
         if let (Some(p), Some(liquid)) = (&c.liquid, &mut self.liquid) {
             liquid.project(p, frame);
+        }
+        if let (Some(p), Some(prev), Some(rebound)) = (&c.rebound, prev, &mut self.rebound) {
+            rebound.apply(p, (prev, &before, frame), dt);
         }
         if let (Some(p), Some(prev)) = (&c.momentum, prev) {
             momentum::conserve(p, prev, &before, frame, dt);
