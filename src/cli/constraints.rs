@@ -34,12 +34,13 @@ pub struct FitArgs {
     #[arg(long, num_args = 1.., required = true)]
     data: Vec<PathBuf>,
     /// The parts to fit and write: the default (rope, jelly, liquid, walls, and contact,
-    /// written with its default values; snow stays off, as the ablation chose) | a list of
-    /// rope, jelly, snow, liquid, walls, contact.
+    /// momentum and rebound, written with their default values; snow stays off, as the
+    /// ablation chose) | a list of rope, jelly, snow, liquid, walls, contact, momentum,
+    /// rebound.
     #[arg(
         long,
         value_name = "PARTS",
-        default_value = "rope,jelly,liquid,walls,contact"
+        default_value = "rope,jelly,liquid,walls,contact,momentum,rebound"
     )]
     parts: Parts,
     /// Training scenes read at most (evenly spaced over the split's list; 0: all).

@@ -238,9 +238,10 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
     assert!(printed.contains("rope: stretch"), "{printed}");
     let meta =
         parse_meta(&std::fs::read_to_string(dir.path().join("model.json")).unwrap()).unwrap();
-    assert!(meta
-        .constraints
-        .is_some_and(|c| c.rope.is_some() && c.liquid.is_some()));
+    assert!(meta.constraints.is_some_and(|c| c.rope.is_some()
+        && c.liquid.is_some()
+        && c.momentum.is_some()
+        && c.rebound.is_some()));
     let out = tempfile::tempdir().unwrap();
     let bag = repo("bags/multi_jelly+liquid_002.mcap");
     run(&[
