@@ -173,7 +173,8 @@ pub struct ContactParams {
     /// Push-apart passes per frame.
     pub iterations: usize,
     /// Share of the closing speed two bodies leave a contact with (0 sticks, 1 is elastic;
-    /// the solver's jelly disks rebound at 0.7-0.9, docs/mpm.md check 4).
+    /// the solver's jelly disks rebound at 0.61-0.87 of their closing speed, docs/mpm.md
+    /// check 4).
     #[serde(default)]
     pub restitution: f32,
 }
