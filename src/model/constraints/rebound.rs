@@ -260,7 +260,7 @@ fn unit(v: [f32; 2]) -> [f32; 2] {
     }
 }
 
-/// Body `ids`' [`Stats`] (module doc of [`Stats`]'s fields).
+/// The [`Stats`] of body `ids`.
 fn stats(ids: &[u32], prev: &[f32], before: &[f32], frame: &[f32], dt: f32) -> Stats {
     let mut s = Stats {
         lo: [f32::INFINITY; 2],
