@@ -13,6 +13,8 @@
 //!   one met first comes first (ring by ring outwards, a ring's cells by x then y index, a
 //!   cell's particles in the order `ids` gave them).
 //!
+//! [`Components`] joins particles into connected sets over these searches.
+//!
 //! Used, each for same-material neighbours in a frame, by `eval`'s rest neighbours
 //! (`eval::structure::Neighbours`, 6 nearest: strain error, intact fraction, rope
 //! connectivity), the grid model's rest neighbourhoods (`model::grid::rest`, 8 nearest:
@@ -146,6 +148,65 @@ impl Bins {
         for &j in &self.order[from..to] {
             visit(j as usize);
         }
+    }
+}
+
+/// Union-find over particle indices `0..n` (path halving). A union makes the lower of the two
+/// roots the root, so each set's root is its lowest index and [`Components::groups`] comes out
+/// in index order. The connected pieces of the constraint projection's bodies, its momentum
+/// clusters and `eval`'s connected share are its sets.
+#[derive(Debug, Clone)]
+pub struct Components {
+    parent: Vec<u32>,
+}
+
+impl Components {
+    /// `n` particles, each its own set.
+    pub fn new(n: usize) -> Self {
+        Self {
+            parent: (0..n as u32).collect(),
+        }
+    }
+
+    /// The root (lowest index) of `i`'s set.
+    pub fn root(&mut self, i: usize) -> usize {
+        let mut i = i as u32;
+        while self.parent[i as usize] != i {
+            self.parent[i as usize] = self.parent[self.parent[i as usize] as usize];
+            i = self.parent[i as usize];
+        }
+        i as usize
+    }
+
+    /// Joins the sets of `a` and `b`.
+    pub fn join(&mut self, a: usize, b: usize) {
+        let (a, b) = (self.root(a), self.root(b));
+        self.parent[a.max(b)] = a.min(b) as u32;
+    }
+
+    /// Joins every two particles of `ids` no farther than `radius` apart in `pos` (`[N,
+    /// stride]` rows, x and y first, domain units): a fixed-radius search over [`Bins`].
+    pub fn join_within(&mut self, pos: &[f32], stride: usize, ids: &[u32], radius: f32) {
+        let bins = Bins::for_radius(pos, stride, ids, radius);
+        for &i in ids {
+            let i = i as usize;
+            let (x, y) = (pos[stride * i], pos[stride * i + 1]);
+            bins.around(x, y, |j| {
+                if j > i && (pos[stride * j] - x).hypot(pos[stride * j + 1] - y) <= radius {
+                    self.join(i, j);
+                }
+            });
+        }
+    }
+
+    /// The sets the particles `ids` fall in, each its members in the order of `ids`, the sets
+    /// in order of their roots.
+    pub fn groups(&mut self, ids: &[u32]) -> Vec<Vec<u32>> {
+        let mut groups: std::collections::BTreeMap<usize, Vec<u32>> = Default::default();
+        for &i in ids {
+            groups.entry(self.root(i as usize)).or_default().push(i);
+        }
+        groups.into_values().collect()
     }
 }
 

@@ -13,7 +13,7 @@
 //!   body in one piece, lower where it is torn or crumpled. The truth's own value stands
 //!   beside the prediction's (snow fractures in the truth too).
 //! - [`Neighbours::connected_share`]: the share of a material's particles in the largest
-//!   piece of the graph whose edges are the intact rest-neighbour pairs (union-find): 1 for
+//!   piece of the graph whose edges are the intact rest-neighbour pairs ([`Components`]): 1 for
 //!   one rope, 0.5 for a rope cut in two halves.
 //!
 //! [`Neighbours`] (each solid particle's nearest neighbours in the rollout's first frame, by
@@ -21,7 +21,7 @@
 //! [`super::plausibility`]. Used by [`super::plausibility::Plausibility::of`].
 
 use super::metrics::MATERIALS;
-use crate::neighbours::Bins;
+use crate::neighbours::{Bins, Components};
 
 /// Neighbours per particle of the strain error and the intact fraction.
 pub const NEIGHBOURS: usize = 6;
@@ -51,41 +51,6 @@ pub fn covered_area(state: &[f32], keep: impl Fn(usize) -> bool) -> usize {
         }
     }
     hit.iter().filter(|&&h| h).count()
-}
-
-/// Union-find over particle indices (path halving, union by size).
-struct Pieces {
-    parent: Vec<usize>,
-    size: Vec<usize>,
-}
-
-impl Pieces {
-    fn new(n: usize) -> Self {
-        Self {
-            parent: (0..n).collect(),
-            size: vec![1; n],
-        }
-    }
-
-    fn root(&mut self, mut i: usize) -> usize {
-        while self.parent[i] != i {
-            self.parent[i] = self.parent[self.parent[i]];
-            i = self.parent[i];
-        }
-        i
-    }
-
-    fn join(&mut self, a: usize, b: usize) {
-        let (mut a, mut b) = (self.root(a), self.root(b));
-        if a == b {
-            return;
-        }
-        if self.size[a] < self.size[b] {
-            std::mem::swap(&mut a, &mut b);
-        }
-        self.parent[b] = a;
-        self.size[a] += self.size[b];
-    }
 }
 
 impl Neighbours {
@@ -136,7 +101,7 @@ impl Neighbours {
         if m == 0 {
             return None;
         }
-        let mut pieces = Pieces::new(self.of().len());
+        let mut pieces = Components::new(self.of().len());
         let mut any = false;
         for (i, j, ok) in self.pairs_in(state, m) {
             any = true;

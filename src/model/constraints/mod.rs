@@ -120,9 +120,8 @@ pub struct ReboundParams {
 
 impl ReboundParams {
     /// Restitution 0.5 (under the solver's least, 0.61), the momentum part's reach (0.07) and
-    /// clearance (0.08), released at
-    /// 0.05 (3 cells of the 64 x 64 grid), resting below 0.5 (about three frames of
-    /// gravity), gravity `(0, -9.8)`.
+    /// clearance (0.08), released at 0.05 (3 cells of the 64 x 64 grid), resting below 0.5
+    /// (about three frames of gravity), gravity `(0, -9.8)`.
     pub const DEFAULT: ReboundParams = ReboundParams {
         restitution: 0.5,
         reach: 0.07,
@@ -502,7 +501,8 @@ impl SceneShape {
 
     /// Projects `frame` (`[N, 4]` physical x, y, vx, vy), predicted from `prev` (`[N, 4]`,
     /// the frame `dt` before), onto the constraints of `c` in place: positions moved,
-    /// velocities given the move over `dt`. Without `prev` the momentum part is left out.
+    /// velocities given the move over `dt`. Without `prev` the momentum and rebound parts are
+    /// left out.
     /// Snow's rest shapes yield (the scene's data changes). Returns how far each material
     /// moved.
     ///
@@ -571,6 +571,19 @@ impl SceneShape {
         self.before = before;
         out
     }
+}
+
+/// A 5 x 5 block of particles (spacing 0.01, `[25, 4]` rows) with its lower left corner at
+/// `(x0, y0)`, all moving at `v`: the momentum and rebound tests' body.
+#[cfg(test)]
+fn block(x0: f32, y0: f32, v: [f32; 2]) -> Vec<f32> {
+    let mut f = Vec::new();
+    for i in 0..5 {
+        for j in 0..5 {
+            f.extend([x0 + 0.01 * i as f32, y0 + 0.01 * j as f32, v[0], v[1]]);
+        }
+    }
+    f
 }
 
 #[cfg(test)]

@@ -19,7 +19,7 @@
 //! strain and spin as the network and the other parts made them.
 
 use super::MomentumParams;
-use crate::neighbours::Bins;
+use crate::neighbours::Components;
 
 /// Moves each free cluster of the transition `prev -> frame` (both `[N, 4]` physical x, y,
 /// vx, vy) onto the free-flight law of the module doc, in place; `before` (`[N, 4]`) is the
@@ -38,12 +38,10 @@ pub(super) fn conserve(
     if n == 0 || prev.len() != frame.len() || before.len() != frame.len() || dt <= 0.0 {
         return;
     }
-    let (members, start) = clusters(prev, frame, p.reach);
     let (lo, hi) = (p.clearance, 1.0 - p.clearance);
     let lag = 0.5 * (1.0 + 1.0 / p.substeps.max(1) as f64);
     let dt64 = f64::from(dt);
-    for c in 0..start.len() - 1 {
-        let ids = &members[start[c] as usize..start[c + 1] as usize];
+    for ids in clusters(prev, frame, p.reach) {
         for a in 0..2 {
             let free = ids.iter().all(|&i| {
                 let i = i as usize;
@@ -55,7 +53,7 @@ pub(super) fn conserve(
             // Means in f64: the cluster's x and v before, and the frame's as it would end
             // (its velocity plus the position moves so far over dt).
             let (mut xp, mut vp, mut xc, mut vc) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-            for &i in ids {
+            for &i in &ids {
                 let i = i as usize;
                 xp += f64::from(prev[4 * i + a]);
                 vp += f64::from(prev[4 * i + 2 + a]);
@@ -70,7 +68,7 @@ pub(super) fn conserve(
             // The velocity to add beyond the shift's own `shift / dt`, which the caller adds.
             let kick = vp + g * dt64 - vc - shift / dt64;
             let (shift, kick) = (shift as f32, kick as f32);
-            for &i in ids {
+            for &i in &ids {
                 let i = i as usize;
                 frame[4 * i + a] += shift;
                 frame[4 * i + 2 + a] += kick;
@@ -80,59 +78,21 @@ pub(super) fn conserve(
 }
 
 /// The clusters of the transition `prev -> frame` (`[N, 4]` each): particles joined where
-/// they are within `reach` of each other in either frame. Returns the particle indices cluster
-/// by cluster (each cluster's in increasing order, clusters by their lowest index) and
-/// `[clusters + 1]` offsets into them.
-fn clusters(prev: &[f32], frame: &[f32], reach: f32) -> (Vec<u32>, Vec<u32>) {
+/// they are within `reach` of each other in either frame. Each cluster its particle indices
+/// in increasing order, the clusters by their lowest index.
+fn clusters(prev: &[f32], frame: &[f32], reach: f32) -> Vec<Vec<u32>> {
     let n = frame.len() / 4;
     let ids: Vec<u32> = (0..n as u32).collect();
-    let mut parent: Vec<u32> = ids.clone();
-    fn root(parent: &mut [u32], mut i: u32) -> u32 {
-        while parent[i as usize] != i {
-            parent[i as usize] = parent[parent[i as usize] as usize];
-            i = parent[i as usize];
-        }
-        i
-    }
+    let mut sets = Components::new(n);
     for state in [prev, frame] {
-        let bins = Bins::for_radius(state, 4, &ids, reach);
-        for i in 0..n {
-            let (x, y) = (state[4 * i], state[4 * i + 1]);
-            bins.around(x, y, |j| {
-                if j > i && (state[4 * j] - x).hypot(state[4 * j + 1] - y) <= reach {
-                    let (a, b) = (root(&mut parent, i as u32), root(&mut parent, j as u32));
-                    parent[a.max(b) as usize] = a.min(b);
-                }
-            });
-        }
+        sets.join_within(state, 4, &ids, reach);
     }
-    // Counting sort by root: clusters in order of their lowest index.
-    let roots: Vec<u32> = (0..n as u32).map(|i| root(&mut parent, i)).collect();
-    let mut slot = vec![u32::MAX; n];
-    let mut count: Vec<u32> = Vec::new();
-    for &r in &roots {
-        if slot[r as usize] == u32::MAX {
-            slot[r as usize] = count.len() as u32;
-            count.push(0);
-        }
-        count[slot[r as usize] as usize] += 1;
-    }
-    let mut start = vec![0u32; count.len() + 1];
-    for (c, k) in count.iter().enumerate() {
-        start[c + 1] = start[c] + k;
-    }
-    let mut fill = start.clone();
-    let mut members = vec![0u32; n];
-    for (i, &r) in roots.iter().enumerate() {
-        let c = slot[r as usize] as usize;
-        members[fill[c] as usize] = i as u32;
-        fill[c] += 1;
-    }
-    (members, start)
+    sets.groups(&ids)
 }
 
 #[cfg(test)]
 mod tests {
+    use super::super::block;
     use super::*;
 
     fn params() -> MomentumParams {
@@ -142,17 +102,6 @@ mod tests {
             substeps: 20,
             gravity: [0.0, -9.8],
         }
-    }
-
-    /// A 5 x 5 block (spacing 0.01) with its lower left corner at `(x0, y0)`, velocity `v`.
-    fn block(x0: f32, y0: f32, v: [f32; 2]) -> Vec<f32> {
-        let mut f = Vec::new();
-        for i in 0..5 {
-            for j in 0..5 {
-                f.extend([x0 + 0.01 * i as f32, y0 + 0.01 * j as f32, v[0], v[1]]);
-            }
-        }
-        f
     }
 
     #[test]
@@ -169,11 +118,11 @@ mod tests {
         for row in frame.chunks_exact_mut(4).skip(25).take(25) {
             row[0] -= 0.18;
         }
-        let (members, start) = clusters(&prev, &frame, 0.07);
-        assert_eq!(start, vec![0, 50, 75]);
-        assert_eq!(&members[..3], &[0, 1, 2]);
-        let (_, start) = clusters(&prev, &prev, 0.07);
-        assert_eq!(start.len() - 1, 3);
+        let found = clusters(&prev, &frame, 0.07);
+        assert_eq!(found.iter().map(Vec::len).collect::<Vec<_>>(), vec![50, 25]);
+        assert_eq!(&found[0][..3], &[0, 1, 2]);
+        assert_eq!(found[1][0], 50);
+        assert_eq!(clusters(&prev, &prev, 0.07).len(), 3);
     }
 
     #[test]

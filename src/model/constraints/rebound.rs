@@ -295,6 +295,7 @@ fn stats(ids: &[u32], prev: &[f32], before: &[f32], frame: &[f32], dt: f32) -> S
 
 #[cfg(test)]
 mod tests {
+    use super::super::block;
     use super::*;
 
     const P: ReboundParams = ReboundParams {
@@ -302,17 +303,6 @@ mod tests {
         ..ReboundParams::DEFAULT
     };
     const DT: f32 = 0.016;
-
-    /// A 5 x 5 block (spacing 0.01) with its lower left corner at `(x0, y0)`, velocity `v`.
-    fn block(x0: f32, y0: f32, v: [f32; 2]) -> Vec<f32> {
-        let mut f = Vec::new();
-        for i in 0..5 {
-            for j in 0..5 {
-                f.extend([x0 + 0.01 * i as f32, y0 + 0.01 * j as f32, v[0], v[1]]);
-            }
-        }
-        f
-    }
 
     /// The mean velocity of particles `range` of `frame`.
     fn velocity(frame: &[f32], range: std::ops::Range<usize>) -> [f32; 2] {

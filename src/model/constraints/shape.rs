@@ -10,10 +10,10 @@
 //! does (its singular values clamped, docs/mpm.md).
 //!
 //! A body is a connected piece of one material in the scene's rest frame: particles closer
-//! than [`LINK`] spacings are joined (union-find over [`Bins`]).
+//! than [`LINK`] spacings are joined (union-find, [`Components`]).
 
 use super::ShapeParams;
-use crate::neighbours::Bins;
+use crate::neighbours::{Bins, Components};
 
 /// Particles of one material closer than this many spacings in the rest frame belong to one
 /// body.
@@ -94,8 +94,8 @@ pub(super) fn bodies(
 }
 
 /// The connected pieces of material `m` in `rest` (`[N, stride]` rows) whose spacing is
-/// `spacing`: particles closer than [`LINK`] spacings are joined (union-find over
-/// [`Bins::around`]); pieces of 3 particles or more, each its particle indices in increasing
+/// `spacing`: particles closer than [`LINK`] spacings are joined
+/// ([`Components::join_within`]); pieces of 3 particles or more, each its particle indices in increasing
 /// order, the pieces in order of their lowest index.
 pub(super) fn pieces(
     rest: &[f32],
@@ -110,33 +110,11 @@ pub(super) fn pieces(
     if ids.len() < 3 || spacing <= 0.0 {
         return Vec::new();
     }
-    let link = LINK * spacing;
-    let list = Bins::for_radius(rest, stride, &ids, link);
-    let mut parent: Vec<usize> = (0..material.len()).collect();
-    fn root(parent: &mut [usize], mut i: usize) -> usize {
-        while parent[i] != i {
-            parent[i] = parent[parent[i]];
-            i = parent[i];
-        }
-        i
-    }
-    for &i in &ids {
-        let i = i as usize;
-        let (x, y) = (rest[stride * i], rest[stride * i + 1]);
-        list.around(x, y, |j| {
-            if j > i && (rest[stride * j] - x).hypot(rest[stride * j + 1] - y) <= link {
-                let (a, b) = (root(&mut parent, i), root(&mut parent, j));
-                // The lower index as the root: pieces come out in index order.
-                parent[a.max(b)] = a.min(b);
-            }
-        });
-    }
-    let mut pieces: std::collections::BTreeMap<usize, Vec<u32>> = Default::default();
-    for &i in &ids {
-        let r = root(&mut parent, i as usize);
-        pieces.entry(r).or_default().push(i);
-    }
-    pieces.into_values().filter(|p| p.len() >= 3).collect()
+    let mut sets = Components::new(material.len());
+    sets.join_within(rest, stride, &ids, LINK * spacing);
+    let mut pieces = sets.groups(&ids);
+    pieces.retain(|p| p.len() >= 3);
+    pieces
 }
 
 impl Body {
