@@ -20,7 +20,9 @@
 //! less the gravity of the frames since it began to leave, for a wall across gravity): the
 //! body is translated along the normal by the speed it lacks or has too much times `dt`, a
 //! pair by equal and opposite impulses (momentum kept). The contact ends when the body
-//! leaves the zone. Velocity-level
+//! leaves the zone; a body separating in that frame gets its exit speed then too, since a
+//! fast one can pass from under `release` to past the zone in one frame (two disks parting
+//! at 2.5 move 0.04 a frame, twice the 0.02 between release and reach). Velocity-level
 //! restitution with per-contact state is what rigid-body PBD solvers do (Müller et al. 2020,
 //! "Detailed Rigid Body Simulation with Extended Position Based Dynamics", section 3.6:
 //! the pre-contact normal velocity kept to set `v_n' = -e v_n`).
@@ -43,6 +45,25 @@ struct Event {
     speed_in: Option<f32>,
     /// Frames in which the body was leaving so far.
     leaving: u32,
+}
+
+impl Event {
+    /// The speed to add along the normal to a body leaving this contact at separating speed
+    /// `u` (module doc): 0 without a known approach speed or while not separating. `fall`:
+    /// gravity's speed change per frame along the normal (a wall across gravity; 0 for a
+    /// pair), counted over the frames the body has been leaving.
+    fn exit(&mut self, p: &ReboundParams, u: f32, fall: f32) -> f32 {
+        let Some(speed_in) = self.speed_in.filter(|&v| v > 0.0) else {
+            return 0.0;
+        };
+        if u <= 0.0 {
+            return 0.0;
+        }
+        let fall = fall * self.leaving as f32;
+        self.leaving += 1;
+        let (low, high) = (p.restitution * speed_in + fall, speed_in + fall);
+        u.clamp(low, high.max(low)) - u
+    }
 }
 
 /// One scene's elastic bodies and their contacts in progress.
@@ -140,8 +161,12 @@ impl Rebound {
                     _ => (1.0 - s.hi[axis], 1.0 - s.hi_prev[axis], -1.0),
                 };
                 let key = (b as u32, WALL + side);
+                let (u, fall) = (s.v[axis] * normal, p.gravity[axis] * normal * dt);
                 if gap >= p.clearance {
-                    self.events.remove(&key);
+                    // The contact ends in this frame.
+                    if let Some(mut event) = self.events.remove(&key) {
+                        add[b][axis] += event.exit(p, u, fall) * normal;
+                    }
                     continue;
                 }
                 let event = self.events.entry(key).or_insert_with(|| Event {
@@ -149,17 +174,9 @@ impl Rebound {
                         .then(|| begin(-s.v_prev[axis] * normal, p.resting)),
                     leaving: 0,
                 });
-                let u = s.v[axis] * normal;
-                let Some(speed_in) = event.speed_in.filter(|&v| v > 0.0) else {
-                    continue;
-                };
-                if gap < p.release || u <= 0.0 {
-                    continue;
+                if gap >= p.release {
+                    add[b][axis] += event.exit(p, u, fall) * normal;
                 }
-                let fall = p.gravity[axis] * normal * dt * event.leaving as f32;
-                event.leaving += 1;
-                let (low, high) = (p.restitution * speed_in + fall, speed_in + fall);
-                add[b][axis] += (u.clamp(low, high.max(low)) - u) * normal;
             }
         }
     }
@@ -175,12 +192,20 @@ impl Rebound {
     ) {
         let near = self.near_pairs(frame, p.reach);
         let near_prev = self.near_pairs(prev, p.reach);
-        self.events.retain(|&key, _| {
-            key.1 >= WALL || near.binary_search_by_key(&key, |&(k, _)| k).is_ok()
-        });
+        // Contacts of pairs past `reach` end in this frame, with their exit speed.
+        let ended: Vec<(u32, u32)> = self
+            .events
+            .keys()
+            .filter(|key| key.1 < WALL && near.binary_search_by_key(*key, |&(k, _)| k).is_err())
+            .copied()
+            .collect();
+        for (a, b) in ended {
+            let mut event = self.events.remove(&(a, b)).expect("listed above");
+            self.part(p, stats, (a, b), &mut event, add);
+        }
         for &((a, b), gap) in &near {
             let (sa, sb) = (&stats[a as usize], &stats[b as usize]);
-            let event = self.events.entry((a, b)).or_insert_with(|| {
+            let mut event = *self.events.entry((a, b)).or_insert_with(|| {
                 let n = unit([sa.c_prev[0] - sb.c_prev[0], sa.c_prev[1] - sb.c_prev[1]]);
                 let closing =
                     -((sa.v_prev[0] - sb.v_prev[0]) * n[0] + (sa.v_prev[1] - sb.v_prev[1]) * n[1]);
@@ -192,25 +217,33 @@ impl Rebound {
                     leaving: 0,
                 }
             });
-            let n = unit([sa.c[0] - sb.c[0], sa.c[1] - sb.c[1]]);
-            let u = (sa.v[0] - sb.v[0]) * n[0] + (sa.v[1] - sb.v[1]) * n[1];
-            let Some(speed_in) = event.speed_in.filter(|&v| v > 0.0) else {
-                continue;
-            };
-            if gap < p.release || u <= 0.0 {
-                continue;
+            if gap >= p.release {
+                self.part(p, stats, (a, b), &mut event, add);
+                self.events.insert((a, b), event);
             }
-            event.leaving += 1;
-            let d = u.clamp(p.restitution * speed_in, speed_in) - u;
-            if d != 0.0 {
-                let (ma, mb) = (
-                    self.bodies[a as usize].len() as f32,
-                    self.bodies[b as usize].len() as f32,
-                );
-                for k in 0..2 {
-                    add[a as usize][k] += d * mb / (ma + mb) * n[k];
-                    add[b as usize][k] -= d * ma / (ma + mb) * n[k];
-                }
+        }
+    }
+
+    /// Pair `(a, b)` leaving `event`: equal and opposite speeds along the line between their
+    /// centres into `add`, weighed by their particle counts (momentum kept).
+    fn part(
+        &self,
+        p: &ReboundParams,
+        stats: &[Stats],
+        (a, b): (u32, u32),
+        event: &mut Event,
+        add: &mut [[f32; 2]],
+    ) {
+        let (sa, sb) = (&stats[a as usize], &stats[b as usize]);
+        let n = unit([sa.c[0] - sb.c[0], sa.c[1] - sb.c[1]]);
+        let u = (sa.v[0] - sb.v[0]) * n[0] + (sa.v[1] - sb.v[1]) * n[1];
+        let d = event.exit(p, u, 0.0);
+        if d != 0.0 {
+            let ma = self.bodies[a as usize].len() as f32;
+            let mb = self.bodies[b as usize].len() as f32;
+            for k in 0..2 {
+                add[a as usize][k] += d * mb / (ma + mb) * n[k];
+                add[b as usize][k] -= d * ma / (ma + mb) * n[k];
             }
         }
     }
@@ -407,5 +440,41 @@ mod tests {
         let (a, b) = (velocity(&frame, 0..25), velocity(&frame, 25..50));
         assert!((b[0] - a[0] - 2.0).abs() < 1e-3, "{a:?} {b:?}");
         assert!((a[0] + b[0]).abs() < 1e-4, "momentum: {a:?} {b:?}");
+    }
+
+    #[test]
+    fn a_pair_that_parts_past_reach_in_one_frame_still_gets_its_exit_speed() {
+        let ids = |r: std::ops::Range<u32>| r.collect::<Vec<u32>>();
+        let mut rebound = Rebound::new(vec![ids(0..25), ids(25..50)], 50).unwrap();
+        // Closing at 6, far apart; 0.04 apart (under release); then 0.08 apart (past reach,
+        // 0.07) at once, parting at 2.5: below 0.5 times 6.
+        let frames = [
+            [block(0.2, 0.5, [3.0, 0.0]), block(0.6, 0.5, [-3.0, 0.0])].concat(),
+            [block(0.4, 0.5, [0.0, 0.0]), block(0.48, 0.5, [0.0, 0.0])].concat(),
+            [block(0.38, 0.5, [-1.25, 0.0]), block(0.5, 0.5, [1.25, 0.0])].concat(),
+        ];
+        let (frame, _) = run(&mut rebound, &frames);
+        let (a, b) = (velocity(&frame, 0..25), velocity(&frame, 25..50));
+        assert!((b[0] - a[0] - 3.0).abs() < 1e-3, "{a:?} {b:?}");
+        assert!((a[0] + b[0]).abs() < 1e-4, "momentum: {a:?} {b:?}");
+        // The contact has ended: the next frame is left alone.
+        let next = [frame.clone(), frame.clone()];
+        let (again, before) = run(&mut rebound, &next);
+        assert_eq!(again, before);
+    }
+
+    #[test]
+    fn a_body_that_leaves_a_wall_past_the_zone_in_one_frame_still_gets_its_exit_speed() {
+        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        // Free at x = 0.2 moving left at 2; at the wall (0.05); at 0.09, past the zone (0.08),
+        // leaving at 0.5.
+        let frames = [
+            block(0.2, 0.5, [-2.0, 0.0]),
+            block(0.05, 0.5, [0.0, 0.0]),
+            block(0.09, 0.5, [0.5, 0.0]),
+        ];
+        let (frame, _) = run(&mut rebound, &frames);
+        let v = velocity(&frame, 0..25);
+        assert!((v[0] - 1.0).abs() < 1e-4, "{v:?}");
     }
 }
