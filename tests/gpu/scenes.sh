@@ -10,7 +10,8 @@
 #                                        # count or a range such as 800..1200), seed 7
 #                                        # (unseen), the held-out scene files
 #   tests/gpu/scenes.sh start MINUTES    # the fine-tunes, in the background (ONLY picks:
-#                                        # mx-rest, mx-small, pc-rest, mx-small-longN)
+#                                        # mx-rest, mx-small, pc-rest, mx-small-longN,
+#                                        # mx-rest-longN)
 #   tests/gpu/scenes.sh wait             # until they have ended
 #   tests/gpu/scenes.sh fit              # the new runs' constraints (constraints fit)
 #   tests/gpu/scenes.sh eval NAME...     # models (runs/NAME or a path) on the three test
@@ -66,12 +67,17 @@ start)
     TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start "mx-small-long$long" "$m" \
         --init-from "${LONG_FROM:-models/all-grid-mingru-small-k4$suffix}" "${SMALL_BASE[@]}" \
         --rollout-steps "$long" --rollout-discount "${LONG_DISCOUNT:-1}"
+    # The same long, discounted loss for -rest's fine-tune (from LONG_REST_FROM, default as
+    # mx-rest).
+    TRAIN_DATA="$DATA/multi $DATA/fluid $DATA/mixed" start "mx-rest-long$long" "$m" \
+        --model mingru --init-from "${LONG_REST_FROM:-models/all-grid-mingru-rest$suffix}" \
+        --rest-shape fit --rollout-steps "$long" --rollout-discount "${LONG_DISCOUNT:-1}"
     ;;
 wait)
     wait_runs
     ;;
 fit)
-    for run in mx-rest mx-small $(cd runs && ls -d mx-small-long* 2>/dev/null); do
+    for run in mx-rest mx-small $(cd runs && ls -d mx-*-long* 2>/dev/null); do
         [ -d "runs/$run" ] || continue
         "$BIN" constraints fit --model "runs/$run" --data "$DATA"/multi "$DATA"/fluid \
             "$DATA"/mixed --max-scenes 80 2>&1 | tail -n 8 &
