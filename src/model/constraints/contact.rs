@@ -9,6 +9,7 @@
 //! shape-matched particle sets with particle-particle contacts), not per particle: a per-
 //! particle push on a few boundary particles would move a body by a fraction of its overlap.
 
+use super::index::BodyIndex;
 use super::shape::Body;
 use super::ContactParams;
 use crate::neighbours::Bins;
@@ -23,14 +24,8 @@ const AGREE: f32 = 0.3;
 /// A scene's bodies for contact: which body each particle belongs to.
 #[derive(Debug, Clone, Default)]
 pub(super) struct Contact {
-    /// `[N]`: body index per particle, `u32::MAX` for particles of no shape-matched body.
-    body_of: Vec<u32>,
-    /// The particles of all bodies.
-    ids: Vec<u32>,
-    /// Per body: particle count.
-    sizes: Vec<usize>,
-    /// Per body: where its particles start in `ids`.
-    starts: Vec<usize>,
+    /// The shape-matched bodies' particles.
+    bodies: BodyIndex,
     /// The contact distance: the largest spacing among the bodies' materials (domain units).
     spacing: f32,
 }
@@ -42,25 +37,12 @@ impl Contact {
         if bodies.len() < 2 {
             return None;
         }
-        let mut body_of = vec![u32::MAX; n];
-        let mut ids = Vec::new();
-        let mut sizes = Vec::with_capacity(bodies.len());
-        let mut starts = Vec::with_capacity(bodies.len());
-        let mut widest = 0.0f32;
-        for (b, body) in bodies.iter().enumerate() {
-            for &i in body.ids() {
-                body_of[i as usize] = b as u32;
-            }
-            starts.push(ids.len());
-            ids.extend_from_slice(body.ids());
-            sizes.push(body.ids().len());
-            widest = widest.max(spacing[usize::from(body.material)]);
-        }
-        (widest > 0.0).then_some(Self {
-            body_of,
-            ids,
-            sizes,
-            starts,
+        let widest = bodies
+            .iter()
+            .map(|body| spacing[usize::from(body.material)])
+            .fold(0.0f32, f32::max);
+        (widest > 0.0).then(|| Self {
+            bodies: BodyIndex::new(bodies.iter().map(Body::ids), n),
             spacing: widest,
         })
     }
@@ -72,17 +54,17 @@ impl Contact {
     /// the projection gives every move, `dx / dt`, is taken back from it here).
     pub(super) fn separate(&self, p: &ContactParams, frame: &mut [f32], dt: f32) {
         let d = p.distance * self.spacing;
-        let mut total = vec![[0.0f32; 2]; self.sizes.len()];
+        let mut total = vec![[0.0f32; 2]; self.bodies.len()];
         let mut normals = std::collections::BTreeMap::new();
         for _ in 0..p.iterations.max(1) {
             let pushes = self.overlaps(frame, d);
             if pushes.is_empty() {
                 break;
             }
-            let mut shift = vec![[0.0f32; 2]; self.sizes.len()];
+            let mut shift = vec![[0.0f32; 2]; self.bodies.len()];
             for ((a, b), (normal, depth)) in pushes {
                 normals.entry((a, b)).or_insert(normal);
-                let (na, nb) = (self.sizes[a] as f32, self.sizes[b] as f32);
+                let (na, nb) = (self.size(a), self.size(b));
                 let (wa, wb) = (nb / (na + nb), na / (na + nb));
                 for k in 0..2 {
                     shift[a][k] += normal[k] * depth * wa;
@@ -93,7 +75,7 @@ impl Contact {
                 t[0] += s[0];
                 t[1] += s[1];
             }
-            self.add(frame, &shift, 0);
+            self.bodies.add(frame, &shift, 0);
         }
         if normals.is_empty() || dt <= 0.0 {
             return;
@@ -101,7 +83,7 @@ impl Contact {
         let mut dv: Vec<[f32; 2]> = total.iter().map(|s| [-s[0] / dt, -s[1] / dt]).collect();
         let mean = self.mean_velocities(frame);
         for ((a, b), n) in normals {
-            let (ma, mb) = (self.sizes[a] as f32, self.sizes[b] as f32);
+            let (ma, mb) = (self.size(a), self.size(b));
             let rel = (mean[a][0] - mean[b][0]) * n[0] + (mean[a][1] - mean[b][1]) * n[1];
             if rel >= 0.0 {
                 continue;
@@ -117,29 +99,25 @@ impl Contact {
                 dv[b][k] -= j / mb * n[k];
             }
         }
-        self.add(frame, &dv, 2);
+        self.bodies.add(frame, &dv, 2);
     }
 
-    /// Adds `by[body]` to columns `col, col + 1` of every body particle's row.
-    fn add(&self, frame: &mut [f32], by: &[[f32; 2]], col: usize) {
-        for &i in &self.ids {
-            let s = by[self.body_of[i as usize] as usize];
-            frame[4 * i as usize + col] += s[0];
-            frame[4 * i as usize + col + 1] += s[1];
-        }
+    /// The particle count of body `b`.
+    fn size(&self, b: usize) -> f32 {
+        self.bodies.of(b).len() as f32
     }
 
     /// Each body's mean velocity in `frame`.
     fn mean_velocities(&self, frame: &[f32]) -> Vec<[f32; 2]> {
-        let mut v = vec![[0.0f32; 2]; self.sizes.len()];
-        for &i in &self.ids {
-            let b = self.body_of[i as usize] as usize;
+        let mut v = vec![[0.0f32; 2]; self.bodies.len()];
+        for &i in &self.bodies.ids {
+            let b = self.bodies.body_of[i as usize] as usize;
             v[b][0] += frame[4 * i as usize + 2];
             v[b][1] += frame[4 * i as usize + 3];
         }
-        for (v, &n) in v.iter_mut().zip(&self.sizes) {
-            v[0] /= n as f32;
-            v[1] /= n as f32;
+        for (b, v) in v.iter_mut().enumerate() {
+            v[0] /= self.size(b);
+            v[1] /= self.size(b);
         }
         v
     }
@@ -151,14 +129,14 @@ impl Contact {
     /// into another in one frame). `n` is the mean direction of the close particle pairs,
     /// or, where those disagree (a deep overlap), the line between the centres of mass.
     fn overlaps(&self, frame: &[f32], d: f32) -> Vec<((usize, usize), ([f32; 2], f32))> {
-        let list = Bins::for_radius(frame, 4, &self.ids, d);
+        let list = Bins::for_radius(frame, 4, &self.bodies.ids, d);
         let mut acc: std::collections::BTreeMap<(usize, usize), ([f32; 2], usize)> =
             Default::default();
-        for &i in &self.ids {
-            let bi = self.body_of[i as usize] as usize;
+        for &i in &self.bodies.ids {
+            let bi = self.bodies.body_of[i as usize] as usize;
             let (x, y) = (frame[4 * i as usize], frame[4 * i as usize + 1]);
             list.around(x, y, |j| {
-                let bj = self.body_of[j] as usize;
+                let bj = self.bodies.body_of[j] as usize;
                 if bj <= bi {
                     return;
                 }
@@ -189,8 +167,14 @@ impl Contact {
                 };
                 let along =
                     |i: &u32| frame[4 * *i as usize] * n[0] + frame[4 * *i as usize + 1] * n[1];
-                let low_a = self.of(a).iter().map(along).fold(f32::INFINITY, f32::min);
+                let low_a = self
+                    .bodies
+                    .of(a)
+                    .iter()
+                    .map(along)
+                    .fold(f32::INFINITY, f32::min);
                 let high_b = self
+                    .bodies
                     .of(b)
                     .iter()
                     .map(along)
@@ -201,14 +185,9 @@ impl Contact {
             .collect()
     }
 
-    /// The particles of body `b`.
-    fn of(&self, b: usize) -> &[u32] {
-        &self.ids[self.starts[b]..self.starts[b] + self.sizes[b]]
-    }
-
     /// The centre of mass of body `b` in `frame`.
     fn centre(&self, frame: &[f32], b: usize) -> [f32; 2] {
-        let ids = self.of(b);
+        let ids = self.bodies.of(b);
         let mut c = [0.0f32; 2];
         for &i in ids {
             c[0] += frame[4 * i as usize];

@@ -36,6 +36,7 @@
 mod contact;
 mod density;
 pub mod fit;
+mod index;
 mod momentum;
 mod rebound;
 mod rope;
@@ -479,7 +480,7 @@ impl SceneShape {
         let rebound = c.rebound.and_then(|_| {
             let m = Material::Jelly.id();
             let s = spacing[usize::from(m)];
-            rebound::Rebound::new(shape::pieces(rest, stride, material, m, s), n)
+            rebound::Rebound::new(&shape::pieces(rest, stride, material, m, s), n)
         });
         Self {
             n,

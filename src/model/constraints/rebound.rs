@@ -29,6 +29,7 @@
 
 use std::collections::BTreeMap;
 
+use super::index::BodyIndex;
 use super::ReboundParams;
 use crate::neighbours::Bins;
 
@@ -69,12 +70,8 @@ impl Event {
 /// One scene's elastic bodies and their contacts in progress.
 #[derive(Clone, Debug)]
 pub(super) struct Rebound {
-    /// Per body, its particles in increasing order.
-    bodies: Vec<Vec<u32>>,
-    /// `[N]`: body index per particle, `u32::MAX` for particles of no body.
-    body_of: Vec<u32>,
-    /// The particles of all bodies.
-    ids: Vec<u32>,
+    /// The jelly bodies' particles.
+    bodies: BodyIndex,
     /// Contacts in progress, by `(body, other body or WALL + side)`.
     events: BTreeMap<(u32, u32), Event>,
 }
@@ -101,22 +98,12 @@ struct Stats {
 impl Rebound {
     /// The contact data of `bodies` (each a list of particle indices) in a scene of `n`
     /// particles; None without a body.
-    pub(super) fn new(bodies: Vec<Vec<u32>>, n: usize) -> Option<Self> {
+    pub(super) fn new(bodies: &[Vec<u32>], n: usize) -> Option<Self> {
         if bodies.is_empty() {
             return None;
         }
-        let mut body_of = vec![u32::MAX; n];
-        let mut ids = Vec::new();
-        for (b, body) in bodies.iter().enumerate() {
-            for &i in body {
-                body_of[i as usize] = b as u32;
-            }
-            ids.extend_from_slice(body);
-        }
         Some(Self {
-            bodies,
-            body_of,
-            ids,
+            bodies: BodyIndex::new(bodies.iter().map(Vec::as_slice), n),
             events: BTreeMap::new(),
         })
     }
@@ -133,19 +120,14 @@ impl Rebound {
         if dt <= 0.0 || prev.len() != frame.len() || before.len() != frame.len() {
             return;
         }
-        let stats: Vec<Stats> = self
-            .bodies
-            .iter()
-            .map(|ids| stats(ids, prev, before, frame, dt))
+        let stats: Vec<Stats> = (0..self.bodies.len())
+            .map(|b| stats(self.bodies.of(b), prev, before, frame, dt))
             .collect();
         let mut shift = vec![[0.0f32; 2]; self.bodies.len()];
         self.walls(p, &stats, dt, &mut shift);
         self.pairs(p, &stats, (prev, frame), &mut shift);
-        for &i in &self.ids {
-            let s = shift[self.body_of[i as usize] as usize];
-            frame[4 * i as usize] += s[0] * dt;
-            frame[4 * i as usize + 1] += s[1] * dt;
-        }
+        let moves: Vec<[f32; 2]> = shift.iter().map(|s| [s[0] * dt, s[1] * dt]).collect();
+        self.bodies.add(frame, &moves, 0);
     }
 
     /// The walls' contacts: per body and side, the speed to add along the wall's normal
@@ -239,8 +221,8 @@ impl Rebound {
         let u = (sa.v[0] - sb.v[0]) * n[0] + (sa.v[1] - sb.v[1]) * n[1];
         let d = event.exit(p, u, 0.0);
         if d != 0.0 {
-            let ma = self.bodies[a as usize].len() as f32;
-            let mb = self.bodies[b as usize].len() as f32;
+            let ma = self.bodies.of(a as usize).len() as f32;
+            let mb = self.bodies.of(b as usize).len() as f32;
             for k in 0..2 {
                 add[a as usize][k] += d * mb / (ma + mb) * n[k];
                 add[b as usize][k] -= d * ma / (ma + mb) * n[k];
@@ -254,13 +236,13 @@ impl Rebound {
         if self.bodies.len() < 2 {
             return Vec::new();
         }
-        let bins = Bins::for_radius(frame, 4, &self.ids, reach);
+        let bins = Bins::for_radius(frame, 4, &self.bodies.ids, reach);
         let mut near = BTreeMap::new();
-        for &i in &self.ids {
-            let bi = self.body_of[i as usize];
+        for &i in &self.bodies.ids {
+            let bi = self.bodies.body_of[i as usize];
             let (x, y) = (frame[4 * i as usize], frame[4 * i as usize + 1]);
             bins.around(x, y, |j| {
-                let bj = self.body_of[j];
+                let bj = self.bodies.body_of[j];
                 if bj > bi {
                     let r = (frame[4 * j] - x).hypot(frame[4 * j + 1] - y);
                     if r <= reach {
@@ -371,7 +353,7 @@ mod tests {
 
     #[test]
     fn a_body_leaves_a_wall_at_the_restitution_of_its_approach() {
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         // Free at x = 0.2 moving left at 2; at the wall (0.05); leaving slowly at 0.5.
         let frames = [
             block(0.2, 0.5, [-2.0, 0.0]),
@@ -382,7 +364,7 @@ mod tests {
         let v = velocity(&frame, 0..25);
         assert!((v[0] - 1.0).abs() < 1e-4, "{v:?}");
         // Still touching (0.03 from the wall, under the release gap): not yet.
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         let touching = [
             frames[0].clone(),
             frames[1].clone(),
@@ -391,7 +373,7 @@ mod tests {
         let (frame, before) = run(&mut rebound, &touching);
         assert_eq!(frame, before);
         // A body that leaves between 0.5 and 1 times its approach speed is left alone.
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         let within = [
             frames[0].clone(),
             frames[1].clone(),
@@ -400,7 +382,7 @@ mod tests {
         let (frame, before) = run(&mut rebound, &within);
         assert_eq!(frame, before);
         // One that leaves faster than it came is slowed to its approach speed.
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         let faster = [
             frames[0].clone(),
             frames[1].clone(),
@@ -409,14 +391,14 @@ mod tests {
         let (frame, _) = run(&mut rebound, &faster);
         assert!((velocity(&frame, 0..25)[0] - 2.0).abs() < 1e-4);
         // A contact under way in the first frame seen has no approach speed: left alone.
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         let (frame, before) = run(&mut rebound, &frames[1..]);
         assert_eq!(frame, before);
     }
 
     #[test]
     fn a_resting_contact_does_not_bounce() {
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         let frames = [
             block(0.4, 0.06, [0.0, -0.2]),
             block(0.4, 0.05, [0.0, 0.0]),
@@ -429,7 +411,7 @@ mod tests {
     #[test]
     fn a_pair_leaves_at_the_restitution_of_its_closing_speed_and_keeps_its_momentum() {
         let ids = |r: std::ops::Range<u32>| r.collect::<Vec<u32>>();
-        let mut rebound = Rebound::new(vec![ids(0..25), ids(25..50)], 50).unwrap();
+        let mut rebound = Rebound::new(&[ids(0..25), ids(25..50)], 50).unwrap();
         // Closing at 4 (2 each), far apart; touching; parting at 1.
         let frames = [
             [block(0.2, 0.5, [2.0, 0.0]), block(0.6, 0.5, [-2.0, 0.0])].concat(),
@@ -445,7 +427,7 @@ mod tests {
     #[test]
     fn a_pair_that_parts_past_reach_in_one_frame_still_gets_its_exit_speed() {
         let ids = |r: std::ops::Range<u32>| r.collect::<Vec<u32>>();
-        let mut rebound = Rebound::new(vec![ids(0..25), ids(25..50)], 50).unwrap();
+        let mut rebound = Rebound::new(&[ids(0..25), ids(25..50)], 50).unwrap();
         // Closing at 6, far apart; 0.04 apart (under release); then 0.08 apart (past reach,
         // 0.07) at once, parting at 2.5: below 0.5 times 6.
         let frames = [
@@ -465,7 +447,7 @@ mod tests {
 
     #[test]
     fn a_body_that_leaves_a_wall_past_the_zone_in_one_frame_still_gets_its_exit_speed() {
-        let mut rebound = Rebound::new(vec![(0..25).collect()], 25).unwrap();
+        let mut rebound = Rebound::new(&[(0..25).collect()], 25).unwrap();
         // Free at x = 0.2 moving left at 2; at the wall (0.05); at 0.09, past the zone (0.08),
         // leaving at 0.5.
         let frames = [
