@@ -49,23 +49,21 @@ pub(crate) fn autodiff_im2col<B: NetOps, C: CheckpointStrategy>(
 }
 
 /// The backward of [`NetOps::im2col_linear`] (`P` = 3 parents with a bias, 2 without): keeps
-/// the input `x` and the matrix, recomputes the columns with [`NetOps::im2col`], takes the
-/// product's gradients from [`NetOps::linear_backward`] and the input's through
-/// [`NetOps::col2im`].
+/// the input `x` and the matrix, not the columns; the gradients come from
+/// [`NetOps::conv_linear_backward`] (by default the columns recomputed, then
+/// [`NetOps::linear_backward`] and [`NetOps::col2im`]).
 #[derive(Debug)]
 struct Im2colLinearBackward;
 
 impl<B: NetOps, const P: usize> Backward<B, P> for Im2colLinearBackward {
-    /// (input `[B, H, W, C]`, its dims, matrix `[C k^2, C_out]`, k).
-    type State = (FloatTensor<B>, [usize; 4], FloatTensor<B>, usize);
+    /// (input `[B, H, W, C]`, matrix `[C k^2, C_out]`, k).
+    type State = (FloatTensor<B>, FloatTensor<B>, usize);
 
     fn backward(self, ops: Ops<Self::State, P>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let (x, shape, matrix, k) = ops.state;
+        let (x, matrix, k) = ops.state;
         let grad = grads.consume::<B>(&ops.node);
         let need = std::array::from_fn(|i| ops.parents.get(i).is_some_and(|p| p.is_some()));
-        let cols = B::im2col(x, k);
-        let [dcols, dmatrix, dbias] = B::linear_backward(cols, matrix, grad, need);
-        let parent_grads = [dcols.map(|d| B::col2im(d, shape, k)), dmatrix, dbias];
+        let parent_grads = B::conv_linear_backward(x, matrix, grad, k, need);
         for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
             if let (Some(parent), Some(g)) = (parent, g) {
                 grads.register::<B>(parent.id, g);
@@ -105,11 +103,10 @@ fn im2col_linear_node<B: NetOps, C: CheckpointStrategy, const P: usize>(
         .stateful()
     {
         OpsKind::Tracked(prep) => {
-            let shape = dims4::<B>(&x);
-            let out = B::linear_forward(B::im2col(x.clone(), k), matrix.clone(), bias);
-            prep.finish((x, shape, matrix, k), out)
+            let out = B::conv_linear_forward(x.clone(), matrix.clone(), bias, k);
+            prep.finish((x, matrix, k), out)
         }
-        OpsKind::UnTracked(prep) => prep.finish(B::linear_forward(B::im2col(x, k), matrix, bias)),
+        OpsKind::UnTracked(prep) => prep.finish(B::conv_linear_forward(x, matrix, bias, k)),
     }
 }
 

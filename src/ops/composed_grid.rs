@@ -74,6 +74,22 @@ pub(crate) fn composed_im2col_linear<B: NetOps>(
     B::linear_forward(B::im2col(x, k), matrix, bias)
 }
 
+/// [`NetOps::conv_linear_backward`] by im2col: the columns recomputed from `x`, the
+/// product's gradients from [`NetOps::linear_backward`], the input's through
+/// [`NetOps::col2im`].
+pub(crate) fn im2col_linear_backward<B: NetOps>(
+    x: FloatTensor<B>,
+    matrix: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    k: usize,
+    need: [bool; 3],
+) -> [Option<FloatTensor<B>>; 3] {
+    let shape = dims4::<B>(&x);
+    let cols = B::im2col(x, k);
+    let [dcols, dmatrix, dbias] = B::linear_backward(cols, matrix, grad, need);
+    [dcols.map(|d| B::col2im(d, shape, k)), dmatrix, dbias]
+}
+
 /// Composed col2im, the adjoint of [`composed_im2col`]: each offset's block added back at
 /// its shifted position of a zero-padded grid, which is then cropped.
 ///

@@ -104,6 +104,8 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 }
 
 #[cfg(feature = "cuda")]
+pub(crate) use gpu::after_foreign;
+#[cfg(feature = "cuda")]
 pub use gpu::matmul;
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
@@ -269,6 +271,38 @@ mod gpu {
         f(blas.handle)
     }
 
+    /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel
+    /// workers, a loader thread, weights made on another thread) after the work just enqueued
+    /// on `stream`: such an input may be freed as soon as its tensor drops, and its memory
+    /// reused by later work on its own stream while our kernel still reads it. An event
+    /// recorded on `stream` and waited for on each foreign stream holds that later work back,
+    /// with no host wait (`cuStreamWaitEvent`; a host synchronisation here made every call
+    /// with a foreign input wait for the GPU).
+    ///
+    /// # Safety
+    /// The streams are live CUDA streams of the current context.
+    pub(crate) unsafe fn after_foreign(
+        stream: driver_sys::CUstream,
+        inputs: &[driver_sys::CUstream],
+    ) {
+        let mut done: Vec<driver_sys::CUstream> = Vec::new();
+        for &other in inputs {
+            if other == stream || done.contains(&other) {
+                continue;
+            }
+            done.push(other);
+            static SEEN: std::sync::Once = std::sync::Once::new();
+            SEEN.call_once(|| tracing::debug!("a library kernel read an input of another stream"));
+            let flags = driver_sys::CUevent_flags::CU_EVENT_DISABLE_TIMING;
+            let event = driver::event::create(flags).expect("CUDA event");
+            driver::event::record(event, stream).expect("CUDA event record");
+            let wait = driver_sys::CUevent_wait_flags::CU_EVENT_WAIT_DEFAULT;
+            driver::stream::wait_event(other, event, wait).expect("CUDA stream wait");
+            // Released by the driver once the wait is done.
+            driver::event::destroy(event).expect("CUDA event");
+        }
+    }
+
     /// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
     /// `C^T = B^T A^T`), enqueued on cubecl's stream.
     fn gemm_cube(
@@ -299,10 +333,6 @@ mod gpu {
         // The output was just allocated from this thread's pool: its stream is the one cubecl
         // launches on for this thread.
         let (pc, stream) = resource(&out);
-        // An input from another stream's pool (data parallel: tensors moved between devices and
-        // threads) may be freed and its memory reused on that stream as soon as we return, while
-        // the product still reads it here: then wait for the product before returning.
-        let foreign = sa != stream || sb != stream;
         let op = |t: bool| {
             if t {
                 cublas_sys::cublasOperation_t::CUBLAS_OP_T
@@ -336,9 +366,7 @@ mod gpu {
                     int(n),
                 )
                 .expect("cublasSgemm");
-                if foreign {
-                    driver::stream::synchronize(stream).expect("cuBLAS stream");
-                }
+                after_foreign(stream, &[sa, sb]);
             }
         });
         drop((a, b));

@@ -3,8 +3,9 @@
 //! im2col / col2im as single kernels ([`super::cuda_conv`]), and sparse stencil, P2G and G2P
 //! kernels ([`super::cuda_stencil`]; inference and training take them), and the Adam step
 //! with its gradient clipping as one kernel ([`super::cuda_adam`]); the inference 3x3
-//! convolutions can run as implicit GEMMs (`MINFLOW_CUDA_CONV=implicit`,
-//! [`super::cuda_implicit_conv`]; slower than im2col and cuBLAS, so not the default).
+//! convolutions run as im2col and cuBLAS by default, through cuDNN forward and backward
+//! (`MINFLOW_CUDA_CONV=cudnn`, [`super::cuda_cudnn`]), or as burn-cubecl's implicit GEMMs
+//! for inference (`MINFLOW_CUDA_CONV=implicit`, [`super::cuda_implicit_conv`]).
 
 use burn::tensor::ops::{FloatTensor, IntTensor};
 
@@ -17,6 +18,43 @@ use super::NetOps;
 /// (`MINFLOW_CUDA_TRANSFERS`, `MINFLOW_CUDA_ADAM`, `MINFLOW_CUDA_CONV`; docs/cuda.md).
 pub(super) fn env_is(cell: &'static OnceLock<bool>, var: &str, value: &str) -> bool {
     *cell.get_or_init(|| std::env::var(var).is_ok_and(|v| v == value))
+}
+
+/// How the grid model's 3x3 convolutions run on CUDA (`MINFLOW_CUDA_CONV`; docs/speed.md,
+/// "Where a GPU call's time goes", has the measurements that chose the default).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum ConvForm {
+    /// im2col and a product (cuBLAS for the large ones), col2im in the backward
+    /// ([`super::cuda_conv`]): the default.
+    Im2col,
+    /// cuDNN's kernels, forward and backward ([`super::cuda_cudnn`]):
+    /// `MINFLOW_CUDA_CONV=cudnn`, where `libcudnn.so.9` loads. Training takes about half the
+    /// GPU memory and runs 2-3x slower (each cuDNN call waits for cubecl's launches to catch
+    /// up); inference's kernels take a third of the time, its wall time about the same.
+    Cudnn,
+    /// burn-cubecl's implicit-GEMM convolution for inference, im2col for training
+    /// ([`super::cuda_implicit_conv`]): `MINFLOW_CUDA_CONV=implicit`.
+    Implicit,
+}
+
+/// The [`ConvForm`] of this process: `MINFLOW_CUDA_CONV=im2col | cudnn | implicit`, read
+/// once; im2col when unset. cuDNN asked for and missing falls back to im2col with a warning.
+pub(super) fn conv_form() -> ConvForm {
+    static FORM: OnceLock<ConvForm> = OnceLock::new();
+    *FORM.get_or_init(|| {
+        let asked = std::env::var("MINFLOW_CUDA_CONV").ok();
+        let form = match asked.as_deref() {
+            Some("implicit") => ConvForm::Implicit,
+            Some("cudnn") if super::cuda_cudnn::available() => ConvForm::Cudnn,
+            Some("cudnn") => {
+                tracing::warn!("MINFLOW_CUDA_CONV=cudnn: libcudnn.so.9 not found, im2col instead");
+                ConvForm::Im2col
+            }
+            _ => ConvForm::Im2col,
+        };
+        tracing::debug!("CUDA convolutions: {form:?}");
+        form
+    })
 }
 
 /// Whether `MINFLOW_CUDA_ADAM=composed` asks for burn's composed Adam step instead of the
@@ -97,11 +135,37 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         prepared: &super::PreparedWeights,
     ) -> Option<FloatTensor<Self>> {
         let _ = prepared;
-        if !super::cuda_implicit_conv::implicit() {
-            return None;
-        }
-        let y = super::cuda_implicit_conv::conv3x3(parts, weight, bias);
+        let y = match conv_form() {
+            ConvForm::Cudnn => super::cuda_cudnn::conv3x3(parts, weight, bias),
+            ConvForm::Implicit => super::cuda_implicit_conv::conv3x3(parts, weight, bias),
+            ConvForm::Im2col => return None,
+        };
         Some(if silu { Self::silu(y) } else { y })
+    }
+
+    fn conv_linear_forward(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        k: usize,
+    ) -> FloatTensor<Self> {
+        match (k, conv_form()) {
+            (3, ConvForm::Cudnn) => super::cuda_cudnn::conv_linear_forward(x, matrix, bias),
+            _ => super::composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k),
+        }
+    }
+
+    fn conv_linear_backward(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        k: usize,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        match (k, conv_form()) {
+            (3, ConvForm::Cudnn) => super::cuda_cudnn::conv_linear_backward(x, matrix, grad, need),
+            _ => super::composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need),
+        }
     }
 
     fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {

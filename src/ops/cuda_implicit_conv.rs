@@ -27,13 +27,6 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 
-/// Whether the inference convolutions take [`conv3x3`] (`MINFLOW_CUDA_CONV=implicit`) or
-/// im2col and a product (the default).
-pub(super) fn implicit() -> bool {
-    static IMPLICIT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::cuda::env_is(&IMPLICIT, "MINFLOW_CUDA_CONV", "implicit")
-}
-
 /// The recorded convolution: inputs `[x, weight]` and `[bias]` when it has one, output `[y]`.
 #[derive(Debug)]
 struct ConvOp {

@@ -42,7 +42,10 @@
 //!   through cuBLAS as custom operations of burn's fusion layer.
 //! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults, whose
 //!   element-wise chains burn's fusion layer compiles into single kernels, with the large
-//!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels;
+//!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels (the
+//!   default convolutions); `cuda_cudnn.rs`: the 3x3 convolutions through cuDNN (forward,
+//!   data and filter gradients; `MINFLOW_CUDA_CONV=cudnn`); `cuda_implicit_conv.rs`: burn-cubecl's
+//!   implicit GEMM (`MINFLOW_CUDA_CONV=implicit`); `cuda_adam.rs`: the Adam step's kernel;
 //!   `cuda_stencil.rs` (kernels in `cuda_stencil_kernels.rs`): sparse P2G / G2P and stencil
 //!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums
 //!   in fixed point, the same on every run).
@@ -67,6 +70,8 @@ mod cuda;
 mod cuda_adam;
 #[cfg(feature = "cuda")]
 mod cuda_conv;
+#[cfg(feature = "cuda")]
+mod cuda_cudnn;
 #[cfg(feature = "cuda")]
 mod cuda_implicit_conv;
 #[cfg(feature = "cuda")]
@@ -327,6 +332,34 @@ pub trait NetOps: Backend {
     /// `[B, H, W, C]` = `shape`.
     fn col2im(cols: FloatTensor<Self>, shape: [usize; 4], k: usize) -> FloatTensor<Self> {
         composed_grid::composed_col2im::<Self>(cols, shape, k)
+    }
+
+    /// The product of [`NetOps::im2col_linear`]'s autodiff node (backends with
+    /// [`NetOps::NATIVE_CONV_OPS`]): `im2col(x, k) @ matrix + bias`, shapes as there. By
+    /// default the columns and one product; CUDA with `MINFLOW_CUDA_CONV=cudnn` runs its 3x3
+    /// convolutions through cuDNN (`cuda_cudnn.rs`), with no columns.
+    fn conv_linear_forward(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        bias: Option<FloatTensor<Self>>,
+        k: usize,
+    ) -> FloatTensor<Self> {
+        composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k)
+    }
+
+    /// The gradients of [`NetOps::conv_linear_forward`] from `grad` `[B H W, C_out]`:
+    /// `[dx [B, H, W, C], dmatrix [C k^2, C_out], dbias [C_out]]`, each where `need` says. By
+    /// default the columns recomputed from `x` (activation recomputation, Chen et al. 2016),
+    /// [`NetOps::linear_backward`], and [`NetOps::col2im`] for `dx`; CUDA's 3x3 with
+    /// `MINFLOW_CUDA_CONV=cudnn` through cuDNN's data and filter gradients.
+    fn conv_linear_backward(
+        x: FloatTensor<Self>,
+        matrix: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        k: usize,
+        need: [bool; 3],
+    ) -> [Option<FloatTensor<Self>>; 3] {
+        composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need)
     }
 
     /// The forward of a 3x3 same-padding convolution of the channel concatenation of

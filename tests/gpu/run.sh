@@ -23,6 +23,9 @@
 #   tests/gpu/run.sh sparse    # the sparse transfers (bench transfer: CPU, dense, bits), and
 #                              # training and the 256-scene call with sparse against dense
 #                              # transfers, beside PyTorch's training step
+#   tests/gpu/run.sh cudnn     # the convolutions through cuDNN against im2col and cuBLAS:
+#                              # training beside PyTorch's step, the 256-scene call with its
+#                              # stages, eval's tables within 1e-3
 #
 # Logs go to $OUT (default /tmp/minflow-gpu). A part that fails prints FAIL and the script
 # goes on with the next one; the exit code is the number of failed parts.
@@ -42,6 +45,11 @@ fi
 if [ ! -x "$BIN" ] && [ -f gpu/minflow.xz ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/minflow.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
+fi
+# cuDNN (the default convolutions where it loads): the system's, or the wheel PyTorch brings.
+if ! ldconfig -p 2>/dev/null | grep -q 'libcudnn.so.9'; then
+    CUDNN_LIB=$("$PY" -c 'import nvidia.cudnn, os; print(os.path.join(list(nvidia.cudnn.__path__)[0], "lib"))' 2>/dev/null)
+    [ -d "$CUDNN_LIB" ] && export LD_LIBRARY_PATH="$CUDNN_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 fi
 failed=0
 check() { # name command...
@@ -223,11 +231,11 @@ sparse() { # docs/cuda.md, "Sparse transfers"
     done
 }
 
-agree() { # name log-a log-b: the first-epoch loss (last column of the mingru line) of two
-    # bench train logs agrees to 1e-5 of itself
-    check "$1" awk 'FNR == 1 { f++ } $1 == "mingru" && $NF ~ /^[0-9]/ { loss[f] = $NF }
+agree() { # name log-a log-b [tolerance]: the first-epoch loss (last column of the mingru line)
+    # of two bench train logs agrees to the tolerance (default 1e-5) of itself
+    check "$1" awk -v tol="${4:-1e-5}" 'FNR == 1 { f++ } $1 == "mingru" && $NF ~ /^[0-9]/ { loss[f] = $NF }
         END { d = loss[1] - loss[2]; if (d < 0) d = -d
-              if (!(1 in loss) || !(2 in loss) || d > 1e-5 * loss[1]) {
+              if (!(1 in loss) || !(2 in loss) || d > tol * loss[1]) {
                   print "first-epoch losses differ:", loss[1], loss[2]; exit 1 }
               print "first-epoch losses agree:", loss[1], loss[2] }' "$2" "$3"
 }
@@ -247,7 +255,32 @@ fused() { # docs/speed.md, "Training the grid architecture on a GPU" and "Roofli
             --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 --data bags \
             --split all --starts 3 --no-render --constraints off --out "$OUT/eval-gpu-$conv"
     done
-    check eval-gpu-agree "$PY" - "$OUT/eval-gpu-implicit" "$OUT/eval-gpu-im2col" <<'PY'
+    tables_agree eval-gpu-agree "$OUT/eval-gpu-implicit" "$OUT/eval-gpu-im2col"
+    kernels
+}
+
+cudnn() { # docs/speed.md: the convolutions through cuDNN against im2col and cuBLAS
+    nvidia-smi --query-gpu=name,driver_version --format=csv
+    echo "cuDNN: ${CUDNN_LIB:-from the system library path}"
+    grid_forms MINFLOW_CUDA_CONV conv- cudnn im2col
+    for b in 16 32; do
+        # TF32 products round differently in the two forms: agree to 1e-3, not bits.
+        agree "grid-conv-$b-agree" "$OUT/grid-conv-cudnn-$b.log" "$OUT/grid-conv-im2col-$b.log" 1e-3
+    done
+    for conv in cudnn im2col; do
+        check "rollout-256-$conv" env MINFLOW_CUDA_CONV=$conv MINFLOW_CALL_STAGES=1 "$BIN" bench \
+            rollout --device cuda --model models/all-grid-mingru \
+            --model models/all-grid-mingru-small-k4 --constraints off --scenes 256 --batch 256 \
+            --threads 16 --frames 20
+        check "eval-gpu-$conv" env MINFLOW_CUDA_CONV=$conv "$BIN" eval --device cuda \
+            --model models/all-grid-mingru --model models/all-grid-mingru-small-k4 --data bags \
+            --split all --starts 3 --no-render --constraints off --out "$OUT/eval-gpu-$conv"
+    done
+    tables_agree eval-gpu-cudnn-agree "$OUT/eval-gpu-cudnn" "$OUT/eval-gpu-im2col"
+}
+
+tables_agree() { # name dir-a dir-b: every eval table.csv under the two folders within 1e-3
+    check "$1" "$PY" - "$2" "$3" <<'PY'
 import csv, glob, os, sys
 worst, tables = 0.0, 0
 a, b = sys.argv[1:3]
@@ -264,7 +297,6 @@ for path in sorted(glob.glob(os.path.join(a, "**", "table.csv"), recursive=True)
 print(f"largest relative difference of the {tables} eval tables: {worst:.2e}")
 sys.exit(tables == 0 or worst > 1e-3)
 PY
-    kernels
 }
 
 for part in "${@:-speed}"; do

@@ -245,6 +245,29 @@ fn permuting_particles_permutes_predictions() {
     }
 }
 
+/// The material one-hot a surrogate keeps between calls follows the materials: a step with
+/// other materials of the same length after a step with the first ones predicts what it did
+/// with them before (when nothing was kept), and differs from the first materials' prediction.
+#[test]
+fn kept_material_one_hot_follows_the_materials() {
+    let s = surrogate_with(MemoryKind::MinGru, false);
+    let n = 200;
+    let (state, material) = frame(n, 5);
+    let other: Vec<u8> = material.iter().map(|&m| (m + 1) % 4).collect();
+    let step = |m: &[u8]| s.step(&state, m, &[0.016], s.init_state()).unwrap().0;
+    let b_first = step(&other);
+    let a = step(&material);
+    let b = step(&other);
+    assert_eq!(
+        b, b_first,
+        "other materials after the first: as when nothing was kept"
+    );
+    assert!(
+        max_abs_diff(&[a], &[b]) > 1e-6,
+        "the materials change the prediction"
+    );
+}
+
 /// `--reference first-frame`: a model grown from one without it (`with_reference`, zero
 /// weights on the two new channels) predicts exactly what the old one did, whatever the
 /// reference; a model that reads the reference takes the first frame it steps on unless told

@@ -9,7 +9,9 @@
 //! MSE against the simulated frames (`avgH`, the model's scaler). The ratio comes from one run,
 //! so it holds on a noisy machine; quote it rather than the milliseconds. With several
 //! `--constraints` settings each model gets a row per setting (`DIR[setting]`): the
-//! projection's own cost is the difference of its `on` and `off` rows.
+//! projection's own cost is the difference of its `on` and `off` rows. With
+//! `MINFLOW_CALL_STAGES=1` a line under each row splits a grid call's wall time by stage
+//! (input, record, device, output; `model::store::stages`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -22,7 +24,7 @@ use crate::cli::device::{Device, DeviceArgs};
 use crate::cli::Outcome;
 use crate::eval::frame_metrics;
 use crate::model::constraints::Parts;
-use crate::model::store::Surrogate;
+use crate::model::store::{stages, Surrogate};
 use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
 use crate::sim::SceneRun;
@@ -91,11 +93,14 @@ fn simulate(family: Family, id: u32, seed: u64, frames: usize) -> anyhow::Result
     })
 }
 
-/// One model's row: frames per call, seconds of all rollouts, mean scaled MSE.
+/// One model's row: frames per call, seconds of all rollouts, mean scaled MSE, and with
+/// `MINFLOW_CALL_STAGES=1` a grid call's mean milliseconds by stage and the calls timed
+/// (`model::store::stages`).
 struct Row {
     bundle: usize,
     seconds: f64,
     mse: f64,
+    stages: Option<([f64; 4], usize)>,
 }
 
 /// The shape of a benchmark rollout.
@@ -123,6 +128,7 @@ fn roll<B: NetOps>(
     let scaler = surrogate.meta().scaler;
     let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
+    let _ = stages::take(); // Earlier calls (a warm-up) are not this row's.
     for chunk in scenes.chunks(batch) {
         let cat =
             |k: usize| -> Vec<f32> { chunk.iter().flat_map(|s| s.frames[k].clone()).collect() };
@@ -145,6 +151,7 @@ fn roll<B: NetOps>(
         bundle: surrogate.bundle(),
         seconds,
         mse: sum / count.max(1) as f64,
+        stages: stages::take(),
     })
 }
 
@@ -255,6 +262,12 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
             ms / solver_ms,
             row.mse
         );
+        if let Some(([input, record, device, output], calls)) = row.stages {
+            println!(
+                "|   stages, ms a call ({calls} calls): input {input:.2}, record {record:.2}, \
+                 device {device:.2}, output {output:.2} | | | | | |"
+            );
+        }
     }
     Ok(Outcome::Done)
 }

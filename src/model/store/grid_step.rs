@@ -5,6 +5,7 @@
 
 use burn::tensor::Tensor;
 
+use super::stages::{self, Stage};
 use super::state::GridState;
 use super::{Predict, StoreError, Surrogate};
 use crate::model::grid::{
@@ -29,7 +30,9 @@ impl<B: NetOps> Surrogate<B> {
     ) -> Result<(Vec<Vec<f32>>, GridState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
         let n = material.len() / b;
+        let mut clock = stages::Clock::start();
         let (input, memory) = self.grid_input(model, frames, material, dt, carry)?;
+        lap(&mut clock, Stage::Input);
         let (vel_hist, reference, rest) = (
             input.vel.clone(),
             input.reference.clone(),
@@ -58,11 +61,20 @@ impl<B: NetOps> Surrogate<B> {
                 .collect(),
             0,
         ); // [K B, N, 4]
+        lap(&mut clock, Stage::Record);
+        if clock.is_some() {
+            B::sync(&self.device).map_err(|e| crate::model::DownloadError {
+                shape: vec![k, b, n, 4],
+                source: Box::new(e),
+            })?;
+            lap(&mut clock, Stage::Device);
+        }
         let out = crate::model::download(next)?;
         let per_frame = b * n * 4;
         let out = (0..k)
             .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())
             .collect();
+        lap(&mut clock, Stage::Output);
         let state = GridState {
             memory,
             history,
@@ -102,13 +114,28 @@ impl<B: NetOps> Surrogate<B> {
         let input = StepInput {
             pos,
             vel,
-            material: one_hot(material, self.meta.materials(), b, n, &self.device),
+            material: self.material_one_hot(material, [b, n]),
             dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference),
             rest,
             deformation: carry.deformation,
         };
         Ok((input, carry.memory))
+    }
+
+    /// The `[B, N, M]` one-hot of `material` (`[B N]`), M = the model's materials: the last
+    /// call's tensor when it encodes the same materials ([`Surrogate::one_hot`]), otherwise
+    /// built on the host, uploaded and kept.
+    fn material_one_hot(&self, material: &[u8], [b, n]: [usize; 2]) -> Tensor<B, 3> {
+        let mut kept = self.one_hot.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((of, tensor)) = kept.as_ref() {
+            if of.as_slice() == material && tensor.dims()[..2] == [b, n] {
+                return tensor.clone();
+            }
+        }
+        let tensor = one_hot(material, self.meta.materials(), b, n, &self.device);
+        *kept = Some((material.to_vec(), tensor.clone()));
+        tensor
     }
 
     /// The rest neighbourhoods of the solids' particles in `reference` (`[B, N, 2]`),
@@ -122,5 +149,12 @@ impl<B: NetOps> Surrogate<B> {
     ) -> Result<NeighbourTensors<B>, StoreError> {
         let host = crate::model::download(reference.clone())?;
         Ok(Neighbourhood::build(&host, material, [b, n], |m| m != 0).upload(&self.device))
+    }
+}
+
+/// Ends `stage` on the call's clock, when stages are on ([`stages`]).
+fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
+    if let Some(clock) = clock {
+        clock.lap(stage);
     }
 }

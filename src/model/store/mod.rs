@@ -14,6 +14,7 @@ mod batch;
 mod constrained;
 mod grid_step;
 mod stack;
+pub mod stages;
 mod state;
 mod surrogate;
 

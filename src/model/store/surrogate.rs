@@ -44,6 +44,10 @@ pub struct Surrogate<B: Backend> {
     constraints: Option<Constraints>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
     corrections: std::sync::Mutex<Correction>,
+    /// The last grid call's material one-hot on the device, by the materials it encodes
+    /// (`grid_step.rs`): a rollout's or a node's calls read the same materials call after
+    /// call, so it is uploaded once, not every call (at 256 scenes of 2,500 particles, 12.8 MB).
+    pub(super) one_hot: std::sync::Mutex<Option<(Vec<u8>, burn::tensor::Tensor<B, 3>)>>,
 }
 
 impl<B: NetOps> Surrogate<B> {
@@ -70,6 +74,7 @@ impl<B: NetOps> Surrogate<B> {
             pad_batches: false,
             constraints,
             corrections: Default::default(),
+            one_hot: Default::default(),
         }
     }
 

@@ -1,0 +1,570 @@
+//! The grid model's 3x3 convolutions on CUDA through cuDNN (feature `cuda`), forward and
+//! backward, recorded as custom operations of burn's fusion layer: no im2col columns are
+//! written, and a training step's convolution is one forward kernel and two backward ones
+//! (data and filter gradients) instead of im2col, products and col2im.
+//!
+//! Why: im2col wrote 9x each convolution's input as columns for cuBLAS to read back, 11.4 GB a
+//! 256-scene call of `all-grid-mingru` and the call's largest kernel cost (docs/speed.md,
+//! "Roofline"); training recomputed the columns in its backward and summed their gradients
+//! back with col2im. cuDNN's implicit-GEMM and Winograd convolutions (Chetlur et al. 2014,
+//! "cuDNN: Efficient Primitives for Deep Learning") read each tile of the input in place; they
+//! are the kernels PyTorch's `conv2d` runs. cuDNN is a library of NVIDIA's, loaded at run
+//! time (`libcudnn.so.9`, the `nvidia-cudnn-cu13` wheel PyTorch installs, or a system cuDNN)
+//! when `MINFLOW_CUDA_CONV=cudnn` asks for it; without it the convolutions stay im2col and
+//! cuBLAS ([`available`], `cuda.rs`'s `conv_form`).
+//!
+//! Not the default, as measured on one H100 (docs/speed.md, "Where a GPU call's time goes"):
+//! the kernels are fast (a 256-scene call's GPU work after the host is done: 4 ms against
+//! 11-14 with im2col), but each call first reads its tensors' device pointers through
+//! cubecl's device queue, which waits for every launch queued before it (0.8-1.3 ms a call on
+//! the host, `host_time`), so the host can no longer run ahead of the GPU. Training at batch
+//! 16 / 32 took half the memory (1,258 / 2,445 MiB against 2,683 / 4,425) at a third to half
+//! the samples per second.
+//!
+//! Layout: the grid is channels-last, `[B, H, W, C]` (cuDNN's `NHWC`), and the weights go to
+//! cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout); same padding, stride 1,
+//! cross-correlation (burn's and PyTorch's `Conv2d`). The math follows `--gpu-gemm`: TF32
+//! tensor cores for `tf32`, FMA only (full FP32) otherwise. Each algorithm is the fastest of
+//! those cuDNN times on the shape, once per shape (`cudnnFindConvolution*Algorithm`, as
+//! PyTorch's `cudnn.benchmark`), the gradients' restricted to deterministic ones, so a
+//! training step gives the same bits on every run, as the fixed-point P2G does.
+//!
+//! How a custom operation joins the fusion stream, and why no host wait is needed: see
+//! `cublas.rs`; the cuDNN handle is bound to the same cubecl stream in the same way, and its
+//! workspace is a cubecl allocation dropped right after the enqueue (stream order keeps it
+//! alive for the kernel).
+
+use std::collections::HashMap;
+use std::mem::MaybeUninit;
+use std::sync::Mutex;
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::{FloatTensor, FloatTensorOps};
+use burn::tensor::{DType, Shape, TensorMetadata};
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_fusion::FusionRuntime;
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cudarc::cudnn::{result as dnn, sys};
+use cudarc::driver::{result as driver, sys as driver_sys};
+
+use super::cublas::{kernels, GpuGemm};
+use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
+
+/// Whether cuDNN can be loaded (checked once).
+pub(super) fn available() -> bool {
+    static PRESENT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    // SAFETY: only tries to open the shared library.
+    *PRESENT.get_or_init(|| unsafe { sys::is_culib_present() })
+}
+
+/// Which of a convolution's three passes an operation runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum Pass {
+    /// `y = conv(x, w)`: inputs `[x, w]`, output `y` `[B, H, W, C_out]`.
+    Forward,
+    /// `dx` from `dy` and `w`: inputs `[dy, w]`, output `[B, H, W, C_in]`.
+    Data,
+    /// `dw` from `x` and `dy`: inputs `[x, dy]`, output `[C_out, 3, 3, C_in]`.
+    Filter,
+}
+
+/// A convolution's sizes: `[B, H, W, C_in, C_out]`.
+type Dims = [usize; 5];
+
+impl Pass {
+    fn out_shape(self, [b, h, w, c_in, c_out]: Dims) -> Shape {
+        match self {
+            Pass::Forward => Shape::new([b, h, w, c_out]),
+            Pass::Data => Shape::new([b, h, w, c_in]),
+            Pass::Filter => Shape::new([c_out, 3, 3, c_in]),
+        }
+    }
+}
+
+/// The recorded operation: two inputs (see [`Pass`]), one output.
+#[derive(Debug)]
+struct ConvOp {
+    desc: CustomOpIr,
+    pass: Pass,
+    dims: Dims,
+}
+
+impl Operation<Runtime> for ConvOp {
+    fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
+        let ([a, b], [y]) = self.desc.as_fixed();
+        let a = contiguous(handles.get_float_tensor::<Inner>(a));
+        let b = contiguous(handles.get_float_tensor::<Inner>(b));
+        let out = run(self.pass, self.dims, a, b);
+        handles.register_float_tensor::<Inner>(&y.id, out);
+    }
+}
+
+/// Records `pass` on the inputs' fusion stream; returns its output.
+fn record(pass: Pass, dims: Dims, a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
+    let client = a.client.clone();
+    let streams = OperationStreams::with_inputs([&a, &b]);
+    let out = TensorIr::uninit(
+        client.create_empty_handle(),
+        pass.out_shape(dims),
+        DType::F32,
+    );
+    let name = match pass {
+        Pass::Forward => "minflow_cudnn_conv",
+        Pass::Data => "minflow_cudnn_conv_data",
+        Pass::Filter => "minflow_cudnn_conv_filter",
+    };
+    let desc = CustomOpIr::new(name, &[a.into_ir(), b.into_ir()], &[out]);
+    let op = ConvOp {
+        desc: desc.clone(),
+        pass,
+        dims,
+    };
+    client
+        .register(streams, OperationIr::Custom(desc), op)
+        .remove(0)
+}
+
+/// `[B, H, W, C]` of a 4-D tensor.
+fn dims4(t: &FloatTensor<Cuda>) -> [usize; 4] {
+    let s = t.shape();
+    [s[0], s[1], s[2], s[3]]
+}
+
+/// `weight` `[C_out, C_in, 3, 3]` (burn's `Conv2d`) as cuDNN's `[C_out, 3, 3, C_in]`.
+fn krsc_of_oihw(weight: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
+    <Cuda as FloatTensorOps<Cuda>>::float_permute(weight, &[0, 2, 3, 1])
+}
+
+/// An im2col product's matrix `[C_in 9, C_out]` (row `i 9 + s`, offset `s = 3 ky + kx`) as
+/// cuDNN's `[C_out, 3, 3, C_in]`.
+fn krsc_of_matrix(matrix: FloatTensor<Cuda>, c_in: usize, c_out: usize) -> FloatTensor<Cuda> {
+    type F = Cuda;
+    let m = <F as FloatTensorOps<F>>::float_reshape(matrix, Shape::new([c_in, 3, 3, c_out]));
+    <F as FloatTensorOps<F>>::float_permute(m, &[3, 1, 2, 0])
+}
+
+/// cuDNN's `[C_out, 3, 3, C_in]` filter gradient as the matrix's `[C_in 9, C_out]`.
+fn matrix_of_krsc(dw: FloatTensor<Cuda>, c_in: usize, c_out: usize) -> FloatTensor<Cuda> {
+    type F = Cuda;
+    let m = <F as FloatTensorOps<F>>::float_permute(dw, &[3, 1, 2, 0]);
+    <F as FloatTensorOps<F>>::float_reshape(m, Shape::new([c_in * 9, c_out]))
+}
+
+/// `y + bias` over the last dim (`bias` `[C]`).
+fn add_bias(y: FloatTensor<Cuda>, bias: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
+    type F = Cuda;
+    let c = bias.shape()[0];
+    let rank = y.shape().num_dims();
+    let mut dims = vec![1; rank];
+    dims[rank - 1] = c;
+    let bias = <F as FloatTensorOps<F>>::float_reshape(bias, Shape::from(dims));
+    <F as FloatTensorOps<F>>::float_add(y, bias)
+}
+
+/// [`NetOps::conv3x3_forward`](super::NetOps::conv3x3_forward) on the GPU through cuDNN,
+/// without SiLU: the 3x3 same-padding convolution of the channel concatenation of `parts`
+/// (`[B, H, W, C_p]` each), `weight` `[C_out, C_in, 3, 3]`, `bias` `[C_out]` ->
+/// `[B, H, W, C_out]`. One concatenation when there are several parts, one copy of the
+/// weights into `[C_out, 3, 3, C_in]`, one cuDNN kernel, the bias added by burn (fused with
+/// what follows).
+///
+/// # Panics
+/// The parts' channels do not add up to the weight's `C_in`, or the kernel is not 3x3; a
+/// cuDNN error.
+pub(super) fn conv3x3(
+    parts: &[FloatTensor<Cuda>],
+    weight: &FloatTensor<Cuda>,
+    bias: Option<&FloatTensor<Cuda>>,
+) -> FloatTensor<Cuda> {
+    let x = match parts {
+        [x] => x.clone(),
+        _ => <Cuda as FloatTensorOps<Cuda>>::float_cat(parts.to_vec(), 3),
+    };
+    let ([b, h, w, c], ws) = (dims4(&x), weight.shape());
+    assert!(
+        ws[1] == c && ws[2] == 3 && ws[3] == 3,
+        "conv3x3: weight {ws:?} does not take input [{b}, {h}, {w}, {c}] with a 3x3 kernel"
+    );
+    let y = record(
+        Pass::Forward,
+        [b, h, w, c, ws[0]],
+        x,
+        krsc_of_oihw(weight.clone()),
+    );
+    match bias {
+        Some(bias) => add_bias(y, bias.clone()),
+        None => y,
+    }
+}
+
+/// [`NetOps::conv_linear_forward`](super::NetOps::conv_linear_forward) for `k` = 3 through
+/// cuDNN: `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` ->
+/// `[B H W, C_out]`.
+pub(super) fn conv_linear_forward(
+    x: FloatTensor<Cuda>,
+    matrix: FloatTensor<Cuda>,
+    bias: Option<FloatTensor<Cuda>>,
+) -> FloatTensor<Cuda> {
+    let [b, h, w, c_in] = dims4(&x);
+    let c_out = matrix.shape()[1];
+    let weight = krsc_of_matrix(matrix, c_in, c_out);
+    let y = record(Pass::Forward, [b, h, w, c_in, c_out], x, weight);
+    let y = <Cuda as FloatTensorOps<Cuda>>::float_reshape(y, Shape::new([b * h * w, c_out]));
+    match bias {
+        Some(bias) => add_bias(y, bias),
+        None => y,
+    }
+}
+
+/// [`NetOps::conv_linear_backward`](super::NetOps::conv_linear_backward) for `k` = 3 through
+/// cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W, C_out]`,
+/// `[dx [B, H, W, C_in], dmatrix [C_in 9, C_out], dbias [C_out]]`, each where `need` says.
+pub(super) fn conv_linear_backward(
+    x: FloatTensor<Cuda>,
+    matrix: FloatTensor<Cuda>,
+    grad: FloatTensor<Cuda>,
+    need: [bool; 3],
+) -> [Option<FloatTensor<Cuda>>; 3] {
+    type F = Cuda;
+    let [b, h, w, c_in] = dims4(&x);
+    let c_out = matrix.shape()[1];
+    let dims = [b, h, w, c_in, c_out];
+    let dy = <F as FloatTensorOps<F>>::float_reshape(grad.clone(), Shape::new([b, h, w, c_out]));
+    let dx = need[0].then(|| {
+        let weight = krsc_of_matrix(matrix, c_in, c_out);
+        record(Pass::Data, dims, dy.clone(), weight)
+    });
+    let dmatrix = need[1].then(|| matrix_of_krsc(record(Pass::Filter, dims, x, dy), c_in, c_out));
+    let dbias = need[2].then(|| {
+        let sum = <F as FloatTensorOps<F>>::float_sum_dim(grad, 0);
+        <F as FloatTensorOps<F>>::float_reshape(sum, Shape::new([c_out]))
+    });
+    [dx, dmatrix, dbias]
+}
+
+/// A cuDNN descriptor set and algorithm for one convolution shape and pass: what [`run`]
+/// needs besides the pointers. Created once per (GPU, pass, shape, math) and kept.
+struct Plan {
+    x: sys::cudnnTensorDescriptor_t,
+    y: sys::cudnnTensorDescriptor_t,
+    w: sys::cudnnFilterDescriptor_t,
+    conv: sys::cudnnConvolutionDescriptor_t,
+    algo: Algo,
+    workspace: usize,
+}
+
+/// The algorithm of a [`Plan`], by pass.
+#[derive(Clone, Copy)]
+enum Algo {
+    Forward(sys::cudnnConvolutionFwdAlgo_t),
+    Data(sys::cudnnConvolutionBwdDataAlgo_t),
+    Filter(sys::cudnnConvolutionBwdFilterAlgo_t),
+}
+
+/// One cuDNN handle per GPU, the stream it is bound to, the GPU's primary context (cubecl's),
+/// and the plans made so far.
+struct Dnn {
+    handle: sys::cudnnHandle_t,
+    stream: driver_sys::CUstream,
+    ctx: driver_sys::CUcontext,
+    plans: HashMap<(Pass, Dims, bool), Plan>,
+}
+
+// SAFETY: the handle, context and descriptors are plain library handles; every use holds
+// `DNN`'s lock and makes the context current on the calling thread first.
+unsafe impl Send for Dnn {}
+
+static DNN: Mutex<Option<HashMap<usize, Dnn>>> = Mutex::new(None);
+
+/// Panics with cuDNN's error for `what`.
+fn check<T>(what: &str, r: Result<T, dnn::CudnnError>) -> T {
+    r.unwrap_or_else(|e| panic!("cuDNN {what}: {e:?}"))
+}
+
+/// Makes the descriptors of `pass` on `dims` and picks its algorithm (see the module doc).
+///
+/// # Safety
+/// `handle` is a live cuDNN handle with its GPU's context current.
+unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -> Plan {
+    use sys::cudnnDataType_t::CUDNN_DATA_FLOAT as FLOAT;
+    use sys::cudnnTensorFormat_t::CUDNN_TENSOR_NHWC as NHWC;
+    let [b, h, w, c_in, c_out] = dims.map(|v| i32::try_from(v).expect("cuDNN size fits i32"));
+    let x = check("tensor", dnn::create_tensor_descriptor());
+    check(
+        "tensor",
+        dnn::set_tensor4d_descriptor(x, NHWC, FLOAT, [b, c_in, h, w]),
+    );
+    let y = check("tensor", dnn::create_tensor_descriptor());
+    check(
+        "tensor",
+        dnn::set_tensor4d_descriptor(y, NHWC, FLOAT, [b, c_out, h, w]),
+    );
+    let wd = check("filter", dnn::create_filter_descriptor());
+    check(
+        "filter",
+        dnn::set_filter4d_descriptor(wd, FLOAT, NHWC, [c_out, c_in, 3, 3]),
+    );
+    let conv = check("convolution", dnn::create_convolution_descriptor());
+    let mode = sys::cudnnConvolutionMode_t::CUDNN_CROSS_CORRELATION;
+    check(
+        "convolution",
+        dnn::set_convolution2d_descriptor(conv, 1, 1, 1, 1, 1, 1, mode, FLOAT),
+    );
+    let math = match tf32 {
+        true => sys::cudnnMathType_t::CUDNN_TENSOR_OP_MATH,
+        false => sys::cudnnMathType_t::CUDNN_FMA_MATH,
+    };
+    check("math type", dnn::set_convolution_math_type(conv, math));
+    let ok = sys::cudnnStatus_t::CUDNN_STATUS_SUCCESS;
+    let deterministic = sys::cudnnDeterminism_t::CUDNN_DETERMINISTIC;
+    /// How many of cuDNN's timed algorithms are looked at.
+    const RANKED: usize = 16;
+    let mut count = 0;
+    // cudnnFind*: every algorithm run and timed on buffers of these sizes (what PyTorch's
+    // `cudnn.benchmark` does), fastest first; once per shape.
+    let (algo, workspace, math, ms) = match pass {
+        Pass::Forward => {
+            let mut perf = [MaybeUninit::<sys::cudnnConvolutionFwdAlgoPerf_t>::zeroed(); RANKED];
+            let found = sys::cudnnFindConvolutionForwardAlgorithm(
+                handle,
+                x,
+                wd,
+                conv,
+                y,
+                RANKED as i32,
+                &mut count,
+                perf.as_mut_ptr().cast(),
+            );
+            check("forward search", found.result());
+            let best = perf[..count as usize]
+                .iter()
+                .map(|p| p.assume_init())
+                .find(|p| p.status == ok)
+                .expect("cuDNN has a forward algorithm for a 3x3 convolution");
+            (
+                Algo::Forward(best.algo),
+                best.memory,
+                best.mathType,
+                best.time,
+            )
+        }
+        Pass::Data => {
+            let mut perf =
+                [MaybeUninit::<sys::cudnnConvolutionBwdDataAlgoPerf_t>::zeroed(); RANKED];
+            let found = sys::cudnnFindConvolutionBackwardDataAlgorithm(
+                handle,
+                wd,
+                y,
+                conv,
+                x,
+                RANKED as i32,
+                &mut count,
+                perf.as_mut_ptr().cast(),
+            );
+            check("data gradient search", found.result());
+            let best = perf[..count as usize]
+                .iter()
+                .map(|p| p.assume_init())
+                .find(|p| p.status == ok && p.determinism == deterministic)
+                .expect("cuDNN has a deterministic data-gradient algorithm");
+            (Algo::Data(best.algo), best.memory, best.mathType, best.time)
+        }
+        Pass::Filter => {
+            let mut perf =
+                [MaybeUninit::<sys::cudnnConvolutionBwdFilterAlgoPerf_t>::zeroed(); RANKED];
+            let found = sys::cudnnFindConvolutionBackwardFilterAlgorithm(
+                handle,
+                x,
+                y,
+                conv,
+                wd,
+                RANKED as i32,
+                &mut count,
+                perf.as_mut_ptr().cast(),
+            );
+            check("filter gradient search", found.result());
+            let best = perf[..count as usize]
+                .iter()
+                .map(|p| p.assume_init())
+                .find(|p| p.status == ok && p.determinism == deterministic)
+                .expect("cuDNN has a deterministic filter-gradient algorithm");
+            (
+                Algo::Filter(best.algo),
+                best.memory,
+                best.mathType,
+                best.time,
+            )
+        }
+    };
+    // The math type the timed algorithm ran with.
+    check("math type", dnn::set_convolution_math_type(conv, math));
+    tracing::debug!(
+        "cuDNN {pass:?} {dims:?} (tf32 {tf32}): {:?}, {math:?}, {workspace} B workspace, {ms:.3} ms",
+        match algo {
+            Algo::Forward(a) => format!("{a:?}"),
+            Algo::Data(a) => format!("{a:?}"),
+            Algo::Filter(a) => format!("{a:?}"),
+        }
+    );
+    Plan {
+        x,
+        y,
+        w: wd,
+        conv,
+        algo,
+        workspace,
+    }
+}
+
+/// Runs `pass` on the contiguous cubecl tensors `a` and `b` (see [`Pass`]); returns the new
+/// contiguous output, enqueued on cubecl's stream.
+fn run(
+    pass: Pass,
+    dims: Dims,
+    a: CubeTensor<CudaRuntime>,
+    b: CubeTensor<CudaRuntime>,
+) -> CubeTensor<CudaRuntime> {
+    let started = std::time::Instant::now();
+    let client = a.client.clone();
+    let index = a.device.index;
+    let tf32 = kernels(index).gemm == GpuGemm::Tf32;
+    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+        client.clone(),
+        a.device.clone(),
+        pass.out_shape(dims),
+        DType::F32,
+    );
+    // (pointer, stream of its pool), as in `cublas.rs`.
+    let resource = |t: &CubeTensor<CudaRuntime>| {
+        let r = client
+            .get_resource(t.handle.clone())
+            .expect("cubecl resource");
+        (r.resource().ptr, r.resource().stream)
+    };
+    let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
+    let (py, stream) = resource(&out);
+    let resourced = std::time::Instant::now();
+    let mut guard = DNN.lock().unwrap_or_else(|e| e.into_inner());
+    let map = guard.get_or_insert_with(HashMap::new);
+    let dnn = map.entry(index).or_insert_with(|| {
+        // SAFETY: driver and cuDNN FFI on a valid ordinal; the primary context is the one
+        // cubecl retained for this GPU, retained again here (never released: the handle lives
+        // as long as the process).
+        unsafe {
+            let dev = driver::device::get(index as i32).expect("CUDA device");
+            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
+            driver::ctx::set_current(ctx).expect("CUDA context");
+            let handle = dnn::create_handle().unwrap_or_else(|e| {
+                panic!("cuDNN handle ({e:?}); is libcudnn.so.9 on the library path?")
+            });
+            Dnn {
+                handle,
+                stream: std::ptr::null_mut(),
+                ctx,
+                plans: HashMap::new(),
+            }
+        }
+    });
+    // SAFETY: the context, handle and descriptors were created above and are alive; the
+    // pointers are live allocations of the tensors held here, of the sizes the descriptors
+    // give (the inputs contiguous, as `ConvOp` made them). The kernel is enqueued on the
+    // stream cubecl writes them on, after every kernel launched so far; their memory, and
+    // the workspace's, returns to the pool when they drop, for kernels enqueued after it.
+    unsafe {
+        driver::ctx::set_current(dnn.ctx).expect("CUDA context");
+        if dnn.stream != stream {
+            check("stream", dnn::set_stream(dnn.handle, stream as _));
+            dnn.stream = stream;
+        }
+        let handle = dnn.handle;
+        let plan = dnn
+            .plans
+            .entry((pass, dims, tf32))
+            .or_insert_with(|| plan(handle, pass, dims, tf32));
+        let workspace = (plan.workspace > 0).then(|| {
+            burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+                client.clone(),
+                a.device.clone(),
+                Shape::new([plan.workspace.div_ceil(4)]),
+                DType::F32,
+            )
+        });
+        let pw = workspace.as_ref().map_or(0, |t| resource(t).0);
+        let ws = pw as *mut std::ffi::c_void;
+        let (alpha, beta) = (1.0f32, 0.0f32);
+        let (alpha, beta) = (&alpha as *const f32 as _, &beta as *const f32 as _);
+        let (pa, pb, py) = (pa as *const _, pb as *const _, py as *mut _);
+        let ready = std::time::Instant::now();
+        let r = match plan.algo {
+            Algo::Forward(algo) => dnn::convolution_forward(
+                handle,
+                alpha,
+                plan.x,
+                pa,
+                plan.w,
+                pb,
+                plan.conv,
+                algo,
+                ws,
+                plan.workspace,
+                beta,
+                plan.y,
+                py,
+            ),
+            Algo::Data(algo) => dnn::convolution_backward_data(
+                handle,
+                alpha,
+                plan.w,
+                pb,
+                plan.y,
+                pa,
+                plan.conv,
+                algo,
+                ws,
+                plan.workspace,
+                beta,
+                plan.x,
+                py,
+            ),
+            Algo::Filter(algo) => dnn::convolution_backward_filter(
+                handle,
+                alpha,
+                plan.x,
+                pa,
+                plan.y,
+                pb,
+                plan.conv,
+                algo,
+                ws,
+                plan.workspace,
+                beta,
+                plan.w,
+                py,
+            ),
+        };
+        check("convolution", r);
+        super::cublas::after_foreign(stream, &[sa, sb]);
+        drop(workspace);
+        host_time([resourced - started, ready - resourced, ready.elapsed()]);
+    }
+    drop((a, b));
+    out
+}
+
+/// Sums the host's time in [`run`] (the three tensors' resources, the plan and workspace,
+/// the library call) and logs the means at debug level every 4,096 calls: what a cuDNN
+/// convolution costs the host, which sets a GPU call's pace (docs/speed.md).
+fn host_time(parts: [std::time::Duration; 3]) {
+    static SUMS: Mutex<([f64; 3], usize)> = Mutex::new(([0.0; 3], 0));
+    let mut sums = SUMS.lock().unwrap_or_else(|e| e.into_inner());
+    for (sum, part) in sums.0.iter_mut().zip(parts) {
+        *sum += part.as_secs_f64();
+    }
+    sums.1 += 1;
+    if sums.1 == 4096 {
+        let [r, p, l] = sums.0.map(|s| s * 1e6 / 4096.0);
+        tracing::debug!("cuDNN host us a call: resources {r:.1}, plan {p:.1}, library {l:.1}");
+        *sums = ([0.0; 3], 0);
+    }
+}
