@@ -53,7 +53,7 @@ pub fn download<B: Backend, const D: usize>(x: Tensor<B, D>) -> Result<Vec<f32>,
     let n = x.shape().num_elements();
     x.reshape([n])
         .into_data()
-        .to_vec()
+        .into_vec()
         .map_err(|e| DownloadError {
             shape,
             source: Box::new(e),

@@ -104,9 +104,9 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 }
 
 #[cfg(feature = "cuda")]
-pub(crate) use gpu::after_foreign;
-#[cfg(feature = "cuda")]
 pub use gpu::matmul;
+#[cfg(feature = "cuda")]
+pub(crate) use gpu::{after_foreign, primary_context};
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
@@ -231,22 +231,15 @@ mod gpu {
         let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
         let map = guard.get_or_insert_with(HashMap::new);
         let blas = map.entry(index).or_insert_with(|| {
-            // SAFETY: driver and cuBLAS FFI on a valid ordinal; the primary context is the
-            // one cubecl retained for this GPU, retained again here (never released: the
-            // handle lives as long as the process).
-            unsafe {
-                let dev = driver::device::get(index as i32).expect("CUDA device");
-                let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
-                driver::ctx::set_current(ctx).expect("CUDA context");
-                let handle = cublas::create_handle().unwrap_or_else(|e| {
-                    panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
-                });
-                Blas {
-                    handle,
-                    stream: std::ptr::null_mut(),
-                    ctx,
-                    math: None,
-                }
+            let ctx = primary_context(index);
+            let handle = cublas::create_handle().unwrap_or_else(|e| {
+                panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
+            });
+            Blas {
+                handle,
+                stream: std::ptr::null_mut(),
+                ctx,
+                math: None,
             }
         });
         // SAFETY: the context and handle were created above and are alive.
@@ -269,6 +262,19 @@ mod gpu {
             }
         }
         f(blas.handle)
+    }
+
+    /// GPU `index`'s primary context (the one cubecl uses), retained again and made current
+    /// on this thread: what a library handle of the GPU is created in. Never released: the
+    /// handles live as long as the process.
+    pub(crate) fn primary_context(index: usize) -> driver_sys::CUcontext {
+        // SAFETY: driver FFI on a valid ordinal.
+        unsafe {
+            let dev = driver::device::get(index as i32).expect("CUDA device");
+            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
+            driver::ctx::set_current(ctx).expect("CUDA context");
+            ctx
+        }
     }
 
     /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel

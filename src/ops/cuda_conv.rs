@@ -42,6 +42,15 @@ pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> 
     }
 }
 
+/// The channel concatenation of channels-last `parts` (`[B, H, W, C_p]` each) -> `[B, H, W,
+/// Σ C_p]`: the one part itself, or one concatenation (the convolutions of several parts).
+pub(super) fn cat_channels(parts: &[FloatTensor<Cuda>]) -> FloatTensor<Cuda> {
+    match parts {
+        [x] => x.clone(),
+        _ => <Cuda as burn::tensor::ops::FloatTensorOps<Cuda>>::float_cat(parts.to_vec(), 3),
+    }
+}
+
 /// The cube count and size of an element-wise launch over `units` threads (what the custom
 /// kernels here and in `cuda_stencil.rs` that run one thread per element launch with).
 pub(super) fn elementwise(

@@ -177,10 +177,7 @@ pub(super) fn conv3x3(
     weight: &FloatTensor<Cuda>,
     bias: Option<&FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
-    let x = match parts {
-        [x] => x.clone(),
-        _ => <Cuda as FloatTensorOps<Cuda>>::float_cat(parts.to_vec(), 3),
-    };
+    let x = super::cuda_conv::cat_channels(parts);
     let ([b, h, w, c], ws) = (dims4(&x), weight.shape());
     assert!(
         ws[1] == c && ws[2] == 3 && ws[3] == 3,
@@ -323,79 +320,46 @@ unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -
     let mut count = 0;
     // cudnnFind*: every algorithm run and timed on buffers of these sizes (what PyTorch's
     // `cudnn.benchmark` does), fastest first; once per shape.
+    // The fastest successful algorithm of a search (`$perf` its result type, `$find` the
+    // search's call with the descriptors in its order), the gradients' deterministic only.
+    macro_rules! fastest {
+        ($perf:ty, $kind:ident, $what:literal, $find:ident($($desc:expr),*)) => {{
+            let mut perf = [MaybeUninit::<$perf>::zeroed(); RANKED];
+            let found = sys::$find(
+                handle,
+                $($desc,)*
+                RANKED as i32,
+                &mut count,
+                perf.as_mut_ptr().cast(),
+            );
+            check($what, found.result());
+            let best = perf[..count as usize]
+                .iter()
+                .map(|p| p.assume_init())
+                .find(|p| p.status == ok && (pass == Pass::Forward || p.determinism == deterministic))
+                .unwrap_or_else(|| panic!("cuDNN has no {} algorithm for {dims:?}", $what));
+            (Algo::$kind(best.algo), best.memory, best.mathType, best.time)
+        }};
+    }
     let (algo, workspace, math, ms) = match pass {
-        Pass::Forward => {
-            let mut perf = [MaybeUninit::<sys::cudnnConvolutionFwdAlgoPerf_t>::zeroed(); RANKED];
-            let found = sys::cudnnFindConvolutionForwardAlgorithm(
-                handle,
-                x,
-                wd,
-                conv,
-                y,
-                RANKED as i32,
-                &mut count,
-                perf.as_mut_ptr().cast(),
-            );
-            check("forward search", found.result());
-            let best = perf[..count as usize]
-                .iter()
-                .map(|p| p.assume_init())
-                .find(|p| p.status == ok)
-                .expect("cuDNN has a forward algorithm for a 3x3 convolution");
-            (
-                Algo::Forward(best.algo),
-                best.memory,
-                best.mathType,
-                best.time,
-            )
-        }
-        Pass::Data => {
-            let mut perf =
-                [MaybeUninit::<sys::cudnnConvolutionBwdDataAlgoPerf_t>::zeroed(); RANKED];
-            let found = sys::cudnnFindConvolutionBackwardDataAlgorithm(
-                handle,
-                wd,
-                y,
-                conv,
-                x,
-                RANKED as i32,
-                &mut count,
-                perf.as_mut_ptr().cast(),
-            );
-            check("data gradient search", found.result());
-            let best = perf[..count as usize]
-                .iter()
-                .map(|p| p.assume_init())
-                .find(|p| p.status == ok && p.determinism == deterministic)
-                .expect("cuDNN has a deterministic data-gradient algorithm");
-            (Algo::Data(best.algo), best.memory, best.mathType, best.time)
-        }
-        Pass::Filter => {
-            let mut perf =
-                [MaybeUninit::<sys::cudnnConvolutionBwdFilterAlgoPerf_t>::zeroed(); RANKED];
-            let found = sys::cudnnFindConvolutionBackwardFilterAlgorithm(
-                handle,
-                x,
-                y,
-                conv,
-                wd,
-                RANKED as i32,
-                &mut count,
-                perf.as_mut_ptr().cast(),
-            );
-            check("filter gradient search", found.result());
-            let best = perf[..count as usize]
-                .iter()
-                .map(|p| p.assume_init())
-                .find(|p| p.status == ok && p.determinism == deterministic)
-                .expect("cuDNN has a deterministic filter-gradient algorithm");
-            (
-                Algo::Filter(best.algo),
-                best.memory,
-                best.mathType,
-                best.time,
-            )
-        }
+        Pass::Forward => fastest!(
+            sys::cudnnConvolutionFwdAlgoPerf_t,
+            Forward,
+            "forward",
+            cudnnFindConvolutionForwardAlgorithm(x, wd, conv, y)
+        ),
+        Pass::Data => fastest!(
+            sys::cudnnConvolutionBwdDataAlgoPerf_t,
+            Data,
+            "data gradient",
+            cudnnFindConvolutionBackwardDataAlgorithm(wd, y, conv, x)
+        ),
+        Pass::Filter => fastest!(
+            sys::cudnnConvolutionBwdFilterAlgoPerf_t,
+            Filter,
+            "filter gradient",
+            cudnnFindConvolutionBackwardFilterAlgorithm(x, y, conv, wd)
+        ),
     };
     // The math type the timed algorithm ran with.
     check("math type", dnn::set_convolution_math_type(conv, math));
@@ -448,22 +412,15 @@ fn run(
     let mut guard = DNN.lock().unwrap_or_else(|e| e.into_inner());
     let map = guard.get_or_insert_with(HashMap::new);
     let dnn = map.entry(index).or_insert_with(|| {
-        // SAFETY: driver and cuDNN FFI on a valid ordinal; the primary context is the one
-        // cubecl retained for this GPU, retained again here (never released: the handle lives
-        // as long as the process).
-        unsafe {
-            let dev = driver::device::get(index as i32).expect("CUDA device");
-            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
-            driver::ctx::set_current(ctx).expect("CUDA context");
-            let handle = dnn::create_handle().unwrap_or_else(|e| {
-                panic!("cuDNN handle ({e:?}); is libcudnn.so.9 on the library path?")
-            });
-            Dnn {
-                handle,
-                stream: std::ptr::null_mut(),
-                ctx,
-                plans: HashMap::new(),
-            }
+        let ctx = super::cublas::primary_context(index);
+        let handle = dnn::create_handle().unwrap_or_else(|e| {
+            panic!("cuDNN handle ({e:?}); is libcudnn.so.9 on the library path?")
+        });
+        Dnn {
+            handle,
+            stream: std::ptr::null_mut(),
+            ctx,
+            plans: HashMap::new(),
         }
     });
     // SAFETY: the context, handle and descriptors were created above and are alive; the

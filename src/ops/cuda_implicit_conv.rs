@@ -72,10 +72,7 @@ pub(super) fn conv3x3(
     weight: &FloatTensor<Cuda>,
     bias: Option<&FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
-    let x = match parts {
-        [x] => x.clone(),
-        _ => <Cuda as FloatTensorOps<Cuda>>::float_cat(parts.to_vec(), 3),
-    };
+    let x = super::cuda_conv::cat_channels(parts);
     let (xs, ws) = (x.shape(), weight.shape());
     assert!(
         ws[1] == xs[3] && ws[2] == 3 && ws[3] == 3,

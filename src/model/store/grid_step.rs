@@ -71,9 +71,11 @@ impl<B: NetOps> Surrogate<B> {
         }
         let out = crate::model::download(next)?;
         let per_frame = b * n * 4;
-        let out = (0..k)
-            .map(|i| out[i * per_frame..(i + 1) * per_frame].to_vec())
-            .collect();
+        // One frame is the buffer itself; K frames are copied apart.
+        let out = match k {
+            1 => vec![out],
+            _ => out.chunks_exact(per_frame).map(<[f32]>::to_vec).collect(),
+        };
         lap(&mut clock, Stage::Output);
         let state = GridState {
             memory,
