@@ -50,7 +50,7 @@ pub(crate) fn autodiff_im2col<B: NetOps, C: CheckpointStrategy>(
 
 /// The backward of [`NetOps::im2col_linear`] (`P` = 3 parents with a bias, 2 without): keeps
 /// the input `x` and the matrix, not the columns; the gradients come from
-/// [`NetOps::conv_linear_backward`] (by default the columns recomputed, then
+/// [`NetOps::im2col_linear_backward`] (by default the columns recomputed, then
 /// [`NetOps::linear_backward`] and [`NetOps::col2im`]).
 #[derive(Debug)]
 struct Im2colLinearBackward;
@@ -63,7 +63,7 @@ impl<B: NetOps, const P: usize> Backward<B, P> for Im2colLinearBackward {
         let (x, matrix, k) = ops.state;
         let grad = grads.consume::<B>(&ops.node);
         let need = std::array::from_fn(|i| ops.parents.get(i).is_some_and(|p| p.is_some()));
-        let parent_grads = B::conv_linear_backward(x, matrix, grad, k, need);
+        let parent_grads = B::im2col_linear_backward(x, matrix, grad, k, need);
         for (parent, g) in ops.parents.into_iter().zip(parent_grads) {
             if let (Some(parent), Some(g)) = (parent, g) {
                 grads.register::<B>(parent.id, g);
@@ -103,10 +103,10 @@ fn im2col_linear_node<B: NetOps, C: CheckpointStrategy, const P: usize>(
         .stateful()
     {
         OpsKind::Tracked(prep) => {
-            let out = B::conv_linear_forward(x.clone(), matrix.clone(), bias, k);
+            let out = B::im2col_linear(x.clone(), matrix.clone(), bias, k);
             prep.finish((x, matrix, k), out)
         }
-        OpsKind::UnTracked(prep) => prep.finish(B::conv_linear_forward(x, matrix, bias, k)),
+        OpsKind::UnTracked(prep) => prep.finish(B::im2col_linear(x, matrix, bias, k)),
     }
 }
 

@@ -74,7 +74,7 @@ pub(crate) fn composed_im2col_linear<B: NetOps>(
     B::linear_forward(B::im2col(x, k), matrix, bias)
 }
 
-/// [`NetOps::conv_linear_backward`] by im2col: the columns recomputed from `x`, the
+/// [`NetOps::im2col_linear_backward`] by im2col: the columns recomputed from `x`, the
 /// product's gradients from [`NetOps::linear_backward`], the input's through
 /// [`NetOps::col2im`].
 pub(crate) fn im2col_linear_backward<B: NetOps>(

@@ -106,7 +106,7 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 #[cfg(feature = "cuda")]
 pub use gpu::matmul;
 #[cfg(feature = "cuda")]
-pub(crate) use gpu::{after_foreign, primary_context};
+pub(crate) use gpu::{after_foreign, primary_context, resource};
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
@@ -277,6 +277,18 @@ mod gpu {
         }
     }
 
+    /// `t`'s device pointer and the CUDA stream of the memory pool it comes from, read
+    /// through cubecl's device queue: the read waits until every operation recorded before it
+    /// is launched (docs/speed.md, "Where a GPU call's time goes"), and makes this thread's
+    /// stream wait for a tensor written on another one.
+    pub(crate) fn resource(t: &CubeTensor<CudaRuntime>) -> (u64, driver_sys::CUstream) {
+        let r = t
+            .client
+            .get_resource(t.handle.clone())
+            .expect("cubecl resource");
+        (r.resource().ptr, r.resource().stream)
+    }
+
     /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel
     /// workers, a loader thread, weights made on another thread) after the work just enqueued
     /// on `stream`: such an input may be freed as soon as its tensor drops, and its memory
@@ -327,14 +339,6 @@ mod gpu {
             Shape::new([m, n]),
             DType::F32,
         );
-        // (pointer, stream of its pool); reading a resource also makes this thread's stream wait
-        // for a tensor written on another one.
-        let resource = |t: &CubeTensor<CudaRuntime>| {
-            let r = client
-                .get_resource(t.handle.clone())
-                .expect("cubecl resource");
-            (r.resource().ptr, r.resource().stream)
-        };
         let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
         // The output was just allocated from this thread's pool: its stream is the one cubecl
         // launches on for this thread.

@@ -143,19 +143,19 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         Some(if silu { Self::silu(y) } else { y })
     }
 
-    fn conv_linear_forward(
+    fn im2col_linear(
         x: FloatTensor<Self>,
         matrix: FloatTensor<Self>,
         bias: Option<FloatTensor<Self>>,
         k: usize,
     ) -> FloatTensor<Self> {
         match (k, conv_form()) {
-            (3, ConvForm::Cudnn) => super::cuda_cudnn::conv_linear_forward(x, matrix, bias),
+            (3, ConvForm::Cudnn) => super::cuda_cudnn::im2col_linear(x, matrix, bias),
             _ => super::composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k),
         }
     }
 
-    fn conv_linear_backward(
+    fn im2col_linear_backward(
         x: FloatTensor<Self>,
         matrix: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -163,7 +163,9 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         need: [bool; 3],
     ) -> [Option<FloatTensor<Self>>; 3] {
         match (k, conv_form()) {
-            (3, ConvForm::Cudnn) => super::cuda_cudnn::conv_linear_backward(x, matrix, grad, need),
+            (3, ConvForm::Cudnn) => {
+                super::cuda_cudnn::im2col_linear_backward(x, matrix, grad, need)
+            }
             _ => super::composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need),
         }
     }

@@ -48,7 +48,8 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::cudnn::{result as dnn, sys};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::cublas::{kernels, GpuGemm};
+use super::composed_grid::dims4;
+use super::cublas::{kernels, resource, GpuGemm};
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 
 /// Whether cuDNN can be loaded (checked once).
@@ -125,12 +126,6 @@ fn record(pass: Pass, dims: Dims, a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) ->
         .remove(0)
 }
 
-/// `[B, H, W, C]` of a 4-D tensor.
-fn dims4(t: &FloatTensor<Cuda>) -> [usize; 4] {
-    let s = t.shape();
-    [s[0], s[1], s[2], s[3]]
-}
-
 /// `weight` `[C_out, C_in, 3, 3]` (burn's `Conv2d`) as cuDNN's `[C_out, 3, 3, C_in]`.
 fn krsc_of_oihw(weight: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
     <Cuda as FloatTensorOps<Cuda>>::float_permute(weight, &[0, 2, 3, 1])
@@ -178,7 +173,7 @@ pub(super) fn conv3x3(
     bias: Option<&FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
     let x = super::cuda_conv::cat_channels(parts);
-    let ([b, h, w, c], ws) = (dims4(&x), weight.shape());
+    let ([b, h, w, c], ws) = (dims4::<Cuda>(&x), weight.shape());
     assert!(
         ws[1] == c && ws[2] == 3 && ws[3] == 3,
         "conv3x3: weight {ws:?} does not take input [{b}, {h}, {w}, {c}] with a 3x3 kernel"
@@ -195,15 +190,14 @@ pub(super) fn conv3x3(
     }
 }
 
-/// [`NetOps::conv_linear_forward`](super::NetOps::conv_linear_forward) for `k` = 3 through
-/// cuDNN: `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` ->
+/// [`NetOps::im2col_linear`](super::NetOps::im2col_linear) for `k` = 3 through cuDNN: `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` ->
 /// `[B H W, C_out]`.
-pub(super) fn conv_linear_forward(
+pub(super) fn im2col_linear(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
     bias: Option<FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
-    let [b, h, w, c_in] = dims4(&x);
+    let [b, h, w, c_in] = dims4::<Cuda>(&x);
     let c_out = matrix.shape()[1];
     let weight = krsc_of_matrix(matrix, c_in, c_out);
     let y = record(Pass::Forward, [b, h, w, c_in, c_out], x, weight);
@@ -214,17 +208,17 @@ pub(super) fn conv_linear_forward(
     }
 }
 
-/// [`NetOps::conv_linear_backward`](super::NetOps::conv_linear_backward) for `k` = 3 through
-/// cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W, C_out]`,
+/// [`NetOps::im2col_linear_backward`](super::NetOps::im2col_linear_backward) for `k` = 3
+/// through cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W, C_out]`,
 /// `[dx [B, H, W, C_in], dmatrix [C_in 9, C_out], dbias [C_out]]`, each where `need` says.
-pub(super) fn conv_linear_backward(
+pub(super) fn im2col_linear_backward(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
     grad: FloatTensor<Cuda>,
     need: [bool; 3],
 ) -> [Option<FloatTensor<Cuda>>; 3] {
     type F = Cuda;
-    let [b, h, w, c_in] = dims4(&x);
+    let [b, h, w, c_in] = dims4::<Cuda>(&x);
     let c_out = matrix.shape()[1];
     let dims = [b, h, w, c_in, c_out];
     let dy = <F as FloatTensorOps<F>>::float_reshape(grad.clone(), Shape::new([b, h, w, c_out]));
@@ -399,13 +393,6 @@ fn run(
         pass.out_shape(dims),
         DType::F32,
     );
-    // (pointer, stream of its pool), as in `cublas.rs`.
-    let resource = |t: &CubeTensor<CudaRuntime>| {
-        let r = client
-            .get_resource(t.handle.clone())
-            .expect("cubecl resource");
-        (r.resource().ptr, r.resource().stream)
-    };
     let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
     let (py, stream) = resource(&out);
     let resourced = std::time::Instant::now();

@@ -319,6 +319,9 @@ pub trait NetOps: Backend {
     /// that keeps `x` and recomputes the `k^2`-times larger columns in its backward instead of
     /// keeping them (activation recomputation, Chen et al. 2016, "Training deep nets with
     /// sublinear memory cost"): the kept columns were most of a GPU training step's memory.
+    /// That node's product is the inner backend's `im2col_linear`: CUDA with
+    /// `MINFLOW_CUDA_CONV=cudnn` runs its 3x3 convolutions through cuDNN (`cuda_cudnn.rs`),
+    /// with no columns.
     fn im2col_linear(
         x: FloatTensor<Self>,
         matrix: FloatTensor<Self>,
@@ -334,25 +337,13 @@ pub trait NetOps: Backend {
         composed_grid::composed_col2im::<Self>(cols, shape, k)
     }
 
-    /// The product of [`NetOps::im2col_linear`]'s autodiff node (backends with
-    /// [`NetOps::NATIVE_CONV_OPS`]): `im2col(x, k) @ matrix + bias`, shapes as there. By
-    /// default the columns and one product; CUDA with `MINFLOW_CUDA_CONV=cudnn` runs its 3x3
-    /// convolutions through cuDNN (`cuda_cudnn.rs`), with no columns.
-    fn conv_linear_forward(
-        x: FloatTensor<Self>,
-        matrix: FloatTensor<Self>,
-        bias: Option<FloatTensor<Self>>,
-        k: usize,
-    ) -> FloatTensor<Self> {
-        composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k)
-    }
-
-    /// The gradients of [`NetOps::conv_linear_forward`] from `grad` `[B H W, C_out]`:
+    /// The gradients of [`NetOps::im2col_linear`] (its autodiff node's backward, backends
+    /// with [`NetOps::NATIVE_CONV_OPS`]) from `grad` `[B H W, C_out]`:
     /// `[dx [B, H, W, C], dmatrix [C k^2, C_out], dbias [C_out]]`, each where `need` says. By
     /// default the columns recomputed from `x` (activation recomputation, Chen et al. 2016),
     /// [`NetOps::linear_backward`], and [`NetOps::col2im`] for `dx`; CUDA's 3x3 with
     /// `MINFLOW_CUDA_CONV=cudnn` through cuDNN's data and filter gradients.
-    fn conv_linear_backward(
+    fn im2col_linear_backward(
         x: FloatTensor<Self>,
         matrix: FloatTensor<Self>,
         grad: FloatTensor<Self>,
