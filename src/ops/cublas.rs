@@ -9,13 +9,14 @@
 //! PyTorch calls for the same products; it picks tile shapes and split-K per shape.
 //!
 //! How: [`matmul`] records a `CustomOpIr` on the fusion stream, so it runs in order with the
-//! fused kernels around it. When the stream reaches it, the device pointers of the inputs and
-//! of a fresh output are read from cubecl's memory pool, and `cublasSgemm` is enqueued on the
-//! CUDA stream that pool belongs to: the stream cubecl launches this thread's kernels on
-//! (exposed by the vendored cubecl-cuda, vendor/README.md). Reading a resource goes through
-//! cubecl's device queue, so every kernel recorded before is launched first, and every kernel
-//! after is launched after: stream order does the rest, with no host wait. [`worth_it`] sends
-//! products of at least 2^30 multiply-adds here; smaller ones stay with cubecl.
+//! fused kernels around it. When the stream reaches it, a fresh output is allocated and the
+//! cuBLAS call is queued on cubecl's device thread like a kernel launch ([`on_device`]): there
+//! the device pointers of the inputs and the output are read from cubecl's memory pool, and
+//! `cublasSgemm` is enqueued on the CUDA stream that pool belongs to, the stream cubecl
+//! launches this thread's kernels on (exposed by the vendored cubecl-cuda, vendor/README.md).
+//! Every kernel queued before is launched first and every kernel after is launched after:
+//! stream order does the rest, and the host waits for nothing. [`worth_it`] sends products of
+//! at least 2^30 multiply-adds here; smaller ones stay with cubecl.
 //!
 //! [`GpuGemm`] picks the math: TF32 tensor cores (what cubek does for f32 products, and
 //! PyTorch with `allow_tf32`), full FP32 (PyTorch's default), or cubecl's own kernel. It is a
@@ -75,10 +76,10 @@ pub fn kernels(index: usize) -> Kernels {
 }
 
 /// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS (2^30: the paper
-/// encoder's second layer, 1.3e11, goes; its first, 400,000 x 5 x 256 = 5.1e8, stays). Each
-/// cuBLAS call reads three resources through cubecl's device queue, a host round trip that
-/// stops the host from running ahead of the GPU; where the host is the limit (minflow's
-/// default encoder) that cost more than cuBLAS saved on the small products (`bench train`:
+/// encoder's second layer, 1.3e11, goes; its first, 400,000 x 5 x 256 = 5.1e8, stays). Set
+/// when each cuBLAS call read its three resources from the caller's thread, a host round trip
+/// that stopped the host from running ahead of the GPU (now queued on cubecl's device thread);
+/// where the host is the limit (minflow's default encoder) that cost more than cuBLAS saved on the small products (`bench train`:
 /// default encoder, minGRU, T = 2, 6,752 -> 5,151 samples/s with the first layer on cuBLAS).
 const MIN_MACS: usize = 1 << 30;
 
@@ -106,7 +107,7 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 #[cfg(feature = "cuda")]
 pub use gpu::matmul;
 #[cfg(feature = "cuda")]
-pub(crate) use gpu::{after_foreign, primary_context, resource};
+pub(crate) use gpu::{after_foreign, on_device, primary_context};
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
@@ -277,16 +278,58 @@ mod gpu {
         }
     }
 
-    /// `t`'s device pointer and the CUDA stream of the memory pool it comes from, read
-    /// through cubecl's device queue: the read waits until every operation recorded before it
-    /// is launched (docs/speed.md, "Where a GPU call's time goes"), and makes this thread's
-    /// stream wait for a tensor written on another one.
-    pub(crate) fn resource(t: &CubeTensor<CudaRuntime>) -> (u64, driver_sys::CUstream) {
-        let r = t
-            .client
-            .get_resource(t.handle.clone())
-            .expect("cubecl resource");
-        (r.resource().ptr, r.resource().stream)
+    /// cubecl's CUDA compute server: the service that owns a GPU's memory pools and launches
+    /// its kernels, from a device thread of its own.
+    type Server = <CudaRuntime as burn::cubecl::Runtime>::Server;
+
+    /// A device pointer and the CUDA stream of the memory pool it comes from.
+    pub(crate) type Resource = (u64, driver_sys::CUstream);
+
+    /// Runs `f` on cubecl's device thread of the tensors' GPU, with each tensor's device
+    /// pointer and the stream of the memory pool it comes from, in order with cubecl's own
+    /// launches: after every kernel launched before this call, before every kernel launched
+    /// after it. A library call that `f` enqueues on the output's stream (a tensor this thread
+    /// allocated: the stream cubecl launches this thread's kernels on) therefore runs in
+    /// stream order with them, and the host does not wait for anything: the call is queued
+    /// like a kernel launch (`cubecl_common`'s `DeviceHandle::submit`, the queue
+    /// `ComputeClient::launch` itself goes through). Reading the pointers from this thread
+    /// instead (`ComputeClient::get_resource`) blocked the host until the device thread had
+    /// launched everything queued before: 0.8-1.3 ms a library call (docs/speed.md, "Where a
+    /// GPU call's time goes").
+    ///
+    /// The tensors are moved into the task and dropped on the device thread once `f` has
+    /// returned, so their memory goes back to the pool only for kernels launched after the
+    /// library's; the task runs with the caller's cubecl stream id (`submit` carries it).
+    ///
+    /// # Panics
+    /// On the device thread, when a tensor's memory cannot be read (a cubecl error).
+    pub(crate) fn on_device(
+        tensors: Vec<CubeTensor<CudaRuntime>>,
+        f: impl FnOnce(&[Resource]) + Send + 'static,
+    ) {
+        use burn::cubecl::device::Device;
+        use burn::cubecl::device_handle::DeviceHandle;
+        use burn::cubecl::server::ComputeServer;
+        use burn::cubecl::stream_id::StreamId;
+        let device = tensors[0].device.to_id();
+        DeviceHandle::<Server>::new(device).submit(move |server: &mut Server| {
+            let stream = StreamId::current();
+            let resources: Vec<_> = tensors
+                .iter()
+                .map(|t| {
+                    server
+                        .get_resource(t.handle.clone().binding(), stream)
+                        .expect("cubecl resource")
+                })
+                .collect();
+            let pointers: Vec<Resource> = resources
+                .iter()
+                .map(|r| (r.resource().ptr, r.resource().stream))
+                .collect();
+            f(&pointers);
+            drop(resources);
+            drop(tensors);
+        });
     }
 
     /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel
@@ -339,47 +382,46 @@ mod gpu {
             Shape::new([m, n]),
             DType::F32,
         );
-        let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
+        let index = a.device.index;
+        let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
+        let (m, k, n, lda, ldb) = (int(m), int(k), int(n), int(lda), int(ldb));
+        let op = |t: bool| match t {
+            true => cublas_sys::cublasOperation_t::CUBLAS_OP_T,
+            false => cublas_sys::cublasOperation_t::CUBLAS_OP_N,
+        };
+        let (op_a, op_b) = (op(a_trans), op(b_trans));
         // The output was just allocated from this thread's pool: its stream is the one cubecl
         // launches on for this thread.
-        let (pc, stream) = resource(&out);
-        let op = |t: bool| {
-            if t {
-                cublas_sys::cublasOperation_t::CUBLAS_OP_T
-            } else {
-                cublas_sys::cublasOperation_t::CUBLAS_OP_N
-            }
-        };
-        let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
-        with_blas(a.device.index, gemm, stream, |handle| {
-            let (alpha, beta) = (1.0f32, 0.0f32);
-            // SAFETY: the pointers are live allocations of the tensors held above, of the sizes
-            // the dimensions and leading dimensions describe (checked by `layout`). The product
-            // is enqueued on the stream cubecl writes them on, after every kernel launched so far
-            // (the resource reads above went through cubecl's queue); their memory returns to
-            // the pool when `a` and `b` drop, for kernels enqueued after this one.
-            unsafe {
-                cublas::sgemm(
-                    handle,
-                    op(b_trans),
-                    op(a_trans),
-                    int(n),
-                    int(m),
-                    int(k),
-                    &alpha,
-                    pb as *const f32,
-                    int(ldb),
-                    pa as *const f32,
-                    int(lda),
-                    &beta,
-                    pc as *mut f32,
-                    int(n),
-                )
-                .expect("cublasSgemm");
-                after_foreign(stream, &[sa, sb]);
-            }
+        on_device(vec![a, b, out.clone()], move |r| {
+            let [(pa, sa), (pb, sb), (pc, stream)] = [r[0], r[1], r[2]];
+            with_blas(index, gemm, stream, |handle| {
+                let (alpha, beta) = (1.0f32, 0.0f32);
+                // SAFETY: the pointers are live allocations of the tensors `on_device` holds,
+                // of the sizes the dimensions and leading dimensions describe (checked by
+                // `layout`). The product is enqueued on the stream cubecl writes them on, in
+                // order with cubecl's launches; their memory returns to the pool after it.
+                unsafe {
+                    cublas::sgemm(
+                        handle,
+                        op_b,
+                        op_a,
+                        n,
+                        m,
+                        k,
+                        &alpha,
+                        pb as *const f32,
+                        ldb,
+                        pa as *const f32,
+                        lda,
+                        &beta,
+                        pc as *mut f32,
+                        n,
+                    )
+                    .expect("cublasSgemm");
+                    after_foreign(stream, &[sa, sb]);
+                }
+            })
         });
-        drop((a, b));
         out
     }
 }

@@ -25,12 +25,17 @@ pub(super) fn env_is(cell: &'static OnceLock<bool>, var: &str, value: &str) -> b
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum ConvForm {
     /// im2col and a product (cuBLAS for the large ones), col2im in the backward
-    /// ([`super::cuda_conv`]): the default.
+    /// ([`super::cuda_conv`]): `MINFLOW_CUDA_CONV=im2col`, and the default where cuDNN does
+    /// not load.
     Im2col,
+    /// cuDNN's kernels for inference (`NetOps::conv3x3_forward`: `eval`, `node`, rollouts),
+    /// im2col for training: the default where `libcudnn.so.9` loads. A 256-scene call of
+    /// `all-grid-mingru` took 0.094 ms a scene-frame against 0.141 with im2col on one H100;
+    /// a training step at batch 16 / 32, 2.2x / 4x longer with cuDNN than with im2col.
+    CudnnInference,
     /// cuDNN's kernels, forward and backward ([`super::cuda_cudnn`]):
-    /// `MINFLOW_CUDA_CONV=cudnn`, where `libcudnn.so.9` loads. Training takes about half the
-    /// GPU memory and runs 2-3x slower (each cuDNN call waits for cubecl's launches to catch
-    /// up); inference's kernels take a third of the time, its wall time about the same.
+    /// `MINFLOW_CUDA_CONV=cudnn`. Training takes about half the GPU memory and runs 2-4x
+    /// slower.
     Cudnn,
     /// burn-cubecl's implicit-GEMM convolution for inference, im2col for training
     /// ([`super::cuda_implicit_conv`]): `MINFLOW_CUDA_CONV=implicit`.
@@ -38,18 +43,22 @@ pub(super) enum ConvForm {
 }
 
 /// The [`ConvForm`] of this process: `MINFLOW_CUDA_CONV=im2col | cudnn | implicit`, read
-/// once; im2col when unset. cuDNN asked for and missing falls back to im2col with a warning.
+/// once; [`ConvForm::CudnnInference`] when unset and cuDNN loads, im2col when it does not.
+/// cuDNN asked for and missing falls back to im2col with a warning.
 pub(super) fn conv_form() -> ConvForm {
     static FORM: OnceLock<ConvForm> = OnceLock::new();
     *FORM.get_or_init(|| {
         let asked = std::env::var("MINFLOW_CUDA_CONV").ok();
+        let cudnn = super::cuda_cudnn::available();
         let form = match asked.as_deref() {
             Some("implicit") => ConvForm::Implicit,
-            Some("cudnn") if super::cuda_cudnn::available() => ConvForm::Cudnn,
+            Some("im2col") => ConvForm::Im2col,
+            Some("cudnn") if cudnn => ConvForm::Cudnn,
             Some("cudnn") => {
                 tracing::warn!("MINFLOW_CUDA_CONV=cudnn: libcudnn.so.9 not found, im2col instead");
                 ConvForm::Im2col
             }
+            _ if cudnn => ConvForm::CudnnInference,
             _ => ConvForm::Im2col,
         };
         tracing::debug!("CUDA convolutions: {form:?}");
@@ -136,7 +145,9 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     ) -> Option<FloatTensor<Self>> {
         let _ = prepared;
         let y = match conv_form() {
-            ConvForm::Cudnn => super::cuda_cudnn::conv3x3(parts, weight, bias),
+            ConvForm::Cudnn | ConvForm::CudnnInference => {
+                super::cuda_cudnn::conv3x3(parts, weight, bias)
+            }
             ConvForm::Implicit => super::cuda_implicit_conv::conv3x3(parts, weight, bias),
             ConvForm::Im2col => return None,
         };

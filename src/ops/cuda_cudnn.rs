@@ -13,13 +13,11 @@
 //! when `MINFLOW_CUDA_CONV=cudnn` asks for it; without it the convolutions stay im2col and
 //! cuBLAS ([`available`], `cuda.rs`'s `conv_form`).
 //!
-//! Not the default, as measured on one H100 (docs/speed.md, "Where a GPU call's time goes"):
-//! the kernels are fast (a 256-scene call's GPU work after the host is done: 4 ms against
-//! 11-14 with im2col), but each call first reads its tensors' device pointers through
-//! cubecl's device queue, which waits for every launch queued before it (0.8-1.3 ms a call on
-//! the host, `host_time`), so the host can no longer run ahead of the GPU. Training at batch
-//! 16 / 32 took half the memory (1,258 / 2,445 MiB against 2,683 / 4,425) at a third to half
-//! the samples per second.
+//! Each call is queued on cubecl's device thread like a kernel launch (`cublas::on_device`).
+//! It used to read its tensors' device pointers from the caller's thread through cubecl's
+//! device queue, which waited for every launch queued before it (0.8-1.3 ms a call on one
+//! H100), so the host could not run ahead of the GPU; with that wait cuDNN was not worth it
+//! (docs/speed.md, "Where a GPU call's time goes").
 //!
 //! Layout: the grid is channels-last, `[B, H, W, C]` (cuDNN's `NHWC`), and the weights go to
 //! cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout); same padding, stride 1,
@@ -31,8 +29,8 @@
 //!
 //! How a custom operation joins the fusion stream, and why no host wait is needed: see
 //! `cublas.rs`; the cuDNN handle is bound to the same cubecl stream in the same way, and its
-//! workspace is a cubecl allocation dropped right after the enqueue (stream order keeps it
-//! alive for the kernel).
+//! workspace is a cubecl allocation dropped on the device thread right after the enqueue
+//! (stream order keeps it alive for the kernel).
 
 use std::collections::HashMap;
 use std::mem::MaybeUninit;
@@ -40,7 +38,7 @@ use std::sync::Mutex;
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
-use burn::tensor::{DType, Shape, TensorMetadata};
+use burn::tensor::{DType, Shape, Slice, TensorMetadata};
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
@@ -49,7 +47,7 @@ use cudarc::cudnn::{result as dnn, sys};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
 use super::composed_grid::dims4;
-use super::cublas::{kernels, resource, GpuGemm};
+use super::cublas::{kernels, on_device, GpuGemm};
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 
 /// Whether cuDNN can be loaded (checked once).
@@ -83,31 +81,37 @@ impl Pass {
     }
 }
 
-/// The recorded operation: two inputs (see [`Pass`]), one output.
+/// The recorded operation: one output, the sum of one or more passes of one kind, each with
+/// two inputs (see [`Pass`]; the inputs in order, two a pass). Several forward passes are
+/// the convolution of a channel concatenation, part by part: the output accumulates them
+/// (cuDNN's `beta` = 1), so the concatenation is never written.
 #[derive(Debug)]
 struct ConvOp {
     desc: CustomOpIr,
     pass: Pass,
-    dims: Dims,
+    dims: Vec<Dims>,
 }
 
 impl Operation<Runtime> for ConvOp {
     fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
-        let ([a, b], [y]) = self.desc.as_fixed();
-        let a = contiguous(handles.get_float_tensor::<Inner>(a));
-        let b = contiguous(handles.get_float_tensor::<Inner>(b));
-        let out = run(self.pass, self.dims, a, b);
-        handles.register_float_tensor::<Inner>(&y.id, out);
+        let inputs = (self.desc.inputs.iter())
+            .map(|t| contiguous(handles.get_float_tensor::<Inner>(t)))
+            .collect();
+        let out = run(self.pass, &self.dims, inputs);
+        handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, out);
     }
 }
 
-/// Records `pass` on the inputs' fusion stream; returns its output.
-fn record(pass: Pass, dims: Dims, a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
-    let client = a.client.clone();
-    let streams = OperationStreams::with_inputs([&a, &b]);
+/// Records the sum of `pass` over `passes` (each its sizes and two inputs, see [`Pass`]) on
+/// the inputs' fusion stream; returns its output.
+fn record(pass: Pass, passes: Vec<(Dims, [FloatTensor<Cuda>; 2])>) -> FloatTensor<Cuda> {
+    let client = passes[0].1[0].client.clone();
+    let inputs: Vec<FloatTensor<Cuda>> = passes.iter().flat_map(|(_, t)| t.clone()).collect();
+    let streams = OperationStreams::with_inputs(&inputs);
+    let dims: Vec<Dims> = passes.iter().map(|(d, _)| *d).collect();
     let out = TensorIr::uninit(
         client.create_empty_handle(),
-        pass.out_shape(dims),
+        pass.out_shape(dims[0]),
         DType::F32,
     );
     let name = match pass {
@@ -115,7 +119,8 @@ fn record(pass: Pass, dims: Dims, a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) ->
         Pass::Data => "minflow_cudnn_conv_data",
         Pass::Filter => "minflow_cudnn_conv_filter",
     };
-    let desc = CustomOpIr::new(name, &[a.into_ir(), b.into_ir()], &[out]);
+    let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
+    let desc = CustomOpIr::new(name, &irs, &[out]);
     let op = ConvOp {
         desc: desc.clone(),
         pass,
@@ -172,18 +177,30 @@ pub(super) fn conv3x3(
     weight: &FloatTensor<Cuda>,
     bias: Option<&FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
-    let x = super::cuda_conv::cat_channels(parts);
-    let ([b, h, w, c], ws) = (dims4::<Cuda>(&x), weight.shape());
+    type F = Cuda;
+    let ws = weight.shape();
+    let c: usize = parts.iter().map(|p| p.shape()[3]).sum();
     assert!(
         ws[1] == c && ws[2] == 3 && ws[3] == 3,
-        "conv3x3: weight {ws:?} does not take input [{b}, {h}, {w}, {c}] with a 3x3 kernel"
+        "conv3x3: weight {ws:?} does not take {c} input channels with a 3x3 kernel"
     );
-    let y = record(
-        Pass::Forward,
-        [b, h, w, c, ws[0]],
-        x,
-        krsc_of_oihw(weight.clone()),
-    );
+    let mut first = 0;
+    let passes = (parts.iter())
+        .map(|x| {
+            let [b, h, w, c] = dims4::<Cuda>(x);
+            let part = match parts.len() {
+                1 => weight.clone(),
+                _ => {
+                    let all = Slice::new(0, None, 1);
+                    let these = Slice::new(first as isize, Some((first + c) as isize), 1);
+                    <F as FloatTensorOps<F>>::float_slice(weight.clone(), &[all, these, all, all])
+                }
+            };
+            first += c;
+            ([b, h, w, c, ws[0]], [x.clone(), krsc_of_oihw(part)])
+        })
+        .collect();
+    let y = record(Pass::Forward, passes);
     match bias {
         Some(bias) => add_bias(y, bias.clone()),
         None => y,
@@ -200,7 +217,7 @@ pub(super) fn im2col_linear(
     let [b, h, w, c_in] = dims4::<Cuda>(&x);
     let c_out = matrix.shape()[1];
     let weight = krsc_of_matrix(matrix, c_in, c_out);
-    let y = record(Pass::Forward, [b, h, w, c_in, c_out], x, weight);
+    let y = record(Pass::Forward, vec![([b, h, w, c_in, c_out], [x, weight])]);
     let y = <Cuda as FloatTensorOps<Cuda>>::float_reshape(y, Shape::new([b * h * w, c_out]));
     match bias {
         Some(bias) => add_bias(y, bias),
@@ -224,9 +241,10 @@ pub(super) fn im2col_linear_backward(
     let dy = <F as FloatTensorOps<F>>::float_reshape(grad.clone(), Shape::new([b, h, w, c_out]));
     let dx = need[0].then(|| {
         let weight = krsc_of_matrix(matrix, c_in, c_out);
-        record(Pass::Data, dims, dy.clone(), weight)
+        record(Pass::Data, vec![(dims, [dy.clone(), weight])])
     });
-    let dmatrix = need[1].then(|| matrix_of_krsc(record(Pass::Filter, dims, x, dy), c_in, c_out));
+    let dmatrix =
+        need[1].then(|| matrix_of_krsc(record(Pass::Filter, vec![(dims, [x, dy])]), c_in, c_out));
     let dbias = need[2].then(|| {
         let sum = <F as FloatTensorOps<F>>::float_sum_dim(grad, 0);
         <F as FloatTensorOps<F>>::float_reshape(sum, Shape::new([c_out]))
@@ -375,27 +393,9 @@ unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -
     }
 }
 
-/// Runs `pass` on the contiguous cubecl tensors `a` and `b` (see [`Pass`]); returns the new
-/// contiguous output, enqueued on cubecl's stream.
-fn run(
-    pass: Pass,
-    dims: Dims,
-    a: CubeTensor<CudaRuntime>,
-    b: CubeTensor<CudaRuntime>,
-) -> CubeTensor<CudaRuntime> {
-    let started = std::time::Instant::now();
-    let client = a.client.clone();
-    let index = a.device.index;
-    let tf32 = kernels(index).gemm == GpuGemm::Tf32;
-    let out = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-        client.clone(),
-        a.device.clone(),
-        pass.out_shape(dims),
-        DType::F32,
-    );
-    let ((pa, sa), (pb, sb)) = (resource(&a), resource(&b));
-    let (py, stream) = resource(&out);
-    let resourced = std::time::Instant::now();
+/// Runs `f` with GPU `index`'s cuDNN handle (created on first use), its context current on
+/// this thread.
+fn with_dnn<T>(index: usize, f: impl FnOnce(&mut Dnn) -> T) -> T {
     let mut guard = DNN.lock().unwrap_or_else(|e| e.into_inner());
     let map = guard.get_or_insert_with(HashMap::new);
     let dnn = map.entry(index).or_insert_with(|| {
@@ -410,105 +410,120 @@ fn run(
             plans: HashMap::new(),
         }
     });
-    // SAFETY: the context, handle and descriptors were created above and are alive; the
-    // pointers are live allocations of the tensors held here, of the sizes the descriptors
-    // give (the inputs contiguous, as `ConvOp` made them). The kernel is enqueued on the
-    // stream cubecl writes them on, after every kernel launched so far; their memory, and
-    // the workspace's, returns to the pool when they drop, for kernels enqueued after it.
-    unsafe {
-        driver::ctx::set_current(dnn.ctx).expect("CUDA context");
-        if dnn.stream != stream {
-            check("stream", dnn::set_stream(dnn.handle, stream as _));
-            dnn.stream = stream;
-        }
-        let handle = dnn.handle;
-        let plan = dnn
-            .plans
-            .entry((pass, dims, tf32))
-            .or_insert_with(|| plan(handle, pass, dims, tf32));
-        let workspace = (plan.workspace > 0).then(|| {
-            burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-                client.clone(),
-                a.device.clone(),
-                Shape::new([plan.workspace.div_ceil(4)]),
-                DType::F32,
-            )
-        });
-        let pw = workspace.as_ref().map_or(0, |t| resource(t).0);
-        let ws = pw as *mut std::ffi::c_void;
-        let (alpha, beta) = (1.0f32, 0.0f32);
-        let (alpha, beta) = (&alpha as *const f32 as _, &beta as *const f32 as _);
-        let (pa, pb, py) = (pa as *const _, pb as *const _, py as *mut _);
-        let ready = std::time::Instant::now();
-        let r = match plan.algo {
-            Algo::Forward(algo) => dnn::convolution_forward(
-                handle,
-                alpha,
-                plan.x,
-                pa,
-                plan.w,
-                pb,
-                plan.conv,
-                algo,
-                ws,
-                plan.workspace,
-                beta,
-                plan.y,
-                py,
-            ),
-            Algo::Data(algo) => dnn::convolution_backward_data(
-                handle,
-                alpha,
-                plan.w,
-                pb,
-                plan.y,
-                pa,
-                plan.conv,
-                algo,
-                ws,
-                plan.workspace,
-                beta,
-                plan.x,
-                py,
-            ),
-            Algo::Filter(algo) => dnn::convolution_backward_filter(
-                handle,
-                alpha,
-                plan.x,
-                pa,
-                plan.y,
-                pb,
-                plan.conv,
-                algo,
-                ws,
-                plan.workspace,
-                beta,
-                plan.w,
-                py,
-            ),
-        };
-        check("convolution", r);
-        super::cublas::after_foreign(stream, &[sa, sb]);
-        drop(workspace);
-        host_time([resourced - started, ready - resourced, ready.elapsed()]);
-    }
-    drop((a, b));
-    out
+    // SAFETY: the context was retained when the handle was made and is never released.
+    unsafe { driver::ctx::set_current(dnn.ctx).expect("CUDA context") };
+    f(dnn)
 }
 
-/// Sums the host's time in [`run`] (the three tensors' resources, the plan and workspace,
-/// the library call) and logs the means at debug level every 4,096 calls: what a cuDNN
-/// convolution costs the host, which sets a GPU call's pace (docs/speed.md).
-fn host_time(parts: [std::time::Duration; 3]) {
-    static SUMS: Mutex<([f64; 3], usize)> = Mutex::new(([0.0; 3], 0));
-    let mut sums = SUMS.lock().unwrap_or_else(|e| e.into_inner());
-    for (sum, part) in sums.0.iter_mut().zip(parts) {
-        *sum += part.as_secs_f64();
-    }
-    sums.1 += 1;
-    if sums.1 == 4096 {
-        let [r, p, l] = sums.0.map(|s| s * 1e6 / 4096.0);
-        tracing::debug!("cuDNN host us a call: resources {r:.1}, plan {p:.1}, library {l:.1}");
-        *sums = ([0.0; 3], 0);
-    }
+/// Runs the sum of `pass` over `dims.len()` passes on the contiguous cubecl tensors `inputs`
+/// (two a pass, see [`Pass`]); returns the new contiguous output. Each shape's plan is made
+/// here on first use (cuDNN times its algorithms then, once per shape); the convolutions
+/// themselves are queued on cubecl's device thread ([`on_device`]), which enqueues them on
+/// cubecl's stream in order with its kernels, so the host does not wait.
+fn run(pass: Pass, dims: &[Dims], inputs: Vec<CubeTensor<CudaRuntime>>) -> CubeTensor<CudaRuntime> {
+    let (client, device) = (inputs[0].client.clone(), inputs[0].device.clone());
+    let index = device.index;
+    let tf32 = kernels(index).gemm == GpuGemm::Tf32;
+    let keys: Vec<_> = dims.iter().map(|&d| (pass, d, tf32)).collect();
+    let empty = |shape: Shape| {
+        burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+            client.clone(),
+            device.clone(),
+            shape,
+            DType::F32,
+        )
+    };
+    let out = empty(pass.out_shape(dims[0]));
+    let workspace = with_dnn(index, |dnn| {
+        let handle = dnn.handle;
+        let sizes = keys.iter().map(|&key| {
+            let entry = dnn.plans.entry(key);
+            // SAFETY: the handle is alive and its context current (`with_dnn`).
+            entry
+                .or_insert_with(|| unsafe { plan(handle, key.0, key.1, key.2) })
+                .workspace
+        });
+        sizes.max().unwrap_or(0)
+    });
+    // (A workspace of at least one float: the task's tensors are the inputs, out, workspace.)
+    let workspace = empty(Shape::new([workspace.div_ceil(4).max(1)]));
+    let mut tensors = inputs;
+    tensors.extend([out.clone(), workspace]);
+    on_device(tensors, move |r| {
+        let [(py, stream), (pw, _)] = [r[r.len() - 2], r[r.len() - 1]];
+        with_dnn(index, |dnn| {
+            let handle = dnn.handle;
+            if dnn.stream != stream {
+                // SAFETY: a live handle and a live stream of its context.
+                check("stream", unsafe { dnn::set_stream(handle, stream as _) });
+                dnn.stream = stream;
+            }
+            for (i, key) in keys.iter().enumerate() {
+                let [(pa, sa), (pb, sb)] = [r[2 * i], r[2 * i + 1]];
+                let plan = &dnn.plans[key];
+                let ws = pw as *mut std::ffi::c_void;
+                let (alpha, beta) = (1.0f32, if i == 0 { 0.0f32 } else { 1.0 });
+                let (alpha, beta) = (&alpha as *const f32 as _, &beta as *const f32 as _);
+                let (pa, pb, py) = (pa as *const _, pb as *const _, py as *mut _);
+                // SAFETY: the handle and descriptors were created by `with_dnn` and `plan` and
+                // are alive; the pointers are live allocations of the tensors `on_device`
+                // holds, of the sizes the descriptors give (the inputs contiguous, as `ConvOp`
+                // made them). The kernel is enqueued on the stream cubecl writes them on, in
+                // order with cubecl's launches; their memory, and the workspace's, returns to
+                // the pool after it.
+                unsafe {
+                    let r = match plan.algo {
+                        Algo::Forward(algo) => dnn::convolution_forward(
+                            handle,
+                            alpha,
+                            plan.x,
+                            pa,
+                            plan.w,
+                            pb,
+                            plan.conv,
+                            algo,
+                            ws,
+                            plan.workspace,
+                            beta,
+                            plan.y,
+                            py,
+                        ),
+                        Algo::Data(algo) => dnn::convolution_backward_data(
+                            handle,
+                            alpha,
+                            plan.w,
+                            pb,
+                            plan.y,
+                            pa,
+                            plan.conv,
+                            algo,
+                            ws,
+                            plan.workspace,
+                            beta,
+                            plan.x,
+                            py,
+                        ),
+                        Algo::Filter(algo) => dnn::convolution_backward_filter(
+                            handle,
+                            alpha,
+                            plan.x,
+                            pa,
+                            plan.y,
+                            pb,
+                            plan.conv,
+                            algo,
+                            ws,
+                            plan.workspace,
+                            beta,
+                            plan.w,
+                            py,
+                        ),
+                    };
+                    check("convolution", r);
+                    super::cublas::after_foreign(stream, &[sa, sb]);
+                }
+            }
+        })
+    });
+    out
 }

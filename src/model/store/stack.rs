@@ -11,7 +11,7 @@
 //! call these; a new kind of piece needs a [`Rows`] impl here.
 
 use burn::tensor::backend::Backend;
-use burn::tensor::Tensor;
+use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::model::grid::{MemoryState, NeighbourTensors};
 use crate::model::rnn::LstmState;
@@ -29,22 +29,30 @@ pub(super) fn shape(reason: &str) -> StoreError {
 
 /// A piece of per-trajectory state that stacks along its batch rows.
 pub(super) trait Rows: Sized {
-    /// Appends what must be equal for two pieces to stack (kind tags and shapes) to `key`.
-    fn rows_key(&self, key: &mut Vec<usize>);
+    /// Appends what must be equal for two pieces to stack (kind tags and shapes) to `key`:
+    /// that of one of `of` equal parts of this piece (1: the piece itself; a lazily split
+    /// row of a batch, `State::split`, is one of its batch's `of` scenes).
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>);
     /// The pieces of several states as one, rows in order (copy by copy).
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError>;
     /// The piece of a stacked state back as one piece per part, part i holding `sizes[i]`
     /// trajectories (the sizes sum to the stacked piece's trajectories).
     fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self>;
+    /// The rows of the trajectories `scenes` (indices among this piece's `of`, in that
+    /// order, repeats allowed) as one piece, copy by copy: what stacking their pieces split
+    /// apart would give, in one gather a tensor (`State::stack` of a batch's rows).
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self;
 }
 
 impl<B: Backend, const D: usize, K> Rows for Tensor<B, D, K>
 where
     K: burn::tensor::BasicOps<B> + burn::tensor::TensorKind<B>,
 {
-    fn rows_key(&self, key: &mut Vec<usize>) {
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
+        let mut dims = self.dims();
+        dims[0] /= of.max(1);
         key.push(D);
-        key.extend(self.dims());
+        key.extend(dims);
     }
 
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
@@ -83,13 +91,30 @@ where
         }
         out
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        let copies = copies.max(1);
+        let per_copy = self.dims()[0] / copies;
+        let m = per_copy / of.max(1);
+        let mut rows = Vec::with_capacity(copies * scenes.len() * m);
+        for c in 0..copies {
+            for &s in scenes {
+                let first = c * per_copy + s * m;
+                rows.extend((first..first + m).map(|r| r as i64));
+            }
+        }
+        let len = rows.len();
+        let device = self.device();
+        let rows = Tensor::<B, 1, Int>::from_data(TensorData::new(rows, [len]), &device);
+        self.clone().select(0, rows)
+    }
 }
 
 impl<T: Rows> Rows for Option<T> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
         key.push(usize::from(self.is_some()));
         if let Some(t) = self {
-            t.rows_key(key);
+            t.rows_key(of, key);
         }
     }
 
@@ -108,12 +133,16 @@ impl<T: Rows> Rows for Option<T> {
             Some(t) => t.split_rows(sizes, copies).into_iter().map(Some).collect(),
         }
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        self.as_ref().map(|t| t.select_rows(scenes, of, copies))
+    }
 }
 
 impl<B: Backend> Rows for LstmState<B> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
-        self.h.rows_key(key);
-        self.c.rows_key(key);
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
+        self.h.rows_key(of, key);
+        self.c.rows_key(of, key);
     }
 
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
@@ -132,6 +161,13 @@ impl<B: Backend> Rows for LstmState<B> {
             .map(|(h, c)| LstmState { h, c })
             .collect()
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        LstmState {
+            h: self.h.select_rows(scenes, of, copies),
+            c: self.c.select_rows(scenes, of, copies),
+        }
+    }
 }
 
 /// The three shapes of a recurrent state (the grid's [`MemoryState`] and the paper core's
@@ -143,16 +179,16 @@ enum Recurrent<B: Backend> {
 }
 
 impl<B: Backend> Recurrent<B> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
         match self {
             Recurrent::Empty => key.push(0),
             Recurrent::Hidden(h) => {
                 key.push(1);
-                h.rows_key(key);
+                h.rows_key(of, key);
             }
             Recurrent::Lstm(s) => {
                 key.push(2);
-                s.rows_key(key);
+                s.rows_key(of, key);
             }
         }
     }
@@ -191,14 +227,22 @@ impl<B: Backend> Recurrent<B> {
                 .collect(),
         }
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        match self {
+            Recurrent::Empty => Recurrent::Empty,
+            Recurrent::Hidden(h) => Recurrent::Hidden(h.select_rows(scenes, of, copies)),
+            Recurrent::Lstm(s) => Recurrent::Lstm(s.select_rows(scenes, of, copies)),
+        }
+    }
 }
 
 /// [`Rows`] for a type that converts to and from [`Recurrent`].
 macro_rules! recurrent_rows {
     ($ty:ident, $empty:ident) => {
         impl<B: Backend> Rows for $ty<B> {
-            fn rows_key(&self, key: &mut Vec<usize>) {
-                Recurrent::from(self.clone()).rows_key(key);
+            fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
+                Recurrent::from(self.clone()).rows_key(of, key);
             }
             fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
                 let parts = parts.into_iter().map(Recurrent::from).collect();
@@ -207,6 +251,11 @@ macro_rules! recurrent_rows {
             fn split_rows(self, sizes: &[usize], copies: usize) -> Vec<Self> {
                 let parts = Recurrent::from(self).split_rows(sizes, copies);
                 parts.into_iter().map(Into::into).collect()
+            }
+            fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+                Recurrent::from(self.clone())
+                    .select_rows(scenes, of, copies)
+                    .into()
             }
         }
         impl<B: Backend> From<$ty<B>> for Recurrent<B> {
@@ -234,8 +283,8 @@ recurrent_rows!(MemoryState, Empty);
 recurrent_rows!(LayerState, None);
 
 impl<B: Backend> Rows for NeighbourTensors<B> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
-        key.extend(self.dims);
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
+        key.extend([self.dims[0] / of.max(1), self.dims[1]]);
     }
 
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
@@ -277,13 +326,25 @@ impl<B: Backend> Rows for NeighbourTensors<B> {
             })
             .collect()
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        let pick = |t: &Tensor<B, 3>| t.select_rows(scenes, of, copies);
+        NeighbourTensors {
+            index: self.index.select_rows(scenes, of, copies),
+            offset: pick(&self.offset),
+            weight: pick(&self.weight),
+            binv: pick(&self.binv),
+            inv_d0: pick(&self.inv_d0),
+            dims: [scenes.len() * copies.max(1), self.dims[1]],
+        }
+    }
 }
 
 impl<T: Rows> Rows for Vec<T> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
         key.push(self.len());
         for t in self {
-            t.rows_key(key);
+            t.rows_key(of, key);
         }
     }
 
@@ -315,6 +376,12 @@ impl<T: Rows> Rows for Vec<T> {
         }
         out
     }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        self.iter()
+            .map(|t| t.select_rows(scenes, of, copies))
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -342,6 +409,29 @@ mod tests {
         let a: Vec<f32> = back[0].clone().into_data().to_vec().unwrap();
         let b: Vec<f32> = back[1].clone().into_data().to_vec().unwrap();
         assert_eq!((a, b), (vec![1.0, 2.0], vec![3.0, 4.0]));
+    }
+
+    #[test]
+    fn selected_rows_equal_the_stack_of_the_split_pieces() {
+        // Three scenes of m = 2 rows each, mirror ensemble (copies = 2).
+        let scenes: Vec<_> = (0..3)
+            .map(|s| {
+                let v = 10.0 * s as f32;
+                MemoryState::Hidden(rows(&[v, v + 1.0, v + 2.0, v + 3.0], 1))
+            })
+            .collect();
+        let stacked = Rows::stack_rows(scenes.clone(), 2).unwrap();
+        for pick in [vec![2, 0], vec![1], vec![0, 1, 2], vec![2, 2]] {
+            let parts = pick.iter().map(|&i| scenes[i].clone()).collect();
+            let want = Rows::stack_rows(parts, 2).unwrap();
+            let got = stacked.select_rows(&pick, 3, 2);
+            let (MemoryState::Hidden(want), MemoryState::Hidden(got)) = (want, got) else {
+                panic!("hidden")
+            };
+            let want: Vec<f32> = want.into_data().to_vec().unwrap();
+            let got: Vec<f32> = got.into_data().to_vec().unwrap();
+            assert_eq!(got, want, "scenes {pick:?}");
+        }
     }
 
     #[test]

@@ -6,6 +6,8 @@
 //! here: its declaration and one line in each of `GridState`'s methods below. The stacking
 //! of the pieces ([`Rows`]) lives in `stack.rs`, the constraint data in `constrained.rs`.
 
+use std::sync::{Arc, OnceLock};
+
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
@@ -34,6 +36,75 @@ pub(super) enum NetState<B: Backend> {
     Paper(Vec<LayerState<B>>),
     /// The grid model's per-particle state.
     Grid(GridState<B>),
+    /// One scene's rows of a batch state, not cut out yet ([`State::split`]).
+    Row(Row<B>),
+}
+
+/// One scene of a batch state split lazily: [`State::split`] into one scene each hands out
+/// rows that share the batch ([`Home`]) instead of cutting every tensor per scene, and
+/// [`State::stack`] of rows of one batch gathers them in one operation a tensor (all of a
+/// batch's rows, in order: the batch itself, no operation at all). A surrogate node steps
+/// the same streams call after call, so its batch stays whole between calls: cutting and
+/// stacking 256 scenes' states recorded thousands of slices and concatenations a call
+/// (docs/scale.md). A restarted row (a gap in its stream) is a row of the batch restarted
+/// once for all its rows ([`Home::restarted`]). A row used any other way is cut out first
+/// ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped or dropped.
+#[derive(Clone)]
+pub(super) struct Row<B: Backend> {
+    /// The batch state the row belongs to.
+    home: Arc<Home<B>>,
+    /// The scene's index in the batch.
+    index: usize,
+}
+
+/// The batch state of lazily split [`Row`]s.
+pub(super) struct Home<B: Backend> {
+    /// The batch state (never a row itself).
+    net: NetState<B>,
+    /// The batch's scenes.
+    of: usize,
+    /// Copies of each scene in the batch's rows (2 for a mirror ensemble; `stack.rs`).
+    copies: usize,
+    /// The batch restarted ([`GridState::restart`]), made once for the rows that restart.
+    restarted: OnceLock<Arc<Home<B>>>,
+}
+
+impl<B: Backend> Home<B> {
+    fn new(net: NetState<B>, of: usize, copies: usize) -> Arc<Self> {
+        Arc::new(Home {
+            net,
+            of,
+            copies,
+            restarted: OnceLock::new(),
+        })
+    }
+
+    /// The rows of `scenes` as one state ([`Rows::select_rows`]); the batch itself when
+    /// they are all its scenes in order.
+    fn select(&self, scenes: &[usize]) -> NetState<B> {
+        if scenes.len() == self.of && scenes.iter().enumerate().all(|(i, &s)| i == s) {
+            return self.net.clone();
+        }
+        let (of, copies) = (self.of, self.copies);
+        match &self.net {
+            NetState::Paper(layers) => NetState::Paper(layers.select_rows(scenes, of, copies)),
+            NetState::Grid(grid) => NetState::Grid(grid.select_rows(scenes, of, copies)),
+            NetState::Row(_) => unreachable!("a batch of rows is not a row"),
+        }
+    }
+
+    /// This batch restarted as a grid state restarts (its reference positions and rest
+    /// neighbourhoods kept), made on the first call and shared by every row that restarts.
+    fn restarted(&self) -> Arc<Self> {
+        let again = || {
+            let net = match &self.net {
+                NetState::Grid(grid) => NetState::Grid(grid.clone().restart()),
+                other => other.clone(),
+            };
+            Home::new(net, self.of, self.copies)
+        };
+        Arc::clone(self.restarted.get_or_init(again))
+    }
 }
 
 /// What a grid model carries between calls, per particle of each trajectory (batch row).
@@ -57,6 +128,17 @@ pub(super) struct GridState<B: Backend> {
     pub(super) deformation: Option<Tensor<B, 3>>,
 }
 
+impl<B: Backend> NetState<B> {
+    /// This state with its own tensors: a [`Row`] cut out of its batch, anything else as it
+    /// is.
+    pub(super) fn owned(self) -> Self {
+        match self {
+            NetState::Row(row) => row.home.select(&[row.index]),
+            other => other,
+        }
+    }
+}
+
 impl<B: Backend> State<B> {
     /// A fresh state around the network state `net`: no constraint data, no frames.
     pub(super) fn new(net: NetState<B>) -> Self {
@@ -72,6 +154,10 @@ impl<B: Backend> State<B> {
     /// ([`GridState::restart`]), and the constraint data is kept.
     pub(super) fn restart(self, fresh: NetState<B>) -> Self {
         let net = match (self.net, fresh) {
+            (NetState::Row(row), NetState::Grid(_)) => NetState::Row(Row {
+                home: row.home.restarted(),
+                index: row.index,
+            }),
             (NetState::Grid(grid), NetState::Grid(_)) => NetState::Grid(grid.restart()),
             (_, fresh) => fresh,
         };
@@ -86,13 +172,7 @@ impl<B: Backend> State<B> {
     /// shape. States with equal keys and frames with equal particle counts share a call.
     pub(super) fn shape_key(&self) -> Vec<usize> {
         let mut key = Vec::new();
-        match &self.net {
-            NetState::Paper(layers) => layers.rows_key(&mut key),
-            NetState::Grid(grid) => {
-                key.push(usize::MAX);
-                grid.rows_key(&mut key);
-            }
-        }
+        net_key(&self.net, 1, &mut key);
         key
     }
 
@@ -101,12 +181,22 @@ impl<B: Backend> State<B> {
     /// are the caller's to keep. The constraint data stacks per trajectory
     /// ([`ConstraintState::stack`]).
     pub(super) fn stack(states: Vec<State<B>>, copies: usize) -> Result<State<B>, StoreError> {
+        if let Some(net) = rows_of_one_batch(&states, copies) {
+            return Ok(State {
+                net,
+                constraints: ConstraintState::stack(
+                    states.into_iter().map(|s| s.constraints).collect(),
+                ),
+                frames: 0,
+            });
+        }
         let (mut paper, mut grid, mut constraints) = (vec![], vec![], vec![]);
         for state in states {
             constraints.push(state.constraints);
-            match state.net {
+            match state.net.owned() {
                 NetState::Paper(layers) => paper.push(layers),
                 NetState::Grid(g) => grid.push(g),
+                NetState::Row(_) => unreachable!("an owned state is not a row"),
             }
         }
         let net = match (paper.is_empty(), grid.is_empty()) {
@@ -124,7 +214,19 @@ impl<B: Backend> State<B> {
     /// A stacked state back as one state per scene, scene i of `sizes[i]` trajectories (1
     /// for a node's scene): the inverse of [`State::stack`]. Frame counts are 0.
     pub(super) fn split(self, sizes: &[usize], copies: usize) -> Vec<State<B>> {
-        let net: Vec<NetState<B>> = match self.net {
+        let lazy = sizes.len() > 1 && sizes.iter().all(|&s| s == 1);
+        let net: Vec<NetState<B>> = match self.net.owned() {
+            net if lazy => {
+                let home = Home::new(net, sizes.len(), copies);
+                (0..sizes.len())
+                    .map(|index| {
+                        NetState::Row(Row {
+                            home: Arc::clone(&home),
+                            index,
+                        })
+                    })
+                    .collect()
+            }
             NetState::Paper(layers) => layers
                 .split_rows(sizes, copies)
                 .into_iter()
@@ -135,6 +237,7 @@ impl<B: Backend> State<B> {
                 .into_iter()
                 .map(NetState::Grid)
                 .collect(),
+            NetState::Row(_) => unreachable!("an owned state is not a row"),
         };
         net.into_iter()
             .zip(self.constraints.split(sizes))
@@ -145,6 +248,37 @@ impl<B: Backend> State<B> {
             })
             .collect()
     }
+}
+
+/// Appends the stacking key of `net` ([`State::shape_key`]) as one of `of` equal parts to
+/// `key`: a [`Row`]'s is that of one scene of its batch, the key the row has once cut out.
+fn net_key<B: Backend>(net: &NetState<B>, of: usize, key: &mut Vec<usize>) {
+    match net {
+        NetState::Paper(layers) => layers.rows_key(of, key),
+        NetState::Grid(grid) => {
+            key.push(usize::MAX);
+            grid.rows_key(of, key);
+        }
+        NetState::Row(row) => net_key(&row.home.net, of * row.home.of, key),
+    }
+}
+
+/// The stacked network state of `states` when they are all rows of one batch with `copies`
+/// copies of each scene ([`Row`]): one gather a tensor, or the batch itself.
+fn rows_of_one_batch<B: Backend>(states: &[State<B>], copies: usize) -> Option<NetState<B>> {
+    let NetState::Row(first) = &states.first()?.net else {
+        return None;
+    };
+    if first.home.copies != copies {
+        return None;
+    }
+    let scenes: Option<Vec<usize>> = (states.iter())
+        .map(|s| match &s.net {
+            NetState::Row(row) if Arc::ptr_eq(&row.home, &first.home) => Some(row.index),
+            _ => None,
+        })
+        .collect();
+    Some(first.home.select(&scenes?))
 }
 
 impl<B: Backend> GridState<B> {
@@ -244,12 +378,12 @@ impl<B: Backend> GridState<B> {
 
 /// Each field of a grid state stacks as its own piece: one line per field in each method.
 impl<B: Backend> Rows for GridState<B> {
-    fn rows_key(&self, key: &mut Vec<usize>) {
-        self.memory.rows_key(key);
-        self.history.rows_key(key);
-        self.reference.rows_key(key);
-        self.rest.rows_key(key);
-        self.deformation.rows_key(key);
+    fn rows_key(&self, of: usize, key: &mut Vec<usize>) {
+        self.memory.rows_key(of, key);
+        self.history.rows_key(of, key);
+        self.reference.rows_key(of, key);
+        self.rest.rows_key(of, key);
+        self.deformation.rows_key(of, key);
     }
 
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
@@ -290,6 +424,16 @@ impl<B: Backend> Rows for GridState<B> {
             .into_iter()
             .filter_map(|m| grid(m))
             .collect()
+    }
+
+    fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
+        GridState {
+            memory: self.memory.select_rows(scenes, of, copies),
+            history: self.history.select_rows(scenes, of, copies),
+            reference: self.reference.select_rows(scenes, of, copies),
+            rest: self.rest.select_rows(scenes, of, copies),
+            deformation: self.deformation.select_rows(scenes, of, copies),
+        }
     }
 }
 

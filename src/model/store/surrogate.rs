@@ -259,7 +259,7 @@ impl<B: NetOps> Surrogate<B> {
             mut constraints,
             frames: count,
         } = state;
-        let (mut out, mut net) = self.net_step(frames, material, dt, net, predict)?;
+        let (mut out, mut net) = self.net_step(frames, material, dt, net.owned(), predict)?;
         if let Some(c) = &self.constraints {
             let moved = constraints.project(c, (frames, material, dt), &mut out);
             let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
