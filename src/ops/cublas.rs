@@ -302,7 +302,8 @@ mod gpu {
     /// library's; the task runs with the caller's cubecl stream id (`submit` carries it).
     ///
     /// # Panics
-    /// On the device thread, when a tensor's memory cannot be read (a cubecl error).
+    /// On the device thread, when a tensor's memory cannot be read (a cubecl error). A panic
+    /// in `f` (a library error) aborts the process: the output would never be written.
     pub(crate) fn on_device(
         tensors: Vec<CubeTensor<CudaRuntime>>,
         f: impl FnOnce(&[Resource]) + Send + 'static,
@@ -326,7 +327,18 @@ mod gpu {
                 .iter()
                 .map(|r| (r.resource().ptr, r.resource().stream))
                 .collect();
-            f(&pointers);
+            // A failure here would otherwise be caught by cubecl's device thread and only
+            // logged, and the output, never written, read as a result: stop the process, as
+            // a failed call on the caller's thread did.
+            let call = std::panic::AssertUnwindSafe(|| f(&pointers));
+            if let Err(e) = std::panic::catch_unwind(call) {
+                let why = (e.downcast_ref::<String>().map(String::as_str))
+                    .or_else(|| e.downcast_ref::<&str>().copied())
+                    .unwrap_or("a panic");
+                tracing::error!("a cuBLAS / cuDNN call failed on the device thread: {why}");
+                eprintln!("minflow: a cuBLAS / cuDNN call failed on the device thread: {why}");
+                std::process::abort();
+            }
             drop(resources);
             drop(tensors);
         });

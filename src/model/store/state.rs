@@ -168,6 +168,26 @@ impl<B: Backend> State<B> {
         }
     }
 
+    /// This state with its own tensors when it is a row of a batch that most of its rows
+    /// have left (fewer than a quarter still held: they were stepped on in other batches,
+    /// restarted or dropped), so that batch can be freed; anything else as it is. A row
+    /// holds its whole batch ([`Row`]): without this a stream that stops or falls behind
+    /// would keep its last batch's memory until the stream is dropped. The node calls it
+    /// on every kept state once a second.
+    pub fn compact(self) -> Self {
+        let abandoned = match &self.net {
+            NetState::Row(row) => 4 * Arc::strong_count(&row.home) < row.home.of,
+            _ => false,
+        };
+        match abandoned {
+            true => State {
+                net: self.net.owned(),
+                ..self
+            },
+            false => self,
+        }
+    }
+
     /// What must be equal for states to stack ([`State::stack`]): each field's kind and
     /// shape. States with equal keys and frames with equal particle counts share a call.
     pub(super) fn shape_key(&self) -> Vec<usize> {
@@ -456,4 +476,59 @@ pub(super) fn mean_of_mirror_rows(out: &[f32]) -> Vec<f32> {
         .zip(&back)
         .map(|(a, b)| 0.5 * (a + b))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    type B = NdArray<f32>;
+
+    /// A grid state of `scenes` scenes, two memory rows each: scene s holds `10 s` and
+    /// `10 s + 1`.
+    fn batch(scenes: usize) -> State<B> {
+        let values: Vec<f32> = (0..scenes)
+            .flat_map(|s| [10.0 * s as f32, 10.0 * s as f32 + 1.0])
+            .collect();
+        let memory = Tensor::<B, 1>::from_floats(values.as_slice(), &Default::default());
+        let mut grid = GridState::new();
+        grid.memory = MemoryState::Hidden(memory.reshape([2 * scenes, 1]));
+        State::new(NetState::Grid(grid))
+    }
+
+    fn memory(state: &State<B>) -> Vec<f32> {
+        let NetState::Grid(GridState {
+            memory: MemoryState::Hidden(h),
+            ..
+        }) = &state.net
+        else {
+            panic!("an owned grid state with a hidden memory")
+        };
+        h.clone().into_data().to_vec().unwrap()
+    }
+
+    #[test]
+    fn rows_stack_back_and_are_cut_out_once_their_batch_is_left() {
+        let rows = batch(8).split(&[1; 8], 1);
+        assert!(matches!(rows[5].net, NetState::Row(_)));
+        // Some rows, out of order: one gather.
+        let picked = vec![rows[6].clone(), rows[1].clone()];
+        assert_eq!(
+            memory(&State::stack(picked, 1).unwrap()),
+            [60.0, 61.0, 10.0, 11.0]
+        );
+        // All of them, in order: the batch itself.
+        let whole = State::stack(rows.clone(), 1).unwrap();
+        assert_eq!(memory(&whole).len(), 16);
+        // A row kept while the others are dropped is cut out by `compact`.
+        let mut rows = rows;
+        let kept = rows.swap_remove(3);
+        drop(rows);
+        let kept = kept.compact();
+        assert_eq!(memory(&kept), [30.0, 31.0]);
+        // A row of a batch still mostly held is left as it is.
+        let rows = batch(4).split(&[1; 4], 1);
+        assert!(matches!(rows[0].clone().compact().net, NetState::Row(_)));
+    }
 }

@@ -111,7 +111,8 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             .is_some_and(|m| self.tally.report.published >= m)
     }
 
-    /// Once per second: publishes the status and drops idle scenes. Every
+    /// Once per second: publishes the status, drops idle scenes and frees the batches most
+    /// of whose scenes have moved on ([`super::scenes::Scenes::compact`]). Every
     /// `stats_interval`: logs the counters.
     pub(super) fn periodic(&mut self) {
         if Instant::now() >= self.next_status {
@@ -124,6 +125,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             }
             let idle = self.scenes.evict_idle(self.options.idle_timeout);
             self.note_idle(idle as u64);
+            self.scenes.compact();
         }
         if let (Some(due), Some(every)) = (self.next_stats, self.options.stats_interval) {
             if Instant::now() >= due {

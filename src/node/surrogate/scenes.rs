@@ -138,6 +138,14 @@ impl<B: NetOps> Scenes<B> {
         Some(oldest)
     }
 
+    /// Cuts the kept states that are rows of a batch most of whose scenes have moved on out
+    /// of that batch ([`State::compact`]), so that stale batches are freed.
+    pub(super) fn compact(&mut self) {
+        for entry in self.map.values_mut() {
+            entry.state = entry.state.take().map(State::compact);
+        }
+    }
+
     /// Drops the scenes without a frame for longer than `idle`; returns how many.
     pub(super) fn evict_idle(&mut self, idle: Duration) -> usize {
         let before = self.map.len();
