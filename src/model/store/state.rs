@@ -48,7 +48,8 @@ pub(super) enum NetState<B: Backend> {
 /// stacking 256 scenes' states recorded thousands of slices and concatenations a call
 /// (docs/scale.md). A restarted row (a gap in its stream) is a row of the batch restarted
 /// once for all its rows ([`Home::restarted`]). A row used any other way is cut out first
-/// ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped or dropped.
+/// ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped, dropped or
+/// cut out by [`State::compact`] once most of its batch has moved on.
 #[derive(Clone)]
 pub(super) struct Row<B: Backend> {
     /// The batch state the row belongs to.
