@@ -38,7 +38,7 @@ use std::sync::Mutex;
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
-use burn::tensor::{DType, Shape, Slice, TensorMetadata};
+use burn::tensor::{DType, Shape, Slice, TensorMetadata, TensorPrimitive};
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
@@ -246,8 +246,10 @@ pub(super) fn im2col_linear_backward(
     let dmatrix =
         need[1].then(|| matrix_of_krsc(record(Pass::Filter, vec![(dims, [x, dy])]), c_in, c_out));
     let dbias = need[2].then(|| {
-        let sum = <F as FloatTensorOps<F>>::float_sum_dim(grad, 0);
-        <F as FloatTensorOps<F>>::float_reshape(sum, Shape::new([c_out]))
+        use super::NetOps;
+        let split = F::kernels(&F::float_device(&grad)).split_weight_grad;
+        let grad = burn::tensor::Tensor::<F, 2>::from_primitive(TensorPrimitive::Float(grad));
+        super::composed::bias_grad(grad, split)
     });
     [dx, dmatrix, dbias]
 }
