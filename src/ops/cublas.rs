@@ -78,9 +78,10 @@ pub fn kernels(index: usize) -> Kernels {
 /// Fewest multiply-adds (`m * k * n`) a product needs to go to cuBLAS (2^30: the paper
 /// encoder's second layer, 1.3e11, goes; its first, 400,000 x 5 x 256 = 5.1e8, stays). Set
 /// when each cuBLAS call read its three resources from the caller's thread, a host round trip
-/// that stopped the host from running ahead of the GPU (now queued on cubecl's device thread);
-/// where the host is the limit (minflow's default encoder) that cost more than cuBLAS saved on the small products (`bench train`:
-/// default encoder, minGRU, T = 2, 6,752 -> 5,151 samples/s with the first layer on cuBLAS).
+/// that stopped the host from running ahead of the GPU (now queued on cubecl's device
+/// thread); where the host is the limit (minflow's default encoder) that cost more than
+/// cuBLAS saved on the small products (`bench train`: default encoder, minGRU, T = 2, 6,752
+/// -> 5,151 samples/s with the first layer on cuBLAS).
 const MIN_MACS: usize = 1 << 30;
 
 /// Whether a `[m, k] x [k, n]` product goes to cuBLAS under `gemm` (then it also splits its

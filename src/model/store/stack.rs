@@ -93,20 +93,20 @@ where
     }
 
     fn select_rows(&self, scenes: &[usize], of: usize, copies: usize) -> Self {
-        let copies = copies.max(1);
-        let per_copy = self.dims()[0] / copies;
-        let m = per_copy / of.max(1);
-        let mut rows = Vec::with_capacity(copies * scenes.len() * m);
-        for c in 0..copies {
-            for &s in scenes {
-                let first = c * per_copy + s * m;
-                rows.extend((first..first + m).map(|r| r as i64));
-            }
-        }
-        let len = rows.len();
-        let device = self.device();
-        let rows = Tensor::<B, 1, Int>::from_data(TensorData::new(rows, [len]), &device);
-        self.clone().select(0, rows)
+        // Viewed as one row per scene and copy (`[copies of, m ...]` flattened), the gather
+        // takes `copies x scenes` indices, not one per row: m = N (K) rows a scene otherwise.
+        let (copies, of) = (copies.max(1), of.max(1));
+        let mut dims = self.dims();
+        let groups = copies * of;
+        let grouped: Tensor<B, 2, K> =
+            (self.clone()).reshape([groups, self.shape().num_elements() / groups]);
+        let picks: Vec<i64> = (0..copies)
+            .flat_map(|c| scenes.iter().map(move |&s| (c * of + s) as i64))
+            .collect();
+        let len = picks.len();
+        let picks = Tensor::<B, 1, Int>::from_data(TensorData::new(picks, [len]), &self.device());
+        dims[0] = dims[0] / groups * len;
+        grouped.select(0, picks).reshape(dims)
     }
 }
 
