@@ -154,6 +154,43 @@ fn a_rollout_chains_whole_bundles() {
     assert_eq!(rollout, by_hand);
 }
 
+/// A batched rollout keeps its loop on the device (no projection, no mirror): two scenes,
+/// K = 2, 5 frames give the frames stepping call by call gives, whether the device holds
+/// every prediction until the end, reads each call's back at once, or is off (0 bytes).
+#[test]
+fn a_device_side_rollout_equals_the_call_by_call_loop() {
+    let device = Default::default();
+    let config = config(MemoryKind::MinGru, 2);
+    let model = initial_grid_model::<B>(&config, 2, &device).unwrap();
+    let s = Surrogate::from_net(store::Net::Grid(model), meta(config), &device);
+    let (a0, material) = frame(150);
+    let b0: Vec<f32> = a0.iter().map(|v| v * 0.9 + 0.05).collect();
+    let seed0 = [a0, b0].concat();
+    let material = [material.clone(), material].concat();
+    let dt = [0.016, 0.02];
+    let (seed1, state) = s.step(&seed0, &material, &dt, s.init_state()).unwrap();
+    let (a, state) = s.step_bundle(&seed1, &material, &dt, state).unwrap();
+    let (b, state) = s.step_bundle(&a[1], &material, &dt, state).unwrap();
+    let (c, _) = s.step_bundle(&b[1], &material, &dt, state).unwrap();
+    let by_hand = [a, b, vec![c[0].clone()]].concat();
+    let seed = [seed0.clone(), seed1.clone()];
+    let mut s = s;
+    for bytes in [store::FEEDBACK_BYTES, 1, 0] {
+        s = s.with_feedback_bytes(bytes);
+        let mut seen = Vec::new();
+        s.rollout_batch(None, &seed, &material, &dt, 5, |i, f| {
+            seen.push((i, f.to_vec()))
+        })
+        .unwrap();
+        assert_eq!(
+            seen.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
+        let frames: Vec<Vec<f32>> = seen.into_iter().map(|(_, f)| f).collect();
+        assert_eq!(frames, by_hand, "feedback bytes {bytes}");
+    }
+}
+
 /// A `model.json` written before bundling existed (no `bundle` field) reads as K = 1, and a
 /// bundled model round-trips through a run folder.
 #[test]

@@ -28,11 +28,35 @@ impl<B: NetOps> Surrogate<B> {
         carry: GridState<B>,
         predict: Predict,
     ) -> Result<(Vec<Vec<f32>>, GridState<B>), StoreError> {
-        let (b, t) = (dt.len(), model.window());
+        let b = dt.len();
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
-        let (input, memory) = self.grid_input(model, frames, material, dt, carry)?;
-        lap(&mut clock, Stage::Input);
+        let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
+        let (next, state) =
+            self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
+        let out = self.download_frames(next, b, &mut clock)?;
+        Ok((out, state))
+    }
+
+    /// The network call of [`Surrogate::grid_step`] on a frame already on the device
+    /// (`frame` `[B, N, 4]` physical), recorded but not waited for: the predicted frames
+    /// stay on the device as one `[K B, N, 4]` tensor (frame k's rows `k B..(k + 1) B`), so
+    /// a closed-loop rollout can feed the last of them back without a round trip through
+    /// the host ([`Surrogate::rollout_batch`]). Laps `clock`'s input and record stages.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn grid_call(
+        &self,
+        model: &GridModel<B>,
+        frame: Tensor<B, 3>,
+        material: &[u8],
+        dt: &[f32],
+        carry: GridState<B>,
+        predict: Predict,
+        clock: &mut Option<stages::Clock>,
+    ) -> Result<(Tensor<B, 3>, GridState<B>), StoreError> {
+        let t = model.window();
+        let (input, memory) = self.grid_input(model, frame, material, dt, carry)?;
+        lap(clock, Stage::Input);
         let (vel_hist, reference, rest) = (
             input.vel.clone(),
             input.reference.clone(),
@@ -54,29 +78,13 @@ impl<B: NetOps> Surrogate<B> {
         let window = Tensor::cat(window, 2);
         let width = window.dims()[2];
         let history = (t > 1).then(|| window.narrow(2, width - 2 * (t - 1), 2 * (t - 1)));
-        let k = outs.len();
         let next = Tensor::cat(
             outs.into_iter()
                 .map(|o| Tensor::cat(vec![o.pos, o.vel], 2))
                 .collect(),
             0,
         ); // [K B, N, 4]
-        lap(&mut clock, Stage::Record);
-        if clock.is_some() {
-            B::sync(&self.device).map_err(|e| crate::model::DownloadError {
-                shape: vec![k, b, n, 4],
-                source: Box::new(e),
-            })?;
-            lap(&mut clock, Stage::Device);
-        }
-        let out = crate::model::download(next)?;
-        let per_frame = b * n * 4;
-        // One frame is the buffer itself; K frames are copied apart.
-        let out = match k {
-            1 => vec![out],
-            _ => out.chunks_exact(per_frame).map(<[f32]>::to_vec).collect(),
-        };
-        lap(&mut clock, Stage::Output);
+        lap(clock, Stage::Record);
         let state = GridState {
             memory,
             history,
@@ -84,22 +92,53 @@ impl<B: NetOps> Surrogate<B> {
             rest,
             deformation,
         };
-        Ok((out, state))
+        Ok((next, state))
     }
 
-    /// A grid model's input for `frames` (`[B, N, 4]` physical) from the state `carry`
-    /// ([`GridState::fit`] to this call's shape), and the memory the call goes on from.
+    /// Frames of `b` trajectories recorded on the device (`next`, `[K B, N, 4]`) read back
+    /// as K host frames of `[B, N, 4]`, oldest first. Laps `clock`'s device stage (when
+    /// stages are on: a wait the download makes anyway) and output stage.
+    ///
+    /// # Errors
+    /// [`StoreError`] carrying the backend's read error.
+    pub(super) fn download_frames(
+        &self,
+        next: Tensor<B, 3>,
+        b: usize,
+        clock: &mut Option<stages::Clock>,
+    ) -> Result<Vec<Vec<f32>>, StoreError> {
+        let [kb, n, _] = next.dims();
+        if clock.is_some() {
+            B::sync(&self.device).map_err(|e| crate::model::DownloadError {
+                shape: vec![kb, n, 4],
+                source: Box::new(e),
+            })?;
+            lap(clock, Stage::Device);
+        }
+        let out = crate::model::download(next)?;
+        let per_frame = b * n * 4;
+        // One frame is the buffer itself; K frames are copied apart.
+        let out = match kb / b.max(1) {
+            1 => vec![out],
+            _ => out.chunks_exact(per_frame).map(<[f32]>::to_vec).collect(),
+        };
+        lap(clock, Stage::Output);
+        Ok(out)
+    }
+
+    /// A grid model's input for `frame` (`[B, N, 4]` physical, on the device) from the
+    /// state `carry` ([`GridState::fit`] to this call's shape), and the memory the call goes
+    /// on from.
     fn grid_input(
         &self,
         model: &GridModel<B>,
-        frames: &[f32],
+        frame: Tensor<B, 3>,
         material: &[u8],
         dt: &[f32],
         carry: GridState<B>,
     ) -> Result<(StepInput<B>, MemoryState<B>), StoreError> {
         let (b, t) = (dt.len(), model.window());
         let n = material.len() / b;
-        let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let carry = carry.fit([b, n], t);
@@ -155,7 +194,7 @@ impl<B: NetOps> Surrogate<B> {
 }
 
 /// Ends `stage` on the call's clock, when stages are on ([`stages`]).
-fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
+pub(super) fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
     if let Some(clock) = clock {
         clock.lap(stage);
     }

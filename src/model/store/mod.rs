@@ -20,7 +20,7 @@ mod surrogate;
 
 pub use batch::{SceneStep, SceneSteps, StepTimes};
 pub use state::State;
-pub use surrogate::{Predict, Surrogate};
+pub use surrogate::{Predict, Surrogate, FEEDBACK_BYTES};
 
 use super::grid::{GridConfig, GridModel};
 use super::{Model, ModelConfig, Scaling};

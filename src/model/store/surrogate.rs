@@ -40,6 +40,9 @@ pub struct Surrogate<B: Backend> {
     pub(super) device: B::Device,
     mirror: bool,
     pad_batches: bool,
+    /// Bytes of predicted frames a device-side rollout holds before reading them back
+    /// ([`Surrogate::with_feedback_bytes`]).
+    feedback_bytes: usize,
     /// The constraint parts applied after each predicted frame (None: no projection).
     constraints: Option<Constraints>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
@@ -72,6 +75,7 @@ impl<B: NetOps> Surrogate<B> {
             device: device.clone(),
             mirror: false,
             pad_batches: false,
+            feedback_bytes: feedback_bytes(),
             constraints,
             corrections: Default::default(),
             one_hot: Default::default(),
@@ -122,6 +126,18 @@ impl<B: NetOps> Surrogate<B> {
     pub fn with_padded_batches(self, pad_batches: bool) -> Self {
         Self {
             pad_batches,
+            ..self
+        }
+    }
+
+    /// This surrogate holding at most `bytes` of predicted frames on the device in a
+    /// closed-loop rollout before reading them back ([`Surrogate::rollout_batch`]; default
+    /// [`FEEDBACK_BYTES`] or `MINFLOW_FEEDBACK_BYTES`; at least one call's frames are always
+    /// held). Less device memory, more waits; the frames are the same. 0 turns the
+    /// device-side loop off: each call's frames go through the host.
+    pub fn with_feedback_bytes(self, bytes: usize) -> Self {
+        Self {
+            feedback_bytes: bytes,
             ..self
         }
     }
@@ -392,7 +408,9 @@ impl<B: NetOps> Surrogate<B> {
     /// [`Surrogate::rollout`] of a batch of B trajectories at once (`seed` frames, `first`,
     /// `material` and the results `[B, N, 4]`, `dt` `[B]`): the seed frames but the last are
     /// stepped on, then ceil(k / K) network calls each start from the last frame the call
-    /// before predicted; `each(i, frame)` sees predicted frame i (0-based) of the `k`.
+    /// before predicted; `each(i, frame)` sees predicted frame i (0-based) of the `k`, in
+    /// order. A grid model without projection or mirror keeps the loop on the device
+    /// ([`FEEDBACK_BYTES`]), so `each` then sees the frames in batches.
     ///
     /// # Errors
     /// A step's [`StoreError`]; no seed frame.
@@ -415,6 +433,14 @@ impl<B: NetOps> Surrogate<B> {
         for frame in before {
             state = self.step(frame, material, dt, state)?.1;
         }
+        let on_device = self.feedback_bytes > 0 && self.constraints.is_none() && !self.mirror;
+        if let (Net::Grid(model), true) = (&self.net, on_device) {
+            self.check_step(last, material, dt)?;
+            let NetState::Grid(carry) = state.net.owned() else {
+                return Err(StoreError::Shape("state of another architecture".into()));
+            };
+            return self.grid_rollout(model, last, (material, dt), k, carry, each);
+        }
         let (mut done, mut input) = (0, last.clone());
         while done < k {
             let (bundle, s) = self.step_bundle(&input, material, dt, state)?;
@@ -427,4 +453,81 @@ impl<B: NetOps> Surrogate<B> {
         }
         Ok(())
     }
+
+    /// The closed loop of [`Surrogate::rollout_batch`] for a grid model without projection
+    /// or mirror: each call's last predicted frame is fed back on the device (no download
+    /// and upload between calls), and the predictions are read back together once
+    /// [`Surrogate::with_feedback_bytes`] of them are held or the rollout ends. On a GPU the host then never
+    /// waits between calls, so it records call c + 1 while the device runs call c; the
+    /// frames are the ones the call-by-call loop gives (the same values go back in).
+    fn grid_rollout(
+        &self,
+        model: &crate::model::grid::GridModel<B>,
+        last: &[f32],
+        (material, dt): (&[u8], &[f32]),
+        k: usize,
+        mut carry: GridState<B>,
+        mut each: impl FnMut(usize, &[f32]),
+    ) -> Result<(), StoreError> {
+        let b = dt.len();
+        let n = material.len() / b;
+        let bundle = model.bundle();
+        let per_flush = (self.feedback_bytes / (b * n * 4 * 4)).max(1);
+        let mut frame = crate::model::upload::<B, 3>(last.to_vec(), [b, n, 4], &self.device);
+        let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
+        while recorded < k {
+            let mut clock = super::stages::Clock::start();
+            let (next, c) = B::run_step(|| {
+                self.grid_call(
+                    model,
+                    frame,
+                    material,
+                    dt,
+                    carry,
+                    Predict::Bundle,
+                    &mut clock,
+                )
+            })?;
+            carry = c;
+            let take = bundle.min(k - recorded);
+            frame = next.clone().narrow(0, (bundle - 1) * b, b);
+            pending.push(match take == bundle {
+                true => next,
+                false => next.narrow(0, 0, take * b),
+            });
+            (held, recorded) = (held + take, recorded + take);
+            // Read back call by call: one call's frames stay under the 100 MB up to which
+            // cubecl-cuda reads through its pinned buffers (`command.rs`); 20 calls' frames
+            // of 256 scenes read as one tensor (200 MB, pageable) took 0.6 s on an H100,
+            // call by call 1.6 ms each.
+            if recorded == k || held >= per_flush {
+                for next in std::mem::take(&mut pending) {
+                    for f in &self.download_frames(next, b, &mut clock)? {
+                        each(done, f);
+                        done += 1;
+                    }
+                }
+                held = 0;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How many bytes of predicted frames a device-side closed-loop rollout
+/// ([`Surrogate::rollout_batch`] of a grid model) holds on the device before reading them
+/// back, by default ([`Surrogate::with_feedback_bytes`]): 512 MiB, about 50 frames of 256 scenes of 2,500 particles. Each read back makes
+/// the host wait for the device, which then idles while the host records the next call.
+pub const FEEDBACK_BYTES: usize = 512 << 20;
+
+/// [`FEEDBACK_BYTES`], or the bytes `MINFLOW_FEEDBACK_BYTES` names (0: every call's frames
+/// through the host, as before the device-side loop; read once).
+fn feedback_bytes() -> usize {
+    static BYTES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *BYTES.get_or_init(|| {
+        std::env::var("MINFLOW_FEEDBACK_BYTES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(FEEDBACK_BYTES)
+    })
 }
