@@ -83,6 +83,12 @@ fn worst(a: &[f32], b: &[f32]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// Streams that restart (a gap: `Surrogate::restart`) before frame 3, scenes 1 and 3.
+const RESTARTS: (usize, [usize; 2]) = (3, [1, 3]);
+
+/// Batched steps equal steps one scene a call, with two streams restarting midway: the
+/// restarted scenes still share their call with the continuing ones (one call per particle
+/// count every frame), and each predicts what a scene restarted alone does.
 #[test]
 fn batched_steps_equal_steps_one_scene_at_a_time() {
     let scenes = four_scenes();
@@ -115,7 +121,10 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
         for frames in &scenes {
             let mut state = s.init_state();
             let mut outs = Vec::new();
-            for f in frames {
+            for (i, f) in frames.iter().enumerate() {
+                if i == RESTARTS.0 && RESTARTS.1.contains(&alone.len()) {
+                    state = s.restart(state);
+                }
                 let (out, st) = s
                     .step_bundle(&state_rows(f), &f.material, &[f.dt], state)
                     .unwrap();
@@ -131,11 +140,18 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
             let steps = scenes
                 .iter()
                 .zip(states.iter_mut())
-                .map(|(frames, st)| SceneStep {
-                    rows: state_rows(&frames[i]),
-                    material: &frames[i].material,
-                    dt: frames[i].dt,
-                    state: st.take().unwrap(),
+                .enumerate()
+                .map(|(k, (frames, st))| {
+                    let mut state = st.take().unwrap();
+                    if i == RESTARTS.0 && RESTARTS.1.contains(&k) {
+                        state = s.restart(state);
+                    }
+                    SceneStep {
+                        rows: state_rows(&frames[i]),
+                        material: &frames[i].material,
+                        dt: frames[i].dt,
+                        state,
+                    }
                 })
                 .collect();
             let predict = if whole {
@@ -147,7 +163,11 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
             assert_eq!(batch.calls, [1, 3], "{model}: one call per particle count");
             for (k, result) in batch.results.into_iter().enumerate() {
                 let (out, st) = result.unwrap();
-                assert_eq!(st.frames, i + 1);
+                let restarted = i >= RESTARTS.0 && RESTARTS.1.contains(&k);
+                assert_eq!(
+                    st.frames,
+                    if restarted { i + 1 - RESTARTS.0 } else { i + 1 }
+                );
                 assert_eq!(out.len(), alone[k][i].len());
                 for (got, want) in out.iter().zip(&alone[k][i]) {
                     let w = worst(got, want);

@@ -8,6 +8,7 @@ use burn::tensor::Tensor;
 use super::stages::{self, Stage};
 use super::state::GridState;
 use super::{Predict, StoreError, Surrogate};
+use crate::model::grid::rest::advect::identity;
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
 };
@@ -91,6 +92,7 @@ impl<B: NetOps> Surrogate<B> {
             reference,
             rest,
             deformation,
+            fresh: None,
         };
         Ok((next, state))
     }
@@ -128,7 +130,10 @@ impl<B: NetOps> Surrogate<B> {
 
     /// A grid model's input for `frame` (`[B, N, 4]` physical, on the device) from the
     /// state `carry` ([`GridState::fit`] to this call's shape), and the memory the call goes
-    /// on from.
+    /// on from. Rows marked restarted ([`GridState::fresh`]) start as a state restarted
+    /// whole does: memory zero (what the cells' update reads for no state: `h = z h~`),
+    /// velocity history the input's velocity repeated, F the fit to the rest neighbourhoods
+    /// (or the identity); the marks pick per row, so the other rows are unchanged.
     fn grid_input(
         &self,
         model: &GridModel<B>,
@@ -142,8 +147,17 @@ impl<B: NetOps> Surrogate<B> {
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let carry = carry.fit([b, n], t);
+        // `[B, 1, 1]`: 1 for a restarted row; `pick(carried, start)` takes each row's own.
+        let fresh = carry.fresh.map(|f| f.reshape([b, 1, 1]));
+        let pick = |carried: Tensor<B, 3>, start: Tensor<B, 3>| match &fresh {
+            Some(f) => carried * (f.clone().neg() + 1.0) + start * f.clone(),
+            None => carried,
+        };
         let reference = carry.reference.unwrap_or_else(|| pos.clone());
         let vel = match carry.history {
+            Some(h) if fresh.is_some() => {
+                pick(Tensor::cat(vec![h, vel.clone()], 2), vel.repeat_dim(2, t))
+            }
             Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
             None => vel.repeat_dim(2, t),
         };
@@ -152,6 +166,34 @@ impl<B: NetOps> Surrogate<B> {
             None if model.uses_rest_shape() => Some(self.rest_of(&reference, material, [b, n])?),
             None => None,
         };
+        let deformation = match carry.deformation {
+            Some(f) if fresh.is_some() => Some(pick(
+                f,
+                match rest.as_ref().filter(|r| r.dims() == [b, n]) {
+                    Some(r) => r.fitted(pos.clone()),
+                    None => identity::<B>([b, n], &self.device),
+                },
+            )),
+            f => f,
+        };
+        let memory = match &fresh {
+            Some(f) => {
+                let zero = |h: Tensor<B, 2>| {
+                    let rows = h.dims()[0];
+                    let keep = f.clone().neg() + 1.0; // [B, 1, 1]
+                    h * keep.repeat_dim(1, rows / b).reshape([rows, 1])
+                };
+                match carry.memory {
+                    MemoryState::Hidden(h) => MemoryState::Hidden(zero(h)),
+                    MemoryState::Lstm(s) => MemoryState::Lstm(crate::model::rnn::LstmState {
+                        h: zero(s.h),
+                        c: zero(s.c),
+                    }),
+                    MemoryState::Empty => MemoryState::Empty,
+                }
+            }
+            None => carry.memory,
+        };
         let input = StepInput {
             pos,
             vel,
@@ -159,9 +201,9 @@ impl<B: NetOps> Surrogate<B> {
             dt: crate::model::upload::<B, 1>(dt.to_vec(), [b], &self.device),
             reference: Some(reference),
             rest,
-            deformation: carry.deformation,
+            deformation,
         };
-        Ok((input, carry.memory))
+        Ok((input, memory))
     }
 
     /// The `[B, N, M]` one-hot of `material` (`[B N]`), M = the model's materials: the last

@@ -6,7 +6,7 @@
 //! here: its declaration and one line in each of `GridState`'s methods below. The stacking
 //! of the pieces ([`Rows`]) lives in `stack.rs`, the constraint data in `constrained.rs`.
 
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
@@ -46,9 +46,10 @@ pub(super) enum NetState<B: Backend> {
 /// batch's rows, in order: the batch itself, no operation at all). A surrogate node steps
 /// the same streams call after call, so its batch stays whole between calls: cutting and
 /// stacking 256 scenes' states recorded thousands of slices and concatenations a call
-/// (docs/scale.md). A restarted row (a gap in its stream) is a row of the batch restarted
-/// once for all its rows ([`Home::restarted`]). A row used any other way is cut out first
-/// ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped, dropped or
+/// (docs/scale.md). A restarted row (a gap in its stream) stays a row of its batch, marked
+/// `fresh`: the call it next steps in starts its memory, velocity history and F afresh
+/// ([`GridState::fresh`]), so restarted and continuing streams of one batch still share one
+/// call. A row used any other way is cut out first ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped, dropped or
 /// cut out by [`State::compact`] once most of its batch has moved on.
 #[derive(Clone)]
 pub(super) struct Row<B: Backend> {
@@ -56,6 +57,9 @@ pub(super) struct Row<B: Backend> {
     home: Arc<Home<B>>,
     /// The scene's index in the batch.
     index: usize,
+    /// The scene's stream restarted since the batch was made ([`State::restart`]): its
+    /// network state is the batch's row with [`GridState::fresh`] set.
+    fresh: bool,
 }
 
 /// The batch state of lazily split [`Row`]s.
@@ -66,45 +70,37 @@ pub(super) struct Home<B: Backend> {
     of: usize,
     /// Copies of each scene in the batch's rows (2 for a mirror ensemble; `stack.rs`).
     copies: usize,
-    /// The batch restarted ([`GridState::restart`]), made once for the rows that restart.
-    restarted: OnceLock<Arc<Home<B>>>,
 }
 
 impl<B: Backend> Home<B> {
     fn new(net: NetState<B>, of: usize, copies: usize) -> Arc<Self> {
-        Arc::new(Home {
-            net,
-            of,
-            copies,
-            restarted: OnceLock::new(),
-        })
+        Arc::new(Home { net, of, copies })
     }
 
-    /// The rows of `scenes` as one state ([`Rows::select_rows`]); the batch itself when
-    /// they are all its scenes in order.
-    fn select(&self, scenes: &[usize]) -> NetState<B> {
-        if scenes.len() == self.of && scenes.iter().enumerate().all(|(i, &s)| i == s) {
-            return self.net.clone();
-        }
+    /// The rows of `scenes` as one state ([`Rows::select_rows`]; the batch itself when they
+    /// are all its scenes in order), those whose `fresh` is true marked as restarting
+    /// ([`GridState::fresh`]: one value per row, copy by copy).
+    fn select(&self, scenes: &[usize], fresh: &[bool]) -> NetState<B> {
         let (of, copies) = (self.of, self.copies);
-        match &self.net {
+        let whole = scenes.len() == of && scenes.iter().enumerate().all(|(i, &s)| i == s);
+        let net = match &self.net {
+            net if whole => net.clone(),
             NetState::Paper(layers) => NetState::Paper(layers.select_rows(scenes, of, copies)),
             NetState::Grid(grid) => NetState::Grid(grid.select_rows(scenes, of, copies)),
             NetState::Row(_) => unreachable!("a batch of rows is not a row"),
-        }
-    }
-
-    /// This batch restarted as a grid state restarts (its reference positions and rest
-    /// neighbourhoods kept), made on the first call and shared by every row that restarts.
-    fn restarted(&self) -> Arc<Self> {
-        let again = || {
-            let net = match &self.net {
-                NetState::Grid(grid) => NetState::Grid(grid.clone().restart()),
-                other => other.clone(),
-            };
-            Home::new(net, self.of, self.copies)
         };
-        Arc::clone(self.restarted.get_or_init(again))
+        match net {
+            NetState::Grid(mut grid) if fresh.contains(&true) => {
+                let mask: Vec<f32> = (0..copies)
+                    .flat_map(|_| fresh.iter().map(|&f| f32::from(u8::from(f))))
+                    .collect();
+                let device = grid.device();
+                grid.fresh =
+                    device.map(|d| crate::model::upload::<B, 1>(mask, [copies * scenes.len()], &d));
+                NetState::Grid(grid)
+            }
+            net => net,
+        }
     }
 }
 
@@ -127,14 +123,21 @@ pub(super) struct GridState<B: Backend> {
     /// the F of the frame the next step reads; `None` before the first step and after a
     /// restart, when the step starts it from the fit to the rest neighbourhoods).
     pub(super) deformation: Option<Tensor<B, 3>>,
+    /// `[copies B]`: 1 for the rows restarted since the state's last call, 0 for the others
+    /// (None: no row restarts). Set on rows of a batch that restart in place ([`Row`]); the
+    /// next call starts their memory at zero, their velocity history from the input frame
+    /// and their F from the fit (`grid_step.rs`), as it starts a state restarted whole
+    /// ([`GridState::restart`]), and returns a state without it. Not part of the stacking
+    /// key: a missing one stacks as zeros.
+    pub(super) fresh: Option<Tensor<B, 1>>,
 }
 
 impl<B: Backend> NetState<B> {
-    /// This state with its own tensors: a [`Row`] cut out of its batch, anything else as it
-    /// is.
+    /// This state with its own tensors: a [`Row`] cut out of its batch (still marked if it
+    /// restarted), anything else as it is.
     pub(super) fn owned(self) -> Self {
         match self {
-            NetState::Row(row) => row.home.select(&[row.index]),
+            NetState::Row(row) => row.home.select(&[row.index], &[row.fresh]),
             other => other,
         }
     }
@@ -155,10 +158,7 @@ impl<B: Backend> State<B> {
     /// ([`GridState::restart`]), and the constraint data is kept.
     pub(super) fn restart(self, fresh: NetState<B>) -> Self {
         let net = match (self.net, fresh) {
-            (NetState::Row(row), NetState::Grid(_)) => NetState::Row(Row {
-                home: row.home.restarted(),
-                index: row.index,
-            }),
+            (NetState::Row(row), NetState::Grid(_)) => NetState::Row(Row { fresh: true, ..row }),
             (NetState::Grid(grid), NetState::Grid(_)) => NetState::Grid(grid.restart()),
             (_, fresh) => fresh,
         };
@@ -244,6 +244,7 @@ impl<B: Backend> State<B> {
                         NetState::Row(Row {
                             home: Arc::clone(&home),
                             index,
+                            fresh: false,
                         })
                     })
                     .collect()
@@ -293,13 +294,16 @@ fn rows_of_one_batch<B: Backend>(states: &[State<B>], copies: usize) -> Option<N
     if first.home.copies != copies {
         return None;
     }
-    let scenes: Option<Vec<usize>> = (states.iter())
+    let rows: Option<Vec<(usize, bool)>> = (states.iter())
         .map(|s| match &s.net {
-            NetState::Row(row) if Arc::ptr_eq(&row.home, &first.home) => Some(row.index),
+            NetState::Row(row) if Arc::ptr_eq(&row.home, &first.home) => {
+                Some((row.index, row.fresh))
+            }
             _ => None,
         })
         .collect();
-    Some(first.home.select(&scenes?))
+    let (scenes, fresh): (Vec<usize>, Vec<bool>) = rows?.into_iter().unzip();
+    Some(first.home.select(&scenes, &fresh))
 }
 
 impl<B: Backend> GridState<B> {
@@ -311,7 +315,20 @@ impl<B: Backend> GridState<B> {
             reference: None,
             rest: None,
             deformation: None,
+            fresh: None,
         }
+    }
+
+    /// The device of the state's tensors, None when it carries none.
+    fn device(&self) -> Option<B::Device> {
+        let memory = match &self.memory {
+            MemoryState::Hidden(h) => Some(h.device()),
+            MemoryState::Lstm(s) => Some(s.h.device()),
+            MemoryState::Empty => None,
+        };
+        memory
+            .or_else(|| self.history.as_ref().map(Tensor::device))
+            .or_else(|| self.reference.as_ref().map(Tensor::device))
     }
 
     /// This state reset as at the start of a stream, but for the reference positions and
@@ -339,6 +356,7 @@ impl<B: Backend> GridState<B> {
             reference: self.reference.filter(|r| r.dims() == [b, n, 2]),
             rest: self.rest.filter(|r| r.dims() == [b, n]),
             deformation: self.deformation.filter(|f| f.dims() == [b, n, 4]),
+            fresh: self.fresh.filter(|f| f.dims() == [b]),
         }
     }
 
@@ -405,9 +423,11 @@ impl<B: Backend> Rows for GridState<B> {
         self.reference.rows_key(of, key);
         self.rest.rows_key(of, key);
         self.deformation.rows_key(of, key);
+        // `fresh` is not part of the key: it stacks as zeros where missing.
     }
 
     fn stack_rows(parts: Vec<Self>, copies: usize) -> Result<Self, StackError> {
+        let fresh = fresh_or_zeros(&parts)?;
         let (mut memory, mut history, mut reference) = (vec![], vec![], vec![]);
         let (mut rest, mut deformation) = (vec![], vec![]);
         for p in parts {
@@ -423,6 +443,7 @@ impl<B: Backend> Rows for GridState<B> {
             reference: Rows::stack_rows(reference, copies)?,
             rest: Rows::stack_rows(rest, copies)?,
             deformation: Rows::stack_rows(deformation, copies)?,
+            fresh: Rows::stack_rows(fresh, copies)?,
         })
     }
 
@@ -431,6 +452,7 @@ impl<B: Backend> Rows for GridState<B> {
         let mut reference = self.reference.split_rows(sizes, copies).into_iter();
         let mut rest = self.rest.split_rows(sizes, copies).into_iter();
         let mut deformation = self.deformation.split_rows(sizes, copies).into_iter();
+        let mut fresh = self.fresh.split_rows(sizes, copies).into_iter();
         let mut grid = |memory| -> Option<GridState<B>> {
             Some(GridState {
                 memory,
@@ -438,6 +460,7 @@ impl<B: Backend> Rows for GridState<B> {
                 reference: reference.next()?,
                 rest: rest.next()?,
                 deformation: deformation.next()?,
+                fresh: fresh.next()?,
             })
         };
         self.memory
@@ -454,8 +477,33 @@ impl<B: Backend> Rows for GridState<B> {
             reference: self.reference.select_rows(scenes, of, copies),
             rest: self.rest.select_rows(scenes, of, copies),
             deformation: self.deformation.select_rows(scenes, of, copies),
+            fresh: self.fresh.select_rows(scenes, of, copies),
         }
     }
+}
+
+/// The `fresh` marks of grid states about to stack ([`GridState::fresh`]): all None when
+/// none has any, otherwise each part's own or zeros for its rows (`[copies B]`, B from its
+/// reference positions or velocity history).
+fn fresh_or_zeros<B: Backend>(
+    parts: &[GridState<B>],
+) -> Result<Vec<Option<Tensor<B, 1>>>, StackError> {
+    if parts.iter().all(|p| p.fresh.is_none()) {
+        return Ok(parts.iter().map(|_| None).collect());
+    }
+    let zeros = |p: &GridState<B>| {
+        let rows = p.reference.as_ref().or(p.history.as_ref())?.dims()[0];
+        Some(Tensor::zeros([rows], &p.device()?))
+    };
+    parts
+        .iter()
+        .map(|p| match &p.fresh {
+            Some(f) => Ok(Some(f.clone())),
+            None => zeros(p)
+                .map(Some)
+                .ok_or_else(|| shape("stack: a restarted row beside a state of unknown rows")),
+        })
+        .collect()
 }
 
 /// `frames` (`[B, N, 4]`) followed by their mirror images: `[2B, N, 4]`.
