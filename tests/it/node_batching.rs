@@ -182,6 +182,61 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
     }
 }
 
+/// A stream restarted after a gap (`Surrogate::restart`) predicts what a fresh stream started
+/// on the same frame does, for a model that reads no reference positions and no rest shape
+/// (`all-grid-mingru-small`): alone, and as a row of a batch beside streams that go on (in
+/// the same call).
+#[test]
+fn a_restarted_stream_predicts_what_a_fresh_one_does() {
+    let scenes = four_scenes();
+    let dir = repo("models/all-grid-mingru-small");
+    let s = Surrogate::<NdArray<f32>>::load(&dir, &Default::default()).unwrap();
+    let step =
+        |f: &ParticleFrame, state| s.step(&state_rows(f), &f.material, &[f.dt], state).unwrap();
+    // Fresh: scene 0 from frame 3.
+    let (want3, state) = step(&scenes[0][3], s.init_state());
+    let (want4, _) = step(&scenes[0][4], state);
+    // Alone: frames 0-2, a restart, frames 3 and 4.
+    let mut state = s.init_state();
+    for f in &scenes[0][..3] {
+        state = step(f, state).1;
+    }
+    let (got3, state) = step(&scenes[0][3], s.restart(state));
+    let (got4, _) = step(&scenes[0][4], state);
+    assert!(worst(&got3, &want3) <= 1e-5, "alone, frame 3");
+    assert!(worst(&got4, &want4) <= 1e-5, "alone, frame 4");
+    // Batched: scenes 0-2 together, scene 0 restarted before frame 3.
+    let mut states: Vec<_> = (0..3).map(|_| Some(s.init_state())).collect();
+    let mut got = Vec::new();
+    for i in 0..5 {
+        let steps = (0..3)
+            .map(|k| {
+                let mut state = states[k].take().unwrap();
+                if i == 3 && k == 0 {
+                    state = s.restart(state);
+                }
+                SceneStep {
+                    rows: state_rows(&scenes[k][i]),
+                    material: &scenes[k][i].material,
+                    dt: scenes[k][i].dt,
+                    state,
+                }
+            })
+            .collect();
+        let batch = s.step_scenes(steps, Predict::Next);
+        assert_eq!(batch.calls, [3], "frame {i}: one call");
+        for (k, result) in batch.results.into_iter().enumerate() {
+            let (out, state) = result.unwrap();
+            if k == 0 && i >= 3 {
+                got.push(out[0].clone());
+            }
+            states[k] = Some(state);
+        }
+    }
+    assert!(worst(&got[0], &want3) <= 1e-5, "batched, frame 3");
+    assert!(worst(&got[1], &want4) <= 1e-5, "batched, frame 4");
+}
+
 /// A `minflow node` of the shipped small model on `input` -> `output` with `extra` flags.
 fn node(input: &str, output: &str, extra: &[&str]) -> Node {
     let model = repo("models/all-grid-mingru-small");

@@ -159,7 +159,7 @@ impl<B: Backend> State<B> {
     pub(super) fn restart(self, fresh: NetState<B>) -> Self {
         let net = match (self.net, fresh) {
             (NetState::Row(row), NetState::Grid(_)) => NetState::Row(Row { fresh: true, ..row }),
-            (NetState::Grid(grid), NetState::Grid(_)) => NetState::Grid(grid.restart()),
+            (NetState::Grid(grid), NetState::Grid(_)) => NetState::Grid(grid.restart_marked()),
             (_, fresh) => fresh,
         };
         State {
@@ -339,6 +339,22 @@ impl<B: Backend> GridState<B> {
             reference: self.reference,
             rest: self.rest,
             ..GridState::new()
+        }
+    }
+
+    /// This state restarting in its next call, every row marked ([`GridState::fresh`]):
+    /// the call starts it as [`GridState::restart`] would, but its stacking key stays that
+    /// of the streams going on, so it shares their call. (Restarted whole, an owned state
+    /// went through a call of its own every frame: a stream that keeps restarting, as every
+    /// stream does under overload, never joined the others' call again.) Restarted whole
+    /// when it has no reference positions yet (nothing carried to mark).
+    pub(super) fn restart_marked(self) -> Self {
+        match self.reference.as_ref().map(|r| (r.dims()[0], r.device())) {
+            Some((rows, device)) => GridState {
+                fresh: Some(Tensor::ones([rows], &device)),
+                ..self
+            },
+            None => self.restart(),
         }
     }
 
