@@ -154,9 +154,10 @@ fn a_rollout_chains_whole_bundles() {
     assert_eq!(rollout, by_hand);
 }
 
-/// A batched rollout keeps its loop on the device (no projection, no mirror): two scenes,
-/// K = 2, 5 frames give the frames stepping call by call gives, whether the device holds
-/// every prediction until the end, reads each call's back at once, or is off (0 bytes).
+/// A batched rollout can keep its loop on the device (no projection, no mirror; the default
+/// on a GPU, asked for here on the CPU): two scenes, K = 2, 5 frames give the frames
+/// stepping call by call gives, whether the device holds every prediction until the end,
+/// reads each call's back at once, or is off (0 bytes, the CPU's default).
 #[test]
 fn a_device_side_rollout_equals_the_call_by_call_loop() {
     let device = Default::default();

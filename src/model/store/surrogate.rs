@@ -75,7 +75,8 @@ impl<B: NetOps> Surrogate<B> {
             device: device.clone(),
             mirror: false,
             pad_batches: false,
-            feedback_bytes: feedback_bytes(),
+            // On the host nothing runs ahead of the caller: the call-by-call loop.
+            feedback_bytes: if B::ON_HOST { 0 } else { feedback_bytes() },
             constraints,
             corrections: Default::default(),
             one_hot: Default::default(),
@@ -132,8 +133,8 @@ impl<B: NetOps> Surrogate<B> {
 
     /// This surrogate holding at most `bytes` of predicted frames on the device in a
     /// closed-loop rollout before reading them back ([`Surrogate::rollout_batch`]; default
-    /// [`FEEDBACK_BYTES`] or `MINFLOW_FEEDBACK_BYTES`; at least one call's frames are always
-    /// held). Less device memory, more waits; the frames are the same. 0 turns the
+    /// [`FEEDBACK_BYTES`] or `MINFLOW_FEEDBACK_BYTES` on a GPU, 0 on the CPU, where the device
+    /// is the host; at least one call's frames are always held). Less device memory, more waits; the frames are the same. 0 turns the
     /// device-side loop off: each call's frames go through the host.
     pub fn with_feedback_bytes(self, bytes: usize) -> Self {
         Self {
@@ -409,8 +410,8 @@ impl<B: NetOps> Surrogate<B> {
     /// `material` and the results `[B, N, 4]`, `dt` `[B]`): the seed frames but the last are
     /// stepped on, then ceil(k / K) network calls each start from the last frame the call
     /// before predicted; `each(i, frame)` sees predicted frame i (0-based) of the `k`, in
-    /// order. A grid model without projection or mirror keeps the loop on the device
-    /// ([`FEEDBACK_BYTES`]), so `each` then sees the frames in batches.
+    /// order. On a GPU a grid model without projection or mirror keeps the loop on the
+    /// device ([`Surrogate::with_feedback_bytes`]), so `each` then sees the frames in batches.
     ///
     /// # Errors
     /// A step's [`StoreError`]; no seed frame.
