@@ -177,21 +177,7 @@ impl<B: NetOps> Surrogate<B> {
             f => f,
         };
         let memory = match &fresh {
-            Some(f) => {
-                let zero = |h: Tensor<B, 2>| {
-                    let rows = h.dims()[0];
-                    let keep = f.clone().neg() + 1.0; // [B, 1, 1]
-                    h * keep.repeat_dim(1, rows / b).reshape([rows, 1])
-                };
-                match carry.memory {
-                    MemoryState::Hidden(h) => MemoryState::Hidden(zero(h)),
-                    MemoryState::Lstm(s) => MemoryState::Lstm(crate::model::rnn::LstmState {
-                        h: zero(s.h),
-                        c: zero(s.c),
-                    }),
-                    MemoryState::Empty => MemoryState::Empty,
-                }
-            }
+            Some(f) => zero_rows(carry.memory, f),
             None => carry.memory,
         };
         let input = StepInput {
@@ -232,6 +218,25 @@ impl<B: NetOps> Surrogate<B> {
     ) -> Result<NeighbourTensors<B>, StoreError> {
         let host = crate::model::download(reference.clone())?;
         Ok(Neighbourhood::build(&host, material, [b, n], |m| m != 0).upload(&self.device))
+    }
+}
+
+/// `memory` (`[B N, H]` rows) with the rows of the trajectories `fresh` marks (`[B, 1, 1]`,
+/// 1 for a restarted one) set to zero, what the cells read for no state.
+fn zero_rows<B: NetOps>(memory: MemoryState<B>, fresh: &Tensor<B, 3>) -> MemoryState<B> {
+    let b = fresh.dims()[0];
+    let zero = |h: Tensor<B, 2>| {
+        let rows = h.dims()[0];
+        let keep = fresh.clone().neg() + 1.0;
+        h * keep.repeat_dim(1, rows / b).reshape([rows, 1])
+    };
+    match memory {
+        MemoryState::Hidden(h) => MemoryState::Hidden(zero(h)),
+        MemoryState::Lstm(s) => MemoryState::Lstm(crate::model::rnn::LstmState {
+            h: zero(s.h),
+            c: zero(s.c),
+        }),
+        MemoryState::Empty => MemoryState::Empty,
     }
 }
 
