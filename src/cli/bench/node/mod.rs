@@ -80,6 +80,11 @@ pub struct NodeBenchArgs {
     /// Run the `--model` grid models as mirror ensembles (`node --mirror`: twice the work).
     #[arg(long)]
     mirror: bool,
+    /// Which parts of the `--model` models' material constraints the node (and the step in
+    /// this process) projects every predicted frame onto (`node --constraints`): on | off |
+    /// a list of rope, jelly, snow, liquid, walls, contact. The projection runs on the host.
+    #[arg(long, value_name = "PARTS", default_value = "on")]
+    constraints: crate::model::constraints::Parts,
     /// Many streams into one node (zenoh): this many scenes, interleaved, from one
     /// publisher process; one row per `--max-batch` value (1-4096).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
@@ -241,12 +246,12 @@ fn model_step_on(
     b: usize,
 ) -> anyhow::Result<Vec<f64>> {
     match gpu {
-        None => model_step_us::<NdArray<f32>>(dir, frames, b, args.mirror, &Default::default()),
+        None => model_step_us::<NdArray<f32>>(dir, frames, b, args, &Default::default()),
         #[cfg(feature = "cuda")]
         Some(id) => {
             use crate::cli::device::cuda::{device, CudaInfer};
             let device = device(id, args.device.kernels())?;
-            model_step_us::<CudaInfer>(dir, frames, b, args.mirror, &device)
+            model_step_us::<CudaInfer>(dir, frames, b, args, &device)
         }
         #[cfg(not(feature = "cuda"))]
         Some(_) => bail!("built without CUDA"),
@@ -357,10 +362,12 @@ fn model_step_us<B: NetOps>(
     dir: &Path,
     frames: &[ParticleFrame],
     b: usize,
-    mirror: bool,
+    args: &NodeBenchArgs,
     device: &B::Device,
 ) -> anyhow::Result<Vec<f64>> {
-    let surrogate = Surrogate::<B>::load(dir, device)?.with_mirror(mirror);
+    let surrogate = Surrogate::<B>::load(dir, device)?
+        .with_mirror(args.mirror)
+        .with_constraints(args.constraints);
     let mut state = surrogate.init_state();
     let mut model_us = Vec::new();
     for i in 0..60 {

@@ -209,6 +209,7 @@ fn spawn_node(
             &args.device.gpu_gemm,
         ])
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
+        .args(["--constraints", &args.constraints.to_string()])
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -252,13 +253,14 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     let streams = args.streams.unwrap_or(1);
     println!(
         "\nOne node, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
-         {} s warm-up, model {}, on {}, --max-batch-delay {} ms:",
+         {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms:",
         args.rate,
         args.rate * f64::from(streams),
         args.seconds,
         args.warm_up,
         model.display(),
         args.device.device,
+        args.constraints,
         args.max_batch_delay
     );
     println!("| --max-batch | sent | delivered | dropped | p50 ms | p99 ms | predictions/s | mean batch | max batch |");

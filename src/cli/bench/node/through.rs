@@ -51,6 +51,7 @@ pub(super) fn through_node(
             &[]
         })
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
+        .args(["--constraints", &args.constraints.to_string()])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()?;
