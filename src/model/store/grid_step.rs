@@ -147,10 +147,14 @@ impl<B: NetOps> Surrogate<B> {
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let carry = carry.fit([b, n], t);
-        // `[B, 1, 1]`: 1 for a restarted row; `pick(carried, start)` takes each row's own.
+        // `[B, 1, 1]`: 1 for a restarted row; `pick(carried, start)` takes each row's own by
+        // selection, so a restarted row's carried values (even non-finite ones) are dropped.
         let fresh = carry.fresh.map(|f| f.reshape([b, 1, 1]));
         let pick = |carried: Tensor<B, 3>, start: Tensor<B, 3>| match &fresh {
-            Some(f) => carried * (f.clone().neg() + 1.0) + start * f.clone(),
+            Some(f) => {
+                let mask = f.clone().greater_elem(0.5).expand(carried.dims());
+                carried.mask_where(mask, start)
+            }
             None => carried,
         };
         let reference = carry.reference.unwrap_or_else(|| pos.clone());
@@ -222,13 +226,14 @@ impl<B: NetOps> Surrogate<B> {
 }
 
 /// `memory` (`[B N, H]` rows) with the rows of the trajectories `fresh` marks (`[B, 1, 1]`,
-/// 1 for a restarted one) set to zero, what the cells read for no state.
+/// 1 for a restarted one) set to zero, what the cells read for no state (a fill, so even a
+/// non-finite carried value is dropped).
 fn zero_rows<B: NetOps>(memory: MemoryState<B>, fresh: &Tensor<B, 3>) -> MemoryState<B> {
     let b = fresh.dims()[0];
     let zero = |h: Tensor<B, 2>| {
-        let rows = h.dims()[0];
-        let keep = fresh.clone().neg() + 1.0;
-        h * keep.repeat_dim(1, rows / b).reshape([rows, 1])
+        let [rows, width] = h.dims();
+        let per_row = fresh.clone().repeat_dim(1, rows / b).reshape([rows, 1]);
+        h.mask_fill(per_row.greater_elem(0.5).expand([rows, width]), 0.0)
     };
     match memory {
         MemoryState::Hidden(h) => MemoryState::Hidden(zero(h)),

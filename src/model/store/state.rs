@@ -363,16 +363,21 @@ impl<B: Backend> GridState<B> {
     /// neighbourhoods or F of another B or N; a memory of another row count), so the step
     /// starts those afresh.
     pub(super) fn fit(self, [b, n]: [usize; 2], t: usize) -> Self {
+        // A restart mark of another shape is dropped, and the memory with it: a marked row
+        // must not go on from its memory.
+        let marked = self.fresh.is_some();
+        let fresh = self.fresh.filter(|f| f.dims() == [b]);
+        let marked_elsewhere = marked && fresh.is_none();
         GridState {
             memory: match self.memory.rows() {
-                Some(rows) if rows != b * n => MemoryState::Empty,
+                Some(rows) if rows != b * n || marked_elsewhere => MemoryState::Empty,
                 _ => self.memory,
             },
             history: self.history.filter(|h| h.dims() == [b, n, 2 * (t - 1)]),
             reference: self.reference.filter(|r| r.dims() == [b, n, 2]),
             rest: self.rest.filter(|r| r.dims() == [b, n]),
             deformation: self.deformation.filter(|f| f.dims() == [b, n, 4]),
-            fresh: self.fresh.filter(|f| f.dims() == [b]),
+            fresh,
         }
     }
 

@@ -473,12 +473,12 @@ impl<B: NetOps> Surrogate<B> {
         let b = dt.len();
         let n = material.len() / b;
         let bundle = model.bundle();
-        let per_flush = (self.feedback_bytes / (b * n * 4 * 4)).max(1);
+        let per_flush = (self.feedback_bytes / (b * n * 4 * 4).max(1)).max(1);
         let mut frame = crate::model::upload::<B, 3>(last.to_vec(), [b, n, 4], &self.device);
         let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
         while recorded < k {
             let mut clock = super::stages::Clock::start();
-            let (next, c) = B::run_step(|| {
+            let called = B::run_step(|| {
                 self.grid_call(
                     model,
                     frame,
@@ -488,7 +488,15 @@ impl<B: NetOps> Surrogate<B> {
                     Predict::Bundle,
                     &mut clock,
                 )
-            })?;
+            });
+            let (next, c) = match called {
+                Ok(call) => call,
+                Err(e) => {
+                    // The frames predicted before still reach `each`, as in the host loop.
+                    self.deliver(&mut pending, b, &mut clock, (&mut each, &mut done))?;
+                    return Err(e);
+                }
+            };
             carry = c;
             let take = bundle.min(k - recorded);
             frame = next.clone().narrow(0, (bundle - 1) * b, b);
@@ -502,13 +510,26 @@ impl<B: NetOps> Surrogate<B> {
             // of 256 scenes read as one tensor (200 MB, pageable) took 0.6 s on an H100,
             // call by call 1.6 ms each.
             if recorded == k || held >= per_flush {
-                for next in std::mem::take(&mut pending) {
-                    for f in &self.download_frames(next, b, &mut clock)? {
-                        each(done, f);
-                        done += 1;
-                    }
-                }
+                self.deliver(&mut pending, b, &mut clock, (&mut each, &mut done))?;
                 held = 0;
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads the held calls' frames back (`pending`: `[K B, N, 4]` each, oldest first), call
+    /// by call, and hands them to `each` as frames `done`, `done + 1`, ...
+    fn deliver(
+        &self,
+        pending: &mut Vec<burn::tensor::Tensor<B, 3>>,
+        b: usize,
+        clock: &mut Option<super::stages::Clock>,
+        (each, done): (&mut impl FnMut(usize, &[f32]), &mut usize),
+    ) -> Result<(), StoreError> {
+        for next in std::mem::take(pending) {
+            for f in &self.download_frames(next, b, clock)? {
+                each(*done, f);
+                *done += 1;
             }
         }
         Ok(())
