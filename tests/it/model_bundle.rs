@@ -133,24 +133,40 @@ fn the_k_frames_of_a_bundle_are_integrated_in_order() {
     }
 }
 
+/// A surrogate around an untrained minGRU grid model with K = 2 (seed 2).
+fn bundled_surrogate() -> Surrogate<B> {
+    let device = Default::default();
+    let config = config(MemoryKind::MinGru, 2);
+    let model = initial_grid_model::<B>(&config, 2, &device).unwrap();
+    Surrogate::from_net(store::Net::Grid(model), meta(config), &device)
+}
+
+/// The 5 frames a K = 2 model predicts from `seed1` (`[B, N, 4]`) and `state`, call by call:
+/// the bundle of `seed1`, the bundle of its last frame, and the first frame of the next.
+fn five_frames_by_hand(
+    s: &Surrogate<B>,
+    seed1: &[f32],
+    (material, dt): (&[u8], &[f32]),
+    state: store::State<B>,
+) -> Vec<Vec<f32>> {
+    let (a, state) = s.step_bundle(seed1, material, dt, state).unwrap();
+    let (b, state) = s.step_bundle(&a[1], material, dt, state).unwrap();
+    let (c, _) = s.step_bundle(&b[1], material, dt, state).unwrap();
+    [a, b, vec![c[0].clone()]].concat()
+}
+
 /// A rollout of 5 frames with K = 2 is three calls: the bundle of the seed frame, the bundle
 /// of its last frame, and the first frame of the bundle after that.
 #[test]
 fn a_rollout_chains_whole_bundles() {
-    let device = Default::default();
-    let config = config(MemoryKind::MinGru, 2);
-    let model = initial_grid_model::<B>(&config, 2, &device).unwrap();
-    let s = Surrogate::from_net(store::Net::Grid(model), meta(config), &device);
+    let s = bundled_surrogate();
     let (seed0, material) = frame(150);
     let (seed1, state) = s.step(&seed0, &material, &[0.016], s.init_state()).unwrap();
     let rollout = s
         .rollout(None, &[seed0.clone(), seed1.clone()], &material, 0.016, 5)
         .unwrap();
     assert_eq!(rollout.len(), 5);
-    let (a, state) = s.step_bundle(&seed1, &material, &[0.016], state).unwrap();
-    let (b, state) = s.step_bundle(&a[1], &material, &[0.016], state).unwrap();
-    let (c, _) = s.step_bundle(&b[1], &material, &[0.016], state).unwrap();
-    let by_hand = [a, b, vec![c[0].clone()]].concat();
+    let by_hand = five_frames_by_hand(&s, &seed1, (&material, &[0.016]), state);
     assert_eq!(rollout, by_hand);
 }
 
@@ -160,20 +176,14 @@ fn a_rollout_chains_whole_bundles() {
 /// reads each call's back at once, or is off (0 bytes, the CPU's default).
 #[test]
 fn a_device_side_rollout_equals_the_call_by_call_loop() {
-    let device = Default::default();
-    let config = config(MemoryKind::MinGru, 2);
-    let model = initial_grid_model::<B>(&config, 2, &device).unwrap();
-    let s = Surrogate::from_net(store::Net::Grid(model), meta(config), &device);
+    let s = bundled_surrogate();
     let (a0, material) = frame(150);
     let b0: Vec<f32> = a0.iter().map(|v| v * 0.9 + 0.05).collect();
     let seed0 = [a0, b0].concat();
     let material = [material.clone(), material].concat();
     let dt = [0.016, 0.02];
     let (seed1, state) = s.step(&seed0, &material, &dt, s.init_state()).unwrap();
-    let (a, state) = s.step_bundle(&seed1, &material, &dt, state).unwrap();
-    let (b, state) = s.step_bundle(&a[1], &material, &dt, state).unwrap();
-    let (c, _) = s.step_bundle(&b[1], &material, &dt, state).unwrap();
-    let by_hand = [a, b, vec![c[0].clone()]].concat();
+    let by_hand = five_frames_by_hand(&s, &seed1, (&material, &dt), state);
     let seed = [seed0.clone(), seed1.clone()];
     let mut s = s;
     for bytes in [store::FEEDBACK_BYTES, 1, 0] {

@@ -147,39 +147,33 @@ impl<B: NetOps> Surrogate<B> {
         let pos = frame.clone().narrow(2, 0, 2);
         let vel = frame.narrow(2, 2, 2);
         let carry = carry.fit([b, n], t);
-        // `[B, 1, 1]`: 1 for a restarted row; `pick(carried, start)` takes each row's own by
-        // selection, so a restarted row's carried values (even non-finite ones) are dropped.
+        // `[B, 1, 1]`: 1 for a restarted row. `pick(carried, start)` takes each row's own by
+        // selection (a restarted row's carried values, even non-finite ones, are dropped);
+        // `start` is recorded only when some row restarts.
         let fresh = carry.fresh.map(|f| f.reshape([b, 1, 1]));
-        let pick = |carried: Tensor<B, 3>, start: Tensor<B, 3>| match &fresh {
+        let pick = |carried: Tensor<B, 3>, start: &dyn Fn() -> Tensor<B, 3>| match &fresh {
             Some(f) => {
                 let mask = f.clone().greater_elem(0.5).expand(carried.dims());
-                carried.mask_where(mask, start)
+                carried.mask_where(mask, start())
             }
             None => carried,
         };
         let reference = carry.reference.unwrap_or_else(|| pos.clone());
+        let repeated = || vel.clone().repeat_dim(2, t);
         let vel = match carry.history {
-            Some(h) if fresh.is_some() => {
-                pick(Tensor::cat(vec![h, vel.clone()], 2), vel.repeat_dim(2, t))
-            }
-            Some(h) => Tensor::cat(vec![h, vel.clone()], 2),
-            None => vel.repeat_dim(2, t),
+            Some(h) => pick(Tensor::cat(vec![h, vel.clone()], 2), &repeated),
+            None => repeated(),
         };
         let rest = match carry.rest {
             Some(rest) => Some(rest),
             None if model.uses_rest_shape() => Some(self.rest_of(&reference, material, [b, n])?),
             None => None,
         };
-        let deformation = match carry.deformation {
-            Some(f) if fresh.is_some() => Some(pick(
-                f,
-                match rest.as_ref().filter(|r| r.dims() == [b, n]) {
-                    Some(r) => r.fitted(pos.clone()),
-                    None => identity::<B>([b, n], &self.device),
-                },
-            )),
-            f => f,
+        let fitted = || match rest.as_ref().filter(|r| r.dims() == [b, n]) {
+            Some(r) => r.fitted(pos.clone()),
+            None => identity::<B>([b, n], &self.device),
         };
+        let deformation = carry.deformation.map(|f| pick(f, &fitted));
         let memory = match &fresh {
             Some(f) => zero_rows(carry.memory, f),
             None => carry.memory,
@@ -246,7 +240,7 @@ fn zero_rows<B: NetOps>(memory: MemoryState<B>, fresh: &Tensor<B, 3>) -> MemoryS
 }
 
 /// Ends `stage` on the call's clock, when stages are on ([`stages`]).
-pub(super) fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
+fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
     if let Some(clock) = clock {
         clock.lap(stage);
     }

@@ -49,8 +49,9 @@ pub(super) enum NetState<B: Backend> {
 /// (docs/scale.md). A restarted row (a gap in its stream) stays a row of its batch, marked
 /// `fresh`: the call it next steps in starts its memory, velocity history and F afresh
 /// ([`GridState::fresh`]), so restarted and continuing streams of one batch still share one
-/// call. A row used any other way is cut out first ([`NetState::owned`]). A row keeps its whole batch alive until it is stepped, dropped or
-/// cut out by [`State::compact`] once most of its batch has moved on.
+/// call. A row used any other way is cut out first ([`NetState::owned`]). A row keeps its
+/// whole batch alive until it is stepped, dropped or cut out by [`State::compact`] once most
+/// of its batch has moved on.
 #[derive(Clone)]
 pub(super) struct Row<B: Backend> {
     /// The batch state the row belongs to.
@@ -347,15 +348,23 @@ impl<B: Backend> GridState<B> {
     /// of the streams going on, so it shares their call. (Restarted whole, an owned state
     /// went through a call of its own every frame: a stream that keeps restarting, as every
     /// stream does under overload, never joined the others' call again.) Restarted whole
-    /// when it has no reference positions yet (nothing carried to mark).
+    /// when it has neither reference positions nor a velocity history yet (nothing carried
+    /// to mark).
     pub(super) fn restart_marked(self) -> Self {
-        match self.reference.as_ref().map(|r| (r.dims()[0], r.device())) {
-            Some((rows, device)) => GridState {
-                fresh: Some(Tensor::ones([rows], &device)),
+        match self.marks(1.0) {
+            Some(fresh) => GridState {
+                fresh: Some(fresh),
                 ..self
             },
             None => self.restart(),
         }
+    }
+
+    /// `[copies B]` restart marks of `value` for every row (1: all restart, 0: none), B from
+    /// the reference positions or the velocity history; None when the state has neither.
+    fn marks(&self, value: f32) -> Option<Tensor<B, 1>> {
+        let rows = self.reference.as_ref().or(self.history.as_ref())?.dims()[0];
+        Some(Tensor::full([rows], value, &self.device()?))
     }
 
     /// This state for a call of `b` trajectories of `n` particles, window `t`: every piece
@@ -512,15 +521,11 @@ fn fresh_or_zeros<B: Backend>(
     if parts.iter().all(|p| p.fresh.is_none()) {
         return Ok(parts.iter().map(|_| None).collect());
     }
-    let zeros = |p: &GridState<B>| {
-        let rows = p.reference.as_ref().or(p.history.as_ref())?.dims()[0];
-        Some(Tensor::zeros([rows], &p.device()?))
-    };
     parts
         .iter()
         .map(|p| match &p.fresh {
             Some(f) => Ok(Some(f.clone())),
-            None => zeros(p)
+            None => (p.marks(0.0))
                 .map(Some)
                 .ok_or_else(|| shape("stack: a restarted row beside a state of unknown rows")),
         })

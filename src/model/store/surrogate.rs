@@ -134,8 +134,9 @@ impl<B: NetOps> Surrogate<B> {
     /// This surrogate holding at most `bytes` of predicted frames on the device in a
     /// closed-loop rollout before reading them back ([`Surrogate::rollout_batch`]; default
     /// [`FEEDBACK_BYTES`] or `MINFLOW_FEEDBACK_BYTES` on a GPU, 0 on the CPU, where the device
-    /// is the host; at least one call's frames are always held). Less device memory, more waits; the frames are the same. 0 turns the
-    /// device-side loop off: each call's frames go through the host.
+    /// is the host; at least one call's frames are always held). Less device memory, more
+    /// waits; the frames are the same. 0 turns the device-side loop off: each call's frames
+    /// go through the host.
     pub fn with_feedback_bytes(self, bytes: usize) -> Self {
         Self {
             feedback_bytes: bytes,
@@ -458,9 +459,10 @@ impl<B: NetOps> Surrogate<B> {
     /// The closed loop of [`Surrogate::rollout_batch`] for a grid model without projection
     /// or mirror: each call's last predicted frame is fed back on the device (no download
     /// and upload between calls), and the predictions are read back together once
-    /// [`Surrogate::with_feedback_bytes`] of them are held or the rollout ends. On a GPU the host then never
-    /// waits between calls, so it records call c + 1 while the device runs call c; the
-    /// frames are the ones the call-by-call loop gives (the same values go back in).
+    /// [`Surrogate::with_feedback_bytes`] of them are held or the rollout ends. On a GPU the
+    /// host then never waits between calls, so it records call c + 1 while the device runs
+    /// call c; the frames are the ones the call-by-call loop gives (the same values go back
+    /// in).
     fn grid_rollout(
         &self,
         model: &crate::model::grid::GridModel<B>,
@@ -538,8 +540,9 @@ impl<B: NetOps> Surrogate<B> {
 
 /// How many bytes of predicted frames a device-side closed-loop rollout
 /// ([`Surrogate::rollout_batch`] of a grid model) holds on the device before reading them
-/// back, by default ([`Surrogate::with_feedback_bytes`]): 512 MiB, about 50 frames of 256 scenes of 2,500 particles. Each read back makes
-/// the host wait for the device, which then idles while the host records the next call.
+/// back, by default ([`Surrogate::with_feedback_bytes`]): 512 MiB, about 50 frames of 256
+/// scenes of 2,500 particles. Each read back makes the host wait for the device, which then
+/// idles while the host records the next call.
 pub const FEEDBACK_BYTES: usize = 512 << 20;
 
 /// [`FEEDBACK_BYTES`], or the bytes `MINFLOW_FEEDBACK_BYTES` names (0: every call's frames
