@@ -189,10 +189,8 @@ fn a_device_side_rollout_equals_the_call_by_call_loop() {
     for bytes in [store::FEEDBACK_BYTES, 1, 0] {
         s = s.with_feedback_bytes(bytes);
         let mut seen = Vec::new();
-        s.rollout_batch(None, &seed, &material, &dt, 5, |i, f| {
-            seen.push((i, f.to_vec()))
-        })
-        .unwrap();
+        s.rollout_batch(None, &seed, &material, &dt, 5, |i, f| seen.push((i, f)))
+            .unwrap();
         assert_eq!(
             seen.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
             [0, 1, 2, 3, 4]

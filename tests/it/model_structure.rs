@@ -335,7 +335,7 @@ fn host_pass_predicts_what_the_tensor_path_does() {
             let s = Surrogate::from_net(net, meta.clone(), &device);
             let mut frames = Vec::new();
             s.rollout_batch(Some(&first), &seed, &both, &[0.016, 0.008], 6, |_, f| {
-                frames.push(f.to_vec())
+                frames.push(f)
             })
             .unwrap();
             frames

@@ -137,7 +137,7 @@ fn roll<B: NetOps>(
         let started = Instant::now();
         let seed: Vec<Vec<f32>> = (0..w).map(cat).collect();
         let mut preds: Vec<Vec<f32>> = Vec::with_capacity(h);
-        let keep = |_, f: &[f32]| preds.push(f.to_vec());
+        let keep = |_, f| preds.push(f);
         surrogate.rollout_batch(Some(&cat(0)), &seed, &material, &dt, h, keep)?;
         seconds += started.elapsed().as_secs_f64();
         // Each predicted frame of the batch scored as one frame of all its particles: the mean

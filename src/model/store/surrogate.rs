@@ -401,21 +401,21 @@ impl<B: NetOps> Surrogate<B> {
         k: usize,
     ) -> Result<Vec<Vec<f32>>, StoreError> {
         let mut frames = Vec::with_capacity(k);
-        self.rollout_batch(first, seed, material, &[dt], k, |_, f| {
-            frames.push(f.to_vec())
-        })?;
+        self.rollout_batch(first, seed, material, &[dt], k, |_, f| frames.push(f))?;
         Ok(frames)
     }
 
     /// [`Surrogate::rollout`] of a batch of B trajectories at once (`seed` frames, `first`,
     /// `material` and the results `[B, N, 4]`, `dt` `[B]`): the seed frames but the last are
     /// stepped on, then ceil(k / K) network calls each start from the last frame the call
-    /// before predicted; `each(i, frame)` sees predicted frame i (0-based) of the `k`, in
-    /// order. On a GPU a grid model without projection or mirror keeps the loop on the
-    /// device ([`Surrogate::with_feedback_bytes`]), so `each` then sees the frames in batches.
+    /// before predicted; `each(i, frame)` is handed predicted frame i (0-based) of the `k`,
+    /// in order, to keep (no copy is made for it). On a GPU a grid model without projection
+    /// or mirror keeps the loop on the device ([`Surrogate::with_feedback_bytes`]), so `each`
+    /// then gets the frames in batches.
     ///
     /// # Errors
-    /// A step's [`StoreError`]; no seed frame.
+    /// A step's [`StoreError`]; no seed frame. The frames predicted before a failed call
+    /// have reached `each`.
     pub fn rollout_batch(
         &self,
         first: Option<&[f32]>,
@@ -423,35 +423,51 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         k: usize,
-        mut each: impl FnMut(usize, &[f32]),
+        mut each: impl FnMut(usize, Vec<f32>),
     ) -> Result<(), StoreError> {
         let mut state = match first {
             Some(frame) => self.init_state_at(frame, dt.len())?,
             None => self.init_state(),
         };
-        let Some((last, before)) = seed.split_last() else {
+        if seed.is_empty() {
             return Err(StoreError::Shape("rollout: no seed frame".into()));
-        };
-        for frame in before {
-            state = self.step(frame, material, dt, state)?.1;
         }
         let on_device = self.feedback_bytes > 0 && self.constraints.is_none() && !self.mirror;
         if let (Net::Grid(model), true) = (&self.net, on_device) {
-            self.check_step(last, material, dt)?;
+            for frame in seed {
+                self.check_step(frame, material, dt)?;
+            }
             let NetState::Grid(carry) = state.net.owned() else {
                 return Err(StoreError::Shape("state of another architecture".into()));
             };
-            return self.grid_rollout(model, last, (material, dt), k, carry, each);
+            return self.grid_rollout(model, seed, (material, dt), k, carry, each);
         }
-        let (mut done, mut input) = (0, last.clone());
+        let (last, before) = seed.split_last().expect("a seed frame");
+        for frame in before {
+            state = self.step(frame, material, dt, state)?.1;
+        }
+        // The last frame of each call is the next call's input: it is handed to `each` once
+        // that call has run (`held`, its index), so no frame is copied.
+        let (mut done, mut input, mut held) = (0, last.clone(), None);
         while done < k {
-            let (bundle, s) = self.step_bundle(&input, material, dt, state)?;
-            state = s;
-            for frame in bundle.into_iter().take(k - done) {
-                each(done, &frame);
-                done += 1;
-                input = frame;
+            let called = self.step_bundle(&input, material, dt, state);
+            if let Some(i) = held.take() {
+                each(i, std::mem::take(&mut input));
             }
+            let (bundle, s) = called?;
+            state = s;
+            let take = bundle.len().min(k - done);
+            for frame in bundle.into_iter().take(take) {
+                if let Some(i) = held.replace(done) {
+                    each(i, std::mem::replace(&mut input, frame));
+                } else {
+                    input = frame;
+                }
+                done += 1;
+            }
+        }
+        if let Some(i) = held {
+            each(i, input);
         }
         Ok(())
     }
@@ -466,17 +482,36 @@ impl<B: NetOps> Surrogate<B> {
     fn grid_rollout(
         &self,
         model: &crate::model::grid::GridModel<B>,
-        last: &[f32],
+        seed: &[Vec<f32>],
         (material, dt): (&[u8], &[f32]),
         k: usize,
         mut carry: GridState<B>,
-        mut each: impl FnMut(usize, &[f32]),
+        mut each: impl FnMut(usize, Vec<f32>),
     ) -> Result<(), StoreError> {
         let b = dt.len();
         let n = material.len() / b;
         let bundle = model.bundle();
         let per_flush = (self.feedback_bytes / (b * n * 4 * 4).max(1)).max(1);
-        let mut frame = crate::model::upload::<B, 3>(last.to_vec(), [b, n, 4], &self.device);
+        let upload = |f: &[f32]| crate::model::upload::<B, 3>(f.to_vec(), [b, n, 4], &self.device);
+        let (last, before) = seed.split_last().expect("a seed frame");
+        // The seed frames but the last only carry the state on: their predictions are
+        // dropped unread, so the host does not wait for them either.
+        for f in before {
+            let mut none = None;
+            carry = B::run_step(|| {
+                self.grid_call(
+                    model,
+                    upload(f),
+                    material,
+                    dt,
+                    carry,
+                    Predict::Next,
+                    &mut none,
+                )
+            })?
+            .1;
+        }
+        let mut frame = upload(last);
         let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
         while recorded < k {
             let mut clock = super::stages::Clock::start();
@@ -526,10 +561,10 @@ impl<B: NetOps> Surrogate<B> {
         pending: &mut Vec<burn::tensor::Tensor<B, 3>>,
         b: usize,
         clock: &mut Option<super::stages::Clock>,
-        (each, done): (&mut impl FnMut(usize, &[f32]), &mut usize),
+        (each, done): (&mut impl FnMut(usize, Vec<f32>), &mut usize),
     ) -> Result<(), StoreError> {
         for next in std::mem::take(pending) {
-            for f in &self.download_frames(next, b, clock)? {
+            for f in self.download_frames(next, b, clock)? {
                 each(*done, f);
                 *done += 1;
             }

@@ -50,7 +50,7 @@ pub fn validation_rollout<B: NetOps>(
                     .collect()
             })
             .collect();
-        let score = |k: usize, pred: &[f32]| {
+        let score = |k: usize, pred: Vec<f32>| {
             for (row, &o) in offsets.iter().enumerate() {
                 let truth = traj.state(o + window + k);
                 let pred = &pred[row * n * 4..(row + 1) * n * 4];
