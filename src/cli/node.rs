@@ -80,6 +80,12 @@ pub struct NodeArgs {
     /// autotunes kernels there), false on the CPU (padding is only extra work there).
     #[arg(long, value_name = "BOOL")]
     pad_batches: Option<bool>,
+    /// Dynamic batching: publish a call's predictions only after the next call has been
+    /// recorded, so the GPU runs it while the host publishes (one call in flight; it lands
+    /// as soon as nothing else is due). Default: true on a GPU, false on the CPU (which
+    /// computes as it records: nothing to overlap).
+    #[arg(long, value_name = "BOOL")]
+    pipeline: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a
     /// zenoh liveliness token, a scene is predicted by the live node of highest rendezvous
     /// hash, and a dead node's scenes move to the others (restarting from the next frame).
@@ -152,6 +158,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         rate: args.rate,
         max_batch: max_batch as usize,
         max_batch_delay: Duration::from_secs_f64(args.max_batch_delay / 1e3),
+        pipeline: args.pipeline.unwrap_or(!on_cpu),
         shard: args.shard,
         max_published: args.max_published,
         wait_for_subscribers: args.wait_for_subscribers,

@@ -73,6 +73,14 @@ fn composed_adam() -> bool {
     env_is(&COMPOSED, "MINFLOW_CUDA_ADAM", "composed")
 }
 
+/// Whether `MINFLOW_CUDA_MINRNN=composed` asks for the minGRU's and minLSTM's updates composed
+/// from burn's operations instead of the kernels of [`super::cuda_minrnn`], to compare the two
+/// in one binary (docs/speed.md).
+fn composed_minrnn() -> bool {
+    static COMPOSED: OnceLock<bool> = OnceLock::new();
+    env_is(&COMPOSED, "MINFLOW_CUDA_MINRNN", "composed")
+}
+
 /// The composed defaults, whose element-wise chains burn's fusion layer compiles into single
 /// kernels; the large products go to cuBLAS, which also splits their long reductions.
 impl NetOps for burn::backend::Cuda<f32, i32> {
@@ -183,6 +191,22 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
 
     fn matmul(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
         super::cublas::matmul(a, b)
+    }
+
+    /// One kernel ([`super::cuda_minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
+    fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
+        match composed_minrnn() {
+            true => super::mingru::composed_mingru_update::<Self>(hg, h),
+            false => super::cuda_minrnn::mingru_update(hg, h),
+        }
+    }
+
+    /// One kernel ([`super::cuda_minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
+    fn minlstm_update(
+        hfi: &FloatTensor<Self>,
+        h: Option<&FloatTensor<Self>>,
+    ) -> Option<FloatTensor<Self>> {
+        (!composed_minrnn()).then(|| super::cuda_minrnn::minlstm_update(hfi.clone(), h.cloned()))
     }
 
     fn splits_reduction(device: &Self::Device, m: usize, k: usize, n: usize) -> bool {

@@ -46,6 +46,9 @@
 //!   default convolutions); `cuda_cudnn.rs`: the 3x3 convolutions through cuDNN (forward,
 //!   data and filter gradients; `MINFLOW_CUDA_CONV=cudnn`); `cuda_implicit_conv.rs`: burn-cubecl's
 //!   implicit GEMM (`MINFLOW_CUDA_CONV=implicit`); `cuda_adam.rs`: the Adam step's kernel;
+//!   `cuda_minrnn.rs`: the minGRU's and minLSTM's inference updates, one kernel each;
+//!   `cuda_read.rs`: a tensor read back without waiting for the work recorded after it
+//!   ([`read_ahead`]);
 //!   `cuda_stencil.rs` (kernels in `cuda_stencil_kernels.rs`): sparse P2G / G2P and stencil
 //!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums
 //!   in fixed point, the same on every run).
@@ -75,17 +78,23 @@ mod cuda_cudnn;
 #[cfg(feature = "cuda")]
 mod cuda_implicit_conv;
 #[cfg(feature = "cuda")]
+mod cuda_minrnn;
+#[cfg(feature = "cuda")]
+mod cuda_read;
+#[cfg(feature = "cuda")]
 mod cuda_stencil;
 #[cfg(feature = "cuda")]
 mod cuda_stencil_kernels;
 pub mod mingru;
 mod ndarray;
 pub mod prepared;
+pub mod read_ahead;
 pub mod scan;
 mod tensor;
 
 pub use adam_step::AdamStep;
 pub use prepared::PreparedWeights;
+pub use read_ahead::ReadAhead;
 pub use tensor::{
     elu, gather, grid_channels, host_indices, host_values, im2col, linear, linear_elu,
     linear_elu_mean, linear_elu_mean_pool, pool2, recurrence, silu, splat, upsample2,
@@ -236,6 +245,15 @@ pub trait NetOps: Backend {
         c: &AdamStep,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         adam_step::composed_adam::<Self>(param, grad, m, v, c)
+    }
+
+    /// `x`'s values read back behind the work recorded so far, without waiting for them
+    /// ([`read_ahead`]): the host may record more work before [`ReadAhead::wait`], and the
+    /// device runs it meanwhile. None where a read has nothing to overlap (the CPU computes
+    /// eagerly): the caller then reads as usual. CUDA's: `cuda_read.rs`.
+    fn read_ahead(x: FloatTensor<Self>) -> Option<ReadAhead> {
+        let _ = x;
+        None
     }
 
     /// Runs one inference step `f` where this backend's kernels start their parallel passes

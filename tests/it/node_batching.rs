@@ -1,8 +1,10 @@
 //! Issue 40, one node and many live streams: `Surrogate::step_scenes` (several scenes' states
 //! stacked into one network call and split back) predicts what stepping each scene alone
 //! does, within 1e-5 on the CPU, for single-frame and bundled models, mirror ensembles and
-//! scenes of different particle counts (one call per count); a node batching up to 8 scenes
-//! a call publishes the predictions of a node stepping one scene a call; and in closed loop
+//! scenes of different particle counts (one call per count), also when each batch's
+//! predictions are taken only after the next batch's call (`Surrogate::submit_scenes`, the
+//! node's pipelined calls); a node batching up to 8 scenes a call publishes the predictions
+//! of a node stepping one scene a call, pipelined or not; and in closed loop
 //! under load (long scenes arriving faster than they are rolled out, an idle timeout shorter
 //! than the rollouts) every scene gets exactly one rollout.
 
@@ -12,7 +14,7 @@ use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
 use burn::backend::NdArray;
-use minflow::model::store::{Predict, SceneStep, Surrogate};
+use minflow::model::store::{Predict, SceneStep, State, Submitted, Surrogate};
 use minflow::msgs::{ParticleFrame, Time};
 use minflow::node::surrogate::state_rows;
 use minflow::transport::{self, Sample, Transport};
@@ -134,10 +136,9 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
             }
             alone.push(outs);
         }
-        // Batched: every scene's frame i in one step_scenes.
-        let mut states: Vec<_> = scenes.iter().map(|_| Some(s.init_state())).collect();
-        for i in 0..6 {
-            let steps = scenes
+        // Every scene's frame i as one batch (the restarted streams restarted first).
+        let steps_at = |i: usize, states: &mut [Option<State<NdArray<f32>>>]| {
+            scenes
                 .iter()
                 .zip(states.iter_mut())
                 .enumerate()
@@ -153,7 +154,12 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
                         state,
                     }
                 })
-                .collect();
+                .collect::<Vec<_>>()
+        };
+        // Batched: every scene's frame i in one step_scenes.
+        let mut states: Vec<_> = scenes.iter().map(|_| Some(s.init_state())).collect();
+        for i in 0..6 {
+            let steps = steps_at(i, &mut states);
             let predict = if whole {
                 Predict::Bundle
             } else {
@@ -179,6 +185,35 @@ fn batched_steps_equal_steps_one_scene_at_a_time() {
                 states[k] = Some(st);
             }
         }
+        if whole {
+            continue;
+        }
+        // Pipelined, as the node on a GPU (`--pipeline`): batch i's predictions are taken
+        // and projected onto the constraints only after batch i + 1's call is recorded from
+        // the states batch i left; the same frames.
+        let mut states: Vec<_> = scenes.iter().map(|_| Some(s.init_state())).collect();
+        let check = |i: usize, call: Submitted<NdArray<f32>>| {
+            for (k, got) in call.finish(&s).frames.into_iter().enumerate() {
+                let w = worst(&got.unwrap()[0], &alone[k][i][0]);
+                assert!(
+                    w <= 1e-5,
+                    "{model} mirror {mirror}, pipelined: scene {k} frame {i}: {w}"
+                );
+            }
+        };
+        let mut flying = None;
+        for i in 0..6 {
+            let mut call = s.submit_scenes(steps_at(i, &mut states), Predict::Next);
+            assert_eq!(call.calls, [1, 3], "{model}: one call per particle count");
+            for (k, st) in std::mem::take(&mut call.states).into_iter().enumerate() {
+                states[k] = Some(st.unwrap());
+            }
+            if let Some((before, call)) = flying.replace((i, call)) {
+                check(before, call);
+            }
+        }
+        let (last, call) = flying.unwrap();
+        check(last, call);
     }
 }
 
@@ -278,10 +313,18 @@ fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
     let input = unique_topic("batch_in");
     let (out_one, out_many) = (unique_topic("batch_one"), unique_topic("batch_many"));
     let one = node(&input, &out_one, &["--max-batch", "1"]);
+    // Pipelined (each call's frames published after the next call is recorded), as on a GPU.
     let many = node(
         &input,
         &out_many,
-        &["--max-batch", "8", "--max-batch-delay", "20"],
+        &[
+            "--max-batch",
+            "8",
+            "--max-batch-delay",
+            "20",
+            "--pipeline",
+            "true",
+        ],
     );
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
     let (tx1, rx1) = channel();
@@ -338,7 +381,15 @@ fn in_closed_loop_under_load_every_scene_gets_one_rollout() {
     let n = node(
         &input,
         &output,
-        &["--rollout", &horizon.to_string(), "--idle-timeout", "1"],
+        // Pipelined: a rollout's start lands the live call in flight first.
+        &[
+            "--rollout",
+            &horizon.to_string(),
+            "--idle-timeout",
+            "1",
+            "--pipeline",
+            "true",
+        ],
     );
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
     let (tx, rx) = channel();

@@ -14,6 +14,8 @@ use std::collections::BTreeMap;
 use std::ops::AddAssign;
 use std::time::{Duration, Instant};
 
+use super::constrained::ConstraintState;
+use super::outs::{Outs, Read};
 use super::{Predict, State, StoreError, Surrogate};
 use crate::ops::NetOps;
 
@@ -78,35 +80,12 @@ impl<B: NetOps> Surrogate<B> {
     /// Per scene, in `results`: a step's [`StoreError`] (every scene of a failed call gets
     /// its message).
     pub fn step_scenes(&self, scenes: Vec<SceneStep<'_, B>>, predict: Predict) -> SceneSteps<B> {
-        let mut groups: BTreeMap<(usize, Vec<usize>), Vec<usize>> = BTreeMap::new();
-        for (i, s) in scenes.iter().enumerate() {
-            let key = (s.material.len(), s.state.shape_key());
-            groups.entry(key).or_default().push(i);
-        }
-        let mut slots: Vec<Option<SceneStep<'_, B>>> = scenes.into_iter().map(Some).collect();
-        let mut results: Vec<Option<Result<_, StoreError>>> = slots.iter().map(|_| None).collect();
-        let mut calls = Vec::with_capacity(groups.len());
-        let mut times = StepTimes::default();
-        for members in groups.into_values() {
-            let group: Vec<SceneStep<'_, B>> =
-                members.iter().filter_map(|&i| slots[i].take()).collect();
-            calls.push(group.len());
-            match self.step_group(group, predict, &mut times) {
-                Ok(outs) => {
-                    for (&i, out) in members.iter().zip(outs) {
-                        results[i] = Some(Ok(out));
-                    }
-                }
-                Err(e) => {
-                    for &i in &members {
-                        results[i] = Some(Err(StoreError::Shape(e.to_string())));
-                    }
-                }
-            }
-        }
-        let results = results
-            .into_iter()
-            .map(|r| r.unwrap_or_else(|| Err(StoreError::Shape("scene not stepped".into()))))
+        let mut submitted = self.submit_with(scenes, predict, Read::Now);
+        let states = std::mem::take(&mut submitted.states);
+        let calls = submitted.calls.clone();
+        let Finished { frames, times } = submitted.finish(self);
+        let results = (frames.into_iter().zip(states))
+            .map(|(frames, state)| -> Result<_, StoreError> { Ok((frames?, state?)) })
             .collect();
         SceneSteps {
             results,
@@ -115,17 +94,78 @@ impl<B: NetOps> Surrogate<B> {
         }
     }
 
+    /// [`Surrogate::step_scenes`] for [`Predict::Next`], its predictions left on their way
+    /// to the host ([`NetOps::read_ahead`](crate::ops::NetOps::read_ahead)) where the
+    /// backend can: the scenes' states after the calls are ready now (the next calls may
+    /// stack them), the predictions and their projection onto the constraints come with
+    /// [`Submitted::finish`]. On a GPU the host can so record the next calls before it
+    /// waits for these, and the GPU runs them while the host publishes these (the surrogate
+    /// node's pipelined calls). A [`Predict::Bundle`] call is finished before it returns (its
+    /// next state follows its projected frames).
+    pub fn submit_scenes(&self, scenes: Vec<SceneStep<'_, B>>, predict: Predict) -> Submitted<B> {
+        self.submit_with(scenes, predict, Read::Ahead)
+    }
+
+    /// [`Surrogate::submit_scenes`] with the predictions read as `read` says.
+    fn submit_with(
+        &self,
+        scenes: Vec<SceneStep<'_, B>>,
+        predict: Predict,
+        read: Read,
+    ) -> Submitted<B> {
+        let mut groups: BTreeMap<(usize, Vec<usize>), Vec<usize>> = BTreeMap::new();
+        for (i, s) in scenes.iter().enumerate() {
+            let key = (s.material.len(), s.state.shape_key());
+            groups.entry(key).or_default().push(i);
+        }
+        let mut slots: Vec<Option<SceneStep<'_, B>>> = scenes.into_iter().map(Some).collect();
+        let mut states: Vec<Option<Result<State<B>, StoreError>>> =
+            slots.iter().map(|_| None).collect();
+        let mut submitted = Submitted {
+            states: Vec::new(),
+            flights: Vec::with_capacity(groups.len()),
+            calls: Vec::with_capacity(groups.len()),
+            times: StepTimes::default(),
+        };
+        for members in groups.into_values() {
+            let group: Vec<SceneStep<'_, B>> =
+                members.iter().filter_map(|&i| slots[i].take()).collect();
+            submitted.calls.push(group.len());
+            let called = self.submit_group(group, predict, read, &mut submitted.times);
+            let (after, flight): (Vec<Result<State<B>, StoreError>>, _) = match called {
+                Ok((after, flight)) => (after.into_iter().map(Ok).collect(), Ok(flight)),
+                Err(e) => {
+                    let failed = || StoreError::Shape(e.to_string());
+                    (
+                        members.iter().map(|_| Err(failed())).collect(),
+                        Err(failed()),
+                    )
+                }
+            };
+            for (&i, state) in members.iter().zip(after) {
+                states[i] = Some(state);
+            }
+            submitted.flights.push((members, flight));
+        }
+        submitted.states = (states.into_iter())
+            .map(|s| s.unwrap_or_else(|| Err(StoreError::Shape("scene not stepped".into()))))
+            .collect();
+        submitted
+    }
+
     /// One network call on `group` (scenes of one N and one state shape): frames, materials
-    /// and time steps concatenated, states stacked, outputs and states split back. With
+    /// and time steps concatenated, states stacked, the call recorded and the state split
+    /// back per scene; the predictions are left in the returned [`Flight`] (for
+    /// [`Predict::Bundle`] read and projected first, since the state follows them). With
     /// padded batches the call carries copies of the last scene up to the next power of
     /// two, whose outputs and states are dropped. Its stages' wall time is added to `times`.
-    #[allow(clippy::type_complexity)]
-    fn step_group(
+    fn submit_group(
         &self,
         group: Vec<SceneStep<'_, B>>,
         predict: Predict,
+        read: Read,
         times: &mut StepTimes,
-    ) -> Result<Vec<(Vec<Vec<f32>>, State<B>)>, StoreError> {
+    ) -> Result<(Vec<State<B>>, Flight), StoreError> {
         let start = Instant::now();
         let b = group.len();
         let per_scene = group.first().map_or(0, |s| s.rows.len());
@@ -155,25 +195,131 @@ impl<B: NetOps> Surrogate<B> {
         let stacked = State::stack(states, copies)?;
         let called = Instant::now();
         times.stack += called - start;
-        let (outs, after) =
-            B::run_step(|| self.step_here(&frames, &material, &dt, stacked, predict))?;
+        let (outs, mut after) =
+            B::run_step(|| self.submit_here(&frames, &material, &dt, stacked, predict, read))?;
+        let input = (frames, material, dt);
+        let mut flight = Flight {
+            outs,
+            projection: None,
+            per_scene,
+            scenes: b,
+        };
+        match predict {
+            Predict::Bundle => {
+                let (f, m, d) = (&input.0[..], &input.1[..], &input.2[..]);
+                let history = Some(&mut after.net);
+                let out =
+                    self.finish_here(flight.outs, (f, m, d), &mut after.constraints, history)?;
+                flight.outs = Outs::Host(out);
+            }
+            // The split states share the call's constraint slots (`constrained.rs`).
+            Predict::Next => flight.projection = Some((input, after.constraints.clone())),
+        }
         let returned = Instant::now();
         times.call += returned - called;
-        let mut per: Vec<(Vec<Vec<f32>>, State<B>)> = after
-            .split(&vec![1; padded], copies)
-            .into_iter()
+        let per: Vec<State<B>> = (after.split(&vec![1; padded], copies).into_iter())
             .zip(counts)
             .map(|(mut state, frames)| {
                 state.frames = frames + 1;
-                (Vec::with_capacity(outs.len()), state)
+                state
             })
             .collect();
-        for out in outs {
-            for (scene, chunk) in per.iter_mut().zip(out.chunks_exact(per_scene.max(1))) {
-                scene.0.push(chunk.to_vec());
+        times.split += returned.elapsed();
+        Ok((per, flight))
+    }
+}
+
+/// One network call's predictions, on the host or on their way, and what their projection
+/// onto the constraints needs.
+struct Flight {
+    outs: Outs,
+    /// The call's input frames, materials and time steps, and its constraint data, where the
+    /// projection is still to come ([`Predict::Next`]).
+    projection: Option<((Vec<f32>, Vec<u8>, Vec<f32>), ConstraintState)>,
+    /// Values of one scene's frame (`N 4`).
+    per_scene: usize,
+    /// Scenes of the call (its padded copies not counted).
+    scenes: usize,
+}
+
+/// Scenes stepped by [`Surrogate::submit_scenes`]: their states after the calls, and the
+/// calls' predictions on their way ([`Submitted::finish`]).
+pub struct Submitted<B: burn::tensor::backend::Backend> {
+    /// Per scene, in the input's order: its state after the call, or why the call failed.
+    pub states: Vec<Result<State<B>, StoreError>>,
+    /// Per call: its scenes (indices into the input) and its predictions (or its error).
+    flights: Vec<(Vec<usize>, Result<Flight, StoreError>)>,
+    /// Scenes per network call, one entry per call.
+    pub calls: Vec<usize>,
+    /// Where the calls' wall time went so far.
+    pub times: StepTimes,
+}
+
+/// What [`Submitted::finish`] returns.
+pub struct Finished {
+    /// Per scene, in the input's order: its predicted frames (`[N, 4]` each; K of them for
+    /// [`Predict::Bundle`], else the next one), or why not.
+    pub frames: Vec<Result<Vec<Vec<f32>>, StoreError>>,
+    /// Where the calls' wall time went, the wait for the predictions included (`call`).
+    pub times: StepTimes,
+}
+
+impl<B: NetOps> Submitted<B> {
+    /// Waits for the calls' predictions, projects them onto `surrogate`'s constraints where
+    /// that is still to do, and cuts them per scene.
+    ///
+    /// # Errors
+    /// Per scene, in `frames`: its call's [`StoreError`], or the read's.
+    pub fn finish(self, surrogate: &Surrogate<B>) -> Finished {
+        let scenes: usize = self.flights.iter().map(|(m, _)| m.len()).sum();
+        let mut frames: Vec<Option<Result<Vec<Vec<f32>>, StoreError>>> =
+            (0..scenes).map(|_| None).collect();
+        let mut times = self.times;
+        for (members, flight) in self.flights {
+            let start = Instant::now();
+            let out = flight.and_then(|f| f.land(surrogate));
+            times.call += start.elapsed();
+            match out {
+                Ok(per) => {
+                    for (&i, f) in members.iter().zip(per) {
+                        frames[i] = Some(Ok(f));
+                    }
+                }
+                Err(e) => {
+                    for &i in &members {
+                        frames[i] = Some(Err(StoreError::Shape(e.to_string())));
+                    }
+                }
             }
         }
-        times.split += returned.elapsed();
+        Finished {
+            frames: (frames.into_iter())
+                .map(|f| f.unwrap_or_else(|| Err(StoreError::Shape("scene not stepped".into()))))
+                .collect(),
+            times,
+        }
+    }
+}
+
+impl Flight {
+    /// The call's predictions on the host, projected where still to do, cut per scene
+    /// (padded copies dropped): per scene its K frames.
+    fn land<B: NetOps>(self, surrogate: &Surrogate<B>) -> Result<Vec<Vec<Vec<f32>>>, StoreError> {
+        let outs = match self.projection {
+            Some(((frames, material, dt), mut constraints)) => {
+                let input = (&frames[..], &material[..], &dt[..]);
+                surrogate.finish_here(self.outs, input, &mut constraints, None)?
+            }
+            None => self.outs.wait()?,
+        };
+        let mut per: Vec<Vec<Vec<f32>>> = (0..self.scenes)
+            .map(|_| Vec::with_capacity(outs.len()))
+            .collect();
+        for out in outs {
+            for (scene, chunk) in per.iter_mut().zip(out.chunks_exact(self.per_scene.max(1))) {
+                scene.push(chunk.to_vec());
+            }
+        }
         Ok(per)
     }
 }

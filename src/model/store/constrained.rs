@@ -2,15 +2,28 @@
 //! built from its rest frame on the first projected step, and the projection of predicted
 //! frames onto the model's [`Constraints`] with it. Part of every [`super::State`], of
 //! either architecture; it stacks and splits per trajectory like the network's state.
+//!
+//! A trajectory's data sits in a [`Slot`] that the states carrying it share: the surrogate
+//! node projects a call's predictions only after it has recorded the next call
+//! (`Surrogate::submit_scenes`), whose states were split off before that projection, so the
+//! projection must reach the states that moved on (the first projection builds the data
+//! into the slot they share, and the next call's projection finds it there).
+
+use std::sync::{Arc, Mutex};
 
 use crate::model::constraints::{Constraints, Correction, SceneShape};
+
+/// One trajectory's constraint data, shared by the states that carry it (clones of a state
+/// share it too); empty until its first projection.
+pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
 
 /// Per trajectory (batch row): its constraint data, and the rest frames it is built from.
 #[derive(Clone, Default)]
 pub(super) struct ConstraintState {
-    /// Per trajectory: its constraint data, built from its rest frame on the first
-    /// projected step (empty before; see `Surrogate::with_constraints`).
-    pub(super) shapes: Vec<Option<SceneShape>>,
+    /// Per trajectory: its constraint data's slot, filled from its rest frame on the first
+    /// projected step (no slots before the state's first stack or projection; see
+    /// `Surrogate::with_constraints`).
+    pub(super) shapes: Vec<Slot>,
     /// The rest frames (`[B, N, 4]`) set by `Surrogate::init_state_at` that the first
     /// projected step builds `shapes` from; without them it takes its input frame.
     pub(super) rest_frames: Option<Vec<f32>>,
@@ -18,18 +31,15 @@ pub(super) struct ConstraintState {
 
 impl ConstraintState {
     /// Several states' constraint data as one, per trajectory in order: a state that has
-    /// none yet counts as one trajectory (a node's scene). The stacked data keeps no rest
-    /// frames (a node's states have none).
+    /// none yet counts as one trajectory (a node's scene), given an empty slot of its own.
+    /// The stacked data keeps no rest frames (a node's states have none).
     pub(super) fn stack(parts: Vec<ConstraintState>) -> ConstraintState {
         let mut shapes = Vec::new();
         for part in parts {
             match part.shapes.is_empty() {
-                true => shapes.push(None),
+                true => shapes.push(Slot::default()),
                 false => shapes.extend(part.shapes),
             }
-        }
-        if shapes.iter().all(Option::is_none) {
-            shapes.clear();
         }
         ConstraintState {
             shapes,
@@ -73,7 +83,7 @@ impl ConstraintState {
         let n = material.len() / b;
         let per = n * 4;
         if self.shapes.len() != b {
-            self.shapes = (0..b).map(|_| None).collect();
+            self.shapes = (0..b).map(|_| Slot::default()).collect();
         }
         let rest = self.rest_frames.as_deref();
         let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
@@ -85,11 +95,13 @@ impl ConstraintState {
             }
         }
         self.shapes
-            .par_iter_mut()
+            .par_iter()
             .zip(rows.par_iter_mut())
             .enumerate()
-            .map(|(i, (shape, row))| {
+            .map(|(i, (slot, row))| {
                 let ids = &material[i * n..(i + 1) * n];
+                // Rows share a slot only as copies of one scene (a padded call).
+                let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
                 let shape = shape.get_or_insert_with(|| {
                     SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
                 });

@@ -5,6 +5,7 @@
 
 use burn::tensor::Tensor;
 
+use super::outs::{split_frames, Outs, Read};
 use super::stages::{self, Stage};
 use super::state::GridState;
 use super::{Predict, StoreError, Surrogate};
@@ -19,7 +20,9 @@ impl<B: NetOps> Surrogate<B> {
     /// ([`Predict::Bundle`]) of a grid model: the velocity history is completed from the
     /// state (the current velocity repeated before T frames were seen, or when B or N
     /// changed), and the reference positions are this frame's when the state has none of
-    /// this shape. Returns the K predicted frames (the first alone for [`Predict::Next`]).
+    /// this shape. Returns the K predicted frames (the first alone for [`Predict::Next`]),
+    /// read back as `read` says ([`Read::Ahead`]: behind the call, where the backend can).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn grid_step(
         &self,
         model: &GridModel<B>,
@@ -28,14 +31,25 @@ impl<B: NetOps> Surrogate<B> {
         dt: &[f32],
         carry: GridState<B>,
         predict: Predict,
-    ) -> Result<(Vec<Vec<f32>>, GridState<B>), StoreError> {
+        read: Read,
+    ) -> Result<(Outs, GridState<B>), StoreError> {
         let b = dt.len();
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
         let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
         let (next, state) =
             self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
-        let out = self.download_frames(next, b, &mut clock)?;
+        let ahead = match read {
+            Read::Ahead => B::read_ahead(next.clone().into_primitive().tensor()),
+            Read::Now => None,
+        };
+        let out = match ahead {
+            Some(read) => Outs::Ahead {
+                read,
+                k: next.dims()[0] / b.max(1),
+            },
+            None => Outs::Host(self.download_frames(next, b, &mut clock)?),
+        };
         Ok((out, state))
     }
 
@@ -117,13 +131,7 @@ impl<B: NetOps> Surrogate<B> {
             })?;
             lap(clock, Stage::Device);
         }
-        let out = crate::model::download(next)?;
-        let per_frame = b * n * 4;
-        // One frame is the buffer itself; K frames are copied apart.
-        let out = match kb / b.max(1) {
-            1 => vec![out],
-            _ => out.chunks_exact(per_frame).map(<[f32]>::to_vec).collect(),
-        };
+        let out = split_frames(crate::model::download(next)?, kb / b.max(1));
         lap(clock, Stage::Output);
         Ok(out)
     }

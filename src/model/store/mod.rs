@@ -7,18 +7,20 @@
 //! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
 //! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
 //! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; a grid model's step in
-//! `grid_step.rs`, dynamic batching in `batch.rs`), whose per-batch [`State`] lives in
+//! `grid_step.rs`, dynamic batching in `batch.rs`, a call's predictions on their way back in
+//! `outs.rs`), whose per-batch [`State`] lives in
 //! `state.rs` (stacked and split by `stack.rs`; its constraint data in `constrained.rs`).
 
 mod batch;
 mod constrained;
 mod grid_step;
+mod outs;
 mod stack;
 pub mod stages;
 mod state;
 mod surrogate;
 
-pub use batch::{SceneStep, SceneSteps, StepTimes};
+pub use batch::{Finished, SceneStep, SceneSteps, StepTimes, Submitted};
 pub use state::State;
 pub use surrogate::{Predict, Surrogate, FEEDBACK_BYTES};
 

@@ -10,6 +10,8 @@
 //! the network's (`constrained.rs`). Used by `eval`, `node`, `report`, `bench` and the grid
 //! trainer's validation.
 
+use super::constrained::ConstraintState;
+use super::outs::{Outs, Read};
 use super::state::{mean_of_mirror_rows, with_mirror_rows, GridState, NetState, State};
 use super::{ModelMeta, Net, RunFolder, StoreError};
 use crate::model::constraints::{Constraints, Correction, Parts};
@@ -271,30 +273,73 @@ impl<B: NetOps> Surrogate<B> {
         state: State<B>,
         predict: Predict,
     ) -> Result<(Vec<Vec<f32>>, State<B>), StoreError> {
-        let [b, n] = self.check_step(frames, material, dt)?;
+        let (outs, mut state) =
+            self.submit_here(frames, material, dt, state, predict, Read::Now)?;
+        let history = match predict {
+            Predict::Bundle => Some(&mut state.net),
+            Predict::Next => None,
+        };
+        let input = (frames, material, dt);
+        let out = self.finish_here(outs, input, &mut state.constraints, history)?;
+        Ok((out, state))
+    }
+
+    /// The network's part of [`Surrogate::step_here`]: the call recorded, its predictions
+    /// read as `read` says, the state after it (its frame count advanced; its constraint
+    /// data used only by [`Surrogate::finish_here`]).
+    pub(super) fn submit_here(
+        &self,
+        frames: &[f32],
+        material: &[u8],
+        dt: &[f32],
+        state: State<B>,
+        predict: Predict,
+        read: Read,
+    ) -> Result<(Outs, State<B>), StoreError> {
+        self.check_step(frames, material, dt)?;
         let State {
             net,
-            mut constraints,
+            constraints,
             frames: count,
         } = state;
-        let (mut out, mut net) = self.net_step(frames, material, dt, net.owned(), predict)?;
+        let (outs, net) = self.net_step(frames, material, dt, net.owned(), predict, read)?;
+        let state = State {
+            net,
+            constraints,
+            frames: count + 1,
+        };
+        Ok((outs, state))
+    }
+
+    /// The rest of [`Surrogate::step_here`] once the predictions are wanted: `outs` on the
+    /// host, projected onto the constraints where they are on (`constraints`, the call's
+    /// constraint data, `input` its input frames, materials and time steps); a bundle's
+    /// velocity history (`history`, the network state after a [`Predict::Bundle`] call)
+    /// then follows the projected frames.
+    ///
+    /// # Errors
+    /// The predictions could not be read back.
+    pub(super) fn finish_here(
+        &self,
+        outs: Outs,
+        (frames, material, dt): (&[f32], &[u8], &[f32]),
+        constraints: &mut ConstraintState,
+        history: Option<&mut NetState<B>>,
+    ) -> Result<Vec<Vec<f32>>, StoreError> {
+        let mut out = outs.wait()?;
         if let Some(c) = &self.constraints {
             let moved = constraints.project(c, (frames, material, dt), &mut out);
             let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
             for m in &moved {
                 sums.add(m);
             }
-            if let (Predict::Bundle, NetState::Grid(grid)) = (predict, &mut net) {
-                grid.history_from(&out, [b, n], &self.device);
+            if let Some(NetState::Grid(grid)) = history {
+                let b = dt.len();
+                grid.history_from(&out, [b, material.len() / b.max(1)], &self.device);
             }
         }
         constraints.rest_frames = None;
-        let state = State {
-            net,
-            constraints,
-            frames: count + 1,
-        };
-        Ok((out, state))
+        Ok(out)
     }
 
     /// `[B, N]` of a step's input (`frames` `[B, N, 4]`, `material` `[B N]`, `dt` `[B]`).
@@ -341,21 +386,24 @@ impl<B: NetOps> Surrogate<B> {
         dt: &[f32],
         net: NetState<B>,
         predict: Predict,
-    ) -> Result<(Vec<Vec<f32>>, NetState<B>), StoreError> {
+        read: Read,
+    ) -> Result<(Outs, NetState<B>), StoreError> {
         match (&self.net, net) {
             (Net::Paper(model), NetState::Paper(layers)) => {
                 let (out, layers) = self.paper_step(model, frames, material, dt, layers)?;
-                Ok((vec![out], NetState::Paper(layers)))
+                Ok((Outs::Host(vec![out]), NetState::Paper(layers)))
             }
             (Net::Grid(model), NetState::Grid(grid)) if self.mirror => {
                 let (material, dt) = ([material, material].concat(), [dt, dt].concat());
                 let frames = with_mirror_rows(frames);
-                let (out, grid) = self.grid_step(model, &frames, &material, &dt, grid, predict)?;
-                let out = out.iter().map(|o| mean_of_mirror_rows(o)).collect();
-                Ok((out, NetState::Grid(grid)))
+                let (out, grid) =
+                    self.grid_step(model, &frames, &material, &dt, grid, predict, Read::Now)?;
+                let out = out.wait()?.iter().map(|o| mean_of_mirror_rows(o)).collect();
+                Ok((Outs::Host(out), NetState::Grid(grid)))
             }
             (Net::Grid(model), NetState::Grid(grid)) => {
-                let (out, grid) = self.grid_step(model, frames, material, dt, grid, predict)?;
+                let (out, grid) =
+                    self.grid_step(model, frames, material, dt, grid, predict, read)?;
                 Ok((out, NetState::Grid(grid)))
             }
             _ => Err(StoreError::Shape("state of another architecture".into())),

@@ -10,10 +10,19 @@
 //! [`Surrogate::step_scenes`](crate::model::store::Surrogate::step_scenes) stacks the
 //! scenes' states and splits them back; scenes of different particle counts go through
 //! separate calls. Used by [`super::run`].
+//!
+//! Pipelined calls: on a GPU the live frames' calls ([`Predict::Next`]) go through
+//! [`Surrogate::submit_scenes`](crate::model::store::Surrogate::submit_scenes): the scenes'
+//! next states are kept at once, and the call's predictions are taken, projected and
+//! published only after the next batch's call has been recorded ([`InFlight`]), so the GPU
+//! runs that call while the host publishes this one's frames and gathers the next batch
+//! (one call in flight at most; what is in flight lands as soon as nothing else is due).
+//! `--pipeline` (`NodeOptions::pipeline`) turns it on, by default on a GPU; on the CPU,
+//! which computes as it records, a call lands at once.
 
 use std::time::Instant;
 
-use crate::model::store::{Predict, SceneStep, SceneSteps, State, StoreError};
+use crate::model::store::{Finished, Predict, SceneStep, SceneSteps, State, StoreError, Submitted};
 use crate::ops::NetOps;
 
 use super::frames::{predicted_frame, state_rows};
@@ -32,6 +41,13 @@ struct Job<B: burn::tensor::backend::Backend> {
     predict: Predict,
     /// The input frame of a live job; None for a rollout's call.
     input: Option<Pending>,
+}
+
+/// A batch of live frames whose call is recorded and whose predictions are on their way
+/// (module doc): the call, and per scene of it the job (None: its call failed at once).
+pub(super) struct InFlight<B: burn::tensor::backend::Backend> {
+    submitted: Submitted<B>,
+    jobs: Vec<Option<Job<B>>>,
 }
 
 impl<B: NetOps> NodeLoop<'_, B> {
@@ -57,12 +73,100 @@ impl<B: NetOps> NodeLoop<'_, B> {
         }
         let (bundles, single): (Vec<_>, Vec<_>) =
             jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
-        for (group, predict) in [(single, Predict::Next), (bundles, Predict::Bundle)] {
-            if !group.is_empty() {
-                self.run_jobs(group, predict);
+        if !single.is_empty() {
+            match self.options.pipeline {
+                true => self.submit_jobs(single),
+                false => self.run_jobs(single, Predict::Next),
             }
         }
+        if !bundles.is_empty() {
+            // A rollout's frames follow the live frame before them.
+            self.land_in_flight();
+            self.run_jobs(bundles, Predict::Bundle);
+        }
         self.publish_due_rollouts();
+    }
+
+    /// Records the call of `jobs` (live frames, [`Predict::Next`]), keeps the scenes' next
+    /// states, and lands the call in flight before it (module doc).
+    fn submit_jobs(&mut self, mut jobs: Vec<Job<B>>) {
+        let steps = self.steps_of(&mut jobs);
+        let mut submitted = self.surrogate.submit_scenes(steps, Predict::Next);
+        self.batches.record(&submitted.calls);
+        let states = std::mem::take(&mut submitted.states);
+        let mut flying = Vec::with_capacity(jobs.len());
+        for (job, state) in jobs.into_iter().zip(states) {
+            match state {
+                Ok(state) => {
+                    self.scenes.keep(&job.scene, Some(state));
+                    flying.push(Some(job));
+                }
+                Err(e) => {
+                    self.fail_job(job, e);
+                    flying.push(None);
+                }
+            }
+        }
+        let call = InFlight {
+            submitted,
+            jobs: flying,
+        };
+        if let Some(before) = self.in_flight.replace(call) {
+            self.land(before);
+        }
+    }
+
+    /// Lands the call in flight, if any: its predictions published.
+    pub(super) fn land_in_flight(&mut self) {
+        if let Some(call) = self.in_flight.take() {
+            self.land(call);
+        }
+    }
+
+    /// Waits for `call`'s predictions and publishes them (a live job's next frame; none in
+    /// closed loop before its rollout starts); a failed read restarts its scenes.
+    fn land(&mut self, call: InFlight<B>) {
+        let Finished { frames, times } = call.submitted.finish(self.surrogate);
+        self.times.step += times;
+        for (job, result) in call.jobs.into_iter().zip(frames) {
+            let Some(job) = job else { continue };
+            match result {
+                Ok(mut bundle) => {
+                    self.tally.report.predicted += 1;
+                    if let (None, Some(input)) = (self.options.rollout, job.input) {
+                        let next = predicted_frame(&input.frame, &bundle.swap_remove(0), 1);
+                        self.emit_timed(&next, input.arrived);
+                    }
+                }
+                Err(e) => self.fail_job(job, e),
+            }
+        }
+    }
+
+    /// Counts and logs a job whose call failed; a live job's scene starts again, a
+    /// rollout's is cancelled.
+    fn fail_job(&mut self, job: Job<B>, e: StoreError) {
+        match job.input {
+            Some(_) => {
+                self.tally.report.rejected += 1;
+                self.scenes.keep(&job.scene, None);
+            }
+            None => self.schedule.rollouts.cancel(&job.scene),
+        }
+        self.tally.note(&job.scene, e.to_string());
+    }
+
+    /// The jobs' inputs to the model's step (rows and state moved out of each job).
+    fn steps_of<'j>(&self, jobs: &'j mut [Job<B>]) -> Vec<SceneStep<'j, B>> {
+        let placeholder = || self.surrogate.init_state();
+        jobs.iter_mut()
+            .map(|j| SceneStep {
+                rows: std::mem::take(&mut j.rows),
+                material: &j.material,
+                dt: j.dt,
+                state: std::mem::replace(&mut j.state, placeholder()),
+            })
+            .collect()
     }
 
     /// `scene`'s next pending frame as a job, under the state rules (None: dropped or
@@ -139,16 +243,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// Steps `jobs` (all of them `predict`) through `Surrogate::step_scenes` and hands each
     /// its result.
     fn run_jobs(&mut self, mut jobs: Vec<Job<B>>, predict: Predict) {
-        let placeholder = || self.surrogate.init_state();
-        let steps: Vec<SceneStep<'_, B>> = jobs
-            .iter_mut()
-            .map(|j| SceneStep {
-                rows: std::mem::take(&mut j.rows),
-                material: &j.material,
-                dt: j.dt,
-                state: std::mem::replace(&mut j.state, placeholder()),
-            })
-            .collect();
+        let steps = self.steps_of(&mut jobs);
         let SceneSteps {
             results,
             calls,
@@ -165,17 +260,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     fn finish_job(&mut self, job: Job<B>, result: Result<(Vec<Vec<f32>>, State<B>), StoreError>) {
         let (mut bundle, state) = match result {
             Ok(v) => v,
-            Err(e) => {
-                match job.input {
-                    Some(_) => {
-                        self.tally.report.rejected += 1;
-                        self.scenes.keep(&job.scene, None);
-                    }
-                    None => self.schedule.rollouts.cancel(&job.scene),
-                }
-                self.tally.note(&job.scene, e.to_string());
-                return;
-            }
+            Err(e) => return self.fail_job(job, e),
         };
         self.tally.report.predicted += 1;
         let Some(input) = job.input else {

@@ -101,6 +101,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
     pub(super) fn gather(&mut self, rx: &Receiver<Arrival>) -> bool {
         let now = Instant::now();
         let mut wait = match self.batch_due(now) {
+            // A call in flight lands before the loop blocks (`super::run`).
+            _ if self.in_flight.is_some() => Duration::ZERO,
             Due::Now => Duration::ZERO,
             Due::At(t) => t.saturating_duration_since(now),
             Due::Nothing => MAX_WAIT,

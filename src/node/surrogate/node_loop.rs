@@ -49,6 +49,8 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) view: Option<PredictionView>,
     /// Scene states dropped so far.
     pub(super) evicted: Evictions,
+    /// The live frames' call whose predictions are on their way (`batcher.rs`).
+    pub(super) in_flight: Option<super::batcher::InFlight<B>>,
 }
 
 /// Scene states a node dropped.
@@ -97,6 +99,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             next_stats: options.stats_interval.map(|d| Instant::now() + d),
             latencies_us: Vec::new(),
             evicted: Evictions::default(),
+            in_flight: None,
             view: options
                 .foxglove
                 .as_ref()
@@ -195,6 +198,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// Flushes the output, publishes the final status, logs the latency percentiles and
     /// returns the totals.
     pub(super) fn finish(mut self) -> NodeReport {
+        self.land_in_flight();
         // The loop's wall time ends here: the closing flush and reports are not the loop's.
         let loop_end = Instant::now();
         self.publisher.flush(Duration::from_secs(5));

@@ -67,6 +67,9 @@ pub fn run<B: NetOps>(
         node.publish_due_rollouts();
         if node.batch_due(Instant::now()).is_now() {
             node.step_batch();
+        } else {
+            // Nothing to record behind the call in flight: its predictions go out now.
+            node.land_in_flight();
         }
     }
     Ok(node.finish())

@@ -85,6 +85,10 @@ pub struct NodeBenchArgs {
     /// a list of rope, jelly, snow, liquid, walls, contact. The projection runs on the host.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
+    /// `--streams`: whether the node publishes a call's predictions only after recording the
+    /// next call (`node --pipeline`). Default: the node's (true on a GPU).
+    #[arg(long, value_name = "BOOL")]
+    pipeline: Option<bool>,
     /// Many streams into one node (zenoh): this many scenes, interleaved, from one
     /// publisher process; one row per `--max-batch` value (1-4096).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]

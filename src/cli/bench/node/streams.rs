@@ -210,6 +210,7 @@ fn spawn_node(
         ])
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
         .args(["--constraints", &args.constraints.to_string()])
+        .args(args.pipeline.map(|p| format!("--pipeline={p}")))
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -253,7 +254,7 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     let streams = args.streams.unwrap_or(1);
     println!(
         "\nOne node, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
-         {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms:",
+         {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms, --pipeline {}:",
         args.rate,
         args.rate * f64::from(streams),
         args.seconds,
@@ -261,7 +262,9 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
         model.display(),
         args.device.device,
         args.constraints,
-        args.max_batch_delay
+        args.max_batch_delay,
+        args.pipeline
+            .map_or("the node's default".to_string(), |p| p.to_string())
     );
     println!("| --max-batch | sent | delivered | dropped | p50 ms | p99 ms | predictions/s | mean batch | max batch |");
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");

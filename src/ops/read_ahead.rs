@@ -1,0 +1,55 @@
+//! A device tensor's values on their way to the host ([`ReadAhead`]): the read queued behind
+//! the work recorded before it, so that the host can record more work (the next network
+//! call) before it waits, and the GPU runs that work while the host publishes what came back.
+//! burn's own read (`into_data`) is a future that queues nothing until it is polled, and then
+//! waits for everything queued before the poll, the next call included. Made by
+//! [`super::NetOps::read_ahead`] (CUDA: `cuda_read.rs`); used by the surrogate node's
+//! pipelined calls (`model::store::Surrogate::submit_scenes`).
+
+/// What waits for the values: returns them, `[len]` f32 in the tensor's row-major order, or
+/// the backend's error.
+type Wait = Box<dyn FnOnce() -> Result<Vec<f32>, String> + Send>;
+
+/// The values of a device tensor, read back in stream order after the work recorded before
+/// [`super::NetOps::read_ahead`] made it; [`ReadAhead::wait`] blocks until they are on the
+/// host. Dropped unread, it still waits for the copy (the host buffer it lands in is only
+/// reused or freed once the copy is done).
+pub struct ReadAhead {
+    wait: Option<Wait>,
+}
+
+impl ReadAhead {
+    /// A read whose values `wait` returns once they have landed.
+    pub fn new(wait: impl FnOnce() -> Result<Vec<f32>, String> + Send + 'static) -> Self {
+        Self {
+            wait: Some(Box::new(wait)),
+        }
+    }
+
+    /// Blocks until the values are on the host; returns them (row-major f32).
+    ///
+    /// # Errors
+    /// The backend's copy or synchronisation failed (its message).
+    pub fn wait(mut self) -> Result<Vec<f32>, String> {
+        match self.wait.take() {
+            Some(wait) => wait(),
+            None => Err("read waited for twice".into()),
+        }
+    }
+}
+
+impl Drop for ReadAhead {
+    fn drop(&mut self) {
+        if let Some(wait) = self.wait.take() {
+            let _ = wait();
+        }
+    }
+}
+
+impl std::fmt::Debug for ReadAhead {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ReadAhead")
+            .field("waited", &self.wait.is_none())
+            .finish()
+    }
+}
