@@ -193,6 +193,12 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         super::cublas::matmul(a, b)
     }
 
+    /// A copy to pinned host memory queued behind the work recorded so far
+    /// ([`super::cuda_read`]).
+    fn read_ahead(x: FloatTensor<Self>) -> Option<super::ReadAhead> {
+        Some(super::cuda_read::read_ahead(x))
+    }
+
     /// One kernel ([`super::cuda_minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
         match composed_minrnn() {
