@@ -108,7 +108,7 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 #[cfg(feature = "cuda")]
 pub use gpu::matmul;
 #[cfg(feature = "cuda")]
-pub(crate) use gpu::{after_foreign, on_device, primary_context};
+pub(crate) use gpu::{after_foreign, flush_device, on_device, primary_context};
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
@@ -343,6 +343,17 @@ mod gpu {
             drop(resources);
             drop(tensors);
         });
+    }
+
+    /// Hands the tasks queued for `device`'s cubecl device thread over to it now (launches,
+    /// library calls, [`on_device`]'s tasks): its channel batches them, and hands a batch
+    /// over only when it is full or a caller waits on the device thread, so a last task
+    /// whose effect the host waits for outside cubecl (an event) would otherwise stay
+    /// queued.
+    pub(crate) fn flush_device(device: &burn::backend::cuda::CudaDevice) {
+        use burn::cubecl::device::Device;
+        use burn::cubecl::device_handle::DeviceHandle;
+        DeviceHandle::<Server>::new(device.to_id()).flush_queue();
     }
 
     /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel

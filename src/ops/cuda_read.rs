@@ -4,7 +4,8 @@
 //! custom operation of burn's fusion layer (how one joins the fusion stream, and how it is
 //! queued on cubecl's device thread without a host wait: `cublas.rs`), and the fusion stream
 //! is drained when it is recorded, so the copy is queued at once, before the work the host
-//! records next. Waiting on the event waits for the copy and what came before it, not for
+//! records next (cubecl's device thread is handed its queued tasks at once,
+//! `cublas::flush_device`). Waiting on the event waits for the copy and what came before it, not for
 //! what was queued after: the next network call runs on the GPU while the host takes this
 //! one's predictions (the surrogate node's pipelined calls, docs/scale.md).
 //!
@@ -22,7 +23,7 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::cublas::{on_device, primary_context};
+use super::cublas::{flush_device, on_device, primary_context};
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
 use super::ReadAhead;
 
@@ -162,9 +163,13 @@ fn enqueue(
 }
 
 /// Blocks until the device thread has queued the copy and the copy is done; the values.
-fn wait(slot: &Slot) -> Result<Vec<f32>, String> {
+fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32>, String> {
     let (lock, woken) = &**slot;
     let guard = lock.lock().unwrap_or_else(|e| e.into_inner());
+    if guard.is_none() {
+        // The copy's task may still sit in the device thread's batch.
+        flush_device(device);
+    }
     let (mut guard, timeout) = woken
         .wait_timeout_while(guard, QUEUE_TIMEOUT, |l| l.is_none())
         .unwrap_or_else(|e| e.into_inner());
@@ -199,10 +204,14 @@ pub(crate) fn read_ahead(x: FloatTensor<Cuda>) -> ReadAhead {
         slot: slot.clone(),
     };
     let marker = client.register(streams, OperationIr::Custom(desc), op);
-    // Executes what the stream holds (launches, no wait for the GPU), this read included.
+    // Executes what the stream holds (launches, no wait for the GPU), this read included,
+    // and hands the launches and the copy's task to cubecl's device thread now (its channel
+    // would hold a partial batch back until later work fills it).
     client.sync(|| ());
+    let device = client.device().clone();
+    flush_device(&device);
     ReadAhead::new(move || {
-        let values = wait(&slot);
+        let values = wait(&slot, &device);
         drop(marker);
         values
     })
