@@ -206,13 +206,12 @@ pub(crate) fn read_ahead(x: FloatTensor<Cuda>) -> ReadAhead {
     let marker = client.register(streams, OperationIr::Custom(desc), op);
     // Executes what the stream holds (launches, no wait for the GPU), this read included,
     // and hands the launches and the copy's task to cubecl's device thread now (its channel
-    // would hold a partial batch back until later work fills it).
+    // would hold a partial batch back until later work fills it). The marker, held until
+    // the read has executed, is dropped here, on the thread that recorded it: the wait may
+    // run on another (the node's lander thread).
     client.sync(|| ());
+    drop(marker);
     let device = client.device().clone();
     flush_device(&device);
-    ReadAhead::new(move || {
-        let values = wait(&slot, &device);
-        drop(marker);
-        values
-    })
+    ReadAhead::new(move || wait(&slot, &device))
 }

@@ -13,12 +13,11 @@
 //!
 //! Pipelined calls: on a GPU the live frames' calls ([`Predict::Next`]) go through
 //! [`Surrogate::submit_scenes`](crate::model::store::Surrogate::submit_scenes): the scenes'
-//! next states are kept at once, and the call's predictions are taken, projected and
-//! published only after the next batch's call has been recorded ([`InFlight`]), so the GPU
-//! runs that call while the host publishes this one's frames and gathers the next batch
-//! (one call in flight at most; what is in flight lands as soon as nothing else is due).
+//! next states are kept at once, and the call ([`InFlight`]) goes to the lander thread
+//! ([`super::lander`]), which waits for its predictions and projects them while this thread
+//! gathers, stacks and records the next batch's call; the loop publishes what comes back.
 //! `--pipeline` (`NodeOptions::pipeline`) turns it on, by default on a GPU; on the CPU,
-//! which computes as it records, a call lands at once.
+//! which computes as it records, a call's frames are published as soon as it returns.
 
 use std::time::Instant;
 
@@ -26,12 +25,13 @@ use crate::model::store::{Finished, Predict, SceneStep, SceneSteps, State, Store
 use crate::ops::NetOps;
 
 use super::frames::{predicted_frame, state_rows};
+use super::lander::{Landed, MAX_LANDING};
 use super::node_loop::NodeLoop;
 use super::scenes::Admitted;
 use super::schedule::{Due, Pending, Waiting};
 
 /// One scene's part of a batch.
-struct Job<B: burn::tensor::backend::Backend> {
+pub(super) struct Job<B: burn::tensor::backend::Backend> {
     scene: String,
     rows: Vec<f32>,
     material: Vec<u8>,
@@ -48,6 +48,13 @@ struct Job<B: burn::tensor::backend::Backend> {
 pub(super) struct InFlight<B: burn::tensor::backend::Backend> {
     submitted: Submitted<B>,
     jobs: Vec<Option<Job<B>>>,
+}
+
+impl<B: burn::tensor::backend::Backend> InFlight<B> {
+    /// The call and its jobs.
+    pub(super) fn into_parts(self) -> (Submitted<B>, Vec<Option<Job<B>>>) {
+        (self.submitted, self.jobs)
+    }
 }
 
 impl<B: NetOps> NodeLoop<'_, B> {
@@ -81,7 +88,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
         }
         if !bundles.is_empty() {
             // A rollout's frames follow the live frame before them.
-            self.land_in_flight();
+            self.publish_landed(0);
             self.run_jobs(bundles, Predict::Bundle);
         }
         self.publish_due_rollouts();
@@ -111,22 +118,37 @@ impl<B: NetOps> NodeLoop<'_, B> {
             submitted,
             jobs: flying,
         };
-        if let Some(before) = self.in_flight.replace(call) {
-            self.land(before);
+        // The oldest calls handed over first, so that at most MAX_LANDING are.
+        self.publish_landed(MAX_LANDING - 1);
+        match self.lander.as_mut() {
+            Some(lander) => lander.hand_over(call),
+            None => {
+                let (submitted, jobs) = call.into_parts();
+                let finished = submitted.finish(self.surrogate);
+                self.publish_call(Landed { finished, jobs });
+            }
         }
     }
 
-    /// Lands the call in flight, if any: its predictions published.
-    pub(super) fn land_in_flight(&mut self) {
-        if let Some(call) = self.in_flight.take() {
-            self.land(call);
+    /// Publishes the calls the lander has handed back, waiting for them until at most `keep`
+    /// are still landing (`usize::MAX`: only those back already; 0: all).
+    pub(super) fn publish_landed(&mut self, keep: usize) {
+        loop {
+            let Some(lander) = self.lander.as_mut() else {
+                return;
+            };
+            let block = lander.landing > keep;
+            let Some(landed) = lander.next(block) else {
+                return;
+            };
+            self.publish_call(landed);
         }
     }
 
-    /// Waits for `call`'s predictions and publishes them (a live job's next frame; none in
-    /// closed loop before its rollout starts); a failed read restarts its scenes.
-    fn land(&mut self, call: InFlight<B>) {
-        let Finished { frames, times } = call.submitted.finish(self.surrogate);
+    /// Publishes a landed call's predictions (a live job's next frame; none in closed loop
+    /// before its rollout starts); a failed read restarts its scenes.
+    fn publish_call(&mut self, call: Landed<B>) {
+        let Finished { frames, times } = call.finished;
         self.times.step += times;
         for (job, result) in call.jobs.into_iter().zip(frames) {
             let Some(job) = job else { continue };

@@ -25,6 +25,10 @@ use super::schedule::{Due, Pending};
 /// The longest the loop blocks on the transport with nothing due.
 const MAX_WAIT: Duration = Duration::from_millis(100);
 
+/// The longest the loop blocks on the transport while pipelined calls are landing
+/// (`super::lander`): how late their frames may be published.
+const LANDING_POLL: Duration = Duration::from_millis(1);
+
 /// One sample as the decoder thread hands it to the loop.
 pub(super) struct Arrival {
     /// When the transport received it.
@@ -101,8 +105,6 @@ impl<B: NetOps> NodeLoop<'_, B> {
     pub(super) fn gather(&mut self, rx: &Receiver<Arrival>) -> bool {
         let now = Instant::now();
         let mut wait = match self.batch_due(now) {
-            // A call in flight lands before the loop blocks (`super::run`).
-            _ if self.in_flight.is_some() => Duration::ZERO,
             Due::Now => Duration::ZERO,
             Due::At(t) => t.saturating_duration_since(now),
             Due::Nothing => MAX_WAIT,
@@ -110,6 +112,10 @@ impl<B: NetOps> NodeLoop<'_, B> {
         wait = wait.min(self.next_status.saturating_duration_since(now));
         if let Some(t) = self.schedule.rollouts.next_due() {
             wait = wait.min(t.saturating_duration_since(now));
+        }
+        if self.lander.as_ref().is_some_and(|l| l.landing > 0) {
+            // Calls are landing: their frames are published within LANDING_POLL.
+            wait = wait.min(LANDING_POLL);
         }
         let blocked = Instant::now();
         let first = if wait.is_zero() {

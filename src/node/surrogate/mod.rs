@@ -42,7 +42,8 @@
 //! frames are taken, what a frame does to its scene's state), [`scenes`] the per-scene
 //! states under those rules, [`schedule`] the queues (pending frames, rollouts under way)
 //! and when a batch is due, [`node_loop`] the loop's state, [`intake`] the arrival of
-//! frames, [`batcher`] the calls, [`closed`] the rollouts, [`shard`] the group, [`run`] the
+//! frames, [`batcher`] the calls, [`lander`] the thread that lands pipelined calls,
+//! [`closed`] the rollouts, [`shard`] the group, [`run`] the
 //! loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
 
 mod admission;
@@ -50,6 +51,7 @@ mod batcher;
 mod closed;
 mod frames;
 mod intake;
+mod lander;
 mod node_loop;
 mod options;
 mod report;

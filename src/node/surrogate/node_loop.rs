@@ -49,8 +49,8 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) view: Option<PredictionView>,
     /// Scene states dropped so far.
     pub(super) evicted: Evictions,
-    /// The live frames' call whose predictions are on their way (`batcher.rs`).
-    pub(super) in_flight: Option<super::batcher::InFlight<B>>,
+    /// The lander thread of the pipelined calls (`--pipeline`; `lander.rs`).
+    pub(super) lander: Option<super::lander::Lander<B>>,
 }
 
 /// Scene states a node dropped.
@@ -99,7 +99,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             next_stats: options.stats_interval.map(|d| Instant::now() + d),
             latencies_us: Vec::new(),
             evicted: Evictions::default(),
-            in_flight: None,
+            lander: None,
             view: options
                 .foxglove
                 .as_ref()
@@ -198,7 +198,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// Flushes the output, publishes the final status, logs the latency percentiles and
     /// returns the totals.
     pub(super) fn finish(mut self) -> NodeReport {
-        self.land_in_flight();
+        self.publish_landed(0);
         // The loop's wall time ends here: the closing flush and reports are not the loop's.
         let loop_end = Instant::now();
         self.publisher.flush(Duration::from_secs(5));

@@ -2,7 +2,8 @@
 //! wait for the output's subscribers, join the shard group (`--shard`), subscribe to the
 //! input (its samples decoded on a thread of their own), then repeat { periodic status and
 //! counters, gather the decoded samples into per-scene queues ([`super::intake`]), publish
-//! the rollout frames that are due ([`super::closed`]), and when a batch is due step it
+//! the rollout frames that are due ([`super::closed`]) and the pipelined calls' frames the
+//! lander thread has landed ([`super::lander`]), and when a batch is due step it
 //! ([`super::batcher`]) }. The totals come back as a [`NodeReport`].
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -14,6 +15,7 @@ use crate::ops::NetOps;
 use crate::transport::{FramePublisher, StatusPublisher, Transport, TransportError};
 
 use super::intake::spawn_decoder;
+use super::lander::Lander;
 use super::node_loop::NodeLoop;
 use super::options::{NodeOptions, NodeReport};
 use super::report::log_start;
@@ -46,33 +48,37 @@ pub fn run<B: NetOps>(
     let (tx, rx) = channel();
     let _subscription = transport.subscribe(&options.input, tx)?;
     log_start(options, surrogate, transport);
-    let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
-    node.shard = shard;
-    let (rx, decoder) = spawn_decoder(
-        rx,
-        options.max_frame_bytes,
-        node.model_n,
-        node.times.decode.clone(),
-    );
-    while !stop.load(Ordering::Relaxed) && !node.done() {
-        node.periodic();
-        if !node.gather(&rx) {
-            // The decoder ended: the transport closed the subscription, or it panicked
-            // (then so does the node, not a clean stop).
-            if let Err(panic) = decoder.join() {
-                std::panic::resume_unwind(panic);
+    // The lander thread of pipelined calls (`super::lander`) lives as long as the loop.
+    std::thread::scope(|scope| {
+        let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
+        node.shard = shard;
+        if options.pipeline {
+            node.lander = Some(Lander::start(scope, surrogate));
+        }
+        let (rx, decoder) = spawn_decoder(
+            rx,
+            options.max_frame_bytes,
+            node.model_n,
+            node.times.decode.clone(),
+        );
+        while !stop.load(Ordering::Relaxed) && !node.done() {
+            node.periodic();
+            if !node.gather(&rx) {
+                // The decoder ended: the transport closed the subscription, or it panicked
+                // (then so does the node, not a clean stop).
+                if let Err(panic) = decoder.join() {
+                    std::panic::resume_unwind(panic);
+                }
+                break;
             }
-            break;
+            node.publish_due_rollouts();
+            node.publish_landed(usize::MAX);
+            if node.batch_due(Instant::now()).is_now() {
+                node.step_batch();
+            }
         }
-        node.publish_due_rollouts();
-        if node.batch_due(Instant::now()).is_now() {
-            node.step_batch();
-        } else {
-            // Nothing to record behind the call in flight: its predictions go out now.
-            node.land_in_flight();
-        }
-    }
-    Ok(node.finish())
+        Ok(node.finish())
+    })
 }
 
 /// Joins `options.shard`'s group on the transport's zenoh session (None without `--shard`).
