@@ -100,6 +100,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
         let steps = self.steps_of(&mut jobs);
         let mut submitted = self.surrogate.submit_scenes(steps, Predict::Next);
         self.batches.record(&submitted.calls);
+        // The loop's share of the call; what lands it is timed where it waits for it.
+        self.times.step += std::mem::take(&mut submitted.times);
         let states = std::mem::take(&mut submitted.states);
         let mut flying = Vec::with_capacity(jobs.len());
         for (job, state) in jobs.into_iter().zip(states) {
@@ -138,7 +140,13 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 return;
             };
             let block = lander.landing > keep;
-            let Some(landed) = lander.next(block) else {
+            let start = Instant::now();
+            let landed = lander.next(block);
+            // Blocked on the lander: the loop waits for the call (the GPU, the projection).
+            if block {
+                self.times.step.call += start.elapsed();
+            }
+            let Some(landed) = landed else {
                 return;
             };
             self.publish_call(landed);
