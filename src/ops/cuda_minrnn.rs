@@ -38,16 +38,22 @@ fn g<F: Float>(x: F) -> F {
     y
 }
 
-/// The minGRU's update (Feng et al. 2024, "Were RNNs All We Needed?", minGRU), one thread
-/// per state element: `out = h + z (g(h~) - h)` with `z = sigmoid(gate)`, i.e. `(1 - z) h + z
-/// g(h~)`; `pre` `[M, 2H]` (`h~` in the first `H` columns, the gate after), `h` and `out`
-/// `[M, H]`, all contiguous; `h` is not read unless `carried` (then 0).
+/// One state element per thread of the minGRU's or the minLSTM's update (Feng et al. 2024,
+/// "Were RNNs All We Needed?"), `p` the previous state (`h`, read only when `carried`, else
+/// 0); `h`, `out` `[M, H]` and `pre` contiguous:
+/// - minGRU (`lstm` false): `pre` `[M, 2H]` (`h~`, then the gate), `out = p + z (g(h~) - p)`,
+///   `z = sigmoid(gate)`, i.e. `(1 - z) p + z g(h~)`;
+/// - minLSTM with normalised gates (`lstm`): `pre` `[M, 3H]` (`h~`, `a`, `b`), `out = (v p +
+///   u g(h~)) / (u + v)` with `u = e^s + e^(s - a)`, `v = e^s + e^(s - b)`, `s = min(a, b,
+///   0)`: `f' p + i' g(h~)`, `(f', i') = (f, i) / (f + i)`, `f = sigmoid(a)`, `i =
+///   sigmoid(b)`, with no positive exponent (`cpu/mingru.rs`'s `lstm_update`).
 #[cube(launch)]
-fn mingru_kernel<F: Float>(
+fn update_kernel<F: Float>(
     pre: &Tensor<F>,
     h: &Tensor<F>,
     out: &mut Tensor<F>,
     hidden: u32,
+    #[comptime] lstm: bool,
     #[comptime] carried: bool,
     #[define(F)] _dtype: StorageType,
 ) {
@@ -57,53 +63,30 @@ fn mingru_kernel<F: Float>(
     let hidden = hidden as usize;
     let row = ABSOLUTE_POS / hidden;
     let j = ABSOLUTE_POS % hidden;
-    let tilde = g::<F>(pre[row * 2 * hidden + j]);
-    let z = sigmoid::<F>(pre[row * 2 * hidden + hidden + j]);
     let mut p = F::new(0.0);
     if carried {
         p = h[ABSOLUTE_POS];
     }
-    out[ABSOLUTE_POS] = p + z * (tilde - p);
-}
-
-/// The minLSTM's update with normalised gates (Feng et al. 2024), one thread per state
-/// element: `out = (v h + u g(h~)) / (u + v)` with `u = e^s + e^(s - a)`, `v = e^s + e^(s -
-/// b)`, `s = min(a, b, 0)` (`f' h + i' g(h~)`, `(f', i') = (f, i) / (f + i)`, `f = sigmoid(a)`,
-/// `i = sigmoid(b)`, with no positive exponent: `cpu/mingru.rs`'s `lstm_update`); `pre`
-/// `[M, 3H]` (`h~`, `a`, `b`), `h` and `out` `[M, H]`, all contiguous; `h` read only when
-/// `carried`.
-#[cube(launch)]
-fn minlstm_kernel<F: Float>(
-    pre: &Tensor<F>,
-    h: &Tensor<F>,
-    out: &mut Tensor<F>,
-    hidden: u32,
-    #[comptime] carried: bool,
-    #[define(F)] _dtype: StorageType,
-) {
-    if ABSOLUTE_POS >= out.len() {
-        terminate!();
+    if lstm {
+        let base = row * 3 * hidden + j;
+        let (a, b) = (pre[base + hidden], pre[base + 2 * hidden]);
+        let mut s = F::new(0.0);
+        if a < s {
+            s = a;
+        }
+        if b < s {
+            s = b;
+        }
+        let e = F::exp(s);
+        let u = e + F::exp(s - a);
+        let v = e + F::exp(s - b);
+        out[ABSOLUTE_POS] = (v * p + u * g::<F>(pre[base])) / (u + v);
+    } else {
+        let base = row * 2 * hidden + j;
+        let tilde = g::<F>(pre[base]);
+        let z = sigmoid::<F>(pre[base + hidden]);
+        out[ABSOLUTE_POS] = p + z * (tilde - p);
     }
-    let hidden = hidden as usize;
-    let row = ABSOLUTE_POS / hidden;
-    let j = ABSOLUTE_POS % hidden;
-    let base = row * 3 * hidden + j;
-    let (a, b) = (pre[base + hidden], pre[base + 2 * hidden]);
-    let mut s = F::new(0.0);
-    if a < s {
-        s = a;
-    }
-    if b < s {
-        s = b;
-    }
-    let e = F::exp(s);
-    let u = e + F::exp(s - a);
-    let v = e + F::exp(s - b);
-    let mut p = F::new(0.0);
-    if carried {
-        p = h[ABSOLUTE_POS];
-    }
-    out[ABSOLUTE_POS] = (v * p + u * g::<F>(pre[base])) / (u + v);
 }
 
 /// Which cell's update an operation runs (`k`: pre-activation columns per state column).
@@ -140,35 +123,18 @@ impl Operation<Runtime> for UpdateOp {
         );
         let (count, dim) = elementwise(&client, rows * self.hidden);
         let hidden = u32::try_from(self.hidden).expect("state width fits u32");
-        let args = (
+        update_kernel::launch::<CudaRuntime>(
+            &client,
+            count,
+            dim,
             pre.into_tensor_arg(),
             h.into_tensor_arg(),
             out.clone().into_tensor_arg(),
+            hidden,
+            matches!(self.cell, Cell::MinLstm),
+            carried,
+            dtype.into(),
         );
-        match self.cell {
-            Cell::MinGru => mingru_kernel::launch::<CudaRuntime>(
-                &client,
-                count,
-                dim,
-                args.0,
-                args.1,
-                args.2,
-                hidden,
-                carried,
-                dtype.into(),
-            ),
-            Cell::MinLstm => minlstm_kernel::launch::<CudaRuntime>(
-                &client,
-                count,
-                dim,
-                args.0,
-                args.1,
-                args.2,
-                hidden,
-                carried,
-                dtype.into(),
-            ),
-        }
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, out);
     }
 }
