@@ -80,11 +80,10 @@ pub struct NodeArgs {
     /// autotunes kernels there), false on the CPU (padding is only extra work there).
     #[arg(long, value_name = "BOOL")]
     pad_batches: Option<bool>,
-    /// Dynamic batching under load: record the next call before waiting for the last one's
-    /// predictions, which a thread of their own reads back and projects, so the GPU runs
-    /// while the host publishes and gathers (batches of at least half --max-batch scenes; a
-    /// smaller batch's call lands before the loop goes on). Default: true on a GPU, false
-    /// on the CPU (which computes as it records: nothing to overlap).
+    /// Dynamic batching: publish a call's predictions only after the next call has been
+    /// recorded, so the GPU runs it while the host publishes (one call in flight; it lands
+    /// as soon as nothing else is due). Default: true on a GPU, false on the CPU (which
+    /// computes as it records: nothing to overlap).
     #[arg(long, value_name = "BOOL")]
     pipeline: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a

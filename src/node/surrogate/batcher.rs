@@ -16,9 +16,6 @@
 //! next states are kept at once, and the call ([`InFlight`]) goes to the lander thread
 //! ([`super::lander`]), which waits for its predictions and projects them while this thread
 //! gathers, stacks and records the next batch's call; the loop publishes what comes back.
-//! Only a batch of at least half `--max-batch` scenes is pipelined: under a light load a call
-//! lands before the loop goes on, since the loop, recording the next call, would publish a
-//! landed call's frames late (p50 +6 ms at 4 Hz a stream on an H100, docs/scale.md).
 //! `--pipeline` (`NodeOptions::pipeline`) turns it on, by default on a GPU; on the CPU,
 //! which computes as it records, a call's frames are published as soon as it returns.
 
@@ -83,16 +80,10 @@ impl<B: NetOps> NodeLoop<'_, B> {
         }
         let (bundles, single): (Vec<_>, Vec<_>) =
             jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
-        // Pipelined under load only: a batch of at least half `--max-batch` (module doc).
-        let under_load = 2 * single.len() >= self.options.max_batch;
         if !single.is_empty() {
-            match self.options.pipeline && under_load {
+            match self.options.pipeline {
                 true => self.submit_jobs(single),
-                false => {
-                    // The calls landing go out first: a scene's frames stay in order.
-                    self.publish_landed(0);
-                    self.run_jobs(single, Predict::Next);
-                }
+                false => self.run_jobs(single, Predict::Next),
             }
         }
         if !bundles.is_empty() {
