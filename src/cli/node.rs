@@ -80,10 +80,11 @@ pub struct NodeArgs {
     /// autotunes kernels there), false on the CPU (padding is only extra work there).
     #[arg(long, value_name = "BOOL")]
     pad_batches: Option<bool>,
-    /// Dynamic batching: publish a call's predictions only after the next call has been
-    /// recorded, so the GPU runs it while the host publishes (one call in flight; it lands
-    /// as soon as nothing else is due). Default: true on a GPU, false on the CPU (which
-    /// computes as it records: nothing to overlap).
+    /// Dynamic batching: record the next call before waiting for the last one's predictions,
+    /// which a thread of their own reads back and projects while the loop gathers and
+    /// records (at most two calls handed over), so the GPU runs while the host works; costs
+    /// latency at a light load (docs/scale.md). Default: true on a GPU, false on the CPU
+    /// (which computes as it records: nothing to overlap).
     #[arg(long, value_name = "BOOL")]
     pipeline: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a

@@ -155,7 +155,7 @@ fn enqueue(
                 ctx,
             }),
             Err(e) => {
-                give_back((host, bytes));
+                // The copy may be queued into the buffer: it is left allocated, never reused.
                 Err(format!("CUDA read of {len} values: {e:?}"))
             }
         }
@@ -185,7 +185,11 @@ fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32
         let _ = driver::event::destroy(landing.event);
         let values =
             synced.map(|()| std::slice::from_raw_parts(landing.host, landing.len).to_vec());
-        give_back((landing.host as usize, landing.bytes));
+        // After a failed wait the copy may still be under way: the buffer is left allocated,
+        // never reused.
+        if values.is_ok() {
+            give_back((landing.host as usize, landing.bytes));
+        }
         values.map_err(|e| format!("CUDA read: {e:?}"))
     }
 }

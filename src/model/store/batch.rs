@@ -43,19 +43,19 @@ pub struct SceneSteps<B: burn::tensor::backend::Backend> {
 }
 
 /// Wall time of [`Surrogate::step_scenes`] by stage, summed over its calls: `stack` gathers
-/// the scenes' frames and stacks their states (`State::stack`), `call` runs the network and
+/// the scenes' frames and stacks their states (`State::stack`), `call` runs the network,
 /// reads its predictions back to the host (on a GPU this waits for the kernels, so it holds
-/// the device's work too), `split` splits the state back per scene (`State::split`) and
-/// cuts the predictions per scene. On a GPU kernels are queued, not waited for: the stack's
+/// the device's work too), projects them and cuts them per scene, `split` splits the state
+/// back per scene (`State::split`). On a GPU kernels are queued, not waited for: the stack's
 /// concatenations and uploads land in `call`, which waits for them, and the split's in the
 /// next call. A call that fails adds nothing.
 #[derive(Debug, Default, Clone, Copy, PartialEq)]
 pub struct StepTimes {
     /// Frames gathered and states stacked.
     pub stack: Duration,
-    /// The network call, predictions read back.
+    /// The network call, predictions read back, projected and cut per scene.
     pub call: Duration,
-    /// States split and predictions cut per scene.
+    /// States split per scene.
     pub split: Duration,
 }
 
@@ -184,12 +184,12 @@ impl<B: NetOps> Surrogate<B> {
         if padded > b {
             let rows = frames[(b - 1) * per_scene..].to_vec();
             let ids = material[(b - 1) * per_scene / 4..].to_vec();
-            let (last_dt, last) = (dt[b - 1], states[b - 1].clone());
+            let last_dt = dt[b - 1];
             for _ in b..padded {
                 frames.extend_from_slice(&rows);
                 material.extend_from_slice(&ids);
                 dt.push(last_dt);
-                states.push(last.clone());
+                states.push(states[b - 1].detached());
             }
         }
         let stacked = State::stack(states, copies)?;

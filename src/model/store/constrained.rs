@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use crate::model::constraints::{Constraints, Correction, SceneShape};
 
 /// One trajectory's constraint data, shared by the states that carry it (clones of a state
-/// share it too); empty until its first projection.
+/// share it too; `ConstraintState::detached` copies it); empty until its first projection.
 pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
 
 /// Per trajectory (batch row): its constraint data, and the rest frames it is built from.
@@ -44,6 +44,20 @@ impl ConstraintState {
         ConstraintState {
             shapes,
             rest_frames: None,
+        }
+    }
+
+    /// A copy whose trajectories' data is its own (each slot's content copied), so that
+    /// projecting the copy leaves this state's data as it was: a padded call's copies of its
+    /// last scene (a projection keeps state between steps: snow's yield, contacts under way).
+    pub(super) fn detached(&self) -> ConstraintState {
+        let copy = |slot: &Slot| {
+            let shape = slot.lock().unwrap_or_else(|e| e.into_inner()).clone();
+            Arc::new(Mutex::new(shape))
+        };
+        ConstraintState {
+            shapes: self.shapes.iter().map(copy).collect(),
+            rest_frames: self.rest_frames.clone(),
         }
     }
 
@@ -100,7 +114,7 @@ impl ConstraintState {
             .enumerate()
             .map(|(i, (slot, row))| {
                 let ids = &material[i * n..(i + 1) * n];
-                // Rows share a slot only as copies of one scene (a padded call).
+                // Each row its own slot (a padded call's copies are detached).
                 let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
                 let shape = shape.get_or_insert_with(|| {
                     SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)

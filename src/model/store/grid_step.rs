@@ -47,6 +47,7 @@ impl<B: NetOps> Surrogate<B> {
             Some(read) => Outs::Ahead {
                 read,
                 k: next.dims()[0] / b.max(1),
+                shape: next.dims(),
             },
             None => Outs::Host(self.download_frames(next, b, &mut clock)?),
         };

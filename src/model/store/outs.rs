@@ -23,8 +23,12 @@ pub(super) enum Read {
 pub(super) enum Outs {
     /// The frames, oldest first.
     Host(Vec<Vec<f32>>),
-    /// One `[K B, N, 4]` read (frame k's rows `k B..(k + 1) B`), `k` frames.
-    Ahead { read: ReadAhead, k: usize },
+    /// One read of `shape` `[K B, N, 4]` (frame k's rows `k B..(k + 1) B`), `k` frames.
+    Ahead {
+        read: ReadAhead,
+        k: usize,
+        shape: [usize; 3],
+    },
 }
 
 impl Outs {
@@ -35,9 +39,9 @@ impl Outs {
     pub(super) fn wait(self) -> Result<Vec<Vec<f32>>, StoreError> {
         match self {
             Outs::Host(frames) => Ok(frames),
-            Outs::Ahead { read, k } => {
+            Outs::Ahead { read, k, shape } => {
                 let all = read.wait().map_err(|e| DownloadError {
-                    shape: vec![k],
+                    shape: shape.to_vec(),
                     source: e.into(),
                 })?;
                 Ok(split_frames(all, k))

@@ -145,6 +145,16 @@ impl<B: Backend> NetState<B> {
 }
 
 impl<B: Backend> State<B> {
+    /// A copy of this state whose constraint data is its own
+    /// ([`ConstraintState::detached`]): a padded call's copy of a scene.
+    pub(super) fn detached(&self) -> Self {
+        State {
+            net: self.net.clone(),
+            constraints: self.constraints.detached(),
+            frames: self.frames,
+        }
+    }
+
     /// A fresh state around the network state `net`: no constraint data, no frames.
     pub(super) fn new(net: NetState<B>) -> Self {
         State {

@@ -87,7 +87,9 @@ impl<B: NetOps> NodeLoop<'_, B> {
             }
         }
         if !bundles.is_empty() {
-            // A rollout's frames follow the live frame before them.
+            // A rollout's frames follow the live frame before them, and a scene's
+            // projections run in call order (its first builds its constraint data from that
+            // call's input frame): every call handed over lands before a call on this thread.
             self.publish_landed(0);
             self.run_jobs(bundles, Predict::Bundle);
         }

@@ -45,8 +45,9 @@ pub struct NodeOptions {
     /// Dynamic batching: how long the oldest waiting frame may wait for others to join
     /// its call (Triton's `max_queue_delay_microseconds`).
     pub max_batch_delay: Duration,
-    /// Pipelined calls: a live batch's predictions are taken and published only after the
-    /// next batch's call is recorded, so a GPU runs that call meanwhile (`batcher.rs`).
+    /// Pipelined calls: a live batch's predictions are read back and projected on the
+    /// lander thread while the loop gathers and records the next batch's call, so a GPU
+    /// runs while the host works (`batcher.rs`, `lander.rs`).
     pub pipeline: bool,
     /// Sharding over zenoh: the group whose live nodes divide the scenes among them.
     pub shard: Option<String>,
