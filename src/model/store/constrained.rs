@@ -162,3 +162,27 @@ fn project_row(
     }
     total
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The states split from a stack share its slots (a projection landing after the split
+    /// reaches them); a detached copy (a padded call's copy of a scene) shares none, so its
+    /// projection leaves the scene's data alone.
+    #[test]
+    fn split_states_share_slots_and_detached_copies_do_not() {
+        let stacked = ConstraintState::stack(vec![ConstraintState::default(); 2]);
+        assert_eq!(stacked.shapes.len(), 2);
+        let parts = stacked.clone().split(&[1, 1]);
+        for (part, slot) in parts.iter().zip(&stacked.shapes) {
+            assert!(Arc::ptr_eq(&part.shapes[0], slot));
+        }
+        let copy = parts[1].detached();
+        assert_eq!(copy.shapes.len(), 1);
+        assert!(!Arc::ptr_eq(&copy.shapes[0], &parts[1].shapes[0]));
+        // Stacking the scene beside its copy keeps them apart.
+        let padded = ConstraintState::stack(vec![parts[1].clone(), copy]);
+        assert!(!Arc::ptr_eq(&padded.shapes[0], &padded.shapes[1]));
+    }
+}
