@@ -229,13 +229,16 @@ impl<B: NetOps> Surrogate<B> {
     }
 }
 
+/// A call's input frames (`[B, N, 4]`), materials (`[B N]`) and time steps (`[B]`).
+type CallInput = (Vec<f32>, Vec<u8>, Vec<f32>);
+
 /// One network call's predictions, on the host or on their way, and what their projection
 /// onto the constraints needs.
 struct Flight {
     outs: Outs,
-    /// The call's input frames, materials and time steps, and its constraint data, where the
-    /// projection is still to come ([`Predict::Next`]).
-    projection: Option<((Vec<f32>, Vec<u8>, Vec<f32>), ConstraintState)>,
+    /// The call's input and its constraint data, where the projection is still to come
+    /// ([`Predict::Next`]).
+    projection: Option<(CallInput, ConstraintState)>,
     /// Values of one scene's frame (`N 4`).
     per_scene: usize,
     /// Scenes of the call (its padded copies not counted).

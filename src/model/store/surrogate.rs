@@ -457,9 +457,9 @@ impl<B: NetOps> Surrogate<B> {
     /// `material` and the results `[B, N, 4]`, `dt` `[B]`): the seed frames but the last are
     /// stepped on, then ceil(k / K) network calls each start from the last frame the call
     /// before predicted; `each(i, frame)` is handed predicted frame i (0-based) of the `k`,
-    /// in order, to keep (no copy is made for it, but a bundle's frames are cut apart). On a GPU a grid model without projection
-    /// or mirror keeps the loop on the device ([`Surrogate::with_feedback_bytes`]), so `each`
-    /// then gets the frames in batches.
+    /// in order, to keep (no copy is made for it, but a bundle's frames are cut apart). On a
+    /// GPU a grid model without projection or mirror keeps the loop on the device
+    /// ([`Surrogate::with_feedback_bytes`]), so `each` then gets the frames in batches.
     ///
     /// # Errors
     /// A step's [`StoreError`]; no seed frame. The frames predicted before a failed call

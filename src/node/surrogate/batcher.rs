@@ -81,7 +81,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
         let (bundles, single): (Vec<_>, Vec<_>) =
             jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
         if !single.is_empty() {
-            match self.options.pipeline {
+            // `run` starts the lander thread when `--pipeline` asks for it.
+            match self.lander.is_some() {
                 true => self.submit_jobs(single),
                 false => self.run_jobs(single, Predict::Next),
             }
@@ -97,7 +98,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     }
 
     /// Records the call of `jobs` (live frames, [`Predict::Next`]), keeps the scenes' next
-    /// states, and lands the call in flight before it (module doc).
+    /// states, and hands the call to the lander thread (module doc).
     fn submit_jobs(&mut self, mut jobs: Vec<Job<B>>) {
         let steps = self.steps_of(&mut jobs);
         let mut submitted = self.surrogate.submit_scenes(steps, Predict::Next);
@@ -124,14 +125,10 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         // The oldest calls handed over first, so that at most MAX_LANDING are.
         self.publish_landed(MAX_LANDING - 1);
-        match self.lander.as_mut() {
-            Some(lander) => lander.hand_over(call),
-            None => {
-                let (submitted, jobs) = call.into_parts();
-                let finished = submitted.finish(self.surrogate);
-                self.publish_call(Landed { finished, jobs });
-            }
-        }
+        self.lander
+            .as_mut()
+            .expect("submit_jobs runs with a lander thread (step_batch)")
+            .hand_over(call);
     }
 
     /// Publishes the calls the lander has handed back, waiting for them until at most `keep`
@@ -158,8 +155,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// Publishes a landed call's predictions (a live job's next frame; none in closed loop
     /// before its rollout starts); a failed read restarts its scenes.
     fn publish_call(&mut self, call: Landed<B>) {
-        let Finished { frames, times } = call.finished;
-        self.times.step += times;
+        // The lander thread's time is not the loop's: `publish_landed` times the loop's waits.
+        let Finished { frames, .. } = call.finished;
         for (job, result) in call.jobs.into_iter().zip(frames) {
             let Some(job) = job else { continue };
             match result {

@@ -11,7 +11,7 @@
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::thread::Scope;
 
-use crate::model::store::{Finished, StepTimes, Surrogate};
+use crate::model::store::{Finished, Surrogate};
 use crate::ops::NetOps;
 
 use super::batcher::{InFlight, Job};
@@ -50,10 +50,7 @@ impl<B: NetOps> Lander<B> {
             .spawn_scoped(scope, move || {
                 for call in to_land {
                     let (submitted, jobs) = call.into_parts();
-                    let mut finished = submitted.finish(surrogate);
-                    // This thread's time is not the loop's (`NodeLoop::publish_landed` times
-                    // the loop's waits for it).
-                    finished.times = StepTimes::default();
+                    let finished = submitted.finish(surrogate);
                     if done.send(Landed { finished, jobs }).is_err() {
                         return;
                     }
