@@ -31,11 +31,13 @@ pub(super) enum ConvForm {
     /// cuDNN's kernels for inference (`NetOps::conv3x3_forward`: `eval`, `node`, rollouts),
     /// im2col for training: the default where `libcudnn.so.9` loads. A 256-scene call of
     /// `all-grid-mingru` took 0.094 ms a scene-frame against 0.141 with im2col on one H100;
-    /// training at batch 16 / 32, 259.3 / 512.9 samples/s with cuDNN against 361.3 / 484.8.
+    /// training at batch 16 / 32, 245.6 / 456.0 samples/s with cuDNN against 298.9 / 499.1
+    /// (two rounds' means, one H100 call).
     CudnnInference,
     /// cuDNN's kernels, forward and backward ([`super::cuda_cudnn`]):
     /// `MINFLOW_CUDA_CONV=cudnn`. Training takes about half im2col's GPU memory (less than
-    /// PyTorch's), slower at batch 16 and faster at 32 (docs/speed.md).
+    /// PyTorch's) at 0.78-0.92x its speed (docs/speed.md, "Training's convolutions through
+    /// cuDNN, in place").
     Cudnn,
     /// burn-cubecl's implicit-GEMM convolution for inference, im2col for training
     /// ([`super::cuda_implicit_conv`]): `MINFLOW_CUDA_CONV=implicit`.

@@ -19,9 +19,11 @@
 //! H100), so the host could not run ahead of the GPU; with that wait cuDNN was not worth it
 //! (docs/speed.md, "Where a GPU call's time goes").
 //!
-//! Layout: the grid is channels-last, `[B, H, W, C]` (cuDNN's `NHWC`), and the weights go to
-//! cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout); same padding, stride 1,
-//! cross-correlation (burn's and PyTorch's `Conv2d`). The math follows `--gpu-gemm`: TF32
+//! Layout: the grid is channels-last, `[B, H, W, C]` (cuDNN's `NHWC`). Inference's weights
+//! go to cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout), copied from burn's
+//! `[C_out, C_in, 3, 3]`; training's im2col matrix `[C_in 9, C_out]` is read in place as the
+//! filter of the transposed convolution, and its gradient written in place ([`Transposed`]).
+//! Same padding, stride 1, cross-correlation (burn's and PyTorch's `Conv2d`). The math follows `--gpu-gemm`: TF32
 //! tensor cores for `tf32`, FMA only (full FP32) otherwise. Each algorithm is the fastest of
 //! those cuDNN times on the shape, once per shape (`cudnnFindConvolution*Algorithm`, as
 //! PyTorch's `cudnn.benchmark`), the gradients' restricted to deterministic ones, so a
@@ -89,6 +91,7 @@ impl Pass {
 struct ConvOp {
     desc: CustomOpIr,
     pass: Pass,
+    flip: bool,
     dims: Vec<Dims>,
 }
 
@@ -97,14 +100,20 @@ impl Operation<Runtime> for ConvOp {
         let inputs = (self.desc.inputs.iter())
             .map(|t| contiguous(handles.get_float_tensor::<Inner>(t)))
             .collect();
-        let out = run(self.pass, &self.dims, inputs);
+        let out = run(self.pass, self.flip, &self.dims, inputs);
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, out);
     }
 }
 
 /// Records the sum of `pass` over `passes` (each its sizes and two inputs, see [`Pass`]) on
-/// the inputs' fusion stream; returns its output.
-fn record(pass: Pass, passes: Vec<(Dims, [FloatTensor<Cuda>; 2])>) -> FloatTensor<Cuda> {
+/// the inputs' fusion stream; returns its output. `flip`: a true convolution (cuDNN's
+/// `CUDNN_CONVOLUTION`, the filter flipped in space) instead of a cross-correlation, for the
+/// passes of [`Transposed`].
+fn record(
+    pass: Pass,
+    flip: bool,
+    passes: Vec<(Dims, [FloatTensor<Cuda>; 2])>,
+) -> FloatTensor<Cuda> {
     let client = passes[0].1[0].client.clone();
     let inputs: Vec<FloatTensor<Cuda>> = passes.iter().flat_map(|(_, t)| t.clone()).collect();
     let streams = OperationStreams::with_inputs(&inputs);
@@ -114,16 +123,20 @@ fn record(pass: Pass, passes: Vec<(Dims, [FloatTensor<Cuda>; 2])>) -> FloatTenso
         pass.out_shape(dims[0]),
         DType::F32,
     );
-    let name = match pass {
-        Pass::Forward => "minflow_cudnn_conv",
-        Pass::Data => "minflow_cudnn_conv_data",
-        Pass::Filter => "minflow_cudnn_conv_filter",
+    let name = match (pass, flip) {
+        (Pass::Forward, false) => "minflow_cudnn_conv",
+        (Pass::Data, false) => "minflow_cudnn_conv_data",
+        (Pass::Filter, false) => "minflow_cudnn_conv_filter",
+        (Pass::Forward, true) => "minflow_cudnn_flipped_conv",
+        (Pass::Data, true) => "minflow_cudnn_flipped_conv_data",
+        (Pass::Filter, true) => "minflow_cudnn_flipped_conv_filter",
     };
     let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
     let desc = CustomOpIr::new(name, &irs, &[out]);
     let op = ConvOp {
         desc: desc.clone(),
         pass,
+        flip,
         dims,
     };
     client
@@ -200,15 +213,55 @@ pub(super) fn conv3x3(
             ([b, h, w, c, ws[0]], [x.clone(), krsc_of_oihw(part)])
         })
         .collect();
-    let y = record(Pass::Forward, passes);
+    let y = record(Pass::Forward, false, passes);
     match bias {
         Some(bias) => add_bias(y, bias.clone()),
         None => y,
     }
 }
 
-/// [`NetOps::im2col_linear`](super::NetOps::im2col_linear) for `k` = 3 through cuDNN: `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` ->
-/// `[B H W, C_out]`.
+/// Whether `MINFLOW_CUDNN_FILTER=permuted` asks for training's convolutions on weights copied
+/// into cuDNN's `KRSC` layout, each pass, instead of the [`Transposed`] passes that read the
+/// matrix in place: to compare the two in one binary (docs/speed.md).
+fn permuted_filter() -> bool {
+    static PERMUTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *PERMUTED.get_or_init(|| std::env::var("MINFLOW_CUDNN_FILTER").is_ok_and(|v| v == "permuted"))
+}
+
+/// Training's three passes on an im2col matrix `[C_in 9, C_out]` read in place, without the
+/// copy into `[C_out, 3, 3, C_in]` a pass that [`krsc_of_matrix`] makes.
+///
+/// The matrix's memory, `[C_in, 3, 3, C_out]`, is the `KRSC` filter of the *transposed*
+/// convolution: `K` = `C_in`, `C` = `C_out`. A convolution's data gradient is the
+/// convolution of `dy` with the filter transposed in its channels and flipped in space
+/// (Dumoulin and Visin 2016, "A guide to convolution arithmetic for deep learning", section
+/// 4), so with cuDNN's true convolution (`CUDNN_CONVOLUTION`, which flips the filter) the
+/// passes swap roles on the transposed sizes `[B, H, W, C_out, C_in]`:
+///
+/// - forward, `y` `[B, H, W, C_out]`: the transposed convolution's data pass, `dy` = `x`;
+/// - data gradient, `dx` `[B, H, W, C_in]`: its forward pass on `x` = `dy`;
+/// - filter gradient, `[C_in, 3, 3, C_out]` (the matrix's layout): its filter pass with
+///   `x` = `dy` and `dy` = `x`.
+///
+/// Same padding (1 on each side) is symmetric, so it carries over unchanged.
+struct Transposed;
+
+impl Transposed {
+    /// `[B, H, W, C_out, C_in]`: the transposed convolution's sizes.
+    fn dims([b, h, w, c_in, c_out]: Dims) -> Dims {
+        [b, h, w, c_out, c_in]
+    }
+
+    /// The matrix `[C_in 9, C_out]` as the transposed convolution's filter `[C_in, 3, 3,
+    /// C_out]` (a view, no copy).
+    fn filter(matrix: FloatTensor<Cuda>, c_in: usize, c_out: usize) -> FloatTensor<Cuda> {
+        <Cuda as FloatTensorOps<Cuda>>::float_reshape(matrix, Shape::new([c_in, 3, 3, c_out]))
+    }
+}
+
+/// [`NetOps::im2col_linear`](super::NetOps::im2col_linear) for `k` = 3 through cuDNN: `x`
+/// `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` -> `[B H W, C_out]`; the
+/// matrix read in place ([`Transposed`]).
 pub(super) fn im2col_linear(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
@@ -216,8 +269,21 @@ pub(super) fn im2col_linear(
 ) -> FloatTensor<Cuda> {
     let [b, h, w, c_in] = dims4::<Cuda>(&x);
     let c_out = matrix.shape()[1];
-    let weight = krsc_of_matrix(matrix, c_in, c_out);
-    let y = record(Pass::Forward, vec![([b, h, w, c_in, c_out], [x, weight])]);
+    let dims = [b, h, w, c_in, c_out];
+    let y = match permuted_filter() {
+        false => {
+            let filter = Transposed::filter(matrix, c_in, c_out);
+            record(
+                Pass::Data,
+                true,
+                vec![(Transposed::dims(dims), [x, filter])],
+            )
+        }
+        true => {
+            let weight = krsc_of_matrix(matrix, c_in, c_out);
+            record(Pass::Forward, false, vec![(dims, [x, weight])])
+        }
+    };
     let y = <Cuda as FloatTensorOps<Cuda>>::float_reshape(y, Shape::new([b * h * w, c_out]));
     match bias {
         Some(bias) => add_bias(y, bias),
@@ -226,8 +292,9 @@ pub(super) fn im2col_linear(
 }
 
 /// [`NetOps::im2col_linear_backward`](super::NetOps::im2col_linear_backward) for `k` = 3
-/// through cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W, C_out]`,
-/// `[dx [B, H, W, C_in], dmatrix [C_in 9, C_out], dbias [C_out]]`, each where `need` says.
+/// through cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W,
+/// C_out]`, `[dx [B, H, W, C_in], dmatrix [C_in 9, C_out], dbias [C_out]]`, each where `need`
+/// says; the matrix read and its gradient written in place ([`Transposed`]).
 pub(super) fn im2col_linear_backward(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
@@ -239,12 +306,32 @@ pub(super) fn im2col_linear_backward(
     let c_out = matrix.shape()[1];
     let dims = [b, h, w, c_in, c_out];
     let dy = <F as FloatTensorOps<F>>::float_reshape(grad.clone(), Shape::new([b, h, w, c_out]));
-    let dx = need[0].then(|| {
-        let weight = krsc_of_matrix(matrix, c_in, c_out);
-        record(Pass::Data, vec![(dims, [dy.clone(), weight])])
+    let permuted = permuted_filter();
+    let dx = need[0].then(|| match permuted {
+        false => {
+            let filter = Transposed::filter(matrix, c_in, c_out);
+            record(
+                Pass::Forward,
+                true,
+                vec![(Transposed::dims(dims), [dy.clone(), filter])],
+            )
+        }
+        true => {
+            let weight = krsc_of_matrix(matrix, c_in, c_out);
+            record(Pass::Data, false, vec![(dims, [dy.clone(), weight])])
+        }
     });
-    let dmatrix =
-        need[1].then(|| matrix_of_krsc(record(Pass::Filter, vec![(dims, [x, dy])]), c_in, c_out));
+    let dmatrix = need[1].then(|| {
+        let dw = match permuted {
+            false => record(Pass::Filter, true, vec![(Transposed::dims(dims), [dy, x])]),
+            true => matrix_of_krsc(
+                record(Pass::Filter, false, vec![(dims, [x, dy])]),
+                c_in,
+                c_out,
+            ),
+        };
+        <F as FloatTensorOps<F>>::float_reshape(dw, Shape::new([c_in * 9, c_out]))
+    });
     let dbias = need[2].then(|| {
         use super::NetOps;
         let split = F::kernels(&F::float_device(&grad)).split_weight_grad;
@@ -279,8 +366,12 @@ struct Dnn {
     handle: sys::cudnnHandle_t,
     stream: driver_sys::CUstream,
     ctx: driver_sys::CUcontext,
-    plans: HashMap<(Pass, Dims, bool), Plan>,
+    plans: HashMap<Key, Plan>,
 }
+
+/// What a [`Plan`] is made for: the pass, the sizes, TF32 math, and whether the filter is
+/// flipped (a true convolution, [`Transposed`]).
+type Key = (Pass, Dims, bool, bool);
 
 // SAFETY: the handle, context and descriptors are plain library handles; every use holds
 // `DNN`'s lock and makes the context current on the calling thread first.
@@ -297,7 +388,7 @@ fn check<T>(what: &str, r: Result<T, dnn::CudnnError>) -> T {
 ///
 /// # Safety
 /// `handle` is a live cuDNN handle with its GPU's context current.
-unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -> Plan {
+unsafe fn plan(handle: sys::cudnnHandle_t, (pass, dims, tf32, flip): Key) -> Plan {
     use sys::cudnnDataType_t::CUDNN_DATA_FLOAT as FLOAT;
     use sys::cudnnTensorFormat_t::CUDNN_TENSOR_NHWC as NHWC;
     let [b, h, w, c_in, c_out] = dims.map(|v| i32::try_from(v).expect("cuDNN size fits i32"));
@@ -317,7 +408,10 @@ unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -
         dnn::set_filter4d_descriptor(wd, FLOAT, NHWC, [c_out, c_in, 3, 3]),
     );
     let conv = check("convolution", dnn::create_convolution_descriptor());
-    let mode = sys::cudnnConvolutionMode_t::CUDNN_CROSS_CORRELATION;
+    let mode = match flip {
+        false => sys::cudnnConvolutionMode_t::CUDNN_CROSS_CORRELATION,
+        true => sys::cudnnConvolutionMode_t::CUDNN_CONVOLUTION,
+    };
     check(
         "convolution",
         dnn::set_convolution2d_descriptor(conv, 1, 1, 1, 1, 1, 1, mode, FLOAT),
@@ -378,7 +472,7 @@ unsafe fn plan(handle: sys::cudnnHandle_t, pass: Pass, dims: Dims, tf32: bool) -
     // The math type the timed algorithm ran with.
     check("math type", dnn::set_convolution_math_type(conv, math));
     tracing::debug!(
-        "cuDNN {pass:?} {dims:?} (tf32 {tf32}): {:?}, {math:?}, {workspace} B workspace, {ms:.3} ms",
+        "cuDNN {pass:?} {dims:?} (tf32 {tf32}, flipped {flip}): {:?}, {math:?}, {workspace} B workspace, {ms:.3} ms",
         match algo {
             Algo::Forward(a) => format!("{a:?}"),
             Algo::Data(a) => format!("{a:?}"),
@@ -417,16 +511,21 @@ fn with_dnn<T>(index: usize, f: impl FnOnce(&mut Dnn) -> T) -> T {
     f(dnn)
 }
 
-/// Runs the sum of `pass` over `dims.len()` passes on the contiguous cubecl tensors `inputs`
-/// (two a pass, see [`Pass`]); returns the new contiguous output. Each shape's plan is made
+/// Runs the sum of `pass` over `dims.len()` passes (with the filter flipped where `flip`
+/// says) on the contiguous cubecl tensors `inputs` (two a pass, see [`Pass`]); returns the new contiguous output. Each shape's plan is made
 /// here on first use (cuDNN times its algorithms then, once per shape); the convolutions
 /// themselves are queued on cubecl's device thread ([`on_device`]), which enqueues them on
 /// cubecl's stream in order with its kernels, so the host does not wait.
-fn run(pass: Pass, dims: &[Dims], inputs: Vec<CubeTensor<CudaRuntime>>) -> CubeTensor<CudaRuntime> {
+fn run(
+    pass: Pass,
+    flip: bool,
+    dims: &[Dims],
+    inputs: Vec<CubeTensor<CudaRuntime>>,
+) -> CubeTensor<CudaRuntime> {
     let (client, device) = (inputs[0].client.clone(), inputs[0].device.clone());
     let index = device.index;
     let tf32 = kernels(index).gemm == GpuGemm::Tf32;
-    let keys: Vec<_> = dims.iter().map(|&d| (pass, d, tf32)).collect();
+    let keys: Vec<Key> = dims.iter().map(|&d| (pass, d, tf32, flip)).collect();
     let empty = |shape: Shape| {
         burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
             client.clone(),
@@ -442,7 +541,7 @@ fn run(pass: Pass, dims: &[Dims], inputs: Vec<CubeTensor<CudaRuntime>>) -> CubeT
             let entry = dnn.plans.entry(key);
             // SAFETY: the handle is alive and its context current (`with_dnn`).
             entry
-                .or_insert_with(|| unsafe { plan(handle, key.0, key.1, key.2) })
+                .or_insert_with(|| unsafe { plan(handle, key) })
                 .workspace
         });
         sizes.max().unwrap_or(0)

@@ -24,8 +24,9 @@
 #                              # training and the 256-scene call with sparse against dense
 #                              # transfers, beside PyTorch's training step
 #   tests/gpu/run.sh cudnn     # the convolutions through cuDNN against im2col and cuBLAS:
-#                              # training beside PyTorch's step, the 256-scene call with its
-#                              # stages, eval's tables within 1e-3
+#                              # training beside PyTorch's step (and cuDNN on weights copied
+#                              # into its layout each pass, the form before), the 256-scene
+#                              # call with its stages, eval's tables within 1e-3
 #
 # Logs go to $OUT (default /tmp/minflow-gpu). A part that fails prints FAIL and the script
 # goes on with the next one; the exit code is the number of failed parts.
@@ -266,6 +267,13 @@ cudnn() { # docs/speed.md: the convolutions through cuDNN against im2col and cuB
     for b in 16 32; do
         # TF32 products round differently in the two forms: agree to 1e-3, not bits.
         agree "grid-conv-$b-agree" "$OUT/grid-conv-cudnn-$b.log" "$OUT/grid-conv-im2col-$b.log" 1e-3
+        # Training's weights copied into cuDNN's layout each pass (the form before the
+        # transposed passes read the matrix in place): the same step, a different algorithm.
+        check "grid-conv-permuted-$b" env MINFLOW_CUDA_CONV=cudnn MINFLOW_CUDNN_FILTER=permuted \
+            "$BIN" bench train --arch grid --device cuda --cores mingru --micro-batch "$b" \
+            --samples $((8 * b)) --epochs 3 --warmup-epochs 1 --stages
+        agree "grid-conv-permuted-$b-agree" "$OUT/grid-conv-cudnn-$b.log" \
+            "$OUT/grid-conv-permuted-$b.log" 1e-3
     done
     for conv in cudnn im2col; do
         check "rollout-256-$conv" env MINFLOW_CUDA_CONV=$conv MINFLOW_CALL_STAGES=1 "$BIN" bench \
