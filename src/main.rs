@@ -14,5 +14,8 @@ fn main() -> std::process::ExitCode {
     let cli: minflow::cli::Cli = minflow::cli::parse();
     minflow::cli::tune_allocator(cli.freed_memory());
     minflow::cli::init_logging(cli.verbose);
-    minflow::cli::exit_code(minflow::cli::run(cli))
+    let profile = minflow::cli::host_profile::HostProfile::start();
+    let outcome = minflow::cli::run(cli);
+    drop(profile);
+    minflow::cli::exit_code(outcome)
 }

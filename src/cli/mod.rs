@@ -17,6 +17,7 @@ pub mod eval;
 mod export;
 mod flags;
 mod foxglove;
+pub mod host_profile;
 mod import;
 mod launch;
 mod node;
