@@ -175,6 +175,8 @@ pub(super) fn unfix_kernel<F: Float>(
     }
     let m = max[0];
     let mut v = F::cast_from(acc[ABSOLUTE_POS]) / fixed_scale::<F>(m, count);
+    // A NaN largest value (the only value unequal to itself) is passed on as NaN.
+    #[allow(clippy::eq_op)]
     if m != m {
         v = m;
     }
