@@ -23,8 +23,8 @@
 //! go to cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout), copied from burn's
 //! `[C_out, C_in, 3, 3]`; training's im2col matrix `[C_in 9, C_out]` is read in place as the
 //! filter of the transposed convolution, and its gradient written in place ([`Transposed`]).
-//! Same padding, stride 1, cross-correlation (burn's and PyTorch's `Conv2d`). The math follows `--gpu-gemm`: TF32
-//! tensor cores for `tf32`, FMA only (full FP32) otherwise. Each algorithm is the fastest of
+//! Same padding, stride 1, cross-correlation (burn's and PyTorch's `Conv2d`). The math
+//! follows `--gpu-gemm`: TF32 tensor cores for `tf32`, FMA only (full FP32) otherwise. Each algorithm is the fastest of
 //! those cuDNN times on the shape, once per shape (`cudnnFindConvolution*Algorithm`, as
 //! PyTorch's `cudnn.benchmark`), the gradients' restricted to deterministic ones, so a
 //! training step gives the same bits on every run, as the fixed-point P2G does.
