@@ -24,10 +24,12 @@
 //! `[C_out, C_in, 3, 3]`; training's im2col matrix `[C_in 9, C_out]` is read in place as the
 //! filter of the transposed convolution, and its gradient written in place ([`Transposed`]).
 //! Same padding, stride 1, cross-correlation (burn's and PyTorch's `Conv2d`). The math
-//! follows `--gpu-gemm`: TF32 tensor cores for `tf32`, FMA only (full FP32) otherwise. Each algorithm is the fastest of
-//! those cuDNN times on the shape, once per shape (`cudnnFindConvolution*Algorithm`, as
-//! PyTorch's `cudnn.benchmark`), the gradients' restricted to deterministic ones, so a
-//! training step gives the same bits on every run, as the fixed-point P2G does.
+//! follows `--gpu-gemm`: TF32 tensor cores for `tf32`, FMA only (full FP32) otherwise. Each
+//! algorithm is the fastest of those cuDNN times on the shape, once per shape
+//! (`cudnnFindConvolution*Algorithm`, as PyTorch's `cudnn.benchmark`), the gradients'
+//! restricted to deterministic ones, so a training step gives the same bits on every run
+//! with the same algorithms, as the fixed-point P2G does (two runs may time differently and
+//! pick others, which round differently).
 //!
 //! How a custom operation joins the fusion stream, and why no host wait is needed: see
 //! `cublas.rs`; the cuDNN handle is bound to the same cubecl stream in the same way, and its
@@ -512,9 +514,9 @@ fn with_dnn<T>(index: usize, f: impl FnOnce(&mut Dnn) -> T) -> T {
 }
 
 /// Runs the sum of `pass` over `dims.len()` passes (with the filter flipped where `flip`
-/// says) on the contiguous cubecl tensors `inputs` (two a pass, see [`Pass`]); returns the new contiguous output. Each shape's plan is made
-/// here on first use (cuDNN times its algorithms then, once per shape); the convolutions
-/// themselves are queued on cubecl's device thread ([`on_device`]), which enqueues them on
+/// says) on the contiguous cubecl tensors `inputs` (two a pass, see [`Pass`]); returns the
+/// new contiguous output. Each shape's plan is made here on first use (cuDNN times its
+/// algorithms then, once per shape); the convolutions themselves are queued on cubecl's device thread ([`on_device`]), which enqueues them on
 /// cubecl's stream in order with its kernels, so the host does not wait.
 fn run(
     pass: Pass,
