@@ -516,8 +516,9 @@ fn with_dnn<T>(index: usize, f: impl FnOnce(&mut Dnn) -> T) -> T {
 /// Runs the sum of `pass` over `dims.len()` passes (with the filter flipped where `flip`
 /// says) on the contiguous cubecl tensors `inputs` (two a pass, see [`Pass`]); returns the
 /// new contiguous output. Each shape's plan is made here on first use (cuDNN times its
-/// algorithms then, once per shape); the convolutions themselves are queued on cubecl's device thread ([`on_device`]), which enqueues them on
-/// cubecl's stream in order with its kernels, so the host does not wait.
+/// algorithms then, once per shape); the convolutions themselves are queued on cubecl's
+/// device thread ([`on_device`]), which enqueues them on cubecl's stream in order with its
+/// kernels, so the host does not wait.
 fn run(
     pass: Pass,
     flip: bool,
