@@ -1,7 +1,8 @@
-//! A batch of training windows on the device for the grid architecture's loss
-//! ([`upload_batch`]): the frames as physical values (mirrored where drawn so), the material
-//! one-hot, the time steps, the reference positions and the neighbourhoods the model and the
-//! structure terms need ([`BatchTensors`]). Read by `rollout_loss.rs`.
+//! A batch of training windows on the device for the grid architecture's loss: the frames
+//! as physical values (mirrored where drawn so), the material one-hot, the time steps, the
+//! reference positions and the neighbourhoods the model and the structure terms need
+//! ([`BatchTensors`]). Prepared on the host by [`prepare_batch`] (the trainer's prefetch
+//! thread), then uploaded ([`HostBatch::upload`]). Read by `rollout_loss.rs`.
 
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
@@ -52,15 +53,40 @@ pub(super) struct Needs {
     pub materials: usize,
 }
 
+/// A batch of windows prepared on the host, ready to upload ([`HostBatch::upload`]): the
+/// frames packed and mirrored, the neighbourhoods built. Made by [`prepare_batch`], on the
+/// trainer's prefetch thread while the previous batch's step runs (`train_epoch`).
+pub(super) struct HostBatch {
+    /// `[B, S, N, 4]` frames, the target last, physical units.
+    frames: Vec<f32>,
+    /// B, the window's input frames T, and N.
+    dims: [usize; 3],
+    /// The model's material one-hot width.
+    materials: usize,
+    /// The solids' rest neighbourhoods and the liquid's, with their counts (see
+    /// [`BatchTensors`]).
+    rest: Option<(Neighbourhood, f32)>,
+    liquid: Option<(Neighbourhood, f32)>,
+    /// First positions, materials and frame spacings.
+    host: HostRows,
+}
+
 /// The tensors of a batch of windows built with the identity scaler (inputs then hold
 /// physical values); the windows `w` with `mirror[w]` are mirrored ([`mirror_rows`]);
-/// `needs` says which neighbourhoods to build and the model's one-hot width.
+/// `needs` says which neighbourhoods to build and the model's one-hot width. [`prepare_batch`]
+/// then [`HostBatch::upload`].
+#[cfg(test)]
 pub(super) fn upload_batch<B: Backend>(
     batch: Batch,
     mirror: &[bool],
     needs: Needs,
     device: &B::Device,
 ) -> BatchTensors<B> {
+    prepare_batch(batch, mirror, needs).upload(device)
+}
+
+/// The host's part of [`upload_batch`]: frames packed and mirrored, neighbourhoods built.
+pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> HostBatch {
     let (b, t, n) = (batch.b, batch.t, batch.n);
     let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
     let mut first_pos = batch.first_pos;
@@ -78,11 +104,10 @@ pub(super) fn upload_batch<B: Backend>(
             mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
         }
     }
-    let with_count = |nb: Neighbourhood, count: f32| (nb.upload(device), count.max(1.0));
     let rest = needs.rest.then(|| {
         let nb = Neighbourhood::build(&first_pos, &batch.material, [b, n], |m| m != 0);
         let pairs = nb.weight.iter().sum::<f32>();
-        with_count(nb, pairs)
+        (nb, pairs.max(1.0))
     });
     let liquid = needs.liquid_at.map(|k| {
         let pos: Vec<f32> = (0..b)
@@ -96,13 +121,12 @@ pub(super) fn upload_batch<B: Backend>(
             .collect();
         let nb = Neighbourhood::build(&pos, &batch.material, [b, n], |m| m == 0);
         let particles = nb.inv_d0.iter().filter(|&&v| v > 0.0).count() as f32;
-        with_count(nb, particles)
+        (nb, particles.max(1.0))
     });
-    BatchTensors {
-        frames: upload(frames, [b, t + 1, n, 4], device),
-        material: one_hot(&batch.material, needs.materials, b, n, device),
-        dt: upload(batch.dt.clone(), [b], device),
-        first_pos: upload(first_pos.clone(), [b, n, 2], device),
+    HostBatch {
+        frames,
+        dims: [b, t, n],
+        materials: needs.materials,
         rest,
         liquid,
         host: HostRows {
@@ -110,6 +134,28 @@ pub(super) fn upload_batch<B: Backend>(
             material: batch.material,
             dt: batch.dt,
         },
+    }
+}
+
+impl HostBatch {
+    /// The batch's windows, B.
+    pub(super) fn b(&self) -> usize {
+        self.dims[0]
+    }
+
+    /// The batch on `device` (see [`BatchTensors`]).
+    pub(super) fn upload<B: Backend>(self, device: &B::Device) -> BatchTensors<B> {
+        let [b, t, n] = self.dims;
+        let host = self.host;
+        BatchTensors {
+            frames: upload(self.frames, [b, t + 1, n, 4], device),
+            material: one_hot(&host.material, self.materials, b, n, device),
+            dt: upload(host.dt.clone(), [b], device),
+            first_pos: upload(host.first_pos.clone(), [b, n, 2], device),
+            rest: self.rest.map(|(nb, count)| (nb.upload(device), count)),
+            liquid: self.liquid.map(|(nb, count)| (nb.upload(device), count)),
+            host,
+        }
     }
 }
 

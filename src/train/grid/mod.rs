@@ -58,7 +58,7 @@ use crate::data::{Scaler, Trajectory};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use batch::{upload_batch, Needs};
+use batch::{prepare_batch, Needs};
 use rollout_loss::Rollout;
 use schedule::RunClock;
 
@@ -339,45 +339,85 @@ where
         let mut pass = EpochPass::default();
         let mut flips =
             ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
+        let needs = Needs {
+            rest: self.config.rest_shape || opts.strain_weight > 0.0,
+            liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
+            materials: self.config.materials,
+        };
+        let mirror_on = opts.mirror;
         let mut fetch = Instant::now();
         let batches = train.batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)?;
-        for (k, batch) in batches.take(clock.batches).enumerate() {
-            let batch = batch?;
-            let b = batch.b;
-            let mirror: Vec<bool> = (0..b)
-                .map(|_| opts.mirror && flips.random_bool(0.5))
-                .collect();
-            let needs = Needs {
-                rest: self.config.rest_shape || opts.strain_weight > 0.0,
-                liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
-                materials: self.config.materials,
-            };
-            let tensors = upload_batch::<B>(batch, &mirror, needs, &self.device);
-            pass.data_seconds += fetch.elapsed().as_secs_f64();
-            let lr = learning_rate(opts, clock.progress(opts, epoch, k));
-            let mut rollout = Rollout::new(&self.config, opts, tensors);
-            rollout.pushforward(&model);
-            let mut value = 0.0;
-            for chunk in 0..opts.chunks() {
-                if chunk > 0 {
-                    rollout.detach();
+        let batches = batches.take(clock.batches);
+        // The next batch is read, packed and its neighbourhoods built on a thread of its own
+        // while this one's step runs: the step reads the loss back at its end, and whatever
+        // the host does between steps the GPU, and burn's fusion and launch threads, wait
+        // for (docs/speed.md, "Where a training step's host time goes").
+        // `MINFLOW_TRAIN_PREFETCH=off` has the thread prepare each batch only when the loop
+        // asks for it, as the loop did itself before, to compare the two in one binary.
+        let prefetch = prefetch_batches();
+        let model = std::thread::scope(|scope| {
+            let (ready, prepared) = std::sync::mpsc::sync_channel(1);
+            let (ask, asked) = std::sync::mpsc::channel::<()>();
+            scope.spawn(move || {
+                for batch in batches {
+                    if !prefetch && asked.recv().is_err() {
+                        return;
+                    }
+                    let host = batch.map(|batch| {
+                        let mirror: Vec<bool> = (0..batch.b)
+                            .map(|_| mirror_on && flips.random_bool(0.5))
+                            .collect();
+                        prepare_batch(batch, &mirror, needs)
+                    });
+                    if ready.send(host).is_err() {
+                        return;
+                    }
                 }
-                let loss = rollout.chunk_loss(&model);
-                let grads = GradientsParams::from_grads(loss.backward(), &model);
-                model = optim.step(lr, model, grads);
-                let waited = Instant::now();
-                value += loss.into_scalar().elem::<f64>() / opts.chunks() as f64;
-                pass.wait_seconds += waited.elapsed().as_secs_f64();
+            });
+            for k in 0.. {
+                if !prefetch {
+                    let _ = ask.send(());
+                }
+                let Ok(host) = prepared.recv() else {
+                    break;
+                };
+                let host = host?;
+                let b = host.b();
+                let tensors = host.upload::<B>(&self.device);
+                pass.data_seconds += fetch.elapsed().as_secs_f64();
+                let lr = learning_rate(opts, clock.progress(opts, epoch, k));
+                let mut rollout = Rollout::new(&self.config, opts, tensors);
+                rollout.pushforward(&model);
+                let mut value = 0.0;
+                for chunk in 0..opts.chunks() {
+                    if chunk > 0 {
+                        rollout.detach();
+                    }
+                    let loss = rollout.chunk_loss(&model);
+                    let grads = GradientsParams::from_grads(loss.backward(), &model);
+                    model = optim.step(lr, model, grads);
+                    let waited = Instant::now();
+                    value += loss.into_scalar().elem::<f64>() / opts.chunks() as f64;
+                    pass.wait_seconds += waited.elapsed().as_secs_f64();
+                }
+                pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
+                if clock.out_of_time(opts) {
+                    pass.out_of_time = true;
+                    break;
+                }
+                fetch = Instant::now();
             }
-            pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
-            if clock.out_of_time(opts) {
-                pass.out_of_time = true;
-                break;
-            }
-            fetch = Instant::now();
-        }
+            Ok::<_, TrainError>(model)
+        })?;
         Ok((model, pass))
     }
+}
+
+/// Whether the trainer prepares the next batch while a step runs (see `train_epoch`):
+/// unless `MINFLOW_TRAIN_PREFETCH=off`.
+fn prefetch_batches() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("MINFLOW_TRAIN_PREFETCH").map_or(true, |v| v != "off"))
 }
 
 /// Adam over a grid model, as [`GridTrainer`] builds it: one fused step per parameter
