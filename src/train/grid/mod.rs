@@ -54,11 +54,11 @@ use super::epochs::{run_epochs, EpochPass, EpochRun};
 use super::optimizer::FusedAdam;
 use super::source::BatchSource;
 use super::{EpochRecord, Observer, TrainError};
-use crate::data::{Scaler, Trajectory};
+use crate::data::{Batch, DataError, Scaler, Trajectory};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use batch::{prepare_batch, Needs};
+use batch::{prepare_batch, HostBatch, Needs};
 use rollout_loss::Rollout;
 use schedule::RunClock;
 
@@ -337,50 +337,18 @@ where
         );
         let started = Instant::now();
         let mut pass = EpochPass::default();
-        let mut flips =
-            ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
+        let flips = ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
         let needs = Needs {
             rest: self.config.rest_shape || opts.strain_weight > 0.0,
             liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
             materials: self.config.materials,
         };
-        let mirror_on = opts.mirror;
         let mut fetch = Instant::now();
         let batches = train.batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)?;
         let batches = batches.take(clock.batches);
-        // The next batch is read, packed and its neighbourhoods built on a thread of its own
-        // while this one's step runs: the step reads the loss back at its end, and whatever
-        // the host does between steps the GPU, and burn's fusion and launch threads, wait
-        // for (docs/speed.md, "Where a training step's host time goes").
-        // `MINFLOW_TRAIN_PREFETCH=off` has the thread prepare each batch only when the loop
-        // asks for it, as the loop did itself before, to compare the two in one binary.
-        let prefetch = prefetch_batches();
         let model = std::thread::scope(|scope| {
-            let (ready, prepared) = std::sync::mpsc::sync_channel(1);
-            let (ask, asked) = std::sync::mpsc::channel::<()>();
-            scope.spawn(move || {
-                for batch in batches {
-                    if !prefetch && asked.recv().is_err() {
-                        return;
-                    }
-                    let host = batch.map(|batch| {
-                        let mirror: Vec<bool> = (0..batch.b)
-                            .map(|_| mirror_on && flips.random_bool(0.5))
-                            .collect();
-                        prepare_batch(batch, &mirror, needs)
-                    });
-                    if ready.send(host).is_err() {
-                        return;
-                    }
-                }
-            });
-            for k in 0.. {
-                if !prefetch {
-                    let _ = ask.send(());
-                }
-                let Ok(host) = prepared.recv() else {
-                    break;
-                };
+            let feed = BatchFeed::start(scope, batches, flips, opts.mirror, needs);
+            for (k, host) in std::iter::from_fn(|| feed.next()).enumerate() {
                 let host = host?;
                 let b = host.b();
                 let tensors = host.upload::<B>(&self.device);
@@ -413,11 +381,69 @@ where
     }
 }
 
-/// Whether the trainer prepares the next batch while a step runs (see `train_epoch`):
-/// unless `MINFLOW_TRAIN_PREFETCH=off`.
-fn prefetch_batches() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *ON.get_or_init(|| std::env::var("MINFLOW_TRAIN_PREFETCH").map_or(true, |v| v != "off"))
+/// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
+/// packed, mirrored where `flips` draws so, neighbourhoods built) one batch ahead of the
+/// step that uses them. Each step reads its loss back at its end, so whatever the host did
+/// between two steps, the GPU and burn's fusion and launch threads waited for (docs/speed.md,
+/// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
+/// prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did itself
+/// before, to compare the two in one binary. The thread ends when the feed is dropped.
+struct BatchFeed {
+    /// Whether the thread works a batch ahead.
+    ahead: bool,
+    /// Without `ahead`: one message a batch asked for.
+    ask: std::sync::mpsc::Sender<()>,
+    prepared: std::sync::mpsc::Receiver<Result<HostBatch, DataError>>,
+}
+
+impl BatchFeed {
+    /// Starts the thread in `scope` over `batches`; `mirror` draws a window's mirroring
+    /// from `flips` (in batch order, as the loop drew them).
+    fn start<'scope, I>(
+        scope: &'scope std::thread::Scope<'scope, '_>,
+        batches: I,
+        mut flips: ChaCha8Rng,
+        mirror: bool,
+        needs: Needs,
+    ) -> Self
+    where
+        I: Iterator<Item = Result<Batch, DataError>> + Send + 'scope,
+    {
+        static AHEAD: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        let ahead = *AHEAD
+            .get_or_init(|| std::env::var("MINFLOW_TRAIN_PREFETCH").map_or(true, |v| v != "off"));
+        let (ready, prepared) = std::sync::mpsc::sync_channel(1);
+        let (ask, asked) = std::sync::mpsc::channel::<()>();
+        scope.spawn(move || {
+            for batch in batches {
+                if !ahead && asked.recv().is_err() {
+                    return;
+                }
+                let host = batch.map(|batch| {
+                    let flips: Vec<bool> = (0..batch.b)
+                        .map(|_| mirror && flips.random_bool(0.5))
+                        .collect();
+                    prepare_batch(batch, &flips, needs)
+                });
+                if ready.send(host).is_err() {
+                    return;
+                }
+            }
+        });
+        Self {
+            ahead,
+            ask,
+            prepared,
+        }
+    }
+
+    /// The next batch; None after the last.
+    fn next(&self) -> Option<Result<HostBatch, DataError>> {
+        if !self.ahead {
+            let _ = self.ask.send(());
+        }
+        self.prepared.recv().ok()
+    }
 }
 
 /// Adam over a grid model, as [`GridTrainer`] builds it: one fused step per parameter
