@@ -14,8 +14,9 @@ fn main() -> std::process::ExitCode {
     let cli: minflow::cli::Cli = minflow::cli::parse();
     minflow::cli::tune_allocator(cli.freed_memory());
     minflow::cli::init_logging(cli.verbose);
-    let profile = minflow::cli::host_profile::HostProfile::start();
-    let outcome = minflow::cli::run(cli);
-    drop(profile);
+    let outcome = {
+        let _profile = minflow::cli::host_profile::HostProfile::start();
+        minflow::cli::run(cli)
+    };
     minflow::cli::exit_code(outcome)
 }

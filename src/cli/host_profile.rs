@@ -1,9 +1,13 @@
 //! `MINFLOW_HOST_PROFILE=FILE` (feature `host-profile`): a sampling profile of every thread
 //! of the process, for the GPU machines, which have no `perf`. pprof-rs samples on SIGPROF
-//! (process CPU time, so a thread is sampled in proportion to the CPU it uses, spinning
-//! included) at 999 Hz; [`HostProfile`]'s drop writes the samples as folded stacks, one line
-//! `thread;root;...;leaf COUNT` a distinct stack (Brendan Gregg's `stackcollapse` format,
-//! which flame-graph tools read). `%p` in `FILE` becomes the process id, as in
+//! (process CPU time, so a thread is sampled in proportion to the CPU it uses, spinning in
+//! our code and our dependencies' included) at 999 Hz. Samples whose innermost frame lies in
+//! libc, libgcc, libpthread or the vdso are dropped (pprof-rs's advice: unwinding from there
+//! can deadlock), so time in `memcpy`, `sched_yield` or `clock_gettime` is not counted; the
+//! libraries loaded later (libcuda, cuDNN, cuBLAS) are not matched by that list.
+//! [`HostProfile`]'s drop writes the samples as folded stacks, one line `thread;root;...;leaf
+//! COUNT` a distinct stack (Brendan Gregg's `stackcollapse` format, which flame-graph tools
+//! read). `%p` in `FILE` becomes the process id, as in
 //! `LLVM_PROFILE_FILE`, so that the processes `bench node` and `launch` start (which inherit
 //! the variable) write a file each. Without the feature, or the variable, nothing runs.
 
@@ -52,7 +56,7 @@ impl Drop for HostProfile {
         };
         let mut folded = String::new();
         for (frames, count) in &report.data {
-            let mut line = frames.thread_name.replace([';', ' '], "_");
+            let mut line = frames.thread_name_or_id().replace([';', ' '], "_");
             // pprof-rs keeps each address's symbols innermost first, the leaf first.
             for symbols in frames.frames.iter().rev() {
                 for symbol in symbols.iter().rev() {

@@ -42,7 +42,7 @@ pub(super) struct HostRows {
     pub(super) dt: Vec<f32>,
 }
 
-/// Which neighbourhoods [`upload_batch`] builds.
+/// Which neighbourhoods [`prepare_batch`] builds.
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Needs {
     /// The solids' rest neighbourhoods (rest-shape features, strain loss).
@@ -85,7 +85,8 @@ pub(super) fn upload_batch<B: Backend>(
     prepare_batch(batch, mirror, needs).upload(device)
 }
 
-/// The host's part of [`upload_batch`]: frames packed and mirrored, neighbourhoods built.
+/// The host's part of a batch's tensors: the frames packed and mirrored (the windows `w`
+/// with `mirror[w]`, [`mirror_rows`]), the neighbourhoods `needs` asks for built.
 pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> HostBatch {
     let (b, t, n) = (batch.b, batch.t, batch.n);
     let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);

@@ -383,11 +383,12 @@ where
 
 /// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
 /// packed, mirrored where `flips` draws so, neighbourhoods built) one batch ahead of the
-/// step that uses them. Each step reads its loss back at its end, so whatever the host did
+/// step that uses them (the thread holds the one it prepared until it is taken). Each step reads its loss back at its end, so whatever the host did
 /// between two steps, the GPU and burn's fusion and launch threads waited for (docs/speed.md,
 /// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
-/// prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did itself
-/// before, to compare the two in one binary. The thread ends when the feed is dropped.
+/// read and prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did
+/// itself before, to compare the two in one binary. The thread ends when the feed is
+/// dropped, after the last batch, or after a batch that could not be read.
 struct BatchFeed {
     /// Whether the thread works a batch ahead.
     ahead: bool,
@@ -412,20 +413,27 @@ impl BatchFeed {
         static AHEAD: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
         let ahead = *AHEAD
             .get_or_init(|| std::env::var("MINFLOW_TRAIN_PREFETCH").map_or(true, |v| v != "off"));
-        let (ready, prepared) = std::sync::mpsc::sync_channel(1);
+        // A rendezvous: the thread holds at most the one batch it prepared.
+        let (ready, prepared) = std::sync::mpsc::sync_channel(0);
         let (ask, asked) = std::sync::mpsc::channel::<()>();
         scope.spawn(move || {
-            for batch in batches {
+            let mut batches = batches;
+            loop {
                 if !ahead && asked.recv().is_err() {
                     return;
                 }
+                let Some(batch) = batches.next() else {
+                    return;
+                };
+                let failed = batch.is_err();
                 let host = batch.map(|batch| {
                     let flips: Vec<bool> = (0..batch.b)
                         .map(|_| mirror && flips.random_bool(0.5))
                         .collect();
                     prepare_batch(batch, &flips, needs)
                 });
-                if ready.send(host).is_err() {
+                // After an error the epoch ends: nothing more is read.
+                if ready.send(host).is_err() || failed {
                     return;
                 }
             }
