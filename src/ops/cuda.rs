@@ -15,7 +15,8 @@ use super::NetOps;
 
 /// Whether the environment variable `var` is `value`, read once into `cell`: the switches
 /// that pick another form of a CUDA operation, to compare two forms in one binary
-/// (`MINFLOW_CUDA_TRANSFERS`, `MINFLOW_CUDA_ADAM`, `MINFLOW_CUDA_CONV`; docs/cuda.md).
+/// (`MINFLOW_CUDA_TRANSFERS`, `MINFLOW_CUDA_ADAM`, `MINFLOW_CUDA_MINRNN`,
+/// `MINFLOW_CUDNN_FILTER`; docs/cuda.md).
 pub(super) fn env_is(cell: &'static OnceLock<bool>, var: &str, value: &str) -> bool {
     *cell.get_or_init(|| std::env::var(var).is_ok_and(|v| v == value))
 }

@@ -227,7 +227,7 @@ pub(super) fn conv3x3(
 /// matrix in place: to compare the two in one binary (docs/speed.md).
 fn permuted_filter() -> bool {
     static PERMUTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *PERMUTED.get_or_init(|| std::env::var("MINFLOW_CUDNN_FILTER").is_ok_and(|v| v == "permuted"))
+    super::cuda::env_is(&PERMUTED, "MINFLOW_CUDNN_FILTER", "permuted")
 }
 
 /// Training's three passes on an im2col matrix `[C_in 9, C_out]` read in place, without the
