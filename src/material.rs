@@ -5,7 +5,7 @@
 //! RViz `PointCloud2`, `record --points` and `eval`'s renders (liquid blue, jelly red, snow
 //! white, rope orange). The constitutive update of each material lives in
 //! [`crate::sim::material`], a grid model's one-hot width in its `model.json`
-//! (`GridConfig::materials`). Adding a material: `docs/guide.md`, "Adding a material".
+//! (`GridConfig::materials`). Adding a material: `docs/mpm.md`, "Adding a material".
 //!
 //! The lowest module of the crate (it uses nothing of it), so `msgs`, `sim`, `eval` and `viz`
 //! all depend on it instead of on each other.

@@ -33,7 +33,7 @@ pub struct SimulateArgs {
     /// Seed of the scene generator; the same (family, id, seed) gives the same bag.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// TOML scene file(s) to run instead of a family (format: README, "Scene files").
+    /// TOML scene file(s) to run instead of a family (format: docs/mpm.md, "Scene files").
     #[arg(long, conflicts_with_all = ["scenes"])]
     scene_file: Vec<PathBuf>,
     /// Shorten every scene to at most N frames (frame 0 included).

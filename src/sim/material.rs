@@ -14,7 +14,7 @@ pub use crate::material::Material;
 use serde::{Deserialize, Serialize};
 
 // `project`, `hardening` and `kirchhoff_stress` below match on the four ids; a new material
-// needs its arms there first (docs/guide.md, "Adding a material").
+// needs its arms there first (docs/mpm.md, "Adding a material").
 const _: () = assert!(
     crate::material::COUNT == 4,
     "give the new material its constitutive update here"
