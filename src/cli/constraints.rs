@@ -123,6 +123,23 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
                 .join(", ")
         );
     }
+    if let Some(p) = fitted.pressure {
+        println!(
+            "- pressure: compressed above a volume fraction of {:.2}{} (the truth's own frames \
+             move, spacings per frame: {})",
+            p.rest,
+            match measured.pressure_met {
+                true => "",
+                false => " (NOT MET: no threshold tried moves the truth less than 0.02)",
+            },
+            measured
+                .pressure_moves
+                .iter()
+                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
     if let Some(w) = fitted.walls {
         println!("- walls: [{:.5}, {:.5}]", w.lo, w.hi);
     }

@@ -7,6 +7,8 @@
 //!   frames moves the liquid less than [`TRUTH_MOVE`] spacings a frame on average, so the
 //!   constraint acts on a surrogate's compression and not on the solver's (the largest when
 //!   none does: [`FitReport::liquid_met`] says which);
+//! - liquid pressure `rest`: likewise, the least of [`PRESSURE_CANDIDATES`] (volume
+//!   fractions) that leaves the truth in place;
 //! - walls: the smallest and largest coordinate any training particle takes.
 //!
 //! Shape matching's stiffness, linear share and plasticity, the kernel radius and the
@@ -29,6 +31,10 @@ pub const TRUTH_MOVE: f64 = 0.02;
 pub const REST_CANDIDATES: [f32; 16] = [
     1.0, 1.05, 1.1, 1.15, 1.2, 1.25, 1.3, 1.4, 1.5, 1.6, 1.8, 2.0, 2.5, 3.0, 3.5, 4.0,
 ];
+/// Volume fractions tried as the pressure projection's compressed threshold, in order.
+pub const PRESSURE_CANDIDATES: [f32; 13] = [
+    1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6, 1.8, 2.0, 2.5, 3.0, 3.5, 4.0,
+];
 /// Truth frames per scene the liquid's rest density is tried on (evenly spaced).
 const LIQUID_FRAMES: usize = 24;
 
@@ -45,6 +51,10 @@ pub struct FitReport {
     pub liquid_frames: usize,
     /// Whether a candidate met [`TRUTH_MOVE`] (else the last, the loosest, was kept).
     pub liquid_met: bool,
+    /// Per pressure threshold tried: the truth's mean move, spacings per frame.
+    pub pressure_moves: Vec<(f32, f64)>,
+    /// Whether a pressure threshold met [`TRUTH_MOVE`].
+    pub pressure_met: bool,
 }
 
 /// `base` with its rope stretch, liquid rest density and walls fitted to `trajs` (the
@@ -72,24 +82,51 @@ pub fn fit(trajs: &[Trajectory], base: &Constraints) -> (Constraints, FitReport)
         }
     }
     if let Some(p) = out.liquid {
-        let liquid = Constraints {
+        let only = Constraints {
             liquid: Some(p),
             ..Default::default()
         };
-        for rest in REST_CANDIDATES {
-            let mut c = liquid.clone();
-            c.liquid.as_mut().unwrap().rest = rest;
-            let (moved, frames) = truth_moves(trajs, &c);
-            report.liquid_frames = frames;
-            report.liquid_moves.push((rest, moved));
-            out.liquid.as_mut().unwrap().rest = rest;
-            if moved < TRUTH_MOVE {
-                report.liquid_met = true;
-                break;
-            }
-        }
+        let set = |c: &mut Constraints, rest| c.liquid.as_mut().unwrap().rest = rest;
+        let (rest, moves, frames, met) = fit_rest(trajs, only, set, &REST_CANDIDATES);
+        out.liquid.as_mut().unwrap().rest = rest;
+        (report.liquid_moves, report.liquid_frames, report.liquid_met) = (moves, frames, met);
+    }
+    if let Some(p) = out.pressure {
+        let only = Constraints {
+            pressure: Some(p),
+            walls: out.walls,
+            ..Default::default()
+        };
+        let set = |c: &mut Constraints, rest| c.pressure.as_mut().unwrap().rest = rest;
+        let (rest, moves, _, met) = fit_rest(trajs, only, set, &PRESSURE_CANDIDATES);
+        out.pressure.as_mut().unwrap().rest = rest;
+        (report.pressure_moves, report.pressure_met) = (moves, met);
     }
     (out, report)
+}
+
+/// The first of `candidates` (set into `only` by `set`) at which projecting the truth moves
+/// its liquid less than [`TRUTH_MOVE`] spacings a frame (else the last): the rest value,
+/// each candidate's move, the frames measured and whether one met it.
+fn fit_rest(
+    trajs: &[Trajectory],
+    mut only: Constraints,
+    set: impl Fn(&mut Constraints, f32),
+    candidates: &[f32],
+) -> (f32, Vec<(f32, f64)>, usize, bool) {
+    let (mut moves, mut frames) = (Vec::new(), 0);
+    let mut rest = candidates[0];
+    for &r in candidates {
+        set(&mut only, r);
+        let (moved, n) = truth_moves(trajs, &only);
+        frames = n;
+        moves.push((r, moved));
+        rest = r;
+        if moved < TRUTH_MOVE {
+            return (rest, moves, frames, true);
+        }
+    }
+    (rest, moves, frames, false)
 }
 
 /// Every link stretch of the truth's ropes, every frame (chains of each scene's frame 0).

@@ -15,6 +15,9 @@
 //!   Müller 2013, "Position Based Fluids"), the density measured on a grid as MPM does
 //!   (Kugelstadt et al. 2019), its rest density fitted so that it leaves the truth's frames
 //!   in place;
+//! - liquid pressure ([`pressure`]): the liquid's velocities and volume fraction on a grid,
+//!   and a unilateral pressure solve that removes its compression and its compressing
+//!   velocity, as FLIP and MPM liquids stay incompressible (after the density part);
 //! - the box walls: positions clamped into the range the solver's particles stay in;
 //! - contact ([`contact`]): shape-matched bodies pushed apart where they overlap, each as a
 //!   rigid translation, before their shape matching;
@@ -38,13 +41,19 @@ mod density;
 pub mod fit;
 mod index;
 mod momentum;
+mod params;
+mod parts;
+mod pressure;
 mod rebound;
 mod rope;
 mod shape;
 
 pub use fit::{fit, FitReport};
-
-use serde::{Deserialize, Serialize};
+pub use params::{
+    Constraints, ContactParams, DensityParams, MomentumParams, PressureParams, ReboundParams,
+    RopeParams, ShapeParams, WallParams,
+};
+pub use parts::Parts;
 
 use crate::material::{Material, COUNT};
 
@@ -65,342 +74,6 @@ pub fn pieces(frame: &[f32], stride: usize, material: &[u8]) -> Vec<(u8, Vec<u32
         );
     }
     out
-}
-
-/// The constraint parameters of a model, per material (`"constraints"` in `model.json`). A
-/// part that is `None` is never applied.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Constraints {
-    /// Rope: chain and long-range distance limits.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rope: Option<RopeParams>,
-    /// Jelly: shape matching.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub jelly: Option<ShapeParams>,
-    /// Snow: shape matching with a yielding rest shape.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub snow: Option<ShapeParams>,
-    /// Liquid: the unilateral density constraint.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub liquid: Option<DensityParams>,
-    /// The box walls.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub walls: Option<WallParams>,
-    /// Contact between shape-matched bodies (none in models saved before it existed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub contact: Option<ContactParams>,
-    /// Momentum of free clusters (none in models saved before it existed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub momentum: Option<MomentumParams>,
-    /// Rebound of jelly bodies (none in models saved before it existed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rebound: Option<ReboundParams>,
-}
-
-/// Rebound parameters ([`rebound`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ReboundParams {
-    /// Least share of the approach speed a jelly body leaves a contact with (the most is 1).
-    /// The solver's jelly leaves at 0.61 (two disks closing at 2 domain units per time
-    /// unit) to 0.87 (closing at 6) of it, and a floor at 0.83-0.95.
-    pub restitution: f32,
-    /// Two bodies are in contact while particles of both are this close (domain units).
-    pub reach: f32,
-    /// A body is in contact with a wall while a particle of it is this close (domain units).
-    pub clearance: f32,
-    /// The gap (to the wall, or between the bodies' nearest particles) beyond which a
-    /// contact's rebound is enforced (domain units, below `reach` and `clearance`).
-    pub release: f32,
-    /// Approach speeds below this are resting contact, never bounced (domain units per time
-    /// unit).
-    pub resting: f32,
-    /// Gravity (domain units per time unit squared): a body leaving a wall across gravity
-    /// slows by `g dt` a frame.
-    pub gravity: [f32; 2],
-}
-
-impl ReboundParams {
-    /// Restitution 0.5 (under the solver's least, 0.61), the momentum part's reach (0.07) and
-    /// clearance (0.08), released at 0.05 (3 cells of the 64 x 64 grid), resting below 0.5
-    /// (about three frames of gravity), gravity `(0, -9.8)`.
-    pub const DEFAULT: ReboundParams = ReboundParams {
-        restitution: 0.5,
-        reach: 0.07,
-        clearance: 0.08,
-        release: 0.05,
-        resting: 0.5,
-        gravity: [0.0, -9.8],
-    };
-}
-
-/// Momentum parameters ([`momentum`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MomentumParams {
-    /// Particles this close in the frame before or the predicted one share a cluster (domain
-    /// units): two particles share a grid node of the 64 x 64 grid up to `3 sqrt(2) dx`
-    /// (0.066) apart.
-    pub reach: f32,
-    /// Distance from a wall a cluster's particles keep on a free axis (domain units): a wall
-    /// zeroes the velocity of the nodes within 3 cells of it, which reach particles 1.5 cells
-    /// farther (docs/mpm.md; [`crate::eval::conservation::WALL_CLEARANCE`]).
-    pub clearance: f32,
-    /// Substeps per frame of the solver (20 on the 64 x 64 grid, 80 on the 128 x 128 one):
-    /// sets the gravity's share in the centre of mass's move, `(1 + 1/S) / 2` of `g dt^2`.
-    pub substeps: u32,
-    /// Gravity (domain units per time unit squared).
-    pub gravity: [f32; 2],
-}
-
-impl MomentumParams {
-    /// Reach 0.07, clearance 0.08, 20 substeps, gravity `(0, -9.8)`: the generated scenes'
-    /// solver on the 64 x 64 grid. On the 128 x 128 grid (80 substeps) the centre of mass
-    /// then lands `g dt^2 (1/20 - 1/80) / 2` (4.7e-5 domain units) low per frame of free
-    /// flight.
-    pub const DEFAULT: MomentumParams = MomentumParams {
-        reach: 0.07,
-        clearance: 0.08,
-        substeps: 20,
-        gravity: [0.0, -9.8],
-    };
-}
-
-/// Contact parameters ([`contact`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ContactParams {
-    /// Closest two particles of different bodies may come, in particle spacings of the rest
-    /// frame (the largest of the bodies' materials').
-    pub distance: f32,
-    /// Push-apart passes per frame.
-    pub iterations: usize,
-    /// Share of the closing speed two bodies leave a contact with (0 sticks, 1 is elastic;
-    /// the solver's jelly disks rebound at 0.61-0.87 of their closing speed, docs/mpm.md
-    /// check 4).
-    #[serde(default)]
-    pub restitution: f32,
-}
-
-/// Rope parameters ([`rope`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RopeParams {
-    /// Largest distance between two rope particles as a multiple of their rest distance
-    /// along the chain (dimensionless, >= 1): the solver's ropes stretch 10-23 %.
-    pub stretch: f32,
-    /// Coarse-to-fine sweeps per frame.
-    pub iterations: usize,
-    /// Long-range pairs `i -> i + 2^m` (m >= 1) beside the chain's own links.
-    pub long_range: bool,
-}
-
-/// Shape-matching parameters ([`shape`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ShapeParams {
-    /// Share of the way to the goal positions a frame moves (0..=1; Müller 2005's alpha).
-    pub stiffness: f32,
-    /// Share of the linear fit in the goal, the rest a rotation (0..=1; Müller 2005's beta,
-    /// section 4.2): 0 keeps the rest shape rigid, higher lets it shear and squash.
-    pub linear: f32,
-    /// Share of the remaining deformation the rest shape takes on per frame (0..=1):
-    /// 0 elastic, above 0 plastic (snow).
-    pub plastic: f32,
-}
-
-/// Liquid density parameters ([`density`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct DensityParams {
-    /// Cell of the density grid in particle spacings of the rest frame.
-    pub radius: f32,
-    /// Rest mass of a grid node over the rest frame's (90th percentile of its occupied
-    /// nodes): above it a node counts as compressed and its particles are pushed out
-    /// (fitted: `minflow constraints fit`).
-    pub rest: f32,
-    /// Jacobi iterations per frame.
-    pub iterations: usize,
-}
-
-/// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct WallParams {
-    /// Lowest coordinate a particle may take.
-    pub lo: f32,
-    /// Highest coordinate a particle may take.
-    pub hi: f32,
-}
-
-impl Constraints {
-    /// Parameters for a model none were fitted for: rope stretch 1.25, rigid jelly, no snow
-    /// part, liquid rest mass 3x the rest frame's (what the fit finds: the `fluid` family's
-    /// liquid starts at a third of the solver's rest density), walls at the solver's
-    /// `[0.5 dx, 1 - 0.5 dx]` of the 128 x 128 grid. `minflow constraints fit` replaces the
-    /// fitted values from a model's training split.
-    pub fn defaults() -> Self {
-        Self {
-            rope: Some(RopeParams {
-                stretch: 1.25,
-                iterations: 2,
-                long_range: true,
-            }),
-            jelly: Some(ShapeParams {
-                stiffness: 1.0,
-                linear: 0.0,
-                plastic: 0.0,
-            }),
-            snow: None,
-            liquid: Some(DensityParams {
-                radius: 3.0,
-                rest: 3.0,
-                iterations: 2,
-            }),
-            walls: Some(WallParams {
-                lo: 0.5 / 128.0,
-                hi: 1.0 - 0.5 / 128.0,
-            }),
-            contact: Some(ContactParams {
-                distance: 1.0,
-                iterations: 3,
-                restitution: 0.8,
-            }),
-            momentum: Some(MomentumParams::DEFAULT),
-            rebound: Some(ReboundParams::DEFAULT),
-        }
-    }
-
-    /// These constraints with the parts `parts` leaves out removed.
-    pub fn select(&self, parts: Parts) -> Self {
-        Self {
-            rope: self.rope.filter(|_| parts.rope),
-            jelly: self.jelly.filter(|_| parts.jelly),
-            snow: self.snow.filter(|_| parts.snow),
-            liquid: self.liquid.filter(|_| parts.liquid),
-            walls: self.walls.filter(|_| parts.walls),
-            contact: self.contact.filter(|_| parts.contact),
-            momentum: self.momentum.filter(|_| parts.momentum),
-            rebound: self.rebound.filter(|_| parts.rebound),
-        }
-    }
-
-    /// Whether no part is on.
-    pub fn is_empty(&self) -> bool {
-        *self == Self::default()
-    }
-
-    /// The shape parameters of a shape-matched material (jelly, snow), if that part is on.
-    fn shape_of(&self, m: u8) -> Option<&ShapeParams> {
-        match Material::from_id(m) {
-            Some(Material::Jelly) => self.jelly.as_ref(),
-            Some(Material::Snow) => self.snow.as_ref(),
-            _ => None,
-        }
-    }
-}
-
-/// Which parts of a model's [`Constraints`] to apply (`--constraints`): `on` (every part the
-/// model has), `off`, or a comma-separated list of `rope`, `jelly`, `snow`, `liquid`,
-/// `walls`, `contact`, `momentum`, `rebound`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Parts {
-    /// Rope chain and long-range pairs.
-    pub rope: bool,
-    /// Jelly shape matching.
-    pub jelly: bool,
-    /// Snow shape matching.
-    pub snow: bool,
-    /// Liquid density.
-    pub liquid: bool,
-    /// Box walls.
-    pub walls: bool,
-    /// Contact between shape-matched bodies.
-    pub contact: bool,
-    /// Momentum of free clusters.
-    pub momentum: bool,
-    /// Rebound of jelly bodies.
-    pub rebound: bool,
-}
-
-impl Parts {
-    /// Every part.
-    pub const ALL: Parts = Parts {
-        rope: true,
-        jelly: true,
-        snow: true,
-        liquid: true,
-        walls: true,
-        contact: true,
-        momentum: true,
-        rebound: true,
-    };
-    /// No part.
-    pub const NONE: Parts = Parts {
-        rope: false,
-        jelly: false,
-        snow: false,
-        liquid: false,
-        walls: false,
-        contact: false,
-        momentum: false,
-        rebound: false,
-    };
-}
-
-impl Default for Parts {
-    fn default() -> Self {
-        Parts::ALL
-    }
-}
-
-impl std::str::FromStr for Parts {
-    type Err = String;
-
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s.trim() {
-            "on" | "all" => return Ok(Parts::ALL),
-            "off" | "none" => return Ok(Parts::NONE),
-            _ => {}
-        }
-        let mut parts = Parts::NONE;
-        for name in s.split(',').map(str::trim) {
-            let flag = match name {
-                "rope" => &mut parts.rope,
-                "jelly" => &mut parts.jelly,
-                "snow" => &mut parts.snow,
-                "liquid" => &mut parts.liquid,
-                "walls" => &mut parts.walls,
-                "contact" => &mut parts.contact,
-                "momentum" => &mut parts.momentum,
-                "rebound" => &mut parts.rebound,
-                other => {
-                    return Err(format!(
-                        "unknown constraint part {other:?}: expected on, off or a list of \
-                         rope, jelly, snow, liquid, walls, contact, momentum, rebound"
-                    ))
-                }
-            };
-            *flag = true;
-        }
-        Ok(parts)
-    }
-}
-
-impl std::fmt::Display for Parts {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        if *self == Parts::ALL {
-            return f.write_str("on");
-        }
-        if *self == Parts::NONE {
-            return f.write_str("off");
-        }
-        let names = [
-            (self.rope, "rope"),
-            (self.jelly, "jelly"),
-            (self.snow, "snow"),
-            (self.liquid, "liquid"),
-            (self.walls, "walls"),
-            (self.contact, "contact"),
-            (self.momentum, "momentum"),
-            (self.rebound, "rebound"),
-        ];
-        let on: Vec<&str> = names.iter().filter(|(b, _)| *b).map(|(_, n)| *n).collect();
-        f.write_str(&on.join(","))
-    }
 }
 
 /// How far a projection moved each material: the sum over moved frames and particles of the
@@ -440,6 +113,8 @@ pub struct SceneShape {
     /// Contact between the bodies (two or more of them, the part on).
     contact: Option<contact::Contact>,
     liquid: Option<density::Liquid>,
+    /// The liquid of the pressure projection (the part on).
+    pressure: Option<pressure::Pressure>,
     /// The jelly bodies' contacts in progress (the rebound part on).
     rebound: Option<rebound::Rebound>,
     /// The frame before the projection (reused from frame to frame).
@@ -477,6 +152,10 @@ impl SceneShape {
             let s = spacing[usize::from(Material::Liquid.id())];
             density::Liquid::new(rest, stride, material, s, p)
         });
+        let pressure = c.pressure.as_ref().and_then(|p| {
+            let s = spacing[usize::from(Material::Liquid.id())];
+            pressure::Pressure::new(rest, stride, material, s, p)
+        });
         let rebound = c.rebound.and_then(|_| {
             let m = Material::Jelly.id();
             let s = spacing[usize::from(m)];
@@ -489,6 +168,7 @@ impl SceneShape {
             bodies,
             contact,
             liquid,
+            pressure,
             rebound,
             before: Vec::new(),
         }
@@ -540,6 +220,10 @@ impl SceneShape {
         if let (Some(p), Some(liquid)) = (&c.liquid, &mut self.liquid) {
             liquid.project(p, frame);
         }
+        if let (Some(p), Some(pressure)) = (&c.pressure, &mut self.pressure) {
+            let walls = c.walls.map_or((0.0, 1.0), |w| (w.lo, w.hi));
+            pressure.project(p, frame, material, dt, walls);
+        }
         if let (Some(p), Some(prev), Some(rebound)) = (&c.rebound, prev, &mut self.rebound) {
             rebound.apply(p, (prev, &before, frame), dt);
         }
@@ -590,24 +274,6 @@ fn block(x0: f32, y0: f32, v: [f32; 2]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn parts_parse_and_print() {
-        assert_eq!("on".parse::<Parts>().unwrap(), Parts::ALL);
-        assert_eq!("off".parse::<Parts>().unwrap(), Parts::NONE);
-        let p: Parts = "rope,liquid".parse().unwrap();
-        assert!(p.rope && p.liquid && !p.jelly && !p.snow && !p.walls);
-        assert_eq!(p.to_string(), "rope,liquid");
-        assert!("ropes".parse::<Parts>().is_err());
-    }
-
-    #[test]
-    fn selecting_no_part_leaves_nothing() {
-        let c = Constraints::defaults();
-        assert!(c.select(Parts::NONE).is_empty());
-        assert!(!c.select("jelly".parse().unwrap()).is_empty());
-        assert!(c.select("snow".parse().unwrap()).is_empty()); // the defaults have no snow
-    }
 
     #[test]
     fn walls_clamp_and_the_velocity_takes_the_move() {

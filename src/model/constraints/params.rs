@@ -1,0 +1,276 @@
+//! The parameters of each constraint part, as `model.json`'s `"constraints"` holds them
+//! ([`Constraints`]), and the defaults of a model none were fitted for. The parts themselves
+//! live in the sibling modules; [`super::Parts`] selects which of them run.
+
+use serde::{Deserialize, Serialize};
+
+use super::Parts;
+use crate::material::Material;
+
+/// The constraint parameters of a model, per material (`"constraints"` in `model.json`). A
+/// part that is `None` is never applied.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Constraints {
+    /// Rope: chain and long-range distance limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rope: Option<RopeParams>,
+    /// Jelly: shape matching.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jelly: Option<ShapeParams>,
+    /// Snow: shape matching with a yielding rest shape.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub snow: Option<ShapeParams>,
+    /// Liquid: the unilateral density constraint.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub liquid: Option<DensityParams>,
+    /// The box walls.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub walls: Option<WallParams>,
+    /// Contact between shape-matched bodies (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contact: Option<ContactParams>,
+    /// Momentum of free clusters (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub momentum: Option<MomentumParams>,
+    /// Rebound of jelly bodies (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rebound: Option<ReboundParams>,
+    /// Liquid: the pressure projection on a grid (none in models saved before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pressure: Option<PressureParams>,
+}
+
+/// Rebound parameters ([`super::rebound`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReboundParams {
+    /// Least share of the approach speed a jelly body leaves a contact with (the most is 1).
+    /// The solver's jelly leaves at 0.61 (two disks closing at 2 domain units per time
+    /// unit) to 0.87 (closing at 6) of it, and a floor at 0.83-0.95.
+    pub restitution: f32,
+    /// Two bodies are in contact while particles of both are this close (domain units).
+    pub reach: f32,
+    /// A body is in contact with a wall while a particle of it is this close (domain units).
+    pub clearance: f32,
+    /// The gap (to the wall, or between the bodies' nearest particles) beyond which a
+    /// contact's rebound is enforced (domain units, below `reach` and `clearance`).
+    pub release: f32,
+    /// Approach speeds below this are resting contact, never bounced (domain units per time
+    /// unit).
+    pub resting: f32,
+    /// Gravity (domain units per time unit squared): a body leaving a wall across gravity
+    /// slows by `g dt` a frame.
+    pub gravity: [f32; 2],
+}
+
+impl ReboundParams {
+    /// Restitution 0.5 (under the solver's least, 0.61), the momentum part's reach (0.07) and
+    /// clearance (0.08), released at 0.05 (3 cells of the 64 x 64 grid), resting below 0.5
+    /// (about three frames of gravity), gravity `(0, -9.8)`.
+    pub const DEFAULT: ReboundParams = ReboundParams {
+        restitution: 0.5,
+        reach: 0.07,
+        clearance: 0.08,
+        release: 0.05,
+        resting: 0.5,
+        gravity: [0.0, -9.8],
+    };
+}
+
+/// Momentum parameters ([`super::momentum`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MomentumParams {
+    /// Particles this close in the frame before or the predicted one share a cluster (domain
+    /// units): two particles share a grid node of the 64 x 64 grid up to `3 sqrt(2) dx`
+    /// (0.066) apart.
+    pub reach: f32,
+    /// Distance from a wall a cluster's particles keep on a free axis (domain units): a wall
+    /// zeroes the velocity of the nodes within 3 cells of it, which reach particles 1.5 cells
+    /// farther (docs/mpm.md; [`crate::eval::conservation::WALL_CLEARANCE`]).
+    pub clearance: f32,
+    /// Substeps per frame of the solver (20 on the 64 x 64 grid, 80 on the 128 x 128 one):
+    /// sets the gravity's share in the centre of mass's move, `(1 + 1/S) / 2` of `g dt^2`.
+    pub substeps: u32,
+    /// Gravity (domain units per time unit squared).
+    pub gravity: [f32; 2],
+}
+
+impl MomentumParams {
+    /// Reach 0.07, clearance 0.08, 20 substeps, gravity `(0, -9.8)`: the generated scenes'
+    /// solver on the 64 x 64 grid. On the 128 x 128 grid (80 substeps) the centre of mass
+    /// then lands `g dt^2 (1/20 - 1/80) / 2` (4.7e-5 domain units) low per frame of free
+    /// flight.
+    pub const DEFAULT: MomentumParams = MomentumParams {
+        reach: 0.07,
+        clearance: 0.08,
+        substeps: 20,
+        gravity: [0.0, -9.8],
+    };
+}
+
+/// Contact parameters ([`super::contact`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ContactParams {
+    /// Closest two particles of different bodies may come, in particle spacings of the rest
+    /// frame (the largest of the bodies' materials').
+    pub distance: f32,
+    /// Push-apart passes per frame.
+    pub iterations: usize,
+    /// Share of the closing speed two bodies leave a contact with (0 sticks, 1 is elastic;
+    /// the solver's jelly disks rebound at 0.61-0.87 of their closing speed, docs/mpm.md
+    /// check 4).
+    #[serde(default)]
+    pub restitution: f32,
+}
+
+/// Rope parameters ([`super::rope`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RopeParams {
+    /// Largest distance between two rope particles as a multiple of their rest distance
+    /// along the chain (dimensionless, >= 1): the solver's ropes stretch 10-23 %.
+    pub stretch: f32,
+    /// Coarse-to-fine sweeps per frame.
+    pub iterations: usize,
+    /// Long-range pairs `i -> i + 2^m` (m >= 1) beside the chain's own links.
+    pub long_range: bool,
+}
+
+/// Shape-matching parameters ([`super::shape`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShapeParams {
+    /// Share of the way to the goal positions a frame moves (0..=1; Müller 2005's alpha).
+    pub stiffness: f32,
+    /// Share of the linear fit in the goal, the rest a rotation (0..=1; Müller 2005's beta,
+    /// section 4.2): 0 keeps the rest shape rigid, higher lets it shear and squash.
+    pub linear: f32,
+    /// Share of the remaining deformation the rest shape takes on per frame (0..=1):
+    /// 0 elastic, above 0 plastic (snow).
+    pub plastic: f32,
+}
+
+/// Liquid density parameters ([`super::density`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DensityParams {
+    /// Cell of the density grid in particle spacings of the rest frame.
+    pub radius: f32,
+    /// Rest mass of a grid node over the rest frame's (90th percentile of its occupied
+    /// nodes): above it a node counts as compressed and its particles are pushed out
+    /// (fitted: `minflow constraints fit`).
+    pub rest: f32,
+    /// Jacobi iterations per frame.
+    pub iterations: usize,
+}
+
+/// Liquid pressure-projection parameters ([`super::pressure`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PressureParams {
+    /// Node spacing of the pressure grid in particle spacings of the rest frame (2 puts about
+    /// 4 particles in a cell, as the solver's rest state does).
+    pub radius: f32,
+    /// Volume fraction above which a node counts as compressed, over the rest frame's 1
+    /// (fitted: `minflow constraints fit`, the least that leaves the truth in place).
+    pub rest: f32,
+    /// Volume fraction from which a node is full: it takes pressure, and its compressing
+    /// velocity is removed; nodes below are free surface.
+    pub full: f32,
+    /// Share of a node's excess compression removed per frame (0..=1).
+    pub stiffness: f32,
+    /// Whether the velocity's compressing divergence at full nodes is removed too (else the
+    /// density error alone is corrected).
+    pub velocity: bool,
+    /// Projected SOR sweeps (red and black) per frame.
+    pub iterations: usize,
+    /// Over-relaxation of the sweeps (1 is Gauss-Seidel; below 2).
+    pub omega: f32,
+}
+
+impl PressureParams {
+    /// Nodes 2 spacings apart, compressed above 1.1, full from 0.9, half the excess removed
+    /// a frame, the velocity part on, 40 sweeps at over-relaxation 1.6.
+    pub const DEFAULT: PressureParams = PressureParams {
+        radius: 2.0,
+        rest: 1.1,
+        full: 0.9,
+        stiffness: 0.5,
+        velocity: true,
+        iterations: 40,
+        omega: 1.6,
+    };
+}
+
+/// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WallParams {
+    /// Lowest coordinate a particle may take.
+    pub lo: f32,
+    /// Highest coordinate a particle may take.
+    pub hi: f32,
+}
+
+impl Constraints {
+    /// Parameters for a model none were fitted for: rope stretch 1.25, rigid jelly, no snow
+    /// part, liquid rest mass 3x the rest frame's (what the fit finds: the `fluid` family's
+    /// liquid starts at a third of the solver's rest density), walls at the solver's
+    /// `[0.5 dx, 1 - 0.5 dx]` of the 128 x 128 grid. `minflow constraints fit` replaces the
+    /// fitted values from a model's training split.
+    pub fn defaults() -> Self {
+        Self {
+            rope: Some(RopeParams {
+                stretch: 1.25,
+                iterations: 2,
+                long_range: true,
+            }),
+            jelly: Some(ShapeParams {
+                stiffness: 1.0,
+                linear: 0.0,
+                plastic: 0.0,
+            }),
+            snow: None,
+            liquid: Some(DensityParams {
+                radius: 3.0,
+                rest: 3.0,
+                iterations: 2,
+            }),
+            walls: Some(WallParams {
+                lo: 0.5 / 128.0,
+                hi: 1.0 - 0.5 / 128.0,
+            }),
+            contact: Some(ContactParams {
+                distance: 1.0,
+                iterations: 3,
+                restitution: 0.8,
+            }),
+            momentum: Some(MomentumParams::DEFAULT),
+            rebound: Some(ReboundParams::DEFAULT),
+            pressure: Some(PressureParams::DEFAULT),
+        }
+    }
+
+    /// These constraints with the parts `parts` leaves out removed.
+    pub fn select(&self, parts: Parts) -> Self {
+        Self {
+            rope: self.rope.filter(|_| parts.rope),
+            jelly: self.jelly.filter(|_| parts.jelly),
+            snow: self.snow.filter(|_| parts.snow),
+            liquid: self.liquid.filter(|_| parts.liquid),
+            walls: self.walls.filter(|_| parts.walls),
+            contact: self.contact.filter(|_| parts.contact),
+            momentum: self.momentum.filter(|_| parts.momentum),
+            rebound: self.rebound.filter(|_| parts.rebound),
+            pressure: self.pressure.filter(|_| parts.pressure),
+        }
+    }
+
+    /// Whether no part is on.
+    pub fn is_empty(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The shape parameters of a shape-matched material (jelly, snow), if that part is on.
+    pub(super) fn shape_of(&self, m: u8) -> Option<&ShapeParams> {
+        match Material::from_id(m) {
+            Some(Material::Jelly) => self.jelly.as_ref(),
+            Some(Material::Snow) => self.snow.as_ref(),
+            _ => None,
+        }
+    }
+}

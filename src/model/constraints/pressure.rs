@@ -1,0 +1,538 @@
+//! The liquid's pressure projection on a grid, the way FLIP/APIC and MPM liquids are kept
+//! incompressible (Bridson, "Fluid Simulation for Computer Graphics", 2nd ed., chapter 5: the
+//! pressure solve on a MAC grid with empty cells at zero pressure and solid faces closed),
+//! with the density error corrected in the same solve (Kugelstadt et al. 2019, "Implicit
+//! Density Projection for Volume Conserving Liquids", section 4: a Poisson problem for the
+//! displacement that undoes a cell's excess volume fraction) and unilateral, so liquid may
+//! separate and splash but never compress (Gerszewski & Bargteil 2013, "Physics-Based
+//! Animation of Large-Scale Splashing Liquids", section 4: pressure >= 0, solved by projected
+//! Gauss-Seidel; Narain et al. 2010 for the complementarity form).
+//!
+//! Per predicted frame, on pressure nodes of spacing `h` (a node's control volume is the cell
+//! around it; MAC faces half a cell between nodes):
+//! 1. liquid particles past a wall are mirrored back inside (the walls part would
+//!    stack them on one line);
+//! 2. the liquid's volume fraction `phi_i = sum_p w_ip V_p` (MPM's quadratic B-spline,
+//!    [`crate::bspline::weights`]), `V_p` the particle's rest volume in cells, fixed once
+//!    from the scene's rest frame so that `phi = 1` there (see [`Pressure::new`]): the rest
+//!    state is the one the solver starts the scene in (`J = 1`), whatever the sampling;
+//! 3. the predicted velocities on the MAC faces (bilinear P2G, normalised) and their
+//!    divergence at each node;
+//! 4. on the full nodes (`phi >= full`) the unilateral constraint `div d >= r_i` on the
+//!    displacement `d = -grad p`, `p >= 0`, with `r_i = stiffness max(phi_i - rest, 0) /
+//!    phi_i - dt div v_i` (the excess compression removed, and no compressing velocity
+//!    left); nodes that are not full are free surface (`p = 0`), nodes in the walls or in a
+//!    solid body closed (no flow through their faces);
+//! 5. red-black projected successive over-relaxation for `p` (deterministic, node order
+//!    fixed), `d` on the faces, each liquid particle moved by `d` at its position (bilinear
+//!    G2P of the change, FLIP-style: the particle's own motion is kept, only the correction
+//!    is added). The projection then gives the velocity the move over `dt`
+//!    ([`super::SceneShape::project`]), so a compressing velocity is removed with it.
+
+use super::PressureParams;
+use crate::material::Material;
+
+/// The liquid of one scene for the pressure projection.
+#[derive(Clone, Debug)]
+pub(super) struct Pressure {
+    /// Liquid particle indices.
+    ids: Vec<u32>,
+    /// Per liquid particle, its rest volume in cells (`h^2` units).
+    volume: Vec<f32>,
+    /// Node spacing (domain units).
+    h: f32,
+    /// Nodes per side (node `i` at `i h`).
+    side: usize,
+    /// Buffers reused from frame to frame.
+    scratch: Scratch,
+}
+
+/// Per-frame buffers (node arrays are `side * side`, row `i` along x).
+#[derive(Clone, Debug, Default)]
+struct Scratch {
+    phi: Vec<f32>,
+    solid: Vec<f32>,
+    kind: Vec<u8>,
+    rhs: Vec<f32>,
+    p: Vec<f32>,
+    /// Face values along x (face `(i, j)` between nodes `(i, j)` and `(i + 1, j)`) and their
+    /// weights; the same along y.
+    fx: Vec<f32>,
+    wx: Vec<f32>,
+    fy: Vec<f32>,
+    wy: Vec<f32>,
+}
+
+/// A node the solve leaves at zero pressure (free surface).
+const FREE: u8 = 0;
+/// A node that may take pressure.
+const FULL: u8 = 1;
+/// A node no flow crosses (solid body).
+const CLOSED: u8 = 2;
+/// A node in the walls: closed, and its faces' velocity is the wall's, zero.
+const WALL: u8 = 3;
+
+/// Quadratic B-spline stencil of a position on nodes of spacing `h`: the lower node and the
+/// per-axis weights.
+fn quadratic(x: f32, y: f32, h: f32) -> ([i32; 2], [[f32; 3]; 2]) {
+    let mut base = [0i32; 2];
+    let mut w = [[0.0f32; 3]; 2];
+    for (a, v) in [x, y].into_iter().enumerate() {
+        let g = v / h;
+        let b = (g - 0.5).floor();
+        base[a] = b as i32;
+        w[a] = crate::bspline::weights(g - b);
+    }
+    (base, w)
+}
+
+/// Bilinear stencil on a lattice offset by `(ox, oy)` cells: the lower lattice point and the
+/// fractions along each axis.
+fn bilinear(x: f32, y: f32, h: f32, ox: f32, oy: f32) -> ([i32; 2], [f32; 2]) {
+    let (gx, gy) = (x / h - ox, y / h - oy);
+    let (bx, by) = (gx.floor(), gy.floor());
+    ([bx as i32, by as i32], [gx - bx, gy - by])
+}
+
+impl Pressure {
+    /// The liquid of the rest frame `rest` (`[N, stride]` rows), whose particle spacing is
+    /// `spacing`: nodes `p.radius` spacings apart, and each particle's rest volume
+    /// `V_p = 1 / rho_p`, `rho_p` the B-spline average of the rest frame's particles per cell
+    /// around it over the occupied nodes, clamped to `[1, 2]` times the liquid's median: a
+    /// cluster of the sampling is at rest (the solver's liquid starts there at `J = 1`), a
+    /// sparse spot or the surface counts at the median (so it may fill in, and a surface
+    /// particle is not given the volume of two). None without liquid.
+    pub(super) fn new(
+        rest: &[f32],
+        stride: usize,
+        material: &[u8],
+        spacing: f32,
+        p: &PressureParams,
+    ) -> Option<Self> {
+        let liquid = Material::Liquid.id();
+        let ids: Vec<u32> = (0..material.len() as u32)
+            .filter(|&i| material[i as usize] == liquid)
+            .collect();
+        if ids.is_empty() || spacing <= 0.0 || p.radius <= 0.0 {
+            return None;
+        }
+        let h = p.radius * spacing;
+        let side = (1.0 / h).ceil() as usize + 2;
+        let mut out = Self {
+            ids,
+            volume: Vec::new(),
+            h,
+            side,
+            scratch: Scratch::default(),
+        };
+        let ones = vec![1.0f32; out.ids.len()];
+        let mut count = vec![0.0f32; side * side];
+        out.splat(rest, stride, &ones, &mut count);
+        let mut rho: Vec<f32> = out
+            .ids
+            .iter()
+            .map(|&i| {
+                let (x, y) = (rest[stride * i as usize], rest[stride * i as usize + 1]);
+                let (mut num, mut den) = (0.0f32, 0.0f32);
+                out.each_quadratic(x, y, |n, w| {
+                    if count[n] > 0.0 {
+                        num += w * count[n];
+                        den += w;
+                    }
+                });
+                if den > 0.0 {
+                    num / den
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut sorted = rho.clone();
+        let mid = sorted.len() / 2;
+        sorted.select_nth_unstable_by(mid, f32::total_cmp);
+        let median = sorted[mid].max(f32::MIN_POSITIVE);
+        for r in &mut rho {
+            *r = r.clamp(median, 2.0 * median);
+        }
+        out.volume = rho.iter().map(|r| 1.0 / r).collect();
+        Some(out)
+    }
+
+    /// Visits the 9 nodes of the quadratic stencil at `(x, y)` (clamped into the grid): node
+    /// index and weight.
+    fn each_quadratic(&self, x: f32, y: f32, mut visit: impl FnMut(usize, f32)) {
+        let (base, w) = quadratic(x, y, self.h);
+        let c = |v: i32| v.clamp(0, self.side as i32 - 1) as usize;
+        for (a, wa) in w[0].iter().enumerate() {
+            for (b, wb) in w[1].iter().enumerate() {
+                let (i, j) = (c(base[0] + a as i32), c(base[1] + b as i32));
+                visit(i * self.side + j, wa * wb);
+            }
+        }
+    }
+
+    /// `out[n] = sum_p w_np values[p]` over the liquid particles of `frame` (zeroed first).
+    fn splat(&self, frame: &[f32], stride: usize, values: &[f32], out: &mut [f32]) {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        for (&i, &v) in self.ids.iter().zip(values) {
+            let (x, y) = (frame[stride * i as usize], frame[stride * i as usize + 1]);
+            self.each_quadratic(x, y, |n, w| out[n] += w * v);
+        }
+    }
+
+    /// Visits the 4 faces of the bilinear stencil at `(x, y)` along `axis` (0: faces between
+    /// nodes along x, at `((i + 1/2) h, j h)`; 1: along y): face index and weight; faces off
+    /// the grid are skipped.
+    fn each_face(&self, x: f32, y: f32, axis: usize, mut visit: impl FnMut(usize, f32)) {
+        let (ox, oy) = if axis == 0 { (0.5, 0.0) } else { (0.0, 0.5) };
+        let (base, t) = bilinear(x, y, self.h, ox, oy);
+        let s = self.side as i32;
+        for a in 0..2 {
+            for b in 0..2 {
+                let (i, j) = (base[0] + a, base[1] + b);
+                if i < 0 || j < 0 || i >= s || j >= s {
+                    continue;
+                }
+                let wa = if a == 0 { 1.0 - t[0] } else { t[0] };
+                let wb = if b == 0 { 1.0 - t[1] } else { t[1] };
+                visit(i as usize * self.side + j as usize, wa * wb);
+            }
+        }
+    }
+}
+
+/// A frame's grid, solved.
+impl Pressure {
+    /// Projects the liquid of `frame` (`[N, 4]` physical x, y, vx, vy, predicted `dt` after the
+    /// last frame) in place (module doc): positions moved, velocities left to the caller.
+    /// `walls` (`lo`, `hi`, domain units) close the nodes outside them; the other materials'
+    /// particles (ids `material`) close the nodes where they outweigh the liquid.
+    pub(super) fn project(
+        &mut self,
+        p: &PressureParams,
+        frame: &mut [f32],
+        material: &[u8],
+        dt: f32,
+        walls: (f32, f32),
+    ) {
+        let mut s = std::mem::take(&mut self.scratch);
+        let nodes = self.side * self.side;
+        for v in [&mut s.phi, &mut s.solid, &mut s.rhs, &mut s.p] {
+            v.clear();
+            v.resize(nodes, 0.0);
+        }
+        self.reflect(frame, walls);
+        self.splat(frame, 4, &self.volume, &mut s.phi);
+        self.solids(frame, material, &mut s.solid);
+        self.classify(p, walls, &mut s);
+        let full: Vec<usize> = (0..nodes).filter(|&n| s.kind[n] == FULL).collect();
+        if !full.is_empty() {
+            if p.velocity {
+                self.face_velocities(frame, &mut s);
+            }
+            let mut any = false;
+            for &n in &full {
+                let phi = s.phi[n];
+                let mut r = p.stiffness * (phi - p.rest).max(0.0) / phi;
+                if p.velocity {
+                    r -= dt * self.divergence(n, &s);
+                }
+                s.rhs[n] = r;
+                any |= r > 0.0;
+            }
+            if any {
+                self.solve(p, &full, &mut s);
+                self.displace(frame, &mut s);
+            }
+        }
+        self.scratch = s;
+    }
+
+    /// Each liquid particle past a wall brought back inside by its depth (mirrored, within
+    /// `[lo, hi]`): a surrogate that presses the liquid into the floor would otherwise have
+    /// the walls stack it on one line, which no grid can pull apart again.
+    fn reflect(&self, frame: &mut [f32], (lo, hi): (f32, f32)) {
+        if lo >= hi {
+            return;
+        }
+        for &i in &self.ids {
+            for a in 0..2 {
+                let v = &mut frame[4 * i as usize + a];
+                if *v < lo {
+                    *v = (2.0 * lo - *v).min(hi);
+                } else if *v > hi {
+                    *v = (2.0 * hi - *v).max(lo);
+                }
+            }
+        }
+    }
+
+    /// `out[n]`: the volume the other materials' particles bring to node `n`, in cells (each
+    /// counted at the liquid's median rest volume).
+    fn solids(&self, frame: &[f32], material: &[u8], out: &mut [f32]) {
+        let liquid = Material::Liquid.id();
+        let mut sorted = self.volume.clone();
+        let mid = sorted.len() / 2;
+        sorted.select_nth_unstable_by(mid, f32::total_cmp);
+        let v = sorted[mid];
+        for (row, &m) in frame.chunks_exact(4).zip(material) {
+            if m != liquid {
+                self.each_quadratic(row[0], row[1], |n, w| out[n] += w * v);
+            }
+        }
+    }
+
+    /// Each node's kind: closed in the walls (its cell wholly outside `walls` on either axis) or
+    /// where the solids outweigh the liquid, full where the liquid's volume fraction reaches
+    /// `p.full`, free otherwise.
+    fn classify(&self, p: &PressureParams, (lo, hi): (f32, f32), s: &mut Scratch) {
+        s.kind.clear();
+        s.kind.resize(self.side * self.side, FREE);
+        for i in 0..self.side {
+            for j in 0..self.side {
+                let n = i * self.side + j;
+                let (x, y) = (i as f32 * self.h, j as f32 * self.h);
+                let half = 0.5 * self.h;
+                let beyond = |v: f32| v + half <= lo || v - half >= hi;
+                let wall = beyond(x) || beyond(y);
+                s.kind[n] = if wall {
+                    WALL
+                } else if s.solid[n] > s.phi[n] && s.solid[n] > 0.0 {
+                    CLOSED
+                } else if s.phi[n] >= p.full {
+                    FULL
+                } else {
+                    FREE
+                };
+            }
+        }
+    }
+
+    /// The liquid's velocities on the MAC faces (bilinear P2G, normalised by the weights).
+    fn face_velocities(&self, frame: &[f32], s: &mut Scratch) {
+        let nodes = self.side * self.side;
+        for v in [&mut s.fx, &mut s.wx, &mut s.fy, &mut s.wy] {
+            v.clear();
+            v.resize(nodes, 0.0);
+        }
+        for &i in &self.ids {
+            let r = &frame[4 * i as usize..4 * i as usize + 4];
+            let (fx, wx) = (&mut s.fx, &mut s.wx);
+            self.each_face(r[0], r[1], 0, |f, w| {
+                fx[f] += w * r[2];
+                wx[f] += w;
+            });
+            let (fy, wy) = (&mut s.fy, &mut s.wy);
+            self.each_face(r[0], r[1], 1, |f, w| {
+                fy[f] += w * r[3];
+                wy[f] += w;
+            });
+        }
+        for (v, w) in s.fx.iter_mut().zip(&s.wx).chain(s.fy.iter_mut().zip(&s.wy)) {
+            if *w > 0.0 {
+                *v /= *w;
+            }
+        }
+    }
+
+    /// The divergence of the face velocities at node `n` (per time unit), a face against a
+    /// wall at the wall's zero velocity; 0 where a face of the node holds no liquid.
+    fn divergence(&self, n: usize, s: &Scratch) -> f32 {
+        let (i, j) = (n / self.side, n % self.side);
+        if i == 0 || j == 0 || i + 1 >= self.side || j + 1 >= self.side {
+            return 0.0;
+        }
+        let (left, down) = (n - self.side, n - 1);
+        // Each face's velocity: the wall's (zero) against a wall node, else the liquid's;
+        // None where the face holds no liquid.
+        let face = |v: &[f32], w: &[f32], f: usize, other: usize| match s.kind[other] {
+            WALL => Some(0.0),
+            _ => (w[f] > 0.0).then(|| v[f]),
+        };
+        let faces = [
+            face(&s.fx, &s.wx, n, n + self.side),
+            face(&s.fx, &s.wx, left, left),
+            face(&s.fy, &s.wy, n, n + 1),
+            face(&s.fy, &s.wy, down, down),
+        ];
+        match faces {
+            [Some(r), Some(l), Some(u), Some(d)] => (r - l + u - d) / self.h,
+            _ => 0.0,
+        }
+    }
+
+    /// Red-black projected SOR for `q = p / h^2` on the full nodes: at each,
+    /// `sum_n (q_i - q_n) = r_i` over its open neighbours (free ones at 0), `q >= 0`.
+    fn solve(&self, p: &PressureParams, full: &[usize], s: &mut Scratch) {
+        let side = self.side;
+        let colour = |n: usize| (n / side + n % side) % 2;
+        let omega = p.omega;
+        for _ in 0..p.iterations {
+            for c in 0..2 {
+                for &n in full.iter().filter(|&&n| colour(n) == c) {
+                    let (i, j) = (n / side, n % side);
+                    let (mut sum, mut k) = (0.0f32, 0u32);
+                    let neighbours = [
+                        (i > 0).then(|| n - side),
+                        (i + 1 < side).then(|| n + side),
+                        (j > 0).then(|| n - 1),
+                        (j + 1 < side).then(|| n + 1),
+                    ];
+                    for m in neighbours.into_iter().flatten() {
+                        if s.kind[m] < CLOSED {
+                            sum += s.p[m];
+                            k += 1;
+                        }
+                    }
+                    if k == 0 {
+                        continue;
+                    }
+                    let target = (s.rhs[n] + sum) / k as f32;
+                    s.p[n] = (s.p[n] + omega * (target - s.p[n])).max(0.0);
+                }
+            }
+        }
+    }
+
+    /// The displacement `d = (q_i - q_n) h` on every face between two open nodes (0 at a
+    /// closed one), and each liquid particle moved by its bilinear average.
+    fn displace(&self, frame: &mut [f32], s: &mut Scratch) {
+        let side = self.side;
+        let nodes = side * side;
+        for v in [&mut s.fx, &mut s.fy] {
+            v.clear();
+            v.resize(nodes, 0.0);
+        }
+        for n in 0..nodes {
+            let (i, j) = (n / side, n % side);
+            let open = |m: usize| s.kind[m] < CLOSED;
+            if i + 1 < side && open(n) && open(n + side) {
+                s.fx[n] = (s.p[n] - s.p[n + side]) * self.h;
+            }
+            if j + 1 < side && open(n) && open(n + 1) {
+                s.fy[n] = (s.p[n] - s.p[n + 1]) * self.h;
+            }
+        }
+        for &i in &self.ids {
+            let at = 4 * i as usize;
+            let (x, y) = (frame[at], frame[at + 1]);
+            let (mut dx, mut dy) = (0.0f32, 0.0f32);
+            self.each_face(x, y, 0, |f, w| dx += w * s.fx[f]);
+            self.each_face(x, y, 1, |f, w| dy += w * s.fy[f]);
+            frame[at] += dx;
+            frame[at + 1] += dy;
+        }
+    }
+
+    /// The liquid's volume fraction at every node of `frame` (`[N, 4]`; for tests and the
+    /// fit).
+    #[cfg(test)]
+    pub(super) fn fractions(&self, frame: &[f32]) -> Vec<f32> {
+        let mut phi = vec![0.0; self.side * self.side];
+        self.splat(frame, 4, &self.volume, &mut phi);
+        phi
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 30 x 30 lattice of liquid of spacing `s` from (0.3, 0.1) moving at `v(x, y)`, as
+    /// `[N, 4]` rows.
+    fn pool(s: f32, v: impl Fn(f32, f32) -> [f32; 2]) -> Vec<f32> {
+        (0..900)
+            .flat_map(|i| {
+                let (x, y) = (0.3 + s * (i / 30) as f32, 0.1 + s * (i % 30) as f32);
+                let [vx, vy] = v(x, y);
+                [x, y, vx, vy]
+            })
+            .collect()
+    }
+
+    fn liquid(rest: &[f32]) -> Pressure {
+        Pressure::new(rest, 4, &[0; 900], 0.01, &PressureParams::DEFAULT).unwrap()
+    }
+
+    fn max(v: &[f32]) -> f32 {
+        v.iter().copied().fold(0.0, f32::max)
+    }
+
+    #[test]
+    fn the_rest_frame_has_a_volume_fraction_of_one_and_is_left_in_place() {
+        let rest = pool(0.01, |_, _| [0.0, -1.0]);
+        let mut pressure = liquid(&rest);
+        let phi = pressure.fractions(&rest);
+        // Inside the lattice every node holds one cell of liquid (the B-spline sums to 1).
+        assert!((max(&phi) - 1.0).abs() < 0.02, "{}", max(&phi));
+        let mut same = rest.clone();
+        pressure.project(&PressureParams::DEFAULT, &mut same, &[0; 900], 0.016, (0.0, 1.0));
+        assert_eq!(same, rest, "uncompressed, falling as one: no move");
+    }
+
+    #[test]
+    fn a_pressed_pool_is_relieved_and_grows() {
+        let rest = pool(0.01, |_, _| [0.0; 2]);
+        let mut pressure = liquid(&rest);
+        let mut pressed: Vec<f32> = rest
+            .chunks(4)
+            .flat_map(|r| [r[0], 0.1 + 0.7 * (r[1] - 0.1), 0.0, 0.0])
+            .collect();
+        let before = max(&pressure.fractions(&pressed));
+        let height = |f: &[f32]| f.chunks(4).map(|r| r[1]).fold(0.0, f32::max);
+        let h0 = height(&pressed);
+        let p = PressureParams {
+            velocity: false,
+            ..PressureParams::DEFAULT
+        };
+        // The floor closes the nodes below y = 0.095: the pool can only rise and widen.
+        for _ in 0..10 {
+            pressure.project(&p, &mut pressed, &[0; 900], 0.016, (0.095, 1.0));
+        }
+        let after = max(&pressure.fractions(&pressed));
+        assert!(before > 1.35, "{before}");
+        assert!(after < 1.2, "{before} -> {after}");
+        assert!(height(&pressed) > h0 + 0.04, "{h0} -> {}", height(&pressed));
+        let low = pressed.chunks(4).map(|r| r[1]).fold(1.0, f32::min);
+        assert!(low > 0.095, "nothing is pushed through the floor: {low}");
+    }
+
+    #[test]
+    fn a_compressing_velocity_is_removed_and_an_expanding_one_kept() {
+        let rest = pool(0.01, |_, _| [0.0; 2]);
+        let mut pressure = liquid(&rest);
+        let dt = 0.016;
+        // Converging on the pool's centre line x = 0.445 at 2 per time unit per unit.
+        let mut squeezed = pool(0.01, |x, _| [-2.0 * (x - 0.445), 0.0]);
+        let before = squeezed.clone();
+        pressure.project(&PressureParams::DEFAULT, &mut squeezed, &[0; 900], dt, (0.0, 1.0));
+        // The move over dt, as velocity, cancels most of the inward velocity inside.
+        let centre = 15 * 30 + 15;
+        let left = 5 * 30 + 15;
+        let v_left = before[4 * left + 2] + (squeezed[4 * left] - before[4 * left]) / dt;
+        assert!(before[4 * left + 2] > 0.1, "{}", before[4 * left + 2]);
+        assert!(v_left.abs() < 0.5 * before[4 * left + 2], "{v_left}");
+        let moved = |k: usize| (squeezed[4 * k] - before[4 * k]).abs();
+        assert!(moved(centre) < 0.2 * moved(left), "{} {}", moved(centre), moved(left));
+        let mut spread = pool(0.01, |x, _| [x - 0.445, 0.0]);
+        let kept = spread.clone();
+        pressure.project(&PressureParams::DEFAULT, &mut spread, &[0; 900], dt, (0.0, 1.0));
+        assert_eq!(spread, kept, "an expanding liquid is free");
+    }
+
+    #[test]
+    fn the_walls_and_solid_bodies_close_their_nodes() {
+        let rest = pool(0.01, |_, _| [0.0; 2]);
+        let mut pressure = liquid(&rest);
+        let mut s = Scratch::default();
+        s.phi = pressure.fractions(&rest);
+        s.solid = vec![0.0; s.phi.len()];
+        s.solid[pressure.side * 40 + 20] = 5.0;
+        pressure.classify(&PressureParams::DEFAULT, (0.05, 0.95), &mut s);
+        assert_eq!(s.kind[0], CLOSED, "node (0, 0) is in the wall");
+        assert_eq!(s.kind[pressure.side * 40 + 20], CLOSED, "a solid node");
+        assert_eq!(s.kind[pressure.side * 22 + 12], FULL, "inside the pool");
+        assert_eq!(s.kind[pressure.side * 10 + 30], FREE, "outside it");
+        pressure.scratch = s;
+    }
+}
