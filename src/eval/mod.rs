@@ -20,6 +20,7 @@
 //!   the solids' rest neighbours ([`structure::Neighbours`]).
 //! - [`conservation`]: each body's centre-of-mass error and the momentum drift.
 //! - [`probe_table`]: the plausibility tables (`table.md`'s sections, `plausibility.csv`).
+//! - [`front`]: the liquid's surge front against time and the step it reaches the far wall.
 //!
 //! Both ways of evaluating produce one [`Evaluation`]: per scene and per predictor a
 //! [`Curve`] of per-step metrics, step `k` = the k-th predicted frame (k = 1 is the frame
@@ -29,6 +30,7 @@
 //! `minflow report`.
 
 pub mod conservation;
+pub mod front;
 pub mod metrics;
 pub mod output;
 pub mod plausibility;
@@ -160,6 +162,9 @@ pub struct SceneResult {
     pub beyond: usize,
     /// Frames for the renders (the first rollout).
     pub snapshots: Option<Snapshots>,
+    /// The liquid's surge front over the first rollout, truth and each predictor (None
+    /// without liquid; [`front::Fronts`]).
+    pub fronts: Option<front::Fronts>,
     /// Per predictor: the mean plausibility at each probe of its rollouts (empty when not
     /// scored: predictions bags, `--no-plausibility`).
     pub probes: Vec<Vec<(Probe, Plausibility)>>,

@@ -1,13 +1,14 @@
 //! Writes everything an [`Evaluation`] produced into one folder: `table.md` (the Tables 2/3
 //! layout of the MSE, then the detailed summary), `table.csv`, `metrics.csv` (every metric at
-//! every step), `plausibility.csv` (when probed), `mse_curves.png` (per-scene MSE curves) and,
+//! every step), `plausibility.csv` (when probed), `front.csv` and `front_<scene>.png` (the liquid's surge
+//! front, [`super::front`]), `mse_curves.png` (per-scene MSE curves) and,
 //! per scene with snapshots, `render_<scene>.png` and `render_<scene>.gif` (ground truth beside
 //! each model). Used by `minflow eval` and `minflow report`.
 
 use std::path::{Path, PathBuf};
 
 use super::render::{file_stem, mse_curves, render_gif, render_grid};
-use super::{probe_table, table, EvalError, Evaluation};
+use super::{front, probe_table, table, EvalError, Evaluation};
 
 /// Writes the tables and figures of `eval` into `dir` (created if needed). The first
 /// `models` predictors are rendered beside the ground truth (the baselines after them are
@@ -40,13 +41,15 @@ pub fn write_all(
             h = eval.horizon
         )
     };
+    let fronts = front::fronts(eval);
     let md = format!(
         "# {title}\n\nMSE over scaled (x, y, vx, vy) ({}), {steps}; the lowest value of each \
-         row and block in bold.\n\n{}\n{}{}",
+         row and block in bold.\n\n{}\n{}{}{}",
         eval.scaler_source,
         table::markdown(eval),
         table::details(eval),
         probe_table::markdown(eval),
+        front::markdown(eval, &fronts),
     );
     write("table.md", md)?;
     write("table.csv", table::csv(eval))?;
@@ -54,6 +57,7 @@ pub fn write_all(
     if eval.scenes.iter().any(|s| !s.probes.is_empty()) {
         write("plausibility.csv", probe_table::csv(eval))?;
     }
+    files.extend(front::write(dir, eval, &fronts)?);
     let curves = dir.join("mse_curves.png");
     mse_curves(&curves, eval)?;
     files.push(curves);

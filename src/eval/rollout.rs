@@ -18,6 +18,7 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 
 use super::conservation::{Bodies, MomentumDrift};
+use super::front::{Fronts, Towards};
 use super::metrics::MATERIALS;
 use super::plausibility::{kinetic_energy, probe_steps, Neighbours, Plausibility};
 use super::{
@@ -231,6 +232,12 @@ impl SceneSums {
                 .collect(),
             preds: Vec::new(),
         });
+        // The liquid's surge front, on the scene's first rollout.
+        let start = traj.state(first - 1);
+        let towards = (self.result.rollouts == 1)
+            .then(|| Towards::far_wall(start, &traj.material))
+            .flatten();
+        let mut fronts = Vec::new();
         for (p, predictor) in predictors.iter().enumerate() {
             let frames = predictor.rollout(traj, first, steps)?;
             if let Some(dir) = &opts.save_pred {
@@ -245,6 +252,10 @@ impl SceneSums {
             if let Some(reference) = &reference {
                 self.probes[p].add(traj, first, &frames, steps, reference);
             }
+            if let Some(t) = towards {
+                let rolled = frames.iter().take(steps).map(Vec::as_slice);
+                fronts.push(t.series(start, rolled, &traj.material));
+            }
             if let Some(snap) = snap.as_mut() {
                 let mut row = vec![Some(traj.state(first - 1).to_vec())];
                 row.extend(frames.into_iter().map(Some));
@@ -255,6 +266,15 @@ impl SceneSums {
         }
         if snap.is_some() {
             self.result.snapshots = snap;
+        }
+        if let Some(t) = towards {
+            let truth = (first..first + steps).map(|k| traj.state(k));
+            self.result.fronts = Some(Fronts {
+                scene: traj.scene.clone(),
+                towards: t,
+                truth: t.series(start, truth, &traj.material),
+                preds: fronts,
+            });
         }
         Ok(())
     }

@@ -47,6 +47,7 @@ mod scenes_heldout;
 mod sim_scenes;
 mod sim_validation;
 mod soak;
+mod tidy;
 mod train_loop;
 mod train_parallel;
 mod train_resume;
