@@ -16,6 +16,8 @@
 //!   the CPU backend's product and SiLU as plain-f32 kernels for host passes (the grid model's
 //!   CPU inference pass); [`bspline_axis`] and [`stencil_bounds`], a particle's quadratic
 //!   B-spline stencil on the host.
+//! - [`error`]: [`OpsError`], how a GPU library call fails, and the single place a failed GPU
+//!   operation stops the caller (burn's backend API is infallible).
 //! - `tensor.rs`: the operations on burn `Tensor`s that `model/` calls.
 //! - [`composed`]: the defaults in burn's tensor operations for the dense layer, ELU and the
 //!   pooled ELU, with the dense layer's chunked weight gradient; `composed_grid.rs`: those of
@@ -45,7 +47,10 @@
 //!   element-wise chains burn's fusion layer compiles into single kernels, with the large
 //!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels (the
 //!   default convolutions); `cuda_cudnn.rs`: the 3x3 convolutions through cuDNN (forward,
-//!   data and filter gradients; `MINFLOW_CUDA_CONV=cudnn`); `cuda_implicit_conv.rs`: burn-cubecl's
+//!   data and filter gradients; `MINFLOW_CUDA_CONV=cudnn`), recorded on burn's fusion stream,
+//!   with cuDNN's plans (descriptors, timed algorithms) in `cuda_cudnn_plan.rs` and its handles
+//!   and calls in `cuda_cudnn_calls.rs`; `cuda_device.rs`: what the library calls share (a
+//!   GPU's context, calls queued on cubecl's device thread); `cuda_implicit_conv.rs`: burn-cubecl's
 //!   implicit GEMM (`MINFLOW_CUDA_CONV=implicit`); `cuda_adam.rs`: the Adam step's kernel;
 //!   `cuda_minrnn.rs`: the minGRU's and minLSTM's inference updates, one kernel each;
 //!   `cuda_read.rs`: a tensor read back without waiting for the work recorded after it
@@ -77,6 +82,12 @@ mod cuda_conv;
 #[cfg(feature = "cuda")]
 mod cuda_cudnn;
 #[cfg(feature = "cuda")]
+mod cuda_cudnn_calls;
+#[cfg(feature = "cuda")]
+mod cuda_cudnn_plan;
+#[cfg(feature = "cuda")]
+mod cuda_device;
+#[cfg(feature = "cuda")]
 mod cuda_implicit_conv;
 #[cfg(feature = "cuda")]
 mod cuda_minrnn;
@@ -86,6 +97,7 @@ mod cuda_read;
 mod cuda_stencil;
 #[cfg(feature = "cuda")]
 mod cuda_stencil_kernels;
+pub mod error;
 pub mod host;
 pub mod mingru;
 mod ndarray;
@@ -96,6 +108,7 @@ pub mod scan;
 mod tensor;
 
 pub use adam_step::AdamStep;
+pub use error::OpsError;
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use read_ahead::ReadAhead;
