@@ -26,7 +26,8 @@
 //! - [`node`]: the surrogate node, the replay player and the recorder;
 //! - [`launch`]: launch files, their nodes as supervised child processes;
 //! - [`viz`]: frames as Foxglove point clouds, live over a WebSocket server or into bags;
-//! - [`cli`]: the command layer of the `minflow` binary.
+//! - [`cli`]: the command layer of the `minflow` binary;
+//! - [`switches`]: the environment variables minflow reads, in one typed place.
 
 pub mod bag;
 pub mod bspline;
@@ -43,6 +44,7 @@ pub mod node;
 pub mod ops;
 pub mod plot;
 pub mod sim;
+pub mod switches;
 pub mod train;
 pub mod transport;
 pub mod viz;

@@ -158,9 +158,7 @@ pub mod cuda {
         if index >= count.max(0) as usize {
             anyhow::bail!("--device cuda:{index}: this machine has {count} GPU(s)");
         }
-        if std::env::var_os("CUDA_PATH").is_none()
-            && std::path::Path::new(DEFAULT_CUDA_PATH).is_dir()
-        {
+        if !crate::switches::cuda_path_set() && std::path::Path::new(DEFAULT_CUDA_PATH).is_dir() {
             // SAFETY: called before burn starts its threads (the first device is created after this).
             unsafe { std::env::set_var("CUDA_PATH", DEFAULT_CUDA_PATH) };
         }

@@ -22,7 +22,7 @@ impl HostProfile {
     pub fn start() -> Self {
         #[cfg(feature = "host-profile")]
         {
-            let run = std::env::var("MINFLOW_HOST_PROFILE").ok().and_then(|path| {
+            let run = crate::switches::host_profile().and_then(|path| {
                 let path = path.replace("%p", &std::process::id().to_string());
                 let guard = pprof::ProfilerGuardBuilder::default()
                     .frequency(999)

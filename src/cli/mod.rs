@@ -318,7 +318,7 @@ pub fn tune_allocator(freed: FreedMemory) {
         FreedMemory::Kept => -1,
         FreedMemory::ReturnedAfterOneSecond => 1000,
     };
-    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
+    if !crate::switches::mimalloc_purge_delay_set() {
         // SAFETY: sets a process-wide integer option; mimalloc reads it on later frees.
         unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, delay_ms) };
     }

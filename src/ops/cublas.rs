@@ -10,7 +10,8 @@
 //!
 //! How: [`matmul`] records a `CustomOpIr` on the fusion stream, so it runs in order with the
 //! fused kernels around it. When the stream reaches it, a fresh output is allocated and the
-//! cuBLAS call is queued on cubecl's device thread like a kernel launch ([`on_device`]): there
+//! cuBLAS call is queued on cubecl's device thread like a kernel launch (`cuda_device.rs`'s
+//! `on_device`, which cuDNN's calls and the read back share): there
 //! the device pointers of the inputs and the output are read from cubecl's memory pool, and
 //! `cublasSgemm` is enqueued on the CUDA stream that pool belongs to, the stream cubecl
 //! launches this thread's kernels on (exposed by the vendored cubecl-cuda, vendor/README.md).
@@ -107,13 +108,12 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(bool, usize)> {
 
 #[cfg(feature = "cuda")]
 pub use gpu::matmul;
-#[cfg(feature = "cuda")]
-pub(crate) use gpu::{after_foreign, flush_device, on_device, primary_context};
 
 /// The CUDA side: the fusion custom operation and the cuBLAS calls.
 #[cfg(feature = "cuda")]
 mod gpu {
     use super::{kernels, layout, worth_it, GpuGemm};
+    use std::collections::hash_map::Entry;
     use std::collections::HashMap;
     use std::sync::Mutex;
 
@@ -128,6 +128,9 @@ mod gpu {
     use cudarc::cublas::{result as cublas, sys as cublas_sys};
     use cudarc::driver::{result as driver, sys as driver_sys};
 
+    use crate::ops::cuda_device::{after_foreign, on_device, primary_context};
+    use crate::ops::OpsError;
+
     /// The backend under burn's fusion layer for `Cuda<f32, i32>`.
     type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
     /// burn's CUDA backend with fusion (what `--device cuda` trains on).
@@ -140,8 +143,9 @@ mod gpu {
     /// in a dense layer's backward are); other strided views are made contiguous first.
     ///
     /// # Panics
-    /// A cuBLAS or CUDA driver error (cuBLAS missing: `libcublas.so.13` not found) panics, as
-    /// burn's own kernels do on a device error.
+    /// The operands are not `[m, k] x [k, n]`. A cuBLAS or CUDA driver error (cuBLAS missing:
+    /// `libcublas.so.13` not found) is raised ([`OpsError::raise`]) where the product runs, as
+    /// burn's own kernels panic on a device error.
     pub fn matmul(a: FloatTensor<Cuda>, b: FloatTensor<Cuda>) -> FloatTensor<Cuda> {
         use burn::tensor::ops::FloatTensorOps;
         let (sa, sb) = (a.shape(), b.shape());
@@ -154,27 +158,6 @@ mod gpu {
         if !worth_it(gemm, m, k, n) {
             return Cuda::float_matmul(a, b);
         }
-
-        /// The recorded operation: inputs `[a, b]`, output `[c]`.
-        #[derive(Debug)]
-        struct Gemm {
-            desc: CustomOpIr,
-            gemm: GpuGemm,
-        }
-
-        impl Operation<Runtime> for Gemm {
-            fn execute(
-                &self,
-                handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>,
-            ) {
-                let ([a, b], [c]) = self.desc.as_fixed();
-                let a = handles.get_float_tensor::<Inner>(a);
-                let b = handles.get_float_tensor::<Inner>(b);
-                let out = gemm_cube(a, b, self.gemm);
-                handles.register_float_tensor::<Inner>(&c.id, out);
-            }
-        }
-
         let client = a.client.clone();
         let streams = OperationStreams::with_inputs([&a, &b]);
         let out = TensorIr::uninit(client.create_empty_handle(), Shape::new([m, n]), DType::F32);
@@ -186,6 +169,23 @@ mod gpu {
                 Gemm { desc, gemm },
             )
             .remove(0)
+    }
+
+    /// The recorded product of [`matmul`]: inputs `[a, b]`, output `[c]`.
+    #[derive(Debug)]
+    struct Gemm {
+        desc: CustomOpIr,
+        gemm: GpuGemm,
+    }
+
+    impl Operation<Runtime> for Gemm {
+        fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
+            let ([a, b], [c]) = self.desc.as_fixed();
+            let a = handles.get_float_tensor::<Inner>(a);
+            let b = handles.get_float_tensor::<Inner>(b);
+            let out = gemm_cube(a, b, self.gemm).unwrap_or_else(|e| e.raise("cuBLAS product"));
+            handles.register_float_tensor::<Inner>(&c.id, out);
+        }
     }
 
     /// A 2-D CubeTensor's shape and strides.
@@ -222,179 +222,88 @@ mod gpu {
 
     static BLAS: Mutex<Option<HashMap<usize, Blas>>> = Mutex::new(None);
 
-    /// Runs `f` with GPU `index`'s cuBLAS handle, its math mode set for `gemm` and bound to
-    /// `stream`, the GPU's context current on this thread.
-    fn with_blas<T>(
-        index: usize,
-        gemm: GpuGemm,
-        stream: driver_sys::CUstream,
-        f: impl FnOnce(cublas_sys::cublasHandle_t) -> T,
-    ) -> T {
-        let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
-        let map = guard.get_or_insert_with(HashMap::new);
-        let blas = map.entry(index).or_insert_with(|| {
-            let ctx = primary_context(index);
-            let handle = cublas::create_handle().unwrap_or_else(|e| {
-                panic!("cuBLAS handle ({e:?}); is libcublas.so.13 on the library path?")
-            });
-            Blas {
+    impl Blas {
+        /// GPU `index`'s handle, made in its primary context.
+        ///
+        /// # Errors
+        /// The context's, or cuBLAS's (`libcublas.so.13` missing, no memory).
+        fn new(index: usize) -> Result<Self, OpsError> {
+            let ctx = primary_context(index)?;
+            let handle = cublas::create_handle().map_err(|e| {
+                OpsError::cublas("handle (is libcublas.so.13 on the library path?)", e)
+            })?;
+            Ok(Blas {
                 handle,
                 stream: std::ptr::null_mut(),
                 ctx,
                 math: None,
-            }
-        });
-        // SAFETY: the context and handle were created above and are alive.
-        unsafe {
-            driver::ctx::set_current(blas.ctx).expect("CUDA context");
-            if blas.math != Some(gemm) {
+            })
+        }
+
+        /// Makes the context current, and sets the math mode for `gemm` and the stream where
+        /// they changed.
+        ///
+        /// # Safety
+        /// `stream` is a live stream of the handle's context.
+        unsafe fn bind(
+            &mut self,
+            gemm: GpuGemm,
+            stream: driver_sys::CUstream,
+        ) -> Result<(), OpsError> {
+            driver::ctx::set_current(self.ctx).map_err(|e| OpsError::driver("context", e))?;
+            if self.math != Some(gemm) {
                 let mode = match gemm {
                     GpuGemm::Tf32 => cublas_sys::cublasMath_t::CUBLAS_TF32_TENSOR_OP_MATH,
                     _ => cublas_sys::cublasMath_t::CUBLAS_DEFAULT_MATH,
                 };
-                cublas_sys::cublasSetMathMode(blas.handle, mode)
-                    .result()
-                    .expect("cuBLAS math mode");
-                blas.math = Some(gemm);
+                (cublas_sys::cublasSetMathMode(self.handle, mode).result())
+                    .map_err(|e| OpsError::cublas("math mode", e))?;
+                self.math = Some(gemm);
             }
-            if blas.stream != stream {
+            if self.stream != stream {
                 // (Resets cuBLAS's workspace to its default pool: done only on a change.)
-                cublas::set_stream(blas.handle, stream as _).expect("cuBLAS stream");
-                blas.stream = stream;
+                cublas::set_stream(self.handle, stream as _)
+                    .map_err(|e| OpsError::cublas("stream", e))?;
+                self.stream = stream;
             }
-        }
-        f(blas.handle)
-    }
-
-    /// GPU `index`'s primary context (the one cubecl uses), retained again and made current
-    /// on this thread: what a library handle of the GPU is created in. Never released: the
-    /// handles live as long as the process.
-    pub(crate) fn primary_context(index: usize) -> driver_sys::CUcontext {
-        // SAFETY: driver FFI on a valid ordinal.
-        unsafe {
-            let dev = driver::device::get(index as i32).expect("CUDA device");
-            let ctx = driver::primary_ctx::retain(dev).expect("CUDA primary context");
-            driver::ctx::set_current(ctx).expect("CUDA context");
-            ctx
+            Ok(())
         }
     }
 
-    /// cubecl's CUDA compute server: the service that owns a GPU's memory pools and launches
-    /// its kernels, from a device thread of its own.
-    type Server = <CudaRuntime as burn::cubecl::Runtime>::Server;
-
-    /// A device pointer and the CUDA stream of the memory pool it comes from.
-    pub(crate) type Resource = (u64, driver_sys::CUstream);
-
-    /// Runs `f` on cubecl's device thread of the tensors' GPU, with each tensor's device
-    /// pointer and the stream of the memory pool it comes from, in order with cubecl's own
-    /// launches: after every kernel launched before this call, before every kernel launched
-    /// after it. A library call that `f` enqueues on the output's stream (a tensor this thread
-    /// allocated: the stream cubecl launches this thread's kernels on) therefore runs in
-    /// stream order with them, and the host does not wait for anything: the call is queued
-    /// like a kernel launch (`cubecl_common`'s `DeviceHandle::submit`, the queue
-    /// `ComputeClient::launch` itself goes through). Reading the pointers from this thread
-    /// instead (`ComputeClient::get_resource`) blocked the host until the device thread had
-    /// launched everything queued before: 0.8-1.3 ms a library call (docs/speed.md, "Where a
-    /// GPU call's time goes").
+    /// Runs `f` with GPU `index`'s cuBLAS handle (made on first use), its math mode set for
+    /// `gemm` and bound to `stream`, the GPU's context current on this thread.
     ///
-    /// The tensors are moved into the task and dropped on the device thread once `f` has
-    /// returned, so their memory goes back to the pool only for kernels launched after the
-    /// library's; the task runs with the caller's cubecl stream id (`submit` carries it).
-    ///
-    /// # Panics
-    /// On the device thread, when a tensor's memory cannot be read (a cubecl error). A panic
-    /// in `f` (a library error) aborts the process: the output would never be written.
-    pub(crate) fn on_device(
-        tensors: Vec<CubeTensor<CudaRuntime>>,
-        f: impl FnOnce(&[Resource]) + Send + 'static,
-    ) {
-        use burn::cubecl::device::Device;
-        use burn::cubecl::device_handle::DeviceHandle;
-        use burn::cubecl::server::ComputeServer;
-        use burn::cubecl::stream_id::StreamId;
-        let device = tensors[0].device.to_id();
-        DeviceHandle::<Server>::new(device).submit(move |server: &mut Server| {
-            let stream = StreamId::current();
-            let resources: Vec<_> = tensors
-                .iter()
-                .map(|t| {
-                    server
-                        .get_resource(t.handle.clone().binding(), stream)
-                        .expect("cubecl resource")
-                })
-                .collect();
-            let pointers: Vec<Resource> = resources
-                .iter()
-                .map(|r| (r.resource().ptr, r.resource().stream))
-                .collect();
-            // A failure here would otherwise be caught by cubecl's device thread and only
-            // logged, and the output, never written, read as a result: stop the process, as
-            // a failed call on the caller's thread did.
-            let call = std::panic::AssertUnwindSafe(|| f(&pointers));
-            if let Err(e) = std::panic::catch_unwind(call) {
-                let why = (e.downcast_ref::<String>().map(String::as_str))
-                    .or_else(|| e.downcast_ref::<&str>().copied())
-                    .unwrap_or("a panic");
-                tracing::error!("a cuBLAS / cuDNN call failed on the device thread: {why}");
-                eprintln!("minflow: a cuBLAS / cuDNN call failed on the device thread: {why}");
-                std::process::abort();
-            }
-            drop(resources);
-            drop(tensors);
-        });
-    }
-
-    /// Hands the tasks queued for `device`'s cubecl device thread over to it now (launches,
-    /// library calls, [`on_device`]'s tasks): its channel batches them, and hands a batch
-    /// over only when it is full or a caller waits on the device thread, so a last task
-    /// whose effect the host waits for outside cubecl (an event) would otherwise stay
-    /// queued.
-    pub(crate) fn flush_device(device: &burn::backend::cuda::CudaDevice) {
-        use burn::cubecl::device::Device;
-        use burn::cubecl::device_handle::DeviceHandle;
-        DeviceHandle::<Server>::new(device.to_id()).flush_queue();
-    }
-
-    /// Orders the streams of inputs from other streams' pools (`inputs`; data parallel
-    /// workers, a loader thread, weights made on another thread) after the work just enqueued
-    /// on `stream`: such an input may be freed as soon as its tensor drops, and its memory
-    /// reused by later work on its own stream while our kernel still reads it. An event
-    /// recorded on `stream` and waited for on each foreign stream holds that later work back,
-    /// with no host wait (`cuStreamWaitEvent`; a host synchronisation here made every call
-    /// with a foreign input wait for the GPU).
-    ///
-    /// # Safety
-    /// The streams are live CUDA streams of the current context.
-    pub(crate) unsafe fn after_foreign(
+    /// # Errors
+    /// The handle's, its binding's, or `f`'s.
+    fn with_blas<T>(
+        index: usize,
+        gemm: GpuGemm,
         stream: driver_sys::CUstream,
-        inputs: &[driver_sys::CUstream],
-    ) {
-        let mut done: Vec<driver_sys::CUstream> = Vec::new();
-        for &other in inputs {
-            if other == stream || done.contains(&other) {
-                continue;
-            }
-            done.push(other);
-            static SEEN: std::sync::Once = std::sync::Once::new();
-            SEEN.call_once(|| tracing::debug!("a library kernel read an input of another stream"));
-            let flags = driver_sys::CUevent_flags::CU_EVENT_DISABLE_TIMING;
-            let event = driver::event::create(flags).expect("CUDA event");
-            driver::event::record(event, stream).expect("CUDA event record");
-            let wait = driver_sys::CUevent_wait_flags::CU_EVENT_WAIT_DEFAULT;
-            driver::stream::wait_event(other, event, wait).expect("CUDA stream wait");
-            // Released by the driver once the wait is done.
-            driver::event::destroy(event).expect("CUDA event");
-        }
+        f: impl FnOnce(cublas_sys::cublasHandle_t) -> Result<T, OpsError>,
+    ) -> Result<T, OpsError> {
+        let mut guard = BLAS.lock().unwrap_or_else(|e| e.into_inner());
+        let map = guard.get_or_insert_with(HashMap::new);
+        let blas = match map.entry(index) {
+            Entry::Occupied(entry) => entry.into_mut(),
+            Entry::Vacant(entry) => entry.insert(Blas::new(index)?),
+        };
+        // SAFETY: the context and handle were created by `Blas::new` and are alive; `stream`
+        // is the live stream cubecl's pool gave the output.
+        unsafe { blas.bind(gemm, stream)? };
+        f(blas.handle)
     }
 
     /// `a @ b` on cubecl tensors through `cublasSgemm` (row-major `C = A B` as the column-major
     /// `C^T = B^T A^T`), enqueued on cubecl's stream.
+    ///
+    /// # Errors
+    /// A size that does not fit cuBLAS's `i32`; the library's errors end the process on the
+    /// device thread ([`on_device`]).
     fn gemm_cube(
         a: CubeTensor<CudaRuntime>,
         b: CubeTensor<CudaRuntime>,
         gemm: GpuGemm,
-    ) -> CubeTensor<CudaRuntime> {
+    ) -> Result<CubeTensor<CudaRuntime>, OpsError> {
         let (a, a_trans, lda) = readable(a);
         let (b, b_trans, ldb) = readable(b);
         let ([m, k], _) = dims(&a);
@@ -407,8 +316,8 @@ mod gpu {
             DType::F32,
         );
         let index = a.device.index;
-        let int = |v: usize| i32::try_from(v).expect("cuBLAS dimension fits i32");
-        let (m, k, n, lda, ldb) = (int(m), int(k), int(n), int(lda), int(ldb));
+        let int = |v: usize| OpsError::fit_i32("cuBLAS dimension", v);
+        let (m, k, n, lda, ldb) = (int(m)?, int(k)?, int(n)?, int(lda)?, int(ldb)?);
         let op = |t: bool| match t {
             true => cublas_sys::cublasOperation_t::CUBLAS_OP_T,
             false => cublas_sys::cublasOperation_t::CUBLAS_OP_N,
@@ -416,7 +325,7 @@ mod gpu {
         let (op_a, op_b) = (op(a_trans), op(b_trans));
         // The output was just allocated from this thread's pool: its stream is the one cubecl
         // launches on for this thread.
-        on_device(vec![a, b, out.clone()], move |r| {
+        on_device(vec![a, b, out.clone()], "cuBLAS product", move |r| {
             let [(pa, sa), (pb, sb), (pc, stream)] = [r[0], r[1], r[2]];
             with_blas(index, gemm, stream, |handle| {
                 let (alpha, beta) = (1.0f32, 0.0f32);
@@ -441,12 +350,12 @@ mod gpu {
                         pc as *mut f32,
                         n,
                     )
-                    .expect("cublasSgemm");
-                    after_foreign(stream, &[sa, sb]);
+                    .map_err(|e| OpsError::cublas("sgemm", e))?;
+                    after_foreign(stream, &[sa, sb])
                 }
             })
         });
-        out
+        Ok(out)
     }
 }
 

@@ -11,15 +11,9 @@ use burn::tensor::ops::{FloatTensor, IntTensor};
 
 use std::sync::OnceLock;
 
+use super::cuda_conv::Cuda;
 use super::NetOps;
-
-/// Whether the environment variable `var` is `value`, read once into `cell`: the switches
-/// that pick another form of a CUDA operation, to compare two forms in one binary
-/// (`MINFLOW_CUDA_TRANSFERS`, `MINFLOW_CUDA_ADAM`, `MINFLOW_CUDA_MINRNN`,
-/// `MINFLOW_CUDNN_FILTER`; docs/cuda.md).
-pub(super) fn env_is(cell: &'static OnceLock<bool>, var: &str, value: &str) -> bool {
-    *cell.get_or_init(|| std::env::var(var).is_ok_and(|v| v == value))
-}
+use crate::switches::{self, CudaConv};
 
 /// How the grid model's 3x3 convolutions run on CUDA (`MINFLOW_CUDA_CONV`; docs/speed.md,
 /// "Where a GPU call's time goes", has the measurements that chose the default).
@@ -45,43 +39,37 @@ pub(super) enum ConvForm {
     Implicit,
 }
 
-/// The [`ConvForm`] of this process: `MINFLOW_CUDA_CONV=im2col | cudnn | implicit`, read
-/// once; [`ConvForm::CudnnInference`] when unset and cuDNN loads, im2col when it does not.
-/// cuDNN asked for and missing falls back to im2col with a warning.
+/// The [`ConvForm`] of this process: `MINFLOW_CUDA_CONV=im2col | cudnn | implicit`
+/// ([`switches::cuda_conv`]), read once; [`ConvForm::CudnnInference`] when unset and cuDNN
+/// loads, im2col when it does not. cuDNN asked for and missing falls back to im2col with a
+/// warning; so does a GPU where cuDNN loads but does not start ([`cudnn_on`]).
 pub(super) fn conv_form() -> ConvForm {
     static FORM: OnceLock<ConvForm> = OnceLock::new();
     *FORM.get_or_init(|| {
-        let asked = std::env::var("MINFLOW_CUDA_CONV").ok();
+        let asked = switches::cuda_conv();
         let cudnn = super::cuda_cudnn::available();
-        let form = match asked.as_deref() {
-            Some("implicit") => ConvForm::Implicit,
-            Some("im2col") => ConvForm::Im2col,
-            Some("cudnn") if cudnn => ConvForm::Cudnn,
-            Some("cudnn") => {
+        let form = match asked {
+            Some(CudaConv::Implicit) => ConvForm::Implicit,
+            Some(CudaConv::Im2col) => ConvForm::Im2col,
+            Some(CudaConv::Cudnn) if cudnn => ConvForm::Cudnn,
+            Some(CudaConv::Cudnn) => {
                 tracing::warn!("MINFLOW_CUDA_CONV=cudnn: libcudnn.so.9 not found, im2col instead");
                 ConvForm::Im2col
             }
-            _ if cudnn => ConvForm::CudnnInference,
-            _ => ConvForm::Im2col,
+            None if cudnn => ConvForm::CudnnInference,
+            None => ConvForm::Im2col,
         };
         tracing::debug!("CUDA convolutions: {form:?}");
         form
     })
 }
 
-/// Whether `MINFLOW_CUDA_ADAM=composed` asks for burn's composed Adam step instead of the
-/// kernel of [`super::cuda_adam`], to compare the two in one binary (docs/speed.md).
-fn composed_adam() -> bool {
-    static COMPOSED: OnceLock<bool> = OnceLock::new();
-    env_is(&COMPOSED, "MINFLOW_CUDA_ADAM", "composed")
-}
-
-/// Whether `MINFLOW_CUDA_MINRNN=composed` asks for the minGRU's and minLSTM's updates composed
-/// from burn's operations instead of the kernels of [`super::cuda_minrnn`], to compare the two
-/// in one binary (docs/speed.md).
-fn composed_minrnn() -> bool {
-    static COMPOSED: OnceLock<bool> = OnceLock::new();
-    env_is(&COMPOSED, "MINFLOW_CUDA_MINRNN", "composed")
+/// Whether `form` runs `x`'s convolution through cuDNN: a cuDNN form, on a GPU where cuDNN
+/// starts ([`super::cuda_cudnn::ready`]; where it does not, the convolution runs as im2col,
+/// as [`ConvForm::Im2col`] would, after one warning).
+fn cudnn_on(form: ConvForm, x: &FloatTensor<Cuda>) -> bool {
+    matches!(form, ConvForm::Cudnn | ConvForm::CudnnInference)
+        && super::cuda_cudnn::ready(x.client.device().index)
 }
 
 /// The composed defaults, whose element-wise chains burn's fusion layer compiles into single
@@ -94,12 +82,11 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     /// bit on every run), for inference and for training through the autodiff backend.
     const DENSE_STENCIL: bool = false;
 
-    /// [`NetOps::DENSE_STENCIL`] unless `MINFLOW_CUDA_TRANSFERS=dense`, which takes the
-    /// separable dense products instead, to compare the two in one binary (docs/scale.md,
-    /// docs/cuda.md).
+    /// [`NetOps::DENSE_STENCIL`] unless `MINFLOW_CUDA_TRANSFERS=dense`
+    /// ([`switches::cuda_dense_transfers`]), which takes the separable dense products
+    /// instead, to compare the two in one binary (docs/scale.md, docs/cuda.md).
     fn dense_stencil() -> bool {
-        static DENSE: OnceLock<bool> = OnceLock::new();
-        env_is(&DENSE, "MINFLOW_CUDA_TRANSFERS", "dense")
+        switches::cuda_dense_transfers()
     }
 
     fn sparse_stencil(
@@ -141,7 +128,7 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         v: Option<FloatTensor<Self>>,
         c: &super::AdamStep,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        if composed_adam() {
+        if switches::cuda_composed_adam() {
             return super::adam_step::composed_adam::<Self>(param, grad, m, v, c);
         }
         super::cuda_adam::adam_step(param, grad, m, v, c)
@@ -156,11 +143,9 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     ) -> Option<FloatTensor<Self>> {
         let _ = prepared;
         let y = match conv_form() {
-            ConvForm::Cudnn | ConvForm::CudnnInference => {
-                super::cuda_cudnn::conv3x3(parts, weight, bias)
-            }
+            form if cudnn_on(form, weight) => super::cuda_cudnn::conv3x3(parts, weight, bias),
             ConvForm::Implicit => super::cuda_implicit_conv::conv3x3(parts, weight, bias),
-            ConvForm::Im2col => return None,
+            _ => return None,
         };
         Some(if silu { Self::silu(y) } else { y })
     }
@@ -172,7 +157,9 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         k: usize,
     ) -> FloatTensor<Self> {
         match (k, conv_form()) {
-            (3, ConvForm::Cudnn) => super::cuda_cudnn::im2col_linear(x, matrix, bias),
+            (3, ConvForm::Cudnn) if cudnn_on(ConvForm::Cudnn, &x) => {
+                super::cuda_cudnn::im2col_linear(x, matrix, bias)
+            }
             _ => super::composed_grid::composed_im2col_linear::<Self>(x, matrix, bias, k),
         }
     }
@@ -185,7 +172,7 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         need: [bool; 3],
     ) -> [Option<FloatTensor<Self>>; 3] {
         match (k, conv_form()) {
-            (3, ConvForm::Cudnn) => {
+            (3, ConvForm::Cudnn) if cudnn_on(ConvForm::Cudnn, &x) => {
                 super::cuda_cudnn::im2col_linear_backward(x, matrix, grad, need)
             }
             _ => super::composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need),
@@ -204,7 +191,7 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
 
     /// One kernel ([`super::cuda_minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
-        match composed_minrnn() {
+        match switches::cuda_composed_minrnn() {
             true => super::mingru::composed_mingru_update::<Self>(hg, h),
             false => super::cuda_minrnn::mingru_update(hg, h),
         }
@@ -215,7 +202,8 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         hfi: &FloatTensor<Self>,
         h: Option<&FloatTensor<Self>>,
     ) -> Option<FloatTensor<Self>> {
-        (!composed_minrnn()).then(|| super::cuda_minrnn::minlstm_update(hfi.clone(), h.cloned()))
+        (!switches::cuda_composed_minrnn())
+            .then(|| super::cuda_minrnn::minlstm_update(hfi.clone(), h.cloned()))
     }
 
     fn splits_reduction(device: &Self::Device, m: usize, k: usize, n: usize) -> bool {

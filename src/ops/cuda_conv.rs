@@ -27,6 +27,8 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, prelude::*};
 
+use super::OpsError;
+
 /// The backend under burn's fusion layer for `Cuda<f32, i32>` (also `cuda_stencil.rs`'s).
 pub(super) type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
 /// burn's CUDA backend with fusion.
@@ -195,18 +197,22 @@ impl Operation<Runtime> for ConvOp {
     fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
         let ([x], [y]) = self.desc.as_fixed();
         let x = handles.get_float_tensor::<Inner>(x);
-        let out = launch(x, self.kind, self.dims, self.k);
+        let out = (launch(x, self.kind, self.dims, self.k))
+            .unwrap_or_else(|e| e.raise("im2col / col2im kernel"));
         handles.register_float_tensor::<Inner>(&y.id, out);
     }
 }
 
 /// Launches `kind` on the cubecl tensor `x`; returns the new contiguous output.
+///
+/// # Errors
+/// A size that does not fit the kernel's `u32`.
 fn launch(
     x: CubeTensor<CudaRuntime>,
     kind: Kind,
     dims: [usize; 4],
     k: usize,
-) -> CubeTensor<CudaRuntime> {
+) -> Result<CubeTensor<CudaRuntime>, OpsError> {
     let [_, h, w, c] = dims;
     let x = contiguous(x);
     let shape = kind.out_shape(dims, k);
@@ -217,7 +223,7 @@ fn launch(
         shape,
         x.dtype,
     );
-    let int = |v: usize| u32::try_from(v).expect("grid dimension fits u32");
+    let int = |v: usize| OpsError::fit_u32("grid dimension", v);
     let dtype = out.dtype.into();
     match kind {
         Kind::Im2col => {
@@ -228,19 +234,19 @@ fn launch(
             let r = (4096 / width).clamp(1, 32);
             let cubes = rows.div_ceil(r);
             let x_count = cubes.clamp(1, 65_535);
-            let count = CubeCount::Static(int(x_count), int(cubes.div_ceil(x_count)), 1);
+            let count = CubeCount::Static(int(x_count)?, int(cubes.div_ceil(x_count))?, 1);
             im2col_kernel::launch::<CudaRuntime>(
                 &client,
                 count,
                 CubeDim::new_1d(256),
                 x.into_tensor_arg(),
                 out.clone().into_tensor_arg(),
-                int(rows),
-                int(h),
-                int(w),
-                int(c),
-                int(k),
-                int(r),
+                int(rows)?,
+                int(h)?,
+                int(w)?,
+                int(c)?,
+                int(k)?,
+                int(r)?,
                 dtype,
             );
         }
@@ -253,15 +259,15 @@ fn launch(
                 cube_dim,
                 x.into_tensor_arg(),
                 out.clone().into_tensor_arg(),
-                int(h),
-                int(w),
-                int(c),
-                int(k),
+                int(h)?,
+                int(w)?,
+                int(c)?,
+                int(k)?,
                 dtype,
             );
         }
     }
-    out
+    Ok(out)
 }
 
 /// Records `kind` on `x`'s fusion stream; returns its output.

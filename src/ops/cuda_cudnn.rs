@@ -13,7 +13,7 @@
 //! when `MINFLOW_CUDA_CONV=cudnn` asks for it; without it the convolutions stay im2col and
 //! cuBLAS ([`available`], `cuda.rs`'s `conv_form`).
 //!
-//! Each call is queued on cubecl's device thread like a kernel launch (`cublas::on_device`).
+//! Each call is queued on cubecl's device thread like a kernel launch (`cuda_device::on_device`).
 //! It used to read its tensors' device pointers from the caller's thread through cubecl's
 //! device queue, which waited for every launch queued before it (0.8-1.3 ms a call on one
 //! H100), so the host could not run ahead of the GPU; with that wait cuDNN was not worth it
@@ -35,24 +35,23 @@
 //! `cublas.rs`; the cuDNN handle is bound to the same cubecl stream in the same way, and its
 //! workspace is a cubecl allocation dropped on the device thread right after the enqueue
 //! (stream order keeps it alive for the kernel).
+//!
+//! Where: this file records the convolutions on burn's fusion stream (the passes, the
+//! layouts, [`Transposed`]); `cuda_cudnn_plan.rs` makes a shape's descriptors and picks its
+//! algorithm; `cuda_cudnn_calls.rs` keeps the handles and plans and queues the calls. A GPU
+//! where cuDNN loads but does not start runs its convolutions as im2col ([`ready`]).
 
-use std::collections::HashMap;
-use std::mem::MaybeUninit;
-use std::sync::Mutex;
-
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
 use burn::tensor::{DType, Shape, Slice, TensorMetadata, TensorPrimitive};
-use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
-use cudarc::cudnn::{result as dnn, sys};
-use cudarc::driver::{result as driver, sys as driver_sys};
+use cudarc::cudnn::sys;
 
 use super::composed_grid::dims4;
-use super::cublas::{kernels, on_device, GpuGemm};
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
+use super::cuda_cudnn_calls::{run, start};
+use super::cuda_cudnn_plan::{Dims, Pass};
 
 /// Whether cuDNN can be loaded (checked once).
 pub(super) fn available() -> bool {
@@ -61,28 +60,24 @@ pub(super) fn available() -> bool {
     *PRESENT.get_or_init(|| unsafe { sys::is_culib_present() })
 }
 
-/// Which of a convolution's three passes an operation runs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-enum Pass {
-    /// `y = conv(x, w)`: inputs `[x, w]`, output `y` `[B, H, W, C_out]`.
-    Forward,
-    /// `dx` from `dy` and `w`: inputs `[dy, w]`, output `[B, H, W, C_in]`.
-    Data,
-    /// `dw` from `x` and `dy`: inputs `[x, dy]`, output `[C_out, 3, 3, C_in]`.
-    Filter,
-}
-
-/// A convolution's sizes: `[B, H, W, C_in, C_out]`.
-type Dims = [usize; 5];
-
-impl Pass {
-    fn out_shape(self, [b, h, w, c_in, c_out]: Dims) -> Shape {
-        match self {
-            Pass::Forward => Shape::new([b, h, w, c_out]),
-            Pass::Data => Shape::new([b, h, w, c_in]),
-            Pass::Filter => Shape::new([c_out, 3, 3, c_in]),
-        }
+/// Whether cuDNN starts on GPU `index` (its handle made on the first call, checked once a
+/// GPU): where it does not, the failure is logged once and the caller runs the convolution
+/// as im2col instead, as `MINFLOW_CUDA_CONV=im2col` would (`cuda.rs`).
+pub(super) fn ready(index: usize) -> bool {
+    static KNOWN: std::sync::Mutex<Vec<(usize, bool)>> = std::sync::Mutex::new(Vec::new());
+    let mut known = KNOWN.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(&(_, ok)) = known.iter().find(|(i, _)| *i == index) {
+        return ok;
     }
+    let ok = match start(index) {
+        Ok(()) => true,
+        Err(e) => {
+            tracing::warn!("cuDNN does not start on GPU {index} ({e}): im2col instead");
+            false
+        }
+    };
+    known.push((index, ok));
+    ok
 }
 
 /// The recorded operation: one output, the sum of one or more passes of one kind, each with
@@ -102,7 +97,8 @@ impl Operation<Runtime> for ConvOp {
         let inputs = (self.desc.inputs.iter())
             .map(|t| contiguous(handles.get_float_tensor::<Inner>(t)))
             .collect();
-        let out = run(self.pass, self.flip, &self.dims, inputs);
+        let out = (run(self.pass, self.flip, &self.dims, inputs))
+            .unwrap_or_else(|e| e.raise("cuDNN convolution"));
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, out);
     }
 }
@@ -224,10 +220,9 @@ pub(super) fn conv3x3(
 
 /// Whether `MINFLOW_CUDNN_FILTER=permuted` asks for training's convolutions on weights copied
 /// into cuDNN's `KRSC` layout, each pass, instead of the [`Transposed`] passes that read the
-/// matrix in place: to compare the two in one binary (docs/speed.md).
+/// matrix in place: to compare the two in one binary (docs/speed.md; [`crate::switches`]).
 fn permuted_filter() -> bool {
-    static PERMUTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::cuda::env_is(&PERMUTED, "MINFLOW_CUDNN_FILTER", "permuted")
+    crate::switches::cudnn_permuted_filter()
 }
 
 /// Training's three passes on an im2col matrix `[C_in 9, C_out]` read in place, without the
@@ -341,293 +336,4 @@ pub(super) fn im2col_linear_backward(
         super::composed::bias_grad(grad, split)
     });
     [dx, dmatrix, dbias]
-}
-
-/// A cuDNN descriptor set and algorithm for one convolution shape and pass: what [`run`]
-/// needs besides the pointers. Created once per (GPU, pass, shape, math) and kept.
-struct Plan {
-    x: sys::cudnnTensorDescriptor_t,
-    y: sys::cudnnTensorDescriptor_t,
-    w: sys::cudnnFilterDescriptor_t,
-    conv: sys::cudnnConvolutionDescriptor_t,
-    algo: Algo,
-    workspace: usize,
-}
-
-/// The algorithm of a [`Plan`], by pass.
-#[derive(Clone, Copy)]
-enum Algo {
-    Forward(sys::cudnnConvolutionFwdAlgo_t),
-    Data(sys::cudnnConvolutionBwdDataAlgo_t),
-    Filter(sys::cudnnConvolutionBwdFilterAlgo_t),
-}
-
-/// One cuDNN handle per GPU, the stream it is bound to, the GPU's primary context (cubecl's),
-/// and the plans made so far.
-struct Dnn {
-    handle: sys::cudnnHandle_t,
-    stream: driver_sys::CUstream,
-    ctx: driver_sys::CUcontext,
-    plans: HashMap<Key, Plan>,
-}
-
-/// What a [`Plan`] is made for: the pass, the sizes, TF32 math, and whether the filter is
-/// flipped (a true convolution, [`Transposed`]).
-type Key = (Pass, Dims, bool, bool);
-
-// SAFETY: the handle, context and descriptors are plain library handles; every use holds
-// `DNN`'s lock and makes the context current on the calling thread first.
-unsafe impl Send for Dnn {}
-
-static DNN: Mutex<Option<HashMap<usize, Dnn>>> = Mutex::new(None);
-
-/// Panics with cuDNN's error for `what`.
-fn check<T>(what: &str, r: Result<T, dnn::CudnnError>) -> T {
-    r.unwrap_or_else(|e| panic!("cuDNN {what}: {e:?}"))
-}
-
-/// Makes the descriptors of `pass` on `dims` and picks its algorithm (see the module doc).
-///
-/// # Safety
-/// `handle` is a live cuDNN handle with its GPU's context current.
-unsafe fn plan(handle: sys::cudnnHandle_t, (pass, dims, tf32, flip): Key) -> Plan {
-    use sys::cudnnDataType_t::CUDNN_DATA_FLOAT as FLOAT;
-    use sys::cudnnTensorFormat_t::CUDNN_TENSOR_NHWC as NHWC;
-    let [b, h, w, c_in, c_out] = dims.map(|v| i32::try_from(v).expect("cuDNN size fits i32"));
-    let x = check("tensor", dnn::create_tensor_descriptor());
-    check(
-        "tensor",
-        dnn::set_tensor4d_descriptor(x, NHWC, FLOAT, [b, c_in, h, w]),
-    );
-    let y = check("tensor", dnn::create_tensor_descriptor());
-    check(
-        "tensor",
-        dnn::set_tensor4d_descriptor(y, NHWC, FLOAT, [b, c_out, h, w]),
-    );
-    let wd = check("filter", dnn::create_filter_descriptor());
-    check(
-        "filter",
-        dnn::set_filter4d_descriptor(wd, FLOAT, NHWC, [c_out, c_in, 3, 3]),
-    );
-    let conv = check("convolution", dnn::create_convolution_descriptor());
-    let mode = match flip {
-        false => sys::cudnnConvolutionMode_t::CUDNN_CROSS_CORRELATION,
-        true => sys::cudnnConvolutionMode_t::CUDNN_CONVOLUTION,
-    };
-    check(
-        "convolution",
-        dnn::set_convolution2d_descriptor(conv, 1, 1, 1, 1, 1, 1, mode, FLOAT),
-    );
-    let math = match tf32 {
-        true => sys::cudnnMathType_t::CUDNN_TENSOR_OP_MATH,
-        false => sys::cudnnMathType_t::CUDNN_FMA_MATH,
-    };
-    check("math type", dnn::set_convolution_math_type(conv, math));
-    let ok = sys::cudnnStatus_t::CUDNN_STATUS_SUCCESS;
-    let deterministic = sys::cudnnDeterminism_t::CUDNN_DETERMINISTIC;
-    /// How many of cuDNN's timed algorithms are looked at.
-    const RANKED: usize = 16;
-    let mut count = 0;
-    // cudnnFind*: every algorithm run and timed on buffers of these sizes (what PyTorch's
-    // `cudnn.benchmark` does), fastest first; once per shape.
-    // The fastest successful algorithm of a search (`$perf` its result type, `$find` the
-    // search's call with the descriptors in its order), the gradients' deterministic only.
-    macro_rules! fastest {
-        ($perf:ty, $kind:ident, $what:literal, $find:ident($($desc:expr),*)) => {{
-            let mut perf = [MaybeUninit::<$perf>::zeroed(); RANKED];
-            let found = sys::$find(
-                handle,
-                $($desc,)*
-                RANKED as i32,
-                &mut count,
-                perf.as_mut_ptr().cast(),
-            );
-            check($what, found.result());
-            let best = perf[..count as usize]
-                .iter()
-                .map(|p| p.assume_init())
-                .find(|p| p.status == ok && (pass == Pass::Forward || p.determinism == deterministic))
-                .unwrap_or_else(|| panic!("cuDNN has no {} algorithm for {dims:?}", $what));
-            (Algo::$kind(best.algo), best.memory, best.mathType, best.time)
-        }};
-    }
-    let (algo, workspace, math, ms) = match pass {
-        Pass::Forward => fastest!(
-            sys::cudnnConvolutionFwdAlgoPerf_t,
-            Forward,
-            "forward",
-            cudnnFindConvolutionForwardAlgorithm(x, wd, conv, y)
-        ),
-        Pass::Data => fastest!(
-            sys::cudnnConvolutionBwdDataAlgoPerf_t,
-            Data,
-            "data gradient",
-            cudnnFindConvolutionBackwardDataAlgorithm(wd, y, conv, x)
-        ),
-        Pass::Filter => fastest!(
-            sys::cudnnConvolutionBwdFilterAlgoPerf_t,
-            Filter,
-            "filter gradient",
-            cudnnFindConvolutionBackwardFilterAlgorithm(x, y, conv, wd)
-        ),
-    };
-    // The math type the timed algorithm ran with.
-    check("math type", dnn::set_convolution_math_type(conv, math));
-    tracing::debug!(
-        "cuDNN {pass:?} {dims:?} (tf32 {tf32}, flipped {flip}): {:?}, {math:?}, {workspace} B workspace, {ms:.3} ms",
-        match algo {
-            Algo::Forward(a) => format!("{a:?}"),
-            Algo::Data(a) => format!("{a:?}"),
-            Algo::Filter(a) => format!("{a:?}"),
-        }
-    );
-    Plan {
-        x,
-        y,
-        w: wd,
-        conv,
-        algo,
-        workspace,
-    }
-}
-
-/// Runs `f` with GPU `index`'s cuDNN handle (created on first use), its context current on
-/// this thread.
-fn with_dnn<T>(index: usize, f: impl FnOnce(&mut Dnn) -> T) -> T {
-    let mut guard = DNN.lock().unwrap_or_else(|e| e.into_inner());
-    let map = guard.get_or_insert_with(HashMap::new);
-    let dnn = map.entry(index).or_insert_with(|| {
-        let ctx = super::cublas::primary_context(index);
-        let handle = dnn::create_handle().unwrap_or_else(|e| {
-            panic!("cuDNN handle ({e:?}); is libcudnn.so.9 on the library path?")
-        });
-        Dnn {
-            handle,
-            stream: std::ptr::null_mut(),
-            ctx,
-            plans: HashMap::new(),
-        }
-    });
-    // SAFETY: the context was retained when the handle was made and is never released.
-    unsafe { driver::ctx::set_current(dnn.ctx).expect("CUDA context") };
-    f(dnn)
-}
-
-/// Runs the sum of `pass` over `dims.len()` passes (with the filter flipped where `flip`
-/// says) on the contiguous cubecl tensors `inputs` (two a pass, see [`Pass`]); returns the
-/// new contiguous output. Each shape's plan is made here on first use (cuDNN times its
-/// algorithms then, once per shape); the convolutions themselves are queued on cubecl's
-/// device thread ([`on_device`]), which enqueues them on cubecl's stream in order with its
-/// kernels, so the host does not wait.
-fn run(
-    pass: Pass,
-    flip: bool,
-    dims: &[Dims],
-    inputs: Vec<CubeTensor<CudaRuntime>>,
-) -> CubeTensor<CudaRuntime> {
-    let (client, device) = (inputs[0].client.clone(), inputs[0].device.clone());
-    let index = device.index;
-    let tf32 = kernels(index).gemm == GpuGemm::Tf32;
-    let keys: Vec<Key> = dims.iter().map(|&d| (pass, d, tf32, flip)).collect();
-    let empty = |shape: Shape| {
-        burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-            client.clone(),
-            device.clone(),
-            shape,
-            DType::F32,
-        )
-    };
-    let out = empty(pass.out_shape(dims[0]));
-    let workspace = with_dnn(index, |dnn| {
-        let handle = dnn.handle;
-        let sizes = keys.iter().map(|&key| {
-            let entry = dnn.plans.entry(key);
-            // SAFETY: the handle is alive and its context current (`with_dnn`).
-            entry
-                .or_insert_with(|| unsafe { plan(handle, key) })
-                .workspace
-        });
-        sizes.max().unwrap_or(0)
-    });
-    // (A workspace of at least one float: the task's tensors are the inputs, out, workspace.)
-    let workspace = empty(Shape::new([workspace.div_ceil(4).max(1)]));
-    let mut tensors = inputs;
-    tensors.extend([out.clone(), workspace]);
-    on_device(tensors, move |r| {
-        let [(py, stream), (pw, _)] = [r[r.len() - 2], r[r.len() - 1]];
-        with_dnn(index, |dnn| {
-            let handle = dnn.handle;
-            if dnn.stream != stream {
-                // SAFETY: a live handle and a live stream of its context.
-                check("stream", unsafe { dnn::set_stream(handle, stream as _) });
-                dnn.stream = stream;
-            }
-            for (i, key) in keys.iter().enumerate() {
-                let [(pa, sa), (pb, sb)] = [r[2 * i], r[2 * i + 1]];
-                let plan = &dnn.plans[key];
-                let ws = pw as *mut std::ffi::c_void;
-                let (alpha, beta) = (1.0f32, if i == 0 { 0.0f32 } else { 1.0 });
-                let (alpha, beta) = (&alpha as *const f32 as _, &beta as *const f32 as _);
-                let (pa, pb, py) = (pa as *const _, pb as *const _, py as *mut _);
-                // SAFETY: the handle and descriptors were created by `with_dnn` and `plan` and
-                // are alive; the pointers are live allocations of the tensors `on_device`
-                // holds, of the sizes the descriptors give (the inputs contiguous, as `ConvOp`
-                // made them). The kernel is enqueued on the stream cubecl writes them on, in
-                // order with cubecl's launches; their memory, and the workspace's, returns to
-                // the pool after it.
-                unsafe {
-                    let r = match plan.algo {
-                        Algo::Forward(algo) => dnn::convolution_forward(
-                            handle,
-                            alpha,
-                            plan.x,
-                            pa,
-                            plan.w,
-                            pb,
-                            plan.conv,
-                            algo,
-                            ws,
-                            plan.workspace,
-                            beta,
-                            plan.y,
-                            py,
-                        ),
-                        Algo::Data(algo) => dnn::convolution_backward_data(
-                            handle,
-                            alpha,
-                            plan.w,
-                            pb,
-                            plan.y,
-                            pa,
-                            plan.conv,
-                            algo,
-                            ws,
-                            plan.workspace,
-                            beta,
-                            plan.x,
-                            py,
-                        ),
-                        Algo::Filter(algo) => dnn::convolution_backward_filter(
-                            handle,
-                            alpha,
-                            plan.x,
-                            pa,
-                            plan.y,
-                            pb,
-                            plan.conv,
-                            algo,
-                            ws,
-                            plan.workspace,
-                            beta,
-                            plan.w,
-                            py,
-                        ),
-                    };
-                    check("convolution", r);
-                    super::cublas::after_foreign(stream, &[sa, sb]);
-                }
-            }
-        })
-    });
-    out
 }

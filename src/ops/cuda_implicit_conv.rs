@@ -26,6 +26,7 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
+use super::OpsError;
 
 /// The recorded convolution: inputs `[x, weight]` and `[bias]` when it has one, output `[y]`.
 #[derive(Debug)]
@@ -54,7 +55,7 @@ impl Operation<Runtime> for ConvOp {
             });
             conv_forward_nhwc::<CudaRuntime, 2>(x, weight, bias, options, ConvStrategy::Direct)
         })
-        .expect("burn-cubecl's direct convolution takes any 3x3 same-padding shape");
+        .unwrap_or_else(|e| OpsError::cubecl("direct convolution", e).raise("3x3 convolution"));
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, contiguous(y));
     }
 }

@@ -21,6 +21,7 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 
 use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use super::OpsError;
 
 /// `1 / (1 + e^-x)`.
 #[cube]
@@ -122,7 +123,8 @@ impl Operation<Runtime> for UpdateOp {
             dtype,
         );
         let (count, dim) = elementwise(&client, rows * self.hidden);
-        let hidden = u32::try_from(self.hidden).expect("state width fits u32");
+        let hidden = (OpsError::fit_u32("state width", self.hidden))
+            .unwrap_or_else(|e| e.raise("minGRU / minLSTM update kernel"));
         update_kernel::launch::<CudaRuntime>(
             &client,
             count,

@@ -5,9 +5,9 @@
 //! queued on cubecl's device thread without a host wait: `cublas.rs`), and the fusion stream
 //! is drained when it is recorded, so the copy is queued at once, before the work the host
 //! records next (cubecl's device thread is handed its queued tasks at once,
-//! `cublas::flush_device`). Waiting on the event waits for the copy and what came before it, not for
-//! what was queued after: the next network call runs on the GPU while the host takes this
-//! one's predictions (the surrogate node's pipelined calls, docs/scale.md).
+//! `cuda_device::flush_device`). Waiting on the event waits for the copy and what came
+//! before it, not for what was queued after: the next network call runs on the GPU while the
+//! host takes this one's predictions (the surrogate node's pipelined calls, docs/scale.md).
 //!
 //! cubecl's own read (`into_data`) could not do this: the read is queued only when its future
 //! is polled, and then it waits on a fence recorded after everything queued so far.
@@ -23,9 +23,9 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::cublas::{flush_device, on_device, primary_context};
 use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
-use super::ReadAhead;
+use super::cuda_device::{flush_device, on_device, primary_context};
+use super::{OpsError, ReadAhead};
 
 /// How long a wait gives the device thread to queue the copy before it reports an error
 /// (the copy is queued right after the work before it is launched, so only a stuck device
@@ -48,7 +48,7 @@ struct Landing {
 unsafe impl Send for Landing {}
 
 /// The landing the device thread fills in (or its error), and the wait's wake-up.
-type Slot = Arc<(Mutex<Option<Result<Landing, String>>>, Condvar)>;
+type Slot = Arc<(Mutex<Option<Result<Landing, OpsError>>>, Condvar)>;
 
 /// Pinned host buffers of finished reads, `(pointer, bytes)`, for the next reads: pinning
 /// 10 MB costs milliseconds, and the node reads one call's predictions after another.
@@ -61,19 +61,30 @@ const POOL_SIZE: usize = 4;
 static CONTEXTS: Mutex<Option<HashMap<usize, usize>>> = Mutex::new(None);
 
 /// GPU `index`'s primary context, made current on this thread.
-fn context(index: usize) -> driver_sys::CUcontext {
+///
+/// # Errors
+/// The CUDA driver's.
+fn context(index: usize) -> Result<driver_sys::CUcontext, OpsError> {
     let mut all = CONTEXTS.lock().unwrap_or_else(|e| e.into_inner());
     let all = all.get_or_insert_with(HashMap::new);
-    let ctx = *all
-        .entry(index)
-        .or_insert_with(|| primary_context(index) as usize) as driver_sys::CUcontext;
+    let ctx = match all.get(&index) {
+        Some(&ctx) => ctx as driver_sys::CUcontext,
+        None => {
+            let ctx = primary_context(index)?;
+            all.insert(index, ctx as usize);
+            ctx
+        }
+    };
     // SAFETY: a retained primary context of a valid device.
-    unsafe { driver::ctx::set_current(ctx).expect("CUDA context") };
-    ctx
+    unsafe { driver::ctx::set_current(ctx) }.map_err(|e| OpsError::driver("context", e))?;
+    Ok(ctx)
 }
 
 /// A pinned host buffer of at least `bytes` bytes: one from the pool, or a new one.
-fn pinned(bytes: usize) -> Result<(usize, usize), String> {
+///
+/// # Errors
+/// The CUDA driver's, when no pinned memory could be allocated.
+fn pinned(bytes: usize) -> Result<(usize, usize), OpsError> {
     let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
     if let Some(i) = pool.iter().position(|&(_, size)| size >= bytes) {
         return Ok(pool.swap_remove(i));
@@ -81,7 +92,7 @@ fn pinned(bytes: usize) -> Result<(usize, usize), String> {
     drop(pool);
     // SAFETY: plain allocation; freed by `give_back` (or kept in the pool for the process).
     let ptr = unsafe { driver::malloc_host(bytes.max(4), 0) }
-        .map_err(|e| format!("pinned host memory of {bytes} bytes: {e:?}"))?;
+        .map_err(|e| OpsError::driver(format!("pinned host memory of {bytes} bytes"), e))?;
     Ok((ptr as usize, bytes.max(4)))
 }
 
@@ -116,25 +127,30 @@ impl Operation<Runtime> for ReadOp {
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, marker);
         let (len, index) = (x.meta.num_elements(), x.device.index);
         let slot = self.slot.clone();
-        on_device(vec![x], move |resources| {
+        // The copy's errors go to the waiting host (a read back's `Result`).
+        on_device(vec![x], "CUDA read back", move |resources| {
             let (ptr, stream) = resources[0];
             let landing = enqueue(ptr, stream, len, index);
             let (lock, woken) = &*slot;
             *lock.lock().unwrap_or_else(|e| e.into_inner()) = Some(landing);
             woken.notify_all();
+            Ok(())
         });
     }
 }
 
 /// On cubecl's device thread: the copy of `len` f32 values at device pointer `ptr` into a
 /// pinned buffer, then an event, both on `stream` (the one the values were written on).
+///
+/// # Errors
+/// The CUDA driver's: the context, the pinned buffer, the copy or the event.
 fn enqueue(
     ptr: u64,
     stream: driver_sys::CUstream,
     len: usize,
     index: usize,
-) -> Result<Landing, String> {
-    let ctx = context(index);
+) -> Result<Landing, OpsError> {
+    let ctx = context(index)?;
     let (host, bytes) = pinned(len * 4)?;
     // SAFETY: `host` holds at least `len` f32 and stays allocated until the event after the
     // copy has been waited for (`wait`); `ptr` is a live cubecl allocation of `len` f32 on
@@ -156,14 +172,18 @@ fn enqueue(
             }),
             Err(e) => {
                 // The copy may be queued into the buffer: it is left allocated, never reused.
-                Err(format!("CUDA read of {len} values: {e:?}"))
+                Err(OpsError::driver(format!("read of {len} values"), e))
             }
         }
     }
 }
 
 /// Blocks until the device thread has queued the copy and the copy is done; the values.
-fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32>, String> {
+///
+/// # Errors
+/// The copy was not queued in time ([`OpsError::NotQueued`]), or the driver's (the copy,
+/// the context, the wait).
+fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32>, OpsError> {
     let (lock, woken) = &**slot;
     let guard = lock.lock().unwrap_or_else(|e| e.into_inner());
     if guard.is_none() {
@@ -174,13 +194,13 @@ fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32
         .wait_timeout_while(guard, QUEUE_TIMEOUT, |l| l.is_none())
         .unwrap_or_else(|e| e.into_inner());
     if timeout.timed_out() {
-        return Err(format!("the read was not queued within {QUEUE_TIMEOUT:?}"));
+        return Err(OpsError::NotQueued(QUEUE_TIMEOUT));
     }
     let landing = guard.take().expect("filled")?;
     // SAFETY: the landing's event, context and buffer, filled by `enqueue`; the buffer is read
     // only after the event (the copy's end) has been waited for.
     unsafe {
-        driver::ctx::set_current(landing.ctx).map_err(|e| format!("CUDA context: {e:?}"))?;
+        driver::ctx::set_current(landing.ctx).map_err(|e| OpsError::driver("context", e))?;
         let synced = driver::event::synchronize(landing.event);
         let _ = driver::event::destroy(landing.event);
         let values =
@@ -190,7 +210,7 @@ fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32
         if values.is_ok() {
             give_back((landing.host as usize, landing.bytes));
         }
-        values.map_err(|e| format!("CUDA read: {e:?}"))
+        values.map_err(|e| OpsError::driver("read", e))
     }
 }
 
@@ -217,5 +237,6 @@ pub(crate) fn read_ahead(x: FloatTensor<Cuda>) -> ReadAhead {
     drop(marker);
     let device = client.device().clone();
     flush_device(&device);
-    ReadAhead::new(move || wait(&slot, &device))
+    // (ReadAhead's error is the message: its callers report it as text.)
+    ReadAhead::new(move || wait(&slot, &device).map_err(|e| e.to_string()))
 }

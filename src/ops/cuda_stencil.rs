@@ -40,6 +40,7 @@ use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use super::cuda_stencil_kernels::{
     clear_kernel, gather_kernel, splat_kernel, stencil_kernel, unfix_kernel,
 };
+use super::OpsError;
 
 /// Which of the two transfers a recorded operation runs.
 #[derive(Clone, Copy, Debug)]
@@ -86,6 +87,7 @@ impl Operation<Runtime> for StencilOp {
                 launch_splat(x, index, weight, contiguous(max), self)
             }
         };
+        let out = out.unwrap_or_else(|e| e.raise("P2G / G2P kernel"));
         handles.register_float_tensor::<Inner>(&y.id, out);
     }
 }
@@ -118,11 +120,11 @@ fn launch_gather(
     index: CubeTensor<CudaRuntime>,
     weight: CubeTensor<CudaRuntime>,
     op: &StencilOp,
-) -> CubeTensor<CudaRuntime> {
+) -> Result<CubeTensor<CudaRuntime>, OpsError> {
     let (client, dtype) = (grid.client.clone(), grid.dtype);
     let out = contiguous_empty(&grid, op.out_shape.clone(), dtype);
     let (count, dim) = elementwise(&client, out.meta.num_elements());
-    let c = u32::try_from(op.c).expect("channel count fits u32");
+    let c = OpsError::fit_u32("channel count", op.c)?;
     gather_kernel::launch::<CudaRuntime>(
         &client,
         count,
@@ -134,7 +136,7 @@ fn launch_gather(
         c,
         dtype.into(),
     );
-    out
+    Ok(out)
 }
 
 /// Launches P2G's three kernels ([`clear_kernel`], [`splat_kernel`] one thread per value,
@@ -145,14 +147,14 @@ fn launch_splat(
     weight: CubeTensor<CudaRuntime>,
     max: CubeTensor<CudaRuntime>,
     op: &StencilOp,
-) -> CubeTensor<CudaRuntime> {
+) -> Result<CubeTensor<CudaRuntime>, OpsError> {
     let (client, dtype) = (values.client.clone(), values.dtype);
     let acc = contiguous_empty(&values, op.out_shape.clone(), DType::I64);
     let out = contiguous_empty(&values, op.out_shape.clone(), dtype);
     let nodes = out.meta.num_elements();
-    let c = u32::try_from(op.c).expect("channel count fits u32");
+    let c = OpsError::fit_u32("channel count", op.c)?;
     let particles = values.meta.num_elements() / op.c.max(1);
-    let count = u32::try_from(particles).expect("particle count fits u32");
+    let count = OpsError::fit_u32("particle count", particles)?;
     let (cubes, dim) = elementwise(&client, nodes);
     clear_kernel::launch::<CudaRuntime>(&client, cubes, dim, acc.clone().into_tensor_arg());
     let (cubes, dim) = elementwise(&client, values.meta.num_elements());
@@ -180,7 +182,7 @@ fn launch_splat(
         count,
         dtype.into(),
     );
-    out
+    Ok(out)
 }
 
 /// Records `kind` on the fusion stream of its inputs (`[x, index, weight]`, and for P2G the
@@ -322,7 +324,9 @@ impl Operation<Runtime> for BuildOp {
             dtype,
         );
         let (cube_count, cube_dim) = elementwise(&client, b * n_p);
-        let int = |v: usize| u32::try_from(v).expect("stencil dimension fits u32");
+        let int = |v: usize| {
+            OpsError::fit_u32("stencil dimension", v).unwrap_or_else(|e| e.raise("stencil kernel"))
+        };
         stencil_kernel::launch::<CudaRuntime>(
             &client,
             cube_count,

@@ -10,7 +10,7 @@
 //! downloaded and split by frame). The device stage's wait is one the download makes anyway.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Mutex, OnceLock};
+use std::sync::Mutex;
 use std::time::Instant;
 
 /// The stages of a call, in order.
@@ -29,8 +29,7 @@ static CALLS: AtomicUsize = AtomicUsize::new(0);
 
 /// Whether `MINFLOW_CALL_STAGES=1` (read once).
 pub(super) fn on() -> bool {
-    static ON: OnceLock<bool> = OnceLock::new();
-    *ON.get_or_init(|| std::env::var("MINFLOW_CALL_STAGES").is_ok_and(|v| v == "1"))
+    crate::switches::call_stages()
 }
 
 /// A call's clock: [`Clock::lap`] ends a stage; dropping the clock counts the call.

@@ -631,11 +631,5 @@ pub const FEEDBACK_BYTES: usize = 512 << 20;
 /// [`FEEDBACK_BYTES`], or the bytes `MINFLOW_FEEDBACK_BYTES` names (0: every call's frames
 /// through the host, as before the device-side loop; read once).
 fn feedback_bytes() -> usize {
-    static BYTES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *BYTES.get_or_init(|| {
-        std::env::var("MINFLOW_FEEDBACK_BYTES")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(FEEDBACK_BYTES)
-    })
+    crate::switches::feedback_bytes().unwrap_or(FEEDBACK_BYTES)
 }

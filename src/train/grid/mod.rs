@@ -410,9 +410,7 @@ impl BatchFeed {
     where
         I: Iterator<Item = Result<Batch, DataError>> + Send + 'scope,
     {
-        static AHEAD: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        let ahead = *AHEAD
-            .get_or_init(|| std::env::var("MINFLOW_TRAIN_PREFETCH").map_or(true, |v| v != "off"));
+        let ahead = crate::switches::train_prefetch();
         // A rendezvous: the thread holds at most the one batch it prepared.
         let (ready, prepared) = std::sync::mpsc::sync_channel(0);
         let (ask, asked) = std::sync::mpsc::channel::<()>();

@@ -51,7 +51,7 @@ static SELECTED: AtomicBool = AtomicBool::new(false);
 /// `--ros-distro`; [`super::Ros2Transport::open`] selects from the environment otherwise).
 pub fn select(flag: Option<RosDistro>) {
     SELECTED.store(true, Ordering::Relaxed);
-    let env = std::env::var("ROS_DISTRO").ok();
+    let env = crate::switches::ros_distro();
     let chosen = flag.or_else(|| match env.as_deref() {
         None | Some("") => Some(RosDistro::Kilted),
         Some(v) => RosDistro::from_env_value(v),

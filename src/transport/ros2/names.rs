@@ -69,7 +69,7 @@ impl OpenError {
 /// # Errors
 /// [`OpenError::DomainId`] naming the bad value (not a number, or above [`MAX_DOMAIN_ID`]).
 pub fn domain_id_from_env() -> Result<u16, OpenError> {
-    match std::env::var("ROS_DOMAIN_ID") {
+    match crate::switches::ros_domain_id() {
         Err(std::env::VarError::NotPresent) => Ok(0),
         Err(std::env::VarError::NotUnicode(v)) => Err(OpenError::DomainId {
             value: v.to_string_lossy().into_owned(),

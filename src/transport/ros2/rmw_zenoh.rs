@@ -34,7 +34,7 @@ fn rmw_zenoh_default_config() -> Result<zenoh::Config, OpenError> {
                 reason: e.to_string(),
             })?;
     }
-    if let Ok(overrides) = std::env::var("ZENOH_CONFIG_OVERRIDE") {
+    if let Some(overrides) = crate::switches::zenoh_config_override() {
         for entry in overrides
             .split(';')
             .map(str::trim)
@@ -88,7 +88,8 @@ pub(super) fn open_zenoh(domain_id: u16) -> Result<ZenohNode, OpenError> {
     register_type_hashes()?;
     let mut options = ContextOptions::new().domain_id(domain_id);
     // With ZENOH_SESSION_CONFIG_URI set, ros2-client loads that file (and the override).
-    let from_file = std::env::var("ZENOH_SESSION_CONFIG_URI").is_ok_and(|v| !v.trim().is_empty());
+    let from_file =
+        crate::switches::zenoh_session_config_uri().is_some_and(|v| !v.trim().is_empty());
     if !from_file {
         options = options.zenoh_config(rmw_zenoh_default_config()?);
     }
