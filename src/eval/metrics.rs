@@ -240,8 +240,9 @@ pub fn frame_metrics(
 /// Density map of the positions of a physical `[N, 4]` state on a `g x g` grid over the unit
 /// square, `[g, g]` row-major with index `[ix * g + iy]`: each particle is splatted with the
 /// tent kernel `w(u) = max(0, 1 - |u g - (i + 1/2)|)` per axis and weight `g^2 / N`, so a
-/// uniform distribution has mean 1 (the same map as the training loss,
-/// `crate::train::paper::loss::density_map`, in f64 without tensors).
+/// uniform distribution has mean 1. The crate's one definition of the map, in f64 on the
+/// host; the paper trainer's density loss computes the same map on tensors, differentiably
+/// ([`crate::train::paper::loss::density_map`], whose test checks it against this one).
 pub fn density_map(state: &[f32], g: usize) -> Vec<f64> {
     let n = state.len() / 4;
     let mut map = vec![0.0f64; g * g];
