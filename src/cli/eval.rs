@@ -367,3 +367,25 @@ pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
     }
     Ok(Outcome::Done)
 }
+
+/// `--reference-from`'s values, each with its help line.
+impl clap::ValueEnum for ReferenceFrom {
+    fn value_variants<'a>() -> &'a [Self] {
+        &[ReferenceFrom::SceneStart, ReferenceFrom::RolloutStart]
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        let (name, help) = match self {
+            ReferenceFrom::SceneStart => (
+                "scene-start",
+                "The trajectory's frame 0: a node that has seen the stream from its start",
+            ),
+            ReferenceFrom::RolloutStart => (
+                "rollout-start",
+                "The first frame of the rollout's seed window: a node that joined the stream \
+                 there",
+            ),
+        };
+        Some(clap::builder::PossibleValue::new(name).help(help))
+    }
+}
