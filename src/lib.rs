@@ -6,6 +6,8 @@
 //! - [`material`]: the table of materials (id, name, colour) every module reads;
 //! - [`bspline`]: MLS-MPM's quadratic B-spline weights, one definition for the solver, the
 //!   grid models' transfers and the density constraint;
+//! - [`geometry`]: the centre of mass of a set of particles, one definition for the
+//!   constraint projection, `eval` and the solver's diagnostics;
 //! - [`neighbours`]: the one neighbour search over a scene's particles (a cell list: k
 //!   nearest and fixed radius), for eval's rest neighbours, the grid model's rest
 //!   neighbourhoods and the constraint projection;
@@ -34,6 +36,7 @@ pub mod bspline;
 pub mod cli;
 pub mod data;
 pub mod eval;
+pub mod geometry;
 pub mod interop;
 pub mod launch;
 pub mod material;

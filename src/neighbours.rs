@@ -16,11 +16,11 @@
 //! [`Components`] joins particles into connected sets over these searches.
 //!
 //! Used, each for same-material neighbours in a frame, by `eval`'s rest neighbours
-//! (`eval::structure::Neighbours`, 6 nearest: strain error, intact fraction, rope
-//! connectivity), the grid model's rest neighbourhoods (`model::grid::rest`, 8 nearest:
-//! `train`, `eval`, `node`) and the constraint projection (`model::constraints`: the
-//! particle spacing from the 8-th nearest within 1/64 of the box, bodies and contacts as
-//! fixed-radius searches).
+//! (`eval::structure::Neighbours`: strain error, intact fraction, rope connectivity) and
+//! the grid model's rest neighbourhoods (`model::grid::rest`: `train`, `eval`, `node`), both
+//! the 8 nearest (`model::grid::rest::REST_NEIGHBOURS`), and the constraint projection
+//! (`model::constraints`: the particle spacing from the 8-th nearest within 1/64 of the
+//! box, bodies and contacts as fixed-radius searches).
 
 /// Particles of one scene sorted by the cell of a `cells` x `cells` grid over the unit box
 /// (see the module doc).

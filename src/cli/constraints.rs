@@ -68,8 +68,9 @@ pub fn run(cmd: ConstraintsCommand) -> anyhow::Result<Outcome> {
 }
 
 fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
-    let first = RunFolder::open(&args.models[0]).context("reading the model")?;
-    let scenes = training_scenes(&args, first.split)?;
+    let first = RunFolder::new(&args.models[0]);
+    first.meta().context("reading the model")?;
+    let scenes = training_scenes(&args, first.split())?;
     let (trajs, report) = data::load_scenes(&args.data, Some(&args.topic), &scenes)
         .context("loading the training scenes")?;
     if trajs.is_empty() {
@@ -147,7 +148,7 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     if !args.dry_run {
         for dir in &args.models {
             write_constraints(dir, &fitted)?;
-            println!("wrote {}", dir.join("model.json").display());
+            println!("wrote {}", RunFolder::new(dir).model_json().display());
         }
     }
     Ok(super::read_to_damage(&report.truncated))
@@ -182,14 +183,16 @@ fn training_scenes(args: &FitArgs, split: Option<Split>) -> anyhow::Result<Vec<S
     Ok(scenes)
 }
 
-/// Rewrites `dir/model.json` with `constraints` (through a temporary file, renamed).
+/// Rewrites `dir/model.json` with `constraints` (through a temporary file, renamed), the
+/// JSON ending in a newline.
 fn write_constraints(dir: &Path, constraints: &Constraints) -> anyhow::Result<()> {
-    let path = dir.join("model.json");
+    let folder = RunFolder::new(dir);
+    let path = folder.model_json();
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let mut meta = parse_meta(&text).with_context(|| format!("parsing {}", path.display()))?;
     meta.constraints = Some(constraints.clone());
-    let tmp = dir.join("model.json.tmp");
+    let tmp = folder.model_json_tmp();
     std::fs::write(&tmp, serde_json::to_string_pretty(&meta)? + "\n")
         .with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;

@@ -9,6 +9,7 @@
 use super::train::TrainArgs;
 use super::Outcome;
 use crate::bag;
+use crate::model::store::RunFolder;
 use crate::node::shutdown_flag;
 use anyhow::{bail, Context};
 use clap::Args;
@@ -66,7 +67,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
             scenes.join(", ")
         );
     }
-    let model = if args.train || !args.model.join("model.json").is_file() {
+    let model = if args.train || !RunFolder::new(&args.model).model_json().is_file() {
         if !args.train {
             println!("\n(no model in {}: training one)", args.model.display());
         }

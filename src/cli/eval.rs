@@ -146,9 +146,9 @@ pub(crate) fn scaler_for(
     seed: u64,
 ) -> anyhow::Result<(Scaler, String)> {
     if let Some(dir) = models.first() {
-        let folder = RunFolder::open(dir).context("reading the model")?;
+        let meta = RunFolder::new(dir).meta().context("reading the model")?;
         return Ok((
-            folder.meta.scaler,
+            meta.scaler,
             format!("scaled with the scaler stored in {}", dir.display()),
         ));
     }
@@ -188,9 +188,9 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let mut settings = args.constraints.clone();
     settings.dedup();
     for (dir, name) in args.models.iter().zip(&names) {
-        let has = RunFolder::open(dir)
+        let has = RunFolder::new(dir)
+            .meta()
             .with_context(|| format!("loading model {}", dir.display()))?
-            .meta
             .constraints
             .is_some_and(|c| !c.is_empty());
         let settings = if has { &settings[..] } else { &settings[..1] };
@@ -281,7 +281,7 @@ fn load_model(
 
 /// Warns when a run folder's `split.json` puts other scenes in the test part.
 fn warn_if_split_differs(dir: &Path, split: &Split) {
-    if let Some(theirs) = RunFolder::open(dir).ok().and_then(|f| f.split) {
+    if let Some(theirs) = RunFolder::new(dir).split() {
         if theirs.test != split.test {
             tracing::warn!(
                 "{}: the model's test scenes {:?} differ from this split's {:?} (check --seed and --data)",
@@ -366,4 +366,26 @@ pub fn run(args: EvalArgs) -> anyhow::Result<Outcome> {
         return Ok(Outcome::DataLost);
     }
     Ok(Outcome::Done)
+}
+
+/// `--reference-from`'s values, each with its help line.
+impl clap::ValueEnum for ReferenceFrom {
+    fn value_variants<'a>() -> &'a [Self] {
+        &[ReferenceFrom::SceneStart, ReferenceFrom::RolloutStart]
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        let (name, help) = match self {
+            ReferenceFrom::SceneStart => (
+                "scene-start",
+                "The trajectory's frame 0: a node that has seen the stream from its start",
+            ),
+            ReferenceFrom::RolloutStart => (
+                "rollout-start",
+                "The first frame of the rollout's seed window: a node that joined the stream \
+                 there",
+            ),
+        };
+        Some(clap::builder::PossibleValue::new(name).help(help))
+    }
 }

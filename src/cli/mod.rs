@@ -3,8 +3,8 @@
 //! `train` in folders of their own: `bench/mod.rs`, `train/mod.rs`): `demo`, `simulate`,
 //! `train`, `eval`, `report`, `replay`, `record`, `node`, `launch`, `bag`, `export`,
 //! `import`, `bench`, `constraints`. Shared by several: [`device`] (`--device`), `flags`
-//! (range checks of numeric flags), `foxglove` (`--foxglove`) and `run_folder` (what a
-//! training run leaves in its folder). This file also holds the `minflow-cuda` subset
+//! (range checks of numeric flags), `foxglove` (`--foxglove`), `transport` (`--transport`,
+//! `--pointcloud2`) and `run_folder` (what a training run leaves in its folder). This file also holds the `minflow-cuda` subset
 //! ([`TrainCli`]), exit codes, the allocator setting and logging. Errors are `anyhow` with
 //! context here, structured error types in the pipeline modules.
 
@@ -27,6 +27,7 @@ mod report;
 mod run_folder;
 mod simulate;
 pub mod train;
+mod transport;
 
 use clap::{Parser, Subcommand};
 

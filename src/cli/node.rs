@@ -7,6 +7,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 
+use super::transport::{PointCloud2Args, TransportArgs};
 use super::Outcome;
 use crate::bag::{FRAMES_TOPIC, PREDICTED_TOPIC};
 use crate::model::store::Surrogate;
@@ -14,8 +15,6 @@ use crate::msgs::status::STATUS_TOPIC;
 use crate::node::shutdown_flag;
 use crate::node::surrogate::{self, NodeOptions, OnGap};
 use crate::ops::NetOps;
-use crate::transport::ros2::PointCloud2Args;
-use crate::transport::TransportOptions;
 
 #[derive(Debug, Args)]
 pub struct NodeArgs {
@@ -23,7 +22,7 @@ pub struct NodeArgs {
     #[arg(long)]
     model: PathBuf,
     #[command(flatten)]
-    transport: TransportOptions,
+    transport: TransportArgs,
     /// Input topic: ground-truth frames.
     #[arg(long = "in", default_value = FRAMES_TOPIC)]
     input: String,
@@ -192,5 +191,26 @@ fn shard_group(s: &str) -> Result<String, String> {
         Ok(s.to_owned())
     } else {
         Err(format!("{s:?}: use letters, digits, '-', '_' and '.'"))
+    }
+}
+
+/// `--on-gap`'s values, each with its help line.
+impl clap::ValueEnum for OnGap {
+    fn value_variants<'a>() -> &'a [Self] {
+        &[OnGap::Reset, OnGap::Skip]
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        let (name, help) = match self {
+            OnGap::Reset => (
+                "reset",
+                "Reset the scene's hidden state and start again from this frame",
+            ),
+            OnGap::Skip => (
+                "skip",
+                "Drop frames older than the last one; carry the state over forward gaps",
+            ),
+        };
+        Some(clap::builder::PossibleValue::new(name).help(help))
     }
 }

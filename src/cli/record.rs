@@ -6,14 +6,15 @@ use std::time::Duration;
 
 use clap::Args;
 
+use super::transport::TransportArgs;
 use super::Outcome;
 use crate::node::{record, shutdown_flag};
-use crate::transport::{self, Counters, TransportOptions};
+use crate::transport::{self, Counters};
 
 #[derive(Debug, Args)]
 pub struct RecordArgs {
     #[command(flatten)]
-    transport: TransportOptions,
+    transport: TransportArgs,
     /// Topic to record (repeatable).
     #[arg(long = "topic", default_values_t = [crate::bag::FRAMES_TOPIC.to_string()])]
     topics: Vec<String>,
@@ -65,7 +66,7 @@ pub fn run(args: RecordArgs) -> anyhow::Result<Outcome> {
         points: args.points,
     };
     let stop = shutdown_flag();
-    let session = transport::open(&args.transport)?;
+    let session = transport::open(&args.transport.options())?;
     let counters = Counters::default();
     let _stats = args
         .stats_interval

@@ -7,11 +7,11 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::Args;
 
+use super::transport::{PointCloud2Args, TransportArgs};
 use super::Outcome;
 use crate::bag::FRAMES_TOPIC;
 use crate::node::{replay, shutdown_flag};
-use crate::transport::ros2::PointCloud2Args;
-use crate::transport::{Counters, TransportOptions};
+use crate::transport::Counters;
 use crate::viz::VizPublisher;
 
 #[derive(Debug, Args)]
@@ -20,7 +20,7 @@ pub struct ReplayArgs {
     #[arg(required = true)]
     inputs: Vec<PathBuf>,
     #[command(flatten)]
-    transport: TransportOptions,
+    transport: TransportArgs,
     /// Topic the frames are published on.
     #[arg(long, default_value = FRAMES_TOPIC)]
     topic: String,

@@ -110,7 +110,8 @@ struct Speed {
 }
 
 fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
-    let csv = dir.join("metrics.csv");
+    let folder = RunFolder::new(dir);
+    let csv = folder.metrics_csv();
     let text =
         std::fs::read_to_string(&csv).with_context(|| format!("reading {}", csv.display()))?;
     let (mut epochs, mut total, mut rate) = (0usize, 0.0f64, 0.0f64);
@@ -122,7 +123,7 @@ fn speed(core: &str, dir: &Path) -> anyhow::Result<Speed> {
             rate += f[4];
         }
     }
-    let meta = RunFolder::open(dir)?.meta;
+    let meta = folder.meta()?;
     let params = meta.net.init::<CpuInfer>(&Default::default()).num_params();
     let rate = rate / epochs.max(1) as f64;
     Ok(Speed {
@@ -169,7 +170,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<Outcome> {
         let dir = runs.join(&name);
         let train = train_args(&args, arch, core, &dir)?;
         let argv = train_flags(&train);
-        if args.reuse && dir.join("model.json").exists() {
+        if args.reuse && RunFolder::new(&dir).model_json().exists() {
             eprintln!("{name}: reusing {}", path(&dir));
         } else {
             eprintln!("== training {name} -> {}", path(&dir));

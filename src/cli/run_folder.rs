@@ -1,5 +1,6 @@
-//! What a training run leaves in its folder, for both architectures: the progress bar and
-//! `metrics.csv` / `loss.png` kept current ([`Progress`]), `split.json` and `train.json`
+//! The training command's side of its run folder ([`RunFolder`], which names every file in
+//! it), for both architectures: the progress bar and `metrics.csv` / `loss.png` kept current
+//! ([`Progress`]), the split to train with ([`run_split`]), `split.json` and `train.json`
 //! ([`write_run_files`]), the closing line ([`print_best`]), and the check that a `--resume`
 //! or `--init-from` folder holds the network the flags describe ([`check_resume`],
 //! [`differences`]).
@@ -9,19 +10,22 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use crate::data::Split;
-use crate::model::store::NetConfig;
+use crate::model::store::{NetConfig, RunFolder};
 use crate::train::{EpochRecord, Observer};
 
 /// Progress bar per epoch, one log line per epoch, metrics.csv and loss.png kept current.
 pub(crate) struct Progress {
-    out: PathBuf,
+    folder: RunFolder,
     bar: Option<indicatif::ProgressBar>,
 }
 
 impl Progress {
-    /// Progress of a run writing to `out`.
+    /// Progress of a run writing to the run folder `out`.
     pub(crate) fn new(out: PathBuf) -> Self {
-        Self { out, bar: None }
+        Self {
+            folder: RunFolder::new(out),
+            bar: None,
+        }
     }
 }
 
@@ -42,15 +46,15 @@ impl Observer for Progress {
             "epoch {:>3}  train {:.4e}  val {:.4e}  {:.1} s  {:.1} samples/s",
             r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
         );
-        if let Err(err) = write_metrics(&self.out, history) {
+        if let Err(err) = write_metrics(&self.folder, history) {
             tracing::warn!("writing metrics: {err:#}");
         }
     }
 }
 
 /// Rewrites `metrics.csv` (and `loss.png`) from the whole history.
-fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
-    let path = out.join("metrics.csv");
+fn write_metrics(folder: &RunFolder, history: &[EpochRecord]) -> anyhow::Result<()> {
+    let path = folder.metrics_csv();
     let mut f =
         std::fs::File::create(&path).with_context(|| format!("writing {}", path.display()))?;
     writeln!(f, "epoch,train_loss,val_loss,seconds,samples_per_sec")?;
@@ -61,7 +65,7 @@ fn write_metrics(out: &Path, history: &[EpochRecord]) -> anyhow::Result<()> {
             r.epoch, r.train_loss, r.val_loss, r.seconds, r.samples_per_sec
         )?;
     }
-    super::loss_plot(&out.join("loss.png"), history)
+    super::loss_plot(&folder.loss_png(), history)
 }
 
 /// The split a run trains with, over the scene ids `scenes` of its data. With `split_from`
@@ -81,14 +85,14 @@ pub(crate) fn run_split(
 ) -> anyhow::Result<Split> {
     let path = |p: &Path| {
         if p.is_dir() {
-            p.join("split.json")
+            RunFolder::new(p).split_json()
         } else {
             p.to_path_buf()
         }
     };
     let source = match (split_from, init_from) {
         (Some(p), _) => Some(path(p)),
-        (None, Some(dir)) => Some(dir.join("split.json")).filter(|p| p.is_file()),
+        (None, Some(dir)) => Some(RunFolder::new(dir).split_json()).filter(|p| p.is_file()),
         (None, None) => None,
     };
     let Some(file) = source else {
@@ -127,11 +131,11 @@ pub(crate) fn write_run_files(
     options: &impl serde::Serialize,
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    for (name, text) in [
-        ("split.json", serde_json::to_string_pretty(split)?),
-        ("train.json", serde_json::to_string_pretty(options)?),
+    let folder = RunFolder::new(out);
+    for (path, text) in [
+        (folder.split_json(), serde_json::to_string_pretty(split)?),
+        (folder.train_json(), serde_json::to_string_pretty(options)?),
     ] {
-        let path = out.join(name);
         std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
@@ -148,7 +152,7 @@ pub(crate) fn print_best(history: &[EpochRecord], what: &str, out: &Path) {
             "best epoch {} {what} {:.4e} -> {}",
             best.epoch,
             best.val_loss,
-            out.join("model.json").display()
+            RunFolder::new(out).model_json().display()
         );
     }
 }
@@ -189,7 +193,7 @@ pub(crate) fn config_differences(
     dir: &Path,
     net: &NetConfig,
 ) -> anyhow::Result<Option<Vec<String>>> {
-    let path = dir.join("model.json");
+    let path = RunFolder::new(dir).model_json();
     let text = match std::fs::read_to_string(&path) {
         Ok(text) => text,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),

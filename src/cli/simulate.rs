@@ -3,13 +3,14 @@
 //! parallel over scenes with a progress bar. Each bag is written to `NAME.mcap.part` and
 //! renamed when complete, so a folder never holds a half-written bag under a final name.
 
+use super::transport::{PointCloud2Args, TransportArgs};
 use super::{Outcome, UsageError};
 use crate::bag::{BagWriter, FRAMES_TOPIC};
 use crate::msgs::ParticleFrame;
 use crate::sim::families::{self, Family};
 use crate::sim::run::SceneRun;
 use crate::sim::Scene;
-use crate::transport::{wait_for_subscribers, Counters, FramePublisher, TransportOptions};
+use crate::transport::{wait_for_subscribers, Counters, FramePublisher};
 use crate::viz::VizPublisher;
 use anyhow::{bail, Context};
 use clap::Args;
@@ -52,7 +53,7 @@ pub struct SimulateArgs {
     #[arg(long)]
     publish: bool,
     #[command(flatten)]
-    transport: TransportOptions,
+    transport: TransportArgs,
     /// With --publish: pace each scene at its simulation clock times this factor (1 = real
     /// time, 62.5 frames per second); 0 publishes frames as fast as they are simulated.
     #[arg(long, default_value_t = 1.0, value_parser = super::flags::rate)]
@@ -66,7 +67,7 @@ pub struct SimulateArgs {
     foxglove: super::foxglove::FoxgloveArgs,
     /// With --publish.
     #[command(flatten)]
-    pointcloud2: crate::transport::ros2::PointCloud2Args,
+    pointcloud2: PointCloud2Args,
 }
 
 /// Parses `A..B`, `A..=B`, `a,b,c` or `a` into ids.

@@ -18,6 +18,7 @@
 //! Used by [`super::rollout`] at the probe steps, beside [`super::plausibility`].
 
 use super::metrics::MATERIALS;
+use crate::geometry::centre_of_mass;
 
 /// A wall touches the grid nodes within 3 cells of it (`docs/mpm.md`); a particle farther than
 /// this from it (5 cells of the 64 x 64 grid, plus the B-spline's reach) cannot be pushed by it.
@@ -59,23 +60,12 @@ impl Bodies {
         let mut sum = [0.0f64; MATERIALS];
         let mut count = [0usize; MATERIALS];
         for (m, ids) in &self.pieces {
-            let (p, t) = (centre(pred, ids), centre(truth, ids));
+            let (p, t) = (centre_of_mass(pred, 4, ids), centre_of_mass(truth, 4, ids));
             sum[*m] += (p[0] - t[0]).hypot(p[1] - t[1]);
             count[*m] += 1;
         }
         std::array::from_fn(|m| (count[m] > 0).then(|| sum[m] / count[m] as f64))
     }
-}
-
-/// The centre of mass of particles `ids` of `state` (`[N, 4]`; equal masses).
-fn centre(state: &[f32], ids: &[u32]) -> [f64; 2] {
-    let mut c = [0.0f64; 2];
-    for &i in ids {
-        c[0] += f64::from(state[4 * i as usize]);
-        c[1] += f64::from(state[4 * i as usize + 1]);
-    }
-    let n = ids.len().max(1) as f64;
-    [c[0] / n, c[1] / n]
 }
 
 /// The momentum drift of one rollout (module doc), transition by transition.

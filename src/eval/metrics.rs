@@ -22,6 +22,7 @@
 //! [`super::replay`].
 
 use crate::data::Scaler;
+use crate::geometry::position_sum;
 
 /// Material count ([`crate::material::COUNT`]): the per-material slots of [`FrameMetrics`].
 pub const MATERIALS: usize = crate::material::COUNT;
@@ -175,7 +176,6 @@ pub fn frame_metrics(
     let mut mat_sum = [0.0f64; MATERIALS];
     let mut mat_count = [0usize; MATERIALS];
     let (mut ke_p, mut ke_t) = (0.0f64, 0.0f64);
-    let (mut com_p, mut com_t) = ([0.0f64; 2], [0.0f64; 2]);
     let (mut outside, mut outside_truth) = (0usize, 0usize);
     for ((p, t), &m) in pred
         .chunks_exact(4)
@@ -196,10 +196,6 @@ pub fn frame_metrics(
         let speed2 = |r: &[f32]| f64::from(r[2]).powi(2) + f64::from(r[3]).powi(2);
         ke_p += speed2(p);
         ke_t += speed2(t);
-        for d in 0..2 {
-            com_p[d] += f64::from(p[d]);
-            com_t[d] += f64::from(t[d]);
-        }
         let out = |r: &[f32]| !(0.0..=1.0).contains(&r[0]) || !(0.0..=1.0).contains(&r[1]);
         outside += usize::from(out(p));
         outside_truth += usize::from(out(t));
@@ -211,7 +207,15 @@ pub fn frame_metrics(
             mse_material[m] = Some(mat_sum[m] / (4.0 * mat_count[m] as f64));
         }
     }
-    let com = ((com_p[0] - com_t[0]) / nf).hypot((com_p[1] - com_t[1]) / nf);
+    // The distance between the centres of mass as the difference of the position sums over
+    // N, one division: the same as `centre_of_mass(pred) - centre_of_mass(truth)` up to the
+    // last bits, which metrics.csv (every digit) would show.
+    let all = || 0..n as u32;
+    let (sum_p, sum_t) = (
+        position_sum(pred, 4, all()).0,
+        position_sum(truth, 4, all()).0,
+    );
+    let com = ((sum_p[0] - sum_t[0]) / nf).hypot((sum_p[1] - sum_t[1]) / nf);
     let density_err = if grid > 0 {
         let (a, b) = (density_map(pred, grid), density_map(truth, grid));
         a.iter().zip(&b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / (grid * grid) as f64
@@ -236,8 +240,9 @@ pub fn frame_metrics(
 /// Density map of the positions of a physical `[N, 4]` state on a `g x g` grid over the unit
 /// square, `[g, g]` row-major with index `[ix * g + iy]`: each particle is splatted with the
 /// tent kernel `w(u) = max(0, 1 - |u g - (i + 1/2)|)` per axis and weight `g^2 / N`, so a
-/// uniform distribution has mean 1 (the same map as the training loss,
-/// `crate::train::paper::loss::density_map`, in f64 without tensors).
+/// uniform distribution has mean 1. The crate's one definition of the map, in f64 on the
+/// host; the paper trainer's density loss computes the same map on tensors, differentiably
+/// ([`crate::train::paper::loss::density_map`], whose test checks it against this one).
 pub fn density_map(state: &[f32], g: usize) -> Vec<f64> {
     let n = state.len() / 4;
     let mut map = vec![0.0f64; g * g];

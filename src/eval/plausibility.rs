@@ -30,7 +30,7 @@
 
 use super::metrics::MATERIALS;
 use super::structure::covered_area;
-pub use super::structure::{Neighbours, NEIGHBOURS};
+pub use super::structure::Neighbours;
 
 /// At most this many points per cloud enter [`sinkhorn_divergence`] in [`Plausibility::of`].
 pub const SINKHORN_POINTS: usize = 256;

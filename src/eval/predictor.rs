@@ -108,8 +108,8 @@ impl Predictor for ConstVel {
 }
 
 /// Where a model with reference positions (`train --reference first-frame`) takes them
-/// from in a rollout (`eval --reference-from`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+/// from in a rollout (`eval --reference-from`, `cli::eval`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum ReferenceFrom {
     /// The trajectory's frame 0: a node that has seen the stream from its start.
     #[default]

@@ -12,6 +12,7 @@ use std::fmt::Write;
 use super::table::csv_field;
 use super::{Evaluation, Probe};
 use crate::material;
+use crate::model::grid::rest::REST_NEIGHBOURS;
 
 /// The probes any scene was scored at, in order.
 fn probes(eval: &Evaluation) -> BTreeSet<Probe> {
@@ -45,12 +46,12 @@ pub fn markdown(eval: &Evaluation) -> String {
         return String::new();
     }
     let fmt = |v: Option<f64>| v.map_or("n/a".to_owned(), |v| format!("{v:.3e}"));
-    let mut s = String::from(
+    let mut s = format!(
         "\nPlausibility, order-independent (mean over scenes). Sinkhorn divergence of the \
          position clouds per material (domain units^2; blur 0.02, at most 256 particles per \
          material) and strain error of the solids (mean |d_pred / d_0 - d_true / d_0| over \
-         each particle's 6 nearest neighbours of the rollout's first frame; 0 for a rigid \
-         motion), at step k of the rollouts (`end`: each rollout's last step):\n\n",
+         each particle's {REST_NEIGHBOURS} nearest neighbours of the rollout's first frame; 0 \
+         for a rigid motion), at step k of the rollouts (`end`: each rollout's last step):\n\n",
     );
     s.push_str("| predictor | step |");
     for m in material::names() {
@@ -118,12 +119,13 @@ fn correction_markdown(eval: &Evaluation) -> String {
 /// piece, the truth's own value in brackets ([`super::structure`]).
 fn structure_markdown(eval: &Evaluation, probes: &BTreeSet<Probe>) -> String {
     let fmt = |v: Option<f64>| v.map_or("n/a".to_owned(), |v| format!("{v:.3}"));
-    let mut s = String::from(
+    let mut s = format!(
         "\nStructure (mean over scenes): volume = area covered on a 64 x 64 grid, prediction / \
-         truth; intact = share of the solids' rest-neighbour pairs (6 nearest of the rollout's \
-         first frame) within 1.5x their rest distance, rope connected = share of the rope \
-         in its largest intact piece, prediction (truth); energy = kinetic energy summed over \
-         the rollout's frames up to the step, prediction / truth:\n\n| predictor | step |",
+         truth; intact = share of the solids' rest-neighbour pairs ({REST_NEIGHBOURS} nearest of \
+         the rollout's first frame) within 1.5x their rest distance, rope connected = share of \
+         the rope in its largest intact piece, prediction (truth); energy = kinetic energy \
+         summed over the rollout's frames up to the step, prediction / truth:\n\n| predictor \
+         | step |",
     );
     for m in material::names() {
         let _ = write!(s, " volume {m} |");

@@ -8,7 +8,7 @@
 //!   liquid keeps its volume through `J = det F`; a surrogate that presses the liquid into a
 //!   layer covers fewer cells.)
 //! - [`Neighbours::intact_fraction`]: the share of the rest-neighbour pairs of a solid (each
-//!   particle's [`NEIGHBOURS`] nearest of the same material in the
+//!   particle's [`REST_NEIGHBOURS`] nearest of the same material in the
 //!   rollout's first frame) still within [`INTACT_STRETCH`] times their rest distance: 1 for a
 //!   body in one piece, lower where it is torn or crumpled. The truth's own value stands
 //!   beside the prediction's (snow fractures in the truth too).
@@ -21,10 +21,8 @@
 //! [`super::plausibility`]. Used by [`super::plausibility::Plausibility::of`].
 
 use super::metrics::MATERIALS;
+use crate::model::grid::rest::REST_NEIGHBOURS;
 use crate::neighbours::{Bins, Components};
-
-/// Neighbours per particle of the strain error and the intact fraction.
-pub const NEIGHBOURS: usize = 6;
 
 /// Cells per side of [`Neighbours::new`]'s search grid: 1/64 of the box, a few particles of
 /// a body per cell.
@@ -124,7 +122,7 @@ impl Neighbours {
     }
 }
 
-/// Each solid particle's [`NEIGHBOURS`] nearest neighbours of the same material in a reference
+/// Each solid particle's [`REST_NEIGHBOURS`] nearest neighbours of the same material in a reference
 /// frame (the rollout's first), and their distances there, nearest first.
 #[derive(Debug, Clone, Default)]
 pub struct Neighbours {
@@ -149,7 +147,7 @@ impl Neighbours {
             .collect();
         let pos = |i: usize| [f64::from(frame[4 * i]), f64::from(frame[4 * i + 1])];
         let mut of = vec![Vec::new(); n];
-        let mut near = Vec::with_capacity(NEIGHBOURS);
+        let mut near = Vec::with_capacity(REST_NEIGHBOURS);
         for m in 1..MATERIALS {
             let ids: Vec<u32> = (0..n as u32)
                 .filter(|&i| material[i as usize] == m)
@@ -164,7 +162,7 @@ impl Neighbours {
                 };
                 bins.nearest(
                     [frame[4 * i], frame[4 * i + 1]],
-                    NEIGHBOURS,
+                    REST_NEIGHBOURS,
                     f64::INFINITY,
                     distance,
                     &mut near,

@@ -8,6 +8,7 @@
 
 use super::material;
 use super::mpm::Solver;
+use crate::geometry::centre_of_mass;
 
 /// Sums over all particles, in `f64`.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -25,7 +26,8 @@ pub struct Diagnostics {
     pub elastic: f64,
     /// Gravitational potential energy `-sum m g . x`.
     pub potential: f64,
-    /// Centre of mass.
+    /// Centre of mass ([`centre_of_mass`]: every particle has the same mass, the particle
+    /// volume at rho = 1).
     pub center_of_mass: [f64; 2],
 }
 
@@ -52,12 +54,8 @@ impl Diagnostics {
             out.elastic +=
                 m * material::energy_density(ps.material[p], &ps.f[p], ps.jp[p], mu0, lambda0);
             out.potential -= m * (g[0] as f64 * x[0] + g[1] as f64 * x[1]);
-            out.center_of_mass[0] += m * x[0];
-            out.center_of_mass[1] += m * x[1];
         }
-        if out.mass > 0.0 {
-            out.center_of_mass = out.center_of_mass.map(|c| c / out.mass);
-        }
+        out.center_of_mass = centre_of_mass(ps.x.as_flattened(), 2, 0..ps.len() as u32);
         out
     }
 

@@ -1,21 +1,22 @@
-//! What a training run writes, the same for both architectures: [`RunOutput`] (the run
-//! folder, the `model.json` of the kept model, the epoch limits) and the resumable
-//! checkpoint. `OUT/checkpoint/` holds the model and the
-//! optimizer state (burn named MessagePack, full precision) and `history.json` (every epoch
-//! so far). It is written to `checkpoint.tmp/` and swapped in with renames, so a run killed
-//! at any moment leaves either the previous or the new checkpoint, never a torn one; the
-//! previous epoch's stays as `checkpoint.old/`, and a resume whose checkpoint was damaged
-//! afterwards (a truncated copy, a full disk) falls back to it with a warning naming the file.
-//! Used by [`super::epochs::run_epochs`] for `minflow train` of either architecture.
+//! What a training run writes, the same for both architectures: [`RunOutput`] (the run's
+//! [`RunFolder`], the `model.json` of the kept model, the epoch limits) and the resumable
+//! checkpoint. [`RunFolder::checkpoint`] holds the model and the optimizer state
+//! (`model.mpk`, `optim.mpk`: burn named MessagePack, full precision) and `history.json`
+//! (every epoch so far). It is written to [`RunFolder::checkpoint_tmp`] and swapped in with
+//! renames, so a run killed at any moment leaves either the previous or the new checkpoint,
+//! never a torn one; the previous epoch's stays as [`RunFolder::checkpoint_old`], and a
+//! resume whose checkpoint was damaged afterwards (a truncated copy, a full disk) falls back
+//! to it with a warning naming the file. Used by [`super::epochs::run_epochs`] for `minflow
+//! train` of either architecture.
 
 use super::{EpochRecord, TrainError};
 use crate::data::Scaler;
-use crate::model::store::{self, ModelMeta, NetConfig};
+use crate::model::store::{self, ModelMeta, NetConfig, RunFolder};
 use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// A run's folder, what its `model.json` says, and how long it may run: everything
 /// [`super::epochs::run_epochs`] needs to keep the best model and checkpoint each epoch,
@@ -23,7 +24,7 @@ use std::path::{Path, PathBuf};
 #[derive(Clone, Debug)]
 pub struct RunOutput {
     /// The run folder (`train --out`).
-    pub out: PathBuf,
+    pub folder: RunFolder,
     /// The network's architecture and hyper-parameters.
     pub net: NetConfig,
     /// The training split's scaler, saved with the model.
@@ -58,7 +59,7 @@ impl RunOutput {
         epoch: usize,
         val_loss: f64,
     ) -> Result<(), TrainError> {
-        Ok(store::save(&self.out, model, &self.meta(epoch, val_loss))?)
+        Ok(self.folder.save(model, &self.meta(epoch, val_loss))?)
     }
 
     /// Writes the resumable checkpoint after the epochs in `history` ([`save`]).
@@ -71,7 +72,7 @@ impl RunOutput {
         optim: &O,
         history: &[EpochRecord],
     ) -> Result<(), TrainError> {
-        save(&self.out, model, optim, history)
+        save(&self.folder, model, optim, history)
     }
 }
 
@@ -79,16 +80,20 @@ fn err(path: &Path, source: impl Into<Box<dyn std::error::Error + Send + Sync>>)
     TrainError::Store(store::io(path, source))
 }
 
-/// Writes the checkpoint of the epoch just finished.
+/// Writes the checkpoint of the epoch just finished into `folder` (module doc).
+///
+/// # Errors
+/// A file could not be written ([`store::StoreError::Io`] naming it); the previous
+/// checkpoint stays.
 pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
-    out: &Path,
+    folder: &RunFolder,
     model: &M,
     optim: &O,
     history: &[EpochRecord],
 ) -> Result<(), TrainError> {
-    let tmp = out.join("checkpoint.tmp");
-    let dir = out.join("checkpoint");
-    let old = out.join("checkpoint.old");
+    let tmp = folder.checkpoint_tmp();
+    let dir = folder.checkpoint();
+    let old = folder.checkpoint_old();
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| err(&tmp, e))?;
     // Through store::write_record: a full disk is named ("No space left on device"), and the
@@ -123,8 +128,9 @@ pub struct Resumed<M, R> {
     pub history: Vec<EpochRecord>,
 }
 
-/// Reads `OUT/checkpoint` into `fresh` (a model of the run's configuration), or, when it is
-/// missing or damaged, the previous epoch's `OUT/checkpoint.old`; `None` if there is neither.
+/// Reads the checkpoint of the run folder `out` ([`RunFolder::checkpoint`]) into `fresh` (a
+/// model of the run's configuration), or, when it is missing or damaged, the previous
+/// epoch's ([`RunFolder::checkpoint_old`]); `None` if there is neither.
 ///
 /// # Errors
 /// Every checkpoint there is damaged: [`store::StoreError::Io`] naming the first damaged file of
@@ -135,7 +141,8 @@ pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     device: &B::Device,
     _optim: &O,
 ) -> Result<Option<Resumed<M, O::Record>>, TrainError> {
-    let dirs: Vec<_> = [out.join("checkpoint"), out.join("checkpoint.old")]
+    let folder = RunFolder::new(out);
+    let dirs: Vec<_> = [folder.checkpoint(), folder.checkpoint_old()]
         .into_iter()
         .filter(|d| d.join("history.json").exists())
         .collect();
@@ -159,7 +166,7 @@ pub fn load<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     match damaged.is_empty() {
         true => Ok(None),
         false => Err(err(
-            &out.join("checkpoint"),
+            &folder.checkpoint(),
             format!("cannot resume: {}", damaged.join("; ")),
         )),
     }

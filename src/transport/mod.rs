@@ -29,10 +29,10 @@ use crate::msgs::{cdr, FrameError, ParticleFrame};
 
 pub use counters::Counters;
 
-/// Which middleware carries the frames.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
+/// Which middleware carries the frames. Named as [`std::fmt::Display`] writes it (`zenoh`,
+/// `iceoryx2`, `ros2`, `ros2-zenoh`) on the command line (`--transport`, `cli::transport`)
+/// and in launch files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum TransportKind {
     /// zenoh 1.x: key = topic without the leading '/', payload = CDR bytes.
@@ -45,31 +45,43 @@ pub enum TransportKind {
     Ros2Zenoh,
 }
 
-impl std::fmt::Display for TransportKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
+impl TransportKind {
+    /// Every middleware, in the order `--help` lists them.
+    pub const ALL: [TransportKind; 4] = [
+        TransportKind::Zenoh,
+        TransportKind::Iceoryx2,
+        TransportKind::Ros2,
+        TransportKind::Ros2Zenoh,
+    ];
+
+    /// The middleware's name on the command line and in launch files.
+    pub fn name(self) -> &'static str {
+        match self {
             TransportKind::Zenoh => "zenoh",
             TransportKind::Iceoryx2 => "iceoryx2",
             TransportKind::Ros2 => "ros2",
             TransportKind::Ros2Zenoh => "ros2-zenoh",
-        })
+        }
     }
 }
 
-/// Options shared by every node that opens a transport (the `--transport` flag group).
-#[derive(Debug, Clone, clap::Args)]
+impl std::fmt::Display for TransportKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Options shared by every node that opens a transport (the command line's `--transport`
+/// flag group, `cli::transport::TransportArgs`).
+#[derive(Debug, Clone)]
 pub struct TransportOptions {
     /// Middleware to use.
-    #[arg(long, value_enum, default_value_t = TransportKind::Zenoh)]
     pub transport: TransportKind,
     /// A standard zenoh JSON5 config file (routers, endpoints, scouting, TLS, access
     /// control, shared memory); without it, an embedded peer session that needs no router.
-    #[arg(long, value_name = "FILE")]
     pub zenoh_config: Option<PathBuf>,
-    /// With --transport ros2 or ros2-zenoh: the ROS 2 distribution of the peers, jazzy or
-    /// kilted (the same wire format; type hashes on DDS endpoints either way). Default:
-    /// $ROS_DISTRO when it names one of them, else kilted.
-    #[arg(long, value_enum, value_name = "DISTRO")]
+    /// With `ros2` or `ros2-zenoh`: the ROS 2 distribution of the peers; None: `ROS_DISTRO`
+    /// when it names one minflow knows, else Kilted ([`ros2::select_distro`]).
     pub ros_distro: Option<ros2::RosDistro>,
 }
 

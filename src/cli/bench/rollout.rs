@@ -201,7 +201,7 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
     };
     let mut w = 1;
     for dir in &args.models {
-        let (_, meta) = crate::model::store::read_meta(dir)?;
+        let meta = crate::model::store::RunFolder::new(dir).meta()?;
         w = w.max(meta.window());
     }
     let (h, frames) = (args.frames, w + args.frames);

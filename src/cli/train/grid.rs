@@ -231,9 +231,9 @@ fn training_constraints(args: &TrainArgs) -> anyhow::Result<Option<Constraints>>
     }
     let fitted = match &args.grid_args.init_from {
         Some(dir) => {
-            RunFolder::open(dir)
+            RunFolder::new(dir)
+                .meta()
                 .with_context(|| format!("--init-from {}", dir.display()))?
-                .meta
                 .constraints
         }
         None => None,
@@ -293,7 +293,10 @@ fn print_summary(
 /// `dir` has no readable `model.json`, holds another architecture, or one whose
 /// hyper-parameters differ (each named, a usage error).
 fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Result<Normalisation> {
-    let (path, meta) = crate::model::store::read_meta(dir)
+    let folder = RunFolder::new(dir);
+    let path = folder.model_json();
+    let meta = folder
+        .meta()
         .with_context(|| format!("--init-from {}", dir.display()))?;
     // A model without reference channels may grow them (`GridModel::with_reference`), a
     // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape

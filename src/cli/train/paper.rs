@@ -118,7 +118,9 @@ fn print_summary(
         split.scenes(Part::Train).len(),
         split.scenes(Part::Val).len(),
         split.scenes(Part::Test).len(),
-        out.join("split.json").display(),
+        crate::model::store::RunFolder::new(out)
+            .split_json()
+            .display(),
         if streamed {
             ", streamed from the bags"
         } else {

@@ -12,6 +12,7 @@
 use super::index::BodyIndex;
 use super::shape::Body;
 use super::ContactParams;
+use crate::geometry::centre_of_mass;
 use crate::neighbours::Bins;
 
 /// Closing speeds below this (domain units per time unit; about three frames of gravity at
@@ -185,15 +186,9 @@ impl Contact {
             .collect()
     }
 
-    /// The centre of mass of body `b` in `frame`.
+    /// The centre of mass of body `b` in `frame` (`[N, 4]`; [`centre_of_mass`]).
     fn centre(&self, frame: &[f32], b: usize) -> [f32; 2] {
-        let ids = self.bodies.of(b);
-        let mut c = [0.0f32; 2];
-        for &i in ids {
-            c[0] += frame[4 * i as usize];
-            c[1] += frame[4 * i as usize + 1];
-        }
-        [c[0] / ids.len() as f32, c[1] / ids.len() as f32]
+        centre_of_mass(frame, 4, self.bodies.of(b)).map(|c| c as f32)
     }
 }
 

@@ -19,6 +19,7 @@
 //! strain and spin as the network and the other parts made them.
 
 use super::MomentumParams;
+use crate::geometry::centre_of_mass;
 use crate::neighbours::Components;
 
 /// Moves each free cluster of the transition `prev -> frame` (both `[N, 4]` physical x, y,
@@ -42,6 +43,10 @@ pub(super) fn conserve(
     let lag = 0.5 * (1.0 + 1.0 / p.substeps.max(1) as f64);
     let dt64 = f64::from(dt);
     for ids in clusters(prev, frame, p.reach) {
+        let (x_prev, x_now) = (
+            centre_of_mass(prev, 4, &ids),
+            centre_of_mass(frame, 4, &ids),
+        );
         for a in 0..2 {
             let free = ids.iter().all(|&i| {
                 let i = i as usize;
@@ -50,19 +55,18 @@ pub(super) fn conserve(
             if !free {
                 continue;
             }
-            // Means in f64: the cluster's x and v before, and the frame's as it would end
-            // (its velocity plus the position moves so far over dt).
-            let (mut xp, mut vp, mut xc, mut vc) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+            // Means in f64: the cluster's x (its centre of mass) and v before, and the
+            // frame's as it would end (its velocity plus the position moves so far over dt).
+            // Moving axis 0 leaves axis 1's centre as it was, so both are taken once above.
+            let (mut vp, mut vc) = (0.0f64, 0.0f64);
             for &i in &ids {
                 let i = i as usize;
-                xp += f64::from(prev[4 * i + a]);
                 vp += f64::from(prev[4 * i + 2 + a]);
-                xc += f64::from(frame[4 * i + a]);
                 vc += f64::from(frame[4 * i + 2 + a])
                     + f64::from(frame[4 * i + a] - before[4 * i + a]) / dt64;
             }
             let m = ids.len() as f64;
-            let (xp, vp, xc, vc) = (xp / m, vp / m, xc / m, vc / m);
+            let (xp, vp, xc, vc) = (x_prev[a], vp / m, x_now[a], vc / m);
             let g = f64::from(p.gravity[a]);
             let shift = xp + vp * dt64 + lag * g * dt64 * dt64 - xc;
             // The velocity to add beyond the shift's own `shift / dt`, which the caller adds.

@@ -31,6 +31,7 @@ use std::collections::BTreeMap;
 
 use super::index::BodyIndex;
 use super::ReboundParams;
+use crate::geometry::centre_of_mass;
 use crate::neighbours::Bins;
 
 /// The key of a pair's contact is the other body's index; a wall's is `WALL + side` (side 0
@@ -284,13 +285,12 @@ fn stats(ids: &[u32], prev: &[f32], before: &[f32], frame: &[f32], dt: f32) -> S
         hi_prev: [f32::NEG_INFINITY; 2],
         ..Default::default()
     };
-    let (mut cp, mut vp, mut c, mut v) = ([0.0f64; 2], [0.0f64; 2], [0.0f64; 2], [0.0f64; 2]);
+    let (cp, c) = (centre_of_mass(prev, 4, ids), centre_of_mass(frame, 4, ids));
+    let (mut vp, mut v) = ([0.0f64; 2], [0.0f64; 2]);
     for &i in ids {
         let i = 4 * i as usize;
         for a in 0..2 {
-            cp[a] += f64::from(prev[i + a]);
             vp[a] += f64::from(prev[i + 2 + a]);
-            c[a] += f64::from(frame[i + a]);
             v[a] += f64::from(frame[i + 2 + a] + (frame[i + a] - before[i + a]) / dt);
             s.lo[a] = s.lo[a].min(frame[i + a]);
             s.hi[a] = s.hi[a].max(frame[i + a]);
@@ -300,9 +300,9 @@ fn stats(ids: &[u32], prev: &[f32], before: &[f32], frame: &[f32], dt: f32) -> S
     }
     let m = ids.len().max(1) as f64;
     for a in 0..2 {
-        s.c_prev[a] = (cp[a] / m) as f32;
+        s.c_prev[a] = cp[a] as f32;
         s.v_prev[a] = (vp[a] / m) as f32;
-        s.c[a] = (c[a] / m) as f32;
+        s.c[a] = c[a] as f32;
         s.v[a] = (v[a] / m) as f32;
     }
     s

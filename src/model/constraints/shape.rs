@@ -13,6 +13,7 @@
 //! than [`LINK`] spacings are joined (union-find, [`Components`]).
 
 use super::ShapeParams;
+use crate::geometry::centre_of_mass;
 use crate::neighbours::{Bins, Components};
 
 /// Particles of one material closer than this many spacings in the rest frame belong to one
@@ -125,7 +126,7 @@ impl Body {
 
     fn new(rest: &[f32], stride: usize, material: u8, ids: Vec<u32>) -> Self {
         let at = |i: u32| [rest[stride * i as usize], rest[stride * i as usize + 1]];
-        let c = centre(ids.iter().map(|&i| at(i)), ids.len());
+        let c = centre_of_mass(rest, stride, &ids).map(|c| c as f32);
         let rest: Vec<[f32; 2]> = ids
             .iter()
             .map(|&i| {
@@ -163,7 +164,7 @@ impl Body {
     /// (module doc); with `p.plastic` > 0 the rest shape yields.
     pub(super) fn project(&mut self, p: &ShapeParams, frame: &mut [f32]) {
         let at = |frame: &[f32], i: u32| [frame[4 * i as usize], frame[4 * i as usize + 1]];
-        let c = centre(self.ids.iter().map(|&i| at(frame, i)), self.ids.len());
+        let c = centre_of_mass(frame, 4, &self.ids).map(|c| c as f32);
         let mut apq = [0.0f64; 4];
         for (&i, q) in self.ids.iter().zip(&self.rest) {
             let x = at(frame, i);
@@ -216,17 +217,6 @@ impl Body {
             self.aqq_inv = self.aqq_inverse();
         }
     }
-}
-
-/// The mean of `len` points.
-fn centre(points: impl Iterator<Item = [f32; 2]>, len: usize) -> [f32; 2] {
-    let (mut x, mut y) = (0.0f64, 0.0f64);
-    for p in points {
-        x += f64::from(p[0]);
-        y += f64::from(p[1]);
-    }
-    let k = 1.0 / len.max(1) as f64;
-    [(x * k) as f32, (y * k) as f32]
 }
 
 #[cfg(test)]

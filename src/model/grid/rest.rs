@@ -35,7 +35,19 @@ pub mod advect;
 mod host;
 pub use host::Neighbourhood;
 
-/// Neighbours per particle in a [`Neighbourhood`].
+/// Rest neighbours per particle: the one count of every rest neighbourhood of a solid
+/// particle, its `REST_NEIGHBOURS` nearest particles of the same material in a reference
+/// frame. A [`Neighbourhood`] holds this many (the grid model's rest-shape features and the
+/// trainer's strain loss, `train::grid`), and so do `eval`'s rest neighbours
+/// ([`crate::eval::structure::Neighbours`]: the strain error, intact fraction and rope
+/// connectivity of `minflow eval`, and the strain term of the grid trainer's validation
+/// score), so the loss, the validation and the evaluation measure the same pairs.
+///
+/// 8, the grid model's: a shipped model's rest-shape features are fitted over 8 neighbours
+/// (changing the count would change what those networks read), and 8 is the first shell of a
+/// square lattice, the layout scenes seed their solids in (4 edge and 4 diagonal
+/// neighbours), so a particle's fit of `F` sees every direction around it. (`eval` counted
+/// 6 before; the strain and intact numbers of `plausibility.csv` from before differ.)
 pub const REST_NEIGHBOURS: usize = 8;
 /// Rest-shape features per particle: `E_xx, E_xy, E_yy, J - 1, o_x, o_y`.
 pub const REST_FEATURES: usize = 6;

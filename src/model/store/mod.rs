@@ -2,10 +2,11 @@
 //! (`eval`, `node`, `report`): [`Surrogate`] with `init_state`, `step`, `rollout` in
 //! physical units (scaling inside).
 //!
-//! A run folder holds `model.json` (the architecture and its config, [`NetConfig`], the
-//! scaler, the window T) and `model.mpk` (weights, burn's named MessagePack, full
-//! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
-//! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
+//! A run folder ([`RunFolder`], `run_folder.rs`: every file of it) holds `model.json` (the
+//! architecture and its config, [`NetConfig`], the scaler, the window T) and `model.mpk`
+//! (weights, burn's named MessagePack, full precision). `minflow train` writes them (the
+//! best epoch); its resumable checkpoint lives in `checkpoint/` beside them. Both
+//! architectures, `paper` ([`Model`]) and `grid`
 //! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; a grid model's step in
 //! `grid_step.rs`, dynamic batching in `batch.rs`, a call's predictions on their way back in
 //! `outs.rs`), whose per-batch [`State`] lives in
@@ -15,12 +16,14 @@ mod batch;
 mod constrained;
 mod grid_step;
 mod outs;
+mod run_folder;
 mod stack;
 pub mod stages;
 mod state;
 mod surrogate;
 
 pub use batch::{Finished, SceneStep, SceneSteps, StepTimes, Submitted};
+pub use run_folder::RunFolder;
 pub use state::State;
 pub use surrogate::{Predict, Surrogate, FEEDBACK_BYTES};
 
@@ -178,30 +181,16 @@ pub(crate) fn io(
     }
 }
 
-/// Writes `model.json` + `model.mpk` into `dir` (via temporary names, renamed at the end).
+/// Writes `model.json` + `model.mpk` into the run folder `dir` ([`RunFolder::save`]).
 ///
 /// # Errors
-/// [`StoreError::Io`] naming the file and keeping the OS error (a full disk: "No space left on
-/// device"); the temporary files are removed, and a model saved there before stays whole.
+/// As [`RunFolder::save`].
 pub fn save<B: Backend, M: Module<B>>(
     dir: &Path,
     model: &M,
     meta: &ModelMeta,
 ) -> Result<(), StoreError> {
-    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
-    let (tmp_mpk, tmp_json) = (dir.join("model-tmp.mpk"), dir.join("model.json.tmp"));
-    let written = write_record::<B, _>(&tmp_mpk, model.clone().into_record()).and_then(|()| {
-        let json = serde_json::to_string_pretty(meta).map_err(|e| io(dir, e))?;
-        write_file(&tmp_json, json.as_bytes())
-    });
-    if let Err(e) = written {
-        let _ = std::fs::remove_file(&tmp_mpk);
-        let _ = std::fs::remove_file(&tmp_json);
-        return Err(e);
-    }
-    std::fs::rename(&tmp_mpk, dir.join("model.mpk")).map_err(|e| io(dir, e))?;
-    std::fs::rename(&tmp_json, dir.join("model.json")).map_err(|e| io(dir, e))?;
-    Ok(())
+    RunFolder::new(dir).save(model, meta)
 }
 
 /// Writes `record` to `path` in the format of burn's `NamedMpkFileRecorder` with full
@@ -235,84 +224,6 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
         let _ = std::fs::remove_file(path);
         io(path, e)
     })
-}
-
-/// A run folder (`minflow train --out`) as every command reads it: `model.json` with the
-/// fields added since older folders were saved filled in ([`meta_value`]), `split.json`
-/// where there is one, and the weights `model.mpk` on demand. `eval`, `node`, `bench node`,
-/// `report` and `train --init-from` all open run folders through this.
-#[derive(Clone, Debug)]
-pub struct RunFolder {
-    /// The folder.
-    pub dir: PathBuf,
-    /// `model.json`, older fields defaulted.
-    pub meta: ModelMeta,
-    /// `split.json` (the scenes the model was trained, validated and tested on); None when
-    /// the folder has none or it does not parse.
-    pub split: Option<crate::data::Split>,
-}
-
-impl RunFolder {
-    /// Reads `dir/model.json` (and `dir/split.json` where present); the weights are read
-    /// by [`RunFolder::net`] or [`RunFolder::surrogate`].
-    ///
-    /// # Errors
-    /// [`StoreError::Io`] naming `model.json` when it is missing, unreadable or not a model
-    /// description.
-    pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        let path = dir.join("model.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| io(&path, e))?;
-        let meta = parse_meta(&text).map_err(|e| io(&path, e))?;
-        let split = std::fs::read_to_string(dir.join("split.json"))
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok());
-        Ok(Self {
-            dir: dir.to_path_buf(),
-            meta,
-            split,
-        })
-    }
-
-    /// The network with the weights of `model.mpk`, of either architecture, on `device`.
-    ///
-    /// # Errors
-    /// [`StoreError::Io`] naming `model.mpk` when it is missing or does not fit the network.
-    pub fn net<B: NetOps>(&self, device: &B::Device) -> Result<Net<B>, StoreError> {
-        let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
-        let weights = self.dir.join("model.mpk");
-        // Each architecture's weights are saved as its own module (not as a `Net`).
-        Ok(match self.meta.net.init::<B>(device) {
-            Net::Paper(m) => Net::Paper(
-                m.load_file(weights.clone(), &recorder, device)
-                    .map_err(|e| io(&weights, e))?,
-            ),
-            Net::Grid(m) => Net::Grid(
-                m.load_file(weights.clone(), &recorder, device)
-                    .map_err(|e| io(&weights, e))?,
-            ),
-        })
-    }
-
-    /// The trained model ready to step, on `device`.
-    ///
-    /// # Errors
-    /// As [`RunFolder::net`].
-    pub fn surrogate<B: NetOps>(&self, device: &B::Device) -> Result<Surrogate<B>, StoreError> {
-        Ok(Surrogate::from_net(
-            self.net(device)?,
-            self.meta.clone(),
-            device,
-        ))
-    }
-}
-
-/// Reads `dir/model.json`: its path and contents ([`RunFolder::open`]'s reading).
-///
-/// # Errors
-/// [`StoreError::Io`] when it is missing, unreadable or not a model description.
-pub fn read_meta(dir: &Path) -> Result<(std::path::PathBuf, ModelMeta), StoreError> {
-    let folder = RunFolder::open(dir)?;
-    Ok((dir.join("model.json"), folder.meta))
 }
 
 /// A `model.json`'s text as a [`ModelMeta`], older fields defaulted ([`meta_value`]).
@@ -369,13 +280,16 @@ pub fn meta_value(text: &str) -> Result<serde_json::Value, serde_json::Error> {
     Ok(value)
 }
 
-/// Reads `model.json` and the weights from `dir`, of either architecture.
+/// Reads `model.json` and the weights from the run folder `dir`, of either architecture
+/// ([`RunFolder::load`]).
+///
+/// # Errors
+/// As [`RunFolder::load`].
 pub fn load_net<B: NetOps>(
     dir: &Path,
     device: &B::Device,
 ) -> Result<(Net<B>, ModelMeta), StoreError> {
-    let folder = RunFolder::open(dir)?;
-    Ok((folder.net(device)?, folder.meta))
+    RunFolder::new(dir).load(device)
 }
 
 /// Reads a `paper` model (`model.json` and the weights) from `dir`.

@@ -58,7 +58,7 @@ pub struct Surrogate<B: Backend> {
 impl<B: NetOps> Surrogate<B> {
     /// Loads a run folder (either architecture).
     pub fn load(dir: &Path, device: &B::Device) -> Result<Self, StoreError> {
-        RunFolder::open(dir)?.surrogate(device)
+        RunFolder::new(dir).surrogate(device)
     }
 
     /// Wraps an in-memory paper model.

@@ -5,8 +5,9 @@ use std::time::Duration;
 
 use crate::msgs::status::SurrogateStatus;
 
-/// What to do with a frame that does not follow the previous one of its scene.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+/// What to do with a frame that does not follow the previous one of its scene
+/// (`node --on-gap`, `cli::node`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum OnGap {
     /// Reset the scene's hidden state and start again from this frame.
     Reset,

@@ -243,7 +243,7 @@ where
             train,
             val,
             output: RunOutput {
-                out: self.out.clone(),
+                folder: store::RunFolder::new(&self.out),
                 net: NetConfig::Grid(self.config.clone()),
                 scaler: *scaler,
                 epochs: opts.epochs,

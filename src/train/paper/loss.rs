@@ -3,18 +3,20 @@
 //! times the MSE between density maps of the predicted and true positions. The grid trainer
 //! has its own, over short rollouts ([`crate::train::grid`], `rollout_loss.rs`).
 //!
-//! The density map splats each particle onto a G x G grid over the unit square with the
-//! bilinear (tent) kernel `w(x) = max(0, 1 - |x G - (i + 1/2)|)` per axis. The kernel is
+//! The density map is the one `eval` scores (`density_err`): [`crate::eval::density_map`]
+//! defines it (each particle splatted onto a G x G grid over the unit square with the tent
+//! kernel, normalised to mean 1 for a uniform distribution); [`density_map`] here computes
+//! the same map on tensors, in f32 and differentiable in the positions. The kernel is
 //! separable, so the map is one batched matrix product `Kx^T Ky` (`[B, G, N] x [B, N, G]`),
-//! differentiable in the positions, with no scatter. Maps are normalised to mean 1 for a
-//! uniform distribution (`G^2 / N` per particle). Used by [`super::Trainer`] (`minflow train
-//! --arch paper`, `minflow bench train --arch paper`).
+//! with no scatter. Used by [`super::Trainer`] (`minflow train --arch paper`, `minflow bench
+//! train --arch paper`).
 
 use burn::tensor::activation::relu;
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-/// Per-axis tent weights of positions against G cell centres.
+/// Per-axis tent weights `max(0, 1 - |x G - (i + 1/2)|)` of positions against the G cell
+/// centres `(i + 1/2) / G` (the kernel of [`crate::eval::density_map`]).
 ///
 /// # Shapes
 /// - `coord`: `[B, N]` in domain units -> `[B, N, G]`
@@ -28,7 +30,9 @@ fn tent<B: Backend>(coord: Tensor<B, 2>, g: usize) -> Tensor<B, 3> {
     relu((scaled - centres).abs().neg().add_scalar(1.0))
 }
 
-/// Density map of positions.
+/// Density map of positions: per scene of the batch, the map [`crate::eval::density_map`]
+/// defines (index `[b, ix, iy]`, weight `G^2 / N` per particle), in f32 on tensors and
+/// differentiable in the positions (the test below checks the two agree).
 ///
 /// # Shapes
 /// - `pos`: `[B, N, 2]` (x, y) in domain units -> `[B, G, G]`
@@ -75,5 +79,41 @@ pub fn loss<B: Backend>(
         total: mse.clone() + density.clone().mul_scalar(weight),
         mse,
         density,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+    use burn::tensor::TensorData;
+
+    /// Per scene, the tensor map is `eval`'s host map (its definition) to f32 rounding, for
+    /// positions inside the box, on its edges and outside it.
+    #[test]
+    fn density_map_is_evals_map_on_tensors() {
+        let (b, n, g) = (2, 50, 8);
+        let mut seed = 12345u32;
+        let mut next = || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32 * 1.2 - 0.1
+        };
+        let mut pos: Vec<f32> = (0..b * n * 2).map(|_| next()).collect();
+        pos[..6].copy_from_slice(&[0.0, 1.0, 0.5, 0.0625, 1.0, 0.5]);
+        let tensor = Tensor::<NdArray<f32>, 3>::from_data(
+            TensorData::new(pos.clone(), [b, n, 2]),
+            &Default::default(),
+        );
+        let maps = density_map(tensor, g).into_data().to_vec::<f32>().unwrap();
+        for (scene, map) in pos.chunks_exact(2 * n).zip(maps.chunks_exact(g * g)) {
+            let state: Vec<f32> = scene
+                .chunks_exact(2)
+                .flat_map(|p| [p[0], p[1], 0.0, 0.0])
+                .collect();
+            let host = crate::eval::density_map(&state, g);
+            for (a, h) in map.iter().zip(&host) {
+                assert!((f64::from(*a) - h).abs() < 1e-4, "{a} against {h}");
+            }
+        }
     }
 }

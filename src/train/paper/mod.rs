@@ -23,7 +23,7 @@ use super::checkpoint::{self, RunOutput};
 use super::epochs::{run_epochs, EpochPass, EpochRun};
 use super::{drawn_on_cpu, optimizer, BatchSource, EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, WindowIndex};
-use crate::model::store::NetConfig;
+use crate::model::store::{NetConfig, RunFolder};
 use crate::model::{Model, ModelConfig, Scaling};
 use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
@@ -172,7 +172,7 @@ where
         self.check_particle_counts(&train.particle_counts())?;
         let start = self.start(resume)?;
         let output = RunOutput {
-            out: self.out.clone(),
+            folder: RunFolder::new(&self.out),
             net: NetConfig::Paper(self.config.clone()),
             scaler: *scaler,
             epochs: self.opts.epochs,

@@ -235,36 +235,25 @@ impl FramePublisher for FrameAndCloud {
     }
 }
 
-/// The `--pointcloud2 TOPIC` flag of `replay`, `node` and `simulate --publish`.
-#[derive(Debug, Clone, Default, clap::Args)]
-pub struct PointCloud2Args {
-    /// Also publish every frame this process publishes as sensor_msgs/PointCloud2 on TOPIC
-    /// (one point per particle: x, y, z = 0 and rgb by material, packed as PCL does), for
-    /// RViz; over ROS 2 (DDS, or rmw_zenoh with --transport ros2-zenoh) whatever
-    /// --transport carries the frames; default ROS 2 QoS.
-    #[arg(long, value_name = "TOPIC")]
-    pub pointcloud2: Option<String>,
-}
-
-impl PointCloud2Args {
-    /// Opens the transport `options` names, wrapped by [`with_pointcloud2`] when the flag
-    /// is given.
-    ///
-    /// # Errors
-    /// As [`crate::transport::open`] and [`CloudPublisher::open`].
-    pub fn open(
-        &self,
-        options: &crate::transport::TransportOptions,
-    ) -> Result<Box<dyn Transport>, TransportError> {
-        let session = crate::transport::open(options)?;
-        match &self.pointcloud2 {
-            Some(topic) => {
-                if !matches!(options.transport, TransportKind::Ros2Zenoh) {
-                    super::distro::select(options.ros_distro);
-                }
-                with_pointcloud2(session, topic)
+/// Opens the transport `options` names, wrapped by [`with_pointcloud2`] when `pointcloud2`
+/// names a cloud topic (the `--pointcloud2 TOPIC` flag of `replay`, `node` and `simulate
+/// --publish`, `cli::transport::PointCloud2Args`): the frames go over whatever
+/// `options.transport` is, the clouds over ROS 2 (DDS, or rmw_zenoh with `ros2-zenoh`).
+///
+/// # Errors
+/// As [`crate::transport::open`] and [`CloudPublisher::open`].
+pub fn open_with_pointcloud2(
+    options: &crate::transport::TransportOptions,
+    pointcloud2: Option<&str>,
+) -> Result<Box<dyn Transport>, TransportError> {
+    let session = crate::transport::open(options)?;
+    match pointcloud2 {
+        Some(topic) => {
+            if !matches!(options.transport, TransportKind::Ros2Zenoh) {
+                super::distro::select(options.ros_distro);
             }
-            None => Ok(session),
+            with_pointcloud2(session, topic)
         }
+        None => Ok(session),
     }
 }

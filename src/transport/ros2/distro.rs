@@ -15,8 +15,8 @@ use crate::msgs::status::STATUS_TYPE_NAME;
 use crate::msgs::type_hash::minflow_type_hash;
 use crate::msgs::TYPE_NAME;
 
-/// A ROS 2 distribution minflow is tested against (`--ros-distro`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+/// A ROS 2 distribution minflow is tested against (`--ros-distro`, `cli::transport`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RosDistro {
     /// ROS 2 Jazzy Jalisco (May 2024).
     Jazzy,
@@ -25,13 +25,21 @@ pub enum RosDistro {
 }
 
 impl RosDistro {
+    /// Every distribution, oldest first.
+    pub const ALL: [RosDistro; 2] = [RosDistro::Jazzy, RosDistro::Kilted];
+
+    /// The distribution's name as `ROS_DISTRO` and `--ros-distro` write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            RosDistro::Jazzy => "jazzy",
+            RosDistro::Kilted => "kilted",
+        }
+    }
+
     /// The distribution `ROS_DISTRO` names when it is `jazzy` or `kilted`.
     pub fn from_env_value(value: &str) -> Option<Self> {
-        match value.trim() {
-            "jazzy" => Some(RosDistro::Jazzy),
-            "kilted" => Some(RosDistro::Kilted),
-            _ => None,
-        }
+        let value = value.trim();
+        Self::ALL.into_iter().find(|d| d.name() == value)
     }
 
     fn to_client(self) -> ros2_client::RosDistro {

@@ -75,7 +75,7 @@ use std::sync::Arc;
 use super::{
     FramePublisher, Sample, StatusPublisher, Subscription, Transport, TransportError, TransportKind,
 };
-pub use cloud::{with_pointcloud2, CloudPublisher, PointCloud2Args};
+pub use cloud::{open_with_pointcloud2, with_pointcloud2, CloudPublisher};
 use dds::{open_dds, DdsNode};
 pub use distro::{select as select_distro, type_hash_user_data, RosDistro};
 pub use names::{domain_id_from_env, OpenError, MAX_DOMAIN_ID, MESSAGE, PACKAGE, QOS};
