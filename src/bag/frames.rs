@@ -49,6 +49,9 @@ pub struct BagMessage {
     pub index: u64,
     /// The frame.
     pub frame: ParticleFrame,
+    /// The solver's grid of the frame's scene, when the channel's metadata says
+    /// ([`super::SOLVER_GRID_KEY`]).
+    pub solver_grid: Option<u32>,
 }
 
 impl Frames {
@@ -101,6 +104,11 @@ impl Iterator for Frames {
                 log_time: message.log_time,
                 index: message.index,
                 frame,
+                solver_grid: message
+                    .channel
+                    .metadata
+                    .get(super::SOLVER_GRID_KEY)
+                    .and_then(|v| v.parse().ok()),
             }));
         }
     }

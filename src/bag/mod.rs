@@ -40,6 +40,10 @@ pub const SCHEMA_ENCODING: &str = "ros2msg";
 pub const MESSAGE_ENCODING: &str = "cdr";
 /// Channel metadata key for the QoS profiles (rosbag2's name).
 pub const QOS_KEY: &str = "offered_qos_profiles";
+/// Channel metadata key for the solver's grid (cells per side) of the scene whose frames the
+/// channel carries: `simulate` writes it, the liquid's pressure projection reads it
+/// ([`crate::model::constraints`]). Other writers leave it out; readers ignore it.
+pub const SOLVER_GRID_KEY: &str = "minflow/solver_grid";
 /// rosbag2 (Humble) YAML for the default ROS 2 QoS: reliable, keep-last 10, volatile, and
 /// infinite deadline / lifespan / liveliness lease.
 pub const DEFAULT_QOS_YAML: &str = "- history: 1

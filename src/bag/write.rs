@@ -52,6 +52,8 @@ pub struct BagWriter {
     /// File length after the last successful [`BagWriter::flush`]: everything before it is
     /// whole records, where [`BagWriter::abandon`] cuts the file.
     flushed_len: u64,
+    /// Metadata added to each ParticleFrame channel beside the QoS profiles.
+    channel_metadata: BTreeMap<String, String>,
 }
 
 impl BagWriter {
@@ -89,7 +91,14 @@ impl BagWriter {
             foreign_schemas: BTreeMap::new(),
             scratch: Vec::new(),
             flushed_len: 0,
+            channel_metadata: BTreeMap::new(),
         })
+    }
+
+    /// Adds `key: value` to the metadata of every ParticleFrame channel added from now on
+    /// (`simulate` records the solver's grid, [`super::SOLVER_GRID_KEY`]).
+    pub fn channel_metadata(&mut self, key: &str, value: &str) {
+        self.channel_metadata.insert(key.to_owned(), value.to_owned());
     }
 
     /// The bag's path.
@@ -176,7 +185,8 @@ impl BagWriter {
         if let Some(next) = self.next_sequence(topic) {
             return Ok(next);
         }
-        let metadata = BTreeMap::from([(QOS_KEY.to_owned(), DEFAULT_QOS_YAML.to_owned())]);
+        let mut metadata = self.channel_metadata.clone();
+        metadata.insert(QOS_KEY.to_owned(), DEFAULT_QOS_YAML.to_owned());
         self.add_channel(topic, self.schema_id, MESSAGE_ENCODING, &metadata)
     }
 

@@ -124,7 +124,7 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
                 .join(", ")
         );
     }
-    if let Some(p) = fitted.pressure {
+    if let Some(p) = &fitted.pressure {
         println!(
             "- pressure: compressed above a volume fraction of {:.2}{} (the truth's own frames \
              move, spacings per frame: {})",
@@ -135,6 +135,18 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
             },
             measured
                 .pressure_moves
+                .iter()
+                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    for (grid, moves, met) in &measured.pressure_by_grid {
+        let rest = fitted.pressure.as_ref().map_or(0.0, |p| p.rest_for(Some(*grid)));
+        println!(
+            "  - scenes of the {grid} x {grid} solver grid: above {rest:.2}{} ({})",
+            if *met { "" } else { " (NOT MET)" },
+            moves
                 .iter()
                 .map(|(r, m)| format!("{r:.2}: {m:.4}"))
                 .collect::<Vec<_>>()

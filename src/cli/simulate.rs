@@ -297,6 +297,7 @@ pub(super) fn write_scene(
     let path = out.join(bag_name(&scene.name));
     let part = path.with_extension("mcap.part");
     let mut writer = BagWriter::create(&part)?;
+    writer.channel_metadata(crate::bag::SOLVER_GRID_KEY, &scene.grid.to_string());
     let run = SceneRun::new(scene)?;
     for frame in run {
         let frame = frame?;

@@ -101,7 +101,7 @@ fn load_filtered(
     let mut report = LoadReport::default();
     let mut scenes: BTreeMap<String, SceneFrames> = BTreeMap::new();
     let mut seen = 0u64;
-    read_bags(&paths, topic, &mut report, |path, frame| {
+    read_bags(&paths, topic, &mut report, |path, frame, grid| {
         seen += 1;
         if wanted.is_some_and(|w| !w.contains(frame.scene.as_str())) {
             return Ok(());
@@ -110,6 +110,7 @@ fn load_filtered(
             Some(acc) => acc.insert(path, &frame),
             None => {
                 let mut acc = SceneFrames::new(&frame);
+                acc.head.solver_grid = grid;
                 acc.insert(path, &frame)?;
                 scenes.insert(frame.scene.clone(), acc);
                 Ok(())
@@ -173,7 +174,7 @@ pub fn scan_with_report(
     let paths = bag_paths(inputs)?;
     let mut report = LoadReport::default();
     let mut scenes: BTreeMap<String, Acc> = BTreeMap::new();
-    read_bags(&paths, topic, &mut report, |path, frame| {
+    read_bags(&paths, topic, &mut report, |path, frame, _| {
         let acc = scenes.entry(frame.scene.clone()).or_insert_with(|| Acc {
             head: SceneHead::new(&frame),
             indices: BTreeSet::new(),
@@ -218,13 +219,13 @@ fn read_bags(
     paths: &[PathBuf],
     topic: Option<&str>,
     report: &mut LoadReport,
-    mut each: impl FnMut(&Path, ParticleFrame) -> Result<(), DataError>,
+    mut each: impl FnMut(&Path, ParticleFrame, Option<u32>) -> Result<(), DataError>,
 ) -> Result<(), DataError> {
     for path in paths {
         let mut frames = BagReader::open(path)?.frames_on(topic);
         for item in frames.by_ref() {
             match item {
-                Ok(message) => each(path, message.frame)?,
+                Ok(message) => each(path, message.frame, message.solver_grid)?,
                 Err(BagError::Truncated { truncation, .. }) => {
                     report.truncated.push((path.clone(), truncation));
                 }

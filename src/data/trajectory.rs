@@ -38,6 +38,10 @@ pub struct Trajectory {
     pub frames: usize,
     /// N, the number of particles.
     pub n: usize,
+    /// The solver's grid (cells per side) that made the scene, when its bag says
+    /// ([`crate::bag::SOLVER_GRID_KEY`], written by `simulate`); the liquid's pressure
+    /// projection picks its threshold by it.
+    pub solver_grid: Option<u32>,
 }
 
 impl Trajectory {
@@ -141,6 +145,8 @@ pub(crate) struct SceneHead {
     pub material: Vec<u8>,
     /// `frame_index` of the first frame read.
     pub reference: u32,
+    /// The solver's grid, when the bag says ([`crate::bag::SOLVER_GRID_KEY`]).
+    pub solver_grid: Option<u32>,
 }
 
 impl SceneHead {
@@ -150,6 +156,7 @@ impl SceneHead {
             dt: frame.dt,
             material: frame.material.clone(),
             reference: frame.frame_index,
+            solver_grid: None,
         }
     }
 
@@ -239,6 +246,7 @@ impl SceneFrames {
                 states,
                 frames: count,
                 n,
+                solver_grid: head.solver_grid,
             });
         }
         (out, gaps)

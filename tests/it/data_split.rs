@@ -107,6 +107,7 @@ fn segments_of_a_scene_stay_in_one_part() {
         states: vec![0.0; 3 * 2 * 4],
         frames: 3,
         n: 2,
+        solver_grid: None,
     };
     let trajs: Vec<_> = ids(10)
         .iter()

@@ -42,6 +42,7 @@ fn traj(frames: Vec<[[f32; 4]; 2]>) -> Trajectory {
         states: frames.iter().flatten().flatten().copied().collect(),
         frames: n,
         n: 2,
+        solver_grid: None,
     }
 }
 

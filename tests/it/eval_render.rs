@@ -33,6 +33,7 @@ fn trajectories() -> Vec<Trajectory> {
                 states,
                 frames: 30,
                 n,
+                solver_grid: None,
             }
         })
         .collect()

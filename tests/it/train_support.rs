@@ -54,6 +54,7 @@ pub fn trajectory(n: usize, frames: u32) -> Trajectory {
         states,
         frames: frames.len(),
         n: frames[0].material.len(),
+        solver_grid: None,
     }
 }
 
@@ -113,5 +114,6 @@ pub fn integrator_trajectory(n: usize, frames: usize) -> Trajectory {
         states,
         frames,
         n,
+        solver_grid: None,
     }
 }

@@ -91,6 +91,7 @@ pub(crate) fn synthetic(n: usize, frames: usize) -> Trajectory {
         states,
         frames,
         n,
+        solver_grid: None,
     }
 }
 

@@ -55,6 +55,8 @@ pub struct FitReport {
     pub pressure_moves: Vec<(f32, f64)>,
     /// Whether a pressure threshold met [`TRUTH_MOVE`].
     pub pressure_met: bool,
+    /// Per solver grid: each threshold's truth move, and whether one met [`TRUTH_MOVE`].
+    pub pressure_by_grid: Vec<(u32, Vec<(f32, f64)>, bool)>,
 }
 
 /// `base` with its rope stretch, liquid rest density and walls fitted to `trajs` (the
@@ -87,20 +89,32 @@ pub fn fit(trajs: &[Trajectory], base: &Constraints) -> (Constraints, FitReport)
             ..Default::default()
         };
         let set = |c: &mut Constraints, rest| c.liquid.as_mut().unwrap().rest = rest;
-        let (rest, moves, frames, met) = fit_rest(trajs, only, set, &REST_CANDIDATES);
+        let all: Vec<&Trajectory> = trajs.iter().collect();
+        let (rest, moves, frames, met) = fit_rest(&all, only, set, &REST_CANDIDATES);
         out.liquid.as_mut().unwrap().rest = rest;
         (report.liquid_moves, report.liquid_frames, report.liquid_met) = (moves, frames, met);
     }
-    if let Some(p) = out.pressure {
+    if let Some(p) = out.pressure.clone() {
         let only = Constraints {
             pressure: Some(p),
             walls: out.walls,
             ..Default::default()
         };
         let set = |c: &mut Constraints, rest| c.pressure.as_mut().unwrap().rest = rest;
-        let (rest, moves, _, met) = fit_rest(trajs, only, set, &PRESSURE_CANDIDATES);
+        let all: Vec<&Trajectory> = trajs.iter().collect();
+        let (rest, moves, _, met) = fit_rest(&all, only.clone(), set, &PRESSURE_CANDIDATES);
         out.pressure.as_mut().unwrap().rest = rest;
         (report.pressure_moves, report.pressure_met) = (moves, met);
+        // Then each solver grid's own threshold, on its scenes.
+        let mut grids: Vec<u32> = trajs.iter().filter_map(|t| t.solver_grid).collect();
+        grids.sort_unstable();
+        grids.dedup();
+        for g in grids {
+            let on: Vec<&Trajectory> = trajs.iter().filter(|t| t.solver_grid == Some(g)).collect();
+            let (rest, moves, _, met) = fit_rest(&on, only.clone(), set, &PRESSURE_CANDIDATES);
+            out.pressure.as_mut().unwrap().rest_by_grid.insert(g, rest);
+            report.pressure_by_grid.push((g, moves, met));
+        }
     }
     (out, report)
 }
@@ -109,7 +123,7 @@ pub fn fit(trajs: &[Trajectory], base: &Constraints) -> (Constraints, FitReport)
 /// its liquid less than [`TRUTH_MOVE`] spacings a frame (else the last): the rest value,
 /// each candidate's move, the frames measured and whether one met it.
 fn fit_rest(
-    trajs: &[Trajectory],
+    trajs: &[&Trajectory],
     mut only: Constraints,
     set: impl Fn(&mut Constraints, f32),
     candidates: &[f32],
@@ -149,13 +163,13 @@ fn rope_stretches(trajs: &[Trajectory]) -> Vec<f32> {
 
 /// The liquid's mean move (spacings per particle and frame) when `c` projects the truth's
 /// own frames, and the frames it was measured on.
-fn truth_moves(trajs: &[Trajectory], c: &Constraints) -> (f64, usize) {
+fn truth_moves(trajs: &[&Trajectory], c: &Constraints) -> (f64, usize) {
     let liquid = usize::from(Material::Liquid.id());
     let per_scene: Vec<(f64, u64, usize)> = trajs
         .par_iter()
         .filter(|t| t.material.contains(&Material::Liquid.id()))
         .map(|t| {
-            let mut shape = SceneShape::new(t.state(0), 4, &t.material, c);
+            let mut shape = SceneShape::on_grid(t.state(0), 4, &t.material, c, t.solver_grid);
             let every = (t.frames / LIQUID_FRAMES).max(1);
             let (mut sum, mut count, mut frames) = (0.0, 0u64, 0);
             for k in (every..t.frames).step_by(every) {

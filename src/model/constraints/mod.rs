@@ -126,6 +126,19 @@ impl SceneShape {
     /// y first, domain units) with material ids `material` (`[N]`), for the parts of `c`
     /// that are on.
     pub fn new(rest: &[f32], stride: usize, material: &[u8], c: &Constraints) -> Self {
+        Self::on_grid(rest, stride, material, c, None)
+    }
+
+    /// [`SceneShape::new`] for a scene the solver made on a `grid` x `grid` grid (when
+    /// known: the liquid's pressure part picks its threshold by it,
+    /// [`PressureParams::rest_for`]).
+    pub fn on_grid(
+        rest: &[f32],
+        stride: usize,
+        material: &[u8],
+        c: &Constraints,
+        grid: Option<u32>,
+    ) -> Self {
         let n = material.len();
         let mut spacing = [0.0f32; COUNT];
         for (m, s) in spacing.iter_mut().enumerate() {
@@ -154,7 +167,7 @@ impl SceneShape {
         });
         let pressure = c.pressure.as_ref().and_then(|p| {
             let s = spacing[usize::from(Material::Liquid.id())];
-            pressure::Pressure::new(rest, stride, material, s, p)
+            pressure::Pressure::new(rest, stride, material, s, (p, grid))
         });
         let rebound = c.rebound.and_then(|_| {
             let m = Material::Jelly.id();

@@ -2,6 +2,8 @@
 //! ([`Constraints`]), and the defaults of a model none were fitted for. The parts themselves
 //! live in the sibling modules; [`super::Parts`] selects which of them run.
 
+use std::collections::BTreeMap;
+
 use serde::{Deserialize, Serialize};
 
 use super::Parts;
@@ -161,16 +163,22 @@ pub struct DensityParams {
 }
 
 /// Liquid pressure-projection parameters ([`super::pressure`]).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PressureParams {
     /// Node spacing of the pressure grid in particle spacings of the rest frame (2 puts about
     /// 4 particles in a cell, as the solver's rest state does).
     pub radius: f32,
-    /// Volume fraction above which a node counts as compressed, over the rest frame's 1
-    /// (fitted: `minflow constraints fit`, the least that leaves the truth in place).
+    /// Volume fraction above which a node counts as compressed, over the rest frame's 1,
+    /// for a scene whose solver grid is unknown or not in `rest_by_grid` (fitted: `minflow
+    /// constraints fit`, the least that leaves the truth in place).
     pub rest: f32,
-    /// Volume fraction from which a node is full: it takes pressure, and its compressing
-    /// velocity is removed; nodes below are free surface.
+    /// The same per solver grid (cells per side): the solver's liquid settles towards a
+    /// density its grid sets (a 64 x 64 scene's expands from its sampling, a 128 x 128 one's
+    /// packs to twice it), so each grid has its own threshold, fitted on its scenes.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub rest_by_grid: BTreeMap<u32, f32>,
+    /// Share of the threshold from which a node is full: it takes pressure, and its
+    /// compressing velocity is removed; nodes below are free surface.
     pub full: f32,
     /// Share of a node's excess compression removed per frame (0..=1).
     pub stiffness: f32,
@@ -184,17 +192,28 @@ pub struct PressureParams {
 }
 
 impl PressureParams {
-    /// Nodes 2 spacings apart, compressed above 1.1, full from 0.9, half the excess removed
-    /// a frame, the velocity part on, 40 sweeps at over-relaxation 1.6.
+    /// Nodes 2 spacings apart, compressed above 2 (the loosest grid's, see `rest_by_grid`),
+    /// full from 0.8 of it, half the excess removed a frame, the velocity part on, 40 sweeps
+    /// at over-relaxation 1.6.
     pub const DEFAULT: PressureParams = PressureParams {
         radius: 2.0,
-        rest: 1.1,
-        full: 0.9,
+        rest: 2.0,
+        rest_by_grid: BTreeMap::new(),
+        full: 0.8,
         stiffness: 0.5,
         velocity: true,
         iterations: 40,
         omega: 1.6,
     };
+}
+
+impl PressureParams {
+    /// The compressed threshold of a scene made on the solver grid `grid` (`rest` when
+    /// unknown or not fitted).
+    pub fn rest_for(&self, grid: Option<u32>) -> f32 {
+        grid.and_then(|g| self.rest_by_grid.get(&g).copied())
+            .unwrap_or(self.rest)
+    }
 }
 
 /// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
@@ -241,7 +260,7 @@ impl Constraints {
             }),
             momentum: Some(MomentumParams::DEFAULT),
             rebound: Some(ReboundParams::DEFAULT),
-            pressure: Some(PressureParams::DEFAULT),
+            pressure: Some(PressureParams::DEFAULT.clone()),
         }
     }
 
@@ -256,7 +275,7 @@ impl Constraints {
             contact: self.contact.filter(|_| parts.contact),
             momentum: self.momentum.filter(|_| parts.momentum),
             rebound: self.rebound.filter(|_| parts.rebound),
-            pressure: self.pressure.filter(|_| parts.pressure),
+            pressure: self.pressure.clone().filter(|_| parts.pressure),
         }
     }
 

@@ -39,6 +39,8 @@ pub(super) struct Pressure {
     ids: Vec<u32>,
     /// Per liquid particle, its rest volume in cells (`h^2` units).
     volume: Vec<f32>,
+    /// Volume fraction above which a node is compressed (the scene's grid's threshold).
+    rest: f32,
     /// Node spacing (domain units).
     h: f32,
     /// Nodes per side (node `i` at `i h`).
@@ -96,7 +98,8 @@ fn bilinear(x: f32, y: f32, h: f32, ox: f32, oy: f32) -> ([i32; 2], [f32; 2]) {
 
 impl Pressure {
     /// The liquid of the rest frame `rest` (`[N, stride]` rows), whose particle spacing is
-    /// `spacing`: nodes `p.radius` spacings apart, and each particle's rest volume
+    /// `spacing`, made on the solver grid `grid` (if known): nodes `p.radius` spacings apart,
+    /// the compressed threshold [`PressureParams::rest_for`] the grid, and each particle's rest volume
     /// `V_p = 1 / rho_p`, `rho_p` the B-spline average of the rest frame's particles per cell
     /// around it over the occupied nodes, clamped to `[1, 2]` times the liquid's median: a
     /// cluster of the sampling is at rest (the solver's liquid starts there at `J = 1`), a
@@ -107,7 +110,7 @@ impl Pressure {
         stride: usize,
         material: &[u8],
         spacing: f32,
-        p: &PressureParams,
+        (p, grid): (&PressureParams, Option<u32>),
     ) -> Option<Self> {
         let liquid = Material::Liquid.id();
         let ids: Vec<u32> = (0..material.len() as u32)
@@ -120,6 +123,7 @@ impl Pressure {
         let side = (1.0 / h).ceil() as usize + 2;
         let mut out = Self {
             ids,
+            rest: p.rest_for(grid),
             volume: Vec::new(),
             h,
             side,
@@ -233,7 +237,7 @@ impl Pressure {
             let mut any = false;
             for &n in &full {
                 let phi = s.phi[n];
-                let mut r = p.stiffness * (phi - p.rest).max(0.0) / phi;
+                let mut r = p.stiffness * (phi - self.rest).max(0.0) / phi;
                 if p.velocity {
                     r -= dt * self.divergence(n, &s);
                 }
@@ -284,7 +288,7 @@ impl Pressure {
 
     /// Each node's kind: closed in the walls (its cell wholly outside `walls` on either axis) or
     /// where the solids outweigh the liquid, full where the liquid's volume fraction reaches
-    /// `p.full`, free otherwise.
+    /// `p.full` of the compressed threshold, free otherwise.
     fn classify(&self, p: &PressureParams, (lo, hi): (f32, f32), s: &mut Scratch) {
         s.kind.clear();
         s.kind.resize(self.side * self.side, FREE);
@@ -299,7 +303,7 @@ impl Pressure {
                     WALL
                 } else if s.solid[n] > s.phi[n] && s.solid[n] > 0.0 {
                     CLOSED
-                } else if s.phi[n] >= p.full {
+                } else if s.phi[n] >= p.full * self.rest {
                     FULL
                 } else {
                     FREE
@@ -450,8 +454,17 @@ mod tests {
             .collect()
     }
 
+    /// Compressed above 1.1, full from 0.9.
+    fn params() -> PressureParams {
+        PressureParams {
+            rest: 1.1,
+            full: 0.9 / 1.1,
+            ..PressureParams::DEFAULT
+        }
+    }
+
     fn liquid(rest: &[f32]) -> Pressure {
-        Pressure::new(rest, 4, &[0; 900], 0.01, &PressureParams::DEFAULT).unwrap()
+        Pressure::new(rest, 4, &[0; 900], 0.01, (&params(), None)).unwrap()
     }
 
     fn max(v: &[f32]) -> f32 {
@@ -466,7 +479,7 @@ mod tests {
         // Inside the lattice every node holds one cell of liquid (the B-spline sums to 1).
         assert!((max(&phi) - 1.0).abs() < 0.02, "{}", max(&phi));
         let mut same = rest.clone();
-        pressure.project(&PressureParams::DEFAULT, &mut same, &[0; 900], 0.016, (0.0, 1.0));
+        pressure.project(&params(), &mut same, &[0; 900], 0.016, (0.0, 1.0));
         assert_eq!(same, rest, "uncompressed, falling as one: no move");
     }
 
@@ -483,7 +496,7 @@ mod tests {
         let h0 = height(&pressed);
         let p = PressureParams {
             velocity: false,
-            ..PressureParams::DEFAULT
+            ..params()
         };
         // The floor closes the nodes below y = 0.095: the pool can only rise and widen.
         for _ in 0..10 {
@@ -505,7 +518,7 @@ mod tests {
         // Converging on the pool's centre line x = 0.445 at 2 per time unit per unit.
         let mut squeezed = pool(0.01, |x, _| [-2.0 * (x - 0.445), 0.0]);
         let before = squeezed.clone();
-        pressure.project(&PressureParams::DEFAULT, &mut squeezed, &[0; 900], dt, (0.0, 1.0));
+        pressure.project(&params(), &mut squeezed, &[0; 900], dt, (0.0, 1.0));
         // The move over dt, as velocity, cancels most of the inward velocity inside.
         let centre = 15 * 30 + 15;
         let left = 5 * 30 + 15;
@@ -516,7 +529,7 @@ mod tests {
         assert!(moved(centre) < 0.2 * moved(left), "{} {}", moved(centre), moved(left));
         let mut spread = pool(0.01, |x, _| [x - 0.445, 0.0]);
         let kept = spread.clone();
-        pressure.project(&PressureParams::DEFAULT, &mut spread, &[0; 900], dt, (0.0, 1.0));
+        pressure.project(&params(), &mut spread, &[0; 900], dt, (0.0, 1.0));
         assert_eq!(spread, kept, "an expanding liquid is free");
     }
 
@@ -528,7 +541,7 @@ mod tests {
         s.phi = pressure.fractions(&rest);
         s.solid = vec![0.0; s.phi.len()];
         s.solid[pressure.side * 40 + 20] = 5.0;
-        pressure.classify(&PressureParams::DEFAULT, (0.05, 0.95), &mut s);
+        pressure.classify(&params(), (0.05, 0.95), &mut s);
         assert_eq!(s.kind[0], CLOSED, "node (0, 0) is in the wall");
         assert_eq!(s.kind[pressure.side * 40 + 20], CLOSED, "a solid node");
         assert_eq!(s.kind[pressure.side * 22 + 12], FULL, "inside the pool");
