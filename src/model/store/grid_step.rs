@@ -1,13 +1,13 @@
 //! A grid model's step inside [`Surrogate`]: its carried [`GridState`] fitted to the call
 //! and turned into the network's [`StepInput`] (the velocity history completed, the
 //! reference positions and rest neighbourhoods taken or built), the network's call, and the
-//! state it leaves for the next call. Called by `Surrogate::step_here` (`surrogate.rs`).
+//! state it leaves for the next call. Called by `Surrogate::step_here` (`step.rs`).
 
 use burn::tensor::Tensor;
 
+use super::grid_state::GridState;
 use super::outs::{split_frames, Outs, Read};
 use super::stages::{self, Stage};
-use super::state::GridState;
 use super::{Predict, StoreError, Surrogate};
 use crate::model::grid::rest::advect::identity;
 use crate::model::grid::{

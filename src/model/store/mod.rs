@@ -2,24 +2,27 @@
 //! (`eval`, `node`, `report`): [`Surrogate`] with `init_state`, `step`, `rollout` in
 //! physical units (scaling inside).
 //!
-//! A run folder ([`RunFolder`], `run_folder.rs`: every file of it) holds `model.json` (the
-//! architecture and its config, [`NetConfig`], the scaler, the window T) and `model.mpk`
-//! (weights, burn's named MessagePack, full precision). `minflow train` writes them (the
-//! best epoch); its resumable checkpoint lives in `checkpoint/` beside them. Both
-//! architectures, `paper` ([`Model`]) and `grid`
-//! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; a grid model's step in
-//! `grid_step.rs`, dynamic batching in `batch.rs`, a call's predictions on their way back in
-//! `outs.rs`), whose per-batch [`State`] lives in
-//! `state.rs` (stacked and split by `stack.rs`; its constraint data in `constrained.rs`).
+//! A run folder ([`RunFolder`], `run_folder.rs`: every file of it) holds `model.json` (the architecture and its config, [`NetConfig`], the
+//! scaler, the window T) and `model.mpk` (weights, burn's named MessagePack, full
+//! precision). `minflow train` writes them (the best epoch); its resumable checkpoint lives
+//! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
+//! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; its step in `step.rs`,
+//! a grid model's call in `grid_step.rs`, closed-loop rollouts in `rollout.rs`, dynamic
+//! batching in `batch.rs`, a call's predictions on their way back in `outs.rs`), whose
+//! per-batch [`State`] lives in `state.rs` (a grid model's part in `grid_state.rs`; stacked
+//! and split by `stack.rs`; its constraint data in `constrained.rs`).
 
 mod batch;
 mod constrained;
+mod grid_state;
 mod grid_step;
 mod outs;
+mod rollout;
 mod run_folder;
 mod stack;
 pub mod stages;
 mod state;
+mod step;
 mod surrogate;
 
 pub use batch::{Finished, SceneStep, SceneSteps, StepTimes, Submitted};

@@ -3,7 +3,7 @@
 //! all (particle count, material ids, finite values, the message's own checks);
 //! [`admission`] says what a frame does to its scene's hidden state (start again, go on,
 //! reset over a gap, drop an older frame, ignore a scene already rolled out). The first is
-//! applied by the decoder thread ([`super::intake`]), the second by [`super::scenes`]; used
+//! applied by the decoder thread (`intake.rs`), the second by `scenes.rs`; used
 //! by `minflow node`.
 
 use crate::msgs::ParticleFrame;

@@ -9,7 +9,7 @@
 //! rollouts under way) when there are fewer: a single stream is never held back.
 //! [`Surrogate::step_scenes`](crate::model::store::Surrogate::step_scenes) stacks the
 //! scenes' states and splits them back; scenes of different particle counts go through
-//! separate calls. Used by [`super::run`].
+//! separate calls. Used by `run.rs`.
 //!
 //! Pipelined calls: on a GPU the live frames' calls ([`Predict::Next`]) go through
 //! [`Surrogate::submit_scenes`](crate::model::store::Surrogate::submit_scenes): the scenes'
@@ -21,41 +21,15 @@
 
 use std::time::Instant;
 
-use crate::model::store::{Finished, Predict, SceneStep, SceneSteps, State, StoreError, Submitted};
+use crate::model::store::{Finished, Predict, SceneStep, SceneSteps, State, StoreError};
 use crate::ops::NetOps;
 
+use super::flight::{InFlight, Job, Landed};
 use super::frames::{predicted_frame, state_rows};
-use super::lander::{Landed, MAX_LANDING};
+use super::lander::MAX_LANDING;
 use super::node_loop::NodeLoop;
 use super::scenes::Admitted;
-use super::schedule::{Due, Pending, Waiting};
-
-/// One scene's part of a batch.
-pub(super) struct Job<B: burn::tensor::backend::Backend> {
-    scene: String,
-    rows: Vec<f32>,
-    material: Vec<u8>,
-    dt: f32,
-    state: State<B>,
-    /// A whole network call (K frames: a rollout's) or the next frame alone.
-    predict: Predict,
-    /// The input frame of a live job; None for a rollout's call.
-    input: Option<Pending>,
-}
-
-/// A batch of live frames whose call is recorded and whose predictions are on their way
-/// (module doc): the call, and per scene of it the job (None: its call failed at once).
-pub(super) struct InFlight<B: burn::tensor::backend::Backend> {
-    submitted: Submitted<B>,
-    jobs: Vec<Option<Job<B>>>,
-}
-
-impl<B: burn::tensor::backend::Backend> InFlight<B> {
-    /// The call and its jobs.
-    pub(super) fn into_parts(self) -> (Submitted<B>, Vec<Option<Job<B>>>) {
-        (self.submitted, self.jobs)
-    }
-}
+use super::schedule::{Due, Waiting};
 
 impl<B: NetOps> NodeLoop<'_, B> {
     /// Triton's rule (module doc) on what waits now ([`super::schedule::Schedule::due`]).

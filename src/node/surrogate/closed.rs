@@ -1,10 +1,10 @@
 //! The surrogate node's closed-loop rollouts (`minflow node --rollout R`) as scheduled work:
 //! each scene that has had its first T frames rolls out R predicted frames, one network
 //! call (K frames for a bundled model) at a time, and the node's loop interleaves those
-//! calls with every other scene's work (batched with them, `super::batcher`) instead of
+//! calls with every other scene's work (batched with them, `batcher.rs`) instead of
 //! rolling one scene out from start to end while the others wait. Frames are published
 //! when due: at once, or paced at the scene's `dt` over `--rate`. Held by the node's queues
-//! ([`super::schedule`]).
+//! (`schedule.rs`).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};

@@ -5,7 +5,7 @@
 //! decoded (blocking only until the next thing is due: a batch, a rollout frame, the
 //! status), and [`NodeLoop::accept`] counts bad input, passes over the scenes another
 //! shard member owns, notes the scene's activity and queues the frame (the scene's oldest
-//! pending frame dropped past `queue_depth`; [`super::schedule`]). Used by [`super::run`].
+//! pending frame dropped past `queue_depth`; [`super::schedule`]). Used by `run.rs`.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, RecvTimeoutError};

@@ -6,25 +6,18 @@
 //! At most [`MAX_LANDING`] calls are handed over and not yet back: the loop waits for the
 //! oldest before it hands over another, so the GPU has the next call queued but the queue
 //! stays short. The thread ends when the loop drops its [`Lander`]. Used by
-//! [`super::batcher`]; started by [`super::run`].
+//! `batcher.rs`; started by `run.rs`.
 
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::thread::Scope;
 
-use crate::model::store::{Finished, Surrogate};
+use crate::model::store::Surrogate;
 use crate::ops::NetOps;
 
-use super::batcher::{InFlight, Job};
+use super::flight::{InFlight, Landed};
 
 /// Calls handed to the lander and not yet back, at most.
 pub(super) const MAX_LANDING: usize = 2;
-
-/// A call whose predictions are on the host, projected: the call's per-scene frames and its
-/// jobs (None: the job's call failed when it was recorded).
-pub(super) struct Landed<B: burn::tensor::backend::Backend> {
-    pub(super) finished: Finished,
-    pub(super) jobs: Vec<Option<Job<B>>>,
-}
 
 /// The loop's end of the lander thread.
 pub(super) struct Lander<B: burn::tensor::backend::Backend> {

@@ -42,13 +42,14 @@
 //! frames are taken, what a frame does to its scene's state), [`scenes`] the per-scene
 //! states under those rules, [`schedule`] the queues (pending frames, rollouts under way)
 //! and when a batch is due, [`node_loop`] the loop's state, [`intake`] the arrival of
-//! frames, [`batcher`] the calls, [`lander`] the thread that lands pipelined calls,
-//! [`closed`] the rollouts, [`shard`] the group, [`run`] the
-//! loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
+//! frames, [`batcher`] the calls, [`flight`] a call's jobs on their way, [`lander`] the
+//! thread that lands pipelined calls, [`closed`] the rollouts, [`shard`] the group, [`run`]
+//! the loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
 
 mod admission;
 mod batcher;
 mod closed;
+mod flight;
 mod frames;
 mod intake;
 mod lander;

@@ -13,6 +13,7 @@ use crate::ops::NetOps;
 use crate::transport::{FramePublisher, StatusPublisher};
 use crate::viz::PredictionView;
 
+use super::lander::Lander;
 use super::options::{summary, NodeOptions, NodeReport};
 use super::report::{log_latencies, wall_time, BatchStats, StageTimes, Tally};
 use super::scenes::Scenes;
@@ -50,7 +51,7 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     /// Scene states dropped so far.
     pub(super) evicted: Evictions,
     /// The lander thread of the pipelined calls (`--pipeline`; `lander.rs`).
-    pub(super) lander: Option<super::lander::Lander<B>>,
+    pub(super) lander: Option<Lander<B>>,
 }
 
 /// Scene states a node dropped.
@@ -196,9 +197,9 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     }
 
     /// Flushes the output, publishes the final status, logs the latency percentiles and
-    /// returns the totals.
+    /// returns the totals. The caller publishes the pipelined calls still landing first
+    /// (`publish_landed(0)`, `batcher.rs`).
     pub(super) fn finish(mut self) -> NodeReport {
-        self.publish_landed(0);
         // The loop's wall time ends here: the closing flush and reports are not the loop's.
         let loop_end = Instant::now();
         self.publisher.flush(Duration::from_secs(5));

@@ -2,7 +2,7 @@
 //! [`NodeReport`] published as status), the sizes of its batched calls ([`BatchStats`]),
 //! where its loop's wall time went ([`StageTimes`]), each (scene, reason) logged once, the
 //! start line, the latency percentiles at the end and the wall-clock stamp of each report.
-//! Used by [`super::node_loop`] and [`super::run`] (`minflow node`).
+//! Used by `node_loop.rs` and `run.rs` (`minflow node`).
 
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -84,7 +84,7 @@ pub const LOOP_STAGES: [&str; 7] = [
 
 /// Where the node's loop spent its wall time since it subscribed, by stage (the closing
 /// log line; `bench node` reads it): blocked on the transport with nothing due, taking
-/// decoded samples in (count, queue: [`super::intake`]), the model's calls by
+/// decoded samples in (count, queue: `intake.rs`), the model's calls by
 /// [`StepTimes`] stage, publishing predictions (encode, send), and the rest (choosing the
 /// batch, building jobs and predicted frames, rollouts' bookkeeping, status); beside them,
 /// the decoder thread's busy time (decode and check).

@@ -77,6 +77,7 @@ pub fn run<B: NetOps>(
                 node.step_batch();
             }
         }
+        node.publish_landed(0);
         Ok(node.finish())
     })
 }

@@ -5,7 +5,7 @@
 //! scenes idle past `idle_timeout`, so memory stays bounded. In closed loop it remembers
 //! which scenes were rolled out beyond their states (the last [`ROLLED_OUT_KEPT`]), so a
 //! scene gets one rollout however long it waited. Held by the loop's state
-//! ([`super::node_loop`]; `minflow node`).
+//! (`node_loop.rs`; `minflow node`).
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};

@@ -2,7 +2,7 @@
 //! scene ([`Pending`]) and the closed-loop rollouts under way ([`Rollouts`], whose next
 //! network calls wait beside them), and says when the next batch is due ([`Due`], the
 //! dynamic batcher's rule: `batcher.rs`) and which items wait, oldest first ([`Waiting`]).
-//! The loop ([`super::node_loop`]) queues arrivals here (`intake.rs`) and takes batches
+//! The loop (`node_loop.rs`) queues arrivals here (`intake.rs`) and takes batches
 //! from here (`batcher.rs`).
 
 use std::collections::{BTreeMap, VecDeque};

@@ -8,7 +8,7 @@
 //! hashing, Thaler and Ravishankar 1998): every node computes the same owner from the same
 //! member set, and when a member leaves only its own scenes move, each to the member with
 //! its next highest score. A node predicts only the scenes it owns; one that takes a scene
-//! over starts its state again from the next frame (`super::intake` counts and logs it).
+//! over starts its state again from the next frame (`intake.rs` counts and logs it).
 //! Used by `minflow node`.
 
 use std::collections::BTreeSet;

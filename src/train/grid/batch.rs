@@ -11,7 +11,7 @@ use crate::data::Batch;
 use crate::model::grid::{mirror_rows, one_hot, GridConfig, NeighbourTensors, Neighbourhood};
 use crate::model::upload;
 
-/// What a [`super::rollout_loss::Rollout`] reads of one batch, on the device, physical units.
+/// What a `Rollout` (`rollout_loss.rs`) reads of one batch, on the device, physical units.
 pub(super) struct BatchTensors<B: Backend> {
     /// `[B, S, N, 4]`: the window's frames and its target frame.
     pub(super) frames: Tensor<B, 4>,
@@ -31,8 +31,8 @@ pub(super) struct BatchTensors<B: Backend> {
     pub(super) host: HostRows,
 }
 
-/// What the constraint projection of a [`super::rollout_loss::Rollout`] reads of a batch on
-/// the host.
+/// What the constraint projection of a `Rollout` (`rollout_loss.rs`) reads of a batch on the
+/// host.
 pub(super) struct HostRows {
     /// `[B, N, 2]` positions in the trajectory's first frame.
     pub(super) first_pos: Vec<f32>,
@@ -175,5 +175,57 @@ impl<B: Backend> BatchTensors<B> {
         let dv = Tensor::<B, 1>::from_floats(config.dv_scale, &device).reshape([1, 1, 2]);
         let pos = dv.clone() * self.dt.clone().reshape([b, 1, 1]);
         (dv, pos)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::NdArray;
+
+    /// `--mirror`: a flagged window's frames and reference positions are mirrored about x =
+    /// 1/2 (x -> 1 - x, vx -> -vx, y and vy kept); an unflagged one is uploaded as it is.
+    #[test]
+    fn mirrored_windows_are_uploaded_mirrored() {
+        let (b, t, n) = (2, 2, 3);
+        let value = |i: usize| 0.01 * i as f32 + 0.1;
+        let batch = Batch {
+            b,
+            t,
+            n,
+            inputs: (0..b * t * n * 5).map(value).collect(),
+            targets: vec![0.0; b * n * 4],
+            last: vec![0.0; b * n * 4],
+            target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
+            dt: vec![0.016; b],
+            material: vec![0; b * n],
+            ids: vec![(0, 0); b],
+            first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
+        };
+        let device = Default::default();
+        let none = Needs {
+            materials: 4,
+            ..Needs::default()
+        };
+        let plain = upload_batch::<NdArray<f32>>(batch.clone(), &[false, false], none, &device);
+        let mirrored = upload_batch::<NdArray<f32>>(batch, &[false, true], none, &device);
+        let host = |t: Tensor<NdArray<f32>, 4>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host(plain.frames), host(mirrored.frames));
+        let per_window = (t + 1) * n * 4;
+        assert_eq!(p[..per_window], m[..per_window], "window 0 is not flagged");
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(per_window) {
+            let want = match i % 4 {
+                0 => 1.0 - x,
+                2 => -x,
+                _ => *x,
+            };
+            assert_eq!(*y, want, "value {i}");
+        }
+        let host3 = |t: Tensor<NdArray<f32>, 3>| t.into_data().to_vec::<f32>().unwrap();
+        let (p, m) = (host3(plain.first_pos), host3(mirrored.first_pos));
+        assert_eq!(p[..n * 2], m[..n * 2]);
+        for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(n * 2) {
+            assert_eq!(*y, if i % 2 == 0 { 1.0 - x } else { *x }, "reference {i}");
+        }
     }
 }

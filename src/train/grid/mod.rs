@@ -26,15 +26,19 @@
 //! the learning-rate decay by the clock. Used by `minflow train --arch grid`.
 //!
 //! Files: this one holds the trainer and its run over the shared epoch loop;
-//! `batch.rs` the batch upload, `rollout_loss.rs` the rollout loss, `validate.rs` the validation
-//! rollouts, `schedule.rs` the normalisation statistics, the learning-rate schedule and the
-//! run's clock.
+//! `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
+//! prepares the batches, `rollout_loss.rs` the rollout loss (its terms in
+//! `rollout_loss/terms.rs`), `validate.rs` the validation rollouts, `schedule.rs` the
+//! normalisation statistics, the learning-rate schedule and the run's clock.
 
 mod batch;
+mod feed;
+mod options;
 mod rollout_loss;
 mod schedule;
 mod validate;
 
+pub use options::GridTrainOptions;
 pub use schedule::{fit_stats, learning_rate, StatsFit, VelocityStats};
 pub use validate::validation_rollout;
 
@@ -46,7 +50,7 @@ use burn::optim::adaptor::OptimizerAdaptor;
 use burn::optim::{GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ElementConversion;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::checkpoint::{self, RunOutput};
@@ -54,134 +58,14 @@ use super::epochs::{run_epochs, EpochPass, EpochRun};
 use super::optimizer::FusedAdam;
 use super::source::BatchSource;
 use super::{EpochRecord, Observer, TrainError};
-use crate::data::{Batch, DataError, Scaler, Trajectory};
+use crate::data::{Scaler, Trajectory};
 use crate::model::grid::{GridConfig, GridModel};
 use crate::model::store::{self, Net, NetConfig, Surrogate};
 use crate::ops::NetOps;
-use batch::{prepare_batch, HostBatch, Needs};
+use batch::Needs;
+use feed::BatchFeed;
 use rollout_loss::Rollout;
 use schedule::RunClock;
-
-/// Optimisation settings of a grid run.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
-pub struct GridTrainOptions {
-    /// Epochs at most.
-    pub epochs: usize,
-    /// Samples per optimizer step.
-    pub batch_size: usize,
-    /// Samples per epoch at most (0: every window of the training split).
-    pub samples_per_epoch: usize,
-    /// Peak learning rate.
-    pub lr: f64,
-    /// Learning rate at the end of the cosine decay.
-    pub lr_final: f64,
-    /// Gradient-norm clipping threshold (0: none).
-    pub clip: f32,
-    /// Steps per sample P.
-    pub steps: usize,
-    /// Of those, steps that read the true frame.
-    pub teacher: usize,
-    /// Calls made before the P, without gradient and without loss (push-forward, Brandstetter
-    /// et al. 2022, "Message passing neural PDE solvers", section 2.3): the P calls start
-    /// from the model's own rollout of `pushforward` calls, its memory and state carried, so
-    /// the loss sees the inputs a long rollout produces. 0 in runs saved before it existed.
-    #[serde(default)]
-    pub pushforward: usize,
-    /// Chunks of P calls per sample (truncated backpropagation through time, Williams &
-    /// Peng 1990): the P calls with a loss are made `chunks` times in a row, an optimizer
-    /// step after each, the rollout (frames, memory state, F) carried on from one chunk to
-    /// the next with its gradient cut there, so training sees `chunks P K` frames of the
-    /// model's own rollout at the memory cost of P calls. 0 (runs saved before it existed)
-    /// and 1: one chunk.
-    #[serde(default)]
-    pub chunks: usize,
-    /// Input-velocity noise, in units of `dv_scale`.
-    pub noise: f32,
-    /// Train on each sample or, with probability 1/2, its mirror image about the box's
-    /// vertical midline (`x -> 1 - x`, `vx -> -vx`; see
-    /// [`crate::model::grid::mirror_rows`]).
-    #[serde(default)]
-    pub mirror: bool,
-    /// Weight of the strain loss (solids' rest-neighbour stretch; [`rollout_loss`]).
-    #[serde(default)]
-    pub strain_weight: f32,
-    /// Weight of the volume loss (liquid particles' fitted J; [`rollout_loss`]).
-    #[serde(default)]
-    pub volume_weight: f32,
-    /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K
-    /// frames (from 0) weighs `discount^j`, the weights normalised to sum to 1, so a long
-    /// rollout (large P) keeps its first frames' error in view while the later frames still
-    /// teach what only many frames show. 1 (the default, and runs saved before it existed):
-    /// every frame alike, the plain mean.
-    #[serde(default = "no_discount")]
-    pub discount: f32,
-    /// Seed of the weights, data order and noise.
-    pub seed: u64,
-    /// Stop after this many epochs without a better validation rollout (0: never).
-    pub patience: usize,
-    /// Validation rollouts per scene.
-    pub val_starts: usize,
-    /// Validation rollout length.
-    pub val_horizon: usize,
-    /// Stop (after validating) once training has run this many minutes (0: no limit).
-    pub max_minutes: f64,
-    /// Project every frame the training rollouts feed on (after the teacher-forced calls)
-    /// onto these material constraints ([`crate::model::constraints`]), with a
-    /// straight-through gradient: the loss and the next call read the projected frame, the
-    /// gradient passes the projection as the identity. The trained model keeps them in its
-    /// `model.json`. None: no projection.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub constraints: Option<crate::model::constraints::Constraints>,
-}
-
-/// [`GridTrainOptions::discount`] of runs saved before it existed: none.
-fn no_discount() -> f32 {
-    1.0
-}
-
-impl Default for GridTrainOptions {
-    /// A plain run: one epoch of every window, batch 1, one call per sample from the true
-    /// frame, Adam at 1e-3 without decay floor or clipping, no noise, mirror, structure loss,
-    /// push-forward or limits (tests and `bench train` override what they measure).
-    fn default() -> Self {
-        Self {
-            epochs: 1,
-            batch_size: 1,
-            samples_per_epoch: 0,
-            lr: 1e-3,
-            lr_final: 0.0,
-            clip: 0.0,
-            steps: 1,
-            teacher: 1,
-            pushforward: 0,
-            chunks: 1,
-            noise: 0.0,
-            mirror: false,
-            strain_weight: 0.0,
-            volume_weight: 0.0,
-            discount: 1.0,
-            seed: 0,
-            patience: 0,
-            val_starts: 1,
-            val_horizon: 1,
-            max_minutes: 0.0,
-            constraints: None,
-        }
-    }
-}
-
-impl GridTrainOptions {
-    /// Network calls per training sample: the push-forward ones and the P with a loss in
-    /// each chunk.
-    pub fn calls(&self) -> usize {
-        self.pushforward + self.steps * self.chunks()
-    }
-
-    /// Chunks of P calls per sample (at least 1; [`GridTrainOptions::chunks`]).
-    pub fn chunks(&self) -> usize {
-        self.chunks.max(1)
-    }
-}
 
 /// A grid training run.
 pub struct GridTrainer<B: AutodiffBackend> {
@@ -378,77 +262,6 @@ where
             Ok::<_, TrainError>(model)
         })?;
         Ok((model, pass))
-    }
-}
-
-/// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
-/// packed, mirrored where `flips` draws so, neighbourhoods built) one batch ahead of the
-/// step that uses them (the thread holds the one it prepared until it is taken). Each step reads its loss back at its end, so whatever the host did
-/// between two steps, the GPU and burn's fusion and launch threads waited for (docs/speed.md,
-/// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
-/// read and prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did
-/// itself before, to compare the two in one binary. The thread ends when the feed is
-/// dropped, after the last batch, or after a batch that could not be read.
-struct BatchFeed {
-    /// Whether the thread works a batch ahead.
-    ahead: bool,
-    /// Without `ahead`: one message a batch asked for.
-    ask: std::sync::mpsc::Sender<()>,
-    prepared: std::sync::mpsc::Receiver<Result<HostBatch, DataError>>,
-}
-
-impl BatchFeed {
-    /// Starts the thread in `scope` over `batches`; `mirror` draws a window's mirroring
-    /// from `flips` (in batch order, as the loop drew them).
-    fn start<'scope, I>(
-        scope: &'scope std::thread::Scope<'scope, '_>,
-        batches: I,
-        mut flips: ChaCha8Rng,
-        mirror: bool,
-        needs: Needs,
-    ) -> Self
-    where
-        I: Iterator<Item = Result<Batch, DataError>> + Send + 'scope,
-    {
-        let ahead = crate::switches::train_prefetch();
-        // A rendezvous: the thread holds at most the one batch it prepared.
-        let (ready, prepared) = std::sync::mpsc::sync_channel(0);
-        let (ask, asked) = std::sync::mpsc::channel::<()>();
-        scope.spawn(move || {
-            let mut batches = batches;
-            loop {
-                if !ahead && asked.recv().is_err() {
-                    return;
-                }
-                let Some(batch) = batches.next() else {
-                    return;
-                };
-                let failed = batch.is_err();
-                let host = batch.map(|batch| {
-                    let flips: Vec<bool> = (0..batch.b)
-                        .map(|_| mirror && flips.random_bool(0.5))
-                        .collect();
-                    prepare_batch(batch, &flips, needs)
-                });
-                // After an error the epoch ends: nothing more is read.
-                if ready.send(host).is_err() || failed {
-                    return;
-                }
-            }
-        });
-        Self {
-            ahead,
-            ask,
-            prepared,
-        }
-    }
-
-    /// The next batch; None after the last.
-    fn next(&self) -> Option<Result<HostBatch, DataError>> {
-        if !self.ahead {
-            let _ = self.ask.send(());
-        }
-        self.prepared.recv().ok()
     }
 }
 

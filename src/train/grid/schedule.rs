@@ -5,7 +5,7 @@
 
 use std::time::Instant;
 
-use super::GridTrainOptions;
+use super::options::GridTrainOptions;
 use crate::data::Trajectory;
 
 /// The velocity statistics that normalise a grid model's inputs and outputs (the fields of
