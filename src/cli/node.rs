@@ -107,9 +107,13 @@ pub struct NodeArgs {
     mirror: bool,
     /// Which parts of the model's material constraints every predicted frame is projected
     /// onto: on (all the model has) | off | a list of rope, jelly, snow, liquid, walls,
-    /// contact.
+    /// contact, momentum, rebound, pressure.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
+    /// The solver grid (cells per side) of the scenes served, when known: the liquid's
+    /// pressure part takes that grid's threshold (the model's default threshold without it).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    solver_grid: Option<u32>,
     #[command(flatten)]
     device: super::device::DeviceArgs,
     #[command(flatten)]
@@ -140,6 +144,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         .with_context(|| format!("loading the model in {}", args.model.display()))?
         .with_mirror(args.mirror)
         .with_constraints(args.constraints)
+        .with_solver_grid(args.solver_grid)
         .with_padded_batches(args.pad_batches.unwrap_or(!on_cpu));
     let foxglove = args
         .foxglove

@@ -49,6 +49,9 @@ pub struct Batch {
     /// `[B, N, 2]`: physical x, y of each window's trajectory in its first frame (frame 0):
     /// the reference positions of the grid model's `--reference first-frame`.
     pub first_pos: Vec<f32>,
+    /// `[B]`: the solver grid of each window's scene, when its bag says
+    /// ([`Trajectory::solver_grid`]).
+    pub solver_grid: Vec<Option<u32>>,
 }
 
 /// Every window of a set of trajectories, and the batches made from them. (`Debug` prints
@@ -212,6 +215,7 @@ impl WindowIndex {
             material: Vec::with_capacity(b * n),
             ids: Vec::with_capacity(b),
             first_pos: Vec::with_capacity(b * n * 2),
+            solver_grid: Vec::with_capacity(b),
         };
         for &w in windows {
             let (i, start) = self.windows[w as usize];
@@ -229,6 +233,7 @@ impl WindowIndex {
             batch.dt.push(traj.dt);
             batch.material.extend_from_slice(&traj.material);
             batch.ids.push((self.ids[i as usize], start));
+            batch.solver_grid.push(traj.solver_grid);
             for row in traj.state(0).chunks_exact(4) {
                 batch.first_pos.extend_from_slice(&row[..2]);
             }

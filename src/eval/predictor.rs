@@ -202,8 +202,11 @@ impl<B: NetOps> Predictor for ModelPredictor<B> {
             ReferenceFrom::SceneStart => Some(traj.state(0)),
             ReferenceFrom::RolloutStart => None,
         };
+        let mut frames = Vec::with_capacity(steps);
+        let on = (traj.material.as_slice(), std::slice::from_ref(&traj.dt));
         self.surrogate
-            .rollout(first, &seed, &traj.material, traj.dt, steps)
+            .rollout_on(traj.solver_grid, first, &seed, on, steps, |_, f| frames.push(f))
+            .map(|()| frames)
             .map_err(|e| EvalError::Rollout {
                 predictor: self.name.clone(),
                 scene: traj.scene.clone(),

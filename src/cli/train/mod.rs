@@ -12,6 +12,7 @@
 
 pub mod args;
 mod grid;
+mod net_args;
 mod paper;
 
 pub use args::{CpuTrain, TrainArgs};

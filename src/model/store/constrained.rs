@@ -27,6 +27,9 @@ pub(super) struct ConstraintState {
     /// The rest frames (`[B, N, 4]`) set by `Surrogate::init_state_at` that the first
     /// projected step builds `shapes` from; without them it takes its input frame.
     pub(super) rest_frames: Option<Vec<f32>>,
+    /// The solver grid of the state's scenes, when known (`Surrogate::with_solver_grid`,
+    /// `Surrogate::rollout_on`): the liquid's pressure part picks its threshold by it.
+    pub(super) solver_grid: Option<u32>,
 }
 
 impl ConstraintState {
@@ -35,6 +38,7 @@ impl ConstraintState {
     /// The stacked data keeps no rest frames (a node's states have none).
     pub(super) fn stack(parts: Vec<ConstraintState>) -> ConstraintState {
         let mut shapes = Vec::new();
+        let solver_grid = parts.iter().find_map(|p| p.solver_grid);
         for part in parts {
             match part.shapes.is_empty() {
                 true => shapes.push(Slot::default()),
@@ -44,6 +48,7 @@ impl ConstraintState {
         ConstraintState {
             shapes,
             rest_frames: None,
+            solver_grid,
         }
     }
 
@@ -58,6 +63,7 @@ impl ConstraintState {
         ConstraintState {
             shapes: self.shapes.iter().map(copy).collect(),
             rest_frames: self.rest_frames.clone(),
+            solver_grid: self.solver_grid,
         }
     }
 
@@ -76,6 +82,7 @@ impl ConstraintState {
                     false => Vec::new(),
                 },
                 rest_frames: None,
+                solver_grid: self.solver_grid,
             })
             .collect()
     }
@@ -101,6 +108,7 @@ impl ConstraintState {
         }
         let rest = self.rest_frames.as_deref();
         let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
+        let grid = self.solver_grid;
         let mut rows: Vec<Vec<&mut [f32]>> =
             (0..b).map(|_| Vec::with_capacity(out.len())).collect();
         for frame in out.iter_mut() {
@@ -117,7 +125,7 @@ impl ConstraintState {
                 // Each row its own slot (a padded call's copies are detached).
                 let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
                 let shape = shape.get_or_insert_with(|| {
-                    SceneShape::new(&rest[i * per..(i + 1) * per], 4, ids, c)
+                    SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grid)
                 });
                 project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })

@@ -49,12 +49,30 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         k: usize,
+        each: impl FnMut(usize, Vec<f32>),
+    ) -> Result<(), StoreError> {
+        self.rollout_on(None, first, seed, (material, dt), k, each)
+    }
+
+    /// [`Surrogate::rollout_batch`] of scenes the solver made on the grid `grid` (when
+    /// known; else this surrogate's [`Surrogate::with_solver_grid`]).
+    ///
+    /// # Errors
+    /// As [`Surrogate::rollout_batch`].
+    pub fn rollout_on(
+        &self,
+        grid: Option<u32>,
+        first: Option<&[f32]>,
+        seed: &[Vec<f32>],
+        (material, dt): (&[u8], &[f32]),
+        k: usize,
         mut each: impl FnMut(usize, Vec<f32>),
     ) -> Result<(), StoreError> {
         let mut state = match first {
             Some(frame) => self.init_state_at(frame, dt.len())?,
             None => self.init_state(),
         };
+        state.constraints.solver_grid = grid.or(self.solver_grid);
         if seed.is_empty() {
             return Err(StoreError::Shape("rollout: no seed frame".into()));
         }

@@ -52,6 +52,9 @@ pub struct Surrogate<B: Backend> {
     pub(super) feedback_bytes: usize,
     /// The constraint parts applied after each predicted frame (None: no projection).
     pub(super) constraints: Option<Constraints>,
+    /// The solver grid of the scenes its fresh states serve, when known
+    /// ([`Surrogate::with_solver_grid`]).
+    pub(super) solver_grid: Option<u32>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
     pub(super) corrections: std::sync::Mutex<Correction>,
     /// The last grid call's material one-hot on the device, by the materials it encodes
@@ -85,8 +88,19 @@ impl<B: NetOps> Surrogate<B> {
             // On the host nothing runs ahead of the caller: the call-by-call loop.
             feedback_bytes: if B::ON_HOST { 0 } else { feedback_bytes() },
             constraints,
+            solver_grid: None,
             corrections: Default::default(),
             one_hot: Default::default(),
+        }
+    }
+
+    /// This surrogate serving scenes the solver made on a `grid` x `grid` grid (`node
+    /// --solver-grid`): the liquid's pressure part picks its threshold by it
+    /// ([`crate::model::constraints::PressureParams::rest_for`]); None: unknown.
+    pub fn with_solver_grid(self, grid: Option<u32>) -> Self {
+        Self {
+            solver_grid: grid,
+            ..self
         }
     }
 
@@ -172,7 +186,9 @@ impl<B: NetOps> Surrogate<B> {
 
     /// A fresh (empty) state. The batch size is set by the first `step`.
     pub fn init_state(&self) -> State<B> {
-        State::new(self.fresh_net_state())
+        let mut state = State::new(self.fresh_net_state());
+        state.constraints.solver_grid = self.solver_grid;
+        state
     }
 
     /// The network's part of a fresh state.

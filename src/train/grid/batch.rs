@@ -40,6 +40,8 @@ pub(super) struct HostRows {
     pub(super) material: Vec<u8>,
     /// `[B]` frame spacings.
     pub(super) dt: Vec<f32>,
+    /// `[B]` the solver grid of each window's scene, when known.
+    pub(super) solver_grid: Vec<Option<u32>>,
 }
 
 /// Which neighbourhoods [`prepare_batch`] builds.
@@ -134,6 +136,7 @@ pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> Host
             first_pos,
             material: batch.material,
             dt: batch.dt,
+            solver_grid: batch.solver_grid,
         },
     }
 }
@@ -201,6 +204,7 @@ mod tests {
             material: vec![0; b * n],
             ids: vec![(0, 0); b],
             first_pos: (0..b * n * 2).map(|i| value(i + 3)).collect(),
+            solver_grid: vec![None; b],
         };
         let device = Default::default();
         let none = Needs {

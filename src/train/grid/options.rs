@@ -50,6 +50,10 @@ pub struct GridTrainOptions {
     /// Weight of the volume loss (liquid particles' fitted J; `rollout_loss/terms.rs`).
     #[serde(default)]
     pub volume_weight: f32,
+    /// Weight of the energy loss (each sample's RMS speed against the truth's;
+    /// `rollout_loss/terms.rs`).
+    #[serde(default)]
+    pub energy_weight: f32,
     /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K
     /// frames (from 0) weighs `discount^j`, the weights normalised to sum to 1, so a long
     /// rollout (large P) keeps its first frames' error in view while the later frames still
@@ -101,6 +105,7 @@ impl Default for GridTrainOptions {
             mirror: false,
             strain_weight: 0.0,
             volume_weight: 0.0,
+            energy_weight: 0.0,
             discount: 1.0,
             seed: 0,
             patience: 0,

@@ -69,12 +69,14 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     first_pos: first,
                     material,
                     dt,
+                    solver_grid,
                 } = &batch.host;
                 let n = material.len() / dt.len().max(1);
                 (0..dt.len())
                     .map(|i| {
                         let rest = &first[i * n * 2..(i + 1) * n * 2];
-                        SceneShape::new(rest, 2, &material[i * n..(i + 1) * n], c)
+                        let ids = &material[i * n..(i + 1) * n];
+                        SceneShape::on_grid(rest, 2, ids, c, solver_grid[i])
                     })
                     .collect()
             }

@@ -11,7 +11,10 @@
 //!   first input frame, the squared difference of its fitted `J = det F` relative to that frame
 //!   (clamped to `[0, 2]`), prediction against truth: liquid pressed together (J < 1 where the
 //!   truth keeps 1) pays for it. MPM's liquid keeps its volume through J (docs/mpm.md); the
-//!   paper adds a density-map loss for the same reason (section 3).
+//!   paper adds a density-map loss for the same reason (section 3);
+//! - energy (`energy_weight`): each sample's RMS particle speed against the truth's, relative:
+//!   trained through the constraint projection (which only takes kinetic energy away), the
+//!   network learns to supply the motion the projection removes (a liquid's splash).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
@@ -38,7 +41,32 @@ pub(super) fn frame_loss<B: Backend>(
         .powi_scalar(2)
         .mean();
     let rest = batch.rest.as_ref();
-    lv + lx + structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
+    let target_vel = target.clone().narrow(2, 2, 2);
+    lv + lx
+        + structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
+        + energy_loss(opts, vel, &target_vel)
+}
+
+/// Speed (domain units per time unit) under which a sample's RMS speed error is taken
+/// against this instead of its own speed, so a resting scene's noise does not weigh.
+const ENERGY_FLOOR: f32 = 0.1;
+
+/// The energy term (`energy_weight`): per sample, `((s_pred - s_true) / (s_true + floor))^2`
+/// with `s` the RMS particle speed of the frame (`sqrt(mean |v|^2)`, equal particle masses,
+/// so `s^2` is twice the mean kinetic energy), averaged over the batch and weighted; 0 when
+/// the weight is 0. `vel` and `truth` are `[B, N, 2]`.
+fn energy_loss<B: Backend>(
+    opts: &GridTrainOptions,
+    vel: &Tensor<B, 3>,
+    truth: &Tensor<B, 3>,
+) -> Tensor<B, 1> {
+    if opts.energy_weight <= 0.0 {
+        return Tensor::zeros([1], &vel.device());
+    }
+    let speed = |v: Tensor<B, 3>| v.powi_scalar(2).sum_dim(2).mean_dim(1).add_scalar(1e-8).sqrt();
+    let (p, t) = (speed(vel.clone()), speed(truth.clone().detach()));
+    let err = (p - t.clone()) / t.add_scalar(ENERGY_FLOOR);
+    err.powi_scalar(2).mean().mul_scalar(opts.energy_weight)
 }
 
 /// The weights of a rollout's `frames` losses under `discount` (in `(0, 1]`): frame `j`'s

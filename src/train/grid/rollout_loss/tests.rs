@@ -35,6 +35,7 @@ fn sample(calls: usize) -> (Batch, GridConfig) {
         material: (0..n).map(|i| (i % 2) as u8).collect(),
         ids: vec![(0, 0)],
         first_pos: (0..n).flat_map(|i| [row(0, i)[0], row(0, i)[1]]).collect(),
+        solver_grid: vec![None],
     };
     let config = GridConfig::new(crate::model::grid::MemoryKind::MinGru)
         .with_grid(16)
