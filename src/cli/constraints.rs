@@ -58,6 +58,9 @@ pub struct FitArgs {
     /// The cell of the liquid's density grid, in particle spacings of the rest frame.
     #[arg(long, default_value_t = 3.0, value_parser = super::flags::positive)]
     liquid_radius: f64,
+    /// The node spacing of the liquid's pressure grid, in particle spacings of the rest frame.
+    #[arg(long, default_value_t = 2.0, value_parser = super::flags::positive)]
+    pressure_radius: f64,
 }
 
 /// Runs `minflow constraints`.
@@ -88,7 +91,28 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     if let Some(p) = base.liquid.as_mut() {
         p.radius = args.liquid_radius as f32;
     }
+    if let Some(p) = base.pressure.as_mut() {
+        p.radius = args.pressure_radius as f32;
+    }
     let (fitted, measured) = constraints::fit(&trajs, &base);
+    print_fit(&args, &trajs, &fitted, &measured);
+    println!("{}", serde_json::to_string_pretty(&fitted)?);
+    if !args.dry_run {
+        for dir in &args.models {
+            write_constraints(dir, &fitted)?;
+            println!("wrote {}", RunFolder::new(dir).model_json().display());
+        }
+    }
+    Ok(super::read_to_damage(&report.truncated))
+}
+
+/// Prints what [`constraints::fit`] fitted (`fitted`) and measured on the truth (`measured`).
+fn print_fit(
+    args: &FitArgs,
+    trajs: &[data::Trajectory],
+    fitted: &Constraints,
+    measured: &constraints::FitReport,
+) {
     println!(
         "Fitted on {} training scenes ({} frames) of {}:",
         trajs.len(),
@@ -156,14 +180,6 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     if let Some(w) = fitted.walls {
         println!("- walls: [{:.5}, {:.5}]", w.lo, w.hi);
     }
-    println!("{}", serde_json::to_string_pretty(&fitted)?);
-    if !args.dry_run {
-        for dir in &args.models {
-            write_constraints(dir, &fitted)?;
-            println!("wrote {}", RunFolder::new(dir).model_json().display());
-        }
-    }
-    Ok(super::read_to_damage(&report.truncated))
 }
 
 /// Snow shape matching when `--parts` asks for snow: a rest shape that yields half its
