@@ -114,6 +114,10 @@ pub struct NodeArgs {
     /// pressure part takes that grid's threshold (the model's default threshold without it).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     solver_grid: Option<u32>,
+    /// Bags or folders whose scenes' solver grids (the `minflow/solver_grid` metadata
+    /// `simulate` writes) the node takes for those scenes (the replay's bags, say).
+    #[arg(long, value_name = "BAGS", num_args = 1..)]
+    solver_grid_from: Vec<std::path::PathBuf>,
     #[command(flatten)]
     device: super::device::DeviceArgs,
     #[command(flatten)]
@@ -136,6 +140,18 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
     }
 }
 
+/// The solver grid of each scene in `bags` that records one (`--solver-grid-from`).
+fn solver_grids(bags: &[std::path::PathBuf]) -> anyhow::Result<std::collections::HashMap<String, u32>> {
+    if bags.is_empty() {
+        return Ok(Default::default());
+    }
+    let infos = crate::data::scan(bags, None).context("reading --solver-grid-from")?;
+    Ok(infos
+        .into_iter()
+        .filter_map(|i| Some((i.scene, i.solver_grid?)))
+        .collect())
+}
+
 /// Loads the model onto `device` of backend `B` and serves until stopped.
 fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome> {
     let on_cpu = args.device.parse()?.single("node")?.is_none();
@@ -145,6 +161,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         .with_mirror(args.mirror)
         .with_constraints(args.constraints)
         .with_solver_grid(args.solver_grid)
+        .with_solver_grids(solver_grids(&args.solver_grid_from)?)
         .with_padded_batches(args.pad_batches.unwrap_or(!on_cpu));
     let foxglove = args
         .foxglove

@@ -35,6 +35,8 @@ pub struct SceneInfo {
     pub segments: Vec<Range<u32>>,
     /// Bags holding at least one frame of the scene, in reading order.
     pub bags: Vec<PathBuf>,
+    /// The solver grid that made the scene, when its bag says ([`Trajectory::solver_grid`]).
+    pub solver_grid: Option<u32>,
 }
 
 impl SceneInfo {
@@ -56,6 +58,7 @@ impl SceneInfo {
                     frames: t.frames,
                     segments: vec![segment],
                     bags: Vec::new(),
+                    solver_grid: t.solver_grid,
                 }),
             }
         }
@@ -174,9 +177,12 @@ pub fn scan_with_report(
     let paths = bag_paths(inputs)?;
     let mut report = LoadReport::default();
     let mut scenes: BTreeMap<String, Acc> = BTreeMap::new();
-    read_bags(&paths, topic, &mut report, |path, frame, _| {
+    read_bags(&paths, topic, &mut report, |path, frame, grid| {
         let acc = scenes.entry(frame.scene.clone()).or_insert_with(|| Acc {
-            head: SceneHead::new(&frame),
+            head: SceneHead {
+                solver_grid: grid,
+                ..SceneHead::new(&frame)
+            },
             indices: BTreeSet::new(),
             bags: Vec::new(),
         });
@@ -206,6 +212,7 @@ pub fn scan_with_report(
                 frames: acc.indices.len(),
                 segments,
                 bags: acc.bags,
+                solver_grid: acc.head.solver_grid,
                 scene: acc.head.scene,
             }
         })

@@ -32,8 +32,8 @@ pub const REST_CANDIDATES: [f32; 16] = [
     1.0, 1.05, 1.1, 1.15, 1.2, 1.25, 1.3, 1.4, 1.5, 1.6, 1.8, 2.0, 2.5, 3.0, 3.5, 4.0,
 ];
 /// Volume fractions tried as the pressure projection's compressed threshold, in order.
-pub const PRESSURE_CANDIDATES: [f32; 13] = [
-    1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6, 1.8, 2.0, 2.5, 3.0, 3.5, 4.0,
+pub const PRESSURE_CANDIDATES: [f32; 16] = [
+    0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6, 1.8, 2.0, 2.25, 2.5, 3.0, 3.5, 4.0,
 ];
 /// Truth frames per scene the liquid's rest density is tried on (evenly spaced).
 const LIQUID_FRAMES: usize = 24;

@@ -180,6 +180,12 @@ pub struct PressureParams {
     /// Share of the threshold from which a node is full: it takes pressure, and its
     /// compressing velocity is removed; nodes below are free surface.
     pub full: f32,
+    /// Width of the band along each wall, in solver cells (of a 64 x 64 grid when the
+    /// scene's is unknown), where the excess compression is left alone (the velocity part
+    /// still acts): the solver's liquid packs against its walls, whose boundary nodes stop
+    /// the flow, to well above its density elsewhere.
+    #[serde(default = "PressureParams::default_band")]
+    pub band: f32,
     /// Share of a node's excess compression removed per frame (0..=1).
     pub stiffness: f32,
     /// Whether the velocity's compressing divergence at full nodes is removed too (else the
@@ -200,6 +206,7 @@ impl PressureParams {
         rest: 2.0,
         rest_by_grid: BTreeMap::new(),
         full: 0.8,
+        band: 4.0,
         stiffness: 0.5,
         velocity: true,
         iterations: 40,
@@ -208,6 +215,11 @@ impl PressureParams {
 }
 
 impl PressureParams {
+    /// [`PressureParams::band`]'s value in models saved before it existed.
+    fn default_band() -> f32 {
+        4.0
+    }
+
     /// The compressed threshold of a scene made on the solver grid `grid` (`rest` when
     /// unknown or not fitted).
     pub fn rest_for(&self, grid: Option<u32>) -> f32 {

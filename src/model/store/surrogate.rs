@@ -55,6 +55,8 @@ pub struct Surrogate<B: Backend> {
     /// The solver grid of the scenes its fresh states serve, when known
     /// ([`Surrogate::with_solver_grid`]).
     pub(super) solver_grid: Option<u32>,
+    /// The solver grid of named scenes ([`Surrogate::with_solver_grids`]).
+    solver_grids: std::sync::Arc<std::collections::HashMap<String, u32>>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
     pub(super) corrections: std::sync::Mutex<Correction>,
     /// The last grid call's material one-hot on the device, by the materials it encodes
@@ -89,6 +91,7 @@ impl<B: NetOps> Surrogate<B> {
             feedback_bytes: if B::ON_HOST { 0 } else { feedback_bytes() },
             constraints,
             solver_grid: None,
+            solver_grids: Default::default(),
             corrections: Default::default(),
             one_hot: Default::default(),
         }
@@ -189,6 +192,26 @@ impl<B: NetOps> Surrogate<B> {
         let mut state = State::new(self.fresh_net_state());
         state.constraints.solver_grid = self.solver_grid;
         state
+    }
+
+    /// [`Surrogate::init_state`] for the scene `scene`: its solver grid from
+    /// [`Surrogate::with_solver_grids`] when named there.
+    pub fn init_state_for(&self, scene: &str) -> State<B> {
+        let mut state = self.init_state();
+        if let Some(&grid) = self.solver_grids.get(scene) {
+            state.constraints.solver_grid = Some(grid);
+        }
+        state
+    }
+
+    /// This surrogate knowing the solver grid of each scene in `grids` (scene id -> cells
+    /// per side; `node --solver-grid-from BAGS`, read from the bags' metadata), for the
+    /// states [`Surrogate::init_state_for`] makes.
+    pub fn with_solver_grids(self, grids: std::collections::HashMap<String, u32>) -> Self {
+        Self {
+            solver_grids: std::sync::Arc::new(grids),
+            ..self
+        }
     }
 
     /// The network's part of a fresh state.

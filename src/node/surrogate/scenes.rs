@@ -184,7 +184,7 @@ impl<B: NetOps> Scenes<B> {
                 entry.state = None;
                 entry.last_index = Some(index);
                 self.unmark_rolled_out(scene);
-                return Admitted::Step(surrogate.init_state());
+                return Admitted::Step(surrogate.init_state_for(scene));
             }
             Admission::GapReset => {
                 tracing::debug!(
@@ -196,6 +196,11 @@ impl<B: NetOps> Scenes<B> {
             }
         }
         entry.last_index = Some(index);
-        Admitted::Step(entry.state.take().unwrap_or_else(|| surrogate.init_state()))
+        Admitted::Step(
+            entry
+                .state
+                .take()
+                .unwrap_or_else(|| surrogate.init_state_for(scene)),
+        )
     }
 }

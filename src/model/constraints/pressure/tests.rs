@@ -15,7 +15,7 @@ fn pool(s: f32, v: impl Fn(f32, f32) -> [f32; 2]) -> Vec<f32> {
         .collect()
 }
 
-/// Compressed above 1.1, full from 0.9.
+/// Compressed above 1.1, full from 0.9, no band along the walls.
 fn params() -> PressureParams {
     PressureParams {
         rest: 1.1,
