@@ -33,14 +33,15 @@ pub struct FitArgs {
     /// Ground-truth bags or folders holding the training scenes.
     #[arg(long, num_args = 1.., required = true)]
     data: Vec<PathBuf>,
-    /// The parts to fit and write: the default (rope, jelly, liquid, walls, and contact,
-    /// momentum and rebound, written with their default values; snow stays off, as the
-    /// ablation chose) | a list of rope, jelly, snow, liquid, walls, contact, momentum,
-    /// rebound.
+    /// The parts to fit and write: the default (rope, jelly, the liquid's pressure
+    /// projection, walls, and contact, momentum and rebound, written with their default
+    /// values; snow stays off, as the ablation chose; the older `liquid` density part is
+    /// replaced by `pressure`) | a list of rope, jelly, snow, liquid, walls, contact,
+    /// momentum, rebound, pressure.
     #[arg(
         long,
         value_name = "PARTS",
-        default_value = "rope,jelly,liquid,walls,contact,momentum,rebound"
+        default_value = "rope,jelly,pressure,walls,contact,momentum,rebound"
     )]
     parts: Parts,
     /// Training scenes read at most (evenly spaced over the split's list; 0: all).
@@ -86,6 +87,7 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     let base = Constraints::defaults().select(args.parts);
     let mut base = Constraints {
         snow: base.snow.or(args.parts.snow.then_some(SNOW)),
+        liquid: args.parts.liquid.then_some(constraints::DensityParams::LOOSE),
         ..base
     };
     if let Some(p) = base.liquid.as_mut() {

@@ -40,7 +40,7 @@ pub struct DemoArgs {
     horizon: u32,
     /// Which parts of the model's material constraints the node projects every predicted
     /// frame onto: on (all the model has) | off | a list of rope, jelly, snow, liquid,
-    /// walls, contact.
+    /// walls, contact, momentum, rebound, pressure.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
     /// Training epochs when a model is trained.

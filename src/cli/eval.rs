@@ -98,10 +98,10 @@ pub struct EvalArgs {
     /// MPM's box; twice the work of a step).
     #[arg(long)]
     pub mirror: bool,
-    /// Which parts of each model's material constraints every predicted frame is projected
-    /// onto: on (all the model has; `minflow constraints fit` writes them) | off | a list of
-    /// rope, jelly, snow, liquid, walls, contact. Repeat to evaluate each model once per
-    /// setting (columns `NAME[setting]`): an ablation in one run.
+    /// Which parts of each model's material constraints every predicted frame is projected onto: on
+    /// (all the model has; `minflow constraints fit` writes them) | off | a list of rope, jelly,
+    /// snow, liquid, walls, contact, momentum, rebound, pressure. Repeat to evaluate each model
+    /// once per setting (columns `NAME[setting]`): an ablation in one run.
     #[arg(long = "constraints", value_name = "PARTS", default_value = "on")]
     pub constraints: Vec<Parts>,
     #[command(flatten)]

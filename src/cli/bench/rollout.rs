@@ -53,9 +53,9 @@ pub struct RolloutBenchArgs {
     /// Threads of the pool the solver and the CPU models run on (default: all cores).
     #[arg(long, value_parser = crate::cli::flags::at_least_one)]
     threads: Option<usize>,
-    /// Which parts of each model's material constraints the rollouts project onto: on |
-    /// off | a list of rope, jelly, snow, liquid, walls, contact. Repeat for a row per
-    /// setting.
+    /// Which parts of each model's material constraints the rollouts project onto: on | off | a
+    /// list of rope, jelly, snow, liquid, walls, contact, momentum, rebound, pressure. Repeat for a
+    /// row per setting.
     #[arg(long = "constraints", value_name = "PARTS", default_value = "on")]
     constraints: Vec<Parts>,
     #[command(flatten)]

@@ -298,11 +298,11 @@ pub struct GridArgs {
     /// one these flags describe; its normalisation constants are kept.
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     pub init_from: Option<PathBuf>,
-    /// Project every frame the training rollouts feed on (after the teacher-forced calls)
-    /// onto the material constraints, with a straight-through gradient: on | off | a list of
-    /// rope, jelly, snow, liquid, walls, contact. Parameters: --init-from's `model.json`
-    /// constraints (`minflow constraints fit`), else the defaults; the trained model keeps
-    /// them.
+    /// Project every frame the training rollouts feed on (after the teacher-forced calls) onto the
+    /// material constraints, with a straight-through gradient: on | off | a list of rope, jelly,
+    /// snow, liquid, walls, contact, momentum, rebound, pressure. Parameters: --init-from's
+    /// `model.json` constraints (`minflow constraints fit`), else the defaults; the trained model
+    /// keeps them.
     #[arg(long = "constraints", value_name = "PARTS", default_value = "off")]
     pub constraints: crate::model::constraints::Parts,
 }

@@ -181,11 +181,14 @@ pub struct PressureParams {
     /// compressing velocity is removed; nodes below are free surface.
     pub full: f32,
     /// Width of the band along each wall, in solver cells (of a 64 x 64 grid when the
-    /// scene's is unknown), where the excess compression is left alone (the velocity part
-    /// still acts): the solver's liquid packs against its walls, whose boundary nodes stop
-    /// the flow, to well above its density elsewhere.
+    /// scene's is unknown), where the threshold is `band_rest` times higher: the solver's
+    /// liquid packs against its walls, whose boundary nodes stop the flow, to well above its
+    /// density elsewhere.
     #[serde(default = "PressureParams::default_band")]
     pub band: f32,
+    /// The threshold's multiple in the band along the walls.
+    #[serde(default = "PressureParams::default_band_rest")]
+    pub band_rest: f32,
     /// Share of a node's excess compression removed per frame (0..=1).
     pub stiffness: f32,
     /// Whether the velocity's compressing divergence at full nodes is removed too (else the
@@ -207,6 +210,7 @@ impl PressureParams {
         rest_by_grid: BTreeMap::new(),
         full: 0.8,
         band: 4.0,
+        band_rest: 1.4,
         stiffness: 0.5,
         velocity: true,
         iterations: 40,
@@ -220,12 +224,27 @@ impl PressureParams {
         4.0
     }
 
+    /// [`PressureParams::band_rest`]'s value in models saved before it existed.
+    fn default_band_rest() -> f32 {
+        1.4
+    }
+
     /// The compressed threshold of a scene made on the solver grid `grid` (`rest` when
     /// unknown or not fitted).
     pub fn rest_for(&self, grid: Option<u32>) -> f32 {
         grid.and_then(|g| self.rest_by_grid.get(&g).copied())
             .unwrap_or(self.rest)
     }
+}
+
+impl DensityParams {
+    /// Cell 3 spacings, rest mass 3x the rest frame's (what the fit finds: the `fluid`
+    /// family's liquid starts at a third of the solver's rest density), 2 iterations.
+    pub const LOOSE: DensityParams = DensityParams {
+        radius: 3.0,
+        rest: 3.0,
+        iterations: 2,
+    };
 }
 
 /// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
@@ -239,8 +258,8 @@ pub struct WallParams {
 
 impl Constraints {
     /// Parameters for a model none were fitted for: rope stretch 1.25, rigid jelly, no snow
-    /// part, liquid rest mass 3x the rest frame's (what the fit finds: the `fluid` family's
-    /// liquid starts at a third of the solver's rest density), walls at the solver's
+    /// part, the liquid's pressure projection ([`PressureParams::DEFAULT`]; the older
+    /// density part off: [`DensityParams::LOOSE`] on request), walls at the solver's
     /// `[0.5 dx, 1 - 0.5 dx]` of the 128 x 128 grid. `minflow constraints fit` replaces the
     /// fitted values from a model's training split.
     pub fn defaults() -> Self {
@@ -256,11 +275,7 @@ impl Constraints {
                 plastic: 0.0,
             }),
             snow: None,
-            liquid: Some(DensityParams {
-                radius: 3.0,
-                rest: 3.0,
-                iterations: 2,
-            }),
+            liquid: None,
             walls: Some(WallParams {
                 lo: 0.5 / 128.0,
                 hi: 1.0 - 0.5 / 128.0,

@@ -21,7 +21,7 @@
 //! 4. on the full nodes (`phi >= full`) the unilateral constraint `div d >= r_i` on the
 //!    displacement `d = -grad p`, `p >= 0`, with `r_i = stiffness max(phi_i - rest, 0) /
 //!    phi_i - dt div v_i` (the excess compression removed, and no compressing velocity
-//!    left; the first term not in a band along the walls, where the solver's own liquid
+//!    left; `rest` higher in a band along the walls, where the solver's own liquid
 //!    packs); nodes that are not full are free surface (`p = 0`), nodes in the walls or in a
 //!    solid body closed (no flow through their faces);
 //! 5. red-black projected successive over-relaxation for `p` (deterministic, node order
@@ -42,8 +42,8 @@ pub(super) struct Pressure {
     volume: Vec<f32>,
     /// Volume fraction above which a node is compressed (the scene's grid's threshold).
     rest: f32,
-    /// Width of the band along the walls left to the velocity part (domain units).
-    band: f32,
+    /// Width of the band along the walls (domain units) and the threshold there.
+    band: (f32, f32),
     /// Node spacing (domain units).
     h: f32,
     /// Nodes per side (node `i` at `i h`).
@@ -127,7 +127,10 @@ impl Pressure {
         let mut out = Self {
             ids,
             rest: p.rest_for(grid),
-            band: p.band / grid.unwrap_or(64).max(1) as f32,
+            band: (
+                p.band / grid.unwrap_or(64).max(1) as f32,
+                p.band_rest * p.rest_for(grid),
+            ),
             volume: Vec::new(),
             h,
             side,
@@ -241,10 +244,11 @@ impl Pressure {
             let mut any = false;
             for &n in &full {
                 let phi = s.phi[n];
-                let mut r = match self.off_the_walls(n, walls) {
-                    true => p.stiffness * (phi - self.rest).max(0.0) / phi,
-                    false => 0.0,
+                let rest = match self.off_the_walls(n, walls) {
+                    true => self.rest,
+                    false => self.band.1,
                 };
+                let mut r = p.stiffness * (phi - rest).max(0.0) / phi;
                 if p.velocity {
                     r -= dt * self.divergence(n, &s);
                 }
@@ -281,7 +285,7 @@ impl Pressure {
     /// Whether node `n` lies farther than the band from every wall (`walls`: `lo`, `hi`).
     fn off_the_walls(&self, n: usize, (lo, hi): (f32, f32)) -> bool {
         let (x, y) = ((n / self.side) as f32 * self.h, (n % self.side) as f32 * self.h);
-        let inside = |v: f32| v > lo + self.band && v < hi - self.band;
+        let inside = |v: f32| v > lo + self.band.0 && v < hi - self.band.0;
         inside(x) && inside(y)
     }
 

@@ -27,9 +27,11 @@ pub(super) struct ConstraintState {
     /// The rest frames (`[B, N, 4]`) set by `Surrogate::init_state_at` that the first
     /// projected step builds `shapes` from; without them it takes its input frame.
     pub(super) rest_frames: Option<Vec<f32>>,
-    /// The solver grid of the state's scenes, when known (`Surrogate::with_solver_grid`,
-    /// `Surrogate::rollout_on`): the liquid's pressure part picks its threshold by it.
-    pub(super) solver_grid: Option<u32>,
+    /// The solver grid of each trajectory, when known (`Surrogate::with_solver_grid`,
+    /// `Surrogate::rollout_on`, `Surrogate::init_state_for`): the liquid's pressure part picks
+    /// its threshold by it. One entry per trajectory once stacked; a state that was never
+    /// stacked may hold one entry for all its rows.
+    pub(super) solver_grids: Vec<Option<u32>>,
 }
 
 impl ConstraintState {
@@ -38,8 +40,10 @@ impl ConstraintState {
     /// The stacked data keeps no rest frames (a node's states have none).
     pub(super) fn stack(parts: Vec<ConstraintState>) -> ConstraintState {
         let mut shapes = Vec::new();
-        let solver_grid = parts.iter().find_map(|p| p.solver_grid);
+        let mut solver_grids = Vec::new();
         for part in parts {
+            let rows = part.shapes.len().max(1);
+            solver_grids.extend((0..rows).map(|i| part.grid_of(i)));
             match part.shapes.is_empty() {
                 true => shapes.push(Slot::default()),
                 false => shapes.extend(part.shapes),
@@ -48,7 +52,15 @@ impl ConstraintState {
         ConstraintState {
             shapes,
             rest_frames: None,
-            solver_grid,
+            solver_grids,
+        }
+    }
+
+    /// The solver grid of trajectory `i` (the one entry of a state never stacked).
+    fn grid_of(&self, i: usize) -> Option<u32> {
+        match self.solver_grids.len() {
+            1 => self.solver_grids[0],
+            _ => self.solver_grids.get(i).copied().flatten(),
         }
     }
 
@@ -63,7 +75,7 @@ impl ConstraintState {
         ConstraintState {
             shapes: self.shapes.iter().map(copy).collect(),
             rest_frames: self.rest_frames.clone(),
-            solver_grid: self.solver_grid,
+            solver_grids: self.solver_grids.clone(),
         }
     }
 
@@ -73,6 +85,7 @@ impl ConstraintState {
     pub(super) fn split(self, sizes: &[usize]) -> Vec<ConstraintState> {
         let total: usize = sizes.iter().sum();
         let has_shapes = self.shapes.len() == total;
+        let mut grids = (0..total).map(|i| self.grid_of(i)).collect::<Vec<_>>().into_iter();
         let mut shapes = self.shapes.into_iter();
         sizes
             .iter()
@@ -82,7 +95,7 @@ impl ConstraintState {
                     false => Vec::new(),
                 },
                 rest_frames: None,
-                solver_grid: self.solver_grid,
+                solver_grids: grids.by_ref().take(size).collect(),
             })
             .collect()
     }
@@ -108,7 +121,8 @@ impl ConstraintState {
         }
         let rest = self.rest_frames.as_deref();
         let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
-        let grid = self.solver_grid;
+        let grids: Vec<Option<u32>> = (0..b).map(|i| self.grid_of(i)).collect();
+
         let mut rows: Vec<Vec<&mut [f32]>> =
             (0..b).map(|_| Vec::with_capacity(out.len())).collect();
         for frame in out.iter_mut() {
@@ -125,7 +139,7 @@ impl ConstraintState {
                 // Each row its own slot (a padded call's copies are detached).
                 let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
                 let shape = shape.get_or_insert_with(|| {
-                    SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grid)
+                    SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grids[i])
                 });
                 project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })
@@ -192,5 +206,24 @@ mod tests {
         // Stacking the scene beside its copy keeps them apart.
         let padded = ConstraintState::stack(vec![parts[1].clone(), copy]);
         assert!(!Arc::ptr_eq(&padded.shapes[0], &padded.shapes[1]));
+    }
+
+    /// Each scene keeps its own solver grid through a stack and a split: a node's batch mixes
+    /// scenes of the 64 x 64 and the 128 x 128 grids, and each must project with its own
+    /// threshold (a stack that took one grid for all its rows made the node's results
+    /// depend on which scenes shared a call).
+    #[test]
+    fn each_scene_keeps_its_solver_grid_through_stack_and_split() {
+        let scene = |grid| ConstraintState {
+            solver_grids: vec![grid],
+            ..ConstraintState::default()
+        };
+        let stacked = ConstraintState::stack(vec![scene(Some(128)), scene(Some(64)), scene(None)]);
+        assert_eq!(stacked.solver_grids, vec![Some(128), Some(64), None]);
+        let again = ConstraintState::stack(vec![stacked.clone(), scene(Some(64))]);
+        assert_eq!(again.solver_grids, vec![Some(128), Some(64), None, Some(64)]);
+        let parts = stacked.split(&[2, 1]);
+        assert_eq!(parts[0].solver_grids, vec![Some(128), Some(64)]);
+        assert_eq!(parts[1].solver_grids, vec![None]);
     }
 }

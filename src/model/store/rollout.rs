@@ -72,7 +72,7 @@ impl<B: NetOps> Surrogate<B> {
             Some(frame) => self.init_state_at(frame, dt.len())?,
             None => self.init_state(),
         };
-        state.constraints.solver_grid = grid.or(self.solver_grid);
+        state.constraints.solver_grids = vec![grid.or(self.solver_grid)];
         if seed.is_empty() {
             return Err(StoreError::Shape("rollout: no seed frame".into()));
         }

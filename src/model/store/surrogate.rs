@@ -190,7 +190,7 @@ impl<B: NetOps> Surrogate<B> {
     /// A fresh (empty) state. The batch size is set by the first `step`.
     pub fn init_state(&self) -> State<B> {
         let mut state = State::new(self.fresh_net_state());
-        state.constraints.solver_grid = self.solver_grid;
+        state.constraints.solver_grids = vec![self.solver_grid];
         state
     }
 
@@ -199,7 +199,7 @@ impl<B: NetOps> Surrogate<B> {
     pub fn init_state_for(&self, scene: &str) -> State<B> {
         let mut state = self.init_state();
         if let Some(&grid) = self.solver_grids.get(scene) {
-            state.constraints.solver_grid = Some(grid);
+            state.constraints.solver_grids = vec![Some(grid)];
         }
         state
     }

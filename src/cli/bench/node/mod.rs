@@ -80,9 +80,10 @@ pub struct NodeBenchArgs {
     /// Run the `--model` grid models as mirror ensembles (`node --mirror`: twice the work).
     #[arg(long)]
     mirror: bool,
-    /// Which parts of the `--model` models' material constraints the node (and the step in
-    /// this process) projects every predicted frame onto (`node --constraints`): on | off |
-    /// a list of rope, jelly, snow, liquid, walls, contact. The projection runs on the host.
+    /// Which parts of the `--model` models' material constraints the node (and the step in this
+    /// process) projects every predicted frame onto (`node --constraints`): on | off | a list of
+    /// rope, jelly, snow, liquid, walls, contact, momentum, rebound, pressure. The projection runs
+    /// on the host.
     #[arg(long, value_name = "PARTS", default_value = "on")]
     constraints: crate::model::constraints::Parts,
     /// `--streams`: whether the node publishes a call's predictions only after recording the

@@ -20,6 +20,8 @@ fn params() -> PressureParams {
     PressureParams {
         rest: 1.1,
         full: 0.9 / 1.1,
+        band: 0.0,
+        band_rest: 1.0,
         ..PressureParams::DEFAULT
     }
 }
