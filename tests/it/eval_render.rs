@@ -66,7 +66,7 @@ fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
         &ProgressBar::hidden(),
     )
     .unwrap();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let files = output::write_all(dir.path(), &eval, 2, "test", &ProgressBar::hidden()).unwrap();
     // table.md, table.csv, metrics.csv, plausibility.csv, mse_curves.png; a PNG and a GIF
     // per scene.

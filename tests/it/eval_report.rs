@@ -8,7 +8,7 @@ use std::process::Command;
 #[test]
 fn report_trains_evaluates_and_writes_report_md() {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let out = tmp.path().join("report");
     let mut args = vec![
         "report",
@@ -112,7 +112,7 @@ fn report_trains_evaluates_and_writes_report_md() {
 #[test]
 fn report_flags_out_of_range_are_usage_errors() {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let out = tmp.path().join("report");
     for flag in [
         "--epochs",

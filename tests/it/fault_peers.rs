@@ -60,7 +60,7 @@ fn recorded(out: &Path, topic: &str) -> Vec<(String, u32)> {
 
 #[test]
 fn replay_killed_mid_stream_then_restarted_is_served_again() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let (input, output) = (unique_topic("rk_in"), unique_topic("rk_out"));
     let recorder = Node::spawn(
@@ -136,7 +136,7 @@ fn iceoryx2_nodes_of(pid: u32) -> (usize, usize) {
 
 #[test]
 fn iceoryx2_node_killed_then_restarted_cleans_up_and_serves() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let (input, output) = (unique_topic("nk_in"), unique_topic("nk_out"));
     let first = node("node 1", "iceoryx2", &input, &output, "0");
@@ -202,7 +202,7 @@ fn iceoryx2_node_killed_then_restarted_cleans_up_and_serves() {
 fn recorder_killed_mid_stream_loses_at_most_its_flush_interval() {
     const FLUSH_S: f64 = 0.2;
     const RATE_HZ: f64 = 62.5;
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (killed_out, kept_out) = (dir.path().join("killed"), dir.path().join("kept"));
     let topic = unique_topic("rec_kill");
     let record = |name: &str, out: &Path| {
@@ -273,7 +273,7 @@ fn recorder_killed_mid_stream_loses_at_most_its_flush_interval() {
 
 #[test]
 fn launch_respawns_a_killed_node() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let file = dir.path().join("respawn.yaml");
     let topic = unique_topic("respawn");
     std::fs::write(

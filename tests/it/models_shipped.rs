@@ -51,7 +51,7 @@ fn minflow(args: &[&str], timeout: Duration) -> Output {
 #[test]
 fn every_shipped_model_evaluates() {
     for dir in shipped() {
-        let out = tempfile::tempdir().unwrap();
+        let out = crate::tmp::tempdir().unwrap();
         let o = minflow(
             &[
                 "eval",

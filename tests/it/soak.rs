@@ -175,7 +175,7 @@ fn soak_replay_loop_into_node_and_record() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(30);
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("soak");
     let (input, output) = (unique_topic("soak_in"), unique_topic("soak_out"));
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();

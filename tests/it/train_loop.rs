@@ -27,7 +27,7 @@ fn every_core_overfits_four_frames_alone() {
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
     assert_eq!(index.len(), 2);
     for core in CoreKind::ALL {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::tmp::tempdir().unwrap();
         let opts = TrainOptions {
             lr: 1e-3,
             ..options(2500)
@@ -67,7 +67,7 @@ fn particle_count_mismatch_is_a_clear_error_alone() {
     let traj = trajectory(20, 4);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let err = Trainer::<B>::new(
         tiny(CoreKind::MinGru, 32),
         options(1),
@@ -96,7 +96,7 @@ fn stateful_step_equals_training_forward_alone() {
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj.clone()], 2, scaler).unwrap();
     for core in CoreKind::ALL {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::tmp::tempdir().unwrap();
         Trainer::<B>::new(
             tiny(core, 32),
             options(3),
@@ -154,7 +154,7 @@ fn non_finite_loss_is_a_clear_error_alone() {
     let traj = trajectory(32, 8);
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let opts = TrainOptions {
         lr: 1e30,
         batch_size: 1,
