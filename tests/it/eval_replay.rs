@@ -292,7 +292,8 @@ fn bad_invocations_fail_clearly() {
 
 /// `eval --reference-from`: a model with reference positions (the shipped minGRU) takes them
 /// from the scene's frame 0 or from each rollout's first seed frame. A rollout from the start
-/// of a scene has the same reference either way; later rollouts do not.
+/// of a scene has the same reference either way; later rollouts do not. One bundled scene
+/// (the table compares whole tables, and any scene that moves shows the difference).
 #[test]
 fn reference_from_changes_only_rollouts_that_start_late() {
     let root = env!("CARGO_MANIFEST_DIR");
@@ -303,7 +304,7 @@ fn reference_from_changes_only_rollouts_that_start_late() {
             .args(["eval", "--model", &format!("{root}/models/all-grid-mingru")])
             .args([
                 "--data",
-                &format!("{root}/bags"),
+                &format!("{root}/bags/multi_rope+snow_001.mcap"),
                 "--split",
                 "all",
                 "--horizon",
