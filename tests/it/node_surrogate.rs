@@ -455,19 +455,12 @@ fn killing_a_required_node_stops_the_launch_with_an_error() {
     )
     .unwrap();
     let launch = Node::spawn("launch", &["launch", file.to_str().unwrap()]);
-    // Find the surrogate's pid in the launch log, then kill it.
-    std::thread::sleep(Duration::from_secs(3));
-    let pid = std::process::Command::new("pgrep")
-        .args(["-f", &format!("minflow node .*--in {topic}")])
-        .output()
-        .unwrap();
-    let pids = String::from_utf8_lossy(&pid.stdout);
-    let pid = pids
-        .lines()
-        .next()
-        .expect("the surrogate node runs")
-        .trim()
-        .to_owned();
+    // The surrogate's pid from the launch log ("started surrogate (pid N): ..."); once the
+    // recorder started too (so that there is one to stop), kill the surrogate.
+    let started =
+        launch.wait_for_stderr_line("[launch] started surrogate (pid ", Duration::from_secs(30));
+    let pid = started.split(')').next().unwrap().to_owned();
+    launch.wait_for_stderr_line("[launch] started recorder (pid ", Duration::from_secs(30));
     assert!(std::process::Command::new("kill")
         .args(["-KILL", &pid])
         .status()
