@@ -56,7 +56,7 @@ fn assert_names(err: &BagError, path: &Path, index: Option<u64>) {
 
 #[test]
 fn foreign_schema_on_the_requested_topic_is_an_error() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("foreign.mcap");
     let mut w = mcap::Writer::new(Cursor::new(Vec::new())).expect("writer");
     let schema = w
@@ -87,7 +87,7 @@ fn foreign_schema_on_the_requested_topic_is_an_error() {
 
 #[test]
 fn bad_frames_name_file_topic_and_index() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let good: Vec<Vec<u8>> = (0..2).map(|k| msgs::encode(&frame("s", k, 10))).collect();
     let mut mismatched = frame("s", 2, 10);
     mismatched.velocity.truncate(17); // 2N = 20 expected
@@ -124,7 +124,7 @@ fn bad_frames_name_file_topic_and_index() {
 
 #[test]
 fn writer_rejects_invalid_frames() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("w.mcap");
     let mut w = BagWriter::create(&path).expect("create");
     w.write(TOPIC, &frame("s", 0, 4)).expect("valid frame");
@@ -137,7 +137,7 @@ fn writer_rejects_invalid_frames() {
 
 #[test]
 fn random_bytes_and_empty_files_are_not_bags() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let empty = dir.path().join("empty.mcap");
     std::fs::write(&empty, b"").expect("write");
     let err = bag::read_frames(&empty, None).unwrap_err();
@@ -201,7 +201,7 @@ fn random_bytes_and_empty_files_are_not_bags() {
 
 #[test]
 fn check_finds_gaps_and_changed_particle_counts() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("seq.mcap");
     let mut w = BagWriter::create(&path).expect("create");
     for k in [0, 1, 3] {
@@ -279,7 +279,7 @@ fn check_finds_gaps_and_changed_particle_counts() {
 /// mcap-ros2 writer) passes; a changed field type is a problem naming the field.
 #[test]
 fn check_compares_parsed_schema_definitions() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let write = |name: &str, schema: &str| {
         let path = dir.path().join(name);
         let mut w = mcap::Writer::new(Cursor::new(Vec::new())).expect("writer");
@@ -325,7 +325,7 @@ fn check_compares_parsed_schema_definitions() {
 
 #[test]
 fn bag_paths_expands_folders_sorted() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     for name in ["b.mcap", "a.mcap", "notes.txt"] {
         std::fs::write(dir.path().join(name), b"").expect("write");
     }
@@ -337,7 +337,7 @@ fn bag_paths_expands_folders_sorted() {
     assert_eq!(names, ["a.mcap", "b.mcap"]);
     let missing = bag::bag_paths(&[PathBuf::from("/no/such/bags")]).unwrap_err();
     assert!(missing.to_string().contains("/no/such/bags"), "{missing}");
-    let empty = tempfile::tempdir().expect("tempdir");
+    let empty = crate::tmp::tempdir().expect("tempdir");
     let none = bag::bag_paths(&[empty.path().to_path_buf()]).unwrap_err();
     assert!(matches!(none, BagError::NoBags { .. }), "{none}");
 }
@@ -348,7 +348,7 @@ fn bag_paths_expands_folders_sorted() {
 /// earliest log time.
 #[test]
 fn replay_filters_by_offset_from_the_earliest_log_time_only() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let path = dir.path().join("unsorted.mcap");
     let mut w = BagWriter::create(&path).expect("create");
     w.write_raw(TOPIC, 1_000_000_000, &msgs::encode(&frame("s", 0, 10)))
@@ -398,7 +398,7 @@ fn replay_filters_by_offset_from_the_earliest_log_time_only() {
 /// the truncation counts one skipped chunk (as `mcap recover` reads around damage).
 #[test]
 fn a_damaged_chunk_is_skipped_and_the_rest_is_read() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let good = dir.path().join("good.mcap");
     let frames: Vec<_> = (0..24).map(|k| frame("s", k, 200)).collect();
     let mut w = BagWriter::create(&good).expect("create");
@@ -442,7 +442,7 @@ fn a_damaged_chunk_is_skipped_and_the_rest_is_read() {
 /// still reads.
 #[test]
 fn check_finds_a_damaged_summary_or_message_index() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let good = dir.path().join("good.mcap");
     let frames: Vec<_> = (0..8).map(|k| frame("s", k, 100)).collect();
     let mut w = BagWriter::create(&good).expect("create");

@@ -91,7 +91,7 @@ proptest! {
 
     #[test]
     fn a_cut_keeps_every_chunk_before_it(count in 1u32..12, per_chunk in 1u32..4, cut in any::<prop::sample::Index>()) {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = crate::tmp::tempdir().expect("tempdir");
         let (bytes, frames, chunks) = bag_bytes(dir.path(), count, per_chunk);
         let len = cut.index(bytes.len());
         match read(dir.path(), &bytes[..len], frames.len()) {
@@ -107,7 +107,7 @@ proptest! {
 
     #[test]
     fn a_flipped_byte_loses_at_most_one_chunk(count in 1u32..12, per_chunk in 1u32..4, at in any::<prop::sample::Index>(), mask in 1u8..=255) {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = crate::tmp::tempdir().expect("tempdir");
         let (mut bytes, frames, _) = bag_bytes(dir.path(), count, per_chunk);
         let at = at.index(bytes.len());
         bytes[at] ^= mask;
@@ -123,7 +123,7 @@ proptest! {
 
     #[test]
     fn a_bad_chunk_length_loses_at_most_one_chunk(count in 1u32..12, per_chunk in 1u32..4, which in any::<prop::sample::Index>(), length in any::<u64>()) {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = crate::tmp::tempdir().expect("tempdir");
         let (mut bytes, frames, chunks) = bag_bytes(dir.path(), count, per_chunk);
         let (start, _) = chunks[which.index(chunks.len())];
         let at = start as usize + 1;
@@ -139,7 +139,7 @@ proptest! {
 /// are lost and the loss is reported (the statistics' count gives it away), the rest is read.
 #[test]
 fn a_damaged_chunk_opcode_is_reported() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let (bytes, frames, chunks) = bag_bytes(dir.path(), 10, 1);
     for &(start, _) in &chunks {
         for mask in [0x10, 0x80, 0xff, 0x01] {
@@ -188,7 +188,7 @@ fn a_damaged_chunk_opcode_is_reported() {
 /// chunk was lost, and the summary's message count (its CRC intact) says so.
 #[test]
 fn a_chunk_length_reaching_into_the_summary_is_reported() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let (bytes, frames, chunks) = bag_bytes(dir.path(), 6, 1);
     let footer = mcap::read::footer(&bytes).expect("footer");
     for &(start, _) in &chunks {

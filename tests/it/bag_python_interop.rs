@@ -155,7 +155,7 @@ impl Seen {
 
 #[test]
 fn python_mcap_ros2_reader_decodes_every_field() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("interop.mcap");
     let frames: Vec<ParticleFrame> = (0..FRAMES_PER_SCENE)
         .flat_map(|k| [frame(0, k), frame(1, k)])

@@ -57,7 +57,7 @@ fn only_frames(outcome: &ReadOutcome) -> Vec<ParticleFrame> {
 
 #[test]
 fn frames_round_trip_exactly_in_order() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("a.mcap");
     let frames = frames(4);
     write_bag(&path, &frames);
@@ -94,7 +94,7 @@ fn readers_can_move_between_threads() {
 
 #[test]
 fn same_frames_give_identical_bytes() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let (a, b) = (dir.path().join("a.mcap"), dir.path().join("b.mcap"));
     let frames = frames(3);
     write_bag(&a, &frames);
@@ -105,7 +105,7 @@ fn same_frames_give_identical_bytes() {
 
 #[test]
 fn records_are_what_design_md_says() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("a.mcap");
     let frames = frames(2);
     write_bag(&path, &frames);
@@ -213,7 +213,7 @@ fn read_bytes(dir: &Path, name: &str, bytes: &[u8], topic: Option<&str>) -> Read
 
 #[test]
 fn bags_from_other_writers_are_read() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let frames = frames(3);
     let plain = mcap::WriteOptions::new()
         .use_chunks(false)
@@ -266,7 +266,7 @@ fn read_cut(dir: &Path, bytes: &[u8], cut: usize, frames: &[ParticleFrame]) -> u
 
 #[test]
 fn truncated_bags_give_a_prefix_and_say_so() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("full.mcap");
     let frames = frames(30); // 60 frames of ~50 KB: several 1 MiB chunks
     write_bag(&path, &frames);
@@ -330,7 +330,7 @@ fn truncated_bags_give_a_prefix_and_say_so() {
 
 #[test]
 fn bag_copied_while_its_writer_is_open_reads_as_truncated() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("live.mcap");
     let frames = frames(30);
     let mut writer = BagWriter::create(&path).expect("create");
@@ -353,7 +353,7 @@ fn bag_copied_while_its_writer_is_open_reads_as_truncated() {
 
 #[test]
 fn info_describes_the_bag() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("a.mcap");
     let frames = frames(4);
     write_bag(&path, &frames);

@@ -26,6 +26,8 @@ fn repo(p: &str) -> PathBuf {
 fn bundled_model() -> PathBuf {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| {
+        // On disk, not `crate::tmp`: a static is never dropped, and a RAM folder would
+        // outlive the run.
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("k2");
         let data = repo("bags");
@@ -72,7 +74,7 @@ fn bundled_model() -> PathBuf {
 #[test]
 fn eval_full_horizon_scores_whole_scenes_and_plausibility() {
     let model = bundled_model();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("eval");
     let pred = dir.path().join("pred");
     let bag = repo("bags/multi_rope+snow_001.mcap");
@@ -192,7 +194,7 @@ fn bench_rollout_prints_the_model_against_the_solver() {
 #[test]
 fn zenoh_node_rolls_a_bundled_model_out_as_offline() {
     let model = bundled_model();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let (input, output) = (unique_topic("bundle_in"), unique_topic("bundle_out"));
     let bag = repo("bags/multi_rope+snow_001.mcap");

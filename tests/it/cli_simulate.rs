@@ -33,7 +33,7 @@ fn simulate(out: &Path, family: &str, scenes: &str, frames: &str) {
 
 #[test]
 fn simulate_writes_bags_that_read_back_exactly() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     simulate(dir.path(), "fluid", "1..3", "12");
     let bag = dir.path().join("fluid_rectangle_001.mcap");
     let outcome = read_frames(&bag, None).unwrap();
@@ -72,7 +72,10 @@ fn simulate_writes_bags_that_read_back_exactly() {
 
 #[test]
 fn same_scene_and_seed_give_identical_bags() {
-    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (a, b) = (
+        crate::tmp::tempdir().unwrap(),
+        crate::tmp::tempdir().unwrap(),
+    );
     simulate(a.path(), "multi", "5,6", "15");
     simulate(b.path(), "multi", "5,6", "15");
     for id in [5, 6] {
@@ -81,7 +84,7 @@ fn same_scene_and_seed_give_identical_bags() {
         let y = std::fs::read(b.path().join(&name)).unwrap();
         assert!(x == y, "{name} differs between two runs");
     }
-    let other = tempfile::tempdir().unwrap();
+    let other = crate::tmp::tempdir().unwrap();
     let o = minflow(&[
         "simulate",
         "--scenes",
@@ -101,7 +104,7 @@ fn same_scene_and_seed_give_identical_bags() {
 
 #[test]
 fn truncated_bag_is_reported_with_exit_code_3() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     simulate(dir.path(), "multi", "0", "40");
     let bag = dir.path().join("multi_liquid+snow_000.mcap");
     let bytes = std::fs::read(&bag).unwrap();
@@ -198,7 +201,7 @@ fn truncated_bag_is_reported_with_exit_code_3() {
 /// their own: more training scenes of the same kinds.
 #[test]
 fn ids_beyond_the_family_are_more_scenes_of_its_kinds() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     simulate(dir.path(), "multi", "0,60,64", "3");
     let mut names: Vec<String> = std::fs::read_dir(dir.path())
         .unwrap()
@@ -239,7 +242,7 @@ fn bad_arguments_fail_clearly() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--frames"));
     // Scene file values are usage errors naming the field: an empty name (it used to write a
     // hidden `.mcap` that `bag info DIR` cannot find), two files naming one scene.
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let example = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/launch_configs/scenes/example.toml"

@@ -43,7 +43,7 @@ fn epochs(out: &Path) -> usize {
 
 #[test]
 fn train_writes_a_complete_run_folder_and_resumes() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let o = train(dir.path(), &["--epochs", "2", "--model", "minlstm"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for file in [
@@ -99,7 +99,7 @@ fn train_writes_a_complete_run_folder_and_resumes() {
 
 #[test]
 fn large_datasets_are_streamed() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let o = train(
         dir.path(),
         &["--epochs", "1", "--max-resident-frames", "60"],
@@ -111,7 +111,7 @@ fn large_datasets_are_streamed() {
 
 #[test]
 fn bad_flags_fail_clearly() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     // Unknown names are usage errors too.
     let o = train(dir.path(), &["--model", "transformer"]);
     assert_eq!(o.status.code(), Some(2));
@@ -179,11 +179,11 @@ fn losses(out: &Path) -> Vec<(String, String)> {
 #[test]
 fn grid_train_streams_large_datasets() {
     let flags = ["--epochs", "2", "--model", "mingru"];
-    let resident = tempfile::tempdir().unwrap();
+    let resident = crate::tmp::tempdir().unwrap();
     let o = train_grid(resident.path(), &flags);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(!String::from_utf8_lossy(&o.stderr).contains("streamed"));
-    let streamed = tempfile::tempdir().unwrap();
+    let streamed = crate::tmp::tempdir().unwrap();
     let o = train_grid(
         streamed.path(),
         &[&flags[..], &["--max-resident-frames", "50"]].concat(),
@@ -234,7 +234,7 @@ fn grid_train_streams_large_datasets() {
     }
     // Every bundled scene has 25 frames: a budget of 10 holds none.
     let o = train_grid(
-        tempfile::tempdir().unwrap().path(),
+        crate::tmp::tempdir().unwrap().path(),
         &[&flags[..], &["--max-resident-frames", "10"]].concat(),
     );
     let err = String::from_utf8_lossy(&o.stderr);
@@ -246,7 +246,7 @@ fn grid_train_streams_large_datasets() {
 /// after one epoch resumes from its checkpoint to the requested epochs.
 #[test]
 fn grid_train_writes_a_run_folder_and_resumes() {
-    let straight = tempfile::tempdir().unwrap();
+    let straight = crate::tmp::tempdir().unwrap();
     let o = train_grid(straight.path(), &["--epochs", "2", "--model", "minlstm"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let meta = std::fs::read_to_string(straight.path().join("model.json")).unwrap();
@@ -262,7 +262,7 @@ fn grid_train_writes_a_run_folder_and_resumes() {
     ] {
         assert!(straight.path().join(file).exists(), "missing {file}");
     }
-    let resumed = tempfile::tempdir().unwrap();
+    let resumed = crate::tmp::tempdir().unwrap();
     let o = train_grid(resumed.path(), &["--epochs", "1", "--model", "minlstm"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = train_grid(
@@ -298,10 +298,10 @@ fn grid_train_writes_a_run_folder_and_resumes() {
 #[test]
 fn grid_resume_is_bit_exact() {
     let flags = ["--epochs", "2", "--model", "mingru", "--mirror"];
-    let straight = tempfile::tempdir().unwrap();
+    let straight = crate::tmp::tempdir().unwrap();
     let o = train_grid(straight.path(), &flags);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let resumed = tempfile::tempdir().unwrap();
+    let resumed = crate::tmp::tempdir().unwrap();
     let checkpoint = resumed.path().join("checkpoint");
     std::fs::create_dir_all(&checkpoint).unwrap();
     for entry in std::fs::read_dir(straight.path().join("checkpoint.old")).unwrap() {
@@ -318,7 +318,7 @@ fn grid_resume_is_bit_exact() {
         weights(straight.path()) == weights(resumed.path()),
         "the epoch-2 weights differ"
     );
-    let plain = tempfile::tempdir().unwrap();
+    let plain = crate::tmp::tempdir().unwrap();
     let o = train_grid(plain.path(), &flags[..4]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_ne!(
@@ -332,7 +332,7 @@ fn grid_resume_is_bit_exact() {
 /// (`checkpoint.old`) with a warning naming the file; with both damaged it fails naming them.
 #[test]
 fn a_damaged_checkpoint_falls_back_to_the_previous_one() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let o = train_grid(dir.path(), &["--epochs", "2", "--model", "none"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let truncate = |folder: &str| {
@@ -387,7 +387,7 @@ fn a_damaged_checkpoint_falls_back_to_the_previous_one() {
 /// refused as a usage error naming the field, before any training.
 #[test]
 fn grid_train_starts_from_another_runs_weights() {
-    let source = tempfile::tempdir().unwrap();
+    let source = crate::tmp::tempdir().unwrap();
     let o = train_grid(
         source.path(),
         &["--epochs", "3", "--model", "mingru", "--lr", "3e-3"],
@@ -402,7 +402,7 @@ fn grid_train_starts_from_another_runs_weights() {
         args.extend_from_slice(extra);
         train_grid(dir, &args)
     };
-    let tuned = tempfile::tempdir().unwrap();
+    let tuned = crate::tmp::tempdir().unwrap();
     let o = run(
         tuned.path(),
         &["--init-from", source.path().to_str().unwrap()],
@@ -417,7 +417,7 @@ fn grid_train_starts_from_another_runs_weights() {
         meta(tuned.path())["dv_scale"],
         meta(source.path())["dv_scale"]
     );
-    let fresh = tempfile::tempdir().unwrap();
+    let fresh = crate::tmp::tempdir().unwrap();
     let o = run(fresh.path(), &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let scratch: f64 = losses(fresh.path())[0].1.parse().unwrap();
@@ -425,7 +425,7 @@ fn grid_train_starts_from_another_runs_weights() {
         ((scratch - best) / best).abs() > 1e-2,
         "a fresh start scored {scratch}, the source {best}: the test cannot tell them apart"
     );
-    let other = tempfile::tempdir().unwrap();
+    let other = crate::tmp::tempdir().unwrap();
     let o = run(
         other.path(),
         &[
@@ -459,7 +459,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
             .map(|s| s.as_str().unwrap().to_owned())
             .collect()
     };
-    let seeded = tempfile::tempdir().unwrap();
+    let seeded = crate::tmp::tempdir().unwrap();
     let o = train_grid(seeded.path(), &["--epochs", "1"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let s0 = split(seeded.path());
@@ -469,7 +469,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     let saved = serde_json::json!({"train": [], "val": [train0[0]], "test": [train0[1]]});
     let file = seeded.path().join("keep.json");
     std::fs::write(&file, saved.to_string()).unwrap();
-    let kept = tempfile::tempdir().unwrap();
+    let kept = crate::tmp::tempdir().unwrap();
     let o = train_grid(
         kept.path(),
         &["--epochs", "1", "--split-from", file.to_str().unwrap()],
@@ -492,7 +492,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     let meta = |dir: &Path| -> serde_json::Value {
         serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
     };
-    let child = tempfile::tempdir().unwrap();
+    let child = crate::tmp::tempdir().unwrap();
     let init = [
         "--epochs",
         "1",
@@ -502,7 +502,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     let o = train_grid(child.path(), &init);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(split(child.path()), s1);
-    let reseeded = tempfile::tempdir().unwrap();
+    let reseeded = crate::tmp::tempdir().unwrap();
     let seeded_split = seeded.path().join("split.json");
     let mut args = init.to_vec();
     args.extend(["--split-from", seeded_split.to_str().unwrap()]);
@@ -519,7 +519,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     let foreign = seeded.path().join("foreign.json");
     let other = serde_json::json!({"train": [], "val": ["multi/jelly/999"], "test": []});
     std::fs::write(&foreign, other.to_string()).unwrap();
-    let refused = tempfile::tempdir().unwrap();
+    let refused = crate::tmp::tempdir().unwrap();
     let o = train_grid(
         refused.path(),
         &["--epochs", "1", "--split-from", foreign.to_str().unwrap()],
@@ -534,7 +534,7 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
 
 #[test]
 fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     for extra in [
         &["--grid", "20", "--levels", "4"][..],
         &["--teacher-steps", "3"][..],
@@ -614,7 +614,7 @@ fn bench_train_measures_the_grid_architecture() {
 /// before any bag is read, naming the flag.
 #[test]
 fn paper_flags_are_checked_and_refused_with_the_grid_architecture() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("run");
     let bags = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags");
     let run = |extra: &[&str]| {

@@ -11,7 +11,7 @@ use minflow::data::{self, DataError, Gap};
 
 #[test]
 fn frames_load_in_order_bit_for_bit() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let frames = simulate(0, 12);
     let bag = dir.path().join("a.mcap");
     write_bag(&bag, frames.iter().rev()); // written backwards: order comes from frame_index
@@ -43,7 +43,7 @@ fn frames_load_in_order_bit_for_bit() {
 
 #[test]
 fn scenes_interleaved_in_one_bag_and_one_scene_across_bags() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let (s1, s2, s3) = (simulate(1, 12), simulate(2, 12), simulate(3, 12));
     let interleaved: Vec<_> = s1.iter().zip(&s2).flat_map(|(a, b)| [a, b]).collect();
     write_bag(&dir.path().join("a.mcap"), interleaved);
@@ -100,7 +100,7 @@ fn scenes_interleaved_in_one_bag_and_one_scene_across_bags() {
 
 #[test]
 fn missing_frames_split_a_scene_into_segments_and_are_reported() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let frames = simulate(4, 12);
     let kept: Vec<_> = frames
         .iter()
@@ -143,7 +143,7 @@ fn missing_frames_split_a_scene_into_segments_and_are_reported() {
 
 #[test]
 fn changed_particle_count_is_an_error_naming_scene_and_frame() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let mut frames = simulate(5, 12);
     let scene = frames[0].scene.clone();
     frames[7].material.pop();
@@ -185,7 +185,7 @@ fn changed_particle_count_is_an_error_naming_scene_and_frame() {
 
 #[test]
 fn truncated_bag_gives_what_was_read_and_is_reported() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let frames: Vec<_> = (0..40).map(|k| synthetic("cut/000", k, 3000, 2)).collect();
     let whole = dir.path().join("whole.mcap");
     write_bag(&whole, &frames);
@@ -218,7 +218,7 @@ fn truncated_bag_gives_what_was_read_and_is_reported() {
 
 #[test]
 fn inputs_without_frames_are_an_error() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let bag = dir.path().join("other-topic.mcap");
     let mut writer = BagWriter::create(&bag).expect("create");
     writer

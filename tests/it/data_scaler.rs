@@ -11,7 +11,7 @@ fn close(a: f32, v: f32) -> bool {
 }
 
 fn loaded(frames: &[minflow::msgs::ParticleFrame]) -> Trajectory {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let bag = dir.path().join("s.mcap");
     write_bag(&bag, frames);
     let (mut trajs, _) = data::load(&[bag], None).expect("load");
@@ -85,7 +85,7 @@ fn fitted_on_training_scenes_only() {
         .collect();
     let split = Split::new(&names, 5);
     let outlier = &split.test[0];
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     for &id in &ids {
         let mut frames = simulate(id, 6);
         if &frames[0].scene == outlier {

@@ -48,7 +48,7 @@ fn contents(index: &WindowIndex) -> HashMap<(u32, u32), Batch> {
 
 #[test]
 fn under_budget_one_epoch_yields_the_windows_of_the_in_memory_index() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let inputs = dataset(dir.path());
     let infos = data::scan(&inputs, None).expect("scan");
     let (trajs, _) = data::load(&inputs, None).expect("load");
@@ -113,7 +113,7 @@ fn under_budget_one_epoch_yields_the_windows_of_the_in_memory_index() {
 
 #[test]
 fn when_everything_fits_it_behaves_like_the_window_index() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let inputs = dataset(dir.path());
     let infos = data::scan(&inputs, None).expect("scan");
     let (trajs, _) = data::load(&inputs, None).expect("load");
@@ -133,7 +133,7 @@ fn when_everything_fits_it_behaves_like_the_window_index() {
 
 #[test]
 fn training_scenes_only_with_a_streamed_scaler() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let inputs = dataset(dir.path());
     let infos = data::scan(&inputs, None).expect("scan");
     let (trajs, _) = data::load(&inputs, None).expect("load");
@@ -160,7 +160,7 @@ fn training_scenes_only_with_a_streamed_scaler() {
 
 #[test]
 fn a_scene_over_budget_is_an_error() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let infos = data::scan(&dataset(dir.path()), None).expect("scan");
     let err = StreamingLoader::new(infos, None, T, Scaler::default(), 11).expect_err("too small");
     match &err {
@@ -176,7 +176,7 @@ fn a_scene_over_budget_is_an_error() {
 
 #[test]
 fn bags_changed_since_the_scan_are_reported() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let inputs = dataset(dir.path());
     let infos = data::scan(&inputs, None).expect("scan");
     let frames = simulate(15, 12);

@@ -13,7 +13,7 @@ use minflow::msgs::ParticleFrame;
 fn dataset() -> (Vec<Trajectory>, HashMap<(String, u32), ParticleFrame>) {
     let mut written = simulate(6, 12);
     written.extend(simulate(7, 12).into_iter().filter(|f| f.frame_index != 6));
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let bag = dir.path().join("d.mcap");
     write_bag(&bag, &written);
     let (trajs, report) = data::load(&[bag], None).expect("load");
@@ -155,7 +155,7 @@ fn shuffling_is_deterministic_per_seed_and_epoch() {
 fn mixed_particle_counts_are_batched_separately() {
     let (mut trajs, _) = dataset();
     let small: Vec<_> = (0..10).map(|k| synthetic("small/000", k, 50, 1)).collect();
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let bag = dir.path().join("small.mcap");
     write_bag(&bag, &small);
     trajs.extend(data::load(&[bag], None).expect("load").0);

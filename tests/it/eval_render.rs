@@ -66,12 +66,13 @@ fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
         &ProgressBar::hidden(),
     )
     .unwrap();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let files = output::write_all(dir.path(), &eval, 2, "test", &ProgressBar::hidden()).unwrap();
-    // table.md, table.csv, metrics.csv, plausibility.csv, mse_curves.png; a PNG and a GIF
-    // per scene.
-    assert_eq!(files.len(), 5 + 2 * 2, "{files:?}");
+    // table.md, table.csv, metrics.csv, plausibility.csv, front.csv, mse_curves.png; a
+    // render PNG, its GIF and a surge-front PNG per scene.
+    assert_eq!(files.len(), 6 + 3 * 2, "{files:?}");
     assert!(dir.path().join("plausibility.csv").is_file());
+    assert!(dir.path().join("front.csv").is_file());
 
     // Two panels side by side, 520 x 380 each.
     let (w, h, _) = png_size(&dir.path().join("mse_curves.png"));

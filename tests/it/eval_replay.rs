@@ -109,7 +109,7 @@ fn mse_by_step(csv: &str, predictor: &str) -> Vec<(usize, f64)> {
 
 #[test]
 fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let model = tmp.path().join("tiny");
     tiny_model(&model);
     let bags = bags();
@@ -222,7 +222,7 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
 
 #[test]
 fn without_a_model_the_baselines_use_a_scaler_fitted_on_the_training_split() {
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let o = minflow(&[
         "eval",
         "--data",
@@ -249,7 +249,7 @@ fn without_a_model_the_baselines_use_a_scaler_fitted_on_the_training_split() {
 
 #[test]
 fn bad_invocations_fail_clearly() {
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let o = minflow(&["eval", "--out", s(tmp.path())]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("give either --data"));
@@ -292,18 +292,19 @@ fn bad_invocations_fail_clearly() {
 
 /// `eval --reference-from`: a model with reference positions (the shipped minGRU) takes them
 /// from the scene's frame 0 or from each rollout's first seed frame. A rollout from the start
-/// of a scene has the same reference either way; later rollouts do not.
+/// of a scene has the same reference either way; later rollouts do not. One bundled scene
+/// (the table compares whole tables, and any scene that moves shows the difference).
 #[test]
 fn reference_from_changes_only_rollouts_that_start_late() {
     let root = env!("CARGO_MANIFEST_DIR");
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let table = |starts: &str, from: &str| {
         let out = tmp.path().join(format!("{starts}-{from}"));
         let o = std::process::Command::new(env!("CARGO_BIN_EXE_minflow"))
             .args(["eval", "--model", &format!("{root}/models/all-grid-mingru")])
             .args([
                 "--data",
-                &format!("{root}/bags"),
+                &format!("{root}/bags/multi_rope+snow_001.mcap"),
                 "--split",
                 "all",
                 "--horizon",

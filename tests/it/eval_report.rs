@@ -8,7 +8,7 @@ use std::process::Command;
 #[test]
 fn report_trains_evaluates_and_writes_report_md() {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let out = tmp.path().join("report");
     let mut args = vec![
         "report",
@@ -24,8 +24,6 @@ fn report_trains_evaluates_and_writes_report_md() {
         "24",
         "--encoder-hidden",
         "8",
-        "--eval-split",
-        "all",
         "--seed",
         "3",
         "--samples-per-epoch",
@@ -34,6 +32,7 @@ fn report_trains_evaluates_and_writes_report_md() {
     args.extend(crate::TINY_GRID_NET);
     let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)
+        .args(["--eval-split", "all"])
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -87,13 +86,14 @@ fn report_trains_evaluates_and_writes_report_md() {
         .iter()
         .all(|r| r.split('|').nth(3).unwrap().trim() == "1"));
 
-    // Rerun with --reuse: nothing is trained again (metrics.csv untouched).
+    // Rerun with --reuse: nothing is trained again (metrics.csv untouched). It evaluates the
+    // test split only (one scene): what it reuses does not depend on what is evaluated.
     let before = std::fs::metadata(out.join("runs/paper-mlp/metrics.csv"))
         .unwrap()
         .modified()
         .unwrap();
     let mut again: Vec<&str> = args.to_vec();
-    again.push("--reuse");
+    again.extend(["--eval-split", "test", "--reuse"]);
     let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&again)
         .output()
@@ -112,7 +112,7 @@ fn report_trains_evaluates_and_writes_report_md() {
 #[test]
 fn report_flags_out_of_range_are_usage_errors() {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = crate::tmp::tempdir().unwrap();
     let out = tmp.path().join("report");
     for flag in [
         "--epochs",

@@ -58,7 +58,7 @@ fn names(dir: &Path) -> Vec<String> {
 
 #[test]
 fn record_on_a_full_disk_keeps_a_complete_bag_of_what_it_flushed() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("full_disk");
     let source = source_bag();
@@ -116,7 +116,7 @@ fn record_on_a_full_disk_keeps_a_complete_bag_of_what_it_flushed() {
 
 #[test]
 fn simulate_on_a_full_disk_names_the_file_and_leaves_only_finished_bags() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("sim");
     let o = minflow_limited(
         &[
@@ -148,7 +148,7 @@ fn simulate_on_a_full_disk_names_the_file_and_leaves_only_finished_bags() {
 
 #[test]
 fn export_on_a_full_disk_leaves_no_truncated_archive() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("npz");
     let bag = source_bag();
     let o = minflow_limited(
@@ -196,7 +196,7 @@ fn train_args<'a>(out: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
 
 #[test]
 fn train_on_a_full_disk_resumes_from_its_last_good_checkpoint() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().to_str().unwrap();
     let o = minflow(&train_args(out, &["--epochs", "1"]));
     assert!(o.status.success(), "{}", stderr(&o));

@@ -32,7 +32,7 @@ fn a_scene_vector_with_three_values_is_refused() {
 
 #[test]
 fn bag_check_fails_frames_with_an_empty_scene_name() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let bag = dir.path().join("nameless.mcap");
     let source = source_bag();
     let frames = raw_messages(&source, Some(FRAMES_TOPIC));

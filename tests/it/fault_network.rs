@@ -161,7 +161,7 @@ fn small_model() -> PathBuf {
 
 #[test]
 fn locked_down_zenoh_predicts_only_on_the_authorised_publisher() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     if make_certs(dir.path(), &["node", "replay", "intruder"]).is_none() {
         return cannot_run("no `openssl` command to make the test certificates");
     }

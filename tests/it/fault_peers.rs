@@ -7,7 +7,11 @@
 //! killed.
 
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
+
+use minflow::msgs::ParticleFrame;
+use minflow::transport::{self, Sample, Transport};
 
 use crate::transport_support::*;
 
@@ -58,16 +62,39 @@ fn recorded(out: &Path, topic: &str) -> Vec<(String, u32)> {
         .collect()
 }
 
+/// Waits (at most `timeout`) until a prediction that `wanted` accepts arrives on `rx`;
+/// whether one did.
+fn wait_for(
+    rx: &Receiver<Sample>,
+    wanted: impl Fn(&ParticleFrame) -> bool,
+    timeout: Duration,
+) -> bool {
+    let deadline = Instant::now() + timeout;
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        match rx.recv_timeout(left) {
+            Ok(s) if wanted(&s.decode().unwrap()) => return true,
+            Ok(_) => {}
+            Err(_) => return false,
+        }
+    }
+    false
+}
+
 #[test]
 fn replay_killed_mid_stream_then_restarted_is_served_again() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let (input, output) = (unique_topic("rk_in"), unique_topic("rk_out"));
     let recorder = Node::spawn(
         "record",
         &["record", "--topic", &output, "-o", out.to_str().unwrap()],
     );
-    let surrogate = node("node", "zenoh", &input, &output, "1");
+    // This test watches the predictions too, to kill and stop on what it sees.
+    let session = transport::zenoh::ZenohTransport::open(None).unwrap();
+    let (tx, rx) = channel();
+    let _sub = session.subscribe(&output, tx).unwrap();
+    // It subscribes to its input once the recorder and this test subscribed to its output.
+    let surrogate = node("node", "zenoh", &input, &output, "2");
     let first = bag("multi_rope+snow_001.mcap");
     let killed = Node::spawn(
         "replay 1",
@@ -79,7 +106,13 @@ fn replay_killed_mid_stream_then_restarted_is_served_again() {
             "--loop",
         ],
     );
-    std::thread::sleep(Duration::from_secs(3));
+    // Killed once the node served its stream (a prediction arrived), mid-loop.
+    let served = wait_for(
+        &rx,
+        |f| f.scene == "multi/rope+snow/001",
+        Duration::from_secs(60),
+    );
+    assert!(served, "the first stream was never predicted");
     killed.signal("KILL");
     drop(killed);
     let second = bag("multi_liquid+snow_000.mcap");
@@ -91,7 +124,10 @@ fn replay_killed_mid_stream_then_restarted_is_served_again() {
         &replay.wait(Duration::from_secs(60)),
         "replay after the kill",
     );
-    std::thread::sleep(Duration::from_secs(2));
+    // Stopped once the prediction of the last frame arrived (the recorder subscribes as this
+    // test does), or after 10 s without it (the check below then names what is missing).
+    let last = |f: &ParticleFrame| f.scene == "multi/liquid+snow/000" && f.frame_index == 25;
+    wait_for(&rx, last, Duration::from_secs(10));
     surrogate.signal("INT");
     let node_log = ok(&surrogate.wait(Duration::from_secs(30)), "node");
     recorder.signal("INT");
@@ -136,7 +172,7 @@ fn iceoryx2_nodes_of(pid: u32) -> (usize, usize) {
 
 #[test]
 fn iceoryx2_node_killed_then_restarted_cleans_up_and_serves() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let (input, output) = (unique_topic("nk_in"), unique_topic("nk_out"));
     let first = node("node 1", "iceoryx2", &input, &output, "0");
@@ -202,7 +238,7 @@ fn iceoryx2_node_killed_then_restarted_cleans_up_and_serves() {
 fn recorder_killed_mid_stream_loses_at_most_its_flush_interval() {
     const FLUSH_S: f64 = 0.2;
     const RATE_HZ: f64 = 62.5;
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (killed_out, kept_out) = (dir.path().join("killed"), dir.path().join("kept"));
     let topic = unique_topic("rec_kill");
     let record = |name: &str, out: &Path| {
@@ -273,7 +309,7 @@ fn recorder_killed_mid_stream_loses_at_most_its_flush_interval() {
 
 #[test]
 fn launch_respawns_a_killed_node() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let file = dir.path().join("respawn.yaml");
     let topic = unique_topic("respawn");
     std::fs::write(

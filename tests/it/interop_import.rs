@@ -138,7 +138,7 @@ fn assert_lagrangebench_bag(bag: &Path, scene: &str, traj: usize) {
 /// The whole dataset becomes four bags, value for value, and the grid model trains on them.
 #[test]
 fn lagrangebench_dataset_imports_and_trains() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
@@ -187,7 +187,7 @@ fn lagrangebench_dataset_imports_and_trains() {
 /// `--splits` picks the files, `--dt` overrides metadata.json's frame spacing.
 #[test]
 fn lagrangebench_splits_and_dt_flags() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
@@ -222,7 +222,7 @@ fn lagrangebench_splits_and_dt_flags() {
 /// usage errors (exit 2) that name the type or flag, and no bag is written.
 #[test]
 fn import_flag_errors_are_usage_errors() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_lagrangebench(&data);
@@ -269,7 +269,7 @@ fn paper_values(t: usize, i: usize) -> [f64; 6] {
 /// frames `--dt` apart; a file of several datasets needs `--dataset` (exit 2 listing them).
 #[test]
 fn paper_file_imports() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (file, out) = (dir.path().join("sim.h5"), dir.path().join("bags"));
     let values: Vec<f64> = (0..T)
         .flat_map(|t| (0..N).flat_map(move |i| paper_values(t, i)))
@@ -311,7 +311,7 @@ fn paper_file_imports() {
 /// A mass that is no material id is an error naming the particle and frame.
 #[test]
 fn paper_bad_mass_is_an_error() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (file, out) = (dir.path().join("bad.h5"), dir.path().join("bags"));
     let mut values: Vec<f64> = (0..2)
         .flat_map(|t| (0..4).flat_map(move |i| paper_values(t, i)[..5].to_vec()))
@@ -332,7 +332,7 @@ fn paper_bad_mass_is_an_error() {
 /// dataset; `--dt` sets the frame spacing.
 #[test]
 fn paper_4d_dataset_is_one_bag_per_trajectory() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (file, out) = (dir.path().join("multi.h5"), dir.path().join("bags"));
     let value = |s: usize, t: usize, i: usize| -> [f64; 5] {
         let base = paper_values(t, i);

@@ -41,7 +41,7 @@ fn write_dataset(dir: &Path) {
 /// the frame spacing 0.01 * 2: (0.07, 0.001) / 0.02 = (3.5, 0.05), across the boundary too.
 #[test]
 fn h5py_written_lagrangebench_dataset_imports() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let (data, out) = (dir.path().join("lb"), dir.path().join("bags"));
     std::fs::create_dir(&data).unwrap();
     write_dataset(&data);

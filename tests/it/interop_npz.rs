@@ -97,7 +97,7 @@ fn npy_header(path: &Path, member: &str) -> String {
 
 #[test]
 fn export_npz_round_trips_frames_per_trajectory() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let a: Vec<_> = (0..5).map(|i| frame("fluid/dam/000", i, 3)).collect();
     // Scene b misses frame 2: two trajectories, two archives.
     let b: Vec<_> = [0, 1, 3, 4]
@@ -141,7 +141,7 @@ fn export_npz_round_trips_frames_per_trajectory() {
 
 #[test]
 fn export_of_no_bags_is_an_error() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let run = Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(["export", "--format", "npz", "-o"])
         .arg(dir.path().join("out"))

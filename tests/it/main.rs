@@ -60,6 +60,7 @@ mod viz_foxglove;
 mod data_support;
 mod isolated;
 mod python_support;
+mod tmp;
 mod unavailable;
 
 /// The grid network of the command-line tests (16 x 16 grid, two levels, widths 4 to 8:

@@ -205,7 +205,7 @@ fn a_device_side_rollout_equals_the_call_by_call_loop() {
 #[test]
 fn run_folders_keep_the_bundle() {
     let device = Default::default();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let config = config(MemoryKind::MinGru, 3);
     let model = initial_grid_model::<B>(&config, 1, &device).unwrap();
     store::save(dir.path(), &model, &meta(config)).unwrap();

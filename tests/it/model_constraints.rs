@@ -30,7 +30,7 @@ fn bag(name: &str) -> Trajectory {
 
 /// A copy of the shipped `model` with `constraints` in its model.json (None: without).
 fn with_constraints(model: &str, constraints: Option<&Constraints>) -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let from = repo(&format!("models/{model}"));
     std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
     let mut meta = parse_meta(&std::fs::read_to_string(from.join("model.json")).unwrap()).unwrap();
@@ -242,7 +242,7 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
         && c.liquid.is_some()
         && c.momentum.is_some()
         && c.rebound.is_some()));
-    let out = tempfile::tempdir().unwrap();
+    let out = crate::tmp::tempdir().unwrap();
     let bag = repo("bags/multi_jelly+liquid_002.mcap");
     run(&[
         "eval",

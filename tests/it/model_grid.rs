@@ -378,7 +378,7 @@ fn mirror_ensemble_is_mirror_equivariant() {
 /// 1,000, and loading returns the same predictions as the in-memory model.
 #[test]
 fn any_particle_count_and_run_folder_round_trip() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let meta = meta(MemoryKind::MinLstm);
     let NetConfig::Grid(config) = &meta.net else {
         unreachable!()

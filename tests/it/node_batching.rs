@@ -67,7 +67,7 @@ fn four_scenes() -> Vec<Vec<ParticleFrame>> {
 /// A copy of the shipped model `name` that advects its rest-shape features' F
 /// (`"deformation": "Advect"` in its model.json): the same weights, another physical state.
 fn advected(name: &str) -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let from = repo(&format!("models/{name}"));
     std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
     let mut meta: serde_json::Value =

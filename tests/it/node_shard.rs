@@ -150,17 +150,17 @@ fn sharded_nodes_predict_each_frame_once_and_take_over_a_killed_nodes_scenes() {
         seen.values().all(|&c| c == 1),
         "a frame predicted twice: {seen:?}"
     );
-    // Phase 2: kill -9 one node, 20 more rounds (4 s).
+    // Phase 2: kill -9 one node, 15 more rounds (3 s: 2 s of them after the first second).
     nodes[0].signal("KILL");
     let killed = Instant::now();
-    let second = publish_rounds(publisher.as_mut(), &base, 5..25, period);
+    let second = publish_rounds(publisher.as_mut(), &base, 5..20, period);
     let must: Vec<_> = second
         .iter()
         .filter(|(_, &t)| t >= killed + Duration::from_secs(1))
         .map(|(k, _)| k.clone())
         .collect();
     assert!(
-        must.len() >= 10 * STREAMS,
+        must.len() >= 9 * STREAMS,
         "{} frames after the first second",
         must.len()
     );

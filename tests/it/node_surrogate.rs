@@ -57,6 +57,8 @@ fn grid_model() -> PathBuf {
 /// `train --model mingru --epochs 1` with `flags` into a folder kept in `dir`.
 fn trained(dir: &'static OnceLock<tempfile::TempDir>, flags: &[&str]) -> PathBuf {
     dir.get_or_init(|| {
+        // On disk, not `crate::tmp`: a static is never dropped, and a RAM folder would
+        // outlive the run.
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("mingru");
         let data = repo("bags");
@@ -145,7 +147,7 @@ fn node_matches_offline(transport: &str) {
 /// [`node_matches_offline`] with the model in `model`, run as a mirror ensemble (`node
 /// --mirror`) when `mirror`.
 fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let input = unique_topic(&format!("{transport}_in"));
     let output = unique_topic(&format!("{transport}_out"));
@@ -267,7 +269,7 @@ fn zenoh_node_with_mirror_equals_offline_mirror_ensemble() {
 /// state).
 #[test]
 fn zenoh_node_with_constraints_equals_offline_projected_predictions() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let from = grid_model();
     std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
     let text = std::fs::read_to_string(from.join("model.json")).unwrap();
@@ -293,7 +295,7 @@ fn bad_frames_are_counted_on_status_and_the_good_scene_is_still_predicted() {
     use minflow::transport::zenoh::ZenohTransport;
     use minflow::transport::Transport;
     let model = model();
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("pred");
     let input = unique_topic("bad_in");
     let output = unique_topic("bad_out");
@@ -409,7 +411,7 @@ fn bag_frames(bag: &Path) -> Vec<ParticleFrame> {
 
 #[test]
 fn launch_replay_eval_prints_the_table() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("re");
     let o = Node::spawn(
         "launch",
@@ -440,7 +442,7 @@ fn launch_replay_eval_prints_the_table() {
 
 #[test]
 fn killing_a_required_node_stops_the_launch_with_an_error() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let file = dir.path().join("l.yaml");
     let topic = unique_topic("launch_kill");
     std::fs::write(
@@ -453,19 +455,12 @@ fn killing_a_required_node_stops_the_launch_with_an_error() {
     )
     .unwrap();
     let launch = Node::spawn("launch", &["launch", file.to_str().unwrap()]);
-    // Find the surrogate's pid in the launch log, then kill it.
-    std::thread::sleep(Duration::from_secs(3));
-    let pid = std::process::Command::new("pgrep")
-        .args(["-f", &format!("minflow node .*--in {topic}")])
-        .output()
-        .unwrap();
-    let pids = String::from_utf8_lossy(&pid.stdout);
-    let pid = pids
-        .lines()
-        .next()
-        .expect("the surrogate node runs")
-        .trim()
-        .to_owned();
+    // The surrogate's pid from the launch log ("started surrogate (pid N): ..."); once the
+    // recorder started too (so that there is one to stop), kill the surrogate.
+    let started =
+        launch.wait_for_stderr_line("[launch] started surrogate (pid ", Duration::from_secs(30));
+    let pid = started.split(')').next().unwrap().to_owned();
+    launch.wait_for_stderr_line("[launch] started recorder (pid ", Duration::from_secs(30));
     assert!(std::process::Command::new("kill")
         .args(["-KILL", &pid])
         .status()
@@ -485,7 +480,7 @@ fn killing_a_required_node_stops_the_launch_with_an_error() {
 /// cycle (it used to print nothing and wait forever).
 #[test]
 fn launch_with_an_after_cycle_exits_at_once() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let file = dir.path().join("cycle.yaml");
     std::fs::write(
         &file,

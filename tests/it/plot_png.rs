@@ -80,7 +80,7 @@ fn loss_series() -> Vec<Series> {
 
 #[test]
 fn loss_curve_has_requested_size_and_both_series_colours() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("loss.png");
     plot::line_chart(
         &path,
@@ -109,7 +109,7 @@ fn loss_curve_has_requested_size_and_both_series_colours() {
 
 #[test]
 fn panels_2x3_have_requested_size_and_every_panel_is_drawn() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("scenes.png");
     let panels: Vec<(String, Vec<Series>)> = (0..6)
         .map(|k| {
@@ -153,7 +153,7 @@ fn panels_2x3_have_requested_size_and_every_panel_is_drawn() {
 
 #[test]
 fn empty_single_point_and_non_finite_data_draw_without_panicking() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let named = |name: &str, points: Vec<(f64, f64)>| Series {
         name: name.into(),
         points,
@@ -247,7 +247,7 @@ fn empty_single_point_and_non_finite_data_draw_without_panicking() {
 
 #[test]
 fn bad_requests_and_unwritable_paths_are_errors_naming_the_file() {
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = crate::tmp::tempdir().expect("tempdir");
     let path = dir.path().join("bad.png");
     let series = loss_series();
     let invalid = [

@@ -185,7 +185,7 @@ fn replay_reaches_a_default_qos_rclpy_subscriber_every_frame() {
     let Some(env) = ros2_env() else { return };
     let dom = test_domain(0);
     let topic = unique_topic("rclpy_replay");
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("frames.bin");
     let expected = bag_frames_in_play_order();
     assert_eq!(expected.len(), 150);
@@ -243,7 +243,7 @@ fn rclpy_publisher_to_record_every_frame() {
     let Some(env) = ros2_env() else { return };
     let dom = test_domain(1);
     let topic = unique_topic("rclpy_record");
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let frames = raw_messages(&root().join("bags"), Some("/mpm/frames"));
     assert_eq!(frames.len(), 150);
     let file = dir.path().join("frames.bin");
@@ -296,7 +296,7 @@ fn rclpy_to_node_to_rclpy_with_status() {
     let input = unique_topic("rclpy_node_in");
     let output = unique_topic("rclpy_node_out");
     let status = format!("{}/status", output.trim_end_matches("/frames"));
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let frames = raw_messages(&source_bag(), Some("/mpm/frames"));
     let file = dir.path().join("frames.bin");
     write_records(&file, &frames);

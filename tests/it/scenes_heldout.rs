@@ -39,7 +39,7 @@ fn run(args: &[&str]) -> String {
 
 /// The held-out scenes `kinds`, simulated for `frames` frames into a temporary folder.
 fn simulate(kinds: &[&str], frames: u32) -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let files: Vec<PathBuf> = kinds.iter().map(|k| scene_file(k)).collect();
     let mut args = vec!["simulate".to_owned()];
     for f in &files {
@@ -127,7 +127,7 @@ fn thrown_disks_stay_two_and_come_apart_with_contact_and_run_into_each_other_wit
 #[test]
 fn eval_reports_conservation_and_the_truth_keeps_its_momentum() {
     let data = simulate(&KINDS, 40);
-    let out = tempfile::tempdir().unwrap();
+    let out = crate::tmp::tempdir().unwrap();
     let model = repo("models/all-grid-mingru-small-k4");
     run(&[
         "eval",
@@ -184,7 +184,7 @@ fn eval_reports_conservation_and_the_truth_keeps_its_momentum() {
 
 #[test]
 fn simulate_writes_mixed_scenes_of_the_family_counts() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     run(&[
         "simulate",
         "--family",

@@ -1,5 +1,5 @@
 //! Issue 35, the soak: `replay --loop` at the bag's own pace (62.5 Hz) into `node` and
-//! `record` over zenoh, for `MINFLOW_SOAK_SECS` seconds (30 in CI; `tests/soak.sh` runs
+//! `record` over zenoh, for `MINFLOW_SOAK_SECS` seconds (20 in CI; `tests/soak.sh` runs
 //! 600). Every second the resident memory (VmRSS in /proc/PID/status) of each process is
 //! sampled; this test process subscribes to the input and the predictions and measures
 //! end-to-end latency (a frame's arrival here -> the arrival of its prediction). Printed:
@@ -101,6 +101,9 @@ struct Watch {
     memory: [Vec<u64>; 3],
     /// (seconds since the first input frame, input arrival -> prediction arrival in ms).
     latencies: Vec<(f64, f64)>,
+    /// Input frames and predictions received here.
+    inputs: usize,
+    predictions: usize,
 }
 
 /// Samples memory every second and times every prediction for `secs` seconds from the
@@ -126,6 +129,7 @@ fn watch(rx: &Receiver<Sample>, input: &str, pids: [u32; 3], secs: u64) -> Watch
             continue;
         };
         let frame = sample.decode().unwrap();
+        w.count(&sample, input);
         if sample.topic == input {
             if first_input.is_none() {
                 first_input = Some(sample.received);
@@ -140,6 +144,28 @@ fn watch(rx: &Receiver<Sample>, input: &str, pids: [u32; 3], secs: u64) -> Watch
     }
     assert!(first_input.is_some(), "no frame arrived");
     w
+}
+
+impl Watch {
+    /// Counts `sample` as an input frame or a prediction.
+    fn count(&mut self, sample: &Sample, input: &str) {
+        if sample.topic == input {
+            self.inputs += 1;
+        } else {
+            self.predictions += 1;
+        }
+    }
+
+    /// After the player stopped: takes what is still on its way until every input frame
+    /// received here has its prediction, at most `limit` (the node's queue drains).
+    fn settle(&mut self, rx: &Receiver<Sample>, input: &str, limit: Duration) {
+        let deadline = Instant::now() + limit;
+        while self.predictions < self.inputs && Instant::now() < deadline {
+            if let Ok(sample) = rx.recv_timeout(Duration::from_millis(20)) {
+                self.count(&sample, input);
+            }
+        }
+    }
 }
 
 /// Prints p50/p99 of the first and last third; returns their p99s (ms).
@@ -174,8 +200,8 @@ fn soak_replay_loop_into_node_and_record() {
     let secs: u64 = std::env::var("MINFLOW_SOAK_SECS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(30);
-    let dir = tempfile::tempdir().unwrap();
+        .unwrap_or(20);
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("soak");
     let (input, output) = (unique_topic("soak_in"), unique_topic("soak_out"));
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
@@ -186,10 +212,10 @@ fn soak_replay_loop_into_node_and_record() {
     ];
     let [player, node, recorder] = spawn(&input, &output, &out);
     let pids = [&player, &node, &recorder].map(|n| n.child.as_ref().unwrap().id());
-    let w = watch(&rx, &input, pids, secs);
+    let mut w = watch(&rx, &input, pids, secs);
     player.signal("INT");
     let _ = player.wait(Duration::from_secs(30));
-    std::thread::sleep(Duration::from_secs(2));
+    w.settle(&rx, &input, Duration::from_secs(2));
     node.signal("INT");
     let node_log = ok(&node.wait(Duration::from_secs(30)), "node");
     recorder.signal("INT");

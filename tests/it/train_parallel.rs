@@ -32,7 +32,7 @@ fn data_parallel_equals_one_device_alone() {
         ..options(4)
     };
     let run = |devices: Vec<_>| {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::tmp::tempdir().unwrap();
         let trainer = Trainer::<B>::data_parallel(
             tiny(CoreKind::MinGru, 32),
             opts.clone(),

@@ -41,7 +41,10 @@ fn resumed_run_equals_uninterrupted_run_alone() {
     let scaler = Scaler::fit(&[&traj]);
     let index = WindowIndex::new(vec![traj], 2, scaler).unwrap();
     let config = || tiny(CoreKind::MinGru, 32).with_dropout(0.2);
-    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (a, b) = (
+        crate::tmp::tempdir().unwrap(),
+        crate::tmp::tempdir().unwrap(),
+    );
     let full = Trainer::<B>::new(config(), options(4), a.path().into(), Default::default())
         .fit(&index, None, &scaler, false, |_, _| {})
         .unwrap();

@@ -16,7 +16,7 @@ const SOURCE_FRAMES: usize = 25;
 /// replay (source bag, --topic T) -> record (--topic T --count 25); the recording equals
 /// the source message for message.
 fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic(transport);
     let mut rec_args = vec![
@@ -103,7 +103,7 @@ fn ros2_replay_record_roundtrip() {
 
 #[test]
 fn zenoh_peers_from_config_files_without_multicast() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let port = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         l.local_addr().unwrap().port()
@@ -136,7 +136,7 @@ fn zenoh_peers_from_config_files_without_multicast() {
 
 #[test]
 fn zenoh_late_subscriber_gets_frames_published_after_it_joined() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let topic = unique_topic("late");
     let source = source_bag();
     let _player = Node::spawn(
@@ -206,7 +206,7 @@ fn iceoryx2_publisher_killed_then_restarted_serves_a_new_subscriber() {
     first.signal("KILL");
     drop(first);
     let _second = play("replay 2");
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("after_kill");
     let recorder = Node::spawn(
         "record",
@@ -232,7 +232,7 @@ fn iceoryx2_publisher_killed_then_restarted_serves_a_new_subscriber() {
 /// Replays the 25 source frames into a recorder that is then stopped by `signal`; returns the
 /// output folder (kept alive by the returned TempDir) and the recorder's stderr.
 fn record_then_signal(signal: &str) -> (tempfile::TempDir, std::path::PathBuf) {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic(&signal.to_lowercase());
     let recorder = Node::spawn(
@@ -290,7 +290,7 @@ fn recorder_terminated_leaves_a_complete_bag() {
 #[test]
 fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
     use minflow::transport::{self, Transport};
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("malformed");
     let recorder = Node::spawn(
@@ -349,7 +349,7 @@ fn malformed_zenoh_payloads_are_counted_and_recording_goes_on() {
 /// with or without `--overwrite`, and the first one's bag keeps every frame.
 #[test]
 fn a_second_recorder_on_the_same_folder_is_refused() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("lock");
     let args = |extra: &'static [&'static str]| {

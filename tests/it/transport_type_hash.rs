@@ -82,7 +82,7 @@ fn rust_and_python_agree_on_minflow_messages() {
 
 #[test]
 fn standard_types_hash_as_ros2_jazzy_publishes() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let string_msg = dir.path().join("String.msg");
     std::fs::write(&string_msg, "string data\n").unwrap();
     let def = format!("std_msgs/msg/String={}", string_msg.display());
@@ -135,7 +135,7 @@ fn field_types_follow_type_description_interfaces() {
     assert_eq!(d.fields[7].nested_type_name, "p/msg/Other");
     assert_eq!(d.fields[8].nested_type_name, "std_msgs/msg/Header");
 
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let defs: [(&str, &str); 5] = [
         ("p/msg/T", text),
         ("p/msg/Other", "# nothing but a comment\nint32 A=1\n"),

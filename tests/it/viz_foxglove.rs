@@ -171,7 +171,7 @@ fn bad_foxglove_addresses_are_usage_errors() {
 fn record_points_writes_clouds_foxglove_reads_from_the_bag() {
     let bag = source_bag();
     let want = frames(&bag);
-    let dir = tempfile::tempdir().unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic("vizrec");
     let recorder = Node::spawn(
