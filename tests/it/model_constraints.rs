@@ -191,7 +191,11 @@ fn batched_projected_steps_equal_steps_one_scene_at_a_time() {
 #[test]
 fn the_fitted_liquid_density_leaves_the_truth_in_place() {
     let trajs = vec![bag("fluid_circle_000"), bag("fluid_splash_002")];
-    let (c, report) = constraints::fit(&trajs, &Constraints::defaults());
+    let base = Constraints {
+        liquid: Some(constraints::DensityParams::LOOSE),
+        ..Constraints::default()
+    };
+    let (c, report) = constraints::fit(&trajs, &base);
     let rest = c.liquid.unwrap().rest;
     let &(tried, moved) = report.liquid_moves.last().unwrap();
     assert_eq!(tried, rest);
@@ -203,6 +207,34 @@ fn the_fitted_liquid_density_leaves_the_truth_in_place() {
     if report.liquid_moves.len() > 1 {
         let (_, before) = report.liquid_moves[report.liquid_moves.len() - 2];
         assert!(before >= constraints::fit::TRUTH_MOVE);
+    }
+}
+
+/// The pressure part's threshold, fitted per solver grid on bags that record it (the bundled
+/// ones), moves the truth's own liquid less than 0.02 spacings a frame on each grid, and a
+/// tighter one moves it more (the check: the truth stays in place).
+#[test]
+fn the_fitted_pressure_threshold_leaves_the_truth_in_place() {
+    let trajs: Vec<_> = ["fluid_circle_000", "fluid_splash_002", "multi_jelly+liquid_002"]
+        .into_iter()
+        .map(bag)
+        .collect();
+    assert!(trajs.iter().all(|t| t.solver_grid.is_some()), "the bags record their grid");
+    let base = Constraints {
+        pressure: Constraints::defaults().pressure,
+        ..Constraints::default()
+    };
+    let (c, report) = constraints::fit(&trajs, &base);
+    let p = c.pressure.unwrap();
+    assert_eq!(report.pressure_by_grid.len(), 2, "the 64 x 64 and 128 x 128 scenes");
+    for (grid, moves, met) in &report.pressure_by_grid {
+        assert!(*met, "grid {grid}: {moves:?}");
+        let &(tried, moved) = moves.last().unwrap();
+        assert_eq!(tried, p.rest_for(Some(*grid)));
+        assert!(moved < constraints::fit::TRUTH_MOVE, "grid {grid}: {moved}");
+        if moves.len() > 1 {
+            assert!(moves[moves.len() - 2].1 >= constraints::fit::TRUTH_MOVE, "{moves:?}");
+        }
     }
 }
 
@@ -239,7 +271,8 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
     let meta =
         parse_meta(&std::fs::read_to_string(dir.path().join("model.json")).unwrap()).unwrap();
     assert!(meta.constraints.is_some_and(|c| c.rope.is_some()
-        && c.liquid.is_some()
+        && c.pressure.is_some()
+        && c.liquid.is_none()
         && c.momentum.is_some()
         && c.rebound.is_some()));
     let out = crate::tmp::tempdir().unwrap();
