@@ -2,9 +2,10 @@
 //! Method with Displacement Discontinuity and Two-Way Rigid Body Coupling"; Taichi's mpm99):
 //! the one definition of its per-axis weights that every CPU site reads: the solver's P2G and
 //! G2P ([`crate::sim::mpm`]), the grid models' particle <-> grid transfers
-//! ([`crate::ops::bspline_axis`]) and the liquid's density constraint
-//! (`model::constraints::density`). Each site finds its own base node and fractional offset
-//! (clamped or not, `x / dx` or `x * inv_dx`) and asks [`weights`] for the three weights.
+//! ([`crate::ops::bspline_axis`]) and the liquid's density and pressure parts
+//! (`model::constraints`, through [`stencil`]). Each site finds its own base node and
+//! fractional offset (clamped or not, `x / dx` or `x * inv_dx`) and asks [`weights`] for the
+//! three weights.
 //!
 //! The GPU transfer kernel (`ops::cuda_stencil`, cubecl) evaluates the same spline in its
 //! own form, by distance `x` to each node (`0.75 - x^2` within 0.5, `0.5 (1.5 - |x|)^2`
@@ -21,6 +22,24 @@ pub fn weights(f: f32) -> [f32; 3] {
     let b = f - 1.0;
     let c = f - 0.5;
     [0.5 * a * a, 0.75 - b * b, 0.5 * c * c]
+}
+
+/// The 3 x 3 nodes of a position `(x, y)` on nodes of spacing `h` (node `i` at `i h`): the
+/// lower node, the fractional offsets `f` per axis and the [`weights`] per axis. Used by the
+/// liquid's density and pressure parts (`model::constraints`).
+#[inline]
+pub fn stencil(x: f32, y: f32, h: f32) -> ([i32; 2], [f32; 2], [[f32; 3]; 2]) {
+    let mut base = [0i32; 2];
+    let mut frac = [0.0f32; 2];
+    let mut w = [[0.0f32; 3]; 2];
+    for (a, v) in [x, y].into_iter().enumerate() {
+        let g = v / h;
+        let b = (g - 0.5).floor();
+        base[a] = b as i32;
+        frac[a] = g - b;
+        w[a] = weights(frac[a]);
+    }
+    (base, frac, w)
 }
 
 #[cfg(test)]

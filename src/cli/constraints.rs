@@ -142,12 +142,7 @@ fn print_fit(
                 false => " (NOT MET: no rest density tried moves the truth less than 0.02)",
             },
             measured.liquid_frames,
-            measured
-                .liquid_moves
-                .iter()
-                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
-                .collect::<Vec<_>>()
-                .join(", ")
+            moves_text(&measured.liquid_moves)
         );
     }
     if let Some(p) = &fitted.pressure {
@@ -159,12 +154,7 @@ fn print_fit(
                 true => "",
                 false => " (NOT MET: no threshold tried moves the truth less than 0.02)",
             },
-            measured
-                .pressure_moves
-                .iter()
-                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
-                .collect::<Vec<_>>()
-                .join(", ")
+            moves_text(&measured.pressure_moves)
         );
     }
     for (grid, moves, met) in &measured.pressure_by_grid {
@@ -172,16 +162,18 @@ fn print_fit(
         println!(
             "  - scenes of the {grid} x {grid} solver grid: above {rest:.2}{} ({})",
             if *met { "" } else { " (NOT MET)" },
-            moves
-                .iter()
-                .map(|(r, m)| format!("{r:.2}: {m:.4}"))
-                .collect::<Vec<_>>()
-                .join(", ")
+            moves_text(moves)
         );
     }
     if let Some(w) = fitted.walls {
         println!("- walls: [{:.5}, {:.5}]", w.lo, w.hi);
     }
+}
+
+/// The truth's move for each value tried, `value: move` in order.
+fn moves_text(moves: &[(f32, f64)]) -> String {
+    let each: Vec<String> = moves.iter().map(|(r, m)| format!("{r:.2}: {m:.4}")).collect();
+    each.join(", ")
 }
 
 /// Snow shape matching when `--parts` asks for snow: a rest shape that yields half its

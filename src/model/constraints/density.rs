@@ -58,17 +58,8 @@ struct Stencil {
 
 impl Stencil {
     fn at(x: f32, y: f32, h: f32) -> Self {
-        let mut base = [0i32; 2];
-        let mut w = [[0.0f32; 3]; 2];
-        let mut dw = [[0.0f32; 3]; 2];
-        for (a, v) in [x, y].into_iter().enumerate() {
-            let g = v / h;
-            let b = (g - 0.5).floor();
-            let f = g - b;
-            base[a] = b as i32;
-            w[a] = crate::bspline::weights(f);
-            dw[a] = [-(1.5 - f) / h, -2.0 * (f - 1.0) / h, (f - 0.5) / h];
-        }
+        let (base, frac, w) = crate::bspline::stencil(x, y, h);
+        let dw = frac.map(|f| [-(1.5 - f) / h, -2.0 * (f - 1.0) / h, (f - 0.5) / h]);
         Self { base, w, dw }
     }
 }

@@ -77,20 +77,6 @@ const CLOSED: u8 = 2;
 /// A node in the walls: closed, and its faces' velocity is the wall's, zero.
 const WALL: u8 = 3;
 
-/// Quadratic B-spline stencil of a position on nodes of spacing `h`: the lower node and the
-/// per-axis weights.
-fn quadratic(x: f32, y: f32, h: f32) -> ([i32; 2], [[f32; 3]; 2]) {
-    let mut base = [0i32; 2];
-    let mut w = [[0.0f32; 3]; 2];
-    for (a, v) in [x, y].into_iter().enumerate() {
-        let g = v / h;
-        let b = (g - 0.5).floor();
-        base[a] = b as i32;
-        w[a] = crate::bspline::weights(g - b);
-    }
-    (base, w)
-}
-
 /// Bilinear stencil on a lattice offset by `(ox, oy)` cells: the lower lattice point and the
 /// fractions along each axis.
 fn bilinear(x: f32, y: f32, h: f32, ox: f32, oy: f32) -> ([i32; 2], [f32; 2]) {
@@ -172,7 +158,7 @@ impl Pressure {
     /// Visits the 9 nodes of the quadratic stencil at `(x, y)` (clamped into the grid): node
     /// index and weight.
     fn each_quadratic(&self, x: f32, y: f32, mut visit: impl FnMut(usize, f32)) {
-        let (base, w) = quadratic(x, y, self.h);
+        let (base, _, w) = crate::bspline::stencil(x, y, self.h);
         let c = |v: i32| v.clamp(0, self.side as i32 - 1) as usize;
         for (a, wa) in w[0].iter().enumerate() {
             for (b, wb) in w[1].iter().enumerate() {
