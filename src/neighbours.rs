@@ -139,6 +139,11 @@ impl Bins {
         }
     }
 
+    /// The binned particles of cell `c` (`gx cells + gy`), in the order of `ids`.
+    fn cell(&self, c: usize) -> &[u32] {
+        &self.order[self.start[c] as usize..self.start[c + 1] as usize]
+    }
+
     /// Calls `visit(j)` for every binned particle in cells `(gx, low..=high)`: one slice of
     /// `order`, as the cells of one x index are consecutive.
     fn run(&self, gx: i64, low: i64, high: i64, visit: &mut impl FnMut(usize)) {
@@ -185,17 +190,71 @@ impl Components {
     }
 
     /// Joins every two particles of `ids` no farther than `radius` apart in `pos` (`[N,
-    /// stride]` rows, x and y first, domain units): a fixed-radius search over [`Bins`].
+    /// stride]` rows, x and y first, domain units): the connected pieces of that graph.
+    ///
+    /// The cell-list form of grid-based DBSCAN (Gunawan 2013, "A faster algorithm for
+    /// DBSCAN", section 3): on cells of side below `radius / sqrt(2)` the particles of one
+    /// cell are all within `radius` of each other and join without a test; two cells up to 2
+    /// apart are tested pair by pair only until one pair joins them, and not at all when they
+    /// are joined already. The same sets as testing every pair (`hypot <= radius`); cells that
+    /// hold particles outside the box (its border cells) test every pair.
     pub fn join_within(&mut self, pos: &[f32], stride: usize, ids: &[u32], radius: f32) {
-        let bins = Bins::for_radius(pos, stride, ids, radius);
-        for &i in ids {
-            let i = i as usize;
-            let (x, y) = (pos[stride * i], pos[stride * i + 1]);
-            bins.around(x, y, |j| {
-                if j > i && (pos[stride * j] - x).hypot(pos[stride * j + 1] - y) <= radius {
-                    self.join(i, j);
+        let cells = (std::f32::consts::SQRT_2 * 1.001 / radius.max(1e-6)).ceil() as usize;
+        let bins = Bins::new(pos, stride, ids, cells.clamp(1, 1024));
+        let near = |i: usize, j: usize| {
+            let (a, b) = (&pos[stride * i..], &pos[stride * j..]);
+            (b[0] - a[0]).hypot(b[1] - a[1]) <= radius
+        };
+        let g = bins.cells;
+        let inside = |i: u32| {
+            let row = &pos[stride * i as usize..];
+            (0.0..1.0).contains(&row[0]) && (0.0..1.0).contains(&row[1])
+        };
+        // A cell is whole when its particles are joined to each other by the rule above.
+        let whole: Vec<bool> = (0..g * g)
+            .map(|c| cells <= 1024 && bins.cell(c).iter().all(|&i| inside(i)))
+            .collect();
+        for c in (0..g * g).filter(|&c| !bins.cell(c).is_empty()) {
+            let here = bins.cell(c);
+            if whole[c] {
+                here[1..].iter().for_each(|&j| self.join(here[0] as usize, j as usize));
+            } else {
+                self.join_pairs(here, here, true, &near);
+            }
+            let (cx, cy) = ((c / g) as i64, (c % g) as i64);
+            // Cells are at least radius / 2 wide: a pair within radius is at most 2 apart.
+            for (dx, dy) in (0..=2).flat_map(|dx| (-2..=2).map(move |dy| (dx, dy))) {
+                let (ox, oy) = (cx + dx, cy + dy);
+                if (dx == 0 && dy <= 0) || ox >= g as i64 || oy < 0 || oy >= g as i64 {
+                    continue;
                 }
-            });
+                let d = ox as usize * g + oy as usize;
+                let there = bins.cell(d);
+                if there.is_empty() {
+                    continue;
+                }
+                let both = whole[c] && whole[d];
+                if both && self.root(here[0] as usize) == self.root(there[0] as usize) {
+                    continue;
+                }
+                self.join_pairs(here, there, !both, &near);
+            }
+        }
+    }
+
+    /// Joins the pairs of `a` x `b` that `near` accepts; after the first join when `every`
+    /// is false (each side already one set).
+    fn join_pairs(&mut self, a: &[u32], b: &[u32], every: bool, near: &impl Fn(usize, usize) -> bool) {
+        for &i in a {
+            for &j in b {
+                let (i, j) = (i as usize, j as usize);
+                if i != j && near(i, j) {
+                    self.join(i, j);
+                    if !every {
+                        return;
+                    }
+                }
+            }
         }
     }
 
@@ -376,6 +435,30 @@ mod tests {
                 .collect();
             assert_eq!(got, want);
             assert!(!want.is_empty());
+        }
+    }
+
+    /// `join_within` gives the sets of testing every pair, for a cloud with duplicates and
+    /// points outside the box, at radii from below a lattice spacing to where most join.
+    #[test]
+    fn join_within_matches_every_pair() {
+        let (pos, mat) = cloud(1200, 30, 11);
+        let ids: Vec<u32> = (0..1200).filter(|&i| mat[i as usize] != 2).collect();
+        for radius in [0.005f32, 1.0 / 128.0, 0.02, 0.035] {
+            let mut fast = Components::new(1200);
+            fast.join_within(&pos, 2, &ids, radius);
+            let mut every = Components::new(1200);
+            for &i in &ids {
+                for &j in &ids {
+                    let (i, j) = (i as usize, j as usize);
+                    if (pos[2 * j] - pos[2 * i]).hypot(pos[2 * j + 1] - pos[2 * i + 1]) <= radius {
+                        every.join(i, j);
+                    }
+                }
+            }
+            let (got, want) = (fast.groups(&ids), every.groups(&ids));
+            assert!(want.len() > 1 && want.len() < ids.len(), "{radius}: {}", want.len());
+            assert_eq!(got, want, "radius {radius}");
         }
     }
 }
