@@ -144,6 +144,20 @@ impl Bins {
         &self.order[self.start[c] as usize..self.start[c + 1] as usize]
     }
 
+    /// Each cell's bounding box of its particles, `[x_min, y_min, x_max, y_max]` (an empty
+    /// cell's is inverted, infinite).
+    fn boxes(&self, pos: &[f32], stride: usize) -> Vec<[f32; 4]> {
+        (0..self.cells * self.cells)
+            .map(|c| {
+                let init = [f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY];
+                self.cell(c).iter().fold(init, |b, &i| {
+                    let row = &pos[stride * i as usize..];
+                    [b[0].min(row[0]), b[1].min(row[1]), b[2].max(row[0]), b[3].max(row[1])]
+                })
+            })
+            .collect()
+    }
+
     /// Calls `visit(j)` for every binned particle in cells `(gx, low..=high)`: one slice of
     /// `order`, as the cells of one x index are consecutive.
     fn run(&self, gx: i64, low: i64, high: i64, visit: &mut impl FnMut(usize)) {
@@ -201,9 +215,14 @@ impl Components {
     pub fn join_within(&mut self, pos: &[f32], stride: usize, ids: &[u32], radius: f32) {
         let cells = (std::f32::consts::SQRT_2 * 1.001 / radius.max(1e-6)).ceil() as usize;
         let bins = Bins::new(pos, stride, ids, cells.clamp(1, 1024));
+        // `hypot <= radius`, its libm call made only where the squared distance is within
+        // 1e-4 of radius^2 (the squares' rounding is far below that).
+        let (below, above) = (radius * radius * (1.0 - 1e-4), radius * radius * (1.0 + 1e-4));
         let near = |i: usize, j: usize| {
             let (a, b) = (&pos[stride * i..], &pos[stride * j..]);
-            (b[0] - a[0]).hypot(b[1] - a[1]) <= radius
+            let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+            let d2 = dx * dx + dy * dy;
+            d2 < below || (d2 <= above && dx.hypot(dy) <= radius)
         };
         let g = bins.cells;
         let inside = |i: u32| {
@@ -214,6 +233,7 @@ impl Components {
         let whole: Vec<bool> = (0..g * g)
             .map(|c| cells <= 1024 && bins.cell(c).iter().all(|&i| inside(i)))
             .collect();
+        let boxes = bins.boxes(pos, stride);
         for c in (0..g * g).filter(|&c| !bins.cell(c).is_empty()) {
             let here = bins.cell(c);
             if whole[c] {
@@ -235,6 +255,12 @@ impl Components {
                 }
                 let both = whole[c] && whole[d];
                 if both && self.root(here[0] as usize) == self.root(there[0] as usize) {
+                    continue;
+                }
+                // No pair can be near when the cells' bounding boxes are farther apart.
+                let (a, b) = (boxes[c], boxes[d]);
+                let gap = |lo: usize, hi: usize| (b[lo] - a[hi]).max(a[lo] - b[hi]).max(0.0);
+                if gap(0, 2).powi(2) + gap(1, 3).powi(2) > above {
                     continue;
                 }
                 self.join_pairs(here, there, !both, &near);

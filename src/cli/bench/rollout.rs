@@ -9,7 +9,9 @@
 //! MSE against the simulated frames (`avgH`, the model's scaler). The ratio comes from one run,
 //! so it holds on a noisy machine; quote it rather than the milliseconds. With several
 //! `--constraints` settings each model gets a row per setting (`DIR[setting]`): the
-//! projection's own cost is the difference of its `on` and `off` rows. With
+//! projection's own cost is the difference of its `on` and `off` rows; the last column is
+//! the projection's wall time a frame (all parts, measured inside the rollout) and its share
+//! of the frame. With
 //! `MINFLOW_CALL_STAGES=1` a line under each row splits a grid call's wall time by stage
 //! (input, record, device, output; `model::store::stages`).
 
@@ -101,6 +103,8 @@ struct Row {
     seconds: f64,
     mse: f64,
     stages: Option<([f64; 4], usize)>,
+    /// Seconds of those spent in the constraint projection.
+    projection: f64,
 }
 
 /// The shape of a benchmark rollout.
@@ -129,6 +133,7 @@ fn roll<B: NetOps>(
     let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
     let _ = stages::take(); // Earlier calls (a warm-up) are not this row's.
+    let _ = stages::take_projection();
     for chunk in scenes.chunks(batch) {
         let cat =
             |k: usize| -> Vec<f32> { chunk.iter().flat_map(|s| s.frames[k].clone()).collect() };
@@ -152,6 +157,7 @@ fn roll<B: NetOps>(
         seconds,
         mse: sum / count.max(1) as f64,
         stages: stages::take(),
+        projection: stages::take_projection(),
     })
 }
 
@@ -232,9 +238,9 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         }
     );
     println!(
-        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE |\n| --- | ---: | ---: | ---: | ---: | ---: |"
+        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE | projection ms/frame (share) |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: |"
     );
-    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | |");
+    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | | |");
     let mut settings = args.constraints.clone();
     settings.dedup();
     let rows = args
@@ -255,17 +261,19 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
             1 => dir.display().to_string(),
             _ => format!("{}[{parts}]", dir.display()),
         };
+        let projection = row.projection * 1e3 / (scenes.len() * h) as f64;
         println!(
-            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} |",
+            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} | {projection:.3} ({:.0} %) |",
             row.bundle,
             h.div_ceil(row.bundle),
             ms / solver_ms,
-            row.mse
+            row.mse,
+            100.0 * projection / ms.max(f64::MIN_POSITIVE)
         );
         if let Some(([input, record, device, output], calls)) = row.stages {
             println!(
                 "|   stages, ms a call ({calls} calls): input {input:.2}, record {record:.2}, \
-                 device {device:.2}, output {output:.2} | | | | | |"
+                 device {device:.2}, output {output:.2} | | | | | | |"
             );
         }
     }

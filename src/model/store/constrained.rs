@@ -113,6 +113,7 @@ impl ConstraintState {
         out: &mut [Vec<f32>],
     ) -> Vec<Correction> {
         use rayon::prelude::*;
+        let started = std::time::Instant::now();
         let b = dt.len();
         let n = material.len() / b;
         let per = n * 4;
@@ -130,7 +131,8 @@ impl ConstraintState {
                 row.push(chunk);
             }
         }
-        self.shapes
+        let moved = self
+            .shapes
             .par_iter()
             .zip(rows.par_iter_mut())
             .enumerate()
@@ -143,7 +145,9 @@ impl ConstraintState {
                 });
                 project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })
-            .collect()
+            .collect();
+        super::stages::count_projection(started.elapsed());
+        moved
     }
 }
 

@@ -8,8 +8,11 @@
 //! returns before the device has run them), the device (a wait for the GPU to finish what
 //! was queued; on the CPU nothing is left to wait for), and the output (the predictions
 //! downloaded and split by frame). The device stage's wait is one the download makes anyway.
+//!
+//! The constraint projection's wall time is counted always (one clock read a call):
+//! [`take_projection`].
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -69,4 +72,19 @@ pub fn take() -> Option<([f64; 4], usize)> {
     let calls = CALLS.swap(0, Ordering::Relaxed);
     let seconds = std::mem::take(&mut *SECONDS.lock().unwrap_or_else(|e| e.into_inner()));
     (calls > 0).then(|| (seconds.map(|s| s * 1e3 / calls as f64), calls))
+}
+
+/// Nanoseconds of constraint projection (every scene of a call), summed since the last
+/// [`take_projection`].
+static PROJECTION_NS: AtomicU64 = AtomicU64::new(0);
+
+/// Adds one projection's wall time.
+pub(super) fn count_projection(took: std::time::Duration) {
+    let ns = u64::try_from(took.as_nanos()).unwrap_or(u64::MAX);
+    PROJECTION_NS.fetch_add(ns, Ordering::Relaxed);
+}
+
+/// Seconds of constraint projection since the last take (all threads' calls), then zeroed.
+pub fn take_projection() -> f64 {
+    PROJECTION_NS.swap(0, Ordering::Relaxed) as f64 * 1e-9
 }
