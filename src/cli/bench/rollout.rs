@@ -9,9 +9,10 @@
 //! MSE against the simulated frames (`avgH`, the model's scaler). The ratio comes from one run,
 //! so it holds on a noisy machine; quote it rather than the milliseconds. With several
 //! `--constraints` settings each model gets a row per setting (`DIR[setting]`): the
-//! projection's own cost is the difference of its `on` and `off` rows; the last column is
-//! the projection's wall time a frame (all parts, measured inside the rollout) and its share
-//! of the frame. With
+//! projection's own cost is the difference of its `on` and `off` rows; the last two columns
+//! are the projection's wall time a frame (all parts, measured inside the rollout) and its
+//! share of the frame, and the thread time a scene spent once building its constraint data
+//! (inside that wall time; over a whole scene it is spread over every frame). With
 //! `MINFLOW_CALL_STAGES=1` a line under each row splits a grid call's wall time by stage
 //! (input, record, device, output; `model::store::stages`).
 
@@ -105,6 +106,8 @@ struct Row {
     stages: Option<([f64; 4], usize)>,
     /// Seconds of those spent in the constraint projection.
     projection: f64,
+    /// Thread seconds of building the scenes' constraint data, and the scenes built.
+    setup: (f64, usize),
 }
 
 /// The shape of a benchmark rollout.
@@ -133,7 +136,7 @@ fn roll<B: NetOps>(
     let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
     let _ = stages::take(); // Earlier calls (a warm-up) are not this row's.
-    let _ = stages::take_projection();
+    let _ = (stages::take_projection(), stages::take_setup());
     for chunk in scenes.chunks(batch) {
         let cat =
             |k: usize| -> Vec<f32> { chunk.iter().flat_map(|s| s.frames[k].clone()).collect() };
@@ -158,6 +161,7 @@ fn roll<B: NetOps>(
         mse: sum / count.max(1) as f64,
         stages: stages::take(),
         projection: stages::take_projection(),
+        setup: stages::take_setup(),
     })
 }
 
@@ -238,9 +242,9 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         }
     );
     println!(
-        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE | projection ms/frame (share) |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: |"
+        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
     );
-    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | | |");
+    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | | | |");
     let mut settings = args.constraints.clone();
     settings.dedup();
     let rows = args
@@ -262,8 +266,9 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
             _ => format!("{}[{parts}]", dir.display()),
         };
         let projection = row.projection * 1e3 / (scenes.len() * h) as f64;
+        let setup = row.setup.0 * 1e3 / row.setup.1.max(1) as f64;
         println!(
-            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} | {projection:.3} ({:.0} %) |",
+            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} | {projection:.3} ({:.0} %) | {setup:.2} |",
             row.bundle,
             h.div_ceil(row.bundle),
             ms / solver_ms,
@@ -273,7 +278,7 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         if let Some(([input, record, device, output], calls)) = row.stages {
             println!(
                 "|   stages, ms a call ({calls} calls): input {input:.2}, record {record:.2}, \
-                 device {device:.2}, output {output:.2} | | | | | | |"
+                 device {device:.2}, output {output:.2} | | | | | | | |"
             );
         }
     }

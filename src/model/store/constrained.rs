@@ -141,7 +141,11 @@ impl ConstraintState {
                 // Each row its own slot (a padded call's copies are detached).
                 let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
                 let shape = shape.get_or_insert_with(|| {
-                    SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grids[i])
+                    let started = std::time::Instant::now();
+                    let made =
+                        SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grids[i]);
+                    super::stages::count_setup(started.elapsed());
+                    made
                 });
                 project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })

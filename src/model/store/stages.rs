@@ -10,7 +10,8 @@
 //! downloaded and split by frame). The device stage's wait is one the download makes anyway.
 //!
 //! The constraint projection's wall time is counted always (one clock read a call):
-//! [`take_projection`].
+//! [`take_projection`], and the thread time of building each scene's constraint data on its
+//! first projection (a once-a-scene cost inside that wall time): [`take_setup`].
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -87,4 +88,22 @@ pub(super) fn count_projection(took: std::time::Duration) {
 /// Seconds of constraint projection since the last take (all threads' calls), then zeroed.
 pub fn take_projection() -> f64 {
     PROJECTION_NS.swap(0, Ordering::Relaxed) as f64 * 1e-9
+}
+
+/// Nanoseconds of building scenes' constraint data (thread time, every thread), and the
+/// scenes built, since the last [`take_setup`].
+static SETUP_NS: AtomicU64 = AtomicU64::new(0);
+static SETUPS: AtomicUsize = AtomicUsize::new(0);
+
+/// Adds one scene's constraint-data build.
+pub(super) fn count_setup(took: std::time::Duration) {
+    let ns = u64::try_from(took.as_nanos()).unwrap_or(u64::MAX);
+    SETUP_NS.fetch_add(ns, Ordering::Relaxed);
+    SETUPS.fetch_add(1, Ordering::Relaxed);
+}
+
+/// Seconds of constraint-data builds and the scenes built since the last take, then zeroed.
+pub fn take_setup() -> (f64, usize) {
+    let ns = SETUP_NS.swap(0, Ordering::Relaxed);
+    (ns as f64 * 1e-9, SETUPS.swap(0, Ordering::Relaxed))
 }
