@@ -234,36 +234,42 @@ impl Components {
             .map(|c| cells <= 1024 && bins.cell(c).iter().all(|&i| inside(i)))
             .collect();
         let boxes = bins.boxes(pos, stride);
-        for c in (0..g * g).filter(|&c| !bins.cell(c).is_empty()) {
+        let occupied: Vec<usize> = (0..g * g).filter(|&c| !bins.cell(c).is_empty()).collect();
+        for &c in &occupied {
             let here = bins.cell(c);
             if whole[c] {
                 here[1..].iter().for_each(|&j| self.join(here[0] as usize, j as usize));
             } else {
                 self.join_pairs(here, here, true, &near);
             }
-            let (cx, cy) = ((c / g) as i64, (c % g) as i64);
-            // Cells are at least radius / 2 wide: a pair within radius is at most 2 apart.
-            for (dx, dy) in (0..=2).flat_map(|dx| (-2..=2).map(move |dy| (dx, dy))) {
-                let (ox, oy) = (cx + dx, cy + dy);
-                if (dx == 0 && dy <= 0) || ox >= g as i64 || oy < 0 || oy >= g as i64 {
-                    continue;
+        }
+        // Cells are at least radius / 2 wide: a pair within radius is at most 2 apart. The
+        // adjacent cells first: where they join a region, the farther ones need no test.
+        for ring in 1..=2 {
+            for &c in &occupied {
+                let (cx, cy) = ((c / g) as i64, (c % g) as i64);
+                for (dx, dy) in (0..=2).flat_map(|dx| (-2..=2i64).map(move |dy| (dx, dy))) {
+                    let (ox, oy) = (cx + dx, cy + dy);
+                    let outside = ox >= g as i64 || oy < 0 || oy >= g as i64;
+                    if (dx == 0 && dy <= 0) || dx.max(dy.abs()) != ring || outside {
+                        continue;
+                    }
+                    let d = ox as usize * g + oy as usize;
+                    let (here, there) = (bins.cell(c), bins.cell(d));
+                    if there.is_empty() {
+                        continue;
+                    }
+                    let both = whole[c] && whole[d];
+                    if both && self.root(here[0] as usize) == self.root(there[0] as usize) {
+                        continue;
+                    }
+                    // No pair can be near when the cells' bounding boxes are farther apart.
+                    let (a, b) = (boxes[c], boxes[d]);
+                    let gap = |lo: usize, hi: usize| (b[lo] - a[hi]).max(a[lo] - b[hi]).max(0.0);
+                    if gap(0, 2).powi(2) + gap(1, 3).powi(2) <= above {
+                        self.join_pairs(here, there, !both, &near);
+                    }
                 }
-                let d = ox as usize * g + oy as usize;
-                let there = bins.cell(d);
-                if there.is_empty() {
-                    continue;
-                }
-                let both = whole[c] && whole[d];
-                if both && self.root(here[0] as usize) == self.root(there[0] as usize) {
-                    continue;
-                }
-                // No pair can be near when the cells' bounding boxes are farther apart.
-                let (a, b) = (boxes[c], boxes[d]);
-                let gap = |lo: usize, hi: usize| (b[lo] - a[hi]).max(a[lo] - b[hi]).max(0.0);
-                if gap(0, 2).powi(2) + gap(1, 3).powi(2) > above {
-                    continue;
-                }
-                self.join_pairs(here, there, !both, &near);
             }
         }
     }
