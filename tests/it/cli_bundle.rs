@@ -157,14 +157,24 @@ fn assert_structure(table: &str, csv: &str) {
     assert!(volume > 0.0, "rope volume ratio {volume}");
 }
 
+/// `bench rollout` prints each model's row against the solver, and with `--constraints off
+/// --constraints on` the projection's share and its setup: nothing when off, both above 0
+/// for a shipped model with its parts on.
 #[test]
 fn bench_rollout_prints_the_model_against_the_solver() {
     let model = bundled_model();
+    let shipped = repo("models/all-grid-mingru-small-k4");
     let args = [
         "bench",
         "rollout",
         "--model",
         model.to_str().unwrap(),
+        "--model",
+        shipped.to_str().unwrap(),
+        "--constraints",
+        "off",
+        "--constraints",
+        "on",
         "--scenes",
         "1",
         "--frames",
@@ -187,6 +197,17 @@ fn bench_rollout_prints_the_model_against_the_solver() {
     );
     let ratio: f64 = cells[5].parse().unwrap();
     assert!(ratio.is_finite() && ratio > 0.0, "{row}");
+    // | ... | avg5 MSE | projection ms/frame (share) | its setup ms/scene |
+    let projection = |setting: &str| -> (f64, f64) {
+        let name = format!("small-k4[{setting}]");
+        let row = table.lines().find(|l| l.contains(&name)).expect(&name);
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        let ms = cells[7].split_whitespace().next().unwrap().parse().unwrap();
+        (ms, cells[8].parse().unwrap())
+    };
+    assert_eq!(projection("off"), (0.0, 0.0), "{table}");
+    let (ms, setup) = projection("on");
+    assert!(ms > 0.0 && setup > 0.0, "{table}");
 }
 
 /// `node --rollout 9` with a K = 2 model: after the scene's two seed frames, 9 frames from 5
