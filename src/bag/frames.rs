@@ -99,16 +99,18 @@ impl Iterator for Frames {
                 message.index,
                 &message.data,
             );
-            return Some(decoded.map(|frame| BagMessage {
-                topic: message.channel.topic.clone(),
-                log_time: message.log_time,
-                index: message.index,
-                frame,
-                solver_grid: message
-                    .channel
-                    .metadata
-                    .get(super::SOLVER_GRID_KEY)
-                    .and_then(|v| v.parse().ok()),
+            return Some(decoded.map(|frame| {
+                BagMessage {
+                    topic: message.channel.topic.clone(),
+                    log_time: message.log_time,
+                    index: message.index,
+                    frame,
+                    solver_grid: message
+                        .channel
+                        .metadata
+                        .get(super::SOLVER_GRID_KEY)
+                        .and_then(|v| v.parse().ok()),
+                }
             }));
         }
     }

@@ -98,7 +98,8 @@ impl BagWriter {
     /// Adds `key: value` to the metadata of every ParticleFrame channel added from now on
     /// (`simulate` records the solver's grid, [`super::SOLVER_GRID_KEY`]).
     pub fn channel_metadata(&mut self, key: &str, value: &str) {
-        self.channel_metadata.insert(key.to_owned(), value.to_owned());
+        self.channel_metadata
+            .insert(key.to_owned(), value.to_owned());
     }
 
     /// The bag's path.

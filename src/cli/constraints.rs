@@ -87,7 +87,10 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     let base = Constraints::defaults().select(args.parts);
     let mut base = Constraints {
         snow: base.snow.or(args.parts.snow.then_some(SNOW)),
-        liquid: args.parts.liquid.then_some(constraints::DensityParams::LOOSE),
+        liquid: args
+            .parts
+            .liquid
+            .then_some(constraints::DensityParams::LOOSE),
         ..base
     };
     if let Some(p) = base.liquid.as_mut() {
@@ -158,7 +161,10 @@ fn print_fit(
         );
     }
     for (grid, moves, met) in &measured.pressure_by_grid {
-        let rest = fitted.pressure.as_ref().map_or(0.0, |p| p.rest_for(Some(*grid)));
+        let rest = fitted
+            .pressure
+            .as_ref()
+            .map_or(0.0, |p| p.rest_for(Some(*grid)));
         println!(
             "  - scenes of the {grid} x {grid} solver grid: above {rest:.2}{} ({})",
             if *met { "" } else { " (NOT MET)" },
@@ -172,7 +178,10 @@ fn print_fit(
 
 /// The truth's move for each value tried, `value: move` in order.
 fn moves_text(moves: &[(f32, f64)]) -> String {
-    let each: Vec<String> = moves.iter().map(|(r, m)| format!("{r:.2}: {m:.4}")).collect();
+    let each: Vec<String> = moves
+        .iter()
+        .map(|(r, m)| format!("{r:.2}: {m:.4}"))
+        .collect();
     each.join(", ")
 }
 

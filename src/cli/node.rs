@@ -141,7 +141,9 @@ pub fn run(args: NodeArgs) -> anyhow::Result<Outcome> {
 }
 
 /// The solver grid of each scene in `bags` that records one (`--solver-grid-from`).
-fn solver_grids(bags: &[std::path::PathBuf]) -> anyhow::Result<std::collections::HashMap<String, u32>> {
+fn solver_grids(
+    bags: &[std::path::PathBuf],
+) -> anyhow::Result<std::collections::HashMap<String, u32>> {
     if bags.is_empty() {
         return Ok(Default::default());
     }

@@ -113,7 +113,10 @@ impl Fronts {
 
 /// The fronts of every scene of `eval` with liquid (its first rollout's).
 pub fn fronts(eval: &Evaluation) -> Vec<Fronts> {
-    eval.scenes.iter().filter_map(|s| s.fronts.clone()).collect()
+    eval.scenes
+        .iter()
+        .filter_map(|s| s.fronts.clone())
+        .collect()
 }
 
 /// `table.md`'s section: per scene with liquid, the step the truth's front reaches the far
@@ -189,11 +192,19 @@ pub fn write(dir: &Path, eval: &Evaluation, all: &[Fronts]) -> Result<Vec<PathBu
             .collect();
         let path = dir.join(format!("front_{}.png", file_stem(&f.scene)));
         let title = format!("{}: surge front", f.scene);
-        line_chart(&path, &title, "step", "front (domain units from the start wall)", &series, false, (900, 520))
-            .map_err(|e| EvalError::Output {
-                path: path.clone(),
-                what: e.to_string(),
-            })?;
+        line_chart(
+            &path,
+            &title,
+            "step",
+            "front (domain units from the start wall)",
+            &series,
+            false,
+            (900, 520),
+        )
+        .map_err(|e| EvalError::Output {
+            path: path.clone(),
+            what: e.to_string(),
+        })?;
         files.push(path);
     }
     Ok(files)

@@ -205,7 +205,9 @@ impl<B: NetOps> Predictor for ModelPredictor<B> {
         let mut frames = Vec::with_capacity(steps);
         let on = (traj.material.as_slice(), std::slice::from_ref(&traj.dt));
         self.surrogate
-            .rollout_on(traj.solver_grid, first, &seed, on, steps, |_, f| frames.push(f))
+            .rollout_on(traj.solver_grid, first, &seed, on, steps, |_, f| {
+                frames.push(f)
+            })
             .map(|()| frames)
             .map_err(|e| EvalError::Rollout {
                 predictor: self.name.clone(),

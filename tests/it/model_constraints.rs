@@ -215,25 +215,39 @@ fn the_fitted_liquid_density_leaves_the_truth_in_place() {
 /// tighter one moves it more (the check: the truth stays in place).
 #[test]
 fn the_fitted_pressure_threshold_leaves_the_truth_in_place() {
-    let trajs: Vec<_> = ["fluid_circle_000", "fluid_splash_002", "multi_jelly+liquid_002"]
-        .into_iter()
-        .map(bag)
-        .collect();
-    assert!(trajs.iter().all(|t| t.solver_grid.is_some()), "the bags record their grid");
+    let trajs: Vec<_> = [
+        "fluid_circle_000",
+        "fluid_splash_002",
+        "multi_jelly+liquid_002",
+    ]
+    .into_iter()
+    .map(bag)
+    .collect();
+    assert!(
+        trajs.iter().all(|t| t.solver_grid.is_some()),
+        "the bags record their grid"
+    );
     let base = Constraints {
         pressure: Constraints::defaults().pressure,
         ..Constraints::default()
     };
     let (c, report) = constraints::fit(&trajs, &base);
     let p = c.pressure.unwrap();
-    assert_eq!(report.pressure_by_grid.len(), 2, "the 64 x 64 and 128 x 128 scenes");
+    assert_eq!(
+        report.pressure_by_grid.len(),
+        2,
+        "the 64 x 64 and 128 x 128 scenes"
+    );
     for (grid, moves, met) in &report.pressure_by_grid {
         assert!(*met, "grid {grid}: {moves:?}");
         let &(tried, moved) = moves.last().unwrap();
         assert_eq!(tried, p.rest_for(Some(*grid)));
         assert!(moved < constraints::fit::TRUTH_MOVE, "grid {grid}: {moved}");
         if moves.len() > 1 {
-            assert!(moves[moves.len() - 2].1 >= constraints::fit::TRUTH_MOVE, "{moves:?}");
+            assert!(
+                moves[moves.len() - 2].1 >= constraints::fit::TRUTH_MOVE,
+                "{moves:?}"
+            );
         }
     }
 }

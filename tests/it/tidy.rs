@@ -122,14 +122,24 @@ fn code_only(src: &str) -> String {
 /// The length of a raw string literal (`r"..."`, `r#"..."#`, `br"..."`) at the start of
 /// `s`, if one starts there.
 fn raw_string_len(s: &[u8]) -> Option<usize> {
-    let start = if s.starts_with(b"br") { 2 } else if s.starts_with(b"r") { 1 } else { return None };
+    let start = if s.starts_with(b"br") {
+        2
+    } else if s.starts_with(b"r") {
+        1
+    } else {
+        return None;
+    };
     let hashes = s[start..].iter().take_while(|&&c| c == b'#').count();
     if s.get(start + hashes) != Some(&b'"') {
         return None;
     }
-    let close: Vec<u8> = std::iter::once(b'"').chain(std::iter::repeat_n(b'#', hashes)).collect();
+    let close: Vec<u8> = std::iter::once(b'"')
+        .chain(std::iter::repeat_n(b'#', hashes))
+        .collect();
     let body = start + hashes + 1;
-    let end = s[body..].windows(close.len()).position(|w| w == close.as_slice())?;
+    let end = s[body..]
+        .windows(close.len())
+        .position(|w| w == close.as_slice())?;
     Some(body + end + close.len())
 }
 
@@ -143,9 +153,13 @@ fn char_literal_len(s: &[u8]) -> Option<usize> {
         let end = s[2..].iter().position(|&c| c == b'\'')?;
         return Some(end + 3);
     }
-    let text = std::str::from_utf8(&s[1..s.len().min(6)]).ok().or_else(|| {
-        (1..s.len().min(6)).rev().find_map(|k| std::str::from_utf8(&s[1..k]).ok())
-    })?;
+    let text = std::str::from_utf8(&s[1..s.len().min(6)])
+        .ok()
+        .or_else(|| {
+            (1..s.len().min(6))
+                .rev()
+                .find_map(|k| std::str::from_utf8(&s[1..k]).ok())
+        })?;
     let c = text.chars().next()?;
     let len = c.len_utf8();
     (s.get(1 + len) == Some(&b'\'')).then_some(len + 2)
@@ -196,7 +210,10 @@ fn fn_name(line: &str) -> Option<String> {
             || ["const", "async", "unsafe", "extern", "\"C\"", "default"].contains(w)
     });
     let name = words.get(at + 1)?;
-    let name: String = name.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+    let name: String = name
+        .chars()
+        .take_while(|c| c.is_alphanumeric() || *c == '_')
+        .collect();
     (before_ok && !name.is_empty()).then_some(name)
 }
 
@@ -207,7 +224,10 @@ fn source_files_and_functions_stay_within_their_limits() {
         let src = read(&path);
         let n = src.lines().count();
         if n > FILE_LINES {
-            problems.push(format!("{}: {n} lines, over the limit of {FILE_LINES}", rel(&path)));
+            problems.push(format!(
+                "{}: {n} lines, over the limit of {FILE_LINES}",
+                rel(&path)
+            ));
         }
         let first = src.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
         if !first.starts_with("//!") {
@@ -231,14 +251,19 @@ fn the_readme_and_docs_stay_short_and_docs_hold_no_script() {
     let mut problems = Vec::new();
     let readme = read(&root().join("README.md")).lines().count();
     if readme > README_LINES {
-        problems.push(format!("README.md: {readme} lines, over the limit of {README_LINES}"));
+        problems.push(format!(
+            "README.md: {readme} lines, over the limit of {README_LINES}"
+        ));
     }
     for path in files(&root().join("docs"), "") {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
         if ext == "md" {
             let n = read(&path).lines().count();
             if n > DOC_LINES {
-                problems.push(format!("{}: {n} lines, over the limit of {DOC_LINES}", rel(&path)));
+                problems.push(format!(
+                    "{}: {n} lines, over the limit of {DOC_LINES}",
+                    rel(&path)
+                ));
             }
             continue;
         }
@@ -313,7 +338,11 @@ fn the_files_of_a_folder_import_each_other_without_cycles() {
             .filter_map(|e| {
                 let p = e.ok()?.path();
                 let name = p.file_stem()?.to_string_lossy().into_owned();
-                let file = if p.is_dir() { p.join("mod.rs") } else { p.clone() };
+                let file = if p.is_dir() {
+                    p.join("mod.rs")
+                } else {
+                    p.clone()
+                };
                 let rust = p.is_dir() || p.extension().is_some_and(|e| e == "rs");
                 (rust && file.exists() && name != "mod" && name != "lib" && name != "main")
                     .then_some((name, file))
@@ -331,11 +360,7 @@ fn the_files_of_a_folder_import_each_other_without_cycles() {
             .collect();
         if let Some(cycle) = find_cycle(&edges) {
             let path: Vec<&str> = cycle.iter().map(|&i| names[i].as_str()).collect();
-            problems.push(format!(
-                "{}: import cycle {}",
-                rel(&dir),
-                path.join(" -> ")
-            ));
+            problems.push(format!("{}: import cycle {}", rel(&dir), path.join(" -> ")));
         }
     }
     report(problems);
@@ -390,11 +415,17 @@ fn find_cycle(edges: &[Vec<usize>]) -> Option<Vec<usize>> {
 #[test]
 fn the_checks_themselves_catch_what_they_look_for() {
     let long = format!("fn big() {{\n{}}}\n", "    let _ = 1;\n".repeat(FN_LINES));
-    assert_eq!(long_functions(&long), vec![("big".to_owned(), 1, FN_LINES + 2)]);
+    assert_eq!(
+        long_functions(&long),
+        vec![("big".to_owned(), 1, FN_LINES + 2)]
+    );
     let braces = "fn f() {\n    let s = \"}}}\";\n    let c = '}';\n    // }\n}\n";
     assert!(long_functions(braces).is_empty());
     assert_eq!(code_only("let s = r#\"}\"#;").matches('}').count(), 0);
-    assert_eq!(fn_name("    pub(crate) fn go<T>(x: T) {"), Some("go".to_owned()));
+    assert_eq!(
+        fn_name("    pub(crate) fn go<T>(x: T) {"),
+        Some("go".to_owned())
+    );
     assert_eq!(fn_name("    let f = |x| x; // fn not"), None);
     let names = vec!["a".to_owned(), "b".to_owned()];
     assert_eq!(sibling_uses("use super::{b::X, c};", &names), vec!["b"]);

@@ -8,8 +8,8 @@ use burn::backend::{Autodiff, NdArray};
 use clap::Args;
 use std::path::PathBuf;
 
-use crate::cli::device::DeviceArgs;
 pub use super::net_args::{GridNetArgs, Reference, RestShape};
+use crate::cli::device::DeviceArgs;
 use crate::model::grid::{ConvKernel, Deformation, GridConfig, MemoryKind};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::train::grid::GridTrainOptions;

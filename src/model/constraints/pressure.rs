@@ -270,7 +270,10 @@ impl Pressure {
 
     /// Whether node `n` lies farther than the band from every wall (`walls`: `lo`, `hi`).
     fn off_the_walls(&self, n: usize, (lo, hi): (f32, f32)) -> bool {
-        let (x, y) = ((n / self.side) as f32 * self.h, (n % self.side) as f32 * self.h);
+        let (x, y) = (
+            (n / self.side) as f32 * self.h,
+            (n % self.side) as f32 * self.h,
+        );
         let inside = |v: f32| v > lo + self.band.0 && v < hi - self.band.0;
         inside(x) && inside(y)
     }

@@ -85,7 +85,10 @@ impl ConstraintState {
     pub(super) fn split(self, sizes: &[usize]) -> Vec<ConstraintState> {
         let total: usize = sizes.iter().sum();
         let has_shapes = self.shapes.len() == total;
-        let mut grids = (0..total).map(|i| self.grid_of(i)).collect::<Vec<_>>().into_iter();
+        let mut grids = (0..total)
+            .map(|i| self.grid_of(i))
+            .collect::<Vec<_>>()
+            .into_iter();
         let mut shapes = self.shapes.into_iter();
         sizes
             .iter()
@@ -229,7 +232,10 @@ mod tests {
         let stacked = ConstraintState::stack(vec![scene(Some(128)), scene(Some(64)), scene(None)]);
         assert_eq!(stacked.solver_grids, vec![Some(128), Some(64), None]);
         let again = ConstraintState::stack(vec![stacked.clone(), scene(Some(64))]);
-        assert_eq!(again.solver_grids, vec![Some(128), Some(64), None, Some(64)]);
+        assert_eq!(
+            again.solver_grids,
+            vec![Some(128), Some(64), None, Some(64)]
+        );
         let parts = stacked.split(&[2, 1]);
         assert_eq!(parts[0].solver_grids, vec![Some(128), Some(64)]);
         assert_eq!(parts[1].solver_grids, vec![None]);

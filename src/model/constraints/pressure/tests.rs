@@ -68,7 +68,11 @@ fn a_pressed_pool_is_relieved_and_grows() {
     let after = max(&pressure.fractions(&pressed));
     assert!(before > 1.35, "{before}");
     assert!(after < 1.25, "{before} -> {after}");
-    assert!(height(&pressed) > h0 + 0.015, "{h0} -> {}", height(&pressed));
+    assert!(
+        height(&pressed) > h0 + 0.015,
+        "{h0} -> {}",
+        height(&pressed)
+    );
     let low = pressed.chunks(4).map(|r| r[1]).fold(1.0, f32::min);
     assert!(low > 0.095, "nothing is pushed through the floor: {low}");
 }
@@ -89,7 +93,12 @@ fn a_compressing_velocity_is_removed_and_an_expanding_one_kept() {
     assert!(before[4 * left + 2] > 0.1, "{}", before[4 * left + 2]);
     assert!(v_left.abs() < 0.5 * before[4 * left + 2], "{v_left}");
     let moved = |k: usize| (squeezed[4 * k] - before[4 * k]).abs();
-    assert!(moved(centre) < 0.2 * moved(left), "{} {}", moved(centre), moved(left));
+    assert!(
+        moved(centre) < 0.2 * moved(left),
+        "{} {}",
+        moved(centre),
+        moved(left)
+    );
     let mut spread = pool(0.01, |x, _| [x - 0.445, 0.0]);
     let kept = spread.clone();
     pressure.project(&params(), &mut spread, &[0; 900], dt, (0.0, 1.0));

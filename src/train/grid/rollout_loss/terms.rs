@@ -63,7 +63,13 @@ fn energy_loss<B: Backend>(
     if opts.energy_weight <= 0.0 {
         return Tensor::zeros([1], &vel.device());
     }
-    let speed = |v: Tensor<B, 3>| v.powi_scalar(2).sum_dim(2).mean_dim(1).add_scalar(1e-8).sqrt();
+    let speed = |v: Tensor<B, 3>| {
+        v.powi_scalar(2)
+            .sum_dim(2)
+            .mean_dim(1)
+            .add_scalar(1e-8)
+            .sqrt()
+    };
     let (p, t) = (speed(vel.clone()), speed(truth.clone().detach()));
     let err = (p - t.clone()) / t.add_scalar(ENERGY_FLOOR);
     err.powi_scalar(2).mean().mul_scalar(opts.energy_weight)
