@@ -39,7 +39,9 @@ pub(super) struct Body {
 /// particles of the distance to the [`SPACING_NEIGHBOURS`]-th nearest particle of the same
 /// material times `sqrt(pi / 8)` (the spacing `s` of a uniform cloud with one particle per
 /// `s^2` has 8 particles within `s sqrt(8 / pi)`). Neighbours are looked for within 1/64 of
-/// the box ([`Bins::nearest`]); 0 when the scene has none of `m` close enough.
+/// the box (the 3 x 3 cells around each particle, [`Bins::around`]); 0 when the scene has
+/// none of `m` close enough. Distances are f32 `hypot`s, taken only where the squared
+/// distances cannot decide ([`kth_within`]).
 pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) -> f32 {
     let ids: Vec<u32> = (0..material.len() as u32)
         .filter(|&i| material[i as usize] == m)
@@ -48,27 +50,23 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
         return 0.0;
     }
     let radius = 1.0 / 64.0;
+    let far = radius * radius * (1.0 + 1e-4);
     let bins = Bins::for_radius(rest, stride, &ids, radius);
     let mut kth = Vec::with_capacity(ids.len());
-    let mut near = Vec::with_capacity(SPACING_NEIGHBOURS);
+    let mut near: Vec<[f32; 3]> = Vec::new();
     for &i in &ids {
-        let (i, p) = (
-            i as usize,
-            [rest[stride * i as usize], rest[stride * i as usize + 1]],
-        );
-        let distance = |j: usize| {
-            let d = (rest[stride * j] - p[0]).hypot(rest[stride * j + 1] - p[1]);
-            (j != i && !d.is_nan()).then_some(f64::from(d))
-        };
-        bins.nearest(
-            p,
-            SPACING_NEIGHBOURS,
-            f64::from(radius),
-            distance,
-            &mut near,
-        );
-        if near.len() == SPACING_NEIGHBOURS {
-            kth.push(near[SPACING_NEIGHBOURS - 1].0 as f32);
+        let i = i as usize;
+        let (x, y) = (rest[stride * i], rest[stride * i + 1]);
+        near.clear();
+        bins.around(x, y, |j| {
+            let (dx, dy) = (rest[stride * j] - x, rest[stride * j + 1] - y);
+            let d2 = dx * dx + dy * dy;
+            if j != i && d2 <= far {
+                near.push([d2, dx, dy]);
+            }
+        });
+        if let Some(d) = kth_within(&mut near, SPACING_NEIGHBOURS, radius) {
+            kth.push(d);
         }
     }
     if kth.is_empty() {
@@ -77,6 +75,30 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
     let mid = kth.len() / 2;
     kth.select_nth_unstable_by(mid, f32::total_cmp);
     kth[mid] * (std::f32::consts::PI / SPACING_NEIGHBOURS as f32).sqrt()
+}
+
+/// The `k`-th smallest `hypot(dx, dy)` of `near` (`[d2, dx, dy]` rows, `d2 = dx^2 + dy^2`
+/// in f32) among those no farther than `radius`, or None when fewer are. Exactly what sorting
+/// every `hypot` gives: the squared distances order the rows but where two lie within 1e-4
+/// of each other (far above their rounding), and only those rows get a `hypot`.
+fn kth_within(near: &mut Vec<[f32; 3]>, k: usize, radius: f32) -> Option<f32> {
+    let hypot = |r: &[f32; 3]| r[1].hypot(r[2]);
+    let inside = radius * radius * (1.0 - 1e-4);
+    near.retain(|r| r[0] < inside || hypot(r) <= radius);
+    if near.len() < k {
+        return None;
+    }
+    near.select_nth_unstable_by(k - 1, |a, b| a[0].total_cmp(&b[0]));
+    let t = near[k - 1][0];
+    let (lo, hi) = (t * (1.0 - 1e-4), t * (1.0 + 1e-4));
+    let below = near.iter().filter(|r| r[0] < lo).count();
+    let mut tied: Vec<f32> = near
+        .iter()
+        .filter(|r| (lo..=hi).contains(&r[0]))
+        .map(hypot)
+        .collect();
+    tied.sort_unstable_by(f32::total_cmp);
+    tied.get(k - 1 - below).copied()
 }
 
 /// The bodies of material `m` in `rest` (`[N, stride]` rows) whose spacing is `spacing`:
@@ -222,6 +244,50 @@ impl Body {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The spacing's k-th distances are those of sorting every pair's `hypot` (within 1/64,
+    /// the same material): a cloud with lattice ties, duplicates and points outside the box.
+    #[test]
+    fn kth_distances_match_sorting_every_hypot() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let pos: Vec<f32> = (0..1500)
+            .flat_map(|i| match i % 3 {
+                0 => [
+                    0.3 + rng.random_range(0..30) as f32 / 256.0,
+                    0.4 + rng.random_range(0..30) as f32 / 256.0,
+                ],
+                _ => [rng.random_range(-0.02..0.6), rng.random_range(-0.02..0.6)],
+            })
+            .collect();
+        let radius = 1.0f32 / 64.0;
+        let (mut found, mut checked) = (0, 0);
+        for i in 0..1500 {
+            let mut all: Vec<f32> = (0..1500)
+                .filter(|&j| j != i)
+                .map(|j| (pos[2 * j] - pos[2 * i]).hypot(pos[2 * j + 1] - pos[2 * i + 1]))
+                .filter(|&d| d <= radius)
+                .collect();
+            all.sort_unstable_by(f32::total_cmp);
+            let mut near: Vec<[f32; 3]> = (0..1500)
+                .filter(|&j| j != i)
+                .map(|j| {
+                    let (dx, dy) = (pos[2 * j] - pos[2 * i], pos[2 * j + 1] - pos[2 * i + 1]);
+                    [dx * dx + dy * dy, dx, dy]
+                })
+                .filter(|r| r[0] <= radius * radius * 1.001)
+                .collect();
+            let got = kth_within(&mut near, SPACING_NEIGHBOURS, radius);
+            assert_eq!(
+                got,
+                all.get(SPACING_NEIGHBOURS - 1).copied(),
+                "particle {i}"
+            );
+            found += usize::from(got.is_some());
+            checked += 1;
+        }
+        assert!(found > 100 && found < checked, "{found} of {checked}");
+    }
 
     /// A 10 x 10 lattice block of spacing 0.01 at (0.3, 0.3), as `[N, 4]` rows.
     fn block() -> Vec<f32> {
