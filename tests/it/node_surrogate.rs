@@ -192,6 +192,13 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
     }
     let node = Node::spawn_env("node", &node_args, &env);
     let mut replay = vec!["replay", "--transport", transport, "--topic", &input];
+    if transport == "ros2" {
+        // A quarter of real time over DDS: the node's reader keeps the last 10 frames (the
+        // ROS 2 default QoS), so at full rate a node starved for 80 ms by the tests running
+        // beside it on 2 cores loses a frame (seen once in CI-like runs: 49 of 50). What
+        // this test checks is the predictions, not delivery under starvation.
+        replay.extend(["--rate", "0.25"]);
+    }
     replay.extend(bags.iter().map(|b| b.to_str().unwrap()));
     ok(
         &Node::spawn_env("replay", &replay, &env).wait(Duration::from_secs(120)),
