@@ -126,7 +126,6 @@ impl ConstraintState {
         let rest = self.rest_frames.as_deref();
         let rest = rest.filter(|r| r.len() == b * per).unwrap_or(frames);
         let grids: Vec<Option<u32>> = (0..b).map(|i| self.grid_of(i)).collect();
-
         let mut rows: Vec<Vec<&mut [f32]>> =
             (0..b).map(|_| Vec::with_capacity(out.len())).collect();
         for frame in out.iter_mut() {
