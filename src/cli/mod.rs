@@ -26,6 +26,8 @@ mod replay;
 mod report;
 mod run_folder;
 mod simulate;
+#[cfg(feature = "cuda")]
+mod simulate_gpu;
 pub mod train;
 mod transport;
 
@@ -83,7 +85,7 @@ enum Command {
 }
 
 /// `minflow-cuda`: the subset of `minflow` a GPU machine needs (`simulate`, `train`, `eval`,
-/// `bench train`, `bench gemm`, `bench rollout`, `constraints`), the same flags, without the
+/// `bench sim`, `bench train`, `bench gemm`, `bench rollout`, `constraints`), the same flags, without the
 /// transports, so that its stripped binary is small enough to carry to the machine
 /// (docs/cuda.md). Built with `--features cuda`.
 #[derive(Debug, Parser)]
@@ -114,6 +116,8 @@ enum TrainCommand {
 
 #[derive(Debug, Subcommand)]
 enum TrainBenchCommand {
+    /// Simulator speed, on the CPU and batched on a GPU (as `minflow bench sim`).
+    Sim(bench::sim::SimBenchArgs),
     /// Training speed per core (as `minflow bench train`).
     Train(bench::train::TrainBenchArgs),
     /// GPU dense-layer products per kernel (as `minflow bench gemm`).
@@ -128,6 +132,7 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Simulate(args) => simulate::run_offline(args),
         TrainCommand::Train(args) => train::run(args),
         TrainCommand::Eval(args) => eval::run(args),
+        TrainCommand::Bench(TrainBenchCommand::Sim(args)) => bench::sim::run(args),
         TrainCommand::Bench(TrainBenchCommand::Train(args)) => bench::train::run(args),
         TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench::gemm::run(args),
         TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench::rollout::run(args),

@@ -7,7 +7,7 @@
 //! unit; energies are mass x (domain units / time unit)^2.
 
 use super::material;
-use super::mpm::Solver;
+use super::mpm::{Particles, Solver, SolverConfig};
 use crate::geometry::centre_of_mass;
 
 /// Sums over all particles, in `f64`.
@@ -34,12 +34,19 @@ pub struct Diagnostics {
 impl Diagnostics {
     /// Computes the sums for the solver's current particle state.
     pub fn of(solver: &Solver) -> Self {
-        let ps = &solver.particles;
-        let m = solver.particle_volume() as f64;
-        let dx = solver.dx() as f64;
+        Self::of_particles(&solver.config, &solver.particles)
+    }
+
+    /// Computes the sums for particles `ps` of a solver with settings `config` (a GPU
+    /// solver's state read back, `sim::gpu`).
+    pub fn of_particles(config: &SolverConfig, ps: &Particles) -> Self {
+        // As `Solver::dx` and `Solver::particle_volume`, in f32.
+        let dx32 = 1.0 / config.grid as f32;
+        let (dx, h) = (dx32 as f64, 0.5 * dx32);
+        let m = (h * h) as f64;
         let d = dx * dx / 4.0;
-        let (mu0, lambda0) = solver.config.elasticity.lame();
-        let g = solver.config.gravity;
+        let (mu0, lambda0) = config.elasticity.lame();
+        let g = config.gravity;
         let mut out = Diagnostics::default();
         for p in 0..ps.len() {
             let x = [ps.x[p][0] as f64, ps.x[p][1] as f64];

@@ -65,6 +65,8 @@ pub const LIQUID_J_MIN: f32 = 0.1;
 /// Snow's singular-value clamp (docs/mpm.md, "Materials"): compression and stretch limits.
 const SNOW_MIN: f32 = 1.0 - 2.5e-2;
 const SNOW_MAX: f32 = 1.0 + 4.5e-3;
+/// Snow's singular-value clamp `(SNOW_MIN, SNOW_MAX)`, for the GPU solver's kernels.
+pub const SNOW_LIMITS: (f32, f32) = (SNOW_MIN, SNOW_MAX);
 
 /// Plastic projection after `F <- (I + dt C) F` (done in G2P, as in Hu et al. 2018):
 /// liquid resets `F` to `diag(J, 1)` (mpm99's `sqrt(J) I` has the same determinant, the only

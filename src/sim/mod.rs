@@ -4,16 +4,20 @@
 //!
 //! Layout: [`linalg`] (2x2 polar decomposition and signed SVD), [`material`] (constitutive
 //! models), [`mpm`] (the solver), [`scene`] (bodies and sampling), [`families`] (`multi`,
-//! `fluid` and `mixed`, the last in [`mixed`]), [`diagnostics`] (conservation sums), [`sanity`]
-//! (per-frame checks), [`run`] (a scene to `ParticleFrame`s). Used by `minflow simulate`,
+//! `fluid` and `mixed`, the last in [`mixed`]), [`refine`] (a scene on a finer grid), [`diagnostics`] (conservation sums), [`sanity`]
+//! (per-frame checks), [`run`] (a scene to `ParticleFrame`s); with the `cuda` feature, `gpu`
+//! (the solver batched over scenes on a GPU). Used by `minflow simulate`,
 //! `minflow bench sim` and `minflow bench rollout`.
 
 pub mod diagnostics;
 pub mod families;
+#[cfg(feature = "cuda")]
+pub mod gpu;
 pub mod linalg;
 pub mod material;
 pub mod mixed;
 pub mod mpm;
+pub mod refine;
 pub mod run;
 pub mod sanity;
 pub mod scene;

@@ -6,7 +6,7 @@
 //! that breaks one, [`super::SimError::Unstable`]) and by the validation tests.
 
 use super::linalg;
-use super::mpm::Solver;
+use super::mpm::{Particles, Solver};
 use super::scene::{BodySpan, Shape};
 use std::fmt;
 
@@ -30,8 +30,12 @@ impl fmt::Display for Violation {
 
 /// Checks the solver's current state; returns the first violation.
 pub fn check(solver: &Solver, bodies: &[BodySpan]) -> Result<(), Violation> {
-    let ps = &solver.particles;
-    let dx = solver.dx();
+    check_particles(&solver.particles, solver.dx(), bodies)
+}
+
+/// [`check`] of particles `ps` on a grid of spacing `dx` (a GPU solver's state read back,
+/// `sim::gpu`).
+pub fn check_particles(ps: &Particles, dx: f32, bodies: &[BodySpan]) -> Result<(), Violation> {
     let (lo, hi) = (0.5 * dx, 1.0 - 1.5 * dx);
     let fail = |particle, what: String| Err(Violation { particle, what });
     for p in 0..ps.len() {

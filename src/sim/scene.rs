@@ -260,14 +260,19 @@ impl Scene {
     pub fn solver(&self) -> Result<(Solver, Vec<BodySpan>), SimError> {
         self.validate()?;
         let (ps, spans) = self.particles();
-        let config = SolverConfig {
+        Ok((Solver::new(self.solver_config(), ps)?, spans))
+    }
+
+    /// The solver's settings for this scene (its grid, `dt`, gravity and elasticity; the
+    /// default CFL limit).
+    pub fn solver_config(&self) -> SolverConfig {
+        SolverConfig {
             grid: self.grid,
             dt: self.dt,
             gravity: self.gravity,
             elasticity: self.elasticity,
             max_cfl: super::mpm::DEFAULT_MAX_CFL,
-        };
-        Ok((Solver::new(config, ps)?, spans))
+        }
     }
 }
 

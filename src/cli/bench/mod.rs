@@ -10,6 +10,8 @@ pub mod gemm;
 pub mod node;
 pub mod rollout;
 pub mod sim;
+#[cfg(feature = "cuda")]
+mod sim_gpu;
 pub mod train;
 pub mod transfer;
 pub mod transport;

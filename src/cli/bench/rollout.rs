@@ -30,7 +30,7 @@ use crate::model::constraints::Parts;
 use crate::model::store::{stages, Surrogate};
 use crate::ops::NetOps;
 use crate::sim::families::{self, Family};
-use crate::sim::SceneRun;
+use crate::sim::{Scene, SceneRun};
 
 /// The flags of `minflow bench rollout`.
 #[derive(Debug, Args)]
@@ -61,6 +61,11 @@ pub struct RolloutBenchArgs {
     /// row per setting.
     #[arg(long = "constraints", value_name = "PARTS", default_value = "on")]
     constraints: Vec<Parts>,
+    /// Refine the scenes onto an N x N grid with proportionally more particles (`simulate
+    /// --grid`: `multi` at 128 has 10,000 particles, at 256 40,000), to measure the cost at
+    /// scale.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(8..=4096))]
+    grid: Option<u32>,
     #[command(flatten)]
     device: DeviceArgs,
 }
@@ -72,9 +77,20 @@ struct Simulated {
     dt: f32,
 }
 
-/// Simulates `frames` frames (frame 0 included) of scene `id`.
-fn simulate(family: Family, id: u32, seed: u64, frames: usize) -> anyhow::Result<Simulated> {
-    let mut run = SceneRun::new(families::scene(family, id, seed))?;
+/// Scene `id` of `family` with `seed`, on `grid` where that is finer than its own.
+fn scene_of(family: Family, id: u32, seed: u64, grid: Option<u32>) -> anyhow::Result<Scene> {
+    let scene = families::scene(family, id, seed);
+    Ok(match grid {
+        Some(n) if n as usize > scene.grid => scene
+            .refined(n as usize)
+            .map_err(|e| crate::cli::UsageError(format!("--grid {n}: {e}")))?,
+        _ => scene,
+    })
+}
+
+/// Simulates `frames` frames (frame 0 included) of `scene`.
+fn simulate(scene: Scene, frames: usize) -> anyhow::Result<Simulated> {
+    let mut run = SceneRun::new(scene)?;
     let mut out = Vec::with_capacity(frames);
     let (mut material, mut dt) = (Vec::new(), 0.0);
     while out.len() < frames {
@@ -221,14 +237,18 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         .build()?;
     // The solver: one scene per thread, frame 0 is the initial state (not simulated).
     let started = Instant::now();
+    let specs: Vec<Scene> = (0..args.scenes as u32)
+        .map(|id| scene_of(family, id, args.seed, args.grid))
+        .collect::<anyhow::Result<_>>()?;
     let scenes: anyhow::Result<Vec<Simulated>> = pool.install(|| {
-        (0..args.scenes as u32)
-            .into_par_iter()
-            .map(|id| simulate(family, id, args.seed, frames))
+        specs
+            .par_iter()
+            .map(|scene| simulate(scene.clone(), frames))
             .collect()
     });
     let scenes = scenes?;
     let solver_ms = started.elapsed().as_secs_f64() * 1e3 / (scenes.len() * (frames - 1)) as f64;
+    let gpu_ms = gpu_solver_ms(&args, &specs, frames)?;
     println!(
         "{} {} scenes (seed {}), H = {h} frames after W = {w} seed frames, {threads} threads, \
          {} per call",
@@ -242,9 +262,20 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         }
     );
     println!(
-        "\n| predictor | K | calls/rollout | ms/frame | x solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
+        "\n| predictor | K | calls/rollout | ms/frame | x solver | x GPU solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
     );
-    println!("| MPM solver (`simulate`) | | | {solver_ms:.3} | 1.00 | | | |");
+    let versus_gpu = |ms: f64| gpu_ms.map_or(String::new(), |g| format!("{:.2}", ms / g));
+    println!(
+        "| MPM solver (`simulate`, {threads} threads) | | | {solver_ms:.3} | 1.00 | {} | | | |",
+        versus_gpu(solver_ms)
+    );
+    if let Some(g) = gpu_ms {
+        println!(
+            "| MPM solver on the GPU (`simulate --device cuda`, {} scenes a call) | | | {g:.4} | {:.3} | 1.00 | | | |",
+            args.batch,
+            g / solver_ms
+        );
+    }
     let mut settings = args.constraints.clone();
     settings.dedup();
     let rows = args
@@ -268,19 +299,59 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         let projection = row.projection * 1e3 / (scenes.len() * h) as f64;
         let setup = row.setup.0 * 1e3 / row.setup.1.max(1) as f64;
         println!(
-            "| {name} | {} | {} | {ms:.3} | {:.2} | {:.3e} | {projection:.3} ({:.0} %) | {setup:.2} |",
+            "| {name} | {} | {} | {ms:.3} | {:.2} | {} | {:.3e} | {projection:.3} ({:.0} %) | {setup:.2} |",
             row.bundle,
             h.div_ceil(row.bundle),
             ms / solver_ms,
+            versus_gpu(ms),
             row.mse,
             100.0 * projection / ms.max(f64::MIN_POSITIVE)
         );
         if let Some(([input, record, device, output], calls)) = row.stages {
             println!(
                 "|   stages, ms a call ({calls} calls): input {input:.2}, record {record:.2}, \
-                 device {device:.2}, output {output:.2} | | | | | | | |"
+                 device {device:.2}, output {output:.2} | | | | | | | | |"
             );
         }
     }
     Ok(Outcome::Done)
+}
+
+/// With `--device cuda`: milliseconds per scene-frame of the same scenes on the GPU solver,
+/// `--batch` scenes a call (`sim::gpu`), after an untimed frame that compiles its kernels;
+/// `None` on the CPU.
+#[cfg(feature = "cuda")]
+fn gpu_solver_ms(
+    args: &RolloutBenchArgs,
+    scenes: &[Scene],
+    frames: usize,
+) -> anyhow::Result<Option<f64>> {
+    use crate::sim::gpu::GpuSolver;
+    let ids = match args.device.parse()? {
+        Device::Cuda(ids) => ids,
+        Device::Cpu => return Ok(None),
+    };
+    let device = crate::cli::device::cuda::device(ids[0], args.device.kernels())?;
+    let config = scenes[0].solver_config();
+    let substeps = scenes[0].substeps;
+    let mut warm = GpuSolver::new(&device, config, vec![scenes[0].particles().0])?;
+    warm.advance(substeps)?;
+    warm.tallies()?;
+    let started = Instant::now();
+    for chunk in scenes.chunks(args.batch) {
+        let particles = chunk.iter().map(|s| s.particles().0).collect();
+        let mut gpu = GpuSolver::new(&device, config, particles)?;
+        for _ in 1..frames {
+            gpu.advance(substeps)?;
+        }
+        gpu.tallies()?;
+    }
+    let secs = started.elapsed().as_secs_f64();
+    Ok(Some(secs * 1e3 / (scenes.len() * (frames - 1)) as f64))
+}
+
+/// Without the `cuda` feature there is no GPU solver row.
+#[cfg(not(feature = "cuda"))]
+fn gpu_solver_ms(_: &RolloutBenchArgs, _: &[Scene], _: usize) -> anyhow::Result<Option<f64>> {
+    Ok(None)
 }

@@ -5,7 +5,7 @@
 //! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (docs/mpm.md,
 //! "Speed anchor").
 
-use crate::cli::Outcome;
+use crate::cli::{Outcome, UsageError};
 use crate::sim::families::{self, Family};
 use crate::sim::Scene;
 use clap::Args;
@@ -24,6 +24,48 @@ pub struct SimBenchArgs {
     /// Threads for the parallel row (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Also run the solver batched on a GPU: `cuda` or `cuda:N` (needs a build with
+    /// `--features cuda`). Adds a row per setting at `--batch` scenes a call, and the GPU's
+    /// physics against the CPU's over `--frames` frames of the `--scenes` scenes.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// Scenes a GPU call advances together (ids 0..N of each family).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    batch: u32,
+    /// GPU: each frame runs as many parts a substep as the most split substep of the last N
+    /// frames needed (a frame that needs more is taken again substep by substep).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    window: u32,
+    /// Settings to run, comma-separated families (`multi`, `fluid`, `mixed`).
+    #[arg(long, default_value = "multi,fluid", value_delimiter = ',')]
+    family: Vec<String>,
+    /// Refine each family's scenes onto an N x N grid (where finer than its own) with
+    /// proportionally more particles (`simulate --grid`): 128 puts `multi` at 10,000
+    /// particles, 256 at 40,000 and `fluid` at 10,000.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(8..=4096))]
+    grid: Option<u32>,
+}
+
+/// Scenes `ids` of `family` (seed 0), refined onto `grid` where that is finer than the
+/// family's own.
+///
+/// # Errors
+/// A grid that is not a multiple of the family's, or a refined scene that fails validation.
+pub(super) fn family_scenes(
+    family: Family,
+    ids: std::ops::Range<u32>,
+    grid: Option<u32>,
+) -> anyhow::Result<Vec<Scene>> {
+    ids.map(|id| {
+        let scene = families::scene(family, id, 0);
+        match grid {
+            Some(n) if n as usize > scene.grid => scene
+                .refined(n as usize)
+                .map_err(|e| UsageError(format!("--grid {n}: {e}")).into()),
+            _ => Ok(scene),
+        }
+    })
+    .collect()
 }
 
 /// Simulates `frames` frames of each scene; returns the substep splits taken.
@@ -47,14 +89,18 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
+    let gpu = gpu_of(&args.device)?;
     println!(
         "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10} {:>10} {:>8}",
         "setting", "grid", "substeps", "particles", "threads", "ms/frame", "frames/s", "splits"
     );
-    for family in [Family::Multi, Family::Fluid] {
-        let scenes: Vec<Scene> = (0..args.scenes.max(1))
-            .map(|id| families::scene(family, id, 0))
-            .collect();
+    let families: Vec<Family> = args
+        .family
+        .iter()
+        .map(|f| f.parse().map_err(|e: crate::sim::SimError| UsageError(format!("--family: {e}"))))
+        .collect::<Result<_, _>>()?;
+    for &family in &families {
+        let scenes = family_scenes(family, 0..args.scenes.max(1), args.grid)?;
         let frames = (scenes.len() as u64) * args.frames as u64;
         // One thread: scenes one after another.
         let start = Instant::now();
@@ -74,6 +120,27 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         parallel?;
         let multi = start.elapsed().as_secs_f64();
         let s = &scenes[0];
+        #[cfg(feature = "cuda")]
+        if let Some(device) = &gpu {
+            let row = super::sim_gpu::time_batch(device, family_scenes(family, 0..args.batch, args.grid)?, args.frames, args.window)?;
+            let cpu_ms = multi * 1e3 / frames as f64;
+            println!(
+                "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {} frames redone",
+                family.name(),
+                s.grid,
+                s.substeps,
+                s.particle_count(),
+                "gpu",
+                row.ms,
+                1e3 / row.ms,
+                row.splits,
+                args.batch,
+                cpu_ms / row.ms,
+                row.passes,
+                row.redone,
+                args.frames
+            );
+        }
         for (t, secs) in [(1, single), (threads, multi)] {
             let ms = secs * 1e3 / frames as f64;
             println!(
@@ -90,5 +157,63 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         }
     }
     println!("(Taichi 1.7.4 CPU, same machine kind: 16-20 ms multi, 62-75 ms fluid; docs/mpm.md)");
+    #[cfg(feature = "cuda")]
+    if let Some(device) = &gpu {
+        parity_table(device, &args, &families)?;
+    }
+    #[cfg(not(feature = "cuda"))]
+    let _ = gpu;
     Ok(Outcome::Done)
+}
+
+/// The GPU `--device` names, or `None` for `cpu`; a usage error for anything else.
+#[cfg(feature = "cuda")]
+fn gpu_of(text: &str) -> anyhow::Result<Option<crate::sim::gpu::CudaDevice>> {
+    use crate::cli::device::{self, Device};
+    match device::parse(text)? {
+        Device::Cpu => Ok(None),
+        Device::Cuda(ids) if ids.len() == 1 => Ok(Some(device::cuda::device(
+            ids[0],
+            crate::ops::Kernels::default(),
+        )?)),
+        Device::Cuda(_) => {
+            Err(UsageError("--device: the GPU solver runs on one GPU (cuda or cuda:N)".into()).into())
+        }
+    }
+}
+
+/// Without the `cuda` feature only `cpu` is accepted ([`crate::cli::device::parse`] says why).
+#[cfg(not(feature = "cuda"))]
+fn gpu_of(text: &str) -> anyhow::Result<Option<()>> {
+    crate::cli::device::parse(text).map(|_| None)
+}
+
+/// Prints the GPU solver's physics against the CPU's, per setting (`sim_gpu::parity`).
+#[cfg(feature = "cuda")]
+fn parity_table(
+    device: &crate::sim::gpu::CudaDevice,
+    args: &SimBenchArgs,
+    families: &[Family],
+) -> anyhow::Result<()> {
+    println!(
+        "\nGPU against CPU over {} frames of scenes 0..{} (largest gap over frames and scenes):",
+        args.frames, args.scenes
+    );
+    println!(
+        "| setting | kinetic energy, GPU vs CPU | same, CPU reversed vs CPU | centre of mass, GPU vs CPU | same, CPU reversed vs CPU | two GPU runs |\n| --- | ---: | ---: | ---: | ---: | --- |"
+    );
+    for &family in families {
+        let scenes = family_scenes(family, 0..args.scenes.max(1), args.grid)?;
+        let p = super::sim_gpu::parity(device, &scenes, args.frames)?;
+        println!(
+            "| {} | {:.2e} | {:.2e} | {:.2e} | {:.2e} | {} |",
+            family.name(),
+            p.gpu.kinetic,
+            p.cpu.kinetic,
+            p.gpu.centre,
+            p.cpu.centre,
+            if p.same_bits { "same bits" } else { "DIFFER" }
+        );
+    }
+    Ok(())
 }

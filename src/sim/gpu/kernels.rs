@@ -1,0 +1,456 @@
+//! The cubecl kernels of the batched MLS-MPM substep on CUDA (feature `cuda`): the substep
+//! split per scene ([`parts_kernel`]), P2G with each particle's stress ([`p2g_kernel`], 64-bit
+//! fixed-point sums), the grid update ([`grid_kernel`]) and G2P with the `F` update and the
+//! plastic projection ([`g2p_kernel`]). Each is the GPU form of one step of
+//! [`crate::sim::mpm::Solver::substep`] and keeps its arithmetic in the same order; `mod.rs`
+//! launches them.
+//!
+//! Layout: particles of all scenes back to back, flat `f32` arrays (`x`, `v` `[P 2]`, `c`, `f`
+//! `[P 4]` row-major, `jp` `[P]`), `material` and `scene` `[P]` as `u32`; per scene `parts`
+//! `[B]` (the substep's equal parts) and `tally` `[B TALLY]` ([`TALLY`]); the grids
+//! `[B n^2 3]` (`acc`: momentum x, y and mass in fixed point; `grid`: velocity x, y and the
+//! inverse mass).
+
+use burn_cubecl::cubecl;
+use cubecl::prelude::*;
+
+use super::constitutive::{base_node, hardening, liquid_pressure, snow_project, weight};
+
+/// Words of a scene's tally: `max |v|^2`, `max |C|_F^2` and `max k phi` of the last G2P (as
+/// `f32` bits: non-negative floats order like their bits), particle-substeps that left the
+/// interpolation band, extra parts taken.
+pub(super) const TALLY: usize = 5;
+
+/// Per scene: the equal parts its next substep is taken in, from the last G2P's maxima, as
+/// `Solver::substep` decides them (the CFL and strain-increment limits and the elastic
+/// stability bound; at most 64); adds the extra parts to the scene's split count and raises
+/// `most[0]` to the largest. One thread per scene.
+#[cube(launch)]
+pub(super) fn parts_kernel(
+    tally: &mut Array<u32>,
+    parts: &mut Array<u32>,
+    most: &mut Array<Atomic<u32>>,
+    dt: f32,
+    n: u32,
+    max_cfl: f32,
+    max_strain: f32,
+) {
+    let s = ABSOLUTE_POS;
+    if s >= parts.len() {
+        terminate!();
+    }
+    let t = s * TALLY;
+    let vmax = f32::sqrt(f32::reinterpret(tally[t]));
+    let cmax = f32::sqrt(f32::reinterpret(tally[t + 1]));
+    let kphi = f32::reinterpret(tally[t + 2]);
+    let dx = f32::new(1.0) / f32::cast_from(n);
+    let mut cfl = vmax * dt / dx / max_cfl;
+    let strain = cmax * dt / max_strain;
+    if strain > cfl {
+        cfl = strain;
+    }
+    let stiff = f32::sqrt(f32::new(2.0) * kphi * dt * dt / (dx * dx) / f32::new(0.7));
+    let mut need = cfl;
+    if stiff > need {
+        need = stiff;
+    }
+    let mut count = 1u32;
+    if need > f32::new(64.0) {
+        count = 64u32;
+    } else if need > f32::new(1.0) {
+        count = u32::cast_from(f32::ceil(need));
+    }
+    parts[s] = count;
+    tally[t + 4] += count - 1;
+    most[0].fetch_max(count);
+}
+
+/// `a[i] = 0` for every element.
+#[cube(launch)]
+pub(super) fn zero_kernel(a: &mut Array<u32>) {
+    if ABSOLUTE_POS < a.len() {
+        a[ABSOLUTE_POS] = 0;
+    }
+}
+
+/// `dst[i] = src[i]` for every element (`f32`).
+#[cube(launch)]
+pub(super) fn copy_f32_kernel(src: &Array<f32>, dst: &mut Array<f32>) {
+    if ABSOLUTE_POS < dst.len() {
+        dst[ABSOLUTE_POS] = src[ABSOLUTE_POS];
+    }
+}
+
+/// `dst[i] = src[i]` for every element (`u32`).
+#[cube(launch)]
+pub(super) fn copy_u32_kernel(src: &Array<u32>, dst: &mut Array<u32>) {
+    if ABSOLUTE_POS < dst.len() {
+        dst[ABSOLUTE_POS] = src[ABSOLUTE_POS];
+    }
+}
+
+/// Adds `w (mx, my, m)` to node `node` of `acc` in fixed point (`scale` units per unit).
+#[cube]
+fn splat_node(acc: &mut Array<Atomic<i64>>, node: usize, w: f32, mx: f32, my: f32, m: f32, scale: f32) {
+    acc[node * 3].fetch_add(i64::cast_from(w * mx * scale));
+    acc[node * 3 + 1].fetch_add(i64::cast_from(w * my * scale));
+    acc[node * 3 + 2].fetch_add(i64::cast_from(w * m * scale));
+}
+
+/// P2G for part `part` of the substep: each particle of a scene with more than `part` parts
+/// computes its Kirchhoff stress (liquid pressure, or fixed-corotated with the polar rotation
+/// and hardening) and scatters mass and APIC momentum `m v + A (x_i - x_p)`, `A = -h p_vol 4
+/// inv_dx^2 tau + m C` (`h` = `dt` / parts), to its 3 x 3 nodes in 64-bit fixed point, and
+/// keeps its stiffness for G2P's stability bound. One thread per particle.
+///
+/// Fixed point makes the sums independent of the order the atomics land in, so every run
+/// gives the same bits (Le Grand, Götz and Walker 2013, as the grid model's P2G,
+/// `ops::cuda_stencil_kernels`).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments, unused_assignments)]
+pub(super) fn p2g_kernel(
+    x: &Array<f32>,
+    v: &Array<f32>,
+    c: &Array<f32>,
+    f: &Array<f32>,
+    jp: &Array<f32>,
+    material: &Array<u32>,
+    scene: &Array<u32>,
+    parts: &Array<u32>,
+    stiffness: &mut Array<f32>,
+    acc: &mut Array<Atomic<i64>>,
+    part: u32,
+    n: u32,
+    dt: f32,
+    mu0: f32,
+    lambda0: f32,
+    scale: f32,
+) {
+    let p = ABSOLUTE_POS;
+    if p >= material.len() {
+        terminate!();
+    }
+    let s = scene[p] as usize;
+    let count = parts[s];
+    if part >= count {
+        terminate!();
+    }
+    let h = dt / f32::cast_from(count);
+    let inv_dx = f32::cast_from(n);
+    let dx = f32::new(1.0) / inv_dx;
+    let half = f32::new(0.5) * dx;
+    let p_mass = half * half;
+    let stress_scale = -h * p_mass * f32::new(4.0) * inv_dx * inv_dx;
+    // The stencil.
+    let gx = x[p * 2] * inv_dx;
+    let gy = x[p * 2 + 1] * inv_dx;
+    let bi = base_node(gx, n);
+    let bj = base_node(gy, n);
+    let fx = gx - f32::cast_from(bi);
+    let fy = gy - f32::cast_from(bj);
+    // The stress (`material::kirchhoff_stress`).
+    let m = material[p];
+    let (f0, f1, f2, f3) = (f[p * 4], f[p * 4 + 1], f[p * 4 + 2], f[p * 4 + 3]);
+    let j = f0 * f3 - f1 * f2;
+    let mut t0 = f32::new(0.0);
+    let mut t1 = f32::new(0.0);
+    let mut t2 = f32::new(0.0);
+    let mut t3 = f32::new(0.0);
+    let mut k = f32::new(0.0);
+    if m == 0 {
+        let pr = liquid_pressure(j, lambda0);
+        t0 = pr;
+        t3 = pr;
+        let mut g = f32::new(2.0) * j - f32::new(1.0);
+        if g < f32::new(1.0) {
+            g = f32::new(1.0);
+        }
+        k = lambda0 * g;
+    } else {
+        let hard = hardening(m, jp[p]);
+        let mu = mu0 * hard;
+        let la = lambda0 * hard;
+        if m != 2 {
+            k = la + f32::new(2.0) * mu;
+        }
+        // The polar rotation R = [[rc, -rs], [rs, rc]] (`linalg::polar_rotation`).
+        let px = f0 + f3;
+        let py = f2 - f1;
+        let norm2 = px * px + py * py;
+        let mut rc = f32::new(1.0);
+        let mut rs = f32::new(0.0);
+        if norm2 > f32::new(1.175_494_4e-38) {
+            let inv = f32::new(1.0) / f32::sqrt(norm2);
+            rc = px * inv;
+            rs = py * inv;
+        }
+        let (d0, d1, d2, d3) = (f0 - rc, f1 + rs, f2 - rs, f3 - rc);
+        let pj = la * j * (j - f32::new(1.0));
+        let mu2 = f32::new(2.0) * mu;
+        t0 = mu2 * (d0 * f0 + d1 * f1) + pj;
+        t1 = mu2 * (d0 * f2 + d1 * f3);
+        t2 = mu2 * (d2 * f0 + d3 * f1);
+        t3 = mu2 * (d2 * f2 + d3 * f3) + pj;
+    }
+    stiffness[p] = k;
+    let a0 = (stress_scale * t0 + p_mass * c[p * 4]) * dx;
+    let a1 = (stress_scale * t1 + p_mass * c[p * 4 + 1]) * dx;
+    let a2 = (stress_scale * t2 + p_mass * c[p * 4 + 2]) * dx;
+    let a3 = (stress_scale * t3 + p_mass * c[p * 4 + 3]) * dx;
+    let q0 = p_mass * v[p * 2] - a0 * fx - a1 * fy;
+    let q1 = p_mass * v[p * 2 + 1] - a2 * fx - a3 * fy;
+    let nn = n as usize;
+    let base = s * nn * nn + (bi as usize) * nn + bj as usize;
+    let (wy0, wy1, wy2) = (weight(fy, 0u32), weight(fy, 1u32), weight(fy, 2u32));
+    #[unroll]
+    for i in 0..3u32 {
+        let wx = weight(fx, i);
+        let fi = f32::cast_from(i);
+        let r0 = q0 + a0 * fi;
+        let r1 = q1 + a2 * fi;
+        let row = base + (i as usize) * nn;
+        splat_node(acc, row, wx * wy0, r0, r1, p_mass, scale);
+        splat_node(acc, row + 1, wx * wy1, r0 + a1, r1 + a3, p_mass, scale);
+        let two = f32::new(2.0);
+        splat_node(acc, row + 2, wx * wy2, r0 + a1 * two, r1 + a3 * two, p_mass, scale);
+    }
+}
+
+/// The grid update for part `part`: each node of a scene with more than `part` parts turns
+/// its fixed-point momentum into velocity, adds gravity and applies the walls (the outward
+/// component zeroed on nodes with index < 3 or > n - 3), writes `(vx, vy, 1 / m)` (zeros
+/// where no mass landed) and clears its sums for the next P2G. Node 0 of each such scene
+/// clears the scene's maxima, which the G2P after it rewrites. One thread per node.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn grid_kernel(
+    acc: &mut Array<i64>,
+    grid: &mut Array<f32>,
+    parts: &Array<u32>,
+    tally: &mut Array<u32>,
+    part: u32,
+    n: u32,
+    dt: f32,
+    gravity_x: f32,
+    gravity_y: f32,
+    scale: f32,
+) {
+    let g = ABSOLUTE_POS;
+    if g * 3 >= grid.len() {
+        terminate!();
+    }
+    let nn = (n * n) as usize;
+    let s = g / nn;
+    let local = (g % nn) as u32;
+    let i = local / n;
+    let j = local % n;
+    let count = parts[s];
+    if part >= count {
+        terminate!();
+    }
+    if local == 0 {
+        tally[s * TALLY] = 0;
+        tally[s * TALLY + 1] = 0;
+        tally[s * TALLY + 2] = 0;
+    }
+    let mx = f32::cast_from(acc[g * 3]) / scale;
+    let my = f32::cast_from(acc[g * 3 + 1]) / scale;
+    let m = f32::cast_from(acc[g * 3 + 2]) / scale;
+    acc[g * 3] = 0;
+    acc[g * 3 + 1] = 0;
+    acc[g * 3 + 2] = 0;
+    let h = dt / f32::cast_from(count);
+    let mut vx = f32::new(0.0);
+    let mut vy = f32::new(0.0);
+    let mut inv = f32::new(0.0);
+    if m > f32::new(0.0) {
+        inv = f32::new(1.0) / m;
+        vx = mx * inv + h * gravity_x;
+        vy = my * inv + h * gravity_y;
+        if i < 3 && vx < f32::new(0.0) {
+            vx = f32::new(0.0);
+        }
+        if i > n - 3 && vx > f32::new(0.0) {
+            vx = f32::new(0.0);
+        }
+        if j < 3 && vy < f32::new(0.0) {
+            vy = f32::new(0.0);
+        }
+        if j > n - 3 && vy > f32::new(0.0) {
+            vy = f32::new(0.0);
+        }
+    }
+    grid[g * 3] = vx;
+    grid[g * 3 + 1] = vy;
+    grid[g * 3 + 2] = inv;
+}
+
+/// Row `i` of a particle's G2P gather from the grid's `(vx, vy, 1 / m)` at node `row` and
+/// the next two: adds to `acc` `[v x, v y, b_i x, b_i y, b_j x, b_j y, phi]` as the CPU
+/// solver's `g2p` does for one row (`s = sum_j w_j v_ij`, `t = sum_j j w_j v_ij`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn gather_row(
+    grid: &Array<f32>,
+    row: usize,
+    wx: f32,
+    fi: f32,
+    wy0: f32,
+    wy1: f32,
+    wy2: f32,
+    acc: &mut Array<f32>,
+) {
+    let (c0, c1, c2) = (row * 3, row * 3 + 3, row * 3 + 6);
+    let w2 = wy0 * wy0 * grid[c0 + 2] + wy1 * wy1 * grid[c1 + 2] + wy2 * wy2 * grid[c2 + 2];
+    acc[6] += wx * wx * w2;
+    #[unroll]
+    for k in 0..2usize {
+        let s = wy0 * grid[c0 + k] + wy1 * grid[c1 + k] + wy2 * grid[c2 + k];
+        let t = wy1 * grid[c1 + k] + f32::new(2.0) * wy2 * grid[c2 + k];
+        acc[k] += wx * s;
+        acc[2 + k] += wx * fi * s;
+        acc[4 + k] += wx * t;
+    }
+}
+
+/// G2P for part `part`: each particle of a scene with more than `part` parts gathers `v` and
+/// `C = 4 inv_dx^2 sum w v_i (x_i - x_p)^T` from its nodes, raises its scene's maxima
+/// (`|v|^2`, `|C|_F^2`, stiffness times its own share of its nodes' mass, atomically as
+/// bits), moves by `h v` (counting a step that leaves the interpolation band in
+/// its scene's tally), updates `F <- (I + h C) F` (in `m` equal steps past `h |C|_F > 0.25`)
+/// and projects it (liquid: `diag(max(J, j_min), 1)`; snow: [`snow_project`]). One thread per
+/// particle.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn g2p_kernel(
+    x: &mut Array<f32>,
+    v: &mut Array<f32>,
+    c: &mut Array<f32>,
+    f: &mut Array<f32>,
+    jp: &mut Array<f32>,
+    material: &Array<u32>,
+    scene: &Array<u32>,
+    parts: &Array<u32>,
+    stiffness: &Array<f32>,
+    grid: &Array<f32>,
+    tally: &mut Array<Atomic<u32>>,
+    part: u32,
+    n: u32,
+    dt: f32,
+    snow_lo: f32,
+    snow_hi: f32,
+    j_min: f32,
+) {
+    let p = ABSOLUTE_POS;
+    if p >= material.len() {
+        terminate!();
+    }
+    let s = scene[p] as usize;
+    let count = parts[s];
+    if part >= count {
+        terminate!();
+    }
+    let h = dt / f32::cast_from(count);
+    let inv_dx = f32::cast_from(n);
+    let dx = f32::new(1.0) / inv_dx;
+    let half = f32::new(0.5) * dx;
+    let p_mass = half * half;
+    let gx = x[p * 2] * inv_dx;
+    let gy = x[p * 2 + 1] * inv_dx;
+    let bi = base_node(gx, n);
+    let bj = base_node(gy, n);
+    let fx = gx - f32::cast_from(bi);
+    let fy = gy - f32::cast_from(bj);
+    let nn = n as usize;
+    let base = s * nn * nn + (bi as usize) * nn + bj as usize;
+    let (wy0, wy1, wy2) = (weight(fy, 0u32), weight(fy, 1u32), weight(fy, 2u32));
+    let mut acc = Array::<f32>::new(7usize);
+    #[unroll]
+    for k in 0..7usize {
+        acc[k] = f32::new(0.0);
+    }
+    #[unroll]
+    for i in 0..3u32 {
+        let row = base + (i as usize) * nn;
+        gather_row(grid, row, weight(fx, i), f32::cast_from(i), wy0, wy1, wy2, &mut acc);
+    }
+    let (vx, vy) = (acc[0], acc[1]);
+    let k4 = f32::new(4.0) * inv_dx;
+    let c0 = k4 * (acc[2] - vx * fx);
+    let c1 = k4 * (acc[4] - vx * fy);
+    let c2 = k4 * (acc[3] - vy * fx);
+    let c3 = k4 * (acc[5] - vy * fy);
+    let cnorm2 = c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3;
+    // The scene's maxima: an atomic only where the value beats the one stored (all of a
+    // scene's particles would otherwise queue on three words).
+    let t = s * TALLY;
+    let vv = u32::reinterpret(vx * vx + vy * vy);
+    if vv > tally[t].load() {
+        tally[t].fetch_max(vv);
+    }
+    let cc = u32::reinterpret(cnorm2);
+    if cc > tally[t + 1].load() {
+        tally[t + 1].fetch_max(cc);
+    }
+    let kk = u32::reinterpret(stiffness[p] * acc[6] * p_mass);
+    if kk > tally[t + 2].load() {
+        tally[t + 2].fetch_max(kk);
+    }
+    c[p * 4] = c0;
+    c[p * 4 + 1] = c1;
+    c[p * 4 + 2] = c2;
+    c[p * 4 + 3] = c3;
+    v[p * 2] = vx;
+    v[p * 2 + 1] = vy;
+    let nx = x[p * 2] + h * vx;
+    let ny = x[p * 2 + 1] + h * vy;
+    x[p * 2] = nx;
+    x[p * 2 + 1] = ny;
+    let lo = f32::new(0.5) / inv_dx;
+    let hi = f32::new(1.0) - f32::new(1.5) / inv_dx;
+    if !(nx >= lo && nx < hi && ny >= lo && ny < hi) {
+        tally[t + 3].fetch_add(1u32);
+    }
+    // F <- (I + h C) F, in equal steps when one would be too large (`update_deformation`).
+    let norm2 = h * h * cnorm2;
+    let mut steps = 1u32;
+    if norm2 > f32::new(0.0625) {
+        let want = f32::ceil(f32::sqrt(norm2) / f32::new(0.25));
+        steps = 1024u32;
+        if want < f32::new(1024.0) {
+            steps = u32::cast_from(want);
+        }
+    }
+    let hh = h / f32::cast_from(steps);
+    let (s0, s1, s2, s3) = (f32::new(1.0) + hh * c0, hh * c1, hh * c2, f32::new(1.0) + hh * c3);
+    let mut o0 = f[p * 4];
+    let mut o1 = f[p * 4 + 1];
+    let mut o2 = f[p * 4 + 2];
+    let mut o3 = f[p * 4 + 3];
+    for _ in 0..steps {
+        let (n0, n1) = (s0 * o0 + s1 * o2, s0 * o1 + s1 * o3);
+        let (n2, n3) = (s2 * o0 + s3 * o2, s2 * o1 + s3 * o3);
+        o0 = n0;
+        o1 = n1;
+        o2 = n2;
+        o3 = n3;
+    }
+    let m = material[p];
+    if m == 0 {
+        let mut jj = o0 * o3 - o1 * o2;
+        if !(jj >= j_min) {
+            jj = j_min;
+        }
+        o0 = jj;
+        o1 = f32::new(0.0);
+        o2 = f32::new(0.0);
+        o3 = f32::new(1.0);
+    }
+    f[p * 4] = o0;
+    f[p * 4 + 1] = o1;
+    f[p * 4 + 2] = o2;
+    f[p * 4 + 3] = o3;
+    if m == 2 {
+        snow_project(f, jp, p, snow_lo, snow_hi);
+    }
+}
