@@ -177,6 +177,7 @@ fn simulate(
     if args.publish && args.device != "cpu" {
         return Err(UsageError("--publish runs with the CPU solver (--device cpu)".into()).into());
     }
+    let gpu = gpu_of(&args)?;
     let mut scenes = scenes_of(&args)?;
     if let Some(n) = args.frames {
         scenes.iter_mut().for_each(|s| s.frames = s.frames.min(n));
@@ -194,24 +195,23 @@ fn simulate(
     } else {
         None
     };
-    let gpu = gpu_of(&args)?;
     let results: Vec<(String, anyhow::Result<PathBuf>)> = if let Some(gpu) = gpu {
         gpu(scenes, &args, &bar)?
     } else {
         pool.install(|| {
-        scenes
-            .into_par_iter()
-            .map(|scene| {
-                let name = scene.name.clone();
-                let started = std::time::Instant::now();
-                let publish = |frame: &ParticleFrame| match &live {
-                    Some(live) => live.publish(frame, started),
-                    None => Ok(()),
-                };
-                let res = write_scene(scene, &args.out, &args.topic, &bar, &publish);
-                (name, res)
-            })
-            .collect()
+            scenes
+                .into_par_iter()
+                .map(|scene| {
+                    let name = scene.name.clone();
+                    let started = std::time::Instant::now();
+                    let publish = |frame: &ParticleFrame| match &live {
+                        Some(live) => live.publish(frame, started),
+                        None => Ok(()),
+                    };
+                    let res = write_scene(scene, &args.out, &args.topic, &bar, &publish);
+                    (name, res)
+                })
+                .collect()
         })
     };
     bar.finish_and_clear();

@@ -61,7 +61,14 @@ impl Slot {
         let dx = 1.0 / self.scene.grid as f32;
         if let Err(violation) = sanity::check_particles(ps, dx, &self.bodies) {
             let scene = self.scene.name.clone();
-            self.error = Some(crate::sim::SimError::Unstable { scene, frame: index, violation }.into());
+            self.error = Some(
+                crate::sim::SimError::Unstable {
+                    scene,
+                    frame: index,
+                    violation,
+                }
+                .into(),
+            );
             return;
         }
         let frame = ParticleFrame::on_clock(

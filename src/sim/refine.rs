@@ -20,9 +20,9 @@ pub fn substep_for(n: usize) -> f32 {
 }
 
 impl Scene {
-    /// This scene on an `n x n` grid (`n` a multiple of its own grid): each body's particle
-    /// count times `(n / grid)^2` (a rope's times `n / grid`, so its spacing stays the same
-    /// share of a cell), `dt` from [`substep_for`] with as many substeps as keep the frame
+    /// This scene on an `n x n` grid (`n` a multiple of its own grid): `(n / grid)^2` times
+    /// its particles, each body's count scaled by that (a rope's by `n / grid`, so its spacing
+    /// stays the same share of a cell, the rest going to the largest other body), `dt` from [`substep_for`] with as many substeps as keep the frame
     /// period (0.016 time units for the families), and the name's first part marked with the
     /// grid (`multi/liquid+snow/007` -> `multi@256/liquid+snow/007`). The same scene for
     /// `n` = its grid.
@@ -34,7 +34,7 @@ impl Scene {
         if n == self.grid {
             return Ok(self.clone());
         }
-        if n < self.grid || n % self.grid != 0 {
+        if n < self.grid || !n.is_multiple_of(self.grid) {
             return Err(SimError::Invalid(format!(
                 "scene {}: grid {n} is not a multiple of its grid {}",
                 self.name, self.grid
@@ -42,8 +42,24 @@ impl Scene {
         }
         let r = n / self.grid;
         let mut out = self.clone();
+        let mut short = 0;
         for b in &mut out.bodies {
-            b.count *= if b.shape == Shape::Line { r } else { r * r };
+            if b.shape == Shape::Line {
+                short += b.count * (r * r - r);
+                b.count *= r;
+            } else {
+                b.count *= r * r;
+            }
+        }
+        // What the ropes did not take goes to the largest other body, so the scene keeps
+        // `r^2` times its particles (scenes of one family keep one count: batches stack them).
+        if let Some(b) = out
+            .bodies
+            .iter_mut()
+            .filter(|b| b.shape != Shape::Line)
+            .max_by_key(|b| b.count)
+        {
+            b.count += short;
         }
         let period = self.dt as f64 * self.substeps as f64;
         let dt = substep_for(n);
@@ -69,10 +85,17 @@ mod tests {
         let at128 = scene.refined(128).unwrap();
         let at256 = scene.refined(256).unwrap();
         assert_eq!(scene.particle_count(), 2_500);
-        // The rope (1 of 5 ids has one) grows by r, the rest by r^2.
-        let rope: usize = scene.bodies.iter().filter(|b| b.shape == super::Shape::Line).map(|b| b.count).sum();
-        assert_eq!(at128.particle_count(), (2_500 - rope) * 4 + rope * 2);
-        assert_eq!(at256.particle_count(), (2_500 - rope) * 16 + rope * 4);
+        // Scene 1 has a rope: it grows by r, the scene by r^2.
+        let rope = |s: &crate::sim::Scene| -> usize {
+            s.bodies
+                .iter()
+                .filter(|b| b.shape == super::Shape::Line)
+                .map(|b| b.count)
+                .sum()
+        };
+        assert_eq!(rope(&at256), rope(&scene) * 4);
+        assert_eq!(at128.particle_count(), 10_000);
+        assert_eq!(at256.particle_count(), 40_000);
         assert_eq!((at128.grid, at128.substeps), (128, 80));
         assert_eq!((at256.grid, at256.substeps), (256, 160));
         assert!((at256.dt - 1e-4).abs() < 1e-9);

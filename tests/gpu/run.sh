@@ -23,6 +23,10 @@
 #   tests/gpu/run.sh sparse    # the sparse transfers (bench transfer: CPU, dense, bits), and
 #                              # training and the 256-scene call with sparse against dense
 #                              # transfers, beside PyTorch's training step
+#   tests/gpu/run.sh solver    # the MLS-MPM solver batched on the GPU: validation checks 2-5
+#                              # and 7 (gpu/it.xz: the `it` tests built with --features cuda),
+#                              # its cost and physics against the CPU's at 2,500, 10,000 and
+#                              # 40,000 particles, and two `simulate --device cuda` runs' bags
 #   tests/gpu/run.sh cudnn     # the convolutions through cuDNN against im2col and cuBLAS:
 #                              # training beside PyTorch's step (and cuDNN on weights copied
 #                              # into its layout each pass, the form before), the 256-scene
@@ -285,6 +289,24 @@ cudnn() { # docs/speed.md: the convolutions through cuDNN against im2col and cuB
             --split all --starts 3 --no-render --constraints off --out "$OUT/eval-gpu-$conv"
     done
     tables_agree eval-gpu-cudnn-agree "$OUT/eval-gpu-cudnn" "$OUT/eval-gpu-im2col"
+}
+
+solver() { # docs/mpm.md, "The solver on a GPU"; docs/speed.md, "At scale"
+    if [ ! -x gpu/it ] && [ -f gpu/it.xz ]; then
+        python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/it.xz'), open('gpu/it', 'wb'))"
+        chmod +x gpu/it
+    fi
+    check solver-checks gpu/it sim_validation --test-threads 1
+    check solver-64 "$BIN" bench sim --device cuda --frames 100 --scenes 1 --threads 16 --batch 256
+    check solver-128 "$BIN" bench sim --device cuda --frames 20 --scenes 1 --threads 16 \
+        --batch 256 --family multi --grid 128
+    check solver-256 "$BIN" bench sim --device cuda --frames 10 --scenes 1 --threads 16 \
+        --batch 16 --family multi --grid 256
+    for run in a b; do
+        "$BIN" simulate --device cuda --family multi --scenes 0..256 --frames 100 \
+            --out "$OUT/gpu-$run" >/dev/null 2>&1
+    done
+    check solver-bags diff <(cd "$OUT/gpu-a" && md5sum *.mcap) <(cd "$OUT/gpu-b" && md5sum *.mcap)
 }
 
 tables_agree() { # name dir-a dir-b: every eval table.csv under the two folders within 1e-3

@@ -222,6 +222,44 @@ fn ids_beyond_the_family_are_more_scenes_of_its_kinds() {
     assert_ne!(a, b, "id 60 repeated id 0's scene");
 }
 
+/// `--grid` puts the family's scenes on a finer grid with proportionally more particles
+/// (docs/mpm.md, "The solver on a GPU"): a `multi` scene on 128 x 128 has 10,000 particles,
+/// 80 substeps a frame and its name marked with the grid; a grid that is no multiple of the
+/// scene's is a usage error before any work.
+#[test]
+fn simulate_refines_scenes_onto_a_finer_grid() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let o = minflow(&[
+        "simulate", "--family", "multi", "--scenes", "1", "--frames", "2", "--grid", "128",
+        "--out", out,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bag = dir.path().join("multi@128_rope+snow_001.mcap");
+    let frames: Vec<_> = read_frames(&bag, None)
+        .unwrap()
+        .frames
+        .into_iter()
+        .map(|(_, _, frame)| frame)
+        .collect();
+    assert_eq!(frames.len(), 2);
+    assert_eq!(frames[1].len(), 10_000);
+    assert_eq!(frames[1].scene, "multi@128/rope+snow/001");
+    let mut run =
+        SceneRun::new(families::scene(Family::Multi, 1, 0).refined(128).unwrap()).unwrap();
+    assert_eq!(run.scene().substeps, 80);
+    let truth = run.nth(1).unwrap().unwrap();
+    assert_eq!(
+        frames[1].position, truth.position,
+        "the bag holds the refined scene's frame"
+    );
+    let o = minflow(&[
+        "simulate", "--family", "multi", "--grid", "96", "--out", out,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "--grid 96 on a 64 grid");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--grid 96"));
+}
+
 #[test]
 fn bad_arguments_fail_clearly() {
     let o = minflow(&["simulate", "--family", "gas", "--out", "/tmp/never"]);
@@ -239,6 +277,17 @@ fn bad_arguments_fail_clearly() {
     }
     let o = minflow(&["simulate", "--frames", "0", "--out", "/tmp/never"]);
     assert_eq!(o.status.code(), Some(2), "--frames 0");
+    // The GPU solver needs a `cuda` build: an error, before any work, that says how to get one.
+    if !cfg!(feature = "cuda") {
+        let o = minflow(&["simulate", "--device", "cuda", "--out", "/tmp/never"]);
+        assert_eq!(
+            o.status.code(),
+            Some(1),
+            "--device cuda without the feature"
+        );
+        assert!(!Path::new("/tmp/never").exists());
+        assert!(String::from_utf8_lossy(&o.stderr).contains("--features cuda"));
+    }
     assert!(String::from_utf8_lossy(&o.stderr).contains("--frames"));
     // Scene file values are usage errors naming the field: an empty name (it used to write a
     // hidden `.mcap` that `bag info DIR` cannot find), two files naming one scene.

@@ -318,8 +318,9 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
 }
 
 /// With `--device cuda`: milliseconds per scene-frame of the same scenes on the GPU solver,
-/// `--batch` scenes a call (`sim::gpu`), after an untimed frame that compiles its kernels;
-/// `None` on the CPU.
+/// `--batch` scenes a call (`sim::gpu`), in steady state (after a first frame that compiles
+/// its kernels and the frames that fill its substep-split window, not counting each batch's
+/// upload); `None` on the CPU.
 #[cfg(feature = "cuda")]
 fn gpu_solver_ms(
     args: &RolloutBenchArgs,
@@ -337,17 +338,27 @@ fn gpu_solver_ms(
     let mut warm = GpuSolver::new(&device, config, vec![scenes[0].particles().0])?;
     warm.advance(substeps)?;
     warm.tallies()?;
-    let started = Instant::now();
+    // Steady state: the frames after the first `WARM` (the substep split's speculation
+    // window fills), at least `TIMED` of them whatever the rollout's length.
+    const WARM: usize = 10;
+    const TIMED: usize = 50;
+    let timed = (frames - 1).max(TIMED);
+    let mut secs = 0.0;
     for chunk in scenes.chunks(args.batch) {
         let particles = chunk.iter().map(|s| s.particles().0).collect();
         let mut gpu = GpuSolver::new(&device, config, particles)?;
-        for _ in 1..frames {
+        for _ in 0..WARM {
             gpu.advance(substeps)?;
         }
         gpu.tallies()?;
+        let started = Instant::now();
+        for _ in 0..timed {
+            gpu.advance(substeps)?;
+        }
+        gpu.tallies()?;
+        secs += started.elapsed().as_secs_f64();
     }
-    let secs = started.elapsed().as_secs_f64();
-    Ok(Some(secs * 1e3 / (scenes.len() * (frames - 1)) as f64))
+    Ok(Some(secs * 1e3 / (scenes.len() * timed) as f64))
 }
 
 /// Without the `cuda` feature there is no GPU solver row.

@@ -33,8 +33,9 @@ pub struct SimBenchArgs {
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=4096))]
     batch: u32,
     /// GPU: each frame runs as many parts a substep as the most split substep of the last N
-    /// frames needed (a frame that needs more is taken again substep by substep).
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    /// frames needed (a frame that needs more is taken again substep by substep); 0 reads
+    /// each substep's parts back before running them.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(0..=1000))]
     window: u32,
     /// Settings to run, comma-separated families (`multi`, `fluid`, `mixed`).
     #[arg(long, default_value = "multi,fluid", value_delimiter = ',')]
@@ -97,7 +98,10 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
     let families: Vec<Family> = args
         .family
         .iter()
-        .map(|f| f.parse().map_err(|e: crate::sim::SimError| UsageError(format!("--family: {e}"))))
+        .map(|f| {
+            f.parse()
+                .map_err(|e: crate::sim::SimError| UsageError(format!("--family: {e}")))
+        })
         .collect::<Result<_, _>>()?;
     for &family in &families {
         let scenes = family_scenes(family, 0..args.scenes.max(1), args.grid)?;
@@ -122,7 +126,12 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         let s = &scenes[0];
         #[cfg(feature = "cuda")]
         if let Some(device) = &gpu {
-            let row = super::sim_gpu::time_batch(device, family_scenes(family, 0..args.batch, args.grid)?, args.frames, args.window)?;
+            let row = super::sim_gpu::time_batch(
+                device,
+                family_scenes(family, 0..args.batch, args.grid)?,
+                args.frames,
+                args.window,
+            )?;
             let cpu_ms = multi * 1e3 / frames as f64;
             println!(
                 "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {} frames redone",
@@ -176,9 +185,10 @@ fn gpu_of(text: &str) -> anyhow::Result<Option<crate::sim::gpu::CudaDevice>> {
             ids[0],
             crate::ops::Kernels::default(),
         )?)),
-        Device::Cuda(_) => {
-            Err(UsageError("--device: the GPU solver runs on one GPU (cuda or cuda:N)".into()).into())
-        }
+        Device::Cuda(_) => Err(UsageError(
+            "--device: the GPU solver runs on one GPU (cuda or cuda:N)".into(),
+        )
+        .into()),
     }
 }
 

@@ -69,7 +69,10 @@ pub(super) struct Gap {
 
 impl Gap {
     fn widen(&mut self, a: &[Diagnostics], b: &[Diagnostics]) {
-        let peak = a.iter().map(|d| d.kinetic).fold(f64::MIN_POSITIVE, f64::max);
+        let peak = a
+            .iter()
+            .map(|d| d.kinetic)
+            .fold(f64::MIN_POSITIVE, f64::max);
         for (a, b) in a.iter().zip(b) {
             self.kinetic = self.kinetic.max((a.kinetic - b.kinetic).abs() / peak);
             let (ca, cb) = (a.center_of_mass, b.center_of_mass);

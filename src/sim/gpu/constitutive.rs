@@ -128,4 +128,3 @@ pub(super) fn snow_project(f: &mut Array<f32>, jp: &mut Array<f32>, p: usize, lo
     f[p * 4 + 2] = a2 * vc + a3 * -vs;
     f[p * 4 + 3] = a2 * vs + a3 * vc;
 }
-

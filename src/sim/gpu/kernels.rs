@@ -65,33 +65,17 @@ pub(super) fn parts_kernel(
     most[0].fetch_max(count);
 }
 
-/// `a[i] = 0` for every element.
-#[cube(launch)]
-pub(super) fn zero_kernel(a: &mut Array<u32>) {
-    if ABSOLUTE_POS < a.len() {
-        a[ABSOLUTE_POS] = 0;
-    }
-}
-
-/// `dst[i] = src[i]` for every element (`f32`).
-#[cube(launch)]
-pub(super) fn copy_f32_kernel(src: &Array<f32>, dst: &mut Array<f32>) {
-    if ABSOLUTE_POS < dst.len() {
-        dst[ABSOLUTE_POS] = src[ABSOLUTE_POS];
-    }
-}
-
-/// `dst[i] = src[i]` for every element (`u32`).
-#[cube(launch)]
-pub(super) fn copy_u32_kernel(src: &Array<u32>, dst: &mut Array<u32>) {
-    if ABSOLUTE_POS < dst.len() {
-        dst[ABSOLUTE_POS] = src[ABSOLUTE_POS];
-    }
-}
-
 /// Adds `w (mx, my, m)` to node `node` of `acc` in fixed point (`scale` units per unit).
 #[cube]
-fn splat_node(acc: &mut Array<Atomic<i64>>, node: usize, w: f32, mx: f32, my: f32, m: f32, scale: f32) {
+fn splat_node(
+    acc: &mut Array<Atomic<i64>>,
+    node: usize,
+    w: f32,
+    mx: f32,
+    my: f32,
+    m: f32,
+    scale: f32,
+) {
     acc[node * 3].fetch_add(i64::cast_from(w * mx * scale));
     acc[node * 3 + 1].fetch_add(i64::cast_from(w * my * scale));
     acc[node * 3 + 2].fetch_add(i64::cast_from(w * m * scale));
@@ -212,22 +196,28 @@ pub(super) fn p2g_kernel(
         splat_node(acc, row, wx * wy0, r0, r1, p_mass, scale);
         splat_node(acc, row + 1, wx * wy1, r0 + a1, r1 + a3, p_mass, scale);
         let two = f32::new(2.0);
-        splat_node(acc, row + 2, wx * wy2, r0 + a1 * two, r1 + a3 * two, p_mass, scale);
+        splat_node(
+            acc,
+            row + 2,
+            wx * wy2,
+            r0 + a1 * two,
+            r1 + a3 * two,
+            p_mass,
+            scale,
+        );
     }
 }
 
 /// The grid update for part `part`: each node of a scene with more than `part` parts turns
 /// its fixed-point momentum into velocity, adds gravity and applies the walls (the outward
 /// component zeroed on nodes with index < 3 or > n - 3), writes `(vx, vy, 1 / m)` (zeros
-/// where no mass landed) and clears its sums for the next P2G. Node 0 of each such scene
-/// clears the scene's maxima, which the G2P after it rewrites. One thread per node.
+/// where no mass landed) and clears its sums for the next P2G. One thread per node.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn grid_kernel(
     acc: &mut Array<i64>,
     grid: &mut Array<f32>,
     parts: &Array<u32>,
-    tally: &mut Array<u32>,
     part: u32,
     n: u32,
     dt: f32,
@@ -247,11 +237,6 @@ pub(super) fn grid_kernel(
     let count = parts[s];
     if part >= count {
         terminate!();
-    }
-    if local == 0 {
-        tally[s * TALLY] = 0;
-        tally[s * TALLY + 1] = 0;
-        tally[s * TALLY + 2] = 0;
     }
     let mx = f32::cast_from(acc[g * 3]) / scale;
     let my = f32::cast_from(acc[g * 3 + 1]) / scale;
@@ -333,6 +318,7 @@ pub(super) fn g2p_kernel(
     parts: &Array<u32>,
     stiffness: &Array<f32>,
     grid: &Array<f32>,
+    pmax: &mut Array<u32>,
     tally: &mut Array<Atomic<u32>>,
     part: u32,
     n: u32,
@@ -372,7 +358,16 @@ pub(super) fn g2p_kernel(
     #[unroll]
     for i in 0..3u32 {
         let row = base + (i as usize) * nn;
-        gather_row(grid, row, weight(fx, i), f32::cast_from(i), wy0, wy1, wy2, &mut acc);
+        gather_row(
+            grid,
+            row,
+            weight(fx, i),
+            f32::cast_from(i),
+            wy0,
+            wy1,
+            wy2,
+            &mut acc,
+        );
     }
     let (vx, vy) = (acc[0], acc[1]);
     let k4 = f32::new(4.0) * inv_dx;
@@ -381,21 +376,11 @@ pub(super) fn g2p_kernel(
     let c2 = k4 * (acc[3] - vy * fx);
     let c3 = k4 * (acc[5] - vy * fy);
     let cnorm2 = c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3;
-    // The scene's maxima: an atomic only where the value beats the one stored (all of a
-    // scene's particles would otherwise queue on three words).
-    let t = s * TALLY;
-    let vv = u32::reinterpret(vx * vx + vy * vy);
-    if vv > tally[t].load() {
-        tally[t].fetch_max(vv);
-    }
-    let cc = u32::reinterpret(cnorm2);
-    if cc > tally[t + 1].load() {
-        tally[t + 1].fetch_max(cc);
-    }
-    let kk = u32::reinterpret(stiffness[p] * acc[6] * p_mass);
-    if kk > tally[t + 2].load() {
-        tally[t + 2].fetch_max(kk);
-    }
+    // This particle's share of its scene's maxima, reduced per scene by `maxima_kernel`
+    // (atomics on three words a scene queue up all of its particles).
+    pmax[p * 3] = u32::reinterpret(vx * vx + vy * vy);
+    pmax[p * 3 + 1] = u32::reinterpret(cnorm2);
+    pmax[p * 3 + 2] = u32::reinterpret(stiffness[p] * acc[6] * p_mass);
     c[p * 4] = c0;
     c[p * 4 + 1] = c1;
     c[p * 4 + 2] = c2;
@@ -406,6 +391,7 @@ pub(super) fn g2p_kernel(
     let ny = x[p * 2 + 1] + h * vy;
     x[p * 2] = nx;
     x[p * 2 + 1] = ny;
+    let t = s * TALLY;
     let lo = f32::new(0.5) / inv_dx;
     let hi = f32::new(1.0) - f32::new(1.5) / inv_dx;
     if !(nx >= lo && nx < hi && ny >= lo && ny < hi) {
@@ -422,7 +408,12 @@ pub(super) fn g2p_kernel(
         }
     }
     let hh = h / f32::cast_from(steps);
-    let (s0, s1, s2, s3) = (f32::new(1.0) + hh * c0, hh * c1, hh * c2, f32::new(1.0) + hh * c3);
+    let (s0, s1, s2, s3) = (
+        f32::new(1.0) + hh * c0,
+        hh * c1,
+        hh * c2,
+        f32::new(1.0) + hh * c3,
+    );
     let mut o0 = f[p * 4];
     let mut o1 = f[p * 4 + 1];
     let mut o2 = f[p * 4 + 2];
@@ -438,6 +429,8 @@ pub(super) fn g2p_kernel(
     let m = material[p];
     if m == 0 {
         let mut jj = o0 * o3 - o1 * o2;
+        // `max(J, j_min)` that also takes a NaN J to `j_min`, as the CPU's `f32::max`.
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if !(jj >= j_min) {
             jj = j_min;
         }

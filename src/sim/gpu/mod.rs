@@ -15,8 +15,9 @@
 //! `minflow bench sim --device cuda`, `bench rollout --device cuda` and `simulate --device
 //! cuda`.
 
-mod kernels;
 mod constitutive;
+mod kernels;
+mod support;
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn_cubecl::cubecl;
@@ -27,10 +28,8 @@ use cubecl::{calculate_cube_count_elemwise, CubeElement};
 use super::material::LIQUID_J_MIN;
 use super::mpm::{Particles, Solver, SolverConfig, MAX_STRAIN_STEP};
 use super::SimError;
-use kernels::{
-    copy_f32_kernel, copy_u32_kernel, g2p_kernel, grid_kernel, p2g_kernel, parts_kernel,
-    zero_kernel, TALLY,
-};
+use kernels::{g2p_kernel, grid_kernel, p2g_kernel, parts_kernel, TALLY};
+use support::{copy_f32_kernel, copy_u32_kernel, maxima_kernel, zero_kernel, REDUCE_THREADS};
 
 /// A GPU.
 pub type CudaDevice = burn::backend::cuda::CudaDevice;
@@ -50,6 +49,10 @@ struct Buffers {
     saved_tally: Handle,
     material: Handle,
     scene: Handle,
+    /// Each scene's first particle, and the total: `[B + 1]`.
+    offsets: Handle,
+    /// Each particle's three words of its scene's maxima: `[P 3]`.
+    pmax: Handle,
     stiffness: Handle,
     acc: Handle,
     grid: Handle,
@@ -124,6 +127,12 @@ impl GpuSolver {
         let floats = |v: &[f32]| client.create_from_slice(f32::as_bytes(v));
         let words = |v: &[u32]| client.create_from_slice(u32::as_bytes(v));
         let material: Vec<u32> = flat.material.iter().map(|&m| m as u32).collect();
+        let offsets: Vec<u32> = std::iter::once(0)
+            .chain(counts.iter().scan(0u32, |at, &c| {
+                *at += c as u32;
+                Some(*at)
+            }))
+            .collect();
         let state = [
             floats(flat.x.as_flattened()),
             floats(flat.v.as_flattened()),
@@ -139,6 +148,8 @@ impl GpuSolver {
             saved_tally: words(&vec![0; b * TALLY]),
             material: words(&material),
             scene: words(&scene_of),
+            offsets: words(&offsets),
+            pmax: words(&vec![0; total * 3]),
             stiffness: floats(&vec![0.0; total]),
             acc: client.create_from_slice(i64::as_bytes(&vec![0i64; b * n * n * 3])),
             grid: floats(&vec![0.0; b * n * n * 3]),
@@ -159,10 +170,11 @@ impl GpuSolver {
         })
     }
 
-    /// Speculates each frame's parts from the last `frames` frames (at least 1; default
-    /// [`RECENT`]): a longer window redoes fewer frames and idles more parts.
+    /// Speculates each frame's parts from the last `frames` frames (default [`RECENT`]): a
+    /// longer window redoes fewer frames and idles more parts; 0 never speculates (each
+    /// substep's parts are read back before they run).
     pub fn with_window(mut self, frames: usize) -> Self {
-        self.window = frames.max(1);
+        self.window = frames;
         self
     }
 
@@ -191,6 +203,12 @@ impl GpuSolver {
         if count == 0 {
             return Ok(());
         }
+        if self.window == 0 {
+            let most = self.exact(count)?;
+            self.substeps_done += u64::from(count);
+            self.recent = vec![most];
+            return Ok(());
+        }
         let guess = self.recent.iter().copied().max().unwrap_or(1);
         self.save(true);
         self.zero_most();
@@ -206,17 +224,7 @@ impl GpuSolver {
         } else {
             self.redone += 1;
             self.save(false);
-            let mut most = 1;
-            for _ in 0..count {
-                self.zero_most();
-                self.decide_parts();
-                let parts = self.read_most()?;
-                for part in 0..parts {
-                    self.part(part);
-                }
-                most = most.max(parts);
-            }
-            most
+            self.exact(count)?
         };
         while self.recent.len() >= self.window {
             self.recent.remove(0);
@@ -224,6 +232,22 @@ impl GpuSolver {
         self.recent.push(most);
         self.substeps_done += u64::from(count);
         Ok(())
+    }
+
+    /// `count` substeps, each one's parts read back before they run; returns the most parts a
+    /// substep took.
+    fn exact(&mut self, count: u32) -> Result<u32, SimError> {
+        let mut most = 1;
+        for _ in 0..count {
+            self.zero_most();
+            self.decide_parts();
+            let parts = self.read_most()?;
+            for part in 0..parts {
+                self.part(part);
+            }
+            most = most.max(parts);
+        }
+        Ok(most)
     }
 
     /// Copies the particle state and tallies into `saved` (`forward`) or back.
@@ -282,8 +306,8 @@ impl GpuSolver {
         );
     }
 
-    /// Part `part` of the substep: P2G, grid update, G2P over every scene split at least
-    /// `part + 1` ways.
+    /// Part `part` of the substep: P2G, grid update, G2P and the maxima over every scene
+    /// split at least `part + 1` ways.
     fn part(&mut self, part: u32) {
         self.passes += 1;
         let c = &self.config;
@@ -324,7 +348,6 @@ impl GpuSolver {
             arr(&buf.acc, nodes * 3),
             arr(&buf.grid, nodes * 3),
             arr(&buf.parts, b),
-            arr(&buf.tally, b * TALLY),
             part,
             n as u32,
             c.dt,
@@ -347,6 +370,7 @@ impl GpuSolver {
             arr(&buf.parts, b),
             arr(&buf.stiffness, p),
             arr(&buf.grid, nodes * 3),
+            arr(&buf.pmax, p * 3),
             arr(&buf.tally, b * TALLY),
             part,
             n as u32,
@@ -354,6 +378,16 @@ impl GpuSolver {
             snow_lo,
             snow_hi,
             LIQUID_J_MIN,
+        );
+        maxima_kernel::launch(
+            client,
+            CubeCount::Static(b as u32, 1, 1),
+            CubeDim::new_1d(REDUCE_THREADS),
+            arr(&buf.pmax, p * 3),
+            arr(&buf.offsets, b + 1),
+            arr(&buf.parts, b),
+            arr(&buf.tally, b * TALLY),
+            part,
         );
     }
 
@@ -413,4 +447,3 @@ fn elementwise(client: &ComputeClient<CudaRuntime>, units: usize) -> (CubeCount,
     let dim = CubeDim::new(client, units);
     (calculate_cube_count_elemwise(client, units, dim), dim)
 }
-
