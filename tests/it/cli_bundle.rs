@@ -188,7 +188,7 @@ fn bench_rollout_prints_the_model_against_the_solver() {
         .lines()
         .find(|l| l.contains("k2"))
         .unwrap_or_else(|| panic!("a row for the model: {table}"));
-    // | model | K | calls/rollout | ms/frame | x solver | avg5 MSE |
+    // | model | K | calls/rollout | ms/frame | x solver | x GPU solver | avg5 MSE |
     let cells: Vec<&str> = row.split('|').map(str::trim).collect();
     assert_eq!(
         (cells[2], cells[3]),
@@ -197,13 +197,16 @@ fn bench_rollout_prints_the_model_against_the_solver() {
     );
     let ratio: f64 = cells[5].parse().unwrap();
     assert!(ratio.is_finite() && ratio > 0.0, "{row}");
+    // No GPU solver on the CPU: its column stays empty and it has no row.
+    assert_eq!(cells[6], "", "{row}");
+    assert!(!table.contains("on the GPU"), "{table}");
     // | ... | avg5 MSE | projection ms/frame (share) | its setup ms/scene |
     let projection = |setting: &str| -> (f64, f64) {
         let name = format!("small-k4[{setting}]");
         let row = table.lines().find(|l| l.contains(&name)).expect(&name);
         let cells: Vec<&str> = row.split('|').map(str::trim).collect();
-        let ms = cells[7].split_whitespace().next().unwrap().parse().unwrap();
-        (ms, cells[8].parse().unwrap())
+        let ms = cells[8].split_whitespace().next().unwrap().parse().unwrap();
+        (ms, cells[9].parse().unwrap())
     };
     assert_eq!(projection("off"), (0.0, 0.0), "{table}");
     let (ms, setup) = projection("on");

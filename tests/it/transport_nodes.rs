@@ -16,6 +16,17 @@ const SOURCE_FRAMES: usize = 25;
 /// replay (source bag, --topic T) -> record (--topic T --count 25); the recording equals
 /// the source message for message.
 fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
+    roundtrip_of(&source_bag(), SOURCE_FRAMES, transport, extra_record, extra_replay);
+}
+
+/// [`roundtrip`] of the `frames` frames of bag `source`.
+fn roundtrip_of(
+    source: &std::path::Path,
+    frames: usize,
+    transport: &str,
+    extra_record: &[&str],
+    extra_replay: &[&str],
+) {
     let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("rec");
     let topic = unique_topic(transport);
@@ -28,11 +39,11 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
         "-o",
         out.to_str().unwrap(),
     ];
-    rec_args.extend_from_slice(&["--count", "25"]);
+    let count = frames.to_string();
+    rec_args.extend_from_slice(&["--count", &count]);
     rec_args.extend_from_slice(extra_record);
     let env = domain_env(transport, 4);
     let recorder = Node::spawn_env("record", &rec_args, &env);
-    let source = source_bag();
     let mut play_args = vec![
         "replay",
         source.to_str().unwrap(),
@@ -50,15 +61,15 @@ fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
         .wait_or_kill(Duration::from_secs(30))
         .unwrap_or_else(|out| {
             panic!(
-                "{transport} record did not get {SOURCE_FRAMES} frames within 30 s\n\
+                "{transport} record did not get {frames} frames within 30 s\n\
                  replay:\n{}\nrecord:\n{}",
                 log_tail(play_err.as_bytes()),
                 log_tail(&out.stderr)
             )
         });
     let rec_err = ok(&rec, "record");
-    let want = raw_messages(&source, Some(FRAMES_TOPIC));
-    assert_eq!(want.len(), SOURCE_FRAMES);
+    let want = raw_messages(source, Some(FRAMES_TOPIC));
+    assert_eq!(want.len(), frames);
     let got = raw_messages(&out, Some(&topic));
     assert_eq!(
         got.len(),
@@ -94,6 +105,27 @@ fn zenoh_replay_record_roundtrip() {
 #[test]
 fn iceoryx2_replay_record_roundtrip() {
     roundtrip("iceoryx2", &[], &[]);
+}
+
+/// Frames of 40,000 particles (about 800 kB of CDR each: a `multi` liquid scene with `simulate --grid 256`, docs/mpm.md) cross
+/// zenoh, iceoryx2 and ROS 2 whole: the recording equals the source message for message.
+#[test]
+fn frames_of_40000_particles_cross_every_transport() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let args = [
+        "simulate", "--family", "multi", "--scenes", "4", "--grid", "256", "--frames", "3",
+        "--out", out,
+    ];
+    let o = Node::spawn("simulate", &args).wait(Duration::from_secs(120));
+    ok(&o, "simulate --grid 256");
+    let bag = dir.path().join("multi@256_liquid_004.mcap");
+    let (_, _, first) = minflow::bag::read_frames(&bag, None).unwrap().frames.remove(0);
+    assert_eq!(first.len(), 40_000);
+    for transport in ["zenoh", "iceoryx2"] {
+        roundtrip_of(&bag, 3, transport, &[], &[]);
+    }
+    roundtrip_of(&bag, 3, "ros2", &[], &["--rate", "0.25"]);
 }
 
 /// At a quarter of real time: the recorder's DDS reader keeps the last 10 frames (the ROS 2

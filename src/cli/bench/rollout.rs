@@ -249,33 +249,8 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
     let scenes = scenes?;
     let solver_ms = started.elapsed().as_secs_f64() * 1e3 / (scenes.len() * (frames - 1)) as f64;
     let gpu_ms = gpu_solver_ms(&args, &specs, frames)?;
-    println!(
-        "{} {} scenes (seed {}), H = {h} frames after W = {w} seed frames, {threads} threads, \
-         {} per call",
-        scenes.len(),
-        args.family,
-        args.seed,
-        if args.batch == 1 {
-            "1 scene".to_owned()
-        } else {
-            format!("{} scenes", args.batch)
-        }
-    );
-    println!(
-        "\n| predictor | K | calls/rollout | ms/frame | x solver | x GPU solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
-    );
+    print_header(&args, (w, h, threads), solver_ms, gpu_ms);
     let versus_gpu = |ms: f64| gpu_ms.map_or(String::new(), |g| format!("{:.2}", ms / g));
-    println!(
-        "| MPM solver (`simulate`, {threads} threads) | | | {solver_ms:.3} | 1.00 | {} | | | |",
-        versus_gpu(solver_ms)
-    );
-    if let Some(g) = gpu_ms {
-        println!(
-            "| MPM solver on the GPU (`simulate --device cuda`, {} scenes a call) | | | {g:.4} | {:.3} | 1.00 | | | |",
-            args.batch,
-            g / solver_ms
-        );
-    }
     let mut settings = args.constraints.clone();
     settings.dedup();
     let rows = args
@@ -315,6 +290,42 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         }
     }
     Ok(Outcome::Done)
+}
+
+/// Prints the run's settings, the table's header and the solver rows (the CPU solver's
+/// `solver_ms` a frame on `threads` threads, the GPU solver's `gpu_ms` when there is one).
+fn print_header(
+    args: &RolloutBenchArgs,
+    (w, h, threads): (usize, usize, usize),
+    solver_ms: f64,
+    gpu_ms: Option<f64>,
+) {
+    println!(
+        "{} {} scenes (seed {}), H = {h} frames after W = {w} seed frames, {threads} threads, \
+         {} per call",
+        args.scenes,
+        args.family,
+        args.seed,
+        if args.batch == 1 {
+            "1 scene".to_owned()
+        } else {
+            format!("{} scenes", args.batch)
+        }
+    );
+    println!(
+        "\n| predictor | K | calls/rollout | ms/frame | x solver | x GPU solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
+    );
+    let versus_gpu = gpu_ms.map_or(String::new(), |g| format!("{:.2}", solver_ms / g));
+    println!(
+        "| MPM solver (`simulate`, {threads} threads) | | | {solver_ms:.3} | 1.00 | {versus_gpu} | | | |"
+    );
+    if let Some(g) = gpu_ms {
+        println!(
+            "| MPM solver on the GPU (`simulate --device cuda`, {} scenes a call) | | | {g:.4} | {:.3} | 1.00 | | | |",
+            args.batch,
+            g / solver_ms
+        );
+    }
 }
 
 /// With `--device cuda`: milliseconds per scene-frame of the same scenes on the GPU solver,

@@ -126,29 +126,9 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         let s = &scenes[0];
         #[cfg(feature = "cuda")]
         if let Some(device) = &gpu {
-            let row = super::sim_gpu::time_batch(
-                device,
-                family_scenes(family, 0..args.batch, args.grid)?,
-                args.frames,
-                args.window,
-            )?;
+            let batch = family_scenes(family, 0..args.batch, args.grid)?;
             let cpu_ms = multi * 1e3 / frames as f64;
-            println!(
-                "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {} frames redone",
-                family.name(),
-                s.grid,
-                s.substeps,
-                s.particle_count(),
-                "gpu",
-                row.ms,
-                1e3 / row.ms,
-                row.splits,
-                args.batch,
-                cpu_ms / row.ms,
-                row.passes,
-                row.redone,
-                args.frames
-            );
+            super::sim_gpu::print_row(device, family, batch, (args.frames, args.window), cpu_ms)?;
         }
         for (t, secs) in [(1, single), (threads, multi)] {
             let ms = secs * 1e3 / frames as f64;

@@ -59,6 +59,42 @@ pub(super) fn time_batch(
     })
 }
 
+/// Times `scenes` on the GPU ([`time_batch`], `(frames, window)`) and prints their row of
+/// `bench sim`'s table, against `cpu_ms` a frame of the CPU row above.
+///
+/// # Errors
+/// As [`time_batch`].
+pub(super) fn print_row(
+    device: &CudaDevice,
+    family: crate::sim::Family,
+    scenes: Vec<Scene>,
+    (frames, window): (u32, u32),
+    cpu_ms: f64,
+) -> anyhow::Result<()> {
+    let (grid, substeps, particles) = (
+        scenes[0].grid,
+        scenes[0].substeps,
+        scenes[0].particle_count(),
+    );
+    let batch = scenes.len();
+    let row = time_batch(device, scenes, frames, window)?;
+    println!(
+        "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {batch} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {frames} frames redone",
+        family.name(),
+        grid,
+        substeps,
+        particles,
+        "gpu",
+        row.ms,
+        1e3 / row.ms,
+        row.splits,
+        cpu_ms / row.ms,
+        row.passes,
+        row.redone,
+    );
+    Ok(())
+}
+
 /// The largest gaps over frames between two runs' diagnostics: relative kinetic energy
 /// (against the run's largest) and centre of mass (domain units).
 #[derive(Clone, Copy, Debug, Default)]

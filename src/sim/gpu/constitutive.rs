@@ -1,6 +1,7 @@
 //! Per-particle pieces of the GPU solver's kernels (`kernels.rs`), as `#[cube]` functions:
-//! the B-spline weights and stencil base, the liquid's pressure, the hardening of each
-//! material and snow's plastic projection through the signed 2 x 2 SVD. Each is the GPU form
+//! the B-spline weights and stencil base, the Kirchhoff stress (the liquid's pressure, each
+//! material's hardening, the polar rotation), and the `F` update with the plastic projection
+//! (snow's through the signed 2 x 2 SVD). Each is the GPU form
 //! of the CPU solver's function it names, with the same operations in the same order.
 
 use burn_cubecl::cubecl;
@@ -44,7 +45,7 @@ pub(super) fn base_node(g: f32, n: u32) -> u32 {
 /// The liquid's Kirchhoff pressure term ([`crate::sim::material::liquid_pressure`]).
 #[cube]
 #[allow(unused_assignments)]
-pub(super) fn liquid_pressure(j: f32, lambda0: f32) -> f32 {
+fn liquid_pressure(j: f32, lambda0: f32) -> f32 {
     let mut p = f32::new(0.0);
     if j >= f32::new(0.5) {
         p = lambda0 * j * (j - f32::new(1.0));
@@ -57,7 +58,7 @@ pub(super) fn liquid_pressure(j: f32, lambda0: f32) -> f32 {
 
 /// The hardening factor of a material ([`crate::sim::material::hardening`]).
 #[cube]
-pub(super) fn hardening(material: u32, jp: f32) -> f32 {
+fn hardening(material: u32, jp: f32) -> f32 {
     let mut h = f32::new(0.5);
     if material == 0 {
         h = f32::new(1.0);
@@ -80,7 +81,7 @@ pub(super) fn hardening(material: u32, jp: f32) -> f32 {
 /// closed-form eigenvectors), singular values clamped into `[lo, hi]`, the clamped-off volume
 /// change multiplied into `jp[p]`; `f` rewritten as `U diag(clamped) V^T`.
 #[cube]
-pub(super) fn snow_project(f: &mut Array<f32>, jp: &mut Array<f32>, p: usize, lo: f32, hi: f32) {
+fn snow_project(f: &mut Array<f32>, jp: &mut Array<f32>, p: usize, lo: f32, hi: f32) {
     let (f0, f1, f2, f3) = (f[p * 4], f[p * 4 + 1], f[p * 4 + 2], f[p * 4 + 3]);
     let px = f0 + f3;
     let py = f2 - f1;
@@ -127,4 +128,137 @@ pub(super) fn snow_project(f: &mut Array<f32>, jp: &mut Array<f32>, p: usize, lo
     f[p * 4 + 1] = a0 * vs + a1 * vc;
     f[p * 4 + 2] = a2 * vc + a3 * -vs;
     f[p * 4 + 3] = a2 * vs + a3 * vc;
+}
+
+/// The Kirchhoff stress of particle `p` (`f` row-major, its `jp` and `material`) into `tau`
+/// `[5]`: `tau` row-major, then the stiffness `k` of the substep's stability bound
+/// ([`crate::sim::material::kirchhoff_stress`]: liquid `p(J) I` with `k = lambda0 max(2 J -
+/// 1, 1)`; the solids fixed-corotated with the polar rotation, hardened, `k = lambda + 2 mu`,
+/// snow's 0).
+#[cube]
+#[allow(unused_assignments)]
+pub(super) fn kirchhoff(
+    f: &Array<f32>,
+    jp: f32,
+    p: usize,
+    m: u32,
+    mu0: f32,
+    lambda0: f32,
+    tau: &mut Array<f32>,
+) {
+    let (f0, f1, f2, f3) = (f[p * 4], f[p * 4 + 1], f[p * 4 + 2], f[p * 4 + 3]);
+    let j = f0 * f3 - f1 * f2;
+    let mut t0 = f32::new(0.0);
+    let mut t1 = f32::new(0.0);
+    let mut t2 = f32::new(0.0);
+    let mut t3 = f32::new(0.0);
+    let mut k = f32::new(0.0);
+    if m == 0 {
+        let pr = liquid_pressure(j, lambda0);
+        t0 = pr;
+        t3 = pr;
+        let mut g = f32::new(2.0) * j - f32::new(1.0);
+        if g < f32::new(1.0) {
+            g = f32::new(1.0);
+        }
+        k = lambda0 * g;
+    } else {
+        let hard = hardening(m, jp);
+        let mu = mu0 * hard;
+        let la = lambda0 * hard;
+        if m != 2 {
+            k = la + f32::new(2.0) * mu;
+        }
+        // The polar rotation R = [[rc, -rs], [rs, rc]] (`linalg::polar_rotation`).
+        let px = f0 + f3;
+        let py = f2 - f1;
+        let norm2 = px * px + py * py;
+        let mut rc = f32::new(1.0);
+        let mut rs = f32::new(0.0);
+        if norm2 > f32::new(1.175_494_4e-38) {
+            let inv = f32::new(1.0) / f32::sqrt(norm2);
+            rc = px * inv;
+            rs = py * inv;
+        }
+        let (d0, d1, d2, d3) = (f0 - rc, f1 + rs, f2 - rs, f3 - rc);
+        let pj = la * j * (j - f32::new(1.0));
+        let mu2 = f32::new(2.0) * mu;
+        t0 = mu2 * (d0 * f0 + d1 * f1) + pj;
+        t1 = mu2 * (d0 * f2 + d1 * f3);
+        t2 = mu2 * (d2 * f0 + d3 * f1);
+        t3 = mu2 * (d2 * f2 + d3 * f3) + pj;
+    }
+    tau[0] = t0;
+    tau[1] = t1;
+    tau[2] = t2;
+    tau[3] = t3;
+    tau[4] = k;
+}
+
+/// `F <- (I + h C) F` for particle `p` (`f` row-major, `C` in `cm`), in `m` equal steps when
+/// `h |C|_F > 0.25` (`mpm::update_deformation`), then the plastic projection of its
+/// `material` (`material::project`: liquid `diag(max(J, j_min), 1)`, snow
+/// [`snow_project`] with the clamp `[snow_lo, snow_hi]`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn deform(
+    f: &mut Array<f32>,
+    jp: &mut Array<f32>,
+    p: usize,
+    m: u32,
+    cm: &Array<f32>,
+    h: f32,
+    snow_lo: f32,
+    snow_hi: f32,
+    j_min: f32,
+) {
+    let (c0, c1, c2, c3) = (cm[0], cm[1], cm[2], cm[3]);
+    // F <- (I + h C) F, in equal steps when one would be too large (`update_deformation`).
+    let norm2 = h * h * (c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3);
+    let mut steps = 1u32;
+    if norm2 > f32::new(0.0625) {
+        let want = f32::ceil(f32::sqrt(norm2) / f32::new(0.25));
+        steps = 1024u32;
+        if want < f32::new(1024.0) {
+            steps = u32::cast_from(want);
+        }
+    }
+    let hh = h / f32::cast_from(steps);
+    let (s0, s1, s2, s3) = (
+        f32::new(1.0) + hh * c0,
+        hh * c1,
+        hh * c2,
+        f32::new(1.0) + hh * c3,
+    );
+    let mut o0 = f[p * 4];
+    let mut o1 = f[p * 4 + 1];
+    let mut o2 = f[p * 4 + 2];
+    let mut o3 = f[p * 4 + 3];
+    for _ in 0..steps {
+        let (n0, n1) = (s0 * o0 + s1 * o2, s0 * o1 + s1 * o3);
+        let (n2, n3) = (s2 * o0 + s3 * o2, s2 * o1 + s3 * o3);
+        o0 = n0;
+        o1 = n1;
+        o2 = n2;
+        o3 = n3;
+    }
+    if m == 0 {
+        let mut jj = o0 * o3 - o1 * o2;
+        // `max(J, j_min)` that also takes a NaN J to `j_min`, as the CPU's `f32::max`.
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
+        if !(jj >= j_min) {
+            jj = j_min;
+        }
+        o0 = jj;
+        o1 = f32::new(0.0);
+        o2 = f32::new(0.0);
+        o3 = f32::new(1.0);
+    }
+    f[p * 4] = o0;
+    f[p * 4 + 1] = o1;
+    f[p * 4 + 2] = o2;
+    f[p * 4 + 3] = o3;
+    if m == 2 {
+        snow_project(f, jp, p, snow_lo, snow_hi);
+    }
 }

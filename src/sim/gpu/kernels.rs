@@ -14,7 +14,7 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::constitutive::{base_node, hardening, liquid_pressure, snow_project, weight};
+use super::constitutive::{base_node, deform, kirchhoff, weight};
 
 /// Words of a scene's tally: `max |v|^2`, `max |C|_F^2` and `max k phi` of the last G2P (as
 /// `f32` bits: non-negative floats order like their bits), particle-substeps that left the
@@ -91,7 +91,7 @@ fn splat_node(
 /// gives the same bits (Le Grand, Götz and Walker 2013, as the grid model's P2G,
 /// `ops::cuda_stencil_kernels`).
 #[cube(launch)]
-#[allow(clippy::too_many_arguments, unused_assignments)]
+#[allow(clippy::too_many_arguments)]
 pub(super) fn p2g_kernel(
     x: &Array<f32>,
     v: &Array<f32>,
@@ -132,50 +132,10 @@ pub(super) fn p2g_kernel(
     let bj = base_node(gy, n);
     let fx = gx - f32::cast_from(bi);
     let fy = gy - f32::cast_from(bj);
-    // The stress (`material::kirchhoff_stress`).
-    let m = material[p];
-    let (f0, f1, f2, f3) = (f[p * 4], f[p * 4 + 1], f[p * 4 + 2], f[p * 4 + 3]);
-    let j = f0 * f3 - f1 * f2;
-    let mut t0 = f32::new(0.0);
-    let mut t1 = f32::new(0.0);
-    let mut t2 = f32::new(0.0);
-    let mut t3 = f32::new(0.0);
-    let mut k = f32::new(0.0);
-    if m == 0 {
-        let pr = liquid_pressure(j, lambda0);
-        t0 = pr;
-        t3 = pr;
-        let mut g = f32::new(2.0) * j - f32::new(1.0);
-        if g < f32::new(1.0) {
-            g = f32::new(1.0);
-        }
-        k = lambda0 * g;
-    } else {
-        let hard = hardening(m, jp[p]);
-        let mu = mu0 * hard;
-        let la = lambda0 * hard;
-        if m != 2 {
-            k = la + f32::new(2.0) * mu;
-        }
-        // The polar rotation R = [[rc, -rs], [rs, rc]] (`linalg::polar_rotation`).
-        let px = f0 + f3;
-        let py = f2 - f1;
-        let norm2 = px * px + py * py;
-        let mut rc = f32::new(1.0);
-        let mut rs = f32::new(0.0);
-        if norm2 > f32::new(1.175_494_4e-38) {
-            let inv = f32::new(1.0) / f32::sqrt(norm2);
-            rc = px * inv;
-            rs = py * inv;
-        }
-        let (d0, d1, d2, d3) = (f0 - rc, f1 + rs, f2 - rs, f3 - rc);
-        let pj = la * j * (j - f32::new(1.0));
-        let mu2 = f32::new(2.0) * mu;
-        t0 = mu2 * (d0 * f0 + d1 * f1) + pj;
-        t1 = mu2 * (d0 * f2 + d1 * f3);
-        t2 = mu2 * (d2 * f0 + d3 * f1);
-        t3 = mu2 * (d2 * f2 + d3 * f3) + pj;
-    }
+    // The stress (`material::kirchhoff_stress`): tau and the stiffness k.
+    let mut tau = Array::<f32>::new(5usize);
+    kirchhoff(f, jp[p], p, material[p], mu0, lambda0, &mut tau);
+    let (t0, t1, t2, t3, k) = (tau[0], tau[1], tau[2], tau[3], tau[4]);
     stiffness[p] = k;
     let a0 = (stress_scale * t0 + p_mass * c[p * 4]) * dx;
     let a1 = (stress_scale * t1 + p_mass * c[p * 4 + 1]) * dx;
@@ -397,53 +357,10 @@ pub(super) fn g2p_kernel(
     if !(nx >= lo && nx < hi && ny >= lo && ny < hi) {
         tally[t + 3].fetch_add(1u32);
     }
-    // F <- (I + h C) F, in equal steps when one would be too large (`update_deformation`).
-    let norm2 = h * h * cnorm2;
-    let mut steps = 1u32;
-    if norm2 > f32::new(0.0625) {
-        let want = f32::ceil(f32::sqrt(norm2) / f32::new(0.25));
-        steps = 1024u32;
-        if want < f32::new(1024.0) {
-            steps = u32::cast_from(want);
-        }
-    }
-    let hh = h / f32::cast_from(steps);
-    let (s0, s1, s2, s3) = (
-        f32::new(1.0) + hh * c0,
-        hh * c1,
-        hh * c2,
-        f32::new(1.0) + hh * c3,
-    );
-    let mut o0 = f[p * 4];
-    let mut o1 = f[p * 4 + 1];
-    let mut o2 = f[p * 4 + 2];
-    let mut o3 = f[p * 4 + 3];
-    for _ in 0..steps {
-        let (n0, n1) = (s0 * o0 + s1 * o2, s0 * o1 + s1 * o3);
-        let (n2, n3) = (s2 * o0 + s3 * o2, s2 * o1 + s3 * o3);
-        o0 = n0;
-        o1 = n1;
-        o2 = n2;
-        o3 = n3;
-    }
-    let m = material[p];
-    if m == 0 {
-        let mut jj = o0 * o3 - o1 * o2;
-        // `max(J, j_min)` that also takes a NaN J to `j_min`, as the CPU's `f32::max`.
-        #[allow(clippy::neg_cmp_op_on_partial_ord)]
-        if !(jj >= j_min) {
-            jj = j_min;
-        }
-        o0 = jj;
-        o1 = f32::new(0.0);
-        o2 = f32::new(0.0);
-        o3 = f32::new(1.0);
-    }
-    f[p * 4] = o0;
-    f[p * 4 + 1] = o1;
-    f[p * 4 + 2] = o2;
-    f[p * 4 + 3] = o3;
-    if m == 2 {
-        snow_project(f, jp, p, snow_lo, snow_hi);
-    }
+    let mut cm = Array::<f32>::new(4usize);
+    cm[0] = c0;
+    cm[1] = c1;
+    cm[2] = c2;
+    cm[3] = c3;
+    deform(f, jp, p, material[p], &cm, h, snow_lo, snow_hi, j_min);
 }

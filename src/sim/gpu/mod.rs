@@ -310,18 +310,42 @@ impl GpuSolver {
     /// split at least `part + 1` ways.
     fn part(&mut self, part: u32) {
         self.passes += 1;
+        let scale = FIXED_UNITS / (0.25 / (self.config.grid * self.config.grid) as f32);
+        self.p2g(part, scale);
+        let c = &self.config;
+        let (b, n) = (self.counts.len(), c.grid);
+        let nodes = b * n * n;
+        let buf = &self.buffers;
+        let (gc, gd) = elementwise(&self.client, nodes);
+        grid_kernel::launch(
+            &self.client,
+            gc,
+            gd,
+            arr(&buf.acc, nodes * 3),
+            arr(&buf.grid, nodes * 3),
+            arr(&buf.parts, b),
+            part,
+            n as u32,
+            c.dt,
+            c.gravity[0],
+            c.gravity[1],
+            scale,
+        );
+        self.g2p(part);
+    }
+
+    /// Launches [`p2g_kernel`] for part `part` (`scale` fixed-point units per unit).
+    fn p2g(&self, part: u32, scale: f32) {
         let c = &self.config;
         let (b, n) = (self.counts.len(), c.grid);
         let (p, nodes) = (self.material.len(), b * n * n);
         let (mu0, lambda0) = c.elasticity.lame();
-        let scale = FIXED_UNITS / (0.25 / (n * n) as f32);
         let buf = &self.buffers;
         let [x, v, cm, f, jp] = &buf.state;
-        let client = &self.client;
-        let (pc, pd) = elementwise(client, p);
+        let (pc, pd) = elementwise(&self.client, p);
         p2g_kernel::launch(
-            client,
-            pc.clone(),
+            &self.client,
+            pc,
             pd,
             arr(x, p * 2),
             arr(v, p * 2),
@@ -340,21 +364,17 @@ impl GpuSolver {
             lambda0,
             scale,
         );
-        let (gc, gd) = elementwise(client, nodes);
-        grid_kernel::launch(
-            client,
-            gc,
-            gd,
-            arr(&buf.acc, nodes * 3),
-            arr(&buf.grid, nodes * 3),
-            arr(&buf.parts, b),
-            part,
-            n as u32,
-            c.dt,
-            c.gravity[0],
-            c.gravity[1],
-            scale,
-        );
+    }
+
+    /// Launches [`g2p_kernel`] and [`maxima_kernel`] for part `part`.
+    fn g2p(&self, part: u32) {
+        let c = &self.config;
+        let (b, n) = (self.counts.len(), c.grid);
+        let (p, nodes) = (self.material.len(), b * n * n);
+        let buf = &self.buffers;
+        let [x, v, cm, f, jp] = &buf.state;
+        let client = &self.client;
+        let (pc, pd) = elementwise(client, p);
         let (snow_lo, snow_hi) = super::material::SNOW_LIMITS;
         g2p_kernel::launch(
             client,
