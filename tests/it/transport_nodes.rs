@@ -16,7 +16,13 @@ const SOURCE_FRAMES: usize = 25;
 /// replay (source bag, --topic T) -> record (--topic T --count 25); the recording equals
 /// the source message for message.
 fn roundtrip(transport: &str, extra_record: &[&str], extra_replay: &[&str]) {
-    roundtrip_of(&source_bag(), SOURCE_FRAMES, transport, extra_record, extra_replay);
+    roundtrip_of(
+        &source_bag(),
+        SOURCE_FRAMES,
+        transport,
+        extra_record,
+        extra_replay,
+    );
 }
 
 /// [`roundtrip`] of the `frames` frames of bag `source`.
@@ -120,7 +126,10 @@ fn frames_of_40000_particles_cross_every_transport() {
     let o = Node::spawn("simulate", &args).wait(Duration::from_secs(120));
     ok(&o, "simulate --grid 256");
     let bag = dir.path().join("multi@256_liquid_004.mcap");
-    let (_, _, first) = minflow::bag::read_frames(&bag, None).unwrap().frames.remove(0);
+    let (_, _, first) = minflow::bag::read_frames(&bag, None)
+        .unwrap()
+        .frames
+        .remove(0);
     assert_eq!(first.len(), 40_000);
     for transport in ["zenoh", "iceoryx2"] {
         roundtrip_of(&bag, 3, transport, &[], &[]);

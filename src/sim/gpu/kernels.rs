@@ -230,6 +230,37 @@ pub(super) fn grid_kernel(
     grid[g * 3 + 2] = inv;
 }
 
+/// Stores particle `p`'s new velocity `(vx, vy)` and `C` (`cm`) and moves it by `h v`; true
+/// when it lands outside the interpolation band `[0.5 dx, 1 - 1.5 dx)` (as the CPU's
+/// `escaped` count).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn advect(
+    x: &mut Array<f32>,
+    v: &mut Array<f32>,
+    c: &mut Array<f32>,
+    p: usize,
+    vx: f32,
+    vy: f32,
+    cm: &Array<f32>,
+    h: f32,
+    inv_dx: f32,
+) -> bool {
+    #[unroll]
+    for k in 0..4usize {
+        c[p * 4 + k] = cm[k];
+    }
+    v[p * 2] = vx;
+    v[p * 2 + 1] = vy;
+    let nx = x[p * 2] + h * vx;
+    let ny = x[p * 2 + 1] + h * vy;
+    x[p * 2] = nx;
+    x[p * 2 + 1] = ny;
+    let lo = f32::new(0.5) / inv_dx;
+    let hi = f32::new(1.0) - f32::new(1.5) / inv_dx;
+    !(nx >= lo && nx < hi && ny >= lo && ny < hi)
+}
+
 /// Row `i` of a particle's G2P gather from the grid's `(vx, vy, 1 / m)` at node `row` and
 /// the next two: adds to `acc` `[v x, v y, b_i x, b_i y, b_j x, b_j y, phi]` as the CPU
 /// solver's `g2p` does for one row (`s = sum_j w_j v_ij`, `t = sum_j j w_j v_ij`).
@@ -331,36 +362,18 @@ pub(super) fn g2p_kernel(
     }
     let (vx, vy) = (acc[0], acc[1]);
     let k4 = f32::new(4.0) * inv_dx;
-    let c0 = k4 * (acc[2] - vx * fx);
-    let c1 = k4 * (acc[4] - vx * fy);
-    let c2 = k4 * (acc[3] - vy * fx);
-    let c3 = k4 * (acc[5] - vy * fy);
-    let cnorm2 = c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3;
-    // This particle's share of its scene's maxima, reduced per scene by `maxima_kernel`
-    // (atomics on three words a scene queue up all of its particles).
+    let mut cm = Array::<f32>::new(4usize);
+    cm[0] = k4 * (acc[2] - vx * fx);
+    cm[1] = k4 * (acc[4] - vx * fy);
+    cm[2] = k4 * (acc[3] - vy * fx);
+    cm[3] = k4 * (acc[5] - vy * fy);
+    let cnorm2 = cm[0] * cm[0] + cm[1] * cm[1] + cm[2] * cm[2] + cm[3] * cm[3];
+    // Its share of the scene's maxima (`maxima_kernel`: atomics on 3 words would queue).
     pmax[p * 3] = u32::reinterpret(vx * vx + vy * vy);
     pmax[p * 3 + 1] = u32::reinterpret(cnorm2);
     pmax[p * 3 + 2] = u32::reinterpret(stiffness[p] * acc[6] * p_mass);
-    c[p * 4] = c0;
-    c[p * 4 + 1] = c1;
-    c[p * 4 + 2] = c2;
-    c[p * 4 + 3] = c3;
-    v[p * 2] = vx;
-    v[p * 2 + 1] = vy;
-    let nx = x[p * 2] + h * vx;
-    let ny = x[p * 2 + 1] + h * vy;
-    x[p * 2] = nx;
-    x[p * 2 + 1] = ny;
-    let t = s * TALLY;
-    let lo = f32::new(0.5) / inv_dx;
-    let hi = f32::new(1.0) - f32::new(1.5) / inv_dx;
-    if !(nx >= lo && nx < hi && ny >= lo && ny < hi) {
-        tally[t + 3].fetch_add(1u32);
+    if advect(x, v, c, p, vx, vy, &cm, h, inv_dx) {
+        tally[s * TALLY + 3].fetch_add(1u32);
     }
-    let mut cm = Array::<f32>::new(4usize);
-    cm[0] = c0;
-    cm[1] = c1;
-    cm[2] = c2;
-    cm[3] = c3;
     deform(f, jp, p, material[p], &cm, h, snow_lo, snow_hi, j_min);
 }
