@@ -124,6 +124,28 @@ impl Bins {
         near.truncate(inside);
     }
 
+    /// Calls `visit(j)` for the binned particles around `(x, y)` ring of cells by ring
+    /// outwards, and after each ring `done(reach)`, `reach` the distance within which every
+    /// particle has now been met (`r` rings: `r / cells`, domain units); stops when `done`
+    /// returns true or the rings cover the grid. For searches whose answer lies near the
+    /// point at any density (cells of a fixed size would hold ever more particles).
+    pub fn rings(
+        &self,
+        [x, y]: [f32; 2],
+        mut visit: impl FnMut(usize),
+        mut done: impl FnMut(f64) -> bool,
+    ) {
+        let g = self.cells as i64;
+        let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
+        for r in 0.. {
+            self.ring(cx, cy, r, &mut visit);
+            let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
+            if whole || done(r as f64 / self.cells as f64) {
+                break;
+            }
+        }
+    }
+
     /// Calls `visit(j)` for every binned particle in the cells at Chebyshev distance `r` from
     /// cell `(cx, cy)`, by x index, then y index.
     fn ring(&self, cx: i64, cy: i64, r: i64, visit: &mut impl FnMut(usize)) {
