@@ -76,6 +76,23 @@ fn hardening(material: u32, jp: f32) -> f32 {
     h
 }
 
+/// The rotation `R = [[rc, -rs], [rs, rc]]` of the polar decomposition of `F` (row-major
+/// `f0..f3`) into `r` `[rc, rs]` ([`crate::sim::linalg::polar_rotation`]: `(rc, rs)` along
+/// `(F00 + F11, F10 - F01)`, the identity where both vanish).
+#[cube]
+fn polar_rotation(f0: f32, f1: f32, f2: f32, f3: f32, r: &mut Array<f32>) {
+    let px = f0 + f3;
+    let py = f2 - f1;
+    let norm2 = px * px + py * py;
+    r[0] = f32::new(1.0);
+    r[1] = f32::new(0.0);
+    if norm2 > f32::new(1.175_494_4e-38) {
+        let inv = f32::new(1.0) / f32::sqrt(norm2);
+        r[0] = px * inv;
+        r[1] = py * inv;
+    }
+}
+
 /// Snow's plastic projection ([`crate::sim::material::project`], material 2) of `F` (row-major
 /// in `f`): the signed SVD (`linalg::svd`: polar rotation, then the symmetric factor's
 /// closed-form eigenvectors), singular values clamped into `[lo, hi]`, the clamped-off volume
@@ -83,16 +100,9 @@ fn hardening(material: u32, jp: f32) -> f32 {
 #[cube]
 fn snow_project(f: &mut Array<f32>, jp: &mut Array<f32>, p: usize, lo: f32, hi: f32) {
     let (f0, f1, f2, f3) = (f[p * 4], f[p * 4 + 1], f[p * 4 + 2], f[p * 4 + 3]);
-    let px = f0 + f3;
-    let py = f2 - f1;
-    let norm2 = px * px + py * py;
-    let mut rc = f32::new(1.0);
-    let mut rs = f32::new(0.0);
-    if norm2 > f32::new(1.175_494_4e-38) {
-        let inv = f32::new(1.0) / f32::sqrt(norm2);
-        rc = px * inv;
-        rs = py * inv;
-    }
+    let mut r = Array::<f32>::new(2usize);
+    polar_rotation(f0, f1, f2, f3, &mut r);
+    let (rc, rs) = (r[0], r[1]);
     // R = [rc, -rs, rs, rc]; S = R^T F, symmetrised.
     let s00 = rc * f0 + rs * f2;
     let s11 = -rs * f1 + rc * f3;
@@ -169,17 +179,9 @@ pub(super) fn kirchhoff(
         if m != 2 {
             k = la + f32::new(2.0) * mu;
         }
-        // The polar rotation R = [[rc, -rs], [rs, rc]] (`linalg::polar_rotation`).
-        let px = f0 + f3;
-        let py = f2 - f1;
-        let norm2 = px * px + py * py;
-        let mut rc = f32::new(1.0);
-        let mut rs = f32::new(0.0);
-        if norm2 > f32::new(1.175_494_4e-38) {
-            let inv = f32::new(1.0) / f32::sqrt(norm2);
-            rc = px * inv;
-            rs = py * inv;
-        }
+        let mut r = Array::<f32>::new(2usize);
+        polar_rotation(f0, f1, f2, f3, &mut r);
+        let (rc, rs) = (r[0], r[1]);
         let (d0, d1, d2, d3) = (f0 - rc, f1 + rs, f2 - rs, f3 - rc);
         let pj = la * j * (j - f32::new(1.0));
         let mu2 = f32::new(2.0) * mu;
