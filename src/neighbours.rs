@@ -106,17 +106,14 @@ impl Bins {
         if k == 0 {
             return;
         }
-        let g = self.cells as i64;
-        let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
         for r in 0.. {
-            self.ring(cx, cy, r, &mut |j| {
+            let seen = self.ring_around([x, y], r, |j| {
                 if let Some(d) = distance(j) {
                     keep_nearest(near, k, (d, j));
                 }
             });
-            let seen = r as f64 / self.cells as f64;
-            let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
-            if whole || seen >= reach || (near.len() == k && near[k - 1].0 <= seen) {
+            let Some(seen) = seen else { break };
+            if seen >= reach || (near.len() == k && near[k - 1].0 <= seen) {
                 break;
             }
         }
@@ -124,26 +121,22 @@ impl Bins {
         near.truncate(inside);
     }
 
-    /// Calls `visit(j)` for the binned particles around `(x, y)` ring of cells by ring
-    /// outwards, and after each ring `done(reach)`, `reach` the distance within which every
-    /// particle has now been met (`r` rings: `r / cells`, domain units); stops when `done`
-    /// returns true or the rings cover the grid. For searches whose answer lies near the
-    /// point at any density (cells of a fixed size would hold ever more particles).
-    pub fn rings(
+    /// Calls `visit(j)` for the binned particles of ring `r` around `(x, y)`'s cell (the
+    /// cells at Chebyshev distance `r`); returns the distance within which rings `0..=r` have
+    /// met every particle (`r / cells`, domain units), or `None` when they cover the grid.
+    /// Searching ring by ring outwards finds what lies near a point at any density (cells of
+    /// a fixed size would hold ever more particles).
+    pub fn ring_around(
         &self,
         [x, y]: [f32; 2],
+        r: i64,
         mut visit: impl FnMut(usize),
-        mut done: impl FnMut(f64) -> bool,
-    ) {
+    ) -> Option<f64> {
         let g = self.cells as i64;
         let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
-        for r in 0.. {
-            self.ring(cx, cy, r, &mut visit);
-            let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
-            if whole || done(r as f64 / self.cells as f64) {
-                break;
-            }
-        }
+        self.ring(cx, cy, r, &mut visit);
+        let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
+        (!whole).then(|| r as f64 / self.cells as f64)
     }
 
     /// Calls `visit(j)` for every binned particle in the cells at Chebyshev distance `r` from

@@ -109,6 +109,22 @@ pub fn parse(text: &str) -> anyhow::Result<Device> {
     Ok(Device::Cuda(ids))
 }
 
+/// The GPU the MLS-MPM solver runs on for a `--device` flag (`simulate`, `bench sim`): `None`
+/// for `cpu`, else the one ordinal of `cuda` / `cuda:N`.
+///
+/// # Errors
+/// As [`parse`]; a usage error for several GPUs (the solver batches scenes on one).
+pub fn solver_gpu(text: &str) -> anyhow::Result<Option<usize>> {
+    match parse(text)? {
+        Device::Cpu => Ok(None),
+        Device::Cuda(ids) if ids.len() == 1 => Ok(Some(ids[0])),
+        Device::Cuda(_) => Err(super::UsageError(
+            "--device: the GPU solver runs on one GPU (cuda or cuda:N)".into(),
+        )
+        .into()),
+    }
+}
+
 /// burn's CUDA backend (feature `cuda`): backend types, devices, memory.
 #[cfg(feature = "cuda")]
 pub mod cuda {

@@ -251,15 +251,9 @@ type GpuRun = Box<
 
 /// The GPU path `--device` names (`None` for `cpu`), checked before any work starts.
 fn gpu_of(args: &SimulateArgs) -> anyhow::Result<Option<GpuRun>> {
-    use super::device::{self, Device};
-    match device::parse(&args.device)? {
-        Device::Cpu => Ok(None),
-        Device::Cuda(ids) if ids.len() == 1 => gpu_run(ids[0]).map(Some),
-        Device::Cuda(_) => Err(UsageError(
-            "--device: the GPU solver runs on one GPU (cuda or cuda:N)".into(),
-        )
-        .into()),
-    }
+    super::device::solver_gpu(&args.device)?
+        .map(gpu_run)
+        .transpose()
 }
 
 #[cfg(feature = "cuda")]

@@ -6,8 +6,8 @@
 //! hold the same messages and metadata as the CPU path's.
 
 use crate::bag::{bag_name, BagWriter};
-use crate::msgs::ParticleFrame;
 use crate::sim::gpu::{CudaDevice, GpuSolver};
+use crate::sim::run::particle_frame;
 use crate::sim::{sanity, BodySpan, Particles, Scene, SolverConfig};
 use anyhow::Context;
 use rayon::prelude::*;
@@ -25,9 +25,8 @@ struct Slot {
 }
 
 impl Slot {
-    fn open(scene: Scene, out: &Path) -> Self {
-        let (_, bodies) = scene.particles();
-        let period_ns = (scene.dt as f64 * scene.substeps as f64 * 1e9).round() as u64;
+    fn open(scene: Scene, bodies: Vec<BodySpan>, out: &Path) -> Self {
+        let period_ns = scene.period_ns();
         let path = out.join(bag_name(&scene.name));
         let part = path.with_extension("mcap.part");
         let mut slot = Self {
@@ -71,14 +70,7 @@ impl Slot {
             );
             return;
         }
-        let frame = ParticleFrame::on_clock(
-            self.scene.name.clone(),
-            index,
-            self.period_ns,
-            ps.x.as_flattened().to_vec(),
-            ps.v.as_flattened().to_vec(),
-            ps.material.clone(),
-        );
+        let frame = particle_frame(&self.scene.name, index, self.period_ns, ps);
         if let Err(e) = writer.write(topic, &frame) {
             self.error = Some(e.into());
         }
@@ -153,9 +145,13 @@ fn run_batch(
     for s in &scenes {
         s.validate()?;
     }
-    let particles = scenes.iter().map(|s| s.particles().0).collect();
+    let (particles, bodies): (Vec<_>, Vec<_>) = scenes.iter().map(Scene::particles).unzip();
     let mut gpu = GpuSolver::new(device, config, particles)?;
-    let mut slots: Vec<Slot> = scenes.into_iter().map(|s| Slot::open(s, out)).collect();
+    let mut slots: Vec<Slot> = scenes
+        .into_iter()
+        .zip(bodies)
+        .map(|(s, b)| Slot::open(s, b, out))
+        .collect();
     for index in 0..frames {
         if index > 0 {
             gpu.advance(substeps)?;

@@ -110,9 +110,28 @@ pub struct Solver {
 }
 
 impl Solver {
-    /// Creates a solver. Errors if the grid is smaller than 8 nodes, `dt` is not positive
-    /// and finite, or a particle lies outside the box or has an unknown material.
+    /// Creates a solver. Errors as [`Solver::check`].
     pub fn new(config: SolverConfig, particles: Particles) -> Result<Self, SimError> {
+        Self::check(&config, &particles)?;
+        let n = config.grid;
+        Ok(Self {
+            config,
+            particles,
+            grid: vec![[0.0; 4]; n * n],
+            stencils: Vec::new(),
+            active: [0, n - 1, 0, n - 1],
+            grid_mass: 0.0,
+            substeps_done: 0,
+            splits: 0,
+            last_max: [0.0; 3],
+            escaped: 0,
+        })
+    }
+
+    /// Checks that `particles` can start a solver with `config`: a grid of 8 to 4,096
+    /// nodes, a positive finite `dt`, every particle inside `[dx, 1 - 2 dx]` and of a known
+    /// material (also the GPU solver's check, `sim::gpu`).
+    pub fn check(config: &SolverConfig, particles: &Particles) -> Result<(), SimError> {
         let n = config.grid;
         if !(8..=4096).contains(&n) {
             return Err(SimError::Invalid(format!("grid {n} outside 8..=4096")));
@@ -133,18 +152,7 @@ impl Solver {
                 return Err(SimError::Invalid(format!("particle {p}: material {m}")));
             }
         }
-        Ok(Self {
-            config,
-            particles,
-            grid: vec![[0.0; 4]; n * n],
-            stencils: Vec::new(),
-            active: [0, n - 1, 0, n - 1],
-            grid_mass: 0.0,
-            substeps_done: 0,
-            splits: 0,
-            last_max: [0.0; 3],
-            escaped: 0,
-        })
+        Ok(())
     }
 
     /// Grid spacing `dx = 1 / n` in domain units.

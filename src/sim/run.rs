@@ -7,7 +7,7 @@
 //! the message's `dt` is that period in time units. `frame_id` is `"world"`.
 //! Used by `minflow simulate` and `minflow bench sim`.
 
-use super::mpm::Solver;
+use super::mpm::{Particles, Solver};
 use super::sanity;
 use super::scene::{BodySpan, Scene};
 use super::SimError;
@@ -26,7 +26,7 @@ impl SceneRun {
     /// Validates the scene and samples its particles.
     pub fn new(scene: Scene) -> Result<Self, SimError> {
         let (solver, bodies) = scene.solver()?;
-        let period_ns = (scene.dt as f64 * scene.substeps as f64 * 1e9).round() as u64;
+        let period_ns = scene.period_ns();
         Ok(Self {
             scene,
             solver,
@@ -75,16 +75,26 @@ impl SceneRun {
 
     /// The current particle state as frame `index` of this scene.
     pub fn frame(&self, index: u32) -> ParticleFrame {
-        let ps = &self.solver.particles;
-        ParticleFrame::on_clock(
-            self.scene.name.clone(),
+        particle_frame(
+            &self.scene.name,
             index,
             self.period_ns,
-            ps.x.iter().flatten().copied().collect(),
-            ps.v.iter().flatten().copied().collect(),
-            ps.material.clone(),
+            &self.solver.particles,
         )
     }
+}
+
+/// Particles `ps` as frame `index` of scene `name`, stamped `index * period_ns` (also the
+/// GPU solver's frames, `cli::simulate_gpu`).
+pub fn particle_frame(name: &str, index: u32, period_ns: u64, ps: &Particles) -> ParticleFrame {
+    ParticleFrame::on_clock(
+        name.to_owned(),
+        index,
+        period_ns,
+        ps.x.as_flattened().to_vec(),
+        ps.v.as_flattened().to_vec(),
+        ps.material.clone(),
+    )
 }
 
 impl Iterator for SceneRun {

@@ -145,6 +145,12 @@ impl Scene {
         self.dt * self.substeps as f32
     }
 
+    /// Time between saved frames in integer nanoseconds, `round(dt * substeps * 1e9)`, the
+    /// period of the frames' stamps (`sim::run`).
+    pub fn period_ns(&self) -> u64 {
+        (self.dt as f64 * self.substeps as f64 * 1e9).round() as u64
+    }
+
     /// Total particle count N (saturating: counts that overflow `usize` when summed read as
     /// `usize::MAX`, which [`Scene::validate`] rejects).
     pub fn particle_count(&self) -> usize {

@@ -1,6 +1,7 @@
 //! Helpers the `bench` subcommands share: the transport flags of `bench transport` and
 //! `bench node` ([`BenchTransportOptions`]), wall-clock stamps and percentiles of latency
-//! samples, the training benchmarks' synthetic data, epoch means and peak memory.
+//! samples, the training benchmarks' synthetic data, epoch means and peak memory, and the
+//! scenes `bench sim` and `bench rollout` run ([`family_scenes`]).
 
 use std::ffi::OsString;
 use std::path::PathBuf;
@@ -141,4 +142,28 @@ pub(crate) fn peak_mib(reset: bool) -> Option<f64> {
         let _ = std::fs::write("/proc/self/clear_refs", "5");
     }
     Some(kb / 1024.0)
+}
+
+/// Scenes `ids` of `family` with `seed`, each refined onto a `grid` x `grid` grid where that
+/// is finer than its own (`--grid`, [`crate::sim::Scene::refined`]).
+///
+/// # Errors
+/// A usage error naming `--grid`: a grid that is not a multiple of a scene's, or a refined
+/// scene that fails validation.
+pub(crate) fn family_scenes(
+    family: crate::sim::Family,
+    ids: std::ops::Range<u32>,
+    seed: u64,
+    grid: Option<u32>,
+) -> anyhow::Result<Vec<crate::sim::Scene>> {
+    ids.map(|id| {
+        let scene = crate::sim::families::scene(family, id, seed);
+        match grid {
+            Some(n) if n as usize > scene.grid => scene
+                .refined(n as usize)
+                .map_err(|e| crate::cli::UsageError(format!("--grid {n}: {e}")).into()),
+            _ => Ok(scene),
+        }
+    })
+    .collect()
 }

@@ -29,7 +29,7 @@ use crate::eval::frame_metrics;
 use crate::model::constraints::Parts;
 use crate::model::store::{stages, Surrogate};
 use crate::ops::NetOps;
-use crate::sim::families::{self, Family};
+use crate::sim::families::Family;
 use crate::sim::{Scene, SceneRun};
 
 /// The flags of `minflow bench rollout`.
@@ -75,17 +75,6 @@ struct Simulated {
     frames: Vec<Vec<f32>>,
     material: Vec<u8>,
     dt: f32,
-}
-
-/// Scene `id` of `family` with `seed`, on `grid` where that is finer than its own.
-fn scene_of(family: Family, id: u32, seed: u64, grid: Option<u32>) -> anyhow::Result<Scene> {
-    let scene = families::scene(family, id, seed);
-    Ok(match grid {
-        Some(n) if n as usize > scene.grid => scene
-            .refined(n as usize)
-            .map_err(|e| crate::cli::UsageError(format!("--grid {n}: {e}")))?,
-        _ => scene,
-    })
 }
 
 /// Simulates `frames` frames (frame 0 included) of `scene`.
@@ -237,9 +226,7 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
         .build()?;
     // The solver: one scene per thread, frame 0 is the initial state (not simulated).
     let started = Instant::now();
-    let specs: Vec<Scene> = (0..args.scenes as u32)
-        .map(|id| scene_of(family, id, args.seed, args.grid))
-        .collect::<anyhow::Result<_>>()?;
+    let specs = super::common::family_scenes(family, 0..args.scenes as u32, args.seed, args.grid)?;
     let scenes: anyhow::Result<Vec<Simulated>> = pool.install(|| {
         specs
             .par_iter()
@@ -338,36 +325,21 @@ fn gpu_solver_ms(
     scenes: &[Scene],
     frames: usize,
 ) -> anyhow::Result<Option<f64>> {
-    use crate::sim::gpu::GpuSolver;
     let ids = match args.device.parse()? {
         Device::Cuda(ids) => ids,
         Device::Cpu => return Ok(None),
     };
     let device = crate::cli::device::cuda::device(ids[0], args.device.kernels())?;
-    let config = scenes[0].solver_config();
-    let substeps = scenes[0].substeps;
-    let mut warm = GpuSolver::new(&device, config, vec![scenes[0].particles().0])?;
-    warm.advance(substeps)?;
-    warm.tallies()?;
-    // Steady state: the frames after the first `WARM` (the substep split's speculation
-    // window fills), at least `TIMED` of them whatever the rollout's length.
-    const WARM: usize = 10;
+    // Steady state: `WARM` untimed frames (the substep split's speculation window fills),
+    // then at least `TIMED` frames whatever the rollout's length.
+    const WARM: u32 = 10;
     const TIMED: usize = 50;
     let timed = (frames - 1).max(TIMED);
+    let window = crate::sim::gpu::RECENT as u32;
     let mut secs = 0.0;
     for chunk in scenes.chunks(args.batch) {
-        let particles = chunk.iter().map(|s| s.particles().0).collect();
-        let mut gpu = GpuSolver::new(&device, config, particles)?;
-        for _ in 0..WARM {
-            gpu.advance(substeps)?;
-        }
-        gpu.tallies()?;
-        let started = Instant::now();
-        for _ in 0..timed {
-            gpu.advance(substeps)?;
-        }
-        gpu.tallies()?;
-        secs += started.elapsed().as_secs_f64();
+        let row = super::sim_gpu::time_batch(&device, chunk, (WARM, timed as u32), window)?;
+        secs += row.ms * 1e-3 * (chunk.len() * timed) as f64;
     }
     Ok(Some(secs * 1e3 / (scenes.len() * timed) as f64))
 }

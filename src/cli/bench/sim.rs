@@ -5,8 +5,9 @@
 //! 16-20 ms and 62-75 ms per frame for the same work on this kind of machine (docs/mpm.md,
 //! "Speed anchor").
 
+use super::common::family_scenes;
 use crate::cli::{Outcome, UsageError};
-use crate::sim::families::{self, Family};
+use crate::sim::families::Family;
 use crate::sim::Scene;
 use clap::Args;
 use rayon::prelude::*;
@@ -47,28 +48,6 @@ pub struct SimBenchArgs {
     grid: Option<u32>,
 }
 
-/// Scenes `ids` of `family` (seed 0), refined onto `grid` where that is finer than the
-/// family's own.
-///
-/// # Errors
-/// A grid that is not a multiple of the family's, or a refined scene that fails validation.
-pub(super) fn family_scenes(
-    family: Family,
-    ids: std::ops::Range<u32>,
-    grid: Option<u32>,
-) -> anyhow::Result<Vec<Scene>> {
-    ids.map(|id| {
-        let scene = families::scene(family, id, 0);
-        match grid {
-            Some(n) if n as usize > scene.grid => scene
-                .refined(n as usize)
-                .map_err(|e| UsageError(format!("--grid {n}: {e}")).into()),
-            _ => Ok(scene),
-        }
-    })
-    .collect()
-}
-
 /// Simulates `frames` frames of each scene; returns the substep splits taken.
 fn simulate(scene: &Scene, frames: u32) -> anyhow::Result<u64> {
     let (mut solver, _) = scene.solver()?;
@@ -104,7 +83,7 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         })
         .collect::<Result<_, _>>()?;
     for &family in &families {
-        let scenes = family_scenes(family, 0..args.scenes.max(1), args.grid)?;
+        let scenes = family_scenes(family, 0..args.scenes.max(1), 0, args.grid)?;
         let frames = (scenes.len() as u64) * args.frames as u64;
         // One thread: scenes one after another.
         let start = Instant::now();
@@ -126,7 +105,7 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
         let s = &scenes[0];
         #[cfg(feature = "cuda")]
         if let Some(device) = &gpu {
-            let batch = family_scenes(family, 0..args.batch, args.grid)?;
+            let batch = family_scenes(family, 0..args.batch, 0, args.grid)?;
             let cpu_ms = multi * 1e3 / frames as f64;
             super::sim_gpu::print_row(device, family, batch, (args.frames, args.window), cpu_ms)?;
         }
@@ -155,27 +134,19 @@ pub fn run(args: SimBenchArgs) -> anyhow::Result<Outcome> {
     Ok(Outcome::Done)
 }
 
-/// The GPU `--device` names, or `None` for `cpu`; a usage error for anything else.
+/// The GPU `--device` names ([`crate::cli::device::solver_gpu`]), opened; `None` for `cpu`.
 #[cfg(feature = "cuda")]
 fn gpu_of(text: &str) -> anyhow::Result<Option<crate::sim::gpu::CudaDevice>> {
-    use crate::cli::device::{self, Device};
-    match device::parse(text)? {
-        Device::Cpu => Ok(None),
-        Device::Cuda(ids) if ids.len() == 1 => Ok(Some(device::cuda::device(
-            ids[0],
-            crate::ops::Kernels::default(),
-        )?)),
-        Device::Cuda(_) => Err(UsageError(
-            "--device: the GPU solver runs on one GPU (cuda or cuda:N)".into(),
-        )
-        .into()),
-    }
+    let kernels = crate::ops::Kernels::default();
+    crate::cli::device::solver_gpu(text)?
+        .map(|i| crate::cli::device::cuda::device(i, kernels))
+        .transpose()
 }
 
 /// Without the `cuda` feature only `cpu` is accepted ([`crate::cli::device::parse`] says why).
 #[cfg(not(feature = "cuda"))]
 fn gpu_of(text: &str) -> anyhow::Result<Option<()>> {
-    crate::cli::device::parse(text).map(|_| None)
+    crate::cli::device::solver_gpu(text).map(|_| None)
 }
 
 /// Prints the GPU solver's physics against the CPU's, per setting (`sim_gpu::parity`).
@@ -193,7 +164,7 @@ fn parity_table(
         "| setting | kinetic energy, GPU vs CPU | same, CPU reversed vs CPU | centre of mass, GPU vs CPU | same, CPU reversed vs CPU | two GPU runs |\n| --- | ---: | ---: | ---: | ---: | --- |"
     );
     for &family in families {
-        let scenes = family_scenes(family, 0..args.scenes.max(1), args.grid)?;
+        let scenes = family_scenes(family, 0..args.scenes.max(1), 0, args.grid)?;
         let p = super::sim_gpu::parity(device, &scenes, args.frames)?;
         println!(
             "| {} | {:.2e} | {:.2e} | {:.2e} | {:.2e} | {} |",

@@ -26,22 +26,25 @@ pub(super) struct GpuRow {
     pub redone: u64,
 }
 
-/// Simulates `scenes` (one setting) together for `frames` frames on the GPU, after one
-/// untimed frame (the kernels compile on first use).
+/// Simulates `scenes` (one setting) together on the GPU, speculating each frame's parts from
+/// the last `window` frames: `warm` untimed frames (at least one: the kernels compile on
+/// first use; more let the window fill), then `frames` timed ones. The upload is not timed.
 ///
 /// # Errors
 /// A scene the solver refuses, or the device's error.
 pub(super) fn time_batch(
     device: &CudaDevice,
-    scenes: Vec<Scene>,
-    frames: u32,
+    scenes: &[Scene],
+    (warm, frames): (u32, u32),
     window: u32,
 ) -> anyhow::Result<GpuRow> {
     let batch = scenes.len();
     let config = scenes[0].solver_config();
     let particles = scenes.iter().map(|s| s.particles().0).collect();
     let mut gpu = GpuSolver::new(device, config, particles)?.with_window(window as usize);
-    gpu.advance(scenes[0].substeps)?;
+    for _ in 0..warm.max(1) {
+        gpu.advance(scenes[0].substeps)?;
+    }
     gpu.tallies()?;
     let (passes, redone) = (gpu.passes, gpu.redone);
     let start = Instant::now();
@@ -59,7 +62,7 @@ pub(super) fn time_batch(
     })
 }
 
-/// Times `scenes` on the GPU ([`time_batch`], `(frames, window)`) and prints their row of
+/// Times `scenes` on the GPU ([`time_batch`], one untimed frame, `(frames, window)`) and prints their row of
 /// `bench sim`'s table, against `cpu_ms` a frame of the CPU row above.
 ///
 /// # Errors
@@ -77,7 +80,7 @@ pub(super) fn print_row(
         scenes[0].particle_count(),
     );
     let batch = scenes.len();
-    let row = time_batch(device, scenes, frames, window)?;
+    let row = time_batch(device, &scenes, (1, frames), window)?;
     println!(
         "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {batch} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {frames} frames redone",
         family.name(),

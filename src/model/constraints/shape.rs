@@ -42,7 +42,7 @@ pub(super) struct Body {
 /// 0 when the scene has none of `m` close enough. Distances are f32 `hypot`s, taken only
 /// where the squared distances cannot decide ([`kth_within`]).
 ///
-/// Each particle's neighbours are met ring of 1/256-cells by ring ([`Bins::rings`]) until
+/// Each particle's neighbours are met ring of 1/256-cells by ring ([`Bins::ring_around`]) until
 /// the k-th nearest so far lies well inside the rings' reach (every row it could tie with
 /// met) or the reach passes 1/64: the rows [`kth_within`] decides on are those of all
 /// particles within 1/64, so the result is theirs, at a cost that does not grow with the
@@ -63,26 +63,25 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
         let i = i as usize;
         let (x, y) = (rest[stride * i], rest[stride * i + 1]);
         near.clear();
-        let near_cell = std::cell::RefCell::new(&mut near);
-        bins.rings(
-            [x, y],
-            |j| {
+        for r in 0.. {
+            let reach = bins.ring_around([x, y], r, |j| {
                 let (dx, dy) = (rest[stride * j] - x, rest[stride * j + 1] - y);
                 let d2 = dx * dx + dy * dy;
                 if j != i && d2 <= far {
-                    near_cell.borrow_mut().push([d2, dx, dy]);
+                    near.push([d2, dx, dy]);
                 }
-            },
-            |reach| {
-                // Settled: k rows lie inside the reach by far more than `kth_within`'s tie
-                // band (1e-4) and f32 rounding, so every row within the band of the k-th is
-                // met; or every particle within the radius has been met.
-                let inside = (reach * reach / (1.0 + 1e-3)) as f32;
-                let rows = near_cell.borrow();
-                reach > radius as f64 * (1.0 + 1e-3)
-                    || rows.iter().filter(|r| r[0] <= inside).count() >= SPACING_NEIGHBOURS
-            },
-        );
+            });
+            // Settled: every particle within the radius met, or k rows inside the reach by
+            // far more than `kth_within`'s tie band (1e-4) and f32 rounding, so every row
+            // within the band of the k-th is met.
+            let Some(reach) = reach else { break };
+            let inside = (reach * reach / (1.0 + 1e-3)) as f32;
+            if reach > radius as f64 * (1.0 + 1e-3)
+                || near.iter().filter(|r| r[0] <= inside).count() >= SPACING_NEIGHBOURS
+            {
+                break;
+            }
+        }
         if let Some(d) = kth_within(&mut near, SPACING_NEIGHBOURS, radius) {
             kth.push(d);
         }

@@ -89,7 +89,7 @@ pub struct GpuSolver {
 }
 
 impl GpuSolver {
-    /// Uploads `scenes` (each checked as [`Solver::new`] checks it) to `device`.
+    /// Uploads `scenes` (each checked as [`Solver::check`] checks it) to `device`.
     ///
     /// # Errors
     /// A scene the CPU solver would refuse, no scenes, or more particles or nodes than
@@ -106,8 +106,8 @@ impl GpuSolver {
         let mut flat = Particles::default();
         let mut counts = Vec::with_capacity(scenes.len());
         let mut scene_of = Vec::new();
-        for (s, particles) in scenes.into_iter().enumerate() {
-            let checked = Solver::new(config, particles)?.particles;
+        for (s, checked) in scenes.into_iter().enumerate() {
+            Solver::check(&config, &checked)?;
             counts.push(checked.len());
             scene_of.extend(std::iter::repeat_n(s as u32, checked.len()));
             flat.x.extend(checked.x);
