@@ -4,7 +4,9 @@
 //! in this process), then launches `launch_configs/replay_eval.yaml` over zenoh with an
 //! embedded peer (replay -> surrogate node in closed loop -> recorder -> `eval --pred
 //! --truth`), which prints the replay evaluation table beside the `persist` and `constvel`
-//! baselines.
+//! baselines. With `--grid 128 | 256` the demo at scale: one `multi` scene of 10,000 or
+//! 40,000 particles simulated on the spot (seed 7: no shipped model trained on it) and served
+//! by the scale model (`models/scale-grid-mingru-small-k4`) the same way.
 
 use super::train::TrainArgs;
 use super::Outcome;
@@ -22,10 +24,20 @@ pub struct DemoArgs {
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
     /// Run folder of the model (by default the shipped small grid minGRU that predicts 4
-    /// frames per network call, the cheapest shipped model; `models/all-grid-mingru-rest` has
-    /// the lowest errors); trained here first if it holds no model.
-    #[arg(long, default_value = "models/all-grid-mingru-small-k4")]
-    model: PathBuf,
+    /// frames per network call, the cheapest shipped model, or with --grid its scale
+    /// version, `models/scale-grid-mingru-small-k4`; `models/all-grid-mingru-rest` has the
+    /// lowest errors); trained here first if it holds no model.
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// The demo at scale: instead of the bundled bags, simulate `--scene` of the `multi`
+    /// family on an N x N grid (128: 10,000 particles, 256: 40,000; `simulate --grid`) into
+    /// `OUT/truth` and serve it.
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["128", "256"]))]
+    grid: Option<String>,
+    /// With --grid: the `multi` scene id simulated (2: a jelly disk falling into a liquid;
+    /// `simulate --family multi` lists the kinds), with seed 7.
+    #[arg(long, default_value_t = 2, requires = "grid")]
+    scene: u32,
     /// Where `--train` (or a missing model) trains the demo's own model.
     #[arg(long, default_value = "runs/demo-grid-mingru")]
     train_out: PathBuf,
@@ -54,55 +66,18 @@ pub struct DemoArgs {
 
 pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     let start = Instant::now();
-    let bundled = bag::bag_paths(std::slice::from_ref(&args.bags))
-        .with_context(|| format!("finding the bundled bags in {}", args.bags.display()))?;
-    let info = bag::info(&bundled).context("reading the bundled bags")?;
-    println!("== bundled bags ({}) ==", args.bags.display());
-    for f in &info.files {
-        let scenes: Vec<&str> = f.scenes.keys().map(String::as_str).collect();
-        println!(
-            "{:<40} {:>5} frames  {}",
-            f.path.display(),
-            f.messages,
-            scenes.join(", ")
-        );
-    }
-    let model = if args.train || !RunFolder::new(&args.model).model_json().is_file() {
-        if !args.train {
-            println!("\n(no model in {}: training one)", args.model.display());
-        }
-        println!(
-            "\n== training a small grid minGRU on {} ({} epochs) ==",
-            args.bags.display(),
-            args.epochs
-        );
-        let mut train: TrainArgs = super::flags::defaults(&["--data", "--out"])?;
-        train.data = vec![args.bags.clone()];
-        train.out = args.train_out.clone();
-        train.epochs = args.epochs as usize;
-        train.batch_size = 4;
-        train.patience = 0;
-        train.grid_args.net.unet_width = 16;
-        train.grid_args.samples_per_epoch = 96;
-        crate::cli::train::run(train).context("training the demo model")?;
-        args.train_out.clone()
-    } else {
-        println!(
-            "\n== model: {} (shipped; --train to train one on the bundled bags) ==",
-            args.model.display()
-        );
-        args.model.clone()
-    };
+    let bags = demo_bags(&args)?;
+    let model = demo_model(&args)?;
     println!(
         "\n== launch replay_eval over {}: replay {} -> surrogate node (closed loop, {} frames) -> record -> eval ==",
         args.transport,
-        args.bags.display(),
+        bags.display(),
         args.horizon
     );
     let file = crate::launch::bundled("replay_eval");
     let overrides = [
         ("model", model.display().to_string()),
-        ("bags", args.bags.display().to_string()),
+        ("bags", bags.display().to_string()),
         ("transport", args.transport.clone()),
         ("horizon", args.horizon.to_string()),
         ("constraints", args.constraints.to_string()),
@@ -128,4 +103,74 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
         args.out.display()
     );
     Ok(Outcome::Done)
+}
+
+/// The ground truth the demo replays: the bundled bags, or with `--grid` one scene simulated
+/// here into `OUT/truth`; listed on stdout.
+fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
+    let bags = match &args.grid {
+        None => args.bags.clone(),
+        Some(grid) => {
+            let out = args.out.join("truth");
+            let frames = (args.horizon + 4).to_string();
+            let scene = args.scene.to_string();
+            let out_s = out.display().to_string();
+            let argv = ["--family", "multi", "--seed", "7", "--scenes", &scene, "--grid", grid];
+            let argv = [&argv[..], &["--frames", &frames, "--out", &out_s]].concat();
+            println!("== simulating multi scene {scene} on a {grid}^2 grid ({frames} frames, seed 7) ==");
+            let sim = super::flags::parse(&argv).context("the demo's simulate flags")?;
+            super::simulate::run(sim).context("simulating the demo's scene")?;
+            out
+        }
+    };
+    let found = bag::bag_paths(std::slice::from_ref(&bags))
+        .with_context(|| format!("finding the bags in {}", bags.display()))?;
+    let info = bag::info(&found).context("reading the bags")?;
+    println!("== ground truth ({}) ==", bags.display());
+    for f in &info.files {
+        let scenes: Vec<&str> = f.scenes.keys().map(String::as_str).collect();
+        println!(
+            "{:<40} {:>5} frames  {}",
+            f.path.display(),
+            f.messages,
+            scenes.join(", ")
+        );
+    }
+    Ok(bags)
+}
+
+/// The demo's model: `--model` (by default the shipped small model, or with `--grid` its
+/// scale version), or one trained here on the bundled bags (`--train`, or a `--model` folder
+/// without a model).
+fn demo_model(args: &DemoArgs) -> anyhow::Result<PathBuf> {
+    let shipped = match args.grid {
+        Some(_) => "models/scale-grid-mingru-small-k4",
+        None => "models/all-grid-mingru-small-k4",
+    };
+    let model = args.model.clone().unwrap_or_else(|| PathBuf::from(shipped));
+    if !args.train && RunFolder::new(&model).model_json().is_file() {
+        println!(
+            "\n== model: {} (shipped; --train to train one on the bundled bags) ==",
+            model.display()
+        );
+        return Ok(model);
+    }
+    if !args.train {
+        println!("\n(no model in {}: training one)", model.display());
+    }
+    println!(
+        "\n== training a small grid minGRU on {} ({} epochs) ==",
+        args.bags.display(),
+        args.epochs
+    );
+    let mut train: TrainArgs = super::flags::defaults(&["--data", "--out"])?;
+    train.data = vec![args.bags.clone()];
+    train.out = args.train_out.clone();
+    train.epochs = args.epochs as usize;
+    train.batch_size = 4;
+    train.patience = 0;
+    train.grid_args.net.unet_width = 16;
+    train.grid_args.samples_per_epoch = 96;
+    crate::cli::train::run(train).context("training the demo model")?;
+    Ok(args.train_out.clone())
 }

@@ -137,12 +137,22 @@ pub fn conv_kernel(s: &str) -> Result<crate::model::grid::ConvKernel, String> {
 /// # Errors
 /// A flag of `T` without a default that `required` does not name.
 pub fn defaults<T: clap::Args>(required: &[&str]) -> anyhow::Result<T> {
+    let argv: Vec<&str> = required.iter().flat_map(|f| [*f, "-"]).collect();
+    parse(&argv)
+}
+
+/// A subcommand's flag values from `argv` (its flags and values, no program name), so
+/// `demo` runs what `simulate` would with those flags.
+///
+/// # Errors
+/// `argv` is not a valid command line of `T` (clap's error).
+pub fn parse<T: clap::Args>(argv: &[&str]) -> anyhow::Result<T> {
     #[derive(clap::Parser)]
     struct Wrap<T: clap::Args> {
         #[command(flatten)]
         inner: T,
     }
-    let argv = std::iter::once("minflow").chain(required.iter().flat_map(|f| [*f, "-"]));
+    let argv = std::iter::once("minflow").chain(argv.iter().copied());
     Ok(<Wrap<T> as clap::Parser>::try_parse_from(argv)?.inner)
 }
 

@@ -72,7 +72,8 @@ fn write_metrics(folder: &RunFolder, history: &[EpochRecord]) -> anyhow::Result<
 /// (a run folder or a `split.json`; default: `init_from`'s run folder when it has one) its
 /// validation and test scenes stay held out and every other scene trains
 /// ([`Split::keeping_held_out`]), so a model continued on more scenes never trains on what
-/// its parent held out; otherwise the seeded 80:10:10 split of `scenes`.
+/// its parent held out; otherwise (or when `init_from`'s held-out scenes are none of
+/// `scenes`: a parent trained on another family or size) the seeded 80:10:10 split of `scenes`.
 ///
 /// # Errors
 /// The split file is unreadable or malformed; none of its validation scenes is in the data
@@ -103,6 +104,16 @@ pub(crate) fn run_split(
     let saved: Split = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a split.json", file.display()))?;
     let split = Split::keeping_held_out(&saved, scenes);
+    let unrelated = split.val.is_empty() && split.test.is_empty();
+    if split_from.is_none() && unrelated {
+        // `--init-from` a model trained on other scenes (another family or size): none of
+        // its held-out scenes is here to keep, so the data gets a split of its own.
+        tracing::info!(
+            "none of {}'s held-out scenes is in --data: a fresh split (seed {seed})",
+            file.display()
+        );
+        return Ok(Split::new(scenes, seed));
+    }
     if split.val.is_empty() && !saved.val.is_empty() {
         return Err(super::UsageError(format!(
             "--split-from {}: none of its {} validation scenes is in --data",

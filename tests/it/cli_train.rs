@@ -146,13 +146,17 @@ fn bad_flags_fail_clearly() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--window 30"));
 }
 
-/// `train --arch grid` with a tiny network (16 x 16 grid, two levels, a few samples per
-/// epoch) on the bundled bags.
+/// `train --arch grid` with a tiny network (16 x 16 grid unless `extra` gives `--grid`, two
+/// levels, a few samples per epoch) on the bundled bags.
 fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
     let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
     args.extend_from_slice(&crate::TINY_GRID_SCHEDULE);
-    args.extend_from_slice(&crate::TINY_GRID_NET);
+    let net = crate::TINY_GRID_NET;
+    match extra.contains(&"--grid") {
+        true => args.extend(net.chunks(2).filter(|f| f[0] != "--grid").flatten().copied()),
+        false => args.extend_from_slice(&net),
+    }
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)
@@ -442,6 +446,15 @@ fn grid_train_starts_from_another_runs_weights() {
         !other.path().join("metrics.csv").exists(),
         "the refused run trained"
     );
+    // Another network grid is the same network (the U-Net is convolutional): it trains on.
+    let regrid = crate::tmp::tempdir().unwrap();
+    let o = run(
+        regrid.path(),
+        &["--init-from", source.path().to_str().unwrap(), "--grid", "32"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(meta(regrid.path())["grid"], 32);
+    assert_eq!(meta(regrid.path())["dv_scale"], meta(source.path())["dv_scale"]);
 }
 
 /// `--split-from` keeps another split's validation and test scenes held out and trains on

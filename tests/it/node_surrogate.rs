@@ -416,8 +416,13 @@ fn bag_frames(bag: &Path) -> Vec<ParticleFrame> {
         .collect()
 }
 
+/// Held by the tests that run the replay evaluation on its default topics (`/mpm/frames`,
+/// `/surrogate/frames`), so two of them never hear each other's frames.
+static DEFAULT_TOPICS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn launch_replay_eval_prints_the_table() {
+    let _topics = DEFAULT_TOPICS.lock().unwrap_or_else(|e| e.into_inner());
     let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("re");
     let o = Node::spawn(
@@ -445,6 +450,43 @@ fn launch_replay_eval_prints_the_table() {
     );
     assert!(table.contains("constvel") && table.contains("persist"));
     assert!(out.join("eval").join("table.md").is_file());
+}
+
+/// `demo --grid 128`: a 10,000-particle scene simulated on the spot and served by the scale
+/// model over zenoh in closed loop; the node's prediction beats `persist` on it and the
+/// renders exist.
+#[test]
+fn the_demo_at_scale_serves_a_scene_of_10000_particles() {
+    let _topics = DEFAULT_TOPICS.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = crate::tmp::tempdir().unwrap();
+    let out = dir.path().join("scale");
+    let mut cmd = std::process::Command::new(minflow_bin());
+    cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args([
+        "demo",
+        "--grid",
+        "128",
+        "--horizon",
+        "8",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let o = Node::start("demo", &mut cmd).wait(Duration::from_secs(300));
+    let err = ok(&o, "demo --grid 128");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("models/scale-grid-mingru-small-k4"), "{stdout}\n{err}");
+    let table = std::fs::read_to_string(out.join("eval/table.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = table.lines().map(|l| l.split(',').collect()).collect();
+    let col = |name: &str| rows[0].iter().position(|h| *h == name).unwrap();
+    let row = rows
+        .iter()
+        .find(|r| r[0].contains("multi@128/jelly+liquid/002"))
+        .unwrap_or_else(|| panic!("no multi@128 scene in {table}"));
+    let (pred, persist): (f64, f64) = (
+        row[col("avg8_pred")].parse().unwrap(),
+        row[col("avg8_persist")].parse().unwrap(),
+    );
+    assert!(pred < 0.2 * persist, "avg8 {pred} against persist {persist}");
+    assert!(out.join("eval/render_multi_128_jelly+liquid_002.png").is_file());
 }
 
 #[test]

@@ -300,12 +300,14 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
         .with_context(|| format!("--init-from {}", dir.display()))?;
     // A model without reference channels may grow them (`GridModel::with_reference`), a
     // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape
-    // or with the free update those (`model::grid::grow`).
+    // or with the free update those (`model::grid::grow`), any model another grid.
     let compared = match &meta.net {
         NetConfig::Grid(saved) => config
             .clone()
             .with_reference(config.reference && saved.reference)
             .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
+            // The network grid may change (`GridModel::with_grid`).
+            .with_grid(saved.grid)
             .with_rest_shape(config.rest_shape && saved.rest_shape)
             // A fitted-F model may be fine-tuned into an advected-F one and back.
             .with_deformation(saved.deformation)

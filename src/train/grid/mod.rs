@@ -140,9 +140,11 @@ where
     }
 
     /// `model` (`--init-from`) grown into what [`GridTrainer::config`] asks for, in the order
-    /// the channels are laid out: reference, bundle, rest shape, update.
+    /// the channels are laid out: reference, bundle, rest shape, update; on the configured
+    /// network grid.
     fn grown(&self, model: GridModel<B>) -> GridModel<B> {
         let c = &self.config;
+        let model = model.with_grid(c.grid);
         let model = match c.reference {
             true => model.with_reference(),
             false => model,
