@@ -146,17 +146,15 @@ fn bad_flags_fail_clearly() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--window 30"));
 }
 
-/// `train --arch grid` with a tiny network (16 x 16 grid unless `extra` gives `--grid`, two
-/// levels, a few samples per epoch) on the bundled bags.
+/// `train --arch grid` with a tiny network (16 x 16 grid, two levels, a few samples per
+/// epoch; a flag of [`crate::TINY_GRID_NET`] that `extra` sets takes `extra`'s value) on the
+/// bundled bags.
 fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
     let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
     let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
     args.extend_from_slice(&crate::TINY_GRID_SCHEDULE);
     let net = crate::TINY_GRID_NET;
-    match extra.contains(&"--grid") {
-        true => args.extend(net.chunks(2).filter(|f| f[0] != "--grid").flatten().copied()),
-        false => args.extend_from_slice(&net),
-    }
+    args.extend(net.chunks(2).filter(|f| !extra.contains(&f[0])).flatten().copied());
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)
