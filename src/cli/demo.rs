@@ -115,9 +115,13 @@ fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
             let frames = (args.horizon + 4).to_string();
             let scene = args.scene.to_string();
             let out_s = out.display().to_string();
-            let argv = ["--family", "multi", "--seed", "7", "--scenes", &scene, "--grid", grid];
+            let argv = [
+                "--family", "multi", "--seed", "7", "--scenes", &scene, "--grid", grid,
+            ];
             let argv = [&argv[..], &["--frames", &frames, "--out", &out_s]].concat();
-            println!("== simulating multi scene {scene} on a {grid}^2 grid ({frames} frames, seed 7) ==");
+            println!(
+                "== simulating multi scene {scene} on a {grid}^2 grid ({frames} frames, seed 7) =="
+            );
             let sim = super::flags::parse(&argv).context("the demo's simulate flags")?;
             super::simulate::run(sim).context("simulating the demo's scene")?;
             out

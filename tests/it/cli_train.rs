@@ -154,7 +154,12 @@ fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
     args.extend_from_slice(&crate::TINY_GRID_SCHEDULE);
     let net = crate::TINY_GRID_NET;
-    args.extend(net.chunks(2).filter(|f| !extra.contains(&f[0])).flatten().copied());
+    args.extend(
+        net.chunks(2)
+            .filter(|f| !extra.contains(&f[0]))
+            .flatten()
+            .copied(),
+    );
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)
@@ -448,11 +453,19 @@ fn grid_train_starts_from_another_runs_weights() {
     let regrid = crate::tmp::tempdir().unwrap();
     let o = run(
         regrid.path(),
-        &["--init-from", source.path().to_str().unwrap(), "--grid", "32"],
+        &[
+            "--init-from",
+            source.path().to_str().unwrap(),
+            "--grid",
+            "32",
+        ],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(meta(regrid.path())["grid"], 32);
-    assert_eq!(meta(regrid.path())["dv_scale"], meta(source.path())["dv_scale"]);
+    assert_eq!(
+        meta(regrid.path())["dv_scale"],
+        meta(source.path())["dv_scale"]
+    );
 }
 
 /// `--split-from` keeps another split's validation and test scenes held out and trains on

@@ -473,7 +473,10 @@ fn the_demo_at_scale_serves_a_scene_of_10000_particles() {
     let o = Node::start("demo", &mut cmd).wait(Duration::from_secs(300));
     let err = ok(&o, "demo --grid 128");
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(stdout.contains("models/scale-grid-mingru-small-k4"), "{stdout}\n{err}");
+    assert!(
+        stdout.contains("models/scale-grid-mingru-small-k4"),
+        "{stdout}\n{err}"
+    );
     let table = std::fs::read_to_string(out.join("eval/table.csv")).unwrap();
     let rows: Vec<Vec<&str>> = table.lines().map(|l| l.split(',').collect()).collect();
     let col = |name: &str| rows[0].iter().position(|h| *h == name).unwrap();
@@ -485,8 +488,13 @@ fn the_demo_at_scale_serves_a_scene_of_10000_particles() {
         row[col("avg8_pred")].parse().unwrap(),
         row[col("avg8_persist")].parse().unwrap(),
     );
-    assert!(pred < 0.2 * persist, "avg8 {pred} against persist {persist}");
-    assert!(out.join("eval/render_multi_128_jelly+liquid_002.png").is_file());
+    assert!(
+        pred < 0.2 * persist,
+        "avg8 {pred} against persist {persist}"
+    );
+    assert!(out
+        .join("eval/render_multi_128_jelly+liquid_002.png")
+        .is_file());
 }
 
 #[test]

@@ -71,7 +71,8 @@ pub fn minflow_bin() -> PathBuf {
 /// 100..=227 by pid, so DDS tests running at once do not share discovery in domain 0 (a
 /// full run once saw a node's participant find port 7400 taken by another test's), and
 /// test runs of several checkouts on one machine rarely share one. Indices: 0..4 the rclpy
-/// tests, 4 the record/replay round trip, 5 the node against offline predictions.
+/// tests, 4 the record/replay round trip, 5 the node against offline predictions, 6 the
+/// node on frames of 40,000 particles.
 pub fn test_domain(index: u32) -> String {
     (100 + (std::process::id() % 16) * 8 + index).to_string()
 }
