@@ -37,7 +37,7 @@ pub struct FitArgs {
     /// projection, walls, and contact, momentum and rebound, written with their default
     /// values; snow stays off, as the ablation chose; the older `liquid` density part is
     /// replaced by `pressure`) | a list of rope, jelly, snow, liquid, walls, contact,
-    /// momentum, rebound, pressure.
+    /// momentum, rebound, pressure. The parts not named keep the model's own values.
     #[arg(
         long,
         value_name = "PARTS",
@@ -104,7 +104,7 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     println!("{}", serde_json::to_string_pretty(&fitted)?);
     if !args.dry_run {
         for dir in &args.models {
-            write_constraints(dir, &fitted)?;
+            write_constraints(dir, &fitted, args.parts)?;
             println!("wrote {}", RunFolder::new(dir).model_json().display());
         }
     }
@@ -214,15 +214,23 @@ fn training_scenes(args: &FitArgs, split: Option<Split>) -> anyhow::Result<Vec<S
     Ok(scenes)
 }
 
-/// Rewrites `dir/model.json` with `constraints` (through a temporary file, renamed), the
-/// JSON ending in a newline.
-fn write_constraints(dir: &Path, constraints: &Constraints) -> anyhow::Result<()> {
+/// Rewrites `dir/model.json` with the parts `parts` of `constraints` (through a temporary
+/// file, renamed), the parts it does not name as they were, the JSON ending in a newline.
+fn write_constraints(dir: &Path, constraints: &Constraints, parts: Parts) -> anyhow::Result<()> {
     let folder = RunFolder::new(dir);
     let path = folder.model_json();
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let mut meta = parse_meta(&text).with_context(|| format!("parsing {}", path.display()))?;
-    meta.constraints = Some(constraints.clone());
+    let mut merged = meta
+        .constraints
+        .unwrap_or_default()
+        .replaced(constraints, parts);
+    // The pressure projection replaces the older density part.
+    if parts.pressure && !parts.liquid {
+        merged.liquid = None;
+    }
+    meta.constraints = Some(merged);
     let tmp = folder.model_json_tmp();
     std::fs::write(&tmp, serde_json::to_string_pretty(&meta)? + "\n")
         .with_context(|| format!("writing {}", tmp.display()))?;

@@ -284,11 +284,42 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
     assert!(printed.contains("rope: stretch"), "{printed}");
     let meta =
         parse_meta(&std::fs::read_to_string(dir.path().join("model.json")).unwrap()).unwrap();
-    assert!(meta.constraints.is_some_and(|c| c.rope.is_some()
-        && c.pressure.is_some()
-        && c.liquid.is_none()
-        && c.momentum.is_some()
-        && c.rebound.is_some()));
+    let fitted = meta.constraints.unwrap();
+    assert!(
+        fitted.rope.is_some()
+            && fitted.pressure.is_some()
+            && fitted.liquid.is_none()
+            && fitted.momentum.is_some()
+            && fitted.rebound.is_some()
+    );
+    // Fitting one part rewrites that part and keeps the others as they were.
+    let mut edited = fitted.clone();
+    edited.walls.as_mut().unwrap().lo = 0.25;
+    let path = dir.path().join("model.json");
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    json["constraints"] = serde_json::to_value(&edited).unwrap();
+    std::fs::write(&path, json.to_string()).unwrap();
+    let args = [
+        "constraints",
+        "fit",
+        "--model",
+        model,
+        "--parts",
+        "walls",
+        "--max-scenes",
+        "2",
+    ];
+    run(&[&args[..], &["--data", bags.to_str().unwrap()]].concat());
+    let refit = parse_meta(&std::fs::read_to_string(&path).unwrap())
+        .unwrap()
+        .constraints
+        .unwrap();
+    assert_ne!(refit.walls, edited.walls, "the walls were not fitted again");
+    assert_eq!(
+        (refit.rope, refit.jelly, refit.contact, &refit.pressure),
+        (fitted.rope, fitted.jelly, fitted.contact, &fitted.pressure)
+    );
     let out = crate::tmp::tempdir().unwrap();
     let bag = repo("bags/multi_jelly+liquid_002.mcap");
     run(&[

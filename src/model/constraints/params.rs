@@ -306,6 +306,28 @@ impl Constraints {
         }
     }
 
+    /// These constraints with the parts `parts` names taken from `fitted`, present there or
+    /// not, and the others kept (`constraints fit --parts` rewrites only what it fits).
+    pub fn replaced(&self, fitted: &Constraints, parts: Parts) -> Self {
+        fn pick<T: Clone>(on: bool, new: &Option<T>, old: &Option<T>) -> Option<T> {
+            match on {
+                true => new.clone(),
+                false => old.clone(),
+            }
+        }
+        Self {
+            rope: pick(parts.rope, &fitted.rope, &self.rope),
+            jelly: pick(parts.jelly, &fitted.jelly, &self.jelly),
+            snow: pick(parts.snow, &fitted.snow, &self.snow),
+            liquid: pick(parts.liquid, &fitted.liquid, &self.liquid),
+            walls: pick(parts.walls, &fitted.walls, &self.walls),
+            contact: pick(parts.contact, &fitted.contact, &self.contact),
+            momentum: pick(parts.momentum, &fitted.momentum, &self.momentum),
+            rebound: pick(parts.rebound, &fitted.rebound, &self.rebound),
+            pressure: pick(parts.pressure, &fitted.pressure, &self.pressure),
+        }
+    }
+
     /// Whether no part is on.
     pub fn is_empty(&self) -> bool {
         *self == Self::default()
