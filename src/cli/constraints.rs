@@ -37,7 +37,8 @@ pub struct FitArgs {
     /// projection, walls, and contact, momentum and rebound, written with their default
     /// values; snow stays off, as the ablation chose; the older `liquid` density part is
     /// replaced by `pressure`) | a list of rope, jelly, snow, liquid, walls, contact,
-    /// momentum, rebound, pressure. The parts not named keep the model's own values.
+    /// momentum, rebound, pressure. The parts not named keep the model's own values (a snow
+    /// part fitted before stays), except the older `liquid`, which `pressure` replaces.
     #[arg(
         long,
         value_name = "PARTS",
@@ -215,7 +216,8 @@ fn training_scenes(args: &FitArgs, split: Option<Split>) -> anyhow::Result<Vec<S
 }
 
 /// Rewrites `dir/model.json` with the parts `parts` of `constraints` (through a temporary
-/// file, renamed), the parts it does not name as they were, the JSON ending in a newline.
+/// file, renamed), the parts it does not name as they were but the older `liquid` dropped
+/// when `parts` names `pressure` (which replaces it), the JSON ending in a newline.
 fn write_constraints(dir: &Path, constraints: &Constraints, parts: Parts) -> anyhow::Result<()> {
     let folder = RunFolder::new(dir);
     let path = folder.model_json();

@@ -31,11 +31,12 @@ pub struct DemoArgs {
     model: Option<PathBuf>,
     /// The demo at scale: instead of the bundled bags, simulate `--scene` of the `multi`
     /// family on an N x N grid (128: 10,000 particles, 256: 40,000; `simulate --grid`) into
-    /// `OUT/truth` and serve it.
+    /// `OUT/truth@N-SCENE` and serve it.
     #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["128", "256"]))]
     grid: Option<String>,
     /// With --grid: the `multi` scene id simulated (2: a jelly disk falling into a liquid;
-    /// `simulate --family multi` lists the kinds), with seed 7.
+    /// `simulate --family multi` lists the kinds), with seed 7. Scene 4 stops in the solver
+    /// on 256^2 (a liquid jet faster than check 6 allows, docs/mpm.md).
     #[arg(long, default_value_t = 2, requires = "grid")]
     scene: u32,
     /// Where `--train` (or a missing model) trains the demo's own model.
@@ -59,8 +60,8 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 6)]
     epochs: u32,
     /// Train a grid minGRU on the bundled bags (into --train-out) and use it instead of
-    /// --model.
-    #[arg(long, alias = "retrain")]
+    /// --model (not with --grid: a model of the bundled 2,500-particle scenes).
+    #[arg(long, alias = "retrain", conflicts_with = "grid")]
     train: bool,
 }
 
@@ -106,12 +107,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
 }
 
 /// The ground truth the demo replays: the bundled bags, or with `--grid` one scene simulated
-/// here into `OUT/truth`; listed on stdout.
+/// here into `OUT/truth@GRID-SCENE`; listed on stdout.
 fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
     let bags = match &args.grid {
         None => args.bags.clone(),
         Some(grid) => {
-            let out = args.out.join("truth");
+            // A folder per setting: the replay takes every bag it finds there.
+            let out = args.out.join(format!("truth@{grid}-{}", args.scene));
             let frames = (args.horizon + 4).to_string();
             let scene = args.scene.to_string();
             let out_s = out.display().to_string();
@@ -145,14 +147,22 @@ fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
 
 /// The demo's model: `--model` (by default the shipped small model, or with `--grid` its
 /// scale version), or one trained here on the bundled bags (`--train`, or a `--model` folder
-/// without a model).
+/// without a model; with `--grid`, an error instead).
 fn demo_model(args: &DemoArgs) -> anyhow::Result<PathBuf> {
     let shipped = match args.grid {
         Some(_) => "models/scale-grid-mingru-small-k4",
         None => "models/all-grid-mingru-small-k4",
     };
     let model = args.model.clone().unwrap_or_else(|| PathBuf::from(shipped));
-    if !args.train && RunFolder::new(&model).model_json().is_file() {
+    let found = RunFolder::new(&model).model_json().is_file();
+    if args.grid.is_some() && !found {
+        bail!(
+            "no model in {} to serve the scene at scale (a 2,500-particle model trained here \
+             would not do): run from the repository root or give --model",
+            model.display()
+        );
+    }
+    if !args.train && found {
         println!(
             "\n== model: {} (shipped; --train to train one on the bundled bags) ==",
             model.display()

@@ -72,8 +72,8 @@ fn write_metrics(folder: &RunFolder, history: &[EpochRecord]) -> anyhow::Result<
 /// (a run folder or a `split.json`; default: `init_from`'s run folder when it has one) its
 /// validation and test scenes stay held out and every other scene trains
 /// ([`Split::keeping_held_out`]), so a model continued on more scenes never trains on what
-/// its parent held out; otherwise (or when `init_from`'s held-out scenes are none of
-/// `scenes`: a parent trained on another family or size) the seeded 80:10:10 split of `scenes`.
+/// its parent held out; otherwise (or when no scene of `scenes` is in `init_from`'s split: a
+/// parent trained on another family or size) the seeded 80:10:10 split of `scenes`.
 ///
 /// # Errors
 /// The split file is unreadable or malformed; none of its validation scenes is in the data
@@ -103,17 +103,17 @@ pub(crate) fn run_split(
         .with_context(|| format!("reading the split to keep, {}", file.display()))?;
     let saved: Split = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a split.json", file.display()))?;
-    let split = Split::keeping_held_out(&saved, scenes);
-    let unrelated = split.val.is_empty() && split.test.is_empty();
+    let unrelated = scenes.iter().all(|s| saved.part_of(s.as_ref()).is_none());
     if split_from.is_none() && unrelated {
-        // `--init-from` a model trained on other scenes (another family or size): none of
-        // its held-out scenes is here to keep, so the data gets a split of its own.
-        tracing::info!(
-            "none of {}'s held-out scenes is in --data: a fresh split (seed {seed})",
+        // `--init-from` a model trained on other scenes (another family or size): no scene
+        // of --data is in its split, so the data gets a split of its own.
+        tracing::warn!(
+            "no scene of --data is in {}: a fresh split (seed {seed})",
             file.display()
         );
         return Ok(Split::new(scenes, seed));
     }
+    let split = Split::keeping_held_out(&saved, scenes);
     if split.val.is_empty() && !saved.val.is_empty() {
         return Err(super::UsageError(format!(
             "--split-from {}: none of its {} validation scenes is in --data",
@@ -239,4 +239,34 @@ pub(crate) fn differences(
             })
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A parent's `split.json` in a folder of its own, over scenes `a/0`..`a/19`.
+    fn parent() -> (tempfile::TempDir, Split) {
+        let dir = tempfile::tempdir().unwrap();
+        let scenes: Vec<String> = (0..20).map(|i| format!("a/{i:03}")).collect();
+        let split = Split::new(&scenes, 0);
+        let json = serde_json::to_string(&split).unwrap();
+        std::fs::write(RunFolder::new(dir.path()).split_json(), json).unwrap();
+        (dir, split)
+    }
+
+    /// `--init-from` a parent trained on other scenes: a fresh split of the data; the same
+    /// data named by `--split-from` is a usage error; the parent's own training scenes alone
+    /// are a usage error too (none of its validation scenes to keep held out), never a fresh
+    /// split that would hold out scenes the parent trained on.
+    #[test]
+    fn a_fresh_split_only_for_data_the_parent_never_saw() {
+        let (dir, saved) = parent();
+        let other: Vec<String> = (0..20).map(|i| format!("b/{i:03}")).collect();
+        let split = run_split(&other, 3, None, Some(dir.path())).unwrap();
+        assert_eq!(split, Split::new(&other, 3));
+        assert!(run_split(&other, 3, Some(dir.path()), None).is_err());
+        let trained = saved.train.clone();
+        assert!(run_split(&trained, 3, None, Some(dir.path())).is_err());
+    }
 }

@@ -39,6 +39,7 @@ mod model_structure;
 mod models_shipped;
 mod msgs_cdr;
 mod node_batching;
+mod node_large_frames;
 mod node_shard;
 mod node_surrogate;
 mod plot_png;

@@ -320,6 +320,10 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
         (refit.rope, refit.jelly, refit.contact, &refit.pressure),
         (fitted.rope, fitted.jelly, fitted.contact, &fitted.pressure)
     );
+    assert_eq!(
+        (refit.momentum, refit.rebound),
+        (fitted.momentum, fitted.rebound)
+    );
     let out = crate::tmp::tempdir().unwrap();
     let bag = repo("bags/multi_jelly+liquid_002.mcap");
     run(&[

@@ -268,6 +268,34 @@ fn kept_material_one_hot_follows_the_materials() {
     );
 }
 
+/// `GridModel::with_grid` (`train --init-from M --grid N`): the same weights on a grid of
+/// 32 predict otherwise than on their own 16, and back on 16 exactly as before.
+#[test]
+fn another_network_grid_keeps_the_weights_and_changes_the_prediction() {
+    let device = Default::default();
+    let meta = meta_with(MemoryKind::MinGru, false);
+    let NetConfig::Grid(config) = &meta.net else {
+        unreachable!()
+    };
+    let (state, material) = frame(150, 7);
+    let model = initial_grid_model::<B>(config, 3, &device).unwrap();
+    let on = |model, grid: usize| {
+        let meta = ModelMeta {
+            net: NetConfig::Grid(config.clone().with_grid(grid)),
+            ..meta.clone()
+        };
+        Surrogate::from_net(store::Net::Grid(model), meta, &device)
+            .rollout(None, &[state.clone()], &material, 0.016, 3)
+            .unwrap()
+    };
+    let own = on(model.clone(), 16);
+    let finer = on(model.clone().with_grid(32), 32);
+    let back = on(model.with_grid(32).with_grid(16), 16);
+    let change = max_abs_diff(&own, &finer);
+    assert!(change > 1e-6, "the grid reaches the prediction ({change})");
+    assert_eq!(own, back, "back on its own grid: the same predictions");
+}
+
 /// `--reference first-frame`: a model grown from one without it (`with_reference`, zero
 /// weights on the two new channels) predicts exactly what the old one did, whatever the
 /// reference; a model that reads the reference takes the first frame it steps on unless told

@@ -416,8 +416,9 @@ fn bag_frames(bag: &Path) -> Vec<ParticleFrame> {
         .collect()
 }
 
-/// Held by the tests that run the replay evaluation on its default topics (`/mpm/frames`,
-/// `/surrogate/frames`), so two of them never hear each other's frames.
+/// Held by the tests of this file that run the replay evaluation on its default topics
+/// (`/mpm/frames`, `/surrogate/frames`), so two of them never hear each other's frames;
+/// every other test publishes on a topic of its own ([`unique_topic`]).
 static DEFAULT_TOPICS: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 #[test]

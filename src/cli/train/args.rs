@@ -98,7 +98,8 @@ pub struct TrainArgs {
     /// Keep the validation and test scenes of this run folder's `split.json` (or of that
     /// file itself) held out and train on every other scene of --data, instead of a new
     /// seeded split: more training scenes (e.g. `simulate --scenes 60..300`) for a model
-    /// whose held-out scenes must stay unseen. Default with --init-from: its run's split.
+    /// whose held-out scenes must stay unseen. Default with --init-from: its run's split
+    /// (a fresh one when no scene of --data is in it: a parent of another family or size).
     #[arg(long, value_name = "DIR")]
     pub split_from: Option<PathBuf>,
     /// Frames held in memory at most; a larger dataset's training scenes are streamed from
@@ -295,7 +296,8 @@ pub struct GridArgs {
     pub max_minutes: f64,
     /// Start from the weights of this run folder (fine-tuning, or continuing a finished run
     /// with a new learning-rate schedule) instead of fresh ones. Its architecture must be the
-    /// one these flags describe; its normalisation constants are kept.
+    /// one these flags describe, but for --grid (the U-Net is convolutional: the same weights
+    /// on another network grid); its normalisation constants are kept.
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     pub init_from: Option<PathBuf>,
     /// Project every frame the training rollouts feed on (after the teacher-forced calls) onto the

@@ -1,6 +1,7 @@
 //! Growing a trained grid model into a larger one that predicts exactly what it did until it
 //! is trained further (`train --init-from`): reference channels, temporal bundling, rest-shape
-//! features, a grid velocity update; or onto another network grid. New inputs get zero weights, new outputs start at zero
+//! features, a grid velocity update. Also moving a model onto another network grid, which
+//! keeps its weights but not its predictions ([`GridModel::with_grid`]). New inputs get zero weights, new outputs start at zero
 //! (or, for bundling, as copies), so fine-tuning starts from the parent's predictions.
 
 use burn::module::Param;
@@ -33,8 +34,13 @@ impl<B: NetOps> GridModel<B> {
     /// This model on an `n x n` network grid ([`super::GridConfig::grid`]). Every weight is
     /// the same: the U-Net is convolutional and the transfers take any grid, so a model
     /// trained on one grid runs (and is fine-tuned, `train --grid N --init-from`) on
-    /// another. At 40,000 particles the network grid 64 of a model trained on 32 gives a
-    /// fifth of its avg20 (docs/grid.md, "The network's grid at scale").
+    /// another. Its predictions change: the mass a cell holds, the reference channel
+    /// `(x - X) n` and the wall masks all scale with `n`. At 40,000 particles the network grid
+    /// 64 of a model trained on 32 gives a sixth of its avg20 (docs/grid.md, "The network's
+    /// grid at scale").
+    ///
+    /// `n` must be a grid [`super::GridConfig`] accepts for the U-Net's levels (a multiple of
+    /// `2^(levels - 1)`, at least 8); `train` checks its `--grid` before this runs.
     pub fn with_grid(self, n: usize) -> Self {
         Self { n, ..self }
     }
