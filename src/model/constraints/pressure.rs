@@ -66,6 +66,10 @@ struct Scratch {
     wx: Vec<f32>,
     fy: Vec<f32>,
     wy: Vec<f32>,
+    /// The solve's nodes, red then black: each full node with open neighbours, its open
+    /// neighbours (the first `k`) and `k`; `red` of them red.
+    stencils: Vec<([u32; 5], u32)>,
+    red: usize,
 }
 
 /// A node the solve leaves at zero pressure (free surface).
@@ -375,32 +379,61 @@ impl Pressure {
     /// Red-black projected SOR for `q = p / h^2` on the full nodes: at each,
     /// `sum_n (q_i - q_n) = r_i` over its open neighbours (free ones at 0), `q >= 0`.
     fn solve(&self, p: &PressureParams, full: &[usize], s: &mut Scratch) {
-        let side = self.side;
-        let colour = |n: usize| (n / side + n % side) % 2;
+        self.stencils(full, s);
+        let Scratch {
+            stencils,
+            red,
+            rhs,
+            p: q,
+            ..
+        } = s;
         let omega = p.omega;
+        let (reds, blacks) = stencils.split_at(*red);
         for _ in 0..p.iterations {
-            for c in 0..2 {
-                for &n in full.iter().filter(|&&n| colour(n) == c) {
-                    let (i, j) = (n / side, n % side);
-                    let (mut sum, mut k) = (0.0f32, 0u32);
-                    let neighbours = [
-                        (i > 0).then(|| n - side),
-                        (i + 1 < side).then(|| n + side),
-                        (j > 0).then(|| n - 1),
-                        (j + 1 < side).then(|| n + 1),
-                    ];
-                    for m in neighbours.into_iter().flatten() {
-                        if s.kind[m] < CLOSED {
-                            sum += s.p[m];
-                            k += 1;
-                        }
+            for colour in [reds, blacks] {
+                for &([n, m @ ..], k) in colour {
+                    let mut sum = 0.0f32;
+                    for &m in &m[..k as usize] {
+                        sum += q[m as usize];
                     }
-                    if k == 0 {
-                        continue;
-                    }
-                    let target = (s.rhs[n] + sum) / k as f32;
-                    s.p[n] = (s.p[n] + omega * (target - s.p[n])).max(0.0);
+                    let n = n as usize;
+                    let target = (rhs[n] + sum) / k as f32;
+                    q[n] = (q[n] + omega * (target - q[n])).max(0.0);
                 }
+            }
+        }
+    }
+
+    /// The solve's stencils into `s` (red-black by `(i + j) % 2`, each colour in node
+    /// order): every full node with an open neighbour and those neighbours, in the order
+    /// `i - 1, i + 1, j - 1, j + 1` (so the sums, and the results, are those of a sweep that
+    /// looks them up). The node kinds do not change during a solve.
+    fn stencils(&self, full: &[usize], s: &mut Scratch) {
+        let side = self.side;
+        s.stencils.clear();
+        for c in 0..2 {
+            for &n in full.iter().filter(|&&n| (n / side + n % side) % 2 == c) {
+                let (i, j) = (n / side, n % side);
+                let neighbours = [
+                    (i > 0).then(|| n - side),
+                    (i + 1 < side).then(|| n + side),
+                    (j > 0).then(|| n - 1),
+                    (j + 1 < side).then(|| n + 1),
+                ];
+                let mut st = [n as u32, 0, 0, 0, 0];
+                let mut k = 0;
+                for m in neighbours.into_iter().flatten() {
+                    if s.kind[m] < CLOSED {
+                        k += 1;
+                        st[k] = m as u32;
+                    }
+                }
+                if k > 0 {
+                    s.stencils.push((st, k as u32));
+                }
+            }
+            if c == 0 {
+                s.red = s.stencils.len();
             }
         }
     }
