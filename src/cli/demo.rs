@@ -118,9 +118,9 @@ fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
             let scene = args.scene.to_string();
             let out_s = out.display().to_string();
             let argv = [
-                "--family", "multi", "--seed", "7", "--scenes", &scene, "--grid", grid,
+                "--family", "multi", "--seed", "7", "--scenes", &scene, "--grid", grid, "--frames",
+                &frames, "--out", &out_s,
             ];
-            let argv = [&argv[..], &["--frames", &frames, "--out", &out_s]].concat();
             println!(
                 "== simulating multi scene {scene} on a {grid}^2 grid ({frames} frames, seed 7) =="
             );

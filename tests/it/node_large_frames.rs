@@ -12,16 +12,8 @@ use crate::transport_support::*;
 #[test]
 fn the_node_serves_frames_of_40000_particles_over_every_transport() {
     let dir = crate::tmp::tempdir().unwrap();
-    let out = dir.path().to_str().unwrap();
-    let args = [
-        "simulate", "--family", "multi", "--scenes", "2", "--grid", "256", "--frames", "6",
-        "--out", out,
-    ];
-    ok(
-        &Node::spawn("simulate", &args).wait(Duration::from_secs(120)),
-        "simulate --grid 256",
-    );
-    let bag = dir.path().join("multi@256_jelly+liquid_002.mcap");
+    let data = dir.path().join("truth");
+    let bag = scene_of_40000(&data, 2, 6);
     let model = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/models/scale-grid-mingru-small-k4"

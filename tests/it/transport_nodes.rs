@@ -118,14 +118,7 @@ fn iceoryx2_replay_record_roundtrip() {
 #[test]
 fn frames_of_40000_particles_cross_every_transport() {
     let dir = crate::tmp::tempdir().unwrap();
-    let out = dir.path().to_str().unwrap();
-    let args = [
-        "simulate", "--family", "multi", "--scenes", "4", "--grid", "256", "--frames", "3",
-        "--out", out,
-    ];
-    let o = Node::spawn("simulate", &args).wait(Duration::from_secs(120));
-    ok(&o, "simulate --grid 256");
-    let bag = dir.path().join("multi@256_liquid_004.mcap");
+    let bag = scene_of_40000(dir.path(), 4, 3);
     let (_, _, first) = minflow::bag::read_frames(&bag, None)
         .unwrap()
         .frames

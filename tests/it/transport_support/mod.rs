@@ -242,6 +242,22 @@ pub fn source_bag() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("bags/multi_rope+snow_001.mcap")
 }
 
+/// `multi` scene `scene` (seed 0) simulated on 256^2 into `dir`, 40,000 particles and
+/// `frames` frames (`simulate --grid 256`, about 800 kB of CDR a frame): its bag.
+pub fn scene_of_40000(dir: &Path, scene: u32, frames: u32) -> PathBuf {
+    let (scene, frames) = (scene.to_string(), frames.to_string());
+    let out = dir.to_str().unwrap();
+    let args = [
+        "simulate", "--family", "multi", "--scenes", &scene, "--grid", "256", "--frames", &frames,
+        "--out", out,
+    ];
+    let o = Node::spawn("simulate", &args).wait(Duration::from_secs(120));
+    ok(&o, "simulate --grid 256");
+    let mut bags = bag_paths(&[dir.to_path_buf()]).unwrap();
+    assert_eq!(bags.len(), 1, "{bags:?}");
+    bags.remove(0)
+}
+
 /// The raw bytes of every message on `topic` (all topics when None) in file order, over
 /// the bags of `input` (file or folder), stopping quietly at a truncation.
 pub fn raw_messages(input: &Path, topic: Option<&str>) -> Vec<Vec<u8>> {
