@@ -71,8 +71,10 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     dt,
                     solver_grid,
                 } = &batch.host;
+                use rayon::prelude::*;
                 let n = material.len() / dt.len().max(1);
                 (0..dt.len())
+                    .into_par_iter()
                     .map(|i| {
                         let rest = &first[i * n * 2..(i + 1) * n * 2];
                         let ids = &material[i * n..(i + 1) * n];
@@ -107,26 +109,22 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         let Ok(host) = crate::model::download(frame) else {
             return (pos, vel);
         };
-        // [B, N, 4] rows from the [B, N, 2 | 2] layout of the cat.
-        let mut rows = host.clone();
+        // [B, N, 4] rows from the [B, N, 2 | 2] layout of the cat; the samples projected in
+        // parallel (one H100's batch of 64 took 6x as long a step through a serial projection).
+        use rayon::prelude::*;
         let HostRows { material, dt, .. } = &self.batch.host;
-        let mut moved = vec![0.0f32; b * n * 4];
-        for (i, shape) in self.shapes.iter_mut().enumerate() {
-            let span = i * n * 4..(i + 1) * n * 4;
-            shape.project(
-                c,
-                (None, &mut rows[span.clone()]),
-                &material[i * n..(i + 1) * n],
-                dt[i],
-            );
-            for ((m, a), o) in moved[span.clone()]
-                .iter_mut()
-                .zip(&rows[span.clone()])
-                .zip(&host[span])
-            {
-                *m = a - o;
-            }
-        }
+        let mut moved = host.clone();
+        self.shapes
+            .par_iter_mut()
+            .zip(moved.par_chunks_mut(n * 4))
+            .zip(host.par_chunks(n * 4))
+            .enumerate()
+            .for_each(|(i, ((shape, rows), before))| {
+                shape.project(c, (None, rows), &material[i * n..(i + 1) * n], dt[i]);
+                for (m, o) in rows.iter_mut().zip(before) {
+                    *m -= o;
+                }
+            });
         let moved = upload::<B, 3>(moved, [b, n, 4], &pos.device());
         (
             pos + moved.clone().narrow(2, 0, 2),
