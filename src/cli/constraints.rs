@@ -174,6 +174,9 @@ fn print_fit(
     }
     if let Some(w) = fitted.walls {
         println!("- walls: [{:.5}, {:.5}]", w.lo, w.hi);
+        if let Some(c) = w.cells {
+            println!("- walls in a scene whose solver grid n is known: {c:.3} of its cells from the edge ([{c:.3} / n, 1 - {c:.3} / n])");
+        }
     }
 }
 

@@ -292,6 +292,10 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
             && fitted.momentum.is_some()
             && fitted.rebound.is_some()
     );
+    // The bundled bags carry their solver grid, so the walls are fitted in solver cells too:
+    // the solver's boundary nodes (index < 3) stop its particles short of 3 cells.
+    let cells = fitted.walls.unwrap().cells.expect("walls in solver cells");
+    assert!((1.0..3.0).contains(&cells), "{cells}");
     // Fitting one part rewrites that part and keeps the others as they were.
     let mut edited = fitted.clone();
     edited.walls.as_mut().unwrap().lo = 0.25;

@@ -9,7 +9,9 @@
 //!   none does: [`FitReport::liquid_met`] says which);
 //! - liquid pressure `rest`: likewise, the least of [`PRESSURE_CANDIDATES`] (volume
 //!   fractions) that leaves the truth in place;
-//! - walls: the smallest and largest coordinate any training particle takes.
+//! - walls: the smallest and largest coordinate any training particle takes, and the least
+//!   distance from the box's edge, in its scene's solver cells, of any particle of a scene
+//!   whose grid is known ([`super::WallParams::cells`]).
 //!
 //! Shape matching's stiffness, linear share and plasticity, the kernel radius and the
 //! iteration counts are kept from the base parameters.
@@ -82,6 +84,7 @@ pub fn fit(trajs: &[Trajectory], base: &Constraints) -> (Constraints, FitReport)
         if lo <= hi {
             (w.lo, w.hi) = (lo, hi);
         }
+        w.cells = wall_cells(trajs);
     }
     if let Some(p) = out.liquid {
         let only = Constraints {
@@ -141,6 +144,20 @@ fn fit_rest(
         }
     }
     (rest, moves, frames, false)
+}
+
+/// The least distance of any particle from the box's edge in its scene's solver cells, over
+/// the scenes whose solver grid is known (None without one).
+fn wall_cells(trajs: &[Trajectory]) -> Option<f32> {
+    trajs
+        .iter()
+        .filter_map(|t| {
+            let n = t.solver_grid? as f32;
+            let s = &t.states;
+            let edge = s.chunks_exact(4).flat_map(|r| [r[0], r[1], 1.0 - r[0], 1.0 - r[1]]);
+            Some(edge.fold(f32::MAX, f32::min) * n)
+        })
+        .reduce(f32::min)
 }
 
 /// Every link stretch of the truth's ropes, every frame (chains of each scene's frame 0).

@@ -18,7 +18,8 @@
 //! - liquid pressure ([`pressure`]): the liquid's velocities and volume fraction on a grid,
 //!   and a unilateral pressure solve that removes its compression and its compressing
 //!   velocity, as FLIP and MPM liquids stay incompressible (after the density part);
-//! - the box walls: positions clamped into the range the solver's particles stay in;
+//! - the box walls: positions clamped into the range the solver's particles stay in, in
+//!   the scene's own solver cells where its grid is known ([`WallParams::bounds`]);
 //! - contact ([`contact`]): shape-matched bodies pushed apart where they overlap, each as a
 //!   rigid translation, before their shape matching;
 //! - momentum ([`momentum`]): each cluster of particles clear of the walls and of the other
@@ -119,6 +120,9 @@ pub struct SceneShape {
     rebound: Option<rebound::Rebound>,
     /// The frame before the projection (reused from frame to frame).
     before: Vec<f32>,
+    /// The solver grid the scene was made on, if known (the walls and the pressure part's
+    /// threshold depend on it).
+    grid: Option<u32>,
 }
 
 impl SceneShape {
@@ -130,8 +134,8 @@ impl SceneShape {
     }
 
     /// [`SceneShape::new`] for a scene the solver made on a `grid` x `grid` grid (when
-    /// known: the liquid's pressure part picks its threshold by it,
-    /// [`PressureParams::rest_for`]).
+    /// known: the walls stand in its cells, [`WallParams::bounds`], and the liquid's pressure
+    /// part picks its threshold by it, [`PressureParams::rest_for`]).
     pub fn on_grid(
         rest: &[f32],
         stride: usize,
@@ -184,6 +188,7 @@ impl SceneShape {
             pressure,
             rebound,
             before: Vec::new(),
+            grid,
         }
     }
 
@@ -234,7 +239,7 @@ impl SceneShape {
             liquid.project(p, frame);
         }
         if let (Some(p), Some(pressure)) = (&c.pressure, &mut self.pressure) {
-            let walls = c.walls.map_or((0.0, 1.0), |w| (w.lo, w.hi));
+            let walls = c.walls.map_or((0.0, 1.0), |w| w.bounds(self.grid));
             pressure.project(p, frame, material, dt, walls);
         }
         if let (Some(p), Some(prev), Some(rebound)) = (&c.rebound, prev, &mut self.rebound) {
@@ -244,9 +249,10 @@ impl SceneShape {
             momentum::conserve(p, prev, &before, frame, dt);
         }
         if let Some(w) = &c.walls {
+            let (lo, hi) = w.bounds(self.grid);
             for row in frame.chunks_exact_mut(4) {
-                row[0] = row[0].clamp(w.lo, w.hi);
-                row[1] = row[1].clamp(w.lo, w.hi);
+                row[0] = row[0].clamp(lo, hi);
+                row[1] = row[1].clamp(lo, hi);
             }
         }
         let mut out = Correction::default();
@@ -291,7 +297,11 @@ mod tests {
     #[test]
     fn walls_clamp_and_the_velocity_takes_the_move() {
         let c = Constraints {
-            walls: Some(WallParams { lo: 0.1, hi: 0.9 }),
+            walls: Some(WallParams {
+                lo: 0.1,
+                hi: 0.9,
+                cells: None,
+            }),
             ..Default::default()
         };
         let rest = [0.5, 0.5, 0.0, 0.0];
@@ -302,5 +312,29 @@ mod tests {
         // v = 1 + (0.9 - 0.95) / 0.01 = -4.
         assert!((frame[2] + 4.0).abs() < 1e-3, "{}", frame[2]);
         assert_eq!(corr.count[0], 1);
+    }
+
+    #[test]
+    fn walls_stand_in_the_scenes_own_solver_cells() {
+        let c = Constraints {
+            walls: Some(WallParams {
+                lo: 0.03,
+                hi: 0.97,
+                cells: Some(1.8),
+            }),
+            ..Default::default()
+        };
+        let rest = [0.5, 0.5, 0.0, 0.0];
+        let below = |grid| {
+            let mut shape = SceneShape::on_grid(&rest, 4, &[0], &c, grid);
+            let mut frame = [0.985, 0.02, 0.0, 0.0];
+            shape.project(&c, (None, &mut frame), &[0], 0.01);
+            [frame[0], frame[1]]
+        };
+        // 64^2: 1.8 / 64 = 0.028125 from each edge; 128^2: 0.0140625, inside which the
+        // frame already is; an unknown grid: lo and hi.
+        assert_eq!(below(Some(64)), [1.0 - 1.8 / 64.0, 1.8 / 64.0]);
+        assert_eq!(below(Some(128)), [0.985, 0.02]);
+        assert_eq!(below(None), [0.97, 0.03]);
     }
 }

@@ -247,13 +247,32 @@ impl DensityParams {
     };
 }
 
-/// The box: positions are clamped into `[lo, hi]` on both axes (domain units).
+/// The box: positions are clamped into `[lo, hi]` on both axes (domain units), or, in a
+/// scene whose solver grid `n` is known, into `[cells / n, 1 - cells / n]`: MLS-MPM's walls
+/// are its boundary nodes (index < 3 or > n - 3, `MPM.md`), so its particles stop about 1.8
+/// of the scene's own cells from the box's edge (a `multi` scene on 64^2 never goes below
+/// 0.028, a `fluid` one on 128^2 reaches 0.014): one box for both let a surrogate's
+/// `multi` liquid settle a cell below the truth's floor, a thinner sheet.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WallParams {
     /// Lowest coordinate a particle may take.
     pub lo: f32,
     /// Highest coordinate a particle may take.
     pub hi: f32,
+    /// The walls' distance from the box's edge in the scene's solver cells, when fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cells: Option<f32>,
+}
+
+impl WallParams {
+    /// The walls `(lo, hi)` (domain units) of a scene on the solver grid `grid`: by
+    /// [`WallParams::cells`] where both are known, else `lo` and `hi`.
+    pub fn bounds(&self, grid: Option<u32>) -> (f32, f32) {
+        match (self.cells, grid) {
+            (Some(c), Some(n)) if n > 0 => (c / n as f32, 1.0 - c / n as f32),
+            _ => (self.lo, self.hi),
+        }
+    }
 }
 
 impl Constraints {
@@ -279,6 +298,7 @@ impl Constraints {
             walls: Some(WallParams {
                 lo: 0.5 / 128.0,
                 hi: 1.0 - 0.5 / 128.0,
+                cells: None,
             }),
             contact: Some(ContactParams {
                 distance: 1.0,
