@@ -262,7 +262,8 @@ pub struct GridArgs {
     pub strain_loss: f32,
     /// Weight of the volume loss: the squared error of each liquid particle's J (the area
     /// change of its 8 nearest liquid neighbours since the sample's first frame, fitted by
-    /// least squares), prediction against truth (0: off).
+    /// least squares), prediction against truth (0: off). At weight 20 it made fine-tunes of
+    /// the shipped small model worse over whole scenes, not better (docs/liquid.md).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub volume_loss: f32,
     /// Weight of the energy loss: per sample, the squared relative error of the predicted
