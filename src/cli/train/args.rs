@@ -271,6 +271,14 @@ pub struct GridArgs {
     /// training through it), so the network makes up the motion the projection takes (0: off).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub energy_loss: f32,
+    /// Weight of the liquid density-map loss: the liquid's particles per cell on a 32 x 32
+    /// grid (quadratic B-spline, differentiable in the positions), in units of the scene's
+    /// mean, squared error of the prediction's against the truth's, as the paper's density
+    /// loss (section 3). With --chunks above 1, the chunks after the first are scored by it
+    /// (and the structure and energy terms) instead of by each particle's place, so a long
+    /// rollout is asked for the truth's liquid shape, not a particle-by-particle match (0: off).
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
+    pub density_loss: f32,
     /// Discount of the loss along each sample's rollout, in (0, 1]: the rollout's frame j
     /// (from 0) weighs discount^j, the weights normalised to sum to 1, so a long
     /// --rollout-steps keeps the first frames' error in view (1: every frame alike).
@@ -380,6 +388,7 @@ impl TrainArgs {
             strain_weight: g.strain_loss,
             volume_weight: g.volume_loss,
             energy_weight: g.energy_loss,
+            density_weight: g.density_loss,
             discount: g.rollout_discount,
             seed: self.seed,
             patience: self.patience,

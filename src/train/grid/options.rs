@@ -54,6 +54,12 @@ pub struct GridTrainOptions {
     /// `rollout_loss/terms.rs`).
     #[serde(default)]
     pub energy_weight: f32,
+    /// Weight of the liquid density-map loss (its particles per cell on a coarse grid, the
+    /// prediction's against the truth's; `rollout_loss/terms.rs`). When on, the frames past
+    /// the first chunk of a sample (`chunks` > 1) are scored by the structure, energy and
+    /// density terms alone, not by each particle's place.
+    #[serde(default)]
+    pub density_weight: f32,
     /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K
     /// frames (from 0) weighs `discount^j`, the weights normalised to sum to 1, so a long
     /// rollout (large P) keeps its first frames' error in view while the later frames still
@@ -106,6 +112,7 @@ impl Default for GridTrainOptions {
             strain_weight: 0.0,
             volume_weight: 0.0,
             energy_weight: 0.0,
+            density_weight: 0.0,
             discount: 1.0,
             seed: 0,
             patience: 0,

@@ -173,7 +173,11 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     true => (out.pos, out.vel),
                     false => self.projected(out.pos, out.vel),
                 };
-                let step = frame_loss(opts, &self.batch, &scale, &pos, &vel, &target);
+                // With the density term on, frames past the first chunk are scored by the
+                // liquid's shape rather than each particle's place.
+                let past_first = self.calls > opts.pushforward + opts.steps;
+                let mse = !(opts.density_weight > 0.0 && past_first);
+                let step = frame_loss(opts, &self.batch, &scale, (&pos, &vel), &target, mse);
                 let step = match weights.as_mut() {
                     Some(w) => step.mul_scalar(w.next().expect("one weight a frame")),
                     None => step,

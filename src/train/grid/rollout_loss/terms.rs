@@ -14,7 +14,11 @@
 //!   paper adds a density-map loss for the same reason (section 3);
 //! - energy (`energy_weight`): each sample's RMS particle speed against the truth's, relative:
 //!   trained through the constraint projection (which only takes kinetic energy away), the
-//!   network learns to supply the motion the projection removes (a liquid's splash).
+//!   network learns to supply the motion the projection removes (a liquid's splash);
+//! - density (`density_weight`): the liquid's particles per cell on a coarse grid, prediction
+//!   against truth ([`density_loss`]): on frames past a sample's first chunk it stands in for
+//!   the MSE, which over a rollout carried far from the truth rewards the mean of where a
+//!   splash could have gone, a flat liquid (docs/liquid.md).
 
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
@@ -24,14 +28,15 @@ use super::super::options::GridTrainOptions;
 use crate::model::grid::NeighbourTensors;
 
 /// One predicted frame's loss: velocity and position MSE in the loss's units (`scale`,
-/// [`BatchTensors::scales`]) plus the structure terms, against `target` (`[B, N, 4]`).
+/// [`BatchTensors::scales`]; left out without `mse`) plus the structure, energy and density
+/// terms, against `target` (`[B, N, 4]`).
 pub(super) fn frame_loss<B: Backend>(
     opts: &GridTrainOptions,
     batch: &BatchTensors<B>,
     (dv_scale, pos_scale): &(Tensor<B, 3>, Tensor<B, 3>),
-    pos: &Tensor<B, 3>,
-    vel: &Tensor<B, 3>,
+    (pos, vel): (&Tensor<B, 3>, &Tensor<B, 3>),
     target: &Tensor<B, 3>,
+    mse: bool,
 ) -> Tensor<B, 1> {
     let lv = ((vel.clone() - target.clone().narrow(2, 2, 2)) / dv_scale.clone())
         .powi_scalar(2)
@@ -42,9 +47,61 @@ pub(super) fn frame_loss<B: Backend>(
         .mean();
     let rest = batch.rest.as_ref();
     let target_vel = target.clone().narrow(2, 2, 2);
-    lv + lx
-        + structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
+    let shape = structure_loss(opts, rest, batch.liquid.as_ref(), pos, &target_pos)
         + energy_loss(opts, vel, &target_vel)
+        + density_loss(opts, &batch.material, pos, &target_pos);
+    match mse {
+        true => lv + lx + shape,
+        false => shape,
+    }
+}
+
+/// Cells per side of the density term's grid (its nodes `0..=DENSITY_CELLS`).
+const DENSITY_CELLS: usize = 32;
+
+/// The density term (`density_weight`): the liquid particles' quadratic B-spline splat on
+/// the nodes `i / DENSITY_CELLS` of the unit square (`[B, n, n]`, `n = DENSITY_CELLS + 1`,
+/// the weights a function of the positions, so the gradient moves particles), in units of
+/// the scene's mean particles per cell, squared difference of `pred`'s and the detached
+/// `truth`'s (`[B, N, 2]`) averaged over the nodes, weighted; 0 when the weight is 0.
+/// `material` is the `[B, N, M]` one-hot, liquid first. The paper's density loss (section 3)
+/// on MPM's kernel (`crate::bspline`).
+fn density_loss<B: Backend>(
+    opts: &GridTrainOptions,
+    material: &Tensor<B, 3>,
+    pred: &Tensor<B, 3>,
+    truth: &Tensor<B, 3>,
+) -> Tensor<B, 1> {
+    if opts.density_weight <= 0.0 {
+        return Tensor::zeros([1], &pred.device());
+    }
+    let [_, n, _] = pred.dims();
+    let nodes = DENSITY_CELLS + 1;
+    let liquid = material.clone().narrow(2, 0, 1);
+    let unit = n as f32 / (DENSITY_CELLS * DENSITY_CELLS) as f32;
+    let map = |x: Tensor<B, 3>| {
+        let wx = axis_weights(x.clone().narrow(2, 0, 1), nodes);
+        let wy = axis_weights(x.narrow(2, 1, 1), nodes) * liquid.clone();
+        wx.swap_dims(1, 2).matmul(wy).div_scalar(unit)
+    };
+    let err = map(pred.clone()) - map(truth.clone().detach());
+    err.powi_scalar(2).mean().mul_scalar(opts.density_weight)
+}
+
+/// `[B, N, nodes]`: MPM's quadratic B-spline weight of each coordinate `x` (`[B, N, 1]`,
+/// domain units) at the nodes `i / (nodes - 1)`: `3/4 - r^2` for `|r| < 1/2`, `(3/2 - |r|)^2
+/// / 2` for `|r| < 3/2`, 0 beyond, `r = x (nodes - 1) - i`.
+fn axis_weights<B: Backend>(x: Tensor<B, 3>, nodes: usize) -> Tensor<B, 3> {
+    let device = x.device();
+    let i = Tensor::<B, 1, burn::tensor::Int>::arange(0..nodes as i64, &device)
+        .float()
+        .reshape([1, 1, nodes]);
+    let r = (x.mul_scalar((nodes - 1) as f32) - i).abs();
+    let near = r.clone().lower_elem(0.5).float();
+    let far = r.clone().lower_elem(1.5).float() - near.clone();
+    let inner = r.clone().powi_scalar(2).neg().add_scalar(0.75);
+    let outer = r.neg().add_scalar(1.5).powi_scalar(2).mul_scalar(0.5);
+    near * inner + far * outer
 }
 
 /// Speed (domain units per time unit) under which a sample's RMS speed error is taken
@@ -108,4 +165,58 @@ fn structure_loss<B: Backend>(
         loss = loss + err.sum().div_scalar(*count).mul_scalar(opts.volume_weight);
     }
     loss
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::{Autodiff, NdArray};
+
+    type Ad = Autodiff<NdArray<f32>>;
+
+    #[test]
+    fn axis_weights_are_mpms_quadratic_bspline() {
+        let device = Default::default();
+        // x on node 8 of 0..=32, and a quarter cell past node 20.
+        let x = Tensor::<NdArray<f32>, 3>::from_floats([[[0.25], [20.25 / 32.0]]], &device);
+        let w = axis_weights(x, DENSITY_CELLS + 1).into_data().to_vec::<f32>().unwrap();
+        let (on, off) = w.split_at(DENSITY_CELLS + 1);
+        assert_eq!((on[7], on[8], on[9]), (0.125, 0.75, 0.125));
+        // r = 0.25 from node 20: 3/4 - 1/16; 1.25 and 0.75 from 19 and 21.
+        let want = [(19, 0.5 * 0.25 * 0.25), (20, 0.6875), (21, 0.5 * 0.75 * 0.75)];
+        for (i, v) in want {
+            assert!((off[i] - v).abs() < 1e-6, "node {i}: {}", off[i]);
+        }
+        for row in [on, off] {
+            assert!((row.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn density_loss_sees_a_squashed_liquid_and_moves_its_particles() {
+        let device = Default::default();
+        let opts = GridTrainOptions {
+            density_weight: 1.0,
+            ..GridTrainOptions::default()
+        };
+        // A 10 x 10 liquid block 0.01 apart, and the same block squashed to half its height.
+        let block = |squash: f32| -> Vec<f32> {
+            (0..100)
+                .flat_map(|i| [0.4 + 0.01 * (i % 10) as f32, 0.1 + squash * 0.01 * (i / 10) as f32])
+                .collect()
+        };
+        let at = |v: Vec<f32>| Tensor::<Ad, 1>::from_floats(v.as_slice(), &device).reshape([1, 100, 2]);
+        let liquid = Tensor::<Ad, 3>::ones([1, 100, 1], &device);
+        let truth = at(block(1.0));
+        let same = density_loss(&opts, &liquid, &at(block(1.0)), &truth).into_scalar();
+        assert_eq!(same, 0.0);
+        let squashed = at(block(0.5)).require_grad();
+        let loss = density_loss(&opts, &liquid, &squashed, &truth);
+        assert!(loss.clone().into_scalar() > 0.1, "{}", loss.clone().into_scalar());
+        let grads = loss.backward();
+        let g = squashed.grad(&grads).unwrap().into_data().to_vec::<f32>().unwrap();
+        // The top row is pulled up (a negative gradient in y), towards the truth's height.
+        let top_y: f32 = (90..100).map(|i| g[2 * i + 1]).sum();
+        assert!(top_y < 0.0, "{top_y}");
+    }
 }
