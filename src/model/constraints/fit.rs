@@ -154,7 +154,9 @@ fn wall_cells(trajs: &[Trajectory]) -> Option<f32> {
         .filter_map(|t| {
             let n = t.solver_grid? as f32;
             let s = &t.states;
-            let edge = s.chunks_exact(4).flat_map(|r| [r[0], r[1], 1.0 - r[0], 1.0 - r[1]]);
+            let edge = s
+                .chunks_exact(4)
+                .flat_map(|r| [r[0], r[1], 1.0 - r[0], 1.0 - r[1]]);
             Some(edge.fold(f32::MAX, f32::min) * n)
         })
         .reduce(f32::min)

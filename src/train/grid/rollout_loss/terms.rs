@@ -179,11 +179,18 @@ mod tests {
         let device = Default::default();
         // x on node 8 of 0..=32, and a quarter cell past node 20.
         let x = Tensor::<NdArray<f32>, 3>::from_floats([[[0.25], [20.25 / 32.0]]], &device);
-        let w = axis_weights(x, DENSITY_CELLS + 1).into_data().to_vec::<f32>().unwrap();
+        let w = axis_weights(x, DENSITY_CELLS + 1)
+            .into_data()
+            .to_vec::<f32>()
+            .unwrap();
         let (on, off) = w.split_at(DENSITY_CELLS + 1);
         assert_eq!((on[7], on[8], on[9]), (0.125, 0.75, 0.125));
         // r = 0.25 from node 20: 3/4 - 1/16; 1.25 and 0.75 from 19 and 21.
-        let want = [(19, 0.5 * 0.25 * 0.25), (20, 0.6875), (21, 0.5 * 0.75 * 0.75)];
+        let want = [
+            (19, 0.5 * 0.25 * 0.25),
+            (20, 0.6875),
+            (21, 0.5 * 0.75 * 0.75),
+        ];
         for (i, v) in want {
             assert!((off[i] - v).abs() < 1e-6, "node {i}: {}", off[i]);
         }
@@ -202,19 +209,34 @@ mod tests {
         // A 10 x 10 liquid block 0.01 apart, and the same block squashed to half its height.
         let block = |squash: f32| -> Vec<f32> {
             (0..100)
-                .flat_map(|i| [0.4 + 0.01 * (i % 10) as f32, 0.1 + squash * 0.01 * (i / 10) as f32])
+                .flat_map(|i| {
+                    [
+                        0.4 + 0.01 * (i % 10) as f32,
+                        0.1 + squash * 0.01 * (i / 10) as f32,
+                    ]
+                })
                 .collect()
         };
-        let at = |v: Vec<f32>| Tensor::<Ad, 1>::from_floats(v.as_slice(), &device).reshape([1, 100, 2]);
+        let at =
+            |v: Vec<f32>| Tensor::<Ad, 1>::from_floats(v.as_slice(), &device).reshape([1, 100, 2]);
         let liquid = Tensor::<Ad, 3>::ones([1, 100, 1], &device);
         let truth = at(block(1.0));
         let same = density_loss(&opts, &liquid, &at(block(1.0)), &truth).into_scalar();
         assert_eq!(same, 0.0);
         let squashed = at(block(0.5)).require_grad();
         let loss = density_loss(&opts, &liquid, &squashed, &truth);
-        assert!(loss.clone().into_scalar() > 0.1, "{}", loss.clone().into_scalar());
+        assert!(
+            loss.clone().into_scalar() > 0.1,
+            "{}",
+            loss.clone().into_scalar()
+        );
         let grads = loss.backward();
-        let g = squashed.grad(&grads).unwrap().into_data().to_vec::<f32>().unwrap();
+        let g = squashed
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .to_vec::<f32>()
+            .unwrap();
         // The top row is pulled up (a negative gradient in y), towards the truth's height.
         let top_y: f32 = (90..100).map(|i| g[2 * i + 1]).sum();
         assert!(top_y < 0.0, "{top_y}");
