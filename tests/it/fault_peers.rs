@@ -193,20 +193,7 @@ fn iceoryx2_node_killed_then_restarted_cleans_up_and_serves() {
     let (alive, dead) = iceoryx2_nodes_of(pid);
     assert_eq!(alive, 0);
     println!("after SIGKILL: {dead} dead iceoryx2 node(s) of process {pid}");
-    let recorder = Node::spawn(
-        "record",
-        &[
-            "record",
-            "--transport",
-            "iceoryx2",
-            "--topic",
-            &output,
-            "-o",
-            out.to_str().unwrap(),
-            "--count",
-            "25",
-        ],
-    );
+    let recorder = Node::record("iceoryx2", &output, &out, 25, &[]);
     let second = node("node 2", "iceoryx2", &input, &output, "1");
     let source = source_bag();
     ok(

@@ -22,21 +22,7 @@ fn the_node_serves_frames_of_40000_particles_over_every_transport() {
         let env = domain_env(transport, 6);
         let (input, output) = (unique_topic("big_in"), unique_topic("big_out"));
         let rec = dir.path().join(format!("pred{i}"));
-        let recorder = Node::spawn_env(
-            "record",
-            &[
-                "record",
-                "--transport",
-                transport,
-                "--topic",
-                &output,
-                "-o",
-                rec.to_str().unwrap(),
-                "--count",
-                "1",
-            ],
-            &env,
-        );
+        let recorder = Node::record(transport, &output, &rec, 1, &env);
         let node = Node::spawn_env(
             "node",
             &[

@@ -154,21 +154,7 @@ fn node_with_model_matches_offline(model: &Path, transport: &str, mirror: bool) 
     let bags: Vec<PathBuf> = SCENES.iter().map(|s| repo(s)).collect();
     let expected = 2 * 25;
     let env = domain_env(transport, 5);
-    let recorder = Node::spawn_env(
-        "record",
-        &[
-            "record",
-            "--transport",
-            transport,
-            "--topic",
-            &output,
-            "-o",
-            out.to_str().unwrap(),
-            "--count",
-            &expected.to_string(),
-        ],
-        &env,
-    );
+    let recorder = Node::record(transport, &output, &out, expected, &env);
     let mut node_args = vec![
         "node",
         "--model",

@@ -245,20 +245,7 @@ fn iceoryx2_publisher_killed_then_restarted_serves_a_new_subscriber() {
     let _second = play("replay 2");
     let dir = crate::tmp::tempdir().unwrap();
     let out = dir.path().join("after_kill");
-    let recorder = Node::spawn(
-        "record",
-        &[
-            "record",
-            "--transport",
-            "iceoryx2",
-            "--topic",
-            &topic,
-            "-o",
-            out.to_str().unwrap(),
-            "--count",
-            "10",
-        ],
-    );
+    let recorder = Node::record("iceoryx2", &topic, &out, 10, &[]);
     ok(
         &recorder.wait(Duration::from_secs(60)),
         "record after a killed publisher",

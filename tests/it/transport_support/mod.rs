@@ -100,6 +100,30 @@ impl Node {
         Node::start(name, &mut cmd)
     }
 
+    /// `minflow record --transport T --topic TOPIC -o OUT --count N` with `env`, as a node
+    /// named "record": the recorder every closed-loop test reads its predictions back with.
+    pub fn record(
+        transport: &str,
+        topic: &str,
+        out: &Path,
+        count: usize,
+        env: &[(&str, String)],
+    ) -> Node {
+        let count = count.to_string();
+        let args = [
+            "record",
+            "--transport",
+            transport,
+            "--topic",
+            topic,
+            "-o",
+            out.to_str().unwrap(),
+            "--count",
+            &count,
+        ];
+        Node::spawn_env("record", &args, env)
+    }
+
     /// Starts `cmd` with its stdout and stderr piped to threads that keep what it says.
     pub fn start(name: &str, cmd: &mut Command) -> Node {
         let mut child = cmd
