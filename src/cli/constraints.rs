@@ -63,6 +63,11 @@ pub struct FitArgs {
     /// The node spacing of the liquid's pressure grid, in particle spacings of the rest frame.
     #[arg(long, default_value_t = 2.0, value_parser = super::flags::positive)]
     pressure_radius: f64,
+    /// Share of the kinetic energy the projection takes from the liquid that is given back
+    /// to its motion about its mean velocity, each frame (0: none; docs/liquid.md, "The
+    /// energy given back", for the shipped models' values).
+    #[arg(long, default_value_t = 0.0, value_parser = super::flags::share)]
+    pressure_restore: f32,
 }
 
 /// Runs `minflow constraints`.
@@ -99,6 +104,7 @@ fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
     }
     if let Some(p) = base.pressure.as_mut() {
         p.radius = args.pressure_radius as f32;
+        p.restore = args.pressure_restore;
     }
     let (fitted, measured) = constraints::fit(&trajs, &base);
     print_fit(&args, &trajs, &fitted, &measured);

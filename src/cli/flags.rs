@@ -115,6 +115,15 @@ pub fn discount(s: &str) -> Result<f32, String> {
     }
 }
 
+/// A share, in `[0, 1]`.
+pub fn share(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("{v} is not in [0, 1]")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A probability of dropping, in `[0, 1)`.
 pub fn dropout(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
@@ -173,6 +182,10 @@ mod tests {
             .all(|s| seconds(s).is_err()));
         assert!(interval("0").is_err() && interval("0.5") == Ok(0.5) && interval("-1").is_err());
         assert!(rate("0") == Ok(0.0) && rate("2") == Ok(2.0));
+        assert!(share("0") == Ok(0.0) && share("1") == Ok(1.0) && share("0.5") == Ok(0.5));
+        assert!(["-0.1", "1.5", "NaN", "x"]
+            .iter()
+            .all(|s| share(s).is_err()));
         assert!(["-1", "1e-300", "inf", "NaN"]
             .iter()
             .all(|s| rate(s).is_err()));

@@ -17,7 +17,8 @@
 //!   in place;
 //! - liquid pressure ([`pressure`]): the liquid's velocities and volume fraction on a grid,
 //!   and a unilateral pressure solve that removes its compression and its compressing
-//!   velocity, as FLIP and MPM liquids stay incompressible (after the density part);
+//!   velocity, as FLIP and MPM liquids stay incompressible (after the density part), then
+//!   optionally a share of the kinetic energy the projection took given back ([`energy`]);
 //! - the box walls: positions clamped into the range the solver's particles stay in, in
 //!   the scene's own solver cells where its grid is known ([`WallParams::bounds`]);
 //! - contact ([`contact`]): shape-matched bodies pushed apart where they overlap, each as a
@@ -39,6 +40,7 @@
 
 mod contact;
 mod density;
+mod energy;
 pub mod fit;
 mod index;
 mod momentum;
@@ -272,6 +274,9 @@ impl SceneShape {
             }
             out.count[m] += 1;
         }
+        if let (Some(p), Some(pressure)) = (&c.pressure, &self.pressure) {
+            energy::restore(p.restore, &before, frame, pressure.ids());
+        }
         self.before = before;
         out
     }
@@ -312,6 +317,55 @@ mod tests {
         // v = 1 + (0.9 - 0.95) / 0.01 = -4.
         assert!((frame[2] + 4.0).abs() < 1e-3, "{}", frame[2]);
         assert_eq!(corr.count[0], 1);
+    }
+
+    #[test]
+    fn the_energy_restore_gives_the_liquid_back_speed_not_places() {
+        // A 30 x 30 liquid pool at rest, then falling and closing in on its middle: the
+        // pressure part removes the compressing velocity of its full region, and its energy.
+        let mut rest = Vec::new();
+        for i in 0..30 {
+            for j in 0..30 {
+                rest.extend([0.3 + 0.01 * i as f32, 0.1 + 0.01 * j as f32, 0.0, 0.0]);
+            }
+        }
+        let closing: Vec<f32> = rest
+            .chunks(4)
+            .flat_map(|r| [r[0], r[1], -4.0 * (r[0] - 0.445), -1.0])
+            .collect();
+        let project = |restore| {
+            let c = Constraints {
+                pressure: Some(PressureParams {
+                    rest: 1.1,
+                    full: 0.9 / 1.1,
+                    band: 0.0,
+                    band_rest: 1.0,
+                    restore,
+                    ..PressureParams::DEFAULT
+                }),
+                ..Default::default()
+            };
+            let mut shape = SceneShape::new(&rest, 4, &[0; 900], &c);
+            let mut frame = closing.clone();
+            shape.project(&c, (None, &mut frame), &[0; 900], 0.016);
+            frame
+        };
+        let sums = |f: &[f32]| {
+            f.chunks(4).fold([0.0f64; 3], |[e, u, v], r| {
+                let (a, b) = (f64::from(r[2]), f64::from(r[3]));
+                [e + a * a + b * b, u + a, v + b]
+            })
+        };
+        let (off, on) = (project(0.0), project(1.0));
+        let (e_off, e_on, e_net) = (sums(&off), sums(&on), sums(&closing));
+        assert!(e_off[0] < e_net[0], "the projection took energy: {e_off:?}");
+        assert!(
+            e_on[0] > e_off[0] && e_on[0] <= e_net[0] + 1e-3,
+            "{e_on:?} {e_off:?}"
+        );
+        assert!((e_on[1] - e_off[1]).abs() < 1e-3 && (e_on[2] - e_off[2]).abs() < 1e-3);
+        let places = |f: &[f32]| f.chunks(4).flat_map(|r| [r[0], r[1]]).collect::<Vec<_>>();
+        assert_eq!(places(&on), places(&off));
     }
 
     #[test]

@@ -198,6 +198,17 @@ pub struct PressureParams {
     pub iterations: usize,
     /// Over-relaxation of the sweeps (1 is Gauss-Seidel; below 2).
     pub omega: f32,
+    /// Share (0..=1) of the kinetic energy that the projection took from the liquid given
+    /// back to its motion relative to its mean velocity (`super::energy`): MPM's weakly
+    /// compressible liquid stores a compression's energy and returns it as a splash, which a
+    /// projection removes; 0 in models saved before it existed.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub restore: f32,
+}
+
+/// Whether `v` is 0 (a field left out of `model.json`).
+fn is_zero(v: &f32) -> bool {
+    *v == 0.0
 }
 
 impl PressureParams {
@@ -215,6 +226,7 @@ impl PressureParams {
         velocity: true,
         iterations: 40,
         omega: 1.6,
+        restore: 0.0,
     };
 }
 

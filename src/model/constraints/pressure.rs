@@ -90,6 +90,11 @@ fn bilinear(x: f32, y: f32, h: f32, ox: f32, oy: f32) -> ([i32; 2], [f32; 2]) {
 }
 
 impl Pressure {
+    /// The liquid particles' indices (`[L]`).
+    pub(super) fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+
     /// The liquid of the rest frame `rest` (`[N, stride]` rows), whose particle spacing is
     /// `spacing`, made on the solver grid `grid` (if known): nodes `p.radius` spacings apart,
     /// the compressed threshold [`PressureParams::rest_for`] the grid, and each particle's rest volume
