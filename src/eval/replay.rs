@@ -15,11 +15,20 @@
 //! ([`SceneResult::missing`]) and excluded, never scored as zero error; predicted frames
 //! without ground truth are counted as `unmatched`, those past the horizon as `beyond`. Used
 //! by `minflow eval --pred BAG --truth BAG|DIR`.
+//!
+//! Each scene's frame at the horizon's last step is also scored for structure
+//! ([`Probe::End`], the measures of [`super::plausibility`] that `eval --model` probes: area,
+//! intact fraction, rope connectivity, strain, kinetic energy summed over the steps), so a
+//! closed loop's bag says whether its liquid kept its area and its solids held.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use super::{frame_metrics, EvalError, Evaluation, Predictor, SceneResult, Snapshots, StepSums};
+use super::conservation::Bodies;
+use super::metrics::MATERIALS;
+use super::plausibility::{kinetic_energy, Neighbours, Plausibility};
+use super::{frame_metrics, EvalError, Evaluation, Predictor, Probe, SceneResult};
+use super::{Snapshots, StepSums};
 use crate::bag::{bag_paths, BagError, BagReader, Truncation};
 use crate::data::{Scaler, Trajectory};
 
@@ -271,8 +280,47 @@ fn score_scene(
     }
     result.beyond = sp.frames.range((first + h as i64) as u32..).count();
     result.curves = sums.iter().map(StepSums::curve).collect();
+    result.probes = end_structure(&snap, h);
     result.snapshots = opts.snapshots.then_some(snap);
     Ok(result)
+}
+
+/// The structure of each column's frame at step `h` against the truth's there (one
+/// [`Probe::End`] per column; [`Plausibility::of`] against the neighbours of the truth's frame
+/// before step 1, and the centre-of-mass error of its bodies), with the kinetic energy summed
+/// over the steps 1..=h where both frames exist, prediction over truth (no momentum drift:
+/// a bag's frames need not be consecutive). Empty for a column without a frame at step `h`, and for
+/// every column without the truth's frames at steps 0 and `h`.
+fn end_structure(snap: &Snapshots, h: usize) -> Vec<Vec<(Probe, Plausibility)>> {
+    let columns = snap.preds.len();
+    let (Some(Some(start)), Some(Some(truth))) = (snap.truth.first(), snap.truth.get(h)) else {
+        return vec![Vec::new(); columns];
+    };
+    let material = &snap.material;
+    let neighbours = Neighbours::new(start, material);
+    let bodies = Bodies::new(start, material);
+    let ratio = |p: f64, t: f64| (t > 0.0).then(|| p / t);
+    let column = |steps: &Vec<Option<Vec<f32>>>| {
+        let Some(Some(pred)) = steps.get(h) else {
+            return Vec::new();
+        };
+        let mut value = Plausibility::of(pred, truth, material, &neighbours);
+        value.com = bodies.com_error(pred, truth);
+        let (mut sum_p, mut sum_t) = (([0.0; MATERIALS], 0.0), ([0.0; MATERIALS], 0.0));
+        for (p, t) in steps[1..=h].iter().zip(&snap.truth[1..=h]) {
+            if let (Some(p), Some(t)) = (p, t) {
+                for (sum, frame) in [(&mut sum_p, p), (&mut sum_t, t)] {
+                    let (per, all) = kinetic_energy(frame, material);
+                    (0..MATERIALS).for_each(|m| sum.0[m] += per[m]);
+                    sum.1 += all;
+                }
+            }
+        }
+        value.energy = std::array::from_fn(|m| ratio(sum_p.0[m], sum_t.0[m]));
+        value.energy_all = ratio(sum_p.1, sum_t.1);
+        vec![(Probe::End, value)]
+    };
+    snap.preds.iter().map(column).collect()
 }
 
 /// The notes on one scored scene: predicted frames missing, without ground truth, past

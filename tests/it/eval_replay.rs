@@ -153,6 +153,18 @@ fn a_predictions_bag_scores_like_the_direct_rollout_and_gaps_are_reported() {
     for file in ["table.csv", "metrics.csv"] {
         assert_eq!(read(&direct.join(file)), read(&replay.join(file)), "{file}");
     }
+    // The structure at the last step (area, intact, strain, energy, the bodies' centres of
+    // mass): eval's own end probe.
+    let end_rows = |dir: &Path| -> Vec<String> {
+        let csv = read(&dir.join("plausibility.csv"));
+        csv.lines()
+            .filter(|l| l.contains(",tiny,end,"))
+            .map(|l| l.split(',').take(13).collect::<Vec<_>>().join(","))
+            .collect()
+    };
+    let ends = end_rows(&replay);
+    assert!(ends.len() >= scenes.len(), "{ends:?}");
+    assert_eq!(ends, end_rows(&direct));
     let full = read(&replay.join("metrics.csv"));
     assert_eq!(mse_by_step(&full, "tiny").len(), 20 * scenes.len());
     assert!(mse_by_step(&full, "tiny").iter().all(|&(_, v)| v > 0.0));
