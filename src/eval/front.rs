@@ -153,7 +153,8 @@ pub fn markdown(eval: &Evaluation, all: &[Fronts]) -> String {
 }
 
 /// Writes `front.csv` (`scene,predictor,step,front`: the truth as predictor `truth`) and one
-/// `front_<scene>.png` per scene into `dir`; returns the files written.
+/// `front_<scene>.png` per scene into `dir` (each series drawn while its front is inside the
+/// box, 0..=1); returns the files written.
 pub fn write(dir: &Path, eval: &Evaluation, all: &[Fronts]) -> Result<Vec<PathBuf>, EvalError> {
     let mut files = Vec::new();
     if all.is_empty() {
@@ -186,7 +187,12 @@ pub fn write(dir: &Path, eval: &Evaluation, all: &[Fronts]) -> Result<Vec<PathBu
                 points: values
                     .iter()
                     .enumerate()
-                    .filter_map(|(k, v)| v.map(|v| (k as f64, f64::from(v))))
+                    // A front outside the box (`constvel` flies through the walls) would
+                    // stretch the axis over the box's own fronts: drawn while inside.
+                    .filter_map(|(k, v)| {
+                        v.filter(|v| (0.0..=1.0).contains(v))
+                            .map(|v| (k as f64, f64::from(v)))
+                    })
                     .collect(),
             })
             .collect();
