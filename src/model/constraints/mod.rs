@@ -202,8 +202,9 @@ impl SceneShape {
 
     /// Projects `frame` (`[N, 4]` physical x, y, vx, vy), predicted from `prev` (`[N, 4]`,
     /// the frame `dt` before), onto the constraints of `c` in place: positions moved,
-    /// velocities given the move over `dt`. Without `prev` the momentum and rebound parts are
-    /// left out.
+    /// velocities given the move over `dt`, then the liquid's share of the kinetic energy the
+    /// projection took given back where the pressure part's `restore` asks ([`energy`]).
+    /// Without `prev` the momentum and rebound parts are left out.
     /// Snow's rest shapes yield (the scene's data changes). Returns how far each material
     /// moved.
     ///
