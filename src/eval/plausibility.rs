@@ -152,6 +152,53 @@ pub fn kinetic_energy(state: &[f32], material: &[u8]) -> ([f64; MATERIALS], f64)
     (per, per.iter().sum())
 }
 
+/// A rollout's kinetic energy ([`kinetic_energy`]) summed over its first k frames,
+/// prediction and truth, per material and over all particles.
+pub struct EnergySums {
+    /// `[steps]`: cumulative (per material, all) of the prediction.
+    pred: Vec<([f64; MATERIALS], f64)>,
+    /// The same of the truth.
+    truth: Vec<([f64; MATERIALS], f64)>,
+}
+
+impl EnergySums {
+    /// The sums of `pairs`, `(prediction, truth)` frames (`[N, 4]` physical) in step order
+    /// from step 1, with material ids `material`.
+    pub fn of<'a>(pairs: impl Iterator<Item = (&'a [f32], &'a [f32])>, material: &[u8]) -> Self {
+        let (mut pred, mut truth) = (Vec::new(), Vec::new());
+        let (mut acc_p, mut acc_t) = (([0.0; MATERIALS], 0.0), ([0.0; MATERIALS], 0.0));
+        for (p, t) in pairs {
+            for (acc, sums, frame) in [(&mut acc_p, &mut pred, p), (&mut acc_t, &mut truth, t)] {
+                let (per, all) = kinetic_energy(frame, material);
+                (0..MATERIALS).for_each(|m| acc.0[m] += per[m]);
+                acc.1 += all;
+                sums.push(*acc);
+            }
+        }
+        Self { pred, truth }
+    }
+
+    /// The steps summed.
+    pub fn steps(&self) -> usize {
+        self.pred.len()
+    }
+
+    /// Prediction over truth of the sums up to step `k` (1-based), per material and over all;
+    /// None where the truth's is 0, the scene has no such particle, or `k` is not a step.
+    pub fn ratio_at(&self, k: usize) -> ([Option<f64>; MATERIALS], Option<f64>) {
+        let ratio = |p: f64, t: f64| (t > 0.0).then(|| p / t);
+        let at =
+            |v: &Vec<([f64; MATERIALS], f64)>| k.checked_sub(1).and_then(|i| v.get(i).copied());
+        match (at(&self.pred), at(&self.truth)) {
+            (Some(p), Some(t)) => (
+                std::array::from_fn(|m| ratio(p.0[m], t.0[m])),
+                ratio(p.1, t.1),
+            ),
+            _ => ([None; MATERIALS], None),
+        }
+    }
+}
+
 /// The steps at which a rollout of `steps` steps is probed: 20, 50, 100, 200, 400, ... up to
 /// `steps`, and `steps` itself.
 pub fn probe_steps(steps: usize) -> Vec<usize> {

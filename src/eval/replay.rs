@@ -25,8 +25,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use super::conservation::Bodies;
-use super::metrics::MATERIALS;
-use super::plausibility::{kinetic_energy, Neighbours, Plausibility};
+use super::plausibility::{EnergySums, Neighbours, Plausibility};
 use super::{frame_metrics, EvalError, Evaluation, Predictor, Probe, SceneResult};
 use super::{Snapshots, StepSums};
 use crate::bag::{bag_paths, BagError, BagReader, Truncation};
@@ -299,25 +298,16 @@ fn end_structure(snap: &Snapshots, h: usize) -> Vec<Vec<(Probe, Plausibility)>> 
     let material = &snap.material;
     let neighbours = Neighbours::new(start, material);
     let bodies = Bodies::new(start, material);
-    let ratio = |p: f64, t: f64| (t > 0.0).then(|| p / t);
     let column = |steps: &Vec<Option<Vec<f32>>>| {
         let Some(Some(pred)) = steps.get(h) else {
             return Vec::new();
         };
         let mut value = Plausibility::of(pred, truth, material, &neighbours);
         value.com = bodies.com_error(pred, truth);
-        let (mut sum_p, mut sum_t) = (([0.0; MATERIALS], 0.0), ([0.0; MATERIALS], 0.0));
-        for (p, t) in steps[1..=h].iter().zip(&snap.truth[1..=h]) {
-            if let (Some(p), Some(t)) = (p, t) {
-                for (sum, frame) in [(&mut sum_p, p), (&mut sum_t, t)] {
-                    let (per, all) = kinetic_energy(frame, material);
-                    (0..MATERIALS).for_each(|m| sum.0[m] += per[m]);
-                    sum.1 += all;
-                }
-            }
-        }
-        value.energy = std::array::from_fn(|m| ratio(sum_p.0[m], sum_t.0[m]));
-        value.energy_all = ratio(sum_p.1, sum_t.1);
+        let pairs = steps[1..=h].iter().zip(&snap.truth[1..=h]);
+        let both = pairs.filter_map(|(p, t)| Some((p.as_deref()?, t.as_deref()?)));
+        let energy = EnergySums::of(both, material);
+        (value.energy, value.energy_all) = energy.ratio_at(energy.steps());
         vec![(Probe::End, value)]
     };
     snap.preds.iter().map(column).collect()

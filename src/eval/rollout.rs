@@ -19,8 +19,7 @@ use rayon::prelude::*;
 
 use super::conservation::{Bodies, MomentumDrift};
 use super::front::{Fronts, Towards};
-use super::metrics::MATERIALS;
-use super::plausibility::{kinetic_energy, probe_steps, Neighbours, Plausibility};
+use super::plausibility::{probe_steps, EnergySums, Neighbours, Plausibility};
 use super::{
     frame_metrics, EvalError, Evaluation, Predictor, Probe, SceneResult, Snapshots, StepSums,
 };
@@ -311,51 +310,6 @@ fn check_len(traj: &Trajectory, offset: usize, len: usize, who: &str) -> Result<
     })
 }
 
-/// A rollout's kinetic energy summed over its first k frames, prediction and truth, per
-/// material and over all particles ([`super::plausibility::kinetic_energy`]).
-struct EnergySums {
-    /// `[steps]`: cumulative (per material, all) of the prediction.
-    pred: Vec<([f64; MATERIALS], f64)>,
-    /// The same of the truth.
-    truth: Vec<([f64; MATERIALS], f64)>,
-}
-
-impl EnergySums {
-    /// The sums of `frames` (a rollout whose step k is trajectory frame `first + k - 1`).
-    fn of(traj: &Trajectory, first: usize, frames: &[Vec<f32>], steps: usize) -> Self {
-        let cumulate = |f: &dyn Fn(usize) -> ([f64; MATERIALS], f64)| {
-            let mut acc = ([0.0; MATERIALS], 0.0);
-            (1..=steps)
-                .map(|k| {
-                    let (per, all) = f(k);
-                    for m in 0..MATERIALS {
-                        acc.0[m] += per[m];
-                    }
-                    acc.1 += all;
-                    acc
-                })
-                .collect()
-        };
-        Self {
-            pred: cumulate(&|k| kinetic_energy(&frames[k - 1], &traj.material)),
-            truth: cumulate(&|k| kinetic_energy(traj.state(first + k - 1), &traj.material)),
-        }
-    }
-
-    /// Prediction over truth of the sums up to step `k` (1-based), per material and over all;
-    /// None where the truth's is 0 or the scene has no such particle.
-    fn ratio_at(&self, k: usize) -> ([Option<f64>; MATERIALS], Option<f64>) {
-        let ratio = |p: f64, t: f64| (t > 0.0).then(|| p / t);
-        match (self.pred.get(k - 1), self.truth.get(k - 1)) {
-            (Some(p), Some(t)) => (
-                std::array::from_fn(|m| ratio(p.0[m], t.0[m])),
-                ratio(p.1, t.1),
-            ),
-            _ => ([None; MATERIALS], None),
-        }
-    }
-}
-
 /// What every predictor's rollout from one start is scored against, made once per start:
 /// the neighbours and bodies of the rollout's first frame and the truth's momentum drift.
 struct Reference {
@@ -397,7 +351,8 @@ impl ProbeSums {
         reference: &Reference,
     ) {
         let steps = steps.min(frames.len());
-        let energy = EnergySums::of(traj, first, frames, steps);
+        let pairs = (1..=steps).map(|k| (frames[k - 1].as_slice(), traj.state(first + k - 1)));
+        let energy = EnergySums::of(pairs, &traj.material);
         let seed = traj.state(first - 1);
         let drift = MomentumDrift::of(
             |k| if k == 0 { seed } else { &frames[k - 1] },
