@@ -96,6 +96,15 @@ pub fn cuda_composed_minrnn() -> bool {
     flag(&COMPOSED, "MINFLOW_CUDA_MINRNN", ["kernel", "composed"])
 }
 
+/// `MINFLOW_CUDA_PROJECTION=device | host` (read once): whether the liquid's projection of a
+/// CUDA call runs on the host after the read-back (`host`) instead of on the device
+/// (`device`, the default, where every scene of the call has only the parts the device
+/// projects), to compare the two in one binary (docs/speed.md).
+pub fn cuda_host_projection() -> bool {
+    static HOST: OnceLock<bool> = OnceLock::new();
+    flag(&HOST, "MINFLOW_CUDA_PROJECTION", ["device", "host"])
+}
+
 /// `MINFLOW_CUDNN_FILTER=transposed | permuted` (read once): whether training's cuDNN
 /// convolutions copy the weight matrix into cuDNN's `KRSC` layout each pass (`permuted`, the
 /// form before) instead of reading it in place as the filter of the transposed convolution

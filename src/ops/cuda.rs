@@ -189,6 +189,19 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         Some(super::cuda_read::read_ahead(x))
     }
 
+    /// The kernels of `cuda_liquid*.rs`, unless `MINFLOW_CUDA_PROJECTION=host`.
+    fn project_liquid(
+        out: FloatTensor<Self>,
+        plan: &super::LiquidPlan,
+    ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
+        Self::projects_liquid().then(|| super::cuda_liquid_op::project(out, plan))
+    }
+
+    /// Unless `MINFLOW_CUDA_PROJECTION=host`.
+    fn projects_liquid() -> bool {
+        !switches::cuda_host_projection()
+    }
+
     /// One kernel ([`super::cuda_minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
         match switches::cuda_composed_minrnn() {

@@ -90,6 +90,14 @@ mod cuda_device;
 #[cfg(feature = "cuda")]
 mod cuda_implicit_conv;
 #[cfg(feature = "cuda")]
+mod cuda_liquid;
+#[cfg(feature = "cuda")]
+mod cuda_liquid_call;
+#[cfg(feature = "cuda")]
+mod cuda_liquid_op;
+#[cfg(feature = "cuda")]
+mod cuda_liquid_solve;
+#[cfg(feature = "cuda")]
 mod cuda_minrnn;
 #[cfg(feature = "cuda")]
 mod cuda_read;
@@ -99,6 +107,7 @@ mod cuda_stencil;
 mod cuda_stencil_kernels;
 pub mod error;
 pub mod host;
+mod liquid_plan;
 pub mod mingru;
 mod ndarray;
 mod net_ops;
@@ -109,6 +118,7 @@ mod tensor;
 
 pub use adam_step::AdamStep;
 pub use error::OpsError;
+pub use liquid_plan::{LiquidPlan, MATERIALS, SCENE_VALUES};
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use read_ahead::ReadAhead;

@@ -34,6 +34,7 @@ mod many_streams;
 mod model_bundle;
 mod model_cells;
 mod model_constraints;
+mod model_device_projection;
 mod model_grid;
 mod model_structure;
 mod models_shipped;

@@ -40,6 +40,7 @@
 
 mod contact;
 mod density;
+mod device;
 mod energy;
 pub mod fit;
 mod index;
@@ -51,6 +52,7 @@ mod rebound;
 mod rope;
 mod shape;
 
+pub use device::liquid_plan;
 pub use fit::{fit, FitReport};
 pub use params::{
     Constraints, ContactParams, DensityParams, MomentumParams, PressureParams, ReboundParams,

@@ -37,17 +37,19 @@ use crate::material::Material;
 #[derive(Clone, Debug)]
 pub(super) struct Pressure {
     /// Liquid particle indices.
-    ids: Vec<u32>,
+    pub(super) ids: Vec<u32>,
     /// Per liquid particle, its rest volume in cells (`h^2` units).
-    volume: Vec<f32>,
+    pub(super) volume: Vec<f32>,
+    /// The liquid's median rest volume: what a particle of another material brings.
+    solid: f32,
     /// Volume fraction above which a node is compressed (the scene's grid's threshold).
-    rest: f32,
+    pub(super) rest: f32,
     /// Width of the band along the walls (domain units) and the threshold there.
-    band: (f32, f32),
+    pub(super) band: (f32, f32),
     /// Node spacing (domain units).
-    h: f32,
+    pub(super) h: f32,
     /// Nodes per side (node `i` at `i h`).
-    side: usize,
+    pub(super) side: usize,
     /// Buffers reused from frame to frame.
     scratch: Scratch,
 }
@@ -127,6 +129,7 @@ impl Pressure {
                 p.band_rest * p.rest_for(grid),
             ),
             volume: Vec::new(),
+            solid: 0.0,
             h,
             side,
             scratch: Scratch::default(),
@@ -161,6 +164,9 @@ impl Pressure {
             *r = r.clamp(median, 2.0 * median);
         }
         out.volume = rho.iter().map(|r| 1.0 / r).collect();
+        let mut sorted = out.volume.clone();
+        let mid = sorted.len() / 2;
+        out.solid = *sorted.select_nth_unstable_by(mid, f32::total_cmp).1;
         Some(out)
     }
 
@@ -291,15 +297,17 @@ impl Pressure {
     /// counted at the liquid's median rest volume).
     fn solids(&self, frame: &[f32], material: &[u8], out: &mut [f32]) {
         let liquid = Material::Liquid.id();
-        let mut sorted = self.volume.clone();
-        let mid = sorted.len() / 2;
-        sorted.select_nth_unstable_by(mid, f32::total_cmp);
-        let v = sorted[mid];
+        let v = self.solid_volume();
         for (row, &m) in frame.chunks_exact(4).zip(material) {
             if m != liquid {
                 self.each_quadratic(row[0], row[1], |n, w| out[n] += w * v);
             }
         }
+    }
+
+    /// The volume each particle of another material brings (cells): the liquid's median.
+    pub(super) fn solid_volume(&self) -> f32 {
+        self.solid
     }
 
     /// Each node's kind: closed in the walls (its cell wholly outside `walls` on either axis) or

@@ -11,11 +11,60 @@
 
 use std::sync::{Arc, Mutex};
 
-use crate::model::constraints::{Constraints, Correction, SceneShape};
+use crate::model::constraints::{liquid_plan, Constraints, Correction, SceneShape};
+use crate::ops::{LiquidPlan, MATERIALS};
+use burn::tensor::backend::Backend;
+use burn::tensor::Tensor;
 
 /// One trajectory's constraint data, shared by the states that carry it (clones of a state
 /// share it too; `ConstraintState::detached` copies it); empty until its first projection.
 pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
+
+/// How far the calls projected on the device moved each material: the sums on the device
+/// (`[MATERIALS]`, particle spacings), added there call after call and read back only when
+/// taken, and the particle-frames counted on the host.
+pub(super) struct DeviceMoves<B: Backend> {
+    sums: Option<Tensor<B, 1>>,
+    count: [u64; MATERIALS],
+}
+
+impl<B: Backend> Default for DeviceMoves<B> {
+    fn default() -> Self {
+        Self {
+            sums: None,
+            count: [0; MATERIALS],
+        }
+    }
+}
+
+impl<B: Backend> DeviceMoves<B> {
+    /// Adds one call's sums (`[MATERIALS]`) of the plan's K frames.
+    pub(super) fn add(&mut self, sums: Tensor<B, 1>, plan: &LiquidPlan) {
+        self.sums = Some(match self.sums.take() {
+            Some(held) => held + sums,
+            None => sums,
+        });
+        for (c, &n) in self.count.iter_mut().zip(&plan.counts) {
+            *c += n * plan.k as u64;
+        }
+    }
+
+    /// The sums read back as a [`Correction`] (zero where nothing was projected; a failed
+    /// read counts nothing).
+    pub(super) fn read(self) -> Correction {
+        let mut out = Correction::default();
+        let Some(sums) = self.sums else {
+            return out;
+        };
+        if let Ok(values) = sums.into_data().to_vec::<f32>() {
+            for (m, v) in values.into_iter().enumerate().take(MATERIALS) {
+                out.sum[m] = f64::from(v);
+                out.count[m] = self.count[m];
+            }
+        }
+        out
+    }
+}
 
 /// Per trajectory (batch row): its constraint data, and the rest frames it is built from.
 #[derive(Clone, Default)]
@@ -32,6 +81,9 @@ pub(super) struct ConstraintState {
     /// its threshold by it. One entry per trajectory once stacked; a state that was never
     /// stacked may hold one entry for all its rows.
     pub(super) solver_grids: Vec<Option<u32>>,
+    /// Whether the call that left this state projected its predictions on the device
+    /// ([`ConstraintState::device_plan`]), so the host has nothing left to project.
+    pub(super) on_device: bool,
 }
 
 impl ConstraintState {
@@ -53,6 +105,7 @@ impl ConstraintState {
             shapes,
             rest_frames: None,
             solver_grids,
+            on_device: false,
         }
     }
 
@@ -76,6 +129,7 @@ impl ConstraintState {
             shapes: self.shapes.iter().map(copy).collect(),
             rest_frames: self.rest_frames.clone(),
             solver_grids: self.solver_grids.clone(),
+            on_device: false,
         }
     }
 
@@ -99,8 +153,49 @@ impl ConstraintState {
                 },
                 rest_frames: None,
                 solver_grids: grids.by_ref().take(size).collect(),
+                on_device: false,
             })
             .collect()
+    }
+
+    /// The device's plan for projecting this call's predictions onto `c` (the call's input
+    /// `frames` `[B, N, 4]`, materials `[B N]`, time steps `[B]`; its K set by the caller),
+    /// where every scene's parts are ones the device projects
+    /// ([`crate::model::constraints::liquid_plan`]); each scene's constraint data is built
+    /// first where it has none, as [`ConstraintState::project`] builds it.
+    pub(super) fn device_plan(
+        &mut self,
+        c: &Constraints,
+        (frames, material, dt): (&[f32], &[u8], &[f32]),
+    ) -> Option<LiquidPlan> {
+        use rayon::prelude::*;
+        let b = dt.len();
+        let n = material.len() / b.max(1);
+        if self.shapes.len() != b {
+            self.shapes = (0..b).map(|_| Slot::default()).collect();
+        }
+        let rest = self.rest_frames.as_deref();
+        let rest = rest.filter(|r| r.len() == b * n * 4).unwrap_or(frames);
+        let grids: Vec<Option<u32>> = (0..b).map(|i| self.grid_of(i)).collect();
+        // In parallel, as the host's projection builds them: 2-3 ms a scene of 2,500.
+        self.shapes.par_iter().enumerate().for_each(|(i, slot)| {
+            let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
+            shape.get_or_insert_with(|| {
+                let started = std::time::Instant::now();
+                let (ids, rows) = (
+                    &material[i * n..(i + 1) * n],
+                    &rest[i * n * 4..(i + 1) * n * 4],
+                );
+                let made = SceneShape::on_grid(rows, 4, ids, c, grids[i]);
+                super::stages::count_setup(started.elapsed());
+                made
+            });
+        });
+        let guards: Vec<_> = (self.shapes.iter())
+            .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
+            .collect();
+        let shapes: Vec<&SceneShape> = guards.iter().filter_map(|g| g.as_ref()).collect();
+        liquid_plan(c, &shapes, material, dt, 1)
     }
 
     /// Projects the predicted frames `out` (K frames of `[B, N, 4]`) of the input `frames`

@@ -3,7 +3,7 @@
 //! reference positions and rest neighbourhoods taken or built), the network's call, and the
 //! state it leaves for the next call. Called by `Surrogate::step_here` (`step.rs`).
 
-use burn::tensor::Tensor;
+use burn::tensor::{Tensor, TensorPrimitive};
 
 use super::grid_state::GridState;
 use super::outs::{split_frames, Outs, Read};
@@ -13,7 +13,7 @@ use crate::model::grid::rest::advect::identity;
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
 };
-use crate::ops::NetOps;
+use crate::ops::{LiquidPlan, NetOps, MATERIALS};
 
 impl<B: NetOps> Surrogate<B> {
     /// [`Surrogate::step`] ([`Predict::Next`]) or [`Surrogate::step_bundle`]
@@ -22,7 +22,9 @@ impl<B: NetOps> Surrogate<B> {
     /// changed), and the reference positions are this frame's when the state has none of
     /// this shape. Returns the K predicted frames (the first alone for [`Predict::Next`]),
     /// read back as `read` says ([`Read::Ahead`]: behind the call, where the backend can).
-    #[allow(clippy::too_many_arguments)]
+    /// With a `plan` the frames are first projected on the device where the backend can
+    /// ([`NetOps::project_liquid`]; the velocity history then follows the projected frames,
+    /// as `finish_here` makes it on the host); the returned flag says whether they were.
     pub(super) fn grid_step(
         &self,
         model: &GridModel<B>,
@@ -30,15 +32,22 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         carry: GridState<B>,
-        predict: Predict,
-        read: Read,
-    ) -> Result<(Outs, GridState<B>), StoreError> {
+        (predict, read, plan): (Predict, Read, Option<LiquidPlan>),
+    ) -> Result<(Outs, GridState<B>, bool), StoreError> {
         let b = dt.len();
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
         let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
-        let (next, state) =
+        let (mut next, mut state) =
             self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
+        let mut on_device = false;
+        if let Some(projected) = plan.and_then(|mut p| self.project_on_device(&next, &mut p, b)) {
+            next = projected;
+            if predict == Predict::Bundle {
+                state.history = history_of(state.history, &next, b);
+            }
+            on_device = true;
+        }
         let ahead = match read {
             Read::Ahead => B::read_ahead(next.clone().into_primitive().tensor()),
             Read::Now => None,
@@ -51,7 +60,42 @@ impl<B: NetOps> Surrogate<B> {
             },
             None => Outs::Host(self.download_frames(next, b, &mut clock)?),
         };
-        Ok((out, state))
+        Ok((out, state, on_device))
+    }
+
+    /// `next` (`[K B, N, 4]`) projected on the device as `plan` lays it out (its K set from
+    /// `next`), the moves added to the corrections ([`Surrogate::take_corrections`]); None
+    /// where the backend does not project ([`NetOps::project_liquid`]).
+    pub(super) fn project_on_device(
+        &self,
+        next: &Tensor<B, 3>,
+        plan: &mut LiquidPlan,
+        b: usize,
+    ) -> Option<Tensor<B, 3>> {
+        plan.k = next.dims()[0] / b.max(1);
+        let (p, moves) = B::project_liquid(next.clone().into_primitive().tensor(), plan)?;
+        let moves = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(moves));
+        let mut held = self.device_moves.lock().unwrap_or_else(|e| e.into_inner());
+        held.add(moves.sum_dim(0).reshape([MATERIALS]), plan);
+        Some(Tensor::from_primitive(TensorPrimitive::Float(p)))
+    }
+
+    /// A closed-loop call's frames (`[K B, N, 4]`) and state, projected on the device by
+    /// `plan` where there is one and the backend projects ([`Surrogate::project_on_device`]);
+    /// the state's velocity history then follows the projected frames.
+    pub(super) fn projected_call(
+        &self,
+        (next, mut state): (Tensor<B, 3>, GridState<B>),
+        plan: Option<&mut LiquidPlan>,
+        b: usize,
+    ) -> (Tensor<B, 3>, GridState<B>) {
+        match plan.and_then(|p| self.project_on_device(&next, p, b)) {
+            Some(projected) => {
+                state.history = history_of(state.history, &projected, b);
+                (projected, state)
+            }
+            None => (next, state),
+        }
     }
 
     /// The network call of [`Surrogate::grid_step`] on a frame already on the device
@@ -253,4 +297,24 @@ fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
     if let Some(clock) = clock {
         clock.lap(stage);
     }
+}
+
+/// The velocity history `history` (`[B, N, 2 (T - 1)]`) taken from the projected bundle `next`
+/// (`[K B, N, 4]`): the velocities of the T - 1 frames before its last, as
+/// `GridState::history_from` takes them from the host's frames; as is when K <= T - 1.
+fn history_of<B: NetOps>(
+    history: Option<Tensor<B, 3>>,
+    next: &Tensor<B, 3>,
+    b: usize,
+) -> Option<Tensor<B, 3>> {
+    let h = history?;
+    let [rows, _, width] = h.dims();
+    let (t1, k) = (width / 2, next.dims()[0] / b.max(1));
+    if k <= t1 || rows != b {
+        return Some(h);
+    }
+    let window = (k - 1 - t1..k - 1)
+        .map(|f| next.clone().narrow(0, f * b, b).narrow(2, 2, 2))
+        .collect();
+    Some(Tensor::cat(window, 2))
 }

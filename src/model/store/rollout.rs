@@ -1,14 +1,15 @@
 //! Closed-loop rollouts of a [`Surrogate`]: [`Surrogate::rollout`] and
 //! [`Surrogate::rollout_batch`] seed a state with observed frames and feed each call's
 //! predictions back as the next call's input, on the host call by call or, for a grid model
-//! on a GPU, on the device ([`Surrogate::with_feedback_bytes`]), the frames read back in
-//! batches. Used by `eval`, `report`, `bench` and the grid trainer's validation.
+//! on a GPU, on the device ([`Surrogate::with_feedback_bytes`]; with the liquid's
+//! projection there too where the device makes it), the frames read back in batches. Used
+//! by `eval`, `report`, `bench` and the grid trainer's validation.
 
 use super::grid_state::GridState;
 use super::state::NetState;
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
-use crate::ops::NetOps;
+use crate::ops::{LiquidPlan, NetOps};
 
 impl<B: NetOps> Surrogate<B> {
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`
@@ -76,7 +77,17 @@ impl<B: NetOps> Surrogate<B> {
         if seed.is_empty() {
             return Err(StoreError::Shape("rollout: no seed frame".into()));
         }
-        let on_device = self.feedback_bytes > 0 && self.constraints.is_none() && !self.mirror;
+        let loop_on_device = self.feedback_bytes > 0 && !self.mirror;
+        // The projection stays on the device too where every scene's parts are ones it
+        // projects (its data built from the rest frames, else the first seed frame, as the
+        // host loop's first projection builds it).
+        let plan = match &self.constraints {
+            Some(c) if loop_on_device && B::projects_liquid() => {
+                (state.constraints).device_plan(c, (&seed[0], material, dt))
+            }
+            _ => None,
+        };
+        let on_device = loop_on_device && (self.constraints.is_none() || plan.is_some());
         if let (Net::Grid(model), true) = (&self.net, on_device) {
             for frame in seed {
                 self.check_step(frame, material, dt)?;
@@ -84,7 +95,7 @@ impl<B: NetOps> Surrogate<B> {
             let NetState::Grid(carry) = state.net.owned() else {
                 return Err(StoreError::Shape("state of another architecture".into()));
             };
-            return self.grid_rollout(model, seed, (material, dt), k, carry, each);
+            return self.grid_rollout(model, seed, (material, dt, plan), k, carry, each);
         }
         let (last, before) = seed.split_last().expect("a seed frame");
         for frame in before {
@@ -116,9 +127,11 @@ impl<B: NetOps> Surrogate<B> {
         Ok(())
     }
 
-    /// The closed loop of [`Surrogate::rollout_batch`] for a grid model without projection
-    /// or mirror: each call's last predicted frame is fed back on the device (no download
-    /// and upload between calls), and the predictions are read back together once
+    /// The closed loop of [`Surrogate::rollout_batch`] for a grid model without mirror, and
+    /// without projection or with one the device makes (`plan`, [`NetOps::project_liquid`]:
+    /// each call's frames projected there and the velocity history taken from them): each
+    /// call's last predicted frame is fed back on the device (no download and upload
+    /// between calls), and the predictions are read back together once
     /// [`Surrogate::with_feedback_bytes`] of them are held or the rollout ends. On a GPU the
     /// host then never waits between calls, so it records call c + 1 while the device runs
     /// call c; the frames are the ones the call-by-call loop gives (the same values go back
@@ -127,7 +140,7 @@ impl<B: NetOps> Surrogate<B> {
         &self,
         model: &crate::model::grid::GridModel<B>,
         seed: &[Vec<f32>],
-        (material, dt): (&[u8], &[f32]),
+        (material, dt, plan): (&[u8], &[f32], Option<LiquidPlan>),
         k: usize,
         mut carry: GridState<B>,
         mut each: impl FnMut(usize, Vec<f32>),
@@ -135,6 +148,7 @@ impl<B: NetOps> Surrogate<B> {
         let b = dt.len();
         let n = material.len() / b;
         let bundle = model.bundle();
+        let mut plan = plan;
         let per_flush = (self.feedback_bytes / (b * n * 4 * 4).max(1)).max(1);
         let upload = |f: &[f32]| crate::model::upload::<B, 3>(f.to_vec(), [b, n, 4], &self.device);
         let (last, before) = seed.split_last().expect("a seed frame");
@@ -171,7 +185,7 @@ impl<B: NetOps> Surrogate<B> {
                 )
             });
             let (next, c) = match called {
-                Ok(call) => call,
+                Ok(call) => self.projected_call(call, plan.as_mut(), b),
                 Err(e) => {
                     // The frames predicted before still reach `each`, as in the host loop.
                     self.deliver(&mut pending, b, &mut clock, (&mut each, &mut done))?;

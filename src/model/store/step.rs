@@ -11,7 +11,7 @@ use super::state::{NetState, State};
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
 use crate::model::{LayerState, Model};
-use crate::ops::NetOps;
+use crate::ops::{LiquidPlan, NetOps};
 
 impl<B: NetOps> Surrogate<B> {
     /// Predicts the next frame of each trajectory in the batch and advances the state. A
@@ -95,10 +95,18 @@ impl<B: NetOps> Surrogate<B> {
         self.check_step(frames, material, dt)?;
         let State {
             net,
-            constraints,
+            mut constraints,
             frames: count,
         } = state;
-        let (outs, net) = self.net_step(frames, material, dt, net.owned(), predict, read)?;
+        let plan = match (&self.constraints, &self.net) {
+            (Some(c), Net::Grid(_)) if B::projects_liquid() && !self.mirror => {
+                constraints.device_plan(c, (frames, material, dt))
+            }
+            _ => None,
+        };
+        let (outs, net, on_device) =
+            self.net_step(frames, material, dt, net.owned(), (predict, read), plan)?;
+        constraints.on_device = on_device;
         let state = State {
             net,
             constraints,
@@ -123,7 +131,8 @@ impl<B: NetOps> Surrogate<B> {
         history: Option<&mut NetState<B>>,
     ) -> Result<Vec<Vec<f32>>, StoreError> {
         let mut out = outs.wait()?;
-        if let Some(c) = &self.constraints {
+        let on_device = std::mem::take(&mut constraints.on_device);
+        if let Some(c) = self.constraints.as_ref().filter(|_| !on_device) {
             let moved = constraints.project(c, (frames, material, dt), &mut out);
             let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
             for m in &moved {
@@ -172,35 +181,37 @@ impl<B: NetOps> Surrogate<B> {
         Ok([b, n])
     }
 
-    /// The network's part of a step: the predicted frames and the network's next state; a
-    /// mirror ensemble's grid model steps each frame beside its mirror image and returns
-    /// their mean.
+    /// The network's part of a step: the predicted frames, the network's next state and
+    /// whether the frames were projected on the device (a grid model's call with a `plan`,
+    /// [`Surrogate::grid_step`]); a mirror ensemble's grid model steps each frame beside its
+    /// mirror image and returns their mean.
     fn net_step(
         &self,
         frames: &[f32],
         material: &[u8],
         dt: &[f32],
         net: NetState<B>,
-        predict: Predict,
-        read: Read,
-    ) -> Result<(Outs, NetState<B>), StoreError> {
+        (predict, read): (Predict, Read),
+        plan: Option<LiquidPlan>,
+    ) -> Result<(Outs, NetState<B>, bool), StoreError> {
         match (&self.net, net) {
             (Net::Paper(model), NetState::Paper(layers)) => {
                 let (out, layers) = self.paper_step(model, frames, material, dt, layers)?;
-                Ok((Outs::Host(vec![out]), NetState::Paper(layers)))
+                Ok((Outs::Host(vec![out]), NetState::Paper(layers), false))
             }
             (Net::Grid(model), NetState::Grid(grid)) if self.mirror => {
                 let (material, dt) = ([material, material].concat(), [dt, dt].concat());
                 let frames = with_mirror_rows(frames);
-                let (out, grid) =
-                    self.grid_step(model, &frames, &material, &dt, grid, predict, Read::Now)?;
+                let call = (predict, Read::Now, None);
+                let (out, grid, _) = self.grid_step(model, &frames, &material, &dt, grid, call)?;
                 let out = out.wait()?.iter().map(|o| mean_of_mirror_rows(o)).collect();
-                Ok((Outs::Host(out), NetState::Grid(grid)))
+                Ok((Outs::Host(out), NetState::Grid(grid), false))
             }
             (Net::Grid(model), NetState::Grid(grid)) => {
-                let (out, grid) =
-                    self.grid_step(model, frames, material, dt, grid, predict, read)?;
-                Ok((out, NetState::Grid(grid)))
+                let call = (predict, read, plan);
+                let (out, grid, on_device) =
+                    self.grid_step(model, frames, material, dt, grid, call)?;
+                Ok((out, NetState::Grid(grid), on_device))
             }
             _ => Err(StoreError::Shape("state of another architecture".into())),
         }

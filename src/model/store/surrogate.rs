@@ -13,6 +13,7 @@
 //! This file holds the type, its settings and its fresh states; the step is in `step.rs`
 //! (a grid model's call in `grid_step.rs`), the closed-loop rollouts in `rollout.rs`.
 
+use super::constrained::DeviceMoves;
 use super::grid_state::GridState;
 use super::state::{NetState, State};
 use super::{ModelMeta, Net, RunFolder, StoreError};
@@ -59,6 +60,8 @@ pub struct Surrogate<B: Backend> {
     solver_grids: std::sync::Arc<std::collections::HashMap<String, u32>>,
     /// How far the projection has moved each material since [`Surrogate::take_corrections`].
     pub(super) corrections: std::sync::Mutex<Correction>,
+    /// The same for the calls projected on the device, summed there until taken.
+    pub(super) device_moves: std::sync::Mutex<DeviceMoves<B>>,
     /// The last grid call's material one-hot on the device, by the materials it encodes
     /// (`grid_step.rs`): a rollout's or a node's calls read the same materials call after
     /// call, so it is uploaded once, not every call (at 256 scenes of 2,500 particles, 12.8 MB).
@@ -93,6 +96,7 @@ impl<B: NetOps> Surrogate<B> {
             solver_grid: None,
             solver_grids: Default::default(),
             corrections: Default::default(),
+            device_moves: std::sync::Mutex::new(DeviceMoves::default()),
             one_hot: Default::default(),
         }
     }
@@ -127,7 +131,10 @@ impl<B: NetOps> Surrogate<B> {
     /// summed over particles and frames, with their count); resets the sums.
     pub fn take_corrections(&self) -> Correction {
         let mut sums = self.corrections.lock().unwrap_or_else(|e| e.into_inner());
-        std::mem::take(&mut *sums)
+        let mut taken = std::mem::take(&mut *sums);
+        let mut held = self.device_moves.lock().unwrap_or_else(|e| e.into_inner());
+        taken.add(&std::mem::take(&mut *held).read());
+        taken
     }
 
     /// This surrogate as a mirror ensemble (`--mirror`): a grid model steps each frame and

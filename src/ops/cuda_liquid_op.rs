@@ -1,0 +1,255 @@
+//! [`NetOps::project_liquid`](super::NetOps::project_liquid) on burn's CUDA backend (feature
+//! `cuda`): the liquid's projection of a call's predictions recorded as one custom operation
+//! of burn's fusion layer (how one joins the fusion stream: see `cublas.rs`), right behind the
+//! network's call, so the frames are projected before they are read back and no host pass
+//! sits between the call and the next. One kernel projects every frame of the call
+//! (`cuda_liquid_call.rs`), behind a copy of the frames and the zeroing of the sums, and
+//! before the moves are turned out of fixed point.
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::{FloatTensor, FloatTensorOps};
+use burn::tensor::{Tensor, TensorData, TensorMetadata};
+use burn_cubecl::cubecl;
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_fusion::FusionRuntime;
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use super::cuda_liquid::{copy_kernel, zero_kernel};
+use super::cuda_liquid_call::{call_kernel, BuffersLaunch};
+use super::cuda_liquid_solve::{moves_kernel, THREADS};
+use super::{LiquidPlan, MATERIALS, SCENE_VALUES};
+
+/// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
+const MAX_SCALE: f32 = 2.0;
+
+/// The plan's sizes and scalars (its arrays travel as the operation's inputs).
+#[derive(Clone, Debug)]
+struct Scalars {
+    b: usize,
+    n: usize,
+    k: usize,
+    nodes: usize,
+    stiffness: f32,
+    full: f32,
+    omega: f32,
+    iterations: usize,
+    velocity: bool,
+    restore: f32,
+    walls: bool,
+    liquid: u8,
+}
+
+/// The recorded projection: inputs `[out, volume, scenes]`, outputs the projected frames and
+/// the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
+#[derive(Debug)]
+struct LiquidOp {
+    desc: CustomOpIr,
+    s: Scalars,
+}
+
+/// Scratch of one call: `[B nodes]` node slots of each array.
+struct Scratch {
+    before: Handle,
+    acc: Handle,
+    grid: Handle,
+    kind: Handle,
+    q: Handle,
+    rhs: Handle,
+    faces: Handle,
+    moves: Handle,
+    list: Handle,
+}
+
+/// A launch argument over `len` elements of `h`.
+fn arr(h: &Handle, len: usize) -> ArrayArg<CudaRuntime> {
+    // SAFETY: every scratch handle is allocated with `len` elements of the kernel's type
+    // (`LiquidOp::execute`).
+    unsafe { ArrayArg::from_raw_parts(h.clone(), len) }
+}
+
+/// `t`'s launch argument as a flat array.
+fn flat(t: &CubeTensor<CudaRuntime>) -> ArrayArg<CudaRuntime> {
+    t.clone().into_array_arg()
+}
+
+impl Operation<Runtime> for LiquidOp {
+    fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
+        let inputs = &self.desc.inputs;
+        let out = contiguous(handles.get_float_tensor::<Inner>(&inputs[0]));
+        let volume = contiguous(handles.get_float_tensor::<Inner>(&inputs[1]));
+        let scenes = contiguous(handles.get_float_tensor::<Inner>(&inputs[2]));
+        let client = out.client.clone();
+        let s = &self.s;
+        let total = s.k * s.b * s.n * 4;
+        let frames = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+            client.clone(),
+            out.device.clone(),
+            out.meta.shape().clone(),
+            out.dtype,
+        );
+        let (count, dim) = elementwise(&client, total);
+        copy_kernel::launch(&client, count, dim, flat(&out), flat(&frames));
+        let slots = s.b * s.nodes;
+        let scratch = Scratch {
+            before: client.empty(s.b * s.n * 16),
+            acc: client.empty(slots * 6 * 8),
+            grid: client.empty(slots * 5 * 4),
+            kind: client.empty(slots * 4),
+            q: client.empty(slots * 4),
+            rhs: client.empty(slots * 4),
+            faces: client.empty(slots * 2 * 4),
+            moves: client.empty(s.b * MATERIALS * 8),
+            list: client.empty(slots * 4),
+        };
+        let (count, dim) = elementwise(&client, slots * 6);
+        zero_kernel::launch(&client, count, dim, arr(&scratch.acc, slots * 6));
+        let words = s.b * MATERIALS;
+        let (count, dim) = elementwise(&client, words);
+        zero_kernel::launch(&client, count, dim, arr(&scratch.moves, words));
+        let args = Args {
+            client: &client,
+            frames: &frames,
+            net: &out,
+            volume: &volume,
+            scenes: &scenes,
+            scratch: &scratch,
+        };
+        self.run(&args);
+        let moves = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+            client.clone(),
+            out.device.clone(),
+            burn::tensor::Shape::new([s.b, MATERIALS]),
+            out.dtype,
+        );
+        let (count, dim) = elementwise(&client, words);
+        moves_kernel::launch(
+            &client,
+            count,
+            dim,
+            arr(&scratch.moves, words),
+            flat(&moves),
+        );
+        handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, frames);
+        handles.register_float_tensor::<Inner>(&self.desc.outputs[1].id, moves);
+    }
+}
+
+/// What every launch of a call reads.
+struct Args<'a> {
+    client: &'a ComputeClient<CudaRuntime>,
+    frames: &'a CubeTensor<CudaRuntime>,
+    net: &'a CubeTensor<CudaRuntime>,
+    volume: &'a CubeTensor<CudaRuntime>,
+    scenes: &'a CubeTensor<CudaRuntime>,
+    scratch: &'a Scratch,
+}
+
+impl LiquidOp {
+    /// The call's kernel: a cube a scene, every frame in order.
+    fn run(&self, a: &Args<'_>) {
+        let s = &self.s;
+        let (client, sc) = (a.client, a.scratch);
+        let (bn, slots) = (s.b * s.n, s.b * s.nodes);
+        let buffers = BuffersLaunch::new(
+            flat(a.frames),
+            flat(a.net),
+            arr(&sc.before, bn * 4),
+            flat(a.volume),
+            flat(a.scenes),
+            arr(&sc.acc, slots * 6),
+            arr(&sc.grid, slots * 5),
+            arr(&sc.kind, slots),
+            arr(&sc.q, slots),
+            arr(&sc.rhs, slots),
+            arr(&sc.faces, slots * 2),
+            arr(&sc.moves, s.b * MATERIALS),
+            arr(&sc.list, slots),
+        );
+        let int = |v: usize| u32::try_from(v).expect("liquid projection: sizes fit u32");
+        call_kernel::launch(
+            client,
+            CubeCount::Static(int(s.b), 1, 1),
+            CubeDim::new_1d(THREADS),
+            buffers,
+            int(s.n),
+            int(s.nodes),
+            int(s.k),
+            int(s.iterations),
+            u32::from(s.walls) + 2 * u32::from(s.liquid),
+            u32::from(s.velocity),
+            s.full,
+            s.stiffness,
+            s.omega,
+            s.restore,
+            MAX_SCALE,
+        );
+    }
+}
+
+/// Records the projection of `out` (`[K B, N, 4]`) as `plan` lays it out; returns the
+/// projected frames (same shape) and how far each scene's materials moved (`[B,
+/// MATERIALS]`, particle spacings summed over the call's particles and frames).
+///
+/// # Panics
+/// `out` does not hold `plan`'s K B N rows of 4, or the plan's arrays are not its sizes.
+pub(crate) fn project(
+    out: FloatTensor<Cuda>,
+    plan: &LiquidPlan,
+) -> (FloatTensor<Cuda>, FloatTensor<Cuda>) {
+    let shape = out.shape();
+    assert_eq!(
+        shape.num_elements(),
+        plan.k * plan.b * plan.n * 4,
+        "liquid projection: frames {shape:?} are not [K B, N, 4] of the plan's sizes"
+    );
+    assert_eq!(
+        plan.volume.len(),
+        plan.b * plan.n,
+        "liquid projection: volumes"
+    );
+    assert_eq!(
+        plan.scenes.len(),
+        plan.b * SCENE_VALUES,
+        "liquid projection: scenes"
+    );
+    let device = Cuda::float_device(&out);
+    let upload = |v: &[f32]| {
+        Tensor::<Cuda, 1>::from_data(TensorData::new(v.to_vec(), [v.len()]), &device)
+            .into_primitive()
+            .tensor()
+    };
+    let (volume, scenes) = (upload(&plan.volume), upload(&plan.scenes));
+    let client = out.client.clone();
+    let dtype = out.dtype();
+    let projected = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
+    let shape = burn::tensor::Shape::new([plan.b, MATERIALS]);
+    let moves = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
+    let inputs = [out, volume, scenes];
+    let streams = OperationStreams::with_inputs(&inputs);
+    let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
+    let desc = CustomOpIr::new("minflow_liquid_projection", &irs, &[projected, moves]);
+    let op = LiquidOp {
+        desc: desc.clone(),
+        s: Scalars {
+            b: plan.b,
+            n: plan.n,
+            k: plan.k,
+            nodes: plan.nodes,
+            stiffness: plan.stiffness,
+            full: plan.full,
+            omega: plan.omega,
+            iterations: plan.iterations,
+            velocity: plan.velocity,
+            restore: plan.restore,
+            walls: plan.walls,
+            liquid: plan.liquid,
+        },
+    };
+    let mut outs = client.register(streams, OperationIr::Custom(desc), op);
+    let moves = outs.pop().expect("two outputs");
+    (outs.pop().expect("two outputs"), moves)
+}
