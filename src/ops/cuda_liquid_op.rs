@@ -26,29 +26,13 @@ use super::{LiquidPlan, MATERIALS, SCENE_VALUES};
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
 
-/// The plan's sizes and scalars (its arrays travel as the operation's inputs).
-#[derive(Clone, Debug)]
-struct Scalars {
-    b: usize,
-    n: usize,
-    k: usize,
-    nodes: usize,
-    stiffness: f32,
-    full: f32,
-    omega: f32,
-    iterations: usize,
-    velocity: bool,
-    restore: f32,
-    walls: bool,
-    liquid: u8,
-}
-
 /// The recorded projection: inputs `[out, volume, scenes]`, outputs the projected frames and
 /// the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
 #[derive(Debug)]
 struct LiquidOp {
     desc: CustomOpIr,
-    s: Scalars,
+    /// The plan, its arrays left out (they are the inputs).
+    s: LiquidPlan,
 }
 
 /// Scratch of one call: `[B nodes]` node slots of each array.
@@ -234,19 +218,10 @@ pub(crate) fn project(
     let desc = CustomOpIr::new("minflow_liquid_projection", &irs, &[projected, moves]);
     let op = LiquidOp {
         desc: desc.clone(),
-        s: Scalars {
-            b: plan.b,
-            n: plan.n,
-            k: plan.k,
-            nodes: plan.nodes,
-            stiffness: plan.stiffness,
-            full: plan.full,
-            omega: plan.omega,
-            iterations: plan.iterations,
-            velocity: plan.velocity,
-            restore: plan.restore,
-            walls: plan.walls,
-            liquid: plan.liquid,
+        s: LiquidPlan {
+            volume: Vec::new(),
+            scenes: Vec::new(),
+            ..*plan
         },
     };
     let mut outs = client.register(streams, OperationIr::Custom(desc), op);

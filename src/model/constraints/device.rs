@@ -71,10 +71,9 @@ pub fn liquid_plan(
         for (m, v) in row[10..].iter_mut().enumerate() {
             *v = shape.spacing(m as u8);
         }
-        let (Some(_), Some(pressure)) = (&c.pressure, &shape.pressure) else {
+        let (Some(_), Some(d)) = (&c.pressure, &shape.pressure) else {
             continue;
         };
-        let d = pressure;
         row[..5].copy_from_slice(&[d.h, d.side as f32, d.rest, d.band.0, d.band.1]);
         row[8] = d.solid_volume();
         plan.nodes = plan.nodes.max(d.side * d.side);

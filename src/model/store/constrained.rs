@@ -180,16 +180,13 @@ impl ConstraintState {
         // In parallel, as the host's projection builds them: 2-3 ms a scene of 2,500.
         self.shapes.par_iter().enumerate().for_each(|(i, slot)| {
             let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
-            shape.get_or_insert_with(|| {
-                let started = std::time::Instant::now();
-                let (ids, rows) = (
-                    &material[i * n..(i + 1) * n],
-                    &rest[i * n * 4..(i + 1) * n * 4],
-                );
-                let made = SceneShape::on_grid(rows, 4, ids, c, grids[i]);
-                super::stages::count_setup(started.elapsed());
-                made
-            });
+            let rows = &rest[i * n * 4..(i + 1) * n * 4];
+            built(
+                &mut shape,
+                (rows, &material[i * n..(i + 1) * n]),
+                c,
+                grids[i],
+            );
         });
         let guards: Vec<_> = (self.shapes.iter())
             .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
@@ -237,19 +234,35 @@ impl ConstraintState {
                 let ids = &material[i * n..(i + 1) * n];
                 // Each row its own slot (a padded call's copies are detached).
                 let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
-                let shape = shape.get_or_insert_with(|| {
-                    let started = std::time::Instant::now();
-                    let made =
-                        SceneShape::on_grid(&rest[i * per..(i + 1) * per], 4, ids, c, grids[i]);
-                    super::stages::count_setup(started.elapsed());
-                    made
-                });
+                let shape = built(
+                    &mut shape,
+                    (&rest[i * per..(i + 1) * per], ids),
+                    c,
+                    grids[i],
+                );
                 project_row(c, shape, (&frames[i * per..(i + 1) * per], row), ids, dt[i])
             })
             .collect();
         super::stages::count_projection(started.elapsed());
         moved
     }
+}
+
+/// A scene's constraint data `shape`, built from its rest frame `rest` (`[N, 4]`, materials
+/// `ids`) on the solver grid `grid` where it has none yet (the setup's thread time counted,
+/// `stages::count_setup`).
+fn built<'a>(
+    shape: &'a mut Option<SceneShape>,
+    (rest, ids): (&[f32], &[u8]),
+    c: &Constraints,
+    grid: Option<u32>,
+) -> &'a mut SceneShape {
+    shape.get_or_insert_with(|| {
+        let started = std::time::Instant::now();
+        let made = SceneShape::on_grid(rest, 4, ids, c, grid);
+        super::stages::count_setup(started.elapsed());
+        made
+    })
 }
 
 /// One scene's frames of a bundle (`row`, oldest first) projected onto `c` with its data

@@ -32,22 +32,14 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         carry: GridState<B>,
-        (predict, read, plan): (Predict, Read, Option<LiquidPlan>),
+        (predict, read, mut plan): (Predict, Read, Option<LiquidPlan>),
     ) -> Result<(Outs, GridState<B>, bool), StoreError> {
         let b = dt.len();
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
         let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
-        let (mut next, mut state) =
-            self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
-        let mut on_device = false;
-        if let Some(projected) = plan.and_then(|mut p| self.project_on_device(&next, &mut p, b)) {
-            next = projected;
-            if predict == Predict::Bundle {
-                state.history = history_of(state.history, &next, b);
-            }
-            on_device = true;
-        }
+        let call = self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
+        let ((next, state), on_device) = self.projected_call(call, plan.as_mut(), b);
         let ahead = match read {
             Read::Ahead => B::read_ahead(next.clone().into_primitive().tensor()),
             Read::Now => None,
@@ -66,7 +58,7 @@ impl<B: NetOps> Surrogate<B> {
     /// `next` (`[K B, N, 4]`) projected on the device as `plan` lays it out (its K set from
     /// `next`), the moves added to the corrections ([`Surrogate::take_corrections`]); None
     /// where the backend does not project ([`NetOps::project_liquid`]).
-    pub(super) fn project_on_device(
+    fn project_on_device(
         &self,
         next: &Tensor<B, 3>,
         plan: &mut LiquidPlan,
@@ -80,21 +72,22 @@ impl<B: NetOps> Surrogate<B> {
         Some(Tensor::from_primitive(TensorPrimitive::Float(p)))
     }
 
-    /// A closed-loop call's frames (`[K B, N, 4]`) and state, projected on the device by
-    /// `plan` where there is one and the backend projects ([`Surrogate::project_on_device`]);
-    /// the state's velocity history then follows the projected frames.
+    /// A call's frames (`[K B, N, 4]`) and state, projected on the device by `plan` where
+    /// there is one and the backend projects ([`Surrogate::project_on_device`]; the state's
+    /// velocity history then follows the projected frames, as `finish_here` makes it follow
+    /// the host's), and whether they were.
     pub(super) fn projected_call(
         &self,
         (next, mut state): (Tensor<B, 3>, GridState<B>),
         plan: Option<&mut LiquidPlan>,
         b: usize,
-    ) -> (Tensor<B, 3>, GridState<B>) {
+    ) -> ((Tensor<B, 3>, GridState<B>), bool) {
         match plan.and_then(|p| self.project_on_device(&next, p, b)) {
             Some(projected) => {
                 state.history = history_of(state.history, &projected, b);
-                (projected, state)
+                ((projected, state), true)
             }
-            None => (next, state),
+            None => ((next, state), false),
         }
     }
 
@@ -301,7 +294,8 @@ fn lap(clock: &mut Option<stages::Clock>, stage: Stage) {
 
 /// The velocity history `history` (`[B, N, 2 (T - 1)]`) taken from the projected bundle `next`
 /// (`[K B, N, 4]`): the velocities of the T - 1 frames before its last, as
-/// `GridState::history_from` takes them from the host's frames; as is when K <= T - 1.
+/// `GridState::history_from` takes them from the host's frames; as is when K <= T - 1 (a
+/// [`Predict::Next`] call's one frame).
 fn history_of<B: NetOps>(
     history: Option<Tensor<B, 3>>,
     next: &Tensor<B, 3>,

@@ -140,7 +140,7 @@ impl<B: NetOps> Surrogate<B> {
         &self,
         model: &crate::model::grid::GridModel<B>,
         seed: &[Vec<f32>],
-        (material, dt, plan): (&[u8], &[f32], Option<LiquidPlan>),
+        (material, dt, mut plan): (&[u8], &[f32], Option<LiquidPlan>),
         k: usize,
         mut carry: GridState<B>,
         mut each: impl FnMut(usize, Vec<f32>),
@@ -148,7 +148,6 @@ impl<B: NetOps> Surrogate<B> {
         let b = dt.len();
         let n = material.len() / b;
         let bundle = model.bundle();
-        let mut plan = plan;
         let per_flush = (self.feedback_bytes / (b * n * 4 * 4).max(1)).max(1);
         let upload = |f: &[f32]| crate::model::upload::<B, 3>(f.to_vec(), [b, n, 4], &self.device);
         let (last, before) = seed.split_last().expect("a seed frame");
@@ -185,7 +184,7 @@ impl<B: NetOps> Surrogate<B> {
                 )
             });
             let (next, c) = match called {
-                Ok(call) => self.projected_call(call, plan.as_mut(), b),
+                Ok(call) => self.projected_call(call, plan.as_mut(), b).0,
                 Err(e) => {
                     // The frames predicted before still reach `each`, as in the host loop.
                     self.deliver(&mut pending, b, &mut clock, (&mut each, &mut done))?;
