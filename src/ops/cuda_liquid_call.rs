@@ -11,8 +11,10 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
+use super::cuda_contact::{contact, CONTACT_SHARED};
 use super::cuda_liquid::{begin, node, splat};
 use super::cuda_liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
+use super::cuda_solids::{bodies, ropes, HEAD, PER_SCENE};
 
 /// Values per scene of `scenes` (`LiquidPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
@@ -34,6 +36,7 @@ pub(super) struct Buffers {
     pub faces: Array<f32>,
     pub moves: Array<Atomic<i64>>,
     pub list: Array<u32>,
+    pub solids: Array<f32>,
 }
 
 /// Every frame of the call for scene `CUBE_POS_X`: `count` frames of `n` particles, `nodes`
@@ -63,6 +66,8 @@ pub(super) fn call_kernel(
     let solve = side > 0 && iterations > 0;
     let mut shared = SharedMemory::<f64>::new(5 * THREADS as usize);
     let mut listed = SharedMemory::<Atomic<u32>>::new(2usize);
+    let mut cs = SharedMemory::<f32>::new(CONTACT_SHARED);
+    let mut partial = Array::<f64>::new(5usize);
     for k in 0..count {
         let mut p = s * n as usize + u;
         let end = (s + 1) * n as usize;
@@ -74,6 +79,7 @@ pub(super) fn call_kernel(
             p += THREADS as usize;
         }
         sync_cube();
+        solids(b, &mut shared, &mut cs, &mut partial, n, k, s, u);
         if solve {
             grid_steps(b, &mut listed, n, nodes, k, velocity, full, stiffness, s, u);
             sweeps(b, &mut listed, n, nodes, k, iterations, omega, s, u);
@@ -92,6 +98,44 @@ pub(super) fn call_kernel(
             let (f, bf, vol) = (&mut b.frames, &b.before, &b.volume);
             energy(f, bf, vol, &mut shared, n, k, restore, max_scale, s, u);
         }
+    }
+}
+
+/// Frame `k`'s ropes, contact and shape matching for scene `s` (thread `u`), in
+/// `SceneShape::project`'s order (`cuda_solids.rs`, `cuda_contact.rs`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn solids(
+    b: &mut Buffers,
+    shared: &mut SharedMemory<f64>,
+    cs: &mut SharedMemory<f32>,
+    partial: &mut Array<f64>,
+    n: u32,
+    k: u32,
+    s: usize,
+    u: usize,
+) {
+    let base = k as usize * b.before.len() + s * n as usize * 4;
+    let row = HEAD + PER_SCENE * s;
+    if b.solids[row] < b.solids[row + 1] {
+        ropes(&mut b.frames, &b.solids, base, s, u);
+        sync_cube();
+    }
+    if b.solids[row + 2] < b.solids[row + 3] {
+        let dt = b.scenes[s * SV + 7];
+        contact(
+            &mut b.frames,
+            &b.solids,
+            shared,
+            cs,
+            partial,
+            base,
+            dt,
+            s,
+            u,
+        );
+        bodies(&mut b.frames, &b.solids, shared, partial, base, s, u);
+        sync_cube();
     }
 }
 

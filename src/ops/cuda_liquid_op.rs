@@ -26,7 +26,7 @@ use super::{LiquidPlan, MATERIALS, SCENE_VALUES};
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
 
-/// The recorded projection: inputs `[out, volume, scenes]`, outputs the projected frames and
+/// The recorded projection: inputs `[out, volume, scenes, solids]`, outputs the projected frames and
 /// the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
 #[derive(Debug)]
 struct LiquidOp {
@@ -66,6 +66,7 @@ impl Operation<Runtime> for LiquidOp {
         let out = contiguous(handles.get_float_tensor::<Inner>(&inputs[0]));
         let volume = contiguous(handles.get_float_tensor::<Inner>(&inputs[1]));
         let scenes = contiguous(handles.get_float_tensor::<Inner>(&inputs[2]));
+        let solids = contiguous(handles.get_float_tensor::<Inner>(&inputs[3]));
         let client = out.client.clone();
         let s = &self.s;
         let total = s.k * s.b * s.n * 4;
@@ -100,6 +101,7 @@ impl Operation<Runtime> for LiquidOp {
             net: &out,
             volume: &volume,
             scenes: &scenes,
+            solids: &solids,
             scratch: &scratch,
         };
         self.run(&args);
@@ -129,6 +131,7 @@ struct Args<'a> {
     net: &'a CubeTensor<CudaRuntime>,
     volume: &'a CubeTensor<CudaRuntime>,
     scenes: &'a CubeTensor<CudaRuntime>,
+    solids: &'a CubeTensor<CudaRuntime>,
     scratch: &'a Scratch,
 }
 
@@ -152,6 +155,7 @@ impl LiquidOp {
             arr(&sc.faces, slots * 2),
             arr(&sc.moves, s.b * MATERIALS),
             arr(&sc.list, slots),
+            flat(a.solids),
         );
         let int = |v: usize| u32::try_from(v).expect("liquid projection: sizes fit u32");
         call_kernel::launch(
@@ -207,12 +211,13 @@ pub(crate) fn project(
             .tensor()
     };
     let (volume, scenes) = (upload(&plan.volume), upload(&plan.scenes));
+    let solids = upload(&plan.solids);
     let client = out.client.clone();
     let dtype = out.dtype();
     let projected = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
     let shape = burn::tensor::Shape::new([plan.b, MATERIALS]);
     let moves = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
-    let inputs = [out, volume, scenes];
+    let inputs = [out, volume, scenes, solids];
     let streams = OperationStreams::with_inputs(&inputs);
     let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
     let desc = CustomOpIr::new("minflow_liquid_projection", &irs, &[projected, moves]);
@@ -221,6 +226,7 @@ pub(crate) fn project(
         s: LiquidPlan {
             volume: Vec::new(),
             scenes: Vec::new(),
+            solids: Vec::new(),
             ..*plan
         },
     };

@@ -1,6 +1,8 @@
-//! [`LiquidPlan`]: the liquid's projection of one call laid out for a device (plain data;
-//! built by `model::constraints::liquid_plan`, run by the CUDA backend's
-//! [`NetOps::project_liquid`](super::NetOps::project_liquid), `cuda_liquid*.rs`).
+//! [`LiquidPlan`]: the projection of one call laid out for a device (plain data; built by
+//! `model::constraints::liquid_plan`, run by the CUDA backend's
+//! [`NetOps::project_liquid`](super::NetOps::project_liquid), `cuda_liquid*.rs` for the
+//! liquid and the walls, `cuda_solids.rs` and `cuda_contact.rs` for the ropes, the bodies'
+//! shape matching and their contact).
 
 /// Materials a plan keeps apart in its moves (`crate::material::COUNT`).
 pub const MATERIALS: usize = 4;
@@ -8,7 +10,20 @@ pub const MATERIALS: usize = 4;
 /// Values per scene in [`LiquidPlan::scenes`].
 pub const SCENE_VALUES: usize = 10 + MATERIALS;
 
-/// The liquid's projection of one call's K predicted frames (`[K B, N, 4]`) on a device.
+/// Values at the head of [`LiquidPlan::solids`].
+pub const SOLIDS_HEAD: usize = 8;
+
+/// Values per scene in [`LiquidPlan::solids`], after its head.
+pub const SCENE_SOLIDS: usize = 5;
+
+/// Values per body in [`LiquidPlan::solids`]' body table.
+pub const BODY_VALUES: usize = 8;
+
+/// The most shape-matched bodies a scene the device projects may have (its contact pairs are
+/// held in the kernel's shared memory); a scene with more projects on the host.
+pub const MAX_BODIES: usize = 16;
+
+/// The projection of one call's K predicted frames (`[K B, N, 4]`) on a device.
 ///
 /// Per scene `s` (row `s` of [`LiquidPlan::scenes`], [`SCENE_VALUES`] each): node spacing
 /// `h` (domain units), nodes per side (0: no liquid, the pressure part skipped), the
@@ -52,4 +67,19 @@ pub struct LiquidPlan {
     pub restore: f32,
     /// Whether positions are clamped into the walls.
     pub walls: bool,
+    /// The ropes, the shape-matched bodies and their contact, as f32 (indices exact below
+    /// 2^24):
+    /// - head, [`SOLIDS_HEAD`] values: where the chain table starts, where the body table
+    ///   starts, the ropes' stretch limit, their sweeps a frame, 1 where the long-range
+    ///   pairs are on, the contact part's iterations, its restitution, its resting speed;
+    /// - per scene, [`SCENE_SOLIDS`] values: its first chain and the chain after its last,
+    ///   its first body and the body after its last, the contact distance (domain units; 0:
+    ///   no contact);
+    /// - the chain table, two values a chain: where its elements start, their count; a
+    ///   chain's elements two values each, its particle (index in the scene) and its rest
+    ///   distance along the chain from its first particle (domain units);
+    /// - the body table, [`BODY_VALUES`] a body: where its elements start, their count, the
+    ///   shape matching's stiffness and linear share, `A_qq^-1` (row-major); a body's
+    ///   elements three values each, its particle and its rest offset from the rest centre.
+    pub solids: Vec<f32>,
 }

@@ -78,6 +78,8 @@ mod cuda;
 #[cfg(feature = "cuda")]
 mod cuda_adam;
 #[cfg(feature = "cuda")]
+mod cuda_contact;
+#[cfg(feature = "cuda")]
 mod cuda_conv;
 #[cfg(feature = "cuda")]
 mod cuda_cudnn;
@@ -102,6 +104,8 @@ mod cuda_minrnn;
 #[cfg(feature = "cuda")]
 mod cuda_read;
 #[cfg(feature = "cuda")]
+mod cuda_solids;
+#[cfg(feature = "cuda")]
 mod cuda_stencil;
 #[cfg(feature = "cuda")]
 mod cuda_stencil_kernels;
@@ -118,7 +122,9 @@ mod tensor;
 
 pub use adam_step::AdamStep;
 pub use error::OpsError;
-pub use liquid_plan::{LiquidPlan, MATERIALS, SCENE_VALUES};
+pub use liquid_plan::{
+    LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+};
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use read_ahead::ReadAhead;

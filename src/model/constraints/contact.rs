@@ -103,6 +103,11 @@ impl Contact {
         self.bodies.add(frame, &dv, 2);
     }
 
+    /// The distance within which two bodies' particles touch (domain units).
+    pub(super) fn reach(&self, p: &ContactParams) -> f32 {
+        p.distance * self.spacing
+    }
+
     /// The particle count of body `b`.
     fn size(&self, b: usize) -> f32 {
         self.bodies.of(b).len() as f32

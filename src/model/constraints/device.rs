@@ -1,24 +1,29 @@
-//! The projection's data laid out for a device: [`liquid_plan`], the liquid's pressure part,
-//! the walls, the velocity update and the energy given back for every scene of a call, as
-//! flat arrays a GPU's kernels read (`crate::ops::LiquidPlan`). The kernels there are the device
-//! form of [`SceneShape::project`] for scenes whose only parts are those (every scene of the
-//! `fluid` family, the liquid-only scenes of `multi`): the same steps in the same order, the
-//! same arithmetic per node and particle, with the grid's sums in fixed point (the order the
-//! atomics land in changes no bit) where the host sums in particle order.
+//! The projection's data laid out for a device: [`liquid_plan`], the ropes, the bodies' shape
+//! matching and contact, the liquid's pressure part, the walls, the velocity update and the
+//! energy given back for every scene of a call, as flat arrays a GPU's kernels read
+//! (`crate::ops::LiquidPlan`). The kernels there are the device form of
+//! [`SceneShape::project`] for scenes whose only parts are those (every scene under the
+//! shipped models but the `-mixed` ones): the same steps in the same order, the same
+//! arithmetic per node and particle, with the grid's sums in fixed point (the order the
+//! atomics land in changes no bit) where the host sums in particle order, and the bodies'
+//! sums in f64 over the cube's threads.
 //!
-//! A scene with rope, bodies, contact, the density part or the momentum part has no plan:
-//! its call projects on the host (`model::store`'s `finish_here`).
+//! A scene with the density part, the momentum or rebound part, a plastic body or more than
+//! [`MAX_BODIES`] bodies has no plan: its call projects on the host (`model::store`'s
+//! `finish_here`).
 
 use super::{Constraints, SceneShape};
 use crate::material::Material;
-use crate::ops::{LiquidPlan, MATERIALS, SCENE_VALUES};
+use crate::ops::{
+    LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+};
 
 const _: () = assert!(MATERIALS == crate::material::COUNT);
 
 /// The plan for a call of the scenes `shapes` (each `[N]` particles with materials
 /// `material[s N..(s + 1) N]` and time step `dt[s]`) and K frames a scene, or None when
-/// `c` has a part the device does not project (rope, jelly, snow, the density part,
-/// contact, momentum, rebound) that acts on one of the scenes.
+/// `c` has a part the device does not project (the density part, momentum, rebound, a
+/// plastic body, more than [`MAX_BODIES`] bodies) that acts on one of the scenes.
 pub fn liquid_plan(
     c: &Constraints,
     shapes: &[&SceneShape],
@@ -32,6 +37,7 @@ pub fn liquid_plan(
     }
     let b = shapes.len();
     let n = material.len() / b;
+    let solids = solids(c, shapes)?;
     let liquid = Material::Liquid.id();
     let mut plan = LiquidPlan {
         b,
@@ -49,6 +55,7 @@ pub fn liquid_plan(
         velocity: false,
         restore: 0.0,
         walls: c.walls.is_some(),
+        solids,
     };
     if let Some(p) = &c.pressure {
         (plan.stiffness, plan.full, plan.omega) = (p.stiffness, p.full, p.omega);
@@ -56,12 +63,7 @@ pub fn liquid_plan(
         plan.restore = p.restore.min(1.0);
     }
     for (s, shape) in shapes.iter().enumerate() {
-        let on_host_only = !shape.chains.is_empty()
-            || !shape.bodies.is_empty()
-            || shape.contact.is_some()
-            || shape.liquid.is_some()
-            || shape.rebound.is_some()
-            || shape.n != n;
+        let on_host_only = shape.liquid.is_some() || shape.rebound.is_some() || shape.n != n;
         if on_host_only {
             return None;
         }
@@ -92,8 +94,86 @@ pub fn liquid_plan(
     Some(plan)
 }
 
+/// The `solids` array of a call of `shapes` (`LiquidPlan::solids`' layout), or None where a
+/// scene has a body the device does not project (plastic, or more than [`MAX_BODIES`]).
+fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
+    let mut chains: Vec<&super::rope::Chain> = Vec::new();
+    let mut bodies: Vec<&super::shape::Body> = Vec::new();
+    let mut out = vec![0.0f32; SOLIDS_HEAD + SCENE_SOLIDS * shapes.len()];
+    for (s, shape) in shapes.iter().enumerate() {
+        let plastic = shape
+            .bodies
+            .iter()
+            .any(|body| c.shape_of(body.material).is_none_or(|p| p.plastic > 0.0));
+        if plastic || shape.bodies.len() > MAX_BODIES {
+            return None;
+        }
+        let reach = match (&c.contact, &shape.contact) {
+            (Some(p), Some(contact)) => contact.reach(p),
+            _ => 0.0,
+        };
+        let row = &mut out[SOLIDS_HEAD + SCENE_SOLIDS * s..][..SCENE_SOLIDS];
+        let (c0, b0) = (chains.len(), bodies.len());
+        if c.rope.is_some() {
+            chains.extend(&shape.chains);
+        }
+        bodies.extend(&shape.bodies);
+        let index = |v: usize| v as f32;
+        row.copy_from_slice(&[
+            index(c0),
+            index(chains.len()),
+            index(b0),
+            index(bodies.len()),
+            reach,
+        ]);
+    }
+    let chains_at = out.len();
+    let bodies_at = chains_at + 2 * chains.len();
+    let mut elements = bodies_at + BODY_VALUES * bodies.len();
+    out.resize(elements, 0.0);
+    for (i, chain) in chains.iter().enumerate() {
+        let (ids, along) = chain.parts();
+        out[chains_at + 2 * i..][..2].copy_from_slice(&[elements as f32, ids.len() as f32]);
+        out.extend(ids.iter().zip(along).flat_map(|(&id, &a)| [id as f32, a]));
+        elements = out.len();
+    }
+    for (i, body) in bodies.iter().enumerate() {
+        let p = c.shape_of(body.material)?;
+        let (rest, aqq) = body.rest_shape();
+        let row = &mut out[bodies_at + BODY_VALUES * i..][..BODY_VALUES];
+        row[..4].copy_from_slice(&[elements as f32, rest.len() as f32, p.stiffness, p.linear]);
+        row[4..].copy_from_slice(&aqq);
+        let ids = body.ids();
+        out.extend(
+            ids.iter()
+                .zip(rest)
+                .flat_map(|(&id, q)| [id as f32, q[0], q[1]]),
+        );
+        elements = out.len();
+    }
+    let (stretch, sweeps, long) = c
+        .rope
+        .map_or((0.0, 0, false), |p| (p.stretch, p.iterations, p.long_range));
+    let (iterations, restitution) = c
+        .contact
+        .map_or((0, 0.0), |p| (p.iterations, p.restitution));
+    out[..SOLIDS_HEAD].copy_from_slice(&[
+        chains_at as f32,
+        bodies_at as f32,
+        stretch,
+        sweeps as f32,
+        f32::from(u8::from(long)),
+        iterations as f32,
+        restitution,
+        super::contact::RESTING,
+    ]);
+    // Indices are held as f32: exact below 2^24.
+    (out.len() < 1 << 24).then_some(out)
+}
+
 #[cfg(test)]
 mod tests {
+    use super::super::ShapeParams;
     use super::*;
 
     /// A `w x h` block of `material` at spacing 1/128 from `(x0, y0)` (`[N, 4]` rows).
@@ -108,7 +188,7 @@ mod tests {
     }
 
     #[test]
-    fn a_liquid_scene_is_laid_out_and_a_rope_keeps_its_call_on_the_host() {
+    fn a_call_is_laid_out_with_its_ropes_and_a_plastic_body_keeps_it_on_the_host() {
         // The default parts but momentum and rebound (which the device does not project).
         let mut c = Constraints::defaults();
         (c.momentum, c.rebound) = (None, None);
@@ -129,14 +209,32 @@ mod tests {
         let (lo, hi) = c.walls.unwrap().bounds(Some(64));
         assert_eq!(&row[5..8], &[lo, hi, 0.02]);
         assert!((plan.iterations, plan.walls) == (40, true));
-        // Half the block a rope: the call keeps its host projection.
+        // Half the block a rope: its chain is laid out after the head and the scenes' rows.
         let (mut rest2, mut ids2) = (rest.clone(), ids.clone());
         let (rope, rope_ids) = block(0.6, 0.5, (20, 1), Material::Rope);
         rest2[..80].copy_from_slice(&rope);
         ids2[..20].copy_from_slice(&rope_ids);
         let roped = SceneShape::on_grid(&rest2, 4, &ids2, &c, Some(64));
-        let material = [ids.clone(), ids2].concat();
-        assert!(liquid_plan(&c, &[&shape, &roped], &material, &[0.01, 0.01], 1).is_none());
+        let material = [ids.clone(), ids2.clone()].concat();
+        let plan = liquid_plan(&c, &[&shape, &roped], &material, &[0.01, 0.01], 1).unwrap();
+        let head = SOLIDS_HEAD + 2 * SCENE_SOLIDS;
+        assert_eq!(plan.solids[0], head as f32);
+        let row = &plan.solids[SOLIDS_HEAD + SCENE_SOLIDS..][..SCENE_SOLIDS];
+        assert_eq!(row, &[0.0, 1.0, 0.0, 0.0, 0.0], "scene 1 holds chain 0");
+        let chain = &plan.solids[head..head + 2];
+        assert_eq!(chain, &[(head + 2) as f32, 20.0]);
+        let along = plan.solids[head + 2 + 2 * 19 + 1];
+        assert!((along - 19.0 / 128.0).abs() < 1e-6, "{along}");
+        // A plastic body keeps its call on the host.
+        let mut plastic = c.clone();
+        plastic.jelly = plastic.jelly.map(|p| ShapeParams { plastic: 0.1, ..p });
+        let (jelly, jelly_ids) = block(0.2, 0.6, (6, 6), Material::Jelly);
+        let (mut rest3, mut ids3) = (rest.clone(), ids.clone());
+        rest3[..144].copy_from_slice(&jelly);
+        ids3[..36].copy_from_slice(&jelly_ids);
+        let body = SceneShape::on_grid(&rest3, 4, &ids3, &plastic, Some(64));
+        let material = [ids.clone(), ids3].concat();
+        assert!(liquid_plan(&plastic, &[&shape, &body], &material, &[0.01; 2], 1).is_none());
         // The momentum part (not on the device) keeps every call on the host.
         let mut with_momentum = c.clone();
         with_momentum.momentum = Some(crate::model::constraints::MomentumParams::DEFAULT);

@@ -79,6 +79,11 @@ pub(super) fn median_link(chains: &[Chain]) -> Option<f32> {
 }
 
 impl Chain {
+    /// The chain's particles in chain order and their rest distance along it (domain units).
+    pub(super) fn parts(&self) -> (&[u32], &[f32]) {
+        (&self.ids, &self.along)
+    }
+
     /// The chain's links as `(i, j, rest length)`: particle indices and domain units.
     pub(super) fn links(&self) -> Vec<(usize, usize, f32)> {
         self.ids

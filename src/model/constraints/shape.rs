@@ -163,6 +163,12 @@ impl Body {
         &self.ids
     }
 
+    /// The body's rest offsets from its rest centre (domain units, `[len]`) and `A_qq^-1`
+    /// (row-major).
+    pub(super) fn rest_shape(&self) -> (&[[f32; 2]], [f32; 4]) {
+        (&self.rest, self.aqq_inv)
+    }
+
     fn new(rest: &[f32], stride: usize, material: u8, ids: Vec<u32>) -> Self {
         let at = |i: u32| [rest[stride * i as usize], rest[stride * i as usize + 1]];
         let c = centre_of_mass(rest, stride, &ids).map(|c| c as f32);
