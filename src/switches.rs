@@ -96,8 +96,8 @@ pub fn cuda_composed_minrnn() -> bool {
     flag(&COMPOSED, "MINFLOW_CUDA_MINRNN", ["kernel", "composed"])
 }
 
-/// `MINFLOW_CUDA_PROJECTION=device | host` (read once): whether the liquid's projection of a
-/// CUDA call runs on the host after the read-back (`host`) instead of on the device
+/// `MINFLOW_CUDA_PROJECTION=device | host` (read once): whether the projection of a CUDA
+/// call runs on the host after the read-back (`host`) instead of on the device
 /// (`device`, the default, where every scene of the call has only the parts the device
 /// projects), to compare the two in one binary (docs/cuda.md).
 pub fn cuda_host_projection() -> bool {

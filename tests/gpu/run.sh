@@ -27,7 +27,7 @@
 #                              # and 7 (gpu/it.xz: the `it` tests built with --features cuda),
 #                              # its cost and physics against the CPU's at 2,500, 10,000 and
 #                              # 40,000 particles, and two `simulate --device cuda` runs' bags
-#   tests/gpu/run.sh projection # the liquid's projection on the device against the host's
+#   tests/gpu/run.sh projection # the projection on the device against the host's
 #                              # (gpu/it.xz), and the fluid family's 256-scene call with each
 #   tests/gpu/run.sh cudnn     # the convolutions through cuDNN against im2col and cuBLAS:
 #                              # training beside PyTorch's step (and cuDNN on weights copied
@@ -311,18 +311,20 @@ solver() { # docs/mpm.md, "The solver on a GPU"; docs/speed.md, "At scale"
     check solver-bags diff <(cd "$OUT/gpu-a" && md5sum *.mcap) <(cd "$OUT/gpu-b" && md5sum *.mcap)
 }
 
-projection() { # docs/speed.md, "The liquid's projection on the device"
+projection() { # docs/cuda.md, "The projection on the device"
     if [ ! -x gpu/it ] && [ -f gpu/it.xz ]; then
         python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('gpu/it.xz'), open('gpu/it', 'wb'))"
         chmod +x gpu/it
     fi
     check projection-parity gpu/it model_device_projection --nocapture
-    # The fluid family (every scene liquid alone): the host's projection, then the device's.
+    # Both families: the host's projection, then the device's.
     for where in host device; do
-        check "projection-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" bench rollout \
-            --device cuda --family fluid --model models/all-grid-mingru-small-k4 \
-            --model models/all-grid-mingru --constraints off --constraints on --scenes 256 \
-            --batch 256 --threads 16 --frames 20
+        for family in multi fluid; do
+            check "projection-$family-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" \
+                bench rollout --device cuda --family $family \
+                --model models/all-grid-mingru-small-k4 --model models/all-grid-mingru \
+                --constraints off --constraints on --scenes 256 --batch 256 --threads 16 --frames 20
+        done
         check "projection-eval-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" eval \
             --device cuda --model models/all-grid-mingru-small-k4 --model models/all-grid-mingru \
             --data bags --split all --starts 3 --no-render --out "$OUT/projection-eval-$where"
