@@ -99,7 +99,7 @@ pub fn cuda_composed_minrnn() -> bool {
 /// `MINFLOW_CUDA_PROJECTION=device | host` (read once): whether the projection of a CUDA
 /// call runs on the host after the read-back (`host`) instead of on the device
 /// (`device`, the default, where every scene of the call has only the parts the device
-/// projects), to compare the two in one binary (docs/cuda.md).
+/// projects and the call is not pipelined), to compare the two in one binary (docs/cuda.md).
 pub fn cuda_host_projection() -> bool {
     static HOST: OnceLock<bool> = OnceLock::new();
     flag(&HOST, "MINFLOW_CUDA_PROJECTION", ["device", "host"])

@@ -31,7 +31,7 @@ const MAX_SCALE: f32 = 2.0;
 #[derive(Debug)]
 struct LiquidOp {
     desc: CustomOpIr,
-    /// The plan, its arrays left out (they are the inputs).
+    /// The plan (its arrays shared; on the device they are the inputs).
     s: LiquidPlan,
 }
 
@@ -210,8 +210,12 @@ pub(crate) fn project(
             .into_primitive()
             .tensor()
     };
-    let (volume, scenes) = (upload(&plan.volume), upload(&plan.scenes));
-    let solids = upload(&plan.solids);
+    // Uploaded once a plan: a node's calls of the same scenes share one.
+    let arrays = || [&plan.volume, &plan.scenes, &plan.solids].map(|a| upload(a));
+    let [volume, scenes, solids] = match plan.device.get_or_init(arrays) {
+        Some(copy) => copy,
+        None => arrays(),
+    };
     let client = out.client.clone();
     let dtype = out.dtype();
     let projected = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
@@ -223,12 +227,7 @@ pub(crate) fn project(
     let desc = CustomOpIr::new("minflow_liquid_projection", &irs, &[projected, moves]);
     let op = LiquidOp {
         desc: desc.clone(),
-        s: LiquidPlan {
-            volume: Vec::new(),
-            scenes: Vec::new(),
-            solids: Vec::new(),
-            ..*plan
-        },
+        s: plan.clone(),
     };
     let mut outs = client.register(streams, OperationIr::Custom(desc), op);
     let moves = outs.pop().expect("two outputs");

@@ -10,6 +10,9 @@ pub const MATERIALS: usize = 4;
 /// Values per scene in [`LiquidPlan::scenes`].
 pub const SCENE_VALUES: usize = 10 + MATERIALS;
 
+use std::any::Any;
+use std::sync::{Arc, OnceLock};
+
 /// Values at the head of [`LiquidPlan::solids`].
 pub const SOLIDS_HEAD: usize = 8;
 
@@ -43,13 +46,13 @@ pub struct LiquidPlan {
     pub k: usize,
     /// Per particle (`[B N]`): the liquid's rest volume in cells (liquid of the pressure
     /// part), else `-(1 + m)` for its material id `m`.
-    pub volume: Vec<f32>,
+    pub volume: Arc<[f32]>,
     /// The liquid's material id (of the particles with a volume).
     pub liquid: u8,
     /// Particles of each material id in the call (its scenes' frames each count once).
     pub counts: [u64; MATERIALS],
     /// Per scene: [`SCENE_VALUES`] values (the struct's doc), `[B SCENE_VALUES]`.
-    pub scenes: Vec<f32>,
+    pub scenes: Arc<[f32]>,
     /// Nodes held per scene: the largest `side^2` of the call (scene `s`'s nodes start at
     /// `s * nodes`).
     pub nodes: usize,
@@ -81,5 +84,39 @@ pub struct LiquidPlan {
     /// - the body table, [`BODY_VALUES`] a body: where its elements start, their count, the
     ///   shape matching's stiffness and linear share, `A_qq^-1` (row-major); a body's
     ///   elements three values each, its particle and its rest offset from the rest centre.
-    pub solids: Vec<f32>,
+    pub solids: Arc<[f32]>,
+    /// The backend's copy of the arrays on its device, made by the plan's first projection
+    /// and shared by its clones: a node's calls of the same scenes reuse one plan
+    /// (`model::store`), so its arrays cross to the device once.
+    pub device: DeviceCopy,
+}
+
+/// A backend's copy of a [`LiquidPlan`]'s arrays on its device (whatever type the backend
+/// keeps), made once and shared by the plan's clones. Plans compare by their arrays: two
+/// copies are always equal.
+#[derive(Clone, Default)]
+pub struct DeviceCopy(Arc<OnceLock<Box<dyn Any + Send + Sync>>>);
+
+impl DeviceCopy {
+    /// The copy, made by `make` on the first call; None when an earlier call kept another
+    /// type.
+    pub fn get_or_init<T: Any + Send + Sync + Clone>(&self, make: impl FnOnce() -> T) -> Option<T> {
+        self.0
+            .get_or_init(|| Box::new(make()))
+            .downcast_ref::<T>()
+            .cloned()
+    }
+}
+
+impl std::fmt::Debug for DeviceCopy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let made = self.0.get().is_some();
+        f.debug_struct("DeviceCopy").field("made", &made).finish()
+    }
+}
+
+impl PartialEq for DeviceCopy {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }

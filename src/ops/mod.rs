@@ -123,7 +123,8 @@ mod tensor;
 pub use adam_step::AdamStep;
 pub use error::OpsError;
 pub use liquid_plan::{
-    LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+    DeviceCopy, LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES,
+    SOLIDS_HEAD,
 };
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;

@@ -10,9 +10,11 @@
 //! so it holds on a noisy machine; quote it rather than the milliseconds. With several
 //! `--constraints` settings each model gets a row per setting (`DIR[setting]`): the
 //! projection's own cost is the difference of its `on` and `off` rows; the last two columns
-//! are the projection's wall time a frame (all parts, measured inside the rollout) and its
-//! share of the frame, and the thread time a scene spent once building its constraint data
-//! (inside that wall time; over a whole scene it is spread over every frame). With
+//! are the projection's wall time a frame (all parts, measured inside the rollout; on a GPU
+//! that projects on the device, its host side only, laying out the plan: the kernel is part
+//! of the call) and its share of the frame, and the thread time a scene spent once building
+//! its constraint data (inside that wall time; over a whole scene it is spread over every
+//! frame). With
 //! `MINFLOW_CALL_STAGES=1` a line under each row splits a grid call's wall time by stage
 //! (input, record, device, output; `model::store::stages`).
 

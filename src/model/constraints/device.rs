@@ -12,6 +12,8 @@
 //! [`MAX_BODIES`] bodies has no plan: its call projects on the host (`model::store`'s
 //! `finish_here`).
 
+use std::sync::Arc;
+
 use super::{Constraints, SceneShape};
 use crate::material::Material;
 use crate::ops::{
@@ -43,10 +45,10 @@ pub fn liquid_plan(
         b,
         n,
         k,
-        volume: material.iter().map(|&m| -(1.0 + f32::from(m))).collect(),
+        volume: Arc::from([]),
         liquid,
         counts: [0; MATERIALS],
-        scenes: vec![0.0; b * SCENE_VALUES],
+        scenes: Arc::from([]),
         nodes: 1,
         stiffness: 0.0,
         full: 0.0,
@@ -55,8 +57,11 @@ pub fn liquid_plan(
         velocity: false,
         restore: 0.0,
         walls: c.walls.is_some(),
-        solids,
+        solids: solids.into(),
+        device: Default::default(),
     };
+    let mut volume: Vec<f32> = material.iter().map(|&m| -(1.0 + f32::from(m))).collect();
+    let mut scenes = vec![0.0f32; b * SCENE_VALUES];
     if let Some(p) = &c.pressure {
         (plan.stiffness, plan.full, plan.omega) = (p.stiffness, p.full, p.omega);
         (plan.iterations, plan.velocity) = (p.iterations, p.velocity);
@@ -68,7 +73,7 @@ pub fn liquid_plan(
             return None;
         }
         let (lo, hi) = c.walls.map_or((0.0, 1.0), |w| w.bounds(shape.grid));
-        let row = &mut plan.scenes[s * SCENE_VALUES..(s + 1) * SCENE_VALUES];
+        let row = &mut scenes[s * SCENE_VALUES..(s + 1) * SCENE_VALUES];
         row[5..8].copy_from_slice(&[lo, hi, dt[s]]);
         for (m, v) in row[10..].iter_mut().enumerate() {
             *v = shape.spacing(m as u8);
@@ -79,9 +84,9 @@ pub fn liquid_plan(
         row[..5].copy_from_slice(&[d.h, d.side as f32, d.rest, d.band.0, d.band.1]);
         row[8] = d.solid_volume();
         plan.nodes = plan.nodes.max(d.side * d.side);
-        let volume = &mut plan.volume[s * n..(s + 1) * n];
+        let own = &mut volume[s * n..(s + 1) * n];
         for (&i, &v) in d.ids.iter().zip(&d.volume) {
-            volume[i as usize] = v;
+            own[i as usize] = v;
         }
         debug_assert!(d
             .ids
@@ -91,6 +96,7 @@ pub fn liquid_plan(
     for &m in material {
         plan.counts[usize::from(m)] += 1;
     }
+    (plan.volume, plan.scenes) = (volume.into(), scenes.into());
     Some(plan)
 }
 

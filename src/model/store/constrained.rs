@@ -20,6 +20,34 @@ use burn::tensor::Tensor;
 /// share it too; `ConstraintState::detached` copies it); empty until its first projection.
 pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
 
+/// The last device plan a surrogate laid out, with what it was laid out for: the scenes'
+/// slots (by address), their time steps, materials and solver grids. A node's calls serve the
+/// same streams call after call, so the same plan, and its copy on the device, serves them
+/// (`ConstraintState::device_plan`).
+#[derive(Default)]
+pub(super) struct PlanCache {
+    key: Option<PlanKey>,
+    plan: Option<LiquidPlan>,
+}
+
+/// What a cached plan was laid out for (the slots held, so no other can take their
+/// address).
+struct PlanKey {
+    slots: Vec<Slot>,
+    dt: Vec<u32>,
+    material: Vec<u8>,
+    grids: Vec<Option<u32>>,
+}
+
+impl PlanKey {
+    /// Whether `self` and `other` lay out the same plan.
+    fn same(&self, other: &PlanKey) -> bool {
+        let slots = self.slots.len() == other.slots.len()
+            && (self.slots.iter().zip(&other.slots)).all(|(a, b)| Arc::ptr_eq(a, b));
+        slots && self.dt == other.dt && self.grids == other.grids && self.material == other.material
+    }
+}
+
 /// How far the calls projected on the device moved each material: the sums on the device
 /// (`[MATERIALS]`, particle spacings), added there call after call and read back only when
 /// taken, and the particle-frames counted on the host.
@@ -162,13 +190,16 @@ impl ConstraintState {
     /// `frames` `[B, N, 4]`, materials `[B N]`, time steps `[B]`; its K set by the caller),
     /// where every scene's parts are ones the device projects
     /// ([`crate::model::constraints::liquid_plan`]); each scene's constraint data is built
-    /// first where it has none, as [`ConstraintState::project`] builds it.
+    /// first where it has none, as [`ConstraintState::project`] builds it. Its wall time
+    /// counts as projection time (`stages::take_projection`).
     pub(super) fn device_plan(
         &mut self,
         c: &Constraints,
         (frames, material, dt): (&[f32], &[u8], &[f32]),
+        cache: &Mutex<PlanCache>,
     ) -> Option<LiquidPlan> {
         use rayon::prelude::*;
+        let started = std::time::Instant::now();
         let b = dt.len();
         let n = material.len() / b.max(1);
         if self.shapes.len() != b {
@@ -188,11 +219,30 @@ impl ConstraintState {
                 grids[i],
             );
         });
-        let guards: Vec<_> = (self.shapes.iter())
-            .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
-            .collect();
-        let shapes: Vec<&SceneShape> = guards.iter().filter_map(|g| g.as_ref()).collect();
-        liquid_plan(c, &shapes, material, dt, 1)
+        let key = PlanKey {
+            slots: self.shapes.clone(),
+            dt: dt.iter().map(|t| t.to_bits()).collect(),
+            material: material.to_vec(),
+            grids,
+        };
+        let mut cache = cache.lock().unwrap_or_else(|e| e.into_inner());
+        let plan = match cache.key.as_ref().is_some_and(|k| k.same(&key)) {
+            true => cache.plan.clone(),
+            false => {
+                let guards: Vec<_> = (self.shapes.iter())
+                    .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
+                    .collect();
+                let shapes: Vec<&SceneShape> = guards.iter().filter_map(|g| g.as_ref()).collect();
+                let plan = liquid_plan(c, &shapes, material, dt, 1);
+                (cache.key, cache.plan) = (Some(key), plan.clone());
+                plan
+            }
+        };
+        // The host's share of a device projection (its kernel runs in the call).
+        if plan.is_some() {
+            super::stages::count_projection(started.elapsed());
+        }
+        plan
     }
 
     /// Projects the predicted frames `out` (K frames of `[B, N, 4]`) of the input `frames`
@@ -346,5 +396,38 @@ mod tests {
         let parts = stacked.split(&[2, 1]);
         assert_eq!(parts[0].solver_grids, vec![Some(128), Some(64)]);
         assert_eq!(parts[1].solver_grids, vec![None]);
+    }
+
+    /// A node's next call of the same scenes gets the same plan (its arrays, and so its copy
+    /// on the device, shared); another time step, or a scene that left, lays out a new one.
+    #[test]
+    fn the_same_scenes_reuse_their_device_plan() {
+        let mut c = Constraints::defaults();
+        (c.momentum, c.rebound) = (None, None);
+        let (n, b) = (64usize, 2usize);
+        let frames: Vec<f32> = (0..b * n)
+            .flat_map(|i| {
+                [
+                    0.3 + 0.01 * (i % 8) as f32,
+                    0.1 + 0.01 * (i / 8 % 8) as f32,
+                    0.0,
+                    0.0,
+                ]
+            })
+            .collect();
+        let material = vec![crate::material::Material::Liquid.id(); b * n];
+        let cache = Mutex::new(PlanCache::default());
+        let mut state = ConstraintState::stack(vec![ConstraintState::default(); b]);
+        let first = state.device_plan(&c, (&frames, &material, &[0.01; 2]), &cache);
+        let first = first.expect("liquid scenes have a plan");
+        // The next call's state: split and stacked again, sharing the slots.
+        let mut next = ConstraintState::stack(state.clone().split(&[1, 1]));
+        let again = next.device_plan(&c, (&frames, &material, &[0.01; 2]), &cache);
+        assert!(Arc::ptr_eq(&first.volume, &again.unwrap().volume));
+        let slower = next.device_plan(&c, (&frames, &material, &[0.02; 2]), &cache);
+        assert!(!Arc::ptr_eq(&first.volume, &slower.unwrap().volume));
+        let mut one = ConstraintState::stack(state.split(&[1, 1]).into_iter().take(1).collect());
+        let alone = one.device_plan(&c, (&frames[..n * 4], &material[..n], &[0.02]), &cache);
+        assert_eq!(alone.expect("one scene's plan").b, 1);
     }
 }

@@ -83,7 +83,7 @@ impl<B: NetOps> Surrogate<B> {
         // host loop's first projection builds it).
         let plan = match &self.constraints {
             Some(c) if loop_on_device && B::projects_liquid() => {
-                (state.constraints).device_plan(c, (&seed[0], material, dt))
+                (state.constraints).device_plan(c, (&seed[0], material, dt), &self.plans)
             }
             _ => None,
         };

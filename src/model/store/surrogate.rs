@@ -13,7 +13,7 @@
 //! This file holds the type, its settings and its fresh states; the step is in `step.rs`
 //! (a grid model's call in `grid_step.rs`), the closed-loop rollouts in `rollout.rs`.
 
-use super::constrained::DeviceMoves;
+use super::constrained::{DeviceMoves, PlanCache};
 use super::grid_state::GridState;
 use super::state::{NetState, State};
 use super::{ModelMeta, Net, RunFolder, StoreError};
@@ -66,6 +66,9 @@ pub struct Surrogate<B: Backend> {
     /// (`grid_step.rs`): a rollout's or a node's calls read the same materials call after
     /// call, so it is uploaded once, not every call (at 256 scenes of 2,500 particles, 12.8 MB).
     pub(super) one_hot: std::sync::Mutex<Option<(Vec<u8>, burn::tensor::Tensor<B, 3>)>>,
+    /// The last device plan laid out, which the next call of the same scenes reuses with its
+    /// copy on the device (`ConstraintState::device_plan`).
+    pub(super) plans: std::sync::Mutex<PlanCache>,
 }
 
 impl<B: NetOps> Surrogate<B> {
@@ -98,6 +101,7 @@ impl<B: NetOps> Surrogate<B> {
             corrections: Default::default(),
             device_moves: std::sync::Mutex::new(DeviceMoves::default()),
             one_hot: Default::default(),
+            plans: Default::default(),
         }
     }
 
