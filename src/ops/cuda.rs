@@ -189,16 +189,16 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         Some(super::cuda_read::read_ahead(x))
     }
 
-    /// The kernels of `cuda_liquid*.rs`, unless `MINFLOW_CUDA_PROJECTION=host`.
-    fn project_liquid(
+    /// The kernels of `cuda_projection_*.rs`, unless `MINFLOW_CUDA_PROJECTION=host`.
+    fn project_constraints(
         out: FloatTensor<Self>,
-        plan: &super::LiquidPlan,
+        plan: &super::ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
-        Self::projects_liquid().then(|| super::cuda_liquid_op::project(out, plan))
+        Self::projects_constraints().then(|| super::cuda_projection_op::project(out, plan))
     }
 
     /// Unless `MINFLOW_CUDA_PROJECTION=host`.
-    fn projects_liquid() -> bool {
+    fn projects_constraints() -> bool {
         !switches::cuda_host_projection()
     }
 

@@ -1,7 +1,7 @@
 //! Contact between shape-matched bodies on the device (feature `cuda`): the device form of
 //! `model::constraints`' contact part (`Contact::separate`) for one scene, by the whole cube of
-//! the call's kernel (`cuda_liquid_call.rs`), between the ropes and the shape matching
-//! (`cuda_solids.rs`, layout of `solids` there and in `LiquidPlan::solids`' doc).
+//! the call's kernel (`cuda_projection_call.rs`), between the ropes and the shape matching
+//! (`cuda_solids.rs`, layout of `solids` there and in `ProjectionPlan::solids`' doc).
 //!
 //! Each pass finds the pairs of bodies whose particles come closer than the contact distance:
 //! the close particle pairs' mean direction (f64 sums over the cube's threads, where the host
@@ -18,10 +18,10 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_liquid_solve::THREADS;
-use super::cuda_solids::{centre, index, reduce, BODY, HEAD, PER_SCENE};
+use super::cuda_liquid_solve::{reduce, THREADS};
+use super::cuda_solids::{centre, index, BODY, HEAD, PER_SCENE};
 
-/// `MAX_BODIES` (`liquid_plan.rs`).
+/// `MAX_BODIES` (`projection_plan.rs`).
 const MAXB: usize = 16;
 /// Values of `cs` per body and per pair, where the pairs start, and its size.
 const PER_BODY: usize = 8;

@@ -1,14 +1,15 @@
 //! The steps of the liquid's projection on the device (feature `cuda`): the device form of
 //! `model::constraints`' pressure part, walls, velocity update and energy step
-//! (`model::constraints::liquid_plan` says which scenes take it), each `#[cube]` function one
-//! step of `SceneShape::project` for one particle or node with the host's arithmetic, called
-//! in order by the call's kernel (`cuda_liquid_call.rs`); here the first half (begin, splat,
-//! nodes) and the copy and zeroing kernels, the rest in `cuda_liquid_solve.rs`.
+//! (`model::constraints::projection_plan` says which scenes take it), each `#[cube]` function
+//! one step of `SceneShape::project` for one particle or node with the host's arithmetic,
+//! called in order by the call's kernel (`cuda_projection_call.rs`); here the first half
+//! (begin, splat, nodes) and the copy and zeroing kernels, the rest in
+//! `cuda_liquid_solve.rs`.
 //!
 //! Layout: `frames` `[K B N 4]` (the call's predictions, projected in place), `net` the
 //! network's own frames (the same shape), `before` `[B N 4]` (the frame being projected as
 //! it was before the projection), `volume` `[B N]` (the liquid's rest volume, `-(1 + m)`
-//! for a particle of another material `m`), `scenes` `[B SCENE_VALUES]` (`LiquidPlan`'s
+//! for a particle of another material `m`), `scenes` `[B SCENE_VALUES]` (`ProjectionPlan`'s
 //! doc); per scene `nodes` node slots: `acc` `[B nodes 6]` fixed-point sums (phi, solid,
 //! face x momentum and weight, face y momentum and weight), `grid` `[B nodes 5]` (phi, face
 //! x velocity, its weight, face y velocity, its weight), `rhs`, `q`, `kind` `[B nodes]` and
@@ -22,7 +23,7 @@ use cubecl::prelude::*;
 
 /// Fixed-point units per unit of a node's sums (`2^32`).
 pub(super) const FIXED: f32 = 4_294_967_296.0;
-/// Values per scene of `scenes` (`LiquidPlan`'s `SCENE_VALUES`).
+/// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
 /// Node kinds, as the host's (`pressure.rs`): free surface 0, full 1, closed 2, wall 3
 /// (written as literals in [`nodes_kernel`]).

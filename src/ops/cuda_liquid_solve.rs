@@ -7,7 +7,7 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-/// Values per scene of `scenes` (`LiquidPlan`'s `SCENE_VALUES`), the materials' spacings from
+/// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`), the materials' spacings from
 /// `SPACING`.
 const SV: usize = 14;
 const SPACING: usize = 10;
@@ -328,7 +328,7 @@ pub(super) fn moves_kernel(moves: &Array<i64>, out: &mut Array<f32>) {
     }
 }
 
-/// Threads of a cube of the call's kernel (one cube a scene): [`energy`]'s reduction is
+/// Threads of a cube of the call's kernel (one cube a scene): [`reduce`]'s shared memory is
 /// sized by it.
 pub(super) const THREADS: u32 = 256;
 
@@ -434,9 +434,25 @@ fn energy_sums(
         }
         p += THREADS as usize;
     }
-    #[unroll]
-    for w in 0..5usize {
-        shared[u * 5 + w] = sums[w];
+    reduce(shared, &sums, 5u32, 0u32, u);
+}
+
+/// Combines `partial[0..width]` of every thread of the cube (`u` of [`THREADS`]) into
+/// `shared[0..width]`: sums where `op` is 0, minima where it is 1 (`shared` `[5 THREADS]`,
+/// `width` at most 5). Every thread calls it; the result holds until the next call, whose
+/// first barrier lets every thread read it.
+#[cube]
+pub(super) fn reduce(
+    shared: &mut SharedMemory<f64>,
+    partial: &Array<f64>,
+    width: u32,
+    op: u32,
+    u: usize,
+) {
+    sync_cube();
+    let w = width as usize;
+    for i in 0..width {
+        shared[u * w + i as usize] = partial[i as usize];
     }
     sync_cube();
     let mut half = (CUBE_DIM / 2) as usize;
@@ -445,9 +461,13 @@ fn energy_sums(
             break;
         }
         if u < half {
-            #[unroll]
-            for w in 0..5usize {
-                shared[u * 5 + w] += shared[(u + half) * 5 + w];
+            for i in 0..width {
+                let (a, b) = (u * w + i as usize, (u + half) * w + i as usize);
+                if op == 0 {
+                    shared[a] += shared[b];
+                } else {
+                    shared[a] = f64::min(shared[a], shared[b]);
+                }
             }
         }
         sync_cube();

@@ -1,19 +1,19 @@
 //! The ropes and the bodies' shape matching on the device (feature `cuda`): the device form
 //! of `model::constraints`' rope part (`Chain::project`) and shape matching (`Body::project`,
-//! elastic bodies), each a `#[cube]` step of the call's kernel (`cuda_liquid_call.rs`) for one
+//! elastic bodies), each a `#[cube]` step of the call's kernel (`cuda_projection_call.rs`) for one
 //! scene, run before the contact (`cuda_contact.rs`, which sits between the two) and the
-//! liquid's steps, in `SceneShape::project`'s order. Layout of `solids`: `LiquidPlan::solids`'
+//! liquid's steps, in `SceneShape::project`'s order. Layout of `solids`: `ProjectionPlan::solids`'
 //! doc; `frames` `[K B N 4]` as in `cuda_liquid.rs`.
 //!
 //! A chain is one thread's, swept in the host's order (Gauss-Seidel along the chain): the
 //! same arithmetic as the host's, pair by pair. A body is the whole cube's: its sums (centre
-//! of mass, `A_pq`) are f64 over the cube's threads ([`reduce`]), where the host sums in f64
+//! of mass, `A_pq`) are f64 over the cube's threads (`cuda_liquid_solve::reduce`), where the host sums in f64
 //! in particle order, so the two agree to f32 rounding.
 
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_liquid_solve::THREADS;
+use super::cuda_liquid_solve::{reduce, THREADS};
 
 /// Values at the head of `solids` (`SOLIDS_HEAD`) and per scene after it (`SCENE_SOLIDS`).
 pub(super) const HEAD: usize = 8;
@@ -25,44 +25,6 @@ pub(super) const BODY: usize = 8;
 #[cube]
 pub(super) fn index(solids: &Array<f32>, at: usize) -> usize {
     u32::cast_from(solids[at]) as usize
-}
-
-/// Combines `partial[0..width]` of every thread of the cube (`u` of [`THREADS`]) into
-/// `shared[0..width]`: sums where `op` is 0, minima where it is 1 (`shared` `[5 THREADS]`,
-/// `width` at most 5). Every thread calls it; the result holds until the next call, whose
-/// first barrier lets every thread read it.
-#[cube]
-pub(super) fn reduce(
-    shared: &mut SharedMemory<f64>,
-    partial: &Array<f64>,
-    width: u32,
-    op: u32,
-    u: usize,
-) {
-    sync_cube();
-    let w = width as usize;
-    for i in 0..width {
-        shared[u * w + i as usize] = partial[i as usize];
-    }
-    sync_cube();
-    let mut half = (CUBE_DIM / 2) as usize;
-    loop {
-        if half == 0 {
-            break;
-        }
-        if u < half {
-            for i in 0..width {
-                let (a, b) = (u * w + i as usize, (u + half) * w + i as usize);
-                if op == 0 {
-                    shared[a] += shared[b];
-                } else {
-                    shared[a] = f64::min(shared[a], shared[b]);
-                }
-            }
-        }
-        sync_cube();
-        half /= 2;
-    }
 }
 
 /// Scene `s`'s ropes in its frame starting at `base` of `frames`: each chain by one thread,

@@ -94,13 +94,13 @@ mod cuda_implicit_conv;
 #[cfg(feature = "cuda")]
 mod cuda_liquid;
 #[cfg(feature = "cuda")]
-mod cuda_liquid_call;
-#[cfg(feature = "cuda")]
-mod cuda_liquid_op;
-#[cfg(feature = "cuda")]
 mod cuda_liquid_solve;
 #[cfg(feature = "cuda")]
 mod cuda_minrnn;
+#[cfg(feature = "cuda")]
+mod cuda_projection_call;
+#[cfg(feature = "cuda")]
+mod cuda_projection_op;
 #[cfg(feature = "cuda")]
 mod cuda_read;
 #[cfg(feature = "cuda")]
@@ -111,23 +111,23 @@ mod cuda_stencil;
 mod cuda_stencil_kernels;
 pub mod error;
 pub mod host;
-mod liquid_plan;
 pub mod mingru;
 mod ndarray;
 mod net_ops;
 pub mod prepared;
+mod projection_plan;
 pub mod read_ahead;
 pub mod scan;
 mod tensor;
 
 pub use adam_step::AdamStep;
 pub use error::OpsError;
-pub use liquid_plan::{
-    DeviceCopy, LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES,
-    SOLIDS_HEAD,
-};
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
+pub use projection_plan::{
+    DeviceCopy, ProjectionPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES,
+    SOLIDS_HEAD,
+};
 pub use read_ahead::ReadAhead;
 pub use tensor::{
     elu, gather, grid_channels, host_indices, host_values, im2col, linear, linear_elu,

@@ -9,7 +9,7 @@ use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 
 use super::{adam_step, composed, composed_grid, mingru, scan};
-use super::{AdamStep, Kernels, LiquidPlan, PreparedWeights, ReadAhead};
+use super::{AdamStep, Kernels, PreparedWeights, ProjectionPlan, ReadAhead};
 
 /// The backend operations minflow's networks need beyond burn's (see the module doc for
 /// where each implementation lives). ELU is always `alpha = 1`.
@@ -114,23 +114,23 @@ pub trait NetOps: Backend {
         None
     }
 
-    /// The liquid's projection of a call's K predicted frames `out` (`[K B, N, 4]`, physical)
+    /// The constraint projection of a call's K predicted frames `out` (`[K B, N, 4]`, physical)
     /// as `plan` lays it out, on the device in the same stream as the network (no read-back
     /// between them): the projected frames and how far each scene's materials moved (`[B,
     /// MATERIALS]`, particle spacings summed over the call's frames), or None where this
     /// backend has no device form (the host then projects, `model::constraints`). CUDA's:
-    /// `cuda_liquid_op.rs`.
-    fn project_liquid(
+    /// `cuda_projection_op.rs`.
+    fn project_constraints(
         out: FloatTensor<Self>,
-        plan: &LiquidPlan,
+        plan: &ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
         let _ = (out, plan);
         None
     }
 
-    /// Whether [`NetOps::project_liquid`] projects on this backend's device (else the caller
-    /// need not lay out a plan).
-    fn projects_liquid() -> bool {
+    /// Whether [`NetOps::project_constraints`] projects on this backend's device (else the
+    /// caller need not lay out a plan).
+    fn projects_constraints() -> bool {
         false
     }
 

@@ -1,5 +1,5 @@
-//! The projection on the GPU (`NetOps::project_liquid`, `ops::cuda_liquid*`, `cuda_solids`,
-//! `cuda_contact`) against the host's (`SceneShape::project`), on the same predicted frames,
+//! The projection on the GPU (`NetOps::project_constraints`, `ops::cuda_projection_*`,
+//! `cuda_liquid*`, `cuda_solids`, `cuda_contact`) against the host's (`SceneShape::project`), on the same predicted frames,
 //! a bundle of two frames (the second moved by the first's correction), with the demo's
 //! model's parts (its `restore` on): three scenes of a liquid column squeezed into the floor
 //! and partly pushed through the walls; three of every material, a rope stretched, two jelly
@@ -11,7 +11,7 @@
 use burn::backend::Cuda;
 use burn::tensor::{Tensor, TensorData, TensorPrimitive};
 use minflow::material::Material;
-use minflow::model::constraints::{liquid_plan, Constraints, SceneShape};
+use minflow::model::constraints::{projection_plan, Constraints, SceneShape};
 use minflow::ops::NetOps;
 
 type Gpu = Cuda<f32, i32>;
@@ -108,12 +108,13 @@ fn on_device(
         .collect();
     let refs: Vec<&SceneShape> = shapes.iter().collect();
     let material: Vec<u8> = (0..b).flat_map(|_| ids.to_vec()).collect();
-    let plan = liquid_plan(c, &refs, &material, dt, k).expect("the scenes have a plan");
+    let plan = projection_plan(c, &refs, &material, dt, k).expect("the scenes have a plan");
     let flat: Vec<f32> = nets.iter().flatten().flatten().copied().collect();
     let device = Default::default();
     let out = Tensor::<Gpu, 3>::from_data(TensorData::new(flat, [k * b, n, 4]), &device);
-    let (projected, moves) = <Gpu as NetOps>::project_liquid(out.into_primitive().tensor(), &plan)
-        .expect("CUDA projects on the device");
+    let (projected, moves) =
+        <Gpu as NetOps>::project_constraints(out.into_primitive().tensor(), &plan)
+            .expect("CUDA projects on the device");
     let moves: Vec<f32> = Tensor::<Gpu, 2>::from_primitive(TensorPrimitive::Float(moves))
         .into_data()
         .to_vec()

@@ -1,7 +1,7 @@
-//! The projection's data laid out for a device: [`liquid_plan`], the ropes, the bodies' shape
+//! The projection's data laid out for a device: [`projection_plan`], the ropes, the bodies' shape
 //! matching and contact, the liquid's pressure part, the walls, the velocity update and the
 //! energy given back for every scene of a call, as flat arrays a GPU's kernels read
-//! (`crate::ops::LiquidPlan`). The kernels there are the device form of
+//! (`crate::ops::ProjectionPlan`). The kernels there are the device form of
 //! [`SceneShape::project`] for scenes whose only parts are those (every scene under the
 //! shipped models but the `-mixed` ones): the same steps in the same order, the same
 //! arithmetic per node and particle, with the grid's sums in fixed point (the order the
@@ -17,7 +17,7 @@ use std::sync::Arc;
 use super::{Constraints, SceneShape};
 use crate::material::Material;
 use crate::ops::{
-    LiquidPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+    ProjectionPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
 };
 
 const _: () = assert!(MATERIALS == crate::material::COUNT);
@@ -26,13 +26,13 @@ const _: () = assert!(MATERIALS == crate::material::COUNT);
 /// `material[s N..(s + 1) N]` and time step `dt[s]`) and K frames a scene, or None when
 /// `c` has a part the device does not project (the density part, momentum, rebound, a
 /// plastic body, more than [`MAX_BODIES`] bodies) that acts on one of the scenes.
-pub fn liquid_plan(
+pub fn projection_plan(
     c: &Constraints,
     shapes: &[&SceneShape],
     material: &[u8],
     dt: &[f32],
     k: usize,
-) -> Option<LiquidPlan> {
+) -> Option<ProjectionPlan> {
     let known = material.iter().all(|&m| usize::from(m) < MATERIALS);
     if c.momentum.is_some() || shapes.is_empty() || shapes.len() != dt.len() || !known {
         return None;
@@ -41,7 +41,7 @@ pub fn liquid_plan(
     let n = material.len() / b;
     let solids = solids(c, shapes)?;
     let liquid = Material::Liquid.id();
-    let mut plan = LiquidPlan {
+    let mut plan = ProjectionPlan {
         b,
         n,
         k,
@@ -100,7 +100,7 @@ pub fn liquid_plan(
     Some(plan)
 }
 
-/// The `solids` array of a call of `shapes` (`LiquidPlan::solids`' layout), or None where a
+/// The `solids` array of a call of `shapes` (`ProjectionPlan::solids`' layout), or None where a
 /// scene has a body the device does not project (plastic, or more than [`MAX_BODIES`]).
 fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
     let mut chains: Vec<&super::rope::Chain> = Vec::new();
@@ -201,7 +201,7 @@ mod tests {
         let (rest, ids) = block(0.3, 0.1, (20, 10), Material::Liquid);
         let shape = SceneShape::on_grid(&rest, 4, &ids, &c, Some(64));
         let material = [ids.clone(), ids.clone()].concat();
-        let plan = liquid_plan(&c, &[&shape, &shape], &material, &[0.01, 0.02], 1).unwrap();
+        let plan = projection_plan(&c, &[&shape, &shape], &material, &[0.01, 0.02], 1).unwrap();
         assert_eq!((plan.b, plan.n, plan.k), (2, 200, 1));
         assert!(plan.volume.iter().all(|&v| v > 0.0 && v.is_finite()));
         assert_eq!(plan.counts[usize::from(Material::Liquid.id())], 400);
@@ -222,7 +222,7 @@ mod tests {
         ids2[..20].copy_from_slice(&rope_ids);
         let roped = SceneShape::on_grid(&rest2, 4, &ids2, &c, Some(64));
         let material = [ids.clone(), ids2.clone()].concat();
-        let plan = liquid_plan(&c, &[&shape, &roped], &material, &[0.01, 0.01], 1).unwrap();
+        let plan = projection_plan(&c, &[&shape, &roped], &material, &[0.01, 0.01], 1).unwrap();
         let head = SOLIDS_HEAD + 2 * SCENE_SOLIDS;
         assert_eq!(plan.solids[0], head as f32);
         let row = &plan.solids[SOLIDS_HEAD + SCENE_SOLIDS..][..SCENE_SOLIDS];
@@ -240,12 +240,12 @@ mod tests {
         ids3[..36].copy_from_slice(&jelly_ids);
         let body = SceneShape::on_grid(&rest3, 4, &ids3, &plastic, Some(64));
         let material = [ids.clone(), ids3].concat();
-        assert!(liquid_plan(&plastic, &[&shape, &body], &material, &[0.01; 2], 1).is_none());
+        assert!(projection_plan(&plastic, &[&shape, &body], &material, &[0.01; 2], 1).is_none());
         // The momentum part (not on the device) keeps every call on the host.
         let mut with_momentum = c.clone();
         with_momentum.momentum = Some(crate::model::constraints::MomentumParams::DEFAULT);
         let material = [ids.clone(), ids].concat();
-        let plan = liquid_plan(&with_momentum, &[&shape, &shape], &material, &[0.01; 2], 1);
+        let plan = projection_plan(&with_momentum, &[&shape, &shape], &material, &[0.01; 2], 1);
         assert!(plan.is_none());
     }
 }

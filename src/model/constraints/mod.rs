@@ -52,7 +52,7 @@ mod rebound;
 mod rope;
 mod shape;
 
-pub use device::liquid_plan;
+pub use device::projection_plan;
 pub use fit::{fit, FitReport};
 pub use params::{
     Constraints, ContactParams, DensityParams, MomentumParams, PressureParams, ReboundParams,

@@ -11,8 +11,8 @@
 
 use std::sync::{Arc, Mutex};
 
-use crate::model::constraints::{liquid_plan, Constraints, Correction, SceneShape};
-use crate::ops::{LiquidPlan, MATERIALS};
+use crate::model::constraints::{projection_plan, Constraints, Correction, SceneShape};
+use crate::ops::{ProjectionPlan, MATERIALS};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
@@ -27,7 +27,7 @@ pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
 #[derive(Default)]
 pub(super) struct PlanCache {
     key: Option<PlanKey>,
-    plan: Option<LiquidPlan>,
+    plan: Option<ProjectionPlan>,
 }
 
 /// What a cached plan was laid out for (the slots held, so no other can take their
@@ -67,7 +67,7 @@ impl<B: Backend> Default for DeviceMoves<B> {
 
 impl<B: Backend> DeviceMoves<B> {
     /// Adds one call's sums (`[MATERIALS]`) of the plan's K frames.
-    pub(super) fn add(&mut self, sums: Tensor<B, 1>, plan: &LiquidPlan) {
+    pub(super) fn add(&mut self, sums: Tensor<B, 1>, plan: &ProjectionPlan) {
         self.sums = Some(match self.sums.take() {
             Some(held) => held + sums,
             None => sums,
@@ -189,7 +189,7 @@ impl ConstraintState {
     /// The device's plan for projecting this call's predictions onto `c` (the call's input
     /// `frames` `[B, N, 4]`, materials `[B N]`, time steps `[B]`; its K set by the caller),
     /// where every scene's parts are ones the device projects
-    /// ([`crate::model::constraints::liquid_plan`]); each scene's constraint data is built
+    /// ([`crate::model::constraints::projection_plan`]); each scene's constraint data is built
     /// first where it has none, as [`ConstraintState::project`] builds it. Its wall time
     /// counts as projection time (`stages::take_projection`).
     pub(super) fn device_plan(
@@ -197,7 +197,7 @@ impl ConstraintState {
         c: &Constraints,
         (frames, material, dt): (&[f32], &[u8], &[f32]),
         cache: &Mutex<PlanCache>,
-    ) -> Option<LiquidPlan> {
+    ) -> Option<ProjectionPlan> {
         use rayon::prelude::*;
         let started = std::time::Instant::now();
         let b = dt.len();
@@ -233,7 +233,7 @@ impl ConstraintState {
                     .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
                     .collect();
                 let shapes: Vec<&SceneShape> = guards.iter().filter_map(|g| g.as_ref()).collect();
-                let plan = liquid_plan(c, &shapes, material, dt, 1);
+                let plan = projection_plan(c, &shapes, material, dt, 1);
                 (cache.key, cache.plan) = (Some(key), plan.clone());
                 plan
             }

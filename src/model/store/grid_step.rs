@@ -13,7 +13,7 @@ use crate::model::grid::rest::advect::identity;
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
 };
-use crate::ops::{LiquidPlan, NetOps, MATERIALS};
+use crate::ops::{NetOps, ProjectionPlan, MATERIALS};
 
 impl<B: NetOps> Surrogate<B> {
     /// [`Surrogate::step`] ([`Predict::Next`]) or [`Surrogate::step_bundle`]
@@ -23,7 +23,7 @@ impl<B: NetOps> Surrogate<B> {
     /// this shape. Returns the K predicted frames (the first alone for [`Predict::Next`]),
     /// read back as `read` says ([`Read::Ahead`]: behind the call, where the backend can).
     /// With a `plan` the frames are first projected on the device where the backend can
-    /// ([`NetOps::project_liquid`]; the velocity history then follows the projected frames,
+    /// ([`NetOps::project_constraints`]; the velocity history then follows the projected frames,
     /// as `finish_here` makes it on the host); the returned flag says whether they were.
     pub(super) fn grid_step(
         &self,
@@ -32,7 +32,7 @@ impl<B: NetOps> Surrogate<B> {
         material: &[u8],
         dt: &[f32],
         carry: GridState<B>,
-        (predict, read, mut plan): (Predict, Read, Option<LiquidPlan>),
+        (predict, read, mut plan): (Predict, Read, Option<ProjectionPlan>),
     ) -> Result<(Outs, GridState<B>, bool), StoreError> {
         let b = dt.len();
         let n = material.len() / b;
@@ -57,15 +57,15 @@ impl<B: NetOps> Surrogate<B> {
 
     /// `next` (`[K B, N, 4]`) projected on the device as `plan` lays it out (its K set from
     /// `next`), the moves added to the corrections ([`Surrogate::take_corrections`]); None
-    /// where the backend does not project ([`NetOps::project_liquid`]).
+    /// where the backend does not project ([`NetOps::project_constraints`]).
     fn project_on_device(
         &self,
         next: &Tensor<B, 3>,
-        plan: &mut LiquidPlan,
+        plan: &mut ProjectionPlan,
         b: usize,
     ) -> Option<Tensor<B, 3>> {
         plan.k = next.dims()[0] / b.max(1);
-        let (p, moves) = B::project_liquid(next.clone().into_primitive().tensor(), plan)?;
+        let (p, moves) = B::project_constraints(next.clone().into_primitive().tensor(), plan)?;
         let moves = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(moves));
         let mut held = self.device_moves.lock().unwrap_or_else(|e| e.into_inner());
         held.add(moves.sum_dim(0).reshape([MATERIALS]), plan);
@@ -79,7 +79,7 @@ impl<B: NetOps> Surrogate<B> {
     pub(super) fn projected_call(
         &self,
         (next, mut state): (Tensor<B, 3>, GridState<B>),
-        plan: Option<&mut LiquidPlan>,
+        plan: Option<&mut ProjectionPlan>,
         b: usize,
     ) -> ((Tensor<B, 3>, GridState<B>), bool) {
         match plan.and_then(|p| self.project_on_device(&next, p, b)) {

@@ -9,7 +9,7 @@ use super::grid_state::GridState;
 use super::state::NetState;
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
-use crate::ops::{LiquidPlan, NetOps};
+use crate::ops::{NetOps, ProjectionPlan};
 
 impl<B: NetOps> Surrogate<B> {
     /// Seeds with `seed` frames (each `[N, 4]` physical, one trajectory) and predicts `k`
@@ -82,7 +82,7 @@ impl<B: NetOps> Surrogate<B> {
         // projects (its data built from the rest frames, else the first seed frame, as the
         // host loop's first projection builds it).
         let plan = match &self.constraints {
-            Some(c) if loop_on_device && B::projects_liquid() => {
+            Some(c) if loop_on_device && B::projects_constraints() => {
                 (state.constraints).device_plan(c, (&seed[0], material, dt), &self.plans)
             }
             _ => None,
@@ -128,7 +128,7 @@ impl<B: NetOps> Surrogate<B> {
     }
 
     /// The closed loop of [`Surrogate::rollout_batch`] for a grid model without mirror, and
-    /// without projection or with one the device makes (`plan`, [`NetOps::project_liquid`]:
+    /// without projection or with one the device makes (`plan`, [`NetOps::project_constraints`]:
     /// each call's frames projected there and the velocity history taken from them): each
     /// call's last predicted frame is fed back on the device (no download and upload
     /// between calls), and the predictions are read back together once
@@ -140,7 +140,7 @@ impl<B: NetOps> Surrogate<B> {
         &self,
         model: &crate::model::grid::GridModel<B>,
         seed: &[Vec<f32>],
-        (material, dt, mut plan): (&[u8], &[f32], Option<LiquidPlan>),
+        (material, dt, mut plan): (&[u8], &[f32], Option<ProjectionPlan>),
         k: usize,
         mut carry: GridState<B>,
         mut each: impl FnMut(usize, Vec<f32>),

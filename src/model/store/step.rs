@@ -11,7 +11,7 @@ use super::state::{NetState, State};
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
 use crate::model::{LayerState, Model};
-use crate::ops::{LiquidPlan, NetOps};
+use crate::ops::{NetOps, ProjectionPlan};
 
 impl<B: NetOps> Surrogate<B> {
     /// Predicts the next frame of each trajectory in the batch and advances the state. A
@@ -104,7 +104,7 @@ impl<B: NetOps> Surrogate<B> {
         // against 6,634 / 7,995 with the device's (docs/cuda.md).
         let plan = match (&self.constraints, &self.net) {
             (Some(c), Net::Grid(_))
-                if B::projects_liquid() && !self.mirror && read == Read::Now =>
+                if B::projects_constraints() && !self.mirror && read == Read::Now =>
             {
                 constraints.device_plan(c, (frames, material, dt), &self.plans)
             }
@@ -198,7 +198,7 @@ impl<B: NetOps> Surrogate<B> {
         dt: &[f32],
         net: NetState<B>,
         (predict, read): (Predict, Read),
-        plan: Option<LiquidPlan>,
+        plan: Option<ProjectionPlan>,
     ) -> Result<(Outs, NetState<B>, bool), StoreError> {
         match (&self.net, net) {
             (Net::Paper(model), NetState::Paper(layers)) => {

@@ -1,25 +1,26 @@
-//! [`LiquidPlan`]: the projection of one call laid out for a device (plain data; built by
-//! `model::constraints::liquid_plan`, run by the CUDA backend's
-//! [`NetOps::project_liquid`](super::NetOps::project_liquid), `cuda_liquid*.rs` for the
-//! liquid and the walls, `cuda_solids.rs` and `cuda_contact.rs` for the ropes, the bodies'
-//! shape matching and their contact).
+//! [`ProjectionPlan`]: the projection of one call laid out for a device (plain data; built by
+//! `model::constraints::projection_plan`, run by the CUDA backend's
+//! [`NetOps::project_constraints`](super::NetOps::project_constraints):
+//! `cuda_projection_*.rs` the call, `cuda_liquid*.rs` the liquid and the walls,
+//! `cuda_solids.rs` and `cuda_contact.rs` the ropes, the bodies' shape matching and their
+//! contact).
 
 /// Materials a plan keeps apart in its moves (`crate::material::COUNT`).
 pub const MATERIALS: usize = 4;
 
-/// Values per scene in [`LiquidPlan::scenes`].
+/// Values per scene in [`ProjectionPlan::scenes`].
 pub const SCENE_VALUES: usize = 10 + MATERIALS;
 
 use std::any::Any;
 use std::sync::{Arc, OnceLock};
 
-/// Values at the head of [`LiquidPlan::solids`].
+/// Values at the head of [`ProjectionPlan::solids`].
 pub const SOLIDS_HEAD: usize = 8;
 
-/// Values per scene in [`LiquidPlan::solids`], after its head.
+/// Values per scene in [`ProjectionPlan::solids`], after its head.
 pub const SCENE_SOLIDS: usize = 5;
 
-/// Values per body in [`LiquidPlan::solids`]' body table.
+/// Values per body in [`ProjectionPlan::solids`]' body table.
 pub const BODY_VALUES: usize = 8;
 
 /// The most shape-matched bodies a scene the device projects may have (its contact pairs are
@@ -28,7 +29,7 @@ pub const MAX_BODIES: usize = 16;
 
 /// The projection of one call's K predicted frames (`[K B, N, 4]`) on a device.
 ///
-/// Per scene `s` (row `s` of [`LiquidPlan::scenes`], [`SCENE_VALUES`] each): node spacing
+/// Per scene `s` (row `s` of [`ProjectionPlan::scenes`], [`SCENE_VALUES`] each): node spacing
 /// `h` (domain units), nodes per side (0: no liquid, the pressure part skipped), the
 /// compressed threshold, the band along the walls (width, domain units) and its threshold,
 /// the walls `lo` and `hi` (domain units), the time step `dt`, the solids' volume per
@@ -36,7 +37,7 @@ pub const MAX_BODIES: usize = 16;
 /// each of the [`MATERIALS`] in the rest frame (domain units; 0 where the scene has none), by
 /// which the moves are counted.
 #[derive(Clone, Debug, PartialEq)]
-pub struct LiquidPlan {
+pub struct ProjectionPlan {
     /// Scenes of the call, B.
     pub b: usize,
     /// Particles per scene, N.
@@ -91,7 +92,7 @@ pub struct LiquidPlan {
     pub device: DeviceCopy,
 }
 
-/// A backend's copy of a [`LiquidPlan`]'s arrays on its device (whatever type the backend
+/// A backend's copy of a [`ProjectionPlan`]'s arrays on its device (whatever type the backend
 /// keeps), made once and shared by the plan's clones. Plans compare by their arrays: two
 /// copies are always equal.
 #[derive(Clone, Default)]

@@ -1,10 +1,10 @@
-//! [`NetOps::project_liquid`](super::NetOps::project_liquid) on burn's CUDA backend (feature
-//! `cuda`): the liquid's projection of a call's predictions recorded as one custom operation
-//! of burn's fusion layer (how one joins the fusion stream: see `cublas.rs`), right behind the
-//! network's call, so the frames are projected before they are read back and no host pass
-//! sits between the call and the next. One kernel projects every frame of the call
-//! (`cuda_liquid_call.rs`), behind a copy of the frames and the zeroing of the sums, and
-//! before the moves are turned out of fixed point.
+//! [`NetOps::project_constraints`](super::NetOps::project_constraints) on burn's CUDA
+//! backend (feature `cuda`): the projection of a call's predictions recorded as one custom
+//! operation of burn's fusion layer (how one joins the fusion stream: see `cublas.rs`),
+//! right behind the network's call, so the frames are projected before they are read back
+//! and no host pass sits between the call and the next. One kernel projects every frame of
+//! the call (`cuda_projection_call.rs`), behind a copy of the frames and the zeroing of the
+//! sums, and before the moves are turned out of fixed point.
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
@@ -19,20 +19,20 @@ use cubecl::server::Handle;
 
 use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use super::cuda_liquid::{copy_kernel, zero_kernel};
-use super::cuda_liquid_call::{call_kernel, BuffersLaunch};
 use super::cuda_liquid_solve::{moves_kernel, THREADS};
-use super::{LiquidPlan, MATERIALS, SCENE_VALUES};
+use super::cuda_projection_call::{call_kernel, BuffersLaunch};
+use super::{ProjectionPlan, MATERIALS, SCENE_VALUES};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
 
-/// The recorded projection: inputs `[out, volume, scenes, solids]`, outputs the projected frames and
-/// the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
+/// The recorded projection: inputs `[out, volume, scenes, solids]`, outputs the projected
+/// frames and the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
 #[derive(Debug)]
-struct LiquidOp {
+struct ProjectionOp {
     desc: CustomOpIr,
     /// The plan (its arrays shared; on the device they are the inputs).
-    s: LiquidPlan,
+    s: ProjectionPlan,
 }
 
 /// Scratch of one call: `[B nodes]` node slots of each array.
@@ -51,7 +51,7 @@ struct Scratch {
 /// A launch argument over `len` elements of `h`.
 fn arr(h: &Handle, len: usize) -> ArrayArg<CudaRuntime> {
     // SAFETY: every scratch handle is allocated with `len` elements of the kernel's type
-    // (`LiquidOp::execute`).
+    // (`ProjectionOp::execute`).
     unsafe { ArrayArg::from_raw_parts(h.clone(), len) }
 }
 
@@ -60,7 +60,7 @@ fn flat(t: &CubeTensor<CudaRuntime>) -> ArrayArg<CudaRuntime> {
     t.clone().into_array_arg()
 }
 
-impl Operation<Runtime> for LiquidOp {
+impl Operation<Runtime> for ProjectionOp {
     fn execute(&self, handles: &mut HandleContainer<<Runtime as FusionRuntime>::FusionHandle>) {
         let inputs = &self.desc.inputs;
         let out = contiguous(handles.get_float_tensor::<Inner>(&inputs[0]));
@@ -135,7 +135,7 @@ struct Args<'a> {
     scratch: &'a Scratch,
 }
 
-impl LiquidOp {
+impl ProjectionOp {
     /// The call's kernel: a cube a scene, every frame in order.
     fn run(&self, a: &Args<'_>) {
         let s = &self.s;
@@ -186,7 +186,7 @@ impl LiquidOp {
 /// `out` does not hold `plan`'s K B N rows of 4, or the plan's arrays are not its sizes.
 pub(crate) fn project(
     out: FloatTensor<Cuda>,
-    plan: &LiquidPlan,
+    plan: &ProjectionPlan,
 ) -> (FloatTensor<Cuda>, FloatTensor<Cuda>) {
     let shape = out.shape();
     assert_eq!(
@@ -224,8 +224,8 @@ pub(crate) fn project(
     let inputs = [out, volume, scenes, solids];
     let streams = OperationStreams::with_inputs(&inputs);
     let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
-    let desc = CustomOpIr::new("minflow_liquid_projection", &irs, &[projected, moves]);
-    let op = LiquidOp {
+    let desc = CustomOpIr::new("minflow_projection", &irs, &[projected, moves]);
+    let op = ProjectionOp {
         desc: desc.clone(),
         s: plan.clone(),
     };

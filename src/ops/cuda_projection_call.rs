@@ -1,6 +1,7 @@
-//! The liquid's projection of one call as one kernel (feature `cuda`): a cube a scene
-//! ([`THREADS`] threads over the scene's particles and node slots, `sync_cube` between the
-//! steps), the call's K frames in order, each the steps of `cuda_liquid.rs` and
+//! The projection of one call as one kernel (feature `cuda`): a cube a scene ([`THREADS`]
+//! threads over the scene's particles and node slots, `sync_cube` between the steps), the
+//! call's K frames in order, each the ropes, contact and shape matching of `cuda_solids.rs`
+//! and `cuda_contact.rs`, then the liquid's steps of `cuda_liquid.rs` and
 //! `cuda_liquid_solve.rs` (layout there). The sweeps visit only the scene's full nodes, red
 //! and black, listed as the right-hand side is made (as the host's stencils list them):
 //! sweeps over every node slot cost 3.6x the host's projection (`fluid`, 256 scenes a call,
@@ -16,7 +17,7 @@ use super::cuda_liquid::{begin, node, splat};
 use super::cuda_liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
 use super::cuda_solids::{bodies, ropes, HEAD, PER_SCENE};
 
-/// Values per scene of `scenes` (`LiquidPlan`'s `SCENE_VALUES`).
+/// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
 
 /// The call's arrays (`cuda_liquid.rs`'s layout; `list` `[B nodes]`: each scene's full
