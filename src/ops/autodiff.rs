@@ -28,6 +28,20 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
     /// kernels, whose P2G sums in fixed point, so gradients are the same on every run).
     const DENSE_STENCIL: bool = B::DENSE_STENCIL;
 
+    /// The inner backend's projection, its result a constant of the graph (training adds the
+    /// move it makes to the prediction: a straight-through gradient).
+    fn project_constraints(
+        out: FloatTensor<Self>,
+        plan: &super::ProjectionPlan,
+    ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
+        let (projected, moves) = B::project_constraints(Self::inner(out), plan)?;
+        Some((Self::from_inner(projected), Self::from_inner(moves)))
+    }
+
+    fn projects_constraints() -> bool {
+        B::projects_constraints()
+    }
+
     fn dense_stencil() -> bool {
         B::dense_stencil()
     }

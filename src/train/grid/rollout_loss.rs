@@ -10,14 +10,14 @@
 
 use burn::module::Module;
 use burn::tensor::backend::Backend;
-use burn::tensor::{Distribution, Tensor};
+use burn::tensor::{Distribution, Tensor, TensorPrimitive};
 
 use super::batch::{BatchTensors, HostRows};
 use super::options::GridTrainOptions;
-use crate::model::constraints::SceneShape;
+use crate::model::constraints::{projection_plan, SceneShape};
 use crate::model::grid::{GridConfig, GridModel, MemoryState, StepInput};
 use crate::model::upload;
-use crate::ops::NetOps;
+use crate::ops::{NetOps, ProjectionPlan};
 use terms::{frame_loss, frame_weights};
 
 mod terms;
@@ -46,6 +46,9 @@ pub(super) struct Rollout<'a, B: Backend> {
     calls: usize,
     /// Each sample's constraint data (built from its first frame) when the options project.
     shapes: Vec<SceneShape>,
+    /// The batch's projection laid out for the device, where the backend projects there and
+    /// every sample's parts are ones it projects (`model::constraints::projection_plan`).
+    plan: Option<ProjectionPlan>,
 }
 
 impl<'a, B: NetOps> Rollout<'a, B> {
@@ -84,6 +87,7 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             }
             None => Vec::new(),
         };
+        let plan = device_plan::<B>(opts, &shapes, &batch.host);
         Self {
             config,
             opts,
@@ -94,18 +98,31 @@ impl<'a, B: NetOps> Rollout<'a, B> {
             deformation: None,
             calls: 0,
             shapes,
+            plan,
         }
     }
 
     /// A predicted frame (`pos`, `vel`: `[B, N, 2]`) projected onto the options' constraints
-    /// with a straight-through gradient (`x + (P(x) - x)` with the move a constant); as it is
-    /// without constraints or when it cannot be read back.
+    /// with a straight-through gradient (`x + (P(x) - x)` with the move a constant): on the
+    /// device with the batch's plan where there is one (one H100, `-small-k4`: 165 samples/s
+    /// against 110 through the host), else on the host; as it is without constraints or when
+    /// it cannot be read back.
     fn projected(&mut self, pos: Tensor<B, 3>, vel: Tensor<B, 3>) -> (Tensor<B, 3>, Tensor<B, 3>) {
         let Some(c) = self.opts.constraints.as_ref() else {
             return (pos, vel);
         };
         let [b, n, _] = pos.dims();
         let frame = Tensor::cat(vec![pos.clone().detach(), vel.clone().detach()], 2);
+        // On the device where it projects: no read-back, the move a constant of the graph.
+        let on_device = (self.plan.as_ref())
+            .and_then(|plan| B::project_constraints(frame.clone().into_primitive().tensor(), plan));
+        if let Some((projected, _)) = on_device {
+            let moved = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(projected)) - frame;
+            return (
+                pos + moved.clone().narrow(2, 0, 2),
+                vel + moved.narrow(2, 2, 2),
+            );
+        }
         let Ok(host) = crate::model::download(frame) else {
             return (pos, vel);
         };
@@ -238,6 +255,23 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         self.calls += 1;
         outs
     }
+}
+
+/// The batch's projection laid out for the device: where the options project, the backend
+/// projects on its device ([`NetOps::projects_constraints`]) and every sample's parts are
+/// ones it projects (one frame a call, [`projection_plan`]); None otherwise (the host
+/// projects, one sample a thread).
+fn device_plan<B: NetOps>(
+    opts: &GridTrainOptions,
+    shapes: &[SceneShape],
+    host: &HostRows,
+) -> Option<ProjectionPlan> {
+    let c = opts.constraints.as_ref()?;
+    if !B::projects_constraints() || shapes.is_empty() {
+        return None;
+    }
+    let shapes: Vec<&SceneShape> = shapes.iter().collect();
+    projection_plan(c, &shapes, &host.material, &host.dt, 1)
 }
 
 /// `v` (`[B, N, 2]`) with Gaussian noise of `noise * dv_scale` added (as it is without noise).
