@@ -323,11 +323,19 @@ projection() { # docs/cuda.md, "The projection on the device"
             check "projection-$family-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" \
                 bench rollout --device cuda --family $family \
                 --model models/all-grid-mingru-small-k4 --model models/all-grid-mingru \
-                --constraints off --constraints on --scenes 256 --batch 256 --threads 16 --frames 20
+                --constraints off --constraints on --scenes 256 --batch 256 --threads 16 --frames 100
         done
         check "projection-eval-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" eval \
             --device cuda --model models/all-grid-mingru-small-k4 --model models/all-grid-mingru \
             --data bags --split all --starts 3 --no-render --out "$OUT/projection-eval-$where"
+        # Training through the projection: samples/s and losses in metrics.csv.
+        [ -d "$OUT/projection-data" ] || "$BIN" simulate --device cuda --family multi \
+            --scenes 0..12 --frames 120 --out "$OUT/projection-data" >/dev/null 2>&1
+        check "projection-train-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" train \
+            --data "$OUT/projection-data" --out "$OUT/projection-train-$where" \
+            --init-from models/all-grid-mingru-small-k4 --unet-width 16 --levels 3 --bundle 4 \
+            --model mingru --reference none --constraints on --epochs 2 --samples-per-epoch 320 \
+            --device cuda --seed 3 --val-starts 1
     done
     tables_agree projection-eval-agree "$OUT/projection-eval-device" "$OUT/projection-eval-host"
 }

@@ -34,7 +34,9 @@
 //! liquid's grid cell and rest mass, the particle spacing of each material) is built once
 //! from its rest frame (the first frame the model sees) and carried in the surrogate's
 //! per-scene state. The projection is a host pass, one scene at a time and deterministic:
-//! the node and offline `eval` project alike, batched and unbatched alike. [`mod@fit`] fits the
+//! the node and offline `eval` project alike, batched and unbatched alike. On a GPU the parts
+//! but momentum and rebound also have a device form, laid out by [`projection_plan`] (the
+//! same steps in the same order; `crate::ops`' CUDA kernels). [`mod@fit`] fits the
 //! parameters on the truth; the cell list of [`crate::neighbours`] finds the bodies (fixed
 //! radius), their particle spacing (k nearest) and their contacts (fixed radius).
 
