@@ -152,10 +152,12 @@ impl<B: NetOps> Surrogate<B> {
         let upload = |f: &[f32]| crate::model::upload::<B, 3>(f.to_vec(), [b, n, 4], &self.device);
         let (last, before) = seed.split_last().expect("a seed frame");
         // The seed frames but the last only carry the state on: their predictions are
-        // dropped unread, so the host does not wait for them either.
+        // dropped unread, so the host does not wait for them either. They are projected as
+        // the host loop's steps project them, so that the moves counted
+        // ([`Surrogate::take_corrections`]) are the same frames' either way.
         for f in before {
             let mut none = None;
-            carry = B::run_step(|| {
+            let call = B::run_step(|| {
                 self.grid_call(
                     model,
                     upload(f),
@@ -165,8 +167,8 @@ impl<B: NetOps> Surrogate<B> {
                     Predict::Next,
                     &mut none,
                 )
-            })?
-            .1;
+            })?;
+            carry = self.projected_call(call, plan.as_mut(), b).0 .1;
         }
         let mut frame = upload(last);
         let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
