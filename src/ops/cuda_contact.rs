@@ -1,7 +1,7 @@
 //! Contact between shape-matched bodies on the device (feature `cuda`): the device form of
-//! `model::constraints`' contact part (`Contact::separate`) for one scene, by the whole cube of
-//! the call's kernel (`cuda_projection_call.rs`), between the ropes and the shape matching
-//! (`cuda_solids.rs`, layout of `solids` there and in `ProjectionPlan::solids`' doc).
+//! `model::constraints`' contact part (`Contact::separate`; Müller et al. 2007, section 3.5)
+//! for one scene, by the whole cube of the call's kernel (`cuda_projection_call.rs`), between
+//! the ropes and the shape matching (`cuda_solids.rs`; `solids`: `ProjectionPlan::solids`).
 //!
 //! Each pass finds the pairs of bodies whose particles come closer than the contact distance:
 //! the close particle pairs' mean direction (f64 sums over the cube's threads, where the host

@@ -1,14 +1,16 @@
 //! The ropes and the bodies' shape matching on the device (feature `cuda`): the device form
-//! of `model::constraints`' rope part (`Chain::project`) and shape matching (`Body::project`,
-//! elastic bodies), each a `#[cube]` step of the call's kernel (`cuda_projection_call.rs`) for one
-//! scene, run before the contact (`cuda_contact.rs`, which sits between the two) and the
-//! liquid's steps, in `SceneShape::project`'s order. Layout of `solids`: `ProjectionPlan::solids`'
-//! doc; `frames` `[K B N 4]` as in `cuda_liquid.rs`.
+//! of `model::constraints`' rope part (`Chain::project`: Kim, Chentanez & Müller 2012, "Long
+//! Range Attachments") and shape matching (`Body::project`, elastic bodies: Müller et al.
+//! 2005, "Meshless Deformations Based on Shape Matching"), each a `#[cube]` step of the call's
+//! kernel (`cuda_projection_call.rs`) for one scene, run before the contact
+//! (`cuda_contact.rs`, which sits between the two) and the liquid's steps, in
+//! `SceneShape::project`'s order. Layout of `solids`: `ProjectionPlan::solids`' doc; `frames`
+//! `[K B N 4]` as in `cuda_liquid.rs`.
 //!
 //! A chain is one thread's, swept in the host's order (Gauss-Seidel along the chain): the
 //! same arithmetic as the host's, pair by pair. A body is the whole cube's: its sums (centre
-//! of mass, `A_pq`) are f64 over the cube's threads (`cuda_liquid_solve::reduce`), where the host sums in f64
-//! in particle order, so the two agree to f32 rounding.
+//! of mass, `A_pq`) are f64 over the cube's threads (`cuda_liquid_solve::reduce`), where the
+//! host sums in f64 in particle order, so the two agree to f32 rounding.
 
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
