@@ -40,11 +40,14 @@ struct PlanKey {
 }
 
 impl PlanKey {
-    /// Whether `self` and `other` lay out the same plan.
-    fn same(&self, other: &PlanKey) -> bool {
-        let slots = self.slots.len() == other.slots.len()
-            && (self.slots.iter().zip(&other.slots)).all(|(a, b)| Arc::ptr_eq(a, b));
-        slots && self.dt == other.dt && self.grids == other.grids && self.material == other.material
+    /// Whether this is the key of a call of `slots` with time steps `dt`, materials
+    /// `material` and solver grids `grids` (compared in place: a node's every call checks it).
+    fn fits(&self, slots: &[Slot], dt: &[f32], material: &[u8], grids: &[Option<u32>]) -> bool {
+        self.slots.len() == slots.len()
+            && (self.slots.iter().zip(slots)).all(|(a, b)| Arc::ptr_eq(a, b))
+            && (self.dt.iter().copied()).eq(dt.iter().map(|t| t.to_bits()))
+            && self.grids == grids
+            && self.material == material
     }
 }
 
@@ -219,16 +222,17 @@ impl ConstraintState {
                 grids[i],
             );
         });
-        let key = PlanKey {
-            slots: self.shapes.clone(),
-            dt: dt.iter().map(|t| t.to_bits()).collect(),
-            material: material.to_vec(),
-            grids,
-        };
         let mut cache = cache.lock().unwrap_or_else(|e| e.into_inner());
-        let plan = match cache.key.as_ref().is_some_and(|k| k.same(&key)) {
+        let hit = (cache.key.as_ref()).is_some_and(|k| k.fits(&self.shapes, dt, material, &grids));
+        let plan = match hit {
             true => cache.plan.clone(),
             false => {
+                let key = PlanKey {
+                    slots: self.shapes.clone(),
+                    dt: dt.iter().map(|t| t.to_bits()).collect(),
+                    material: material.to_vec(),
+                    grids,
+                };
                 let guards: Vec<_> = (self.shapes.iter())
                     .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
                     .collect();
