@@ -223,35 +223,59 @@ fn splat_faces(
     first: usize,
     side: u32,
 ) {
-    let gx = x / h - ox;
-    let gy = y / h - oy;
-    let bx = f32::floor(gx);
-    let by = f32::floor(gy);
-    let (tx, ty) = (gx - bx, gy - by);
-    let (ix, iy) = (i32::cast_from(bx), i32::cast_from(by));
-    let s = i32::cast_from(side);
     #[unroll]
     for a in 0..2u32 {
         #[unroll]
         for b in 0..2u32 {
-            let i = ix + i32::cast_from(a);
-            let j = iy + i32::cast_from(b);
-            if i >= 0 && j >= 0 && i < s && j < s {
-                let mut wa = f32::new(1.0) - tx;
-                if a == 1 {
-                    wa = tx;
-                }
-                let mut wb = f32::new(1.0) - ty;
-                if b == 1 {
-                    wb = ty;
-                }
-                let w = wa * wb;
-                let node = first + (i as usize) * (side as usize) + j as usize;
+            let (node, w, on) = face_corner(x, y, h, ox, oy, a, b, first, side);
+            if on {
                 add_fixed(acc, node, word, w * v);
                 add_fixed(acc, node, word + 1, w);
             }
         }
     }
+}
+
+/// Corner `(a, b)` (each 0 or 1) of the 2 x 2 faces of the lattice offset by `(ox, oy)` cells
+/// around `(x, y)` (node spacing `h`, a scene of `side` nodes a side from slot `first`): its
+/// node slot, its bilinear weight, and whether it lies on the grid (`Pressure::each_face`:
+/// faces off the grid are skipped). The splat of the face velocities and the gather of the
+/// faces' displacement (`cuda_liquid_solve.rs`) share it.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn face_corner(
+    x: f32,
+    y: f32,
+    h: f32,
+    ox: f32,
+    oy: f32,
+    a: u32,
+    b: u32,
+    first: usize,
+    side: u32,
+) -> (usize, f32, bool) {
+    let gx = x / h - ox;
+    let gy = y / h - oy;
+    let bx = f32::floor(gx);
+    let by = f32::floor(gy);
+    let (tx, ty) = (gx - bx, gy - by);
+    let i = i32::cast_from(bx) + i32::cast_from(a);
+    let j = i32::cast_from(by) + i32::cast_from(b);
+    let s = i32::cast_from(side);
+    let on = i >= 0 && j >= 0 && i < s && j < s;
+    let mut wa = f32::new(1.0) - tx;
+    if a == 1 {
+        wa = tx;
+    }
+    let mut wb = f32::new(1.0) - ty;
+    if b == 1 {
+        wb = ty;
+    }
+    let mut node = first;
+    if on {
+        node = first + (i as usize) * (side as usize) + j as usize;
+    }
+    (node, wa * wb, on)
 }
 
 /// Node slot `g`: the sums out of fixed point (and cleared for the next frame), the face

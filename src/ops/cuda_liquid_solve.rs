@@ -7,6 +7,8 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
+use super::cuda_liquid::face_corner;
+
 /// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`), the materials' spacings from
 /// `SPACING`.
 const SV: usize = 14;
@@ -207,31 +209,14 @@ fn gather_faces(
     first: usize,
     side: u32,
 ) -> f32 {
-    let gx = x / h - ox;
-    let gy = y / h - oy;
-    let bx = f32::floor(gx);
-    let by = f32::floor(gy);
-    let (tx, ty) = (gx - bx, gy - by);
-    let (ix, iy) = (i32::cast_from(bx), i32::cast_from(by));
-    let s = i32::cast_from(side);
     let mut d = f32::new(0.0);
     #[unroll]
     for a in 0..2u32 {
         #[unroll]
         for b in 0..2u32 {
-            let i = ix + i32::cast_from(a);
-            let j = iy + i32::cast_from(b);
-            if i >= 0 && j >= 0 && i < s && j < s {
-                let mut wa = f32::new(1.0) - tx;
-                if a == 1 {
-                    wa = tx;
-                }
-                let mut wb = f32::new(1.0) - ty;
-                if b == 1 {
-                    wb = ty;
-                }
-                let node = first + (i as usize) * (side as usize) + j as usize;
-                d += wa * wb * faces[node * 2 + word];
+            let (node, w, on) = face_corner(x, y, h, ox, oy, a, b, first, side);
+            if on {
+                d += w * faces[node * 2 + word];
             }
         }
     }
