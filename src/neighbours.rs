@@ -83,7 +83,11 @@ impl Bins {
         let g = self.cells as i64;
         let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
         for gx in (cx - 1).max(0)..=(cx + 1).min(g - 1) {
-            self.run(gx, (cy - 1).max(0), (cy + 1).min(g - 1), &mut visit);
+            self.run(gx, (cy - 1).max(0), (cy + 1).min(g - 1), &mut |from, to| {
+                for &j in &self.order[from..to] {
+                    visit(j as usize);
+                }
+            });
         }
     }
 
@@ -139,20 +143,57 @@ impl Bins {
         (!whole).then(|| r as f64 / self.cells as f64)
     }
 
+    /// [`Self::ring_around`] handing out the ring's particles as runs of positions in
+    /// [`Self::order`] (`spans(from, to)`: `order[from..to]`, in the order `ring_around`
+    /// visits them), for callers that keep the particles' data packed in that order.
+    pub fn ring_spans(
+        &self,
+        [x, y]: [f32; 2],
+        r: i64,
+        mut spans: impl FnMut(usize, usize),
+    ) -> Option<f64> {
+        let g = self.cells as i64;
+        let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
+        self.ring_runs(cx, cy, r, &mut spans);
+        let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
+        (!whole).then(|| r as f64 / self.cells as f64)
+    }
+
+    /// The binned particles' indices, cell by cell (cell `gx cells + gy`), each cell's in the
+    /// order of `ids`.
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+
+    /// How many cells hold a binned particle.
+    pub fn occupied(&self) -> usize {
+        self.start.windows(2).filter(|w| w[1] > w[0]).count()
+    }
+
     /// Calls `visit(j)` for every binned particle in the cells at Chebyshev distance `r` from
     /// cell `(cx, cy)`, by x index, then y index.
     fn ring(&self, cx: i64, cy: i64, r: i64, visit: &mut impl FnMut(usize)) {
+        self.ring_runs(cx, cy, r, &mut |from, to| {
+            for &j in &self.order[from..to] {
+                visit(j as usize);
+            }
+        });
+    }
+
+    /// The runs of [`Self::order`] that make up ring `r` around cell `(cx, cy)`, by x index,
+    /// then y index (see [`Self::ring`]).
+    fn ring_runs(&self, cx: i64, cy: i64, r: i64, spans: &mut impl FnMut(usize, usize)) {
         let g = self.cells as i64;
         let (low, high) = ((cy - r).max(0), (cy + r).min(g - 1));
         for gx in (cx - r).max(0)..=(cx + r).min(g - 1) {
             if (gx - cx).abs() == r {
-                self.run(gx, low, high, visit);
+                self.run(gx, low, high, spans);
             } else {
                 if cy - r >= 0 {
-                    self.run(gx, cy - r, cy - r, visit);
+                    self.run(gx, cy - r, cy - r, spans);
                 }
                 if cy + r < g {
-                    self.run(gx, cy + r, cy + r, visit);
+                    self.run(gx, cy + r, cy + r, spans);
                 }
             }
         }
@@ -187,14 +228,14 @@ impl Bins {
             .collect()
     }
 
-    /// Calls `visit(j)` for every binned particle in cells `(gx, low..=high)`: one slice of
-    /// `order`, as the cells of one x index are consecutive.
-    fn run(&self, gx: i64, low: i64, high: i64, visit: &mut impl FnMut(usize)) {
+    /// The run of [`Self::order`] that holds cells `(gx, low..=high)`, as `spans(from, to)`:
+    /// the cells of one x index are consecutive.
+    fn run(&self, gx: i64, low: i64, high: i64, spans: &mut impl FnMut(usize, usize)) {
         let c = (gx * self.cells as i64) as usize;
         let from = self.start[c + low as usize] as usize;
         let to = self.start[c + high as usize + 1] as usize;
-        for &j in &self.order[from..to] {
-            visit(j as usize);
+        if to > from {
+            spans(from, to);
         }
     }
 }

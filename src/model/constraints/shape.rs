@@ -42,11 +42,12 @@ pub(super) struct Body {
 /// 0 when the scene has none of `m` close enough. Distances are f32 `hypot`s, taken only
 /// where the squared distances cannot decide ([`kth_within`]).
 ///
-/// Each particle's neighbours are met ring of 1/256-cells by ring ([`Bins::ring_around`]) until
-/// the k-th nearest so far lies well inside the rings' reach (every row it could tie with
-/// met) or the reach passes 1/64: the rows [`kth_within`] decides on are those of all
-/// particles within 1/64, so the result is theirs, at a cost that does not grow with the
-/// density (40,000 particles on a 256^2 solver grid meet ~16x fewer than in 1/64 cells).
+/// Each particle's neighbours are met ring of cells by ring ([`Bins::ring_spans`]) until the
+/// k-th nearest so far lies well inside the rings' reach (every row it could tie with met) or
+/// the reach passes 1/64: the rows [`kth_within`] decides on are those of all particles
+/// within 1/64, so the result is theirs. The cells are 1/64 wide, narrower where the particles
+/// crowd them ([`spacing_bins`]), so that a search meets a few dozen particles at any density;
+/// their positions are packed in the cells' order and read run by run.
 pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) -> f32 {
     let ids: Vec<u32> = (0..material.len() as u32)
         .filter(|&i| material[i as usize] == m)
@@ -56,20 +57,27 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
     }
     let radius = 1.0 / 64.0;
     let far = radius * radius * (1.0 + 1e-4);
-    let bins = Bins::new(rest, stride, &ids, 256);
+    let bins = spacing_bins(rest, stride, &ids);
+    let packed: Vec<[f32; 2]> = (bins.order().iter())
+        .map(|&i| [rest[stride * i as usize], rest[stride * i as usize + 1]])
+        .collect();
     let mut kth = Vec::with_capacity(ids.len());
-    let mut near: Vec<[f32; 3]> = Vec::new();
-    for &i in &ids {
-        let i = i as usize;
-        let (x, y) = (rest[stride * i], rest[stride * i + 1]);
+    let (mut near, mut tied): (Vec<[f32; 3]>, Vec<f32>) = (Vec::new(), Vec::new());
+    for (me, &[x, y]) in packed.iter().enumerate() {
         near.clear();
         for r in 0.. {
-            let reach = bins.ring_around([x, y], r, |j| {
-                let (dx, dy) = (rest[stride * j] - x, rest[stride * j + 1] - y);
-                let d2 = dx * dx + dy * dy;
-                if j != i && d2 <= far {
-                    near.push([d2, dx, dy]);
+            let reach = bins.ring_spans([x, y], r, |from, to| {
+                // Every row written, the count advanced only past those kept: no branch to
+                // mispredict on a particle that half the time lies outside the radius.
+                let mut kept = near.len();
+                near.resize(kept + (to - from), [0.0; 3]);
+                for (j, &[px, py]) in packed[from..to].iter().enumerate() {
+                    let (dx, dy) = (px - x, py - y);
+                    let d2 = dx * dx + dy * dy;
+                    near[kept] = [d2, dx, dy];
+                    kept += usize::from((d2 <= far) & (from + j != me));
                 }
+                near.truncate(kept);
             });
             // Settled: every particle within the radius met, or k rows inside the reach by
             // far more than `kth_within`'s tie band (1e-4) and f32 rounding, so every row
@@ -82,7 +90,7 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
                 break;
             }
         }
-        if let Some(d) = kth_within(&mut near, SPACING_NEIGHBOURS, radius) {
+        if let Some(d) = kth_within(&mut near, &mut tied, SPACING_NEIGHBOURS, radius) {
             kth.push(d);
         }
     }
@@ -94,11 +102,26 @@ pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) ->
     kth[mid] * (std::f32::consts::PI / SPACING_NEIGHBOURS as f32).sqrt()
 }
 
+/// The cells [`spacing_of`] searches `ids` of `rest` in: 64 a side (1/64, its radius, so two
+/// rings cover it), or 128 or 256 where the occupied cells hold more than 16 or 64 particles
+/// on average (a 40,000-particle scene on a 256^2 solver grid holds ~90). Powers of two, on
+/// whose edges `x * cells` falls without rounding, so the rings' reach is exact.
+fn spacing_bins(rest: &[f32], stride: usize, ids: &[u32]) -> Bins {
+    let coarse = Bins::new(rest, stride, ids, 64);
+    let crowd = ids.len() / coarse.occupied().max(1);
+    match crowd {
+        0..=16 => coarse,
+        17..=64 => Bins::new(rest, stride, ids, 128),
+        _ => Bins::new(rest, stride, ids, 256),
+    }
+}
+
 /// The `k`-th smallest `hypot(dx, dy)` of `near` (`[d2, dx, dy]` rows, `d2 = dx^2 + dy^2`
-/// in f32) among those no farther than `radius`, or None when fewer are. Exactly what sorting
-/// every `hypot` gives: the squared distances order the rows but where two lie within 1e-4
-/// of each other (far above their rounding), and only those rows get a `hypot`.
-fn kth_within(near: &mut Vec<[f32; 3]>, k: usize, radius: f32) -> Option<f32> {
+/// in f32) among those no farther than `radius`, or None when fewer are (`tied`: scratch).
+/// Exactly what sorting every `hypot` gives: the squared distances order the rows but where
+/// two lie within 1e-4 of each other (far above their rounding), and only those rows get a
+/// `hypot`.
+fn kth_within(near: &mut Vec<[f32; 3]>, tied: &mut Vec<f32>, k: usize, radius: f32) -> Option<f32> {
     let hypot = |r: &[f32; 3]| r[1].hypot(r[2]);
     let inside = radius * radius * (1.0 - 1e-4);
     near.retain(|r| r[0] < inside || hypot(r) <= radius);
@@ -109,11 +132,8 @@ fn kth_within(near: &mut Vec<[f32; 3]>, k: usize, radius: f32) -> Option<f32> {
     let t = near[k - 1][0];
     let (lo, hi) = (t * (1.0 - 1e-4), t * (1.0 + 1e-4));
     let below = near.iter().filter(|r| r[0] < lo).count();
-    let mut tied: Vec<f32> = near
-        .iter()
-        .filter(|r| (lo..=hi).contains(&r[0]))
-        .map(hypot)
-        .collect();
+    tied.clear();
+    tied.extend(near.iter().filter(|r| (lo..=hi).contains(&r[0])).map(hypot));
     tied.sort_unstable_by(f32::total_cmp);
     tied.get(k - 1 - below).copied()
 }
@@ -300,7 +320,7 @@ mod tests {
                 })
                 .filter(|r| r[0] <= radius * radius * 1.001)
                 .collect();
-            let got = kth_within(&mut near, SPACING_NEIGHBOURS, radius);
+            let got = kth_within(&mut near, &mut Vec::new(), SPACING_NEIGHBOURS, radius);
             assert_eq!(
                 got,
                 all.get(SPACING_NEIGHBOURS - 1).copied(),
@@ -313,13 +333,14 @@ mod tests {
     }
 
     /// The spacing from the ring search is the brute force's: the median over particles of
-    /// the k-th sorted `hypot` within 1/64, for a sparse cloud, a dense one (the density of
-    /// 40,000 particles on a 256^2 solver grid), lattice ties and points outside the box.
+    /// the k-th sorted `hypot` within 1/64, for a sparse cloud, denser ones (searched on
+    /// cells of 1/128 and of 1/256: the density of 40,000 particles on a 256^2 solver grid),
+    /// lattice ties and points outside the box.
     #[test]
     fn the_spacing_equals_every_pair_sorted() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
-        for (n, side) in [(1500, 0.6f32), (6000, 0.12), (1200, 0.05)] {
+        for (n, side) in [(1500, 0.6f32), (4000, 0.2), (6000, 0.12), (1200, 0.05)] {
             let pos: Vec<f32> = (0..n)
                 .flat_map(|i| {
                     let [x, y] = match i % 4 {
