@@ -83,10 +83,9 @@ impl Bins {
         let g = self.cells as i64;
         let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
         for gx in (cx - 1).max(0)..=(cx + 1).min(g - 1) {
-            self.run(gx, (cy - 1).max(0), (cy + 1).min(g - 1), &mut |from, to| {
-                for &j in &self.order[from..to] {
-                    visit(j as usize);
-                }
+            let (low, high) = ((cy - 1).max(0), (cy + 1).min(g - 1));
+            self.run(gx, low, high, &mut |from, to| {
+                self.visit(from, to, &mut visit)
             });
         }
     }
@@ -136,11 +135,7 @@ impl Bins {
         r: i64,
         mut visit: impl FnMut(usize),
     ) -> Option<f64> {
-        let g = self.cells as i64;
-        let (cx, cy) = (cell(self.cells, x) as i64, cell(self.cells, y) as i64);
-        self.ring(cx, cy, r, &mut visit);
-        let whole = cx - r <= 0 && cy - r <= 0 && cx + r >= g - 1 && cy + r >= g - 1;
-        (!whole).then(|| r as f64 / self.cells as f64)
+        self.ring_spans([x, y], r, |from, to| self.visit(from, to, &mut visit))
     }
 
     /// [`Self::ring_around`] handing out the ring's particles as runs of positions in
@@ -165,23 +160,20 @@ impl Bins {
         &self.order
     }
 
+    /// Calls `visit(j)` for each particle of `order[from..to]`.
+    fn visit(&self, from: usize, to: usize, visit: &mut impl FnMut(usize)) {
+        for &j in &self.order[from..to] {
+            visit(j as usize);
+        }
+    }
+
     /// How many cells hold a binned particle.
     pub fn occupied(&self) -> usize {
         self.start.windows(2).filter(|w| w[1] > w[0]).count()
     }
 
-    /// Calls `visit(j)` for every binned particle in the cells at Chebyshev distance `r` from
-    /// cell `(cx, cy)`, by x index, then y index.
-    fn ring(&self, cx: i64, cy: i64, r: i64, visit: &mut impl FnMut(usize)) {
-        self.ring_runs(cx, cy, r, &mut |from, to| {
-            for &j in &self.order[from..to] {
-                visit(j as usize);
-            }
-        });
-    }
-
-    /// The runs of [`Self::order`] that make up ring `r` around cell `(cx, cy)`, by x index,
-    /// then y index (see [`Self::ring`]).
+    /// The runs of [`Self::order`] that make up ring `r` around cell `(cx, cy)` (the cells at
+    /// Chebyshev distance `r`), by x index, then y index.
     fn ring_runs(&self, cx: i64, cy: i64, r: i64, spans: &mut impl FnMut(usize, usize)) {
         let g = self.cells as i64;
         let (low, high) = ((cy - r).max(0), (cy + r).min(g - 1));
