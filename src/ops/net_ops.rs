@@ -115,9 +115,9 @@ pub trait NetOps: Backend {
     }
 
     /// The constraint projection of a call's K predicted frames `out` (`[K B, N, 4]`,
-    /// physical) as `plan` lays it out, on the device in the same stream as the network (no read-back
-    /// between them): the projected frames and how far each scene's materials moved (`[B,
-    /// MATERIALS]`, particle spacings summed over the call's frames), or None where this
+    /// physical) as `plan` lays it out, on the device in the same stream as the network (no
+    /// read-back between them): the projected frames and how far each scene's materials moved
+    /// (`[B, MATERIALS]`, particle spacings summed over the call's frames), or None where this
     /// backend has no device form (the host then projects, `model::constraints`). CUDA's:
     /// `cuda_projection_op.rs`.
     fn project_constraints(

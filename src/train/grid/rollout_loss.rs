@@ -116,16 +116,32 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         // On the device where it projects: no read-back, the move a constant of the graph.
         let on_device = (self.plan.as_ref())
             .and_then(|plan| B::project_constraints(frame.clone().into_primitive().tensor(), plan));
-        if let Some((projected, _)) = on_device {
-            let moved = Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(projected)) - frame;
-            return (
-                pos + moved.clone().narrow(2, 0, 2),
-                vel + moved.narrow(2, 2, 2),
-            );
-        }
-        let Ok(host) = crate::model::download(frame) else {
-            return (pos, vel);
+        let moved = match on_device {
+            Some((projected, _)) => {
+                Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(projected)) - frame
+            }
+            None => match self.moved_on_host(c, frame, [b, n]) {
+                Some(moved) => moved,
+                None => return (pos, vel),
+            },
         };
+        (
+            pos + moved.clone().narrow(2, 0, 2),
+            vel + moved.narrow(2, 2, 2),
+        )
+    }
+
+    /// How far the host's projection onto `c` moves each sample of `frame` (`[B, N, 4]`,
+    /// detached; `bn` = `[B, N]`), as a `[B, N, 4]` tensor on its device; None when `frame`
+    /// cannot be read back.
+    fn moved_on_host(
+        &mut self,
+        c: &crate::model::constraints::Constraints,
+        frame: Tensor<B, 3>,
+        [b, n]: [usize; 2],
+    ) -> Option<Tensor<B, 3>> {
+        let device = frame.device();
+        let host = crate::model::download(frame).ok()?;
         // [B, N, 4] rows from the [B, N, 2 | 2] layout of the cat; the samples projected in
         // parallel (one after another, training through the projection ran at 20 samples/s
         // against 130 without it: 10,000 particles, one H100's host).
@@ -143,11 +159,7 @@ impl<'a, B: NetOps> Rollout<'a, B> {
                     *m -= o;
                 }
             });
-        let moved = upload::<B, 3>(moved, [b, n, 4], &pos.device());
-        (
-            pos + moved.clone().narrow(2, 0, 2),
-            vel + moved.narrow(2, 2, 2),
-        )
+        Some(upload::<B, 3>(moved, [b, n, 4], &device))
     }
 
     /// The M push-forward calls, on a copy of `model` whose parameters track no gradient, so
