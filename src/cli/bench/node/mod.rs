@@ -94,6 +94,11 @@ pub struct NodeBenchArgs {
     /// publisher process; one row per `--max-batch` value (1-4096).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
     streams: Option<u32>,
+    /// `--streams`: nodes serving the streams (1-16), sharded over zenoh (`node --shard`):
+    /// each predicts the scenes it owns, as instances of one model on one device do in
+    /// NVIDIA Triton's instance groups.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    nodes: u32,
     /// `--streams`: frames per second of each stream (0.1-1000).
     #[arg(long, default_value_t = 12.5, value_parser = rate_hz)]
     rate: f64,

@@ -1,9 +1,9 @@
-//! `minflow bench node --streams N --rate HZ`: one node serving many live streams, per
-//! `--max-batch` value (one row each, same model, one run). Three processes on loopback
-//! over zenoh: a publisher process (this binary, `--publish-to`) sends N scenes
+//! `minflow bench node --streams N --rate HZ`: one node (or `--nodes` sharded ones) serving
+//! many live streams, per `--max-batch` value (one row each, same model, one run). Processes
+//! on loopback over zenoh: a publisher process (this binary, `--publish-to`) sends N scenes
 //! interleaved, each at HZ frames per second (the bag's frames looped, consecutive frame
 //! indices, frames spread evenly over each period, each stamped with its wall-clock
-//! publication time), a `minflow node` predicts, and this process subscribes and counts.
+//! publication time), `minflow node` predicts, and this process subscribes and counts.
 //! The first `--warm-up` seconds are not counted (the node's first calls of each batch
 //! shape are slow). Printed per row: frames sent and predictions delivered, frames dropped
 //! (sent, never predicted: the node's per-scene queues overflowed), the publish ->
@@ -83,8 +83,9 @@ pub(super) fn publish(args: &NodeBenchArgs, topic: &str) -> anyhow::Result<()> {
     let kind = TransportKind::Zenoh;
     let session = transport::open(&args.transport.options(kind))?;
     let mut publisher = session.publisher(topic)?;
-    if !wait_for_subscribers(publisher.as_ref(), 1, Duration::from_secs(60)) {
-        bail!("no node subscribed to {topic} within 60 s");
+    let nodes = args.nodes as usize;
+    if !wait_for_subscribers(publisher.as_ref(), nodes, Duration::from_secs(60)) {
+        bail!("fewer than {nodes} nodes subscribed to {topic} within 60 s");
     }
     let streams = args.streams.unwrap_or(1) as usize;
     let ticks = ((args.warm_up + args.seconds) * args.rate).ceil() as u32;
@@ -105,8 +106,8 @@ pub(super) fn publish(args: &NodeBenchArgs, topic: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Starts the node and the publisher, counts the predictions of the timed frames, stops
-/// the node and reads its closing counters.
+/// Starts the nodes and the publisher, counts the predictions of the timed frames, stops
+/// the nodes and reads their closing counters.
 fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> anyhow::Result<Row> {
     let tag = format!("{}_{max_batch}", std::process::id());
     let (input, output) = (
@@ -117,18 +118,12 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
     let session = transport::open(&args.transport.options(kind))?;
     let (tx, rx) = channel();
     let _sub = session.subscribe(&output, tx)?;
-    let mut node = spawn_node(args, exe, model, (&input, &output), max_batch)?;
-    // The node's log, read as it comes (a full pipe would stall the node).
-    let err = node.stderr.take().context("the node's stderr")?;
-    let log = std::thread::spawn(move || {
-        let mut log = String::new();
-        let _ = std::io::Read::read_to_string(&mut std::io::BufReader::new(err), &mut log);
-        log
-    });
+    let (mut nodes, logs) = spawn_nodes(args, exe, model, (&input, &output), (max_batch, &tag))?;
     let mut publisher = Command::new(exe)
         .args(["bench", "node", "--publish-to", &input])
         .args(args.transport.child_args(kind))
         .args(["--streams", &args.streams.unwrap_or(1).to_string()])
+        .args(["--nodes", &args.nodes.to_string()])
         .args([
             "--rate",
             &args.rate.to_string(),
@@ -167,8 +162,13 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
             }
         }
     }
-    stop_node(&mut node)?;
-    let log = log.join().unwrap_or_default();
+    for node in &mut nodes {
+        stop_node(node)?;
+    }
+    let logs: Vec<String> = logs
+        .into_iter()
+        .map(|l| l.join().unwrap_or_default())
+        .collect();
     let timed_ticks = ((args.warm_up + args.seconds) * args.rate).ceil() as u32 - warm_ticks;
     latency_ms.sort_by(f64::total_cmp);
     let span = first.map_or(0.0, |f| (last - f).as_secs_f64());
@@ -178,23 +178,67 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
         delivered: latency_ms.len() as u64,
         per_s: latency_ms.len() as f64 / span.max(1e-9),
         latency_ms,
-        batch_mean: log_value(&log, "batch_mean").unwrap_or(f64::NAN),
-        batch_max: log_value(&log, "batch_max").map_or(0, |v| v as u64),
-        stages: stages()
-            .iter()
-            .map(|n| log_value(&log, &format!("{n}_s")).unwrap_or(f64::NAN))
+        batch_mean: mean_over(&logs, "batch_mean"),
+        batch_max: (logs.iter())
+            .filter_map(|l| log_value(l, "batch_max"))
+            .fold(0.0, f64::max) as u64,
+        stages: (stages().iter())
+            .map(|n| mean_over(&logs, &format!("{n}_s")))
             .collect(),
     })
 }
 
-/// The node of one row (stderr kept for its closing counters).
+/// The `--nodes` nodes of one row and the threads reading their logs (sharded when more
+/// than one, the group named after `tag`).
+#[allow(clippy::type_complexity)]
+fn spawn_nodes(
+    args: &NodeBenchArgs,
+    exe: &Path,
+    model: &Path,
+    topics: (&str, &str),
+    (max_batch, tag): (u32, &str),
+) -> anyhow::Result<(Vec<Child>, Vec<std::thread::JoinHandle<String>>)> {
+    let (mut nodes, mut logs) = (Vec::new(), Vec::new());
+    for i in 0..args.nodes {
+        let shard = (args.nodes > 1).then(|| (format!("bench_{tag}"), i));
+        let mut node = spawn_node(args, exe, model, topics, max_batch, shard)?;
+        // The node's log, read as it comes (a full pipe would stall the node).
+        let err = node.stderr.take().context("the node's stderr")?;
+        logs.push(std::thread::spawn(move || {
+            let mut log = String::new();
+            let _ = std::io::Read::read_to_string(&mut std::io::BufReader::new(err), &mut log);
+            log
+        }));
+        nodes.push(node);
+    }
+    Ok((nodes, logs))
+}
+
+/// The mean over the nodes' `logs` of `name=` (NaN where none has it).
+fn mean_over(logs: &[String], name: &str) -> f64 {
+    let v: Vec<f64> = logs.iter().filter_map(|l| log_value(l, name)).collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+/// A node of one row (stderr kept for its closing counters); with `shard` (group, index)
+/// a member of that shard group, named `bench<index>`.
 fn spawn_node(
     args: &NodeBenchArgs,
     exe: &Path,
     model: &Path,
     (input, output): (&str, &str),
     max_batch: u32,
+    shard: Option<(String, u32)>,
 ) -> anyhow::Result<Child> {
+    let shard_args = match shard {
+        Some((group, i)) => vec![
+            "--shard".to_string(),
+            group,
+            "--name".into(),
+            format!("bench{i}"),
+        ],
+        None => Vec::new(),
+    };
     Command::new(exe)
         .args(["node", "--model"])
         .arg(model)
@@ -211,6 +255,7 @@ fn spawn_node(
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
         .args(["--constraints", &args.constraints.to_string()])
         .args(args.pipeline.map(|p| format!("--pipeline={p}")))
+        .args(shard_args)
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -253,8 +298,12 @@ fn log_value(log: &str, name: &str) -> Option<f64> {
 fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     let streams = args.streams.unwrap_or(1);
     println!(
-        "\nOne node, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
+        "\n{}, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
          {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms, --pipeline {}:",
+        match args.nodes {
+            1 => "One node".to_string(),
+            n => format!("{n} sharded nodes on one device"),
+        },
         args.rate,
         args.rate * f64::from(streams),
         args.seconds,
@@ -285,7 +334,8 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     println!(
         "\nWhere the node's wall time went, seconds (wait: blocked with nothing due; intake: \
          count, queue; stack / call / split: the model's calls; publish: encode, send; \
-         decode: the decoder thread's busy time beside the loop, decode and check):"
+         decode: the decoder thread's busy time beside the loop, decode and check; the mean \
+         over the nodes):"
     );
     let names = stages();
     println!("| --max-batch | {} |", names.join(" | "));
