@@ -237,8 +237,9 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
     });
     let scenes = scenes?;
     let solver_ms = started.elapsed().as_secs_f64() * 1e3 / (scenes.len() * (frames - 1)) as f64;
-    let gpu_ms = gpu_solver_ms(&args, &specs, frames)?;
-    print_header(&args, (w, h, threads), solver_ms, gpu_ms);
+    let gpus = gpu_solver_ms(&args, &specs, frames)?;
+    print_header(&args, (w, h, threads), solver_ms, gpus);
+    let gpu_ms = gpus.map(|(read_back, _)| read_back);
     let versus_gpu = |ms: f64| gpu_ms.map_or(String::new(), |g| format!("{:.2}", ms / g));
     let mut settings = args.constraints.clone();
     settings.dedup();
@@ -282,12 +283,13 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
 }
 
 /// Prints the run's settings, the table's header and the solver rows (the CPU solver's
-/// `solver_ms` a frame on `threads` threads, the GPU solver's `gpu_ms` when there is one).
+/// `solver_ms` a frame on `threads` threads; the GPU solver's with its frames read back, the
+/// "x GPU solver" baseline, and left on the device, when there is one).
 fn print_header(
     args: &RolloutBenchArgs,
     (w, h, threads): (usize, usize, usize),
     solver_ms: f64,
-    gpu_ms: Option<f64>,
+    gpus: Option<(f64, f64)>,
 ) {
     println!(
         "{} {} scenes (seed {}), H = {h} frames after W = {w} seed frames, {threads} threads, \
@@ -304,15 +306,22 @@ fn print_header(
     println!(
         "\n| predictor | K | calls/rollout | ms/frame | x solver | x GPU solver | avg{h} MSE | projection ms/frame (share) | its setup ms/scene |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
     );
-    let versus_gpu = gpu_ms.map_or(String::new(), |g| format!("{:.2}", solver_ms / g));
+    let versus_gpu = gpus.map_or(String::new(), |(g, _)| format!("{:.2}", solver_ms / g));
     println!(
         "| MPM solver (`simulate`, {threads} threads) | | | {solver_ms:.3} | 1.00 | {versus_gpu} | | | |"
     );
-    if let Some(g) = gpu_ms {
+    if let Some((g, on_device)) = gpus {
+        let batch = args.batch;
         println!(
-            "| MPM solver on the GPU (`simulate --device cuda`, {} scenes a call) | | | {g:.4} | {:.3} | 1.00 | | | |",
-            args.batch,
+            "| MPM solver on the GPU (`simulate --device cuda`, {batch} scenes a call; frames read \
+             back, as the models') | | | {g:.4} | {:.3} | 1.00 | | | |",
             g / solver_ms
+        );
+        println!(
+            "| MPM solver on the GPU, frames left on the device | | | {on_device:.4} | {:.3} | {:.2} \
+             | | | |",
+            on_device / solver_ms,
+            on_device / g
         );
     }
 }
@@ -320,13 +329,14 @@ fn print_header(
 /// With `--device cuda`: milliseconds per scene-frame of the same scenes on the GPU solver,
 /// `--batch` scenes a call (`sim::gpu`), in steady state (after a first frame that compiles
 /// its kernels and the frames that fill its substep-split window, not counting each batch's
-/// upload); `None` on the CPU.
+/// upload): each frame read back to the host and kept, as the models' predicted frames are
+/// (the baseline), and left on the device; `None` on the CPU.
 #[cfg(feature = "cuda")]
 fn gpu_solver_ms(
     args: &RolloutBenchArgs,
     scenes: &[Scene],
     frames: usize,
-) -> anyhow::Result<Option<f64>> {
+) -> anyhow::Result<Option<(f64, f64)>> {
     let ids = match args.device.parse()? {
         Device::Cuda(ids) => ids,
         Device::Cpu => return Ok(None),
@@ -338,16 +348,24 @@ fn gpu_solver_ms(
     const TIMED: usize = 50;
     let timed = (frames - 1).max(TIMED);
     let window = crate::sim::gpu::RECENT as u32;
-    let mut secs = 0.0;
-    for chunk in scenes.chunks(args.batch) {
-        let row = super::sim_gpu::time_batch(&device, chunk, (WARM, timed as u32), window)?;
-        secs += row.ms * 1e-3 * (chunk.len() * timed) as f64;
-    }
-    Ok(Some(secs * 1e3 / (scenes.len() * timed) as f64))
+    let ms = |read_back: bool| -> anyhow::Result<f64> {
+        let mut secs = 0.0;
+        for chunk in scenes.chunks(args.batch) {
+            let timing = (WARM, timed as u32);
+            let row = super::sim_gpu::time_batch(&device, chunk, timing, window, read_back)?;
+            secs += row.ms * 1e-3 * (chunk.len() * timed) as f64;
+        }
+        Ok(secs * 1e3 / (scenes.len() * timed) as f64)
+    };
+    Ok(Some((ms(true)?, ms(false)?)))
 }
 
 /// Without the `cuda` feature there is no GPU solver row.
 #[cfg(not(feature = "cuda"))]
-fn gpu_solver_ms(_: &RolloutBenchArgs, _: &[Scene], _: usize) -> anyhow::Result<Option<f64>> {
+fn gpu_solver_ms(
+    _: &RolloutBenchArgs,
+    _: &[Scene],
+    _: usize,
+) -> anyhow::Result<Option<(f64, f64)>> {
     Ok(None)
 }

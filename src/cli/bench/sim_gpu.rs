@@ -29,6 +29,8 @@ pub(super) struct GpuRow {
 /// Simulates `scenes` (one setting) together on the GPU, speculating each frame's parts from
 /// the last `window` frames: `warm` untimed frames (at least one: the kernels compile on
 /// first use; more let the window fill), then `frames` timed ones. The upload is not timed.
+/// With `read_back` each timed frame is read back to the host and kept
+/// ([`GpuSolver::read_frame`]), as a rollout keeps a model's predicted frames.
 ///
 /// # Errors
 /// A scene the solver refuses, or the device's error.
@@ -37,6 +39,7 @@ pub(super) fn time_batch(
     scenes: &[Scene],
     (warm, frames): (u32, u32),
     window: u32,
+    read_back: bool,
 ) -> anyhow::Result<GpuRow> {
     let batch = scenes.len();
     let config = scenes[0].solver_config();
@@ -47,9 +50,13 @@ pub(super) fn time_batch(
     }
     gpu.tallies()?;
     let (passes, redone) = (gpu.passes, gpu.redone);
+    let mut kept = Vec::with_capacity(if read_back { frames as usize } else { 0 });
     let start = Instant::now();
     for _ in 0..frames {
         gpu.advance(scenes[0].substeps)?;
+        if read_back {
+            kept.push(gpu.read_frame()?);
+        }
     }
     let tallies = gpu.tallies()?;
     let secs = start.elapsed().as_secs_f64();
@@ -80,7 +87,7 @@ pub(super) fn print_row(
         scenes[0].particle_count(),
     );
     let batch = scenes.len();
-    let row = time_batch(device, &scenes, (1, frames), window)?;
+    let row = time_batch(device, &scenes, (1, frames), window, false)?;
     println!(
         "{:<8} {:>5} {:>9} {:>9} {:>8} {:>10.4} {:>10.1} {:>8}   GPU, {batch} scenes a call, {:.1}x the row above; {:.2} parts a substep, {} of {frames} frames redone",
         family.name(),

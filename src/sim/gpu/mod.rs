@@ -436,6 +436,22 @@ impl GpuSolver {
         Ok(out)
     }
 
+    /// Waits for the device and reads the particles' frame back, as a frame on the host
+    /// needs it: every scene's positions (`[P, 2]`, scenes in order), then their velocities
+    /// (`[P, 2]`), in one vector (what `bench rollout` times against a model's predicted
+    /// frames read back; [`GpuSolver::read`] reads the whole state).
+    ///
+    /// # Errors
+    /// The device's error.
+    pub fn read_frame(&self) -> Result<Vec<f32>, SimError> {
+        let bytes = self.client.read(self.buffers.state[..2].to_vec());
+        let (x, v) = (f32::from_bytes(&bytes[0]), f32::from_bytes(&bytes[1]));
+        let mut out = Vec::with_capacity(x.len() + v.len());
+        out.extend_from_slice(x);
+        out.extend_from_slice(v);
+        Ok(out)
+    }
+
     /// Per scene, `(escaped, splits)`: particle-substeps that ended outside the
     /// interpolation band (as [`Solver::escaped`]) and extra parts taken (as
     /// [`Solver::splits`]); waits for the device.
