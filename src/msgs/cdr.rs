@@ -168,8 +168,8 @@ pub fn decode(bytes: &[u8]) -> Result<ParticleFrame, CdrError> {
     };
     let sec = r.u32("header.stamp.sec")? as i32;
     let nanosec = r.u32("header.stamp.nanosec")?;
-    let frame_id = r.string("header.frame_id")?;
-    let scene = r.string("scene")?;
+    let frame_id = r.str("header.frame_id")?.to_owned();
+    let scene = r.str("scene")?.to_owned();
     let frame_index = r.u32("frame_index")?;
     let dt = f32::from_bits(r.u32("dt")?);
     let position = r.f32s("position")?;
@@ -194,6 +194,32 @@ pub fn decode(bytes: &[u8]) -> Result<ParticleFrame, CdrError> {
         velocity,
         material,
     })
+}
+
+/// The `scene` of a CDR-encoded [`ParticleFrame`], read without decoding the rest (its
+/// header, stamp and frame id are skipped): what a sharded node needs to pass over the frames
+/// of scenes another node owns.
+///
+/// # Errors
+/// As [`decode`], for the fields up to `scene`.
+pub fn scene_of(bytes: &[u8]) -> Result<&str, CdrError> {
+    let Some((head, body)) = bytes.split_first_chunk::<4>() else {
+        return Err(CdrError::NoHeader { len: bytes.len() });
+    };
+    let big_endian = match u16::from_be_bytes([head[0], head[1]]) {
+        0x0000 => true,
+        0x0001 => false,
+        kind => return Err(CdrError::Encapsulation { kind }),
+    };
+    let mut r = Reader {
+        body,
+        pos: 0,
+        big_endian,
+    };
+    r.u32("header.stamp.sec")?;
+    r.u32("header.stamp.nanosec")?;
+    r.str("header.frame_id")?;
+    r.str("scene")
 }
 
 struct Reader<'a> {
@@ -256,21 +282,18 @@ impl<'a> Reader<'a> {
         }
     }
 
-    fn string(&mut self, field: &'static str) -> Result<String, CdrError> {
+    fn str(&mut self, field: &'static str) -> Result<&'a str, CdrError> {
         let len = self.count(field, 1)?;
         let offset = self.pos + 4;
         let raw = self.take(field, len)?;
         // Fast-CDR reads a zero length as the empty string; accept it too.
         let Some((&last, text)) = raw.split_last() else {
-            return Ok(String::new());
+            return Ok("");
         };
         if last != 0 {
             return Err(CdrError::MissingNul { field, offset });
         }
-        match std::str::from_utf8(text) {
-            Ok(text) => Ok(text.to_owned()),
-            Err(_) => Err(CdrError::NotUtf8 { field, offset }),
-        }
+        std::str::from_utf8(text).map_err(|_| CdrError::NotUtf8 { field, offset })
     }
 
     fn bytes_seq(&mut self, field: &'static str) -> Result<&'a [u8], CdrError> {

@@ -280,6 +280,8 @@ proptest! {
         prop_assert_eq!(&back.scene, &frame.scene);
         prop_assert_eq!(back.frame_index, frame.frame_index);
         prop_assert_eq!(&back.material, &frame.material);
+        // A sharded node's decoder reads only the scene.
+        prop_assert_eq!(msgs::cdr::scene_of(&bytes), Ok(frame.scene.as_str()));
         prop_assert_eq!(msgs::encode(&back), bytes);
     }
 
@@ -297,6 +299,18 @@ proptest! {
         let i = at % bytes.len();
         bytes[i] = byte;
         let _ = msgs::decode(&bytes);
+        let _ = msgs::cdr::scene_of(&bytes);
+    }
+
+    #[test]
+    fn a_frame_cut_before_its_scene_ends_has_no_scene(frame in arb_frame(), at in any::<usize>()) {
+        let bytes = msgs::encode(&frame);
+        // The scene's NUL is the last byte it needs: 4 (encapsulation) + 8 (stamp) + the frame
+        // id's length prefix, text and padding + the scene's prefix and text.
+        let id = frame.header.frame_id.len() + 1;
+        let scene_end = 4 + 8 + 4 + id + (4 - id % 4) % 4 + 4 + frame.scene.len() + 1;
+        let cut = at % scene_end;
+        prop_assert!(msgs::cdr::scene_of(&bytes[..cut]).is_err());
     }
 }
 

@@ -5,7 +5,9 @@
 //! decoded (blocking only until the next thing is due: a batch, a rollout frame, the
 //! status), and [`NodeLoop::accept`] counts bad input, passes over the scenes another
 //! shard member owns, notes the scene's activity and queues the frame (the scene's oldest
-//! pending frame dropped past `queue_depth`; [`super::schedule`]). Used by `run.rs`.
+//! pending frame dropped past `queue_depth`; [`super::schedule`]). A sharded node's decoder
+//! reads only the scene of a frame another member owns (`cdr::scene_of`): N nodes sharing
+//! the streams each decode their own share, not every frame. Used by `run.rs`.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, RecvTimeoutError};
@@ -13,14 +15,15 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::msgs::ParticleFrame;
+use crate::msgs::{cdr, ParticleFrame};
 use crate::ops::NetOps;
-use crate::transport::Sample;
+use crate::transport::{Payload, Sample};
 
 use super::admission::{check_frame, Rejection};
 use super::frames::payload_bytes;
 use super::node_loop::NodeLoop;
 use super::schedule::{Due, Pending};
+use super::shard::Owners;
 
 /// The longest the loop blocks on the transport with nothing due.
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -44,11 +47,14 @@ enum Decoded {
     Malformed(String),
     /// A frame, and whether [`check_frame`] lets it be predicted on.
     Frame(ParticleFrame, Result<(), Rejection>),
+    /// A frame of a scene another shard member owns (only its scene was read).
+    Others,
 }
 
 /// Starts the decoder thread: every sample of `samples`, in order, decoded and checked
 /// (`max_frame_bytes`, the model's fixed particle count `model_n`) onto the returned
-/// channel; its busy time is added to `busy_ns`. The thread ends when `samples` closes
+/// channel, or, with `owners` (sharded), passed over when another member owns its scene;
+/// its busy time is added to `busy_ns`. The thread ends when `samples` closes
 /// (the subscription is dropped) or the returned channel's receiver is dropped; the
 /// returned channel closes when it ends (or panics: join the handle to tell).
 ///
@@ -56,17 +62,25 @@ enum Decoded {
 /// When the thread cannot be spawned (as `std::thread::spawn`).
 pub(super) fn spawn_decoder(
     samples: Receiver<Sample>,
-    max_frame_bytes: usize,
-    model_n: Option<usize>,
+    (max_frame_bytes, model_n): (usize, Option<usize>),
+    owners: Option<Owners>,
     busy_ns: Arc<AtomicU64>,
 ) -> (Receiver<Arrival>, JoinHandle<()>) {
     let (tx, rx) = channel();
     let decode = move || {
         for sample in samples {
             let start = Instant::now();
+            let others = match (&owners, &sample.payload) {
+                // A scene that does not read is decoded in full, which reports why.
+                (Some(o), Payload::Cdr(bytes)) => cdr::scene_of(bytes).is_ok_and(|s| !o.mine(s)),
+                _ => false,
+            };
             let arrival = Arrival {
                 received: sample.received,
-                decoded: decode(&sample, max_frame_bytes, model_n),
+                decoded: match others {
+                    true => Decoded::Others,
+                    false => decode(&sample, max_frame_bytes, model_n),
+                },
             };
             busy_ns.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
             if tx.send(arrival).is_err() {
@@ -152,6 +166,10 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 self.tally.report.received += 1;
                 self.tally.report.malformed += 1;
                 self.tally.note("?", reason);
+                return;
+            }
+            Decoded::Others => {
+                self.others += 1;
                 return;
             }
         };

@@ -57,8 +57,8 @@ pub fn run<B: NetOps>(
         }
         let (rx, decoder) = spawn_decoder(
             rx,
-            options.max_frame_bytes,
-            node.model_n,
+            (options.max_frame_bytes, node.model_n),
+            node.shard.as_ref().map(|s| s.owners()),
             node.times.decode.clone(),
         );
         while !stop.load(Ordering::Relaxed) && !node.done() {

@@ -118,13 +118,35 @@ impl Shard {
 
     /// True when this node owns `scene` among the members alive now.
     pub(super) fn owns(&self, scene: &str) -> bool {
-        let members = self.members.lock().expect("member set poisoned");
-        owner(members.iter().map(String::as_str), scene) == Some(self.me.as_str())
+        self.owners().mine(scene)
+    }
+
+    /// A handle that tells the same as [`Shard::owns`] from another thread (the decoder's).
+    pub(super) fn owners(&self) -> Owners {
+        Owners {
+            me: self.me.clone(),
+            members: Arc::clone(&self.members),
+        }
     }
 
     /// Members alive now (this node included).
     pub(super) fn members(&self) -> usize {
         self.members.lock().expect("member set poisoned").len()
+    }
+}
+
+/// This node's view of who owns each scene, shared with the group's liveliness subscriber.
+#[derive(Clone)]
+pub(super) struct Owners {
+    me: String,
+    members: Arc<Mutex<BTreeSet<String>>>,
+}
+
+impl Owners {
+    /// True when this node owns `scene` among the members alive now.
+    pub(super) fn mine(&self, scene: &str) -> bool {
+        let members = self.members.lock().expect("member set poisoned");
+        owner(members.iter().map(String::as_str), scene) == Some(self.me.as_str())
     }
 }
 
