@@ -178,12 +178,17 @@ fn enqueue(
     }
 }
 
-/// Blocks until the device thread has queued the copy and the copy is done; the values.
+/// Blocks until the device thread has queued the copy and the copy is done; the values in
+/// `parts` equal consecutive pieces (none for 0), each copied once out of the pinned buffer.
 ///
 /// # Errors
 /// The copy was not queued in time ([`OpsError::NotQueued`]), or the driver's (the copy,
 /// the context, the wait).
-fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32>, OpsError> {
+fn wait(
+    slot: &Slot,
+    device: &burn::backend::cuda::CudaDevice,
+    parts: usize,
+) -> Result<Vec<Vec<f32>>, OpsError> {
     let (lock, woken) = &**slot;
     let guard = lock.lock().unwrap_or_else(|e| e.into_inner());
     if guard.is_none() {
@@ -203,8 +208,16 @@ fn wait(slot: &Slot, device: &burn::backend::cuda::CudaDevice) -> Result<Vec<f32
         driver::ctx::set_current(landing.ctx).map_err(|e| OpsError::driver("context", e))?;
         let synced = driver::event::synchronize(landing.event);
         let _ = driver::event::destroy(landing.event);
-        let values =
-            synced.map(|()| std::slice::from_raw_parts(landing.host, landing.len).to_vec());
+        let values = synced.map(|()| {
+            let all = std::slice::from_raw_parts(landing.host, landing.len);
+            match parts {
+                0 => Vec::new(),
+                _ => all
+                    .chunks(landing.len.div_ceil(parts).max(1))
+                    .map(<[f32]>::to_vec)
+                    .collect(),
+            }
+        });
         // After a failed wait the copy may still be under way: the buffer is left allocated,
         // never reused.
         if values.is_ok() {
@@ -238,5 +251,5 @@ pub(crate) fn read_ahead(x: FloatTensor<Cuda>) -> ReadAhead {
     let device = client.device().clone();
     flush_device(&device);
     // (ReadAhead's error is the message: its callers report it as text.)
-    ReadAhead::new(move || wait(&slot, &device).map_err(|e| e.to_string()))
+    ReadAhead::new(move |parts| wait(&slot, &device, parts).map_err(|e| e.to_string()))
 }

@@ -6,9 +6,9 @@
 //! [`super::NetOps::read_ahead`] (CUDA: `cuda_read.rs`); used by the surrogate node's
 //! pipelined calls (`model::store::Surrogate::submit_scenes`).
 
-/// What waits for the values: returns them, `[len]` f32 in the tensor's row-major order, or
-/// the backend's error.
-type Wait = Box<dyn FnOnce() -> Result<Vec<f32>, String> + Send>;
+/// What waits for the values: returns them in `parts` equal consecutive pieces of the
+/// tensor's row-major f32 order (none for 0: the wait alone), or the backend's error.
+type Wait = Box<dyn FnOnce(usize) -> Result<Vec<Vec<f32>>, String> + Send>;
 
 /// The values of a device tensor, read back in stream order after the work recorded before
 /// [`super::NetOps::read_ahead`] made it; [`ReadAhead::wait`] blocks until they are on the
@@ -19,8 +19,9 @@ pub struct ReadAhead {
 }
 
 impl ReadAhead {
-    /// A read whose values `wait` returns once they have landed.
-    pub fn new(wait: impl FnOnce() -> Result<Vec<f32>, String> + Send + 'static) -> Self {
+    /// A read whose values `wait(parts)` returns once they have landed, in `parts` equal
+    /// consecutive pieces (`wait(0)`: only waits).
+    pub fn new(wait: impl FnOnce(usize) -> Result<Vec<Vec<f32>>, String> + Send + 'static) -> Self {
         Self {
             wait: Some(Box::new(wait)),
         }
@@ -30,9 +31,19 @@ impl ReadAhead {
     ///
     /// # Errors
     /// The backend's copy or synchronisation failed (its message).
-    pub fn wait(mut self) -> Result<Vec<f32>, String> {
+    pub fn wait(self) -> Result<Vec<f32>, String> {
+        Ok(self.wait_parts(1)?.pop().unwrap_or_default())
+    }
+
+    /// Blocks until the values are on the host; returns them as `parts` (at least 1) equal
+    /// consecutive pieces of their row-major order, each copied once from where they landed:
+    /// a call's `[K B, N, 4]` predictions as its K frames.
+    ///
+    /// # Errors
+    /// The backend's copy or synchronisation failed (its message).
+    pub fn wait_parts(mut self, parts: usize) -> Result<Vec<Vec<f32>>, String> {
         match self.wait.take() {
-            Some(wait) => wait(),
+            Some(wait) => wait(parts.max(1)),
             None => Err("read waited for twice".into()),
         }
     }
@@ -41,7 +52,7 @@ impl ReadAhead {
 impl Drop for ReadAhead {
     fn drop(&mut self) {
         if let Some(wait) = self.wait.take() {
-            let _ = wait();
+            let _ = wait(0);
         }
     }
 }

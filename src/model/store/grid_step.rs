@@ -169,7 +169,20 @@ impl<B: NetOps> Surrogate<B> {
             })?;
             lap(clock, Stage::Device);
         }
-        let out = split_frames(crate::model::download(next)?, kb / b.max(1));
+        let k = kb / b.max(1);
+        // Where the backend reads into its own pinned buffers (CUDA), each frame is copied
+        // once from there; burn's read of a call over 100 MB (256 scenes of 10,000
+        // particles) goes through pageable memory, and splitting copies it again.
+        let read = B::read_ahead(next.clone().into_primitive().tensor());
+        let out = match read {
+            Some(read) => read
+                .wait_parts(k)
+                .map_err(|e| crate::model::DownloadError {
+                    shape: vec![kb, n, 4],
+                    source: e.into(),
+                })?,
+            None => split_frames(crate::model::download(next)?, k),
+        };
         lap(clock, Stage::Output);
         Ok(out)
     }

@@ -39,13 +39,12 @@ impl Outs {
     pub(super) fn wait(self) -> Result<Vec<Vec<f32>>, StoreError> {
         match self {
             Outs::Host(frames) => Ok(frames),
-            Outs::Ahead { read, k, shape } => {
-                let all = read.wait().map_err(|e| DownloadError {
+            Outs::Ahead { read, k, shape } => read.wait_parts(k).map_err(|e| {
+                StoreError::from(DownloadError {
                     shape: shape.to_vec(),
                     source: e.into(),
-                })?;
-                Ok(split_frames(all, k))
-            }
+                })
+            }),
         }
     }
 }
