@@ -53,6 +53,7 @@ mod pressure;
 mod rebound;
 mod rope;
 mod shape;
+mod spacing;
 
 pub use device::projection_plan;
 pub use fit::{fit, FitReport};
@@ -73,7 +74,7 @@ use crate::material::{Material, COUNT};
 pub fn pieces(frame: &[f32], stride: usize, material: &[u8]) -> Vec<(u8, Vec<u32>)> {
     let mut out = Vec::new();
     for m in 0..COUNT as u8 {
-        let spacing = shape::spacing_of(frame, stride, material, m);
+        let spacing = spacing::spacing_of(frame, stride, material, m);
         out.extend(
             shape::pieces(frame, stride, material, m, spacing)
                 .into_iter()
@@ -152,7 +153,7 @@ impl SceneShape {
         let n = material.len();
         let mut spacing = [0.0f32; COUNT];
         for (m, s) in spacing.iter_mut().enumerate() {
-            *s = shape::spacing_of(rest, stride, material, m as u8);
+            *s = spacing::spacing_of(rest, stride, material, m as u8);
         }
         let chains = match c.rope {
             Some(_) => rope::chains(rest, stride, material, Material::Rope.id()),
