@@ -152,20 +152,8 @@ impl Writer<'_> {
 /// Decodes a CDR-encoded [`ParticleFrame`] (little- or big-endian). Does not validate the
 /// frame's contents; see [`ParticleFrame::validate`].
 pub fn decode(bytes: &[u8]) -> Result<ParticleFrame, CdrError> {
-    let Some((head, body)) = bytes.split_first_chunk::<4>() else {
-        return Err(CdrError::NoHeader { len: bytes.len() });
-    };
-    let kind = u16::from_be_bytes([head[0], head[1]]);
-    let big_endian = match kind {
-        0x0000 => true,
-        0x0001 => false,
-        _ => return Err(CdrError::Encapsulation { kind }),
-    };
-    let mut r = Reader {
-        body,
-        pos: 0,
-        big_endian,
-    };
+    let mut r = Reader::open(bytes)?;
+    let body = r.body;
     let sec = r.u32("header.stamp.sec")? as i32;
     let nanosec = r.u32("header.stamp.nanosec")?;
     let frame_id = r.str("header.frame_id")?.to_owned();
@@ -203,19 +191,7 @@ pub fn decode(bytes: &[u8]) -> Result<ParticleFrame, CdrError> {
 /// # Errors
 /// As [`decode`], for the fields up to `scene`.
 pub fn scene_of(bytes: &[u8]) -> Result<&str, CdrError> {
-    let Some((head, body)) = bytes.split_first_chunk::<4>() else {
-        return Err(CdrError::NoHeader { len: bytes.len() });
-    };
-    let big_endian = match u16::from_be_bytes([head[0], head[1]]) {
-        0x0000 => true,
-        0x0001 => false,
-        kind => return Err(CdrError::Encapsulation { kind }),
-    };
-    let mut r = Reader {
-        body,
-        pos: 0,
-        big_endian,
-    };
+    let mut r = Reader::open(bytes)?;
     r.u32("header.stamp.sec")?;
     r.u32("header.stamp.nanosec")?;
     r.str("header.frame_id")?;
@@ -229,6 +205,24 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
+    /// A reader of the body after `bytes`' 4-byte encapsulation header (CDR big- or
+    /// little-endian).
+    fn open(bytes: &'a [u8]) -> Result<Self, CdrError> {
+        let Some((head, body)) = bytes.split_first_chunk::<4>() else {
+            return Err(CdrError::NoHeader { len: bytes.len() });
+        };
+        let big_endian = match u16::from_be_bytes([head[0], head[1]]) {
+            0x0000 => true,
+            0x0001 => false,
+            kind => return Err(CdrError::Encapsulation { kind }),
+        };
+        Ok(Reader {
+            body,
+            pos: 0,
+            big_endian,
+        })
+    }
+
     fn left(&self) -> usize {
         self.body.len() - self.pos
     }

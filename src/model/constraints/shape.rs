@@ -182,19 +182,7 @@ impl Body {
 mod tests {
     use super::*;
 
-    /// A 10 x 10 lattice block of spacing 0.01 at (0.3, 0.3), as `[N, 4]` rows.
-    fn block() -> Vec<f32> {
-        (0..100)
-            .flat_map(|i| {
-                [
-                    0.3 + 0.01 * (i / 10) as f32,
-                    0.3 + 0.01 * (i % 10) as f32,
-                    0.0,
-                    0.0,
-                ]
-            })
-            .collect()
-    }
+    use crate::model::constraints::spacing::lattice as block;
 
     #[test]
     fn two_apart_blocks_are_two_bodies() {

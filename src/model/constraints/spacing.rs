@@ -31,22 +31,22 @@ const SPACING_QUERIES: usize = 4096;
 /// `count / SPACING_QUERIES`-th particle in the cells' order, each searched among all: at
 /// 40,000 particles the search was most of a scene's setup (0.45 us a particle).
 pub(super) fn spacing_of(rest: &[f32], stride: usize, material: &[u8], m: u8) -> f32 {
-    let count = material.iter().filter(|&&k| k == m).count();
-    let every = match count > 2 * SPACING_QUERIES {
-        true => count / SPACING_QUERIES,
-        false => 1,
-    };
-    spacing_sampled(rest, stride, (material, m), every)
+    spacing_sampled(rest, stride, (material, m), SPACING_QUERIES)
 }
 
-/// [`spacing_of`] with the median over every `every`-th particle of `m` in the cells' order.
-fn spacing_sampled(rest: &[f32], stride: usize, (material, m): (&[u8], u8), every: usize) -> f32 {
+/// [`spacing_of`] with `queries` in place of [`SPACING_QUERIES`] (`usize::MAX`: every
+/// particle).
+fn spacing_sampled(rest: &[f32], stride: usize, (material, m): (&[u8], u8), queries: usize) -> f32 {
     let ids: Vec<u32> = (0..material.len() as u32)
         .filter(|&i| material[i as usize] == m)
         .collect();
     if ids.len() <= SPACING_NEIGHBOURS {
         return 0.0;
     }
+    let every = match ids.len() > queries.saturating_mul(2) {
+        true => ids.len() / queries,
+        false => 1,
+    };
     let radius = 1.0 / 64.0;
     let far = radius * radius * (1.0 + 1e-4);
     let bins = spacing_bins(rest, stride, &ids);
@@ -55,7 +55,7 @@ fn spacing_sampled(rest: &[f32], stride: usize, (material, m): (&[u8], u8), ever
         .collect();
     let mut kth = Vec::with_capacity(ids.len());
     let (mut near, mut tied): (Vec<[f32; 3]>, Vec<f32>) = (Vec::new(), Vec::new());
-    for (me, &[x, y]) in packed.iter().enumerate().step_by(every.max(1)) {
+    for (me, &[x, y]) in packed.iter().enumerate().step_by(every) {
         near.clear();
         for r in 0.. {
             let reach = bins.ring_spans([x, y], r, |from, to| {
@@ -128,6 +128,22 @@ fn kth_within(near: &mut Vec<[f32; 3]>, tied: &mut Vec<f32>, k: usize, radius: f
     tied.extend(near.iter().filter(|r| (lo..=hi).contains(&r[0])).map(hypot));
     tied.sort_unstable_by(f32::total_cmp);
     tied.get(k - 1 - below).copied()
+}
+
+/// A 10 x 10 lattice block of spacing 0.01 at (0.3, 0.3), as `[N, 4]` rows (the spacing's and
+/// the bodies' tests).
+#[cfg(test)]
+pub(super) fn lattice() -> Vec<f32> {
+    (0..100)
+        .flat_map(|i| {
+            [
+                0.3 + 0.01 * (i / 10) as f32,
+                0.3 + 0.01 * (i % 10) as f32,
+                0.0,
+                0.0,
+            ]
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -240,27 +256,13 @@ mod tests {
             })
             .collect();
         let material = vec![2u8; n];
-        let all = spacing_sampled(&pos, 4, (&material, 2), 1);
+        let all = spacing_sampled(&pos, 4, (&material, 2), usize::MAX);
         let sampled = spacing_of(&pos, 4, &material, 2);
         assert!(all > 0.0 && sampled != all, "{all} {sampled}");
         assert!(
             (sampled / all - 1.0).abs() < 0.01,
             "{sampled} against {all}"
         );
-    }
-
-    /// A 10 x 10 lattice of pitch 0.01 at (0.3, 0.3), as `[N, 4]` rows.
-    fn lattice() -> Vec<f32> {
-        (0..100)
-            .flat_map(|i| {
-                [
-                    0.3 + 0.01 * (i / 10) as f32,
-                    0.3 + 0.01 * (i % 10) as f32,
-                    0.0,
-                    0.0,
-                ]
-            })
-            .collect()
     }
 
     #[test]

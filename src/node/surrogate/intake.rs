@@ -70,11 +70,7 @@ pub(super) fn spawn_decoder(
     let decode = move || {
         for sample in samples {
             let start = Instant::now();
-            let others = match (&owners, &sample.payload) {
-                // A scene that does not read is decoded in full, which reports why.
-                (Some(o), Payload::Cdr(bytes)) => cdr::scene_of(bytes).is_ok_and(|s| !o.mine(s)),
-                _ => false,
-            };
+            let others = owners.as_ref().is_some_and(|o| others_own(o, &sample));
             let arrival = Arrival {
                 received: sample.received,
                 decoded: match others {
@@ -93,6 +89,17 @@ pub(super) fn spawn_decoder(
         .spawn(decode)
         .expect("spawning the node's decoder thread");
     (rx, handle)
+}
+
+/// Whether another shard member owns the scene of `sample`, read without decoding the rest
+/// of a CDR payload; a payload whose scene does not read is not passed over (its full decode
+/// reports why).
+fn others_own(owners: &Owners, sample: &Sample) -> bool {
+    match &sample.payload {
+        Payload::Cdr(bytes) => cdr::scene_of(bytes).is_ok_and(|s| !owners.mine(s)),
+        Payload::Frame(frame) => !owners.mine(&frame.scene),
+        Payload::Malformed(_) => false,
+    }
 }
 
 /// The decoder's work on one sample: size limit, CDR decode, [`check_frame`].
@@ -150,8 +157,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
         true
     }
 
-    /// Counts bad input, passes over frames of scenes another shard member owns (counted
-    /// apart) and queues the rest (dropping the scene's oldest pending frame past
+    /// Counts bad input and the frames of scenes another shard member owns (the decoder
+    /// passed them over) and queues the rest (dropping the scene's oldest pending frame past
     /// `queue_depth`).
     fn accept(&mut self, arrival: Arrival) {
         let (frame, checked) = match arrival.decoded {
@@ -173,10 +180,6 @@ impl<B: NetOps> NodeLoop<'_, B> {
                 return;
             }
         };
-        if self.shard.as_ref().is_some_and(|s| !s.owns(&frame.scene)) {
-            self.others += 1;
-            return;
-        }
         self.tally.report.received += 1;
         if let Err(reason) = checked {
             self.tally.report.rejected += 1;

@@ -116,12 +116,7 @@ impl Shard {
         })
     }
 
-    /// True when this node owns `scene` among the members alive now.
-    pub(super) fn owns(&self, scene: &str) -> bool {
-        self.owners().mine(scene)
-    }
-
-    /// A handle that tells the same as [`Shard::owns`] from another thread (the decoder's).
+    /// Who owns each scene as this node sees the group, for another thread (the decoder's).
     pub(super) fn owners(&self) -> Owners {
         Owners {
             me: self.me.clone(),
