@@ -230,12 +230,13 @@ fn assert_stage_times(log: &str) {
         line[at..].split(' ').next().unwrap().parse().unwrap()
     };
     let loop_stages = [
-        "wait", "intake", "stack", "call", "split", "publish", "other",
+        "wait", "intake", "stack", "call", "split", "publish", "landing", "other",
     ];
     let sum: f64 = loop_stages.iter().map(|n| value(n)).sum();
     assert!((sum - value("wall")).abs() < 0.01, "{line}");
     // decode_s is printed to the ms, which 50 iceoryx2 frames (a clone each) may not reach.
     assert!(value("call") > 0.0 && value("decode") >= 0.0, "{line}");
+    assert!(value("land") >= 0.0, "{line}");
 }
 
 #[test]

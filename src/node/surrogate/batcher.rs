@@ -14,8 +14,9 @@
 //! Pipelined calls: on a GPU the live frames' calls ([`Predict::Next`]) go through
 //! [`Surrogate::submit_scenes`](crate::model::store::Surrogate::submit_scenes): the scenes'
 //! next states are kept at once, and the call ([`InFlight`]) goes to the lander thread
-//! ([`super::lander`]), which waits for its predictions and projects them while this thread
-//! gathers, stacks and records the next batch's call; the loop publishes what comes back.
+//! ([`super::lander`]), which waits for its predictions, projects and publishes them while
+//! this thread gathers, stacks and records the next batch's call; the loop counts what comes
+//! back (and publishes it where the lander does not: a live view, closed loop).
 //! `--pipeline` (`NodeOptions::pipeline`) turns it on, by default on a GPU; on the CPU,
 //! which computes as it records, a call's frames are published as soon as it returns.
 
@@ -25,7 +26,7 @@ use crate::model::store::{Finished, Predict, SceneStep, SceneSteps, State, Store
 use crate::ops::NetOps;
 
 use super::flight::{InFlight, Job, Landed};
-use super::frames::{predicted_frame, state_rows};
+use super::frames::predicted_frame;
 use super::lander::MAX_LANDING;
 use super::node_loop::NodeLoop;
 use super::scenes::Admitted;
@@ -117,7 +118,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
             let landed = lander.next(block);
             // Blocked on the lander: the loop waits for the call (the GPU, the projection).
             if block {
-                self.times.step.call += start.elapsed();
+                self.times.landing += start.elapsed();
             }
             let Some(landed) = landed else {
                 return;
@@ -127,15 +128,24 @@ impl<B: NetOps> NodeLoop<'_, B> {
     }
 
     /// Publishes a landed call's predictions (a live job's next frame; none in closed loop
-    /// before its rollout starts); a failed read restarts its scenes.
+    /// before its rollout starts) unless the lander did, and counts them; a failed read
+    /// restarts its scenes.
     fn publish_call(&mut self, call: Landed<B>) {
         // The lander thread's time is not the loop's: `publish_landed` times the loop's waits.
         let Finished { frames, .. } = call.finished;
+        // The lander published the call's frames where it had the outlet (`Lander::start`).
+        let published = call.published.is_some();
+        if let Some(p) = call.published {
+            self.count_published(p);
+        }
         for (job, result) in call.jobs.into_iter().zip(frames) {
             let Some(job) = job else { continue };
             match result {
                 Ok(mut bundle) => {
                     self.tally.report.predicted += 1;
+                    if published {
+                        continue;
+                    }
                     if let (None, Some(input)) = (self.options.rollout, job.input) {
                         let next = predicted_frame(&input.frame, &bundle.swap_remove(0), 1);
                         self.emit_timed(&next, input.arrived);
@@ -175,7 +185,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// `scene`'s next pending frame as a job, under the state rules (None: dropped or
     /// ignored, counted as they say).
     fn live_job(&mut self, scene: &str) -> Option<Job<B>> {
-        let input = self.schedule.take_pending(scene)?;
+        let mut input = self.schedule.take_pending(scene)?;
         self.make_room_for(scene);
         let index = input.frame.frame_index;
         let state = match self
@@ -201,7 +211,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
         };
         Some(Job {
             scene: scene.to_owned(),
-            rows: state_rows(&input.frame),
+            rows: std::mem::take(&mut input.rows),
             material: input.frame.material.clone(),
             dt: input.frame.dt,
             state,

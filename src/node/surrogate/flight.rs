@@ -49,4 +49,19 @@ impl<B: burn::tensor::backend::Backend> InFlight<B> {
 pub(super) struct Landed<B: burn::tensor::backend::Backend> {
     pub(super) finished: Finished,
     pub(super) jobs: Vec<Option<Job<B>>>,
+    /// What the lander thread published of the call's live frames (None: it publishes
+    /// nothing, the loop does: `Lander::start`).
+    pub(super) published: Option<Published>,
+}
+
+/// The counts of a call's predictions the lander thread published, for the loop's report.
+#[derive(Debug, Default)]
+pub(super) struct Published {
+    /// Frames sent.
+    pub(super) sent: u64,
+    /// Frames the transport refused, and its last error.
+    pub(super) failed: u64,
+    pub(super) last_error: Option<String>,
+    /// Per frame sent, arrival -> publication, us.
+    pub(super) latencies_us: Vec<f64>,
 }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::msgs::{cdr, ParticleFrame};
+use crate::msgs::{cdr, state_rows, ParticleFrame};
 use crate::ops::NetOps;
 use crate::transport::{Payload, Sample};
 
@@ -45,16 +45,18 @@ enum Decoded {
     Oversize(String),
     /// Not a frame: the reason.
     Malformed(String),
-    /// A frame, and whether [`check_frame`] lets it be predicted on.
-    Frame(ParticleFrame, Result<(), Rejection>),
+    /// A frame, its `[N, 4]` rows, and whether [`check_frame`] lets it be predicted on
+    /// (rows only then; the frame's own arrays emptied unless the loop keeps them).
+    Frame(ParticleFrame, Vec<f32>, Result<(), Rejection>),
     /// A frame of a scene another shard member owns (only its scene was read).
     Others,
 }
 
 /// Starts the decoder thread: every sample of `samples`, in order, decoded and checked
-/// (`max_frame_bytes`, the model's fixed particle count `model_n`) onto the returned
-/// channel, or, with `owners` (sharded), passed over when another member owns its scene;
-/// its busy time is added to `busy_ns`. The thread ends when `samples` closes
+/// (`max_frame_bytes`, the model's fixed particle count `model_n`) and laid out as the
+/// model's rows onto the returned channel, or, with `owners` (sharded), passed over when
+/// another member owns its scene; its busy time is added to `busy_ns`. A frame keeps its
+/// position and velocity arrays only with `keep_arrays` (a live view draws them). The thread ends when `samples` closes
 /// (the subscription is dropped) or the returned channel's receiver is dropped; the
 /// returned channel closes when it ends (or panics: join the handle to tell).
 ///
@@ -62,7 +64,7 @@ enum Decoded {
 /// When the thread cannot be spawned (as `std::thread::spawn`).
 pub(super) fn spawn_decoder(
     samples: Receiver<Sample>,
-    (max_frame_bytes, model_n): (usize, Option<usize>),
+    (max_frame_bytes, model_n, keep_arrays): (usize, Option<usize>, bool),
     owners: Option<Owners>,
     busy_ns: Arc<AtomicU64>,
 ) -> (Receiver<Arrival>, JoinHandle<()>) {
@@ -75,7 +77,7 @@ pub(super) fn spawn_decoder(
                 received: sample.received,
                 decoded: match others {
                     true => Decoded::Others,
-                    false => decode(&sample, max_frame_bytes, model_n),
+                    false => decode(&sample, max_frame_bytes, model_n, keep_arrays),
                 },
             };
             busy_ns.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -102,8 +104,14 @@ fn others_own(owners: &Owners, sample: &Sample) -> bool {
     }
 }
 
-/// The decoder's work on one sample: size limit, CDR decode, [`check_frame`].
-fn decode(sample: &Sample, max_frame_bytes: usize, model_n: Option<usize>) -> Decoded {
+/// The decoder's work on one sample: size limit, CDR decode, [`check_frame`], the rows
+/// (off the loop's thread: 256 of them a call), the arrays dropped unless `keep_arrays`.
+fn decode(
+    sample: &Sample,
+    max_frame_bytes: usize,
+    model_n: Option<usize>,
+    keep_arrays: bool,
+) -> Decoded {
     let bytes = payload_bytes(&sample.payload);
     if bytes > max_frame_bytes {
         return Decoded::Oversize(format!(
@@ -111,9 +119,16 @@ fn decode(sample: &Sample, max_frame_bytes: usize, model_n: Option<usize>) -> De
         ));
     }
     match sample.decode() {
-        Ok(frame) => {
+        Ok(mut frame) => {
             let checked = check_frame(&frame, model_n);
-            Decoded::Frame(frame, checked)
+            let rows = match checked {
+                Ok(()) => state_rows(&frame),
+                Err(_) => Vec::new(),
+            };
+            if !keep_arrays {
+                (frame.position, frame.velocity) = (Vec::new(), Vec::new());
+            }
+            Decoded::Frame(frame, rows, checked)
         }
         Err(reason) => Decoded::Malformed(format!("malformed payload: {reason}")),
     }
@@ -161,8 +176,8 @@ impl<B: NetOps> NodeLoop<'_, B> {
     /// passed them over) and queues the rest (dropping the scene's oldest pending frame past
     /// `queue_depth`).
     fn accept(&mut self, arrival: Arrival) {
-        let (frame, checked) = match arrival.decoded {
-            Decoded::Frame(frame, checked) => (frame, checked),
+        let (frame, rows, checked) = match arrival.decoded {
+            Decoded::Frame(frame, rows, checked) => (frame, rows, checked),
             Decoded::Oversize(reason) => {
                 self.tally.report.received += 1;
                 self.tally.report.rejected += 1;
@@ -201,6 +216,7 @@ impl<B: NetOps> NodeLoop<'_, B> {
         self.note_takeover(&frame.scene, frame.frame_index);
         let pending = Pending {
             frame,
+            rows,
             arrived: arrival.received,
         };
         if self.schedule.queue(pending, self.options.queue_depth) {

@@ -5,6 +5,7 @@
 //! and counters once a second, publishing predicted frames, the closing reports.
 
 use std::collections::HashSet;
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use crate::model::store::Surrogate;
@@ -13,6 +14,7 @@ use crate::ops::NetOps;
 use crate::transport::{FramePublisher, StatusPublisher};
 use crate::viz::PredictionView;
 
+use super::flight::Published;
 use super::lander::Lander;
 use super::options::{summary, NodeOptions, NodeReport};
 use super::report::{log_latencies, wall_time, BatchStats, StageTimes, Tally};
@@ -20,12 +22,21 @@ use super::scenes::Scenes;
 use super::schedule::Schedule;
 use super::shard::Shard;
 
+/// The node's frame publisher, shared by the loop and the lander thread (`lander.rs`).
+pub(super) type SharedPublisher = Arc<Mutex<Box<dyn FramePublisher>>>;
+
+/// `publisher` locked; a thread that panicked while holding it left nothing half-sent
+/// that matters (a frame is one call), so its poison is passed over.
+pub(super) fn lock(publisher: &SharedPublisher) -> MutexGuard<'_, Box<dyn FramePublisher>> {
+    publisher.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// The node's state between loop iterations: per-scene hidden states, pending frames,
 /// rollouts under way, counters and the timers of the periodic reports.
 pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) options: &'a NodeOptions,
     pub(super) surrogate: &'a Surrogate<B>,
-    publisher: Box<dyn FramePublisher>,
+    publisher: SharedPublisher,
     status_pub: Option<Box<dyn StatusPublisher>>,
     /// The model's particle count, where it has a fixed one.
     pub(super) model_n: Option<usize>,
@@ -78,7 +89,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
         NodeLoop {
             options,
             surrogate,
-            publisher,
+            publisher: Arc::new(Mutex::new(publisher)),
             status_pub,
             model_n: meta.fixed_particles(),
             window: meta.window().max(1),
@@ -171,17 +182,40 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     /// input frame's arrival, is timed.
     pub(super) fn emit_timed(&mut self, frame: &ParticleFrame, arrived: Instant) {
         self.emit(frame);
+        self.note_latencies([arrived.elapsed().as_secs_f64() * 1e6]);
+    }
+
+    /// Keeps arrival -> publication latencies (us) for the closing percentiles.
+    fn note_latencies(&mut self, us: impl IntoIterator<Item = f64>) {
         if self.latencies_us.len() >= 2 * LATENCY_WINDOW {
             self.latencies_us.drain(..LATENCY_WINDOW);
         }
-        self.latencies_us
-            .push(arrived.elapsed().as_secs_f64() * 1e6);
+        self.latencies_us.extend(us);
+    }
+
+    /// Where the lander thread may publish the live frames' predictions itself: the node's
+    /// publisher, unless the loop must see each of them (a live view to feed, or closed
+    /// loop, whose live predictions are not published).
+    pub(super) fn outlet(&self) -> Option<SharedPublisher> {
+        let own = self.options.rollout.is_none() && self.view.is_none();
+        own.then(|| Arc::clone(&self.publisher))
+    }
+
+    /// Counts what the lander thread published of a call, as [`Self::emit`] counts.
+    pub(super) fn count_published(&mut self, p: Published) {
+        self.tally.report.published += p.sent;
+        self.tally.report.dropped += p.failed;
+        if let Some(e) = p.last_error {
+            tracing::warn!("{e}");
+            self.tally.report.last_error = e;
+        }
+        self.note_latencies(p.latencies_us);
     }
 
     /// Publishes a predicted frame (counted) and hands it to the live view.
     pub(super) fn emit(&mut self, frame: &ParticleFrame) {
         let start = Instant::now();
-        let sent = self.publisher.publish(frame);
+        let sent = lock(&self.publisher).publish(frame);
         self.times.publish += start.elapsed();
         match sent {
             Ok(()) => self.tally.report.published += 1,
@@ -202,7 +236,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
     pub(super) fn finish(mut self) -> NodeReport {
         // The loop's wall time ends here: the closing flush and reports are not the loop's.
         let loop_end = Instant::now();
-        self.publisher.flush(Duration::from_secs(5));
+        lock(&self.publisher).flush(Duration::from_secs(5));
         if let Some(view) = self.view.as_mut() {
             view.finish();
         }

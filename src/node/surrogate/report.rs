@@ -78,25 +78,31 @@ impl BatchStats {
 
 /// The loop's stages in [`StageTimes::line`]'s order, `other` last (`bench node` reads them
 /// back).
-pub const LOOP_STAGES: [&str; 7] = [
-    "wait", "intake", "stack", "call", "split", "publish", "other",
+pub const LOOP_STAGES: [&str; 8] = [
+    "wait", "intake", "stack", "call", "split", "publish", "landing", "other",
 ];
 
 /// Where the node's loop spent its wall time since it subscribed, by stage (the closing
 /// log line; `bench node` reads it): blocked on the transport with nothing due, taking
 /// decoded samples in (count, queue: `intake.rs`), the model's calls by
-/// [`StepTimes`] stage, publishing predictions (encode, send), and the rest (choosing the
+/// [`StepTimes`] stage, publishing predictions (encode, send), waiting for the lander thread
+/// to hand a pipelined call back, and the rest (choosing the
 /// batch, building jobs and predicted frames, rollouts' bookkeeping, status); beside them,
-/// the decoder thread's busy time (decode and check).
+/// the decoder thread's busy time (decode and check) and the lander thread's (`--pipeline`).
 #[derive(Debug)]
 pub(super) struct StageTimes {
     since: Instant,
     /// The decoder thread's busy time, ns (beside the loop, not part of its wall time).
     pub(super) decode: Arc<AtomicU64>,
+    /// The lander thread's busy time, ns (`--pipeline`: landing, projecting and publishing
+    /// the calls; beside the loop, as `decode`).
+    pub(super) land: Arc<AtomicU64>,
     pub(super) wait: Duration,
     pub(super) intake: Duration,
     pub(super) step: StepTimes,
     pub(super) publish: Duration,
+    /// Blocked on the lander thread for a pipelined call to come back (`--pipeline`).
+    pub(super) landing: Duration,
 }
 
 impl StageTimes {
@@ -105,15 +111,18 @@ impl StageTimes {
         StageTimes {
             since: Instant::now(),
             decode: Arc::default(),
+            land: Arc::default(),
             wait: Duration::ZERO,
             intake: Duration::ZERO,
             step: StepTimes::default(),
             publish: Duration::ZERO,
+            landing: Duration::ZERO,
         }
     }
 
     /// The times as one log line of `name=seconds` pairs, the loop's wall time counted up
-    /// to `end`, `other_s` the part of it no stage holds, `decode_s` the decoder thread's.
+    /// to `end`, `other_s` the part of it no stage holds, `decode_s` the decoder thread's and
+    /// `land_s` the lander thread's.
     pub(super) fn line(&self, end: Instant) -> String {
         let wall = end - self.since;
         let staged = [
@@ -123,6 +132,7 @@ impl StageTimes {
             self.step.call,
             self.step.split,
             self.publish,
+            self.landing,
         ];
         let other = wall.saturating_sub(staged.iter().sum());
         let fields: Vec<String> = LOOP_STAGES
@@ -131,8 +141,9 @@ impl StageTimes {
             .map(|(n, d)| format!("{n}_s={:.3}", d.as_secs_f64()))
             .collect();
         let decode = self.decode.load(Ordering::Relaxed) as f64 / 1e9;
+        let land = self.land.load(Ordering::Relaxed) as f64 / 1e9;
         format!(
-            "time: wall_s={:.3} {} decode_s={decode:.3}",
+            "time: wall_s={:.3} {} decode_s={decode:.3} land_s={land:.3}",
             wall.as_secs_f64(),
             fields.join(" ")
         )

@@ -53,11 +53,12 @@ pub fn run<B: NetOps>(
         let mut node = NodeLoop::new(options, surrogate, publisher, status_pub);
         node.shard = shard;
         if options.pipeline {
-            node.lander = Some(Lander::start(scope, surrogate));
+            let (outlet, busy) = (node.outlet(), node.times.land.clone());
+            node.lander = Some(Lander::start(scope, surrogate, outlet, busy));
         }
         let (rx, decoder) = spawn_decoder(
             rx,
-            (options.max_frame_bytes, node.model_n),
+            (options.max_frame_bytes, node.model_n, node.view.is_some()),
             node.shard.as_ref().map(|s| s.owners()),
             node.times.decode.clone(),
         );

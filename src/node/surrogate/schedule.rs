@@ -14,8 +14,11 @@ use super::closed::Rollouts;
 
 /// A frame waiting to be predicted on, with its arrival time.
 pub(super) struct Pending {
-    /// The frame.
+    /// The frame (its position and velocity arrays emptied unless a live view draws them:
+    /// `rows` holds them).
     pub(super) frame: ParticleFrame,
+    /// `[N, 4]` the frame's particles as the model takes them (`msgs::state_rows`).
+    pub(super) rows: Vec<f32>,
     /// When the transport received it.
     pub(super) arrived: Instant,
 }

@@ -39,11 +39,11 @@ struct Row {
 }
 
 /// The fields of the node's closing `time:` line: its wall time, the loop's stages
-/// ([`LOOP_STAGES`]), the decoder thread's busy time.
+/// ([`LOOP_STAGES`]), the decoder and lander threads' busy times.
 fn stages() -> Vec<&'static str> {
     let mut names = vec!["wall"];
     names.extend(LOOP_STAGES);
-    names.push("decode");
+    names.extend(["decode", "land"]);
     names
 }
 
@@ -333,9 +333,11 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     }
     println!(
         "\nWhere the node's wall time went, seconds (wait: blocked with nothing due; intake: \
-         count, queue; stack / call / split: the model's calls; publish: encode, send; \
-         decode: the decoder thread's busy time beside the loop, decode and check; the mean \
-         over the nodes):"
+         count, queue; stack / call / split: the model's calls; publish: encode, send; landing: \
+         blocked on the lander thread; \
+         decode: the decoder thread's busy time beside the loop, decode and check; land: the \
+         lander thread's, landing, projecting and publishing pipelined calls; the mean over \
+         the nodes):"
     );
     let names = stages();
     println!("| --max-batch | {} |", names.join(" | "));
