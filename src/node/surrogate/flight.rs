@@ -1,11 +1,15 @@
 //! A batch's network call on its way through the surrogate node: one scene's part of it
 //! ([`Job`]), the call recorded with its predictions still on the device ([`InFlight`],
-//! pipelined calls, `--pipeline`) and the call landed, its predictions on the host and
-//! projected ([`Landed`]). The batcher (`batcher.rs`) makes the jobs and hands the calls in
-//! flight to the lander thread (`lander.rs`), which hands them back landed; both read these
-//! types from here.
+//! pipelined calls, `--pipeline`), the call landed, its predictions on the host and
+//! projected ([`Landed`], what the lander published of it: [`Published`]), and the
+//! publisher the loop and the lander share ([`SharedPublisher`]). The batcher (`batcher.rs`)
+//! makes the jobs and hands the calls in flight to the lander thread (`lander.rs`), which
+//! hands them back landed; both read these types from here.
+
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use crate::model::store::{Finished, Predict, State, Submitted};
+use crate::transport::FramePublisher;
 
 use super::schedule::Pending;
 
@@ -64,4 +68,13 @@ pub(super) struct Published {
     pub(super) last_error: Option<String>,
     /// Per frame sent, arrival -> publication, us.
     pub(super) latencies_us: Vec<f64>,
+}
+
+/// The node's frame publisher, shared by the loop and the lander thread (`lander.rs`).
+pub(super) type SharedPublisher = Arc<Mutex<Box<dyn FramePublisher>>>;
+
+/// `publisher` locked; a thread that panicked while holding it left nothing half-sent
+/// that matters (a frame is one call), so its poison is passed over.
+pub(super) fn lock(publisher: &SharedPublisher) -> MutexGuard<'_, Box<dyn FramePublisher>> {
+    publisher.lock().unwrap_or_else(|e| e.into_inner())
 }

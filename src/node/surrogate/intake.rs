@@ -56,9 +56,10 @@ enum Decoded {
 /// (`max_frame_bytes`, the model's fixed particle count `model_n`) and laid out as the
 /// model's rows onto the returned channel, or, with `owners` (sharded), passed over when
 /// another member owns its scene; its busy time is added to `busy_ns`. A frame keeps its
-/// position and velocity arrays only with `keep_arrays` (a live view draws them). The thread ends when `samples` closes
-/// (the subscription is dropped) or the returned channel's receiver is dropped; the
-/// returned channel closes when it ends (or panics: join the handle to tell).
+/// position and velocity arrays only with `keep_arrays` (a live view draws them). The
+/// thread ends when `samples` closes (the subscription is dropped) or the returned
+/// channel's receiver is dropped; the returned channel closes when it ends (or panics:
+/// join the handle to tell).
 ///
 /// # Panics
 /// When the thread cannot be spawned (as `std::thread::spawn`).

@@ -19,9 +19,8 @@ use std::time::Instant;
 use crate::model::store::{Finished, Surrogate};
 use crate::ops::NetOps;
 
-use super::flight::{InFlight, Job, Landed, Published};
+use super::flight::{lock, InFlight, Job, Landed, Published, SharedPublisher};
 use super::frames::predicted_frame;
-use super::node_loop::{lock, SharedPublisher};
 
 /// Calls handed to the lander and not yet back, at most.
 pub(super) const MAX_LANDING: usize = 2;

@@ -5,7 +5,7 @@
 //! and counters once a second, publishing predicted frames, the closing reports.
 
 use std::collections::HashSet;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::model::store::Surrogate;
@@ -14,22 +14,13 @@ use crate::ops::NetOps;
 use crate::transport::{FramePublisher, StatusPublisher};
 use crate::viz::PredictionView;
 
-use super::flight::Published;
+use super::flight::{lock, Published, SharedPublisher};
 use super::lander::Lander;
 use super::options::{summary, NodeOptions, NodeReport};
 use super::report::{log_latencies, wall_time, BatchStats, StageTimes, Tally};
 use super::scenes::Scenes;
 use super::schedule::Schedule;
 use super::shard::Shard;
-
-/// The node's frame publisher, shared by the loop and the lander thread (`lander.rs`).
-pub(super) type SharedPublisher = Arc<Mutex<Box<dyn FramePublisher>>>;
-
-/// `publisher` locked; a thread that panicked while holding it left nothing half-sent
-/// that matters (a frame is one call), so its poison is passed over.
-pub(super) fn lock(publisher: &SharedPublisher) -> MutexGuard<'_, Box<dyn FramePublisher>> {
-    publisher.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 /// The node's state between loop iterations: per-scene hidden states, pending frames,
 /// rollouts under way, counters and the timers of the periodic reports.
@@ -201,7 +192,8 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
         own.then(|| Arc::clone(&self.publisher))
     }
 
-    /// Counts what the lander thread published of a call, as [`Self::emit`] counts.
+    /// Counts what the lander thread published of a call, as [`Self::emit`] counts (a
+    /// failed send logged once a call, with the call's last error).
     pub(super) fn count_published(&mut self, p: Published) {
         self.tally.report.published += p.sent;
         self.tally.report.dropped += p.failed;

@@ -115,6 +115,10 @@ pub struct NodeBenchArgs {
     /// `--streams`: the node's `--max-batch-delay`, ms (0-1000).
     #[arg(long, default_value_t = 2.0)]
     max_batch_delay: f64,
+    /// `--streams`: the node's `--queue-depth`, pending frames per scene (1: each scene's
+    /// newest frame only, the lowest latency when the node falls behind).
+    #[arg(long, default_value_t = 8, value_parser = crate::cli::flags::at_least_one)]
+    queue_depth: usize,
     /// Internal: be the publisher process of `--streams`, publishing to this topic.
     #[arg(long, hide = true)]
     publish_to: Option<String>,

@@ -246,6 +246,7 @@ fn spawn_node(
         .args(["--in", input, "--out", output, "--status", "none"])
         .args(["--max-batch", &max_batch.to_string()])
         .args(["--max-batch-delay", &args.max_batch_delay.to_string()])
+        .args(["--queue-depth", &args.queue_depth.to_string()])
         .args([
             "--device",
             &args.device.device,
