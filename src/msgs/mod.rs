@@ -295,14 +295,8 @@ impl ParticleFrame {
                 }
             }
         }
-        // As above: the search only where the vectorised pass found an unknown id.
-        if !crate::material::Material::all_known(&self.material) {
-            let known = |m: u8| crate::material::Material::from_id(m).is_some();
-            if let Some((index, &value)) =
-                (self.material.iter().enumerate()).find(|(_, &m)| !known(m))
-            {
-                return Err(FrameError::UnknownMaterial { index, value });
-            }
+        if let Some((index, value)) = crate::material::Material::first_unknown(&self.material) {
+            return Err(FrameError::UnknownMaterial { index, value });
         }
         Ok(())
     }
