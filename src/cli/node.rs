@@ -86,6 +86,13 @@ pub struct NodeArgs {
     /// (which computes as it records: nothing to overlap).
     #[arg(long, value_name = "BOOL")]
     pipeline: Option<bool>,
+    /// Dynamic batching: before the first calls of scenes of a particle count, make one call
+    /// of every batch size --pad-batches gives up to --max-batch (copies of one scene, their
+    /// results dropped), as Triton's model warmup does: on a GPU a call of a new shape
+    /// compiles kernels and times cuDNN's algorithms, a stall of a second or more when a
+    /// burst first makes that batch. Default: true on a GPU, false on the CPU.
+    #[arg(long, value_name = "BOOL")]
+    warm_up_batches: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a
     /// zenoh liveliness token, a scene is predicted by the live node of highest rendezvous
     /// hash, and a dead node's scenes move to the others (restarting from the next frame).
@@ -183,6 +190,7 @@ fn serve<B: NetOps>(args: NodeArgs, device: B::Device) -> anyhow::Result<Outcome
         max_batch: max_batch as usize,
         max_batch_delay: Duration::from_secs_f64(args.max_batch_delay / 1e3),
         pipeline: args.pipeline.unwrap_or(!on_cpu),
+        warm_up: args.warm_up_batches.unwrap_or(!on_cpu),
         shard: args.shard,
         max_published: args.max_published,
         wait_for_subscribers: args.wait_for_subscribers,

@@ -6,7 +6,8 @@
 //! node's pipelined calls); a node batching up to 8 scenes a call publishes the predictions
 //! of a node stepping one scene a call, pipelined or not; and in closed loop
 //! under load (long scenes arriving faster than they are rolled out, an idle timeout shorter
-//! than the rollouts) every scene gets exactly one rollout.
+//! than the rollouts) every scene gets exactly one rollout; warming up every batch size first
+//! (`--warm-up-batches`) changes no prediction.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -324,6 +325,10 @@ fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
             "20",
             "--pipeline",
             "true",
+            "--pad-batches",
+            "true",
+            "--warm-up-batches",
+            "true",
         ],
     );
     let session = transport::zenoh::ZenohTransport::open(None).unwrap();
@@ -370,6 +375,41 @@ fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
     assert_eq!(counter(&log_one, "batch_max"), Some(1), "{log_one}");
     let max = counter(&log_many, "batch_max").unwrap();
     assert!((2..=8).contains(&max), "batch_max {max}\n{log_many}");
+    // Both particle counts warmed up (calls of 1, 2, 4 and 8 copies), which moved no frame.
+    for n in [2500, 1200] {
+        let line = format!("warmed up 4 batch sizes of scenes of {n} particles (up to 8 a call)");
+        assert!(log_many.contains(&line), "{line}\n{log_many}");
+    }
+}
+
+/// `Surrogate::warm_up_batches` makes one call of each padded batch size and leaves the
+/// scene, its next predictions and the projection's sums as they were.
+#[test]
+fn warming_up_the_batch_sizes_changes_no_prediction() {
+    let frames = &four_scenes()[0];
+    let dir = repo("models/all-grid-mingru-small-k4");
+    let run = |warm: bool| {
+        let s = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())
+            .unwrap()
+            .with_padded_batches(true);
+        let mut state = s.init_state();
+        let mut out = Vec::new();
+        for (i, f) in frames[..6].iter().enumerate() {
+            let rows = state_rows(f);
+            if warm && i == 3 {
+                let calls = s.warm_up_batches((&rows, &f.material, f.dt), &state, 5, i % 2 == 1);
+                assert_eq!(calls.unwrap(), 4, "calls of 1, 2, 4 and 8 scenes");
+            }
+            let (next, after) = s.step(&rows, &f.material, &[f.dt], state).unwrap();
+            out.extend(next);
+            state = after;
+        }
+        (out, s.take_corrections())
+    };
+    let (want, want_moved) = run(false);
+    let (got, moved) = run(true);
+    assert_eq!(got, want, "the frames after a warm-up");
+    assert_eq!(moved, want_moved, "the projection's sums");
 }
 
 #[test]
@@ -388,6 +428,10 @@ fn in_closed_loop_under_load_every_scene_gets_one_rollout() {
             "--idle-timeout",
             "1",
             "--pipeline",
+            "true",
+            "--pad-batches",
+            "true",
+            "--warm-up-batches",
             "true",
         ],
     );

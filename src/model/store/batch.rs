@@ -107,7 +107,7 @@ impl<B: NetOps> Surrogate<B> {
     }
 
     /// [`Surrogate::submit_scenes`] with the predictions read as `read` says.
-    fn submit_with(
+    pub(super) fn submit_with(
         &self,
         scenes: Vec<SceneStep<'_, B>>,
         predict: Predict,

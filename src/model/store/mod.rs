@@ -8,7 +8,8 @@
 //! in `checkpoint/` beside them. Both architectures, `paper` ([`Model`]) and `grid`
 //! ([`GridModel`]), are served by one [`Surrogate`] (`surrogate.rs`; its step in `step.rs`,
 //! a grid model's call in `grid_step.rs`, closed-loop rollouts in `rollout.rs`, dynamic
-//! batching in `batch.rs`, a call's predictions on their way back in `outs.rs`), whose
+//! batching in `batch.rs` and its shapes warmed up in `warm_up.rs`, a call's predictions on
+//! their way back in `outs.rs`), whose
 //! per-batch [`State`] lives in `state.rs` (a grid model's part in `grid_state.rs`; stacked
 //! and split by `stack.rs`; its constraint data in `constrained.rs`).
 
@@ -24,6 +25,7 @@ pub mod stages;
 mod state;
 mod step;
 mod surrogate;
+mod warm_up;
 
 pub use batch::{Finished, SceneStep, SceneSteps, StepTimes, Submitted};
 pub use run_folder::RunFolder;

@@ -47,7 +47,7 @@ pub struct Surrogate<B: Backend> {
     pub(super) device: B::Device,
     /// A mirror ensemble ([`Surrogate::with_mirror`]).
     pub(super) mirror: bool,
-    pad_batches: bool,
+    pub(super) pad_batches: bool,
     /// Bytes of predicted frames a device-side rollout holds before reading them back
     /// ([`Surrogate::with_feedback_bytes`]).
     pub(super) feedback_bytes: usize,

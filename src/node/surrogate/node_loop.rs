@@ -54,6 +54,8 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) evicted: Evictions,
     /// The lander thread of the pipelined calls (`--pipeline`; `lander.rs`).
     pub(super) lander: Option<Lander<B>>,
+    /// The particle counts whose batch sizes are warmed up (`--warm-up-batches`).
+    pub(super) warmed: HashSet<usize>,
 }
 
 /// Scene states a node dropped.
@@ -103,6 +105,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             latencies_us: Vec::new(),
             evicted: Evictions::default(),
             lander: None,
+            warmed: HashSet::new(),
             view: options
                 .foxglove
                 .as_ref()

@@ -90,6 +90,10 @@ pub struct NodeBenchArgs {
     /// next call (`node --pipeline`). Default: the node's (true on a GPU).
     #[arg(long, value_name = "BOOL")]
     pipeline: Option<bool>,
+    /// `--streams`: whether the node warms up every batch size first (`node
+    /// --warm-up-batches`). Default: the node's (true on a GPU).
+    #[arg(long, value_name = "BOOL")]
+    warm_up_batches: Option<bool>,
     /// Many streams into one node (zenoh): this many scenes, interleaved, from one
     /// publisher process; one row per `--max-batch` value (1-4096).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]

@@ -169,6 +169,7 @@ fn one_row(args: &NodeBenchArgs, exe: &Path, model: &Path, max_batch: u32) -> an
         .into_iter()
         .map(|l| l.join().unwrap_or_default())
         .collect();
+    echo_warm_up(&logs);
     let timed_ticks = ((args.warm_up + args.seconds) * args.rate).ceil() as u32 - warm_ticks;
     latency_ms.sort_by(f64::total_cmp);
     let span = first.map_or(0.0, |f| (last - f).as_secs_f64());
@@ -214,6 +215,16 @@ fn spawn_nodes(
     Ok((nodes, logs))
 }
 
+/// Echoes the nodes' log lines of their batch warm-up (`node --warm-up-batches`: what they
+/// did before serving, and for how long) on stderr.
+fn echo_warm_up(logs: &[String]) {
+    for line in logs.iter().flat_map(|l| l.lines()) {
+        if line.contains("warmed up") || line.contains("warming up") {
+            eprintln!("bench node: the node: {line}");
+        }
+    }
+}
+
 /// The mean over the nodes' `logs` of `name=` (NaN where none has it).
 fn mean_over(logs: &[String], name: &str) -> f64 {
     let v: Vec<f64> = logs.iter().filter_map(|l| log_value(l, name)).collect();
@@ -256,6 +267,10 @@ fn spawn_node(
         .args(if args.mirror { &["--mirror"][..] } else { &[] })
         .args(["--constraints", &args.constraints.to_string()])
         .args(args.pipeline.map(|p| format!("--pipeline={p}")))
+        .args(
+            args.warm_up_batches
+                .map(|w| format!("--warm-up-batches={w}")),
+        )
         .args(shard_args)
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
@@ -300,7 +315,7 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     let streams = args.streams.unwrap_or(1);
     println!(
         "\n{}, {streams} streams at {} Hz each ({:.0} frames/s offered), {} s timed after \
-         {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms, --pipeline {}:",
+         {} s warm-up, model {}, on {}, --constraints {}, --max-batch-delay {} ms, --pipeline {}, --warm-up-batches {}:",
         match args.nodes {
             1 => "One node".to_string(),
             n => format!("{n} sharded nodes on one device"),
@@ -314,6 +329,8 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
         args.constraints,
         args.max_batch_delay,
         args.pipeline
+            .map_or("the node's default".to_string(), |p| p.to_string()),
+        args.warm_up_batches
             .map_or("the node's default".to_string(), |p| p.to_string())
     );
     println!("| --max-batch | sent | delivered | dropped | p50 ms | p99 ms | predictions/s | mean batch | max batch |");
