@@ -1,6 +1,7 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). Lists the bundled bags
-//! in `bags/`, takes the shipped small bundled grid minGRU (`models/all-grid-mingru-small-k4`;
-//! `--train`, or a `--model` folder that holds no model, trains one on the bundled bags first,
+//! in `bags/`, takes the shipped small grid minGRU fine-tuned on mixed scenes too
+//! (`models/all-grid-mingru-small-k4-mixed`, README "Results": of the small models the closest
+//! over 20 frames and whole scenes, and the one that keeps the liquid's area; `--train`, or a `--model` folder that holds no model, trains one on the bundled bags first,
 //! in this process), then launches `launch_configs/replay_eval.yaml` over zenoh with an
 //! embedded peer (replay -> surrogate node in closed loop -> recorder -> `eval --pred
 //! --truth`), which prints the replay evaluation table beside the `persist` and `constvel`
@@ -23,10 +24,12 @@ pub struct DemoArgs {
     /// Bundled ground-truth bags.
     #[arg(long, default_value = "bags")]
     bags: PathBuf,
-    /// Run folder of the model (by default the shipped small grid minGRU that predicts 4
-    /// frames per network call, the cheapest shipped model, or with --grid its scale
-    /// version, `models/scale-grid-mingru-small-k4`; `models/all-grid-mingru-rest` has the
-    /// lowest errors); trained here first if it holds no model.
+    /// Run folder of the model (by default `models/all-grid-mingru-small-k4-mixed`, a small
+    /// grid minGRU that predicts 4 frames per network call, fine-tuned on mixed scenes too: of
+    /// the small models the closest to the truth and the one that keeps the liquid's area; with
+    /// --grid the scale model, `models/scale-grid-mingru-small-k4`;
+    /// `models/all-grid-mingru-rest` has the lowest errors over whole scenes); trained here
+    /// first if it holds no model.
     #[arg(long)]
     model: Option<PathBuf>,
     /// The demo at scale: instead of the bundled bags, simulate `--scene` of the `multi`
@@ -145,13 +148,13 @@ fn demo_bags(args: &DemoArgs) -> anyhow::Result<PathBuf> {
     Ok(bags)
 }
 
-/// The demo's model: `--model` (by default the shipped small model, or with `--grid` its
-/// scale version), or one trained here on the bundled bags (`--train`, or a `--model` folder
+/// The demo's model: `--model` (by default the shipped small `-mixed` model, or with `--grid`
+/// the scale model), or one trained here on the bundled bags (`--train`, or a `--model` folder
 /// without a model; with `--grid`, an error instead).
 fn demo_model(args: &DemoArgs) -> anyhow::Result<PathBuf> {
     let shipped = match args.grid {
         Some(_) => "models/scale-grid-mingru-small-k4",
-        None => "models/all-grid-mingru-small-k4",
+        None => "models/all-grid-mingru-small-k4-mixed",
     };
     let model = args.model.clone().unwrap_or_else(|| PathBuf::from(shipped));
     let found = RunFolder::new(&model).model_json().is_file();

@@ -1,7 +1,7 @@
 //! The projection on the GPU (`NetOps::project_constraints`, `ops::cuda_projection_*`,
 //! `cuda_liquid*`, `cuda_solids`, `cuda_contact`) against the host's (`SceneShape::project`), on the same predicted frames,
-//! a bundle of two frames (the second moved by the first's correction), with the demo's
-//! model's parts (its `restore` on): three scenes of a liquid column squeezed into the floor
+//! a bundle of two frames (the second moved by the first's correction), with `-small-k4`'s
+//! parts (its `restore` on): three scenes of a liquid column squeezed into the floor
 //! and partly pushed through the walls; three of every material, a rope stretched, two jelly
 //! disks driven into each other and a snow block beside the liquid. Feature `cuda`: run on a
 //! GPU machine (`tests/gpu/run.sh projection`); CI has no GPU.
@@ -16,7 +16,7 @@ use minflow::ops::NetOps;
 
 type Gpu = Cuda<f32, i32>;
 
-/// The demo's default model's constraint parameters.
+/// `models/all-grid-mingru-small-k4`'s constraint parameters.
 fn constraints() -> Constraints {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
