@@ -86,11 +86,11 @@ pub struct NodeArgs {
     /// (which computes as it records: nothing to overlap).
     #[arg(long, value_name = "BOOL")]
     pipeline: Option<bool>,
-    /// Dynamic batching: before the first calls of scenes of a particle count, make one call
-    /// of every batch size --pad-batches gives up to --max-batch (copies of one scene, their
-    /// results dropped), as Triton's model warmup does: on a GPU a call of a new shape
-    /// compiles kernels and times cuDNN's algorithms, a stall of a second or more when a
-    /// burst first makes that batch. Default: true on a GPU, false on the CPU.
+    /// Dynamic batching: before a batch size first carries frames of a particle count, make
+    /// one call of it (copies of one scene, their results dropped), as Triton's model warmup
+    /// does: on a GPU a call of a new shape compiles kernels and times cuDNN's algorithms, a
+    /// stall of a second or more when a burst first makes that batch. The sizes follow the
+    /// scenes seen of that count, up to --max-batch. Default: true on a GPU, false on the CPU.
     #[arg(long, value_name = "BOOL")]
     warm_up_batches: Option<bool>,
     /// Shard the scenes over the live nodes of GROUP (zenoh only): each node declares a

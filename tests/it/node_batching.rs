@@ -6,8 +6,8 @@
 //! node's pipelined calls); a node batching up to 8 scenes a call publishes the predictions
 //! of a node stepping one scene a call, pipelined or not; and in closed loop
 //! under load (long scenes arriving faster than they are rolled out, an idle timeout shorter
-//! than the rollouts) every scene gets exactly one rollout; warming up every batch size first
-//! (`--warm-up-batches`) changes no prediction.
+//! than the rollouts) every scene gets exactly one rollout; warming up the batch sizes first
+//! (`--warm-up-batches`, live calls and closed loop) changes no prediction.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -375,30 +375,45 @@ fn a_batching_node_publishes_what_a_node_of_one_scene_a_call_does() {
     assert_eq!(counter(&log_one, "batch_max"), Some(1), "{log_one}");
     let max = counter(&log_many, "batch_max").unwrap();
     assert!((2..=8).contains(&max), "batch_max {max}\n{log_many}");
-    // Both particle counts warmed up (calls of 1, 2, 4 and 8 copies), which moved no frame.
+    // Both particle counts warmed up (four scenes each: calls of 1, 2 and 4 copies), which
+    // moved no frame.
     for n in [2500, 1200] {
-        let line = format!("warmed up 4 batch sizes of scenes of {n} particles (up to 8 a call)");
-        assert!(log_many.contains(&line), "{line}\n{log_many}");
+        assert_eq!(warmed_sizes(&log_many, n, ""), [1, 2, 4], "{log_many}");
     }
 }
 
-/// `Surrogate::warm_up_batches` makes one call of each padded batch size and leaves the
-/// scene, its next predictions and the projection's sums as they were.
+/// The batch sizes a node's log says it warmed up for scenes of `n` particles (`what`: the
+/// kind of call, "" or " (closed loop)"), in the order logged.
+fn warmed_sizes(log: &str, n: usize, what: &str) -> Vec<usize> {
+    let tail = format!(" of scenes of {n} particles{what} in ");
+    log.lines()
+        .filter_map(|l| l.split_once("warmed up batch sizes ")?.1.split_once(&tail))
+        .flat_map(|(sizes, _)| sizes.split(", ").map(|v| v.parse::<usize>().unwrap()))
+        .collect()
+}
+
+/// `Surrogate::warm_up_batches` makes one call of each batch size and leaves the scene, its
+/// next predictions and the projection's sums as they were: a jelly disk falling into a
+/// liquid under the `-mixed` model, whose rebound part keeps each contact between frames.
 #[test]
 fn warming_up_the_batch_sizes_changes_no_prediction() {
-    let frames = &four_scenes()[0];
-    let dir = repo("models/all-grid-mingru-small-k4");
+    let frames = &four_scenes()[2];
+    let dir = repo("models/all-grid-mingru-small-k4-mixed");
     let run = |warm: bool| {
         let s = Surrogate::<NdArray<f32>>::load(&dir, &Default::default())
             .unwrap()
             .with_padded_batches(true);
+        assert_eq!(s.batch_sizes(0, 5), [1, 2, 4, 8]);
+        assert_eq!(s.batch_sizes(2, 5), [4, 8]);
         let mut state = s.init_state();
         let mut out = Vec::new();
-        for (i, f) in frames[..6].iter().enumerate() {
+        for (i, f) in frames.iter().enumerate() {
             let rows = state_rows(f);
-            if warm && i == 3 {
-                let calls = s.warm_up_batches((&rows, &f.material, f.dt), &state, 5, i % 2 == 1);
-                assert_eq!(calls.unwrap(), 4, "calls of 1, 2, 4 and 8 scenes");
+            if warm && (i == 3 || i == 4) {
+                let scene = (&rows[..], &f.material[..], f.dt);
+                let ahead = i == 4;
+                s.warm_up_batches(scene, &state, &[1, 2, 4, 8], Predict::Next, ahead)
+                    .unwrap();
             }
             let (next, after) = s.step(&rows, &f.material, &[f.dt], state).unwrap();
             out.extend(next);
@@ -471,4 +486,12 @@ fn in_closed_loop_under_load_every_scene_gets_one_rollout() {
         let expect: Vec<u32> = (2..horizon + 2).collect();
         assert_eq!(indices, &expect, "{scene}: one rollout, in order\n{log}");
     }
+    // The rollouts' calls warmed up as their scenes came (up to the CPU's default --max-batch,
+    // 4); no live call was steady (each scene's T-th frame starts its rollout).
+    assert_eq!(
+        warmed_sizes(&log, 2500, " (closed loop)"),
+        [1, 2, 4],
+        "{log}"
+    );
+    assert_eq!(warmed_sizes(&log, 2500, ""), [0usize; 0], "{log}");
 }

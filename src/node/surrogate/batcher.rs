@@ -53,9 +53,9 @@ impl<B: NetOps> NodeLoop<'_, B> {
             };
             jobs.extend(job);
         }
+        self.warm_up(&jobs);
         let (bundles, single): (Vec<_>, Vec<_>) =
             jobs.into_iter().partition(|j| j.predict == Predict::Bundle);
-        self.warm_up(&single);
         if !single.is_empty() {
             // `run` starts the lander thread when `--pipeline` asks for it.
             match self.lander.is_some() {
@@ -71,40 +71,6 @@ impl<B: NetOps> NodeLoop<'_, B> {
             self.run_jobs(bundles, Predict::Bundle);
         }
         self.publish_due_rollouts();
-    }
-
-    /// Before the first calls of a particle count N (`--warm-up-batches`, on by default on a
-    /// GPU): one call of every padded batch size up to `--max-batch`, of copies of one of
-    /// `jobs`' scenes ([`Surrogate::warm_up_batches`](crate::model::store::Surrogate::warm_up_batches)),
-    /// so that each shape's kernels and cuDNN algorithms are ready before a burst makes
-    /// that batch; otherwise its first call stalls the stream for a second or more. The scene
-    /// is taken once its state is steady (T frames in: the calls the node makes from then
-    /// on), and the calls handed over land first, so no other projection runs meanwhile.
-    fn warm_up(&mut self, jobs: &[Job<B>]) {
-        if !self.options.warm_up {
-            return;
-        }
-        let steady = |j: &&Job<B>| j.state.frames >= self.window;
-        let Some(job) =
-            (jobs.iter().filter(steady)).find(|j| !self.warmed.contains(&j.material.len()))
-        else {
-            return;
-        };
-        let (n, max) = (job.material.len(), self.options.max_batch);
-        self.warmed.insert(n);
-        self.publish_landed(0);
-        let start = Instant::now();
-        let scene = (&job.rows[..], &job.material[..], job.dt);
-        let ahead = self.lander.is_some();
-        match (self.surrogate).warm_up_batches(scene, &job.state, max, ahead) {
-            Ok(calls) => tracing::info!(
-                "warmed up {calls} batch sizes of scenes of {n} particles (up to {max} a call) in {:.1} s",
-                start.elapsed().as_secs_f64()
-            ),
-            Err(e) => tracing::warn!(
-                "warming up batches of scenes of {n} particles failed, the node goes on: {e}"
-            ),
-        }
     }
 
     /// Records the call of `jobs` (live frames, [`Predict::Next`]), keeps the scenes' next

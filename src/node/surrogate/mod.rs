@@ -42,7 +42,8 @@
 //! frames are taken, what a frame does to its scene's state), [`scenes`] the per-scene
 //! states under those rules, [`schedule`] the queues (pending frames, rollouts under way)
 //! and when a batch is due, [`node_loop`] the loop's state, [`intake`] the arrival of
-//! frames, [`batcher`] the calls, [`flight`] a call's jobs on their way, [`lander`] the
+//! frames, [`batcher`] the calls (their sizes warmed up first on a GPU: [`warm`]), [`flight`]
+//! a call's jobs on their way, [`lander`] the
 //! thread that lands pipelined calls, [`closed`] the rollouts, [`shard`] the group, [`run`]
 //! the loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
 
@@ -60,6 +61,7 @@ mod run;
 mod scenes;
 mod schedule;
 pub mod shard;
+mod warm;
 
 pub use frames::state_rows;
 pub use options::{summary, NodeOptions, NodeReport, OnGap};

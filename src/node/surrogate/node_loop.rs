@@ -4,7 +4,7 @@
 //! apart from taking frames in (`intake.rs`) and stepping batches (`batcher.rs`): status
 //! and counters once a second, publishing predicted frames, the closing reports.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -54,8 +54,19 @@ pub(super) struct NodeLoop<'a, B: NetOps> {
     pub(super) evicted: Evictions,
     /// The lander thread of the pipelined calls (`--pipeline`; `lander.rs`).
     pub(super) lander: Option<Lander<B>>,
-    /// The particle counts whose batch sizes are warmed up (`--warm-up-batches`).
-    pub(super) warmed: HashSet<usize>,
+    /// What the batch warm-up did per kind of call: particle count, closed loop or not
+    /// (`--warm-up-batches`; `warm.rs`).
+    pub(super) warmed: HashMap<(usize, bool), Warmed>,
+}
+
+/// What the node has warmed up of one kind of call (particle count, closed loop or not;
+/// `warm.rs`).
+#[derive(Debug, Default)]
+pub(super) struct Warmed {
+    /// Scenes seen with calls of this kind (at most `--max-batch` of them kept).
+    pub(super) scenes: HashSet<String>,
+    /// The largest batch size warmed up (0: none).
+    pub(super) up_to: usize,
 }
 
 /// Scene states a node dropped.
@@ -105,7 +116,7 @@ impl<'a, B: NetOps> NodeLoop<'a, B> {
             latencies_us: Vec::new(),
             evicted: Evictions::default(),
             lander: None,
-            warmed: HashSet::new(),
+            warmed: HashMap::new(),
             view: options
                 .foxglove
                 .as_ref()

@@ -50,8 +50,9 @@ pub struct NodeOptions {
     /// lander thread while the loop gathers and records the next batch's call, so a GPU
     /// runs while the host works (`batcher.rs`, `lander.rs`).
     pub pipeline: bool,
-    /// Before the first calls of a particle count: one call of every padded batch size up
-    /// to `max_batch` (`Surrogate::warm_up_batches`), so no burst meets an unready shape.
+    /// Before a batch size first carries frames of a particle count: one call of it
+    /// (`Surrogate::warm_up_batches`; the sizes follow the scenes seen, up to `max_batch`), so
+    /// no burst meets an unready shape (`warm.rs`).
     pub warm_up: bool,
     /// Sharding over zenoh: the group whose live nodes divide the scenes among them.
     pub shard: Option<String>,
