@@ -1,13 +1,14 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). Lists the bundled bags
 //! in `bags/`, takes the shipped small grid minGRU fine-tuned on mixed scenes too
 //! (`models/all-grid-mingru-small-k4-mixed`, README "Results": of the small models the closest
-//! over 20 frames and whole scenes, and the one that keeps the liquid's area; `--train`, or a `--model` folder that holds no model, trains one on the bundled bags first,
-//! in this process), then launches `launch_configs/replay_eval.yaml` over zenoh with an
-//! embedded peer (replay -> surrogate node in closed loop -> recorder -> `eval --pred
-//! --truth`), which prints the replay evaluation table beside the `persist` and `constvel`
-//! baselines. With `--grid 128 | 256` the demo at scale: one `multi` scene of 10,000 or
-//! 40,000 particles simulated on the spot (seed 7: no shipped model trained on it) and served
-//! by the scale model (`models/scale-grid-mingru-small-k4`) the same way.
+//! over 20 frames and whole scenes, and the one that keeps the liquid's area; `--train`, or a
+//! `--model` folder that holds no model, trains one on the bundled bags first, in this
+//! process), then launches `launch_configs/replay_eval.yaml` over zenoh with an embedded peer
+//! (replay -> surrogate node in closed loop -> recorder -> `eval --pred --truth`), which prints
+//! the replay evaluation table beside the `persist` and `constvel` baselines. With `--grid 128`
+//! or `256` the demo at scale: one `multi` scene of 10,000 or 40,000 particles simulated on the
+//! spot (seed 7: no shipped model trained on it) and served by the scale model
+//! (`models/scale-grid-mingru-small-k4`) the same way.
 
 use super::train::TrainArgs;
 use super::Outcome;

@@ -43,9 +43,9 @@
 //! states under those rules, [`schedule`] the queues (pending frames, rollouts under way)
 //! and when a batch is due, [`node_loop`] the loop's state, [`intake`] the arrival of
 //! frames, [`batcher`] the calls (their sizes warmed up first on a GPU: [`warm`]), [`flight`]
-//! a call's jobs on their way, [`lander`] the
-//! thread that lands pipelined calls, [`closed`] the rollouts, [`shard`] the group, [`run`]
-//! the loop itself, [`report`] the counters and logs, [`frames`] the frame helpers.
+//! a call's jobs on their way, [`lander`] the thread that lands pipelined calls, [`closed`]
+//! the rollouts, [`shard`] the group, [`run`] the loop itself, [`report`] the counters and
+//! logs, [`frames`] the frame helpers.
 
 mod admission;
 mod batcher;

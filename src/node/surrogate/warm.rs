@@ -30,16 +30,20 @@ impl<B: NetOps> NodeLoop<'_, B> {
         for (i, job) in jobs.iter().enumerate() {
             let bundle = job.predict == Predict::Bundle;
             let kind = self.warmed.entry((job.material.len(), bundle)).or_default();
-            if kind.scenes.len() < max {
+            // Every call passes here: the scene's name is copied only the first time.
+            if kind.scenes.len() < max && !kind.scenes.contains(&job.scene) {
                 kind.scenes.insert(job.scene.clone());
             }
             // A rollout's first call is its T-th frame's; a live frame's, the one after.
             let steady = job.state.frames + usize::from(bundle) >= self.window;
-            let seen = kind.scenes.len().min(max);
-            let sizes = self.surrogate.batch_sizes(kind.up_to, seen);
-            let queued = todo.iter().any(|&(j, _)| same_kind(&jobs[j], job));
-            if steady && !sizes.is_empty() && !queued {
-                todo.push((i, sizes));
+            // The sizes warmed (powers of two, or the count itself unpadded) cover `seen`
+            // exactly when `up_to >= seen`: nothing to ask `batch_sizes` then.
+            let seen = kind.scenes.len();
+            if !steady || kind.up_to >= seen {
+                continue;
+            }
+            if !todo.iter().any(|&(j, _)| same_kind(&jobs[j], job)) {
+                todo.push((i, self.surrogate.batch_sizes(kind.up_to, seen)));
             }
         }
         if todo.is_empty() {

@@ -310,6 +310,11 @@ fn log_value(log: &str, name: &str) -> Option<f64> {
     })
 }
 
+/// A node flag's value as the table's header gives it: the value passed, or the node's own.
+fn or_default(flag: Option<bool>) -> String {
+    flag.map_or("the node's default".to_string(), |v| v.to_string())
+}
+
 /// Prints the table (Markdown) on stdout.
 fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
     let streams = args.streams.unwrap_or(1);
@@ -328,10 +333,8 @@ fn print_rows(args: &NodeBenchArgs, model: &Path, rows: &[Row]) {
         args.device.device,
         args.constraints,
         args.max_batch_delay,
-        args.pipeline
-            .map_or("the node's default".to_string(), |p| p.to_string()),
-        args.warm_up_batches
-            .map_or("the node's default".to_string(), |p| p.to_string())
+        or_default(args.pipeline),
+        or_default(args.warm_up_batches)
     );
     println!("| --max-batch | sent | delivered | dropped | p50 ms | p99 ms | predictions/s | mean batch | max batch |");
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
