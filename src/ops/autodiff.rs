@@ -32,9 +32,11 @@ impl<B: NetOps, C: CheckpointStrategy> NetOps for Autodiff<B, C> {
     /// move it makes to the prediction: a straight-through gradient).
     fn project_constraints(
         out: FloatTensor<Self>,
+        input: Option<FloatTensor<Self>>,
         plan: &super::ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
-        let (projected, moves) = B::project_constraints(Self::inner(out), plan)?;
+        let input = input.map(Self::inner);
+        let (projected, moves) = B::project_constraints(Self::inner(out), input, plan)?;
         Some((Self::from_inner(projected), Self::from_inner(moves)))
     }
 

@@ -192,9 +192,10 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     /// The kernels of `cuda_projection_*.rs`, unless `MINFLOW_CUDA_PROJECTION=host`.
     fn project_constraints(
         out: FloatTensor<Self>,
+        input: Option<FloatTensor<Self>>,
         plan: &super::ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
-        Self::projects_constraints().then(|| super::cuda_projection_op::project(out, plan))
+        (Self::projects_constraints()).then(|| super::cuda_projection_op::project(out, input, plan))
     }
 
     /// Unless `MINFLOW_CUDA_PROJECTION=host`.

@@ -12,43 +12,32 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
+use super::cuda_buffers::Buffers;
 use super::cuda_contact::{contact, CONTACT_SHARED};
 use super::cuda_liquid::{begin, node, splat};
 use super::cuda_liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
-use super::cuda_solids::{bodies, ropes, HEAD, PER_SCENE};
+use super::cuda_momentum::{conserve, join_frame, reset, CELL_SLOTS};
+use super::cuda_rebound::rebound;
+use super::cuda_solids::{bodies, index, ropes, HEAD, PER_SCENE};
+
+/// Where the momentum part's values start in `solids` (`MOMENTUM_AT`).
+const MOMENTUM_AT: usize = super::MOMENTUM_AT;
 
 /// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
-
-/// The call's arrays (`cuda_liquid.rs`'s layout; `list` `[B nodes]`: each scene's full
-/// nodes, red from the front, black from the back).
-#[derive(CubeLaunch, CubeType)]
-pub(super) struct Buffers {
-    pub frames: Array<f32>,
-    pub net: Array<f32>,
-    pub before: Array<f32>,
-    pub volume: Array<f32>,
-    pub scenes: Array<f32>,
-    pub acc: Array<Atomic<i64>>,
-    pub grid: Array<f32>,
-    pub kind: Array<u32>,
-    pub q: Array<f32>,
-    pub rhs: Array<f32>,
-    pub faces: Array<f32>,
-    pub moves: Array<Atomic<i64>>,
-    pub list: Array<u32>,
-    pub solids: Array<f32>,
-}
 
 /// Every frame of the call for scene `CUBE_POS_X`: `count` frames of `n` particles, `nodes`
 /// node slots a scene, `iterations` half-sweep pairs, `flags` the walls (bit 0) and the
 /// liquid's material id (above), `velocity` 1 where the divergence part is on; then the
 /// pressure part's full share, stiffness and over-relaxation, and the energy step's share
-/// restored and largest scale.
+/// restored and largest scale; `laws` 1 where the momentum and rebound parts act (the call
+/// has its input frames), `rb` the rebound tables' bodies a row.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn call_kernel(
     b: &mut Buffers,
+    laws: u32,
+    rb: u32,
     n: u32,
     nodes: u32,
     count: u32,
@@ -69,6 +58,8 @@ pub(super) fn call_kernel(
     let mut listed = SharedMemory::<Atomic<u32>>::new(2usize);
     let mut cs = SharedMemory::<f32>::new(CONTACT_SHARED);
     let mut partial = Array::<f64>::new(5usize);
+    let mut cells = SharedMemory::<Atomic<u32>>::new(2 * CELL_SLOTS);
+    let mut chunk = SharedMemory::<u32>::new(THREADS as usize);
     for k in 0..count {
         let mut p = s * n as usize + u;
         let end = (s + 1) * n as usize;
@@ -85,6 +76,11 @@ pub(super) fn call_kernel(
             grid_steps(b, &mut listed, n, nodes, k, velocity, full, stiffness, s, u);
             sweeps(b, &mut listed, n, nodes, k, iterations, omega, s, u);
         }
+        if laws == 1 {
+            fetch_prev(b, n, k, s, u);
+            let (c, h, sh) = (&mut cells, &mut chunk, &mut shared);
+            momentum_and_rebound(b, rb, &mut cs, c, h, sh, &mut partial, n, k, s, u);
+        }
         let mut p = s * n as usize + u;
         loop {
             if p >= end {
@@ -100,6 +96,59 @@ pub(super) fn call_kernel(
             energy(f, bf, vol, &mut shared, n, k, restore, max_scale, s, u);
         }
     }
+}
+
+/// Frame `k`'s rebound and momentum parts for scene `s` (thread `u`), in
+/// `SceneShape::project`'s order (`cuda_rebound.rs`, `cuda_momentum.rs`); `prev` holds the
+/// frame before.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn momentum_and_rebound(
+    b: &mut Buffers,
+    rb: u32,
+    cs: &mut SharedMemory<f32>,
+    cells: &mut SharedMemory<Atomic<u32>>,
+    chunk: &mut SharedMemory<u32>,
+    shared: &mut SharedMemory<f64>,
+    partial: &mut Array<f64>,
+    n: u32,
+    k: u32,
+    s: usize,
+    u: usize,
+) {
+    let dt = b.scenes[s * SV + 7];
+    if index(&b.solids, HEAD + PER_SCENE * s + 5) > 0 {
+        rebound(b, rb, cs, cells, shared, partial, dt, n, k, s, u);
+    }
+    let reach = b.solids[MOMENTUM_AT];
+    if reach > f32::new(0.0) {
+        let (prev_at, at) = (s * n as usize * 4, k as usize * b.before.len());
+        reset(b, n, s, u);
+        join_frame(b, 0u32, prev_at, cells, chunk, n, reach, s, u);
+        join_frame(b, 1u32, at + prev_at, cells, chunk, n, reach, s, u);
+        conserve(b, dt, n, k, s, u);
+    }
+}
+
+/// The frame before frame `k` of scene `s` into `prev`: the call's input for the first
+/// frame, else frame `k - 1` as projected.
+#[cube]
+fn fetch_prev(b: &mut Buffers, n: u32, k: u32, s: usize, u: usize) {
+    sync_cube();
+    let per = b.before.len();
+    let mut i = s * n as usize * 4 + u;
+    loop {
+        if i >= (s + 1) * n as usize * 4 {
+            break;
+        }
+        if k == 0 {
+            b.prev[i] = b.input[i];
+        } else {
+            b.prev[i] = b.frames[(k as usize - 1) * per + i];
+        }
+        i += THREADS as usize;
+    }
+    sync_cube();
 }
 
 /// Frame `k`'s ropes, contact and shape matching for scene `s` (thread `u`), in

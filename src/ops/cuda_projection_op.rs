@@ -8,7 +8,7 @@
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
-use burn::tensor::{Tensor, TensorData, TensorMetadata};
+use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
 use burn_cubecl::cubecl;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
@@ -17,22 +17,27 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::cuda_buffers::BuffersLaunch;
 use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use super::cuda_liquid::{copy_kernel, zero_kernel};
 use super::cuda_liquid_solve::{moves_kernel, THREADS};
-use super::cuda_projection_call::{call_kernel, BuffersLaunch};
-use super::{ProjectionPlan, MATERIALS, SCENE_VALUES};
+use super::cuda_momentum::SUMS;
+use super::cuda_projection_call::call_kernel;
+use super::{ProjectionPlan, EVENT_VALUES, MATERIALS, SCENE_VALUES};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
 
-/// The recorded projection: inputs `[out, volume, scenes, solids]`, outputs the projected
-/// frames and the moves (`[B, MATERIALS]`, particle spacings summed over the call's frames).
+/// The recorded projection: inputs `[out, volume, scenes, solids, input, events]`, outputs
+/// the projected frames, the moves (`[B, MATERIALS]`, particle spacings summed over the
+/// call's frames) and the rebound part's contacts after the call (`events`' layout).
 #[derive(Debug)]
 struct ProjectionOp {
     desc: CustomOpIr,
     /// The plan (its arrays shared; on the device they are the inputs).
     s: ProjectionPlan,
+    /// Whether the input frames came (the momentum and rebound parts act).
+    laws: bool,
 }
 
 /// Scratch of one call: `[B nodes]` node slots of each array.
@@ -46,6 +51,12 @@ struct Scratch {
     faces: Handle,
     moves: Handle,
     list: Handle,
+    prev: Handle,
+    parent: Handle,
+    sorted: Handle,
+    cellof: Handle,
+    sums: Handle,
+    free: Handle,
 }
 
 /// A launch argument over `len` elements of `h`.
@@ -67,17 +78,12 @@ impl Operation<Runtime> for ProjectionOp {
         let volume = contiguous(handles.get_float_tensor::<Inner>(&inputs[1]));
         let scenes = contiguous(handles.get_float_tensor::<Inner>(&inputs[2]));
         let solids = contiguous(handles.get_float_tensor::<Inner>(&inputs[3]));
+        let input = contiguous(handles.get_float_tensor::<Inner>(&inputs[4]));
+        let events_in = contiguous(handles.get_float_tensor::<Inner>(&inputs[5]));
         let client = out.client.clone();
         let s = &self.s;
-        let total = s.k * s.b * s.n * 4;
-        let frames = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
-            client.clone(),
-            out.device.clone(),
-            out.meta.shape().clone(),
-            out.dtype,
-        );
-        let (count, dim) = elementwise(&client, total);
-        copy_kernel::launch(&client, count, dim, flat(&out), flat(&frames));
+        let (frames, events) = (copied(&out), copied(&events_in));
+        let bn = s.b * s.n;
         let slots = s.b * s.nodes;
         let scratch = Scratch {
             before: client.empty(s.b * s.n * 16),
@@ -89,6 +95,12 @@ impl Operation<Runtime> for ProjectionOp {
             faces: client.empty(slots * 2 * 4),
             moves: client.empty(s.b * MATERIALS * 8),
             list: client.empty(slots * 4),
+            prev: client.empty(bn * 16),
+            parent: client.empty(bn * 4),
+            sorted: client.empty(bn * 4),
+            cellof: client.empty(bn * 4),
+            sums: client.empty(bn * SUMS * 8),
+            free: client.empty(bn * 4),
         };
         let (count, dim) = elementwise(&client, slots * 6);
         zero_kernel::launch(&client, count, dim, arr(&scratch.acc, slots * 6));
@@ -102,6 +114,8 @@ impl Operation<Runtime> for ProjectionOp {
             volume: &volume,
             scenes: &scenes,
             solids: &solids,
+            input: &input,
+            events: &events,
             scratch: &scratch,
         };
         self.run(&args);
@@ -121,7 +135,22 @@ impl Operation<Runtime> for ProjectionOp {
         );
         handles.register_float_tensor::<Inner>(&self.desc.outputs[0].id, frames);
         handles.register_float_tensor::<Inner>(&self.desc.outputs[1].id, moves);
+        handles.register_float_tensor::<Inner>(&self.desc.outputs[2].id, events);
     }
+}
+
+/// A copy of `t` on its device (the kernel writes the copy).
+fn copied(t: &CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
+    let client = t.client.clone();
+    let copy = burn_cubecl::ops::numeric::empty_device_contiguous_dtype(
+        client.clone(),
+        t.device.clone(),
+        t.meta.shape().clone(),
+        t.dtype,
+    );
+    let (count, dim) = elementwise(&client, t.meta.shape().num_elements());
+    copy_kernel::launch(&client, count, dim, flat(t), flat(&copy));
+    copy
 }
 
 /// What every launch of a call reads.
@@ -132,6 +161,8 @@ struct Args<'a> {
     volume: &'a CubeTensor<CudaRuntime>,
     scenes: &'a CubeTensor<CudaRuntime>,
     solids: &'a CubeTensor<CudaRuntime>,
+    input: &'a CubeTensor<CudaRuntime>,
+    events: &'a CubeTensor<CudaRuntime>,
     scratch: &'a Scratch,
 }
 
@@ -156,6 +187,14 @@ impl ProjectionOp {
             arr(&sc.moves, s.b * MATERIALS),
             arr(&sc.list, slots),
             flat(a.solids),
+            flat(a.input),
+            arr(&sc.prev, bn * 4),
+            arr(&sc.parent, bn),
+            arr(&sc.sorted, bn),
+            arr(&sc.cellof, bn),
+            arr(&sc.sums, bn * SUMS),
+            arr(&sc.free, bn),
+            flat(a.events),
         );
         let int = |v: usize| u32::try_from(v).expect("liquid projection: sizes fit u32");
         call_kernel::launch(
@@ -163,6 +202,8 @@ impl ProjectionOp {
             CubeCount::Static(int(s.b), 1, 1),
             CubeDim::new_1d(THREADS),
             buffers,
+            u32::from(self.laws),
+            int(s.rebound),
             int(s.n),
             int(s.nodes),
             int(s.k),
@@ -178,14 +219,19 @@ impl ProjectionOp {
     }
 }
 
-/// Records the projection of `out` (`[K B, N, 4]`) as `plan` lays it out; returns the
-/// projected frames (same shape) and how far each scene's materials moved (`[B,
-/// MATERIALS]`, particle spacings summed over the call's particles and frames).
+/// Records the projection of `out` (`[K B, N, 4]`), predicted from the call's `input` frames
+/// (`[B, N, 4]`; without them the momentum and rebound parts are left out, as the host leaves
+/// them), as `plan` lays it out; returns the projected frames (same shape) and how far each
+/// scene's materials moved (`[B, MATERIALS]`, particle spacings summed over the call's
+/// particles and frames). With the rebound part, the contacts in progress are taken from the
+/// plan's store before the call and given back after it (a read-back: the call is waited
+/// for).
 ///
 /// # Panics
 /// `out` does not hold `plan`'s K B N rows of 4, or the plan's arrays are not its sizes.
 pub(crate) fn project(
     out: FloatTensor<Cuda>,
+    input: Option<FloatTensor<Cuda>>,
     plan: &ProjectionPlan,
 ) -> (FloatTensor<Cuda>, FloatTensor<Cuda>) {
     let shape = out.shape();
@@ -216,20 +262,39 @@ pub(crate) fn project(
         Some(copy) => copy,
         None => arrays(),
     };
+    let laws = input.is_some();
+    let store = (plan.events.0.as_ref()).filter(|_| laws && plan.rebound > 0);
+    // Without a store the contacts start afresh each call.
+    let per = plan.rebound * (plan.rebound + 4) * EVENT_VALUES;
+    let tables = match store {
+        Some(store) => store.take(),
+        None => vec![0.0; (plan.b * per).max(1)],
+    };
+    let events_in = upload(&tables);
+    let input = input.unwrap_or_else(|| out.clone());
     let client = out.client.clone();
     let dtype = out.dtype();
     let projected = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
     let shape = burn::tensor::Shape::new([plan.b, MATERIALS]);
     let moves = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
-    let inputs = [out, volume, scenes, solids];
+    let shape = burn::tensor::Shape::new([tables.len()]);
+    let events = TensorIr::uninit(client.create_empty_handle(), shape, dtype);
+    let inputs = [out, volume, scenes, solids, input, events_in];
     let streams = OperationStreams::with_inputs(&inputs);
     let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
-    let desc = CustomOpIr::new("minflow_projection", &irs, &[projected, moves]);
+    let desc = CustomOpIr::new("minflow_projection", &irs, &[projected, moves, events]);
     let op = ProjectionOp {
         desc: desc.clone(),
         s: plan.clone(),
+        laws,
     };
     let mut outs = client.register(streams, OperationIr::Custom(desc), op);
-    let moves = outs.pop().expect("two outputs");
-    (outs.pop().expect("two outputs"), moves)
+    let events = outs.pop().expect("three outputs");
+    if let Some(store) = store {
+        let tables = Tensor::<Cuda, 1>::from_primitive(TensorPrimitive::Float(events));
+        let data = tables.into_data();
+        store.give_back(data.as_slice::<f32>().expect("f32 tables"));
+    }
+    let moves = outs.pop().expect("three outputs");
+    (outs.pop().expect("three outputs"), moves)
 }

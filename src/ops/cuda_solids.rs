@@ -18,8 +18,8 @@ use cubecl::prelude::*;
 use super::cuda_liquid_solve::{reduce, THREADS};
 
 /// Values at the head of `solids` (`SOLIDS_HEAD`) and per scene after it (`SCENE_SOLIDS`).
-pub(super) const HEAD: usize = 8;
-pub(super) const PER_SCENE: usize = 5;
+pub(super) const HEAD: usize = super::SOLIDS_HEAD;
+pub(super) const PER_SCENE: usize = super::SCENE_SOLIDS;
 /// Values per body of the body table (`BODY_VALUES`).
 pub(super) const BODY: usize = 8;
 

@@ -78,6 +78,8 @@ mod cuda;
 #[cfg(feature = "cuda")]
 mod cuda_adam;
 #[cfg(feature = "cuda")]
+mod cuda_buffers;
+#[cfg(feature = "cuda")]
 mod cuda_contact;
 #[cfg(feature = "cuda")]
 mod cuda_conv;
@@ -98,11 +100,15 @@ mod cuda_liquid_solve;
 #[cfg(feature = "cuda")]
 mod cuda_minrnn;
 #[cfg(feature = "cuda")]
+mod cuda_momentum;
+#[cfg(feature = "cuda")]
 mod cuda_projection_call;
 #[cfg(feature = "cuda")]
 mod cuda_projection_op;
 #[cfg(feature = "cuda")]
 mod cuda_read;
+#[cfg(feature = "cuda")]
+mod cuda_rebound;
 #[cfg(feature = "cuda")]
 mod cuda_solids;
 #[cfg(feature = "cuda")]
@@ -125,8 +131,8 @@ pub use error::OpsError;
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use projection_plan::{
-    DeviceCopy, ProjectionPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES,
-    SOLIDS_HEAD,
+    DeviceCopy, EventStore, Events, ProjectionPlan, BODY_VALUES, EVENT_VALUES, MATERIALS,
+    MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
 };
 pub use read_ahead::ReadAhead;
 pub use tensor::{

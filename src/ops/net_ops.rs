@@ -115,16 +115,19 @@ pub trait NetOps: Backend {
     }
 
     /// The constraint projection of a call's K predicted frames `out` (`[K B, N, 4]`,
-    /// physical) as `plan` lays it out, on the device in the same stream as the network (no
-    /// read-back between them): the projected frames and how far each scene's materials moved
+    /// physical), predicted from the call's `input` frames (`[B, N, 4]`; None: the momentum
+    /// and rebound parts are left out), as `plan` lays it out, on the device in the same
+    /// stream as the network (no read-back between them; the rebound part's contacts cross
+    /// back after the call): the projected frames and how far each scene's materials moved
     /// (`[B, MATERIALS]`, particle spacings summed over the call's frames), or None where this
     /// backend has no device form (the host then projects, `model::constraints`). CUDA's:
     /// `cuda_projection_op.rs`.
     fn project_constraints(
         out: FloatTensor<Self>,
+        input: Option<FloatTensor<Self>>,
         plan: &ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
-        let _ = (out, plan);
+        let _ = (out, input, plan);
         None
     }
 

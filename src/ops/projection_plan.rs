@@ -15,10 +15,20 @@ use std::any::Any;
 use std::sync::{Arc, OnceLock};
 
 /// Values at the head of [`ProjectionPlan::solids`].
-pub const SOLIDS_HEAD: usize = 8;
+pub const SOLIDS_HEAD: usize = 20;
 
 /// Values per scene in [`ProjectionPlan::solids`], after its head.
-pub const SCENE_SOLIDS: usize = 5;
+pub const SCENE_SOLIDS: usize = 6;
+
+/// Where the momentum part's values start in the head of [`ProjectionPlan::solids`].
+pub const MOMENTUM_AT: usize = 8;
+
+/// Where the rebound part's values start in the head of [`ProjectionPlan::solids`].
+pub const REBOUND_AT: usize = 13;
+
+/// Values per contact of [`ProjectionPlan::events`]' tables: 1 while it is in progress, its
+/// approach speed (-1 where unknown), the frames it has been leaving.
+pub const EVENT_VALUES: usize = 3;
 
 /// Values per body in [`ProjectionPlan::solids`]' body table.
 pub const BODY_VALUES: usize = 8;
@@ -76,9 +86,12 @@ pub struct ProjectionPlan {
     /// - head, [`SOLIDS_HEAD`] values: where the chain table starts, where the body table
     ///   starts, the ropes' stretch limit, their sweeps a frame, 1 where the long-range
     ///   pairs are on, the contact part's iterations, its restitution, its resting speed;
+    ///   from [`MOMENTUM_AT`] the momentum part's reach (0: off), clearance, the position
+    ///   lag `(1 + 1/S) / 2` and gravity x, y; from [`REBOUND_AT`] the rebound part's
+    ///   restitution, reach, clearance, release, resting speed and gravity x, y;
     /// - per scene, [`SCENE_SOLIDS`] values: its first chain and the chain after its last,
     ///   its first body and the body after its last, the contact distance (domain units; 0:
-    ///   no contact);
+    ///   no contact), its rebound bodies (its first bodies, jelly; 0: no rebound);
     /// - the chain table, two values a chain: where its elements start, their count; a
     ///   chain's elements two values each, its particle (index in the scene) and its rest
     ///   distance along the chain from its first particle (domain units);
@@ -86,6 +99,13 @@ pub struct ProjectionPlan {
     ///   shape matching's stiffness and linear share, `A_qq^-1` (row-major); a body's
     ///   elements three values each, its particle and its rest offset from the rest centre.
     pub solids: Arc<[f32]>,
+    /// The rebound part's contacts in progress, per scene a table of `rebound^2 + 4 rebound`
+    /// contacts ([`EVENT_VALUES`] each): body `a`'s row of `rebound + 4`, the pair with body
+    /// `b > a` at column `b`, the walls x = 0, x = 1, y = 0, y = 1 at `rebound + side`;
+    /// taken before each call and given back after it (the contacts live with the scenes).
+    pub events: Events,
+    /// The most rebound bodies of a scene of the call (0: no rebound part).
+    pub rebound: usize,
     /// The backend's copy of the arrays on its device, made by the plan's first projection
     /// and shared by its clones: a node's calls of the same scenes reuse one plan
     /// (`model::store`), so its arrays cross to the device once.
@@ -106,6 +126,35 @@ impl DeviceCopy {
             .get_or_init(|| Box::new(make()))
             .downcast_ref::<T>()
             .cloned()
+    }
+}
+
+/// Where a plan's rebound contacts come from and go back to (the scenes' constraint data, on
+/// the host): [`EventStore::take`] before a call, [`EventStore::give_back`] with the call's
+/// tables after it.
+pub trait EventStore: Send + Sync {
+    /// The tables of the call's scenes (`[B rebound (rebound + 4) EVENT_VALUES]`).
+    fn take(&self) -> Vec<f32>;
+    /// Stores the tables a call left (same layout as [`EventStore::take`]'s).
+    fn give_back(&self, tables: &[f32]);
+}
+
+/// A plan's [`EventStore`], None without the rebound part. Plans compare equal whatever their
+/// stores.
+#[derive(Clone, Default)]
+pub struct Events(pub Option<Arc<dyn EventStore>>);
+
+impl std::fmt::Debug for Events {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Events")
+            .field("store", &self.0.is_some())
+            .finish()
+    }
+}
+
+impl PartialEq for Events {
+    fn eq(&self, _: &Self) -> bool {
+        true
     }
 }
 

@@ -1,10 +1,13 @@
 //! The projection on the GPU (`NetOps::project_constraints`, `ops::cuda_projection_*`,
-//! `cuda_liquid*`, `cuda_solids`, `cuda_contact`) against the host's (`SceneShape::project`), on the same predicted frames,
-//! a bundle of two frames (the second moved by the first's correction), with `-small-k4`'s
-//! parts (its `restore` on): three scenes of a liquid column squeezed into the floor
-//! and partly pushed through the walls; three of every material, a rope stretched, two jelly
-//! disks driven into each other and a snow block beside the liquid. Feature `cuda`: run on a
-//! GPU machine (`tests/gpu/run.sh projection`); CI has no GPU.
+//! `cuda_liquid*`, `cuda_solids`, `cuda_contact`, `cuda_rebound`, `cuda_momentum`) against the
+//! host's (`SceneShape::project`), on the same predicted frames, a bundle of two frames (the
+//! second moved by the first's correction), with `-small-k4`'s parts (its `restore` on):
+//! three scenes of a liquid column squeezed into the floor and partly pushed through the
+//! walls; three of every material, a rope stretched, two jelly disks driven into each other
+//! and a snow block beside the liquid; then with `-small-k4-mixed`'s (momentum and rebound
+//! on) the same scenes coming from frames in which the disks were apart and closing, the
+//! pieces flying free. Feature `cuda`: run on a GPU machine (`tests/gpu/run.sh projection`);
+//! CI has no GPU.
 
 #![cfg(feature = "cuda")]
 
@@ -18,10 +21,12 @@ type Gpu = Cuda<f32, i32>;
 
 /// `models/all-grid-mingru-small-k4`'s constraint parameters.
 fn constraints() -> Constraints {
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/all-grid-mingru-small-k4/model.json"
-    );
+    constraints_of("all-grid-mingru-small-k4")
+}
+
+/// The constraint parameters of shipped model `name`.
+fn constraints_of(name: &str) -> Constraints {
+    let path = format!("{}/models/{name}/model.json", env!("CARGO_MANIFEST_DIR"));
     let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
     serde_json::from_value(meta["constraints"].clone()).unwrap()
 }
@@ -55,7 +60,7 @@ fn predicted(rest: &[f32], s: usize, k: usize) -> Vec<f32> {
 /// summed moves per material (spacings).
 fn on_host(
     c: &Constraints,
-    rests: &[Vec<f32>],
+    (rests, inputs): (&[Vec<f32>], &[Vec<f32>]),
     ids: &[u8],
     nets: &[Vec<Vec<f32>>],
     dt: &[f32],
@@ -74,7 +79,7 @@ fn on_host(
                 }
             }
             let prev = if f == 0 {
-                rest.clone()
+                inputs[s].clone()
             } else {
                 host[f - 1][s].clone()
             };
@@ -97,7 +102,7 @@ fn on_host(
 /// The device's projection of the same frames, one call of every scene.
 fn on_device(
     c: &Constraints,
-    rests: &[Vec<f32>],
+    (rests, inputs): (&[Vec<f32>], &[Vec<f32>]),
     ids: &[u8],
     nets: &[Vec<Vec<f32>>],
     dt: &[f32],
@@ -112,8 +117,11 @@ fn on_device(
     let flat: Vec<f32> = nets.iter().flatten().flatten().copied().collect();
     let device = Default::default();
     let out = Tensor::<Gpu, 3>::from_data(TensorData::new(flat, [k * b, n, 4]), &device);
+    let input: Vec<f32> = inputs.iter().flatten().copied().collect();
+    let input = Tensor::<Gpu, 3>::from_data(TensorData::new(input, [b, n, 4]), &device);
+    let input = Some(input.into_primitive().tensor());
     let (projected, moves) =
-        <Gpu as NetOps>::project_constraints(out.into_primitive().tensor(), &plan)
+        <Gpu as NetOps>::project_constraints(out.into_primitive().tensor(), input, &plan)
             .expect("CUDA projects on the device");
     let moves: Vec<f32> = Tensor::<Gpu, 2>::from_primitive(TensorPrimitive::Float(moves))
         .into_data()
@@ -137,14 +145,14 @@ fn on_device(
 /// moved each material of `moved_ids` by more than 1e-3 somewhere. Returns the host's frames.
 fn agree(
     c: &Constraints,
-    (rests, ids): (&[Vec<f32>], &[u8]),
+    (rests, inputs, ids): (&[Vec<f32>], &[Vec<f32>], &[u8]),
     nets: &[Vec<Vec<f32>>],
     dt: f32,
     moved_ids: &[Material],
 ) -> Vec<f32> {
     let dts = vec![dt; rests.len()];
-    let (want, host_moves) = on_host(c, rests, ids, nets, &dts);
-    let (got, device_moves) = on_device(c, rests, ids, nets, &dts);
+    let (want, host_moves) = on_host(c, (rests, inputs), ids, nets, &dts);
+    let (got, device_moves) = on_device(c, (rests, inputs), ids, nets, &dts);
     let net: Vec<f32> = nets.iter().flatten().flatten().copied().collect();
     let (mut pos, mut vel) = (0.0f32, 0.0f32);
     let mut moved = [0.0f32; 4];
@@ -187,7 +195,13 @@ fn the_device_projects_the_liquid_as_the_host_does() {
     let nets: Vec<Vec<Vec<f32>>> = (0..k)
         .map(|f| (0..b).map(|s| predicted(&rests[s], s, f)).collect())
         .collect();
-    agree(&c, (&rests, &ids), &nets, 0.004, &[Material::Liquid]);
+    agree(
+        &c,
+        (&rests, &rests, &ids),
+        &nets,
+        0.004,
+        &[Material::Liquid],
+    );
 }
 
 /// A scene of every material at rest, spacing 1/128: a 20 x 20 liquid column from `(0.1 +
@@ -287,7 +301,7 @@ fn the_device_projects_ropes_bodies_and_their_contact_as_the_host_does() {
         })
         .collect();
     let moved = [Material::Liquid, Material::Jelly, Material::Rope];
-    let host = agree(&c, (&rests, &ids), &nets, 0.004, &moved);
+    let host = agree(&c, (&rests, &rests, &ids), &nets, 0.004, &moved);
     // The contact acted: the left disk, driven right at 1.5, leaves to the left.
     let n = ids.len();
     let left: Vec<f32> = (host[..n * 4].chunks_exact(4))
@@ -297,4 +311,79 @@ fn the_device_projects_ropes_bodies_and_their_contact_as_the_host_does() {
         .collect();
     let mean = left.iter().sum::<f32>() / left.len() as f32;
     assert!(mean < -0.5, "the left disk's mean velocity {mean}");
+}
+
+/// Frame `k` of a [`mixed`] scene shifted by `shift` predicted after two disks hit each
+/// other: [`mixed_predicted`]'s, but the disks 0.01 + 0.002 k further apart than at rest (past
+/// the rebound's release, within its reach) and parting slowly (0.2 each).
+fn bounce_predicted(rest: &[f32], ids: &[u8], shift: f32, k: usize) -> Vec<f32> {
+    let mut f = mixed_predicted(rest, ids, shift, k);
+    for ((row, r), &m) in f.chunks_exact_mut(4).zip(rest.chunks_exact(4)).zip(ids) {
+        if m == Material::Jelly.id() {
+            let side = if r[0] < 0.57 + shift { -1.0 } else { 1.0 };
+            row[0] = r[0] + side * (0.01 + 0.002 * k as f32);
+            row[1] = r[1];
+            (row[2], row[3]) = (0.2 * side, 0.0);
+        }
+    }
+    f
+}
+
+#[test]
+fn the_device_keeps_momentum_and_rebound_as_the_host_does() {
+    let c = constraints_of("all-grid-mingru-small-k4-mixed");
+    assert!(c.momentum.is_some() && c.rebound.is_some());
+    let (b, k) = (3usize, 2usize);
+    let shifts: Vec<f32> = (0..b).map(|s| 0.02 * s as f32).collect();
+    let scenes: Vec<(Vec<f32>, Vec<u8>)> = shifts.iter().map(|&s| mixed(s)).collect();
+    let ids = scenes[0].1.clone();
+    let rests: Vec<Vec<f32>> = scenes.into_iter().map(|(r, _)| r).collect();
+    // The frame before: the disks 0.04 further apart each (beyond the rebound's reach) and
+    // closing at 2 each, the rope and the snow flying up and right.
+    let inputs: Vec<Vec<f32>> = (rests.iter().zip(&shifts))
+        .map(|(rest, &shift)| {
+            let mut f = rest.clone();
+            for (row, &m) in f.chunks_exact_mut(4).zip(&ids) {
+                if m == Material::Jelly.id() {
+                    let side = if row[0] < 0.57 + shift { -1.0 } else { 1.0 };
+                    row[0] += 0.04 * side;
+                    row[2] = -2.0 * side;
+                } else if m != Material::Liquid.id() {
+                    (row[2], row[3]) = (0.7, 1.2);
+                }
+            }
+            f
+        })
+        .collect();
+    let nets: Vec<Vec<Vec<f32>>> = (0..k)
+        .map(|f| {
+            (0..b)
+                .map(|s| bounce_predicted(&rests[s], &ids, shifts[s], f))
+                .collect()
+        })
+        .collect();
+    let moved = [
+        Material::Liquid,
+        Material::Jelly,
+        Material::Rope,
+        Material::Snow,
+    ];
+    let host = agree(&c, (&rests, &inputs, &ids), &nets, 0.004, &moved);
+    // The rebound acted: without it the disks end elsewhere.
+    let without = Constraints {
+        rebound: None,
+        ..c.clone()
+    };
+    let dts = vec![0.004; b];
+    let (other, _) = on_host(&without, (&rests, &inputs), &ids, &nets, &dts);
+    let jelly = |f: &[f32]| -> Vec<f32> {
+        (f.chunks_exact(4).enumerate())
+            .filter(|(i, _)| ids[i % ids.len()] == Material::Jelly.id())
+            .map(|(_, r)| r[0])
+            .collect()
+    };
+    let apart = (jelly(&host).iter().zip(jelly(&other)))
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(apart > 1e-3, "the rebound moved the disks by {apart}");
 }

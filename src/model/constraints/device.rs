@@ -8,24 +8,33 @@
 //! atomics land in changes no bit) where the host sums in particle order, and the bodies'
 //! sums in f64 over the cube's threads.
 //!
-//! A scene with the density part, the momentum or rebound part, a plastic body or more than
-//! [`MAX_BODIES`] bodies has no plan: its call projects on the host (`model::store`'s
-//! `finish_here`).
+//! The momentum and rebound parts are laid out too (their values in the head of
+//! `solids`, a scene's rebound bodies in its row; the contacts in progress cross per call,
+//! `ProjectionPlan::events`, set by the caller). A scene with the density part, a plastic
+//! body, more than [`MAX_BODIES`] bodies, rebound bodies that are not its first shape-matched
+//! ones, or a momentum reach below [`MIN_REACH`] has no plan: its call projects on the host
+//! (`model::store`'s `finish_here`).
 
 use std::sync::Arc;
 
 use super::{Constraints, SceneShape};
 use crate::material::Material;
 use crate::ops::{
-    ProjectionPlan, BODY_VALUES, MATERIALS, MAX_BODIES, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+    ProjectionPlan, BODY_VALUES, MATERIALS, MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS,
+    SCENE_VALUES, SOLIDS_HEAD,
 };
 
 const _: () = assert!(MATERIALS == crate::material::COUNT);
 
+/// The smallest momentum reach the device takes (domain units): its cells of side
+/// `reach / sqrt(2)` over 1.5 domain widths fit the kernel's 48 x 48 (`cuda_momentum.rs`).
+pub const MIN_REACH: f32 = 0.045;
+
 /// The plan for a call of the scenes `shapes` (each `[N]` particles with materials
 /// `material[s N..(s + 1) N]` and time step `dt[s]`) and K frames a scene, or None when
-/// `c` has a part the device does not project (the density part, momentum, rebound, a
-/// plastic body, more than [`MAX_BODIES`] bodies) that acts on one of the scenes.
+/// `c` has a part the device does not project (the density part, a plastic body, more than
+/// [`MAX_BODIES`] bodies, the module doc's rebound and momentum limits) that acts on one of
+/// the scenes. With the rebound part, the caller sets the plan's `events` before a call.
 pub fn projection_plan(
     c: &Constraints,
     shapes: &[&SceneShape],
@@ -34,7 +43,8 @@ pub fn projection_plan(
     k: usize,
 ) -> Option<ProjectionPlan> {
     let known = material.iter().all(|&m| usize::from(m) < MATERIALS);
-    if c.momentum.is_some() || shapes.is_empty() || shapes.len() != dt.len() || !known {
+    let reach_ok = c.momentum.is_none_or(|p| p.reach >= MIN_REACH);
+    if !reach_ok || shapes.is_empty() || shapes.len() != dt.len() || !known {
         return None;
     }
     let b = shapes.len();
@@ -58,6 +68,8 @@ pub fn projection_plan(
         restore: 0.0,
         walls: c.walls.is_some(),
         solids: solids.into(),
+        events: Default::default(),
+        rebound: shapes.iter().map(|s| s.rebound_bodies()).max().unwrap_or(0),
         device: Default::default(),
     };
     let mut volume: Vec<f32> = material.iter().map(|&m| -(1.0 + f32::from(m))).collect();
@@ -68,7 +80,7 @@ pub fn projection_plan(
         plan.restore = p.restore.min(1.0);
     }
     for (s, shape) in shapes.iter().enumerate() {
-        let on_host_only = shape.liquid.is_some() || shape.rebound.is_some() || shape.n != n;
+        let on_host_only = shape.liquid.is_some() || shape.n != n;
         if on_host_only {
             return None;
         }
@@ -111,7 +123,7 @@ fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
             .bodies
             .iter()
             .any(|body| c.shape_of(body.material).is_none_or(|p| p.plastic > 0.0));
-        if plastic || shape.bodies.len() > MAX_BODIES {
+        if plastic || shape.bodies.len() > MAX_BODIES || !rebound_leads(shape) {
             return None;
         }
         let reach = match (&c.contact, &shape.contact) {
@@ -131,6 +143,7 @@ fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
             index(b0),
             index(bodies.len()),
             reach,
+            index(shape.rebound_bodies()),
         ]);
     }
     let chains_at = out.len();
@@ -157,13 +170,22 @@ fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
         );
         elements = out.len();
     }
+    out[..SOLIDS_HEAD].copy_from_slice(&head(c, chains_at, bodies_at));
+    // Indices are held as f32: exact below 2^24.
+    (out.len() < 1 << 24).then_some(out)
+}
+
+/// The head of `solids` ([`SOLIDS_HEAD`] values, `ProjectionPlan::solids`' layout) for the
+/// parts of `c`, the chain table at `chains_at` and the body table at `bodies_at`.
+fn head(c: &Constraints, chains_at: usize, bodies_at: usize) -> [f32; SOLIDS_HEAD] {
+    let mut out = [0.0f32; SOLIDS_HEAD];
     let (stretch, sweeps, long) = c
         .rope
         .map_or((0.0, 0, false), |p| (p.stretch, p.iterations, p.long_range));
     let (iterations, restitution) = c
         .contact
         .map_or((0, 0.0), |p| (p.iterations, p.restitution));
-    out[..SOLIDS_HEAD].copy_from_slice(&[
+    out[..MOMENTUM_AT].copy_from_slice(&[
         chains_at as f32,
         bodies_at as f32,
         stretch,
@@ -173,13 +195,44 @@ fn solids(c: &Constraints, shapes: &[&SceneShape]) -> Option<Vec<f32>> {
         restitution,
         super::contact::RESTING,
     ]);
-    // Indices are held as f32: exact below 2^24.
-    (out.len() < 1 << 24).then_some(out)
+    if let Some(p) = &c.momentum {
+        let lag = 0.5 * (1.0 + 1.0 / p.substeps.max(1) as f32);
+        let [gx, gy] = p.gravity;
+        out[MOMENTUM_AT..REBOUND_AT].copy_from_slice(&[p.reach, p.clearance, lag, gx, gy]);
+    }
+    if let Some(p) = &c.rebound {
+        let [gx, gy] = p.gravity;
+        let values = [
+            p.restitution,
+            p.reach,
+            p.clearance,
+            p.release,
+            p.resting,
+            gx,
+            gy,
+        ];
+        out[REBOUND_AT..SOLIDS_HEAD].copy_from_slice(&values);
+    }
+    out
+}
+
+/// Whether `shape`'s rebound bodies (if any) are its first shape-matched bodies, in order:
+/// the device reads their particles from the body table.
+fn rebound_leads(shape: &SceneShape) -> bool {
+    let Some(rebound) = &shape.rebound else {
+        return true;
+    };
+    let r = rebound.body_count();
+    r <= shape.bodies.len()
+        && (0..r).all(|b| {
+            shape.bodies[b].material == crate::material::Material::Jelly.id()
+                && shape.bodies[b].ids() == rebound.body(b)
+        })
 }
 
 #[cfg(test)]
 mod tests {
-    use super::super::ShapeParams;
+    use super::super::{MomentumParams, ShapeParams};
     use super::*;
 
     /// A `w x h` block of `material` at spacing 1/128 from `(x0, y0)` (`[N, 4]` rows).
@@ -226,7 +279,11 @@ mod tests {
         let head = SOLIDS_HEAD + 2 * SCENE_SOLIDS;
         assert_eq!(plan.solids[0], head as f32);
         let row = &plan.solids[SOLIDS_HEAD + SCENE_SOLIDS..][..SCENE_SOLIDS];
-        assert_eq!(row, &[0.0, 1.0, 0.0, 0.0, 0.0], "scene 1 holds chain 0");
+        assert_eq!(
+            row,
+            &[0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+            "scene 1 holds chain 0"
+        );
         let chain = &plan.solids[head..head + 2];
         assert_eq!(chain, &[(head + 2) as f32, 20.0]);
         let along = plan.solids[head + 2 + 2 * 19 + 1];
@@ -241,11 +298,41 @@ mod tests {
         let body = SceneShape::on_grid(&rest3, 4, &ids3, &plastic, Some(64));
         let material = [ids.clone(), ids3].concat();
         assert!(projection_plan(&plastic, &[&shape, &body], &material, &[0.01; 2], 1).is_none());
-        // The momentum part (not on the device) keeps every call on the host.
+        // The momentum part's values in the head; a reach below the cells' keeps the call
+        // on the host.
         let mut with_momentum = c.clone();
-        with_momentum.momentum = Some(crate::model::constraints::MomentumParams::DEFAULT);
+        let p = crate::model::constraints::MomentumParams::DEFAULT;
+        with_momentum.momentum = Some(p);
         let material = [ids.clone(), ids].concat();
         let plan = projection_plan(&with_momentum, &[&shape, &shape], &material, &[0.01; 2], 1);
+        let head = &plan.unwrap().solids[MOMENTUM_AT..REBOUND_AT];
+        let lag = 0.5 * (1.0 + 1.0 / p.substeps as f32);
+        assert_eq!(head[..3], [p.reach, p.clearance, lag]);
+        with_momentum.momentum = Some(MomentumParams { reach: 0.03, ..p });
+        let plan = projection_plan(&with_momentum, &[&shape, &shape], &material, &[0.01; 2], 1);
         assert!(plan.is_none());
+    }
+
+    #[test]
+    fn rebound_bodies_are_the_first_bodies_and_their_count_is_laid_out() {
+        let c = Constraints::defaults();
+        assert!(c.rebound.is_some() && c.jelly.is_some());
+        // Two jelly blocks apart and a liquid pool.
+        let (mut rest, mut ids) = block(0.3, 0.1, (20, 10), Material::Liquid);
+        for x0 in [0.2, 0.6] {
+            let (jelly, jelly_ids) = block(x0, 0.6, (6, 6), Material::Jelly);
+            rest.extend(jelly);
+            ids.extend(jelly_ids);
+        }
+        let shape = SceneShape::on_grid(&rest, 4, &ids, &c, Some(64));
+        assert_eq!(shape.rebound_bodies(), 2);
+        let plan = projection_plan(&c, &[&shape], &ids, &[0.01], 1).unwrap();
+        assert_eq!(plan.rebound, 2);
+        assert_eq!(plan.solids[SOLIDS_HEAD + 5], 2.0);
+        let p = c.rebound.unwrap();
+        assert_eq!(
+            plan.solids[REBOUND_AT..REBOUND_AT + 2],
+            [p.restitution, p.reach]
+        );
     }
 }

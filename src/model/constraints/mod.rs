@@ -205,6 +205,27 @@ impl SceneShape {
         self.spacing.get(usize::from(m)).copied().unwrap_or(0.0)
     }
 
+    /// The rebound part's bodies (0 without the part or a jelly body).
+    pub fn rebound_bodies(&self) -> usize {
+        self.rebound.as_ref().map_or(0, |r| r.body_count())
+    }
+
+    /// Writes the rebound part's contacts in progress into `out` (`[r (r + 4) 3]`, zeroed:
+    /// `crate::ops::ProjectionPlan::events`' layout), for a call of at most `r` bodies a scene.
+    pub fn write_events(&self, r: usize, out: &mut [f32]) {
+        if let Some(rebound) = &self.rebound {
+            rebound.write_table(r, out);
+        }
+    }
+
+    /// Replaces the rebound part's contacts in progress by those of `table` (the layout of
+    /// [`SceneShape::write_events`]), as a call on the device left them.
+    pub fn read_events(&mut self, r: usize, table: &[f32]) {
+        if let Some(rebound) = &mut self.rebound {
+            rebound.read_table(r, table);
+        }
+    }
+
     /// Projects `frame` (`[N, 4]` physical x, y, vx, vy), predicted from `prev` (`[N, 4]`,
     /// the frame `dt` before), onto the constraints of `c` in place: positions moved,
     /// velocities given the move over `dt`, then the liquid's share of the kinetic energy the

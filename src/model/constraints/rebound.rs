@@ -29,6 +29,8 @@
 
 use std::collections::BTreeMap;
 
+mod table;
+
 use super::index::BodyIndex;
 use super::ReboundParams;
 use crate::geometry::centre_of_mass;

@@ -16,9 +16,7 @@ use crate::ops::{ProjectionPlan, MATERIALS};
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
 
-/// One trajectory's constraint data, shared by the states that carry it (clones of a state
-/// share it too; `ConstraintState::detached` copies it); empty until its first projection.
-pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
+pub(super) use super::events::Slot;
 
 /// The last device plan a surrogate laid out, with what it was laid out for: the scenes'
 /// slots (by address), their time steps, materials and solver grids. A node's calls serve the
@@ -228,7 +226,10 @@ impl ConstraintState {
                     .map(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()))
                     .collect();
                 let shapes: Vec<&SceneShape> = guards.iter().filter_map(|g| g.as_ref()).collect();
-                let plan = projection_plan(c, &shapes, material, dt, 1);
+                let mut plan = projection_plan(c, &shapes, material, dt, 1);
+                if let Some(plan) = plan.as_mut() {
+                    plan.events = super::events::SlotEvents::events(&self.shapes, plan.rebound);
+                }
                 let key = PlanKey {
                     slots: self.shapes.clone(),
                     dt: dt.iter().map(|t| t.to_bits()).collect(),

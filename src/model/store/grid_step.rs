@@ -38,8 +38,9 @@ impl<B: NetOps> Surrogate<B> {
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
         let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
+        let input = frame.clone();
         let call = self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
-        let ((next, state), on_device) = self.projected_call(call, plan.as_mut(), b);
+        let ((next, state), on_device) = self.projected_call(call, &input, plan.as_mut());
         let ahead = match read {
             Read::Ahead => B::read_ahead(next.clone().into_primitive().tensor()),
             Read::Now => None,
@@ -55,34 +56,38 @@ impl<B: NetOps> Surrogate<B> {
         Ok((out, state, on_device))
     }
 
-    /// `next` (`[K B, N, 4]`) projected on the device as `plan` lays it out (its K set from
-    /// `next`), the moves added to the corrections ([`Surrogate::take_corrections`]); None
-    /// where the backend does not project ([`NetOps::project_constraints`]).
+    /// `next` (`[K B, N, 4]`), predicted from `input` (`[B, N, 4]`), projected on the device
+    /// as `plan` lays it out (its K set from `next`), the moves added to the corrections
+    /// ([`Surrogate::take_corrections`]); None where the backend does not project
+    /// ([`NetOps::project_constraints`]).
     fn project_on_device(
         &self,
         next: &Tensor<B, 3>,
+        input: &Tensor<B, 3>,
         plan: &mut ProjectionPlan,
-        b: usize,
     ) -> Option<Tensor<B, 3>> {
-        plan.k = next.dims()[0] / b.max(1);
-        let (p, moves) = B::project_constraints(next.clone().into_primitive().tensor(), plan)?;
+        plan.k = next.dims()[0] / input.dims()[0].max(1);
+        let frames = next.clone().into_primitive().tensor();
+        let input = Some(input.clone().into_primitive().tensor());
+        let (p, moves) = B::project_constraints(frames, input, plan)?;
         let moves = Tensor::<B, 2>::from_primitive(TensorPrimitive::Float(moves));
         let mut held = self.device_moves.lock().unwrap_or_else(|e| e.into_inner());
         held.add(moves.sum_dim(0).reshape([MATERIALS]), plan);
         Some(Tensor::from_primitive(TensorPrimitive::Float(p)))
     }
 
-    /// A call's frames (`[K B, N, 4]`) and state, projected on the device by `plan` where
-    /// there is one and the backend projects ([`Surrogate::project_on_device`]; the state's
-    /// velocity history then follows the projected frames, as `finish_here` makes it follow
-    /// the host's), and whether they were.
+    /// A call's frames (`[K B, N, 4]`) and state, predicted from `input` (`[B, N, 4]`),
+    /// projected on the device by `plan` where there is one and the backend projects
+    /// ([`Surrogate::project_on_device`]; the state's velocity history then follows the
+    /// projected frames, as `finish_here` makes it follow the host's), and whether they were.
     pub(super) fn projected_call(
         &self,
         (next, mut state): (Tensor<B, 3>, GridState<B>),
+        input: &Tensor<B, 3>,
         plan: Option<&mut ProjectionPlan>,
-        b: usize,
     ) -> ((Tensor<B, 3>, GridState<B>), bool) {
-        match plan.and_then(|p| self.project_on_device(&next, p, b)) {
+        let b = input.dims()[0];
+        match plan.and_then(|p| self.project_on_device(&next, input, p)) {
             Some(projected) => {
                 state.history = history_of(state.history, &projected, b);
                 ((projected, state), true)

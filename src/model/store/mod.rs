@@ -15,6 +15,7 @@
 
 mod batch;
 mod constrained;
+mod events;
 mod grid_state;
 mod grid_step;
 mod outs;

@@ -157,10 +157,11 @@ impl<B: NetOps> Surrogate<B> {
         // ([`Surrogate::take_corrections`]) are the same frames' either way.
         for f in before {
             let mut none = None;
+            let input = upload(f);
             let call = B::run_step(|| {
                 self.grid_call(
                     model,
-                    upload(f),
+                    input.clone(),
                     material,
                     dt,
                     carry,
@@ -168,12 +169,13 @@ impl<B: NetOps> Surrogate<B> {
                     &mut none,
                 )
             })?;
-            carry = self.projected_call(call, plan.as_mut(), b).0 .1;
+            carry = self.projected_call(call, &input, plan.as_mut()).0 .1;
         }
         let mut frame = upload(last);
         let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
         while recorded < k {
             let mut clock = super::stages::Clock::start();
+            let input = frame.clone();
             let called = B::run_step(|| {
                 self.grid_call(
                     model,
@@ -186,7 +188,7 @@ impl<B: NetOps> Surrogate<B> {
                 )
             });
             let (next, c) = match called {
-                Ok(call) => self.projected_call(call, plan.as_mut(), b).0,
+                Ok(call) => self.projected_call(call, &input, plan.as_mut()).0,
                 Err(e) => {
                     // The frames predicted before still reach `each`, as in the host loop.
                     self.deliver(&mut pending, b, &mut clock, (&mut each, &mut done))?;

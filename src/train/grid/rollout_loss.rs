@@ -114,8 +114,10 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         let [b, n, _] = pos.dims();
         let frame = Tensor::cat(vec![pos.clone().detach(), vel.clone().detach()], 2);
         // On the device where it projects: no read-back, the move a constant of the graph.
-        let on_device = (self.plan.as_ref())
-            .and_then(|plan| B::project_constraints(frame.clone().into_primitive().tensor(), plan));
+        let on_device = (self.plan.as_ref()).and_then(|plan| {
+            // No frame before, as on the host: the momentum and rebound parts left out.
+            B::project_constraints(frame.clone().into_primitive().tensor(), None, plan)
+        });
         let moved = match on_device {
             Some((projected, _)) => {
                 Tensor::<B, 3>::from_primitive(TensorPrimitive::Float(projected)) - frame

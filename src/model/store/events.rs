@@ -1,0 +1,60 @@
+//! The rebound part's contacts of a device call's scenes ([`SlotEvents`]): taken from the
+//! scenes' constraint data (the host's [`SceneShape`]s, in the slots the states share) as the
+//! flat tables the device reads, and given back into them after the call, so a scene's
+//! contacts carry on from call to call wherever its next call projects, device or host.
+
+use std::sync::{Arc, Mutex};
+
+use crate::model::constraints::SceneShape;
+use crate::ops::{EventStore, Events, EVENT_VALUES};
+
+/// One trajectory's constraint data, shared by the states that carry it (clones of a state
+/// share it too; `ConstraintState::detached` copies it); empty until its first projection.
+pub(super) type Slot = Arc<Mutex<Option<SceneShape>>>;
+
+/// The slots of a call's scenes, in call order, with `r` bodies a table row (the call's
+/// most, `ProjectionPlan::rebound`).
+pub(super) struct SlotEvents {
+    slots: Vec<Slot>,
+    r: usize,
+}
+
+impl SlotEvents {
+    /// The plan's store for scenes `slots` and `r` bodies a row; none where `r` is 0.
+    pub(super) fn events(slots: &[Slot], r: usize) -> Events {
+        let store = Self {
+            slots: slots.to_vec(),
+            r,
+        };
+        Events((r > 0).then(|| Arc::new(store) as Arc<dyn EventStore>))
+    }
+
+    /// Values of one scene's table.
+    fn per(&self) -> usize {
+        self.r * (self.r + 4) * EVENT_VALUES
+    }
+
+    /// Runs `f` on each scene's data (built) with its table of `tables`.
+    fn each<T>(&self, tables: &mut [T], mut f: impl FnMut(&mut SceneShape, &mut [T])) {
+        let per = self.per();
+        for (slot, table) in self.slots.iter().zip(tables.chunks_exact_mut(per)) {
+            let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(shape) = shape.as_mut() {
+                f(shape, table);
+            }
+        }
+    }
+}
+
+impl EventStore for SlotEvents {
+    fn take(&self) -> Vec<f32> {
+        let mut out = vec![0.0; self.per() * self.slots.len()];
+        self.each(&mut out, |shape, table| shape.write_events(self.r, table));
+        out
+    }
+
+    fn give_back(&self, tables: &[f32]) {
+        let mut tables = tables.to_vec();
+        self.each(&mut tables, |shape, table| shape.read_events(self.r, table));
+    }
+}
