@@ -16,7 +16,8 @@ use super::cuda_buffers::Buffers;
 use super::cuda_contact::{contact, CONTACT_SHARED};
 use super::cuda_liquid::{begin, node, splat};
 use super::cuda_liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
-use super::cuda_momentum::{conserve, join_frame, reset, CELL_SLOTS};
+use super::cuda_momentum::{join_frame, reset, CELL_SLOTS};
+use super::cuda_momentum_sums::conserve;
 use super::cuda_rebound::rebound;
 use super::cuda_solids::{bodies, index, ropes, HEAD, PER_SCENE};
 
@@ -116,12 +117,14 @@ fn momentum_and_rebound(
     s: usize,
     u: usize,
 ) {
+    // Both parts leave a frame without a time step alone, as on the host.
     let dt = b.scenes[s * SV + 7];
-    if index(&b.solids, HEAD + PER_SCENE * s + 5) > 0 {
+    let timed = dt > f32::new(0.0);
+    if timed && index(&b.solids, HEAD + PER_SCENE * s + 5) > 0 {
         rebound(b, rb, cs, cells, shared, partial, dt, n, k, s, u);
     }
     let reach = b.solids[MOMENTUM_AT];
-    if reach > f32::new(0.0) {
+    if timed && reach > f32::new(0.0) {
         let (prev_at, at) = (s * n as usize * 4, k as usize * b.before.len());
         reset(b, n, s, u);
         join_frame(b, 0u32, prev_at, cells, chunk, n, reach, s, u);

@@ -8,7 +8,7 @@
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
-use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
+use burn::tensor::{Tensor, TensorData, TensorMetadata};
 use burn_cubecl::cubecl;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
@@ -21,9 +21,11 @@ use super::cuda_buffers::BuffersLaunch;
 use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use super::cuda_liquid::{copy_kernel, zero_kernel};
 use super::cuda_liquid_solve::{moves_kernel, THREADS};
-use super::cuda_momentum::SUMS;
+use super::cuda_momentum_sums::SUMS;
 use super::cuda_projection_call::call_kernel;
-use super::{ProjectionPlan, EVENT_VALUES, MATERIALS, SCENE_VALUES};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use super::{ProjectionPlan, TablesLater, EVENT_VALUES, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
@@ -84,6 +86,8 @@ impl Operation<Runtime> for ProjectionOp {
         let s = &self.s;
         let (frames, events) = (copied(&out), copied(&events_in));
         let bn = s.b * s.n;
+        // The momentum and rebound parts' scratch, one element where they do not act.
+        let laws = if self.laws { bn } else { 1 };
         let slots = s.b * s.nodes;
         let scratch = Scratch {
             before: client.empty(s.b * s.n * 16),
@@ -95,12 +99,12 @@ impl Operation<Runtime> for ProjectionOp {
             faces: client.empty(slots * 2 * 4),
             moves: client.empty(s.b * MATERIALS * 8),
             list: client.empty(slots * 4),
-            prev: client.empty(bn * 16),
-            parent: client.empty(bn * 4),
-            sorted: client.empty(bn * 4),
-            cellof: client.empty(bn * 4),
-            sums: client.empty(bn * SUMS * 8),
-            free: client.empty(bn * 4),
+            prev: client.empty(laws * 16),
+            parent: client.empty(laws * 4),
+            sorted: client.empty(laws * 4),
+            cellof: client.empty(laws * 4),
+            sums: client.empty(laws * SUMS * 8),
+            free: client.empty(laws * 4),
         };
         let (count, dim) = elementwise(&client, slots * 6);
         zero_kernel::launch(&client, count, dim, arr(&scratch.acc, slots * 6));
@@ -139,6 +143,21 @@ impl Operation<Runtime> for ProjectionOp {
     }
 }
 
+/// `tables` read back behind the work recorded so far, waited for on the first call of the
+/// result (empty where the read failed).
+fn read_later(tables: FloatTensor<Cuda>) -> TablesLater {
+    let ahead = Mutex::new(Some(super::cuda_read::read_ahead(tables)));
+    let landed = OnceLock::<Arc<[f32]>>::new();
+    Arc::new(move || {
+        let read = || {
+            let ahead = ahead.lock().unwrap_or_else(|e| e.into_inner()).take();
+            let values = ahead.map(|a| a.wait().unwrap_or_default());
+            values.unwrap_or_default().into()
+        };
+        landed.get_or_init(read).clone()
+    })
+}
+
 /// A copy of `t` on its device (the kernel writes the copy).
 fn copied(t: &CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
     let client = t.client.clone();
@@ -172,6 +191,7 @@ impl ProjectionOp {
         let s = &self.s;
         let (client, sc) = (a.client, a.scratch);
         let (bn, slots) = (s.b * s.n, s.b * s.nodes);
+        let laws = if self.laws { bn } else { 1 };
         let buffers = BuffersLaunch::new(
             flat(a.frames),
             flat(a.net),
@@ -188,12 +208,12 @@ impl ProjectionOp {
             arr(&sc.list, slots),
             flat(a.solids),
             flat(a.input),
-            arr(&sc.prev, bn * 4),
-            arr(&sc.parent, bn),
-            arr(&sc.sorted, bn),
-            arr(&sc.cellof, bn),
-            arr(&sc.sums, bn * SUMS),
-            arr(&sc.free, bn),
+            arr(&sc.prev, laws * 4),
+            arr(&sc.parent, laws),
+            arr(&sc.sorted, laws),
+            arr(&sc.cellof, laws),
+            arr(&sc.sums, laws * SUMS),
+            arr(&sc.free, laws),
             flat(a.events),
         );
         let int = |v: usize| u32::try_from(v).expect("liquid projection: sizes fit u32");
@@ -224,8 +244,8 @@ impl ProjectionOp {
 /// them), as `plan` lays it out; returns the projected frames (same shape) and how far each
 /// scene's materials moved (`[B, MATERIALS]`, particle spacings summed over the call's
 /// particles and frames). With the rebound part, the contacts in progress are taken from the
-/// plan's store before the call and given back after it (a read-back: the call is waited
-/// for).
+/// plan's store before the call and given back after it as a read queued behind the call
+/// (waited for when a scene's contacts are next used).
 ///
 /// # Panics
 /// `out` does not hold `plan`'s K B N rows of 4, or the plan's arrays are not its sizes.
@@ -262,7 +282,20 @@ pub(crate) fn project(
         Some(copy) => copy,
         None => arrays(),
     };
-    let laws = input.is_some();
+    // The momentum and rebound parts act where the frames before came and one of them is on.
+    let on = plan
+        .solids
+        .get(MOMENTUM_AT)
+        .is_some_and(|&reach| reach > 0.0)
+        || plan.rebound > 0;
+    let laws = input.is_some() && on;
+    if let Some(input) = &input {
+        assert_eq!(
+            input.shape().num_elements(),
+            plan.b * plan.n * 4,
+            "projection: input frames are not [B, N, 4] of the plan's sizes"
+        );
+    }
     let store = (plan.events.0.as_ref()).filter(|_| laws && plan.rebound > 0);
     // Without a store the contacts start afresh each call.
     let per = plan.rebound * (plan.rebound + 4) * EVENT_VALUES;
@@ -291,9 +324,7 @@ pub(crate) fn project(
     let mut outs = client.register(streams, OperationIr::Custom(desc), op);
     let events = outs.pop().expect("three outputs");
     if let Some(store) = store {
-        let tables = Tensor::<Cuda, 1>::from_primitive(TensorPrimitive::Float(events));
-        let data = tables.into_data();
-        store.give_back(data.as_slice::<f32>().expect("f32 tables"));
+        store.give_back(read_later(events));
     }
     let moves = outs.pop().expect("three outputs");
     (outs.pop().expect("three outputs"), moves)

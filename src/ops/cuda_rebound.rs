@@ -12,8 +12,9 @@
 //! Velocity-level restitution with per-contact state is Müller et al. 2020, "Detailed Rigid
 //! Body Simulation with Extended Position Based Dynamics", section 3.6.
 //!
-//! Scratch: `b.prev` the frame before, `st` (shared f32) [`STATS`] values a body, then 2 a body of speed to add; `gaps`
-//! (shared atomics) the pairs' nearest distances (f32 bits), frame then before.
+//! Scratch: `b.prev` the frame before, `st` (shared f32) [`STATS`] values a body, then 2 a
+//! body of speed to add; `gaps` (shared atomics) the pairs' nearest distances (f32 bits),
+//! frame then before.
 
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
@@ -366,7 +367,6 @@ fn pairs(
 /// Pair `(a, c)` leaving the contact at `at` (`Rebound::part`): equal and opposite speeds
 /// along the line between their centres, weighed by their particle counts.
 #[cube]
-#[allow(clippy::too_many_arguments)]
 #[allow(clippy::too_many_arguments)]
 fn part(b: &mut Buffers, st: &mut SharedMemory<f32>, at: usize, a: usize, c: usize, b0: usize) {
     let (oa, ob) = (a * STATS, c * STATS);

@@ -102,6 +102,8 @@ mod cuda_minrnn;
 #[cfg(feature = "cuda")]
 mod cuda_momentum;
 #[cfg(feature = "cuda")]
+mod cuda_momentum_sums;
+#[cfg(feature = "cuda")]
 mod cuda_projection_call;
 #[cfg(feature = "cuda")]
 mod cuda_projection_op;
@@ -131,8 +133,8 @@ pub use error::OpsError;
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use projection_plan::{
-    DeviceCopy, EventStore, Events, ProjectionPlan, BODY_VALUES, EVENT_VALUES, MATERIALS,
-    MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+    DeviceCopy, EventStore, Events, ProjectionPlan, TablesLater, BODY_VALUES, EVENT_VALUES,
+    MATERIALS, MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
 };
 pub use read_ahead::ReadAhead;
 pub use tensor::{

@@ -129,14 +129,19 @@ impl DeviceCopy {
     }
 }
 
+/// A call's rebound tables on their way back from the device: the first call of it waits for
+/// them and returns them, later calls the same values (empty where the read failed).
+pub type TablesLater = Arc<dyn Fn() -> Arc<[f32]> + Send + Sync>;
+
 /// Where a plan's rebound contacts come from and go back to (the scenes' constraint data, on
 /// the host): [`EventStore::take`] before a call, [`EventStore::give_back`] with the call's
-/// tables after it.
+/// tables after it, read when a scene's contacts are next used (so the host waits for a call
+/// only when the next one needs what it left).
 pub trait EventStore: Send + Sync {
     /// The tables of the call's scenes (`[B rebound (rebound + 4) EVENT_VALUES]`).
     fn take(&self) -> Vec<f32>;
-    /// Stores the tables a call left (same layout as [`EventStore::take`]'s).
-    fn give_back(&self, tables: &[f32]);
+    /// Hands the scenes the tables a call left (same layout as [`EventStore::take`]'s).
+    fn give_back(&self, tables: TablesLater);
 }
 
 /// A plan's [`EventStore`], None without the rebound part. Plans compare equal whatever their

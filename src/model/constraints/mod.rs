@@ -212,9 +212,17 @@ impl SceneShape {
 
     /// Writes the rebound part's contacts in progress into `out` (`[r (r + 4) 3]`, zeroed:
     /// `crate::ops::ProjectionPlan::events`' layout), for a call of at most `r` bodies a scene.
-    pub fn write_events(&self, r: usize, out: &mut [f32]) {
-        if let Some(rebound) = &self.rebound {
+    pub fn write_events(&mut self, r: usize, out: &mut [f32]) {
+        if let Some(rebound) = &mut self.rebound {
             rebound.write_table(r, out);
+        }
+    }
+
+    /// Hands the rebound part the contacts a device call left (scene `at` of the call's
+    /// `tables`, `r` bodies a row), read when next used.
+    pub fn defer_events(&mut self, tables: crate::ops::TablesLater, r: usize, at: usize) {
+        if let Some(rebound) = &mut self.rebound {
+            rebound.defer(tables, r, at);
         }
     }
 

@@ -77,6 +77,8 @@ pub(super) struct Rebound {
     bodies: BodyIndex,
     /// Contacts in progress, by `(body, other body or WALL + side)`.
     events: BTreeMap<(u32, u32), Event>,
+    /// The contacts a device call left, read when next used (`table.rs`).
+    pending: Option<table::Pending>,
 }
 
 /// A body's means in the frame before and the predicted one.
@@ -108,6 +110,7 @@ impl Rebound {
         Some(Self {
             bodies: BodyIndex::new(bodies.iter().map(Vec::as_slice), n),
             events: BTreeMap::new(),
+            pending: None,
         })
     }
 
@@ -120,6 +123,7 @@ impl Rebound {
         (prev, before, frame): (&[f32], &[f32], &mut [f32]),
         dt: f32,
     ) {
+        self.settle();
         if dt <= 0.0 || prev.len() != frame.len() || before.len() != frame.len() {
             return;
         }

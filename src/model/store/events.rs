@@ -1,12 +1,13 @@
 //! The rebound part's contacts of a device call's scenes ([`SlotEvents`]): taken from the
 //! scenes' constraint data (the host's [`SceneShape`]s, in the slots the states share) as the
-//! flat tables the device reads, and given back into them after the call, so a scene's
-//! contacts carry on from call to call wherever its next call projects, device or host.
+//! flat tables the device reads, and given back into them after the call (read when the scene
+//! next projects), so a scene's contacts carry on from call to call wherever its next call
+//! projects, device or host.
 
 use std::sync::{Arc, Mutex};
 
 use crate::model::constraints::SceneShape;
-use crate::ops::{EventStore, Events, EVENT_VALUES};
+use crate::ops::{EventStore, Events, TablesLater, EVENT_VALUES};
 
 /// One trajectory's constraint data, shared by the states that carry it (clones of a state
 /// share it too; `ConstraintState::detached` copies it); empty until its first projection.
@@ -35,7 +36,7 @@ impl SlotEvents {
     }
 
     /// Runs `f` on each scene's data (built) with its table of `tables`.
-    fn each<T>(&self, tables: &mut [T], mut f: impl FnMut(&mut SceneShape, &mut [T])) {
+    fn each(&self, tables: &mut [f32], mut f: impl FnMut(&mut SceneShape, &mut [f32])) {
         let per = self.per();
         for (slot, table) in self.slots.iter().zip(tables.chunks_exact_mut(per)) {
             let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
@@ -53,8 +54,12 @@ impl EventStore for SlotEvents {
         out
     }
 
-    fn give_back(&self, tables: &[f32]) {
-        let mut tables = tables.to_vec();
-        self.each(&mut tables, |shape, table| shape.read_events(self.r, table));
+    fn give_back(&self, tables: TablesLater) {
+        for (at, slot) in self.slots.iter().enumerate() {
+            let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(shape) = shape.as_mut() {
+                shape.defer_events(tables.clone(), self.r, at);
+            }
+        }
     }
 }

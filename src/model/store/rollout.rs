@@ -133,8 +133,9 @@ impl<B: NetOps> Surrogate<B> {
     /// call's last predicted frame is fed back on the device (no download and upload
     /// between calls), and the predictions are read back together once
     /// [`Surrogate::with_feedback_bytes`] of them are held or the rollout ends. On a GPU the
-    /// host then never waits between calls, so it records call c + 1 while the device runs
-    /// call c; the frames are the ones the call-by-call loop gives (the same values go back
+    /// host then records call c + 1's network while the device runs call c (with the rebound
+    /// part, call c + 1's projection then waits for the contacts call c left, `events.rs`);
+    /// the frames are the ones the call-by-call loop gives (the same values go back
     /// in).
     fn grid_rollout(
         &self,

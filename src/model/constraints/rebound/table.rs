@@ -6,7 +6,25 @@
 //! on the device and one on the host carry the same contacts on.
 
 use super::{Event, Rebound, WALL};
-use crate::ops::EVENT_VALUES;
+use crate::ops::{TablesLater, EVENT_VALUES};
+
+/// The contacts a device call left, not read yet: the call's tables, their bodies a row and
+/// this scene's index in the call.
+#[derive(Clone)]
+pub(in crate::model::constraints) struct Pending {
+    tables: TablesLater,
+    r: usize,
+    at: usize,
+}
+
+impl std::fmt::Debug for Pending {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pending")
+            .field("r", &self.r)
+            .field("at", &self.at)
+            .finish()
+    }
+}
 
 impl Rebound {
     /// The number of bodies.
@@ -19,10 +37,34 @@ impl Rebound {
         self.bodies.of(b)
     }
 
+    /// Keeps the contacts a device call left (scene `at` of its `tables`, `r` bodies a row)
+    /// to be read when they are next used ([`Rebound::settle`]).
+    pub(in crate::model::constraints) fn defer(
+        &mut self,
+        tables: TablesLater,
+        r: usize,
+        at: usize,
+    ) {
+        self.pending = Some(Pending { tables, r, at });
+    }
+
+    /// Reads the contacts a device call left, if any (waiting for the call): where the read
+    /// failed, the contacts stay as they were before it.
+    pub(in crate::model::constraints) fn settle(&mut self) {
+        if let Some(p) = self.pending.take() {
+            let per = p.r * (p.r + 4) * EVENT_VALUES;
+            let tables = (p.tables)();
+            if let Some(table) = tables.get(p.at * per..(p.at + 1) * per) {
+                self.read_table(p.r, table);
+            }
+        }
+    }
+
     /// Writes the contacts in progress into `out` (`[r (r + 4) EVENT_VALUES]`, zeroed by
     /// the caller) for a call whose scenes have at most `r` bodies (this scene's at most
     /// `r`).
-    pub(in crate::model::constraints) fn write_table(&self, r: usize, out: &mut [f32]) {
+    pub(in crate::model::constraints) fn write_table(&mut self, r: usize, out: &mut [f32]) {
+        self.settle();
         for (&(a, other), event) in &self.events {
             let at = slot(r, a, other);
             out[at] = 1.0;
@@ -34,6 +76,7 @@ impl Rebound {
     /// Replaces the contacts in progress by those of `table` (layout of
     /// [`Rebound::write_table`]).
     pub(in crate::model::constraints) fn read_table(&mut self, r: usize, table: &[f32]) {
+        self.pending = None;
         self.events.clear();
         let n = self.bodies.len() as u32;
         for a in 0..n {
@@ -88,5 +131,12 @@ mod tests {
             .map(|(&k, e)| (k, e.speed_in, e.leaving))
             .collect();
         assert_eq!(seen, events);
+        // Deferred: read when next used, the scene's own table of the call's.
+        let mut later = Rebound::new(&bodies, 9).unwrap();
+        let two: std::sync::Arc<[f32]> = [vec![0.0; table.len()], table].concat().into();
+        later.defer(std::sync::Arc::new(move || two.clone()), 4, 1);
+        assert!(later.events.is_empty());
+        later.settle();
+        assert_eq!(later.events.len(), 3);
     }
 }
