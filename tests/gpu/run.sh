@@ -323,6 +323,7 @@ projection() { # docs/cuda.md, "The projection on the device"
             check "projection-$family-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" \
                 bench rollout --device cuda --family $family \
                 --model models/all-grid-mingru-small-k4 --model models/all-grid-mingru \
+                --model models/all-grid-mingru-small-k4-mixed --model models/all-grid-mingru-rest-mixed \
                 --constraints off --constraints on --scenes 256 --batch 256 --threads 16 --frames 100
         done
         check "projection-eval-$where" env MINFLOW_CUDA_PROJECTION=$where "$BIN" eval \
