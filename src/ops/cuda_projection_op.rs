@@ -25,7 +25,7 @@ use super::cuda_momentum_sums::SUMS;
 use super::cuda_projection_call::call_kernel;
 use std::sync::{Arc, Mutex, OnceLock};
 
-use super::{ProjectionPlan, TablesLater, EVENT_VALUES, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
+use super::{event_table_len, ProjectionPlan, TablesLater, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
@@ -85,9 +85,7 @@ impl Operation<Runtime> for ProjectionOp {
         let client = out.client.clone();
         let s = &self.s;
         let (frames, events) = (copied(&out), copied(&events_in));
-        let bn = s.b * s.n;
-        // The momentum and rebound parts' scratch, one element where they do not act.
-        let laws = if self.laws { bn } else { 1 };
+        let laws = self.law_scratch();
         let slots = s.b * s.nodes;
         let scratch = Scratch {
             before: client.empty(s.b * s.n * 16),
@@ -186,12 +184,21 @@ struct Args<'a> {
 }
 
 impl ProjectionOp {
+    /// Elements of each momentum and rebound scratch array: a particle each where the parts
+    /// act, else one.
+    fn law_scratch(&self) -> usize {
+        match self.laws {
+            true => self.s.b * self.s.n,
+            false => 1,
+        }
+    }
+
     /// The call's kernel: a cube a scene, every frame in order.
     fn run(&self, a: &Args<'_>) {
         let s = &self.s;
         let (client, sc) = (a.client, a.scratch);
         let (bn, slots) = (s.b * s.n, s.b * s.nodes);
-        let laws = if self.laws { bn } else { 1 };
+        let laws = self.law_scratch();
         let buffers = BuffersLaunch::new(
             flat(a.frames),
             flat(a.net),
@@ -298,7 +305,7 @@ pub(crate) fn project(
     }
     let store = (plan.events.0.as_ref()).filter(|_| laws && plan.rebound > 0);
     // Without a store the contacts start afresh each call.
-    let per = plan.rebound * (plan.rebound + 4) * EVENT_VALUES;
+    let per = event_table_len(plan.rebound);
     let tables = match store {
         Some(store) => store.take(),
         None => vec![0.0; (plan.b * per).max(1)],

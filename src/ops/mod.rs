@@ -133,8 +133,9 @@ pub use error::OpsError;
 pub use net_ops::NetOps;
 pub use prepared::PreparedWeights;
 pub use projection_plan::{
-    DeviceCopy, EventStore, Events, ProjectionPlan, TablesLater, BODY_VALUES, EVENT_VALUES,
-    MATERIALS, MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS, SCENE_VALUES, SOLIDS_HEAD,
+    event_table_len, DeviceCopy, EventStore, Events, ProjectionPlan, TablesLater, BODY_VALUES,
+    EVENT_VALUES, MATERIALS, MAX_BODIES, MOMENTUM_AT, REBOUND_AT, SCENE_SOLIDS, SCENE_VALUES,
+    SOLIDS_HEAD,
 };
 pub use read_ahead::ReadAhead;
 pub use tensor::{

@@ -129,6 +129,12 @@ impl DeviceCopy {
     }
 }
 
+/// Values of one scene's table of [`ProjectionPlan::events`] in a call of at most `r` rebound
+/// bodies a scene.
+pub fn event_table_len(r: usize) -> usize {
+    r * (r + 4) * EVENT_VALUES
+}
+
 /// A call's rebound tables on their way back from the device: the first call of it waits for
 /// them and returns them, later calls the same values (empty where the read failed).
 pub type TablesLater = Arc<dyn Fn() -> Arc<[f32]> + Send + Sync>;

@@ -226,14 +226,6 @@ impl SceneShape {
         }
     }
 
-    /// Replaces the rebound part's contacts in progress by those of `table` (the layout of
-    /// [`SceneShape::write_events`]), as a call on the device left them.
-    pub fn read_events(&mut self, r: usize, table: &[f32]) {
-        if let Some(rebound) = &mut self.rebound {
-            rebound.read_table(r, table);
-        }
-    }
-
     /// Projects `frame` (`[N, 4]` physical x, y, vx, vy), predicted from `prev` (`[N, 4]`,
     /// the frame `dt` before), onto the constraints of `c` in place: positions moved,
     /// velocities given the move over `dt`, then the liquid's share of the kinetic energy the

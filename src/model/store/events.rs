@@ -7,7 +7,7 @@
 use std::sync::{Arc, Mutex};
 
 use crate::model::constraints::SceneShape;
-use crate::ops::{EventStore, Events, TablesLater, EVENT_VALUES};
+use crate::ops::{event_table_len, EventStore, Events, TablesLater};
 
 /// One trajectory's constraint data, shared by the states that carry it (clones of a state
 /// share it too; `ConstraintState::detached` copies it); empty until its first projection.
@@ -29,28 +29,18 @@ impl SlotEvents {
         };
         Events((r > 0).then(|| Arc::new(store) as Arc<dyn EventStore>))
     }
-
-    /// Values of one scene's table.
-    fn per(&self) -> usize {
-        self.r * (self.r + 4) * EVENT_VALUES
-    }
-
-    /// Runs `f` on each scene's data (built) with its table of `tables`.
-    fn each(&self, tables: &mut [f32], mut f: impl FnMut(&mut SceneShape, &mut [f32])) {
-        let per = self.per();
-        for (slot, table) in self.slots.iter().zip(tables.chunks_exact_mut(per)) {
-            let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some(shape) = shape.as_mut() {
-                f(shape, table);
-            }
-        }
-    }
 }
 
 impl EventStore for SlotEvents {
     fn take(&self) -> Vec<f32> {
-        let mut out = vec![0.0; self.per() * self.slots.len()];
-        self.each(&mut out, |shape, table| shape.write_events(self.r, table));
+        let per = event_table_len(self.r);
+        let mut out = vec![0.0; per * self.slots.len()];
+        for (slot, table) in self.slots.iter().zip(out.chunks_exact_mut(per)) {
+            let mut shape = slot.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(shape) = shape.as_mut() {
+                shape.write_events(self.r, table);
+            }
+        }
         out
     }
 

@@ -6,7 +6,7 @@
 //! on the device and one on the host carry the same contacts on.
 
 use super::{Event, Rebound, WALL};
-use crate::ops::{TablesLater, EVENT_VALUES};
+use crate::ops::{event_table_len, TablesLater, EVENT_VALUES};
 
 /// The contacts a device call left, not read yet: the call's tables, their bodies a row and
 /// this scene's index in the call.
@@ -52,7 +52,7 @@ impl Rebound {
     /// failed, the contacts stay as they were before it.
     pub(in crate::model::constraints) fn settle(&mut self) {
         if let Some(p) = self.pending.take() {
-            let per = p.r * (p.r + 4) * EVENT_VALUES;
+            let per = event_table_len(p.r);
             let tables = (p.tables)();
             if let Some(table) = tables.get(p.at * per..(p.at + 1) * per) {
                 self.read_table(p.r, table);
