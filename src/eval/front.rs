@@ -19,6 +19,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::render::file_stem;
+use super::table::csv_field;
 use super::{EvalError, Evaluation};
 use crate::material::Material;
 use crate::plot::{line_chart, Series};
@@ -167,7 +168,7 @@ pub fn write(dir: &Path, eval: &Evaluation, all: &[Fronts]) -> Result<Vec<PathBu
         for (name, values) in names.clone().zip(series) {
             for (k, v) in values.iter().enumerate() {
                 if let Some(v) = v {
-                    let _ = writeln!(csv, "{},{name},{k},{v}", f.scene);
+                    let _ = writeln!(csv, "{},{},{k},{v}", csv_field(&f.scene), csv_field(name));
                 }
             }
         }

@@ -113,7 +113,7 @@ pub fn csv(eval: &Evaluation) -> String {
     let mut s = String::from("scene");
     for block in [&avg, &last] {
         for p in &eval.predictors {
-            let _ = write!(s, ",{block}_{p}");
+            let _ = write!(s, ",{}", csv_field(&format!("{block}_{p}")));
         }
     }
     s.push('\n');

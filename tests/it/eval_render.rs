@@ -113,3 +113,76 @@ fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
         "{md}"
     );
 }
+
+/// `persist` under the name an ablation column gets (`eval --constraints A,B`): a name
+/// with commas, as `NAME[setting]`.
+struct Ablated;
+
+impl Predictor for Ablated {
+    fn name(&self) -> &str {
+        "m[rope,jelly]"
+    }
+
+    fn window(&self) -> usize {
+        1
+    }
+
+    fn rollout(
+        &self,
+        traj: &Trajectory,
+        first: usize,
+        steps: usize,
+    ) -> Result<Vec<Vec<f32>>, minflow::eval::EvalError> {
+        Persist.rollout(traj, first, steps)
+    }
+}
+
+/// Splits a CSV line into fields, a quoted field (RFC 4180, `""` for a quote) kept whole.
+fn csv_fields(line: &str) -> Vec<String> {
+    let (mut fields, mut field, mut quoted) = (Vec::new(), String::new(), false);
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '"' if quoted && chars.peek() == Some(&'"') => field.push(chars.next().unwrap()),
+            '"' => quoted = !quoted,
+            ',' if !quoted => fields.push(std::mem::take(&mut field)),
+            c => field.push(c),
+        }
+    }
+    fields.push(field);
+    fields
+}
+
+#[test]
+fn every_csv_keeps_an_ablation_name_with_commas_in_one_field() {
+    let trajs = trajectories();
+    let preds: [&dyn Predictor; 2] = [&Ablated, &Persist];
+    let opts = RolloutOptions {
+        horizon: 20,
+        ..RolloutOptions::default()
+    };
+    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
+    let eval = evaluate(
+        &trajs,
+        &preds,
+        &scaler,
+        "test",
+        &opts,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let dir = crate::tmp::tempdir().unwrap();
+    output::write_all(dir.path(), &eval, 0, "test", &ProgressBar::hidden()).unwrap();
+    for file in ["table.csv", "metrics.csv", "plausibility.csv", "front.csv"] {
+        let text = std::fs::read_to_string(dir.path().join(file)).unwrap();
+        let mut lines = text.lines();
+        let header = csv_fields(lines.next().unwrap());
+        for line in lines {
+            let fields = csv_fields(line);
+            assert_eq!(fields.len(), header.len(), "{file}: {line}");
+        }
+        assert!(text.contains("m[rope,jelly]"), "{file}");
+    }
+    let table = std::fs::read_to_string(dir.path().join("table.csv")).unwrap();
+    assert!(csv_fields(table.lines().next().unwrap()).contains(&"avg20_m[rope,jelly]".into()));
+}
