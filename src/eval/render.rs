@@ -163,7 +163,12 @@ pub fn render_grid(
     }
     for (i, (label, frames)) in rows.iter().enumerate() {
         let y = HEADER + i as u32 * CELL;
-        c.text(label, (8, y + CELL / 2 - 8), 15.0).map_err(e)?;
+        let lines = label_lines(label, LABEL_CHARS);
+        let top = (y + CELL / 2).saturating_sub(LINE_PX * lines.len() as u32 / 2);
+        for (k, line) in lines.iter().enumerate() {
+            c.text(line, (8, top + LINE_PX * k as u32), 15.0)
+                .map_err(e)?;
+        }
         for (j, step) in grid_steps(h).into_iter().enumerate() {
             let frame = frames.get(step).and_then(|f| f.as_deref());
             c.panel(LABEL_W + j as u32 * CELL, y, frame, &snap.material)
@@ -317,6 +322,40 @@ pub fn mse_curves(path: &Path, eval: &Evaluation) -> Result<(), EvalError> {
     .map_err(|e| out_err(path, e))
 }
 
+/// Characters of a row label a line holds in the [`LABEL_W`]-pixel column, and the lines' pitch.
+const LABEL_CHARS: usize = 15;
+const LINE_PX: u32 = 17;
+
+/// `label` wrapped into lines of at most `width` characters, broken after a `-`, `,`, `[`, `/`
+/// or `_` where it can be and cut where a run is longer: the rows of an ablation
+/// (`NAME[rope,jelly,...]`) stay apart in the label column instead of all reading `NAME`.
+pub fn label_lines(label: &str, width: usize) -> Vec<String> {
+    let width = width.max(1);
+    let mut tokens = vec![String::new()];
+    for c in label.chars() {
+        tokens.last_mut().expect("one token at least").push(c);
+        if "-,[/_".contains(c) {
+            tokens.push(String::new());
+        }
+    }
+    let (mut lines, mut line) = (Vec::new(), String::new());
+    for token in tokens.into_iter().filter(|t| !t.is_empty()) {
+        if !line.is_empty() && line.chars().count() + token.chars().count() > width {
+            lines.push(std::mem::take(&mut line));
+        }
+        for c in token.chars() {
+            if line.chars().count() == width {
+                lines.push(std::mem::take(&mut line));
+            }
+            line.push(c);
+        }
+    }
+    if !line.is_empty() || lines.is_empty() {
+        lines.push(line);
+    }
+    lines
+}
+
 /// A file name for a scene id: `multi/rope+snow/001` -> `multi_rope+snow_001`.
 pub fn file_stem(scene: &str) -> String {
     scene
@@ -329,4 +368,22 @@ pub fn file_stem(scene: &str) -> String {
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::label_lines;
+
+    #[test]
+    fn labels_wrap_at_separators_and_keep_every_character() {
+        let label = "all-grid-mingru-small-k4-mixed[rope,jelly,walls,pressure]";
+        let lines = label_lines(label, 15);
+        assert_eq!(lines.concat(), label);
+        assert!(lines.iter().all(|l| l.chars().count() <= 15), "{lines:?}");
+        assert_eq!(lines[0], "all-grid-");
+        assert_eq!(lines.last().unwrap(), "pressure]");
+        assert_eq!(label_lines("truth", 15), ["truth"]);
+        assert_eq!(label_lines("abcdefgh", 3), ["abc", "def", "gh"]);
+        assert_eq!(label_lines("", 15), [""]);
+    }
 }

@@ -9,7 +9,7 @@ use std::path::Path;
 use indicatif::ProgressBar;
 use minflow::data::{Scaler, Trajectory};
 use minflow::eval::render::{gif_size, grid_size, grid_steps, CELL};
-use minflow::eval::{evaluate, output, ConstVel, Persist, Predictor, RolloutOptions};
+use minflow::eval::{evaluate, output, ConstVel, Evaluation, Persist, Predictor, RolloutOptions};
 use minflow::material::Material;
 
 /// Two scenes of 400 particles (liquid and snow), 30 frames of a slow drift.
@@ -48,24 +48,29 @@ fn png_size(path: &Path) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, buf)
 }
 
-#[test]
-fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
+/// `preds` over [`trajectories`], 20-step rollouts.
+fn evaluated(preds: &[&dyn Predictor]) -> Evaluation {
     let trajs = trajectories();
-    // Both baselines rendered as "models" beside the truth: 3 rows.
-    let preds: [&dyn Predictor; 2] = [&Persist, &ConstVel];
     let opts = RolloutOptions {
         horizon: 20,
         ..RolloutOptions::default()
     };
-    let eval = evaluate(
+    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
+    evaluate(
         &trajs,
-        &preds,
-        &Scaler::fit(&trajs.iter().collect::<Vec<_>>()),
+        preds,
+        &scaler,
         "test",
         &opts,
         &ProgressBar::hidden(),
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn curves_renders_and_gifs_decode_with_the_expected_sizes() {
+    // Both baselines rendered as "models" beside the truth: 3 rows.
+    let eval = evaluated(&[&Persist, &ConstVel]);
     let dir = crate::tmp::tempdir().unwrap();
     let files = output::write_all(dir.path(), &eval, 2, "test", &ProgressBar::hidden()).unwrap();
     // table.md, table.csv, metrics.csv, plausibility.csv, front.csv, mse_curves.png; a
@@ -155,22 +160,7 @@ fn csv_fields(line: &str) -> Vec<String> {
 
 #[test]
 fn every_csv_keeps_an_ablation_name_with_commas_in_one_field() {
-    let trajs = trajectories();
-    let preds: [&dyn Predictor; 2] = [&Ablated, &Persist];
-    let opts = RolloutOptions {
-        horizon: 20,
-        ..RolloutOptions::default()
-    };
-    let scaler = Scaler::fit(&trajs.iter().collect::<Vec<_>>());
-    let eval = evaluate(
-        &trajs,
-        &preds,
-        &scaler,
-        "test",
-        &opts,
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
+    let eval = evaluated(&[&Ablated, &Persist]);
     let dir = crate::tmp::tempdir().unwrap();
     output::write_all(dir.path(), &eval, 0, "test", &ProgressBar::hidden()).unwrap();
     for file in ["table.csv", "metrics.csv", "plausibility.csv", "front.csv"] {
