@@ -14,11 +14,14 @@
 //! - [`windows`]: [`WindowIndex`] and [`Batch`]: T input frames + the next frame as target,
 //!   batched and shuffled deterministically per (seed, epoch).
 //! - [`streaming`]: [`StreamingLoader`], the same batches for datasets larger than memory,
-//!   loading scenes chunk by chunk under a frame budget.
+//!   loading scenes chunk by chunk under a frame budget, the next chunk read ahead.
+//! - [`budget`]: [`ResidentBudget`], that frame budget: a count, or a share of the machine's
+//!   available memory.
 //!
 //! Used by `minflow train` (everything) and `minflow eval` (load, split, scaler). Every failure
 //! is one [`DataError`] naming the bag, the scene and the frame where they apply.
 
+pub mod budget;
 pub mod load;
 pub mod scaler;
 pub mod split;
@@ -28,6 +31,7 @@ pub mod windows;
 
 use std::path::PathBuf;
 
+pub use budget::ResidentBudget;
 pub use load::{load, load_scenes, scan, scan_with_report, summary_frames, SceneInfo};
 pub use scaler::{Scaler, ScalerFit, FEATURES, FEATURE_NAMES};
 pub use split::{Part, Split, SplitFractions};

@@ -54,6 +54,38 @@ pub struct Batch {
     pub solver_grid: Vec<Option<u32>>,
 }
 
+impl Batch {
+    /// The batch cut into at most `parts` batches of consecutive windows, as even as can be
+    /// (the first ones one window larger): a data-parallel step's shares, one per device.
+    /// Fewer parts than asked when the batch has fewer windows; none when it is empty.
+    pub fn shards(&self, parts: usize) -> Vec<Batch> {
+        let parts = parts.clamp(1, self.b.max(1)).min(self.b);
+        let (t, n) = (self.t, self.n);
+        let mut out = Vec::with_capacity(parts);
+        let mut start = 0;
+        for k in 0..parts {
+            let b = self.b / parts + usize::from(k < self.b % parts);
+            let rows = |per: usize| start * per..(start + b) * per;
+            out.push(Batch {
+                b,
+                t,
+                n,
+                inputs: self.inputs[rows(t * n * 5)].to_vec(),
+                targets: self.targets[rows(n * 4)].to_vec(),
+                last: self.last[rows(n * 4)].to_vec(),
+                target_phys: self.target_phys[rows(n * 4)].to_vec(),
+                dt: self.dt[rows(1)].to_vec(),
+                material: self.material[rows(n)].to_vec(),
+                ids: self.ids[rows(1)].to_vec(),
+                first_pos: self.first_pos[rows(n * 2)].to_vec(),
+                solver_grid: self.solver_grid[rows(1)].to_vec(),
+            });
+            start += b;
+        }
+        out
+    }
+}
+
 /// Every window of a set of trajectories, and the batches made from them. (`Debug` prints
 /// counts, not values.)
 #[derive(Clone)]

@@ -2,13 +2,18 @@
 //! [`RunFolder`], the `model.json` of the kept model, the epoch limits) and the resumable
 //! checkpoint. [`RunFolder::checkpoint`] holds the model and the optimizer state
 //! (`model.mpk`, `optim.mpk`: burn named MessagePack, full precision) and `history.json`
-//! (every epoch so far). It is written to [`RunFolder::checkpoint_tmp`] and swapped in with
+//! (every epoch so far), and, when the call ended or checkpointed mid-epoch, `partial.json`
+//! (the unfinished epoch: its steps and sums, [`Unfinished`]); `ledger.json` is the run's
+//! [`RunLedger`] (samples, device-hours, calls), also written beside it as `run.json`. It is
+//! written to [`RunFolder::checkpoint_tmp`] and swapped in with
 //! renames, so a run killed at any moment leaves either the previous or the new checkpoint,
 //! never a torn one; the previous epoch's stays as [`RunFolder::checkpoint_old`], and a
 //! resume whose checkpoint was damaged afterwards (a truncated copy, a full disk) falls back
 //! to it with a warning naming the file. Used by [`super::epochs::run_epochs`] for `minflow
 //! train` of either architecture.
 
+use super::progress::Unfinished;
+use super::ledger::RunLedger;
 use super::{EpochRecord, TrainError};
 use crate::data::Scaler;
 use crate::model::store::{self, ModelMeta, NetConfig, RunFolder};
@@ -17,6 +22,8 @@ use burn::optim::Optimizer;
 use burn::record::{FullPrecisionSettings, NamedMpkFileRecorder, Recorder};
 use burn::tensor::backend::AutodiffBackend;
 use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 /// A run's folder, what its `model.json` says, and how long it may run: everything
 /// [`super::epochs::run_epochs`] needs to keep the best model and checkpoint each epoch,
@@ -35,6 +42,10 @@ pub struct RunOutput {
     pub patience: usize,
     /// The material constraints the model projects its frames onto, saved with it.
     pub constraints: Option<crate::model::constraints::Constraints>,
+    /// What the run has used over its calls, updated at each checkpoint.
+    pub ledger: Arc<Mutex<RunLedger>>,
+    /// When this call began (the ledger's current call).
+    pub call_started: Instant,
 }
 
 impl RunOutput {
@@ -62,7 +73,8 @@ impl RunOutput {
         Ok(self.folder.save(model, &self.meta(epoch, val_loss))?)
     }
 
-    /// Writes the resumable checkpoint after the epochs in `history` ([`save`]).
+    /// Writes the resumable checkpoint after the epochs in `history` and the `unfinished`
+    /// one's steps ([`save`]), the ledger brought up to date first.
     ///
     /// # Errors
     /// The files could not be written.
@@ -71,8 +83,24 @@ impl RunOutput {
         model: &M,
         optim: &O,
         history: &[EpochRecord],
+        unfinished: Option<&Unfinished>,
     ) -> Result<(), TrainError> {
-        save(&self.folder, model, optim, history)
+        let samples = history.iter().map(|r| r.samples as u64).sum::<u64>()
+            + unfinished.map_or(0, |u| u.pass.seen as u64);
+        let ledger = {
+            let mut ledger = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+            ledger.update(samples, self.call_started.elapsed().as_secs_f64());
+            ledger.clone()
+        };
+        let state = Progress {
+            history,
+            unfinished,
+            ledger: &ledger,
+        };
+        save(&self.folder, model, optim, &state)?;
+        let path = self.folder.dir().join("run.json");
+        let json = serde_json::to_string_pretty(&ledger).map_err(|e| err(&path, e))?;
+        std::fs::write(&path, json).map_err(|e| err(&path, e))
     }
 }
 
@@ -80,7 +108,18 @@ fn err(path: &Path, source: impl Into<Box<dyn std::error::Error + Send + Sync>>)
     TrainError::Store(store::io(path, source))
 }
 
-/// Writes the checkpoint of the epoch just finished into `folder` (module doc).
+/// Where a run is, besides its weights and optimizer: the finished epochs, the unfinished
+/// one's steps, the ledger.
+pub struct Progress<'a> {
+    /// Every finished epoch.
+    pub history: &'a [EpochRecord],
+    /// The epoch in progress, when the checkpoint is written mid-epoch.
+    pub unfinished: Option<&'a Unfinished>,
+    /// The run's ledger.
+    pub ledger: &'a RunLedger,
+}
+
+/// Writes the checkpoint of the run at `progress` into `folder` (module doc).
 ///
 /// # Errors
 /// A file could not be written ([`store::StoreError::Io`] naming it); the previous
@@ -89,7 +128,7 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     folder: &RunFolder,
     model: &M,
     optim: &O,
-    history: &[EpochRecord],
+    progress: &Progress<'_>,
 ) -> Result<(), TrainError> {
     let tmp = folder.checkpoint_tmp();
     let dir = folder.checkpoint();
@@ -101,10 +140,11 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     let written = store::write_record::<B, _>(&tmp.join("model.mpk"), model.clone().into_record())
         .and_then(|()| store::write_record::<B, _>(&tmp.join("optim.mpk"), optim.to_record()))
         .map_err(TrainError::Store)
-        .and_then(|()| {
-            let json = serde_json::to_string_pretty(history).map_err(|e| err(&tmp, e))?;
-            std::fs::write(tmp.join("history.json"), json)
-                .map_err(|e| err(&tmp.join("history.json"), e))
+        .and_then(|()| write_json(&tmp.join("history.json"), progress.history))
+        .and_then(|()| write_json(&tmp.join("ledger.json"), progress.ledger))
+        .and_then(|()| match progress.unfinished {
+            Some(unfinished) => write_json(&tmp.join("partial.json"), unfinished),
+            None => Ok(()),
         });
     if let Err(e) = written {
         let _ = std::fs::remove_dir_all(&tmp);
@@ -118,14 +158,24 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     Ok(())
 }
 
+/// `value` as pretty JSON in `path`.
+fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), TrainError> {
+    let json = serde_json::to_string_pretty(value).map_err(|e| err(path, e))?;
+    std::fs::write(path, json).map_err(|e| err(path, e))
+}
+
 /// A checkpoint read back.
 pub struct Resumed<M, R> {
-    /// Weights after the last finished epoch.
+    /// Weights after the last finished epoch, or at the unfinished one's last step.
     pub model: M,
     /// Optimizer state.
     pub optim: R,
     /// Every finished epoch.
     pub history: Vec<EpochRecord>,
+    /// The epoch the checkpoint was written in, when mid-epoch.
+    pub unfinished: Option<Unfinished>,
+    /// The run's ledger (None in checkpoints written before it existed).
+    pub ledger: Option<RunLedger>,
 }
 
 /// Reads the checkpoint of the run folder `out` ([`RunFolder::checkpoint`]) into `fresh` (a
@@ -192,9 +242,26 @@ fn read<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     let text = std::fs::read_to_string(dir.join("history.json"))
         .map_err(|e| damaged("history.json", e.into()))?;
     let history = serde_json::from_str(&text).map_err(|e| damaged("history.json", e.into()))?;
+    let optional = |file: &str| match std::fs::read_to_string(dir.join(file)) {
+        Ok(text) => Ok(Some(text)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(damaged(file, e.into())),
+    };
+    let unfinished = match optional("partial.json")? {
+        Some(text) => {
+            Some(serde_json::from_str(&text).map_err(|e| damaged("partial.json", e.into()))?)
+        }
+        None => None,
+    };
+    let ledger = match optional("ledger.json")? {
+        Some(text) => Some(serde_json::from_str(&text).map_err(|e| damaged("ledger.json", e.into()))?),
+        None => None,
+    };
     Ok(Resumed {
         model,
         optim,
         history,
+        unfinished,
+        ledger,
     })
 }

@@ -2,7 +2,9 @@
 //! the training batches, a validation score, the model saved when that score is the best so
 //! far (`model.json` + `model.mpk`, the run's kept model), a resumable checkpoint
 //! (`checkpoint/`), and the observer told; it stops after `epochs`, after `patience` epochs
-//! without a better score, or when a pass ran out of time. Early stopping on the validation
+//! without a better score, or when a pass ran out of time. A pass that ends the call's share
+//! mid-epoch ([`super::ledger::CallShare`]) leaves a checkpoint of its unfinished epoch
+//! ([`Unfinished`]) and no record; the resumed run finishes that epoch from the next step. Early stopping on the validation
 //! score and best-checkpoint selection as LagrangeBench (Toshev et al. 2023) and GNS
 //! (Sanchez-Gonzalez et al. 2020) train. What differs between the architectures (the pass,
 //! the score) is an [`EpochRun`]: [`super::paper::Trainer`] and [`super::grid::GridTrainer`];
@@ -16,51 +18,8 @@ use burn::optim::Optimizer;
 use burn::tensor::backend::AutodiffBackend;
 
 use super::checkpoint::RunOutput;
+pub use super::progress::{EpochPass, Unfinished};
 use super::{EpochRecord, Observer, TrainError};
-
-/// What one pass over an epoch's training batches summed up.
-#[derive(Debug, Default, Clone)]
-pub struct EpochPass {
-    /// Sum over batches of the batch-mean loss times the batch size.
-    pub sum: f64,
-    /// Samples (windows) trained on.
-    pub seen: usize,
-    /// Seconds waiting for host batches.
-    pub data_seconds: f64,
-    /// Seconds waiting for the device (reading the loss back).
-    pub wait_seconds: f64,
-    /// The run's time limit ran out during the pass: the loop stops after this epoch.
-    pub out_of_time: bool,
-}
-
-impl EpochPass {
-    /// Adds one optimizer step's batch-mean `loss` over `b` samples (step `k`, 0-based, of
-    /// `total` in `epoch`, 0-based, begun at `started`) and tells `observer`.
-    ///
-    /// # Errors
-    /// [`TrainError::NonFinite`] for a NaN or infinite loss.
-    pub fn add_step(
-        &mut self,
-        loss: f64,
-        b: usize,
-        (epoch, k, total): (usize, usize, usize),
-        started: Instant,
-        observer: &mut dyn Observer,
-    ) -> Result<(), TrainError> {
-        if !loss.is_finite() {
-            return Err(TrainError::NonFinite {
-                epoch: epoch + 1,
-                batch: k,
-                loss: loss as f32,
-            });
-        }
-        self.sum += loss * b as f64;
-        self.seen += b;
-        let rate = self.seen as f64 / started.elapsed().as_secs_f64().max(1e-9);
-        observer.batch(epoch + 1, k + 1, total, self.sum / self.seen as f64, rate);
-        Ok(())
-    }
-}
 
 /// One architecture's training run, as [`run_epochs`] drives it.
 pub trait EpochRun {
@@ -74,16 +33,19 @@ pub trait EpochRun {
     /// The run folder, the kept model's `model.json` and the epoch limits.
     fn output(&self) -> &RunOutput;
 
-    /// One pass over the training batches of `epoch` (0-based): the trained model and the
-    /// pass's sums; `observer` is told after each optimizer step.
+    /// One pass over the training batches of epoch `epoch.0` (0-based), from `from.steps` on
+    /// with `from`'s sums (`from` = `epoch.1`) (a resumed epoch; the default pass otherwise): the trained model and the
+    /// pass's sums; `observer` is told after each optimizer step. `history` is every epoch
+    /// finished, for a checkpoint written mid-epoch.
     ///
     /// # Errors
-    /// A non-finite loss, unreadable data.
+    /// A non-finite loss, unreadable data, a mid-epoch checkpoint that could not be written.
     fn train_epoch(
         &mut self,
         model: Self::Model,
         optim: &mut Self::Optim,
-        epoch: usize,
+        epoch: (usize, EpochPass),
+        history: &[EpochRecord],
         observer: &mut dyn Observer,
     ) -> Result<(Self::Model, EpochPass), TrainError>;
 
@@ -100,15 +62,19 @@ pub trait EpochRun {
     ) -> Result<f64, TrainError>;
 }
 
-/// Trains `run` from `model`, `optim` and the epochs already done (`history`, non-empty when
-/// resumed), one [`EpochRun::train_epoch`] per epoch; see the module doc. Returns every
-/// epoch's record, the resumed ones included.
+/// Where a run starts: the weights, the optimizer, the epochs already done (non-empty when
+/// resumed) and the unfinished epoch a mid-epoch checkpoint left.
+pub type Start<M, O> = (M, O, Vec<EpochRecord>, Option<Unfinished>);
+
+/// Trains `run` from `model`, `optim`, the epochs already done and the unfinished one, one
+/// [`EpochRun::train_epoch`] per epoch; see the module doc. Returns every epoch's record,
+/// the resumed ones included.
 ///
 /// # Errors
 /// The first error of a pass, a validation, a save or a checkpoint.
 pub fn run_epochs<R: EpochRun>(
     run: &mut R,
-    (mut model, mut optim, mut history): (R::Model, R::Optim, Vec<EpochRecord>),
+    (mut model, mut optim, mut history, mut unfinished): Start<R::Model, R::Optim>,
     observer: &mut dyn Observer,
 ) -> Result<Vec<EpochRecord>, TrainError> {
     let (epochs, patience) = (run.output().epochs, run.output().patience);
@@ -126,9 +92,20 @@ pub fn run_epochs<R: EpochRun>(
             break;
         }
         let started = Instant::now();
-        let (trained, pass) = run.train_epoch(model, &mut optim, epoch, observer)?;
+        let from = (unfinished.take())
+            .filter(|u| u.epoch == epoch)
+            .map_or_else(EpochPass::default, |u| u.pass);
+        let before = from.seconds;
+        let (trained, mut pass) =
+            run.train_epoch(model, &mut optim, (epoch, from), &history, observer)?;
         model = trained;
-        let seconds = started.elapsed().as_secs_f64();
+        let seconds = before + started.elapsed().as_secs_f64();
+        if pass.stopped {
+            pass.seconds = seconds;
+            let unfinished = Unfinished { epoch, pass };
+            (run.output()).checkpoint(&model, &optim, &history, Some(&unfinished))?;
+            break;
+        }
         let train_loss = pass.sum / pass.seen.max(1) as f64;
         let val_loss = run.validate(&model, epoch + 1, train_loss)?;
         let record = EpochRecord {
@@ -137,6 +114,7 @@ pub fn run_epochs<R: EpochRun>(
             val_loss,
             seconds,
             samples_per_sec: pass.seen as f64 / seconds.max(1e-9),
+            samples: pass.seen,
             data_seconds: pass.data_seconds,
             wait_seconds: pass.wait_seconds,
         };
@@ -149,7 +127,7 @@ pub fn run_epochs<R: EpochRun>(
             since_best += 1;
         }
         history.push(record.clone());
-        run.output().checkpoint(&model, &optim, &history)?;
+        run.output().checkpoint(&model, &optim, &history, None)?;
         observer.epoch(&record, &history);
         if pass.out_of_time {
             break;

@@ -15,11 +15,14 @@
 pub mod checkpoint;
 pub mod epochs;
 pub mod grid;
+pub mod ledger;
 pub mod optimizer;
 pub mod paper;
+pub mod progress;
 pub mod source;
 
-pub use epochs::{run_epochs, EpochPass, EpochRun};
+pub use epochs::{run_epochs, EpochPass, EpochRun, Unfinished};
+pub use ledger::{CallShare, DatasetInfo, RunLedger};
 pub use paper::{evaluate, initial_model, TrainOptions, Trainer};
 pub use source::BatchSource;
 
@@ -76,6 +79,9 @@ pub struct EpochRecord {
     /// 0 when issuing the work (kernel launches, autodiff bookkeeping) is.
     #[serde(default)]
     pub wait_seconds: f64,
+    /// Samples (windows) trained on in the epoch (0 in runs saved before it was recorded).
+    #[serde(default)]
+    pub samples: usize,
 }
 
 /// The weights `draw` makes on the CPU backend after seeding it with `seed`, loaded into

@@ -3,6 +3,7 @@
 //! chunk each epoch under a resident-frame budget). Both shuffle deterministically from
 //! (seed, epoch), so a resumed run sees the same order.
 
+use crate::data::windows::rng;
 use crate::data::{Batch, DataError, StreamingLoader, WindowIndex};
 
 /// The batches of one epoch.
@@ -16,6 +17,17 @@ pub trait BatchSource {
         batch_size: usize,
         seed: Option<u64>,
         epoch: u64,
+    ) -> Result<Batches<'_>, DataError> {
+        self.batches_from(batch_size, seed, epoch, 0)
+    }
+    /// The batches of `epoch` after its first `skip`, without preparing the skipped ones
+    /// (a run resumed mid-epoch, or an epoch shorter than a pass continuing it).
+    fn batches_from(
+        &mut self,
+        batch_size: usize,
+        seed: Option<u64>,
+        epoch: u64,
+        skip: usize,
     ) -> Result<Batches<'_>, DataError>;
     /// Batches per epoch (for progress bars).
     fn num_batches(&self, batch_size: usize) -> usize;
@@ -28,15 +40,17 @@ pub trait BatchSource {
 }
 
 impl BatchSource for &WindowIndex {
-    fn batches(
+    fn batches_from(
         &mut self,
         batch_size: usize,
         seed: Option<u64>,
         epoch: u64,
+        skip: usize,
     ) -> Result<Batches<'_>, DataError> {
-        Ok(Box::new(
-            WindowIndex::batches(self, batch_size, seed, epoch).map(Ok),
-        ))
+        let index: &WindowIndex = self;
+        let plan = index.plan(batch_size, seed.map(|s| rng(s, epoch, 0)));
+        let plan = plan.into_iter().skip(skip);
+        Ok(Box::new(plan.map(move |windows| Ok(index.batch(&windows)))))
     }
     fn num_batches(&self, batch_size: usize) -> usize {
         WindowIndex::num_batches(self, batch_size)
@@ -53,13 +67,14 @@ impl BatchSource for &WindowIndex {
 }
 
 impl BatchSource for StreamingLoader {
-    fn batches(
+    fn batches_from(
         &mut self,
         batch_size: usize,
         seed: Option<u64>,
         epoch: u64,
+        skip: usize,
     ) -> Result<Batches<'_>, DataError> {
-        Ok(Box::new(self.epoch(batch_size, seed, epoch)?))
+        Ok(Box::new(self.epoch_from(batch_size, seed, epoch, skip)?))
     }
     fn num_batches(&self, batch_size: usize) -> usize {
         self.len().div_ceil(batch_size.max(1))

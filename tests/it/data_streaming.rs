@@ -197,3 +197,36 @@ fn bags_changed_since_the_scan_are_reported() {
     }
     assert_eq!(results.iter().filter(|r| r.is_err()).count(), 1);
 }
+
+/// An epoch started after `skip` batches yields the rest of the full epoch's batches, in its
+/// order, for every skip (chunks wholly before it unread); an epoch iterator dropped early
+/// and continued from where it stopped yields the same; with the next chunk read ahead the
+/// loader still holds at most its budget.
+#[test]
+fn an_epoch_resumes_at_any_batch() {
+    let dir = crate::tmp::tempdir().expect("tempdir");
+    let infos = data::scan(&dataset(dir.path()), None).expect("scan");
+    for budget in [12, 30, 71] {
+        let mut loader =
+            StreamingLoader::new(infos.clone(), None, T, Scaler::default(), budget).expect("loader");
+        let full: Vec<Vec<(u32, u32)>> = (loader.epoch(3, Some(9), 2).expect("epoch"))
+            .map(|b| b.expect("batch").ids)
+            .collect();
+        for skip in 0..=full.len() {
+            let tail: Vec<Vec<(u32, u32)>> = (loader.epoch_from(3, Some(9), 2, skip))
+                .expect("epoch")
+                .map(|b| b.expect("batch").ids)
+                .collect();
+            assert_eq!(tail, full[skip..], "budget {budget}, skip {skip}");
+        }
+        // Taken in stretches of 2 batches, each a new iterator continuing the last.
+        let mut stretches = Vec::new();
+        for start in (0..full.len()).step_by(2) {
+            let batches = loader.epoch_from(3, Some(9), 2, start).expect("epoch");
+            stretches.extend(batches.take(2).map(|b| b.expect("batch").ids));
+        }
+        assert_eq!(stretches, full, "budget {budget}: continued in stretches");
+        let peak = loader.peak_resident_frames();
+        assert!(peak > 0 && peak <= budget, "peak {peak} frames, budget {budget}");
+    }
+}

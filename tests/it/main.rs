@@ -50,6 +50,7 @@ mod sim_scenes;
 mod sim_validation;
 mod soak;
 mod tidy;
+mod train_calls;
 mod train_loop;
 mod train_parallel;
 mod train_resume;

@@ -59,3 +59,71 @@ fn data_parallel_equals_one_device_alone() {
     // Training moved: the check is not of four identical untouched epochs.
     assert!(one[3].train_loss < 0.9 * one[0].train_loss, "{one:?}");
 }
+
+/// The grid trainer data-parallel (`GridTrainer::replicas`: each batch cut into one share
+/// per device, each share's gradient weighted by its share of the batch, summed by
+/// `step_multi`) on two CPU "devices" against one: without input noise the losses of every
+/// epoch equal a one-device run's up to float summation order. (On GPUs the same code runs
+/// with `--device cuda:0,cuda:1,...`; docs/training.md has those runs.)
+#[test]
+fn grid_data_parallel_equals_one_device() {
+    crate::isolated::run(
+        concat!(module_path!(), "::grid_data_parallel_equals_one_device"),
+        grid_data_parallel_equals_one_device_alone,
+    );
+}
+
+/// [`grid_data_parallel_equals_one_device`]'s body, in a process of its own.
+fn grid_data_parallel_equals_one_device_alone() {
+    use minflow::model::grid::{GridConfig, MemoryKind};
+    use minflow::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
+    let traj = trajectory(64, 14);
+    let stats = fit_stats(&[&traj]);
+    let config = GridConfig {
+        grid: 16,
+        unet_width: 4,
+        levels: 2,
+        latent: 4,
+        hidden: 4,
+        head_hidden: 8,
+        ..GridConfig::new(MemoryKind::MinGru)
+            .with_window(2)
+            .with_vel_scale(stats.vel_scale)
+            .with_dv_mean(stats.dv_mean)
+            .with_dv_scale(stats.dv_scale)
+    };
+    let opts = GridTrainOptions {
+        epochs: 4,
+        batch_size: 5,
+        steps: 2,
+        chunks: 2,
+        clip: 1.0,
+        lr: 3e-3,
+        seed: 4,
+        ..GridTrainOptions::default()
+    };
+    let index = WindowIndex::new(vec![traj], 2 + 2 * 2 - 1, Scaler::default()).unwrap();
+    let run = |replicas: Vec<_>| {
+        let dir = crate::tmp::tempdir().unwrap();
+        let trainer = GridTrainer::<B> {
+            config: config.clone(),
+            opts: opts.clone(),
+            out: dir.path().to_path_buf(),
+            device: Default::default(),
+            replicas,
+            init_from: None,
+            share: Default::default(),
+            dataset: Default::default(),
+        };
+        let quiet = &mut minflow::train::Quiet;
+        (trainer.fit(&mut &index, &[], &Scaler::default(), false, quiet)).unwrap()
+    };
+    let one = run(Vec::new());
+    let two = run(vec![Default::default()]);
+    assert_eq!((one.len(), two.len()), (4, 4));
+    for (a, b) in one.iter().zip(&two) {
+        let rel = (a.train_loss - b.train_loss).abs() / a.train_loss;
+        assert!(rel < 1e-4, "epoch {}: {:e} vs {:e}", a.epoch, a.train_loss, b.train_loss);
+    }
+    assert!(one[3].train_loss < 0.95 * one[0].train_loss, "{one:?}");
+}

@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 pub use super::net_args::{GridNetArgs, Reference, RestShape};
 use crate::cli::device::DeviceArgs;
+use crate::data::ResidentBudget;
 use crate::model::grid::{ConvKernel, Deformation, GridConfig, MemoryKind};
 use crate::model::{CoreKind, DecoderKind, LastActivation, ModelConfig, Pooling};
 use crate::train::grid::GridTrainOptions;
@@ -102,11 +103,12 @@ pub struct TrainArgs {
     /// (a fresh one when no scene of --data is in it: a parent of another family or size).
     #[arg(long, value_name = "DIR")]
     pub split_from: Option<PathBuf>,
-    /// Frames held in memory at most; a larger dataset's training scenes are streamed from
-    /// the bags in chunks each epoch (a frame of 2,500 particles is 40 kB; `--arch grid`
-    /// keeps its validation scenes in memory).
-    #[arg(long, default_value_t = 50_000)]
-    pub max_resident_frames: usize,
+    /// Frames held in memory at most, or `auto`: 40 % of the machine's available memory
+    /// over a frame's size (a frame of 2,500 particles is 40 kB). A larger dataset's
+    /// training scenes are streamed from the bags in chunks of half of it, the next chunk
+    /// read while one is trained on (`--arch grid` keeps its validation scenes in memory).
+    #[arg(long, default_value = "auto", value_name = "FRAMES|auto")]
+    pub max_resident_frames: ResidentBudget,
     #[command(flatten)]
     pub grid_args: GridArgs,
 }
@@ -300,9 +302,21 @@ pub struct GridArgs {
     #[arg(long, default_value_t = 20, value_parser = crate::cli::flags::at_least_one)]
     pub val_horizon: usize,
     /// Stop after this many minutes of training (the epoch in progress is cut short,
-    /// validated and kept; 0: no limit).
+    /// validated and kept; the learning rate decays by the clock; 0: no limit).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative)]
     pub max_minutes: f64,
+    /// End this call after this many minutes with a mid-epoch checkpoint that `--resume`
+    /// continues exactly (a run of hours over calls of a few minutes; the schedule is
+    /// unchanged; 0: no limit).
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative)]
+    pub call_minutes: f64,
+    /// End this call after this many optimizer steps, as --call-minutes does (0: no limit).
+    #[arg(long, default_value_t = 0)]
+    pub call_steps: usize,
+    /// Write a mid-epoch checkpoint after this many minutes without one (0: only after each
+    /// epoch and when the call ends).
+    #[arg(long, default_value_t = 5.0, value_parser = crate::cli::flags::non_negative)]
+    pub checkpoint_minutes: f64,
     /// Start from the weights of this run folder (fine-tuning, or continuing a finished run
     /// with a new learning-rate schedule) instead of fresh ones. Its architecture must be the
     /// one these flags describe, but for --grid (the U-Net is convolutional: the same weights
@@ -367,6 +381,13 @@ impl TrainArgs {
             bail!("--batch-size, --epochs and --val-horizon must be at least 1");
         }
         Ok(config)
+    }
+
+    /// This call's share of a grid run (`--call-minutes`, `--call-steps`,
+    /// `--checkpoint-minutes`).
+    pub fn call_share(&self) -> crate::train::CallShare {
+        let g = &self.grid_args;
+        crate::train::CallShare::new(g.call_minutes, g.call_steps, g.checkpoint_minutes)
     }
 
     /// The grid run's optimisation settings.

@@ -24,7 +24,7 @@ use crate::model::grid::{GridConfig, Update};
 use crate::model::store::{NetConfig, RunFolder};
 use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer, StatsFit, VelocityStats};
-use crate::train::{BatchSource, EpochRecord, Observer, TrainError};
+use crate::train::{BatchSource, CallShare, DatasetInfo, EpochRecord, Observer, TrainError};
 
 /// Runs `train --arch grid`.
 ///
@@ -50,8 +50,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         args.grid_args.init_from.as_deref(),
     )?;
     let frames = config.window + opts.calls() * config.bundle - 1;
-    let mut data = match infos.iter().map(|s| s.frames).sum::<usize>() > args.max_resident_frames {
-        true => RunData::streamed(&args, infos, &split, frames, init)?,
+    let train_infos = split.select_infos(Part::Train, &infos);
+    let (budget, streamed) = super::resident_budget(&args, &infos, &train_infos);
+    let dataset = super::dataset_info(&args, &train_infos, streamed);
+    let mut data = match streamed {
+        true => RunData::streamed(&args, budget, infos, &split, frames, init)?,
         false => {
             let trajs = match resident {
                 Some(trajs) => trajs,
@@ -86,8 +89,6 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     };
     print_summary(&counts, (&*train, streamed), (&config, &opts))?;
     let mut progress = Progress::new(args.out.clone());
-    // One device: a data-parallel list is refused.
-    device.single("train --arch grid")?;
     let run = GridFit {
         config,
         opts,
@@ -98,6 +99,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
         scaler: &scaler,
         resume: args.resume,
         observer: &mut progress,
+        share: args.call_share(),
+        dataset,
     };
     let history = super::fit_on(&device, args.device.kernels(), run)?;
     print_best(&history, "validation rollout MSE", &args.out);
@@ -163,13 +166,13 @@ impl RunData {
     /// pass; the validation scenes read whole.
     fn streamed(
         args: &TrainArgs,
+        budget: usize,
         infos: Vec<SceneInfo>,
         split: &Split,
         frames: usize,
         init: Option<Normalisation>,
     ) -> anyhow::Result<Self> {
         let topic = Some(args.topic.as_str());
-        let budget = args.max_resident_frames;
         let train = split.select_infos(Part::Train, &infos);
         let normalisation = match init {
             Some(n) => n,
@@ -359,6 +362,10 @@ struct GridFit<'a> {
     scaler: &'a Scaler,
     resume: bool,
     observer: &'a mut dyn Observer,
+    /// This call's share of the run.
+    share: CallShare,
+    /// What the run trains on, for its ledger.
+    dataset: DatasetInfo,
 }
 
 impl super::FitOn for GridFit<'_> {
@@ -373,8 +380,11 @@ impl super::FitOn for GridFit<'_> {
             config: self.config,
             opts: self.opts,
             out: self.out,
-            device: devices.swap_remove(0),
+            device: devices.remove(0),
+            replicas: devices,
             init_from: self.init_from,
+            share: self.share,
+            dataset: self.dataset,
         }
         .fit(
             self.train,

@@ -85,8 +85,9 @@ pub(super) fn read_data(
     args: &TrainArgs,
     topic: Option<&str>,
 ) -> anyhow::Result<(Vec<SceneInfo>, Option<Vec<Trajectory>>, LoadReport)> {
-    let fits = data::summary_frames(&args.data, topic)
-        .is_some_and(|frames| frames <= args.max_resident_frames as u64);
+    // Before the scenes are indexed their particle count is unknown: assume the largest.
+    let budget = args.max_resident_frames.frames(data::budget::LARGEST_SCENE);
+    let fits = data::summary_frames(&args.data, topic).is_some_and(|frames| frames <= budget as u64);
     if fits {
         let (trajs, report) = load(&args.data, topic)?;
         Ok((SceneInfo::of(&trajs), Some(trajs), report))
@@ -94,6 +95,40 @@ pub(super) fn read_data(
         let (infos, report) =
             data::scan_with_report(&args.data, topic).context("reading the bags")?;
         Ok((infos, None, report))
+    }
+}
+
+/// The resident budget in frames of the dataset `infos` indexes (`--max-resident-frames` at
+/// its largest particle count), and whether its training scenes `train` must be streamed
+/// (logged with the budget and the chunks when they are).
+pub(super) fn resident_budget(args: &TrainArgs, infos: &[SceneInfo], train: &[SceneInfo]) -> (usize, bool) {
+    let n = infos.iter().map(|s| s.n).max().unwrap_or(2500);
+    let budget = args.max_resident_frames.frames(n);
+    let total: usize = infos.iter().map(|s| s.frames).sum();
+    let streamed = total > budget;
+    if streamed {
+        let train_frames: usize = train.iter().map(|s| s.frames).sum();
+        tracing::info!(
+            "streaming {} training frames of {} scenes from the bags: the dataset's {total} \
+             frames are over --max-resident-frames {} = {}; chunks of up to {} frames, the \
+             next read while one is trained on",
+            train_frames,
+            train.len(),
+            args.max_resident_frames,
+            args.max_resident_frames.describe(n),
+            budget / 2,
+        );
+    }
+    (budget, streamed)
+}
+
+/// What the run's ledger (`run.json`) says of its dataset.
+pub(super) fn dataset_info(args: &TrainArgs, train: &[SceneInfo], streamed: bool) -> crate::train::DatasetInfo {
+    crate::train::DatasetInfo {
+        inputs: args.data.iter().map(|p| p.display().to_string()).collect(),
+        train_scenes: train.len(),
+        train_frames: train.iter().map(|s| s.frames).sum(),
+        streamed,
     }
 }
 

@@ -44,7 +44,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     write_run_files(&args.out, &split, &args.options())?;
     let total: usize = infos.iter().map(|s| s.frames).sum();
-    let streamed = total > args.max_resident_frames;
+    let (budget, streamed) = super::resident_budget(&args, &infos, &train_infos);
+    let dataset = super::dataset_info(&args, &train_infos, streamed);
     print_summary((scenes.len(), &split), &args.out, total, streamed, &config);
     let fit = |train: &mut dyn BatchSource,
                val: Option<&mut dyn BatchSource>,
@@ -59,12 +60,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
             scaler,
             resume: args.resume,
             observer: progress,
+            dataset: dataset.clone(),
         };
         super::fit_on(&device, args.device.kernels(), run)
     };
     let mut progress = Progress::new(args.out.clone());
     let history = if streamed {
-        let budget = args.max_resident_frames;
         let scaler = StreamingLoader::fit_scaler(train_infos.clone(), topic, budget)?;
         let mut train = StreamingLoader::new(train_infos, topic, args.window, scaler, budget)?;
         let mut val = StreamingLoader::new(val_infos, topic, args.window, scaler, budget)?;
@@ -145,6 +146,8 @@ struct PaperFit<'a, 't, 'v> {
     scaler: &'a Scaler,
     resume: bool,
     observer: &'a mut dyn Observer,
+    /// What the run trains on, for its ledger.
+    dataset: crate::train::DatasetInfo,
 }
 
 impl super::FitOn for PaperFit<'_, '_, '_> {
@@ -155,7 +158,9 @@ impl super::FitOn for PaperFit<'_, '_, '_> {
     where
         B::InnerBackend: NetOps,
     {
-        Trainer::<B>::data_parallel(self.config, self.opts, self.out, devices).fit_observed(
+        let mut trainer = Trainer::<B>::data_parallel(self.config, self.opts, self.out, devices);
+        trainer.dataset = self.dataset;
+        trainer.fit_observed(
             self.train,
             self.val,
             self.scaler,

@@ -2,14 +2,34 @@
 //! mirrored and their neighbourhoods built one batch ahead of the step that uses them
 //! (`MINFLOW_TRAIN_PREFETCH=off`: each only when asked). Used by `train_epoch` (`mod.rs`).
 
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::batch::{prepare_batch, HostBatch, Needs};
 use crate::data::{Batch, DataError};
 
+/// The mirroring draws of a run's batches: batch `g` of the run (counted over all epochs
+/// from 0) draws its windows' flips from stream `g` of a ChaCha8 generator seeded from
+/// `seed`, so a run resumed at any batch draws what the uninterrupted run drew.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Flips {
+    /// The generator's seed.
+    pub(super) seed: u64,
+    /// The run position of the feed's first batch.
+    pub(super) first: u64,
+}
+
+impl Flips {
+    /// The generator of the feed's `k`-th batch.
+    fn of(&self, k: u64) -> ChaCha8Rng {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        rng.set_stream(self.first + k);
+        rng
+    }
+}
+
 /// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
-/// packed, mirrored where `flips` draws so, neighbourhoods built) one batch ahead of the
+/// packed, mirrored where [`Flips`] draws so, neighbourhoods built) one batch ahead of the
 /// step that uses them (the thread holds the one it prepared until it is taken). Each step reads its loss back at its end, so whatever the host did
 /// between two steps, the GPU and burn's fusion and launch threads waited for (docs/speed.md,
 /// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
@@ -21,17 +41,18 @@ pub(super) struct BatchFeed {
     ahead: bool,
     /// Without `ahead`: one message a batch asked for.
     ask: std::sync::mpsc::Sender<()>,
-    prepared: std::sync::mpsc::Receiver<Result<HostBatch, DataError>>,
+    prepared: std::sync::mpsc::Receiver<Result<Vec<HostBatch>, DataError>>,
 }
 
 impl BatchFeed {
     /// Starts the thread in `scope` over `batches`; `mirror` draws a window's mirroring
-    /// from `flips` (in batch order, as the loop drew them).
+    /// from `flips`; each batch comes as `shares` host batches of consecutive windows (one
+    /// per device of a data-parallel run; [`Batch::shards`]).
     pub(super) fn start<'scope, I>(
         scope: &'scope std::thread::Scope<'scope, '_>,
         batches: I,
-        mut flips: ChaCha8Rng,
-        mirror: bool,
+        flips: Flips,
+        (mirror, shares): (bool, usize),
         needs: Needs,
     ) -> Self
     where
@@ -43,7 +64,7 @@ impl BatchFeed {
         let (ask, asked) = std::sync::mpsc::channel::<()>();
         scope.spawn(move || {
             let mut batches = batches;
-            loop {
+            for k in 0.. {
                 if !ahead && asked.recv().is_err() {
                     return;
                 }
@@ -52,10 +73,21 @@ impl BatchFeed {
                 };
                 let failed = batch.is_err();
                 let host = batch.map(|batch| {
+                    let mut rng = flips.of(k);
                     let flips: Vec<bool> = (0..batch.b)
-                        .map(|_| mirror && flips.random_bool(0.5))
+                        .map(|_| mirror && rng.random_bool(0.5))
                         .collect();
-                    prepare_batch(batch, &flips, needs)
+                    if shares <= 1 {
+                        return vec![prepare_batch(batch, &flips, needs)];
+                    }
+                    let mut start = 0;
+                    (batch.shards(shares).into_iter())
+                        .map(|share| {
+                            let mirrored = &flips[start..start + share.b];
+                            start += share.b;
+                            prepare_batch(share, mirrored, needs)
+                        })
+                        .collect()
                 });
                 // After an error the epoch ends: nothing more is read.
                 if ready.send(host).is_err() || failed {
@@ -70,8 +102,8 @@ impl BatchFeed {
         }
     }
 
-    /// The next batch; None after the last.
-    pub(super) fn next(&self) -> Option<Result<HostBatch, DataError>> {
+    /// The next batch, in its shares; None after the last.
+    pub(super) fn next(&self) -> Option<Result<Vec<HostBatch>, DataError>> {
         if !self.ahead {
             let _ = self.ask.send(());
         }

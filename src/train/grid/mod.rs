@@ -21,12 +21,15 @@
 //! MSE (as `eval` scores, with the training split's min-max scaler) picks the kept model.
 //! A model with reference positions takes each sample's from its trajectory's frame 0, in
 //! training and in validation rollouts alike.
-//! A checkpoint is written every epoch; a resumed run continues bit for bit (the noise and
-//! the data order are reseeded from (seed, epoch)) unless a time limit (`max_minutes`) set
-//! the learning-rate decay by the clock. Used by `minflow train --arch grid`.
+//! A checkpoint is written every epoch, every `--checkpoint-minutes` within one, and when the
+//! call's share ends (`--call-minutes`, `--call-steps`: [`CallShare`]); a resumed run
+//! continues bit for bit from any of them, mid-epoch too (the data order is seeded from
+//! (seed, pass), a batch's mirroring and noise from its place in the run) unless a time limit
+//! (`max_minutes`) set the learning-rate decay by the clock. Used by `minflow train --arch
+//! grid`.
 //!
-//! Files: this one holds the trainer and its run over the shared epoch loop;
-//! `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
+//! Files: this one holds the trainer; `pass.rs` its run over the shared epoch loop and an
+//! epoch's pass over the batches; `parallel.rs` the data-parallel step over several devices; `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
 //! prepares the batches, `rollout_loss.rs` the rollout loss (its terms in
 //! `rollout_loss/terms.rs`), `validate.rs` the validation rollouts, `schedule.rs` the
 //! normalisation statistics, the learning-rate schedule and the run's clock.
@@ -34,6 +37,8 @@
 mod batch;
 mod feed;
 mod options;
+mod parallel;
+mod pass;
 mod rollout_loss;
 mod schedule;
 mod validate;
@@ -45,26 +50,21 @@ pub use validate::validation_rollout;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use burn::module::AutodiffModule;
 use burn::optim::adaptor::OptimizerAdaptor;
-use burn::optim::{GradientsParams, Optimizer};
+use burn::optim::Optimizer;
 use burn::tensor::backend::AutodiffBackend;
-use burn::tensor::ElementConversion;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 
 use super::checkpoint::{self, RunOutput};
-use super::epochs::{run_epochs, EpochPass, EpochRun};
+use super::epochs::{run_epochs, Start};
+use super::ledger::{CallShare, DatasetInfo, RunLedger};
 use super::optimizer::FusedAdam;
 use super::source::BatchSource;
 use super::{EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, Trajectory};
 use crate::model::grid::{GridConfig, GridModel};
-use crate::model::store::{self, Net, NetConfig, Surrogate};
+use crate::model::store::{self, Net, NetConfig};
 use crate::ops::NetOps;
-use batch::Needs;
-use feed::BatchFeed;
-use rollout_loss::Rollout;
+use pass::GridRun;
 use schedule::RunClock;
 
 /// A grid training run.
@@ -75,11 +75,19 @@ pub struct GridTrainer<B: AutodiffBackend> {
     pub opts: GridTrainOptions,
     /// Run folder.
     pub out: PathBuf,
-    /// Device.
+    /// The main device: it holds the model between steps, validates and checkpoints.
     pub device: B::Device,
+    /// More devices to train data-parallel on with the main one (`parallel.rs`; none: one
+    /// device).
+    pub replicas: Vec<B::Device>,
     /// A run folder whose weights replace the fresh ones (`--init-from`; its architecture
     /// is `config`'s). A resumed checkpoint takes precedence.
     pub init_from: Option<PathBuf>,
+    /// What this call may do before it checkpoints mid-epoch and ends, and how often it
+    /// checkpoints meanwhile (its clock starts when [`GridTrainer::fit`] does).
+    pub share: CallShare,
+    /// What the run trains on, for its ledger (`run.json`).
+    pub dataset: DatasetInfo,
 }
 
 impl<B: AutodiffBackend + NetOps> GridTrainer<B>
@@ -111,20 +119,24 @@ where
                 train.t(),
             )));
         }
-        let start = self.start(resume)?;
-        let per_epoch = match opts.samples_per_epoch {
-            0 => train.windows(),
-            s => s.min(train.windows()),
+        let (start, ledger) = self.start(resume)?;
+        // An epoch is a pass over the data, or `samples_per_epoch` of it: then the epochs
+        // go on through the passes where the one before stopped (`pass.rs`).
+        let pass_batches = train.num_batches(opts.batch_size.max(1));
+        let batches = match opts.samples_per_epoch {
+            0 => pass_batches,
+            s => s.div_ceil(opts.batch_size.max(1)).min(pass_batches),
         };
-        let batches = per_epoch.div_ceil(opts.batch_size.max(1));
         let clock = RunClock {
             started: Instant::now(),
             total_steps: batches * opts.epochs,
             batches,
         };
+        let devices = (self.devices().iter()).map(|d| format!("{d:?}")).collect();
         let mut run = GridRun {
             trainer: self,
             train,
+            pass_batches,
             val,
             output: RunOutput {
                 folder: store::RunFolder::new(&self.out),
@@ -133,10 +145,20 @@ where
                 epochs: opts.epochs,
                 patience: opts.patience,
                 constraints: opts.constraints.clone(),
+                ledger: RunLedger::begin_call(ledger, devices, self.dataset.clone()).shared(),
+                call_started: Instant::now(),
             },
             clock,
+            share: self.share.restarted(),
+            streams: parallel::stream_ids(1 + self.replicas.len()),
         };
         run_epochs(&mut run, start, observer)
+    }
+
+    /// Every device it trains on, the main one first.
+    pub fn devices(&self) -> Vec<B::Device> {
+        let main = std::iter::once(self.device.clone());
+        main.chain(self.replicas.iter().cloned()).collect()
     }
 
     /// `model` (`--init-from`) grown into what [`GridTrainer::config`] asks for, in the order
@@ -158,12 +180,12 @@ where
     }
 
     /// The run's starting point: the weights (fresh, or `init_from`'s), Adam (with clipping
-    /// when `clip > 0`) and the epochs done so far, all three from `out/checkpoint` when
-    /// `resume` finds one.
+    /// when `clip > 0`), the epochs done so far and the unfinished one, all from
+    /// `out/checkpoint` when `resume` finds one; and the run's ledger there.
     ///
     /// # Errors
     /// `init_from` or the checkpoint could not be loaded, or `init_from` is a paper model.
-    fn start(&self, resume: bool) -> Result<GridStart<B>, TrainError> {
+    fn start(&self, resume: bool) -> Result<(GridStart<B>, Option<RunLedger>), TrainError> {
         let opts = &self.opts;
         B::seed(&self.device, opts.seed);
         let mut model: GridModel<B> = match &self.init_from {
@@ -183,7 +205,7 @@ where
         };
         let clip = (opts.clip > 0.0).then_some(opts.clip);
         let mut optim = FusedAdam::default().init_clipped::<B, GridModel<B>>(clip);
-        let mut history = Vec::new();
+        let (mut history, mut unfinished, mut ledger) = (Vec::new(), None, None);
         if resume {
             if let Some(state) = checkpoint::load::<B, _, _>(
                 &self.out,
@@ -194,76 +216,11 @@ where
                 model = state.model;
                 optim = optim.load_record(state.optim);
                 history = state.history;
+                unfinished = state.unfinished;
+                ledger = state.ledger;
             }
         }
-        Ok((model, optim, history))
-    }
-
-    /// One pass over `clock.batches` batches of `train` (epoch `epoch`, 0-based): a step of
-    /// Adam per batch and chunk (`chunks`, [`Rollout`]) at the batch's decayed learning
-    /// rate, the observer told after each batch. Stops
-    /// early, with `out_of_time` set, once `--max-minutes` have passed since the run began.
-    ///
-    /// # Errors
-    /// [`TrainError::NonFinite`] for a NaN or infinite batch loss; [`TrainError::Data`] for a
-    /// streamed chunk that could not be read.
-    fn train_epoch(
-        &self,
-        mut model: GridModel<B>,
-        optim: &mut GridOptim<B>,
-        train: &mut dyn BatchSource,
-        epoch: usize,
-        clock: &RunClock,
-        observer: &mut dyn Observer,
-    ) -> Result<(GridModel<B>, EpochPass), TrainError> {
-        let opts = &self.opts;
-        B::seed(
-            &self.device,
-            opts.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64),
-        );
-        let started = Instant::now();
-        let mut pass = EpochPass::default();
-        let flips = ChaCha8Rng::seed_from_u64(opts.seed ^ (epoch as u64).wrapping_mul(0x9e37_79b9));
-        let needs = Needs {
-            rest: self.config.rest_shape || opts.strain_weight > 0.0,
-            liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
-            materials: self.config.materials,
-        };
-        let mut fetch = Instant::now();
-        let batches = train.batches(opts.batch_size.max(1), Some(opts.seed), epoch as u64)?;
-        let batches = batches.take(clock.batches);
-        let model = std::thread::scope(|scope| {
-            let feed = BatchFeed::start(scope, batches, flips, opts.mirror, needs);
-            for (k, host) in std::iter::from_fn(|| feed.next()).enumerate() {
-                let host = host?;
-                let b = host.b();
-                let tensors = host.upload::<B>(&self.device);
-                pass.data_seconds += fetch.elapsed().as_secs_f64();
-                let lr = learning_rate(opts, clock.progress(opts, epoch, k));
-                let mut rollout = Rollout::new(&self.config, opts, tensors);
-                rollout.pushforward(&model);
-                let mut value = 0.0;
-                for chunk in 0..opts.chunks() {
-                    if chunk > 0 {
-                        rollout.detach();
-                    }
-                    let loss = rollout.chunk_loss(&model);
-                    let grads = GradientsParams::from_grads(loss.backward(), &model);
-                    model = optim.step(lr, model, grads);
-                    let waited = Instant::now();
-                    value += loss.into_scalar().elem::<f64>() / opts.chunks() as f64;
-                    pass.wait_seconds += waited.elapsed().as_secs_f64();
-                }
-                pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
-                if clock.out_of_time(opts) {
-                    pass.out_of_time = true;
-                    break;
-                }
-                fetch = Instant::now();
-            }
-            Ok::<_, TrainError>(model)
-        })?;
-        Ok((model, pass))
+        Ok(((model, optim, history, unfinished), ledger))
     }
 }
 
@@ -271,67 +228,9 @@ where
 /// ([`FusedAdam`]) that clips the parameter's gradient first (`AdamStep::max_norm`, burn's
 /// `GradientClipping::Norm` arithmetic).
 type GridOptim<B> = OptimizerAdaptor<FusedAdam, GridModel<B>, B>;
-/// The weights, the optimiser and the epochs done, where a run starts or resumes.
-type GridStart<B> = (GridModel<B>, GridOptim<B>, Vec<EpochRecord>);
-
-/// A grid run in progress: the trainer, its data, its output and its clock, as
-/// [`run_epochs`] drives it.
-struct GridRun<'a, B: AutodiffBackend> {
-    trainer: &'a GridTrainer<B>,
-    train: &'a mut dyn BatchSource,
-    val: &'a [Trajectory],
-    output: RunOutput,
-    clock: RunClock,
-}
-
-impl<B: AutodiffBackend + NetOps> EpochRun for GridRun<'_, B>
-where
-    B::InnerBackend: NetOps,
-{
-    type Backend = B;
-    type Model = GridModel<B>;
-    type Optim = GridOptim<B>;
-
-    fn output(&self) -> &RunOutput {
-        &self.output
-    }
-
-    fn train_epoch(
-        &mut self,
-        model: GridModel<B>,
-        optim: &mut GridOptim<B>,
-        epoch: usize,
-        observer: &mut dyn Observer,
-    ) -> Result<(GridModel<B>, EpochPass), TrainError> {
-        self.trainer
-            .train_epoch(model, optim, &mut *self.train, epoch, &self.clock, observer)
-    }
-
-    /// The mean scaled MSE of validation rollouts ([`validation_rollout`]), times their
-    /// structure factor when the run trains with a structure loss.
-    fn validate(
-        &mut self,
-        model: &GridModel<B>,
-        epoch: usize,
-        train_loss: f64,
-    ) -> Result<f64, TrainError> {
-        let t = self.trainer;
-        if self.val.is_empty() {
-            return Ok(train_loss);
-        }
-        let meta = self.output.meta(epoch, 0.0);
-        let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
-        let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
-        let structure = t.opts.strain_weight > 0.0 || t.opts.volume_weight > 0.0;
-        Ok(validation_rollout(
-            &surrogate,
-            self.val,
-            &self.output.scaler,
-            (starts, horizon),
-            structure,
-        )?)
-    }
-}
+/// The weights, the optimiser, the epochs done and the unfinished one, where a run starts
+/// or resumes.
+type GridStart<B> = Start<GridModel<B>, GridOptim<B>>;
 
 /// Fresh weights from `seed`, drawn on the CPU and moved to `device` (as
 /// [`super::initial_model`] does for the paper's model), so every backend starts alike.

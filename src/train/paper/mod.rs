@@ -20,7 +20,8 @@ mod step;
 pub use slices::evaluate;
 
 use super::checkpoint::{self, RunOutput};
-use super::epochs::{run_epochs, EpochPass, EpochRun};
+use super::epochs::{run_epochs, EpochPass, EpochRun, Start};
+use super::ledger::{DatasetInfo, RunLedger};
 use super::{drawn_on_cpu, optimizer, BatchSource, EpochRecord, Observer, TrainError};
 use crate::data::{Scaler, WindowIndex};
 use crate::model::store::{NetConfig, RunFolder};
@@ -81,6 +82,8 @@ pub struct Trainer<B: AutodiffBackend> {
     /// The devices it trains on (never empty); the first, the main device, holds the model
     /// between epochs, validates and checkpoints; more than one train data-parallel.
     devices: Vec<B::Device>,
+    /// What the run trains on, for its ledger (`run.json`).
+    pub dataset: DatasetInfo,
 }
 
 impl<B: AutodiffBackend + crate::ops::NetOps> Trainer<B>
@@ -119,6 +122,7 @@ where
             opts,
             out,
             devices,
+            dataset: DatasetInfo::default(),
         }
     }
 
@@ -170,7 +174,8 @@ where
         observer: &mut dyn Observer,
     ) -> Result<Vec<EpochRecord>, TrainError> {
         self.check_particle_counts(&train.particle_counts())?;
-        let start = self.start(resume)?;
+        let (start, ledger) = self.start(resume)?;
+        let devices = self.devices.iter().map(|d| format!("{d:?}")).collect();
         let output = RunOutput {
             folder: RunFolder::new(&self.out),
             net: NetConfig::Paper(self.config.clone()),
@@ -178,6 +183,8 @@ where
             epochs: self.opts.epochs,
             patience: self.opts.patience,
             constraints: None,
+            ledger: RunLedger::begin_call(ledger, devices, self.dataset.clone()).shared(),
+            call_started: Instant::now(),
         };
         let mut run = PaperRun {
             trainer: self,
@@ -204,8 +211,9 @@ where
     }
 
     /// The model, optimizer and history to start from: freshly initialised (seeded), or
-    /// those of `out/checkpoint` when `resume` and there is one.
-    fn start(&self, resume: bool) -> Result<(Model<B>, Optim<B>, Vec<EpochRecord>), TrainError> {
+    /// those of `out/checkpoint` when `resume` and there is one, with its ledger. (A paper
+    /// run checkpoints after whole epochs only: it has no unfinished epoch.)
+    fn start(&self, resume: bool) -> Result<(Start<Model<B>, Optim<B>>, Option<RunLedger>), TrainError> {
         B::seed(self.main(), self.opts.seed);
         let model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
         let optim = optimizer::FusedAdam::default().init::<B, Model<B>>();
@@ -217,10 +225,10 @@ where
                 &optim,
             )? {
                 let optim = optim.load_record(state.optim);
-                return Ok((state.model, optim, state.history));
+                return Ok(((state.model, optim, state.history, None), state.ledger));
             }
         }
-        Ok((model, optim, Vec::new()))
+        Ok(((model, optim, Vec::new(), None), None))
     }
 
     /// One fixed stream id per device for the whole run (this thread's for the main
@@ -281,11 +289,14 @@ where
         &self.output
     }
 
+    /// A whole epoch each time (`from` is always a fresh pass: paper runs checkpoint after
+    /// whole epochs only).
     fn train_epoch(
         &mut self,
         model: Model<B>,
         optim: &mut Optim<B>,
-        epoch: usize,
+        (epoch, _from): (usize, EpochPass),
+        _history: &[EpochRecord],
         observer: &mut dyn Observer,
     ) -> Result<(Model<B>, EpochPass), TrainError> {
         self.trainer.seed_epoch(epoch);

@@ -26,16 +26,18 @@ use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::Quiet;
 
-/// The grid table on backend `B`; `peak(reset)` reads the memory column (and resets it).
+/// The grid table on backend `B` over `devices` (data-parallel when more than one, the
+/// first the main one); `peak(reset)` reads the memory column (and resets it).
 pub fn bench<B: AutodiffBackend + NetOps>(
     args: &TrainBenchArgs,
-    device: B::Device,
+    devices: Vec<B::Device>,
     memory: &str,
     peak: &dyn Fn(bool) -> Option<f64>,
 ) -> anyhow::Result<Outcome>
 where
     B::InnerBackend: NetOps,
 {
+    let device = devices[0].clone();
     let cores = match &args.cores {
         Some(cores) => cores.clone(),
         None => vec!["none".into(), "mingru".into(), "minlstm".into()],
@@ -45,9 +47,9 @@ where
     let stats = fit_stats(&[&traj]);
     let index = WindowIndex::new(vec![traj], t + p - 1, Scaler::default())?;
     println!(
-        "grid architecture: N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {}",
+        "grid architecture: N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {} x {}",
         args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
-        B::name(&device)
+        devices.len(), B::name(&device)
     );
     println!(
         "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9} {:>12}",
@@ -77,7 +79,7 @@ where
                 .with_dv_scale(stats.dv_scale)
                 .with_conv(kernel);
             config.validate().map_err(anyhow::Error::msg)?;
-            bench_config::<B>(args, &config, (&index, &device), p, peak)?;
+            bench_config::<B>(args, &config, (&index, &devices), p, peak)?;
             if args.stages {
                 stages::<B>(&config, args.micro_batch, args.particles, &device);
             }
@@ -92,13 +94,14 @@ where
 fn bench_config<B: AutodiffBackend + NetOps>(
     args: &TrainBenchArgs,
     config: &GridConfig,
-    (index, device): (&WindowIndex, &B::Device),
+    (index, devices): (&WindowIndex, &[B::Device]),
     p: usize,
     peak: &dyn Fn(bool) -> Option<f64>,
 ) -> anyhow::Result<()>
 where
     B::InnerBackend: NetOps,
 {
+    let device = &devices[0];
     let params = config.init::<B>(device).num_params();
     let opts = GridTrainOptions {
         epochs: args.warmup_epochs + args.epochs,
@@ -115,7 +118,10 @@ where
         opts,
         out: dir.path().into(),
         device: device.clone(),
+        replicas: devices[1..].to_vec(),
         init_from: None,
+        share: Default::default(),
+        dataset: Default::default(),
     };
     let history = trainer.fit(&mut { index }, &[], &Scaler::default(), false, &mut Quiet)?;
     high = high.max(peak(false).unwrap_or(f64::NAN));
@@ -217,26 +223,31 @@ fn stages<B: AutodiffBackend + NetOps>(
     );
 }
 
-/// `--arch grid` on the chosen device (one device: the grid trainer is not data parallel).
+/// `--arch grid` on the chosen devices (a list: data-parallel; the memory column is the
+/// main device's).
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 pub fn run(args: &TrainBenchArgs) -> anyhow::Result<Outcome> {
+    use crate::cli::device::Device;
     use crate::cli::train::CpuTrain;
     let kernels = kernels(args)?;
-    match args.device.parse()?.single("bench train --arch grid")? {
-        None => bench::<CpuTrain>(args, Default::default(), "host", &|reset| peak_mib(reset)),
+    match args.device.parse()? {
+        Device::Cpu => bench::<CpuTrain>(args, vec![Default::default()], "host", &|reset| {
+            peak_mib(reset)
+        }),
         #[cfg(feature = "cuda")]
-        Some(id) => {
-            use crate::cli::device::cuda::{device, reserved_bytes, CudaTrain};
-            let device = device(id, kernels)?;
+        Device::Cuda(ids) => {
+            use crate::cli::device::cuda::{devices, reserved_bytes, CudaTrain};
+            let devices = devices(&ids, kernels)?;
+            let main = devices[0].clone();
             let peak = |reset: bool| {
                 if reset {
-                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&device);
+                    <CudaTrain as burn::tensor::backend::Backend>::memory_cleanup(&main);
                 }
-                reserved_bytes(&device).map(|b| b as f64 / (1 << 20) as f64)
+                reserved_bytes(&main).map(|b| b as f64 / (1 << 20) as f64)
             };
-            bench::<CudaTrain>(args, device.clone(), "GPU pool", &peak)
+            bench::<CudaTrain>(args, devices, "GPU pool", &peak)
         }
         #[cfg(not(feature = "cuda"))]
-        Some(_) => unreachable!("--device cuda is refused without the cuda feature"),
+        Device::Cuda(_) => unreachable!("--device cuda is refused without the cuda feature"),
     }
 }

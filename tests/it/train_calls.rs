@@ -1,0 +1,119 @@
+//! A grid run split into calls (`--call-steps`, each call resumed with `--resume`) ends
+//! with the uninterrupted run's losses, to the last digit, and its weights, whether the
+//! calls stop mid-epoch or at an epoch's end, in memory and streamed from the bags; its
+//! ledger (`run.json`) counts every call and every sample.
+
+use std::path::Path;
+use std::process::Command;
+
+use burn::backend::NdArray;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::Tensor;
+use minflow::model::store::Net;
+
+/// `train --arch grid` with the tiny network and schedule on the bundled bags, a flag of
+/// theirs that `extra` sets taking `extra`'s value.
+fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
+    let schedule = crate::TINY_GRID_SCHEDULE;
+    let set = |f: &[&str]| !extra.contains(&f[0]);
+    args.extend(schedule.chunks(2).filter(|f| set(f)).flatten().copied());
+    args.extend(crate::TINY_GRID_NET.chunks(2).filter(|f| set(f)).flatten().copied());
+    args.extend_from_slice(extra);
+    Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(&args)
+        .output()
+        .unwrap()
+}
+
+fn ok(o: &std::process::Output) {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// metrics.csv's (train loss, validation loss) per epoch, as text.
+fn losses(out: &Path) -> Vec<(String, String)> {
+    let text = std::fs::read_to_string(out.join("metrics.csv")).unwrap_or_default();
+    (text.lines().skip(1))
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[1].to_owned(), f[2].to_owned())
+        })
+        .collect()
+}
+
+/// Every weight of the run's kept model, in module order (the files themselves differ: a
+/// parameter's id is drawn per process).
+fn weights(dir: &Path) -> Vec<u32> {
+    struct Collect(Vec<u32>);
+    impl ModuleVisitor<NdArray<f32>> for Collect {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<NdArray<f32>, D>>) {
+            let values = param.val().into_data().to_vec::<f32>().unwrap();
+            self.0.extend(values.iter().map(|v| v.to_bits()));
+        }
+    }
+    let (net, _) = minflow::model::store::load_net::<NdArray<f32>>(dir, &Default::default()).unwrap();
+    let Net::Grid(model) = net else {
+        panic!("{}: not a grid model", dir.display())
+    };
+    let mut c = Collect(Vec::new());
+    model.visit(&mut c);
+    c.0
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap()
+}
+
+/// One straight run and one of calls of 3 steps (epochs of 4 batches: the calls stop after
+/// steps 3, 6 (mid-epoch) and 8 (the end)), with `extra` flags.
+fn straight_and_in_calls(extra: &[&str]) {
+    let flags = [
+        &["--epochs", "2", "--model", "mingru", "--mirror", "--samples-per-epoch", "16"][..],
+        extra,
+    ]
+    .concat();
+    let straight = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(straight.path(), &flags));
+    let calls = crate::tmp::tempdir().unwrap();
+    let first = [&flags[..], &["--call-steps", "3"]].concat();
+    ok(&train_grid(calls.path(), &first));
+    // Stopped mid-epoch 1: no epoch recorded, the unfinished one checkpointed.
+    assert!(losses(calls.path()).is_empty());
+    let partial = json(&calls.path().join("checkpoint/partial.json"));
+    assert_eq!((partial["epoch"].as_u64(), partial["pass"]["steps"].as_u64()), (Some(0), Some(3)));
+    let rest = [&flags[..], &["--call-steps", "3", "--resume"]].concat();
+    ok(&train_grid(calls.path(), &rest));
+    assert_eq!(losses(calls.path()).len(), 1, "the second call finishes epoch 1");
+    ok(&train_grid(calls.path(), &rest));
+    assert!(!calls.path().join("checkpoint/partial.json").exists());
+    let (a, b) = (losses(straight.path()), losses(calls.path()));
+    assert_eq!(a.len(), 2);
+    assert_eq!(a, b, "(train loss, validation loss) per epoch");
+    let (a, b) = (weights(straight.path()), weights(calls.path()));
+    assert!(!a.is_empty() && a == b, "the kept weights differ");
+    let ledger = json(&calls.path().join("run.json"));
+    let samples = json(&straight.path().join("run.json"))["samples"].as_u64();
+    assert!(samples.is_some_and(|s| s > 24), "{ledger}");
+    assert_eq!(ledger["samples"].as_u64(), samples, "{ledger}");
+    let per_call: Vec<u64> = (ledger["calls"].as_array().unwrap().iter())
+        .map(|c| c["samples"].as_u64().unwrap())
+        .collect();
+    assert_eq!(per_call.len(), 3, "{ledger}");
+    assert_eq!(Some(per_call.iter().sum::<u64>()), samples, "{ledger}");
+    assert!(ledger["device_hours"].as_f64().unwrap() > 0.0, "{ledger}");
+    assert_eq!(ledger["calls"][0]["devices"][0].as_str(), Some("Cpu"), "{ledger}");
+}
+
+#[test]
+fn a_run_in_calls_equals_the_straight_run() {
+    straight_and_in_calls(&[]);
+}
+
+/// The same streamed from the bags (a budget of two of the bundled 25-frame scenes: chunks
+/// of one scene, the next read ahead): the resumed call skips the chunks before its batch.
+#[test]
+fn a_streamed_run_in_calls_equals_the_straight_run() {
+    straight_and_in_calls(&["--max-resident-frames", "50"]);
+}
