@@ -7,8 +7,9 @@
 //! largest value after, the latency p50/p99 of the first and the last third, and the counts.
 //! Asserted: 0 frames dropped (the node's counter, and the recording holds every frame the
 //! node received), every frame predicted, memory growth after the warm-up <= 10 % (the
-//! issue's target is 5 %; the margin is for a loaded CI machine), and the last third's p99
-//! within 1.5x the first's plus 5 ms.
+//! issue's target is 5 %; the margin is for a loaded CI machine); and, in `tests/soak.sh`
+//! only (`MINFLOW_SOAK_SECS` set, the test alone on the machine), the last third's p99
+//! within 1.5x the first's plus 5 ms: latency is printed, not held, inside `cargo test`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -252,19 +253,16 @@ fn soak_replay_loop_into_node_and_record() {
     for (name, g) in growths {
         assert!(g <= 0.10, "{name}: memory grew {:.1} %", g * 100.0);
     }
-    // Latency that grows with time (a queue, a leak) moves the p95 too. Within `cargo
-    // test` the other tests share the two cores, and one of them can stall a handful of
-    // this test's frames (1 % of a third) by hundreds of ms at any time: there the p95 is
-    // held (the p99 printed); `tests/soak.sh` (MINFLOW_SOAK_SECS set, the test alone) holds
-    // the p99 (docs/reliability.md).
-    let (q, name) = match std::env::var("MINFLOW_SOAK_SECS") {
-        Ok(_) => (1, "p99"),
-        Err(_) => (0, "p95"),
-    };
-    assert!(
-        last[q] <= 1.5 * first[q] + 5.0,
-        "{name} {:.2} ms at the end vs {:.2} ms at the start",
-        last[q],
-        first[q]
-    );
+    // Latency growth is a benchmark's check, not the suite's: within `cargo test` a build or
+    // the other tests share the two cores, and one of them moved this test's p95 from 25 to
+    // 87 ms once (issue 83). `tests/soak.sh` (MINFLOW_SOAK_SECS set, the test alone) holds
+    // the p99; `bench node` reports the node's latency under load (docs/reliability.md).
+    if std::env::var("MINFLOW_SOAK_SECS").is_ok() {
+        assert!(
+            last[1] <= 1.5 * first[1] + 5.0,
+            "p99 {:.2} ms at the end vs {:.2} ms at the start",
+            last[1],
+            first[1]
+        );
+    }
 }

@@ -1,0 +1,85 @@
+#!/usr/bin/env bash
+# Training at scale on a GPU machine (docs/training.md; CI has no GPU and does not run this).
+# From the repository root, with gpu/minflow-cuda built with `--features cuda`:
+#
+#   tests/gpu/training.sh data      # 400 fluid scenes of 200 frames by the GPU solver (seed 11)
+#   tests/gpu/training.sh stream    # the same run resident and streamed, side by side on two
+#                                   # GPUs: samples/s of each epoch (metrics.csv)
+#   tests/gpu/training.sh resume    # a run in three calls against the straight run on the GPU
+#   tests/gpu/training.sh parallel  # bench train --arch grid on 1, 2 and 4 GPUs (more: GPUS=8),
+#                                   # the small and the full shape, the same global batch
+#
+# Parts run in the order given; logs and tables go to $OUT (default /tmp/minflow-gpu).
+set -uo pipefail
+OUT=${OUT:-/tmp/minflow-gpu}
+DATA=${DATA:-/tmp/data}
+BIN=${BIN:-gpu/minflow-cuda}
+export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
+mkdir -p "$OUT" runs
+if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
+    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
+    chmod +x "$BIN"
+fi
+SMALL=(--grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 --head-hidden 64)
+
+data() {
+    /usr/bin/time -f "simulate: %e s, %M KiB" "$BIN" simulate --device cuda --family fluid \
+        --seed 11 --scenes 0..400 --frames 200 --out "$DATA/fluid400" 2>&1 | tail -n 3
+    du -sh "$DATA/fluid400"
+}
+
+# One 2-minute call of the demo model's shape on GPU $1 with --max-resident-frames $2.
+stream_run() {
+    "$BIN" train --device "cuda:$1" --data "$DATA/fluid400" --out "runs/stream-$2" "${SMALL[@]}" \
+        --bundle 4 --rollout-steps 3 --batch-size 16 --samples-per-epoch 2000 --epochs 1000 \
+        --val-starts 1 --val-horizon 20 --max-resident-frames "$2" --call-minutes 2 \
+        >"$OUT/stream-$2.log" 2>&1
+}
+
+stream() {
+    stream_run 0 auto &
+    stream_run 1 20000 &
+    wait
+    for budget in auto 20000; do
+        grep -E "streaming|scenes:" "$OUT/stream-$budget.log" | head -n 3
+        echo "--max-resident-frames $budget: samples/s per epoch (first left out)"
+        tail -n +3 "runs/stream-$budget/metrics.csv" | cut -d, -f5 | tr '\n' ' '
+        echo
+        awk -F, 'NR > 2 { s += $5; n++ } END { if (n) printf "mean %.1f over %d epochs\n", s / n, n }' \
+            "runs/stream-$budget/metrics.csv"
+    done
+}
+
+resume() {
+    local tiny=(--data bags --grid 16 --levels 2 --unet-width 4 --latent 4 --hidden 4
+        --head-hidden 8 --rollout-steps 2 --batch-size 4 --val-starts 1 --val-horizon 3
+        --noise 0.1 --epochs 2 --model mingru --mirror --samples-per-epoch 16 --device cuda)
+    rm -rf runs/straight runs/calls
+    "$BIN" train "${tiny[@]}" --out runs/straight >/dev/null 2>&1
+    "$BIN" train "${tiny[@]}" --out runs/calls --call-steps 3 >/dev/null 2>&1
+    "$BIN" train "${tiny[@]}" --out runs/calls --call-steps 3 --resume >/dev/null 2>&1
+    "$BIN" train "${tiny[@]}" --out runs/calls --call-steps 3 --resume >/dev/null 2>&1
+    echo "straight:"; cat runs/straight/metrics.csv
+    echo "three calls:"; cat runs/calls/metrics.csv
+    python3 -c "import json; l = json.load(open('runs/calls/run.json')); \
+print('ledger:', l['samples'], 'samples,', len(l['calls']), 'calls,', l['device_hours'], 'device-hours')"
+}
+
+parallel() {
+    local gpus=${GPUS:-4} list="cuda:0" shape
+    for n in $(seq 1 "$gpus"); do
+        [ "$n" -gt 1 ] && list="$list,cuda:$((n - 1))"
+        case $n in 1 | 2 | 4 | 8) ;; *) continue ;; esac
+        for shape in 32 64; do
+            echo "== $n GPU(s), grid $shape"
+            "$BIN" bench train --arch grid --device "$list" --cores mingru --grid "$shape" \
+                --micro-batch 64 --samples 2048 --epochs 3 --warmup-epochs 1 --rollout-steps 4 \
+                2>&1 | grep -E "^mingru|grid architecture"
+        done
+    done
+}
+
+for part in "$@"; do
+    echo "### $part"
+    "$part"
+done
