@@ -7,7 +7,7 @@
 //! fractional offset (clamped or not, `x / dx` or `x * inv_dx`) and asks [`weights`] for the
 //! three weights.
 //!
-//! The GPU transfer kernel (`ops::cuda_stencil`, cubecl) evaluates the same spline in its
+//! The GPU transfer kernel (`ops::cuda::net::stencil`, cubecl) evaluates the same spline in its
 //! own form, by distance `x` to each node (`0.75 - x^2` within 0.5, `0.5 (1.5 - |x|)^2`
 //! within 1.5), since a `#[cube]` function cannot call this one.
 //!

@@ -10,7 +10,7 @@
 //!
 //! How: [`matmul`] records a `CustomOpIr` on the fusion stream, so it runs in order with the
 //! fused kernels around it. When the stream reaches it, a fresh output is allocated and the
-//! cuBLAS call is queued on cubecl's device thread like a kernel launch (`cuda_device.rs`'s
+//! cuBLAS call is queued on cubecl's device thread like a kernel launch (`cuda/device.rs`'s
 //! `on_device`, which cuDNN's calls and the read back share): there
 //! the device pointers of the inputs and the output are read from cubecl's memory pool, and
 //! `cublasSgemm` is enqueued on the CUDA stream that pool belongs to, the stream cubecl
@@ -128,7 +128,7 @@ mod gpu {
     use cudarc::cublas::{result as cublas, sys as cublas_sys};
     use cudarc::driver::{result as driver, sys as driver_sys};
 
-    use crate::ops::cuda_device::{after_foreign, on_device, primary_context};
+    use crate::ops::cuda::device::{after_foreign, on_device, primary_context};
     use crate::ops::OpsError;
 
     /// The backend under burn's fusion layer for `Cuda<f32, i32>`.

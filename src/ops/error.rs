@@ -1,7 +1,7 @@
 //! [`OpsError`]: how a GPU library call of `ops` fails (feature `cuda`: the CUDA driver,
 //! cuBLAS, cuDNN, cubecl's memory), as a value the internal functions return and propagate
 //! with `?`. Where a caller can do without the library it falls back instead (cuDNN that does
-//! not start: the convolutions run as im2col, `cuda.rs`).
+//! not start: the convolutions run as im2col, `cuda/mod.rs`).
 //!
 //! burn's backend operations ([`super::NetOps`]'s methods, burn's `Operation::execute` of a
 //! recorded custom operation) return no `Result`: a failed GPU operation there can only stop

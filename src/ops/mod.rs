@@ -43,21 +43,15 @@
 //! - [`cublas`]: the choice of the GPU's large-product kernel ([`cublas::GpuGemm`],
 //!   `--gpu-gemm`) and its layout logic, always built; with the feature `cuda`, those products
 //!   through cuBLAS as custom operations of burn's fusion layer.
-//! - `cuda.rs` (feature `cuda`): the impl for burn's CUDA backend: the composed defaults, whose
-//!   element-wise chains burn's fusion layer compiles into single kernels, with the large
-//!   products through [`cublas`]; `cuda_conv.rs`: its im2col and col2im kernels (the
-//!   default convolutions); `cuda_cudnn.rs`: the 3x3 convolutions through cuDNN (forward,
-//!   data and filter gradients; `MINFLOW_CUDA_CONV=cudnn`), recorded on burn's fusion stream,
-//!   with cuDNN's plans (descriptors, timed algorithms) in `cuda_cudnn_plan.rs` and its handles
-//!   and calls in `cuda_cudnn_calls.rs`; `cuda_device.rs`: what the library calls share (a
-//!   GPU's context, calls queued on cubecl's device thread); `cuda_implicit_conv.rs`: burn-cubecl's
-//!   implicit GEMM (`MINFLOW_CUDA_CONV=implicit`); `cuda_adam.rs`: the Adam step's kernel;
-//!   `cuda_minrnn.rs`: the minGRU's and minLSTM's inference updates, one kernel each;
-//!   `cuda_read.rs`: a tensor read back without waiting for the work recorded after it
-//!   ([`read_ahead`]);
-//!   `cuda_stencil.rs` (kernels in `cuda_stencil_kernels.rs`): sparse P2G / G2P and stencil
-//!   kernels, which CUDA inference and training take ([`NetOps::dense_stencil`]; P2G sums
-//!   in fixed point, the same on every run).
+//! - `cuda/` (feature `cuda`), the device code by job: `mod.rs` the impl for burn's CUDA
+//!   backend (the composed defaults, whose element-wise chains burn's fusion layer compiles
+//!   into single kernels, the large products through [`cublas`]); `cuda/net/` the network's
+//!   layers (im2col / col2im, cuDNN's 3x3 convolutions and their plans and calls, the
+//!   implicit GEMM, the sparse P2G / G2P stencil kernels summing in fixed point, the minRNN
+//!   updates, the Adam step); `cuda/projection/` the constraint projection's parts, each
+//!   named as its host form in `model/constraints/`; `cuda/device.rs` what the library calls
+//!   share (a GPU's context, calls queued on cubecl's device thread); `cuda/read.rs` a tensor
+//!   read back without waiting for the work recorded after it ([`read_ahead`]).
 //!
 //! Two kernel choices belong to the device, as [`Kernels`]: the GPU's product kernel
 //! (`--gpu-gemm`) and whether the composed dense-layer backward splits long weight-gradient
@@ -75,48 +69,6 @@ mod cpu;
 pub mod cublas;
 #[cfg(feature = "cuda")]
 mod cuda;
-#[cfg(feature = "cuda")]
-mod cuda_adam;
-#[cfg(feature = "cuda")]
-mod cuda_buffers;
-#[cfg(feature = "cuda")]
-mod cuda_contact;
-#[cfg(feature = "cuda")]
-mod cuda_conv;
-#[cfg(feature = "cuda")]
-mod cuda_cudnn;
-#[cfg(feature = "cuda")]
-mod cuda_cudnn_calls;
-#[cfg(feature = "cuda")]
-mod cuda_cudnn_plan;
-#[cfg(feature = "cuda")]
-mod cuda_device;
-#[cfg(feature = "cuda")]
-mod cuda_implicit_conv;
-#[cfg(feature = "cuda")]
-mod cuda_liquid;
-#[cfg(feature = "cuda")]
-mod cuda_liquid_solve;
-#[cfg(feature = "cuda")]
-mod cuda_minrnn;
-#[cfg(feature = "cuda")]
-mod cuda_momentum;
-#[cfg(feature = "cuda")]
-mod cuda_momentum_sums;
-#[cfg(feature = "cuda")]
-mod cuda_projection_call;
-#[cfg(feature = "cuda")]
-mod cuda_projection_op;
-#[cfg(feature = "cuda")]
-mod cuda_read;
-#[cfg(feature = "cuda")]
-mod cuda_rebound;
-#[cfg(feature = "cuda")]
-mod cuda_solids;
-#[cfg(feature = "cuda")]
-mod cuda_stencil;
-#[cfg(feature = "cuda")]
-mod cuda_stencil_kernels;
 pub mod error;
 pub mod host;
 pub mod mingru;

@@ -108,7 +108,7 @@ pub trait NetOps: Backend {
     /// ([`read_ahead`](super::read_ahead)): the host may record more work before
     /// [`ReadAhead::wait`], and the device runs it meanwhile. None where a read has nothing to
     /// overlap (the CPU computes eagerly): the caller then reads as usual. CUDA's:
-    /// `cuda_read.rs`.
+    /// `cuda/read.rs`.
     fn read_ahead(x: FloatTensor<Self>) -> Option<ReadAhead> {
         let _ = x;
         None
@@ -121,7 +121,7 @@ pub trait NetOps: Backend {
     /// back after the call): the projected frames and how far each scene's materials moved
     /// (`[B, MATERIALS]`, particle spacings summed over the call's frames), or None where this
     /// backend has no device form (the host then projects, `model::constraints`). CUDA's:
-    /// `cuda_projection_op.rs`.
+    /// `cuda/projection/op.rs`.
     fn project_constraints(
         out: FloatTensor<Self>,
         input: Option<FloatTensor<Self>>,
@@ -219,7 +219,7 @@ pub trait NetOps: Backend {
     /// keeping them (activation recomputation, Chen et al. 2016, "Training deep nets with
     /// sublinear memory cost"): the kept columns were most of a GPU training step's memory.
     /// That node's product is the inner backend's `im2col_linear`: CUDA with
-    /// `MINFLOW_CUDA_CONV=cudnn` runs its 3x3 convolutions through cuDNN (`cuda_cudnn.rs`),
+    /// `MINFLOW_CUDA_CONV=cudnn` runs its 3x3 convolutions through cuDNN (`cuda/net/cudnn.rs`),
     /// with no columns.
     fn im2col_linear(
         x: FloatTensor<Self>,

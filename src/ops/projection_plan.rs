@@ -1,8 +1,8 @@
 //! [`ProjectionPlan`]: the projection of one call laid out for a device (plain data; built by
 //! `model::constraints::projection_plan`, run by the CUDA backend's
 //! [`NetOps::project_constraints`](super::NetOps::project_constraints):
-//! `cuda_projection_*.rs` the call, `cuda_liquid*.rs` the liquid and the walls,
-//! `cuda_solids.rs` and `cuda_contact.rs` the ropes, the bodies' shape matching and their
+//! `cuda/projection/` the call (`op.rs`, `call.rs`), `liquid*.rs` the liquid and the walls,
+//! `cuda/projection/solids.rs` and `cuda/projection/contact.rs` the ropes, the bodies' shape matching and their
 //! contact).
 
 /// Materials a plan keeps apart in its moves (`crate::material::COUNT`).

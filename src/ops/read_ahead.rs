@@ -3,7 +3,7 @@
 //! call) before it waits, and the GPU runs that work while the host publishes what came back.
 //! burn's own read (`into_data`) is a future that queues nothing until it is polled, and then
 //! waits for everything queued before the poll, the next call included. Made by
-//! [`super::NetOps::read_ahead`] (CUDA: `cuda_read.rs`); used by the surrogate node's
+//! [`super::NetOps::read_ahead`] (CUDA: `cuda/read.rs`); used by the surrogate node's
 //! pipelined calls (`model::store::Surrogate::submit_scenes`).
 
 /// What waits for the values: returns them in `parts` equal consecutive pieces of the

@@ -84,6 +84,24 @@ pub struct EpochRecord {
     pub samples: usize,
 }
 
+/// One fixed stream id per device of a data-parallel run, for its whole length (this
+/// thread's for the main device, a fresh one each for the others), as both trainers run
+/// their workers on. burn's fusion streams and cubecl's CUDA streams and memory pools are
+/// per stream id, which is per thread by default: workers spawned every step would open a
+/// new ~10 GB pool per step at the paper's size (the allocator then failed), and two
+/// threads sharing one id on a device corrupt its stream (illegal addresses).
+pub(crate) fn stream_ids(devices: usize) -> Vec<burn::tensor::StreamId> {
+    use burn::tensor::StreamId;
+    (0..devices)
+        .map(|k| match k {
+            0 => StreamId::current(),
+            _ => std::thread::spawn(StreamId::current)
+                .join()
+                .expect("a thread that only reads its id"),
+        })
+        .collect()
+}
+
 /// The weights `draw` makes on the CPU backend after seeding it with `seed`, loaded into
 /// `fresh` (the same network on `device`) through an f32 record. Every architecture's
 /// trainer starts from this, so a CUDA run starts from a CPU run's weights.

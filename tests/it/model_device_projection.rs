@@ -1,5 +1,5 @@
-//! The projection on the GPU (`NetOps::project_constraints`, `ops::cuda_projection_*`,
-//! `cuda_liquid*`, `cuda_solids`, `cuda_contact`, `cuda_rebound`, `cuda_momentum`) against the
+//! The projection on the GPU (`NetOps::project_constraints`, `ops::cuda::projection`:
+//! `op`, `call`, `liquid*`, `solids`, `contact`, `rebound`, `momentum`) against the
 //! host's (`SceneShape::project`), on the same predicted frames, a bundle of two frames (the
 //! second moved by the first's correction), with `-small-k4`'s parts (its `restore` on):
 //! three scenes of a liquid column squeezed into the floor and partly pushed through the

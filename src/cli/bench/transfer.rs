@@ -1,6 +1,6 @@
 //! `minflow bench transfer --device cuda`: the grid model's particle-grid transfers on a GPU,
 //! P2G and G2P, in their two forms (`model::grid::transfer`): the separable dense products
-//! (`MINFLOW_CUDA_TRANSFERS=dense`) and the sparse kernels of `ops/cuda_stencil.rs`. Prints,
+//! (`MINFLOW_CUDA_TRANSFERS=dense`) and the sparse kernels of `ops/cuda/net/stencil.rs`. Prints,
 //! first, the check against the CPU backend (whose stencil and transfers are tested against
 //! `stencil_host`): a small batch's stencil (nodes and weights), then P2G and G2P of random
 //! values in each form and from each stencil (the CPU's, uploaded; the GPU's kernel; burn's

@@ -27,7 +27,7 @@ use crate::ops::{
 const _: () = assert!(MATERIALS == crate::material::COUNT);
 
 /// The smallest momentum reach the device takes (domain units): its cells of side
-/// `reach / sqrt(2)` over 1.5 domain widths fit the kernel's 48 x 48 (`cuda_momentum.rs`).
+/// `reach / sqrt(2)` over 1.5 domain widths fit the kernel's 48 x 48 (`cuda/projection/momentum.rs`).
 pub const MIN_REACH: f32 = 0.045;
 
 /// The plan for a call of the scenes `shapes` (each `[N]` particles with materials

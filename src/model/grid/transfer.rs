@@ -14,7 +14,7 @@
 //! says which a backend takes):
 //! - sparse, for the CPU and CUDA: the 9 node indices and weights of each particle, P2G a
 //!   weighted scatter-add and G2P a weighted gather ([`ops::splat`], [`ops::gather`]: one
-//!   pass each on the CPU, one kernel each on CUDA, `ops/cuda_stencil.rs`; burn's
+//!   pass each on the CPU, one kernel each on CUDA, `ops/cuda/net/stencil.rs`; burn's
 //!   `select_assign` / `select` on other backends);
 //! - separable dense, for accelerators without transfer kernels: the weights factor per
 //!   axis, `w_ip = wx_p[i_x] wy_p[i_y]`, so with `Wx, Wy` (`[B, N, n]`, three non-zeros per

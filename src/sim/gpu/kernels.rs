@@ -89,7 +89,7 @@ fn splat_node(
 ///
 /// Fixed point makes the sums independent of the order the atomics land in, so every run
 /// gives the same bits (Le Grand, Götz and Walker 2013, as the grid model's P2G,
-/// `ops::cuda_stencil_kernels`).
+/// `ops::cuda::net::stencil_kernels`).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn p2g_kernel(

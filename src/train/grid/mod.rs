@@ -150,7 +150,7 @@ where
             },
             clock,
             share: self.share.restarted(),
-            streams: parallel::stream_ids(1 + self.replicas.len()),
+            streams: super::stream_ids(1 + self.replicas.len()),
         };
         run_epochs(&mut run, start, observer)
     }

@@ -25,21 +25,6 @@ use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
 
-/// One fixed stream id per device for the whole run (this thread's for the main device, a
-/// fresh one each for the others): burn's fusion streams and cubecl's CUDA streams and
-/// memory pools are per stream id, which is per thread by default (the paper trainer's
-/// `stream_ids` says what went wrong without).
-pub(super) fn stream_ids(devices: usize) -> Vec<StreamId> {
-    (0..devices)
-        .map(|k| match k {
-            0 => StreamId::current(),
-            _ => std::thread::spawn(StreamId::current)
-                .join()
-                .expect("a thread that only reads its id"),
-        })
-        .collect()
-}
-
 /// What one device did in a chunk: its rollout (carried into the next chunk), its weighted
 /// gradients, its device's id and its weighted loss (not read back).
 type Share<'r, B> = (

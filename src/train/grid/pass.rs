@@ -43,7 +43,7 @@ pub(super) struct GridRun<'a, B: AutodiffBackend> {
     pub(super) output: RunOutput,
     pub(super) clock: RunClock,
     pub(super) share: CallShare,
-    /// One stream id per device (`parallel::stream_ids`; one: a one-device run).
+    /// One stream id per device (`train::stream_ids`; one: a one-device run).
     pub(super) streams: Vec<burn::tensor::StreamId>,
 }
 

@@ -189,7 +189,7 @@ where
         let mut run = PaperRun {
             trainer: self,
             scaling: output.meta(0, 0.0).scaling(),
-            streams: self.stream_ids(),
+            streams: super::stream_ids(self.devices.len()),
             output,
             train,
             val,
@@ -229,23 +229,6 @@ where
             }
         }
         Ok(((model, optim, Vec::new(), None), None))
-    }
-
-    /// One fixed stream id per device for the whole run (this thread's for the main
-    /// device, a fresh one each for the others). burn's fusion streams and cubecl's CUDA
-    /// streams and memory pools are per stream id, which is per thread by default: workers
-    /// spawned every step would open a new ~10 GB pool per step at the paper's size (the
-    /// allocator then failed), and two threads sharing one id on a device corrupt its
-    /// stream (illegal addresses).
-    fn stream_ids(&self) -> Vec<StreamId> {
-        (0..self.devices.len())
-            .map(|k| match k {
-                0 => StreamId::current(),
-                _ => std::thread::spawn(StreamId::current)
-                    .join()
-                    .expect("a thread that only reads its id"),
-            })
-            .collect()
     }
 
     /// Seeds each device's random numbers (dropout) for `epoch`.

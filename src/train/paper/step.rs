@@ -138,7 +138,7 @@ where
         }
         let shards = deal(slices, parallel);
         // The workers are new threads every step, on the run's fixed stream ids (see
-        // `stream_ids`).
+        // `train::stream_ids`).
         let results: Vec<_> = std::thread::scope(|workers| {
             let handles: Vec<_> = shards
                 .into_iter()

@@ -2,9 +2,9 @@
 //! `model::constraints`' pressure part, walls, velocity update and energy step
 //! (`model::constraints::projection_plan` says which scenes take it), each `#[cube]` function
 //! one step of `SceneShape::project` for one particle or node with the host's arithmetic,
-//! called in order by the call's kernel (`cuda_projection_call.rs`); here the first half
+//! called in order by the call's kernel (`cuda/projection/call.rs`); here the first half
 //! (begin, splat, nodes) and the copy and zeroing kernels, the rest in
-//! `cuda_liquid_solve.rs`.
+//! `cuda/projection/liquid_solve.rs`.
 //!
 //! Layout: `frames` `[K B N 4]` (the call's predictions, projected in place), `net` the
 //! network's own frames (the same shape), `before` `[B N 4]` (the frame being projected as
@@ -22,7 +22,7 @@ use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
 /// Fixed-point units per unit of a node's sums (`2^32`).
-pub(super) const FIXED: f32 = 4_294_967_296.0;
+pub(in crate::ops) const FIXED: f32 = 4_294_967_296.0;
 /// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
 /// Node kinds, as the host's (`pressure.rs`): free surface 0, full 1, closed 2, wall 3
@@ -31,7 +31,7 @@ const SV: usize = 14;
 /// Particle `p` of frame `k`: for `k > 0` its position first moved by frame `k - 1`'s
 /// correction (projected minus the network's own), then the frame copied to `before`.
 #[cube]
-pub(super) fn begin(
+pub(in crate::ops) fn begin(
     frames: &mut Array<f32>,
     net: &Array<f32>,
     before: &mut Array<f32>,
@@ -66,7 +66,7 @@ fn add_fixed(acc: &mut Array<Atomic<i64>>, node: usize, word: usize, v: f32) {
 /// material adds the solids' volume to its nodes.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn splat(
+pub(in crate::ops) fn splat(
     frames: &mut Array<f32>,
     volume: &Array<f32>,
     scenes: &Array<f32>,
@@ -240,10 +240,10 @@ fn splat_faces(
 /// around `(x, y)` (node spacing `h`, a scene of `side` nodes a side from slot `first`): its
 /// node slot, its bilinear weight, and whether it lies on the grid (`Pressure::each_face`:
 /// faces off the grid are skipped). The splat of the face velocities and the gather of the
-/// faces' displacement (`cuda_liquid_solve.rs`) share it.
+/// faces' displacement (`cuda/projection/liquid_solve.rs`) share it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn face_corner(
+pub(in crate::ops) fn face_corner(
     x: f32,
     y: f32,
     h: f32,
@@ -283,7 +283,7 @@ pub(super) fn face_corner(
 /// pressure zeroed; nothing for a slot past its scene's nodes.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn node(
+pub(in crate::ops) fn node(
     acc: &mut Array<Atomic<i64>>,
     grid: &mut Array<f32>,
     kind: &mut Array<u32>,
@@ -361,7 +361,7 @@ fn node_values(
 
 /// `a[i] = 0` for every element.
 #[cube(launch)]
-pub(super) fn zero_kernel(a: &mut Array<i64>) {
+pub(in crate::ops) fn zero_kernel(a: &mut Array<i64>) {
     if ABSOLUTE_POS < a.len() {
         a[ABSOLUTE_POS] = 0;
     }
@@ -369,7 +369,7 @@ pub(super) fn zero_kernel(a: &mut Array<i64>) {
 
 /// `dst[i] = src[i]` for every element.
 #[cube(launch)]
-pub(super) fn copy_kernel(src: &Array<f32>, dst: &mut Array<f32>) {
+pub(in crate::ops) fn copy_kernel(src: &Array<f32>, dst: &mut Array<f32>) {
     if ABSOLUTE_POS < dst.len() {
         dst[ABSOLUTE_POS] = src[ABSOLUTE_POS];
     }

@@ -1,9 +1,9 @@
 //! cuDNN's plans for the grid model's 3x3 convolutions on CUDA (feature `cuda`; what the
-//! convolutions are and why: `cuda_cudnn.rs`): a convolution's passes and sizes, and for
+//! convolutions are and why: `cuda/net/cudnn.rs`): a convolution's passes and sizes, and for
 //! each shape and pass its descriptors (NHWC, same padding, stride 1) and the fastest
 //! algorithm cuDNN times for it (`cudnnFindConvolution*Algorithm`, as PyTorch's
 //! `cudnn.benchmark`; the gradients' deterministic ones only, so a training step gives the
-//! same bits on every run with the same algorithms). `cuda_cudnn_calls.rs` makes each plan
+//! same bits on every run with the same algorithms). `cuda/net/cudnn_calls.rs` makes each plan
 //! once per GPU and shape and runs it.
 
 use std::mem::MaybeUninit;
@@ -11,11 +11,11 @@ use std::mem::MaybeUninit;
 use burn::tensor::Shape;
 use cudarc::cudnn::{result as dnn, sys};
 
-use super::OpsError;
+use crate::ops::OpsError;
 
 /// Which of a convolution's three passes an operation runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub(super) enum Pass {
+pub(in crate::ops) enum Pass {
     /// `y = conv(x, w)`: inputs `[x, w]`, output `y` `[B, H, W, C_out]`.
     Forward,
     /// `dx` from `dy` and `w`: inputs `[dy, w]`, output `[B, H, W, C_in]`.
@@ -25,11 +25,11 @@ pub(super) enum Pass {
 }
 
 /// A convolution's sizes: `[B, H, W, C_in, C_out]`.
-pub(super) type Dims = [usize; 5];
+pub(in crate::ops) type Dims = [usize; 5];
 
 impl Pass {
     /// The output's shape of this pass on `dims`.
-    pub(super) fn out_shape(self, [b, h, w, c_in, c_out]: Dims) -> Shape {
+    pub(in crate::ops) fn out_shape(self, [b, h, w, c_in, c_out]: Dims) -> Shape {
         match self {
             Pass::Forward => Shape::new([b, h, w, c_out]),
             Pass::Data => Shape::new([b, h, w, c_in]),
@@ -39,8 +39,8 @@ impl Pass {
 }
 
 /// What a [`Plan`] is made for: the pass, the sizes, TF32 math, and whether the filter is
-/// flipped (a true convolution, `cuda_cudnn.rs`'s `Transposed`).
-pub(super) type Key = (Pass, Dims, bool, bool);
+/// flipped (a true convolution, `cuda/net/cudnn.rs`'s `Transposed`).
+pub(in crate::ops) type Key = (Pass, Dims, bool, bool);
 
 /// A shape's descriptors: its input's, output's, filter's and convolution's.
 type Descriptors = (
@@ -51,26 +51,26 @@ type Descriptors = (
 );
 
 /// A cuDNN descriptor set and algorithm for one convolution shape and pass: what
-/// `cuda_cudnn_calls::run` needs besides the pointers. Created once per (GPU, pass, shape,
+/// `cudnn_calls::run` needs besides the pointers. Created once per (GPU, pass, shape,
 /// math) and kept.
-pub(super) struct Plan {
+pub(in crate::ops) struct Plan {
     /// The input's descriptor, `[B, H, W, C_in]` (NHWC).
-    pub(super) x: sys::cudnnTensorDescriptor_t,
+    pub(in crate::ops) x: sys::cudnnTensorDescriptor_t,
     /// The output's descriptor, `[B, H, W, C_out]` (NHWC).
-    pub(super) y: sys::cudnnTensorDescriptor_t,
+    pub(in crate::ops) y: sys::cudnnTensorDescriptor_t,
     /// The filter's descriptor, `[C_out, 3, 3, C_in]` (`KRSC`).
-    pub(super) w: sys::cudnnFilterDescriptor_t,
+    pub(in crate::ops) w: sys::cudnnFilterDescriptor_t,
     /// Padding 1, stride 1, no dilation; a true convolution or a cross-correlation.
-    pub(super) conv: sys::cudnnConvolutionDescriptor_t,
+    pub(in crate::ops) conv: sys::cudnnConvolutionDescriptor_t,
     /// The pass's algorithm.
-    pub(super) algo: Algo,
+    pub(in crate::ops) algo: Algo,
     /// The algorithm's workspace, in bytes.
-    pub(super) workspace: usize,
+    pub(in crate::ops) workspace: usize,
 }
 
 /// The algorithm of a [`Plan`], by pass.
 #[derive(Clone, Copy)]
-pub(super) enum Algo {
+pub(in crate::ops) enum Algo {
     /// Of [`Pass::Forward`].
     Forward(sys::cudnnConvolutionFwdAlgo_t),
     /// Of [`Pass::Data`].
@@ -80,7 +80,7 @@ pub(super) enum Algo {
 }
 
 /// cuDNN's error for `what`.
-pub(super) fn check<T>(what: &str, r: Result<T, dnn::CudnnError>) -> Result<T, OpsError> {
+pub(in crate::ops) fn check<T>(what: &str, r: Result<T, dnn::CudnnError>) -> Result<T, OpsError> {
     r.map_err(|e| OpsError::cudnn(what, e))
 }
 
@@ -207,7 +207,7 @@ unsafe fn fastest(
 ///
 /// # Safety
 /// `handle` is a live cuDNN handle with its GPU's context current.
-pub(super) unsafe fn plan(
+pub(in crate::ops) unsafe fn plan(
     handle: sys::cudnnHandle_t,
     (pass, dims, tf32, flip): Key,
 ) -> Result<Plan, OpsError> {

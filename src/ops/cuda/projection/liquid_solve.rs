@@ -1,5 +1,5 @@
 //! The rest of the liquid's projection on the device (feature `cuda`, layout in
-//! `cuda_liquid.rs`): the right-hand side at the full nodes, the red-black projected SOR
+//! `cuda/projection/liquid.rs`): the right-hand side at the full nodes, the red-black projected SOR
 //! sweeps, the displacement on the faces and each liquid particle moved by it
 //! (`Pressure::project`'s steps 4 and 5), then every particle's walls and velocity update
 //! and the liquid's energy step (`SceneShape::project`, `energy::restore`).
@@ -7,14 +7,14 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_liquid::face_corner;
+use super::liquid::face_corner;
 
 /// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`), the materials' spacings from
 /// `SPACING`.
 const SV: usize = 14;
 const SPACING: usize = 10;
 /// Fixed-point units of a move's sum per particle spacing (`2^20`).
-pub(super) const MOVE_UNITS: f32 = 1_048_576.0;
+pub(in crate::ops) const MOVE_UNITS: f32 = 1_048_576.0;
 /// The node kinds below which a node is open (free surface or full), and the wall's.
 const FULL: u32 = 1;
 const CLOSED: u32 = 2;
@@ -54,7 +54,7 @@ fn face(grid: &Array<f32>, kind: &Array<u32>, f: usize, other: usize, word: usiz
 /// walls; 0 at the scene's other nodes.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn rhs(
+pub(in crate::ops) fn rhs(
     grid: &Array<f32>,
     kind: &Array<u32>,
     rhs: &mut Array<f32>,
@@ -124,7 +124,7 @@ fn rhs_at(
 /// any order.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn sor(
+pub(in crate::ops) fn sor(
     kind: &Array<u32>,
     rhs: &Array<f32>,
     q: &mut Array<f32>,
@@ -167,7 +167,7 @@ pub(super) fn sor(
 /// Node slot `g`'s faces: the displacement on each face between two open nodes, `(q_i -
 /// q_n) h`, 0 elsewhere (`Pressure::displace`).
 #[cube]
-pub(super) fn faces(
+pub(in crate::ops) fn faces(
     kind: &Array<u32>,
     q: &Array<f32>,
     faces: &mut Array<f32>,
@@ -227,7 +227,7 @@ fn gather_faces(
 /// (bilinear G2P of the change).
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn displace(
+pub(in crate::ops) fn displace(
     frames: &mut Array<f32>,
     volume: &Array<f32>,
     faces: &Array<f32>,
@@ -260,7 +260,7 @@ pub(super) fn displace(
 /// from `volume`).
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn finish(
+pub(in crate::ops) fn finish(
     frames: &mut Array<f32>,
     before: &Array<f32>,
     volume: &Array<f32>,
@@ -307,7 +307,7 @@ pub(super) fn finish(
 
 /// The moves' sums out of fixed point: `out[i] = moves[i] / MOVE_UNITS`.
 #[cube(launch)]
-pub(super) fn moves_kernel(moves: &Array<i64>, out: &mut Array<f32>) {
+pub(in crate::ops) fn moves_kernel(moves: &Array<i64>, out: &mut Array<f32>) {
     if ABSOLUTE_POS < out.len() {
         out[ABSOLUTE_POS] = f32::cast_from(moves[ABSOLUTE_POS]) / f32::new(MOVE_UNITS);
     }
@@ -315,7 +315,7 @@ pub(super) fn moves_kernel(moves: &Array<i64>, out: &mut Array<f32>) {
 
 /// Threads of a cube of the call's kernel (one cube a scene): [`reduce`]'s shared memory is
 /// sized by it.
-pub(super) const THREADS: u32 = 256;
+pub(in crate::ops) const THREADS: u32 = 256;
 
 /// Scene `s`'s energy step of frame `k` (`energy::restore`), by the cube's threads (`u` of
 /// [`THREADS`]; `shared` `[5 THREADS]`): the sums over the scene's liquid particles, in `f64`,
@@ -324,7 +324,7 @@ pub(super) const THREADS: u32 = 256;
 /// + restore lost) / spread)`, at most `max_scale`. Every thread of the cube calls it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn energy(
+pub(in crate::ops) fn energy(
     frames: &mut Array<f32>,
     before: &Array<f32>,
     volume: &Array<f32>,
@@ -427,7 +427,7 @@ fn energy_sums(
 /// `width` at most 5). Every thread calls it; the result holds until the next call, whose
 /// first barrier lets every thread read it.
 #[cube]
-pub(super) fn reduce(
+pub(in crate::ops) fn reduce(
     shared: &mut SharedMemory<f64>,
     partial: &Array<f64>,
     width: u32,

@@ -11,9 +11,9 @@
 //! are the kernels PyTorch's `conv2d` runs. cuDNN is a library of NVIDIA's, loaded at run
 //! time (`libcudnn.so.9`, the `nvidia-cudnn-cu13` wheel PyTorch installs, or a system cuDNN)
 //! when `MINFLOW_CUDA_CONV=cudnn` asks for it; without it the convolutions stay im2col and
-//! cuBLAS ([`available`], `cuda.rs`'s `conv_form`).
+//! cuBLAS ([`available`], `cuda/mod.rs`'s `conv_form`).
 //!
-//! Each call is queued on cubecl's device thread like a kernel launch (`cuda_device::on_device`).
+//! Each call is queued on cubecl's device thread like a kernel launch (`cuda::device::on_device`).
 //! It used to read its tensors' device pointers from the caller's thread through cubecl's
 //! device queue, which waited for every launch queued before it (0.8-1.3 ms a call on one
 //! H100), so the host could not run ahead of the GPU; with that wait cuDNN was not worth it
@@ -37,8 +37,8 @@
 //! (stream order keeps it alive for the kernel).
 //!
 //! Where: this file records the convolutions on burn's fusion stream (the passes, the
-//! layouts, [`Transposed`]); `cuda_cudnn_plan.rs` makes a shape's descriptors and picks its
-//! algorithm; `cuda_cudnn_calls.rs` keeps the handles and plans and queues the calls. A GPU
+//! layouts, [`Transposed`]); `cuda/net/cudnn_plan.rs` makes a shape's descriptors and picks its
+//! algorithm; `cuda/net/cudnn_calls.rs` keeps the handles and plans and queues the calls. A GPU
 //! where cuDNN loads but does not start runs its convolutions as im2col ([`ready`]).
 
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
@@ -48,13 +48,13 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::cudnn::sys;
 
-use super::composed_grid::dims4;
-use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
-use super::cuda_cudnn_calls::{run, start};
-use super::cuda_cudnn_plan::{Dims, Pass};
+use crate::ops::composed_grid::dims4;
+use super::conv::{contiguous, Cuda, Inner, Runtime};
+use super::cudnn_calls::{run, start};
+use super::cudnn_plan::{Dims, Pass};
 
 /// Whether cuDNN can be loaded (checked once).
-pub(super) fn available() -> bool {
+pub(in crate::ops) fn available() -> bool {
     static PRESENT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     // SAFETY: only tries to open the shared library.
     *PRESENT.get_or_init(|| unsafe { sys::is_culib_present() })
@@ -62,8 +62,8 @@ pub(super) fn available() -> bool {
 
 /// Whether cuDNN starts on GPU `index` (its handle made on the first call, checked once a
 /// GPU): where it does not, the failure is logged once and the caller runs the convolution
-/// as im2col instead, as `MINFLOW_CUDA_CONV=im2col` would (`cuda.rs`).
-pub(super) fn ready(index: usize) -> bool {
+/// as im2col instead, as `MINFLOW_CUDA_CONV=im2col` would (`cuda/mod.rs`).
+pub(in crate::ops) fn ready(index: usize) -> bool {
     static KNOWN: std::sync::Mutex<Vec<(usize, bool)>> = std::sync::Mutex::new(Vec::new());
     let mut known = KNOWN.lock().unwrap_or_else(|e| e.into_inner());
     if let Some(&(_, ok)) = known.iter().find(|(i, _)| *i == index) {
@@ -173,7 +173,7 @@ fn add_bias(y: FloatTensor<Cuda>, bias: FloatTensor<Cuda>) -> FloatTensor<Cuda> 
     <F as FloatTensorOps<F>>::float_add(y, bias)
 }
 
-/// [`NetOps::conv3x3_forward`](super::NetOps::conv3x3_forward) on the GPU through cuDNN,
+/// [`NetOps::conv3x3_forward`](crate::ops::NetOps::conv3x3_forward) on the GPU through cuDNN,
 /// without SiLU: the 3x3 same-padding convolution of the channel concatenation of `parts`
 /// (`[B, H, W, C_p]` each), `weight` `[C_out, C_in, 3, 3]`, `bias` `[C_out]` ->
 /// `[B, H, W, C_out]`. One concatenation when there are several parts, one copy of the
@@ -183,7 +183,7 @@ fn add_bias(y: FloatTensor<Cuda>, bias: FloatTensor<Cuda>) -> FloatTensor<Cuda> 
 /// # Panics
 /// The parts' channels do not add up to the weight's `C_in`, or the kernel is not 3x3; a
 /// cuDNN error.
-pub(super) fn conv3x3(
+pub(in crate::ops) fn conv3x3(
     parts: &[FloatTensor<Cuda>],
     weight: &FloatTensor<Cuda>,
     bias: Option<&FloatTensor<Cuda>>,
@@ -256,10 +256,10 @@ impl Transposed {
     }
 }
 
-/// [`NetOps::im2col_linear`](super::NetOps::im2col_linear) for `k` = 3 through cuDNN: `x`
+/// [`NetOps::im2col_linear`](crate::ops::NetOps::im2col_linear) for `k` = 3 through cuDNN: `x`
 /// `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]`, `bias` `[C_out]` -> `[B H W, C_out]`; the
 /// matrix read in place ([`Transposed`]).
-pub(super) fn im2col_linear(
+pub(in crate::ops) fn im2col_linear(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
     bias: Option<FloatTensor<Cuda>>,
@@ -288,11 +288,11 @@ pub(super) fn im2col_linear(
     }
 }
 
-/// [`NetOps::im2col_linear_backward`](super::NetOps::im2col_linear_backward) for `k` = 3
+/// [`NetOps::im2col_linear_backward`](crate::ops::NetOps::im2col_linear_backward) for `k` = 3
 /// through cuDNN: from `x` `[B, H, W, C_in]`, `matrix` `[C_in 9, C_out]` and `grad` `[B H W,
 /// C_out]`, `[dx [B, H, W, C_in], dmatrix [C_in 9, C_out], dbias [C_out]]`, each where `need`
 /// says; the matrix read and its gradient written in place ([`Transposed`]).
-pub(super) fn im2col_linear_backward(
+pub(in crate::ops) fn im2col_linear_backward(
     x: FloatTensor<Cuda>,
     matrix: FloatTensor<Cuda>,
     grad: FloatTensor<Cuda>,
@@ -330,10 +330,10 @@ pub(super) fn im2col_linear_backward(
         <F as FloatTensorOps<F>>::float_reshape(dw, Shape::new([c_in * 9, c_out]))
     });
     let dbias = need[2].then(|| {
-        use super::NetOps;
+        use crate::ops::NetOps;
         let split = F::kernels(&F::float_device(&grad)).split_weight_grad;
         let grad = burn::tensor::Tensor::<F, 2>::from_primitive(TensorPrimitive::Float(grad));
-        super::composed::bias_grad(grad, split)
+        crate::ops::composed::bias_grad(grad, split)
     });
     [dx, dmatrix, dbias]
 }

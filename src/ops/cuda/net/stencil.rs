@@ -1,6 +1,6 @@
 //! The grid model's sparse particle-grid transfers on burn's CUDA backend (feature `cuda`):
 //! G2P ([`NetOps::stencil_gather`]) and P2G ([`NetOps::stencil_splat`]) as one cubecl kernel
-//! each, recorded as custom operations of burn's fusion layer (as `cuda_conv.rs`).
+//! each, recorded as custom operations of burn's fusion layer (as `cuda/net/conv.rs`).
 //!
 //! Why: the separable dense form (`model::grid::transfer`) turns a transfer into two batched
 //! products over `[B, N, n]` weights and a `[B, N, n C]` intermediate. With 256 scenes of
@@ -12,7 +12,7 @@
 //! scalable multi-GPU material point method"). f32 atomics sum in no fixed order, so such a
 //! P2G differs from run to run in its last bits, and so would every gradient that flows
 //! through it (G2P's backward is a P2G). These add in 64-bit fixed point instead
-//! (`cuda_stencil_kernels.rs`): integer sums do not depend on the order, so P2G, and training through
+//! (`cuda/net/stencil_kernels.rs`): integer sums do not depend on the order, so P2G, and training through
 //! it, is the same to the bit on every run. Inference and training on CUDA both take these
 //! kernels ([`NetOps::dense_stencil`]; `MINFLOW_CUDA_TRANSFERS=dense` takes the dense
 //! products back). The stencil itself ([`NetOps::sparse_stencil`]) is one kernel too.
@@ -23,10 +23,10 @@
 //! `row * c + j`. `minflow bench transfer --device cuda` checks every form against the CPU
 //! backend, and P2G's bits against the same values in reverse particle order.
 //!
-//! [`NetOps::stencil_gather`]: super::NetOps::stencil_gather
-//! [`NetOps::stencil_splat`]: super::NetOps::stencil_splat
-//! [`NetOps::dense_stencil`]: super::NetOps::dense_stencil
-//! [`NetOps::sparse_stencil`]: super::NetOps::sparse_stencil
+//! [`NetOps::stencil_gather`]: crate::ops::NetOps::stencil_gather
+//! [`NetOps::stencil_splat`]: crate::ops::NetOps::stencil_splat
+//! [`NetOps::dense_stencil`]: crate::ops::NetOps::dense_stencil
+//! [`NetOps::sparse_stencil`]: crate::ops::NetOps::sparse_stencil
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, IntTensor};
@@ -36,11 +36,11 @@ use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 
-use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
-use super::cuda_stencil_kernels::{
+use super::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use super::stencil_kernels::{
     clear_kernel, gather_kernel, splat_kernel, stencil_kernel, unfix_kernel,
 };
-use super::OpsError;
+use crate::ops::OpsError;
 
 /// Which of the two transfers a recorded operation runs.
 #[derive(Clone, Copy, Debug)]
@@ -243,7 +243,7 @@ fn stencil_dims(index: &IntTensor<Cuda>, weight: &FloatTensor<Cuda>) -> (usize, 
     (w[0], w[1])
 }
 
-/// [`NetOps::stencil_gather`](super::NetOps::stencil_gather) on the GPU: `grid` `[B, n^2, C]`,
+/// [`NetOps::stencil_gather`](crate::ops::NetOps::stencil_gather) on the GPU: `grid` `[B, n^2, C]`,
 /// `index` `[B N 9]` (flat rows of the `[B n^2, C]` grid), `weight` `[B, N, 9]` -> `[B, N, C]`,
 /// one kernel.
 ///
@@ -264,7 +264,7 @@ pub(crate) fn gather(
     record(Kind::Gather, grid, index, weight, Shape::new([b, n, c]), c)
 }
 
-/// [`NetOps::stencil_splat`](super::NetOps::stencil_splat) on the GPU: `values` `[B, N, C]`,
+/// [`NetOps::stencil_splat`](crate::ops::NetOps::stencil_splat) on the GPU: `values` `[B, N, C]`,
 /// `index` `[B N 9]` (flat rows of a `[B nodes, C]` grid), `weight` `[B, N, 9]` ->
 /// `[B, nodes, C]`, deterministic to the bit ([`splat_kernel`]: the values' largest
 /// `|value|`, then three kernels). The caller's `index` must stay below `B nodes` (the
@@ -343,7 +343,7 @@ impl Operation<Runtime> for BuildOp {
     }
 }
 
-/// [`NetOps::sparse_stencil`](super::NetOps::sparse_stencil) on the GPU: `pos` `[B, N, 2]`
+/// [`NetOps::sparse_stencil`](crate::ops::NetOps::sparse_stencil) on the GPU: `pos` `[B, N, 2]`
 /// (domain units) -> (`index` `[B N 9]`, `weight` `[B, N, 9]`) on an `n x n` grid, one kernel
 /// (burn's tensor operations take ~20 launches for it: `model::grid::transfer::composed_stencil`).
 ///

@@ -1,7 +1,7 @@
 //! Contact between shape-matched bodies on the device (feature `cuda`): the device form of
 //! `model::constraints`' contact part (`Contact::separate`; Müller et al. 2007, section 3.5)
-//! for one scene, by the whole cube of the call's kernel (`cuda_projection_call.rs`), between
-//! the ropes and the shape matching (`cuda_solids.rs`; `solids`: `ProjectionPlan::solids`).
+//! for one scene, by the whole cube of the call's kernel (`cuda/projection/call.rs`), between
+//! the ropes and the shape matching (`cuda/projection/solids.rs`; `solids`: `ProjectionPlan::solids`).
 //!
 //! Each pass finds the pairs of bodies whose particles come closer than the contact distance:
 //! the close particle pairs' mean direction (f64 sums over the cube's threads, where the host
@@ -18,8 +18,8 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_liquid_solve::{reduce, THREADS};
-use super::cuda_solids::{centre, index, BODY, HEAD, PER_SCENE};
+use super::liquid_solve::{reduce, THREADS};
+use super::solids::{centre, index, BODY, HEAD, PER_SCENE};
 
 /// `MAX_BODIES` (`projection_plan.rs`).
 const MAXB: usize = 16;
@@ -27,13 +27,13 @@ const MAXB: usize = 16;
 const PER_BODY: usize = 8;
 const PER_PAIR: usize = 7;
 const PAIRS: usize = MAXB * PER_BODY;
-pub(super) const CONTACT_SHARED: usize = PAIRS + MAXB * MAXB * PER_PAIR;
+pub(in crate::ops) const CONTACT_SHARED: usize = PAIRS + MAXB * MAXB * PER_PAIR;
 
 /// Scene `s`'s contact in its frame starting at `base` of `frames` (time step `dt`): the head's
 /// passes of pushes, then the velocities (`Contact::separate`). Every thread calls it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn contact(
+pub(in crate::ops) fn contact(
     frames: &mut Array<f32>,
     solids: &Array<f32>,
     shared: &mut SharedMemory<f64>,

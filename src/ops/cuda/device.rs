@@ -2,14 +2,14 @@
 //! primary context, the calls queued on cubecl's device thread in stream order with its
 //! kernels ([`on_device`]), the hand-over of that thread's queue ([`flush_device`]), and the
 //! ordering of inputs from other streams after a call ([`after_foreign`]). cuBLAS
-//! (`cublas.rs`), cuDNN (`cuda_cudnn_calls.rs`) and the read back (`cuda_read.rs`) go through
+//! (`cublas.rs`), cuDNN (`cuda/net/cudnn_calls.rs`) and the read back (`cuda/read.rs`) go through
 //! here; how a custom operation joins burn's fusion stream is told in `cublas.rs`.
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn_cubecl::tensor::CubeTensor;
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::OpsError;
+use crate::ops::OpsError;
 
 /// GPU `index`'s primary context (the one cubecl uses), retained again and made current
 /// on this thread: what a library handle of the GPU is created in. Never released: the
@@ -17,7 +17,7 @@ use super::OpsError;
 ///
 /// # Errors
 /// The CUDA driver's, when the device, its context or making it current fails.
-pub(super) fn primary_context(index: usize) -> Result<driver_sys::CUcontext, OpsError> {
+pub(in crate::ops) fn primary_context(index: usize) -> Result<driver_sys::CUcontext, OpsError> {
     let ordinal = OpsError::fit_i32("CUDA device ordinal", index)?;
     // SAFETY: driver FFI on an ordinal; the context is retained before it is made current.
     unsafe {
@@ -34,7 +34,7 @@ pub(super) fn primary_context(index: usize) -> Result<driver_sys::CUcontext, Ops
 type Server = <CudaRuntime as burn::cubecl::Runtime>::Server;
 
 /// A device pointer and the CUDA stream of the memory pool it comes from.
-pub(super) type Resource = (u64, driver_sys::CUstream);
+pub(in crate::ops) type Resource = (u64, driver_sys::CUstream);
 
 /// Runs `f` on cubecl's device thread of the tensors' GPU, with each tensor's device
 /// pointer and the stream of the memory pool it comes from, in order with cubecl's own
@@ -55,7 +55,7 @@ pub(super) type Resource = (u64, driver_sys::CUstream);
 /// A tensor's memory that cannot be read (a cubecl error), an error `f` returns (a library
 /// error) or a panic in `f` aborts the process, naming `operation` ([`OpsError::abort`]):
 /// the output would never be written.
-pub(super) fn on_device(
+pub(in crate::ops) fn on_device(
     tensors: Vec<CubeTensor<CudaRuntime>>,
     operation: &'static str,
     f: impl FnOnce(&[Resource]) -> Result<(), OpsError> + Send + 'static,
@@ -104,7 +104,7 @@ pub(super) fn on_device(
 /// over only when it is full or a caller waits on the device thread, so a last task
 /// whose effect the host waits for outside cubecl (an event) would otherwise stay
 /// queued.
-pub(super) fn flush_device(device: &burn::backend::cuda::CudaDevice) {
+pub(in crate::ops) fn flush_device(device: &burn::backend::cuda::CudaDevice) {
     use burn::cubecl::device::Device;
     use burn::cubecl::device_handle::DeviceHandle;
     DeviceHandle::<Server>::new(device.to_id()).flush_queue();
@@ -123,7 +123,7 @@ pub(super) fn flush_device(device: &burn::backend::cuda::CudaDevice) {
 ///
 /// # Safety
 /// The streams are live CUDA streams of the current context.
-pub(super) unsafe fn after_foreign(
+pub(in crate::ops) unsafe fn after_foreign(
     stream: driver_sys::CUstream,
     inputs: &[driver_sys::CUstream],
 ) -> Result<(), OpsError> {

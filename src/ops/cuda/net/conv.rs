@@ -14,7 +14,7 @@
 //! its reads and its writes are coalesced; col2im one thread per output element, which gathers the `k^2` columns that read it instead of scattering into
 //! it, so it needs no atomics and is deterministic. How a custom operation joins the fusion stream: see `cublas.rs`.
 //!
-//! [`NetOps::im2col`]: super::NetOps::im2col
+//! [`NetOps::im2col`]: crate::ops::NetOps::im2col
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
@@ -27,17 +27,17 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::{calculate_cube_count_elemwise, prelude::*};
 
-use super::OpsError;
+use crate::ops::OpsError;
 
-/// The backend under burn's fusion layer for `Cuda<f32, i32>` (also `cuda_stencil.rs`'s).
-pub(super) type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+/// The backend under burn's fusion layer for `Cuda<f32, i32>` (also `cuda/net/stencil.rs`'s).
+pub(in crate::ops) type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
 /// burn's CUDA backend with fusion.
-pub(super) type Cuda = burn::backend::Cuda<f32, i32>;
+pub(in crate::ops) type Cuda = burn::backend::Cuda<f32, i32>;
 /// The fusion runtime of [`Inner`].
-pub(super) type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
+pub(in crate::ops) type Runtime = <Inner as burn_fusion::FusionBackend>::FusionRuntime;
 
 /// `t` itself when contiguous, else a contiguous copy: what the custom kernels index.
-pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
+pub(in crate::ops) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> {
     match t.is_contiguous() {
         true => t,
         false => burn_cubecl::kernel::into_contiguous(t),
@@ -46,7 +46,7 @@ pub(super) fn contiguous(t: CubeTensor<CudaRuntime>) -> CubeTensor<CudaRuntime> 
 
 /// The channel concatenation of channels-last `parts` (`[B, H, W, C_p]` each) -> `[B, H, W,
 /// Σ C_p]`: the one part itself, or one concatenation (the convolutions of several parts).
-pub(super) fn cat_channels(parts: &[FloatTensor<Cuda>]) -> FloatTensor<Cuda> {
+pub(in crate::ops) fn cat_channels(parts: &[FloatTensor<Cuda>]) -> FloatTensor<Cuda> {
     match parts {
         [x] => x.clone(),
         _ => <Cuda as burn::tensor::ops::FloatTensorOps<Cuda>>::float_cat(parts.to_vec(), 3),
@@ -54,8 +54,8 @@ pub(super) fn cat_channels(parts: &[FloatTensor<Cuda>]) -> FloatTensor<Cuda> {
 }
 
 /// The cube count and size of an element-wise launch over `units` threads (what the custom
-/// kernels here and in `cuda_stencil.rs` that run one thread per element launch with).
-pub(super) fn elementwise(
+/// kernels here and in `cuda/net/stencil.rs` that run one thread per element launch with).
+pub(in crate::ops) fn elementwise(
     client: &ComputeClient<CudaRuntime>,
     units: usize,
 ) -> (CubeCount, CubeDim) {
@@ -293,7 +293,7 @@ fn record(x: FloatTensor<Cuda>, kind: Kind, dims: [usize; 4], k: usize) -> Float
         .remove(0)
 }
 
-/// [`NetOps::im2col`](super::NetOps::im2col) on the GPU: `x` `[B, H, W, C]` ->
+/// [`NetOps::im2col`](crate::ops::NetOps::im2col) on the GPU: `x` `[B, H, W, C]` ->
 /// `[B H W, C k^2]`, one kernel.
 pub(crate) fn im2col(x: FloatTensor<Cuda>, k: usize) -> FloatTensor<Cuda> {
     let s = x.shape();
@@ -301,7 +301,7 @@ pub(crate) fn im2col(x: FloatTensor<Cuda>, k: usize) -> FloatTensor<Cuda> {
     record(x, Kind::Im2col, dims, k)
 }
 
-/// [`NetOps::col2im`](super::NetOps::col2im) on the GPU: `cols` `[B H W, C k^2]` ->
+/// [`NetOps::col2im`](crate::ops::NetOps::col2im) on the GPU: `cols` `[B H W, C k^2]` ->
 /// `[B, H, W, C]` = `shape`, one kernel.
 ///
 /// # Panics

@@ -1,6 +1,6 @@
 //! The rebound part on the device (feature `cuda`): the device form of
 //! `model::constraints::rebound::Rebound::apply` for one scene, a step of the call's kernel
-//! (`cuda_projection_call.rs`) after the liquid's steps and before the momentum part. Its
+//! (`cuda/projection/call.rs`) after the liquid's steps and before the momentum part. Its
 //! bodies are the scene's first shape-matched ones (jelly), read from the body table of
 //! `solids`. The whole cube sums each body's means and bounds in f64 (`reduce`, the host sums
 //! in particle order: the same to f32 rounding) and finds the nearest particles of each pair
@@ -19,21 +19,21 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_buffers::Buffers;
-use super::cuda_liquid_solve::{reduce, THREADS};
-use super::cuda_solids::{index, BODY, HEAD, PER_SCENE};
+use super::buffers::Buffers;
+use super::liquid_solve::{reduce, THREADS};
+use super::solids::{index, BODY, HEAD, PER_SCENE};
 
 /// `MAX_BODIES` (`projection_plan.rs`).
-const MAXB: usize = super::MAX_BODIES;
+const MAXB: usize = crate::ops::MAX_BODIES;
 /// Values of `st` a body: centre before (2), centre now (2), mean velocity before (2), mean
 /// velocity the frame ends with (2), lowest then highest coordinates now (4), before (4).
 const STATS: usize = 16;
 /// Where the speeds to add start in `st`.
 const ADD: usize = MAXB * STATS;
 /// Where the part's values start in `solids` (`REBOUND_AT`).
-const LAW: usize = super::REBOUND_AT;
+const LAW: usize = crate::ops::REBOUND_AT;
 /// Values a contact of the table (`EVENT_VALUES`).
-const EV: usize = super::EVENT_VALUES;
+const EV: usize = crate::ops::EVENT_VALUES;
 /// f32::INFINITY's bits.
 const FAR: i64 = 2139095040;
 
@@ -41,7 +41,7 @@ const FAR: i64 = 2139095040;
 /// thread calls it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn rebound(
+pub(in crate::ops) fn rebound(
     b: &mut Buffers,
     rb: u32,
     st: &mut SharedMemory<f32>,

@@ -1,4 +1,4 @@
-//! The minGRU's and minLSTM's inference updates ([`super::mingru`]) on burn's CUDA backend
+//! The minGRU's and minLSTM's inference updates ([`crate::ops::mingru`]) on burn's CUDA backend
 //! (feature `cuda`) as one cubecl kernel each, recorded as a custom operation of burn's
 //! fusion layer (how one joins the fusion stream: see `cublas.rs`).
 //!
@@ -20,8 +20,8 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 
-use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
-use super::OpsError;
+use super::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use crate::ops::OpsError;
 
 /// `1 / (1 + e^-x)`.
 #[cube]
@@ -183,7 +183,7 @@ fn record(cell: Cell, pre: FloatTensor<Cuda>, h: Option<FloatTensor<Cuda>>) -> F
         .remove(0)
 }
 
-/// [`NetOps::mingru_update`](super::NetOps::mingru_update) on the GPU: `hg` `[M, 2H]`, `h`
+/// [`NetOps::mingru_update`](crate::ops::NetOps::mingru_update) on the GPU: `hg` `[M, 2H]`, `h`
 /// `[M, H]` -> `[M, H]`, one kernel.
 pub(crate) fn mingru_update(
     hg: FloatTensor<Cuda>,
@@ -192,7 +192,7 @@ pub(crate) fn mingru_update(
     record(Cell::MinGru, hg, h)
 }
 
-/// [`NetOps::minlstm_update`](super::NetOps::minlstm_update) on the GPU: `hfi` `[M, 3H]`,
+/// [`NetOps::minlstm_update`](crate::ops::NetOps::minlstm_update) on the GPU: `hfi` `[M, 3H]`,
 /// `h` `[M, H]` -> `[M, H]`, one kernel.
 pub(crate) fn minlstm_update(
     hfi: FloatTensor<Cuda>,

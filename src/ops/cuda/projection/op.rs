@@ -1,9 +1,9 @@
-//! [`NetOps::project_constraints`](super::NetOps::project_constraints) on burn's CUDA
+//! [`NetOps::project_constraints`](crate::ops::NetOps::project_constraints) on burn's CUDA
 //! backend (feature `cuda`): the projection of a call's predictions recorded as one custom
 //! operation of burn's fusion layer (how one joins the fusion stream: see `cublas.rs`),
 //! right behind the network's call, so the frames are projected before they are read back
 //! and no host pass sits between the call and the next. One kernel projects every frame of
-//! the call (`cuda_projection_call.rs`), behind a copy of the frames and the zeroing of the
+//! the call (`cuda/projection/call.rs`), behind a copy of the frames and the zeroing of the
 //! sums, and before the moves are turned out of fixed point.
 
 use burn::cubecl::cuda::CudaRuntime;
@@ -17,15 +17,15 @@ use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
-use super::cuda_buffers::BuffersLaunch;
-use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
-use super::cuda_liquid::{copy_kernel, zero_kernel};
-use super::cuda_liquid_solve::{moves_kernel, THREADS};
-use super::cuda_momentum_sums::SUMS;
-use super::cuda_projection_call::call_kernel;
+use super::buffers::BuffersLaunch;
+use crate::ops::cuda::net::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use super::liquid::{copy_kernel, zero_kernel};
+use super::liquid_solve::{moves_kernel, THREADS};
+use super::momentum_sums::SUMS;
+use super::call::call_kernel;
 use std::sync::{Arc, Mutex, OnceLock};
 
-use super::{event_table_len, ProjectionPlan, TablesLater, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
+use crate::ops::{event_table_len, ProjectionPlan, TablesLater, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;
@@ -144,7 +144,7 @@ impl Operation<Runtime> for ProjectionOp {
 /// `tables` read back behind the work recorded so far, waited for on the first call of the
 /// result (empty where the read failed).
 fn read_later(tables: FloatTensor<Cuda>) -> TablesLater {
-    let ahead = Mutex::new(Some(super::cuda_read::read_ahead(tables)));
+    let ahead = Mutex::new(Some(crate::ops::cuda::read::read_ahead(tables)));
     let landed = OnceLock::<Arc<[f32]>>::new();
     Arc::new(move || {
         let read = || {

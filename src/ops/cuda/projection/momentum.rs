@@ -1,6 +1,6 @@
 //! The momentum part on the device (feature `cuda`): the device form of
 //! `model::constraints::momentum::conserve` for one scene, a step of the call's kernel
-//! (`cuda_projection_call.rs`) after the rebound and before the walls. The clusters of a
+//! (`cuda/projection/call.rs`) after the rebound and before the walls. The clusters of a
 //! frame transition (particles within `reach` of each other in the frame before or the
 //! predicted one) are found as grid-based DBSCAN finds its clusters (Gunawan 2013, "A faster
 //! algorithm for DBSCAN", section 3): cells of side `reach / sqrt(2)`, whose particles are all
@@ -11,7 +11,7 @@
 //! algorithm for disjoint set union": hooks by compare-and-swap, finds with path halving);
 //! which join lands first changes no component. A particle outside the cells (beyond a
 //! quarter of the domain past a wall) is joined by a search over every particle.
-//! [`conserve`](super::cuda_momentum_sums::conserve) then moves the clusters.
+//! [`conserve`](super::momentum_sums::conserve) then moves the clusters.
 //!
 //! Scratch (`Buffers`, `[B N]` each): `parent` the union-find, `sorted` the particles by
 //! cell, `cellof` a particle's cell; `cells` (shared) the counts, starts and cursors of the
@@ -20,23 +20,23 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_buffers::{read, Buffers};
-use super::cuda_liquid_solve::THREADS;
+use super::buffers::{read, Buffers};
+use super::liquid_solve::THREADS;
 
 /// Cells per axis at most; cells cover `[0.5 - g side / 2, 0.5 + g side / 2)` on each axis.
-pub(super) const MAX_CELLS: usize = 48;
+pub(in crate::ops) const MAX_CELLS: usize = 48;
 /// The domain widths the cells cover at most.
 const SPAN: f32 = 1.5;
 /// Values of the shared `cells` array: the starts (`g^2 + 1`) then the cursors.
-pub(super) const CELL_SLOTS: usize = MAX_CELLS * MAX_CELLS + 1;
+pub(in crate::ops) const CELL_SLOTS: usize = MAX_CELLS * MAX_CELLS + 1;
 /// Where the part's values start in `solids` (`MOMENTUM_AT`).
-pub(super) const LAW: usize = super::MOMENTUM_AT;
+pub(in crate::ops) const LAW: usize = crate::ops::MOMENTUM_AT;
 /// A particle outside the cells.
 const STRAY: i64 = 4294967295;
 
 /// The grid of the cells for `reach`: side, cells per axis and the low corner.
 #[cube]
-pub(super) fn cell_grid(reach: f32) -> (f32, u32, f32) {
+pub(in crate::ops) fn cell_grid(reach: f32) -> (f32, u32, f32) {
     // 2 side^2 below reach^2 (1 - 1e-4), the test's sure bound, with room for rounding.
     let side = reach * f32::sqrt(f32::new(0.49989));
     let g = u32::min(
@@ -62,7 +62,7 @@ fn cell_of(x: f32, y: f32, side: f32, g: u32, origin: f32) -> u32 {
 
 /// Whether two particles are within `reach` (`Components::join_within`'s test).
 #[cube]
-pub(super) fn near(ax: f32, ay: f32, bx: f32, by: f32, reach: f32) -> bool {
+pub(in crate::ops) fn near(ax: f32, ay: f32, bx: f32, by: f32, reach: f32) -> bool {
     let (dx, dy) = (bx - ax, by - ay);
     let d2 = dx * dx + dy * dy;
     let r2 = reach * reach;
@@ -75,7 +75,7 @@ pub(super) fn near(ax: f32, ay: f32, bx: f32, by: f32, reach: f32) -> bool {
 
 /// The root of `x`'s set, halving its path.
 #[cube]
-pub(super) fn find(b: &mut Buffers, x: u32) -> u32 {
+pub(in crate::ops) fn find(b: &mut Buffers, x: u32) -> u32 {
     let mut x = x;
     loop {
         let p = b.parent[x as usize].load();
@@ -116,7 +116,7 @@ fn join(b: &mut Buffers, x: u32, y: u32) {
 
 /// Every particle of scene `s` its own set. Every thread calls it.
 #[cube]
-pub(super) fn reset(b: &mut Buffers, n: u32, s: usize, u: usize) {
+pub(in crate::ops) fn reset(b: &mut Buffers, n: u32, s: usize, u: usize) {
     let mut p = s * n as usize + u;
     loop {
         if p >= (s + 1) * n as usize {
@@ -133,7 +133,7 @@ pub(super) fn reset(b: &mut Buffers, n: u32, s: usize, u: usize) {
 /// thread calls it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn join_frame(
+pub(in crate::ops) fn join_frame(
     b: &mut Buffers,
     which: u32,
     base: usize,

@@ -18,8 +18,8 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 
-use super::adam_step::AdamStep;
-use super::cuda_conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use crate::ops::adam_step::AdamStep;
+use super::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 
 /// One Adam step per element (Kingma & Ba 2015, Algorithm 1, in burn's and PyTorch's `eps *
 /// sqrt(1 - b2^t)` form): `g` = `grad[i]`, times `min(1, max_norm / (sqrt(squares[0]) +
@@ -140,7 +140,7 @@ impl Operation<Runtime> for AdamOp {
     }
 }
 
-/// [`NetOps::adam_step`](super::NetOps::adam_step) on the GPU: the new parameter and moments
+/// [`NetOps::adam_step`](crate::ops::NetOps::adam_step) on the GPU: the new parameter and moments
 /// (each shaped like `param`) from one kernel, after one sum of squares of `grad` when
 /// `c.max_norm` is set; `m` and `v` None for the first step (read as zero).
 ///

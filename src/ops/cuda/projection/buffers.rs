@@ -1,7 +1,7 @@
 //! The arrays of a call's projection kernel (feature `cuda`), shared by its steps
-//! (`cuda_projection_call.rs` runs them): the frames and their copies, the liquid's node
-//! slots (`cuda_liquid.rs`' layout), the solids' table (`ProjectionPlan::solids`), and the
-//! momentum and rebound parts' scratch (`cuda_momentum.rs`, `cuda_rebound.rs`).
+//! (`cuda/projection/call.rs` runs them): the frames and their copies, the liquid's node
+//! slots (`cuda/projection/liquid.rs`' layout), the solids' table (`ProjectionPlan::solids`), and the
+//! momentum and rebound parts' scratch (`cuda/projection/momentum.rs`, `cuda/projection/rebound.rs`).
 
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
@@ -10,10 +10,10 @@ use cubecl::prelude::*;
 /// `before` `[B N 4]` the frame being projected as it came in; `list` `[B nodes]`: each
 /// scene's full nodes, red from the front, black from the back; `input` `[B N 4]` the call's
 /// input frames and `prev` `[B N 4]` the frame before the one being projected; `parent`,
-/// `sorted`, `cellof`, `sums` and `free` the momentum part's (`cuda_momentum.rs`); `events`
+/// `sorted`, `cellof`, `sums` and `free` the momentum part's (`cuda/projection/momentum.rs`); `events`
 /// the rebound part's contacts in progress (`ProjectionPlan::events`).
 #[derive(CubeLaunch, CubeType)]
-pub(super) struct Buffers {
+pub(in crate::ops) struct Buffers {
     pub frames: Array<f32>,
     pub net: Array<f32>,
     pub before: Array<f32>,
@@ -41,7 +41,7 @@ pub(super) struct Buffers {
 /// Value `i` of the frame before (`which` 0: `prev`) or of the predicted frames (1:
 /// `frames`).
 #[cube]
-pub(super) fn read(b: &Buffers, which: u32, i: usize) -> f32 {
+pub(in crate::ops) fn read(b: &Buffers, which: u32, i: usize) -> f32 {
     let mut v = b.frames[i];
     if which == 0 {
         v = b.prev[i];

@@ -1,8 +1,8 @@
 //! The projection of one call as one kernel (feature `cuda`): a cube a scene ([`THREADS`]
 //! threads over the scene's particles and node slots, `sync_cube` between the steps), the
-//! call's K frames in order, each the ropes, contact and shape matching of `cuda_solids.rs`
-//! and `cuda_contact.rs`, then the liquid's steps of `cuda_liquid.rs` and
-//! `cuda_liquid_solve.rs` (layout there). The sweeps visit only the scene's full nodes, red
+//! call's K frames in order, each the ropes, contact and shape matching of `cuda/projection/solids.rs`
+//! and `cuda/projection/contact.rs`, then the liquid's steps of `cuda/projection/liquid.rs` and
+//! `cuda/projection/liquid_solve.rs` (layout there). The sweeps visit only the scene's full nodes, red
 //! and black, listed as the right-hand side is made (as the host's stencils list them):
 //! sweeps over every node slot cost 3.6x the host's projection (`fluid`, 256 scenes a call,
 //! one H100: 0.143 against 0.040 ms a scene-frame beyond `-small-k4`'s network), and as a
@@ -12,17 +12,17 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_buffers::Buffers;
-use super::cuda_contact::{contact, CONTACT_SHARED};
-use super::cuda_liquid::{begin, node, splat};
-use super::cuda_liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
-use super::cuda_momentum::{join_frame, reset, CELL_SLOTS};
-use super::cuda_momentum_sums::conserve;
-use super::cuda_rebound::rebound;
-use super::cuda_solids::{bodies, index, ropes, HEAD, PER_SCENE};
+use super::buffers::Buffers;
+use super::contact::{contact, CONTACT_SHARED};
+use super::liquid::{begin, node, splat};
+use super::liquid_solve::{displace, energy, faces, finish, rhs, sor, THREADS};
+use super::momentum::{join_frame, reset, CELL_SLOTS};
+use super::momentum_sums::conserve;
+use super::rebound::rebound;
+use super::solids::{bodies, index, ropes, HEAD, PER_SCENE};
 
 /// Where the momentum part's values start in `solids` (`MOMENTUM_AT`).
-const MOMENTUM_AT: usize = super::MOMENTUM_AT;
+const MOMENTUM_AT: usize = crate::ops::MOMENTUM_AT;
 
 /// Values per scene of `scenes` (`ProjectionPlan`'s `SCENE_VALUES`).
 const SV: usize = 14;
@@ -35,7 +35,7 @@ const SV: usize = 14;
 /// has its input frames), `rb` the rebound tables' bodies a row.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn call_kernel(
+pub(in crate::ops) fn call_kernel(
     b: &mut Buffers,
     laws: u32,
     rb: u32,
@@ -100,7 +100,7 @@ pub(super) fn call_kernel(
 }
 
 /// Frame `k`'s rebound and momentum parts for scene `s` (thread `u`), in
-/// `SceneShape::project`'s order (`cuda_rebound.rs`, `cuda_momentum.rs`); `prev` holds the
+/// `SceneShape::project`'s order (`cuda/projection/rebound.rs`, `cuda/projection/momentum.rs`); `prev` holds the
 /// frame before.
 #[cube]
 #[allow(clippy::too_many_arguments)]
@@ -155,7 +155,7 @@ fn fetch_prev(b: &mut Buffers, n: u32, k: u32, s: usize, u: usize) {
 }
 
 /// Frame `k`'s ropes, contact and shape matching for scene `s` (thread `u`), in
-/// `SceneShape::project`'s order (`cuda_solids.rs`, `cuda_contact.rs`).
+/// `SceneShape::project`'s order (`cuda/projection/solids.rs`, `cuda/projection/contact.rs`).
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn solids(

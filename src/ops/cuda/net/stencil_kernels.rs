@@ -1,6 +1,6 @@
 //! The cubecl kernels of the sparse particle-grid transfers on CUDA (feature `cuda`): the
 //! stencil ([`stencil_kernel`]), G2P ([`gather_kernel`]) and P2G in 64-bit fixed point
-//! ([`clear_kernel`], [`splat_kernel`], [`unfix_kernel`]). `cuda_stencil.rs` records and
+//! ([`clear_kernel`], [`splat_kernel`], [`unfix_kernel`]). `cuda/net/stencil.rs` records and
 //! launches them; why they are written this way is its module doc.
 
 use burn_cubecl::cubecl;
@@ -10,7 +10,7 @@ use cubecl::prelude::*;
 /// batch (`B N` of them) and channel `j < c`; `grid` `[B n^2, c]`, `index` and `weight`
 /// `[B N, 9]`, `out` `[B N, c]`, all contiguous. One thread per output element.
 #[cube(launch)]
-pub(super) fn gather_kernel<F: Float>(
+pub(in crate::ops) fn gather_kernel<F: Float>(
     grid: &Tensor<F>,
     index: &Tensor<i32>,
     weight: &Tensor<F>,
@@ -55,7 +55,7 @@ fn bspline<F: Float>(x: F) -> F {
 /// `index` `[B N 9]` (flat rows `b n^2 + (bx + i) n + by + j` for node `k = 3 i + j`) and
 /// `weight` `[B N 9]`. One thread per particle; `particles` = N, `n` the grid size.
 #[cube(launch)]
-pub(super) fn stencil_kernel<F: Float>(
+pub(in crate::ops) fn stencil_kernel<F: Float>(
     pos: &Tensor<F>,
     index: &mut Tensor<i32>,
     weight: &mut Tensor<F>,
@@ -124,7 +124,7 @@ fn fixed_scale<F: Float>(max: F, count: u32) -> F {
 /// truncated to `1 / scale` = `2^-61 count max`, about `3e-13 max` at 256 scenes of 2,500
 /// particles, far below f32's rounding of the sum.
 #[cube(launch)]
-pub(super) fn splat_kernel<F: Float>(
+pub(in crate::ops) fn splat_kernel<F: Float>(
     values: &Tensor<F>,
     index: &Tensor<i32>,
     weight: &Tensor<F>,
@@ -153,7 +153,7 @@ pub(super) fn splat_kernel<F: Float>(
 /// pitches each innermost row to a power of two bytes: `[B, n^2, 12]` gets row stride 16,
 /// not 12, and [`splat_kernel`]'s flat `row * c + j` would land in the wrong rows.)
 #[cube(launch)]
-pub(super) fn clear_kernel(acc: &mut Tensor<i64>) {
+pub(in crate::ops) fn clear_kernel(acc: &mut Tensor<i64>) {
     if ABSOLUTE_POS >= acc.len() {
         terminate!();
     }
@@ -163,7 +163,7 @@ pub(super) fn clear_kernel(acc: &mut Tensor<i64>) {
 /// P2G's output from its fixed-point sums: `out[i] = acc[i] / scale` (f32); NaN everywhere
 /// when `max` is not finite (a NaN or infinite value went in).
 #[cube(launch)]
-pub(super) fn unfix_kernel<F: Float>(
+pub(in crate::ops) fn unfix_kernel<F: Float>(
     acc: &Tensor<i64>,
     max: &Tensor<F>,
     out: &mut Tensor<F>,

@@ -1,7 +1,7 @@
 //! cuDNN's calls for the grid model's 3x3 convolutions on CUDA (feature `cuda`; what they
-//! are and why: `cuda_cudnn.rs`): one handle per GPU, bound to cubecl's stream; the plans
-//! (`cuda_cudnn_plan.rs`) made once per GPU and shape and kept with the handle; and [`run`],
-//! which queues a recorded convolution's calls on cubecl's device thread (`cuda_device.rs`'s
+//! are and why: `cuda/net/cudnn.rs`): one handle per GPU, bound to cubecl's stream; the plans
+//! (`cuda/net/cudnn_plan.rs`) made once per GPU and shape and kept with the handle; and [`run`],
+//! which queues a recorded convolution's calls on cubecl's device thread (`cuda/device.rs`'s
 //! `on_device`), so the host does not wait. Every failing call is an [`OpsError`].
 
 use std::collections::hash_map::Entry;
@@ -14,10 +14,10 @@ use burn_cubecl::tensor::CubeTensor;
 use cudarc::cudnn::{result as dnn, sys};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::cublas::{kernels, GpuGemm};
-use super::cuda_cudnn_plan::{check, plan, Algo, Dims, Key, Pass, Plan};
-use super::cuda_device::{after_foreign, on_device, primary_context, Resource};
-use super::OpsError;
+use crate::ops::cublas::{kernels, GpuGemm};
+use super::cudnn_plan::{check, plan, Algo, Dims, Key, Pass, Plan};
+use crate::ops::cuda::device::{after_foreign, on_device, primary_context, Resource};
+use crate::ops::OpsError;
 
 /// One cuDNN handle per GPU, the stream it is bound to, the GPU's primary context (cubecl's),
 /// and the plans made so far.
@@ -76,7 +76,7 @@ fn with_dnn<T>(
 ///
 /// # Errors
 /// The handle's or the context's.
-pub(super) fn start(index: usize) -> Result<(), OpsError> {
+pub(in crate::ops) fn start(index: usize) -> Result<(), OpsError> {
     with_dnn(index, |_| Ok(()))
 }
 
@@ -111,7 +111,7 @@ fn planned(index: usize, keys: &[Key]) -> Result<usize, OpsError> {
 /// # Errors
 /// The handle's or a plan's; a failed convolution ends the process on the device thread
 /// ([`on_device`]).
-pub(super) fn run(
+pub(in crate::ops) fn run(
     pass: Pass,
     flip: bool,
     dims: &[Dims],

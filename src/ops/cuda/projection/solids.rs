@@ -2,30 +2,30 @@
 //! of `model::constraints`' rope part (`Chain::project`: Kim, Chentanez & Müller 2012, "Long
 //! Range Attachments") and shape matching (`Body::project`, elastic bodies: Müller et al.
 //! 2005, "Meshless Deformations Based on Shape Matching"), each a `#[cube]` step of the call's
-//! kernel (`cuda_projection_call.rs`) for one scene, run before the contact
-//! (`cuda_contact.rs`, which sits between the two) and the liquid's steps, in
+//! kernel (`cuda/projection/call.rs`) for one scene, run before the contact
+//! (`cuda/projection/contact.rs`, which sits between the two) and the liquid's steps, in
 //! `SceneShape::project`'s order. Layout of `solids`: `ProjectionPlan::solids`' doc; `frames`
-//! `[K B N 4]` as in `cuda_liquid.rs`.
+//! `[K B N 4]` as in `cuda/projection/liquid.rs`.
 //!
 //! A chain is one thread's, swept in the host's order (Gauss-Seidel along the chain): the
 //! same arithmetic as the host's, pair by pair. A body is the whole cube's: its sums (centre
-//! of mass, `A_pq`) are f64 over the cube's threads (`cuda_liquid_solve::reduce`), where the
+//! of mass, `A_pq`) are f64 over the cube's threads (`liquid_solve::reduce`), where the
 //! host sums in f64 in particle order, so the two agree to f32 rounding.
 
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_liquid_solve::{reduce, THREADS};
+use super::liquid_solve::{reduce, THREADS};
 
 /// Values at the head of `solids` (`SOLIDS_HEAD`) and per scene after it (`SCENE_SOLIDS`).
-pub(super) const HEAD: usize = super::SOLIDS_HEAD;
-pub(super) const PER_SCENE: usize = super::SCENE_SOLIDS;
+pub(in crate::ops) const HEAD: usize = crate::ops::SOLIDS_HEAD;
+pub(in crate::ops) const PER_SCENE: usize = crate::ops::SCENE_SOLIDS;
 /// Values per body of the body table (`BODY_VALUES`).
-pub(super) const BODY: usize = 8;
+pub(in crate::ops) const BODY: usize = 8;
 
 /// `solids[at]` as an index.
 #[cube]
-pub(super) fn index(solids: &Array<f32>, at: usize) -> usize {
+pub(in crate::ops) fn index(solids: &Array<f32>, at: usize) -> usize {
     u32::cast_from(solids[at]) as usize
 }
 
@@ -34,7 +34,7 @@ pub(super) fn index(solids: &Array<f32>, at: usize) -> usize {
 /// every pair stretched past the stretch limit times its rest distance along the chain moved
 /// half each along its axis (`Chain::project`).
 #[cube]
-pub(super) fn ropes(frames: &mut Array<f32>, solids: &Array<f32>, base: usize, s: usize, u: usize) {
+pub(in crate::ops) fn ropes(frames: &mut Array<f32>, solids: &Array<f32>, base: usize, s: usize, u: usize) {
     let row = HEAD + PER_SCENE * s;
     let (first, end) = (index(solids, row), index(solids, row + 1));
     let chains_at = index(solids, 0);
@@ -115,7 +115,7 @@ fn chain_level(
 /// linear share, each particle moved its stiffness of the way to its goal.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn bodies(
+pub(in crate::ops) fn bodies(
     frames: &mut Array<f32>,
     solids: &Array<f32>,
     shared: &mut SharedMemory<f64>,
@@ -175,7 +175,7 @@ pub(super) fn bodies(
 /// of the cube calls it.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn centre(
+pub(in crate::ops) fn centre(
     frames: &Array<f32>,
     solids: &Array<f32>,
     shared: &mut SharedMemory<f64>,

@@ -1,11 +1,11 @@
-//! [`NetOps::read_ahead`](super::NetOps::read_ahead) on burn's CUDA backend (feature
+//! [`NetOps::read_ahead`](crate::ops::NetOps::read_ahead) on burn's CUDA backend (feature
 //! `cuda`): a tensor copied to pinned host memory in stream order, behind the kernels
 //! recorded before it, and an event after the copy that the host waits on. The copy is a
 //! custom operation of burn's fusion layer (how one joins the fusion stream, and how it is
 //! queued on cubecl's device thread without a host wait: `cublas.rs`), and the fusion stream
 //! is drained when it is recorded, so the copy is queued at once, before the work the host
 //! records next (cubecl's device thread is handed its queued tasks at once,
-//! `cuda_device::flush_device`). Waiting on the event waits for the copy and what came
+//! `cuda::device::flush_device`). Waiting on the event waits for the copy and what came
 //! before it, not for what was queued after: the next network call runs on the GPU while the
 //! host takes this one's predictions (the surrogate node's pipelined calls, docs/scale.md).
 //!
@@ -23,9 +23,9 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
-use super::cuda_device::{flush_device, on_device, primary_context};
-use super::{OpsError, ReadAhead};
+use crate::ops::cuda::net::conv::{contiguous, Cuda, Inner, Runtime};
+use crate::ops::cuda::device::{flush_device, on_device, primary_context};
+use crate::ops::{OpsError, ReadAhead};
 
 /// How long a wait gives the device thread to queue the copy before it reports an error
 /// (the copy is queued right after the work before it is launched, so only a stuck device
@@ -227,7 +227,7 @@ fn wait(
     }
 }
 
-/// [`NetOps::read_ahead`](super::NetOps::read_ahead) on the GPU: `x`'s values (row-major,
+/// [`NetOps::read_ahead`](crate::ops::NetOps::read_ahead) on the GPU: `x`'s values (row-major,
 /// any shape) copied to the host behind the work recorded so far; the fusion stream is
 /// drained so that the copy is queued now.
 pub(crate) fn read_ahead(x: FloatTensor<Cuda>) -> ReadAhead {

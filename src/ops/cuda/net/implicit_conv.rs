@@ -15,7 +15,7 @@
 //! the two in one binary (`tests/gpu/run.sh fused`). On one H200 the 256-scene call of
 //! `all-grid-mingru` took 0.165 ms a scene-frame with it against 0.134 with im2col and
 //! cuBLAS, 0.164 against 0.146 on another (docs/speed.md, "Roofline"). Training keeps
-//! im2col (its backward is col2im and products: `cuda_conv.rs`).
+//! im2col (its backward is col2im and products: `cuda/net/conv.rs`).
 
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{ConvOptions, FloatTensor, FloatTensorOps};
@@ -25,8 +25,8 @@ use burn_fusion::stream::{Operation, OperationStreams};
 use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 
-use super::cuda_conv::{contiguous, Cuda, Inner, Runtime};
-use super::OpsError;
+use super::conv::{contiguous, Cuda, Inner, Runtime};
+use crate::ops::OpsError;
 
 /// The recorded convolution: inputs `[x, weight]` and `[bias]` when it has one, output `[y]`.
 #[derive(Debug)]
@@ -60,7 +60,7 @@ impl Operation<Runtime> for ConvOp {
     }
 }
 
-/// [`NetOps::conv3x3_forward`](super::NetOps::conv3x3_forward) on the GPU, without SiLU: the
+/// [`NetOps::conv3x3_forward`](crate::ops::NetOps::conv3x3_forward) on the GPU, without SiLU: the
 /// 3x3 same-padding convolution of the channel concatenation of `parts` (`[B, H, W, C_p]`
 /// each), `weight` `[C_out, C_in, 3, 3]` (burn's `Conv2d` layout), `bias` `[C_out]` ->
 /// `[B, H, W, C_out]`. One concatenation when there are several parts, one copy of the
@@ -68,12 +68,12 @@ impl Operation<Runtime> for ConvOp {
 ///
 /// # Panics
 /// The parts' channels do not add up to the weight's `C_in`, or the kernel is not 3x3.
-pub(super) fn conv3x3(
+pub(in crate::ops) fn conv3x3(
     parts: &[FloatTensor<Cuda>],
     weight: &FloatTensor<Cuda>,
     bias: Option<&FloatTensor<Cuda>>,
 ) -> FloatTensor<Cuda> {
-    let x = super::cuda_conv::cat_channels(parts);
+    let x = super::conv::cat_channels(parts);
     let (xs, ws) = (x.shape(), weight.shape());
     assert!(
         ws[1] == xs[3] && ws[2] == 3 && ws[3] == 3,

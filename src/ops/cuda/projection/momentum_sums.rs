@@ -1,5 +1,5 @@
 //! The momentum part's clusters moved onto free flight on the device (feature `cuda`): the
-//! second half of `cuda_momentum.rs`, after its clusters are found. Each cluster sums its
+//! second half of `cuda/projection/momentum.rs`, after its clusters are found. Each cluster sums its
 //! particles' positions and velocities in fixed point (2^-32 domain units, 2^-24 velocity
 //! units, rounded: the same bits in any order, on every run) at its root, and every particle
 //! of a free axis of a cluster takes the cluster's shift and kick
@@ -10,13 +10,13 @@
 use burn_cubecl::cubecl;
 use cubecl::prelude::*;
 
-use super::cuda_buffers::Buffers;
-use super::cuda_liquid_solve::THREADS;
-use super::cuda_momentum::{find, LAW};
+use super::buffers::Buffers;
+use super::liquid_solve::THREADS;
+use super::momentum::{find, LAW};
 
 /// Sums a root holds: the positions before (x, y), the positions now, the velocities before,
 /// the velocities the frame ends with, the count.
-pub(super) const SUMS: usize = 9;
+pub(in crate::ops) const SUMS: usize = 9;
 /// Fixed-point units of a position and of a velocity.
 const POSITION_UNITS: f64 = 4294967296.0;
 const VELOCITY_UNITS: f64 = 16777216.0;
@@ -25,9 +25,9 @@ const VELOCITY_UNITS: f64 = 16777216.0;
 /// (`cellof` takes the roots), then every particle its cluster's shift and kick on each free
 /// axis, in frame `k` (`solids`' head holds the part's reach, clearance, lag and gravity x
 /// and y from [`LAW`]; `dt` the scene's time step). Every thread calls it, after
-/// [`join_frame`](super::cuda_momentum::join_frame) of both frames.
+/// [`join_frame`](super::momentum::join_frame) of both frames.
 #[cube]
-pub(super) fn conserve(b: &mut Buffers, dt: f32, n: u32, k: u32, s: usize, u: usize) {
+pub(in crate::ops) fn conserve(b: &mut Buffers, dt: f32, n: u32, k: u32, s: usize, u: usize) {
     let prev_at = s * n as usize * 4;
     let at = k as usize * b.before.len() + prev_at;
     sum_clusters(b, dt, n, at, s, u);
