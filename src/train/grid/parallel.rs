@@ -12,12 +12,10 @@
 //! the weights, up to float summation order, where no term depends on the batch as a whole
 //! (the input noise, drawn per device, and the structure terms, normalised per share, do).
 
-use std::time::Instant;
-
 use burn::module::Module;
 use burn::optim::{GradientsParams, MultiGradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, DeviceOps};
-use burn::tensor::{ElementConversion, StreamId, Tensor};
+use burn::tensor::{ElementConversion, StreamId};
 
 use super::batch::HostBatch;
 use super::rollout_loss::Rollout;
@@ -25,14 +23,12 @@ use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
 
-/// What one device did in a chunk: its rollout (carried into the next chunk), its weighted
-/// gradients, its device's id and its weighted loss (not read back).
-type Share<'r, B> = (
-    Rollout<'r, B>,
-    GradientsParams,
-    burn::tensor::backend::DeviceId,
-    Tensor<<B as AutodiffBackend>::InnerBackend, 1>,
-);
+/// What one device did in a chunk: its rollout (carried into the next chunk; dropped on its
+/// own thread after the last), its weighted gradients, its device's id and its weighted
+/// loss, read back on its own thread. A device's tensors are used and dropped only on the
+/// thread of its stream but for the gradients `step_multi` takes: a rollout dropped on the
+/// main thread once panicked burn's fusion layer ("Should have handle for tensor").
+type Share<'r, B> = (Option<Rollout<'r, B>>, GradientsParams, burn::tensor::backend::DeviceId, f64);
 
 impl<B: AutodiffBackend + NetOps> GridTrainer<B>
 where
@@ -41,8 +37,8 @@ where
     /// One batch's optimizer steps with its `shares` (one per device, in the order of
     /// [`GridTrainer::devices`]) at learning rate `lr`, on the run's `streams`: per chunk,
     /// each device's forward and backward on a fork of the model, then one `step_multi`.
-    /// Returns the model, the batch's loss (the mean over its chunks) and the seconds spent
-    /// reading the losses back.
+    /// Returns the model, the batch's loss (the mean over its chunks) and 0 s of waiting
+    /// (each device's loss is read back on its own thread, inside the step).
     pub(super) fn parallel_step(
         &self,
         mut model: GridModel<B>,
@@ -55,8 +51,9 @@ where
         let devices = self.devices();
         let mut hosts: Vec<Option<HostBatch>> = shares.into_iter().map(Some).collect();
         let mut rollouts: Vec<Option<Rollout<'_, B>>> = hosts.iter().map(|_| None).collect();
-        let (chunks, mut value, mut wait) = (self.opts.chunks(), 0.0, 0.0);
-        for _ in 0..chunks {
+        let (chunks, mut value, wait) = (self.opts.chunks(), 0.0, 0.0);
+        for chunk in 0..chunks {
+            let last = chunk + 1 == chunks;
             let results: Vec<Share<'_, B>> = std::thread::scope(|workers| {
                 let handles: Vec<_> = (hosts.iter_mut().zip(rollouts.iter_mut()))
                     .zip(devices.iter().zip(streams).enumerate())
@@ -67,7 +64,8 @@ where
                                 let seed = (self.opts.seed.wrapping_mul(1_000_003))
                                     .wrapping_add(step)
                                     .wrapping_add((k as u64) << 32);
-                                self.share_chunk(model, (host, rollout), device, (seed, total))
+                                let share = (host, rollout, last);
+                                self.share_chunk(model, share, device, (seed, total))
                             })
                         })
                     })
@@ -77,17 +75,14 @@ where
                     .collect()
             });
             let mut multi = MultiGradientsParams::default();
-            let mut losses = Vec::with_capacity(results.len());
+            let mut sum = 0.0;
             for (k, (rollout, grads, id, loss)) in results.into_iter().enumerate() {
-                rollouts[k] = Some(rollout);
+                rollouts[k] = rollout;
                 multi.grads.push((grads, id));
-                losses.push(loss);
+                sum += loss;
             }
             model = optim.step_multi(lr, model, multi);
-            let waited = Instant::now();
-            let sum: f64 = (losses.into_iter()).map(|l| l.into_scalar().elem::<f64>()).sum();
             value += sum / chunks as f64;
-            wait += waited.elapsed().as_secs_f64();
         }
         (model, value, wait)
     }
@@ -95,11 +90,12 @@ where
     /// One device's part of a chunk: the model forked to `device`, its share's rollout
     /// begun (`host`, uploaded, its noise drawn from `seed`, its push-forward calls made)
     /// or carried on (`rollout`, cut from the last chunk's gradient), its chunk loss
-    /// weighted by its `b / total` of the batch and differentiated.
+    /// weighted by its `b / total` of the batch, differentiated and read back; the rollout
+    /// dropped here after the `last` chunk.
     fn share_chunk<'r>(
         &'r self,
         model: &GridModel<B>,
-        (host, rollout): (Option<HostBatch>, Option<Rollout<'r, B>>),
+        (host, rollout, last): (Option<HostBatch>, Option<Rollout<'r, B>>, bool),
         device: &B::Device,
         (seed, total): (u64, usize),
     ) -> Share<'r, B> {
@@ -120,6 +116,7 @@ where
         let weight = rollout.windows() as f32 / total.max(1) as f32;
         let loss = rollout.chunk_loss(&local).mul_scalar(weight);
         let grads = GradientsParams::from_grads(loss.backward(), &local);
-        (rollout, grads, device.id(), loss.inner())
+        let value = loss.into_scalar().elem::<f64>();
+        (if last { None } else { Some(rollout) }, grads, device.id(), value)
     }
 }

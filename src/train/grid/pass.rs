@@ -12,7 +12,7 @@
 
 use std::time::Instant;
 
-use burn::module::AutodiffModule;
+use burn::module::{AutodiffModule, Module};
 use burn::optim::{GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ElementConversion;
@@ -250,7 +250,13 @@ where
             return Ok(train_loss);
         }
         let meta = self.output.meta(epoch, 0.0);
-        let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
+        // After a data-parallel step each parameter lives on the device that updated it
+        // (`step_multi` shards them): the rollouts run on the main device.
+        let model = match t.replicas.is_empty() {
+            true => model.valid(),
+            false => model.valid().to_device(&t.device),
+        };
+        let surrogate = Surrogate::from_net(Net::Grid(model), meta, &t.device);
         let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
         let structure = t.opts.strain_weight > 0.0 || t.opts.volume_weight > 0.0;
         Ok(validation_rollout(
