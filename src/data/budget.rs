@@ -67,9 +67,9 @@ impl ResidentBudget {
         }
     }
 
-    /// What the budget is, for a log line: `N frames` and, for `auto`, where it came from.
-    pub fn describe(&self, n: usize) -> String {
-        let frames = self.frames(n);
+    /// What the budget is, for a log line: the `frames` that [`Self::frames`] gave for `n`
+    /// particles and, for `auto`, where they came from.
+    pub fn describe(&self, n: usize, frames: usize) -> String {
         match (self, available_memory()) {
             (Self::Auto, Some(bytes)) => format!(
                 "{frames} frames of {n} particles ({:.0} % of the {:.1} GiB available)",
@@ -112,7 +112,10 @@ mod tests {
         let frames = ResidentBudget::Auto.frames(2500);
         let expected = (bytes as f64 * super::AUTO_SHARE) as usize / 40_000;
         // The memory may change between the two reads: within 5 %.
-        assert!(frames.abs_diff(expected) <= expected / 20 + 1, "{frames} vs {expected}");
+        assert!(
+            frames.abs_diff(expected) <= expected / 20 + 1,
+            "{frames} vs {expected}"
+        );
         assert!(ResidentBudget::Auto.frames(40_000) < frames);
     }
 }

@@ -59,7 +59,7 @@ impl Batch {
     /// (the first ones one window larger): a data-parallel step's shares, one per device.
     /// Fewer parts than asked when the batch has fewer windows; none when it is empty.
     pub fn shards(&self, parts: usize) -> Vec<Batch> {
-        let parts = parts.clamp(1, self.b.max(1)).min(self.b);
+        let parts = parts.max(1).min(self.b);
         let (t, n) = (self.t, self.n);
         let mut out = Vec::with_capacity(parts);
         let mut start = 0;

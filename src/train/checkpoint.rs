@@ -12,8 +12,8 @@
 //! to it with a warning naming the file. Used by [`super::epochs::run_epochs`] for `minflow
 //! train` of either architecture.
 
-use super::progress::Unfinished;
 use super::ledger::RunLedger;
+use super::progress::Unfinished;
 use super::{EpochRecord, TrainError};
 use crate::data::Scaler;
 use crate::model::store::{self, ModelMeta, NetConfig, RunFolder};
@@ -98,9 +98,7 @@ impl RunOutput {
             ledger: &ledger,
         };
         save(&self.folder, model, optim, &state)?;
-        let path = self.folder.dir().join("run.json");
-        let json = serde_json::to_string_pretty(&ledger).map_err(|e| err(&path, e))?;
-        std::fs::write(&path, json).map_err(|e| err(&path, e))
+        write_json(&self.folder.dir().join("run.json"), &ledger)
     }
 }
 
@@ -228,35 +226,17 @@ fn read<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     fresh: M,
     device: &B::Device,
 ) -> Result<Resumed<M, O::Record>, store::StoreError> {
-    let damaged =
-        |file: &str, source: Box<dyn std::error::Error + Send + Sync>| store::StoreError::Damaged {
-            path: dir.join(file),
-            source,
-        };
+    let damaged = |file: &str, source| damaged(dir, file, source);
     let recorder = NamedMpkFileRecorder::<FullPrecisionSettings>::new();
     let model = fresh
         .load_file(dir.join("model"), &recorder, device)
         .map_err(|e| damaged("model.mpk", e.into()))?;
     let optim: O::Record = Recorder::<B>::load(&recorder, dir.join("optim"), device)
         .map_err(|e| damaged("optim.mpk", e.into()))?;
-    let text = std::fs::read_to_string(dir.join("history.json"))
-        .map_err(|e| damaged("history.json", e.into()))?;
-    let history = serde_json::from_str(&text).map_err(|e| damaged("history.json", e.into()))?;
-    let optional = |file: &str| match std::fs::read_to_string(dir.join(file)) {
-        Ok(text) => Ok(Some(text)),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(damaged(file, e.into())),
-    };
-    let unfinished = match optional("partial.json")? {
-        Some(text) => {
-            Some(serde_json::from_str(&text).map_err(|e| damaged("partial.json", e.into()))?)
-        }
-        None => None,
-    };
-    let ledger = match optional("ledger.json")? {
-        Some(text) => Some(serde_json::from_str(&text).map_err(|e| damaged("ledger.json", e.into()))?),
-        None => None,
-    };
+    // Checkpoints written before the unfinished epoch and the ledger existed lack them.
+    let history = read_json(dir, "history.json", true)?.unwrap_or_default();
+    let unfinished = read_json(dir, "partial.json", false)?;
+    let ledger = read_json(dir, "ledger.json", false)?;
     Ok(Resumed {
         model,
         optim,
@@ -264,4 +244,32 @@ fn read<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
         unfinished,
         ledger,
     })
+}
+
+/// `dir/file` parsed as JSON; None when it is missing and not `required`.
+fn read_json<T: serde::de::DeserializeOwned>(
+    dir: &Path,
+    file: &str,
+    required: bool,
+) -> Result<Option<T>, store::StoreError> {
+    let text = match std::fs::read_to_string(dir.join(file)) {
+        Ok(text) => text,
+        Err(e) if !required && e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(damaged(dir, file, e.into())),
+    };
+    serde_json::from_str(&text)
+        .map(Some)
+        .map_err(|e| damaged(dir, file, e.into()))
+}
+
+/// The error of a damaged checkpoint file `dir/file`.
+fn damaged(
+    dir: &Path,
+    file: &str,
+    source: Box<dyn std::error::Error + Send + Sync>,
+) -> store::StoreError {
+    store::StoreError::Damaged {
+        path: dir.join(file),
+        source,
+    }
 }

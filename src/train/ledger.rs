@@ -128,7 +128,11 @@ pub struct RunLedger {
 impl RunLedger {
     /// The ledger a call resumes (`resumed`, or a new one) with this call added: it began
     /// now, on `devices`, with `dataset`.
-    pub fn begin_call(resumed: Option<RunLedger>, devices: Vec<String>, dataset: DatasetInfo) -> Self {
+    pub fn begin_call(
+        resumed: Option<RunLedger>,
+        devices: Vec<String>,
+        dataset: DatasetInfo,
+    ) -> Self {
         let mut ledger = resumed.unwrap_or_default();
         let began_unix = SystemTime::now()
             .duration_since(UNIX_EPOCH)

@@ -207,8 +207,8 @@ fn an_epoch_resumes_at_any_batch() {
     let dir = crate::tmp::tempdir().expect("tempdir");
     let infos = data::scan(&dataset(dir.path()), None).expect("scan");
     for budget in [12, 30, 71] {
-        let mut loader =
-            StreamingLoader::new(infos.clone(), None, T, Scaler::default(), budget).expect("loader");
+        let mut loader = StreamingLoader::new(infos.clone(), None, T, Scaler::default(), budget)
+            .expect("loader");
         let full: Vec<Vec<(u32, u32)>> = (loader.epoch(3, Some(9), 2).expect("epoch"))
             .map(|b| b.expect("batch").ids)
             .collect();
@@ -227,6 +227,9 @@ fn an_epoch_resumes_at_any_batch() {
         }
         assert_eq!(stretches, full, "budget {budget}: continued in stretches");
         let peak = loader.peak_resident_frames();
-        assert!(peak > 0 && peak <= budget, "peak {peak} frames, budget {budget}");
+        assert!(
+            peak > 0 && peak <= budget,
+            "peak {peak} frames, budget {budget}"
+        );
     }
 }

@@ -19,7 +19,13 @@ fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
     let schedule = crate::TINY_GRID_SCHEDULE;
     let set = |f: &[&str]| !extra.contains(&f[0]);
     args.extend(schedule.chunks(2).filter(|f| set(f)).flatten().copied());
-    args.extend(crate::TINY_GRID_NET.chunks(2).filter(|f| set(f)).flatten().copied());
+    args.extend(
+        crate::TINY_GRID_NET
+            .chunks(2)
+            .filter(|f| set(f))
+            .flatten()
+            .copied(),
+    );
     args.extend_from_slice(extra);
     Command::new(env!("CARGO_BIN_EXE_minflow"))
         .args(&args)
@@ -52,7 +58,8 @@ fn weights(dir: &Path) -> Vec<u32> {
             self.0.extend(values.iter().map(|v| v.to_bits()));
         }
     }
-    let (net, _) = minflow::model::store::load_net::<NdArray<f32>>(dir, &Default::default()).unwrap();
+    let (net, _) =
+        minflow::model::store::load_net::<NdArray<f32>>(dir, &Default::default()).unwrap();
     let Net::Grid(model) = net else {
         panic!("{}: not a grid model", dir.display())
     };
@@ -70,7 +77,15 @@ fn json(path: &Path) -> serde_json::Value {
 /// steps 3, 6 (mid-epoch) and 8 (the end)), with `extra` flags.
 fn straight_and_in_calls(extra: &[&str]) {
     let flags = [
-        &["--epochs", "2", "--model", "mingru", "--mirror", "--samples-per-epoch", "16"][..],
+        &[
+            "--epochs",
+            "2",
+            "--model",
+            "mingru",
+            "--mirror",
+            "--samples-per-epoch",
+            "16",
+        ][..],
         extra,
     ]
     .concat();
@@ -82,10 +97,17 @@ fn straight_and_in_calls(extra: &[&str]) {
     // Stopped mid-epoch 1: no epoch recorded, the unfinished one checkpointed.
     assert!(losses(calls.path()).is_empty());
     let partial = json(&calls.path().join("checkpoint/partial.json"));
-    assert_eq!((partial["epoch"].as_u64(), partial["pass"]["steps"].as_u64()), (Some(0), Some(3)));
+    assert_eq!(
+        (partial["epoch"].as_u64(), partial["pass"]["steps"].as_u64()),
+        (Some(0), Some(3))
+    );
     let rest = [&flags[..], &["--call-steps", "3", "--resume"]].concat();
     ok(&train_grid(calls.path(), &rest));
-    assert_eq!(losses(calls.path()).len(), 1, "the second call finishes epoch 1");
+    assert_eq!(
+        losses(calls.path()).len(),
+        1,
+        "the second call finishes epoch 1"
+    );
     ok(&train_grid(calls.path(), &rest));
     assert!(!calls.path().join("checkpoint/partial.json").exists());
     let (a, b) = (losses(straight.path()), losses(calls.path()));
@@ -103,7 +125,11 @@ fn straight_and_in_calls(extra: &[&str]) {
     assert_eq!(per_call.len(), 3, "{ledger}");
     assert_eq!(Some(per_call.iter().sum::<u64>()), samples, "{ledger}");
     assert!(ledger["device_hours"].as_f64().unwrap() > 0.0, "{ledger}");
-    assert_eq!(ledger["calls"][0]["devices"][0].as_str(), Some("Cpu"), "{ledger}");
+    assert_eq!(
+        ledger["calls"][0]["devices"][0].as_str(),
+        Some("Cpu"),
+        "{ledger}"
+    );
 }
 
 #[test]

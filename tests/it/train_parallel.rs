@@ -123,7 +123,13 @@ fn grid_data_parallel_equals_one_device_alone() {
     assert_eq!((one.len(), two.len()), (4, 4));
     for (a, b) in one.iter().zip(&two) {
         let rel = (a.train_loss - b.train_loss).abs() / a.train_loss;
-        assert!(rel < 1e-4, "epoch {}: {:e} vs {:e}", a.epoch, a.train_loss, b.train_loss);
+        assert!(
+            rel < 1e-4,
+            "epoch {}: {:e} vs {:e}",
+            a.epoch,
+            a.train_loss,
+            b.train_loss
+        );
     }
     assert!(one[3].train_loss < 0.95 * one[0].train_loss, "{one:?}");
 }

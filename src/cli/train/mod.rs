@@ -87,7 +87,8 @@ pub(super) fn read_data(
 ) -> anyhow::Result<(Vec<SceneInfo>, Option<Vec<Trajectory>>, LoadReport)> {
     // Before the scenes are indexed their particle count is unknown: assume the largest.
     let budget = args.max_resident_frames.frames(data::budget::LARGEST_SCENE);
-    let fits = data::summary_frames(&args.data, topic).is_some_and(|frames| frames <= budget as u64);
+    let fits =
+        data::summary_frames(&args.data, topic).is_some_and(|frames| frames <= budget as u64);
     if fits {
         let (trajs, report) = load(&args.data, topic)?;
         Ok((SceneInfo::of(&trajs), Some(trajs), report))
@@ -101,7 +102,11 @@ pub(super) fn read_data(
 /// The resident budget in frames of the dataset `infos` indexes (`--max-resident-frames` at
 /// its largest particle count), and whether its training scenes `train` must be streamed
 /// (logged with the budget and the chunks when they are).
-pub(super) fn resident_budget(args: &TrainArgs, infos: &[SceneInfo], train: &[SceneInfo]) -> (usize, bool) {
+pub(super) fn resident_budget(
+    args: &TrainArgs,
+    infos: &[SceneInfo],
+    train: &[SceneInfo],
+) -> (usize, bool) {
     let n = infos.iter().map(|s| s.n).max().unwrap_or(2500);
     let budget = args.max_resident_frames.frames(n);
     let total: usize = infos.iter().map(|s| s.frames).sum();
@@ -115,7 +120,7 @@ pub(super) fn resident_budget(args: &TrainArgs, infos: &[SceneInfo], train: &[Sc
             train_frames,
             train.len(),
             args.max_resident_frames,
-            args.max_resident_frames.describe(n),
+            args.max_resident_frames.describe(n, budget),
             budget / 2,
         );
     }
@@ -123,7 +128,11 @@ pub(super) fn resident_budget(args: &TrainArgs, infos: &[SceneInfo], train: &[Sc
 }
 
 /// What the run's ledger (`run.json`) says of its dataset.
-pub(super) fn dataset_info(args: &TrainArgs, train: &[SceneInfo], streamed: bool) -> crate::train::DatasetInfo {
+pub(super) fn dataset_info(
+    args: &TrainArgs,
+    train: &[SceneInfo],
+    streamed: bool,
+) -> crate::train::DatasetInfo {
     crate::train::DatasetInfo {
         inputs: args.data.iter().map(|p| p.display().to_string()).collect(),
         train_scenes: train.len(),

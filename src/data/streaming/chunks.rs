@@ -85,7 +85,9 @@ impl Prefetch {
 
     /// The chunk, waiting for the thread to finish it.
     pub(super) fn wait(self) -> Result<Loaded, DataError> {
-        self.0.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        self.0
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
     }
 }
 

@@ -155,8 +155,12 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
     ) -> Option<FloatTensor<Self>> {
         let _ = prepared;
         let y = match conv_form() {
-            form if cudnn_on(form, weight) => crate::ops::cuda::net::cudnn::conv3x3(parts, weight, bias),
-            ConvForm::Implicit => crate::ops::cuda::net::implicit_conv::conv3x3(parts, weight, bias),
+            form if cudnn_on(form, weight) => {
+                crate::ops::cuda::net::cudnn::conv3x3(parts, weight, bias)
+            }
+            ConvForm::Implicit => {
+                crate::ops::cuda::net::implicit_conv::conv3x3(parts, weight, bias)
+            }
             _ => return None,
         };
         Some(if silu { Self::silu(y) } else { y })
@@ -187,7 +191,9 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
             (3, ConvForm::Cudnn) if cudnn_on(ConvForm::Cudnn, &x) => {
                 crate::ops::cuda::net::cudnn::im2col_linear_backward(x, matrix, grad, need)
             }
-            _ => crate::ops::composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need),
+            _ => {
+                crate::ops::composed_grid::im2col_linear_backward::<Self>(x, matrix, grad, k, need)
+            }
         }
     }
 
@@ -207,7 +213,8 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         input: Option<FloatTensor<Self>>,
         plan: &crate::ops::ProjectionPlan,
     ) -> Option<(FloatTensor<Self>, FloatTensor<Self>)> {
-        (Self::projects_constraints()).then(|| crate::ops::cuda::projection::op::project(out, input, plan))
+        (Self::projects_constraints())
+            .then(|| crate::ops::cuda::projection::op::project(out, input, plan))
     }
 
     /// Unless `MINFLOW_CUDA_PROJECTION=host`.

@@ -23,8 +23,8 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use crate::ops::cuda::net::conv::{contiguous, Cuda, Inner, Runtime};
 use crate::ops::cuda::device::{flush_device, on_device, primary_context};
+use crate::ops::cuda::net::conv::{contiguous, Cuda, Inner, Runtime};
 use crate::ops::{OpsError, ReadAhead};
 
 /// How long a wait gives the device thread to queue the copy before it reports an error

@@ -28,7 +28,12 @@ use crate::ops::NetOps;
 /// loss, read back on its own thread. A device's tensors are used and dropped only on the
 /// thread of its stream but for the gradients `step_multi` takes: a rollout dropped on the
 /// main thread once panicked burn's fusion layer ("Should have handle for tensor").
-type Share<'r, B> = (Option<Rollout<'r, B>>, GradientsParams, burn::tensor::backend::DeviceId, f64);
+type Share<'r, B> = (
+    Option<Rollout<'r, B>>,
+    GradientsParams,
+    burn::tensor::backend::DeviceId,
+    f64,
+);
 
 impl<B: AutodiffBackend + NetOps> GridTrainer<B>
 where
@@ -51,7 +56,7 @@ where
         let devices = self.devices();
         let mut hosts: Vec<Option<HostBatch>> = shares.into_iter().map(Some).collect();
         let mut rollouts: Vec<Option<Rollout<'_, B>>> = hosts.iter().map(|_| None).collect();
-        let (chunks, mut value, wait) = (self.opts.chunks(), 0.0, 0.0);
+        let (chunks, mut value) = (self.opts.chunks(), 0.0);
         for chunk in 0..chunks {
             let last = chunk + 1 == chunks;
             let results: Vec<Share<'_, B>> = std::thread::scope(|workers| {
@@ -84,7 +89,7 @@ where
             model = optim.step_multi(lr, model, multi);
             value += sum / chunks as f64;
         }
-        (model, value, wait)
+        (model, value, 0.0)
     }
 
     /// One device's part of a chunk: the model forked to `device`, its share's rollout
@@ -117,6 +122,11 @@ where
         let loss = rollout.chunk_loss(&local).mul_scalar(weight);
         let grads = GradientsParams::from_grads(loss.backward(), &local);
         let value = loss.into_scalar().elem::<f64>();
-        (if last { None } else { Some(rollout) }, grads, device.id(), value)
+        (
+            if last { None } else { Some(rollout) },
+            grads,
+            device.id(),
+            value,
+        )
     }
 }

@@ -97,17 +97,22 @@ where
         let t = self.trainer;
         let opts = &t.opts;
         let (started, before) = (Instant::now(), pass.seconds);
-        let needs = Needs {
-            rest: t.config.rest_shape || opts.strain_weight > 0.0,
-            liquid_at: (opts.volume_weight > 0.0).then_some(t.config.window - 1),
-            materials: t.config.materials,
-        };
+        let needs = t.needs();
         let first = epoch * self.clock.batches;
-        let spans = stretches(first + pass.steps, first + self.clock.batches, self.pass_batches);
+        let spans = stretches(
+            first + pass.steps,
+            first + self.clock.batches,
+            self.pass_batches,
+        );
         for span in spans {
             let g = first + pass.steps;
             let batches = (self.train)
-                .batches_from(opts.batch_size.max(1), Some(opts.seed), span.pass, span.skip)?
+                .batches_from(
+                    opts.batch_size.max(1),
+                    Some(opts.seed),
+                    span.pass,
+                    span.skip,
+                )?
                 .take(span.take);
             let flips = Flips {
                 seed: opts.seed ^ 0x9e37_79b9,
@@ -166,6 +171,17 @@ impl<B: AutodiffBackend + NetOps> GridTrainer<B>
 where
     B::InnerBackend: NetOps,
 {
+    /// What a batch's preparation builds for this run: the rest and liquid neighbourhoods
+    /// its structure terms need, the one-hot width.
+    fn needs(&self) -> Needs {
+        let opts = &self.opts;
+        Needs {
+            rest: self.config.rest_shape || opts.strain_weight > 0.0,
+            liquid_at: (opts.volume_weight > 0.0).then_some(self.config.window - 1),
+            materials: self.config.materials,
+        }
+    }
+
     /// Run step `step`'s optimizer steps on its batch (`hosts`: one share per device) at
     /// learning rate `lr`: [`Self::step`] on one device, its noise seeded from the run's
     /// seed and `step`; [`Self::parallel_step`] on several. Returns what they return.
@@ -180,7 +196,10 @@ where
         if hosts.len() > 1 {
             return self.parallel_step(model, optim, hosts, (lr, step), streams);
         }
-        B::seed(&self.device, self.opts.seed.wrapping_mul(1_000_003).wrapping_add(step));
+        B::seed(
+            &self.device,
+            self.opts.seed.wrapping_mul(1_000_003).wrapping_add(step),
+        );
         let tensors = hosts.swap_remove(0).upload::<B>(&self.device);
         self.step(model, optim, tensors, lr)
     }

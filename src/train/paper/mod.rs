@@ -213,7 +213,10 @@ where
     /// The model, optimizer and history to start from: freshly initialised (seeded), or
     /// those of `out/checkpoint` when `resume` and there is one, with its ledger. (A paper
     /// run checkpoints after whole epochs only: it has no unfinished epoch.)
-    fn start(&self, resume: bool) -> Result<(Start<Model<B>, Optim<B>>, Option<RunLedger>), TrainError> {
+    fn start(
+        &self,
+        resume: bool,
+    ) -> Result<(Start<Model<B>, Optim<B>>, Option<RunLedger>), TrainError> {
         B::seed(self.main(), self.opts.seed);
         let model: Model<B> = initial_model(&self.config, self.opts.seed, self.main())?;
         let optim = optimizer::FusedAdam::default().init::<B, Model<B>>();

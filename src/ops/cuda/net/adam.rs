@@ -18,8 +18,8 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 
-use crate::ops::adam_step::AdamStep;
 use super::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use crate::ops::adam_step::AdamStep;
 
 /// One Adam step per element (Kingma & Ba 2015, Algorithm 1, in burn's and PyTorch's `eps *
 /// sqrt(1 - b2^t)` form): `g` = `grad[i]`, times `min(1, max_norm / (sqrt(squares[0]) +

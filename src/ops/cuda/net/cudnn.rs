@@ -48,10 +48,10 @@ use burn_fusion::FusionRuntime;
 use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cudarc::cudnn::sys;
 
-use crate::ops::composed_grid::dims4;
 use super::conv::{contiguous, Cuda, Inner, Runtime};
 use super::cudnn_calls::{run, start};
 use super::cudnn_plan::{Dims, Pass};
+use crate::ops::composed_grid::dims4;
 
 /// Whether cuDNN can be loaded (checked once).
 pub(in crate::ops) fn available() -> bool {

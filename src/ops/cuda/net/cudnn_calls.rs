@@ -14,8 +14,8 @@ use burn_cubecl::tensor::CubeTensor;
 use cudarc::cudnn::{result as dnn, sys};
 use cudarc::driver::{result as driver, sys as driver_sys};
 
-use crate::ops::cublas::{kernels, GpuGemm};
 use super::cudnn_plan::{check, plan, Algo, Dims, Key, Pass, Plan};
+use crate::ops::cublas::{kernels, GpuGemm};
 use crate::ops::cuda::device::{after_foreign, on_device, primary_context, Resource};
 use crate::ops::OpsError;
 

@@ -18,14 +18,16 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::buffers::BuffersLaunch;
-use crate::ops::cuda::net::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
+use super::call::call_kernel;
 use super::liquid::{copy_kernel, zero_kernel};
 use super::liquid_solve::{moves_kernel, THREADS};
 use super::momentum_sums::SUMS;
-use super::call::call_kernel;
+use crate::ops::cuda::net::conv::{contiguous, elementwise, Cuda, Inner, Runtime};
 use std::sync::{Arc, Mutex, OnceLock};
 
-use crate::ops::{event_table_len, ProjectionPlan, TablesLater, MATERIALS, MOMENTUM_AT, SCENE_VALUES};
+use crate::ops::{
+    event_table_len, ProjectionPlan, TablesLater, MATERIALS, MOMENTUM_AT, SCENE_VALUES,
+};
 
 /// The largest factor the energy step scales a frame's velocities by (`energy::MAX_SCALE`).
 const MAX_SCALE: f32 = 2.0;

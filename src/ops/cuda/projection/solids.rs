@@ -34,7 +34,13 @@ pub(in crate::ops) fn index(solids: &Array<f32>, at: usize) -> usize {
 /// every pair stretched past the stretch limit times its rest distance along the chain moved
 /// half each along its axis (`Chain::project`).
 #[cube]
-pub(in crate::ops) fn ropes(frames: &mut Array<f32>, solids: &Array<f32>, base: usize, s: usize, u: usize) {
+pub(in crate::ops) fn ropes(
+    frames: &mut Array<f32>,
+    solids: &Array<f32>,
+    base: usize,
+    s: usize,
+    u: usize,
+) {
     let row = HEAD + PER_SCENE * s;
     let (first, end) = (index(solids, row), index(solids, row + 1));
     let chains_at = index(solids, 0);
