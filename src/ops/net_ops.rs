@@ -415,4 +415,21 @@ pub trait NetOps: Backend {
     fn elu_backward(out: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         composed::composed_elu_backward::<Self>(out, grad)
     }
+
+    /// The element-wise sum of `tensors` over the ranks of a data-parallel group, one rank per
+    /// device of `devices` (this rank's tensors on its own device, any shapes, the same shapes
+    /// and order on every rank), through the backend's own collective: every rank calls this
+    /// with its tensors and gets the sums back on its device, queued behind its work (on
+    /// CUDA NCCL's all-reduce, as cubecl-cuda drives it, over NVLink where the GPUs have it).
+    /// `Err` hands the tensors back where the backend has no collective for `devices` (the
+    /// default; on CUDA, a list that names a GPU twice), and then on every rank alike: the
+    /// caller sums them another way (`train::grid`'s host rendezvous).
+    #[allow(clippy::type_complexity)]
+    fn all_reduce_sum(
+        tensors: Vec<FloatTensor<Self>>,
+        devices: &[Self::Device],
+    ) -> Result<Vec<FloatTensor<Self>>, Vec<FloatTensor<Self>>> {
+        let _ = devices;
+        Err(tensors)
+    }
 }

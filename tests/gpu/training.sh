@@ -6,8 +6,9 @@
 #   tests/gpu/training.sh stream    # the same run resident and streamed, side by side on two
 #                                   # GPUs: samples/s of each epoch (metrics.csv)
 #   tests/gpu/training.sh resume    # a run in three calls against the straight run on the GPU
-#   tests/gpu/training.sh parallel  # bench train --arch grid on 1, 2 and 4 GPUs (more: GPUS=8),
-#                                   # the small and the full shape, the same global batch
+#   tests/gpu/training.sh parallel  # bench train --arch grid on 1, 2 and 4 GPUs (GPUS=2, 8),
+#                                   # the small and the full shape, global batches 64 to 1024
+#   tests/gpu/training.sh equal     # two GPUs against one: the same losses
 #
 # Parts run in the order given; logs and tables go to $OUT (default /tmp/minflow-gpu).
 set -uo pipefail
@@ -19,6 +20,15 @@ mkdir -p "$OUT" runs
 if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
+fi
+# NCCL (data-parallel runs) where the system has none: PyTorch's wheel ships libnccl.so.2,
+# which cudarc looks for as libnccl.so.
+if ! ldconfig -p 2>/dev/null | grep -q "libnccl.so "; then
+    nccl=$(python3 -c "import nvidia.nccl, os; print(os.path.join(list(nvidia.nccl.__path__)[0], 'lib'))" 2>/dev/null)
+    if [ -n "$nccl" ] && [ -f "$nccl/libnccl.so.2" ]; then
+        mkdir -p "$OUT/lib" && ln -sf "$nccl/libnccl.so.2" "$OUT/lib/libnccl.so"
+        export LD_LIBRARY_PATH="$OUT/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+    fi
 fi
 SMALL=(--grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 --head-hidden 64)
 
@@ -65,18 +75,35 @@ resume() {
 print('ledger:', l['samples'], 'samples,', len(l['calls']), 'calls,', l['device_hours'], 'device-hours')"
 }
 
+# samples/s of bench train --arch grid on 1, 2, 4 (8) GPUs at global batches 64, 256 and 1024.
 parallel() {
-    local gpus=${GPUS:-4} list="cuda:0" shape
+    local gpus=${GPUS:-4} list="cuda:0" shape batch
     for n in $(seq 1 "$gpus"); do
         [ "$n" -gt 1 ] && list="$list,cuda:$((n - 1))"
         case $n in 1 | 2 | 4 | 8) ;; *) continue ;; esac
-        for shape in 32 64; do
-            echo "== $n GPU(s), grid $shape"
-            "$BIN" bench train --arch grid --device "$list" --cores mingru --grid "$shape" \
-                --micro-batch 64 --samples 2048 --epochs 3 --warmup-epochs 1 --rollout-steps 4 \
-                2>&1 | grep -E "^mingru|grid architecture"
+        for shape in ${SHAPES:-32 64}; do
+            for batch in ${BATCHES:-64 256 1024}; do
+                echo "== $n GPU(s), grid $shape, global batch $batch"
+                "$BIN" bench train --arch grid --device "$list" --cores mingru --grid "$shape" \
+                    --micro-batch "$batch" --samples $((batch * 12)) --epochs 3 --warmup-epochs 1 \
+                    --rollout-steps 4 2>&1 | grep -E "^mingru|grid architecture|rror|panic"
+            done
         done
     done
+}
+
+# Two GPUs against one: the tiny network without input noise, 3 epochs; the losses agree
+# to float noise.
+equal() {
+    local tiny=(--data bags --grid 16 --levels 2 --unet-width 4 --latent 4 --hidden 4
+        --head-hidden 8 --rollout-steps 2 --batch-size 8 --val-starts 1 --val-horizon 3
+        --noise 0 --epochs 3 --model mingru --samples-per-epoch 32)
+    rm -rf runs/one runs/two
+    "$BIN" train "${tiny[@]}" --device cuda:0 --out runs/one >"$OUT/one.log" 2>&1
+    "$BIN" train "${tiny[@]}" --device cuda:0,cuda:1 --out runs/two >"$OUT/two.log" 2>&1 ||
+        tail -n 5 "$OUT/two.log"
+    echo "one GPU:"; cut -d, -f1-4 runs/one/metrics.csv
+    echo "two GPUs:"; cut -d, -f1-4 runs/two/metrics.csv
 }
 
 for part in "$@"; do

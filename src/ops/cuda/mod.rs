@@ -11,9 +11,11 @@
 //! The device code by job: `net/` the network's layers (the convolutions, cuDNN, the
 //! stencil transfers, the minRNN updates, Adam), `projection/` the constraint projection's
 //! parts (one file per part, named as its host form in `model/constraints/`), and here what
-//! both share: `device.rs` (a GPU's context and the calls queued on cubecl's device thread)
-//! and `read.rs` (a tensor read back behind the recorded work).
+//! both share: `device.rs` (a GPU's context and the calls queued on cubecl's device thread),
+//! `read.rs` (a tensor read back behind the recorded work) and `collective.rs` (the
+//! all-reduce of data-parallel training's gradients over NCCL).
 
+pub(in crate::ops) mod collective;
 pub(in crate::ops) mod device;
 pub(in crate::ops) mod net;
 pub(in crate::ops) mod projection;
@@ -245,5 +247,12 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
 
     fn kernels(device: &Self::Device) -> crate::ops::Kernels {
         crate::ops::cublas::kernels(device.index)
+    }
+
+    fn all_reduce_sum(
+        tensors: Vec<FloatTensor<Self>>,
+        devices: &[Self::Device],
+    ) -> Result<Vec<FloatTensor<Self>>, Vec<FloatTensor<Self>>> {
+        collective::all_reduce_sum(tensors, devices)
     }
 }

@@ -29,7 +29,7 @@
 //! grid`.
 //!
 //! Files: this one holds the trainer; `pass.rs` its run over the shared epoch loop and an
-//! epoch's pass over the batches; `parallel.rs` the data-parallel step over several devices; `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
+//! epoch's pass over the batches; `parallel.rs` the data-parallel step over several devices (its all-reduce in `reduce.rs`); `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
 //! prepares the batches, `rollout_loss.rs` the rollout loss (its terms in
 //! `rollout_loss/terms.rs`), `validate.rs` the validation rollouts, `schedule.rs` the
 //! normalisation statistics, the learning-rate schedule and the run's clock.
@@ -39,6 +39,7 @@ mod feed;
 mod options;
 mod parallel;
 mod pass;
+mod reduce;
 mod rollout_loss;
 mod schedule;
 mod validate;
@@ -161,6 +162,13 @@ where
         main.chain(self.replicas.iter().cloned()).collect()
     }
 
+    /// A fresh Adam for the run's model, clipping each gradient's norm to `--clip` when
+    /// it is positive.
+    fn optimizer(&self) -> GridOptim<B> {
+        let clip = (self.opts.clip > 0.0).then_some(self.opts.clip);
+        FusedAdam::default().init_clipped::<B, GridModel<B>>(clip)
+    }
+
     /// `model` (`--init-from`) grown into what [`GridTrainer::config`] asks for, in the order
     /// the channels are laid out: reference, bundle, rest shape, update; on the configured
     /// network grid.
@@ -203,8 +211,7 @@ where
             },
             None => initial_grid_model(&self.config, opts.seed, &self.device)?,
         };
-        let clip = (opts.clip > 0.0).then_some(opts.clip);
-        let mut optim = FusedAdam::default().init_clipped::<B, GridModel<B>>(clip);
+        let mut optim = self.optimizer();
         let (mut history, mut unfinished, mut ledger) = (Vec::new(), None, None);
         if resume {
             if let Some(state) = checkpoint::load::<B, _, _>(

@@ -12,13 +12,14 @@
 
 use std::time::Instant;
 
-use burn::module::{AutodiffModule, Module};
+use burn::module::AutodiffModule;
 use burn::optim::{GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::ElementConversion;
 
 use super::batch::{HostBatch, Needs};
 use super::feed::{BatchFeed, Flips};
+use super::parallel::{Reduce, Replicas};
 use super::rollout_loss::Rollout;
 use super::schedule::RunClock;
 use super::{learning_rate, validation_rollout, GridOptim, GridTrainer};
@@ -125,6 +126,7 @@ where
             let shares = streams.len();
             model = std::thread::scope(|scope| {
                 let feed = BatchFeed::start(scope, batches, flips, (opts.mirror, shares), needs);
+                let replicas = (shares > 1).then(|| t.replicas(scope, &model, optim, streams));
                 let mut fetch = Instant::now();
                 while let Some(hosts) = feed.next() {
                     let hosts = hosts?;
@@ -134,7 +136,8 @@ where
                     pass.data_seconds += fetch.elapsed().as_secs_f64();
                     let lr = learning_rate(opts, clock.progress(opts, epoch, k));
                     let (value, waited);
-                    (model, value, waited) = t.batch_step(model, optim, hosts, (lr, step), streams);
+                    (model, value, waited) =
+                        t.batch_step(model, optim, hosts, (lr, step), replicas.as_ref());
                     pass.wait_seconds += waited;
                     pass.add_step(value, b, (epoch, k, clock.batches), started, observer)?;
                     let last = pass.steps >= clock.batches;
@@ -183,47 +186,59 @@ where
     }
 
     /// Run step `step`'s optimizer steps on its batch (`hosts`: one share per device) at
-    /// learning rate `lr`: [`Self::step`] on one device, its noise seeded from the run's
-    /// seed and `step`; [`Self::parallel_step`] on several. Returns what they return.
+    /// learning rate `lr`: [`Self::step`] on one device, [`Self::parallel_step`] with the
+    /// `replicas` of several. Returns what they return.
     fn batch_step(
         &self,
         model: GridModel<B>,
         optim: &mut GridOptim<B>,
         mut hosts: Vec<HostBatch>,
         (lr, step): (f64, u64),
-        streams: &[burn::tensor::StreamId],
+        replicas: Option<&Replicas<B>>,
     ) -> (GridModel<B>, f64, f64) {
-        if hosts.len() > 1 {
-            return self.parallel_step(model, optim, hosts, (lr, step), streams);
+        match replicas {
+            Some(replicas) => self.parallel_step(model, optim, hosts, (lr, step), replicas),
+            None => self.step(model, optim, hosts.swap_remove(0), (lr, step), None),
         }
-        B::seed(
-            &self.device,
-            self.opts.seed.wrapping_mul(1_000_003).wrapping_add(step),
-        );
-        let tensors = hosts.swap_remove(0).upload::<B>(&self.device);
-        self.step(model, optim, tensors, lr)
     }
 
-    /// One batch's optimizer steps at learning rate `lr`: the push-forward calls, then a
-    /// step of Adam per chunk of the rollout ([`Rollout`]). Returns the model, the batch's
-    /// loss (the mean over its chunks) and the seconds spent waiting for the device.
-    fn step(
+    /// One batch's (or one share's) optimizer steps at learning rate `lr`: its noise seeded
+    /// from the run's seed, `step` and the rank, the push-forward calls, then a step of Adam
+    /// per chunk of the rollout ([`Rollout`]). With `reduce` (a rank of a data-parallel
+    /// group, the batch's size), the chunk's loss is weighted by the share's part of the
+    /// batch and its gradients summed over the ranks before the step (`parallel.rs`).
+    /// Returns the model, the loss (the mean over the chunks) and the seconds spent waiting
+    /// for the device.
+    pub(super) fn step(
         &self,
         mut model: GridModel<B>,
         optim: &mut GridOptim<B>,
-        tensors: super::batch::BatchTensors<B>,
-        lr: f64,
+        host: HostBatch,
+        (lr, step): (f64, u64),
+        reduce: Option<Reduce<'_, B>>,
     ) -> (GridModel<B>, f64, f64) {
+        let rank = reduce.map_or(0, |(rank, _, _)| rank);
+        let device = reduce.map_or(&self.device, |(rank, _, group)| group.device(rank));
+        let seed = (self.opts.seed.wrapping_mul(1_000_003))
+            .wrapping_add(step)
+            .wrapping_add((rank as u64) << 32);
+        B::seed(device, seed);
         let chunks = self.opts.chunks();
-        let mut rollout = Rollout::new(&self.config, &self.opts, tensors);
+        let mut rollout = Rollout::new(&self.config, &self.opts, host.upload::<B>(device));
         rollout.pushforward(&model);
         let (mut value, mut wait) = (0.0, 0.0);
         for chunk in 0..chunks {
             if chunk > 0 {
                 rollout.detach();
             }
-            let loss = rollout.chunk_loss(&model);
-            let grads = GradientsParams::from_grads(loss.backward(), &model);
+            let mut loss = rollout.chunk_loss(&model);
+            if let Some((_, total, _)) = reduce {
+                loss = loss.mul_scalar(rollout.windows() as f32 / total.max(1) as f32);
+            }
+            let mut grads = GradientsParams::from_grads(loss.backward(), &model);
+            if let Some((rank, _, group)) = reduce {
+                grads = group.sum_grads(rank, &model, grads);
+            }
             model = optim.step(lr, model, grads);
             let waited = Instant::now();
             value += loss.into_scalar().elem::<f64>() / chunks as f64;
@@ -269,13 +284,7 @@ where
             return Ok(train_loss);
         }
         let meta = self.output.meta(epoch, 0.0);
-        // After a data-parallel step each parameter lives on the device that updated it
-        // (`step_multi` shards them): the rollouts run on the main device.
-        let model = match t.replicas.is_empty() {
-            true => model.valid(),
-            false => model.valid().to_device(&t.device),
-        };
-        let surrogate = Surrogate::from_net(Net::Grid(model), meta, &t.device);
+        let surrogate = Surrogate::from_net(Net::Grid(model.valid()), meta, &t.device);
         let (starts, horizon) = (t.opts.val_starts, t.opts.val_horizon);
         let structure = t.opts.strain_weight > 0.0 || t.opts.volume_weight > 0.0;
         Ok(validation_rollout(
