@@ -8,7 +8,8 @@
 //!   and `report`;
 //! - [`constraints`]: the projection of every predicted frame onto the material's
 //!   constraints (rope, shape matching, liquid density, walls, contact), of either
-//!   architecture, and its fit (`minflow constraints fit`).
+//!   architecture, and its fit (`minflow constraints fit`);
+//! - [`roofline`]: a grid call's time and needs by part (`bench rollout --stages`).
 //!
 //! Here: the host <-> device copies ([`upload`], [`download`]) and the min-max [`Scaling`]
 //! constants. The networks' kernels (fused dense layers, the recurrence scans, im2col,
@@ -19,6 +20,7 @@ pub mod grid;
 pub mod minrnn;
 pub mod paper;
 pub mod rnn;
+pub mod roofline;
 pub mod store;
 
 pub use paper::{

@@ -423,7 +423,7 @@ pub trait NetOps: Backend {
     /// CUDA NCCL's all-reduce, as cubecl-cuda drives it, over NVLink where the GPUs have it).
     /// `Err` hands the tensors back where the backend has no collective for `devices` (the
     /// default; on CUDA, a list that names a GPU twice), and then on every rank alike: the
-    /// caller sums them another way (`train::grid`'s host rendezvous).
+    /// caller sums them another way (`train::reduce`'s host rendezvous).
     #[allow(clippy::type_complexity)]
     fn all_reduce_sum(
         tensors: Vec<FloatTensor<Self>>,

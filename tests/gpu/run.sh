@@ -13,7 +13,7 @@
 #   tests/gpu/run.sh grid      # the grid model: the GPU's im2col kernels against the composed
 #                              # ones (same first-epoch loss, samples/s), and PyTorch's step
 #   tests/gpu/run.sh kernels   # cubecl's kernel profile of a grid training step (batch 16) and
-#                              # of a 256-scene network call (docs/speed.md, "Roofline")
+#                              # of a 256-scene network call (docs/kernels.md, "Roofline")
 #   tests/gpu/run.sh call256   # every shipped model's 256-scene call against the solver, the
 #                              # node at 256 streams x 62.5 Hz, and eval on the GPU (its
 #                              # metrics.csv to compare with a CPU run of the same command)
@@ -188,7 +188,7 @@ grid() { # docs/grid.md, "GPU speed"
     done
 }
 
-kernels() { # docs/speed.md, "Roofline": every kernel of a training step and of a network call
+kernels() { # docs/kernels.md, "Roofline": every kernel of a training step and of a network call
     CUBECL_DEBUG_OPTION=profile-full CUBECL_DEBUG_LOG="$OUT/kernels-train16.txt" \
         check prof-train16 "$BIN" bench train --arch grid --device cuda --cores mingru \
         --micro-batch 16 --samples 32 --epochs 1 --warmup-epochs 1
@@ -247,7 +247,7 @@ agree() { # name log-a log-b [tolerance]: the first-epoch loss (last column of t
               print "first-epoch losses agree:", loss[1], loss[2] }' "$2" "$3"
 }
 
-fused() { # docs/speed.md, "Training the grid architecture on a GPU" and "Roofline"
+fused() { # docs/speed.md, "Training the grid architecture on a GPU" and docs/kernels.md
     nvidia-smi --query-gpu=name,driver_version --format=csv
     grid_forms MINFLOW_CUDA_ADAM adam- kernel composed
     for b in 16 32; do

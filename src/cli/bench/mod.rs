@@ -2,13 +2,14 @@
 //! speed), [`train`] (training speed, both architectures), [`transport`] (latency and
 //! throughput between two processes), [`node`] (a surrogate node's latency and throughput),
 //! [`gemm`] (the GPU's dense-layer products), [`rollout`] (a model's rollout cost against the
-//! solver), [`transfer`] (the GPU's particle-grid transfers); [`common`] holds the helpers
+//! solver, with `roofline.rs`'s table under each row), [`transfer`] (the GPU's particle-grid transfers); [`common`] holds the helpers
 //! they share. This file holds the subcommand list and the dispatch.
 
 pub(crate) mod common;
 pub mod gemm;
 pub mod node;
 pub mod rollout;
+mod roofline;
 pub mod sim;
 #[cfg(feature = "cuda")]
 mod sim_gpu;

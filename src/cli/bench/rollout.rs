@@ -29,6 +29,7 @@ use crate::cli::device::{Device, DeviceArgs};
 use crate::cli::Outcome;
 use crate::eval::frame_metrics;
 use crate::model::constraints::Parts;
+use crate::model::roofline::{self, Tally};
 use crate::model::store::{stages, Surrogate};
 use crate::ops::NetOps;
 use crate::sim::families::Family;
@@ -68,6 +69,17 @@ pub struct RolloutBenchArgs {
     /// scale.
     #[arg(long, value_parser = clap::value_parser!(u32).range(8..=4096))]
     grid: Option<u32>,
+    /// Print a roofline under each grid model's row: each part of a call waited for on its
+    /// own, its time, FLOPs and bytes against the GPU's limits (docs/speed.md, "Roofline by part").
+    /// The waits make the rollout slower: time the rows without it.
+    #[arg(long)]
+    stages: bool,
+    /// The GPU's memory bandwidth for the roofline, GB/s (H200: 4800; H100 SXM: 3350).
+    #[arg(long, default_value_t = 4800.0, value_parser = crate::cli::flags::positive)]
+    peak_gbs: f64,
+    /// The GPU's dense arithmetic rate for the roofline, TFLOP/s (TF32 tensor cores: 495).
+    #[arg(long, default_value_t = 495.0, value_parser = crate::cli::flags::positive)]
+    peak_tflops: f64,
     #[command(flatten)]
     device: DeviceArgs,
 }
@@ -111,6 +123,8 @@ struct Row {
     seconds: f64,
     mse: f64,
     stages: Option<([f64; 4], usize)>,
+    /// With `--stages`: each part's tally and the calls.
+    roofline: Option<([Tally; 9], usize)>,
     /// Seconds of those spent in the constraint projection.
     projection: f64,
     /// Thread seconds of building the scenes' constraint data, and the scenes built.
@@ -143,7 +157,11 @@ fn roll<B: NetOps>(
     let (mut sum, mut count) = (0.0f64, 0usize);
     let mut seconds = 0.0;
     let _ = stages::take(); // Earlier calls (a warm-up) are not this row's.
-    let _ = (stages::take_projection(), stages::take_setup());
+    let _ = (
+        stages::take_projection(),
+        stages::take_setup(),
+        roofline::take(),
+    );
     for chunk in scenes.chunks(batch) {
         let cat =
             |k: usize| -> Vec<f32> { chunk.iter().flat_map(|s| s.frames[k].clone()).collect() };
@@ -167,6 +185,7 @@ fn roll<B: NetOps>(
         seconds,
         mse: sum / count.max(1) as f64,
         stages: stages::take(),
+        roofline: roofline::take(),
         projection: stages::take_projection(),
         setup: stages::take_setup(),
     })
@@ -212,6 +231,7 @@ fn model_row(
 /// # Errors
 /// A model that cannot be loaded or refuses the scenes, a scene the solver cannot run.
 pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
+    roofline::enable(args.stages);
     let family = match args.family.as_str() {
         "fluid" => Family::Fluid,
         _ => Family::Multi,
@@ -277,6 +297,13 @@ pub fn run(args: RolloutBenchArgs) -> anyhow::Result<Outcome> {
                 "|   stages, ms a call ({calls} calls): input {input:.2}, record {record:.2}, \
                  device {device:.2}, output {output:.2} | | | | | | | | |"
             );
+        }
+        if let Some((parts, calls)) = row.roofline {
+            let peaks = super::roofline::Peaks {
+                gbs: args.peak_gbs,
+                tflops: args.peak_tflops,
+            };
+            super::roofline::print(&parts, calls, peaks);
         }
     }
     Ok(Outcome::Done)

@@ -9,6 +9,7 @@ use burn::tensor::Tensor;
 
 use super::rest::{self, NeighbourTensors, REST_FEATURES};
 use super::{cat_rows, pairs, transfer, GridModel, MemoryState, StepInput, StepOutput, Update};
+use crate::model::roofline::{self, Part};
 use crate::ops::{grid_channels, linear, silu, NetOps};
 
 /// The U-Net's output for one call: K latent fields (`[B, n^2, L]` each) and, for a grid
@@ -44,6 +45,7 @@ impl<B: NetOps> GridModel<B> {
         let vel = input.vel.clone() / pairs(self.vel_scale, self.window, &device); // [B, N, 2T], normalised
                                                                                    // Variant (a): F carried, advected after every frame; its features replace the fit's.
         let carried = self.advects().then(|| self.carried(&input, [b, n_p]));
+        roofline::mark::<B>(&device, Part::Input);
         // P2G: the separable dense transfers where the backend has no sparse ones.
         let s = transfer::stencil(input.pos.clone(), self.n, self.dense_transfers());
         let features = match &carried {
@@ -52,7 +54,9 @@ impl<B: NetOps> GridModel<B> {
         };
         let latent = self.latent_fields(&input, &s, &vel, features.as_ref());
         if self.takes_host_pass(&input) {
-            return self.host_frames(&input, vel, &latent.fields, features, state);
+            let frames = self.host_frames(&input, vel, &latent.fields, features, state);
+            roofline::mark::<B>(&device, Part::Head);
+            return frames;
         }
         self.tensor_frames(&input, (s, vel), latent, features, carried, state)
     }
@@ -83,17 +87,27 @@ impl<B: NetOps> GridModel<B> {
         // per mass, walls, displacement per mass, rest shape per mass]: the grown channels
         // after the walls, so a model grown by `with_reference` / `with_rest_shape` keeps its
         // channel order.
-        let splat = transfer::p2g(s, cat_rows(values));
+        let values = cat_rows(values);
+        let (c, cells) = (values.dims()[2], self.n * self.n);
+        // The stencil (positions in, 9 nodes and weights out) and the splat.
+        let (rows, nodes) = ((b * n_p) as f64, (b * cells) as f64);
+        roofline::count(
+            18.0 * rows * c as f64,
+            4.0 * (rows * (2.0 + 36.0 + c as f64) + nodes * c as f64),
+        );
+        let splat = transfer::p2g(s, values);
         let grid = grid_channels(splat, self.n, 2 * t + input.material.dims()[2]); // [B, n^2, C]
-        let cells = self.n * self.n;
         let c = grid.dims()[2];
         let grid = grid.reshape([b, self.n, self.n, c]); // channels last, node (i, j) at [i, j]
+        roofline::mark::<B>(&input.pos.device(), Part::P2g);
 
         // U-Net: K latent fields of L channels each (and K velocity-change fields).
+        roofline::count_unet::<B, _>(&self.unet, b, self.n);
         let out = self.unet.forward(grid);
         let channels = out.dims()[3];
         let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
         let (fields, dv) = self.fields(out, [b, cells]);
+        roofline::mark::<B>(&input.pos.device(), Part::UNet);
         Latent { fields, dv }
     }
 
@@ -116,23 +130,27 @@ impl<B: NetOps> GridModel<B> {
         let field = |k: usize| latent.fields[k].clone();
         // Memory, once per call, on the first frame's inputs (not in the output of the grid
         // update: left as it is).
-        let mut u = self.particle_inputs(
-            transfer::g2p(&s, field(0)),
-            &vel,
-            &input.material,
-            &input.pos,
-        );
+        let gathered = gather(&s, field(0));
+        roofline::mark::<B>(&device, Part::G2p);
+        let mut u = self.particle_inputs(gathered, &vel, &input.material, &input.pos);
         let (memory, state) = match self.update {
             Update::Grid => (None, state),
             _ => self.memory.step(u.clone(), state),
         };
+        if let Some(m) = &memory {
+            // minGRU: the gate and the candidate from the input, then h' = (1 - z) h + z h~.
+            let [rows, hidden] = m.dims();
+            roofline::count_dense(rows, u.dims()[1], 2 * hidden);
+            roofline::count(4.0 * (rows * hidden) as f64, 12.0 * (rows * hidden) as f64);
+        }
+        roofline::mark::<B>(&device, Part::Memory);
         let dt = input.dt.clone().reshape([b, 1, 1]);
         let mut pos = input.pos.clone();
         let mut frames = Vec::with_capacity(self.bundle);
         for k in 0..self.bundle {
             if k > 0 {
                 s = transfer::stencil(pos.clone(), self.n, self.dense_transfers());
-                u = self.particle_inputs(transfer::g2p(&s, field(k)), &vel, &input.material, &pos);
+                u = self.particle_inputs(gather(&s, field(k)), &vel, &input.material, &pos);
                 features = match &carried {
                     Some((f, _)) => Some(rest::advect::features_of(f.clone())),
                     None => self.rest_features(input.rest.as_ref(), &pos),
@@ -165,6 +183,7 @@ impl<B: NetOps> GridModel<B> {
             pos = next.pos.clone();
             frames.push(next);
         }
+        roofline::mark::<B>(&device, Part::Head);
         (frames, state)
     }
 
@@ -290,6 +309,13 @@ impl<B: NetOps> GridModel<B> {
             // gradient sums over all B N rows, which burn's `Linear` leaves to one matmul with
             // a handful of output tiles on a GPU (`bench train --arch grid --stages`, H100,
             // batch 64: 62 ms of a 110 ms step outside the timed stages).
+            if roofline::on() {
+                let layers = [&self.head_a, &self.head_b, &self.head_out];
+                for layer in layers.into_iter().chain(self.rest_in.as_ref()) {
+                    let [i, o] = layer.weight.dims();
+                    roofline::count_dense(b * n_p, i, o);
+                }
+            }
             let mut pre = linear(&self.head_a, features);
             if let (Some(layer), Some(rest)) = (&self.rest_in, rest) {
                 pre = pre + linear(layer, rest);
@@ -330,4 +356,20 @@ impl<B: NetOps> GridModel<B> {
             deformation: None,
         }
     }
+}
+
+/// [`transfer::g2p`] of `field` (`[B, n^2, L]`) at the stencil `s`, its needs counted for
+/// the roofline: 9 multiply-adds a channel a particle; the field, the stencil and the
+/// gathered rows read or written once.
+fn gather<B: NetOps>(s: &transfer::Stencil<B>, field: Tensor<B, 3>) -> Tensor<B, 3> {
+    if roofline::on() {
+        let [b, cells, l] = field.dims();
+        let rows = (b * s.particles) as f64;
+        let l = l as f64;
+        roofline::count(
+            18.0 * rows * l,
+            4.0 * ((b * cells) as f64 * l + rows * (36.0 + l)),
+        );
+    }
+    transfer::g2p(s, field)
 }

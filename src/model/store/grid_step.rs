@@ -13,6 +13,7 @@ use crate::model::grid::rest::advect::identity;
 use crate::model::grid::{
     one_hot, GridModel, MemoryState, NeighbourTensors, Neighbourhood, StepInput,
 };
+use crate::model::roofline::{self, Part};
 use crate::ops::{NetOps, ProjectionPlan, MATERIALS};
 
 impl<B: NetOps> Surrogate<B> {
@@ -37,6 +38,7 @@ impl<B: NetOps> Surrogate<B> {
         let b = dt.len();
         let n = material.len() / b;
         let mut clock = stages::Clock::start();
+        roofline::begin::<B>(&self.device);
         let frame = crate::model::upload::<B, 3>(frames.to_vec(), [b, n, 4], &self.device);
         let input = frame.clone();
         let call = self.grid_call(model, frame, material, dt, carry, predict, &mut clock)?;
@@ -51,7 +53,13 @@ impl<B: NetOps> Surrogate<B> {
                 k: next.dims()[0] / b.max(1),
                 shape: next.dims(),
             },
-            None => Outs::Host(self.download_frames(next, b, &mut clock)?),
+            None => {
+                // Over PCIe, not the GPU's memory: the frames, f32.
+                roofline::count(0.0, 4.0 * next.dims().iter().product::<usize>() as f64);
+                let host = self.download_frames(next, b, &mut clock)?;
+                roofline::mark::<B>(&self.device, Part::ReadBack);
+                Outs::Host(host)
+            }
         };
         Ok((out, state, on_device))
     }
@@ -87,13 +95,15 @@ impl<B: NetOps> Surrogate<B> {
         plan: Option<&mut ProjectionPlan>,
     ) -> ((Tensor<B, 3>, GridState<B>), bool) {
         let b = input.dims()[0];
-        match plan.and_then(|p| self.project_on_device(&next, input, p)) {
+        let called = match plan.and_then(|p| self.project_on_device(&next, input, p)) {
             Some(projected) => {
                 state.history = history_of(state.history, &projected, b);
                 ((projected, state), true)
             }
             None => ((next, state), false),
-        }
+        };
+        roofline::mark::<B>(&self.device, Part::Projection);
+        called
     }
 
     /// The network call of [`Surrogate::grid_step`] on a frame already on the device

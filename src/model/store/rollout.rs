@@ -9,6 +9,7 @@ use super::grid_state::GridState;
 use super::state::NetState;
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
+use crate::model::roofline::{self, Part};
 use crate::ops::{NetOps, ProjectionPlan};
 
 impl<B: NetOps> Surrogate<B> {
@@ -158,6 +159,7 @@ impl<B: NetOps> Surrogate<B> {
         // ([`Surrogate::take_corrections`]) are the same frames' either way.
         for f in before {
             let mut none = None;
+            roofline::begin::<B>(&self.device);
             let input = upload(f);
             let call = B::run_step(|| {
                 self.grid_call(
@@ -176,6 +178,7 @@ impl<B: NetOps> Surrogate<B> {
         let (mut pending, mut held, mut recorded, mut done) = (Vec::new(), 0, 0, 0);
         while recorded < k {
             let mut clock = super::stages::Clock::start();
+            roofline::begin::<B>(&self.device);
             let input = frame.clone();
             let called = B::run_step(|| {
                 self.grid_call(
@@ -225,11 +228,14 @@ impl<B: NetOps> Surrogate<B> {
         (each, done): (&mut impl FnMut(usize, Vec<f32>), &mut usize),
     ) -> Result<(), StoreError> {
         for next in std::mem::take(pending) {
+            // Over PCIe, not the GPU's memory: the frames, f32.
+            roofline::count(0.0, 4.0 * next.dims().iter().product::<usize>() as f64);
             for f in self.download_frames(next, b, clock)? {
                 each(*done, f);
                 *done += 1;
             }
         }
+        roofline::mark::<B>(&self.device, Part::ReadBack);
         Ok(())
     }
 }

@@ -1,6 +1,6 @@
 //! Where a grid model's network call spends its wall time, by stage, while
 //! `MINFLOW_CALL_STAGES=1` (off otherwise: no clock is read). `bench rollout` prints the
-//! stages after each row (docs/speed.md, "Roofline"); the figures are what a GPU call costs
+//! stages after each row (docs/speed.md, "Where a GPU call's time goes"); the figures are what a GPU call costs
 //! beyond its kernels.
 //!
 //! The stages of one call ([`Stage`]): the input (the frame uploaded, the velocity history

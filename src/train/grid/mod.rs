@@ -29,7 +29,7 @@
 //! grid`.
 //!
 //! Files: this one holds the trainer; `pass.rs` its run over the shared epoch loop and an
-//! epoch's pass over the batches; `parallel.rs` the data-parallel step over several devices (its all-reduce in `reduce.rs`); `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
+//! epoch's pass over the batches; `parallel.rs` the data-parallel step over several devices (its all-reduce: `train::reduce`); `options.rs` the run's settings, `batch.rs` the batch upload, `feed.rs` the thread that
 //! prepares the batches, `rollout_loss.rs` the rollout loss (its terms in
 //! `rollout_loss/terms.rs`), `validate.rs` the validation rollouts, `schedule.rs` the
 //! normalisation statistics, the learning-rate schedule and the run's clock.
@@ -39,7 +39,6 @@ mod feed;
 mod options;
 mod parallel;
 mod pass;
-mod reduce;
 mod rollout_loss;
 mod schedule;
 mod validate;

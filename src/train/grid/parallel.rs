@@ -30,10 +30,10 @@ use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::StreamId;
 
 use super::batch::HostBatch;
-use super::reduce::ReduceGroup;
 use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
+use crate::train::reduce::ReduceGroup;
 
 /// One step's share for a worker: its windows, the learning rate, the run's step and the
 /// batch's size.

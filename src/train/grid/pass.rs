@@ -119,11 +119,8 @@ where
                 seed: opts.seed ^ 0x9e37_79b9,
                 first: g as u64,
             };
-            let clock = &self.clock;
-            let share = &mut self.share;
-            let output = &self.output;
-            let streams = &self.streams;
-            let shares = streams.len();
+            let (clock, share, output) = (&self.clock, &mut self.share, &self.output);
+            let (streams, shares) = (&self.streams, self.streams.len());
             model = std::thread::scope(|scope| {
                 let feed = BatchFeed::start(scope, batches, flips, (opts.mirror, shares), needs);
                 let replicas = (shares > 1).then(|| t.replicas(scope, &model, optim, streams));

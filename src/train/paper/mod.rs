@@ -95,14 +95,12 @@ where
         Self::data_parallel(config, opts, out, vec![device])
     }
 
-    /// A trainer that trains data-parallel on `devices` (the first is the main device), with
-    /// burn's multi-device strategy (`burn-train`'s `MultiDevice` with `OptimSharded`): every
-    /// optimizer step forks the model to each device, each device runs forward and backward
-    /// on its share of the batch's micro-batches, and
-    /// [`Optimizer::step_multi`](burn::optim::Optimizer::step_multi) sums each parameter's
-    /// gradients on one device (chosen by parameter id, so the optimizer state is sharded
-    /// over the devices) and updates it there. The effective batch, the data order and the
-    /// loss scaling are those of a one-device run; only the dropout masks differ (each
+    /// A trainer that trains data-parallel on `devices` (the first is the main device):
+    /// every optimizer step forks the model to each device, each device runs forward and
+    /// backward on its share of the batch's micro-batches, the gradients are summed over the
+    /// devices by the all-reduce the grid trainer uses ([`crate::train::reduce`]: NCCL's on
+    /// CUDA), and the main device takes the step. The effective batch, the data order and
+    /// the loss scaling are those of a one-device run; only the dropout masks differ (each
     /// device draws its own).
     ///
     /// # Panics

@@ -1,18 +1,20 @@
 //! One epoch of a paper run and its optimizer steps: host batches assembled one ahead on a
 //! second thread, each batch one optimizer step (on the main device, or data-parallel over
-//! several with burn's `step_multi`), the loss read back once per step. Part of
-//! [`super::Trainer`].
+//! several: the model forked to each, the gradients summed by the all-reduce of
+//! [`crate::train::reduce`], NCCL's on CUDA, and the step taken on the main device), the
+//! loss read back once per step. Part of [`super::Trainer`].
 
 use std::time::Instant;
 
 use burn::module::Module;
-use burn::optim::{GradientsAccumulator, GradientsParams, MultiGradientsParams, Optimizer};
-use burn::tensor::backend::{AutodiffBackend, DeviceOps};
+use burn::optim::{GradientsAccumulator, GradientsParams, Optimizer};
+use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::{ElementConversion, StreamId, Tensor};
 
 use super::slices::{deal, host_slices, slice_loss, HostSlice};
 use super::{Optim, Trainer};
 use crate::model::{Model, Scaling};
+use crate::train::reduce::ReduceGroup;
 use crate::train::{BatchSource, EpochPass, Observer, TrainError};
 
 impl<B: AutodiffBackend + crate::ops::NetOps> Trainer<B>
@@ -70,6 +72,7 @@ where
         let batches = train.batches(batch_size, Some(self.opts.seed), epoch as u64)?;
         let micro = self.opts.micro_batch;
         let parallel = self.devices.len();
+        let group = (parallel > 1).then(|| ReduceGroup::new(self.devices.clone()));
         // The model moves into the step loop and back out (`optim.step` consumes it, so
         // the parameters are updated in place when nothing else holds them).
         let mut slot = Some(model);
@@ -97,8 +100,14 @@ where
                 let (b, slices) = item?;
                 let model = slot.take().expect("the model is put back after every step");
                 let step_started = Instant::now();
-                let (model, losses) =
-                    self.optimizer_step(model, optim, slices, b, scaling, streams);
+                let (model, losses) = self.optimizer_step(
+                    model,
+                    optim,
+                    slices,
+                    (b, scaling),
+                    streams,
+                    group.as_ref(),
+                );
                 slot = Some(model);
                 tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
                 // One read per step, after the step is queued: the host waits here for
@@ -111,45 +120,47 @@ where
             }
             Ok::<EpochPass, TrainError>(totals)
         })?;
-        let mut model = slot.expect("the model is put back after every step");
-        if parallel > 1 {
-            // `step_multi` left each parameter on the device that updated it.
-            model = model.fork(self.main());
-        }
+        let model = slot.expect("the model is put back after every step");
         Ok((model, totals))
     }
 
     /// One optimizer step on a batch of `b` windows cut into `slices`: on the main device,
-    /// or data-parallel with the slices dealt over the devices. Returns the updated model
-    /// and the summed losses of each device (not read back).
+    /// or data-parallel with the slices dealt over the devices, summed over them by
+    /// `group`. Returns the updated model and the summed losses of each device (not read
+    /// back).
+    #[allow(clippy::too_many_arguments)]
     fn optimizer_step(
         &self,
         model: Model<B>,
         optim: &mut Optim<B>,
         slices: Vec<HostSlice>,
-        b: usize,
-        scaling: &Scaling,
+        (b, scaling): (usize, &Scaling),
         streams: &[StreamId],
+        group: Option<&ReduceGroup<B::InnerBackend>>,
     ) -> (Model<B>, Vec<Option<Tensor<B::InnerBackend, 1>>>) {
         let parallel = self.devices.len();
-        if parallel == 1 {
+        // A batch of fewer micro-batches than devices (a short last batch) steps on the main
+        // device alone: every rank of the all-reduce needs a share.
+        if parallel == 1 || slices.len() < parallel {
             let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
             return (optim.step(self.opts.lr, model, grads), vec![loss]);
         }
         let shards = deal(slices, parallel);
         // The workers are new threads every step, on the run's fixed stream ids (see
-        // `train::stream_ids`).
+        // `train::stream_ids`); each sums its gradients with the others' and keeps them
+        // only on the main device, where the step is taken.
+        let group = group.expect("a reduce group for several devices");
         let results: Vec<_> = std::thread::scope(|workers| {
-            let handles: Vec<_> = shards
-                .into_iter()
+            let handles: Vec<_> = (shards.into_iter().enumerate())
                 .zip(self.devices.iter().zip(streams))
-                .map(|(shard, (device, &stream))| {
+                .map(|((rank, shard), (device, &stream))| {
                     let model = &model;
                     workers.spawn(move || {
                         stream.executes(|| {
                             let local = model.clone().fork(device);
                             let (grads, loss) = self.shard_step(&local, shard, b, scaling, device);
-                            (grads, device.id(), loss)
+                            let grads = group.sum_grads(rank, &local, grads);
+                            ((rank == 0).then_some(grads), loss)
                         })
                     })
                 })
@@ -159,13 +170,14 @@ where
                 .map(|h| h.join().expect("a data-parallel worker panicked"))
                 .collect()
         });
-        let mut multi = MultiGradientsParams::default();
+        let mut summed = None;
         let mut losses = Vec::new();
-        for (grads, id, loss) in results {
-            multi.grads.push((grads, id));
+        for (grads, loss) in results {
+            summed = summed.or(grads);
             losses.push(loss);
         }
-        (optim.step_multi(self.opts.lr, model, multi), losses)
+        let grads = summed.expect("the main device's summed gradients");
+        (optim.step(self.opts.lr, model, grads), losses)
     }
 }
 

@@ -5,7 +5,7 @@
 //! Why: composed from burn's tensor operations, a parameter's step is about 13 operations
 //! and its clipping (burn's `GradientClipping::Norm`) about 7 more, each recorded by the host;
 //! a grid training step's 40 parameters made ~700 of its ~2,600 launches, and that step is
-//! bound by the host's recording, not the GPU (docs/speed.md, "Roofline"). Here a parameter
+//! bound by the host's recording, not the GPU (docs/kernels.md, "Roofline"). Here a parameter
 //! costs one sum of squares (burn's reduction, when clipping) and one element-wise kernel
 //! that reads the parameter, gradient and moments once and writes the three new tensors.
 

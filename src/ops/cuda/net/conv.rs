@@ -76,7 +76,7 @@ pub(in crate::ops) fn elementwise(
 /// then write the tile out as the rows' contiguous `r C k^2` columns. The sizes are
 /// compile-time, so every index is a division by a constant. One thread per output element
 /// straight from the input ran at a quarter of the H100's bandwidth (adjacent outputs read
-/// `k^2` different positions); one cube per row was latency-bound (docs/speed.md,
+/// `k^2` different positions); one cube per row was latency-bound (docs/kernels.md,
 /// "Roofline").
 #[cube(launch)]
 fn im2col_kernel<F: Float>(

@@ -4,7 +4,7 @@
 //! (data and filter gradients) instead of im2col, products and col2im.
 //!
 //! Why: im2col wrote 9x each convolution's input as columns for cuBLAS to read back, 11.4 GB a
-//! 256-scene call of `all-grid-mingru` and the call's largest kernel cost (docs/speed.md,
+//! 256-scene call of `all-grid-mingru` and the call's largest kernel cost (docs/kernels.md,
 //! "Roofline"); training recomputed the columns in its backward and summed their gradients
 //! back with col2im. cuDNN's implicit-GEMM and Winograd convolutions (Chetlur et al. 2014,
 //! "cuDNN: Efficient Primitives for Deep Learning") read each tile of the input in place; they
@@ -17,7 +17,7 @@
 //! It used to read its tensors' device pointers from the caller's thread through cubecl's
 //! device queue, which waited for every launch queued before it (0.8-1.3 ms a call on one
 //! H100), so the host could not run ahead of the GPU; with that wait cuDNN was not worth it
-//! (docs/speed.md, "Where a GPU call's time goes").
+//! (docs/kernels.md, "Where a GPU call's time goes").
 //!
 //! Layout: the grid is channels-last, `[B, H, W, C]` (cuDNN's `NHWC`). Inference's weights
 //! go to cuDNN as `[C_out, 3, 3, C_in]` (`KRSC`, its NHWC filter layout), copied from burn's
@@ -220,7 +220,7 @@ pub(in crate::ops) fn conv3x3(
 
 /// Whether `MINFLOW_CUDNN_FILTER=permuted` asks for training's convolutions on weights copied
 /// into cuDNN's `KRSC` layout, each pass, instead of the [`Transposed`] passes that read the
-/// matrix in place: to compare the two in one binary (docs/speed.md; [`crate::switches`]).
+/// matrix in place: to compare the two in one binary (docs/kernels.md; [`crate::switches`]).
 fn permuted_filter() -> bool {
     crate::switches::cudnn_permuted_filter()
 }

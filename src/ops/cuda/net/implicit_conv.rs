@@ -9,12 +9,12 @@
 //! runs cubek's simple synchronous CMMA convolution (TF32 tensor cores for f32, f32
 //! accumulation, the bias loaded into the accumulator); it takes NHWC input and `[C_out, 3, 3,
 //! C_in]` weights. im2col + cuBLAS wrote 9x each convolution's input as columns and read them
-//! back: 11.4 GB a 256-scene call of `all-grid-mingru` (docs/speed.md, "Roofline").
+//! back: 11.4 GB a 256-scene call of `all-grid-mingru` (docs/kernels.md, "Roofline").
 //!
 //! Measured slower, so not the default: `MINFLOW_CUDA_CONV=implicit` takes it, to compare
 //! the two in one binary (`tests/gpu/run.sh fused`). On one H200 the 256-scene call of
 //! `all-grid-mingru` took 0.165 ms a scene-frame with it against 0.134 with im2col and
-//! cuBLAS, 0.164 against 0.146 on another (docs/speed.md, "Roofline"). Training keeps
+//! cuBLAS, 0.164 against 0.146 on another (docs/kernels.md, "Roofline"). Training keeps
 //! im2col (its backward is col2im and products: `cuda/net/conv.rs`).
 
 use burn::cubecl::cuda::CudaRuntime;

@@ -1,4 +1,5 @@
-//! The gradient all-reduce of the grid trainer's data-parallel step (`parallel.rs`): a
+//! The gradient all-reduce of data-parallel training (the grid trainer's `grid/parallel.rs`,
+//! the paper's `paper/step.rs`): a
 //! [`ReduceGroup`] of one rank per device sums each parameter's gradient over the ranks,
 //! in the model's parameter order, through the backend's collective
 //! ([`NetOps::all_reduce_sum`]: NCCL on CUDA), or, where the backend has none (the CPU
@@ -22,25 +23,25 @@ use burn::tensor::{Tensor, TensorPrimitive};
 use crate::ops::NetOps;
 
 /// The ranks of one data-parallel run: rank `k` trains on `devices[k]`.
-pub(super) struct ReduceGroup<B: Backend> {
+pub(crate) struct ReduceGroup<B: Backend> {
     devices: Vec<B::Device>,
     host: Rendezvous<B>,
 }
 
 impl<B: Backend + NetOps> ReduceGroup<B> {
     /// A group of one rank per device of `devices` (the main device first).
-    pub(super) fn new(devices: Vec<B::Device>) -> Self {
+    pub(crate) fn new(devices: Vec<B::Device>) -> Self {
         let host = Rendezvous::new(devices.len());
         Self { devices, host }
     }
 
     /// The ranks.
-    pub(super) fn ranks(&self) -> usize {
+    pub(crate) fn ranks(&self) -> usize {
         self.devices.len()
     }
 
     /// Rank `rank`'s device.
-    pub(super) fn device(&self, rank: usize) -> &B::Device {
+    pub(crate) fn device(&self, rank: usize) -> &B::Device {
         &self.devices[rank]
     }
 
@@ -49,7 +50,7 @@ impl<B: Backend + NetOps> ReduceGroup<B> {
     ///
     /// # Panics
     /// When another rank failed during a host rendezvous.
-    pub(super) fn sum_grads<A, M>(
+    pub(crate) fn sum_grads<A, M>(
         &self,
         rank: usize,
         model: &M,
@@ -221,7 +222,7 @@ impl<B: Backend> Rendezvous<B> {
 impl<B: Backend + NetOps> ReduceGroup<B> {
     /// Tells the other ranks that this one failed (called while a rank's thread unwinds),
     /// so that a host rendezvous does not wait for it forever.
-    pub(super) fn fail(&self) {
+    pub(crate) fn fail(&self) {
         self.host.fail();
     }
 }
