@@ -45,6 +45,12 @@ impl<B: Backend + NetOps> ReduceGroup<B> {
         &self.devices[rank]
     }
 
+    /// Tells the other ranks that this one failed (called while a rank's thread unwinds),
+    /// so that a host rendezvous does not wait for it forever.
+    pub(crate) fn fail(&self) {
+        self.host.fail();
+    }
+
     /// `grads` of rank `rank`'s replica `model`, each replaced by its sum over the ranks.
     /// Every rank calls this once per optimizer step, with the same parameters.
     ///
@@ -216,14 +222,6 @@ impl<B: Backend> Rendezvous<B> {
         let mut round = self.round.lock().unwrap_or_else(|e| e.into_inner());
         round.broken = true;
         self.turn.notify_all();
-    }
-}
-
-impl<B: Backend + NetOps> ReduceGroup<B> {
-    /// Tells the other ranks that this one failed (called while a rank's thread unwinds),
-    /// so that a host rendezvous does not wait for it forever.
-    pub(crate) fn fail(&self) {
-        self.host.fail();
     }
 }
 

@@ -2,8 +2,9 @@
 //! speed), [`train`] (training speed, both architectures), [`transport`] (latency and
 //! throughput between two processes), [`node`] (a surrogate node's latency and throughput),
 //! [`gemm`] (the GPU's dense-layer products), [`rollout`] (a model's rollout cost against the
-//! solver, with `roofline.rs`'s table under each row), [`transfer`] (the GPU's particle-grid transfers); [`common`] holds the helpers
-//! they share. This file holds the subcommand list and the dispatch.
+//! solver, with `roofline.rs`'s table under each row), [`transfer`] (the GPU's particle-grid
+//! transfers); [`common`] holds the helpers they share. This file holds the subcommand list
+//! and the dispatch.
 
 pub(crate) mod common;
 pub mod gemm;

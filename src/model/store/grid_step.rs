@@ -53,13 +53,7 @@ impl<B: NetOps> Surrogate<B> {
                 k: next.dims()[0] / b.max(1),
                 shape: next.dims(),
             },
-            None => {
-                // Over PCIe, not the GPU's memory: the frames, f32.
-                roofline::count(0.0, 4.0 * next.dims().iter().product::<usize>() as f64);
-                let host = self.download_frames(next, b, &mut clock)?;
-                roofline::mark::<B>(&self.device, Part::ReadBack);
-                Outs::Host(host)
-            }
+            None => Outs::Host(self.download_frames(next, b, &mut clock)?),
         };
         Ok((out, state, on_device))
     }
@@ -166,7 +160,8 @@ impl<B: NetOps> Surrogate<B> {
 
     /// Frames of `b` trajectories recorded on the device (`next`, `[K B, N, 4]`) read back
     /// as K host frames of `[B, N, 4]`, oldest first. Laps `clock`'s device stage (when
-    /// stages are on: a wait the download makes anyway) and output stage.
+    /// stages are on: a wait the download makes anyway) and output stage, and ends the
+    /// roofline's read-back part.
     ///
     /// # Errors
     /// [`StoreError`] carrying the backend's read error.
@@ -177,6 +172,8 @@ impl<B: NetOps> Surrogate<B> {
         clock: &mut Option<stages::Clock>,
     ) -> Result<Vec<Vec<f32>>, StoreError> {
         let [kb, n, _] = next.dims();
+        // Over PCIe, not the GPU's memory: the frames, f32.
+        roofline::count(0.0, (kb * n * 16) as f64);
         if clock.is_some() {
             B::sync(&self.device).map_err(|e| crate::model::DownloadError {
                 shape: vec![kb, n, 4],
@@ -199,6 +196,7 @@ impl<B: NetOps> Surrogate<B> {
             None => split_frames(crate::model::download(next)?, k),
         };
         lap(clock, Stage::Output);
+        roofline::mark::<B>(&self.device, Part::ReadBack);
         Ok(out)
     }
 

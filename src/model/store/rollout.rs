@@ -9,7 +9,7 @@ use super::grid_state::GridState;
 use super::state::NetState;
 use super::surrogate::{Predict, Surrogate};
 use super::{Net, StoreError};
-use crate::model::roofline::{self, Part};
+use crate::model::roofline;
 use crate::ops::{NetOps, ProjectionPlan};
 
 impl<B: NetOps> Surrogate<B> {
@@ -228,14 +228,11 @@ impl<B: NetOps> Surrogate<B> {
         (each, done): (&mut impl FnMut(usize, Vec<f32>), &mut usize),
     ) -> Result<(), StoreError> {
         for next in std::mem::take(pending) {
-            // Over PCIe, not the GPU's memory: the frames, f32.
-            roofline::count(0.0, 4.0 * next.dims().iter().product::<usize>() as f64);
             for f in self.download_frames(next, b, clock)? {
                 each(*done, f);
                 *done += 1;
             }
         }
-        roofline::mark::<B>(&self.device, Part::ReadBack);
         Ok(())
     }
 }
