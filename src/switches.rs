@@ -96,6 +96,15 @@ pub fn cuda_composed_minrnn() -> bool {
     flag(&COMPOSED, "MINFLOW_CUDA_MINRNN", ["kernel", "composed"])
 }
 
+/// `MINFLOW_CUDA_FRAMES=composed | kernel` (read once): whether a grid call's per-particle
+/// frames (G2P, head, integration) run for inference on CUDA as one kernel (`kernel`) instead
+/// of burn's operations (`composed`, the default: the kernel measured at their speed, 1-5 %
+/// ahead at 10,000 particles; docs/speed.md), to compare the two in one binary.
+pub fn cuda_fused_frames() -> bool {
+    static FUSED: OnceLock<bool> = OnceLock::new();
+    flag(&FUSED, "MINFLOW_CUDA_FRAMES", ["composed", "kernel"])
+}
+
 /// `MINFLOW_CUDA_PROJECTION=device | host` (read once): whether the projection of a CUDA
 /// call runs on the host after the read-back (`host`) instead of on the device
 /// (`device`, the default, where every scene of the call has only the parts the device

@@ -48,8 +48,8 @@
 //!   into single kernels, the large products through [`cublas`]); `cuda/net/` the network's
 //!   layers (im2col / col2im, cuDNN's 3x3 convolutions and their plans and calls, the
 //!   implicit GEMM, the sparse P2G / G2P stencil kernels summing in fixed point, the minRNN
-//!   updates, the Adam step); `cuda/projection/` the constraint projection's parts, each
-//!   named as its host form in `model/constraints/`; `cuda/device.rs` what the library calls
+//!   updates, a grid call's per-particle frames, the Adam step); `cuda/projection/` the
+//!   constraint projection's parts, each named as its host form in `model/constraints/`; `cuda/device.rs` what the library calls
 //!   share (a GPU's context, calls queued on cubecl's device thread); `cuda/read.rs` a tensor
 //!   read back without waiting for the work recorded after it ([`read_ahead`]).
 //!
@@ -74,6 +74,7 @@ pub mod host;
 pub mod mingru;
 mod ndarray;
 mod net_ops;
+mod particle_frames;
 pub mod prepared;
 mod projection_plan;
 pub mod read_ahead;
@@ -83,6 +84,7 @@ mod tensor;
 pub use adam_step::AdamStep;
 pub use error::OpsError;
 pub use net_ops::NetOps;
+pub use particle_frames::ParticleFrames;
 pub use prepared::PreparedWeights;
 pub use projection_plan::{
     event_table_len, DeviceCopy, EventStore, Events, ProjectionPlan, TablesLater, BODY_VALUES,

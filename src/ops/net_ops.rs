@@ -9,7 +9,7 @@ use burn::tensor::ops::{FloatTensor, IntTensor};
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
 
 use super::{adam_step, composed, composed_grid, mingru, scan};
-use super::{AdamStep, Kernels, PreparedWeights, ProjectionPlan, ReadAhead};
+use super::{AdamStep, Kernels, ParticleFrames, PreparedWeights, ProjectionPlan, ReadAhead};
 
 /// The backend operations minflow's networks need beyond burn's (see the module doc for
 /// where each implementation lives). ELU is always `alpha = 1`.
@@ -290,6 +290,16 @@ pub trait NetOps: Backend {
     /// pre-activation), `h` `[M, H]` -> `(1 - z) h + z g(h~)`, `[M, H]`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
         mingru::composed_mingru_update::<Self>(hg, h)
+    }
+
+    /// A grid model's per-particle frames in one operation where the backend has it
+    /// ([`ParticleFrames`]: each frame's G2P of its latent field, the head and the
+    /// integration): the call's K frames `[K B, N, 4]` (position, velocity; frame k's rows
+    /// `k B..`). None elsewhere, and always on backends that track gradients: the model
+    /// then runs them as tensor operations (`model::grid::step`). CUDA's: `cuda/net/frames.rs`.
+    fn particle_frames(frames: ParticleFrames<Self>) -> Option<FloatTensor<Self>> {
+        let _ = frames;
+        None
     }
 
     /// `x sigmoid(x)`, any shape.

@@ -12,13 +12,40 @@ use super::{cat_rows, pairs, transfer, GridModel, MemoryState, StepInput, StepOu
 use crate::model::roofline::{self, Part};
 use crate::ops::{grid_channels, linear, silu, NetOps};
 
-/// The U-Net's output for one call: K latent fields (`[B, n^2, L]` each) and, for a grid
-/// update, K velocity-change fields (`[B, n^2, 2]` each; empty otherwise).
+/// The U-Net's output for one call, `[B, n^2, K L (+ 2 K)]`: K latent fields of L channels
+/// and, for a grid update, K velocity-change fields of 2 ([`Latent::field`], [`Latent::dv`]),
+/// each cut out where it is read.
 pub(super) struct Latent<B: burn::tensor::backend::Backend> {
-    /// Latent field k, gathered by frame k's particles.
-    pub(super) fields: Vec<Tensor<B, 3>>,
-    /// Velocity-change field k ([`Update::Grid`], [`Update::GridHead`]).
-    pub(super) dv: Vec<Tensor<B, 3>>,
+    out: Tensor<B, 3>,
+    /// L, a latent field's channels.
+    width: usize,
+    /// K, the fields of each kind.
+    bundle: usize,
+    /// Whether the velocity-change fields follow the latent ones.
+    dv: bool,
+}
+
+impl<B: burn::tensor::backend::Backend> Latent<B> {
+    /// Latent field k, `[B, n^2, L]`, to be gathered by frame k's particles.
+    pub(super) fn field(&self, k: usize) -> Tensor<B, 3> {
+        self.part(k * self.width, self.width)
+    }
+
+    /// Velocity-change field k, `[B, n^2, 2]` ([`Update::Grid`], [`Update::GridHead`]).
+    fn dv(&self, k: usize) -> Option<Tensor<B, 3>> {
+        (self.dv && k < self.bundle).then(|| self.part(self.bundle * self.width + 2 * k, 2))
+    }
+
+    /// Channels `at..at + width` as their own contiguous tensor: the CPU's one-pass gather
+    /// reads only dense inputs (a strided view would take the composed path).
+    fn part(&self, at: usize, width: usize) -> Tensor<B, 3> {
+        let [b, cells, channels] = self.out.dims();
+        if at == 0 && width == channels {
+            return self.out.clone();
+        }
+        let view = self.out.clone().narrow(2, at, width);
+        view.reshape([b * cells * width]).reshape([b, cells, width])
+    }
 }
 
 /// A carried deformation gradient (`[B, N, 4]`) and the `[B, N, 1]` mask of particles
@@ -54,7 +81,8 @@ impl<B: NetOps> GridModel<B> {
         };
         let latent = self.latent_fields(&input, &s, &vel, features.as_ref());
         if self.takes_host_pass(&input) {
-            let frames = self.host_frames(&input, vel, &latent.fields, features, state);
+            let fields: Vec<_> = (0..self.bundle).map(|k| latent.field(k)).collect();
+            let frames = self.host_frames(&input, vel, &fields, features, state);
             roofline::mark::<B>(&device, Part::Head);
             return frames;
         }
@@ -106,9 +134,15 @@ impl<B: NetOps> GridModel<B> {
         let out = self.unet.forward(grid);
         let channels = out.dims()[3];
         let out = out.reshape([b, cells, channels]); // [B, n^2, K L (+ 2 K)]
-        let (fields, dv) = self.fields(out, [b, cells]);
         roofline::mark::<B>(&input.pos.device(), Part::UNet);
-        Latent { fields, dv }
+        let dv = self.update != Update::Free;
+        let width = (channels - if dv { 2 * self.bundle } else { 0 }) / self.bundle;
+        Latent {
+            out,
+            width,
+            bundle: self.bundle,
+            dv,
+        }
     }
 
     /// [`GridModel::step_bundle`]'s frames from the U-Net's `latent` fields on, as tensors:
@@ -127,7 +161,7 @@ impl<B: NetOps> GridModel<B> {
     ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
         let [b, n_p, _] = input.pos.dims();
         let (t, device) = (self.window, input.pos.device());
-        let field = |k: usize| latent.fields[k].clone();
+        let field = |k: usize| latent.field(k);
         // Memory, once per call, on the first frame's inputs (not in the output of the grid
         // update: left as it is).
         let gathered = gather(&s, field(0));
@@ -144,6 +178,12 @@ impl<B: NetOps> GridModel<B> {
             roofline::count(4.0 * (rows * hidden) as f64, 12.0 * (rows * hidden) as f64);
         }
         roofline::mark::<B>(&device, Part::Memory);
+        if carried.is_none() && features.is_none() {
+            if let Some(frames) = self.fused_frames(input, &vel, &latent, memory.as_ref()) {
+                roofline::mark::<B>(&device, Part::Head);
+                return (frames, state);
+            }
+        }
         let dt = input.dt.clone().reshape([b, 1, 1]);
         let mut pos = input.pos.clone();
         let mut frames = Vec::with_capacity(self.bundle);
@@ -160,7 +200,7 @@ impl<B: NetOps> GridModel<B> {
                 Some(m) => Tensor::cat(vec![u.clone(), m.clone()], 1),
                 None => u.clone(),
             };
-            let grid_dv = latent.dv.get(k).map(|f| transfer::g2p(&s, f.clone()));
+            let grid_dv = latent.dv(k).map(|f| transfer::g2p(&s, f));
             let rest_rows = features
                 .clone()
                 .map(|r| r.reshape([b * n_p, REST_FEATURES]));
@@ -185,6 +225,73 @@ impl<B: NetOps> GridModel<B> {
         }
         roofline::mark::<B>(&device, Part::Head);
         (frames, state)
+    }
+
+    /// [`GridModel::tensor_frames`]'s frames in one operation, [`NetOps::particle_frames`],
+    /// where the backend has it and the per-particle part is the plain one: the free head
+    /// (no rest-shape layer, no advected F), sparse transfers, nothing that needs a gradient;
+    /// `None` otherwise. `vel` is the call's normalised velocity window, `memory` the
+    /// memory's output (`[B N, H]`).
+    fn fused_frames(
+        &self,
+        input: &StepInput<B>,
+        vel: &Tensor<B, 3>,
+        latent: &Latent<B>,
+        memory: Option<&Tensor<B, 2>>,
+    ) -> Option<Vec<StepOutput<B>>> {
+        let plain = self.update == Update::Free && self.rest_in.is_none() && !self.advects();
+        let grad = input.pos.is_require_grad()
+            || vel.is_require_grad()
+            || self.head_a.weight.val().is_require_grad();
+        if !plain || grad || self.dense_transfers() {
+            return None;
+        }
+        let [b, n_p, _] = input.pos.dims();
+        let layer = |l: &burn::nn::Linear<B>| {
+            let bias = l.bias.as_ref()?.val().into_primitive().tensor();
+            Some((l.weight.val().into_primitive().tensor(), bias))
+        };
+        let layers = [
+            self.head_a.clone(),
+            self.head_b.clone(),
+            self.head_out.clone(),
+        ];
+        let [a, h, o] = layers.each_ref().map(layer);
+        let frames = crate::ops::ParticleFrames {
+            fields: latent.out.clone().into_primitive().tensor(),
+            latent: latent.width,
+            bundle: self.bundle,
+            n: self.n,
+            memory: memory.map(|m| m.clone().into_primitive().tensor()),
+            vel: vel.clone().into_primitive().tensor(),
+            material: input.material.clone().into_primitive().tensor(),
+            pos: input.pos.clone().into_primitive().tensor(),
+            dt: input.dt.clone().into_primitive().tensor(),
+            layers: [a?, h?, o?],
+            vel_scale: self.vel_scale,
+            dv_scale: self.dv_scale,
+            dv_mean: self.dv_mean,
+        };
+        let out = B::particle_frames(frames)?;
+        if roofline::on() {
+            let rows = (b * n_p * self.bundle) as f64;
+            let [w_a, w_b, w_o] = layers.each_ref().map(|l| l.weight.dims());
+            let macs = w_a[0] * w_a[1] + w_b[0] * w_b[1] + w_o[0] * w_o[1] + 9 * latent.width;
+            // Each field read once, each particle's inputs once, each frame written once.
+            let field = latent.out.dims().iter().product::<usize>() as f64;
+            let own = (b * n_p * (w_a[0] - latent.width)) as f64;
+            roofline::count(2.0 * rows * macs as f64, 4.0 * (field + own + 4.0 * rows));
+        }
+        let out: Tensor<B, 3> = Tensor::from_primitive(burn::tensor::TensorPrimitive::Float(out));
+        let frame = |k: usize| {
+            let f = out.clone().narrow(0, k * b, b);
+            StepOutput {
+                pos: f.clone().narrow(2, 0, 2),
+                vel: f.narrow(2, 2, 2),
+                deformation: None,
+            }
+        };
+        Some((0..self.bundle).map(frame).collect())
     }
 
     /// Whether this call's per-particle part runs as host passes ([`super::host_pass`]): on the CPU
@@ -244,37 +351,6 @@ impl<B: NetOps> GridModel<B> {
             Some(r) => r.features(pos.clone()),
             None => Tensor::zeros([b, n_p, REST_FEATURES], &pos.device()),
         })
-    }
-
-    /// The U-Net's output `[B, n^2, K L (+ 2 K)]` as K latent fields of `[B, n^2, L]` and, for
-    /// a grid update, K velocity-change fields of `[B, n^2, 2]`, each its own contiguous
-    /// tensor: the CPU's one-pass gather reads only dense inputs (a strided view would take
-    /// the composed path).
-    fn fields(
-        &self,
-        out: Tensor<B, 3>,
-        [b, cells]: [usize; 2],
-    ) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 3>>) {
-        let k = self.bundle;
-        let dv_channels = if self.update == Update::Free {
-            0
-        } else {
-            2 * k
-        };
-        if k == 1 && dv_channels == 0 {
-            return (vec![out], Vec::new());
-        }
-        let latent = (out.dims()[2] - dv_channels) / k;
-        let part = |at: usize, width: usize| {
-            let view = out.clone().narrow(2, at, width);
-            view.reshape([b * cells * width]).reshape([b, cells, width])
-        };
-        let fields = (0..k).map(|i| part(i * latent, latent)).collect();
-        let dv = match dv_channels {
-            0 => Vec::new(),
-            _ => (0..k).map(|i| part(k * latent + 2 * i, 2)).collect(),
-        };
-        (fields, dv)
     }
 
     /// `[B N, L + 2T + 4 + 2]` rows `u_i = [gathered_i, own_i]`: the gathered latent features,

@@ -224,6 +224,13 @@ impl NetOps for burn::backend::Cuda<f32, i32> {
         !switches::cuda_host_projection()
     }
 
+    /// One kernel ([`crate::ops::cuda::net::frames`]) with `MINFLOW_CUDA_FRAMES=kernel`.
+    fn particle_frames(frames: crate::ops::ParticleFrames<Self>) -> Option<FloatTensor<Self>> {
+        (switches::cuda_fused_frames())
+            .then(|| crate::ops::cuda::net::frames::particle_frames(frames))
+            .flatten()
+    }
+
     /// One kernel ([`crate::ops::cuda::net::minrnn`]) unless `MINFLOW_CUDA_MINRNN=composed`.
     fn mingru_update(hg: FloatTensor<Self>, h: Option<FloatTensor<Self>>) -> FloatTensor<Self> {
         match switches::cuda_composed_minrnn() {

@@ -38,7 +38,7 @@ pub(in crate::ops) fn gather_kernel<F: Float>(
 /// [`crate::bspline::weights`], which the CPU sites share, at distances `f`, `f - 1`, `f - 2`;
 /// a `#[cube]` function cannot call it).
 #[cube]
-fn bspline<F: Float>(x: F) -> F {
+pub(in crate::ops) fn bspline<F: Float>(x: F) -> F {
     let a = F::abs(x);
     let mut w = F::new(0.0);
     if a < F::new(0.5) {
