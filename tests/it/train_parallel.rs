@@ -8,11 +8,13 @@ use minflow::train::{EpochRecord, TrainOptions, Trainer};
 
 use crate::train_support::{options, tiny, trajectory, B};
 
-/// burn's multi-device strategy as the trainer drives it (fork per device, gradients summed
-/// by `step_multi`), on two CPU "devices" (the same ndarray device twice): with dropout off
-/// the gradient of the summed shares is the batch gradient, so the losses of every epoch
-/// equal a one-device run's up to float summation order. (On GPUs the same code runs with
-/// `--device cuda:0,cuda:1`; docs/cuda.md has that run.)
+/// The paper trainer data-parallel (a persistent replica of the model and of Adam on the
+/// second device through each epoch's two steps, the gradients summed by the group's
+/// all-reduce: a host rendezvous on the CPU), on two CPU "devices" (the same ndarray device
+/// twice): with dropout off the gradient of the summed shares is the batch gradient and the
+/// replica takes the main model's step, so the losses of every epoch equal a one-device
+/// run's up to float summation order. (On GPUs the same code runs with `--device
+/// cuda:0,cuda:1`.)
 #[test]
 fn data_parallel_equals_one_device() {
     crate::isolated::run(
@@ -51,8 +53,8 @@ fn data_parallel_equals_one_device_alone() {
 }
 
 /// The grid trainer data-parallel (`GridTrainer::replicas`: each batch cut into one share
-/// per device, each share's gradient weighted by its share of the batch, summed by
-/// `step_multi`) on two CPU "devices" against one: without input noise the losses of every
+/// per device, each share's gradient weighted by its share of the batch, summed by the
+/// group's all-reduce) on two CPU "devices" against one: without input noise the losses of every
 /// epoch equal a one-device run's up to float summation order. (On GPUs the same code runs
 /// with `--device cuda:0,cuda:1,...`; docs/training.md has those runs.)
 #[test]

@@ -33,7 +33,7 @@ use super::batch::HostBatch;
 use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
-use crate::train::reduce::ReduceGroup;
+use crate::train::reduce::{FailGuard, ReduceGroup};
 
 /// One step's share for a worker: its windows, the learning rate, the run's step and the
 /// batch's size.
@@ -139,15 +139,5 @@ where
             value += (replicas.losses.recv()).expect("a data-parallel worker failed");
         }
         (model, value, 0.0)
-    }
-}
-
-/// Marks the group failed if its rank's thread unwinds before it is forgotten, so that the
-/// other ranks stop waiting for it in a host rendezvous.
-struct FailGuard<'g, B: burn::tensor::backend::Backend + NetOps>(&'g ReduceGroup<B>);
-
-impl<B: burn::tensor::backend::Backend + NetOps> Drop for FailGuard<'_, B> {
-    fn drop(&mut self) {
-        self.0.fail();
     }
 }

@@ -11,9 +11,11 @@
 //! Used by `minflow train --arch paper` and `minflow bench train --arch paper`.
 //!
 //! Files: this one holds the trainer and its run over the shared epoch loop, `step.rs` an
-//! epoch's pass and its optimizer steps, `slices.rs` the micro-batches, `loss.rs` their loss.
+//! epoch's pass and its optimizer steps, `replicas.rs` its data-parallel steps, `slices.rs`
+//! the micro-batches, `loss.rs` their loss.
 
 pub mod loss;
+mod replicas;
 mod slices;
 mod step;
 
@@ -95,11 +97,11 @@ where
         Self::data_parallel(config, opts, out, vec![device])
     }
 
-    /// A trainer that trains data-parallel on `devices` (the first is the main device):
-    /// every optimizer step forks the model to each device, each device runs forward and
-    /// backward on its share of the batch's micro-batches, the gradients are summed over the
-    /// devices by the all-reduce the grid trainer uses ([`crate::train::reduce`]: NCCL's on
-    /// CUDA), and the main device takes the step. The effective batch, the data order and
+    /// A trainer that trains data-parallel on `devices` (the first is the main device): each
+    /// further device keeps a replica of the model and of Adam through an epoch, each device
+    /// runs forward and backward on its share of the batch's micro-batches, the gradients
+    /// are summed over the devices by the all-reduce the grid trainer uses
+    /// ([`crate::train::reduce`]: NCCL's on CUDA), and every device takes the same step. The effective batch, the data order and
     /// the loss scaling are those of a one-device run; only the dropout masks differ (each
     /// device draws its own).
     ///

@@ -1,20 +1,18 @@
 //! One epoch of a paper run and its optimizer steps: host batches assembled one ahead on a
 //! second thread, each batch one optimizer step (on the main device, or data-parallel over
-//! several: the model forked to each, the gradients summed by the all-reduce of
-//! [`crate::train::reduce`], NCCL's on CUDA, and the step taken on the main device), the
-//! loss read back once per step. Part of [`super::Trainer`].
+//! several with a persistent replica on each, `replicas.rs`), the loss read back once per
+//! step. Part of [`super::Trainer`].
 
 use std::time::Instant;
 
-use burn::module::Module;
 use burn::optim::{GradientsAccumulator, GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
-use burn::tensor::{ElementConversion, StreamId, Tensor};
+use burn::tensor::{StreamId, Tensor};
 
+use super::replicas::{loss_value, Replicas};
 use super::slices::{deal, host_slices, slice_loss, HostSlice};
 use super::{Optim, Trainer};
 use crate::model::{Model, Scaling};
-use crate::train::reduce::ReduceGroup;
 use crate::train::{BatchSource, EpochPass, Observer, TrainError};
 
 impl<B: AutodiffBackend + crate::ops::NetOps> Trainer<B>
@@ -24,7 +22,7 @@ where
     /// Forward and backward of `slices` (micro-batches of one optimizer step of `b`
     /// windows) on `device`: the accumulated gradients (scaled so that the shares of all
     /// devices sum to the batch mean) and the summed, window-weighted loss (not read back).
-    fn shard_step(
+    pub(super) fn shard_step(
         &self,
         model: &Model<B>,
         slices: Vec<HostSlice>,
@@ -72,7 +70,6 @@ where
         let batches = train.batches(batch_size, Some(self.opts.seed), epoch as u64)?;
         let micro = self.opts.micro_batch;
         let parallel = self.devices.len();
-        let group = (parallel > 1).then(|| ReduceGroup::new(self.devices.clone()));
         // The model moves into the step loop and back out (`optim.step` consumes it, so
         // the parameters are updated in place when nothing else holds them).
         let mut slot = Some(model);
@@ -93,6 +90,9 @@ where
             });
             let mut totals = EpochPass::default();
             let mut k = 0;
+            // The replicas on the other devices, started by the epoch's first data-parallel
+            // step (`replicas.rs`).
+            let mut replicas: Option<Replicas<B>> = None;
             loop {
                 let waited = Instant::now();
                 let Ok(item) = rx.recv() else { break };
@@ -100,20 +100,25 @@ where
                 let (b, slices) = item?;
                 let model = slot.take().expect("the model is put back after every step");
                 let step_started = Instant::now();
-                let (model, losses) = self.optimizer_step(
-                    model,
-                    optim,
-                    slices,
-                    (b, scaling),
-                    streams,
-                    group.as_ref(),
-                );
+                let (model, loss, others) = if parallel == 1 || slices.len() < parallel {
+                    // A batch of fewer micro-batches than devices (a short last batch) steps
+                    // on the main device alone (every rank of the all-reduce needs a share):
+                    // the replicas, a step behind now, are ended.
+                    replicas = None;
+                    let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
+                    (optim.step(self.opts.lr, model, grads), loss, 0.0)
+                } else {
+                    let from = (&model, &*optim);
+                    let r = replicas
+                        .get_or_insert_with(|| self.replicas(scope, from, scaling, streams));
+                    self.parallel_step((model, optim), deal(slices, parallel), (b, scaling), r)
+                };
                 slot = Some(model);
                 tracing::trace!(step = ?step_started.elapsed(), "optimizer step");
                 // One read per step, after the step is queued: the host waits here for
                 // the device to finish it.
                 let waited = Instant::now();
-                let value = mean_loss(losses, b);
+                let value = (loss_value(loss) + others) / b.max(1) as f64;
                 totals.wait_seconds += waited.elapsed().as_secs_f64();
                 totals.add_step(value, b, (epoch, k, total), started, &mut *observer)?;
                 k += 1;
@@ -123,74 +128,4 @@ where
         let model = slot.expect("the model is put back after every step");
         Ok((model, totals))
     }
-
-    /// One optimizer step on a batch of `b` windows cut into `slices`: on the main device,
-    /// or data-parallel with the slices dealt over the devices, summed over them by
-    /// `group`. Returns the updated model and the summed losses of each device (not read
-    /// back).
-    #[allow(clippy::too_many_arguments)]
-    fn optimizer_step(
-        &self,
-        model: Model<B>,
-        optim: &mut Optim<B>,
-        slices: Vec<HostSlice>,
-        (b, scaling): (usize, &Scaling),
-        streams: &[StreamId],
-        group: Option<&ReduceGroup<B::InnerBackend>>,
-    ) -> (Model<B>, Vec<Option<Tensor<B::InnerBackend, 1>>>) {
-        let parallel = self.devices.len();
-        // A batch of fewer micro-batches than devices (a short last batch) steps on the main
-        // device alone: every rank of the all-reduce needs a share.
-        if parallel == 1 || slices.len() < parallel {
-            let (grads, loss) = self.shard_step(&model, slices, b, scaling, self.main());
-            return (optim.step(self.opts.lr, model, grads), vec![loss]);
-        }
-        let shards = deal(slices, parallel);
-        // The workers are new threads every step, on the run's fixed stream ids (see
-        // `train::stream_ids`); each sums its gradients with the others' and keeps them
-        // only on the main device, where the step is taken.
-        let group = group.expect("a reduce group for several devices");
-        let results: Vec<_> = std::thread::scope(|workers| {
-            let handles: Vec<_> = (shards.into_iter().enumerate())
-                .zip(self.devices.iter().zip(streams))
-                .map(|((rank, shard), (device, &stream))| {
-                    let model = &model;
-                    workers.spawn(move || {
-                        stream.executes(|| {
-                            let local = model.clone().fork(device);
-                            let (grads, loss) = self.shard_step(&local, shard, b, scaling, device);
-                            let grads = group.sum_grads(rank, &local, grads);
-                            ((rank == 0).then_some(grads), loss)
-                        })
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| h.join().expect("a data-parallel worker panicked"))
-                .collect()
-        });
-        let mut summed = None;
-        let mut losses = Vec::new();
-        for (grads, loss) in results {
-            summed = summed.or(grads);
-            losses.push(loss);
-        }
-        let grads = summed.expect("the main device's summed gradients");
-        (optim.step(self.opts.lr, model, grads), losses)
-    }
-}
-
-/// The batch-mean loss of one optimizer step from each device's summed, window-weighted
-/// loss over its share of the `b` windows (read back from the device).
-fn mean_loss<B: burn::tensor::backend::Backend>(
-    losses: Vec<Option<Tensor<B, 1>>>,
-    b: usize,
-) -> f64 {
-    losses
-        .into_iter()
-        .flatten()
-        .map(|l| l.into_scalar().elem::<f64>())
-        .sum::<f64>()
-        / b.max(1) as f64
 }
