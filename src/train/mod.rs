@@ -10,7 +10,8 @@
 //! Shared here: the error type, the per-epoch record, the progress observer and the seeded
 //! CPU draw of initial weights. [`checkpoint`] is what a run writes (the kept model, the
 //! resumable checkpoint, [`checkpoint::RunOutput`]), [`optimizer`] the fused Adam optimizer,
-//! [`source`] the batch sources, `reduce.rs` the gradient all-reduce of data-parallel runs. Used by `minflow train` and `minflow bench train`.
+//! [`source`] the batch sources, `reduce.rs` the gradient all-reduce of data-parallel runs and
+//! `workers.rs` their worker threads. Used by `minflow train` and `minflow bench train`.
 
 pub mod checkpoint;
 pub mod epochs;
@@ -21,6 +22,7 @@ pub mod paper;
 pub mod progress;
 pub(crate) mod reduce;
 pub mod source;
+mod workers;
 
 pub use epochs::{run_epochs, EpochPass, EpochRun, Unfinished};
 pub use ledger::{CallShare, DatasetInfo, RunLedger};

@@ -20,12 +20,8 @@
 //! transfer per step (burn's `step_multi`, which this replaced, did both, each a round trip
 //! that held the step: 1.3x on 2 GPUs and 1.3x on 4, docs/training.md).
 
-use std::sync::mpsc::{channel, Receiver, Sender};
-use std::sync::Arc;
 use std::thread::Scope;
 
-use burn::module::Module;
-use burn::optim::Optimizer;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::StreamId;
 
@@ -34,24 +30,20 @@ use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
 use crate::train::reduce::{FailGuard, ReduceGroup};
+use crate::train::workers::Workers;
 
 /// One step's share for a worker: its windows, the learning rate, the run's step and the
 /// batch's size.
-struct Job {
+pub(super) struct Job {
     host: HostBatch,
     lr: f64,
     step: u64,
     total: usize,
 }
 
-/// The worker threads of a data-parallel stretch, one per device after the main one, and
-/// the group they reduce with. Dropping it ends the workers (their scope joins them).
-pub(super) struct Replicas<B: AutodiffBackend> {
-    jobs: Vec<Sender<Job>>,
-    /// Each worker's weighted loss of its last step, in any order.
-    losses: Receiver<f64>,
-    group: Arc<ReduceGroup<B::InnerBackend>>,
-}
+/// The worker threads of a data-parallel stretch, one per device after the main one
+/// (`train/workers.rs`).
+pub(super) type Replicas<B> = Workers<Job, B>;
 
 /// A share's rank, the batch's size and the group, as a step sums its gradients.
 pub(super) type Reduce<'g, B> = (
@@ -73,38 +65,24 @@ where
         optim: &GridOptim<B>,
         streams: &[StreamId],
     ) -> Replicas<B> {
-        let group = Arc::new(ReduceGroup::new(self.devices()));
-        let (done, losses) = channel();
-        let jobs = (1..group.ranks())
-            .map(|rank| {
-                let (send, jobs) = channel::<Job>();
-                let (model, record) = (model.clone(), optim.to_record());
-                let (group, done, stream) = (Arc::clone(&group), done.clone(), streams[rank]);
-                scope.spawn(move || {
-                    stream.executes(|| {
-                        let guard = FailGuard(&group);
-                        let mut model = model.fork(group.device(rank));
-                        let mut optim = self.optimizer().load_record(record);
-                        for job in jobs {
-                            let reduce = Some((rank, job.total, &*group));
-                            let value;
-                            (model, value, _) =
-                                self.step(model, &mut optim, job.host, (job.lr, job.step), reduce);
-                            if done.send(value).is_err() {
-                                break;
-                            }
-                        }
-                        std::mem::forget(guard);
-                    })
-                });
-                send
-            })
-            .collect();
-        Replicas {
-            jobs,
-            losses,
+        let group = ReduceGroup::new(self.devices());
+        let step = move |model: GridModel<B>,
+                         optim: &mut GridOptim<B>,
+                         job: Job,
+                         rank: usize,
+                         group: &ReduceGroup<B::InnerBackend>| {
+            let reduce = Some((rank, job.total, group));
+            let (model, value, _) = self.step(model, optim, job.host, (job.lr, job.step), reduce);
+            (model, value)
+        };
+        Workers::start(
+            scope,
             group,
-        }
+            streams,
+            (model, optim),
+            || self.optimizer(),
+            step,
+        )
     }
 
     /// One batch's optimizer steps with its `shares` (one per device, in the order of
@@ -122,22 +100,17 @@ where
         let total: usize = shares.iter().map(HostBatch::b).sum();
         let mut shares = shares.into_iter();
         let own = shares.next().expect("a share per device");
-        for (send, host) in replicas.jobs.iter().zip(shares) {
-            let job = Job {
-                host,
-                lr,
-                step,
-                total,
-            };
-            send.send(job).expect("a data-parallel worker ended early");
-        }
-        let guard = FailGuard(&replicas.group);
+        replicas.send(shares.map(|host| Job {
+            host,
+            lr,
+            step,
+            total,
+        }));
+        let guard = FailGuard(&*replicas.group);
         let reduce = Some((0, total, &*replicas.group));
         let (model, mut value, _) = self.step(model, optim, own, (lr, step), reduce);
         std::mem::forget(guard);
-        for _ in &replicas.jobs {
-            value += (replicas.losses.recv()).expect("a data-parallel worker failed");
-        }
+        value += replicas.sum();
         (model, value, 0.0)
     }
 }

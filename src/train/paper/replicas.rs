@@ -1,8 +1,8 @@
 //! The paper trainer's data-parallel steps over several devices of one machine
 //! (`--device cuda:0,cuda:1,...`) with one persistent replica per further device, as the grid
 //! trainer's (`train/grid/parallel.rs`): the main thread trains the main device's model, and
-//! one worker thread per further device ([`Replicas`]) holds a replica of the model and of
-//! Adam, started from the main ones when an epoch's first data-parallel step needs them and
+//! one worker thread per further device ([`Replicas`], `train/workers.rs`) holds a replica of
+//! the model and of Adam, started from the main ones when an epoch's first data-parallel step needs them and
 //! kept for the epoch's steps. A batch's micro-batches are dealt over the devices
 //! ([`super::slices::deal`]); every rank runs its share's forward and backward (its loss
 //! scaled by its windows' share of the batch), sums the gradients over the ranks
@@ -10,11 +10,8 @@
 //! stay equal without a broadcast. No model is forked per step (the step before forked the
 //! model to every device every step).
 
-use std::sync::mpsc::{channel, Receiver, Sender};
-use std::sync::Arc;
 use std::thread::Scope;
 
-use burn::module::Module;
 use burn::optim::Optimizer;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::{ElementConversion, StreamId, Tensor};
@@ -25,21 +22,16 @@ use crate::model::{Model, Scaling};
 use crate::ops::NetOps;
 use crate::train::optimizer::FusedAdam;
 use crate::train::reduce::{FailGuard, ReduceGroup};
+use crate::train::workers::Workers;
 
 /// One step's share for a worker: its micro-batches and the batch's windows.
-struct Job {
+pub(super) struct Job {
     slices: Vec<HostSlice>,
     b: usize,
 }
 
-/// The worker threads of an epoch's data-parallel steps, one per device after the main one,
-/// and the group they reduce with. Dropping it ends the workers (their scope joins them).
-pub(super) struct Replicas<B: AutodiffBackend> {
-    jobs: Vec<Sender<Job>>,
-    /// Each worker's summed, window-weighted loss of its last step, in any order.
-    losses: Receiver<f64>,
-    group: Arc<ReduceGroup<B::InnerBackend>>,
-}
+/// The worker threads of an epoch's data-parallel steps, one per device after the main one.
+pub(super) type Replicas<B> = Workers<Job, B>;
 
 impl<B: AutodiffBackend + NetOps> Trainer<B>
 where
@@ -50,45 +42,23 @@ where
     pub(super) fn replicas<'scope>(
         &'scope self,
         scope: &'scope Scope<'scope, '_>,
-        (model, optim): (&Model<B>, &Optim<B>),
+        from: (&Model<B>, &Optim<B>),
         scaling: &'scope Scaling,
         streams: &[StreamId],
     ) -> Replicas<B> {
-        let group = Arc::new(ReduceGroup::new(self.devices.clone()));
-        let (done, losses) = channel();
-        let jobs = (1..group.ranks())
-            .map(|rank| {
-                let (send, jobs) = channel::<Job>();
-                let (model, record) = (model.clone(), optim.to_record());
-                let (group, done, stream) = (Arc::clone(&group), done.clone(), streams[rank]);
-                scope.spawn(move || {
-                    stream.executes(|| {
-                        let guard = FailGuard(&*group);
-                        let device = group.device(rank);
-                        let mut model = model.fork(device);
-                        let mut optim = FusedAdam::default()
-                            .init::<B, Model<B>>()
-                            .load_record(record);
-                        for job in jobs {
-                            let (grads, loss) =
-                                self.shard_step(&model, job.slices, job.b, scaling, device);
-                            let grads = group.sum_grads(rank, &model, grads);
-                            model = optim.step(self.opts.lr, model, grads);
-                            if done.send(loss_value(loss)).is_err() {
-                                break;
-                            }
-                        }
-                        std::mem::forget(guard);
-                    })
-                });
-                send
-            })
-            .collect();
-        Replicas {
-            jobs,
-            losses,
-            group,
-        }
+        let group = ReduceGroup::new(self.devices.clone());
+        let fresh = || FusedAdam::default().init::<B, Model<B>>();
+        let step = move |model: Model<B>,
+                         optim: &mut Optim<B>,
+                         job: Job,
+                         rank: usize,
+                         group: &ReduceGroup<B::InnerBackend>| {
+            let device = group.device(rank);
+            let (grads, loss) = self.shard_step(&model, job.slices, job.b, scaling, device);
+            let grads = group.sum_grads(rank, &model, grads);
+            (optim.step(self.opts.lr, model, grads), loss_value(loss))
+        };
+        Workers::start(scope, group, streams, from, fresh, step)
     }
 
     /// One data-parallel optimizer step of a batch of `b` windows dealt into `shards` (one
@@ -104,19 +74,13 @@ where
     ) -> (Model<B>, Option<Tensor<B::InnerBackend, 1>>, f64) {
         let mut shards = shards.into_iter();
         let own = shards.next().expect("a share per device");
-        for (send, slices) in replicas.jobs.iter().zip(shards) {
-            send.send(Job { slices, b })
-                .expect("a data-parallel worker ended early");
-        }
+        replicas.send(shards.map(|slices| Job { slices, b }));
         let guard = FailGuard(&*replicas.group);
         let (grads, loss) = self.shard_step(&model, own, b, scaling, self.main());
         let grads = replicas.group.sum_grads(0, &model, grads);
         let model = optim.step(self.opts.lr, model, grads);
         std::mem::forget(guard);
-        let others = (replicas.jobs.iter())
-            .map(|_| (replicas.losses.recv()).expect("a data-parallel worker failed"))
-            .sum();
-        (model, loss, others)
+        (model, loss, replicas.sum())
     }
 }
 

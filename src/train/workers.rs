@@ -1,0 +1,113 @@
+//! The worker threads of synchronous data-parallel training on the devices of one machine,
+//! shared by both trainers (`grid/parallel.rs`, `paper/replicas.rs`): one thread per device
+//! after the main one ([`Workers`]), each holding a replica of the model and of its optimizer
+//! for a stretch of steps and fed one job a step. Every rank sums its gradients through the
+//! [`ReduceGroup`] and takes the same optimizer step, so the replicas stay equal without a
+//! broadcast (PyTorch's `DistributedDataParallel` works the same way).
+
+use std::sync::mpsc::{channel, Receiver, Sender};
+use std::sync::Arc;
+use std::thread::Scope;
+
+use burn::module::AutodiffModule;
+use burn::optim::Optimizer;
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::StreamId;
+
+use super::reduce::{FailGuard, ReduceGroup};
+use crate::ops::NetOps;
+
+/// The workers of a data-parallel stretch, fed jobs of type `J`, and the group they reduce
+/// with. Dropping it ends the workers (their scope joins them).
+pub(crate) struct Workers<J, A: AutodiffBackend>
+where
+    A::InnerBackend: NetOps,
+{
+    jobs: Vec<Sender<J>>,
+    /// Each worker's value of its last step (its summed loss), in any order.
+    values: Receiver<f64>,
+    /// The group every rank sums its gradients with; rank 0 is the caller's.
+    pub(crate) group: Arc<ReduceGroup<A::InnerBackend>>,
+}
+
+impl<J: Send, A: AutodiffBackend> Workers<J, A>
+where
+    A::InnerBackend: NetOps,
+{
+    /// Starts one worker for each rank of `group` after the first in `scope`, each on its
+    /// stream of `streams`, with a replica of `model` on its device and an optimizer made by
+    /// `fresh` and loaded with `optim`'s state. For each job a worker runs `step(model,
+    /// optimizer, job, rank, group)`, which returns the stepped model and the value sent
+    /// back. A worker that panics marks the group failed, so the other ranks stop waiting.
+    pub(crate) fn start<'scope, M, O>(
+        scope: &'scope Scope<'scope, '_>,
+        group: ReduceGroup<A::InnerBackend>,
+        streams: &[StreamId],
+        (model, optim): (&M, &O),
+        fresh: impl Fn() -> O + Send + Sync + 'scope,
+        step: impl Fn(M, &mut O, J, usize, &ReduceGroup<A::InnerBackend>) -> (M, f64)
+            + Send
+            + Sync
+            + 'scope,
+    ) -> Self
+    where
+        M: AutodiffModule<A> + 'scope,
+        O: Optimizer<M, A> + 'scope,
+        J: 'scope,
+    {
+        let group = Arc::new(group);
+        let (done, values) = channel();
+        let (fresh, step) = (Arc::new(fresh), Arc::new(step));
+        let jobs = (1..group.ranks())
+            .map(|rank| {
+                let (send, jobs) = channel::<J>();
+                let (model, record) = (model.clone(), optim.to_record());
+                let (group, done, stream) = (Arc::clone(&group), done.clone(), streams[rank]);
+                let (fresh, step) = (Arc::clone(&fresh), Arc::clone(&step));
+                scope.spawn(move || {
+                    stream.executes(|| {
+                        let guard = FailGuard(&*group);
+                        let mut model = model.fork(group.device(rank));
+                        let mut optim = fresh().load_record(record);
+                        for job in jobs {
+                            let value;
+                            (model, value) = step(model, &mut optim, job, rank, &group);
+                            if done.send(value).is_err() {
+                                break;
+                            }
+                        }
+                        std::mem::forget(guard);
+                    })
+                });
+                send
+            })
+            .collect();
+        Self {
+            jobs,
+            values,
+            group,
+        }
+    }
+
+    /// Hands each worker its job of this step, in rank order from rank 1.
+    ///
+    /// # Panics
+    /// A worker has ended (it panicked).
+    pub(crate) fn send(&self, jobs: impl IntoIterator<Item = J>) {
+        for (worker, job) in self.jobs.iter().zip(jobs) {
+            worker
+                .send(job)
+                .expect("a data-parallel worker ended early");
+        }
+    }
+
+    /// The sum of the workers' values of this step, once each has sent its.
+    ///
+    /// # Panics
+    /// A worker failed.
+    pub(crate) fn sum(&self) -> f64 {
+        (self.jobs.iter())
+            .map(|_| (self.values.recv()).expect("a data-parallel worker failed"))
+            .sum()
+    }
+}
