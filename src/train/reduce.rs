@@ -225,16 +225,6 @@ impl<B: Backend> Rendezvous<B> {
     }
 }
 
-/// Marks the group failed if its rank's thread unwinds before it is forgotten, so that the
-/// other ranks stop waiting for it in a host rendezvous.
-pub(crate) struct FailGuard<'g, B: Backend + NetOps>(pub(crate) &'g ReduceGroup<B>);
-
-impl<B: Backend + NetOps> Drop for FailGuard<'_, B> {
-    fn drop(&mut self) {
-        self.0.fail();
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use burn::backend::NdArray;

@@ -11,10 +11,10 @@ use std::thread::Scope;
 
 use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
-use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::StreamId;
 
-use super::reduce::{FailGuard, ReduceGroup};
+use super::reduce::ReduceGroup;
 use crate::ops::NetOps;
 
 /// The workers of a data-parallel stretch, fed jobs of type `J`, and the group they reduce
@@ -26,8 +26,8 @@ where
     jobs: Vec<Sender<J>>,
     /// Each worker's value of its last step (its summed loss), in any order.
     values: Receiver<f64>,
-    /// The group every rank sums its gradients with; rank 0 is the caller's.
-    pub(crate) group: Arc<ReduceGroup<A::InnerBackend>>,
+    /// The group every rank sums its gradients with; rank 0 is the caller's ([`Workers::own`]).
+    group: Arc<ReduceGroup<A::InnerBackend>>,
 }
 
 impl<J: Send, A: AutodiffBackend> Workers<J, A>
@@ -101,6 +101,15 @@ where
         }
     }
 
+    /// Runs rank 0's share of this step, `f` with the group to sum its gradients in; if it
+    /// panics the group is marked failed, so that the workers stop waiting for it.
+    pub(crate) fn own<R>(&self, f: impl FnOnce(&ReduceGroup<A::InnerBackend>) -> R) -> R {
+        let guard = FailGuard(&*self.group);
+        let out = f(&self.group);
+        std::mem::forget(guard);
+        out
+    }
+
     /// The sum of the workers' values of this step, once each has sent its.
     ///
     /// # Panics
@@ -109,5 +118,15 @@ where
         (self.jobs.iter())
             .map(|_| (self.values.recv()).expect("a data-parallel worker failed"))
             .sum()
+    }
+}
+
+/// Marks the group failed if its rank's thread unwinds before it is forgotten, so that the
+/// other ranks stop waiting for it in a host rendezvous.
+struct FailGuard<'g, B: Backend + NetOps>(&'g ReduceGroup<B>);
+
+impl<B: Backend + NetOps> Drop for FailGuard<'_, B> {
+    fn drop(&mut self) {
+        self.0.fail();
     }
 }

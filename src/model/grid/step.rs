@@ -251,12 +251,8 @@ impl<B: NetOps> GridModel<B> {
             let bias = l.bias.as_ref()?.val().into_primitive().tensor();
             Some((l.weight.val().into_primitive().tensor(), bias))
         };
-        let layers = [
-            self.head_a.clone(),
-            self.head_b.clone(),
-            self.head_out.clone(),
-        ];
-        let [a, h, o] = layers.each_ref().map(layer);
+        let layers = [&self.head_a, &self.head_b, &self.head_out];
+        let [a, h, o] = layers.map(layer);
         let frames = crate::ops::ParticleFrames {
             fields: latent.out.clone().into_primitive().tensor(),
             latent: latent.width,
@@ -275,7 +271,7 @@ impl<B: NetOps> GridModel<B> {
         let out = B::particle_frames(frames)?;
         if roofline::on() {
             let rows = (b * n_p * self.bundle) as f64;
-            let [w_a, w_b, w_o] = layers.each_ref().map(|l| l.weight.dims());
+            let [w_a, w_b, w_o] = layers.map(|l| l.weight.dims());
             let macs = w_a[0] * w_a[1] + w_b[0] * w_b[1] + w_o[0] * w_o[1] + 9 * latent.width;
             // Each field read once, each particle's inputs once, each frame written once.
             let field = latent.out.dims().iter().product::<usize>() as f64;

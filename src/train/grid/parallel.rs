@@ -29,7 +29,7 @@ use super::batch::HostBatch;
 use super::{GridOptim, GridTrainer};
 use crate::model::grid::GridModel;
 use crate::ops::NetOps;
-use crate::train::reduce::{FailGuard, ReduceGroup};
+use crate::train::reduce::ReduceGroup;
 use crate::train::workers::Workers;
 
 /// One step's share for a worker: its windows, the learning rate, the run's step and the
@@ -106,10 +106,8 @@ where
             step,
             total,
         }));
-        let guard = FailGuard(&*replicas.group);
-        let reduce = Some((0, total, &*replicas.group));
-        let (model, mut value, _) = self.step(model, optim, own, (lr, step), reduce);
-        std::mem::forget(guard);
+        let (model, mut value, _) =
+            replicas.own(|group| self.step(model, optim, own, (lr, step), Some((0, total, group))));
         value += replicas.sum();
         (model, value, 0.0)
     }

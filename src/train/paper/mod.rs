@@ -101,9 +101,9 @@ where
     /// further device keeps a replica of the model and of Adam through an epoch, each device
     /// runs forward and backward on its share of the batch's micro-batches, the gradients
     /// are summed over the devices by the all-reduce the grid trainer uses
-    /// ([`crate::train::reduce`]: NCCL's on CUDA), and every device takes the same step. The effective batch, the data order and
-    /// the loss scaling are those of a one-device run; only the dropout masks differ (each
-    /// device draws its own).
+    /// ([`crate::train::reduce`]: NCCL's on CUDA), and every device takes the same step. The
+    /// effective batch, the data order and the loss scaling are those of a one-device run;
+    /// only the dropout masks differ (each device draws its own).
     ///
     /// # Panics
     /// If `devices` is empty.

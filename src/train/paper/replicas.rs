@@ -2,8 +2,8 @@
 //! (`--device cuda:0,cuda:1,...`) with one persistent replica per further device, as the grid
 //! trainer's (`train/grid/parallel.rs`): the main thread trains the main device's model, and
 //! one worker thread per further device ([`Replicas`], `train/workers.rs`) holds a replica of
-//! the model and of Adam, started from the main ones when an epoch's first data-parallel step needs them and
-//! kept for the epoch's steps. A batch's micro-batches are dealt over the devices
+//! the model and of Adam, started from the main ones by an epoch's first data-parallel step
+//! and kept for the epoch's steps. A batch's micro-batches are dealt over the devices
 //! ([`super::slices::deal`]); every rank runs its share's forward and backward (its loss
 //! scaled by its windows' share of the batch), sums the gradients over the ranks
 //! ([`ReduceGroup`]: NCCL's all-reduce on CUDA) and takes the same Adam step, so the replicas
@@ -21,7 +21,7 @@ use super::{Optim, Trainer};
 use crate::model::{Model, Scaling};
 use crate::ops::NetOps;
 use crate::train::optimizer::FusedAdam;
-use crate::train::reduce::{FailGuard, ReduceGroup};
+use crate::train::reduce::ReduceGroup;
 use crate::train::workers::Workers;
 
 /// One step's share for a worker: its micro-batches and the batch's windows.
@@ -75,11 +75,11 @@ where
         let mut shards = shards.into_iter();
         let own = shards.next().expect("a share per device");
         replicas.send(shards.map(|slices| Job { slices, b }));
-        let guard = FailGuard(&*replicas.group);
-        let (grads, loss) = self.shard_step(&model, own, b, scaling, self.main());
-        let grads = replicas.group.sum_grads(0, &model, grads);
-        let model = optim.step(self.opts.lr, model, grads);
-        std::mem::forget(guard);
+        let (model, loss) = replicas.own(|group| {
+            let (grads, loss) = self.shard_step(&model, own, b, scaling, self.main());
+            let grads = group.sum_grads(0, &model, grads);
+            (optim.step(self.opts.lr, model, grads), loss)
+        });
         (model, loss, replicas.sum())
     }
 }
