@@ -281,6 +281,12 @@ pub struct GridArgs {
     /// rollout is asked for the truth's liquid shape, not a particle-by-particle match (0: off).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub density_loss: f32,
+    /// Weight of the fast particles in the velocity and position MSE: each particle's squared
+    /// error weighs 1 + W |v| / (mean |v| + 0.1), |v| its true speed and the mean over its
+    /// sample, normalised to mean 1, so a splash's few thrown particles count for more than
+    /// the liquid at rest around them (0: every particle alike).
+    #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
+    pub fast_loss: f32,
     /// Discount of the loss along each sample's rollout, in (0, 1]: the rollout's frame j
     /// (from 0) weighs discount^j, the weights normalised to sum to 1, so a long
     /// --rollout-steps keeps the first frames' error in view (1: every frame alike).
@@ -410,6 +416,7 @@ impl TrainArgs {
             volume_weight: g.volume_loss,
             energy_weight: g.energy_loss,
             density_weight: g.density_loss,
+            fast_weight: g.fast_loss,
             discount: g.rollout_discount,
             seed: self.seed,
             patience: self.patience,

@@ -60,6 +60,14 @@ pub struct GridTrainOptions {
     /// density terms alone, not by each particle's place.
     #[serde(default)]
     pub density_weight: f32,
+    /// Weight of the fast particles in the velocity and position MSE (`fast_weights` in
+    /// `rollout_loss/terms.rs`): each particle's squared error weighs
+    /// `1 + fast_weight |v| / (mean |v| + floor)`, `|v|` its true speed and the mean over its
+    /// sample, the weights normalised to mean 1, so a splash's thrown particles count for more
+    /// than the liquid at rest around them. 0 (the default, and runs saved before it
+    /// existed): every particle alike.
+    #[serde(default)]
+    pub fast_weight: f32,
     /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K
     /// frames (from 0) weighs `discount^j`, the weights normalised to sum to 1, so a long
     /// rollout (large P) keeps its first frames' error in view while the later frames still
@@ -113,6 +121,7 @@ impl Default for GridTrainOptions {
             volume_weight: 0.0,
             energy_weight: 0.0,
             density_weight: 0.0,
+            fast_weight: 0.0,
             discount: 1.0,
             seed: 0,
             patience: 0,

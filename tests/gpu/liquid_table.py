@@ -1,0 +1,116 @@
+"""The diagnosis table of tests/gpu/liquid.sh (issue 81): for each model and each scene set
+(`train`: the fluid scenes the runs trained on, `unseen`: seed 7), avg20 and whole-scene MSE
+on the splash scenes and on all, over `constvel` and `persist`; the liquid's area (prediction
+over truth) at steps 20, 200 and the end; the surge fronts within 10 % of the truth's step.
+Usage: liquid_table.py OUT NAME... (OUT holds eval's folders {train,unseen}-{h20,full})."""
+import csv
+import os
+import re
+import sys
+from collections import defaultdict
+
+REACH_SLACK = 1.0 / 64.0
+
+
+def rows(path):
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def per_scene(path):
+    """{predictor: {scene: avg}} from eval's table.csv (its first block: the average)."""
+    out = defaultdict(dict)
+    table = rows(path)
+    if not table:
+        return out
+    avg = [c for c in table[0] if c != "scene"]
+    avg = avg[: len(avg) // 2]
+    for r in table:
+        if r["scene"] == "Average":
+            continue
+        for c in avg:
+            if r[c]:
+                out[re.match(r"^(avg_full|avg\d+)_(.*)$", c).group(2)][r["scene"]] = float(r[c])
+    return out
+
+
+def mean(xs):
+    xs = list(xs)
+    return sum(xs) / len(xs) if xs else float("nan")
+
+
+def ratio(scores, name, base, scenes):
+    got = [scores[name][s] / scores[base][s] for s in scenes if s in scores[name] and scores[base].get(s)]
+    return mean(got), mean(scores[name][s] for s in scenes if s in scores[name])
+
+
+def areas(path, name):
+    """Mean liquid area over truth at probes 20, 200 and the end (scenes within 10 %), and
+    the liquid's kinetic energy over the truth's, averaged over every probe."""
+    by = defaultdict(dict)
+    energy = []
+    for r in rows(path):
+        if r["predictor"] == name and r["material"] == "liquid" and r["volume"]:
+            by[r["scene"]][r["probe"]] = float(r["volume"])
+            if r["energy"]:
+                energy.append(float(r["energy"]))
+    cells = []
+    for probe in ("20", "200", "end"):
+        vals = [v[probe] for v in by.values() if probe in v]
+        cells.append(f"{mean(vals):.2f} ({sum(abs(x - 1) <= 0.1 for x in vals)}/{len(vals)})")
+    return " / ".join(cells), f"{mean(energy):.2f}"
+
+
+def fronts(path, name):
+    """Scenes whose front reaches the far wall within 10 % of the truth's step, of those the
+    truth reaches it in."""
+    series = defaultdict(lambda: defaultdict(dict))
+    for r in rows(path):
+        if r["front"]:
+            series[r["scene"]][r["predictor"]][int(r["step"])] = float(r["front"])
+    good = total = 0
+    for scene, by in series.items():
+        truth = by.get("truth", {})
+        if not truth or name not in by:
+            continue
+        wall = max(truth.values()) - REACH_SLACK
+        reach = lambda s: next((k for k in sorted(s) if s[k] >= wall), None)
+        t, p = reach(truth), reach(by[name])
+        if t is None or t == 0:
+            continue
+        total += 1
+        good += p is not None and abs(p - t) <= 0.1 * t
+    return f"{good}/{total}"
+
+
+def main():
+    out, names = sys.argv[1], sys.argv[2:]
+    print("| set | model | avg20 splash (/constvel) | avg20 all (/constvel) "
+          "| whole splash (/persist) | whole all (/persist) | liquid area 20 / 200 / end "
+          "| energy | fronts |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |")
+    for tag in ("train", "unseen"):
+        h20 = per_scene(f"{out}/{tag}-h20/table.csv")
+        full = per_scene(f"{out}/{tag}-full/table.csv")
+        scenes = sorted(next(iter(h20.values()), {}))
+        splash = [s for s in scenes if "splash" in s]
+        for name in names:
+            name = os.path.basename(name.rstrip("/"))
+            if name not in h20:
+                print(f"| {tag} | {name} | (no rows) | | | | | | |")
+                continue
+            cells = []
+            for scores, base in ((h20, "constvel"), (full, "persist")):
+                for subset in (splash, scenes):
+                    r, m = ratio(scores, name, base, subset)
+                    cells.append(f"{m:.3e} ({r:.3f})")
+            plaus = f"{out}/{tag}-full/plausibility.csv"
+            area, energy = areas(plaus, name)
+            row = [tag, name, *cells, area, energy, fronts(f"{out}/{tag}-full/front.csv", name)]
+            print("| " + " | ".join(row) + " |")
+
+
+if __name__ == "__main__":
+    main()
