@@ -46,7 +46,7 @@ pub struct DemoArgs {
     /// Where `--train` (or a missing model) trains the demo's own model.
     #[arg(long, default_value = "runs/demo-grid-mingru")]
     train_out: PathBuf,
-    /// Output folder of the replay evaluation.
+    /// Output folder of the replay evaluation (its `eval/` is replaced by each run's).
     #[arg(short, long, default_value = "runs/demo")]
     out: PathBuf,
     /// Transport of the replay evaluation.
@@ -73,6 +73,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
     let start = Instant::now();
     let bags = demo_bags(&args)?;
     let model = demo_model(&args)?;
+    clear_last_eval(&args.out)?;
     println!(
         "\n== launch replay_eval over {}: replay {} -> surrogate node (closed loop, {} frames) -> record -> eval ==",
         args.transport,
@@ -108,6 +109,22 @@ pub fn run(args: DemoArgs) -> anyhow::Result<Outcome> {
         args.out.display()
     );
     Ok(Outcome::Done)
+}
+
+/// Removes `out/eval`, the tables and renders of the demo's previous run, so the folder
+/// holds only this run's (its predictions bag is overwritten by the recorder; the scenes
+/// simulated for `--grid`, `out/truth@...`, are kept for the next run).
+///
+/// # Errors
+///
+/// When the folder exists and cannot be removed.
+fn clear_last_eval(out: &std::path::Path) -> anyhow::Result<()> {
+    let eval = out.join("eval");
+    if eval.is_dir() {
+        std::fs::remove_dir_all(&eval)
+            .with_context(|| format!("removing the last demo's {}", eval.display()))?;
+    }
+    Ok(())
 }
 
 /// The ground truth the demo replays: the bundled bags, or with `--grid` one scene simulated
@@ -191,4 +208,26 @@ fn demo_model(args: &DemoArgs) -> anyhow::Result<PathBuf> {
     train.grid_args.samples_per_epoch = 96;
     crate::cli::train::run(train).context("training the demo model")?;
     Ok(args.train_out.clone())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_demo_clears_the_last_runs_eval_and_keeps_its_simulated_truth() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path();
+        std::fs::create_dir_all(out.join("eval")).unwrap();
+        std::fs::write(out.join("eval/render_multi_liquid_004.png"), b"stale").unwrap();
+        std::fs::create_dir_all(out.join("truth@256-2")).unwrap();
+        std::fs::write(out.join("truth@256-2/multi_jelly+liquid_002.mcap"), b"bag").unwrap();
+        clear_last_eval(out).unwrap();
+        assert!(!out.join("eval").exists());
+        assert!(out
+            .join("truth@256-2/multi_jelly+liquid_002.mcap")
+            .is_file());
+        // Nothing to clear: no error.
+        clear_last_eval(&out.join("missing")).unwrap();
+    }
 }
