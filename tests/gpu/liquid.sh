@@ -1,6 +1,5 @@
 #!/usr/bin/env bash
-# The liquid's levers at equal budget on one GPU (issue 81, docs/liquid.md "Fitting the
-# splash"): small grid models trained from fresh weights side by side on the paper's 40
+# The liquid's levers at equal budget on one GPU (issue 81, docs/splash.md): small grid models trained from fresh weights side by side on the paper's 40
 # `fluid` scenes (seed 1), each with one lever, then scored where the issue asks first, on
 # the splash scenes they trained on, and on unseen `fluid` scenes (seed 7): avg20, whole
 # scenes, liquid area and the surge front (tests/gpu/liquid_table.py). CI has no GPU and does
@@ -9,12 +8,17 @@
 #   tests/gpu/liquid.sh data            # seed 1 fluid (training), seed 7 fluid 0..12 (unseen)
 #   tests/gpu/liquid.sh train MINUTES   # the runs of LEVERS in the background, then waits
 #   tests/gpu/liquid.sh eval NAME...    # runs/NAME (or paths): OUT/{train,unseen}-{h20,full}
-#   tests/gpu/liquid.sh table NAME...   # the diagnosis table of those evaluations
+#   tests/gpu/liquid.sh table NAME...   # the diagnosis table of those evaluations (and, for
+#                                       # runs NAME-sN, each lever over its seeds)
+#   tests/gpu/liquid.sh pack            # runs and evaluations as RET/{runs,liquid}.tgz
 #
 # LEVERS: space-separated NAME=FLAGS (flags joined by commas), default a plain run against the
-# fast-particle loss at two weights. Environment as common.sh (OUT, DATA, BIN).
+# fast-particle loss at two weights. SEEDS (e.g. "1 2 3"): each lever once a seed, as
+# NAME-sN on one split; at minutes of training the seeds differ as much as the levers do
+# (docs/splash.md). Environment as common.sh (OUT, DATA, BIN); RET (default OUT) for pack.
 set -uo pipefail
 . "$(dirname "$0")/common.sh"
+RET=${RET:-$OUT}
 SMALL=(--grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 --head-hidden 64
     --bundle 4 --rollout-steps 4)
 FRESH=(--epochs 1000 --patience 0 --lr 1e-3 --lr-final 1e-5 --noise 0.5 --mirror
@@ -28,13 +32,29 @@ data)
         --out "$DATA/unseen" 2>&1 | tail -n 1
     ;;
 train)
-    for lever in $LEVERS; do
-        name=${lever%%=*}
-        IFS=',' read -r -a flags <<<"${lever#*=}"
-        setsid nohup "$BIN" train --device cuda --data "$DATA/fluid" --out "runs/$name" \
-            --max-minutes "$2" "${SMALL[@]}" "${FRESH[@]}" "${flags[@]}" \
-            >"$OUT/train-$name.log" 2>&1 &
-        echo $! >>"$OUT/started.pids"
+    # With SEEDS, each lever once a seed (LEVER-sN), all on the first seed's split: the runs
+    # of the first seed start first, the others once its split.json is written.
+    read -r -a seeds <<<"${SEEDS:-}"
+    first=
+    for seed in "${seeds[@]:-}"; do
+        for lever in $LEVERS; do
+            name=${lever%%=*}
+            IFS=',' read -r -a flags <<<"${lever#*=}"
+            if [ -n "$seed" ]; then
+                name=$name-s$seed
+                flags+=(--seed "$seed")
+                if [ -z "$first" ]; then
+                    first=runs/$name/split.json
+                elif [ "$seed" != "${seeds[0]}" ]; then
+                    for _ in $(seq 150); do [ -f "$first" ] && break; sleep 2; done
+                    flags+=(--split-from "$first")
+                fi
+            fi
+            setsid nohup "$BIN" train --device cuda --data "$DATA/fluid" --out "runs/$name" \
+                --max-minutes "$2" "${SMALL[@]}" "${FRESH[@]}" "${flags[@]}" \
+                >"$OUT/train-$name.log" 2>&1 &
+            echo $! >>"$OUT/started.pids"
+        done
     done
     wait_runs
     ;;
@@ -67,8 +87,16 @@ table)
     shift
     python3 "$(dirname "$0")/liquid_table.py" "$OUT" "$@"
     ;;
+pack)
+    # The device tool brings back a few files a call: the runs (without checkpoints) and the
+    # evaluations as two archives in RET.
+    tar czf "$RET/runs.tgz" --exclude=checkpoint runs
+    find "$OUT" -name '*.png' -delete
+    tar czf "$RET/liquid.tgz" -C "$(dirname "$OUT")" "$(basename "$OUT")"
+    ls -la "$RET"
+    ;;
 *)
-    sed -n '2,16p' "$0"
+    sed -n '2,22p' "$0"
     exit 2
     ;;
 esac

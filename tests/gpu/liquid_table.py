@@ -2,6 +2,9 @@
 (`train`: the fluid scenes the runs trained on, `unseen`: seed 7), avg20 and whole-scene MSE
 on the splash scenes and on all, over `constvel` and `persist`; the liquid's area (prediction
 over truth) at steps 20, 200 and the end; the surge fronts within 10 % of the truth's step.
+Runs named LEVER-sN (tests/gpu/liquid.sh with SEEDS) are also summed up per lever, the
+mean and the range over their seeds: at minutes of training the seeds' spread is as large as
+a lever's effect (docs/splash.md).
 Usage: liquid_table.py OUT NAME... (OUT holds eval's folders {train,unseen}-{h20,full})."""
 import csv
 import os
@@ -56,11 +59,11 @@ def areas(path, name):
             by[r["scene"]][r["probe"]] = float(r["volume"])
             if r["energy"]:
                 energy.append(float(r["energy"]))
-    cells = []
+    cells, end = [], []
     for probe in ("20", "200", "end"):
-        vals = [v[probe] for v in by.values() if probe in v]
-        cells.append(f"{mean(vals):.2f} ({sum(abs(x - 1) <= 0.1 for x in vals)}/{len(vals)})")
-    return " / ".join(cells), f"{mean(energy):.2f}"
+        end = [v[probe] for v in by.values() if probe in v]
+        cells.append(f"{mean(end):.2f} ({sum(abs(x - 1) <= 0.1 for x in end)}/{len(end)})")
+    return " / ".join(cells), f"{mean(energy):.2f}", mean(end)
 
 
 def fronts(path, name):
@@ -85,31 +88,50 @@ def fronts(path, name):
     return f"{good}/{total}"
 
 
+def spread(values):
+    """`mean [min, max]` of a lever's runs."""
+    return f"{mean(values):.3g} [{min(values):.3g}, {max(values):.3g}]"
+
+
 def main():
-    out, names = sys.argv[1], sys.argv[2:]
+    out, names = sys.argv[1], [os.path.basename(n.rstrip("/")) for n in sys.argv[2:]]
     print("| set | model | avg20 splash (/constvel) | avg20 all (/constvel) "
           "| whole splash (/persist) | whole all (/persist) | liquid area 20 / 200 / end "
           "| energy | fronts |")
     print("| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |")
+    # Per lever (a name's part before `-sN`): each set's splash avg20 and whole-scene ratios
+    # and the liquid's area at the end, one value a seed.
+    levers = defaultdict(lambda: defaultdict(list))
     for tag in ("train", "unseen"):
         h20 = per_scene(f"{out}/{tag}-h20/table.csv")
         full = per_scene(f"{out}/{tag}-full/table.csv")
         scenes = sorted(next(iter(h20.values()), {}))
         splash = [s for s in scenes if "splash" in s]
         for name in names:
-            name = os.path.basename(name.rstrip("/"))
             if name not in h20:
                 print(f"| {tag} | {name} | (no rows) | | | | | | |")
                 continue
-            cells = []
+            cells, ratios = [], []
             for scores, base in ((h20, "constvel"), (full, "persist")):
                 for subset in (splash, scenes):
                     r, m = ratio(scores, name, base, subset)
                     cells.append(f"{m:.3e} ({r:.3f})")
+                    ratios.append(r)
             plaus = f"{out}/{tag}-full/plausibility.csv"
-            area, energy = areas(plaus, name)
+            area, energy, end = areas(plaus, name)
             row = [tag, name, *cells, area, energy, fronts(f"{out}/{tag}-full/front.csv", name)]
             print("| " + " | ".join(row) + " |")
+            lever = levers[(tag, re.sub(r"-s\d+$", "", name))]
+            for key, v in (("avg20", ratios[0]), ("whole", ratios[3]), ("end", end)):
+                lever[key].append(v)
+    if not any(len(v["avg20"]) > 1 for v in levers.values()):
+        return
+    print("\n| set | lever | seeds | avg20 splash / constvel | whole all / persist "
+          "| liquid area at the end |")
+    print("| --- | --- | ---: | --- | --- | --- |")
+    for (tag, lever), v in levers.items():
+        print(f"| {tag} | {lever} | {len(v['avg20'])} | {spread(v['avg20'])} "
+              f"| {spread(v['whole'])} | {spread(v['end'])} |")
 
 
 if __name__ == "__main__":
