@@ -25,7 +25,7 @@ run() {
     echo "== $bin MINFLOW_CUDA_FRAMES=$form $sizes"
     # shellcheck disable=SC2086
     MINFLOW_CUDA_FRAMES=$form "$bin" bench rollout --device cuda "${MODELS[@]}" --frames 20 \
-        --threads 16 $sizes ${FLAGS:-} 2>&1 | grep -v "^\s*$"
+        --threads 16 $sizes ${FLAGS:-} 2>&1 | grep --line-buffered -v "^\s*$"
 }
 for sizes in "${ALL[@]}"; do
     run "$BIN" kernel "$sizes"
