@@ -29,7 +29,7 @@ case "${1:-}" in
 data)
     "$BIN" simulate --device cuda --family fluid --seed 1 --out "$DATA/fluid" 2>&1 | tail -n 1
     "$BIN" simulate --device cuda --family fluid --seed 7 --scenes 0..12 \
-        --out "$DATA/unseen" 2>&1 | tail -n 1
+        --out "$DATA/unseen_fluid" 2>&1 | tail -n 1
     ;;
 train)
     # With SEEDS, each lever once a seed (LEVER-sN), all on the first seed's split: the runs
@@ -47,6 +47,7 @@ train)
                     first=runs/$name/split.json
                 elif [ "$seed" != "${seeds[0]}" ]; then
                     for _ in $(seq 150); do [ -f "$first" ] && break; sleep 2; done
+                    [ -f "$first" ] || { echo "no $first: the first run failed" >&2; exit 1; }
                     flags+=(--split-from "$first")
                 fi
             fi
@@ -64,16 +65,18 @@ eval)
     for name in "$@"; do
         if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
     done
-    # The scenes they fit: the training split of the runs' seed-0 split over the same folder
-    # at horizon 20, and its splash scenes (from the first run's split.json) whole.
-    mkdir -p "$DATA/train_splash"
+    # The scenes they fit, from the first run's split.json: its training scenes at horizon
+    # 20 and their splash scenes whole.
+    rm -rf "$DATA/train_all" "$DATA/train_splash"
+    mkdir -p "$DATA/train_all" "$DATA/train_splash"
     for scene in $(python3 -c "import json, sys; print(' '.join(s.replace('/', '_') for s in \
-        json.load(open(sys.argv[1]))['train'] if 'splash' in s))" "${models[1]}/split.json"); do
-        ln -sf "$DATA/fluid/$scene.mcap" "$DATA/train_splash/"
+        json.load(open(sys.argv[1]))['train']))" "${models[1]}/split.json"); do
+        ln -sf "$DATA/fluid/$scene.mcap" "$DATA/train_all/"
+        [[ $scene == *splash* ]] && ln -sf "$DATA/fluid/$scene.mcap" "$DATA/train_splash/"
     done
-    for set in train:fluid:train:train_splash unseen:unseen:all:unseen; do
-        IFS=':' read -r tag dir split whole <<<"$set"
-        "$BIN" eval "${models[@]}" --device cuda --data "$DATA/$dir" --split "$split" \
+    for set in train:train_all:train_splash unseen:unseen_fluid:unseen_fluid; do
+        IFS=':' read -r tag dir whole <<<"$set"
+        "$BIN" eval "${models[@]}" --device cuda --data "$DATA/$dir" --split all \
             --starts 5 --horizon 20 --no-render --no-plausibility --out "$OUT/$tag-h20" \
             >"$OUT/$tag-h20.log" 2>&1 &
         "$BIN" eval "${models[@]}" --device cuda --data "$DATA/$whole" --split all \
@@ -90,13 +93,14 @@ table)
 pack)
     # The device tool brings back a few files a call: the runs (without checkpoints) and the
     # evaluations as two archives in RET.
-    tar czf "$RET/runs.tgz" --exclude=checkpoint runs
+    tar czf "$RET/runs.tgz" --exclude='checkpoint*' runs
     find "$OUT" -name '*.png' -delete
-    tar czf "$RET/liquid.tgz" -C "$(dirname "$OUT")" "$(basename "$OUT")"
+    tar czf "$RET/liquid.tgz" --exclude=runs.tgz --exclude=liquid.tgz \
+        -C "$(dirname "$OUT")" "$(basename "$OUT")"
     ls -la "$RET"
     ;;
 *)
-    sed -n '2,22p' "$0"
+    sed -n '2,18p' "$0"
     exit 2
     ;;
 esac

@@ -33,7 +33,7 @@ fi
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
     --head-hidden 64 --bundle 4 --rollout-steps 4 --model mingru}"
 read -r -a SCHEDULE <<<"${SCHEDULE:---epochs 50 --samples-per-epoch 200000 --batch-size 128 \
-    --micro-batch 128 --lr 1e-3 --lr-final 1e-5 --patience 0 --noise 0.5 --mirror \
+    --lr 1e-3 --lr-final 1e-5 --patience 0 --noise 0.5 --mirror \
     --val-starts 1 --val-horizon 20}"
 mkdir -p "$RET" runs
 
@@ -42,10 +42,10 @@ data() {
     "${sim[@]}" --family fluid --seed 11 --scenes "0..$SCENES" --out "$DATA/long/fluid" | tail -n 1
     "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" | tail -n 1
     "$BIN" simulate --device "$DEVICE" --family multi --seed 7 --scenes 0..10 \
-        --out "$DATA/unseen" | tail -n 1
+        --out "$DATA/long/unseen" | tail -n 1
     "$BIN" simulate --device "$DEVICE" --family fluid --seed 7 --scenes 0..6 \
-        --out "$DATA/unseen" | tail -n 1
-    du -sh "$DATA/long"
+        --out "$DATA/long/unseen" | tail -n 1
+    du -sh "$DATA/long"/*
 }
 
 train() {
@@ -60,7 +60,7 @@ train() {
 }
 
 curve() {
-    "$BIN" eval --model runs/long --device "$DEVICE" --data "$DATA/unseen" --split all \
+    "$BIN" eval --model runs/long --device "$DEVICE" --data "$DATA/long/unseen" --split all \
         --starts 5 --horizon 20 --no-render --no-plausibility --out "$RET/unseen-h20" \
         >"$RET/unseen-h20.log" 2>&1 || { tail -n 5 "$RET/unseen-h20.log"; return 1; }
     python3 - "$RET/unseen-h20/table.csv" runs/long <<'PY'
@@ -89,7 +89,7 @@ call)
     ls -la "$RET/long-run.tgz"
     ;;
 *)
-    sed -n '2,21p' "$0"
+    sed -n '2,20p' "$0"
     exit 2
     ;;
 esac

@@ -573,6 +573,33 @@ fn grid_flags_out_of_range_are_usage_errors_before_reading_data() {
     }
 }
 
+/// A validation horizon longer than every validation scene is an error before the first
+/// step: before, every epoch scored NaN, and the run said it kept a model it never wrote.
+#[test]
+fn a_validation_horizon_longer_than_the_scenes_is_an_error() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let out = dir.path().join("run");
+    let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
+    let schedule = crate::TINY_GRID_SCHEDULE.chunks(2);
+    args.extend(
+        schedule
+            .filter(|f| f[0] != "--val-horizon")
+            .flatten()
+            .copied(),
+    );
+    args.extend_from_slice(&crate::TINY_GRID_NET);
+    args.extend_from_slice(&["--val-horizon", "100000", "--epochs", "1"]);
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(&args)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(err.contains("--val-horizon 100000"), "{err}");
+    assert!(!out.join("metrics.csv").exists());
+}
+
 /// `bench train --arch grid` trains each requested kernel and prints one table row per
 /// (core, kernel) with a positive samples/s, and the stage times with `--stages`.
 #[test]

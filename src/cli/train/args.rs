@@ -283,8 +283,9 @@ pub struct GridArgs {
     pub density_loss: f32,
     /// Weight of the fast particles in the velocity and position MSE: each particle's squared
     /// error weighs 1 + W |v| / (mean |v| + 0.1), |v| its true speed and the mean over its
-    /// sample, normalised to mean 1, so a splash's few thrown particles count for more than
-    /// the liquid at rest around them (0: every particle alike).
+    /// sample, normalised to mean 1 over the batch (a moving sample also weighs more than one
+    /// at rest), so a splash's few thrown particles count for more than the liquid at rest
+    /// around them (0: every particle alike).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative_f32)]
     pub fast_loss: f32,
     /// Discount of the loss along each sample's rollout, in (0, 1]: the rollout's frame j

@@ -102,7 +102,8 @@ where
     ///
     /// # Errors
     /// A non-finite loss, a failed save or load, a failed validation step, a chunk of
-    /// streamed scenes that could not be read.
+    /// streamed scenes that could not be read; validation scenes all shorter than `T +
+    /// val_horizon` frames ([`TrainError::Mismatch`], before any step).
     pub fn fit(
         &self,
         train: &mut dyn BatchSource,
@@ -117,6 +118,18 @@ where
             return Err(TrainError::Mismatch(format!(
                 "windows of {} frames, the run needs T + (M + C P) K - 1 = {needed}",
                 train.t(),
+            )));
+        }
+        let longest = val.iter().map(|v| v.frames).max();
+        if longest.is_some_and(|f| f < self.config.window + opts.val_horizon) {
+            // No validation rollout would fit: every epoch would score NaN and none be kept.
+            return Err(TrainError::Mismatch(format!(
+                "--val-horizon {} needs validation scenes of T + {} = {} frames; the longest \
+                 has {}: lower --val-horizon",
+                opts.val_horizon,
+                opts.val_horizon,
+                self.config.window + opts.val_horizon,
+                longest.unwrap_or(0),
             )));
         }
         let (start, ledger) = self.start(resume)?;

@@ -63,9 +63,10 @@ pub struct GridTrainOptions {
     /// Weight of the fast particles in the velocity and position MSE (`fast_weights` in
     /// `rollout_loss/terms.rs`): each particle's squared error weighs
     /// `1 + fast_weight |v| / (mean |v| + floor)`, `|v|` its true speed and the mean over its
-    /// sample, the weights normalised to mean 1, so a splash's thrown particles count for more
-    /// than the liquid at rest around them. 0 (the default, and runs saved before it
-    /// existed): every particle alike.
+    /// sample, the weights normalised to mean 1 over the batch (so a moving sample also
+    /// weighs more than one at rest), so a splash's thrown particles count for more than the
+    /// liquid at rest around them. 0 (the default, and runs saved before it existed): every
+    /// particle alike.
     #[serde(default)]
     pub fast_weight: f32,
     /// Discount of the loss along a sample's rollout, in `(0, 1]`: frame `j` of the P K

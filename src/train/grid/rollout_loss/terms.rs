@@ -15,6 +15,8 @@
 //! - energy (`energy_weight`): each sample's RMS particle speed against the truth's, relative:
 //!   trained through the constraint projection (which only takes kinetic energy away), the
 //!   network learns to supply the motion the projection removes (a liquid's splash);
+//! - fast particles (`fast_weight`): the MSE's squared errors weighed by each particle's true
+//!   speed over its sample's mean ([`fast_weights`]), normalised over the batch;
 //! - density (`density_weight`): the liquid's particles per cell on a coarse grid, prediction
 //!   against truth ([`density_loss`]): on frames past a sample's first chunk it stands in for
 //!   the MSE, which over a rollout carried far from the truth rewards the mean of where a
