@@ -68,12 +68,12 @@ def areas(path, name):
 
 def fronts(path, name):
     """Scenes whose front reaches the far wall within 10 % of the truth's step, of those the
-    truth reaches it in."""
+    truth reaches it in, and how many it reaches at all."""
     series = defaultdict(lambda: defaultdict(dict))
     for r in rows(path):
         if r["front"]:
             series[r["scene"]][r["predictor"]][int(r["step"])] = float(r["front"])
-    good = total = 0
+    good = total = reached = 0
     for scene, by in series.items():
         truth = by.get("truth", {})
         if not truth or name not in by:
@@ -84,8 +84,9 @@ def fronts(path, name):
         if t is None or t == 0:
             continue
         total += 1
+        reached += p is not None
         good += p is not None and abs(p - t) <= 0.1 * t
-    return f"{good}/{total}"
+    return f"{good}/{total} (reached {reached})"
 
 
 def spread(values):
