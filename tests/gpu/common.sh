@@ -60,13 +60,20 @@ wait_runs() {
     done
 }
 
-# Every model NAME... (runs/NAME, or a path) on the unseen scenes at once: horizon 20 from 5
-# starts (OUT/unseen-h20) and whole scenes with renders (OUT/unseen-full).
-eval_models() {
-    local models=()
+# The array `models`: `--model runs/NAME` for each NAME... that is a run here, `--model NAME`
+# (a path) for the others.
+model_flags() {
+    models=()
     for name in "$@"; do
         if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
     done
+}
+
+# Every model NAME... (runs/NAME, or a path) on the unseen scenes at once: horizon 20 from 5
+# starts (OUT/unseen-h20) and whole scenes with renders (OUT/unseen-full).
+eval_models() {
+    local models
+    model_flags "$@"
     "$BIN" eval "${models[@]}" --device cuda --data "$DATA"/unseen --split all --starts 5 \
         --horizon 20 --no-render --out "$OUT/unseen-h20" >"$OUT/unseen-h20.log" 2>&1
     echo "horizon 20: exit $?"

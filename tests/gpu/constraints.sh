@@ -51,10 +51,7 @@ wait)
     ;;
 ablation)
     shift
-    models=()
-    for name in "$@"; do
-        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
-    done
+    model_flags "$@"
     "$BIN" eval "${models[@]}" "${SETTINGS[@]}" --device cuda --data "$DATA"/unseen --split all \
         --starts 5 --horizon 20 --no-render --out "$OUT/ablation-h20" >"$OUT/ablation-h20.log" 2>&1
     echo "horizon 20: exit $?"

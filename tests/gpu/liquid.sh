@@ -61,10 +61,7 @@ train)
     ;;
 eval)
     shift
-    models=()
-    for name in "$@"; do
-        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
-    done
+    model_flags "$@"
     # The scenes they fit, from the first run's split.json: its training scenes at horizon
     # 20 and their splash scenes whole.
     rm -rf "$DATA/train_all" "$DATA/train_splash"

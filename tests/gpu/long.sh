@@ -19,17 +19,12 @@
 # family), FRAMES (200), NET (the model flags), SCHEDULE (the schedule flags). A CPU dry run:
 # BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=12 NET="..." SCHEDULE="...".
 set -uo pipefail
-BIN=${BIN:-gpu/minflow-cuda}
-DEVICE=${DEVICE:-cuda}
-DATA=${DATA:-/tmp/data}
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}
+# BIN (unpacked from BIN.xz where needed), DATA and CUDA_PATH.
+. "$(dirname "$0")/common.sh"
+DEVICE=${DEVICE:-cuda}
 SCENES=${SCENES:-1000}
 FRAMES=${FRAMES:-200}
-export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
-if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
-    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
-    chmod +x "$BIN"
-fi
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
     --head-hidden 64 --bundle 4 --rollout-steps 4 --model mingru}"
 read -r -a SCHEDULE <<<"${SCHEDULE:---epochs 50 --samples-per-epoch 200000 --batch-size 128 \

@@ -95,10 +95,7 @@ PY
     ;;
 eval)
     shift
-    models=()
-    for name in "$@"; do
-        if [ -d "runs/$name" ]; then models+=(--model "runs/$name"); else models+=(--model "$name"); fi
-    done
+    model_flags "$@"
     for set in heldout:heldout unseen:unseen mixed:unseen_mixed; do
         tag=${set%%:*}
         dir=$DATA/${set#*:}
