@@ -12,12 +12,12 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Range;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
+use super::decode::for_each_frame;
 use super::trajectory::{contiguous_runs, gaps_between, SceneFrames, SceneHead};
 use super::{DataError, LoadReport, Trajectory};
-use crate::bag::{bag_paths, BagError, BagReader};
-use crate::msgs::ParticleFrame;
+use crate::bag::bag_paths;
 
 /// One scene of a dataset, without its frames.
 #[derive(Debug, Clone, PartialEq)]
@@ -104,7 +104,7 @@ fn load_filtered(
     let mut report = LoadReport::default();
     let mut scenes: BTreeMap<String, SceneFrames> = BTreeMap::new();
     let mut seen = 0u64;
-    read_bags(&paths, topic, &mut report, |path, frame, grid| {
+    for_each_frame(&paths, topic, &mut report, |path, frame, grid| {
         seen += 1;
         if wanted.is_some_and(|w| !w.contains(frame.scene.as_str())) {
             return Ok(());
@@ -177,7 +177,7 @@ pub fn scan_with_report(
     let paths = bag_paths(inputs)?;
     let mut report = LoadReport::default();
     let mut scenes: BTreeMap<String, Acc> = BTreeMap::new();
-    read_bags(&paths, topic, &mut report, |path, frame, grid| {
+    for_each_frame(&paths, topic, &mut report, |path, frame, grid| {
         let acc = scenes.entry(frame.scene.clone()).or_insert_with(|| Acc {
             head: SceneHead {
                 solver_grid: grid,
@@ -218,29 +218,4 @@ pub fn scan_with_report(
         })
         .collect();
     Ok((infos, report))
-}
-
-/// Calls `each` with every frame of every bag in turn; records truncations and skipped
-/// messages in `report`. Any other bag error, or an error from `each`, stops reading.
-fn read_bags(
-    paths: &[PathBuf],
-    topic: Option<&str>,
-    report: &mut LoadReport,
-    mut each: impl FnMut(&Path, ParticleFrame, Option<u32>) -> Result<(), DataError>,
-) -> Result<(), DataError> {
-    for path in paths {
-        let mut frames = BagReader::open(path)?.frames_on(topic);
-        for item in frames.by_ref() {
-            match item {
-                Ok(message) => each(path, message.frame, message.solver_grid)?,
-                Err(BagError::Truncated { truncation, .. }) => {
-                    report.truncated.push((path.clone(), truncation));
-                }
-                Err(err) => return Err(err.into()),
-            }
-        }
-        report.skipped += frames.skipped();
-        report.bags += 1;
-    }
-    Ok(())
 }

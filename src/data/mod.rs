@@ -8,6 +8,7 @@
 //!   segments.
 //! - [`mod@load`]: [`load()`] and [`load_scenes`] (bags -> trajectories, split at gaps) and
 //!   [`scan`] (bags -> [`SceneInfo`], the index without the frames).
+//! - [`decode`]: the bags decoded on worker threads, their frames handed on in reading order.
 //! - [`split`]: [`Split`], the seeded 80:10:10 train/val/test partition by scene id.
 //! - [`scaler`]: [`Scaler`], per-feature min-max scaling of (x, y, vx, vy, m) fitted on the
 //!   training split only.
@@ -22,6 +23,7 @@
 //! is one [`DataError`] naming the bag, the scene and the frame where they apply.
 
 pub mod budget;
+pub mod decode;
 pub mod load;
 pub mod scaler;
 pub mod split;

@@ -11,7 +11,8 @@
 #    `--call-minutes` (a fresh run the first time, `--resume` after): the same schedule
 #    whatever the calls, 50 epochs of 200,000 samples;
 # 3. appends a point of the learning curve to runs/long/curve.csv (samples seen,
-#    device-hours, avg20 of the model and of `constvel` on the unseen scenes from 5 starts);
+#    device-hours; the latest weights' avg20 on the unseen scenes from 5 starts and their
+#    whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole scenes);
 # 4. packs the run (model, checkpoint, ledger, curve) into $RET/long-run.tgz (RET defaults to
 #    $OUT, the device tool's return folder). Copy it to gpu/long-run.tgz for the next call.
 #
@@ -33,6 +34,11 @@ read -r -a SCHEDULE <<<"${SCHEDULE:---epochs 50 --samples-per-epoch 200000 --bat
 mkdir -p "$RET" runs
 
 data() {
+    # A warm machine keeps the last call's dataset: make it only once.
+    if [ -f "$DATA/long/done-$SCENES-$FRAMES" ]; then
+        echo "dataset kept from the last call: $DATA/long"
+        return
+    fi
     local sim=("$BIN" simulate --device "$DEVICE" --frames "$FRAMES")
     "${sim[@]}" --family fluid --seed 11 --scenes "0..$SCENES" --out "$DATA/long/fluid" | tail -n 1
     "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" | tail -n 1
@@ -41,6 +47,7 @@ data() {
     "$BIN" simulate --device "$DEVICE" --family fluid --seed 7 --scenes 0..6 \
         --out "$DATA/long/unseen" | tail -n 1
     du -sh "$DATA/long"/*
+    touch "$DATA/long/done-$SCENES-$FRAMES"
 }
 
 train() {
@@ -54,22 +61,41 @@ train() {
         2>&1 | tr '\r' '\n' | grep -v "^\s*$" | tail -n 6
 }
 
+# The latest weights (the checkpoint's, with the run's model.json for the rest) as a model
+# folder named `long`: the curve follows the training, not the best epoch so far.
+latest() {
+    rm -rf /tmp/latest && mkdir -p /tmp/latest/long
+    cp runs/long/model.json /tmp/latest/long/
+    if [ -f runs/long/checkpoint/model.mpk ]; then
+        cp runs/long/checkpoint/model.mpk /tmp/latest/long/
+    else
+        cp runs/long/model.mpk /tmp/latest/long/
+    fi
+}
+
 curve() {
-    "$BIN" eval --model runs/long --device "$DEVICE" --data "$DATA/long/unseen" --split all \
-        --starts 5 --horizon 20 --no-render --no-plausibility --out "$RET/unseen-h20" \
-        >"$RET/unseen-h20.log" 2>&1 || { tail -n 5 "$RET/unseen-h20.log"; return 1; }
-    python3 - "$RET/unseen-h20/table.csv" runs/long <<'PY'
+    latest
+    local eval=("$BIN" eval --model /tmp/latest/long --device "$DEVICE" --data "$DATA/long/unseen"
+        --split all --no-render --no-plausibility)
+    "${eval[@]}" --starts 5 --horizon 20 --out "$RET/unseen-h20" >"$RET/unseen-h20.log" 2>&1 ||
+        { tail -n 5 "$RET/unseen-h20.log"; return 1; }
+    "${eval[@]}" --horizon full --out "$RET/unseen-full" >"$RET/unseen-full.log" 2>&1 ||
+        { tail -n 5 "$RET/unseen-full.log"; return 1; }
+    python3 - "$RET" runs/long <<'PY'
 import csv, json, os, sys
-table, run = sys.argv[1], sys.argv[2]
-row = next(r for r in csv.DictReader(open(table)) if r["scene"] == "Average")
+ret, run = sys.argv[1], sys.argv[2]
+def average(name):
+    return next(r for r in csv.DictReader(open(os.path.join(ret, name, "table.csv")))
+                if r["scene"] == "Average")
+h20, full = average("unseen-h20"), average("unseen-full")
 ledger = json.load(open(os.path.join(run, "run.json")))
 path = os.path.join(run, "curve.csv")
 new = not os.path.exists(path)
 with open(path, "a") as f:
     if new:
-        f.write("samples,device_hours,avg20,avg20_constvel\n")
-    f.write(f"{ledger['samples']},{ledger['device_hours']:.4f},{row['avg20_long']},"
-            f"{row['avg20_constvel']}\n")
+        f.write("samples,device_hours,avg20,avg20_constvel,whole,whole_persist\n")
+    f.write(f"{ledger['samples']},{ledger['device_hours']:.4f},{h20['avg20_long']},"
+            f"{h20['avg20_constvel']},{full['avg_full_long']},{full['avg_full_persist']}\n")
 print(open(path).read())
 PY
 }
@@ -77,9 +103,13 @@ PY
 case "${1:-}" in
 call)
     [ -n "${2:-}" ] || { echo "usage: $0 call MINUTES" >&2; exit 2; }
+    start=$SECONDS
     data
+    echo "dataset: $((SECONDS - start)) s"
     train "$2"
+    echo "dataset and training: $((SECONDS - start)) s"
     curve
+    echo "call: $((SECONDS - start)) s"
     tar czf "$RET/long-run.tgz" -C runs long
     ls -la "$RET/long-run.tgz"
     ;;

@@ -183,6 +183,48 @@ fn changed_particle_count_is_an_error_naming_scene_and_frame() {
     );
 }
 
+/// The bags are decoded on worker threads (`data::decode`); what they give must be a one-thread
+/// read's: bag after bag in path order, so a duplicate keeps the first bag's copy and the
+/// index lists the bags in order, and a bad bag stops the read with its own error.
+#[test]
+fn many_bags_read_in_path_order_on_worker_threads() {
+    let dir = crate::tmp::tempdir().expect("tempdir");
+    let frames: Vec<_> = (0..24).map(|k| synthetic("many/000", k, 50, 1)).collect();
+    for (k, frame) in frames.iter().enumerate() {
+        write_bag(&dir.path().join(format!("a{k:02}.mcap")), [frame]);
+        // The same frame index again, later in path order, with other values.
+        let mut other = synthetic("many/001", k as u32, 50, 1);
+        other.scene = frame.scene.clone();
+        write_bag(&dir.path().join(format!("b{k:02}.mcap")), [&other]);
+    }
+    let folder = vec![dir.path().to_path_buf()];
+    let (trajs, report) = data::load(&folder, None).expect("load");
+    assert_eq!((trajs.len(), trajs[0].frames), (1, 24));
+    for (k, frame) in frames.iter().enumerate() {
+        assert!(same_bits(trajs[0].state(k), &state_of(frame)), "frame {k}");
+    }
+    assert_eq!(
+        (report.bags, report.frames, report.duplicates),
+        (48, 24, 24)
+    );
+    let infos = data::scan(&folder, None).expect("scan");
+    let names: Vec<String> = infos[0]
+        .bags
+        .iter()
+        .map(|p| p.file_name().expect("name").to_string_lossy().into_owned())
+        .collect();
+    let expected: Vec<String> = (0..24)
+        .map(|k| format!("a{k:02}.mcap"))
+        .chain((0..24).map(|k| format!("b{k:02}.mcap")))
+        .collect();
+    assert_eq!(names, expected);
+
+    std::fs::write(dir.path().join("a05x.mcap"), b"not a bag at all").expect("write");
+    let err = data::load(&folder, None).expect_err("a bad bag among good ones");
+    assert!(matches!(err, DataError::Bag(_)), "{err}");
+    assert!(err.to_string().contains("a05x.mcap"), "{err}");
+}
+
 #[test]
 fn truncated_bag_gives_what_was_read_and_is_reported() {
     let dir = crate::tmp::tempdir().expect("tempdir");
