@@ -48,6 +48,15 @@ pub fn bundle(s: &str) -> Result<usize, String> {
     }
 }
 
+/// `--substeps`: network substeps per frame, 1..=8.
+pub fn substeps(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(v) if (1..=8).contains(&v) => Ok(v),
+        Ok(_) => Err("must be in 1..=8".into()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A finite number above 0.
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {

@@ -15,12 +15,14 @@
 # LEVERS: space-separated NAME=FLAGS (flags joined by commas), default a plain run against the
 # fast-particle loss at two weights. SEEDS (e.g. "1 2 3"): each lever once a seed, as
 # NAME-sN on one split; at minutes of training the seeds differ as much as the levers do
-# (docs/splash.md). Environment as common.sh (OUT, DATA, BIN); RET (default OUT) for pack.
+# (docs/splash.md). BUNDLE (default 4): K of every run (1 for `--substeps`, e.g. BUNDLE=1
+# LEVERS="plain= sub2=--substeps,2"). Environment as common.sh (OUT, DATA, BIN); RET
+# (default OUT) for pack.
 set -uo pipefail
 . "$(dirname "$0")/common.sh"
 RET=${RET:-$OUT}
 SMALL=(--grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 --head-hidden 64
-    --bundle 4 --rollout-steps 4)
+    --bundle "${BUNDLE:-4}" --rollout-steps 4)
 FRESH=(--epochs 1000 --patience 0 --lr 1e-3 --lr-final 1e-5 --noise 0.5 --mirror
     --batch-size 16 --samples-per-epoch 2000 --val-horizon 20 --val-starts 2)
 LEVERS=${LEVERS:-"plain= fast1=--fast-loss,1 fast4=--fast-loss,4"}

@@ -167,6 +167,62 @@ fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
         .unwrap()
 }
 
+/// `--substeps S` trains a model whose every call runs the network S times (issue 81's lever),
+/// saved with it and evaluated from its folder; a single-frame model fine-tunes into one;
+/// substeps with a bundle, or out of range, are usage errors.
+#[test]
+fn grid_train_with_substeps() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let (plain, sub) = (dir.path().join("plain"), dir.path().join("sub"));
+    let o = train_grid(&plain, &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let init = plain.to_str().unwrap();
+    let o = train_grid(
+        &sub,
+        &["--epochs", "1", "--substeps", "2", "--init-from", init],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("S = 2 substeps"), "{err}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sub.join("model.json")).unwrap()).unwrap();
+    assert_eq!(json["substeps"], 2, "{json}");
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let eval_out = dir.path().join("eval");
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args([
+            "eval",
+            "--model",
+            sub.to_str().unwrap(),
+            "--data",
+            bags,
+            "--split",
+            "all",
+        ])
+        .args([
+            "--starts",
+            "1",
+            "--horizon",
+            "4",
+            "--no-render",
+            "--no-plausibility",
+        ])
+        .args(["--out", eval_out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(eval_out.join("table.csv").exists());
+    for bad in [
+        &["--substeps", "2", "--bundle", "4"][..],
+        &["--substeps", "9"][..],
+    ] {
+        let o = train_grid(&dir.path().join("bad"), bad);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
+        assert!(err.contains("--substeps"), "{bad:?}: {err}");
+    }
+}
+
 /// The (train, val) loss columns of metrics.csv, as text (exact digits).
 fn losses(out: &Path) -> Vec<(String, String)> {
     std::fs::read_to_string(out.join("metrics.csv"))

@@ -367,6 +367,7 @@ impl TrainArgs {
             .with_hidden(g.net.hidden)
             .with_head_hidden(g.net.head_hidden)
             .with_bundle(g.net.bundle)
+            .with_substeps(g.net.substeps)
             .with_conv(g.conv)
             .with_reference(g.net.reference == Reference::FirstFrame)
             .with_rest_shape(g.net.rest_shape != RestShape::None)

@@ -254,7 +254,7 @@ fn print_summary(
 ) -> anyhow::Result<()> {
     eprintln!(
         "{} scenes: {} train ({} samples{}), {} val, {} test; grid architecture, {} memory, \
-         n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks {}), K = {}, N = {:?}",
+         n = {}, T = {}, P = {} (teacher {}, push-forward {}, chunks {}), K = {}{}, N = {:?}",
         counts.all,
         counts.train,
         source.windows(),
@@ -273,6 +273,10 @@ fn print_summary(
         opts.pushforward,
         opts.chunks(),
         config.bundle,
+        match config.substeps {
+            1 => String::new(),
+            s => format!(", S = {s} substeps"),
+        },
         source.particle_counts(),
     );
     if source.windows() > 0 {
@@ -309,6 +313,8 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
             .clone()
             .with_reference(config.reference && saved.reference)
             .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
+            // Substeps may change (the same weights: `GridModel::with_substeps`).
+            .with_substeps(saved.substeps)
             // The network grid may change (`GridModel::with_grid`).
             .with_grid(saved.grid)
             .with_rest_shape(config.rest_shape && saved.rest_shape)

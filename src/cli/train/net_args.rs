@@ -1,5 +1,5 @@
 //! The grid network's sizes and shape flags ([`GridNetArgs`]: `--grid`, `--unet-width`,
-//! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--reference`,
+//! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--substeps`, `--reference`,
 //! `--rest-shape`, `--update`), shared by `train` and `report`; `args.rs` turns them into a
 //! [`crate::model::grid::GridConfig`].
 
@@ -33,6 +33,11 @@ pub struct GridNetArgs {
     /// calls). 1: the single-frame model.
     #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::bundle)]
     pub bundle: usize,
+    /// Network substeps S per frame (1..=8, single-frame models only): the whole network
+    /// runs S times at dt / S, each call reading the grid where the last left the particles
+    /// (a fast particle's move split into S). `--init-from` any single-frame model.
+    #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::substeps)]
+    pub substeps: usize,
     /// Reference positions: first-frame (each particle remembers where it was in the first
     /// frame of its stream, MPM's reference configuration, and the grid sees its
     /// displacement from there; `--init-from` a model without it grows the two input
@@ -94,6 +99,8 @@ impl GridNetArgs {
             ("--head-hidden", self.head_hidden),
             ("--bundle", self.bundle),
         ]
+        .into_iter()
+        .chain((self.substeps > 1).then_some(("--substeps", self.substeps)))
         .into_iter()
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
         .chain(

@@ -133,6 +133,13 @@ pub struct GridConfig {
     /// [`Deformation::Fit`] in models saved before it existed.
     #[config(default = "Deformation::Fit")]
     pub deformation: Deformation,
+    /// Network substeps S (`train --substeps S`, issue 81): a call advances its frame in S
+    /// calls of the whole network (P2G, U-Net, memory, G2P, head) at `dt / S`, each reading
+    /// the grid where the last left the particles ([`GridModel::step_bundle`]); only the
+    /// frame at the end is predicted. Single-frame models only (`bundle` 1). 1 in models
+    /// saved before it existed.
+    #[config(default = 1)]
+    pub substeps: usize,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -155,6 +162,9 @@ pub enum GridConfigError {
     /// `bundle` is 0 or above 16.
     #[error("--bundle must be in 1..=16")]
     Bundle,
+    /// `substeps` is 0 or above 8, or above 1 with `bundle` above 1.
+    #[error("--substeps must be in 1..=8, and 1 with --bundle above 1")]
+    Substeps,
 }
 
 impl GridConfig {
@@ -194,6 +204,9 @@ impl GridConfig {
         }
         if !(1..=16).contains(&self.bundle) {
             return Err(GridConfigError::Bundle);
+        }
+        if !(1..=8).contains(&self.substeps) || (self.substeps > 1 && self.bundle > 1) {
+            return Err(GridConfigError::Substeps);
         }
         Ok(())
     }
@@ -237,6 +250,7 @@ impl GridConfig {
             n: self.grid,
             window: self.window,
             bundle: self.bundle.max(1),
+            substeps: self.substeps.max(1),
             reference: self.reference,
             update: self.update,
             deformation: self.deformation,

@@ -45,6 +45,20 @@ impl<B: NetOps> GridModel<B> {
         Self { n, ..self }
     }
 
+    /// This model taking `s` network substeps per frame ([`super::GridConfig::substeps`]):
+    /// the same weights, its velocity change spread over the substeps. `train --substeps S
+    /// --init-from` a trained single-frame model starts from this. A bundled model is
+    /// returned as is (`train` refuses substeps with a bundle before this runs).
+    pub fn with_substeps(self, s: usize) -> Self {
+        if self.bundle != 1 || s == 0 {
+            return self;
+        }
+        Self {
+            substeps: s,
+            ..self
+        }
+    }
+
     /// This single-frame model as a bundled one predicting `k` frames per call
     /// ([`super::GridConfig::bundle`]): the U-Net's output head is tiled `k` times, so every
     /// frame of a bundle starts out reading the same latent field at the particle's position

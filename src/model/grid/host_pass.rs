@@ -52,8 +52,8 @@ impl<B: NetOps> GridModel<B> {
             n: self.n,
             window: self.window,
             vel_scale: self.vel_scale,
-            dv_mean: self.dv_mean,
-            dv_scale: self.dv_scale,
+            dv_mean: self.dv_affine().0,
+            dv_scale: self.dv_affine().1,
         };
         let mut particles = Particles {
             pos: host_values(input.pos.clone()),

@@ -32,6 +32,10 @@
 //!    predicts grid velocities the same way); [`Update::GridHead`] adds the head's output to
 //!    it as a per-particle correction.
 //!
+//! With [`GridConfig::substeps`] = S the call runs steps 1 to 5 S times at `dt / S`, each on
+//! the positions and velocities the last left (`substeps.rs`): the grid is built again
+//! halfway through a fast particle's move, and only the frame at the end is predicted.
+//!
 //! Any N, any particle order: every per-particle operation is row-wise and the grid sums are
 //! order-free. The normalisation constants are fitted on the training split and saved in
 //! [`GridConfig`]. Used by [`crate::model::store::Surrogate`] and [`crate::train::grid`].
@@ -39,7 +43,7 @@
 //! Files: this one holds the network, its input and output and their helpers; `step.rs` one
 //! network call ([`GridModel::step_bundle`]) as tensors, `host_pass.rs` its per-particle part
 //! as host passes on the CPU; `config.rs` the configuration, `grow.rs` growing a trained
-//! model into a larger one.
+//! model into a larger one; `substeps.rs` the network substeps.
 
 mod config;
 mod grow;
@@ -47,6 +51,7 @@ mod host_pass;
 pub mod memory;
 pub mod rest;
 mod step;
+mod substeps;
 pub mod transfer;
 pub mod unet;
 
@@ -75,6 +80,9 @@ pub struct GridModel<B: Backend> {
     n: usize,
     window: usize,
     bundle: usize,
+    /// Network substeps per frame ([`GridConfig::substeps`]; `substeps.rs`).
+    #[module(skip)]
+    substeps: usize,
     reference: bool,
     #[module(skip)]
     update: Update,
@@ -162,6 +170,11 @@ impl<B: NetOps> GridModel<B> {
     /// Frames predicted per call (K, [`GridConfig::bundle`]).
     pub fn bundle(&self) -> usize {
         self.bundle
+    }
+
+    /// Network calls per predicted frame (S, [`GridConfig::substeps`]).
+    pub fn substeps(&self) -> usize {
+        self.substeps
     }
 
     /// Whether the step reads reference positions ([`GridConfig::reference`]).

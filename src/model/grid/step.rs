@@ -1,5 +1,5 @@
 //! One network call of [`GridModel`] (the module doc of [`super`], steps 1 to 5):
-//! [`GridModel::step_bundle`] splats the particles onto the grid and runs the U-Net
+//! [`GridModel::network_call`] splats the particles onto the grid and runs the U-Net
 //! ([`GridModel::latent_fields`]), then predicts the call's K frames either as tensors
 //! ([`GridModel::tensor_frames`]: memory, G2P, head, integration) or, on the CPU where
 //! nothing needs a gradient, through the host passes of [`super::host_pass`]. The head, the
@@ -53,16 +53,9 @@ impl<B: burn::tensor::backend::Backend> Latent<B> {
 type Carried<B> = (Tensor<B, 3>, Tensor<B, 3>);
 
 impl<B: NetOps> GridModel<B> {
-    /// One network call for a batch of scenes: the next K frames (K = [`GridModel::bundle`])
-    /// and the new memory state. P2G, the U-Net and the memory run once; then for k = 1..K
-    /// each particle gathers latent field k at its current position (G2P), the head predicts
-    /// its velocity change and the frame is integrated, so frame k + 1 reads the grid where
-    /// frame k left the particle. K = 1 is the single-frame step.
-    ///
-    /// # Shapes
-    /// See [`StepInput`]; returns K [`StepOutput`]s, oldest first; `state` holds `[B N, H]`
-    /// rows.
-    pub fn step_bundle(
+    /// One network call at the frame spacing `input.dt`: [`GridModel::step_bundle`] when the
+    /// model takes no substeps, each of its substeps otherwise (`substeps.rs`).
+    pub(super) fn network_call(
         &self,
         input: StepInput<B>,
         state: MemoryState<B>,
@@ -265,8 +258,8 @@ impl<B: NetOps> GridModel<B> {
             dt: input.dt.clone().into_primitive().tensor(),
             layers: [a?, h?, o?],
             vel_scale: self.vel_scale,
-            dv_scale: self.dv_scale,
-            dv_mean: self.dv_mean,
+            dv_scale: self.dv_affine().1,
+            dv_mean: self.dv_affine().0,
         };
         let out = B::particle_frames(frames)?;
         if roofline::on() {
@@ -416,7 +409,8 @@ impl<B: NetOps> GridModel<B> {
     ) -> StepOutput<B> {
         let device = pos.device();
         let t = self.window;
-        let dv = dv * pairs(self.dv_scale, 1, &device) + pairs(self.dv_mean, 1, &device);
+        let (dv_mean, dv_scale) = self.dv_affine();
+        let dv = dv * pairs(dv_scale, 1, &device) + pairs(dv_mean, 1, &device);
         let v = vel.clone().narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
         let v_next = v.clone() + dv;
         let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);

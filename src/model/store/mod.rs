@@ -245,16 +245,18 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 /// channels, one without `bundle` predicts one frame per call, one without `materials` has
 /// the one-hot width of the four materials there were, one without `rest_shape` reads no
 /// rest-shape features, one without `update` has the free per-particle head, one without
-/// `deformation` fits its rest-shape features' F; `conv` picks
+/// `deformation` fits its rest-shape features' F, one without `substeps` runs the network
+/// once a frame; `conv` picks
 /// the kernel only (same weights, same results); the zero-initialised last layers only
 /// matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 9] = [
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 10] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
     ("grid", "materials", || serde_json::Value::from(4)),
     ("grid", "rest_shape", || serde_json::Value::Bool(false)),
     ("grid", "update", || serde_json::Value::from("Free")),
     ("grid", "deformation", || serde_json::Value::from("Fit")),
+    ("grid", "substeps", || serde_json::Value::from(1)),
     ("grid", "conv", || serde_json::Value::from("auto")),
     ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
     ("paper", "decoder_zero_init", || {

@@ -186,7 +186,7 @@ where
     /// network grid.
     fn grown(&self, model: GridModel<B>) -> GridModel<B> {
         let c = &self.config;
-        let model = model.with_grid(c.grid);
+        let model = model.with_grid(c.grid).with_substeps(c.substeps);
         let model = match c.reference {
             true => model.with_reference(),
             false => model,
