@@ -1,15 +1,16 @@
 //! Decoding a dataset's bags on worker threads: [`for_each_frame`] hands every frame to one
 //! callback on the calling thread in the order a one-thread read gives (bag by bag, each bag's
-//! messages in log order), while up to one worker per core decompresses and decodes the bags
-//! ahead of it. A bag's decoded frames wait in a bounded queue, so memory stays at a few
-//! frames per worker whatever the bags' sizes. Used by [`super::load()`], [`super::scan`] and
+//! messages in log order), while up to one worker per core (16 at most) decompresses and
+//! decodes the bags ahead of it. A bag's decoded frames wait in a bounded queue, and a worker
+//! starts a bag only within twice the workers' count of the one being passed on, so at most
+//! that many queues of a few frames are held, whatever the bags' sizes. Used by [`super::load()`], [`super::scan`] and
 //! the streamed chunks of `train`: 2,000 bags of 200 frames (320,000 frames of 2,500
 //! particles) took about a minute to read on one thread (issue 82's long run).
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
-use std::sync::Mutex;
+use std::sync::{Condvar, Mutex};
 
 use super::{DataError, LoadReport};
 use crate::bag::{BagError, BagReader};
@@ -42,6 +43,7 @@ pub fn for_each_frame(
 ) -> Result<(), DataError> {
     let workers = std::thread::available_parallelism()
         .map_or(1, |n| n.get())
+        .min(WORKERS)
         .min(paths.len())
         .max(1);
     // A worker takes its bag's sender: the channel closes when the worker is done with the
@@ -54,35 +56,94 @@ pub fn for_each_frame(
         })
         .unzip();
     let next = AtomicUsize::new(0);
-    let stop = AtomicBool::new(false);
+    let gate = Gate::new(2 * workers);
     std::thread::scope(|scope| {
         for _ in 0..workers {
-            scope.spawn(|| {
-                while !stop.load(Ordering::Relaxed) {
-                    let i = next.fetch_add(1, Ordering::Relaxed);
-                    let Some(path) = paths.get(i) else { break };
-                    let sender = senders[i].lock().ok().and_then(|mut s| s.take());
-                    if let Some(sender) = sender {
-                        decode_bag(path, topic, &sender);
-                    }
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(path) = paths.get(i) else { break };
+                if !gate.wait_for(i) {
+                    break;
+                }
+                let sender = senders[i].lock().ok().and_then(|mut s| s.take());
+                if let Some(sender) = sender {
+                    decode_bag(path, topic, &sender);
                 }
             });
         }
-        let result = receive(paths, receivers, report, &mut each);
-        // Workers still decoding see the receivers gone (their sends fail) or the flag.
-        stop.store(true, Ordering::Relaxed);
-        result
+        // Stops the workers however the receiving side ends (an error, or a panic of `each`).
+        let _stop = StopOnDrop(&gate);
+        receive(paths, receivers, report, &mut each, &gate)
     })
 }
 
-/// Passes the bags' items on in `paths`' order; drops every receiver when it returns.
+/// The most worker threads a read starts.
+const WORKERS: usize = 16;
+
+/// How far ahead of the calling thread the workers may decode: bag i is started only once
+/// fewer than `ahead` bags before it are still to be passed on, so at most `ahead` bags'
+/// queues ([`QUEUE`] frames each) are held, whatever the bags' sizes.
+struct Gate {
+    /// (bags passed on whole, stopped).
+    state: Mutex<(usize, bool)>,
+    moved: Condvar,
+    ahead: usize,
+}
+
+impl Gate {
+    fn new(ahead: usize) -> Self {
+        Self {
+            state: Mutex::new((0, false)),
+            moved: Condvar::new(),
+            ahead,
+        }
+    }
+
+    /// Waits until bag `i` may be decoded; false when the read has stopped.
+    fn wait_for(&self, i: usize) -> bool {
+        let Ok(mut state) = self.state.lock() else {
+            return false;
+        };
+        while !state.1 && i >= state.0 + self.ahead {
+            state = match self.moved.wait(state) {
+                Ok(s) => s,
+                Err(_) => return false,
+            };
+        }
+        !state.1
+    }
+
+    /// One more bag passed on (`stop` false), or the read stopped.
+    fn advance(&self, stop: bool) {
+        if let Ok(mut state) = self.state.lock() {
+            state.0 += 1;
+            state.1 |= stop;
+        }
+        self.moved.notify_all();
+    }
+}
+
+/// Stops the read's workers when dropped.
+struct StopOnDrop<'a>(&'a Gate);
+
+impl Drop for StopOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.advance(true);
+    }
+}
+
+/// Passes the bags' items on in `paths`' order; drops every receiver when it returns. A
+/// bag whose channel closes before its end was sent lost its worker to a panic: the read
+/// stops there, and the scope's join passes the panic on.
 fn receive(
     paths: &[PathBuf],
     receivers: Vec<Receiver<Item>>,
     report: &mut LoadReport,
     each: &mut impl FnMut(&Path, ParticleFrame, Option<u32>) -> Result<(), DataError>,
+    gate: &Gate,
 ) -> Result<(), DataError> {
     for (path, receiver) in paths.iter().zip(receivers) {
+        let mut done = false;
         for item in receiver {
             match item {
                 Item::Frame(frame, grid) => each(path, frame, grid)?,
@@ -93,9 +154,14 @@ fn receive(
                 Item::Done { skipped } => {
                     report.skipped += skipped;
                     report.bags += 1;
+                    done = true;
                 }
             }
         }
+        if !done {
+            return Ok(());
+        }
+        gate.advance(false);
     }
     Ok(())
 }

@@ -99,7 +99,7 @@ pack)
     ls -la "$RET"
     ;;
 *)
-    sed -n '2,18p' "$0"
+    sed -n '2,20p' "$0"
     exit 2
     ;;
 esac

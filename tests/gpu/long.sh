@@ -4,9 +4,9 @@
 #
 #   tests/gpu/long.sh call MINUTES
 #
-# 1. makes the dataset again (deterministic for its seeds, apart from the evaluation seeds 1
-#    and 7): 1,000 `fluid` scenes (seed 11) and 1,000 `multi` scenes (seed 12) of 200 frames,
-#    and the 16 unseen scenes of seed 7;
+# 1. makes the dataset (deterministic for its seeds, apart from the evaluation seeds 1 and
+#    7; a warm machine keeps it from its last call): 1,000 `fluid` scenes (seed 11) and
+#    1,000 `multi` scenes (seed 12) of 200 frames, and the 16 unseen scenes of seed 7;
 # 2. unpacks the run from gpu/long-run.tgz where there is one and trains it for MINUTES with
 #    `--call-minutes` (a fresh run the first time, `--resume` after): the same schedule
 #    whatever the calls, 50 epochs of 200,000 samples;
@@ -40,12 +40,15 @@ data() {
         return
     fi
     local sim=("$BIN" simulate --device "$DEVICE" --frames "$FRAMES")
-    "${sim[@]}" --family fluid --seed 11 --scenes "0..$SCENES" --out "$DATA/long/fluid" | tail -n 1
-    "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" | tail -n 1
+    # The marker below is written only when every scene was made.
+    "${sim[@]}" --family fluid --seed 11 --scenes "0..$SCENES" --out "$DATA/long/fluid" |
+        tail -n 1 || return 1
+    "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" |
+        tail -n 1 || return 1
     "$BIN" simulate --device "$DEVICE" --family multi --seed 7 --scenes 0..10 \
-        --out "$DATA/long/unseen" | tail -n 1
+        --out "$DATA/long/unseen" | tail -n 1 || return 1
     "$BIN" simulate --device "$DEVICE" --family fluid --seed 7 --scenes 0..6 \
-        --out "$DATA/long/unseen" | tail -n 1
+        --out "$DATA/long/unseen" | tail -n 1 || return 1
     du -sh "$DATA/long"/*
     touch "$DATA/long/done-$SCENES-$FRAMES"
 }
@@ -65,7 +68,7 @@ train() {
 # folder named `long`: the curve follows the training, not the best epoch so far.
 latest() {
     rm -rf /tmp/latest && mkdir -p /tmp/latest/long
-    cp runs/long/model.json /tmp/latest/long/
+    cp runs/long/model.json /tmp/latest/long/ || return 1
     if [ -f runs/long/checkpoint/model.mpk ]; then
         cp runs/long/checkpoint/model.mpk /tmp/latest/long/
     else
@@ -74,7 +77,7 @@ latest() {
 }
 
 curve() {
-    latest
+    latest || { echo "no model in runs/long yet: no curve point" >&2; return 1; }
     local eval=("$BIN" eval --model /tmp/latest/long --device "$DEVICE" --data "$DATA/long/unseen"
         --split all --no-render --no-plausibility)
     "${eval[@]}" --starts 5 --horizon 20 --out "$RET/unseen-h20" >"$RET/unseen-h20.log" 2>&1 ||
@@ -104,7 +107,7 @@ case "${1:-}" in
 call)
     [ -n "${2:-}" ] || { echo "usage: $0 call MINUTES" >&2; exit 2; }
     start=$SECONDS
-    data
+    data || { echo "the dataset could not be made" >&2; exit 1; }
     echo "dataset: $((SECONDS - start)) s"
     train "$2"
     echo "dataset and training: $((SECONDS - start)) s"
@@ -114,7 +117,7 @@ call)
     ls -la "$RET/long-run.tgz"
     ;;
 *)
-    sed -n '2,20p' "$0"
+    sed -n '2,21p' "$0"
     exit 2
     ;;
 esac

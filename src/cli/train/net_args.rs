@@ -101,7 +101,6 @@ impl GridNetArgs {
         ]
         .into_iter()
         .chain((self.substeps > 1).then_some(("--substeps", self.substeps)))
-        .into_iter()
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
         .chain(
             (self.reference == Reference::None)
