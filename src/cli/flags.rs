@@ -39,22 +39,23 @@ pub fn horizon(s: &str) -> Result<Horizon, String> {
     }
 }
 
-/// A bundle size K (`--bundle`): an integer in 1..=16.
-pub fn bundle(s: &str) -> Result<usize, String> {
+/// An integer in `range`.
+fn integer_in(s: &str, range: std::ops::RangeInclusive<usize>) -> Result<usize, String> {
     match s.parse::<usize>() {
-        Ok(v) if (1..=16).contains(&v) => Ok(v),
-        Ok(_) => Err("must be in 1..=16".into()),
+        Ok(v) if range.contains(&v) => Ok(v),
+        Ok(_) => Err(format!("must be in {}..={}", range.start(), range.end())),
         Err(e) => Err(e.to_string()),
     }
 }
 
+/// A bundle size K (`--bundle`): an integer in 1..=16.
+pub fn bundle(s: &str) -> Result<usize, String> {
+    integer_in(s, 1..=16)
+}
+
 /// `--substeps`: network substeps per frame, 1..=8.
 pub fn substeps(s: &str) -> Result<usize, String> {
-    match s.parse::<usize>() {
-        Ok(v) if (1..=8).contains(&v) => Ok(v),
-        Ok(_) => Err("must be in 1..=8".into()),
-        Err(e) => Err(e.to_string()),
-    }
+    integer_in(s, 1..=8)
 }
 
 /// A finite number above 0.

@@ -3,9 +3,10 @@
 //! messages in log order), while up to one worker per core (16 at most) decompresses and
 //! decodes the bags ahead of it. A bag's decoded frames wait in a bounded queue, and a worker
 //! starts a bag only within twice the workers' count of the one being passed on, so at most
-//! that many queues of a few frames are held, whatever the bags' sizes. Used by [`super::load()`], [`super::scan`] and
-//! the streamed chunks of `train`: 2,000 bags of 200 frames (320,000 frames of 2,500
-//! particles) took about a minute to read on one thread (issue 82's long run).
+//! that many queues of a few frames are held, whatever the bags' sizes. Used by
+//! [`super::load()`], [`super::scan`] and the streamed chunks of `train`: 2,000 bags of 200
+//! frames (320,000 frames of 2,500 particles) took about a minute to read on one thread
+//! (issue 82's long run).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -13,7 +14,7 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::{Condvar, Mutex};
 
 use super::{DataError, LoadReport};
-use crate::bag::{BagError, BagReader};
+use crate::bag::{BagError, BagReader, Truncation};
 use crate::msgs::ParticleFrame;
 
 /// Decoded frames a worker may hold ahead of the calling thread, per bag.
@@ -22,7 +23,7 @@ const QUEUE: usize = 32;
 /// What a worker sends for one bag: its frames, a truncation, then its end (or an error).
 enum Item {
     Frame(ParticleFrame, Option<u32>),
-    Truncated(BagError),
+    Truncated(Truncation),
     Failed(BagError),
     Done { skipped: u64 },
 }
@@ -147,10 +148,8 @@ fn receive(
         for item in receiver {
             match item {
                 Item::Frame(frame, grid) => each(path, frame, grid)?,
-                Item::Truncated(BagError::Truncated { truncation, .. }) => {
-                    report.truncated.push((path.clone(), truncation));
-                }
-                Item::Truncated(err) | Item::Failed(err) => return Err(err.into()),
+                Item::Truncated(truncation) => report.truncated.push((path.clone(), truncation)),
+                Item::Failed(err) => return Err(err.into()),
                 Item::Done { skipped } => {
                     report.skipped += skipped;
                     report.bags += 1;
@@ -179,7 +178,7 @@ fn decode_bag(path: &Path, topic: Option<&str>, out: &SyncSender<Item>) {
     for item in frames.by_ref() {
         let item = match item {
             Ok(message) => Item::Frame(message.frame, message.solver_grid),
-            Err(err @ BagError::Truncated { .. }) => Item::Truncated(err),
+            Err(BagError::Truncated { truncation, .. }) => Item::Truncated(truncation),
             Err(err) => {
                 let _ = out.send(Item::Failed(err));
                 return;

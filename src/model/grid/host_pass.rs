@@ -48,12 +48,13 @@ impl<B: NetOps> GridModel<B> {
     ) -> (Vec<StepOutput<B>>, MemoryState<B>) {
         let [b, n_p, _] = input.pos.dims();
         let device = input.pos.device();
+        let (dv_mean, dv_scale) = self.dv_affine();
         let c = Constants {
             n: self.n,
             window: self.window,
             vel_scale: self.vel_scale,
-            dv_mean: self.dv_affine().0,
-            dv_scale: self.dv_affine().1,
+            dv_mean,
+            dv_scale,
         };
         let mut particles = Particles {
             pos: host_values(input.pos.clone()),

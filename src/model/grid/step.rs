@@ -246,6 +246,7 @@ impl<B: NetOps> GridModel<B> {
         };
         let layers = [&self.head_a, &self.head_b, &self.head_out];
         let [a, h, o] = layers.map(layer);
+        let (dv_mean, dv_scale) = self.dv_affine();
         let frames = crate::ops::ParticleFrames {
             fields: latent.out.clone().into_primitive().tensor(),
             latent: latent.width,
@@ -258,8 +259,8 @@ impl<B: NetOps> GridModel<B> {
             dt: input.dt.clone().into_primitive().tensor(),
             layers: [a?, h?, o?],
             vel_scale: self.vel_scale,
-            dv_scale: self.dv_affine().1,
-            dv_mean: self.dv_affine().0,
+            dv_scale,
+            dv_mean,
         };
         let out = B::particle_frames(frames)?;
         if roofline::on() {

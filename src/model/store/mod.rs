@@ -246,9 +246,8 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 /// the one-hot width of the four materials there were, one without `rest_shape` reads no
 /// rest-shape features, one without `update` has the free per-particle head, one without
 /// `deformation` fits its rest-shape features' F, one without `substeps` runs the network
-/// once a frame; `conv` picks
-/// the kernel only (same weights, same results); the zero-initialised last layers only
-/// matter for fresh weights.
+/// once a frame; `conv` picks the kernel only (same weights, same results); the
+/// zero-initialised last layers only matter for fresh weights.
 const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 10] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
