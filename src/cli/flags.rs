@@ -58,6 +58,25 @@ pub fn substeps(s: &str) -> Result<usize, String> {
     integer_in(s, 1..=8)
 }
 
+/// `--interaction`: rounds of message passing, 0..=8.
+pub fn rounds(s: &str) -> Result<usize, String> {
+    integer_in(s, 0..=8)
+}
+
+/// `--interaction-neighbours`: neighbours per particle, 1..=64.
+pub fn neighbours(s: &str) -> Result<usize, String> {
+    integer_in(s, 1..=64)
+}
+
+/// `--interaction-radius`: a radius in (0, 0.25] of the unit box.
+pub fn radius(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && v <= 0.25 => Ok(v),
+        Ok(v) => Err(format!("{v} is not in (0, 0.25]")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// A finite number above 0.
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {

@@ -14,6 +14,8 @@ mod bag_roundtrip;
 mod cli_bundle;
 mod cli_simulate;
 mod cli_train;
+mod cli_train_grid;
+mod cli_train_init;
 mod data_load;
 mod data_scaler;
 mod data_split;

@@ -273,9 +273,11 @@ fn print_summary(
         opts.pushforward,
         opts.chunks(),
         config.bundle,
-        match config.substeps {
-            1 => String::new(),
-            s => format!(", S = {s} substeps"),
+        match (config.substeps, config.interaction) {
+            (1, 0) => String::new(),
+            (s, 0) => format!(", S = {s} substeps"),
+            (1, r) => format!(", {r} rounds of message passing"),
+            (s, r) => format!(", S = {s} substeps, {r} rounds of message passing"),
         },
         source.particle_counts(),
     );
@@ -315,6 +317,19 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
             .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
             // Substeps may change (the same weights: `GridModel::with_substeps`).
             .with_substeps(saved.substeps)
+            // A model without message passing may grow it (`GridModel::with_interaction`).
+            .with_interaction(match saved.interaction {
+                0 => 0,
+                _ => config.interaction,
+            })
+            .with_interaction_radius(match saved.interaction {
+                0 => saved.interaction_radius,
+                _ => config.interaction_radius,
+            })
+            .with_interaction_neighbours(match saved.interaction {
+                0 => saved.interaction_neighbours,
+                _ => config.interaction_neighbours,
+            })
             // The network grid may change (`GridModel::with_grid`).
             .with_grid(saved.grid)
             .with_rest_shape(config.rest_shape && saved.rest_shape)

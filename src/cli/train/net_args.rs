@@ -1,6 +1,6 @@
 //! The grid network's sizes and shape flags ([`GridNetArgs`]: `--grid`, `--unet-width`,
-//! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--substeps`, `--reference`,
-//! `--rest-shape`, `--update`), shared by `train` and `report`; `args.rs` turns them into a
+//! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--substeps`,
+//! `--interaction*`, `--reference`, `--rest-shape`, `--update`), shared by `train` and `report`; `args.rs` turns them into a
 //! [`crate::model::grid::GridConfig`].
 
 use clap::Args;
@@ -38,6 +38,17 @@ pub struct GridNetArgs {
     /// (a fast particle's move split into S). `--init-from` any single-frame model.
     #[arg(long, default_value_t = 1, value_parser = crate::cli::flags::substeps)]
     pub substeps: usize,
+    /// Rounds of message passing between each particle and its nearest neighbours after
+    /// G2P (GNS's processor; 0: none), added to the particle's input to the memory and the
+    /// head. `--init-from` a model without it starts it at zero.
+    #[arg(long, default_value_t = 0, value_parser = crate::cli::flags::rounds)]
+    pub interaction: usize,
+    /// The message passing's connectivity radius (domain units, the box is 1).
+    #[arg(long, default_value_t = 0.02, value_parser = crate::cli::flags::radius)]
+    pub interaction_radius: f64,
+    /// Neighbours per particle in the message passing: the nearest within the radius.
+    #[arg(long, default_value_t = 12, value_parser = crate::cli::flags::neighbours)]
+    pub interaction_neighbours: usize,
     /// Reference positions: first-frame (each particle remembers where it was in the first
     /// frame of its stream, MPM's reference configuration, and the grid sees its
     /// displacement from there; `--init-from` a model without it grows the two input
@@ -101,7 +112,23 @@ impl GridNetArgs {
         ]
         .into_iter()
         .chain((self.substeps > 1).then_some(("--substeps", self.substeps)))
+        .chain((self.interaction > 0).then_some(("--interaction", self.interaction)))
+        .chain(
+            (self.interaction > 0)
+                .then_some(("--interaction-neighbours", self.interaction_neighbours)),
+        )
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
+        .chain(
+            (self.interaction > 0)
+                .then(|| {
+                    [
+                        "--interaction-radius".to_owned(),
+                        self.interaction_radius.to_string(),
+                    ]
+                })
+                .into_iter()
+                .flatten(),
+        )
         .chain(
             (self.reference == Reference::None)
                 .then(|| ["--reference".to_owned(), "none".to_owned()])

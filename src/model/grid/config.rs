@@ -6,6 +6,7 @@
 use burn::config::Config;
 use burn::nn::{Initializer, LinearConfig};
 
+use super::interact::Interaction;
 use super::memory::{Memory, MemoryKind};
 use super::unet::{ConvKernel, UNetConfig};
 use super::{GridModel, REST_FEATURES};
@@ -140,6 +141,19 @@ pub struct GridConfig {
     /// saved before it existed.
     #[config(default = 1)]
     pub substeps: usize,
+    /// Rounds of message passing between neighbouring particles after G2P (`train
+    /// --interaction ROUNDS`, issue 81; [`super::interact`], GNS's processor): its output is
+    /// added to each particle's input row, so it feeds the memory and the head. 0 (none) in
+    /// models saved before it existed.
+    #[config(default = 0)]
+    pub interaction: usize,
+    /// The message passing's connectivity radius, domain units (`--interaction-radius`).
+    #[config(default = 0.02)]
+    pub interaction_radius: f64,
+    /// Neighbours per particle in the message passing, the nearest within the radius
+    /// (`--interaction-neighbours`).
+    #[config(default = 12)]
+    pub interaction_neighbours: usize,
 }
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
@@ -165,6 +179,13 @@ pub enum GridConfigError {
     /// `substeps` is 0 or above 8, or above 1 with `bundle` above 1.
     #[error("--substeps must be in 1..=8, and 1 with --bundle above 1")]
     Substeps,
+    /// The message passing's rounds above 8, neighbours outside 1..=64 or radius outside
+    /// (0, 0.25].
+    #[error(
+        "--interaction must be in 0..=8, --interaction-neighbours in 1..=64 and \
+         --interaction-radius in (0, 0.25]"
+    )]
+    Interaction,
 }
 
 impl GridConfig {
@@ -208,6 +229,13 @@ impl GridConfig {
         if !(1..=8).contains(&self.substeps) || (self.substeps > 1 && self.bundle > 1) {
             return Err(GridConfigError::Substeps);
         }
+        let radius = self.interaction_radius;
+        if self.interaction > 8
+            || !(1..=64).contains(&self.interaction_neighbours)
+            || !(radius > 0.0 && radius <= 0.25)
+        {
+            return Err(GridConfigError::Interaction);
+        }
         Ok(())
     }
 
@@ -238,6 +266,7 @@ impl GridConfig {
                 .rest_shape
                 .then(|| LinearConfig::new(REST_FEATURES, self.head_hidden).init(device)),
             memory: Memory::new(self.memory, d_u, self.hidden, device),
+            interaction: self.interaction(d_u, device),
             head_a: LinearConfig::new(d_head, self.head_hidden).init(device),
             head_b: LinearConfig::new(self.head_hidden, self.head_hidden).init(device),
             head_out: if self.head_zero_init {
@@ -260,5 +289,24 @@ impl GridConfig {
             dv_mean: self.dv_mean,
             dv_scale: self.dv_scale,
         }
+    }
+
+    /// The message passing of a model whose particle rows hold `d_u` values (`None` without
+    /// rounds), fresh weights, its output layer at zero ([`Interaction::new`]).
+    pub(super) fn interaction<B: NetOps>(
+        &self,
+        d_u: usize,
+        device: &B::Device,
+    ) -> Option<Interaction<B>> {
+        let [rounds, k] = [self.interaction, self.interaction_neighbours];
+        (rounds > 0).then(|| {
+            Interaction::new(
+                d_u,
+                self.hidden,
+                [rounds, k],
+                self.interaction_radius as f32,
+                device,
+            )
+        })
     }
 }

@@ -59,6 +59,23 @@ impl<B: NetOps> GridModel<B> {
         }
     }
 
+    /// This model with the message passing `config` describes
+    /// ([`super::GridConfig::interaction`]), fresh weights whose output layer starts at zero,
+    /// so it predicts exactly what `self` does until it is trained further (`train
+    /// --interaction R --init-from` a model without it). A model that has message passing, or
+    /// a `config` without it, returns `self` as is.
+    pub fn with_interaction(self, config: &super::GridConfig) -> Self {
+        if self.interaction.is_some() {
+            return self;
+        }
+        let d_u = config.latent + config.own_features();
+        let device = self.head_out.weight.device();
+        Self {
+            interaction: config.interaction(d_u, &device),
+            ..self
+        }
+    }
+
     /// This single-frame model as a bundled one predicting `k` frames per call
     /// ([`super::GridConfig::bundle`]): the U-Net's output head is tiled `k` times, so every
     /// frame of a bundle starts out reading the same latent field at the particle's position

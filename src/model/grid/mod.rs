@@ -32,6 +32,10 @@
 //!    predicts grid velocities the same way); [`Update::GridHead`] adds the head's output to
 //!    it as a per-particle correction.
 //!
+//! With [`GridConfig::interaction`] = R rounds, R rounds of message passing between each
+//! particle and its nearest neighbours within a radius run between steps 3 and 4
+//! ([`interact`], GNS's processor), their output added to `u_i`.
+//!
 //! With [`GridConfig::substeps`] = S the call runs steps 1 to 5 S times at `dt / S`, each on
 //! the positions and velocities the last left (`substeps.rs`): the grid is built again
 //! halfway through a fast particle's move, and only the frame at the end is predicted.
@@ -43,11 +47,13 @@
 //! Files: this one holds the network, its input and output and their helpers; `step.rs` one
 //! network call ([`GridModel::step_bundle`]) as tensors, `host_pass.rs` its per-particle part
 //! as host passes on the CPU; `config.rs` the configuration, `grow.rs` growing a trained
-//! model into a larger one; `substeps.rs` the network substeps.
+//! model into a larger one; `substeps.rs` the network substeps; `interact.rs` the message
+//! passing.
 
 mod config;
 mod grow;
 mod host_pass;
+pub mod interact;
 pub mod memory;
 pub mod rest;
 mod step;
@@ -72,6 +78,8 @@ use crate::ops::NetOps;
 pub struct GridModel<B: Backend> {
     unet: UNet<B>,
     memory: Memory<B>,
+    /// Message passing between neighbouring particles ([`GridConfig::interaction`]).
+    interaction: Option<interact::Interaction<B>>,
     head_a: Linear<B>,
     head_b: Linear<B>,
     head_out: Linear<B>,
@@ -180,6 +188,11 @@ impl<B: NetOps> GridModel<B> {
     /// Whether the step reads reference positions ([`GridConfig::reference`]).
     pub fn uses_reference(&self) -> bool {
         self.reference
+    }
+
+    /// Rounds of message passing between neighbouring particles ([`GridConfig::interaction`]).
+    pub fn interaction_rounds(&self) -> usize {
+        self.interaction.as_ref().map_or(0, |i| i.rounds())
     }
 
     /// Whether the model reads rest-shape features ([`GridConfig::rest_shape`]).

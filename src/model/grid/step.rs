@@ -159,19 +159,14 @@ impl<B: NetOps> GridModel<B> {
         // update: left as it is).
         let gathered = gather(&s, field(0));
         roofline::mark::<B>(&device, Part::G2p);
-        let mut u = self.particle_inputs(gathered, &vel, &input.material, &input.pos);
-        let (memory, state) = match self.update {
-            Update::Grid => (None, state),
-            _ => self.memory.step(u.clone(), state),
-        };
-        if let Some(m) = &memory {
-            // minGRU: the gate and the candidate from the input, then h' = (1 - z) h + z h~.
-            let [rows, hidden] = m.dims();
-            roofline::count_dense(rows, u.dims()[1], 2 * hidden);
-            roofline::count(4.0 * (rows * hidden) as f64, 12.0 * (rows * hidden) as f64);
-        }
+        let u = self.particle_inputs(gathered, &vel, &input.material, &input.pos);
+        // Message passing on the call's input positions, its output added to every frame's rows.
+        let messages =
+            (self.interaction.as_ref()).map(|i| i.forward(u.clone(), &i.graph(&input.pos)));
+        let mut u = messaged(u, &messages);
+        let (memory, state) = self.memory_step(&u, state);
         roofline::mark::<B>(&device, Part::Memory);
-        if carried.is_none() && features.is_none() {
+        if carried.is_none() && features.is_none() && messages.is_none() {
             if let Some(frames) = self.fused_frames(input, &vel, &latent, memory.as_ref()) {
                 roofline::mark::<B>(&device, Part::Head);
                 return (frames, state);
@@ -184,6 +179,7 @@ impl<B: NetOps> GridModel<B> {
             if k > 0 {
                 s = transfer::stencil(pos.clone(), self.n, self.dense_transfers());
                 u = self.particle_inputs(gather(&s, field(k)), &vel, &input.material, &pos);
+                u = messaged(u, &messages);
                 features = match &carried {
                     Some((f, _)) => Some(rest::advect::features_of(f.clone())),
                     None => self.rest_features(input.rest.as_ref(), &pos),
@@ -218,6 +214,26 @@ impl<B: NetOps> GridModel<B> {
         }
         roofline::mark::<B>(&device, Part::Head);
         (frames, state)
+    }
+
+    /// The memory's step on the particle rows `u` (`[B N, D]`): its output (`[B N, H]`; `None`
+    /// for the grid update, whose output it does not reach) and the new state.
+    fn memory_step(
+        &self,
+        u: &Tensor<B, 2>,
+        state: MemoryState<B>,
+    ) -> (Option<Tensor<B, 2>>, MemoryState<B>) {
+        let (memory, state) = match self.update {
+            Update::Grid => (None, state),
+            _ => self.memory.step(u.clone(), state),
+        };
+        if let Some(m) = &memory {
+            // minGRU: the gate and the candidate from the input, then h' = (1 - z) h + z h~.
+            let [rows, hidden] = m.dims();
+            roofline::count_dense(rows, u.dims()[1], 2 * hidden);
+            roofline::count(4.0 * (rows * hidden) as f64, 12.0 * (rows * hidden) as f64);
+        }
+        (memory, state)
     }
 
     /// [`GridModel::tensor_frames`]'s frames in one operation, [`NetOps::particle_frames`],
@@ -286,7 +302,7 @@ impl<B: NetOps> GridModel<B> {
 
     /// Whether this call's per-particle part runs as host passes ([`super::host_pass`]): on the CPU
     /// where nothing needs a gradient (inference, and the push-forward calls of CPU
-    /// training), with the free head and no advected F.
+    /// training), with the free head, no advected F and no message passing.
     fn takes_host_pass(&self, input: &StepInput<B>) -> bool {
         // A call with the transfers fixed dense runs as tensors, so that it uses them.
         if self.dense_transfers == Some(true) {
@@ -296,6 +312,7 @@ impl<B: NetOps> GridModel<B> {
             && B::ON_HOST
             && self.update == Update::Free
             && !self.advects()
+            && self.interaction.is_none()
             && !input.pos.is_require_grad()
             && !input.vel.is_require_grad()
             && !self.head_a.weight.val().is_require_grad()
@@ -422,6 +439,15 @@ impl<B: NetOps> GridModel<B> {
             vel: v_next,
             deformation: None,
         }
+    }
+}
+
+/// The particle rows `u` (`[B N, D]`) plus the call's `messages` (the same shape) where the
+/// model passes any ([`super::GridConfig::interaction`]).
+fn messaged<B: NetOps>(u: Tensor<B, 2>, messages: &Option<Tensor<B, 2>>) -> Tensor<B, 2> {
+    match messages {
+        Some(m) => u + m.clone(),
+        None => u,
     }
 }
 

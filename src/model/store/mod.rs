@@ -246,9 +246,10 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 /// the one-hot width of the four materials there were, one without `rest_shape` reads no
 /// rest-shape features, one without `update` has the free per-particle head, one without
 /// `deformation` fits its rest-shape features' F, one without `substeps` runs the network
-/// once a frame; `conv` picks the kernel only (same weights, same results); the
+/// once a frame, one without `interaction` passes no messages (its radius and neighbours
+/// then unread); `conv` picks the kernel only (same weights, same results); the
 /// zero-initialised last layers only matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 10] = [
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 13] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
     ("grid", "materials", || serde_json::Value::from(4)),
@@ -256,6 +257,13 @@ const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 10] = [
     ("grid", "update", || serde_json::Value::from("Free")),
     ("grid", "deformation", || serde_json::Value::from("Fit")),
     ("grid", "substeps", || serde_json::Value::from(1)),
+    ("grid", "interaction", || serde_json::Value::from(0)),
+    ("grid", "interaction_radius", || {
+        serde_json::Value::from(0.02)
+    }),
+    ("grid", "interaction_neighbours", || {
+        serde_json::Value::from(12)
+    }),
     ("grid", "conv", || serde_json::Value::from("auto")),
     ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
     ("paper", "decoder_zero_init", || {

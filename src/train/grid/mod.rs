@@ -182,8 +182,8 @@ where
     }
 
     /// `model` (`--init-from`) grown into what [`GridTrainer::config`] asks for, in the order
-    /// the channels are laid out: reference, bundle, rest shape, update; on the configured
-    /// network grid.
+    /// the channels are laid out: reference, bundle, rest shape, update; then the message
+    /// passing; on the configured network grid.
     fn grown(&self, model: GridModel<B>) -> GridModel<B> {
         let c = &self.config;
         let model = model.with_grid(c.grid).with_substeps(c.substeps);
@@ -196,7 +196,7 @@ where
             true => model.with_rest_shape().with_deformation(c.deformation),
             false => model,
         };
-        model.with_update(c.update)
+        model.with_update(c.update).with_interaction(c)
     }
 
     /// The run's starting point: the weights (fresh, or `init_from`'s), Adam (with clipping

@@ -1,0 +1,293 @@
+//! Grid runs that start from another: `--init-from` (weights, normalisation, the network's
+//! levers grown at zero: `--substeps`, `--interaction`) and `--split-from`.
+
+use std::path::Path;
+use std::process::Command;
+
+use crate::cli_train::{losses, train_grid};
+
+/// `--init-from` starts from a finished run's weights: with a learning rate too small to
+/// move them, the first validation rollout equals the source run's best to 3 digits (a fresh
+/// start is far off), and the source's normalisation constants are kept. Another network is
+/// refused as a usage error naming the field, before any training.
+#[test]
+fn grid_train_starts_from_another_runs_weights() {
+    let source = crate::tmp::tempdir().unwrap();
+    let o = train_grid(
+        source.path(),
+        &["--epochs", "3", "--model", "mingru", "--lr", "3e-3"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let meta = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    };
+    let best = meta(source.path())["val_loss"].as_f64().unwrap();
+    let run = |dir: &Path, extra: &[&str]| {
+        let mut args = vec!["--epochs", "1", "--model", "mingru", "--lr", "1e-12"];
+        args.extend_from_slice(extra);
+        train_grid(dir, &args)
+    };
+    let tuned = crate::tmp::tempdir().unwrap();
+    let o = run(
+        tuned.path(),
+        &["--init-from", source.path().to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let first: f64 = losses(tuned.path())[0].1.parse().unwrap();
+    assert!(
+        ((first - best) / best).abs() < 1e-3,
+        "init-from val {first} vs source best {best}"
+    );
+    assert_eq!(
+        meta(tuned.path())["dv_scale"],
+        meta(source.path())["dv_scale"]
+    );
+    let fresh = crate::tmp::tempdir().unwrap();
+    let o = run(fresh.path(), &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let scratch: f64 = losses(fresh.path())[0].1.parse().unwrap();
+    assert!(
+        ((scratch - best) / best).abs() > 1e-2,
+        "a fresh start scored {scratch}, the source {best}: the test cannot tell them apart"
+    );
+    let other = crate::tmp::tempdir().unwrap();
+    let o = run(
+        other.path(),
+        &[
+            "--init-from",
+            source.path().to_str().unwrap(),
+            "--window",
+            "3",
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("window: checkpoint 2, this run 3"), "{err}");
+    assert!(
+        !other.path().join("metrics.csv").exists(),
+        "the refused run trained"
+    );
+    // Another network grid is the same network (the U-Net is convolutional): it trains on.
+    let regrid = crate::tmp::tempdir().unwrap();
+    let o = run(
+        regrid.path(),
+        &[
+            "--init-from",
+            source.path().to_str().unwrap(),
+            "--grid",
+            "32",
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(meta(regrid.path())["grid"], 32);
+    // (That the weights predict otherwise on the new grid: model_grid.rs; this trained tiny
+    // network leans too little on its grid for its validation loss to show it.)
+    assert_eq!(
+        meta(regrid.path())["dv_scale"],
+        meta(source.path())["dv_scale"]
+    );
+}
+
+/// `--split-from` keeps another split's validation and test scenes held out and trains on
+/// every other scene; `--init-from` keeps its run's split by default and its scaler whatever
+/// the split; a split none of whose validation scenes is in the data is a usage error.
+#[test]
+fn grid_train_keeps_the_held_out_scenes_of_another_split() {
+    let split = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("split.json")).unwrap()).unwrap()
+    };
+    let names = |v: &serde_json::Value| -> Vec<String> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s.as_str().unwrap().to_owned())
+            .collect()
+    };
+    let seeded = crate::tmp::tempdir().unwrap();
+    let o = train_grid(seeded.path(), &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s0 = split(seeded.path());
+    let train0 = names(&s0["train"]);
+    assert_eq!(train0.len(), 4, "{s0}");
+    // Held out: two scenes the seeded split trains on.
+    let saved = serde_json::json!({"train": [], "val": [train0[0]], "test": [train0[1]]});
+    let file = seeded.path().join("keep.json");
+    std::fs::write(&file, saved.to_string()).unwrap();
+    let kept = crate::tmp::tempdir().unwrap();
+    let o = train_grid(
+        kept.path(),
+        &["--epochs", "1", "--split-from", file.to_str().unwrap()],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s1 = split(kept.path());
+    assert_eq!(names(&s1["val"]), [train0[0].clone()]);
+    assert_eq!(names(&s1["test"]), [train0[1].clone()]);
+    let mut expected: Vec<String> = train0[2..]
+        .iter()
+        .chain(&names(&s0["val"]))
+        .chain(&names(&s0["test"]))
+        .cloned()
+        .collect();
+    expected.sort();
+    assert_eq!(names(&s1["train"]), expected);
+
+    // --init-from: its run's split by default; with --split-from another training set, but
+    // the parent's scaler (the units its validation and eval scores are in).
+    let meta = |dir: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    };
+    let child = crate::tmp::tempdir().unwrap();
+    let init = [
+        "--epochs",
+        "1",
+        "--init-from",
+        kept.path().to_str().unwrap(),
+    ];
+    let o = train_grid(child.path(), &init);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(split(child.path()), s1);
+    let reseeded = crate::tmp::tempdir().unwrap();
+    let seeded_split = seeded.path().join("split.json");
+    let mut args = init.to_vec();
+    args.extend(["--split-from", seeded_split.to_str().unwrap()]);
+    let o = train_grid(reseeded.path(), &args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(split(reseeded.path()), s0);
+    assert_ne!(
+        meta(seeded.path())["scaler"],
+        meta(kept.path())["scaler"],
+        "the two training sets fit the same scaler: the next check cannot fail"
+    );
+    assert_eq!(meta(reseeded.path())["scaler"], meta(kept.path())["scaler"]);
+
+    let foreign = seeded.path().join("foreign.json");
+    let other = serde_json::json!({"train": [], "val": ["multi/jelly/999"], "test": []});
+    std::fs::write(&foreign, other.to_string()).unwrap();
+    let refused = crate::tmp::tempdir().unwrap();
+    let o = train_grid(
+        refused.path(),
+        &["--epochs", "1", "--split-from", foreign.to_str().unwrap()],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("--split-from") && err.contains("validation"),
+        "{err}"
+    );
+}
+
+/// `--substeps S` trains a model whose every call runs the network S times (issue 81's lever),
+/// saved with it and evaluated from its folder; a single-frame model fine-tunes into one;
+/// substeps with a bundle, or out of range, are usage errors.
+#[test]
+fn grid_train_with_substeps() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let (plain, sub) = (dir.path().join("plain"), dir.path().join("sub"));
+    let o = train_grid(&plain, &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let init = plain.to_str().unwrap();
+    let o = train_grid(
+        &sub,
+        &["--epochs", "1", "--substeps", "2", "--init-from", init],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("S = 2 substeps"), "{err}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sub.join("model.json")).unwrap()).unwrap();
+    assert_eq!(json["substeps"], 2, "{json}");
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let eval_out = dir.path().join("eval");
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args([
+            "eval",
+            "--model",
+            sub.to_str().unwrap(),
+            "--data",
+            bags,
+            "--split",
+            "all",
+        ])
+        .args([
+            "--starts",
+            "1",
+            "--horizon",
+            "4",
+            "--no-render",
+            "--no-plausibility",
+        ])
+        .args(["--out", eval_out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(eval_out.join("table.csv").exists());
+    for bad in [
+        &["--substeps", "2", "--bundle", "4"][..],
+        &["--substeps", "9"][..],
+    ] {
+        let o = train_grid(&dir.path().join("bad"), bad);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
+        assert!(err.contains("--substeps"), "{bad:?}: {err}");
+    }
+}
+
+/// `--interaction R` trains a model with R rounds of message passing between neighbouring
+/// particles (issue 81's GNS lever), saved with its radius and neighbours and evaluated from
+/// its folder. `--init-from` a model without it grows it at zero: with a learning rate too
+/// small to move the weights, the first validation loss is the parent's best. Out of range
+/// it is a usage error.
+#[test]
+fn grid_train_with_message_passing() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let (plain, mp) = (dir.path().join("plain"), dir.path().join("mp"));
+    let o = train_grid(&plain, &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let grown = [
+        "--epochs",
+        "1",
+        "--interaction",
+        "2",
+        "--interaction-radius",
+        "0.05",
+        "--lr",
+        "1e-12",
+        "--lr-final",
+        "0",
+        "--init-from",
+        plain.to_str().unwrap(),
+    ];
+    let o = train_grid(&mp, &grown);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("2 rounds of message passing"), "{err}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(mp.join("model.json")).unwrap()).unwrap();
+    assert_eq!(json["interaction"], 2, "{json}");
+    assert_eq!(json["interaction_neighbours"], 12, "{json}");
+    let (parent, child) = (losses(&plain), losses(&mp));
+    let val = |rows: &[(String, String)]| rows[0].1.parse::<f64>().unwrap();
+    let (a, b) = (val(&parent), val(&child));
+    assert!((a - b).abs() <= 1e-3 * a, "parent {a}, grown {b}");
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let eval_out = dir.path().join("eval");
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(["eval", "--model", mp.to_str().unwrap(), "--data", bags])
+        .args(["--split", "all", "--starts", "1", "--horizon", "4"])
+        .args(["--no-render", "--no-plausibility"])
+        .args(["--out", eval_out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(eval_out.join("table.csv").exists());
+    for bad in [
+        &["--interaction", "9"][..],
+        &["--interaction", "1", "--interaction-radius", "0.5"][..],
+        &["--interaction", "1", "--interaction-neighbours", "0"][..],
+    ] {
+        let o = train_grid(&dir.path().join("bad"), bad);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
+        assert!(err.contains("--interaction"), "{bad:?}: {err}");
+    }
+}
