@@ -7,18 +7,25 @@
 # 1. makes the dataset (deterministic for its seeds, apart from the evaluation seeds 1 and
 #    7; a warm machine keeps it from its last call): 1,000 `fluid` scenes (seed 11) and
 #    1,000 `multi` scenes (seed 12) of 200 frames, and the 16 unseen scenes of seed 7;
-# 2. unpacks the run from gpu/long-run.tgz where there is one and trains it for MINUTES with
-#    `--call-minutes` (a fresh run the first time, `--resume` after): the same schedule
-#    whatever the calls, 50 epochs of 200,000 samples;
-# 3. appends a point of the learning curve to runs/long/curve.csv (samples seen,
-#    device-hours; the latest weights' avg20 on the unseen scenes from 5 starts and their
-#    whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole scenes);
-# 4. packs the run (model, checkpoint, ledger, curve) into $RET/long-run.tgz (RET defaults to
-#    $OUT, the device tool's return folder). Copy it to gpu/long-run.tgz for the next call.
+# 2. trains the run for MINUTES with `--call-minutes` (`--resume` after its first call). It
+#    has two phases, each a run folder with its own fixed schedule:
+#    - phase 1, runs/long (gpu/long-run.tgz): fresh weights, 50 epochs of 200,000 samples at
+#      batch 128; stopped at 1,622,208 samples, where batch 128 used a third of the GPU;
+#    - phase 2, runs/long2 (gpu/long2-run.tgz; PHASE=2, the default): from phase 1's latest
+#      weights (`--init-from`, its split and normalisation), 42 epochs of 200,000 samples at
+#      batch 512;
+# 3. appends a point of the learning curve to the phase's curve.csv (samples seen and
+#    device-hours over both phases; the latest weights' avg20 on the unseen scenes from 5
+#    starts and their whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole
+#    scenes);
+# 4. packs the phase's run folder (model, checkpoint, ledger, curve) into
+#    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
+#    return folder). Copy it to gpu/ for the next call.
 #
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), DATA (/tmp/data), SCENES (1000 a
-# family), FRAMES (200), NET (the model flags), SCHEDULE (the schedule flags). A CPU dry run:
-# BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=12 NET="..." SCHEDULE="...".
+# family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
+# flags). A CPU dry run: BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=12 NET="..."
+# SCHEDULE="...".
 set -uo pipefail
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}
 # BIN (unpacked from BIN.xz where needed), DATA and CUDA_PATH.
@@ -28,9 +35,14 @@ SCENES=${SCENES:-1000}
 FRAMES=${FRAMES:-200}
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
     --head-hidden 64 --bundle 4 --rollout-steps 4 --model mingru}"
-read -r -a SCHEDULE <<<"${SCHEDULE:---epochs 50 --samples-per-epoch 200000 --batch-size 128 \
-    --lr 1e-3 --lr-final 1e-5 --patience 0 --noise 0.5 --mirror \
-    --val-starts 1 --val-horizon 20}"
+PHASE=${PHASE:-2}
+case "$PHASE" in
+1) RUN=long BATCH=(--epochs 50 --batch-size 128) ;;
+2) RUN=long2 BATCH=(--epochs 42 --batch-size 512) ;;
+*) echo "PHASE must be 1 or 2" >&2; exit 2 ;;
+esac
+read -r -a SCHEDULE <<<"${SCHEDULE:-${BATCH[*]} --samples-per-epoch 200000 --lr 1e-3 \
+    --lr-final 1e-5 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20}"
 mkdir -p "$RET" runs
 
 data() {
@@ -54,51 +66,67 @@ data() {
 }
 
 train() {
-    local resume=()
+    local start=()
     if [ -f gpu/long-run.tgz ] && [ ! -d runs/long ]; then
         tar xzf gpu/long-run.tgz -C runs
     fi
-    [ -d runs/long/checkpoint ] && resume=(--resume)
+    if [ "$RUN" = long2 ] && [ -f gpu/long2-run.tgz ] && [ ! -d runs/long2 ]; then
+        tar xzf gpu/long2-run.tgz -C runs
+    fi
+    if [ -d "runs/$RUN/checkpoint" ]; then
+        start=(--resume)
+    elif [ "$RUN" = long2 ]; then
+        # Phase 2 starts from phase 1's latest weights.
+        latest long || { echo "no phase 1 run (gpu/long-run.tgz) to start from" >&2; return 1; }
+        rm -rf /tmp/phase1 && mv /tmp/latest /tmp/phase1
+        start=(--init-from /tmp/phase1/long)
+    fi
     "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
-        --out runs/long "${NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" "${resume[@]}" \
+        --out "runs/$RUN" "${NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" "${start[@]}" \
         2>&1 | tr '\r' '\n' | grep -v "^\s*$" | tail -n 6
 }
 
-# The latest weights (the checkpoint's, with the run's model.json for the rest) as a model
-# folder named `long`: the curve follows the training, not the best epoch so far.
+# The latest weights of runs/$1 (the checkpoint's, with the run's model.json for the rest)
+# as a model folder /tmp/latest/$1: the curve follows the training, not the best epoch so far.
 latest() {
-    rm -rf /tmp/latest && mkdir -p /tmp/latest/long
-    cp runs/long/model.json /tmp/latest/long/ || return 1
-    if [ -f runs/long/checkpoint/model.mpk ]; then
-        cp runs/long/checkpoint/model.mpk /tmp/latest/long/
+    rm -rf /tmp/latest && mkdir -p "/tmp/latest/$1"
+    cp "runs/$1/model.json" "/tmp/latest/$1/" || return 1
+    if [ -f "runs/$1/checkpoint/model.mpk" ]; then
+        cp "runs/$1/checkpoint/model.mpk" "/tmp/latest/$1/"
     else
-        cp runs/long/model.mpk /tmp/latest/long/
+        cp "runs/$1/model.mpk" "/tmp/latest/$1/"
     fi
 }
 
 curve() {
-    latest || { echo "no model in runs/long yet: no curve point" >&2; return 1; }
-    local eval=("$BIN" eval --model /tmp/latest/long --device "$DEVICE" --data "$DATA/long/unseen"
-        --split all --no-render --no-plausibility)
+    latest "$RUN" || { echo "no model in runs/$RUN yet: no curve point" >&2; return 1; }
+    local eval=("$BIN" eval --model "/tmp/latest/$RUN" --device "$DEVICE"
+        --data "$DATA/long/unseen" --split all --no-render --no-plausibility)
     "${eval[@]}" --starts 5 --horizon 20 --out "$RET/unseen-h20" >"$RET/unseen-h20.log" 2>&1 ||
         { tail -n 5 "$RET/unseen-h20.log"; return 1; }
     "${eval[@]}" --horizon full --out "$RET/unseen-full" >"$RET/unseen-full.log" 2>&1 ||
         { tail -n 5 "$RET/unseen-full.log"; return 1; }
-    python3 - "$RET" runs/long <<'PY'
+    # Phase 2's points count phase 1's samples and device-hours too.
+    python3 - "$RET" "$RUN" <<'PY'
 import csv, json, os, sys
-ret, run = sys.argv[1], sys.argv[2]
-def average(name):
-    return next(r for r in csv.DictReader(open(os.path.join(ret, name, "table.csv")))
+ret, name = sys.argv[1], sys.argv[2]
+run = os.path.join("runs", name)
+def average(table):
+    return next(r for r in csv.DictReader(open(os.path.join(ret, table, "table.csv")))
                 if r["scene"] == "Average")
 h20, full = average("unseen-h20"), average("unseen-full")
-ledger = json.load(open(os.path.join(run, "run.json")))
+ledgers = [json.load(open(os.path.join(run, "run.json")))]
+if name != "long":
+    ledgers.append(json.load(open(os.path.join("runs", "long", "run.json"))))
+samples = sum(l["samples"] for l in ledgers)
+hours = sum(l["device_hours"] for l in ledgers)
 path = os.path.join(run, "curve.csv")
 new = not os.path.exists(path)
 with open(path, "a") as f:
     if new:
         f.write("samples,device_hours,avg20,avg20_constvel,whole,whole_persist\n")
-    f.write(f"{ledger['samples']},{ledger['device_hours']:.4f},{h20['avg20_long']},"
-            f"{h20['avg20_constvel']},{full['avg_full_long']},{full['avg_full_persist']}\n")
+    f.write(f"{samples},{hours:.4f},{h20['avg20_' + name]},{h20['avg20_constvel']},"
+            f"{full['avg_full_' + name]},{full['avg_full_persist']}\n")
 print(open(path).read())
 PY
 }
@@ -113,11 +141,11 @@ call)
     echo "dataset and training: $((SECONDS - start)) s"
     curve
     echo "call: $((SECONDS - start)) s"
-    tar czf "$RET/long-run.tgz" -C runs long
-    ls -la "$RET/long-run.tgz"
+    tar czf "$RET/$RUN-run.tgz" -C runs "$RUN"
+    ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,21p' "$0"
+    sed -n '2,28p' "$0"
     exit 2
     ;;
 esac
