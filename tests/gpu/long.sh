@@ -10,7 +10,8 @@
 # 2. trains the run for MINUTES with `--call-minutes` (`--resume` after its first call). It
 #    has two phases, each a run folder with its own fixed schedule:
 #    - phase 1, runs/long (gpu/long-run.tgz): fresh weights, 50 epochs of 200,000 samples at
-#      batch 128; stopped at 1,622,208 samples, where batch 128 used a third of the GPU;
+#      batch 128; stopped at 1,622,208 samples (a step at batch 128 is partly bound by the
+#      host's recording of its kernels; docs/training.md, "Why phase 2");
 #    - phase 2, runs/long2 (gpu/long2-run.tgz; PHASE=2, the default): from phase 1's latest
 #      weights (`--init-from`, its split and normalisation), 42 epochs of 200,000 samples at
 #      batch 512;
@@ -145,7 +146,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,28p' "$0"
+    sed -n '2,29p' "$0"
     exit 2
     ;;
 esac
