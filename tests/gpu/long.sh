@@ -25,7 +25,7 @@
 #
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), DATA (/tmp/data), SCENES (1000 a
 # family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
-# flags). A CPU dry run: BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=12 NET="..."
+# flags). A CPU dry run: BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=24 NET="..."
 # SCHEDULE="...".
 set -uo pipefail
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}

@@ -170,18 +170,19 @@ impl<B: Backend> Graph<B> {
             .convert::<f32>()
             .to_vec()
             .unwrap_or_default();
-        let per_scene: Vec<(Vec<i64>, Vec<f32>, Vec<f32>)> = host
-            .par_chunks(2 * n)
+        let (rows, e) = (b * n, EDGE_FEATURES);
+        let mut index = vec![0i64; rows * k];
+        let mut mask = vec![0f32; rows * k];
+        let mut edges = vec![0f32; rows * k * e];
+        host.par_chunks(2 * n)
+            .zip(index.par_chunks_mut(n * k))
+            .zip(mask.par_chunks_mut(n * k))
+            .zip(edges.par_chunks_mut(n * k * e))
             .enumerate()
-            .map(|(scene, xy)| scene_graph(xy, (scene * n) as i64, radius, k))
-            .collect();
-        let (mut index, mut mask, mut edges) = (Vec::new(), Vec::new(), Vec::new());
-        for (i, m, e) in per_scene {
-            index.extend(i);
-            mask.extend(m);
-            edges.extend(e);
-        }
-        let rows = b * n;
+            .for_each(|(scene, (((xy, index), mask), edges))| {
+                let out = Rows { index, mask, edges };
+                scene_graph(xy, (scene * n) as i64, (radius, k), out);
+            });
         Self {
             index: Tensor::from_data(TensorData::new(index, [rows * k]), &device),
             mask: Tensor::from_data(TensorData::new(mask, [rows, k, 1]), &device),
@@ -190,41 +191,54 @@ impl<B: Backend> Graph<B> {
     }
 }
 
-/// One scene's neighbour rows (offset by `base`), mask and edge features ([`Graph`]) from
-/// its `[N, 2]` positions `xy`.
-fn scene_graph(xy: &[f32], base: i64, radius: f32, k: usize) -> (Vec<i64>, Vec<f32>, Vec<f32>) {
+/// One scene's share of a [`Graph`]'s host buffers: `[N k]` rows, `[N k]` mask, `[N k 3]`
+/// edge features.
+struct Rows<'a> {
+    index: &'a mut [i64],
+    mask: &'a mut [f32],
+    edges: &'a mut [f32],
+}
+
+/// One scene's neighbour rows (offset by `base`), mask and edge features into `out` from its
+/// `[N, 2]` positions `xy`: each particle's candidates are the 3 x 3 cells of a cell list at
+/// least `radius` wide ([`Bins::for_radius`]); the `k` nearest within `radius` are kept,
+/// nearest first, ties to the lower index; the rest of a particle's `k` slots point at itself
+/// with mask and features 0.
+fn scene_graph(xy: &[f32], base: i64, (radius, k): (f32, usize), out: Rows) {
     let n = xy.len() / 2;
     let ids: Vec<u32> = (0..n as u32).collect();
-    // Cells of a power-of-two count (exact nearest searches), at least the radius wide.
-    let cells = 1usize << ((1.0 / radius.max(1e-3)).log2().floor().clamp(0.0, 8.0) as u32);
-    let bins = Bins::new(xy, 2, &ids, cells);
-    let (mut index, mut mask) = (Vec::with_capacity(n * k), Vec::with_capacity(n * k));
-    let mut edges = Vec::with_capacity(n * k * EDGE_FEATURES);
-    let mut near = Vec::with_capacity(k + 1);
+    let bins = Bins::for_radius(xy, 2, &ids, radius);
+    let (reach, mut near) = (radius * radius, Vec::<(f32, u32)>::with_capacity(64));
+    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
     for i in 0..n {
         let (x, y) = (xy[2 * i], xy[2 * i + 1]);
-        let distance = |j: usize| {
-            let (dx, dy) = (f64::from(xy[2 * j] - x), f64::from(xy[2 * j + 1] - y));
-            (j != i).then(|| (dx * dx + dy * dy).sqrt())
-        };
-        bins.nearest([x, y], k, f64::from(radius), distance, &mut near);
+        near.clear();
+        bins.around(x, y, |j| {
+            let d2 = (xy[2 * j] - x).powi(2) + (xy[2 * j + 1] - y).powi(2);
+            if j != i && d2 <= reach {
+                near.push((d2, j as u32));
+            }
+        });
+        if near.len() > k {
+            near.select_nth_unstable_by(k - 1, order);
+            near.truncate(k);
+        }
+        near.sort_unstable_by(order);
         for slot in 0..k {
+            let at = i * k + slot;
+            let edge = &mut out.edges[EDGE_FEATURES * at..EDGE_FEATURES * (at + 1)];
             match near.get(slot) {
-                Some(&(_, j)) => {
-                    let (dx, dy) = ((xy[2 * j] - x) / radius, (xy[2 * j + 1] - y) / radius);
-                    index.push(base + j as i64);
-                    mask.push(1.0);
-                    edges.extend([dx, dy, dx * dx + dy * dy]);
+                Some(&(d2, j)) => {
+                    let j = j as usize;
+                    out.index[at] = base + j as i64;
+                    out.mask[at] = 1.0;
+                    let (dx, dy) = (xy[2 * j] - x, xy[2 * j + 1] - y);
+                    edge.copy_from_slice(&[dx / radius, dy / radius, d2 / reach]);
                 }
-                None => {
-                    index.push(base + i as i64);
-                    mask.push(0.0);
-                    edges.extend([0.0; EDGE_FEATURES]);
-                }
+                None => out.index[at] = base + i as i64,
             }
         }
     }
-    (index, mask, edges)
 }
 
 #[cfg(test)]
