@@ -18,7 +18,7 @@
 # 3. appends a point of the learning curve to the phase's curve.csv (samples seen and
 #    device-hours over both phases; the latest weights' avg20 on the unseen scenes from 5
 #    starts and their whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole
-#    scenes);
+#    scenes; in phase 2 also the liquid's area, energy and surge fronts, liquid_table.py);
 # 4. packs the phase's run folder (model, checkpoint, ledger, curve) into
 #    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
 #    return folder). Copy it to gpu/ for the next call.
@@ -102,15 +102,18 @@ latest() {
 curve() {
     latest "$RUN" || { echo "no model in runs/$RUN yet: no curve point" >&2; return 1; }
     local eval=("$BIN" eval --model "/tmp/latest/$RUN" --device "$DEVICE"
-        --data "$DATA/long/unseen" --split all --no-render --no-plausibility)
-    "${eval[@]}" --starts 5 --horizon 20 --out "$RET/unseen-h20" >"$RET/unseen-h20.log" 2>&1 ||
-        { tail -n 5 "$RET/unseen-h20.log"; return 1; }
+        --data "$DATA/long/unseen" --split all --no-render)
+    "${eval[@]}" --starts 5 --horizon 20 --no-plausibility --out "$RET/unseen-h20" \
+        >"$RET/unseen-h20.log" 2>&1 || { tail -n 5 "$RET/unseen-h20.log"; return 1; }
+    # Whole scenes with the structure measures: the liquid's area, energy and surge front.
     "${eval[@]}" --horizon full --out "$RET/unseen-full" >"$RET/unseen-full.log" 2>&1 ||
         { tail -n 5 "$RET/unseen-full.log"; return 1; }
     # Phase 2's points count phase 1's samples and device-hours too.
-    python3 - "$RET" "$RUN" <<'PY'
+    python3 - "$RET" "$RUN" "$(dirname "$0")" <<'PY'
 import csv, json, os, sys
 ret, name = sys.argv[1], sys.argv[2]
+sys.path.insert(0, sys.argv[3])
+from liquid_table import areas, fronts
 run = os.path.join("runs", name)
 def average(table):
     return next(r for r in csv.DictReader(open(os.path.join(ret, table, "table.csv")))
@@ -122,12 +125,20 @@ if name != "long":
 samples = sum(l["samples"] for l in ledgers)
 hours = sum(l["device_hours"] for l in ledgers)
 path = os.path.join(run, "curve.csv")
-new = not os.path.exists(path)
+columns = "samples,device_hours,avg20,avg20_constvel,whole,whole_persist"
+# The liquid's measures over its 11 scenes (tests/gpu/liquid_table.py): area over the
+# truth's at steps 20 / 200 / the end (scenes within 10 %), kinetic energy over the truth's,
+# surge fronts within 10 % of the truth's step. A curve begun without them goes on without.
+liquid = ",liquid_area_20_200_end,liquid_energy,fronts"
+area, energy, _ = areas(os.path.join(ret, "unseen-full", "plausibility.csv"), name)
+front = fronts(os.path.join(ret, "unseen-full", "front.csv"), name)
+if not os.path.exists(path):
+    open(path, "w").write(columns + liquid + "\n")
+with_liquid = open(path).readline().strip().endswith(liquid)
 with open(path, "a") as f:
-    if new:
-        f.write("samples,device_hours,avg20,avg20_constvel,whole,whole_persist\n")
     f.write(f"{samples},{hours:.4f},{h20['avg20_' + name]},{h20['avg20_constvel']},"
-            f"{full['avg_full_' + name]},{full['avg_full_persist']}\n")
+            f"{full['avg_full_' + name]},{full['avg_full_persist']}")
+    f.write(f",{area},{energy},{front}\n" if with_liquid else "\n")
 print(open(path).read())
 PY
 }
