@@ -23,10 +23,18 @@
 #    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
 #    return folder). Copy it to gpu/ for the next call.
 #
+# Branches from phase 1's latest weights, for issue 81's levers at equal minutes from a
+# trained model (each NAME=FLAGS, flags joined by commas, trains runs/branch-NAME side by side
+# on the GPU with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
+# 12 splash scenes of the long run's training split and on the unseen scenes, and packed
+# into $RET/branches.tgz):
+#
+#   tests/gpu/long.sh branch MINUTES plain= push4=--pushforward,4 mp2=--interaction,2
+#
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), DATA (/tmp/data), SCENES (1000 a
 # family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
-# flags). A CPU dry run: BIN=target/release/minflow DEVICE=cpu SCENES=4 FRAMES=24 NET="..."
-# SCHEDULE="...".
+# flags), BRANCH (the branches' schedule). A CPU dry run: BIN=target/release/minflow
+# DEVICE=cpu SCENES=4 FRAMES=24 SCHEDULE="..." BRANCH="..." (tiny epochs).
 set -uo pipefail
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}
 # BIN (unpacked from BIN.xz where needed), DATA and CUDA_PATH.
@@ -44,6 +52,8 @@ case "$PHASE" in
 esac
 read -r -a SCHEDULE <<<"${SCHEDULE:-${BATCH[*]} --samples-per-epoch 200000 --lr 1e-3 \
     --lr-final 1e-5 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20}"
+read -r -a BRANCH <<<"${BRANCH:---epochs 1000 --samples-per-epoch 20000 --batch-size 128 \
+    --lr 3e-4 --lr-final 3e-4 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20}"
 mkdir -p "$RET" runs
 
 data() {
@@ -143,7 +153,75 @@ print(open(path).read())
 PY
 }
 
+# Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from phase 1's latest weights, side by
+# side, into runs/branch-NAME.
+branch() {
+    local minutes=$1 pids=() lever name flags
+    shift
+    if [ -f gpu/long-run.tgz ] && [ ! -d runs/long ]; then
+        tar xzf gpu/long-run.tgz -C runs
+    fi
+    latest long || { echo "no phase 1 run (gpu/long-run.tgz) to branch from" >&2; return 1; }
+    rm -rf /tmp/phase1 && mv /tmp/latest /tmp/phase1
+    for lever in "$@"; do
+        name=branch-${lever%%=*}
+        IFS=',' read -r -a flags <<<"${lever#*=}"
+        "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
+            --out "runs/$name" --init-from /tmp/phase1/long "${NET[@]}" "${BRANCH[@]}" \
+            --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
+        pids+=($!)
+    done
+    wait "${pids[@]}"
+    for lever in "$@"; do
+        tail -n 3 "$RET/train-branch-${lever%%=*}.log" | tr '\r' '\n' | grep -v "^\s*$" | tail -n 2
+    done
+}
+
+# The branches of "$@" (NAME=FLAGS, as `branch`) scored as liquid.sh scores its levers, into
+# $RET/branches/{train,unseen}-{h20,full}: `train` is 12 splash scenes of the long run's
+# training split (the fit), `unseen` the 16 scenes of seed 7.
+score() {
+    local models=() names=() lever out=$RET/branches split
+    for lever in "$@"; do
+        names+=("branch-${lever%%=*}")
+        models+=(--model "runs/branch-${lever%%=*}")
+    done
+    rm -rf "$DATA/long/train_splash" "$out" && mkdir -p "$DATA/long/train_splash" "$out"
+    for split in $(python3 -c "import json, sys; print(' '.join(s.replace('/', '_') for s in \
+        json.load(open(sys.argv[1]))['train'] if s.startswith('fluid/splash')))" \
+        runs/long/split.json); do
+        [ -f "$DATA/long/fluid/$split.mcap" ] && ln -sf "$DATA/long/fluid/$split.mcap" \
+            "$DATA/long/train_splash/"
+        [ "$(ls "$DATA/long/train_splash" | wc -l)" -ge 12 ] && break
+    done
+    for set in train:train_splash unseen:unseen; do
+        local eval=("$BIN" eval "${models[@]}" --device "$DEVICE" --data "$DATA/long/${set#*:}"
+            --split all --no-render)
+        "${eval[@]}" --starts 5 --horizon 20 --no-plausibility --out "$out/${set%%:*}-h20" \
+            >"$out/${set%%:*}-h20.log" 2>&1 || tail -n 5 "$out/${set%%:*}-h20.log"
+        "${eval[@]}" --horizon full --out "$out/${set%%:*}-full" >"$out/${set%%:*}-full.log" \
+            2>&1 || tail -n 5 "$out/${set%%:*}-full.log"
+    done
+    python3 "$(dirname "$0")/liquid_table.py" "$out" "${names[@]}" | tee "$out/table.md"
+    find "$out" -name '*.png' -delete
+    for name in "${names[@]}"; do
+        mkdir -p "$out/runs/$name"
+        cp "runs/$name"/{metrics.csv,model.json,run.json} "$out/runs/$name/" 2>/dev/null
+    done
+    tar czf "$RET/branches.tgz" -C "$RET" branches
+}
+
 case "${1:-}" in
+branch)
+    [ -n "${2:-}" ] && [ -n "${3:-}" ] || { echo "usage: $0 branch MINUTES NAME=FLAGS..." >&2; exit 2; }
+    start=$SECONDS
+    data || { echo "the dataset could not be made" >&2; exit 1; }
+    echo "dataset: $((SECONDS - start)) s"
+    branch "${@:2}" || exit 1
+    echo "training: $((SECONDS - start)) s"
+    score "${@:3}"
+    echo "call: $((SECONDS - start)) s"
+    ;;
 call)
     [ -n "${2:-}" ] || { echo "usage: $0 call MINUTES" >&2; exit 2; }
     start=$SECONDS
@@ -157,7 +235,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,29p' "$0"
+    sed -n '2,37p' "$0"
     exit 2
     ;;
 esac
