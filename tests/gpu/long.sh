@@ -95,6 +95,10 @@ train() {
     "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
         --out "runs/$RUN" "${NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" "${start[@]}" \
         2>&1 | tr '\r' '\n' | grep -v "^\s*$" | tail -n 6
+    # Phase 1's ledger goes with phase 2's folder (and archive): its curve counts both.
+    if [ "$RUN" = long2 ] && [ ! -f runs/long2/phase1.json ]; then
+        cp runs/long/run.json runs/long2/phase1.json
+    fi
 }
 
 # The latest weights of runs/$1 (the checkpoint's, with the run's model.json for the rest)
@@ -102,6 +106,8 @@ train() {
 latest() {
     rm -rf /tmp/latest && mkdir -p "/tmp/latest/$1"
     cp "runs/$1/model.json" "/tmp/latest/$1/" || return 1
+    # The split, so that `--init-from` keeps the run's held-out scenes.
+    [ -f "runs/$1/split.json" ] && cp "runs/$1/split.json" "/tmp/latest/$1/"
     if [ -f "runs/$1/checkpoint/model.mpk" ]; then
         cp "runs/$1/checkpoint/model.mpk" "/tmp/latest/$1/"
     else
@@ -131,7 +137,7 @@ def average(table):
 h20, full = average("unseen-h20"), average("unseen-full")
 ledgers = [json.load(open(os.path.join(run, "run.json")))]
 if name != "long":
-    ledgers.append(json.load(open(os.path.join("runs", "long", "run.json"))))
+    ledgers.append(json.load(open(os.path.join(run, "phase1.json"))))
 samples = sum(l["samples"] for l in ledgers)
 hours = sum(l["device_hours"] for l in ledgers)
 path = os.path.join(run, "curve.csv")
@@ -171,8 +177,15 @@ branch() {
             --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
         pids+=($!)
     done
-    wait "${pids[@]}"
-    for lever in "$@"; do
+    # The branches that trained, for `score`.
+    TRAINED=()
+    for i in "${!pids[@]}"; do
+        lever=${*:$((i + 1)):1}
+        if wait "${pids[$i]}"; then
+            TRAINED+=("$lever")
+        else
+            echo "branch ${lever%%=*} failed: $RET/train-branch-${lever%%=*}.log" >&2
+        fi
         tail -n 3 "$RET/train-branch-${lever%%=*}.log" | tr '\r' '\n' | grep -v "^\s*$" | tail -n 2
     done
 }
@@ -219,7 +232,8 @@ branch)
     echo "dataset: $((SECONDS - start)) s"
     branch "${@:2}" || exit 1
     echo "training: $((SECONDS - start)) s"
-    score "${@:3}"
+    [ "${#TRAINED[@]}" -gt 0 ] || { echo "no branch trained" >&2; exit 1; }
+    score "${TRAINED[@]}"
     echo "call: $((SECONDS - start)) s"
     ;;
 call)

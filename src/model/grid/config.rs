@@ -180,10 +180,10 @@ pub enum GridConfigError {
     #[error("--substeps must be in 1..=8, and 1 with --bundle above 1")]
     Substeps,
     /// The message passing's rounds above 8, neighbours outside 1..=64 or radius outside
-    /// (0, 0.25].
+    /// (0, 0.25], or message passing with the grid update (whose output it would not reach).
     #[error(
-        "--interaction must be in 0..=8, --interaction-neighbours in 1..=64 and \
-         --interaction-radius in (0, 0.25]"
+        "--interaction must be in 0..=8 (0 with --update grid), --interaction-neighbours in \
+         1..=64 and --interaction-radius in (0, 0.25]"
     )]
     Interaction,
 }
@@ -231,6 +231,7 @@ impl GridConfig {
         }
         let radius = self.interaction_radius;
         if self.interaction > 8
+            || (self.interaction > 0 && self.update == Update::Grid)
             || !(1..=64).contains(&self.interaction_neighbours)
             || !(radius > 0.0 && radius <= 0.25)
         {

@@ -13,12 +13,16 @@
 //!
 //! ```text
 //! h_i   = silu(E u_i)                                             (encoder, [R, W])
-//! e_ij  = silu(A h_i + B h_j + C d_ij)                            (edge, [R, k, W])
-//! h_i  += N2 silu(N1 [h_i, M (sum_j e_ij) / k])                   (node, each round)
+//! e_ij  = silu(A h_i + B h_j + C d_ij)                            (edge, [R, W] a slot)
+//! h_i  += N2 silu(N1 [h_i, M mean_j e_ij])                        (node, each round)
 //! u_i  += O h_i                                                   (O starts at zero)
 //! ```
 //!
-//! (the edge MLP's second layer `M` applied after the sum, which it commutes with). The
+//! (the edge MLP's second layer `M` applied after the mean over the particle's real
+//! neighbours, which it commutes with). A neighbour slot's `B h_j` and `x_j` are read with
+//! the particle-grid transfers' gather ([`crate::ops::gather`], 9 entries of which the slot's
+//! alone weighs 1): its gradient is their scatter-add kernel, where burn's `select` would
+//! take `select_assign`, a serial loop on CUDA. The
 //! output is added to the particle's input row `u_i = [g_i, own_i]`, so it feeds the memory
 //! and the head through their first layers; `O` starts at zero, so a model given message
 //! passing (`--init-from` one without) predicts what it did until it is trained further.
@@ -35,7 +39,7 @@ use rayon::prelude::*;
 
 use crate::model::roofline;
 use crate::neighbours::Bins;
-use crate::ops::{linear, silu, NetOps};
+use crate::ops::{gather, linear, silu, NetOps, STENCIL_NODES as STENCIL};
 
 /// Edge features per neighbour: the displacement over the radius and its squared length.
 const EDGE_FEATURES: usize = 3;
@@ -63,16 +67,22 @@ pub struct Interaction<B: Backend> {
     neighbours: usize,
 }
 
-/// Each particle's `k` nearest neighbours within the radius in one batch: rows index the
-/// batch's `B N` particles scene by scene.
+/// Each particle's `k` nearest neighbours within the radius in one batch, as stencils of
+/// [`crate::ops::gather`] (9 slots a chunk: one gather per neighbour slot, whose backward is
+/// the scatter-add kernel where burn's `select` would take `select_assign`, a serial loop on
+/// CUDA; `model::grid::transfer`'s module doc).
 #[derive(Debug, Clone)]
 pub struct Graph<B: Backend> {
-    /// `[R k]` the neighbours' rows; a particle with fewer than `k` points at itself.
-    index: Tensor<B, 1, Int>,
-    /// `[R, k, 1]` 1 for a real neighbour, 0 for padding.
+    /// `ceil(k / 9)` chunks of `[B N 9]` neighbour rows (`b N + j`, into the batch's `[B N]`
+    /// particles): slot s is chunk `s / 9`'s entry `s % 9`; a missing neighbour points at the
+    /// particle itself.
+    chunks: Vec<Tensor<B, 1, Int>>,
+    /// `[B, N, k]` 1 for a real neighbour, 0 for padding.
     mask: Tensor<B, 3>,
-    /// `[R, k, 3]` edge features (the module doc), 0 for padding.
-    edges: Tensor<B, 3>,
+    /// `[B, N, 2]` the positions the graph was built on, domain units.
+    pos: Tensor<B, 3>,
+    /// `[B, N]`.
+    dims: [usize; 2],
 }
 
 impl<B: NetOps> Interaction<B> {
@@ -128,25 +138,37 @@ impl<B: NetOps> Interaction<B> {
             roofline::count_dense(rows, inputs, width);
             roofline::count_dense(rows, width, inputs);
             for _ in &self.rounds {
-                roofline::count_dense(rows, width, 5 * width);
+                // receiver, sender, message, node_b; node_a; each slot's edge layer, its
+                // 9-entry gather and the edge's sums.
+                roofline::count_dense(rows, width, 4 * width);
+                roofline::count_dense(rows, 2 * width, width);
                 roofline::count_dense(rows * k, EDGE_FEATURES, width);
-                roofline::count(
-                    3.0 * (rows * k * width) as f64,
-                    8.0 * (rows * k * width) as f64,
-                );
+                let edges = (rows * k * width) as f64;
+                roofline::count(22.0 * edges, 4.0 * (STENCIL as f64 + 4.0) * edges);
             }
         }
         let mut h = silu(linear(&self.encode, u));
+        let (picks, edges) = graph.slots(self.radius);
+        let [b, n] = graph.dims;
+        // The mean over each particle's real neighbours (1 for a particle without any).
+        let count = graph
+            .mask
+            .clone()
+            .sum_dim(2)
+            .clamp_min(1.0)
+            .reshape([rows, 1]);
         for round in &self.rounds {
-            let own = linear(&round.receiver, h.clone()).unsqueeze_dim::<3>(1);
-            let other = linear(&round.sender, h.clone())
-                .select(0, graph.index.clone())
-                .reshape([rows, k, width]);
-            let edge = silu(own + other + linear(&round.offset, graph.edges.clone()));
-            let sum = (edge * graph.mask.clone())
-                .sum_dim(1)
-                .reshape([rows, width]);
-            let message = linear(&round.message, sum.div_scalar(k as f32));
+            let own = linear(&round.receiver, h.clone());
+            let other = linear(&round.sender, h.clone()).reshape([b, n, width]);
+            let mut sum = Tensor::<B, 2>::zeros([rows, width], &h.device());
+            for (slot, (pick, edge)) in picks.iter().zip(&edges).enumerate() {
+                let near = gather(other.clone(), graph.chunk(slot), pick.clone());
+                let edge = silu(
+                    own.clone() + near.reshape([rows, width]) + linear(&round.offset, edge.clone()),
+                );
+                sum = sum + edge * graph.real(slot);
+            }
+            let message = linear(&round.message, sum / count.clone());
             let node = silu(linear(
                 &round.node_a,
                 Tensor::cat(vec![h.clone(), message], 1),
@@ -157,10 +179,13 @@ impl<B: NetOps> Interaction<B> {
     }
 }
 
-impl<B: Backend> Graph<B> {
+impl<B: NetOps> Graph<B> {
     /// The `k` nearest neighbours within `radius` (domain units) of every particle of
     /// `pos` (`[B, N, 2]`), each scene its own; the search on the host (positions read
     /// back), scenes in parallel. Ties in distance go to the lower index.
+    ///
+    /// # Panics
+    /// The positions cannot be read back.
     pub fn build(pos: &Tensor<B, 3>, radius: f32, k: usize) -> Self {
         let [b, n, _] = pos.dims();
         let device = pos.device();
@@ -169,45 +194,82 @@ impl<B: Backend> Graph<B> {
             .into_data()
             .convert::<f32>()
             .to_vec()
-            .unwrap_or_default();
-        let (rows, e) = (b * n, EDGE_FEATURES);
-        let mut index = vec![0i64; rows * k];
-        let mut mask = vec![0f32; rows * k];
-        let mut edges = vec![0f32; rows * k * e];
-        host.par_chunks(2 * n)
-            .zip(index.par_chunks_mut(n * k))
-            .zip(mask.par_chunks_mut(n * k))
-            .zip(edges.par_chunks_mut(n * k * e))
-            .enumerate()
-            .for_each(|(scene, (((xy, index), mask), edges))| {
-                let out = Rows { index, mask, edges };
-                scene_graph(xy, (scene * n) as i64, (radius, k), out);
-            });
+            .expect("positions");
+        let chunks = k.div_ceil(STENCIL);
+        let mut mask = vec![0f32; b * n * k];
+        let scenes: Vec<Vec<i64>> = match n {
+            0 => Vec::new(),
+            _ => host
+                .par_chunks(2 * n)
+                .zip(mask.par_chunks_mut(n * k))
+                .enumerate()
+                .map(|(scene, (xy, mask))| scene_graph(xy, (scene * n) as i64, (radius, k), mask))
+                .collect(),
+        };
+        // Chunk-major: each chunk holds every scene's rows in order.
+        let chunk = |c: usize| {
+            let rows: Vec<i64> = scenes
+                .iter()
+                .flat_map(|rows| rows[c * n * STENCIL..(c + 1) * n * STENCIL].iter().copied())
+                .collect();
+            Tensor::from_data(TensorData::new(rows, [b * n * STENCIL]), &device)
+        };
         Self {
-            index: Tensor::from_data(TensorData::new(index, [rows * k]), &device),
-            mask: Tensor::from_data(TensorData::new(mask, [rows, k, 1]), &device),
-            edges: Tensor::from_data(TensorData::new(edges, [rows, k, EDGE_FEATURES]), &device),
+            chunks: (0..chunks).map(chunk).collect(),
+            mask: Tensor::from_data(TensorData::new(mask, [b, n, k]), &device),
+            pos: pos.clone(),
+            dims: [b, n],
         }
+    }
+
+    /// The stencil rows of neighbour slot `slot` (its chunk, `[B N 9]`).
+    fn chunk(&self, slot: usize) -> Tensor<B, 1, Int> {
+        self.chunks[slot / STENCIL].clone()
+    }
+
+    /// `[B N, 1]`: 1 where slot `slot` holds a real neighbour.
+    fn real(&self, slot: usize) -> Tensor<B, 2> {
+        let [b, n] = self.dims;
+        self.mask.clone().narrow(2, slot, 1).reshape([b * n, 1])
+    }
+
+    /// For each neighbour slot: its gather weights (`[B, N, 9]`, the real-neighbour mask at
+    /// the slot's entry of its chunk, 0 elsewhere) and its edge features (`[B N, 3]`: the
+    /// displacement `(x_j - x_i) / radius` and its squared length, 0 for padding),
+    /// differentiable in the positions.
+    fn slots(&self, radius: f32) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 2>>) {
+        let [b, n] = self.dims;
+        let device = self.pos.device();
+        (0..self.mask.dims()[2])
+            .map(|slot| {
+                let real = self.mask.clone().narrow(2, slot, 1);
+                let mut one = [0f32; STENCIL];
+                one[slot % STENCIL] = 1.0;
+                let one =
+                    Tensor::from_data(TensorData::new(one.to_vec(), [1, 1, STENCIL]), &device);
+                let pick = real.clone() * one;
+                let near = gather(self.pos.clone(), self.chunk(slot), pick.clone());
+                let d = (near - self.pos.clone() * real).div_scalar(radius);
+                let d2 = d.clone().powi_scalar(2).sum_dim(2);
+                (
+                    pick,
+                    Tensor::cat(vec![d, d2], 2).reshape([b * n, EDGE_FEATURES]),
+                )
+            })
+            .unzip()
     }
 }
 
-/// One scene's share of a [`Graph`]'s host buffers: `[N k]` rows, `[N k]` mask, `[N k 3]`
-/// edge features.
-struct Rows<'a> {
-    index: &'a mut [i64],
-    mask: &'a mut [f32],
-    edges: &'a mut [f32],
-}
-
-/// One scene's neighbour rows (offset by `base`), mask and edge features into `out` from its
-/// `[N, 2]` positions `xy`: each particle's candidates are the 3 x 3 cells of a cell list at
-/// least `radius` wide ([`Bins::for_radius`]); the `k` nearest within `radius` are kept,
-/// nearest first, ties to the lower index; the rest of a particle's `k` slots point at itself
-/// with mask and features 0.
-fn scene_graph(xy: &[f32], base: i64, (radius, k): (f32, usize), out: Rows) {
+/// One scene's neighbour rows (offset by `base`; chunk-major, `[ceil(k / 9), N, 9]`, a missing
+/// neighbour pointing at the particle itself) and its `[N, k]` real-neighbour `mask`, from
+/// its `[N, 2]` positions `xy`: each particle's candidates are the 3 x 3 cells of a cell list
+/// at least `radius` wide ([`Bins::for_radius`]); the `k` nearest within `radius` are kept,
+/// nearest first, ties to the lower index.
+fn scene_graph(xy: &[f32], base: i64, (radius, k): (f32, usize), mask: &mut [f32]) -> Vec<i64> {
     let n = xy.len() / 2;
     let ids: Vec<u32> = (0..n as u32).collect();
     let bins = Bins::for_radius(xy, 2, &ids, radius);
+    let mut rows = vec![0i64; k.div_ceil(STENCIL) * n * STENCIL];
     let (reach, mut near) = (radius * radius, Vec::<(f32, u32)>::with_capacity(64));
     let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
     for i in 0..n {
@@ -224,21 +286,15 @@ fn scene_graph(xy: &[f32], base: i64, (radius, k): (f32, usize), out: Rows) {
             near.truncate(k);
         }
         near.sort_unstable_by(order);
-        for slot in 0..k {
-            let at = i * k + slot;
-            let edge = &mut out.edges[EDGE_FEATURES * at..EDGE_FEATURES * (at + 1)];
-            match near.get(slot) {
-                Some(&(d2, j)) => {
-                    let j = j as usize;
-                    out.index[at] = base + j as i64;
-                    out.mask[at] = 1.0;
-                    let (dx, dy) = (xy[2 * j] - x, xy[2 * j + 1] - y);
-                    edge.copy_from_slice(&[dx / radius, dy / radius, d2 / reach]);
-                }
-                None => out.index[at] = base + i as i64,
+        for slot in 0..k.div_ceil(STENCIL) * STENCIL {
+            let at = (slot / STENCIL) * n * STENCIL + i * STENCIL + slot % STENCIL;
+            rows[at] = base + near.get(slot).map_or(i, |&(_, j)| j as usize) as i64;
+            if slot < k {
+                mask[i * k + slot] = f32::from(u8::from(slot < near.len()));
             }
         }
     }
+    rows
 }
 
 #[cfg(test)]
@@ -259,23 +315,52 @@ mod tests {
     }
 
     /// The nearest within the radius, nearest first, padded with the particle itself, in
-    /// each scene's own rows.
+    /// each scene's own rows; the edge features of each slot.
     #[test]
     fn graph_joins_the_nearest_within_the_radius() {
         let xy = [[0.5, 0.5], [0.51, 0.5], [0.5, 0.53], [0.9, 0.9]];
         let g = Graph::build(&positions(&xy, 2), 0.05, 3);
-        let index: Vec<i64> = g.index.into_data().convert::<i64>().to_vec().unwrap();
-        let mask: Vec<f32> = g.mask.into_data().to_vec().unwrap();
-        // Scene 0: particle 0 sees 1 then 2; particle 3 nobody. Scene 1 the same, rows + 4.
-        assert_eq!(&index[..3], &[1, 2, 0]);
-        assert_eq!(&index[9..12], &[3, 3, 3]);
-        assert_eq!(&index[12..15], &[5, 6, 4]);
+        assert_eq!(g.chunks.len(), 1);
+        let index: Vec<i64> = g.chunks[0]
+            .clone()
+            .into_data()
+            .convert::<i64>()
+            .to_vec()
+            .unwrap();
+        let mask: Vec<f32> = g.mask.clone().into_data().to_vec().unwrap();
+        // Scene 0: particle 0 sees 1 then 2, the rest of its 9 entries itself; particle 3
+        // nobody. Scene 1 the same, rows + 4.
+        assert_eq!(&index[..4], &[1, 2, 0, 0]);
+        assert_eq!(&index[27..30], &[3, 3, 3]);
+        assert_eq!(&index[36..39], &[5, 6, 4]);
         assert_eq!(&mask[..3], &[1.0, 1.0, 0.0]);
         assert_eq!(&mask[9..12], &[0.0; 3]);
-        let edges: Vec<f32> = g.edges.into_data().to_vec().unwrap();
-        // Particle 0 -> 1: (0.01, 0) / 0.05 = (0.2, 0), squared length 0.04.
-        assert!((edges[0] - 0.2).abs() < 1e-5 && edges[1].abs() < 1e-6);
-        assert!((edges[2] - 0.04).abs() < 1e-5);
+        let (picks, edges) = g.slots(0.05);
+        let pick: Vec<f32> = picks[1].clone().into_data().to_vec().unwrap();
+        assert_eq!(&pick[..9], &[0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let first: Vec<f32> = edges[0].clone().into_data().to_vec().unwrap();
+        let third: Vec<f32> = edges[2].clone().into_data().to_vec().unwrap();
+        // Particle 0 -> 1: (0.01, 0) / 0.05 = (0.2, 0), squared length 0.04; no third.
+        assert!((first[0] - 0.2).abs() < 1e-5 && first[1].abs() < 1e-6);
+        assert!((first[2] - 0.04).abs() < 1e-5);
+        assert_eq!(&third[..3], &[0.0; 3]);
+    }
+
+    /// 12 neighbours take two chunks of 9: slot 10 is the second chunk's entry 1.
+    #[test]
+    fn more_than_nine_neighbours_take_a_second_chunk() {
+        let xy: Vec<[f32; 2]> = (0..16).map(|i| [0.5 + 0.002 * i as f32, 0.5]).collect();
+        let g = Graph::build(&positions(&xy, 1), 0.05, 12);
+        assert_eq!(g.chunks.len(), 2);
+        let second: Vec<i64> = g.chunks[1]
+            .clone()
+            .into_data()
+            .convert::<i64>()
+            .to_vec()
+            .unwrap();
+        // Particle 0's neighbours by distance are 1, 2, ..., so slot 10 is particle 11.
+        assert_eq!(second[1], 11);
+        assert_eq!(second[3], 0, "slots past k point at the particle itself");
     }
 
     /// The output layer starts at zero; once it is not, a particle's change depends on its
