@@ -363,6 +363,50 @@ mod tests {
         assert_eq!(second[3], 0, "slots past k point at the particle itself");
     }
 
+    /// The slots' gathers compute the module doc's formula: one round against it written out
+    /// particle by particle, each particle's neighbours listed by hand (nearest first; the
+    /// last particle has none, so its message is the message layer's bias).
+    #[test]
+    fn one_round_is_the_formula() {
+        let device = Default::default();
+        let xy = [[0.5, 0.5], [0.51, 0.5], [0.5, 0.53], [0.9, 0.9]];
+        let near: [&[usize]; 4] = [&[1, 2], &[0, 2], &[0, 1], &[]];
+        let mut net = Interaction::<Nd>::new(3, 4, [1, 3], 0.05, &device);
+        net.out = LinearConfig::new(4, 3).init(&device);
+        let u = Tensor::<Nd, 2>::random([4, 3], burn::tensor::Distribution::Default, &device);
+        let got: Vec<f32> = net
+            .forward(u.clone(), &net.graph(&positions(&xy, 1)))
+            .into_data()
+            .to_vec()
+            .unwrap();
+        let row = |t: &Tensor<Nd, 2>, i: usize| t.clone().narrow(0, i, 1);
+        let h = silu(net.encode.forward(u));
+        let r = &net.rounds[0];
+        let (own, other) = (r.receiver.forward(h.clone()), r.sender.forward(h.clone()));
+        let mut rows = Vec::new();
+        for (i, list) in near.iter().enumerate() {
+            let mut sum = Tensor::<Nd, 2>::zeros([1, 4], &device);
+            for &j in list.iter() {
+                let (dx, dy) = ((xy[j][0] - xy[i][0]) / 0.05, (xy[j][1] - xy[i][1]) / 0.05);
+                let d = TensorData::new(vec![dx, dy, dx * dx + dy * dy], [1, 3]);
+                let offset = r.offset.forward(Tensor::from_data(d, &device));
+                sum = sum + silu(row(&own, i) + row(&other, j) + offset);
+            }
+            let message = r.message.forward(sum.div_scalar(list.len().max(1) as f32));
+            let node = silu(r.node_a.forward(Tensor::cat(vec![row(&h, i), message], 1)));
+            rows.push(row(&h, i) + r.node_b.forward(node));
+        }
+        let want: Vec<f32> = net
+            .out
+            .forward(Tensor::cat(rows, 0))
+            .into_data()
+            .to_vec()
+            .unwrap();
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() < 1e-5, "{got:?} against {want:?}");
+        }
+    }
+
     /// The output layer starts at zero; once it is not, a particle's change depends on its
     /// neighbours' rows and not on particles outside its radius.
     #[test]
