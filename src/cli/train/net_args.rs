@@ -1,7 +1,7 @@
 //! The grid network's sizes and shape flags ([`GridNetArgs`]: `--grid`, `--unet-width`,
 //! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--substeps`,
-//! `--interaction*`, `--reference`, `--rest-shape`, `--update`), shared by `train` and `report`; `args.rs` turns them into a
-//! [`crate::model::grid::GridConfig`].
+//! `--interaction*`, `--reference`, `--rest-shape`, `--update`), shared by `train` and
+//! `report`; `args.rs` turns them into a [`crate::model::grid::GridConfig`].
 
 use clap::Args;
 

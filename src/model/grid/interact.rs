@@ -117,11 +117,6 @@ impl<B: NetOps> Interaction<B> {
         }
     }
 
-    /// Rounds of message passing.
-    pub fn rounds(&self) -> usize {
-        self.rounds.len()
-    }
-
     /// The graph of positions `pos` (`[B, N, 2]`, domain units) at this processor's radius
     /// and neighbour count ([`Graph::build`]).
     pub fn graph(&self, pos: &Tensor<B, 3>) -> Graph<B> {

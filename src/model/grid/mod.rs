@@ -190,11 +190,6 @@ impl<B: NetOps> GridModel<B> {
         self.reference
     }
 
-    /// Rounds of message passing between neighbouring particles ([`GridConfig::interaction`]).
-    pub fn interaction_rounds(&self) -> usize {
-        self.interaction.as_ref().map_or(0, |i| i.rounds())
-    }
-
     /// Whether the model reads rest-shape features ([`GridConfig::rest_shape`]).
     pub fn uses_rest_shape(&self) -> bool {
         self.rest_in.is_some()
