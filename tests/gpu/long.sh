@@ -76,20 +76,29 @@ data() {
     touch "$DATA/long/done-$SCENES-$FRAMES"
 }
 
+# runs/$1 from gpu/$1-run.tgz, where this machine does not hold it yet.
+unpack() {
+    if [ -f "gpu/$1-run.tgz" ] && [ ! -d "runs/$1" ]; then
+        tar xzf "gpu/$1-run.tgz" -C runs
+    fi
+}
+
+# Phase 1's latest weights as the model folder /tmp/phase1/long, where phase 2 and the
+# branches start.
+phase1() {
+    unpack long
+    latest long /tmp/phase1 ||
+        { echo "no phase 1 run (gpu/long-run.tgz) to start from" >&2; return 1; }
+}
+
 train() {
     local start=()
-    if [ -f gpu/long-run.tgz ] && [ ! -d runs/long ]; then
-        tar xzf gpu/long-run.tgz -C runs
-    fi
-    if [ "$RUN" = long2 ] && [ -f gpu/long2-run.tgz ] && [ ! -d runs/long2 ]; then
-        tar xzf gpu/long2-run.tgz -C runs
-    fi
+    unpack long
+    unpack "$RUN"
     if [ -d "runs/$RUN/checkpoint" ]; then
         start=(--resume)
     elif [ "$RUN" = long2 ]; then
-        # Phase 2 starts from phase 1's latest weights.
-        latest long || { echo "no phase 1 run (gpu/long-run.tgz) to start from" >&2; return 1; }
-        rm -rf /tmp/phase1 && mv /tmp/latest /tmp/phase1
+        phase1 || return 1
         start=(--init-from /tmp/phase1/long)
     fi
     "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
@@ -102,21 +111,22 @@ train() {
 }
 
 # The latest weights of runs/$1 (the checkpoint's, with the run's model.json for the rest)
-# as a model folder /tmp/latest/$1: the curve follows the training, not the best epoch so far.
+# as a model folder $2/$1: the curve follows the training, not the best epoch so far.
 latest() {
-    rm -rf /tmp/latest && mkdir -p "/tmp/latest/$1"
-    cp "runs/$1/model.json" "/tmp/latest/$1/" || return 1
+    local to=$2/$1
+    rm -rf "$2" && mkdir -p "$to"
+    cp "runs/$1/model.json" "$to/" || return 1
     # The split, so that `--init-from` keeps the run's held-out scenes.
-    [ -f "runs/$1/split.json" ] && cp "runs/$1/split.json" "/tmp/latest/$1/"
+    [ -f "runs/$1/split.json" ] && cp "runs/$1/split.json" "$to/"
     if [ -f "runs/$1/checkpoint/model.mpk" ]; then
-        cp "runs/$1/checkpoint/model.mpk" "/tmp/latest/$1/"
+        cp "runs/$1/checkpoint/model.mpk" "$to/"
     else
-        cp "runs/$1/model.mpk" "/tmp/latest/$1/"
+        cp "runs/$1/model.mpk" "$to/"
     fi
 }
 
 curve() {
-    latest "$RUN" || { echo "no model in runs/$RUN yet: no curve point" >&2; return 1; }
+    latest "$RUN" /tmp/latest || { echo "no model in runs/$RUN yet: no curve point" >&2; return 1; }
     local eval=("$BIN" eval --model "/tmp/latest/$RUN" --device "$DEVICE"
         --data "$DATA/long/unseen" --split all --no-render)
     "${eval[@]}" --starts 5 --horizon 20 --no-plausibility --out "$RET/unseen-h20" \
@@ -164,11 +174,7 @@ PY
 branch() {
     local minutes=$1 pids=() lever name flags
     shift
-    if [ -f gpu/long-run.tgz ] && [ ! -d runs/long ]; then
-        tar xzf gpu/long-run.tgz -C runs
-    fi
-    latest long || { echo "no phase 1 run (gpu/long-run.tgz) to branch from" >&2; return 1; }
-    rm -rf /tmp/phase1 && mv /tmp/latest /tmp/phase1
+    phase1 || return 1
     for lever in "$@"; do
         name=branch-${lever%%=*}
         IFS=',' read -r -a flags <<<"${lever#*=}"
@@ -226,7 +232,8 @@ score() {
 
 case "${1:-}" in
 branch)
-    [ -n "${2:-}" ] && [ -n "${3:-}" ] || { echo "usage: $0 branch MINUTES NAME=FLAGS..." >&2; exit 2; }
+    [ -n "${2:-}" ] && [ -n "${3:-}" ] ||
+        { echo "usage: $0 branch MINUTES NAME=FLAGS..." >&2; exit 2; }
     start=$SECONDS
     data || { echo "the dataset could not be made" >&2; exit 1; }
     echo "dataset: $((SECONDS - start)) s"

@@ -311,35 +311,34 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
     // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape
     // or with the free update those (`model::grid::grow`), any model another grid.
     let compared = match &meta.net {
-        NetConfig::Grid(saved) => config
-            .clone()
-            .with_reference(config.reference && saved.reference)
-            .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
-            // Substeps may change (the same weights: `GridModel::with_substeps`).
-            .with_substeps(saved.substeps)
-            // A model without message passing may grow it (`GridModel::with_interaction`).
-            .with_interaction(match saved.interaction {
-                0 => 0,
-                _ => config.interaction,
-            })
-            .with_interaction_radius(match saved.interaction {
-                0 => saved.interaction_radius,
-                _ => config.interaction_radius,
-            })
-            .with_interaction_neighbours(match saved.interaction {
-                0 => saved.interaction_neighbours,
-                _ => config.interaction_neighbours,
-            })
-            // The network grid may change (`GridModel::with_grid`).
-            .with_grid(saved.grid)
-            .with_rest_shape(config.rest_shape && saved.rest_shape)
-            // A fitted-F model may be fine-tuned into an advected-F one and back.
-            .with_deformation(saved.deformation)
-            .with_update(if saved.update == Update::Free {
-                Update::Free
+        NetConfig::Grid(saved) => {
+            let passing = if saved.interaction == 0 {
+                saved
             } else {
-                config.update
-            }),
+                config
+            };
+            config
+                .clone()
+                .with_reference(config.reference && saved.reference)
+                .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
+                // Substeps may change (the same weights: `GridModel::with_substeps`).
+                .with_substeps(saved.substeps)
+                // A model without message passing may grow it (`GridModel::with_interaction`):
+                // then its own (unread) message-passing fields are compared.
+                .with_interaction(passing.interaction)
+                .with_interaction_radius(passing.interaction_radius)
+                .with_interaction_neighbours(passing.interaction_neighbours)
+                // The network grid may change (`GridModel::with_grid`).
+                .with_grid(saved.grid)
+                .with_rest_shape(config.rest_shape && saved.rest_shape)
+                // A fitted-F model may be fine-tuned into an advected-F one and back.
+                .with_deformation(saved.deformation)
+                .with_update(if saved.update == Update::Free {
+                    Update::Free
+                } else {
+                    config.update
+                })
+        }
         NetConfig::Paper(_) => config.clone(),
     };
     let differ = differences(

@@ -101,6 +101,16 @@ pub enum Reference {
 impl GridNetArgs {
     /// These flags as `train` takes them (what `report` prints to reproduce a run).
     pub fn argv(&self) -> Vec<String> {
+        let interaction = (self.interaction > 0).then(|| {
+            [
+                ("--interaction", self.interaction.to_string()),
+                (
+                    "--interaction-neighbours",
+                    self.interaction_neighbours.to_string(),
+                ),
+                ("--interaction-radius", self.interaction_radius.to_string()),
+            ]
+        });
         [
             ("--grid", self.grid),
             ("--unet-width", self.unet_width),
@@ -112,22 +122,12 @@ impl GridNetArgs {
         ]
         .into_iter()
         .chain((self.substeps > 1).then_some(("--substeps", self.substeps)))
-        .chain((self.interaction > 0).then_some(("--interaction", self.interaction)))
-        .chain(
-            (self.interaction > 0)
-                .then_some(("--interaction-neighbours", self.interaction_neighbours)),
-        )
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
         .chain(
-            (self.interaction > 0)
-                .then(|| {
-                    [
-                        "--interaction-radius".to_owned(),
-                        self.interaction_radius.to_string(),
-                    ]
-                })
+            interaction
                 .into_iter()
-                .flatten(),
+                .flatten()
+                .flat_map(|(flag, value)| [flag.to_owned(), value]),
         )
         .chain(
             (self.reference == Reference::None)

@@ -81,8 +81,20 @@ pub struct Graph<B: Backend> {
     mask: Tensor<B, 3>,
     /// `[B, N, 2]` the positions the graph was built on, domain units.
     pos: Tensor<B, 3>,
-    /// `[B, N]`.
-    dims: [usize; 2],
+    /// The connectivity radius it was built with, domain units.
+    radius: f32,
+}
+
+/// One neighbour slot of a [`Graph`], as the rounds read it ([`Graph::slots`]).
+struct Slot<B: Backend> {
+    /// `[B, N, 9]` gather weights: the real-neighbour mask at the slot's entry of its chunk,
+    /// 0 elsewhere.
+    pick: Tensor<B, 3>,
+    /// `[B N, 3]` edge features: `(x_j - x_i) / radius` and its squared length, 0 for
+    /// padding; differentiable in the positions.
+    edge: Tensor<B, 2>,
+    /// `[B N, 1]` 1 where the slot holds a real neighbour.
+    real: Tensor<B, 2>,
 }
 
 impl<B: NetOps> Interaction<B> {
@@ -143,8 +155,8 @@ impl<B: NetOps> Interaction<B> {
             }
         }
         let mut h = silu(linear(&self.encode, u));
-        let (picks, edges) = graph.slots(self.radius);
-        let [b, n] = graph.dims;
+        let slots = graph.slots();
+        let [b, n, _] = graph.pos.dims();
         // The mean over each particle's real neighbours (1 for a particle without any).
         let count = graph
             .mask
@@ -156,12 +168,11 @@ impl<B: NetOps> Interaction<B> {
             let own = linear(&round.receiver, h.clone());
             let other = linear(&round.sender, h.clone()).reshape([b, n, width]);
             let mut sum = Tensor::<B, 2>::zeros([rows, width], &h.device());
-            for (slot, (pick, edge)) in picks.iter().zip(&edges).enumerate() {
-                let near = gather(other.clone(), graph.chunk(slot), pick.clone());
-                let edge = silu(
-                    own.clone() + near.reshape([rows, width]) + linear(&round.offset, edge.clone()),
-                );
-                sum = sum + edge * graph.real(slot);
+            for (k, slot) in slots.iter().enumerate() {
+                let near = gather(other.clone(), graph.chunk(k), slot.pick.clone());
+                let offset = linear(&round.offset, slot.edge.clone());
+                let edge = silu(own.clone() + near.reshape([rows, width]) + offset);
+                sum = sum + edge * slot.real.clone();
             }
             let message = linear(&round.message, sum / count.clone());
             let node = silu(linear(
@@ -213,7 +224,7 @@ impl<B: NetOps> Graph<B> {
             chunks: (0..chunks).map(chunk).collect(),
             mask: Tensor::from_data(TensorData::new(mask, [b, n, k]), &device),
             pos: pos.clone(),
-            dims: [b, n],
+            radius,
         }
     }
 
@@ -222,18 +233,10 @@ impl<B: NetOps> Graph<B> {
         self.chunks[slot / STENCIL].clone()
     }
 
-    /// `[B N, 1]`: 1 where slot `slot` holds a real neighbour.
-    fn real(&self, slot: usize) -> Tensor<B, 2> {
-        let [b, n] = self.dims;
-        self.mask.clone().narrow(2, slot, 1).reshape([b * n, 1])
-    }
-
-    /// For each neighbour slot: its gather weights (`[B, N, 9]`, the real-neighbour mask at
-    /// the slot's entry of its chunk, 0 elsewhere) and its edge features (`[B N, 3]`: the
-    /// displacement `(x_j - x_i) / radius` and its squared length, 0 for padding),
-    /// differentiable in the positions.
-    fn slots(&self, radius: f32) -> (Vec<Tensor<B, 3>>, Vec<Tensor<B, 2>>) {
-        let [b, n] = self.dims;
+    /// Every neighbour slot's gather weights, edge features and mask ([`Slot`]), once a
+    /// forward pass.
+    fn slots(&self) -> Vec<Slot<B>> {
+        let [b, n, _] = self.pos.dims();
         let device = self.pos.device();
         (0..self.mask.dims()[2])
             .map(|slot| {
@@ -244,14 +247,15 @@ impl<B: NetOps> Graph<B> {
                     Tensor::from_data(TensorData::new(one.to_vec(), [1, 1, STENCIL]), &device);
                 let pick = real.clone() * one;
                 let near = gather(self.pos.clone(), self.chunk(slot), pick.clone());
-                let d = (near - self.pos.clone() * real).div_scalar(radius);
+                let d = (near - self.pos.clone() * real.clone()).div_scalar(self.radius);
                 let d2 = d.clone().powi_scalar(2).sum_dim(2);
-                (
+                Slot {
                     pick,
-                    Tensor::cat(vec![d, d2], 2).reshape([b * n, EDGE_FEATURES]),
-                )
+                    edge: Tensor::cat(vec![d, d2], 2).reshape([b * n, EDGE_FEATURES]),
+                    real: real.reshape([b * n, 1]),
+                }
             })
-            .unzip()
+            .collect()
     }
 }
 
@@ -330,11 +334,11 @@ mod tests {
         assert_eq!(&index[36..39], &[5, 6, 4]);
         assert_eq!(&mask[..3], &[1.0, 1.0, 0.0]);
         assert_eq!(&mask[9..12], &[0.0; 3]);
-        let (picks, edges) = g.slots(0.05);
-        let pick: Vec<f32> = picks[1].clone().into_data().to_vec().unwrap();
+        let slots = g.slots();
+        let pick: Vec<f32> = slots[1].pick.clone().into_data().to_vec().unwrap();
         assert_eq!(&pick[..9], &[0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        let first: Vec<f32> = edges[0].clone().into_data().to_vec().unwrap();
-        let third: Vec<f32> = edges[2].clone().into_data().to_vec().unwrap();
+        let first: Vec<f32> = slots[0].edge.clone().into_data().to_vec().unwrap();
+        let third: Vec<f32> = slots[2].edge.clone().into_data().to_vec().unwrap();
         // Particle 0 -> 1: (0.01, 0) / 0.05 = (0.2, 0), squared length 0.04; no third.
         assert!((first[0] - 0.2).abs() < 1e-5 && first[1].abs() < 1e-6);
         assert!((first[2] - 0.04).abs() < 1e-5);
