@@ -31,6 +31,9 @@
 #
 #   tests/gpu/long.sh branch MINUTES plain= push4=--pushforward,4 mp2=--interaction,2
 #
+# (SCORE=0 trains only; `tests/gpu/long.sh score NAME=FLAGS...` then scores on the same
+# warm machine, for branches whose training and scoring do not fit one call.)
+#
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), DATA (/tmp/data), SCENES (1000 a
 # family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
 # flags), BRANCH (the branches' schedule). A CPU dry run: BIN=target/release/minflow
@@ -240,7 +243,14 @@ branch)
     branch "${@:2}" || exit 1
     echo "training: $((SECONDS - start)) s"
     [ "${#TRAINED[@]}" -gt 0 ] || { echo "no branch trained" >&2; exit 1; }
-    score "${TRAINED[@]}"
+    # SCORE=0 leaves the scoring to a `score` call on the same warm machine.
+    [ "${SCORE:-1}" = 0 ] || score "${TRAINED[@]}"
+    echo "call: $((SECONDS - start)) s"
+    ;;
+score)
+    [ -n "${2:-}" ] || { echo "usage: $0 score NAME=FLAGS..." >&2; exit 2; }
+    start=$SECONDS
+    score "${@:2}"
     echo "call: $((SECONDS - start)) s"
     ;;
 call)
@@ -256,7 +266,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,37p' "$0"
+    sed -n '2,40p' "$0"
     exit 2
     ;;
 esac
