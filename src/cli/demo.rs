@@ -1,6 +1,6 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). Lists the bundled bags
 //! in `bags/`, takes the shipped small grid minGRU of the long run
-//! (`models/all-grid-mingru-small-k4-long`, README "Results": trained on 2,000 scenes, 1.4 M
+//! (`models/all-grid-mingru-small-k4-long`, README "Results": trained on 2,000 scenes, 2.0 M
 //! samples; the closest over 20 frames, and its liquid runs up walls and is thrown across the
 //! box as the solver's; `--train`, or a
 //! `--model` folder that holds no model, trains one on the bundled bags first, in this
@@ -28,10 +28,9 @@ pub struct DemoArgs {
     bags: PathBuf,
     /// Run folder of the model (by default `models/all-grid-mingru-small-k4-long`, a small
     /// grid minGRU that predicts 4 frames per network call, trained on 2,000 scenes: the
-    /// closest to the truth over 20 frames; with --grid the scale model,
-    /// `models/scale-grid-mingru-small-k4`;
-    /// `models/all-grid-mingru-rest` has the lowest errors over whole scenes); trained here
-    /// first if it holds no model.
+    /// closest to the truth over 20 frames and, with `-rest`, over whole scenes; with
+    /// --grid the scale model, `models/scale-grid-mingru-small-k4`); trained here first if
+    /// it holds no model.
     #[arg(long)]
     model: Option<PathBuf>,
     /// The demo at scale: instead of the bundled bags, simulate `--scene` of the `multi`
