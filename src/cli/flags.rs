@@ -1,6 +1,9 @@
 //! Range checks of numeric flags as clap value parsers, so a flag out of range is a usage
 //! error (exit 2, clap's message naming the flag) before any data is read, as ripgrep checks
-//! its low-level arguments before building its high-level ones.
+//! its low-level arguments before building its high-level ones. The grid model's ranges are
+//! its config's own ([`grid::BUNDLE`] and the rest), which `GridConfig::validate` checks too.
+
+use crate::model::grid;
 
 /// A count of at least 1.
 pub fn at_least_one(s: &str) -> Result<usize, String> {
@@ -48,31 +51,34 @@ fn integer_in(s: &str, range: std::ops::RangeInclusive<usize>) -> Result<usize, 
     }
 }
 
-/// A bundle size K (`--bundle`): an integer in 1..=16.
+/// A bundle size K (`--bundle`): an integer in [`grid::BUNDLE`] (1..=16).
 pub fn bundle(s: &str) -> Result<usize, String> {
-    integer_in(s, 1..=16)
+    integer_in(s, grid::BUNDLE)
 }
 
-/// `--substeps`: network substeps per frame, 1..=8.
+/// `--substeps`: network substeps per frame, in [`grid::SUBSTEPS`] (1..=8).
 pub fn substeps(s: &str) -> Result<usize, String> {
-    integer_in(s, 1..=8)
+    integer_in(s, grid::SUBSTEPS)
 }
 
-/// `--interaction`: rounds of message passing, 0..=8.
+/// `--interaction`: rounds of message passing, in [`grid::INTERACTION_ROUNDS`] (0..=8).
 pub fn rounds(s: &str) -> Result<usize, String> {
-    integer_in(s, 0..=8)
+    integer_in(s, grid::INTERACTION_ROUNDS)
 }
 
-/// `--interaction-neighbours`: neighbours per particle, 1..=64.
+/// `--interaction-neighbours`: neighbours per particle, in [`grid::INTERACTION_NEIGHBOURS`]
+/// (1..=64).
 pub fn neighbours(s: &str) -> Result<usize, String> {
-    integer_in(s, 1..=64)
+    integer_in(s, grid::INTERACTION_NEIGHBOURS)
 }
 
-/// `--interaction-radius`: a radius in (0, 0.25] of the unit box.
+/// `--interaction-radius`: a radius in (0, [`grid::INTERACTION_RADIUS_MAX`]] (0.25) of the
+/// unit box.
 pub fn radius(s: &str) -> Result<f64, String> {
+    let max = grid::INTERACTION_RADIUS_MAX;
     match s.parse::<f64>() {
-        Ok(v) if v > 0.0 && v <= 0.25 => Ok(v),
-        Ok(v) => Err(format!("{v} is not in (0, 0.25]")),
+        Ok(v) if v > 0.0 && v <= max => Ok(v),
+        Ok(v) => Err(format!("{v} is not in (0, {max}]")),
         Err(e) => Err(e.to_string()),
     }
 }
@@ -218,5 +224,44 @@ mod tests {
         assert!(["-1", "1e-300", "inf", "NaN"]
             .iter()
             .all(|s| rate(s).is_err()));
+    }
+
+    /// The grid model's flags and `GridConfig::validate` accept the same values: each edge of
+    /// each range, and one past it.
+    #[test]
+    fn grid_flags_agree_with_the_config() {
+        use grid::{GridConfig, MemoryKind};
+        let config = || GridConfig::new(MemoryKind::MinGru);
+        for v in 0..=70 {
+            let text = v.to_string();
+            let valid = |c: GridConfig| c.validate().is_ok();
+            assert_eq!(
+                bundle(&text).is_ok(),
+                valid(config().with_bundle(v)),
+                "bundle {v}"
+            );
+            assert_eq!(
+                substeps(&text).is_ok(),
+                valid(config().with_substeps(v)),
+                "{v}"
+            );
+            assert_eq!(
+                rounds(&text).is_ok(),
+                valid(config().with_interaction(v)),
+                "{v}"
+            );
+            let k = config().with_interaction_neighbours(v);
+            assert_eq!(neighbours(&text).is_ok(), valid(k), "neighbours {v}");
+        }
+        for r in [-0.1, 0.0, 1e-6, 0.02, 0.25, 0.2500001, 1.0] {
+            let c = config().with_interaction_radius(r);
+            assert_eq!(
+                radius(&r.to_string()).is_ok(),
+                c.validate().is_ok(),
+                "radius {r}"
+            );
+        }
+        let message = config().with_bundle(0).validate().unwrap_err().to_string();
+        assert_eq!(message, "--bundle must be in 1..=16");
     }
 }

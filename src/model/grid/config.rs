@@ -3,6 +3,8 @@
 //! ([`GridConfig::init`]); [`Update`], how the model turns its outputs into velocity changes;
 //! [`Deformation`], where its rest-shape features' deformation gradient comes from.
 
+use std::ops::RangeInclusive;
+
 use burn::config::Config;
 use burn::nn::{Initializer, LinearConfig};
 
@@ -156,6 +158,17 @@ pub struct GridConfig {
     pub interaction_neighbours: usize,
 }
 
+/// `bundle`'s range (`--bundle`): frames one network call predicts.
+pub const BUNDLE: RangeInclusive<usize> = 1..=16;
+/// `substeps`' range (`--substeps`): network substeps a frame.
+pub const SUBSTEPS: RangeInclusive<usize> = 1..=8;
+/// `interaction`'s range (`--interaction`): rounds of message passing.
+pub const INTERACTION_ROUNDS: RangeInclusive<usize> = 0..=8;
+/// `interaction_neighbours`' range (`--interaction-neighbours`).
+pub const INTERACTION_NEIGHBOURS: RangeInclusive<usize> = 1..=64;
+/// The largest `interaction_radius` (`--interaction-radius`, above 0), a fraction of the box.
+pub const INTERACTION_RADIUS_MAX: f64 = 0.25;
+
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum GridConfigError {
@@ -173,17 +186,19 @@ pub enum GridConfigError {
     /// One of the layer widths is 0.
     #[error("widths (--unet-width, --latent, --hidden, --head-hidden) must be at least 1")]
     Width,
-    /// `bundle` is 0 or above 16.
-    #[error("--bundle must be in 1..=16")]
+    /// `bundle` outside [`BUNDLE`].
+    #[error("--bundle must be in {BUNDLE:?}")]
     Bundle,
-    /// `substeps` is 0 or above 8, or above 1 with `bundle` above 1.
-    #[error("--substeps must be in 1..=8, and 1 with --bundle above 1")]
+    /// `substeps` outside [`SUBSTEPS`], or above 1 with `bundle` above 1.
+    #[error("--substeps must be in {SUBSTEPS:?}, and 1 with --bundle above 1")]
     Substeps,
-    /// The message passing's rounds above 8, neighbours outside 1..=64 or radius outside
-    /// (0, 0.25], or message passing with the grid update (whose output it would not reach).
+    /// The message passing's rounds outside [`INTERACTION_ROUNDS`], neighbours outside
+    /// [`INTERACTION_NEIGHBOURS`] or radius outside (0, [`INTERACTION_RADIUS_MAX`]], or message
+    /// passing with the grid update (whose output it would not reach).
     #[error(
-        "--interaction must be in 0..=8 (0 with --update grid), --interaction-neighbours in \
-         1..=64 and --interaction-radius in (0, 0.25]"
+        "--interaction must be in {INTERACTION_ROUNDS:?} (0 with --update grid), \
+         --interaction-neighbours in {INTERACTION_NEIGHBOURS:?} and --interaction-radius in \
+         (0, {INTERACTION_RADIUS_MAX}]"
     )]
     Interaction,
 }
@@ -223,17 +238,17 @@ impl GridConfig {
         if self.unet_width == 0 || self.latent == 0 || self.hidden == 0 || self.head_hidden == 0 {
             return Err(GridConfigError::Width);
         }
-        if !(1..=16).contains(&self.bundle) {
+        if !BUNDLE.contains(&self.bundle) {
             return Err(GridConfigError::Bundle);
         }
-        if !(1..=8).contains(&self.substeps) || (self.substeps > 1 && self.bundle > 1) {
+        if !SUBSTEPS.contains(&self.substeps) || (self.substeps > 1 && self.bundle > 1) {
             return Err(GridConfigError::Substeps);
         }
         let radius = self.interaction_radius;
-        if self.interaction > 8
+        if !INTERACTION_ROUNDS.contains(&self.interaction)
             || (self.interaction > 0 && self.update == Update::Grid)
-            || !(1..=64).contains(&self.interaction_neighbours)
-            || !(radius > 0.0 && radius <= 0.25)
+            || !INTERACTION_NEIGHBOURS.contains(&self.interaction_neighbours)
+            || !(radius > 0.0 && radius <= INTERACTION_RADIUS_MAX)
         {
             return Err(GridConfigError::Interaction);
         }

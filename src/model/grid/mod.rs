@@ -62,6 +62,10 @@ pub mod transfer;
 pub mod unet;
 
 pub use config::{Deformation, GridConfig, GridConfigError, Update};
+/// The ranges of [`GridConfig`]'s settings that have flags, shared with their clap parsers.
+pub use config::{
+    BUNDLE, INTERACTION_NEIGHBOURS, INTERACTION_RADIUS_MAX, INTERACTION_ROUNDS, SUBSTEPS,
+};
 pub use memory::{Memory, MemoryKind, MemoryState};
 pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
 pub use unet::{ConvKernel, UNet, UNetConfig};
