@@ -34,7 +34,8 @@
 # (SCORE=0 trains only; `tests/gpu/long.sh score NAME=FLAGS...` then scores on the same
 # warm machine, for branches whose training and scoring do not fit one call.)
 #
-# Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), DATA (/tmp/data), SCENES (1000 a
+# Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), TRAIN_DEVICE (the run's: every GPU
+# of the machine, `cuda:0,cuda:1,...`, where it has several), DATA (/tmp/data), SCENES (1000 a
 # family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
 # flags), BRANCH (the branches' schedule). A CPU dry run: BIN=target/release/minflow
 # DEVICE=cpu SCENES=4 FRAMES=24 SCHEDULE="..." BRANCH="..." (tiny epochs).
@@ -43,6 +44,14 @@ RET=${RET:-${OUT:-/tmp/minflow-gpu}}
 # BIN (unpacked from BIN.xz where needed), DATA and CUDA_PATH.
 . "$(dirname "$0")/common.sh"
 DEVICE=${DEVICE:-cuda}
+# The run trains on every GPU of the machine, data-parallel at the same global batch
+# (docs/training.md, "Several GPUs"); TRAIN_DEVICE overrides. Datasets and evals use DEVICE.
+if [ -z "${TRAIN_DEVICE:-}" ]; then
+    TRAIN_DEVICE=$DEVICE
+    gpus=0
+    [ "$DEVICE" = cuda ] && gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')
+    [ "${gpus:-0}" -gt 1 ] && TRAIN_DEVICE=$(seq -s, -f 'cuda:%g' 0 $((gpus - 1)))
+fi
 SCENES=${SCENES:-1000}
 FRAMES=${FRAMES:-200}
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
@@ -104,7 +113,8 @@ train() {
         phase1 || return 1
         start=(--init-from /tmp/phase1/long)
     fi
-    "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
+    echo "training on $TRAIN_DEVICE"
+    "$BIN" train --device "$TRAIN_DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
         --out "runs/$RUN" "${NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" "${start[@]}" \
         2>&1 | tr '\r' '\n' | grep -v "^\s*$" | tail -n 6
     # Phase 1's ledger goes with phase 2's folder (and archive): its curve counts both.
@@ -266,7 +276,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,40p' "$0"
+    sed -n '2,41p' "$0"
     exit 2
     ;;
 esac
