@@ -2,6 +2,8 @@
 //! frames onto ([`crate::model::constraints`]) on the ground truth of its training split, and
 //! writes them into the model's `model.json` (`"constraints"`). `eval`, `node`, `bench
 //! rollout` and `demo` then project by default (`--constraints off` turns it off).
+//! `minflow constraints copy` gives models another model's constraints as they are: they are
+//! fitted on the truth, not on the network, so models of the same scenes may share them.
 //!
 //! The training scenes are those of the first model's `split.json` (else the seeded
 //! 80:10:10 split of the data, `--seed`); test scenes are never read. Prints what it fitted
@@ -22,6 +24,18 @@ use crate::model::store::{parse_meta, RunFolder};
 pub enum ConstraintsCommand {
     /// Fit the constraints on the training split's truth and write them into model.json.
     Fit(FitArgs),
+    /// Copy another model's constraints into model.json, every part as it is there.
+    Copy(CopyArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CopyArgs {
+    /// The run folder whose `model.json` holds the constraints to copy.
+    #[arg(long, value_name = "DIR")]
+    from: PathBuf,
+    /// Run folders to write them into (repeatable); their other settings stay.
+    #[arg(long = "model", value_name = "DIR", required = true)]
+    models: Vec<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -74,7 +88,30 @@ pub struct FitArgs {
 pub fn run(cmd: ConstraintsCommand) -> anyhow::Result<Outcome> {
     match cmd {
         ConstraintsCommand::Fit(args) => fit(args),
+        ConstraintsCommand::Copy(args) => copy(args),
     }
+}
+
+/// `constraints copy`: `--from`'s constraints block into each `--model`'s `model.json`.
+///
+/// # Errors
+/// A `model.json` that cannot be read or written, or a `--from` model without constraints.
+fn copy(args: CopyArgs) -> anyhow::Result<Outcome> {
+    let from = RunFolder::new(&args.from);
+    let meta = from
+        .meta()
+        .with_context(|| format!("reading {}", from.model_json().display()))?;
+    let Some(constraints) = meta.constraints else {
+        bail!(
+            "{} has no constraints to copy (`minflow constraints fit` fits them)",
+            from.model_json().display()
+        );
+    };
+    for dir in &args.models {
+        write_meta(dir, |_| Some(constraints.clone()))?;
+        println!("wrote {}", RunFolder::new(dir).model_json().display());
+    }
+    Ok(Outcome::Done)
 }
 
 fn fit(args: FitArgs) -> anyhow::Result<Outcome> {
@@ -228,20 +265,28 @@ fn training_scenes(args: &FitArgs, split: Option<Split>) -> anyhow::Result<Vec<S
 /// file, renamed), the parts it does not name as they were but the older `liquid` dropped
 /// when `parts` names `pressure` (which replaces it), the JSON ending in a newline.
 fn write_constraints(dir: &Path, constraints: &Constraints, parts: Parts) -> anyhow::Result<()> {
+    write_meta(dir, |old| {
+        let mut merged = old.unwrap_or_default().replaced(constraints, parts);
+        // The pressure projection replaces the older density part.
+        if parts.pressure && !parts.liquid {
+            merged.liquid = None;
+        }
+        Some(merged)
+    })
+}
+
+/// Rewrites `dir/model.json` with its constraints block replaced by `block(old block)`
+/// (through a temporary file, renamed), the JSON ending in a newline.
+fn write_meta(
+    dir: &Path,
+    block: impl FnOnce(Option<Constraints>) -> Option<Constraints>,
+) -> anyhow::Result<()> {
     let folder = RunFolder::new(dir);
     let path = folder.model_json();
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let mut meta = parse_meta(&text).with_context(|| format!("parsing {}", path.display()))?;
-    let mut merged = meta
-        .constraints
-        .unwrap_or_default()
-        .replaced(constraints, parts);
-    // The pressure projection replaces the older density part.
-    if parts.pressure && !parts.liquid {
-        merged.liquid = None;
-    }
-    meta.constraints = Some(merged);
+    meta.constraints = block(meta.constraints.take());
     let tmp = folder.model_json_tmp();
     std::fs::write(&tmp, serde_json::to_string_pretty(&meta)? + "\n")
         .with_context(|| format!("writing {}", tmp.display()))?;

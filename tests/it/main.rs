@@ -12,6 +12,7 @@ mod bag_damage;
 mod bag_python_interop;
 mod bag_roundtrip;
 mod cli_bundle;
+mod cli_constraints;
 mod cli_simulate;
 mod cli_train;
 mod cli_train_grid;
