@@ -13,7 +13,7 @@ fn repo(p: &str) -> PathBuf {
 
 /// `model.json` of `dir` as JSON.
 fn meta(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
+    crate::json(&dir.join("model.json"))
 }
 
 /// `minflow constraints copy --from FROM --model TO`.

@@ -181,6 +181,32 @@ pub(crate) fn losses(out: &Path) -> Vec<(String, String)> {
         .collect()
 }
 
+/// `eval` of the run folder `model` on the bundled bags, 4 frames from one start, into `out`:
+/// it succeeds and writes its table.
+pub(crate) fn eval_briefly(model: &Path, out: &Path) {
+    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
+    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(["eval", "--model", model.to_str().unwrap(), "--data", bags])
+        .args(["--split", "all", "--starts", "1", "--horizon", "4"])
+        .args(["--no-render", "--no-plausibility"])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.join("table.csv").exists());
+}
+
+/// Each flag set of `bads`, given to a tiny grid run into `out`, is a usage error (exit 2)
+/// whose message names `flag`.
+pub(crate) fn grid_usage_errors(out: &Path, bads: &[&[&str]], flag: &str) {
+    for bad in bads {
+        let o = train_grid(out, bad);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
+        assert!(err.contains(flag), "{bad:?}: {err}");
+    }
+}
+
 /// Issue 35: an invalid value of a paper-architecture flag is a usage error whatever the
 /// architecture, and a paper-only flag set with `--arch grid` (the default) is refused
 /// before any bag is read, naming the flag.

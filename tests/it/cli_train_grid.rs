@@ -31,9 +31,7 @@ fn grid_train_streams_large_datasets() {
         let (t, v): (f64, f64) = (train.parse().unwrap(), val.parse().unwrap());
         assert!(t.is_finite() && v.is_finite() && v > 0.0, "{train}, {val}");
     }
-    let meta = |dir: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
-    };
+    let meta = |dir: &Path| crate::json(&dir.join("model.json"));
     let (a, b) = (meta(resident.path()), meta(streamed.path()));
     let numbers = |v: &serde_json::Value| -> Vec<f64> {
         let mut out = Vec::new();

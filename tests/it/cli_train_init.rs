@@ -2,9 +2,14 @@
 //! levers grown at zero: `--substeps`, `--interaction`) and `--split-from`.
 
 use std::path::Path;
-use std::process::Command;
 
-use crate::cli_train::{losses, train_grid};
+use crate::cli_train::{eval_briefly, grid_usage_errors, losses, train_grid};
+use crate::json;
+
+/// `dir/model.json`.
+fn meta(dir: &Path) -> serde_json::Value {
+    json(&dir.join("model.json"))
+}
 
 /// `--init-from` starts from a finished run's weights: with a learning rate too small to
 /// move them, the first validation rollout equals the source run's best to 3 digits (a fresh
@@ -18,9 +23,6 @@ fn grid_train_starts_from_another_runs_weights() {
         &["--epochs", "3", "--model", "mingru", "--lr", "3e-3"],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let meta = |dir: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
-    };
     let best = meta(source.path())["val_loss"].as_f64().unwrap();
     let run = |dir: &Path, extra: &[&str]| {
         let mut args = vec!["--epochs", "1", "--model", "mingru", "--lr", "1e-12"];
@@ -93,9 +95,7 @@ fn grid_train_starts_from_another_runs_weights() {
 /// the split; a split none of whose validation scenes is in the data is a usage error.
 #[test]
 fn grid_train_keeps_the_held_out_scenes_of_another_split() {
-    let split = |dir: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(dir.join("split.json")).unwrap()).unwrap()
-    };
+    let split = |dir: &Path| json(&dir.join("split.json"));
     let names = |v: &serde_json::Value| -> Vec<String> {
         v.as_array()
             .unwrap()
@@ -133,9 +133,6 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
 
     // --init-from: its run's split by default; with --split-from another training set, but
     // the parent's scaler (the units its validation and eval scores are in).
-    let meta = |dir: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(dir.join("model.json")).unwrap()).unwrap()
-    };
     let child = crate::tmp::tempdir().unwrap();
     let init = [
         "--epochs",
@@ -193,43 +190,14 @@ fn grid_train_with_substeps() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("S = 2 substeps"), "{err}");
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(sub.join("model.json")).unwrap()).unwrap();
-    assert_eq!(json["substeps"], 2, "{json}");
-    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let eval_out = dir.path().join("eval");
-    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .args([
-            "eval",
-            "--model",
-            sub.to_str().unwrap(),
-            "--data",
-            bags,
-            "--split",
-            "all",
-        ])
-        .args([
-            "--starts",
-            "1",
-            "--horizon",
-            "4",
-            "--no-render",
-            "--no-plausibility",
-        ])
-        .args(["--out", eval_out.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(eval_out.join("table.csv").exists());
-    for bad in [
+    let saved = meta(&sub);
+    assert_eq!(saved["substeps"], 2, "{saved}");
+    eval_briefly(&sub, &dir.path().join("eval"));
+    let bads = [
         &["--substeps", "2", "--bundle", "4"][..],
-        &["--substeps", "9"][..],
-    ] {
-        let o = train_grid(&dir.path().join("bad"), bad);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
-        assert!(err.contains("--substeps"), "{bad:?}: {err}");
-    }
+        &["--substeps", "9"],
+    ];
+    grid_usage_errors(&dir.path().join("bad"), &bads, "--substeps");
 }
 
 /// `--interaction R` trains a model with R rounds of message passing between neighbouring
@@ -261,33 +229,18 @@ fn grid_train_with_message_passing() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("2 rounds of message passing"), "{err}");
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(mp.join("model.json")).unwrap()).unwrap();
-    assert_eq!(json["interaction"], 2, "{json}");
-    assert_eq!(json["interaction_neighbours"], 12, "{json}");
+    let saved = meta(&mp);
+    assert_eq!(saved["interaction"], 2, "{saved}");
+    assert_eq!(saved["interaction_neighbours"], 12, "{saved}");
     let (parent, child) = (losses(&plain), losses(&mp));
     let val = |rows: &[(String, String)]| rows[0].1.parse::<f64>().unwrap();
     let (a, b) = (val(&parent), val(&child));
     assert!((a - b).abs() <= 1e-3 * a, "parent {a}, grown {b}");
-    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let eval_out = dir.path().join("eval");
-    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .args(["eval", "--model", mp.to_str().unwrap(), "--data", bags])
-        .args(["--split", "all", "--starts", "1", "--horizon", "4"])
-        .args(["--no-render", "--no-plausibility"])
-        .args(["--out", eval_out.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(eval_out.join("table.csv").exists());
-    for bad in [
+    eval_briefly(&mp, &dir.path().join("eval"));
+    let bads = [
         &["--interaction", "9"][..],
-        &["--interaction", "1", "--interaction-radius", "0.5"][..],
-        &["--interaction", "1", "--interaction-neighbours", "0"][..],
-    ] {
-        let o = train_grid(&dir.path().join("bad"), bad);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(2), "{bad:?}: {err}");
-        assert!(err.contains("--interaction"), "{bad:?}: {err}");
-    }
+        &["--interaction", "1", "--interaction-radius", "0.5"],
+        &["--interaction", "1", "--interaction-neighbours", "0"],
+    ];
+    grid_usage_errors(&dir.path().join("bad"), &bads, "--interaction");
 }

@@ -103,6 +103,13 @@ pub const TINY_GRID_SCHEDULE: [&str; 12] = [
     "0.1",
 ];
 
+/// The JSON file `path` (a run's `model.json`, `split.json`, `run.json`, ...); panics naming
+/// the path when it cannot be read.
+pub fn json(path: &std::path::Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
 #[allow(dead_code)]
 mod train_support;
 #[allow(dead_code)]

@@ -300,8 +300,7 @@ fn fit_writes_model_json_and_eval_reports_moves_and_energy() {
     let mut edited = fitted.clone();
     edited.walls.as_mut().unwrap().lo = 0.25;
     let path = dir.path().join("model.json");
-    let mut json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let mut json = crate::json(&path);
     json["constraints"] = serde_json::to_value(&edited).unwrap();
     std::fs::write(&path, json.to_string()).unwrap();
     let args = [

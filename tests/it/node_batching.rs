@@ -71,8 +71,7 @@ fn advected(name: &str) -> tempfile::TempDir {
     let dir = crate::tmp::tempdir().unwrap();
     let from = repo(&format!("models/{name}"));
     std::fs::copy(from.join("model.mpk"), dir.path().join("model.mpk")).unwrap();
-    let mut meta: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(from.join("model.json")).unwrap()).unwrap();
+    let mut meta = crate::json(&from.join("model.json"));
     meta["deformation"] = "Advect".into();
     std::fs::write(dir.path().join("model.json"), meta.to_string()).unwrap();
     dir

@@ -11,6 +11,8 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::Tensor;
 use minflow::model::store::Net;
 
+use crate::json;
+
 /// `train --arch grid` with the tiny network and schedule on the bundled bags, a flag of
 /// theirs that `extra` sets taking `extra`'s value.
 fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
@@ -66,11 +68,6 @@ fn weights(dir: &Path) -> Vec<u32> {
     let mut c = Collect(Vec::new());
     model.visit(&mut c);
     c.0
-}
-
-fn json(path: &Path) -> serde_json::Value {
-    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    serde_json::from_str(&text).unwrap()
 }
 
 /// One straight run and one of calls of 3 steps (epochs of 4 batches: the calls stop after

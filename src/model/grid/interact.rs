@@ -303,6 +303,11 @@ mod tests {
 
     type Nd = NdArray<f32>;
 
+    /// A chunk's neighbour rows, as integers.
+    fn rows(chunk: &Tensor<Nd, 1, Int>) -> Vec<i64> {
+        chunk.clone().into_data().convert::<i64>().to_vec().unwrap()
+    }
+
     fn positions(xy: &[[f32; 2]], scenes: usize) -> Tensor<Nd, 3> {
         let flat: Vec<f32> = (0..scenes)
             .flat_map(|_| xy.iter().flatten().copied())
@@ -320,12 +325,7 @@ mod tests {
         let xy = [[0.5, 0.5], [0.51, 0.5], [0.5, 0.53], [0.9, 0.9]];
         let g = Graph::build(&positions(&xy, 2), 0.05, 3);
         assert_eq!(g.chunks.len(), 1);
-        let index: Vec<i64> = g.chunks[0]
-            .clone()
-            .into_data()
-            .convert::<i64>()
-            .to_vec()
-            .unwrap();
+        let index = rows(&g.chunks[0]);
         let mask: Vec<f32> = g.mask.clone().into_data().to_vec().unwrap();
         // Scene 0: particle 0 sees 1 then 2, the rest of its 9 entries itself; particle 3
         // nobody. Scene 1 the same, rows + 4.
@@ -351,12 +351,7 @@ mod tests {
         let xy: Vec<[f32; 2]> = (0..16).map(|i| [0.5 + 0.002 * i as f32, 0.5]).collect();
         let g = Graph::build(&positions(&xy, 1), 0.05, 12);
         assert_eq!(g.chunks.len(), 2);
-        let second: Vec<i64> = g.chunks[1]
-            .clone()
-            .into_data()
-            .convert::<i64>()
-            .to_vec()
-            .unwrap();
+        let second = rows(&g.chunks[1]);
         // Particle 0's neighbours by distance are 1, 2, ..., so slot 10 is particle 11.
         assert_eq!(second[1], 11);
         assert_eq!(second[3], 0, "slots past k point at the particle itself");
