@@ -1,6 +1,6 @@
 //! `minflow demo`: the main job on a fresh machine (README, first line). Lists the bundled bags
 //! in `bags/`, takes the shipped small grid minGRU of the long run
-//! (`models/all-grid-mingru-small-k4-long`, README "Results": trained on 2,000 scenes, 2.0 M
+//! (`models/all-grid-mingru-small-k4-long`, README "Results": trained on 2,000 scenes, 3.2 M
 //! samples; the closest over 20 frames, and its liquid runs up walls and is thrown across the
 //! box as the solver's; `--train`, or a
 //! `--model` folder that holds no model, trains one on the bundled bags first, in this

@@ -23,13 +23,15 @@
 #    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
 #    return folder). Copy it to gpu/ for the next call.
 #
-# Branches from phase 1's latest weights, for issue 81's levers at equal minutes from a
-# trained model (each NAME=FLAGS, flags joined by commas, trains runs/branch-NAME side by side
+# Branches from a phase's latest weights (FROM: long, phase 1's, the default; long2, phase
+# 2's), for issue 81's levers at equal minutes from a trained model (each NAME=FLAGS, flags
+# joined by commas, trains runs/branch-NAME side by side
 # on the GPU with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
 # 12 splash scenes of the long run's training split and on the unseen scenes, and packed
 # into $RET/branches.tgz):
 #
 #   tests/gpu/long.sh branch MINUTES plain= push4=--pushforward,4 mp2=--interaction,2
+#   FROM=long2 tests/gpu/long.sh branch MINUTES plain= chunks4=--chunks,4
 #
 # (SCORE=0 trains only; `tests/gpu/long.sh score NAME=FLAGS...` then scores on the same
 # warm machine, for branches whose training and scoring do not fit one call.)
@@ -182,17 +184,19 @@ print(open(path).read())
 PY
 }
 
-# Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from phase 1's latest weights, side by
+# Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from FROM's latest weights, side by
 # side, into runs/branch-NAME.
 branch() {
-    local minutes=$1 pids=() lever name flags
+    local minutes=$1 from=${FROM:-long} pids=() lever name flags
     shift
-    phase1 || return 1
+    unpack "$from"
+    latest "$from" /tmp/from ||
+        { echo "no run $from (gpu/$from-run.tgz) to branch from" >&2; return 1; }
     for lever in "$@"; do
         name=branch-${lever%%=*}
         IFS=',' read -r -a flags <<<"${lever#*=}"
         "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
-            --out "runs/$name" --init-from /tmp/phase1/long "${NET[@]}" "${BRANCH[@]}" \
+            --out "runs/$name" --init-from "/tmp/from/$from" "${NET[@]}" "${BRANCH[@]}" \
             --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
         pids+=($!)
     done
