@@ -82,7 +82,7 @@ pub fn cuda_dense_transfers() -> bool {
 
 /// `MINFLOW_CUDA_ADAM=kernel | composed` (read once): whether the Adam step on CUDA is
 /// composed from burn's operations (`composed`) instead of one kernel a parameter (`kernel`,
-/// the default), to compare the two in one binary (docs/speed.md).
+/// the default), to compare the two in one binary (docs/train_speed.md).
 pub fn cuda_composed_adam() -> bool {
     static COMPOSED: OnceLock<bool> = OnceLock::new();
     flag(&COMPOSED, "MINFLOW_CUDA_ADAM", ["kernel", "composed"])
@@ -117,7 +117,7 @@ pub fn cuda_host_projection() -> bool {
 /// `MINFLOW_CUDNN_FILTER=transposed | permuted` (read once): whether training's cuDNN
 /// convolutions copy the weight matrix into cuDNN's `KRSC` layout each pass (`permuted`, the
 /// form before) instead of reading it in place as the filter of the transposed convolution
-/// (`transposed`, the default), to compare the two in one binary (docs/speed.md).
+/// (`transposed`, the default), to compare the two in one binary (docs/train_speed.md).
 pub fn cudnn_permuted_filter() -> bool {
     static PERMUTED: OnceLock<bool> = OnceLock::new();
     flag(
@@ -129,7 +129,7 @@ pub fn cudnn_permuted_filter() -> bool {
 
 /// `MINFLOW_TRAIN_PREFETCH=on | off` (read once): whether the grid trainer prepares the next
 /// batch on a thread of its own while a step runs (anything but `off`: the default) or each
-/// batch only when the step loop asks for it (`off`), to compare the two (docs/speed.md,
+/// batch only when the step loop asks for it (`off`), to compare the two (docs/train_speed.md,
 /// "Where a training step's host time goes").
 pub fn train_prefetch() -> bool {
     static OFF: OnceLock<bool> = OnceLock::new();

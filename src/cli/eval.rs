@@ -206,8 +206,11 @@ pub(crate) fn direct(args: &EvalArgs) -> anyhow::Result<(Evaluation, usize, Outc
     let topic = args.topic.as_str();
     let infos = data::scan(&args.data, Some(topic)).context("reading the ground-truth bags")?;
     let split = Split::new(infos.iter().map(|s| &s.scene), args.seed);
-    for dir in &args.models {
-        warn_if_split_differs(dir, &split);
+    // `--split all` rolls out every scene: which of them a model held out does not matter.
+    if part.is_some() {
+        for dir in &args.models {
+            warn_if_split_differs(dir, &split);
+        }
     }
     let scenes: Vec<String> = match part {
         Some(p) => split.scenes(p).to_vec(),
@@ -279,18 +282,35 @@ fn load_model(
     })
 }
 
-/// Warns when a run folder's `split.json` puts other scenes in the test part.
+/// Warns when a run folder's `split.json` puts other scenes in the test part (counts and the
+/// first few names of each: a long run's split holds hundreds).
 fn warn_if_split_differs(dir: &Path, split: &Split) {
     if let Some(theirs) = RunFolder::new(dir).split() {
         if theirs.test != split.test {
             tracing::warn!(
-                "{}: the model's test scenes {:?} differ from this split's {:?} (check --seed and --data)",
+                "{}: the model's {} test scenes ({}) differ from this split's {} ({}); check --seed and --data",
                 dir.display(),
-                theirs.test,
-                split.test
+                theirs.test.len(),
+                first_names(&theirs.test),
+                split.test.len(),
+                first_names(&split.test)
             );
         }
     }
+}
+
+/// Up to three scene names, then how many more.
+fn first_names(scenes: &[String]) -> String {
+    let mut shown = scenes
+        .iter()
+        .take(3)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join(", ");
+    if scenes.len() > 3 {
+        shown.push_str(&format!(", ... {} more", scenes.len() - 3));
+    }
+    shown
 }
 
 /// Replay evaluation of `--pred` against `--truth`.
@@ -387,5 +407,23 @@ impl clap::ValueEnum for ReferenceFrom {
             ),
         };
         Some(clap::builder::PossibleValue::new(name).help(help))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::first_names;
+
+    #[test]
+    fn a_long_list_of_scenes_is_named_by_its_first_three_and_a_count() {
+        let scenes: Vec<String> = (0..200).map(|i| format!("fluid/circle/{i:03}")).collect();
+        assert_eq!(
+            first_names(&scenes),
+            "fluid/circle/000, fluid/circle/001, fluid/circle/002, ... 197 more"
+        );
+        assert_eq!(
+            first_names(&scenes[..2]),
+            "fluid/circle/000, fluid/circle/001"
+        );
     }
 }

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Temporal bundling on a GPU machine (issue 32; docs/results.md, "Whole scenes"): the K = 1,
+# Temporal bundling on a GPU machine (issue 32; docs/results_networks.md, "Whole scenes"): the K = 1,
 # 2, 4, 8 ablation at equal training time, the memory-against-none ablation at K = 4, and
 # the small candidates, all trained at once on one GPU; then the evaluation on unseen
 # scenes (simulate --seed 7, both families, every scene kind) at horizon 20 and over whole

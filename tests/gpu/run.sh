@@ -247,7 +247,7 @@ agree() { # name log-a log-b [tolerance]: the first-epoch loss (last column of t
               print "first-epoch losses agree:", loss[1], loss[2] }' "$2" "$3"
 }
 
-fused() { # docs/speed.md, "Training the grid architecture on a GPU" and docs/kernels.md
+fused() { # docs/train_speed.md, "Training the grid architecture on a GPU" and docs/kernels.md
     nvidia-smi --query-gpu=name,driver_version --format=csv
     grid_forms MINFLOW_CUDA_ADAM adam- kernel composed
     for b in 16 32; do
@@ -266,7 +266,7 @@ fused() { # docs/speed.md, "Training the grid architecture on a GPU" and docs/ke
     kernels
 }
 
-cudnn() { # docs/speed.md: the convolutions through cuDNN against im2col and cuBLAS
+cudnn() { # docs/train_speed.md: the convolutions through cuDNN against im2col and cuBLAS
     nvidia-smi --query-gpu=name,driver_version --format=csv
     echo "cuDNN: ${CUDNN_LIB:-from the system library path}"
     grid_forms MINFLOW_CUDA_CONV conv- cudnn im2col

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Structure on a GPU machine (docs/results.md, "Structure"): the ablation at equal training
+# Structure on a GPU machine (docs/results_networks.md, "Structure"): the ablation at equal training
 # time of the rest-shape features (fitted F), the grid velocity update (grid, grid+head
 # against the free head) and the strain and volume losses, every run fine-tuned from a
 # shipped model and all trained at once on one GPU; then the evaluation on unseen scenes

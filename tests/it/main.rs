@@ -57,6 +57,7 @@ mod train_calls;
 mod train_loop;
 mod train_parallel;
 mod train_resume;
+mod train_validate;
 mod transport_nodes;
 mod transport_ros2;
 mod transport_type_hash;

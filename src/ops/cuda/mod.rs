@@ -45,7 +45,7 @@ pub(in crate::ops) enum ConvForm {
     CudnnInference,
     /// cuDNN's kernels, forward and backward ([`crate::ops::cuda::net::cudnn`]):
     /// `MINFLOW_CUDA_CONV=cudnn`. Training takes about half im2col's GPU memory (less than
-    /// PyTorch's) at 0.78-0.92x its speed (docs/speed.md, "Training's convolutions through
+    /// PyTorch's) at 0.78-0.92x its speed (docs/train_speed.md, "Training's convolutions through
     /// cuDNN, in place").
     Cudnn,
     /// burn-cubecl's implicit-GEMM convolution for inference, im2col for training

@@ -31,7 +31,7 @@ impl Flips {
 /// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
 /// packed, mirrored where [`Flips`] draws so, neighbourhoods built) one batch ahead of the
 /// step that uses them (the thread holds the one it prepared until it is taken). Each step reads its loss back at its end, so whatever the host did
-/// between two steps, the GPU and burn's fusion and launch threads waited for (docs/speed.md,
+/// between two steps, the GPU and burn's fusion and launch threads waited for (docs/train_speed.md,
 /// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
 /// read and prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did
 /// itself before, to compare the two in one binary. The thread ends when the feed is

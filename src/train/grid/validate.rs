@@ -1,10 +1,11 @@
 //! The grid run's validation score: the mean scaled MSE of closed-loop rollouts of the
-//! validation scenes (as `eval` scores them, with the training split's min-max scaler), all
-//! starts of a scene as one batch, ceil(H / K) network calls each; with `structure`, times
-//! `1 + strain + |1 - volume|` of the rollouts' last frames (`eval`'s strain error of the
-//! solids and volume ratio of the liquid, [`crate::eval::structure`]), so a checkpoint that
-//! tears a body or presses the liquid together scores worse than its MSE alone says. Used by
-//! [`super::GridTrainer`] to pick the kept model.
+//! validation scenes (as `eval` scores them, with the training split's min-max scaler), the
+//! rollouts of scenes with one particle count packed into batches, ceil(H / K) network calls
+//! each; with `structure`, times `1 + strain + |1 - volume|` of the rollouts' last frames
+//! (`eval`'s strain error of the solids and volume ratio of the liquid,
+//! [`crate::eval::structure`]), so a checkpoint that tears a body or presses the liquid
+//! together scores worse than its MSE alone says. Used by [`super::GridTrainer`] to pick the
+//! kept model.
 
 use crate::data::{Scaler, Trajectory};
 use crate::eval::plausibility::Neighbours;
@@ -13,8 +14,17 @@ use crate::eval::structure::covered_area;
 use crate::model::store::{self, Surrogate};
 use crate::ops::NetOps;
 
+/// Most particles in one validation call: the rollouts of scenes of one particle count are
+/// packed into a call until it holds this many (256 scenes of 2,500 particles, the node's
+/// largest batch; 16 of 40,000). A batch a scene made a long run's 200 validation scenes
+/// 1,000 network calls of one scene an epoch (K = 4, 20 frames), each bound on a GPU by the
+/// host's recording of its kernels, and as many on every GPU count (docs/training.md).
+const VAL_PARTICLES: usize = 640_000;
+
 /// Mean scaled MSE of `horizon`-frame rollouts of `surrogate` from `starts` starts of every
-/// trajectory (all starts of a scene as one batch); with `structure`, times the structure
+/// trajectory, the rollouts of scenes with the same particle count packed into calls of up
+/// to [`VAL_PARTICLES`] particles (each row scored against its own scene: the same score as
+/// one call a scene, up to float summation order); with `structure`, times the structure
 /// factor of the module doc.
 ///
 /// # Errors
@@ -27,53 +37,117 @@ pub fn validation_rollout<B: NetOps>(
     structure: bool,
 ) -> Result<f64, store::StoreError> {
     let window = surrogate.meta().window();
-    let (mut sum, mut count) = (0.0f64, 0usize);
-    let mut damage = Damage::default();
-    for traj in trajs {
-        let offsets = start_offsets(traj.frames, window, horizon, starts);
-        let offsets: Vec<usize> = offsets
-            .into_iter()
-            .filter(|&o| o + window + horizon <= traj.frames)
-            .collect();
-        if offsets.is_empty() {
-            continue;
-        }
-        let (b, n) = (offsets.len(), traj.n);
-        let material: Vec<u8> = (0..b).flat_map(|_| traj.material.iter().copied()).collect();
-        let dt = vec![traj.dt; b];
-        let first: Vec<f32> = (0..b).flat_map(|_| traj.state(0).iter().copied()).collect();
-        let seed: Vec<Vec<f32>> = (0..window)
-            .map(|k| {
-                offsets
-                    .iter()
-                    .flat_map(|&o| traj.state(o + k).iter().copied())
-                    .collect()
-            })
-            .collect();
-        let score = |k: usize, pred: Vec<f32>| {
-            for (row, &o) in offsets.iter().enumerate() {
-                let truth = traj.state(o + window + k);
-                let pred = &pred[row * n * 4..(row + 1) * n * 4];
-                for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
-                    for f in 0..4 {
-                        let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
-                        sum += d * d;
-                    }
-                }
-                count += n * 4;
-                if structure && k + 1 == horizon {
-                    let seed = traj.state(o + window - 1);
-                    damage.add(traj, seed, pred, truth);
-                }
-            }
-        };
-        surrogate.rollout_batch(Some(&first), &seed, &material, &dt, horizon, score)?;
+    let mut score = Score::default();
+    for rows in pack(trajs, window, (starts, horizon)) {
+        let frames = (window, horizon);
+        rollout_rows(surrogate, &rows, frames, (scaler, structure), &mut score)?;
     }
-    Ok(if count == 0 {
-        f64::NAN
-    } else {
-        sum / count as f64 * damage.factor()
-    })
+    Ok(score.value())
+}
+
+/// One validation rollout: `traj` from its frame `offset` (the first seed frame).
+#[derive(Clone, Copy)]
+struct Row<'a> {
+    traj: &'a Trajectory,
+    offset: usize,
+}
+
+/// Every trajectory's rollouts ([`start_offsets`], those with `window + horizon` frames to
+/// read), in order, packed into calls of one particle count and at most [`VAL_PARTICLES`]
+/// particles.
+fn pack(
+    trajs: &[Trajectory],
+    window: usize,
+    (starts, horizon): (usize, usize),
+) -> Vec<Vec<Row<'_>>> {
+    let mut calls: Vec<Vec<Row>> = Vec::new();
+    for traj in trajs {
+        let cap = (VAL_PARTICLES / traj.n.max(1)).max(1);
+        for offset in start_offsets(traj.frames, window, horizon, starts) {
+            if offset + window + horizon > traj.frames {
+                continue;
+            }
+            let row = Row { traj, offset };
+            match calls
+                .iter_mut()
+                .find(|c| c[0].traj.n == traj.n && c.len() < cap)
+            {
+                Some(call) => call.push(row),
+                None => calls.push(vec![row]),
+            }
+        }
+    }
+    calls
+}
+
+/// One call's rollouts (`rows`, all of N particles) of `horizon` frames after `window` seed
+/// frames, each predicted frame `[B, N, 4]` scored row by row against its scene.
+fn rollout_rows<B: NetOps>(
+    surrogate: &Surrogate<B>,
+    rows: &[Row],
+    (window, horizon): (usize, usize),
+    (scaler, structure): (&Scaler, bool),
+    score: &mut Score,
+) -> Result<(), store::StoreError> {
+    let n = rows[0].traj.n;
+    let material: Vec<u8> = rows
+        .iter()
+        .flat_map(|r| r.traj.material.iter().copied())
+        .collect();
+    let dt: Vec<f32> = rows.iter().map(|r| r.traj.dt).collect();
+    let first: Vec<f32> = rows
+        .iter()
+        .flat_map(|r| r.traj.state(0).iter().copied())
+        .collect();
+    let seed: Vec<Vec<f32>> = (0..window)
+        .map(|k| {
+            rows.iter()
+                .flat_map(|r| r.traj.state(r.offset + k).iter().copied())
+                .collect()
+        })
+        .collect();
+    let each = |k: usize, pred: Vec<f32>| {
+        for (row, r) in rows.iter().enumerate() {
+            let truth = r.traj.state(r.offset + window + k);
+            let pred = &pred[row * n * 4..(row + 1) * n * 4];
+            score.add(scaler, pred, truth);
+            if structure && k + 1 == horizon {
+                let seed = r.traj.state(r.offset + window - 1);
+                score.damage.add(r.traj, seed, pred, truth);
+            }
+        }
+    };
+    surrogate.rollout_batch(Some(&first), &seed, &material, &dt, horizon, each)
+}
+
+/// The running validation score: scaled squared errors, how many, and the structure's.
+#[derive(Debug, Default)]
+struct Score {
+    sum: f64,
+    count: usize,
+    damage: Damage,
+}
+
+impl Score {
+    /// Adds one predicted frame `pred` against `truth` (`[N, 4]` each), scaled by `scaler`.
+    fn add(&mut self, scaler: &Scaler, pred: &[f32], truth: &[f32]) {
+        for (p, t) in pred.chunks_exact(4).zip(truth.chunks_exact(4)) {
+            for f in 0..4 {
+                let d = f64::from(scaler.scale(f, p[f])) - f64::from(scaler.scale(f, t[f]));
+                self.sum += d * d;
+            }
+        }
+        self.count += pred.len();
+    }
+
+    /// The mean scaled squared error times the structure factor; NaN with nothing scored.
+    fn value(&self) -> f64 {
+        if self.count == 0 {
+            f64::NAN
+        } else {
+            self.sum / self.count as f64 * self.damage.factor()
+        }
+    }
 }
 
 /// Sums of the structure errors of the rollouts' last frames.
