@@ -72,6 +72,14 @@ pub fn neighbours(s: &str) -> Result<usize, String> {
     integer_in(s, grid::INTERACTION_NEIGHBOURS)
 }
 
+/// `--box-grid`: 0 (the network's grid) or a grid side in [`grid::BOX_GRID`] (8..=4096).
+pub fn box_grid(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Ok(0),
+        _ => integer_in(s, grid::BOX_GRID),
+    }
+}
+
 /// `--interaction-radius`: a radius in (0, [`grid::INTERACTION_RADIUS_MAX`]] (0.25) of the
 /// unit box.
 pub fn radius(s: &str) -> Result<f64, String> {
@@ -252,6 +260,14 @@ mod tests {
             );
             let k = config().with_interaction_neighbours(v);
             assert_eq!(neighbours(&text).is_ok(), valid(k), "neighbours {v}");
+        }
+        for v in [0, 1, 7, 8, 32, 256, 4096, 4097] {
+            let c = config().with_box_grid(v);
+            assert_eq!(
+                box_grid(&v.to_string()).is_ok(),
+                c.validate().is_ok(),
+                "box {v}"
+            );
         }
         for r in [-0.1, 0.0, 1e-6, 0.02, 0.25, 0.2500001, 1.0] {
             let c = config().with_interaction_radius(r);

@@ -368,6 +368,7 @@ impl TrainArgs {
             .with_head_hidden(g.net.head_hidden)
             .with_bundle(g.net.bundle)
             .with_substeps(g.net.substeps)
+            .with_box_grid(g.net.box_grid)
             .with_interaction(g.net.interaction)
             .with_interaction_radius(g.net.interaction_radius)
             .with_interaction_neighbours(g.net.interaction_neighbours)

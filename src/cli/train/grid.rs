@@ -323,6 +323,8 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
                 .with_bundle(if saved.bundle == 1 { 1 } else { config.bundle })
                 // Substeps may change (the same weights: `GridModel::with_substeps`).
                 .with_substeps(saved.substeps)
+                // So may the box the positions are clamped into (`GridModel::with_box_grid`).
+                .with_box_grid(saved.box_grid)
                 // A model without message passing may grow it (`GridModel::with_interaction`):
                 // then its own (unread) message-passing fields are compared.
                 .with_interaction(passing.interaction)

@@ -1,6 +1,6 @@
 //! The grid network's sizes and shape flags ([`GridNetArgs`]: `--grid`, `--unet-width`,
 //! `--levels`, `--latent`, `--hidden`, `--head-hidden`, `--bundle`, `--substeps`,
-//! `--interaction*`, `--reference`, `--rest-shape`, `--update`), shared by `train` and
+//! `--interaction*`, `--box-grid`, `--reference`, `--rest-shape`, `--update`), shared by `train` and
 //! `report`; `args.rs` turns them into a [`crate::model::grid::GridConfig`].
 
 use clap::Args;
@@ -49,6 +49,13 @@ pub struct GridNetArgs {
     /// Neighbours per particle in the message passing: the nearest within the radius.
     #[arg(long, default_value_t = 12, value_parser = crate::cli::flags::neighbours)]
     pub interaction_neighbours: usize,
+    /// The grid whose MPM box, [0.5 / G, 1 - 1.5 / G], the predicted positions are clamped
+    /// into (0: the network's --grid, as models saved before the flag). A 32-cell network's
+    /// box stops particles at 0.953 of the box, short of the 64- and 128-cell solvers'
+    /// walls; 256 (the finest solver) leaves each scene's walls to the network and to the
+    /// projection's walls part. `--init-from` may change it (the same weights).
+    #[arg(long, default_value_t = 0, value_parser = crate::cli::flags::box_grid)]
+    pub box_grid: usize,
     /// Reference positions: first-frame (each particle remembers where it was in the first
     /// frame of its stream, MPM's reference configuration, and the grid sees its
     /// displacement from there; `--init-from` a model without it grows the two input
@@ -122,6 +129,7 @@ impl GridNetArgs {
         ]
         .into_iter()
         .chain((self.substeps > 1).then_some(("--substeps", self.substeps)))
+        .chain((self.box_grid > 0).then_some(("--box-grid", self.box_grid)))
         .flat_map(|(flag, value)| [flag.to_owned(), value.to_string()])
         .chain(
             interaction

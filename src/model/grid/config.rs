@@ -156,6 +156,16 @@ pub struct GridConfig {
     /// (`--interaction-neighbours`).
     #[config(default = 12)]
     pub interaction_neighbours: usize,
+    /// The grid whose MPM box `[0.5 / g, 1 - 1.5 / g]` (domain units; `sim::mpm`'s G2P
+    /// clamp) the integration clamps each predicted position into (`train --box-grid G`);
+    /// 0, in models saved before it existed: the network's own grid. A small network's box
+    /// is narrower than the solver's: on 32 cells its right and top edges stand at 0.953,
+    /// where the solver's particles reach 0.97 (64 cells, `multi`) and 0.98 (128, `fluid`),
+    /// so no predicted front reached the far wall. [`BOX_GRID_FINEST`] leaves each scene's
+    /// own walls to what the network learned and to the projection's walls part
+    /// ([`crate::model::constraints`], in the scene's solver cells).
+    #[config(default = 0)]
+    pub box_grid: usize,
 }
 
 /// `bundle`'s range (`--bundle`): frames one network call predicts.
@@ -168,6 +178,11 @@ pub const INTERACTION_ROUNDS: RangeInclusive<usize> = 0..=8;
 pub const INTERACTION_NEIGHBOURS: RangeInclusive<usize> = 1..=64;
 /// The largest `interaction_radius` (`--interaction-radius`, above 0), a fraction of the box.
 pub const INTERACTION_RADIUS_MAX: f64 = 0.25;
+/// `box_grid`'s range (`--box-grid`) besides 0 (the network's grid).
+pub const BOX_GRID: RangeInclusive<usize> = 8..=4096;
+/// The finest solver grid `simulate` makes (`--grid 256`, 40,000 particles): a `box_grid`
+/// that clamps no scene's particles short of its solver's box.
+pub const BOX_GRID_FINEST: usize = 256;
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -201,6 +216,9 @@ pub enum GridConfigError {
          (0, {INTERACTION_RADIUS_MAX}]"
     )]
     Interaction,
+    /// `box_grid` neither 0 nor in [`BOX_GRID`].
+    #[error("--box-grid must be 0 (the network's grid) or in {BOX_GRID:?}")]
+    BoxGrid,
 }
 
 impl GridConfig {
@@ -252,6 +270,9 @@ impl GridConfig {
         {
             return Err(GridConfigError::Interaction);
         }
+        if self.box_grid != 0 && !BOX_GRID.contains(&self.box_grid) {
+            return Err(GridConfigError::BoxGrid);
+        }
         Ok(())
     }
 
@@ -296,6 +317,7 @@ impl GridConfig {
             window: self.window,
             bundle: self.bundle.max(1),
             substeps: self.substeps.max(1),
+            box_grid: self.box_grid,
             reference: self.reference,
             update: self.update,
             deformation: self.deformation,

@@ -45,6 +45,16 @@ impl<B: NetOps> GridModel<B> {
         Self { n, ..self }
     }
 
+    /// This model clamping its predicted positions into the MPM box of the grid `g`
+    /// ([`super::GridConfig::box_grid`]; 0: its network grid's): the same weights. `train
+    /// --box-grid G --init-from` starts from this.
+    pub fn with_box_grid(self, g: usize) -> Self {
+        Self {
+            box_grid: g,
+            ..self
+        }
+    }
+
     /// This model taking `s` network substeps per frame ([`super::GridConfig::substeps`]):
     /// the same weights, its velocity change spread over the substeps. `train --substeps S
     /// --init-from` a trained single-frame model starts from this. A bundled model is

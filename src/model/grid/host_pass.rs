@@ -55,6 +55,7 @@ impl<B: NetOps> GridModel<B> {
             vel_scale: self.vel_scale,
             dv_mean,
             dv_scale,
+            bounds: self.integration_box(),
         };
         let mut particles = Particles {
             pos: host_values(input.pos.clone()),
@@ -198,6 +199,8 @@ pub struct Constants {
     pub dv_mean: [f32; 2],
     /// Velocity-change scale the head's output is in, per component.
     pub dv_scale: [f32; 2],
+    /// The box `(lo, hi)` the integration clamps into ([`GridModel::integration_box`]).
+    pub bounds: (f32, f32),
 }
 
 impl Particles {
@@ -288,10 +291,10 @@ impl Particles {
     }
 
     /// `dv = dv_mean + dv_scale out`, `v' = v + dv`, `x' = x + dt (v + v') / 2` clamped into
-    /// `[0.5 dx, 1 - 1.5 dx]`, as `GridModel::integrate`; the window moves on by `v'`.
+    /// `c.bounds`, as `GridModel::integrate`; the window moves on by `v'`.
     fn integrate(&mut self, out: &[f32], c: Constants) -> Vec<f32> {
         let t2 = 2 * c.window;
-        let dx = 1.0 / c.n as f32;
+        let (lo, hi) = c.bounds;
         let mut next = vec![0.0f32; out.len()];
         for (p, v_next) in next.chunks_exact_mut(2).enumerate() {
             let dt = self.dt[p / self.particles];
@@ -301,7 +304,7 @@ impl Particles {
                 let v = window[t2 - 2 + a] * c.vel_scale[a];
                 v_next[a] = v + dv;
                 let x = self.pos[2 * p + a] + (v + v_next[a]) * (dt * 0.5);
-                self.pos[2 * p + a] = x.clamp(0.5 * dx, 1.0 - 1.5 * dx);
+                self.pos[2 * p + a] = x.clamp(lo, hi);
             }
             window.copy_within(2.., 0);
             window[t2 - 2] = v_next[0] / c.vel_scale[0];

@@ -64,7 +64,8 @@ pub mod unet;
 pub use config::{Deformation, GridConfig, GridConfigError, Update};
 /// The ranges of [`GridConfig`]'s settings that have flags, shared with their clap parsers.
 pub use config::{
-    BUNDLE, INTERACTION_NEIGHBOURS, INTERACTION_RADIUS_MAX, INTERACTION_ROUNDS, SUBSTEPS,
+    BOX_GRID, BOX_GRID_FINEST, BUNDLE, INTERACTION_NEIGHBOURS, INTERACTION_RADIUS_MAX,
+    INTERACTION_ROUNDS, SUBSTEPS,
 };
 pub use memory::{Memory, MemoryKind, MemoryState};
 pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
@@ -95,6 +96,10 @@ pub struct GridModel<B: Backend> {
     /// Network substeps per frame ([`GridConfig::substeps`]; `substeps.rs`).
     #[module(skip)]
     substeps: usize,
+    /// The grid whose MPM box the integration clamps into ([`GridConfig::box_grid`]; 0: the
+    /// network's `n`, whichever grid it is on).
+    #[module(skip)]
+    box_grid: usize,
     reference: bool,
     #[module(skip)]
     update: Update,
@@ -207,6 +212,19 @@ impl<B: NetOps> GridModel<B> {
     /// Whether the model carries an advected F ([`Deformation::Advect`] with rest shape).
     pub fn advects(&self) -> bool {
         self.rest_in.is_some() && self.deformation == Deformation::Advect
+    }
+
+    /// The box `(lo, hi)` (domain units, both axes) the integration clamps predicted
+    /// positions into: MPM's `[0.5 dx, 1 - 1.5 dx]` (`sim::mpm`'s G2P) on the grid of
+    /// [`GridConfig::box_grid`], the network's own where that is 0.
+    pub fn integration_box(&self) -> (f32, f32) {
+        let grid = if self.box_grid == 0 {
+            self.n
+        } else {
+            self.box_grid
+        };
+        let dx = 1.0 / grid as f32;
+        (0.5 * dx, 1.0 - 1.5 * dx)
     }
 
     /// One step for a batch of scenes: the next frame and the new memory state. For a

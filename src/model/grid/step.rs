@@ -248,7 +248,11 @@ impl<B: NetOps> GridModel<B> {
         latent: &Latent<B>,
         memory: Option<&Tensor<B, 2>>,
     ) -> Option<Vec<StepOutput<B>>> {
-        let plain = self.update == Update::Free && self.rest_in.is_none() && !self.advects();
+        // The kernel clamps into the network grid's box.
+        let plain = self.update == Update::Free
+            && self.rest_in.is_none()
+            && !self.advects()
+            && (self.box_grid == 0 || self.box_grid == self.n);
         let grad = input.pos.is_require_grad()
             || vel.is_require_grad()
             || self.head_a.weight.val().is_require_grad();
@@ -417,7 +421,7 @@ impl<B: NetOps> GridModel<B> {
     /// One frame integrated from the normalised velocity change `dv` (`[B, N, 2]`), the
     /// normalised velocity window `vel` and positions `pos`, physical units: `dv = dv_mean +
     /// dv_scale * out`, `v' = v + dv`, the trapezoid `x' = x + dt (v + v') / 2`, clamped into
-    /// the box MPM keeps its particles in.
+    /// the box MPM keeps its particles in ([`GridModel::integration_box`]).
     fn integrate(
         &self,
         dv: Tensor<B, 3>,
@@ -432,8 +436,8 @@ impl<B: NetOps> GridModel<B> {
         let v = vel.clone().narrow(2, 2 * (t - 1), 2) * pairs(self.vel_scale, 1, &device);
         let v_next = v.clone() + dv;
         let pos = pos + (v + v_next.clone()) * dt.mul_scalar(0.5);
-        let dx = 1.0 / self.n as f32;
-        let pos = pos.clamp(0.5 * dx, 1.0 - 1.5 * dx);
+        let (lo, hi) = self.integration_box();
+        let pos = pos.clamp(lo, hi);
         StepOutput {
             pos,
             vel: v_next,

@@ -247,9 +247,9 @@ pub fn parse_meta(text: &str) -> Result<ModelMeta, serde_json::Error> {
 /// rest-shape features, one without `update` has the free per-particle head, one without
 /// `deformation` fits its rest-shape features' F, one without `substeps` runs the network
 /// once a frame, one without `interaction` passes no messages (its radius and neighbours
-/// then unread); `conv` picks the kernel only (same weights, same results); the
+/// then unread), one without `box_grid` clamps into its network grid's box; `conv` picks the kernel only (same weights, same results); the
 /// zero-initialised last layers only matter for fresh weights.
-const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 13] = [
+const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 14] = [
     ("grid", "reference", || serde_json::Value::Bool(false)),
     ("grid", "bundle", || serde_json::Value::from(1)),
     ("grid", "materials", || serde_json::Value::from(4)),
@@ -264,6 +264,7 @@ const ADDED_FIELDS: [(&str, &str, fn() -> serde_json::Value); 13] = [
     ("grid", "interaction_neighbours", || {
         serde_json::Value::from(12)
     }),
+    ("grid", "box_grid", || serde_json::Value::from(0)),
     ("grid", "conv", || serde_json::Value::from("auto")),
     ("grid", "head_zero_init", || serde_json::Value::Bool(true)),
     ("paper", "decoder_zero_init", || {

@@ -186,7 +186,9 @@ where
     /// passing; on the configured network grid.
     fn grown(&self, model: GridModel<B>) -> GridModel<B> {
         let c = &self.config;
-        let model = model.with_grid(c.grid).with_substeps(c.substeps);
+        let model = (model.with_grid(c.grid))
+            .with_substeps(c.substeps)
+            .with_box_grid(c.box_grid);
         let model = match c.reference {
             true => model.with_reference(),
             false => model,
