@@ -25,8 +25,8 @@
 #
 # Branches from a phase's latest weights (FROM: long, phase 1's, the default; long2, phase
 # 2's), for issue 81's levers at equal minutes from a trained model (each NAME=FLAGS, flags
-# joined by commas, trains runs/branch-NAME side by side
-# on the GPU with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
+# joined by commas, trains runs/branch-NAME side by side, on the machine's GPUs in turn,
+# with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
 # 12 splash scenes of the long run's training split and on the unseen scenes, and packed
 # into $RET/branches.tgz):
 #
@@ -48,11 +48,11 @@ RET=${RET:-${OUT:-/tmp/minflow-gpu}}
 DEVICE=${DEVICE:-cuda}
 # The run trains on every GPU of the machine, data-parallel at the same global batch
 # (docs/training.md, "Several GPUs"); TRAIN_DEVICE overrides. Datasets and evals use DEVICE.
+GPUS=0
+[ "$DEVICE" = cuda ] && GPUS=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')
 if [ -z "${TRAIN_DEVICE:-}" ]; then
     TRAIN_DEVICE=$DEVICE
-    gpus=0
-    [ "$DEVICE" = cuda ] && gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')
-    [ "${gpus:-0}" -gt 1 ] && TRAIN_DEVICE=$(seq -s, -f 'cuda:%g' 0 $((gpus - 1)))
+    [ "${GPUS:-0}" -gt 1 ] && TRAIN_DEVICE=$(seq -s, -f 'cuda:%g' 0 $((GPUS - 1)))
 fi
 SCENES=${SCENES:-1000}
 FRAMES=${FRAMES:-200}
@@ -185,9 +185,9 @@ PY
 }
 
 # Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from FROM's latest weights, side by
-# side, into runs/branch-NAME.
+# side, into runs/branch-NAME; on a machine of several GPUs they take the GPUs in turn.
 branch() {
-    local minutes=$1 from=${FROM:-long} pids=() lever name flags
+    local minutes=$1 from=${FROM:-long} pids=() lever name flags device
     shift
     unpack "$from"
     latest "$from" /tmp/from ||
@@ -195,7 +195,9 @@ branch() {
     for lever in "$@"; do
         name=branch-${lever%%=*}
         IFS=',' read -r -a flags <<<"${lever#*=}"
-        "$BIN" train --device "$DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
+        device=$DEVICE
+        [ "${GPUS:-0}" -gt 1 ] && device=cuda:$((${#pids[@]} % GPUS))
+        "$BIN" train --device "$device" --data "$DATA/long/fluid" "$DATA/long/multi" \
             --out "runs/$name" --init-from "/tmp/from/$from" "${NET[@]}" "${BRANCH[@]}" \
             --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
         pids+=($!)
