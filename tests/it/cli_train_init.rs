@@ -244,3 +244,25 @@ fn grid_train_with_message_passing() {
     ];
     grid_usage_errors(&dir.path().join("bad"), &bads, "--interaction");
 }
+
+/// `--box-grid G` clamps the predicted positions into MPM's box on G cells (issue 81's wall
+/// lever): a trained model fine-tunes into one, saved with it and evaluated from its folder;
+/// a grid below 8 is a usage error.
+#[test]
+fn grid_train_with_a_box_grid() {
+    let dir = crate::tmp::tempdir().unwrap();
+    let (plain, wide) = (dir.path().join("plain"), dir.path().join("wide"));
+    let o = train_grid(&plain, &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(meta(&plain)["box_grid"], 0);
+    let init = plain.to_str().unwrap();
+    let o = train_grid(
+        &wide,
+        &["--epochs", "1", "--box-grid", "256", "--init-from", init],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(meta(&wide)["box_grid"], 256);
+    eval_briefly(&wide, &dir.path().join("eval"));
+    let bads = [&["--box-grid", "4"][..]];
+    grid_usage_errors(&dir.path().join("bad"), &bads, "--box-grid");
+}
