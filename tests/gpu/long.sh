@@ -97,12 +97,13 @@ unpack() {
     fi
 }
 
-# Phase 1's latest weights as the model folder /tmp/phase1/long, where phase 2 and the
+# The latest weights of the run $1 (long: phase 1, long2: phase 2; unpacked from
+# gpu/$1-run.tgz where needed) as the model folder /tmp/from/$1, where phase 2 and the
 # branches start.
-phase1() {
-    unpack long
-    latest long /tmp/phase1 ||
-        { echo "no phase 1 run (gpu/long-run.tgz) to start from" >&2; return 1; }
+from_run() {
+    unpack "$1"
+    latest "$1" /tmp/from ||
+        { echo "no run $1 (gpu/$1-run.tgz) to start from" >&2; return 1; }
 }
 
 train() {
@@ -112,8 +113,8 @@ train() {
     if [ -d "runs/$RUN/checkpoint" ]; then
         start=(--resume)
     elif [ "$RUN" = long2 ]; then
-        phase1 || return 1
-        start=(--init-from /tmp/phase1/long)
+        from_run long || return 1
+        start=(--init-from /tmp/from/long)
     fi
     echo "training on $TRAIN_DEVICE"
     "$BIN" train --device "$TRAIN_DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
@@ -189,9 +190,7 @@ PY
 branch() {
     local minutes=$1 from=${FROM:-long} pids=() lever name flags device
     shift
-    unpack "$from"
-    latest "$from" /tmp/from ||
-        { echo "no run $from (gpu/$from-run.tgz) to branch from" >&2; return 1; }
+    from_run "$from" || return 1
     for lever in "$@"; do
         name=branch-${lever%%=*}
         IFS=',' read -r -a flags <<<"${lever#*=}"

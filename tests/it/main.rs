@@ -113,6 +113,8 @@ pub fn json(path: &std::path::Path) -> serde_json::Value {
 }
 
 #[allow(dead_code)]
+mod model_support;
+#[allow(dead_code)]
 mod train_support;
 #[allow(dead_code)]
 mod transport_support;

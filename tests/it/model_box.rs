@@ -5,23 +5,19 @@
 
 use burn::backend::NdArray;
 use burn::tensor::{Tensor, TensorData};
-use minflow::data::Scaler;
 use minflow::model::grid::{one_hot, GridConfig, MemoryKind, MemoryState, StepInput};
-use minflow::model::store::{parse_meta, ModelMeta, NetConfig};
+use minflow::model::store::{parse_meta, NetConfig};
 use minflow::train::grid::initial_grid_model;
+
+use crate::model_support::{meta, tiny_grid};
 
 type B = NdArray<f32>;
 
 /// A small untrained grid model on 16 cells (its box's right edge at 1 - 1.5 / 16 =
 /// 0.90625) that predicts constant velocity.
 fn config(box_grid: usize) -> GridConfig {
-    GridConfig::new(MemoryKind::MinGru)
-        .with_grid(16)
-        .with_levels(2)
-        .with_unet_width(4)
-        .with_latent(4)
-        .with_hidden(4)
-        .with_head_hidden(8)
+    (tiny_grid(MemoryKind::MinGru))
+        .with_head_zero_init(true)
         .with_box_grid(box_grid)
 }
 
@@ -87,13 +83,7 @@ fn predicted_positions_stay_in_the_box_of_the_grid_asked_for() {
 
 #[test]
 fn the_box_grid_round_trips_through_model_json_and_defaults_to_the_network_grid() {
-    let meta = ModelMeta {
-        net: NetConfig::Grid(config(256)),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    };
+    let meta = meta(config(256));
     let box_grid = |json: &serde_json::Value| match parse_meta(&json.to_string()).unwrap().net {
         NetConfig::Grid(c) => c.box_grid,
         NetConfig::Paper(_) => unreachable!(),

@@ -6,34 +6,16 @@
 
 use burn::backend::NdArray;
 use burn::tensor::{Tensor, TensorData};
-use minflow::data::Scaler;
 use minflow::model::grid::{one_hot, GridConfig, MemoryKind, MemoryState, StepInput};
-use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
+use minflow::model::store::{self, NetConfig, Surrogate};
 use minflow::train::grid::initial_grid_model;
+
+use crate::model_support::{meta, surrogate, tiny_grid};
 
 type B = NdArray<f32>;
 
 fn config(memory: MemoryKind, bundle: usize) -> GridConfig {
-    GridConfig::new(memory)
-        .with_grid(16)
-        .with_levels(2)
-        .with_unet_width(4)
-        .with_latent(4)
-        .with_hidden(4)
-        .with_head_hidden(8)
-        .with_dv_scale([0.1, 0.1])
-        .with_head_zero_init(false)
-        .with_bundle(bundle)
-}
-
-fn meta(config: GridConfig) -> ModelMeta {
-    ModelMeta {
-        net: NetConfig::Grid(config),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    }
+    tiny_grid(memory).with_bundle(bundle)
 }
 
 /// `n` particles in the middle of the box (away from the walls, so no clamp acts) with
@@ -135,10 +117,7 @@ fn the_k_frames_of_a_bundle_are_integrated_in_order() {
 
 /// A surrogate around an untrained minGRU grid model with K = 2 (seed 2).
 fn bundled_surrogate() -> Surrogate<B> {
-    let device = Default::default();
-    let config = config(MemoryKind::MinGru, 2);
-    let model = initial_grid_model::<B>(&config, 2, &device).unwrap();
-    Surrogate::from_net(store::Net::Grid(model), meta(config), &device)
+    surrogate(config(MemoryKind::MinGru, 2), 2)
 }
 
 /// The 5 frames a K = 2 model predicts from `seed1` (`[B, N, 4]`) and `state`, call by call:

@@ -5,12 +5,13 @@
 
 use burn::backend::NdArray;
 use burn::tensor::{Tensor, TensorData};
-use minflow::data::Scaler;
 use minflow::model::grid::transfer::{composed_stencil, g2p, p2g, stencil, stencil_host};
-use minflow::model::grid::{GridConfig, MemoryKind};
+use minflow::model::grid::MemoryKind;
 use minflow::model::minrnn::{MinGru, MinLstm};
 use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
 use minflow::train::grid::initial_grid_model;
+
+use crate::model_support::{self, tiny_grid};
 
 type B = NdArray<f32>;
 
@@ -159,23 +160,7 @@ fn meta(memory: MemoryKind) -> ModelMeta {
 }
 
 fn meta_with(memory: MemoryKind, reference: bool) -> ModelMeta {
-    let config = GridConfig::new(memory)
-        .with_reference(reference)
-        .with_grid(16)
-        .with_levels(2)
-        .with_unet_width(4)
-        .with_latent(4)
-        .with_hidden(4)
-        .with_head_hidden(8)
-        .with_dv_scale([0.1, 0.1])
-        .with_head_zero_init(false);
-    ModelMeta {
-        net: NetConfig::Grid(config),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    }
+    model_support::meta(tiny_grid(memory).with_reference(reference))
 }
 
 fn surrogate_with(memory: MemoryKind, reference: bool) -> Surrogate<B> {

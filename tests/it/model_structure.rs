@@ -8,40 +8,20 @@
 
 use burn::backend::NdArray;
 use burn::tensor::{Tensor, TensorData};
-use minflow::data::Scaler;
 use minflow::model::grid::{
     one_hot, Deformation, GridConfig, MemoryKind, MemoryState, Neighbourhood, StepInput, Update,
 };
-use minflow::model::store::{self, ModelMeta, NetConfig, Surrogate};
+use minflow::model::store::{self, Surrogate};
 use minflow::train::grid::initial_grid_model;
+
+use crate::model_support::{meta, surrogate, tiny_grid};
 
 type B = NdArray<f32>;
 
 fn config(rest_shape: bool, update: Update) -> GridConfig {
-    GridConfig::new(MemoryKind::MinGru)
-        .with_grid(16)
-        .with_levels(2)
-        .with_unet_width(4)
-        .with_latent(4)
-        .with_hidden(4)
-        .with_head_hidden(8)
-        .with_dv_scale([0.1, 0.1])
-        .with_head_zero_init(false)
+    (tiny_grid(MemoryKind::MinGru))
         .with_rest_shape(rest_shape)
         .with_update(update)
-}
-
-fn surrogate(config: GridConfig, seed: u64) -> Surrogate<B> {
-    let device = Default::default();
-    let model = initial_grid_model::<B>(&config, seed, &device).unwrap();
-    let meta = ModelMeta {
-        net: NetConfig::Grid(config),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    };
-    Surrogate::from_net(store::Net::Grid(model), meta, &device)
 }
 
 /// A jelly block of 12 x 12 particles 0.01 apart (slightly jittered, so no two distances
@@ -95,13 +75,6 @@ fn grown_rest_shape_and_grid_head_predict_what_the_parent_did() {
         .with_rest_shape()
         .with_update(Update::GridHead);
     assert!(grown.uses_rest_shape() && grown.update() == Update::GridHead);
-    let meta = |c: GridConfig| ModelMeta {
-        net: NetConfig::Grid(c),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    };
     let parent = Surrogate::from_net(
         store::Net::Grid(parent),
         meta(config(false, Update::Free)),
@@ -323,13 +296,7 @@ fn host_pass_predicts_what_the_tensor_path_does() {
         let mut c = config(rest, Update::Free).with_bundle(bundle);
         c.memory = memory;
         let model = initial_grid_model::<B>(&c, 31, &device).unwrap();
-        let meta = ModelMeta {
-            net: NetConfig::Grid(c),
-            scaler: Scaler::default(),
-            epoch: 0,
-            val_loss: 0.0,
-            constraints: None,
-        };
+        let meta = meta(c);
         let run = |host_pass: bool| {
             let net = store::Net::Grid(model.clone().with_host_pass(host_pass));
             let s = Surrogate::from_net(net, meta.clone(), &device);

@@ -2,39 +2,12 @@
 //! packed into one batch score each scene as a call of its own would, scenes of another
 //! particle count go into a call of their own, and the structure factor only adds.
 
-use burn::backend::NdArray;
 use minflow::data::{Scaler, Trajectory};
-use minflow::model::grid::{GridConfig, MemoryKind};
-use minflow::model::store::{ModelMeta, Net, NetConfig, Surrogate};
-use minflow::train::grid::{initial_grid_model, validation_rollout};
+use minflow::model::grid::MemoryKind;
+use minflow::train::grid::validation_rollout;
 
+use crate::model_support::{surrogate, tiny_grid};
 use crate::train_support::trajectory;
-
-type B = NdArray<f32>;
-
-/// A small untrained grid model predicting 2 frames a call.
-fn surrogate() -> Surrogate<B> {
-    let config = GridConfig::new(MemoryKind::MinGru)
-        .with_grid(16)
-        .with_levels(2)
-        .with_unet_width(4)
-        .with_latent(4)
-        .with_hidden(4)
-        .with_head_hidden(8)
-        .with_dv_scale([0.1, 0.1])
-        .with_head_zero_init(false)
-        .with_bundle(2);
-    let device = Default::default();
-    let model = initial_grid_model::<B>(&config, 4, &device).unwrap();
-    let meta = ModelMeta {
-        net: NetConfig::Grid(config),
-        scaler: Scaler::default(),
-        epoch: 0,
-        val_loss: 0.0,
-        constraints: None,
-    };
-    Surrogate::from_net(Net::Grid(model), meta, &device)
-}
 
 /// `traj` without its first `skip` frames: another scene of the same particles.
 fn later(traj: &Trajectory, skip: usize) -> Trajectory {
@@ -50,7 +23,8 @@ fn later(traj: &Trajectory, skip: usize) -> Trajectory {
 
 #[test]
 fn packed_validation_rollouts_score_each_scene_as_its_own_call() {
-    let s = surrogate();
+    // A small untrained grid model predicting 2 frames a call.
+    let s = surrogate(tiny_grid(MemoryKind::MinGru).with_bundle(2), 4);
     let (a, c) = (trajectory(40, 30), trajectory(24, 30));
     let b = later(&a, 6);
     let scaler = Scaler::fit(&[&a, &b, &c]);

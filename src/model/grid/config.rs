@@ -161,9 +161,9 @@ pub struct GridConfig {
     /// 0, in models saved before it existed: the network's own grid. A small network's box
     /// is narrower than the solver's: on 32 cells its right and top edges stand at 0.953,
     /// where the solver's particles reach 0.97 (64 cells, `multi`) and 0.98 (128, `fluid`),
-    /// so no predicted front reached the far wall. [`BOX_GRID_FINEST`] leaves each scene's
-    /// own walls to what the network learned and to the projection's walls part
-    /// ([`crate::model::constraints`], in the scene's solver cells).
+    /// so no predicted front reached the far wall. 256, the finest solver `simulate` makes,
+    /// leaves each scene's own walls to what the network learned and to the projection's
+    /// walls part ([`crate::model::constraints`], in the scene's solver cells).
     #[config(default = 0)]
     pub box_grid: usize,
 }
@@ -180,9 +180,6 @@ pub const INTERACTION_NEIGHBOURS: RangeInclusive<usize> = 1..=64;
 pub const INTERACTION_RADIUS_MAX: f64 = 0.25;
 /// `box_grid`'s range (`--box-grid`) besides 0 (the network's grid).
 pub const BOX_GRID: RangeInclusive<usize> = 8..=4096;
-/// The finest solver grid `simulate` makes (`--grid 256`, 40,000 particles): a `box_grid`
-/// that clamps no scene's particles short of its solver's box.
-pub const BOX_GRID_FINEST: usize = 256;
 
 /// A [`GridConfig`] setting out of range; each message names the command-line flag.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

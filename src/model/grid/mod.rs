@@ -64,8 +64,7 @@ pub mod unet;
 pub use config::{Deformation, GridConfig, GridConfigError, Update};
 /// The ranges of [`GridConfig`]'s settings that have flags, shared with their clap parsers.
 pub use config::{
-    BOX_GRID, BOX_GRID_FINEST, BUNDLE, INTERACTION_NEIGHBOURS, INTERACTION_RADIUS_MAX,
-    INTERACTION_ROUNDS, SUBSTEPS,
+    BOX_GRID, BUNDLE, INTERACTION_NEIGHBOURS, INTERACTION_RADIUS_MAX, INTERACTION_ROUNDS, SUBSTEPS,
 };
 pub use memory::{Memory, MemoryKind, MemoryState};
 pub use rest::{NeighbourTensors, Neighbourhood, REST_FEATURES};
