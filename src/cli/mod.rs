@@ -2,12 +2,14 @@
 //! table of contents of what `minflow` does. Each verb lives in its own file (`bench` and
 //! `train` in folders of their own: `bench/mod.rs`, `train/mod.rs`): `demo`, `simulate`,
 //! `train`, `eval`, `report`, `replay`, `record`, `node`, `launch`, `bag`, `export`,
-//! `import`, `bench`, `constraints`. Shared by several: [`device`] (`--device`), `flags`
-//! (range checks of numeric flags), `foxglove` (`--foxglove`), `transport` (`--transport`,
-//! `--pointcloud2`) and `run_folder` (what a training run leaves in its folder). This file also holds the `minflow-cuda` subset
-//! ([`TrainCli`]), exit codes, the allocator setting and logging. Errors are `anyhow` with
-//! context here, structured error types in the pipeline modules.
+//! `import`, `bench`, `constraints`, `average`. Shared by several: [`device`] (`--device`),
+//! `flags` (range checks of numeric flags), `foxglove` (`--foxglove`), `transport`
+//! (`--transport`, `--pointcloud2`) and `run_folder` (what a training run leaves in its
+//! folder). This file also holds the `minflow-cuda` subset ([`TrainCli`]), exit codes, the
+//! allocator setting and logging. Errors are `anyhow` with context here, structured error
+//! types in the pipeline modules.
 
+mod average;
 mod bag;
 mod bench;
 mod constraints;
@@ -82,12 +84,14 @@ enum Command {
     /// A model's material constraints (projected onto after every predicted frame).
     #[command(subcommand)]
     Constraints(constraints::ConstraintsCommand),
+    /// One model with the mean of several models' weights (weights of one run, averaged).
+    Average(average::AverageArgs),
 }
 
 /// `minflow-cuda`: the subset of `minflow` a GPU machine needs (`simulate`, `train`, `eval`,
-/// `bench sim`, `bench train`, `bench gemm`, `bench rollout`, `constraints`), the same flags, without the
-/// transports, so that its stripped binary is small enough to carry to the machine
-/// (docs/cuda.md). Built with `--features cuda`.
+/// `bench sim`, `bench train`, `bench gemm`, `bench rollout`, `constraints`, `average`), the
+/// same flags, without the transports, so that its stripped binary is small enough to carry
+/// to the machine (docs/cuda.md). Built with `--features cuda`.
 #[derive(Debug, Parser)]
 #[command(name = "minflow-cuda", version, about, long_about = None)]
 pub struct TrainCli {
@@ -112,6 +116,8 @@ enum TrainCommand {
     /// A model's material constraints (as `minflow constraints`).
     #[command(subcommand)]
     Constraints(constraints::ConstraintsCommand),
+    /// Average models' weights (as `minflow average`).
+    Average(average::AverageArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -137,6 +143,7 @@ pub fn run_train(cli: TrainCli) -> anyhow::Result<Outcome> {
         TrainCommand::Bench(TrainBenchCommand::Gemm(args)) => bench::gemm::run(args),
         TrainCommand::Bench(TrainBenchCommand::Rollout(args)) => bench::rollout::run(args),
         TrainCommand::Constraints(cmd) => constraints::run(cmd),
+        TrainCommand::Average(args) => average::run(args),
     }
 }
 
@@ -276,6 +283,7 @@ pub fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Launch(args) => launch::run(args),
         Command::Train(args) => train::run(args),
         Command::Constraints(cmd) => constraints::run(cmd),
+        Command::Average(args) => average::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Report(args) => report::run(args),
         Command::Bench(cmd) => bench::run(cmd),

@@ -9,12 +9,14 @@
 //! - [`constraints`]: the projection of every predicted frame onto the material's
 //!   constraints (rope, shape matching, liquid density, walls, contact), of either
 //!   architecture, and its fit (`minflow constraints fit`);
-//! - [`roofline`]: a grid call's time and needs by part (`bench rollout --stages`).
+//! - [`roofline`]: a grid call's time and needs by part (`bench rollout --stages`);
+//! - [`average`]: weight averaging of networks of one run (`minflow average`).
 //!
 //! Here: the host <-> device copies ([`upload`], [`download`]) and the min-max [`Scaling`]
 //! constants. The networks' kernels (fused dense layers, the recurrence scans, im2col,
 //! P2G/G2P) live in [`crate::ops`] behind [`crate::ops::NetOps`].
 
+pub mod average;
 pub mod constraints;
 pub mod grid;
 pub mod minrnn;

@@ -224,6 +224,9 @@ score() {
         models+=(--model "runs/branch-${lever%%=*}")
     done
     rm -rf "$DATA/long/train_splash" "$out" && mkdir -p "$DATA/long/train_splash" "$out"
+    # The training split is phase 1's (phase 2 and every branch keep it): a machine that
+    # only unpacked phase 2 for FROM=long2 takes it from phase 1's archive.
+    unpack long
     for split in $(python3 -c "import json, sys; print(' '.join(s.replace('/', '_') for s in \
         json.load(open(sys.argv[1]))['train'] if s.startswith('fluid/splash')))" \
         runs/long/split.json); do

@@ -34,6 +34,7 @@ mod interop_import;
 mod interop_import_h5py;
 mod interop_npz;
 mod many_streams;
+mod model_average;
 mod model_box;
 mod model_bundle;
 mod model_cells;
