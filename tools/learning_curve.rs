@@ -29,7 +29,8 @@ struct Args {
 /// The (million samples, avg20 / constvel) and (million samples, whole / persist) points of
 /// one `curve.csv`; a row without a whole-scene figure gives only the first.
 fn points(path: &Path) -> anyhow::Result<[Vec<(f64, f64)>; 2]> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {path:?}"))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines();
     let header: Vec<&str> = lines
         .next()
@@ -37,7 +38,8 @@ fn points(path: &Path) -> anyhow::Result<[Vec<(f64, f64)>; 2]> {
         .split(',')
         .collect();
     let column = |name: &str| {
-        (header.iter().position(|h| *h == name)).with_context(|| format!("{path:?}: no {name}"))
+        (header.iter().position(|h| *h == name))
+            .with_context(|| format!("{}: no {name}", path.display()))
     };
     let [samples, avg20, constvel, whole, persist] = [
         "samples",

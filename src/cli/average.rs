@@ -5,18 +5,19 @@
 //! epoch and validation loss) and `split.json`, the averaged `model.mpk`, and `average.json`
 //! naming the models and weights it came from.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use clap::Args;
 
 use super::{Outcome, UsageError};
-use crate::model::average::average;
+use crate::model::average::{average, normalised};
 use crate::model::store::{ModelMeta, Net, RunFolder};
 
 /// The CPU backend the weights are averaged on.
 type Cpu = burn::backend::NdArray<f32>;
 
+/// `minflow average`'s flags.
 #[derive(Debug, Args)]
 pub struct AverageArgs {
     /// Run folders whose weights to average (at least two; `model.json` + `model.mpk`).
@@ -25,68 +26,74 @@ pub struct AverageArgs {
     /// Each model's weight (one per `--model`, normalised to sum to 1); default: equal.
     #[arg(long = "weight", value_name = "W", value_parser = super::flags::non_negative)]
     weights: Vec<f64>,
-    /// The run folder to write the averaged model into.
+    /// The run folder to write the averaged model into (not one of the `--model` folders).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
 }
 
+/// Averages the `--model` folders' weights into `--out`.
+///
+/// # Errors
+/// [`UsageError`] for fewer than two models, weights that do not fit them, or an `--out`
+/// that is one of them; a model that does not load or differs from the first in its network
+/// or normalisation; a file that cannot be written.
 pub fn run(args: AverageArgs) -> anyhow::Result<Outcome> {
-    let (models, weights) = (args.models.len(), args.weights.len());
-    if models < 2 {
+    if args.models.len() < 2 {
         let msg = "give at least two --model folders to average".to_string();
         return Err(UsageError(msg).into());
     }
-    if weights != 0 && weights != models {
-        let msg = format!("{weights} --weight values for {models} --model folders");
+    let given = (!args.weights.is_empty()).then_some(args.weights.as_slice());
+    let weights = normalised(args.models.len(), given).map_err(|e| UsageError(e.to_string()))?;
+    if let Some(dir) = args.models.iter().find(|dir| same_folder(dir, &args.out)) {
+        let msg = format!("--out {} is a --model folder: give another", dir.display());
         return Err(UsageError(msg).into());
     }
-    if weights != 0 && args.weights.iter().sum::<f64>() <= 0.0 {
-        return Err(UsageError("the --weight values sum to 0".to_string()).into());
-    }
     let device = Default::default();
-    let mut nets = Vec::new();
+    let mut nets: Vec<Net<Cpu>> = Vec::new();
     let mut metas: Vec<ModelMeta> = Vec::new();
     for dir in &args.models {
         let (net, meta) = (RunFolder::new(dir).load::<Cpu>(&device))
             .with_context(|| format!("loading {}", dir.display()))?;
         if let Some(first) = metas.first() {
-            same_network(first, &meta).with_context(|| {
-                format!(
-                    "{} cannot be averaged with {}",
-                    dir.display(),
-                    args.models[0].display()
-                )
-            })?;
+            let (this, first_dir) = (dir.display(), args.models[0].display());
+            same_network(first, &meta)
+                .with_context(|| format!("{this} cannot be averaged with {first_dir}"))?;
         }
         nets.push(net);
         metas.push(meta);
     }
-    let weights = (!args.weights.is_empty()).then_some(args.weights.as_slice());
-    // same_network checked that every network has the first's architecture.
-    let net = match nets[0] {
-        Net::Grid(_) => {
-            let grid = |n| if let Net::Grid(m) = n { Some(m) } else { None };
-            Net::Grid(average(of_one_kind(nets, grid), weights)?)
-        }
-        Net::Paper(_) => {
-            let paper = |n| if let Net::Paper(m) = n { Some(m) } else { None };
-            Net::Paper(average(of_one_kind(nets, paper), weights)?)
-        }
-    };
-    save(&args, net, &metas)?;
+    // `Net` is a module of either architecture; same_network checked they are one.
+    let net = average(nets, Some(&weights))?;
+    save(&args, &net, &metas, &weights)?;
     Ok(Outcome::Done)
 }
 
-/// Each network's module of one architecture (`module`: None for the other).
-fn of_one_kind<M>(nets: Vec<Net<Cpu>>, module: fn(Net<Cpu>) -> Option<M>) -> Vec<M> {
-    let one = |n| module(n).expect("same_network checked the architecture");
-    nets.into_iter().map(one).collect()
+/// Whether `a` and `b` name one folder (`b` need not exist yet).
+fn same_folder(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
 }
 
-/// Networks of one configuration and normalisation (their JSON descriptions equal).
+/// Networks of one configuration and normalisation: every field of their `model.json`
+/// descriptions equal but the convolution form (`conv`), which does not change the weights.
 fn same_network(first: &ModelMeta, other: &ModelMeta) -> anyhow::Result<()> {
-    if serde_json::to_value(&first.net)? != serde_json::to_value(&other.net)? {
-        bail!("their network configurations differ (model.json)");
+    let (a, b) = (
+        serde_json::to_value(&first.net)?,
+        serde_json::to_value(&other.net)?,
+    );
+    let fields: Vec<String> = (a.as_object().into_iter().flatten())
+        .filter(|(key, value)| key.as_str() != "conv" && b.get(key.as_str()) != Some(value))
+        .map(|(key, value)| {
+            let theirs = b
+                .get(key.as_str())
+                .map_or("absent".to_owned(), ToString::to_string);
+            format!("{key}: {value} in the first, {theirs} here")
+        })
+        .collect();
+    if !fields.is_empty() {
+        bail!("their networks differ (model.json): {}", fields.join("; "));
     }
     if serde_json::to_value(&first.scaler)? != serde_json::to_value(&other.scaler)? {
         bail!("their normalisations differ (model.json's scaler: not one run's weights)");
@@ -94,29 +101,40 @@ fn same_network(first: &ModelMeta, other: &ModelMeta) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Writes the averaged network with the first model's `model.json` and `split.json`, and
-/// `average.json` with the sources.
-fn save(args: &AverageArgs, net: Net<Cpu>, metas: &[ModelMeta]) -> anyhow::Result<()> {
+/// Writes the averaged network with the first model's `model.json` and `split.json` (an
+/// older `split.json` in `--out` removed where the first has none), and `average.json` with
+/// the sources and their normalised `weights`.
+fn save(
+    args: &AverageArgs,
+    net: &Net<Cpu>,
+    metas: &[ModelMeta],
+    weights: &[f64],
+) -> anyhow::Result<()> {
     let out = RunFolder::new(&args.out);
-    match &net {
+    match net {
         Net::Grid(m) => out.save(m, &metas[0]),
         Net::Paper(m) => out.save(m, &metas[0]),
     }
     .with_context(|| format!("writing {}", args.out.display()))?;
-    let first = RunFolder::new(&args.models[0]);
-    if first.split_json().exists() {
-        std::fs::copy(first.split_json(), out.split_json())
-            .with_context(|| format!("writing {}", out.split_json().display()))?;
-    }
-    let n = args.models.len() as f64;
-    let total: f64 = args.weights.iter().sum();
-    let sources: Vec<serde_json::Value> = (args.models.iter().zip(metas).enumerate())
-        .map(|(i, (dir, meta))| {
+    let (split, out_split) = (
+        RunFolder::new(&args.models[0]).split_json(),
+        out.split_json(),
+    );
+    let copied = match split.exists() {
+        true => std::fs::copy(&split, &out_split).map(drop),
+        false => std::fs::remove_file(&out_split).or_else(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => Ok(()),
+            _ => Err(e),
+        }),
+    };
+    copied.with_context(|| format!("writing {}", out_split.display()))?;
+    let sources: Vec<serde_json::Value> = (args.models.iter().zip(metas).zip(weights))
+        .map(|((dir, meta), weight)| {
             serde_json::json!({
                 "model": dir.display().to_string(),
                 "epoch": meta.epoch,
                 "val_loss": meta.val_loss,
-                "weight": args.weights.get(i).map_or(1.0 / n, |w| w / total),
+                "weight": weight,
             })
         })
         .collect();

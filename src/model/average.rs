@@ -15,7 +15,8 @@ use burn::tensor::{Tensor, TensorData};
 /// Why networks could not be averaged.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum AverageError {
-    /// No network, or a weight list of another length than the networks'.
+    /// No network, or weights that do not fit: another count than the networks', a
+    /// negative or non-finite weight, or a sum that is 0 or not finite.
     #[error("{0}")]
     Input(String),
     /// Network `index` (0-based) has other parameters than the first.
@@ -53,8 +54,10 @@ impl<B: Backend> ModuleMapper<B> for Replace {
     fn map_float<const D: usize>(&mut self, param: Param<Tensor<B, D>>) -> Param<Tensor<B, D>> {
         let (shape, mean) = self.means.next().expect("one mean a parameter");
         let (id, tensor, mapper) = param.consume();
-        let device = tensor.device();
+        let (device, grad) = (tensor.device(), tensor.is_require_grad());
         let tensor = Tensor::<B, D>::from_data(TensorData::new(mean, shape), &device);
+        // A trainable parameter stays trainable (on an autodiff backend).
+        let tensor = if grad { tensor.require_grad() } else { tensor };
         Param::from_mapped_value(id, tensor, mapper)
     }
 }
@@ -71,9 +74,6 @@ pub fn average<B: Backend, M: Module<B>>(
     nets: Vec<M>,
     weights: Option<&[f64]>,
 ) -> Result<M, AverageError> {
-    if nets.is_empty() {
-        return Err(AverageError::Input("no network to average".into()));
-    }
     let weights = normalised(nets.len(), weights)?;
     let mut collected = nets.iter().map(|net| {
         let mut c = Collect::default();
@@ -113,8 +113,15 @@ pub fn average<B: Backend, M: Module<B>>(
     }))
 }
 
-/// `weights` (or n equal ones) scaled to sum to 1.
-fn normalised(n: usize, weights: Option<&[f64]>) -> Result<Vec<f64>, AverageError> {
+/// `weights` (or `n` equal ones) scaled to sum to 1, as [`average`] uses them.
+///
+/// # Errors
+/// [`AverageError::Input`] for `n` = 0, another count than `n`, a negative or non-finite
+/// weight, or a sum that is 0 or not finite.
+pub fn normalised(n: usize, weights: Option<&[f64]>) -> Result<Vec<f64>, AverageError> {
+    if n == 0 {
+        return Err(AverageError::Input("no network to average".into()));
+    }
     let weights = match weights {
         None => vec![1.0; n],
         Some(w) if w.len() == n => w.to_vec(),
@@ -124,8 +131,8 @@ fn normalised(n: usize, weights: Option<&[f64]>) -> Result<Vec<f64>, AverageErro
         }
     };
     let total: f64 = weights.iter().sum();
-    if weights.iter().any(|w| !w.is_finite() || *w < 0.0) || total <= 0.0 {
-        let msg = format!("weights must be non-negative with a positive sum, got {weights:?}");
+    if weights.iter().any(|w| !w.is_finite() || *w < 0.0) || !(total > 0.0 && total.is_finite()) {
+        let msg = format!("weights must be finite, >= 0 and of a positive sum, got {weights:?}");
         return Err(AverageError::Input(msg));
     }
     Ok(weights.into_iter().map(|w| w / total).collect())

@@ -89,11 +89,16 @@ fn networks_of_another_shape_or_bad_weights_are_refused() {
     assert!(matches!(err, AverageError::Input(_)), "{err}");
 }
 
-/// A run folder of the tiny network drawn from `seed`, with a `split.json` for the first.
+/// A run folder of the tiny network drawn from `seed` (its `model.json` at epoch `seed`),
+/// with a `split.json`.
 fn folder(dir: &Path, seed: u64, latent: usize) {
     let config = tiny_grid(MemoryKind::MinGru).with_latent(latent);
     let model = initial_grid_model::<B>(&config, seed, &Default::default()).unwrap();
-    RunFolder::new(dir).save(&model, &meta(config)).unwrap();
+    let meta = minflow::model::store::ModelMeta {
+        epoch: seed as usize,
+        ..meta(config)
+    };
+    RunFolder::new(dir).save(&model, &meta).unwrap();
     let split = r#"{"train": ["a"], "val": ["b"], "test": ["c"]}"#;
     std::fs::write(dir.join("split.json"), split).unwrap();
 }
@@ -133,6 +138,8 @@ fn average_command_writes_a_model_that_loads() {
         json(&dir("out").join("split.json")),
         json(&dir("a").join("split.json"))
     );
+    // The first model's model.json (its epoch), not the second's.
+    assert_eq!(json(&dir("out").join("model.json"))["epoch"], 1);
     let sources = json(&dir("out").join("average.json"));
     assert_eq!(sources["averaged"][1]["weight"], 0.75);
     assert_eq!(sources["averaged"][0]["model"], a.as_str());
@@ -144,9 +151,22 @@ fn average_command_writes_a_model_that_loads() {
             "average", "--model", &a, "--model", &b, "--weight", "1", "--out", &refused,
         ],
         vec![
-            "average", "--model", &a, "--model", &b, "--weight", "-1", "--weight", "1", "--out",
+            "average",
+            "--model",
+            &a,
+            "--model",
+            &b,
+            "--weight=-1",
+            "--weight",
+            "1",
+            "--out",
             &refused,
         ],
+        vec![
+            "average", "--model", &a, "--model", &b, "--weight", "0", "--weight", "0", "--out",
+            &refused,
+        ],
+        vec!["average", "--model", &a, "--model", &b, "--out", &a],
     ] {
         let o = minflow(&args);
         assert_eq!(
@@ -163,9 +183,11 @@ fn average_command_writes_a_model_that_loads() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("network configurations differ"), "{err}");
+    assert!(err.contains("latent: 4 in the first, 8 here"), "{err}");
     assert!(
         !dir("refused").exists(),
         "a refused average wrote its folder"
     );
+    let kept = json(&dir("a").join("split.json"));
+    assert_eq!(kept["val"][0], "b", "--out a touched a's split.json");
 }
