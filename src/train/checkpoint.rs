@@ -40,6 +40,8 @@ pub struct RunOutput {
     pub epochs: usize,
     /// Epochs without a better validation score before stopping (0: never).
     pub patience: usize,
+    /// Finished epochs whose weights [`Self::keep_epoch`] keeps (0: none).
+    pub keep_epochs: usize,
     /// The material constraints the model projects its frames onto, saved with it.
     pub constraints: Option<crate::model::constraints::Constraints>,
     /// What the run has used over its calls, updated at each checkpoint.
@@ -71,6 +73,43 @@ impl RunOutput {
         val_loss: f64,
     ) -> Result<(), TrainError> {
         Ok(self.folder.save(model, &self.meta(epoch, val_loss))?)
+    }
+
+    /// Keeps `model` after `epoch` finished epochs as the run folder `epochs/NNN` (`model.json`,
+    /// `model.mpk`, the run's `split.json`: loadable by every command that reads a model) and
+    /// removes the kept epochs older than the last [`Self::keep_epochs`]; nothing when that
+    /// is 0. For weight averaging (`minflow average`, Izmailov et al. 2018) and for picking an
+    /// epoch by a measure other than the validation loss.
+    ///
+    /// # Errors
+    /// The files could not be written or the older folders removed.
+    pub fn keep_epoch<B: burn::tensor::backend::Backend, M: burn::module::Module<B>>(
+        &self,
+        model: &M,
+        epoch: usize,
+        val_loss: f64,
+    ) -> Result<(), TrainError> {
+        if self.keep_epochs == 0 {
+            return Ok(());
+        }
+        let kept = self.folder.dir().join("epochs");
+        let folder = RunFolder::new(kept.join(format!("{epoch:03}")));
+        folder.save(model, &self.meta(epoch, val_loss))?;
+        let split = self.folder.split_json();
+        if split.exists() {
+            std::fs::copy(&split, folder.split_json()).map_err(|e| err(&split, e))?;
+        }
+        // Every older epoch's folder, also those a run with a larger --keep-epochs left.
+        let entries = std::fs::read_dir(&kept).map_err(|e| err(&kept, e))?;
+        let oldest_kept = epoch.saturating_sub(self.keep_epochs) + 1;
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let number = name.to_str().and_then(|n| n.parse::<usize>().ok());
+            if number.is_some_and(|n| n < oldest_kept) {
+                std::fs::remove_dir_all(entry.path()).map_err(|e| err(&entry.path(), e))?;
+            }
+        }
+        Ok(())
     }
 
     /// Writes the resumable checkpoint after the epochs in `history` and the `unfinished`

@@ -126,6 +126,7 @@ pub fn run_epochs<R: EpochRun>(
         } else {
             since_best += 1;
         }
+        (run.output()).keep_epoch::<R::Backend, _>(&model, epoch + 1, val_loss)?;
         history.push(record.clone());
         run.output().checkpoint(&model, &optim, &history, None)?;
         observer.epoch(&record, &history);

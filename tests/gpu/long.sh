@@ -65,7 +65,8 @@ case "$PHASE" in
 *) echo "PHASE must be 1 or 2" >&2; exit 2 ;;
 esac
 read -r -a SCHEDULE <<<"${SCHEDULE:-${BATCH[*]} --samples-per-epoch 200000 --lr 1e-3 \
-    --lr-final 1e-5 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20}"
+    --lr-final 1e-5 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20 \
+    --keep-epochs 8}"
 read -r -a BRANCH <<<"${BRANCH:---epochs 1000 --samples-per-epoch 20000 --batch-size 128 \
     --lr 3e-4 --lr-final 3e-4 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20}"
 mkdir -p "$RET" runs

@@ -2,7 +2,8 @@
 //! result is the weighted mean of the sources' (against the parameters read back one by
 //! one), networks of another shape are refused, and the command writes a run folder that
 //! loads, with the first model's `model.json` and `split.json` and `average.json` naming the
-//! sources; its bad flags are usage errors before any file is written.
+//! sources; its bad flags are usage errors before any file is written. `train
+//! --keep-epochs` keeps the epochs it averages.
 
 use std::path::Path;
 use std::process::Command;
@@ -190,4 +191,40 @@ fn average_command_writes_a_model_that_loads() {
     );
     let kept = json(&dir("a").join("split.json"));
     assert_eq!(kept["val"][0], "b", "--out a touched a's split.json");
+}
+
+/// `train --keep-epochs 2` keeps the last two finished epochs as run folders `epochs/NNN`
+/// (each with its epoch's `model.json` and the run's `split.json`), the best of them with
+/// the kept model's weights, and `minflow average` takes them.
+#[test]
+fn kept_epochs_are_run_folders_that_average() {
+    let tmp = crate::tmp::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    let args = ["--epochs", "3", "--model", "mingru", "--keep-epochs", "2"];
+    let o = crate::cli_train::train_grid(&run, &args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let kept = run.join("epochs");
+    let mut names: Vec<String> = (std::fs::read_dir(&kept).unwrap())
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["002", "003"]);
+    for (name, epoch) in [("002", 2), ("003", 3)] {
+        assert_eq!(json(&kept.join(name).join("model.json"))["epoch"], epoch);
+        assert_eq!(
+            json(&kept.join(name).join("split.json")),
+            json(&run.join("split.json"))
+        );
+    }
+    let best = json(&run.join("model.json"))["epoch"].as_u64().unwrap();
+    if best >= 2 {
+        let weights = |dir: &Path| std::fs::read(dir.join("model.mpk")).unwrap();
+        assert_eq!(weights(&kept.join(format!("{best:03}"))), weights(&run));
+    }
+    let out = tmp.path().join("mean");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (a, b) = (s(&kept.join("002")), s(&kept.join("003")));
+    let o = minflow(&["average", "--model", &a, "--model", &b, "--out", &s(&out)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(RunFolder::new(&out).load::<B>(&Default::default()).is_ok());
 }

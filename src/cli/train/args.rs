@@ -312,6 +312,10 @@ pub struct GridArgs {
     /// validated and kept; the learning rate decays by the clock; 0: no limit).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative)]
     pub max_minutes: f64,
+    /// Keep the weights of the last N finished epochs as run folders `epochs/NNN` beside the
+    /// best (for `minflow average`, or an epoch picked by whole-scene eval; 0: none).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub keep_epochs: usize,
     /// End this call after this many minutes with a mid-epoch checkpoint that `--resume`
     /// continues exactly (a run of hours over calls of a few minutes; the schedule is
     /// unchanged; 0: no limit).
@@ -429,6 +433,7 @@ impl TrainArgs {
             val_starts: g.val_starts,
             val_horizon: g.val_horizon,
             max_minutes: g.max_minutes,
+            keep_epochs: g.keep_epochs,
             // Set by the grid run from --constraints and --init-from.
             constraints: None,
         }

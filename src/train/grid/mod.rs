@@ -157,6 +157,7 @@ where
                 scaler: *scaler,
                 epochs: opts.epochs,
                 patience: opts.patience,
+                keep_epochs: opts.keep_epochs,
                 constraints: opts.constraints.clone(),
                 ledger: RunLedger::begin_call(ledger, devices, self.dataset.clone()).shared(),
                 call_started: Instant::now(),

@@ -86,6 +86,10 @@ pub struct GridTrainOptions {
     pub val_horizon: usize,
     /// Stop (after validating) once training has run this many minutes (0: no limit).
     pub max_minutes: f64,
+    /// Keep the weights of the last this many finished epochs as run folders
+    /// `epochs/NNN` ([`crate::train::RunOutput::keep_epoch`]; 0: none).
+    #[serde(default)]
+    pub keep_epochs: usize,
     /// Project every frame the training rollouts feed on (after the teacher-forced calls)
     /// onto these material constraints ([`crate::model::constraints`]), with a
     /// straight-through gradient: the loss and the next call read the projected frame, the
@@ -129,6 +133,7 @@ impl Default for GridTrainOptions {
             val_starts: 1,
             val_horizon: 1,
             max_minutes: 0.0,
+            keep_epochs: 0,
             constraints: None,
         }
     }

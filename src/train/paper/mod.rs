@@ -182,6 +182,7 @@ where
             scaler: *scaler,
             epochs: self.opts.epochs,
             patience: self.opts.patience,
+            keep_epochs: 0,
             constraints: None,
             ledger: RunLedger::begin_call(ledger, devices, self.dataset.clone()).shared(),
             call_started: Instant::now(),
