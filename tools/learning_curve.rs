@@ -1,6 +1,8 @@
 //! The long run's learning curve as a PNG (docs/training.md, "The long run"): avg20 over
-//! `constvel`'s and the whole scenes' MSE over `persist`'s on the unseen scenes, against the
-//! samples seen, one line per `curve.csv` that `tests/gpu/long.sh` appends to (phase 1's
+//! `constvel`'s, the whole scenes' MSE over `persist`'s and, where a curve has them, the
+//! liquid's measures (covered area at steps 20, 200 and the end and kinetic energy over the
+//! truth's, the share of surge fronts in time) on the unseen scenes, against the samples
+//! seen, one line per `curve.csv` that `tests/gpu/long.sh` appends to (phase 1's
 //! `runs/long/curve.csv`, phase 2's `runs/long2/curve.csv`).
 //!
 //! ```bash
@@ -26,80 +28,105 @@ struct Args {
     curves: Vec<PathBuf>,
 }
 
-/// The (million samples, avg20 / constvel) and (million samples, whole / persist) points of
-/// one `curve.csv`; a row without a whole-scene figure gives only the first.
-fn points(path: &Path) -> anyhow::Result<[Vec<(f64, f64)>; 2]> {
+/// The measures of a `curve.csv`, each as (million samples, value) points: avg20 over
+/// `constvel`'s, the whole scenes' MSE over `persist`'s, and where the curve has the
+/// liquid's columns, each of [`LIQUID`] (over the truth's; the fronts as a share of the
+/// scenes with liquid). A row without a figure leaves that point out.
+fn points(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines();
-    let header: Vec<&str> = lines
-        .next()
-        .context("an empty curve.csv")?
+    let header: Vec<&str> = (lines.next().context("an empty curve.csv")?)
         .split(',')
         .collect();
-    let column = |name: &str| {
-        (header.iter().position(|h| *h == name))
-            .with_context(|| format!("{}: no {name}", path.display()))
-    };
-    let [samples, avg20, constvel, whole, persist] = [
-        "samples",
-        "avg20",
-        "avg20_constvel",
-        "whole",
-        "whole_persist",
-    ]
-    .map(column);
-    let (samples, avg20, constvel) = (samples?, avg20?, constvel?);
-    let (whole, persist) = (whole?, persist?);
-    let mut out = [Vec::new(), Vec::new()];
+    let column = |name: &str| header.iter().position(|h| *h == name);
+    let need = |name: &str| column(name).with_context(|| format!("{}: no {name}", path.display()));
+    let (samples, avg20, constvel) = (need("samples")?, need("avg20")?, need("avg20_constvel")?);
+    let (whole, persist) = (need("whole")?, need("whole_persist")?);
+    let (area, energy, fronts) = (
+        column("liquid_area_20_200_end"),
+        column("liquid_energy"),
+        column("fronts"),
+    );
+    let mut out = vec![Vec::new(); 2 + LIQUID.len()];
     for line in lines.filter(|l| !l.trim().is_empty()) {
         let cells: Vec<&str> = line.split(',').collect();
-        let value = |i: usize| cells.get(i).and_then(|c| c.trim().parse::<f64>().ok());
+        let cell = |i: Option<usize>| i.and_then(|i| cells.get(i)).map(|c| c.trim());
+        let value = |i: usize| cell(Some(i)).and_then(|c| c.parse::<f64>().ok());
         let Some(x) = value(samples).map(|s| s / 1e6) else {
             continue;
         };
-        if let (Some(a), Some(c)) = (value(avg20), value(constvel)) {
-            out[0].push((x, a / c));
-        }
-        if let (Some(w), Some(p)) = (value(whole), value(persist)) {
-            out[1].push((x, w / p));
+        // "0.93 (5/11) / 0.56 (0/11) / 0.44 (0/11)": the area at steps 20, 200, the end.
+        let areas: Vec<Option<f64>> = (cell(area).unwrap_or("").split(" / "))
+            .map(|a| a.split_whitespace().next().and_then(|v| v.parse().ok()))
+            .collect();
+        // "4/11 (reached 5)": fronts within 10 % of the truth's step, of the liquid scenes.
+        let front = cell(fronts).and_then(|f| {
+            let (n, d) = f.split_whitespace().next()?.split_once('/')?;
+            Some(n.parse::<f64>().ok()? / d.parse::<f64>().ok()?)
+        });
+        let values = [
+            value(avg20).zip(value(constvel)).map(|(a, c)| a / c),
+            value(whole).zip(value(persist)).map(|(w, p)| w / p),
+            areas.first().copied().flatten(),
+            areas.get(1).copied().flatten(),
+            areas.get(2).copied().flatten(),
+            cell(energy).and_then(|e| e.parse().ok()),
+            front,
+        ];
+        for (line, v) in out.iter_mut().zip(values) {
+            line.extend(v.filter(|v: &f64| v.is_finite()).map(|v| (x, v)));
         }
     }
     Ok(out)
 }
 
+/// The liquid's measures of a curve, as [`points`] gives them after avg20 and whole scenes.
+const LIQUID: [&str; 5] = [
+    "area at step 20",
+    "area at step 200",
+    "area at the end",
+    "kinetic energy",
+    "fronts in time (share)",
+];
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let mut lines = [Vec::new(), Vec::new()];
+    let (mut avg20, mut whole, mut liquid) = (Vec::new(), Vec::new(), Vec::new());
     for path in &args.curves {
         let name = (path.parent().and_then(Path::file_name)).map_or_else(
             || path.display().to_string(),
             |n| n.to_string_lossy().into_owned(),
         );
-        for (line, points) in lines.iter_mut().zip(points(path)?) {
-            line.push(Series {
-                name: name.clone(),
-                points,
-            });
+        let mut measures = points(path)?.into_iter();
+        let series = |points| Series {
+            name: name.clone(),
+            points,
+        };
+        avg20.push(series(measures.next().unwrap_or_default()));
+        whole.push(series(measures.next().unwrap_or_default()));
+        for (what, points) in LIQUID.iter().zip(measures) {
+            if !points.is_empty() {
+                liquid.push(Series {
+                    name: format!("{name}: {what}"),
+                    points,
+                });
+            }
         }
     }
-    let [avg20, whole] = lines;
     let charts = vec![
         ("avg20 / constvel's, unseen scenes".to_string(), avg20),
         (
             "whole scenes' MSE / persist's, unseen scenes".to_string(),
             whole,
         ),
+        (
+            "the liquid / the truth's, 11 unseen scenes".to_string(),
+            liquid,
+        ),
     ];
-    panels(
-        &args.out,
-        &charts,
-        "million samples seen",
-        "ratio",
-        false,
-        2,
-        (560, 400),
-    )?;
+    let axis = "million samples seen";
+    panels(&args.out, &charts, axis, "ratio", false, 3, (520, 400))?;
     println!("wrote {}", args.out.display());
     Ok(())
 }
