@@ -30,8 +30,8 @@ struct Args {
 
 /// The measures of a `curve.csv`, each as (million samples, value) points: avg20 over
 /// `constvel`'s, the whole scenes' MSE over `persist`'s, and where the curve has the
-/// liquid's columns, each of [`LIQUID`] (over the truth's; the fronts as a share of the
-/// scenes with liquid). A row without a figure leaves that point out.
+/// liquid's columns, each of [`LIQUID`] (over the truth's; the fronts as the share in time
+/// of those `liquid_table.py` counts). A row without a figure leaves that point out.
 fn points(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
@@ -60,7 +60,7 @@ fn points(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
         let areas: Vec<Option<f64>> = (cell(area).unwrap_or("").split(" / "))
             .map(|a| a.split_whitespace().next().and_then(|v| v.parse().ok()))
             .collect();
-        // "4/11 (reached 5)": fronts within 10 % of the truth's step, of the liquid scenes.
+        // "4/11 (reached 5)": fronts within 10 % of the truth's step, of those counted.
         let front = cell(fronts).and_then(|f| {
             let (n, d) = f.split_whitespace().next()?.split_once('/')?;
             Some(n.parse::<f64>().ok()? / d.parse::<f64>().ok()?)
@@ -74,8 +74,8 @@ fn points(path: &Path) -> anyhow::Result<Vec<Vec<(f64, f64)>>> {
             cell(energy).and_then(|e| e.parse().ok()),
             front,
         ];
-        for (line, v) in out.iter_mut().zip(values) {
-            line.extend(v.filter(|v: &f64| v.is_finite()).map(|v| (x, v)));
+        for (measure, v) in out.iter_mut().zip(values) {
+            measure.extend(v.filter(|v: &f64| v.is_finite()).map(|v| (x, v)));
         }
     }
     Ok(out)
@@ -121,7 +121,7 @@ fn main() -> anyhow::Result<()> {
             whole,
         ),
         (
-            "the liquid / the truth's, 11 unseen scenes".to_string(),
+            "the liquid / the truth's, unseen scenes".to_string(),
             liquid,
         ),
     ];

@@ -9,8 +9,9 @@
 //! renames, so a run killed at any moment leaves either the previous or the new checkpoint,
 //! never a torn one; the previous epoch's stays as [`RunFolder::checkpoint_old`], and a
 //! resume whose checkpoint was damaged afterwards (a truncated copy, a full disk) falls back
-//! to it with a warning naming the file. Used by [`super::epochs::run_epochs`] for `minflow
-//! train` of either architecture.
+//! to it with a warning naming the file. With `--keep-epochs N`, `epochs/NNNN` holds the
+//! last N epochs' weights ([`RunOutput::keep_epoch`]). Used by
+//! [`super::epochs::run_epochs`] for `minflow train` of either architecture.
 
 use super::ledger::RunLedger;
 use super::progress::Unfinished;
@@ -75,10 +76,11 @@ impl RunOutput {
         Ok(self.folder.save(model, &self.meta(epoch, val_loss))?)
     }
 
-    /// Keeps `model` after `epoch` finished epochs as the run folder `epochs/NNN` (`model.json`,
+    /// Keeps `model` after `epoch` epochs (the last one finished, or cut short by
+    /// `--max-minutes` and validated) as the run folder `epochs/NNNN` (`model.json`,
     /// `model.mpk`, the run's `split.json`: loadable by every command that reads a model) and
-    /// removes the kept epochs older than the last [`Self::keep_epochs`]; nothing when that
-    /// is 0. For weight averaging (`minflow average`, Izmailov et al. 2018) and for picking an
+    /// removes every other epoch's folder but the last [`Self::keep_epochs`]; nothing when
+    /// that is 0. For weight averaging (`minflow average`, Izmailov et al. 2018) and for picking an
     /// epoch by a measure other than the validation loss.
     ///
     /// # Errors
@@ -93,19 +95,21 @@ impl RunOutput {
             return Ok(());
         }
         let kept = self.folder.dir().join("epochs");
-        let folder = RunFolder::new(kept.join(format!("{epoch:03}")));
+        let folder = RunFolder::new(kept.join(format!("{epoch:04}")));
         folder.save(model, &self.meta(epoch, val_loss))?;
         let split = self.folder.split_json();
         if split.exists() {
             std::fs::copy(&split, folder.split_json()).map_err(|e| err(&split, e))?;
         }
-        // Every older epoch's folder, also those a run with a larger --keep-epochs left.
+        // Every other epoch's folder: older ones (also those a larger --keep-epochs left) and
+        // later ones (a run trained again into this folder, or one resumed from an older
+        // checkpoint, is not yet past `epoch`).
         let entries = std::fs::read_dir(&kept).map_err(|e| err(&kept, e))?;
-        let oldest_kept = epoch.saturating_sub(self.keep_epochs) + 1;
+        let kept_range = epoch.saturating_sub(self.keep_epochs) + 1..=epoch;
         for entry in entries.flatten() {
             let name = entry.file_name();
             let number = name.to_str().and_then(|n| n.parse::<usize>().ok());
-            if number.is_some_and(|n| n < oldest_kept) {
+            if number.is_some_and(|n| !kept_range.contains(&n)) {
                 std::fs::remove_dir_all(entry.path()).map_err(|e| err(&entry.path(), e))?;
             }
         }

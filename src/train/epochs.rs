@@ -1,7 +1,8 @@
 //! The epoch loop both architectures train with ([`run_epochs`]): per epoch, one pass over
 //! the training batches, a validation score, the model saved when that score is the best so
 //! far (`model.json` + `model.mpk`, the run's kept model), a resumable checkpoint
-//! (`checkpoint/`), and the observer told; it stops after `epochs`, after `patience` epochs
+//! (`checkpoint/`), the last `--keep-epochs` epochs' weights (`epochs/`, a failure there only
+//! warned of), and the observer told; it stops after `epochs`, after `patience` epochs
 //! without a better score, or when a pass ran out of time. A pass that ends the call's share
 //! mid-epoch ([`super::ledger::CallShare`]) leaves a checkpoint of its unfinished epoch
 //! ([`Unfinished`]) and no record; the resumed run finishes that epoch from the next step. Early stopping on the validation
@@ -126,9 +127,12 @@ pub fn run_epochs<R: EpochRun>(
         } else {
             since_best += 1;
         }
-        (run.output()).keep_epoch::<R::Backend, _>(&model, epoch + 1, val_loss)?;
         history.push(record.clone());
         run.output().checkpoint(&model, &optim, &history, None)?;
+        // An optional copy: a failure is told and the run goes on (its checkpoint is written).
+        if let Err(e) = (run.output()).keep_epoch::<R::Backend, _>(&model, epoch + 1, val_loss) {
+            tracing::warn!("epoch {} not kept in epochs/: {e}", epoch + 1);
+        }
         observer.epoch(&record, &history);
         if pass.out_of_time {
             break;

@@ -19,7 +19,8 @@
 #    device-hours over both phases; the latest weights' avg20 on the unseen scenes from 5
 #    starts and their whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole
 #    scenes; in phase 2 also the liquid's area, energy and surge fronts, liquid_table.py);
-# 4. packs the phase's run folder (model, checkpoint, ledger, curve) into
+# 4. packs the phase's run folder (model, checkpoint, ledger, curve, the last 8 epochs'
+#    weights in epochs/ for picking one by whole-scene eval or averaging them) into
 #    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
 #    return folder). Copy it to gpu/ for the next call.
 #

@@ -193,38 +193,55 @@ fn average_command_writes_a_model_that_loads() {
     assert_eq!(kept["val"][0], "b", "--out a touched a's split.json");
 }
 
-/// `train --keep-epochs 2` keeps the last two finished epochs as run folders `epochs/NNN`
-/// (each with its epoch's `model.json` and the run's `split.json`), the best of them with
-/// the kept model's weights, and `minflow average` takes them.
+/// `train --keep-epochs 2` keeps the last two epochs as run folders `epochs/NNNN` (each
+/// with its epoch's `model.json` and the run's `split.json`, its weights those of that
+/// epoch's checkpoint), `minflow average` takes them, and a resumed run with
+/// `--keep-epochs 1` keeps only its last.
 #[test]
 fn kept_epochs_are_run_folders_that_average() {
     let tmp = crate::tmp::tempdir().unwrap();
     let run = tmp.path().join("run");
+    let kept = run.join("epochs");
+    let names = || {
+        let mut names: Vec<String> = (std::fs::read_dir(&kept).unwrap())
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        names
+    };
     let args = ["--epochs", "3", "--model", "mingru", "--keep-epochs", "2"];
     let o = crate::cli_train::train_grid(&run, &args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let kept = run.join("epochs");
-    let mut names: Vec<String> = (std::fs::read_dir(&kept).unwrap())
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
-    names.sort();
-    assert_eq!(names, ["002", "003"]);
-    for (name, epoch) in [("002", 2), ("003", 3)] {
+    assert_eq!(names(), ["0002", "0003"]);
+    let weights = |dir: &Path| std::fs::read(dir.join("model.mpk")).unwrap();
+    for (name, epoch, checkpoint) in [("0002", 2, "checkpoint.old"), ("0003", 3, "checkpoint")] {
         assert_eq!(json(&kept.join(name).join("model.json"))["epoch"], epoch);
         assert_eq!(
             json(&kept.join(name).join("split.json")),
             json(&run.join("split.json"))
         );
-    }
-    let best = json(&run.join("model.json"))["epoch"].as_u64().unwrap();
-    if best >= 2 {
-        let weights = |dir: &Path| std::fs::read(dir.join("model.mpk")).unwrap();
-        assert_eq!(weights(&kept.join(format!("{best:03}"))), weights(&run));
+        assert_eq!(
+            weights(&kept.join(name)),
+            weights(&run.join(checkpoint)),
+            "{name}"
+        );
     }
     let out = tmp.path().join("mean");
     let s = |p: &Path| p.to_str().unwrap().to_string();
-    let (a, b) = (s(&kept.join("002")), s(&kept.join("003")));
+    let (a, b) = (s(&kept.join("0002")), s(&kept.join("0003")));
     let o = minflow(&["average", "--model", &a, "--model", &b, "--out", &s(&out)]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(RunFolder::new(&out).load::<B>(&Default::default()).is_ok());
+    let args = [
+        "--epochs",
+        "4",
+        "--model",
+        "mingru",
+        "--keep-epochs",
+        "1",
+        "--resume",
+    ];
+    let o = crate::cli_train::train_grid(&run, &args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(names(), ["0004"]);
 }

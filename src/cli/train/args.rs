@@ -312,8 +312,9 @@ pub struct GridArgs {
     /// validated and kept; the learning rate decays by the clock; 0: no limit).
     #[arg(long, default_value_t = 0.0, value_parser = crate::cli::flags::non_negative)]
     pub max_minutes: f64,
-    /// Keep the weights of the last N finished epochs as run folders `epochs/NNN` beside the
-    /// best (for `minflow average`, or an epoch picked by whole-scene eval; 0: none).
+    /// Keep the weights of the last N epochs (an epoch --max-minutes cut short included) as
+    /// run folders `epochs/NNNN` beside the best (for `minflow average`, or an epoch picked
+    /// by whole-scene eval; 0: none).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub keep_epochs: usize,
     /// End this call after this many minutes with a mid-epoch checkpoint that `--resume`

@@ -86,8 +86,8 @@ pub struct GridTrainOptions {
     pub val_horizon: usize,
     /// Stop (after validating) once training has run this many minutes (0: no limit).
     pub max_minutes: f64,
-    /// Keep the weights of the last this many finished epochs as run folders
-    /// `epochs/NNN` ([`crate::train::RunOutput::keep_epoch`]; 0: none).
+    /// Keep the weights of the last this many epochs as run folders `epochs/NNNN`
+    /// ([`crate::train::checkpoint::RunOutput::keep_epoch`]; 0: none).
     #[serde(default)]
     pub keep_epochs: usize,
     /// Project every frame the training rollouts feed on (after the teacher-forced calls)
