@@ -37,6 +37,9 @@
 # (SCORE=0 trains only; `tests/gpu/long.sh score NAME=FLAGS...` then scores on the same
 # warm machine, for branches whose training and scoring do not fit one call.)
 #
+# The kept epochs of the phase's run (`--keep-epochs 8`) scored on the unseen scenes, to
+# pick the epoch to ship or to average by whole scenes: `tests/gpu/long.sh pick`.
+#
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), TRAIN_DEVICE (the run's: every GPU
 # of the machine, `cuda:0,cuda:1,...`, where it has several), DATA (/tmp/data), SCENES (1000 a
 # family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
@@ -236,7 +239,21 @@ score() {
             "$DATA/long/train_splash/"
         [ "$(ls "$DATA/long/train_splash" | wc -l)" -ge 12 ] && break
     done
-    for set in train:train_splash unseen:unseen; do
+    evaluate "$out" train:train_splash unseen:unseen
+    for name in "${names[@]}"; do
+        mkdir -p "$out/runs/$name"
+        cp "runs/$name"/{metrics.csv,model.json,run.json} "$out/runs/$name/" 2>/dev/null
+    done
+    tar czf "$RET/branches.tgz" -C "$RET" branches
+}
+
+# Evaluates the models of the caller's `models` (named as its `names`) on each SET:FOLDER of
+# "$@" (after OUT, $1; folders under $DATA/long) into OUT/SET-h20 and OUT/SET-full, and
+# prints liquid_table.py's table into OUT/table.md.
+evaluate() {
+    local out=$1 set
+    shift
+    for set in "$@"; do
         local eval=("$BIN" eval "${models[@]}" --device "$DEVICE" --data "$DATA/long/${set#*:}"
             --split all --no-render)
         "${eval[@]}" --starts 5 --horizon 20 --no-plausibility --out "$out/${set%%:*}-h20" \
@@ -246,11 +263,23 @@ score() {
     done
     python3 "$(dirname "$0")/liquid_table.py" "$out" "${names[@]}" | tee "$out/table.md"
     find "$out" -name '*.png' -delete
-    for name in "${names[@]}"; do
-        mkdir -p "$out/runs/$name"
-        cp "runs/$name"/{metrics.csv,model.json,run.json} "$out/runs/$name/" 2>/dev/null
+}
+
+# The epochs runs/$RUN kept (`train --keep-epochs`) scored on the unseen scenes as `score`
+# scores branches, into $RET/pick and $RET/pick.tgz: the epoch to ship is picked by whole
+# scenes, and the ones to average (`minflow average`), not by the 20-frame validation loss.
+pick() {
+    local models=() names=() dir out=$RET/pick
+    unpack "$RUN"
+    for dir in runs/"$RUN"/epochs/*/; do
+        [ -f "$dir/model.mpk" ] || continue
+        names+=("$(basename "$dir")")
+        models+=(--model "${dir%/}")
     done
-    tar czf "$RET/branches.tgz" -C "$RET" branches
+    [ "${#names[@]}" -gt 0 ] || { echo "no kept epochs in runs/$RUN/epochs" >&2; return 1; }
+    rm -rf "$out" && mkdir -p "$out"
+    evaluate "$out" unseen:unseen
+    tar czf "$RET/pick.tgz" -C "$RET" pick
 }
 
 case "${1:-}" in
@@ -265,6 +294,12 @@ branch)
     [ "${#TRAINED[@]}" -gt 0 ] || { echo "no branch trained" >&2; exit 1; }
     # SCORE=0 leaves the scoring to a `score` call on the same warm machine.
     [ "${SCORE:-1}" = 0 ] || score "${TRAINED[@]}"
+    echo "call: $((SECONDS - start)) s"
+    ;;
+pick)
+    start=$SECONDS
+    data || { echo "the dataset could not be made" >&2; exit 1; }
+    pick || exit 1
     echo "call: $((SECONDS - start)) s"
     ;;
 score)
@@ -286,7 +321,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,41p' "$0"
+    sed -n '2,47p' "$0"
     exit 2
     ;;
 esac
