@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 use clap::Args;
 
+use super::run_folder::fields_differing;
 use super::{Outcome, UsageError};
 use crate::model::average::{average, normalised};
 use crate::model::store::{ModelMeta, Net, RunFolder};
@@ -83,15 +84,10 @@ fn same_network(first: &ModelMeta, other: &ModelMeta) -> anyhow::Result<()> {
         serde_json::to_value(&first.net)?,
         serde_json::to_value(&other.net)?,
     );
-    let fields: Vec<String> = (a.as_object().into_iter().flatten())
-        .filter(|(key, value)| key.as_str() != "conv" && b.get(key.as_str()) != Some(value))
-        .map(|(key, value)| {
-            let theirs = b
-                .get(key.as_str())
-                .map_or("absent".to_owned(), ToString::to_string);
-            format!("{key}: {value} in the first, {theirs} here")
-        })
-        .collect();
+    let describe = |key: &str, theirs: &str, value: &serde_json::Value| {
+        format!("{key}: {value} in the first, {theirs} here")
+    };
+    let fields = fields_differing(&b, &a, &["conv"], describe);
     if !fields.is_empty() {
         bail!("their networks differ (model.json): {}", fields.join("; "));
     }

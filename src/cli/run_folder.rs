@@ -226,19 +226,30 @@ pub(crate) fn differences(
 ) -> anyhow::Result<Vec<String>> {
     const NOT_COMPARED: [&str; 4] = ["vel_scale", "dv_mean", "dv_scale", "conv"];
     let new = serde_json::to_value(net)?;
-    Ok(new
-        .as_object()
-        .into_iter()
-        .flatten()
-        .filter(|(key, _)| !NOT_COMPARED.contains(&key.as_str()))
+    let describe = |key: &str, old: &str, new: &serde_json::Value| {
+        format!("{key}: checkpoint {old}, this run {new}")
+    };
+    Ok(fields_differing(saved, &new, &NOT_COMPARED, describe))
+}
+
+/// Each field of the JSON object `new` but those in `skip` whose value in `saved` differs,
+/// as `describe(key, saved value or "absent", new value)`.
+pub(crate) fn fields_differing(
+    saved: &serde_json::Value,
+    new: &serde_json::Value,
+    skip: &[&str],
+    describe: impl Fn(&str, &str, &serde_json::Value) -> String,
+) -> Vec<String> {
+    (new.as_object().into_iter().flatten())
+        .filter(|(key, _)| !skip.contains(&key.as_str()))
         .filter_map(|(key, value)| {
             let old = saved.get(key);
             (old != Some(value)).then(|| {
                 let old = old.map_or_else(|| "absent".to_owned(), ToString::to_string);
-                format!("{key}: checkpoint {old}, this run {value}")
+                describe(key, &old, value)
             })
         })
-        .collect())
+        .collect()
 }
 
 #[cfg(test)]

@@ -67,9 +67,9 @@ impl<B: Backend> ModuleMapper<B> for Replace {
 /// structure, the parameter ids and the device of the result.
 ///
 /// # Errors
-/// [`AverageError::Input`] for no network, a weight list of another length, or weights
-/// that are negative or sum to 0; [`AverageError::Shape`] when a network's parameters differ
-/// from the first's in number or shape.
+/// [`AverageError::Input`] for weights that do not fit the networks ([`normalised`]);
+/// [`AverageError::Shape`] when a network's parameters differ from the first's in number
+/// or shape.
 pub fn average<B: Backend, M: Module<B>>(
     nets: Vec<M>,
     weights: Option<&[f64]>,

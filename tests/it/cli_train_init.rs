@@ -1,7 +1,7 @@
 //! Grid runs that start from another: `--init-from` (weights, normalisation, the network's
 //! levers grown at zero: `--substeps`, `--interaction`) and `--split-from`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::cli_train::{eval_briefly, grid_usage_errors, losses, train_grid};
 use crate::json;
@@ -173,20 +173,32 @@ fn grid_train_keeps_the_held_out_scenes_of_another_split() {
     );
 }
 
+/// A one-epoch run `dir/plain` (which must succeed), then a one-epoch run `dir/NAME` from
+/// its weights with `flags` (`--init-from dir/plain`): the two folders and the second run's
+/// output.
+fn from_a_plain_parent(
+    dir: &Path,
+    name: &str,
+    flags: &[&str],
+) -> (PathBuf, PathBuf, std::process::Output) {
+    let (plain, child) = (dir.join("plain"), dir.join(name));
+    let o = train_grid(&plain, &["--epochs", "1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let init = plain.to_str().unwrap();
+    let mut args = vec!["--epochs", "1"];
+    args.extend_from_slice(flags);
+    args.extend_from_slice(&["--init-from", init]);
+    let o = train_grid(&child, &args);
+    (plain, child, o)
+}
+
 /// `--substeps S` trains a model whose every call runs the network S times (issue 81's lever),
 /// saved with it and evaluated from its folder; a single-frame model fine-tunes into one;
 /// substeps with a bundle, or out of range, are usage errors.
 #[test]
 fn grid_train_with_substeps() {
     let dir = crate::tmp::tempdir().unwrap();
-    let (plain, sub) = (dir.path().join("plain"), dir.path().join("sub"));
-    let o = train_grid(&plain, &["--epochs", "1"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let init = plain.to_str().unwrap();
-    let o = train_grid(
-        &sub,
-        &["--epochs", "1", "--substeps", "2", "--init-from", init],
-    );
+    let (_, sub, o) = from_a_plain_parent(dir.path(), "sub", &["--substeps", "2"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("S = 2 substeps"), "{err}");
@@ -208,12 +220,7 @@ fn grid_train_with_substeps() {
 #[test]
 fn grid_train_with_message_passing() {
     let dir = crate::tmp::tempdir().unwrap();
-    let (plain, mp) = (dir.path().join("plain"), dir.path().join("mp"));
-    let o = train_grid(&plain, &["--epochs", "1"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let grown = [
-        "--epochs",
-        "1",
         "--interaction",
         "2",
         "--interaction-radius",
@@ -222,10 +229,8 @@ fn grid_train_with_message_passing() {
         "1e-12",
         "--lr-final",
         "0",
-        "--init-from",
-        plain.to_str().unwrap(),
     ];
-    let o = train_grid(&mp, &grown);
+    let (plain, mp, o) = from_a_plain_parent(dir.path(), "mp", &grown);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("2 rounds of message passing"), "{err}");
@@ -251,15 +256,8 @@ fn grid_train_with_message_passing() {
 #[test]
 fn grid_train_with_a_box_grid() {
     let dir = crate::tmp::tempdir().unwrap();
-    let (plain, wide) = (dir.path().join("plain"), dir.path().join("wide"));
-    let o = train_grid(&plain, &["--epochs", "1"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (plain, wide, o) = from_a_plain_parent(dir.path(), "wide", &["--box-grid", "256"]);
     assert_eq!(meta(&plain)["box_grid"], 0);
-    let init = plain.to_str().unwrap();
-    let o = train_grid(
-        &wide,
-        &["--epochs", "1", "--box-grid", "256", "--init-from", init],
-    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(meta(&wide)["box_grid"], 256);
     eval_briefly(&wide, &dir.path().join("eval"));
