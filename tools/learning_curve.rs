@@ -1,13 +1,15 @@
 //! The long run's learning curve as a PNG (docs/training.md, "The long run"): avg20 over
-//! `constvel`'s, the whole scenes' MSE over `persist`'s and, where a curve has them, the
-//! liquid's measures (covered area at steps 20, 200 and the end and kinetic energy over the
-//! truth's, the share of surge fronts in time) on the unseen scenes, against the samples
-//! seen, one line per `curve.csv` that `tests/gpu/long.sh` appends to (phase 1's
-//! `runs/long/curve.csv`, phase 2's `runs/long2/curve.csv`).
+//! `constvel`'s, the whole scenes' MSE over `persist`'s and, in two more panels where a
+//! curve has them, the liquid's measures (covered area at steps 20, 200 and the end; kinetic
+//! energy over the truth's and the share of surge fronts in time) on the unseen scenes,
+//! against the samples seen, one line per `curve.csv` that `tests/gpu/long.sh` appends to
+//! (phases 1 and 2's, rebuilt in `models/long-run/`; phase 3's in the run folder of its
+//! archive).
 //!
 //! ```bash
+//! tar xzf models/long-run/long3-run.tgz -C runs
 //! cargo run --release --example learning_curve -- --out docs/long_run_curve.png \
-//!     runs/long/curve.csv runs/long2/curve.csv  # phase 1's and phase 2's
+//!     models/long-run/long/curve.csv models/long-run/long2/curve.csv runs/long3/curve.csv
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -92,7 +94,9 @@ const LIQUID: [&str; 5] = [
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let (mut avg20, mut whole, mut liquid) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut avg20, mut whole) = (Vec::new(), Vec::new());
+    // The liquid's area at three steps in one panel, its energy and fronts in another.
+    let (mut area, mut motion) = (Vec::new(), Vec::new());
     for path in &args.curves {
         let name = (path.parent().and_then(Path::file_name)).map_or_else(
             || path.display().to_string(),
@@ -105,9 +109,10 @@ fn main() -> anyhow::Result<()> {
         };
         avg20.push(series(measures.next().unwrap_or_default()));
         whole.push(series(measures.next().unwrap_or_default()));
-        for (what, points) in LIQUID.iter().zip(measures) {
+        for (k, (what, points)) in LIQUID.iter().zip(measures).enumerate() {
             if !points.is_empty() {
-                liquid.push(Series {
+                let panel = if k < 3 { &mut area } else { &mut motion };
+                panel.push(Series {
                     name: format!("{name}: {what}"),
                     points,
                 });
@@ -121,12 +126,16 @@ fn main() -> anyhow::Result<()> {
             whole,
         ),
         (
-            "the liquid / the truth's, unseen scenes".to_string(),
-            liquid,
+            "the liquid's area / the truth's, unseen scenes".to_string(),
+            area,
+        ),
+        (
+            "the liquid's energy / the truth's; fronts in time".to_string(),
+            motion,
         ),
     ];
     let axis = "million samples seen";
-    panels(&args.out, &charts, axis, "ratio", false, 3, (520, 400))?;
+    panels(&args.out, &charts, axis, "ratio", false, 2, (620, 420))?;
     println!("wrote {}", args.out.display());
     Ok(())
 }

@@ -3,7 +3,9 @@
 //! checkpoint. [`RunFolder::checkpoint`] holds the model and the optimizer state
 //! (`model.mpk`, `optim.mpk`: burn named MessagePack, full precision) and `history.json`
 //! (every epoch so far), and, when the call ended or checkpointed mid-epoch, `partial.json`
-//! (the unfinished epoch: its steps and sums, [`Unfinished`]); `ledger.json` is the run's
+//! (the unfinished epoch: its steps and sums, [`Unfinished`]); `model.json` describes the
+//! network, normalisation and constraints the run trains with (so `checkpoint/` is a model
+//! folder of the latest weights, and `--resume` keeps them); `ledger.json` is the run's
 //! [`RunLedger`] (samples, device-hours, calls), also written beside it as `run.json`. It is
 //! written to [`RunFolder::checkpoint_tmp`] and swapped in with
 //! renames, so a run killed at any moment leaves either the previous or the new checkpoint,
@@ -135,7 +137,14 @@ impl RunOutput {
             ledger.update(samples, self.call_started.elapsed().as_secs_f64());
             ledger.clone()
         };
+        // The latest weights' model.json: the last finished epoch's validation loss.
+        let last = history.last();
+        let meta = self.meta(
+            last.map_or(0, |r| r.epoch),
+            last.map_or(0.0, |r| r.val_loss),
+        );
         let state = Progress {
+            meta: &meta,
             history,
             unfinished,
             ledger: &ledger,
@@ -152,6 +161,8 @@ fn err(path: &Path, source: impl Into<Box<dyn std::error::Error + Send + Sync>>)
 /// Where a run is, besides its weights and optimizer: the finished epochs, the unfinished
 /// one's steps, the ledger.
 pub struct Progress<'a> {
+    /// What `model.json` says of the latest weights.
+    pub meta: &'a ModelMeta,
     /// Every finished epoch.
     pub history: &'a [EpochRecord],
     /// The epoch in progress, when the checkpoint is written mid-epoch.
@@ -181,6 +192,7 @@ pub fn save<B: AutodiffBackend, M: AutodiffModule<B>, O: Optimizer<M, B>>(
     let written = store::write_record::<B, _>(&tmp.join("model.mpk"), model.clone().into_record())
         .and_then(|()| store::write_record::<B, _>(&tmp.join("optim.mpk"), optim.to_record()))
         .map_err(TrainError::Store)
+        .and_then(|()| write_json(&tmp.join("model.json"), progress.meta))
         .and_then(|()| write_json(&tmp.join("history.json"), progress.history))
         .and_then(|()| write_json(&tmp.join("ledger.json"), progress.ledger))
         .and_then(|()| match progress.unfinished {

@@ -1,6 +1,6 @@
 # Shared by the GPU experiment scripts (bundle.sh, structure.sh): the binary, the training
-# data, one background training run, waiting for the runs, and a subset of them (ONLY).
-# Sourced, not run. Sets OUT, DATA, BIN (unless the caller set it: gpu/minflow-cuda by
+# data, NCCL for data-parallel runs, one background training run, waiting for the runs, and
+# a subset of them (ONLY). Sourced, not run. Sets OUT, DATA, BIN (unless the caller set it: gpu/minflow-cuda by
 # default) and COMMON; the caller may add to COMMON after.
 OUT=${OUT:-/tmp/minflow-gpu}
 DATA=${DATA:-/tmp/data}
@@ -10,6 +10,15 @@ BIN=${BIN:-gpu/minflow-cuda}
 if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
+fi
+# NCCL (data-parallel runs) where the system has none: PyTorch's wheel ships libnccl.so.2,
+# which cudarc looks for as libnccl.so.
+if ! ldconfig -p 2>/dev/null | grep -q "libnccl.so "; then
+    nccl=$(python3 -c "import nvidia.nccl, os; print(os.path.join(list(nvidia.nccl.__path__)[0], 'lib'))" 2>/dev/null)
+    if [ -n "$nccl" ] && [ -f "$nccl/libnccl.so.2" ]; then
+        mkdir -p "$OUT/lib" && ln -sf "$nccl/libnccl.so.2" "$OUT/lib/libnccl.so"
+        export LD_LIBRARY_PATH="$OUT/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+    fi
 fi
 # SAMPLES (samples per epoch, default 2000), VAL_HORIZON (200) and VAL_STARTS (2) set the
 # epoch's length and its validation rollouts.

@@ -1,7 +1,8 @@
 """The diagnosis table of tests/gpu/liquid.sh (issue 81): for each model and each scene set
 (`train`: the fluid scenes the runs trained on, `unseen`: seed 7), avg20 and whole-scene MSE
 on the splash scenes and on all, over `constvel` and `persist`; the liquid's area (prediction
-over truth) at steps 20, 200 and the end; the surge fronts within 10 % of the truth's step.
+over truth) at steps 20, 200 and the end; the surge fronts within 10 % of the truth's step;
+then the README's columns per family (avg20 and whole scenes, rope strain, liquid area).
 Runs named LEVER-sN (tests/gpu/liquid.sh with SEEDS) are also summed up per lever, the
 mean and the range over their seeds: at minutes of training the seeds' spread is as large as
 a lever's effect (docs/splash.md).
@@ -89,6 +90,35 @@ def fronts(path, name):
     return f"{good}/{total} (reached {reached})"
 
 
+def family_rows(out, tag, names):
+    """The README's columns per model over a set: avg20 / `constvel` and whole scenes /
+    `persist` per family (ratios of the family's means), the rope's strain at step 200
+    and the liquid's area at the end per family (over the truth's)."""
+    h20 = per_scene(f"{out}/{tag}-h20/table.csv")
+    full = per_scene(f"{out}/{tag}-full/table.csv")
+    plaus = rows(f"{out}/{tag}-full/plausibility.csv")
+    families = ("multi", "fluid")
+
+    def of_means(scores, name, base, family):
+        scenes = [s for s in scores.get(name, {}) if s.startswith(family) and s in scores[base]]
+        return mean(scores[name][s] for s in scenes) / mean(scores[base][s] for s in scenes)
+
+    def measure(name, column, probe, material, family=""):
+        return mean(float(r[column]) for r in plaus if r["predictor"] == name and r[column]
+                    and r["probe"] == probe and r["material"] == material
+                    and r["scene"].startswith(family))
+
+    for name in names:
+        if name not in h20 or name not in full:
+            continue
+        cells = [", ".join(f"{of_means(scores, name, base, f):.3f}" for f in families)
+                 for scores, base in ((h20, "constvel"), (full, "persist"))]
+        cells.append(f"{measure(name, 'strain', '200', 'rope'):.2f}")
+        cells.append(", ".join(f"{measure(name, 'volume', 'end', 'liquid', f):.2f}"
+                               for f in families))
+        yield [tag, name, *cells]
+
+
 def spread(values):
     """`mean [min, max]` of a lever's runs."""
     return f"{mean(values):.3g} [{min(values):.3g}, {max(values):.3g}]"
@@ -125,6 +155,14 @@ def main():
             lever = levers[(tag, re.sub(r"-s\d+$", "", name))]
             for key, v in (("avg20", ratios[0]), ("whole", ratios[3]), ("end", end)):
                 lever[key].append(v)
+    # The README's columns, per family.
+    table = [row for tag in ("train", "unseen") for row in family_rows(out, tag, names)]
+    if table:
+        print("\n| set | model | avg20 / constvel (multi, fluid) | whole / persist (multi, fluid) "
+              "| rope strain at 200 | liquid area at the end (multi, fluid) |")
+        print("| --- | --- | --- | --- | ---: | --- |")
+        for row in table:
+            print("| " + " | ".join(row) + " |")
     if not any(len(v["avg20"]) > 1 for v in levers.values()):
         return
     print("\n| set | lever | seeds | avg20 splash / constvel | whole all / persist "

@@ -12,42 +12,51 @@
 #    - phase 1, runs/long (gpu/long-run.tgz): fresh weights, 50 epochs of 200,000 samples at
 #      batch 128; stopped at 1,622,208 samples (a step at batch 128 is partly bound by the
 #      host's recording of its kernels; docs/training.md, "Why phase 2");
-#    - phase 2, runs/long2 (gpu/long2-run.tgz; PHASE=2, the default): from phase 1's latest
-#      weights (`--init-from`, its split and normalisation), 42 epochs of 200,000 samples at
-#      batch 512;
+#    - phase 2, runs/long2 (gpu/long2-run.tgz): from phase 1's latest weights
+#      (`--init-from`, its split and normalisation), 42 epochs of 200,000 samples at batch
+#      512; its archive was lost at 4,029,120 samples (a new checkout does not keep gpu/);
+#    - phase 3, runs/long3 (gpu/long3-run.tgz, else the committed models/long-run/; PHASE=3,
+#      the default): from phase 2's epoch 8 as shipped (models/all-grid-mingru-small-k4-long,
+#      3,223,744 samples), phase 2's other 34 epochs with its cosine begun again from where
+#      epoch 8 left it (lr 9.1e-4), and the model's box wide (`--box-grid 256`,
+#      docs/splash.md, "The model's box");
 # 3. appends a point of the learning curve to the phase's curve.csv (samples seen and
-#    device-hours over both phases; the latest weights' avg20 on the unseen scenes from 5
-#    starts and their whole scenes' MSE, beside `constvel`'s avg20 and `persist`'s whole
-#    scenes; in phase 2 also the liquid's area, energy and surge fronts, liquid_table.py);
+#    device-hours, the earlier phases' included; the latest weights' avg20 on the unseen
+#    scenes from 5 starts and their whole scenes' MSE, beside `constvel`'s avg20 and
+#    `persist`'s whole scenes; from phase 2 on also the liquid's area, energy and surge
+#    fronts, liquid_table.py);
 # 4. packs the phase's run folder (model, checkpoint, ledger, curve, the last 8 epochs'
 #    weights in epochs/ for picking one by whole-scene eval or averaging them) into
-#    $RET/long2-run.tgz (long-run.tgz for phase 1; RET defaults to $OUT, the device tool's
-#    return folder). Copy it to gpu/ for the next call.
+#    $RET/$RUN-run.tgz (RET defaults to $OUT, the device tool's return folder). Copy it to
+#    gpu/ for the next call, and at a session's end, without epochs/, to models/long-run/
+#    (`tests/gpu/long.sh keep`): only what is committed outlives a checkout.
 #
-# Branches from a phase's latest weights (FROM: long, phase 1's, the default; long2, phase
-# 2's), for issue 81's levers at equal minutes from a trained model (each NAME=FLAGS, flags
+# Branches from a phase's latest weights (FROM: the run folder, phase 3's long3 by default), for issue 81's levers at equal minutes from a trained model (each NAME=FLAGS, flags
 # joined by commas, trains runs/branch-NAME side by side, on the machine's GPUs in turn,
 # with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
 # 12 splash scenes of the long run's training split and on the unseen scenes, and packed
 # into $RET/branches.tgz):
 #
 #   tests/gpu/long.sh branch MINUTES plain= push4=--pushforward,4 mp2=--interaction,2
-#   FROM=long2 tests/gpu/long.sh branch MINUTES plain= chunks4=--chunks,4
 #
 # (SCORE=0 trains only; `tests/gpu/long.sh score NAME=FLAGS...` then scores on the same
 # warm machine, for branches whose training and scoring do not fit one call.)
 #
 # The kept epochs of the phase's run (`--keep-epochs 8`) scored on the unseen scenes, to
-# pick the epoch to ship or to average by whole scenes: `tests/gpu/long.sh pick`.
+# pick the epoch to ship or to average by whole scenes: `tests/gpu/long.sh pick` (with
+# the projection, as the demo runs them, on 2 CPU cores too:
+# `PROJECTION=models/all-grid-mingru-small-k4-long BIN=target/release/minflow DEVICE=cpu
+# tests/gpu/long.sh pick`, which unpacks models/long-run's archive, without epochs, where
+# gpu/ holds none).
 #
 # Environment: BIN (gpu/minflow-cuda), DEVICE (cuda), TRAIN_DEVICE (the run's: every GPU
 # of the machine, `cuda:0,cuda:1,...`, where it has several), DATA (/tmp/data), SCENES (1000 a
-# family), FRAMES (200), PHASE (2), NET (the model flags), SCHEDULE (the phase's schedule
+# family), FRAMES (200), PHASE (3), NET (the model flags), SCHEDULE (the phase's schedule
 # flags), BRANCH (the branches' schedule). A CPU dry run: BIN=target/release/minflow
 # DEVICE=cpu SCENES=4 FRAMES=24 SCHEDULE="..." BRANCH="..." (tiny epochs).
 set -uo pipefail
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}
-# BIN (unpacked from BIN.xz where needed), DATA and CUDA_PATH.
+# BIN (unpacked from BIN.xz where needed), DATA, CUDA_PATH and NCCL.
 . "$(dirname "$0")/common.sh"
 DEVICE=${DEVICE:-cuda}
 # The run trains on every GPU of the machine, data-parallel at the same global batch
@@ -62,13 +71,17 @@ SCENES=${SCENES:-1000}
 FRAMES=${FRAMES:-200}
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
     --head-hidden 64 --bundle 4 --rollout-steps 4 --model mingru}"
-PHASE=${PHASE:-2}
+PHASE=${PHASE:-3}
 case "$PHASE" in
-1) RUN=long BATCH=(--epochs 50 --batch-size 128) ;;
-2) RUN=long2 BATCH=(--epochs 42 --batch-size 512) ;;
-*) echo "PHASE must be 1 or 2" >&2; exit 2 ;;
+1) RUN=long BATCH=(--epochs 50 --batch-size 128 --lr 1e-3) ;;
+2) RUN=long2 BATCH=(--epochs 42 --batch-size 512 --lr 1e-3) ;;
+# Phase 2's cosine from 1e-3 at its epoch 8 of 42: 1e-5 + 0.495e-3 (1 + cos(pi 8 / 42)).
+3) RUN=long3 BATCH=(--epochs 34 --batch-size 512 --lr 9.1e-4 --box-grid 256) ;;
+*) echo "PHASE must be 1, 2 or 3" >&2; exit 2 ;;
 esac
-read -r -a SCHEDULE <<<"${SCHEDULE:-${BATCH[*]} --samples-per-epoch 200000 --lr 1e-3 \
+# Phase 3 starts from phase 2's epoch 8 as shipped; its ledger up to there, in earlier.json.
+SHIPPED=models/all-grid-mingru-small-k4-long
+read -r -a SCHEDULE <<<"${SCHEDULE:-${BATCH[*]} --samples-per-epoch 200000 \
     --lr-final 1e-5 --patience 0 --noise 0.5 --mirror --val-starts 1 --val-horizon 20 \
     --keep-epochs 8}"
 read -r -a BRANCH <<<"${BRANCH:---epochs 1000 --samples-per-epoch 20000 --batch-size 128 \
@@ -87,19 +100,32 @@ data() {
         tail -n 1 || return 1
     "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" |
         tail -n 1 || return 1
-    "$BIN" simulate --device "$DEVICE" --family multi --seed 7 --scenes 0..10 \
-        --out "$DATA/long/unseen" | tail -n 1 || return 1
-    "$BIN" simulate --device "$DEVICE" --family fluid --seed 7 --scenes 0..6 \
-        --out "$DATA/long/unseen" | tail -n 1 || return 1
+    unseen || return 1
     du -sh "$DATA/long"/*
     touch "$DATA/long/done-$SCENES-$FRAMES"
 }
 
-# runs/$1 from gpu/$1-run.tgz, where this machine does not hold it yet.
-unpack() {
-    if [ -f "gpu/$1-run.tgz" ] && [ ! -d "runs/$1" ]; then
-        tar xzf "gpu/$1-run.tgz" -C runs
+# The 16 unseen scenes of seed 7 (the README's), alone: all `pick` needs.
+unseen() {
+    # A dataset made before this marker existed holds them too.
+    if [ -f "$DATA/long/unseen/done" ] || compgen -G "$DATA/long/done-*" >/dev/null; then
+        return
     fi
+    "$BIN" simulate --device "$DEVICE" --family multi --seed 7 --scenes 0..10 \
+        --out "$DATA/long/unseen" | tail -n 1 || return 1
+    "$BIN" simulate --device "$DEVICE" --family fluid --seed 7 --scenes 0..6 \
+        --out "$DATA/long/unseen" | tail -n 1 || return 1
+    touch "$DATA/long/unseen/done"
+}
+
+# runs/$1 from gpu/$1-run.tgz (else the committed models/long-run/$1-run.tgz), where this
+# machine does not hold it yet.
+unpack() {
+    local packed
+    [ -d "runs/$1" ] && return
+    for packed in "gpu/$1-run.tgz" "models/long-run/$1-run.tgz"; do
+        [ -f "$packed" ] && { tar xzf "$packed" -C runs; return; }
+    done
 }
 
 # The latest weights of the run $1 (long: phase 1, long2: phase 2; unpacked from
@@ -120,6 +146,8 @@ train() {
     elif [ "$RUN" = long2 ]; then
         from_run long || return 1
         start=(--init-from /tmp/from/long)
+    elif [ "$RUN" = long3 ]; then
+        start=(--init-from "$SHIPPED")
     fi
     echo "training on $TRAIN_DEVICE"
     "$BIN" train --device "$TRAIN_DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
@@ -128,6 +156,15 @@ train() {
     # Phase 1's ledger goes with phase 2's folder (and archive): its curve counts both.
     if [ "$RUN" = long2 ] && [ ! -f runs/long2/phase1.json ]; then
         cp runs/long/run.json runs/long2/phase1.json
+    fi
+    # Phase 3's start: phase 1 (1,622,208 samples, 0.62 device-hours) and phase 2's first 8
+    # epochs of 200,192 samples; phase 2's ledger was lost with its archive, so its hours
+    # to epoch 8 are read off the two points around it (2,243,136 samples at 0.80 hours,
+    # 3,608,384 at 1.40, docs/training.md).
+    if [ "$RUN" = long3 ] && [ ! -f runs/long3/earlier.json ]; then
+        echo '{"samples": 3223744, "device_hours": 1.23, "from": "'"$SHIPPED"'",' \
+            '"note": "phase 1 and phase 2 to its epoch 8; hours interpolated"}' \
+            >runs/long3/earlier.json
     fi
 }
 
@@ -155,7 +192,7 @@ curve() {
     # Whole scenes with the structure measures: the liquid's area, energy and surge front.
     "${eval[@]}" --horizon full --out "$RET/unseen-full" >"$RET/unseen-full.log" 2>&1 ||
         { tail -n 5 "$RET/unseen-full.log"; return 1; }
-    # Phase 2's points count phase 1's samples and device-hours too.
+    # Later phases' points count the earlier phases' samples and device-hours too.
     python3 - "$RET" "$RUN" "$(dirname "$0")" <<'PY'
 import csv, json, os, sys
 ret, name = sys.argv[1], sys.argv[2]
@@ -166,9 +203,9 @@ def average(table):
     return next(r for r in csv.DictReader(open(os.path.join(ret, table, "table.csv")))
                 if r["scene"] == "Average")
 h20, full = average("unseen-h20"), average("unseen-full")
-ledgers = [json.load(open(os.path.join(run, "run.json")))]
-if name != "long":
-    ledgers.append(json.load(open(os.path.join(run, "phase1.json"))))
+ledgers = [json.load(open(os.path.join(run, f)))
+           for f in ("run.json", "phase1.json", "earlier.json")
+           if os.path.exists(os.path.join(run, f))]
 samples = sum(l["samples"] for l in ledgers)
 hours = sum(l["device_hours"] for l in ledgers)
 path = os.path.join(run, "curve.csv")
@@ -193,7 +230,7 @@ PY
 # Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from FROM's latest weights, side by
 # side, into runs/branch-NAME; on a machine of several GPUs they take the GPUs in turn.
 branch() {
-    local minutes=$1 from=${FROM:-long} pids=() lever name flags device
+    local minutes=$1 from=${FROM:-$RUN} pids=() lever name flags device
     shift
     from_run "$from" || return 1
     for lever in "$@"; do
@@ -229,12 +266,10 @@ score() {
         models+=(--model "runs/branch-${lever%%=*}")
     done
     rm -rf "$DATA/long/train_splash" "$out" && mkdir -p "$DATA/long/train_splash" "$out"
-    # The training split is phase 1's (phase 2 and every branch keep it): a machine that
-    # only unpacked phase 2 for FROM=long2 takes it from phase 1's archive.
-    unpack long
+    # The training split is phase 1's: every later phase, branch and the shipped model keep it.
     for split in $(python3 -c "import json, sys; print(' '.join(s.replace('/', '_') for s in \
         json.load(open(sys.argv[1]))['train'] if s.startswith('fluid/splash')))" \
-        runs/long/split.json); do
+        "$SHIPPED/split.json"); do
         [ -f "$DATA/long/fluid/$split.mcap" ] && ln -sf "$DATA/long/fluid/$split.mcap" \
             "$DATA/long/train_splash/"
         [ "$(ls "$DATA/long/train_splash" | wc -l)" -ge 12 ] && break
@@ -268,11 +303,23 @@ evaluate() {
 # The epochs runs/$RUN kept (`train --keep-epochs`) scored on the unseen scenes as `score`
 # scores branches, into $RET/pick and $RET/pick.tgz: the epoch to ship is picked by whole
 # scenes, and the ones to average (`minflow average`), not by the 20-frame validation loss.
+# PROJECTION=DIR scores them as the demo runs them: copies of the epochs with DIR's
+# constraints (`constraints copy`), beside DIR itself.
 pick() {
     local models=() names=() dir out=$RET/pick
     unpack "$RUN"
+    if [ -n "${PROJECTION:-}" ]; then
+        names+=("$(basename "$PROJECTION")")
+        models+=(--model "$PROJECTION")
+    fi
     for dir in runs/"$RUN"/epochs/*/; do
         [ -f "$dir/model.mpk" ] || continue
+        if [ -n "${PROJECTION:-}" ]; then
+            rm -rf "/tmp/pick/$(basename "$dir")" && mkdir -p /tmp/pick &&
+                cp -r "${dir%/}" /tmp/pick/ && dir=/tmp/pick/$(basename "$dir")/ &&
+                "$BIN" constraints copy --from "$PROJECTION" --model "$dir" >/dev/null ||
+                return 1
+        fi
         names+=("$(basename "$dir")")
         models+=(--model "${dir%/}")
     done
@@ -283,6 +330,14 @@ pick() {
 }
 
 case "${1:-}" in
+keep)
+    # Here, not on the device: the last call's archive, without its kept epochs, committed.
+    mkdir -p models/long-run /tmp/keep && rm -rf "/tmp/keep/$RUN" &&
+        tar xzf "gpu/$RUN-run.tgz" -C /tmp/keep &&
+        tar czf "models/long-run/$RUN-run.tgz" -C /tmp/keep --exclude "$RUN/epochs" \
+            --exclude "$RUN/checkpoint.old" "$RUN" &&
+        ls -la "models/long-run/$RUN-run.tgz"
+    ;;
 branch)
     [ -n "${2:-}" ] && [ -n "${3:-}" ] ||
         { echo "usage: $0 branch MINUTES NAME=FLAGS..." >&2; exit 2; }
@@ -298,7 +353,7 @@ branch)
     ;;
 pick)
     start=$SECONDS
-    data || { echo "the dataset could not be made" >&2; exit 1; }
+    unseen || { echo "the unseen scenes could not be made" >&2; exit 1; }
     pick || exit 1
     echo "call: $((SECONDS - start)) s"
     ;;
@@ -321,7 +376,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,47p' "$0"
+    sed -n '2,56p' "$0"
     exit 2
     ;;
 esac

@@ -7,29 +7,14 @@
 #                                   # GPUs: samples/s of each epoch (metrics.csv)
 #   tests/gpu/training.sh resume    # a run in three calls against the straight run on the GPU
 #   tests/gpu/training.sh parallel  # bench train --arch grid on 1, 2 and 4 GPUs (GPUS=2, 8),
-#                                   # the small and the full shape, global batches 64 to 1024
+#                                   # the full shape on grids 32 and 64 and the small one
+#                                   # (SHAPES), global batches 64 to 1024 (BATCHES)
 #   tests/gpu/training.sh equal     # two GPUs against one: the same losses
 #
 # Parts run in the order given; logs and tables go to $OUT (default /tmp/minflow-gpu).
 set -uo pipefail
-OUT=${OUT:-/tmp/minflow-gpu}
-DATA=${DATA:-/tmp/data}
-BIN=${BIN:-gpu/minflow-cuda}
-export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
-mkdir -p "$OUT" runs
-if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
-    python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
-    chmod +x "$BIN"
-fi
-# NCCL (data-parallel runs) where the system has none: PyTorch's wheel ships libnccl.so.2,
-# which cudarc looks for as libnccl.so.
-if ! ldconfig -p 2>/dev/null | grep -q "libnccl.so "; then
-    nccl=$(python3 -c "import nvidia.nccl, os; print(os.path.join(list(nvidia.nccl.__path__)[0], 'lib'))" 2>/dev/null)
-    if [ -n "$nccl" ] && [ -f "$nccl/libnccl.so.2" ]; then
-        mkdir -p "$OUT/lib" && ln -sf "$nccl/libnccl.so.2" "$OUT/lib/libnccl.so"
-        export LD_LIBRARY_PATH="$OUT/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
-    fi
-fi
+# OUT, DATA, BIN (unpacked where needed), CUDA_PATH and NCCL.
+. "$(dirname "$0")/common.sh"
 SMALL=(--grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 --head-hidden 64)
 
 data() {
@@ -77,16 +62,20 @@ print('ledger:', l['samples'], 'samples,', len(l['calls']), 'calls,', l['device_
 
 # samples/s of bench train --arch grid on 1, 2, 4 (8) GPUs at global batches 64, 256 and 1024.
 parallel() {
-    local gpus=${GPUS:-4} list="cuda:0" shape batch
+    local gpus=${GPUS:-4} list="cuda:0" shape batch net grid
     for n in $(seq 1 "$gpus"); do
         [ "$n" -gt 1 ] && list="$list,cuda:$((n - 1))"
         case $n in 1 | 2 | 4 | 8) ;; *) continue ;; esac
-        for shape in ${SHAPES:-32 64}; do
+        # SHAPES: full-32, full-64 (the default network on grids of 32 and 64), small-32 (the
+        # demo's network, `bench train --shape small`).
+        for shape in ${SHAPES:-full-32 full-64 small-32}; do
+            net=${shape%-*} grid=${shape#*-}
             for batch in ${BATCHES:-64 256 1024}; do
-                echo "== $n GPU(s), grid $shape, global batch $batch"
-                "$BIN" bench train --arch grid --device "$list" --cores mingru --grid "$shape" \
-                    --micro-batch "$batch" --samples $((batch * 12)) --epochs 3 --warmup-epochs 1 \
-                    --rollout-steps 4 2>&1 | grep -E "^mingru|grid architecture|rror|panic"
+                echo "== $n GPU(s), $net shape, grid $grid, global batch $batch"
+                "$BIN" bench train --arch grid --device "$list" --cores mingru --shape "$net" \
+                    --grid "$grid" --micro-batch "$batch" --samples $((batch * 12)) --epochs 3 \
+                    --warmup-epochs 1 --rollout-steps 4 2>&1 |
+                    grep -E "^mingru|grid architecture|rror|panic"
             done
         done
     done

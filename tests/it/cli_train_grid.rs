@@ -316,3 +316,46 @@ fn bench_train_measures_the_grid_architecture() {
         "{stdout}"
     );
 }
+
+/// `bench train --arch grid --shape small` trains the demo's network (K = 4 frames a call):
+/// a row with a positive rate and fewer parameters than the full shape's on the same grid.
+#[test]
+fn bench_train_takes_the_small_shape() {
+    let params = |shape: &str| {
+        let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
+            .args(["bench", "train", "--arch", "grid", "--cores", "mingru"])
+            .args(["--particles", "64", "--grid", "16", "--samples", "2"])
+            .args([
+                "--micro-batch",
+                "2",
+                "--epochs",
+                "1",
+                "--rollout-steps",
+                "2",
+            ])
+            .args(["--shape", shape])
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+        assert!(
+            o.status.success(),
+            "{stdout}\n{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert!(stdout.contains(&format!("({shape} shape)")), "{stdout}");
+        let row = (stdout.lines().find(|l| l.starts_with("mingru")))
+            .unwrap_or_else(|| panic!("no row: {stdout}"))
+            .to_owned();
+        let cell = |k: usize| {
+            row.split_whitespace()
+                .nth(k)
+                .unwrap()
+                .parse::<f64>()
+                .unwrap()
+        };
+        assert!(cell(4) > 0.0, "{row}");
+        cell(2)
+    };
+    let (small, full) = (params("small"), params("full"));
+    assert!(small < full, "small {small} against full {full} parameters");
+}

@@ -140,3 +140,56 @@ fn a_run_in_calls_equals_the_straight_run() {
 fn a_streamed_run_in_calls_equals_the_straight_run() {
     straight_and_in_calls(&["--max-resident-frames", "50"]);
 }
+
+/// A run started `--init-from` a parent trained with another seed (so another split and
+/// normalisation than this run's seed gives) and resumed without it (`--resume` refuses
+/// `--init-from`) keeps the parent's split, scaler and velocity statistics: it ends with the
+/// straight run's losses and weights, and its checkpoint is a model folder of its own.
+#[test]
+fn a_run_from_a_parent_resumes_with_the_parents_split_and_normalisation() {
+    let parent = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(
+        parent.path(),
+        &["--epochs", "1", "--seed", "5", "--samples-per-epoch", "16"],
+    ));
+    let saved = json(&parent.path().join("split.json"));
+    let scenes: Vec<String> = ["train", "val", "test"]
+        .iter()
+        .flat_map(|p| saved[p].as_array().unwrap().iter())
+        .map(|s| s.as_str().unwrap().to_owned())
+        .collect();
+    let seeded = serde_json::to_value(minflow::data::Split::new(&scenes, 0)).unwrap();
+    assert_ne!(
+        saved, seeded,
+        "seed 5's split must differ from seed 0's for this test"
+    );
+
+    let flags = ["--epochs", "2", "--mirror", "--samples-per-epoch", "16"];
+    let from = ["--init-from", parent.path().to_str().unwrap()];
+    let straight = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(straight.path(), &[&flags[..], &from].concat()));
+    let calls = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(
+        calls.path(),
+        &[&flags[..], &from, &["--call-steps", "3"]].concat(),
+    ));
+    let rest = [&flags[..], &["--call-steps", "3", "--resume"]].concat();
+    ok(&train_grid(calls.path(), &rest));
+    ok(&train_grid(calls.path(), &rest));
+    assert_eq!(json(&calls.path().join("split.json")), saved);
+    let (a, b) = (losses(straight.path()), losses(calls.path()));
+    assert_eq!(a.len(), 2);
+    assert_eq!(a, b, "(train loss, validation loss) per epoch");
+    assert_eq!(weights(straight.path()), weights(calls.path()));
+    // The checkpoint is a model folder: the latest weights with the parent's normalisation.
+    let checkpoint = calls.path().join("checkpoint");
+    let (parent_meta, meta) = (
+        json(&parent.path().join("model.json")),
+        json(&checkpoint.join("model.json")),
+    );
+    for field in ["vel_scale", "dv_mean", "dv_scale"] {
+        assert_eq!(meta[field], parent_meta[field], "{field}");
+    }
+    assert_eq!(meta["scaler"], parent_meta["scaler"]);
+    assert!(!weights(&checkpoint).is_empty());
+}

@@ -33,20 +33,15 @@ use crate::train::{BatchSource, CallShare, DatasetInfo, EpochRecord, Observer, T
 pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     args.refuse_paper_flags()?;
     let mut config = args.grid_config()?;
-    let mut opts = args.grid_options();
-    opts.constraints = training_constraints(&args)?;
+    let (opts, init) = start_point(&args, &config)?;
     let device = args.device.parse()?;
-    let init = match &args.grid_args.init_from {
-        Some(dir) => Some(init_normalisation(dir, &config)?),
-        None => None,
-    };
     let topic = Some(args.topic.as_str());
     let (infos, resident, report) = super::read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
     let split = run_split(
         &scenes,
         args.seed,
-        args.split_from.as_deref(),
+        super::split_source(&args).as_deref(),
         args.grid_args.init_from.as_deref(),
     )?;
     let frames = config.window + opts.calls() * config.bundle - 1;
@@ -69,9 +64,6 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
     let Normalisation { stats, scaler } = data.normalisation;
     stats.apply(&mut config);
-    if args.resume {
-        check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
-    }
     write_run_files(&args.out, &split, &opts)?;
     let mut index: &WindowIndex;
     let (train, streamed): (&mut dyn BatchSource, _) = match &mut data.train {
@@ -225,18 +217,52 @@ fn count_scenes(trajs: &[Trajectory]) -> usize {
     scenes.len()
 }
 
+/// What a run starts from besides its data: the training options with their constraints,
+/// and the normalisation that `--init-from` (or, resuming, the run's own folder) fixes; None
+/// for one to fit. A resume whose flags differ from its run's is refused first.
+fn start_point(
+    args: &TrainArgs,
+    config: &GridConfig,
+) -> anyhow::Result<(GridTrainOptions, Option<Normalisation>)> {
+    if args.resume {
+        check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
+    }
+    // A resumed run keeps what its start fixed (`--init-from` conflicts with `--resume`).
+    let source = (args.grid_args.init_from.clone()).or_else(|| resumed_from(args));
+    let mut opts = args.grid_options();
+    opts.constraints = training_constraints(args, source.as_deref())?;
+    let init = (source.as_deref())
+        .map(|dir| init_normalisation(dir, config))
+        .transpose()?;
+    Ok((opts, init))
+}
+
+/// The folder whose `model.json` a resumed run (`--resume`) keeps its normalisation and
+/// training constraints from, as its start fixed them (fitted, or `--init-from`'s): its
+/// checkpoint's, else its kept model's (runs checkpointed before checkpoints held one).
+/// None for a fresh run, and for a resumed one with neither: that fits them again.
+fn resumed_from(args: &TrainArgs) -> Option<PathBuf> {
+    let folder = RunFolder::new(&args.out);
+    let candidates = [folder.checkpoint(), args.out.clone()];
+    (candidates.into_iter()).find(|dir| args.resume && RunFolder::new(dir).model_json().is_file())
+}
+
 /// The constraints `--constraints` asks the training rollouts to project onto: the parts
-/// of `--init-from`'s fitted ones, else of the defaults; None for `off`.
-fn training_constraints(args: &TrainArgs) -> anyhow::Result<Option<Constraints>> {
+/// of `source`'s fitted ones (`--init-from`, or the resumed run's own), else of the
+/// defaults; None for `off`.
+fn training_constraints(
+    args: &TrainArgs,
+    source: Option<&std::path::Path>,
+) -> anyhow::Result<Option<Constraints>> {
     let parts = args.grid_args.constraints;
     if parts == Parts::NONE {
         return Ok(None);
     }
-    let fitted = match &args.grid_args.init_from {
+    let fitted = match source {
         Some(dir) => {
             RunFolder::new(dir)
                 .meta()
-                .with_context(|| format!("--init-from {}", dir.display()))?
+                .with_context(|| format!("the constraints of {}", dir.display()))?
                 .constraints
         }
         None => None,
@@ -306,7 +332,7 @@ fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Res
     let path = folder.model_json();
     let meta = folder
         .meta()
-        .with_context(|| format!("--init-from {}", dir.display()))?;
+        .with_context(|| format!("the model to start from, {}", dir.display()))?;
     // A model without reference channels may grow them (`GridModel::with_reference`), a
     // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape
     // or with the free update those (`model::grid::grow`), any model another grid.

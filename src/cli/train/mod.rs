@@ -39,6 +39,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     }
 }
 
+/// Where a run's split comes from besides its seed: `--split-from`, else, resuming, the run
+/// folder's own `split.json` (written at its start: a resumed run trains on the scenes it
+/// started with, whatever `--split-from` or `--init-from` chose them then).
+fn split_source(args: &TrainArgs) -> Option<PathBuf> {
+    let own = crate::model::store::RunFolder::new(&args.out).split_json();
+    (args.split_from.clone()).or_else(|| (args.resume && own.is_file()).then(|| args.out.clone()))
+}
+
 /// A training run that can start on any backend: each architecture's run in [`grid`] and
 /// [`paper`] implements it, and [`fit_on`] picks the backend `--device` names.
 trait FitOn {

@@ -28,7 +28,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let topic = Some(args.topic.as_str());
     let (infos, resident, scanned) = super::read_data(&args, topic)?;
     let scenes: Vec<String> = infos.iter().map(|s| s.scene.clone()).collect();
-    let split = run_split(&scenes, args.seed, args.split_from.as_deref(), None)?;
+    let split = run_split(
+        &scenes,
+        args.seed,
+        super::split_source(&args).as_deref(),
+        None,
+    )?;
     let train_infos = split.select_infos(Part::Train, &infos);
     let val_infos = split.select_infos(Part::Val, &infos);
     let Some(first) = train_infos.first() else {

@@ -43,12 +43,14 @@ where
         None => vec!["none".into(), "mingru".into(), "minlstm".into()],
     };
     let (t, p) = (2, args.rollout_steps);
-    let traj = synthetic(args.particles, args.samples + t + p - 1);
+    // A sample of the small shape rolls out P calls of K = 4 frames.
+    let span = t + p * shaped(GridConfig::new(MemoryKind::None), &args.shape).bundle - 1;
+    let traj = synthetic(args.particles, args.samples + span);
     let stats = fit_stats(&[&traj]);
-    let index = WindowIndex::new(vec![traj], t + p - 1, Scaler::default())?;
+    let index = WindowIndex::new(vec![traj], span, Scaler::default())?;
     println!(
-        "grid architecture: N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {} x {}",
-        args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
+        "grid architecture ({} shape): N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {} x {}",
+        args.shape, args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
         devices.len(), B::name(&device)
     );
     println!(
@@ -71,7 +73,7 @@ where
             )
         })?;
         for &kernel in &args.conv {
-            let config = GridConfig::new(memory_kind)
+            let config = shaped(GridConfig::new(memory_kind), &args.shape)
                 .with_grid(args.grid)
                 .with_window(t)
                 .with_vel_scale(stats.vel_scale)
@@ -87,6 +89,22 @@ where
     }
     println!("peak MiB: {memory} memory");
     Ok(Outcome::Done)
+}
+
+/// `config` in the `--shape` named: `full` as it is (`train`'s default flags), `small` the
+/// demo's network (`models/all-grid-mingru-small-k4-long`).
+fn shaped(config: GridConfig, shape: &str) -> GridConfig {
+    match shape {
+        "small" => config
+            .with_unet_width(16)
+            .with_levels(3)
+            .with_latent(32)
+            .with_hidden(32)
+            .with_head_hidden(64)
+            .with_bundle(4)
+            .with_reference(true),
+        _ => config,
+    }
 }
 
 /// One row of the grid table: trains `config` for the benchmark's epochs on `index` (P =

@@ -39,6 +39,11 @@ pub struct TrainBenchArgs {
     /// Grid size n (grid).
     #[arg(long, default_value_t = 64, value_parser = crate::cli::flags::at_least_one)]
     pub(super) grid: usize,
+    /// The grid network's shape: full (the default flags of `train`: U-Net width 32, 4
+    /// levels, K = 1) | small (the demo's `-small-k4-long`: width 16, 3 levels, latent and
+    /// hidden 32, head 64, K = 4 frames a call, reference channels).
+    #[arg(long, default_value = "full", value_parser = ["full", "small"])]
+    pub(super) shape: String,
     /// Rollout steps per sample P (grid).
     #[arg(long, default_value_t = 4, value_parser = crate::cli::flags::at_least_one)]
     pub(super) rollout_steps: usize,
