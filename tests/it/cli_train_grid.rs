@@ -255,36 +255,33 @@ fn a_validation_horizon_longer_than_the_scenes_is_an_error() {
     assert!(!out.join("metrics.csv").exists());
 }
 
+/// `bench train --arch grid` of a tiny network (64 particles, grid 16, 2 samples of P = 2,
+/// one epoch) with `extra` flags.
+fn bench_grid(extra: &[&str]) -> std::process::Output {
+    let tiny = [
+        "--particles",
+        "64",
+        "--grid",
+        "16",
+        "--samples",
+        "2",
+        "--micro-batch",
+        "2",
+    ];
+    Command::new(env!("CARGO_BIN_EXE_minflow"))
+        .args(["bench", "train", "--arch", "grid"])
+        .args(tiny)
+        .args(["--epochs", "1", "--rollout-steps", "2"])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
 /// `bench train --arch grid` trains each requested kernel and prints one table row per
 /// (core, kernel) with a positive samples/s, and the stage times with `--stages`.
 #[test]
 fn bench_train_measures_the_grid_architecture() {
-    let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
-        .args([
-            "bench",
-            "train",
-            "--arch",
-            "grid",
-            "--cores",
-            "none",
-            "--conv",
-            "gather,shift",
-            "--particles",
-            "64",
-            "--grid",
-            "16",
-            "--samples",
-            "2",
-            "--micro-batch",
-            "2",
-            "--epochs",
-            "1",
-            "--rollout-steps",
-            "2",
-            "--stages",
-        ])
-        .output()
-        .unwrap();
+    let o = bench_grid(&["--cores", "none", "--conv", "gather,shift", "--stages"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(
         o.status.success(),
@@ -322,20 +319,7 @@ fn bench_train_measures_the_grid_architecture() {
 #[test]
 fn bench_train_takes_the_small_shape() {
     let params = |shape: &str| {
-        let o = Command::new(env!("CARGO_BIN_EXE_minflow"))
-            .args(["bench", "train", "--arch", "grid", "--cores", "mingru"])
-            .args(["--particles", "64", "--grid", "16", "--samples", "2"])
-            .args([
-                "--micro-batch",
-                "2",
-                "--epochs",
-                "1",
-                "--rollout-steps",
-                "2",
-            ])
-            .args(["--shape", shape])
-            .output()
-            .unwrap();
+        let o = bench_grid(&["--cores", "mingru", "--shape", shape]);
         let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
         assert!(
             o.status.success(),
