@@ -238,13 +238,18 @@ fn start_point(
 }
 
 /// The folder whose `model.json` a resumed run (`--resume`) keeps its normalisation and
-/// training constraints from, as its start fixed them (fitted, or `--init-from`'s): its
-/// checkpoint's, else its kept model's (runs checkpointed before checkpoints held one).
-/// None for a fresh run, and for a resumed one with neither: that fits them again.
+/// training constraints from, as its start fixed them (fitted, or `--init-from`'s): the first
+/// that reads of its checkpoint's, the previous checkpoint's (a damaged checkpoint's
+/// fallback) and its kept model's (runs checkpointed before checkpoints held one). None for
+/// a fresh run, and for a resumed one with none: that fits them again.
 fn resumed_from(args: &TrainArgs) -> Option<PathBuf> {
     let folder = RunFolder::new(&args.out);
-    let candidates = [folder.checkpoint(), args.out.clone()];
-    (candidates.into_iter()).find(|dir| args.resume && RunFolder::new(dir).model_json().is_file())
+    let candidates = [
+        folder.checkpoint(),
+        folder.checkpoint_old(),
+        args.out.clone(),
+    ];
+    (candidates.into_iter()).find(|dir| args.resume && RunFolder::new(dir).meta().is_ok())
 }
 
 /// The constraints `--constraints` asks the training rollouts to project onto: the parts
