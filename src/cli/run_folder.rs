@@ -116,7 +116,8 @@ pub(crate) fn run_split(
     let split = Split::keeping_held_out(&saved, scenes);
     if split.val.is_empty() && !saved.val.is_empty() {
         return Err(super::UsageError(format!(
-            "--split-from {}: none of its {} validation scenes is in --data",
+            "{}: none of its {} validation scenes is in --data (the split that --split-from, \
+             --init-from or --resume keeps)",
             file.display(),
             saved.val.len()
         ))

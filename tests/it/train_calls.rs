@@ -16,8 +16,12 @@ use crate::json;
 /// `train --arch grid` with the tiny network and schedule on the bundled bags, a flag of
 /// theirs that `extra` sets taking `extra`'s value.
 fn train_grid(out: &Path, extra: &[&str]) -> std::process::Output {
-    let bags = concat!(env!("CARGO_MANIFEST_DIR"), "/bags");
-    let mut args = vec!["train", "--data", bags, "--out", out.to_str().unwrap()];
+    train_grid_on(concat!(env!("CARGO_MANIFEST_DIR"), "/bags"), out, extra)
+}
+
+/// [`train_grid`] on the bags of `data`.
+fn train_grid_on(data: &str, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["train", "--data", data, "--out", out.to_str().unwrap()];
     let schedule = crate::TINY_GRID_SCHEDULE;
     let set = |f: &[&str]| !extra.contains(&f[0]);
     args.extend(schedule.chunks(2).filter(|f| set(f)).flatten().copied());
@@ -141,33 +145,46 @@ fn a_streamed_run_in_calls_equals_the_straight_run() {
     straight_and_in_calls(&["--max-resident-frames", "50"]);
 }
 
-/// A run started `--init-from` a parent trained with another seed (so another split and
-/// normalisation than this run's seed gives) and resumed without it (`--resume` refuses
-/// `--init-from`) keeps the parent's split, scaler and velocity statistics: it ends with the
-/// straight run's losses and weights, and its checkpoint is a model folder of its own.
+/// A run started `--init-from` a parent (trained on four of the six bundled scenes with
+/// another seed: another split, scaler and velocity statistics than this run would fit) and
+/// resumed without it (`--resume` refuses `--init-from`) keeps the parent's held-out scenes
+/// and normalisation: it ends with the straight run's losses and weights, and its checkpoint
+/// is a model folder of its own.
 #[test]
 fn a_run_from_a_parent_resumes_with_the_parents_split_and_normalisation() {
+    let bags = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags");
+    let some = crate::tmp::tempdir().unwrap();
+    let four = [
+        "fluid_circle_000",
+        "fluid_splash_002",
+        "multi_jelly+liquid_002",
+        "multi_rope+snow_001",
+    ];
+    for scene in four {
+        let bag = format!("{scene}.mcap");
+        std::fs::copy(bags.join(&bag), some.path().join(&bag)).unwrap();
+    }
     let parent = crate::tmp::tempdir().unwrap();
-    ok(&train_grid(
+    let parent_flags = ["--epochs", "1", "--seed", "5", "--samples-per-epoch", "16"];
+    ok(&train_grid_on(
+        some.path().to_str().unwrap(),
         parent.path(),
-        &["--epochs", "1", "--seed", "5", "--samples-per-epoch", "16"],
+        &parent_flags,
     ));
-    let saved = json(&parent.path().join("split.json"));
-    let scenes: Vec<String> = ["train", "val", "test"]
-        .iter()
-        .flat_map(|p| saved[p].as_array().unwrap().iter())
-        .map(|s| s.as_str().unwrap().to_owned())
-        .collect();
-    let seeded = serde_json::to_value(minflow::data::Split::new(&scenes, 0)).unwrap();
-    assert_ne!(
-        saved, seeded,
-        "seed 5's split must differ from seed 0's for this test"
-    );
-
     let flags = ["--epochs", "2", "--mirror", "--samples-per-epoch", "16"];
+    // What this run would fit on its own: another split and normalisation than the parent's.
+    let own = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(own.path(), &flags));
+    let parent_meta = json(&parent.path().join("model.json"));
+    let own_meta = json(&own.path().join("model.json"));
+    assert_ne!(parent_meta["scaler"], own_meta["scaler"]);
+    assert_ne!(parent_meta["vel_scale"], own_meta["vel_scale"]);
+
     let from = ["--init-from", parent.path().to_str().unwrap()];
     let straight = crate::tmp::tempdir().unwrap();
     ok(&train_grid(straight.path(), &[&flags[..], &from].concat()));
+    let split = json(&straight.path().join("split.json"));
+    assert_ne!(split, json(&own.path().join("split.json")));
     let calls = crate::tmp::tempdir().unwrap();
     ok(&train_grid(
         calls.path(),
@@ -176,20 +193,45 @@ fn a_run_from_a_parent_resumes_with_the_parents_split_and_normalisation() {
     let rest = [&flags[..], &["--call-steps", "3", "--resume"]].concat();
     ok(&train_grid(calls.path(), &rest));
     ok(&train_grid(calls.path(), &rest));
-    assert_eq!(json(&calls.path().join("split.json")), saved);
+    assert_eq!(json(&calls.path().join("split.json")), split);
     let (a, b) = (losses(straight.path()), losses(calls.path()));
     assert_eq!(a.len(), 2);
     assert_eq!(a, b, "(train loss, validation loss) per epoch");
     assert_eq!(weights(straight.path()), weights(calls.path()));
     // The checkpoint is a model folder: the latest weights with the parent's normalisation.
     let checkpoint = calls.path().join("checkpoint");
-    let (parent_meta, meta) = (
-        json(&parent.path().join("model.json")),
-        json(&checkpoint.join("model.json")),
-    );
-    for field in ["vel_scale", "dv_mean", "dv_scale"] {
+    let meta = json(&checkpoint.join("model.json"));
+    for field in ["vel_scale", "dv_mean", "dv_scale", "scaler"] {
         assert_eq!(meta[field], parent_meta[field], "{field}");
     }
-    assert_eq!(meta["scaler"], parent_meta["scaler"]);
     assert!(!weights(&checkpoint).is_empty());
+}
+
+/// A run stopped in its first epoch (no kept model yet) refuses a resume with other network
+/// flags: its checkpoint's `model.json` is what the flags are checked against.
+#[test]
+fn a_run_stopped_before_its_first_epoch_refuses_other_flags() {
+    let flags = [
+        "--epochs",
+        "2",
+        "--samples-per-epoch",
+        "16",
+        "--call-steps",
+        "3",
+    ];
+    let calls = crate::tmp::tempdir().unwrap();
+    ok(&train_grid(calls.path(), &flags));
+    assert!(!calls.path().join("model.json").exists());
+    assert!(calls.path().join("checkpoint/model.json").exists());
+    let other = train_grid(
+        calls.path(),
+        &[&flags[..], &["--resume", "--box-grid", "64"]].concat(),
+    );
+    let stderr = String::from_utf8_lossy(&other.stderr);
+    assert!(!other.status.success(), "{stderr}");
+    assert!(stderr.contains("box_grid"), "{stderr}");
+    ok(&train_grid(
+        calls.path(),
+        &[&flags[..], &["--resume"]].concat(),
+    ));
 }

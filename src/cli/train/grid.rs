@@ -224,11 +224,14 @@ fn start_point(
     args: &TrainArgs,
     config: &GridConfig,
 ) -> anyhow::Result<(GridTrainOptions, Option<Normalisation>)> {
+    // A resumed run keeps what its start fixed (`--init-from` conflicts with `--resume`),
+    // and its flags are checked against its checkpoint's, written from the first step on.
+    let resumed = resumed_from(args);
     if args.resume {
-        check_resume(&args.out, &NetConfig::Grid(config.clone()))?;
+        let saved = resumed.as_deref().unwrap_or(&args.out);
+        check_resume(saved, &NetConfig::Grid(config.clone()))?;
     }
-    // A resumed run keeps what its start fixed (`--init-from` conflicts with `--resume`).
-    let source = (args.grid_args.init_from.clone()).or_else(|| resumed_from(args));
+    let source = (args.grid_args.init_from.clone()).or(resumed);
     let mut opts = args.grid_options();
     opts.constraints = training_constraints(args, source.as_deref())?;
     let init = (source.as_deref())

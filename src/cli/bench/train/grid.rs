@@ -200,7 +200,9 @@ fn stages<B: AutodiffBackend + NetOps>(
     let p2g = timed::<B>(device, repeats, || {
         let _ = transfer::p2g(&s, values.clone()).sum().backward();
     });
-    let unet = UNetConfig::new(c_in, config.latent)
+    // A bundled network's U-Net hands back K latent fields, one a frame.
+    let fields = config.latent * config.bundle;
+    let unet = UNetConfig::new(c_in, fields)
         .with_width(config.unet_width)
         .with_levels(config.levels)
         .with_conv(config.conv)
@@ -209,7 +211,7 @@ fn stages<B: AutodiffBackend + NetOps>(
     let unet_ms = timed::<B>(device, repeats, || {
         let _ = unet.forward(grid.clone()).sum().backward();
     });
-    let latent = Tensor::<B, 3>::random([b, n * n, config.latent], normal, device).require_grad();
+    let latent = Tensor::<B, 3>::random([b, n * n, fields], normal, device).require_grad();
     let g2p = timed::<B>(device, repeats, || {
         let _ = transfer::g2p(&s, latent.clone()).sum().backward();
     });
