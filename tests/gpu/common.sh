@@ -7,7 +7,8 @@ DATA=${DATA:-/tmp/data}
 mkdir -p "$OUT" runs
 export CUDA_PATH=${CUDA_PATH:-/usr/local/cuda}
 BIN=${BIN:-gpu/minflow-cuda}
-if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ]; then
+# NO_UNPACK=1: a caller that runs no binary (long.sh keep) leaves it packed.
+if [ ! -x "$BIN" ] && [ -f "$BIN.xz" ] && [ -z "${NO_UNPACK:-}" ]; then
     python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('$BIN.xz'), open('$BIN', 'wb'))"
     chmod +x "$BIN"
 fi

@@ -31,11 +31,12 @@
 #    gpu/ for the next call, and at a session's end, without epochs/, to models/long-run/
 #    (`tests/gpu/long.sh keep`): only what is committed outlives a checkout.
 #
-# Branches from a phase's latest weights (FROM: the run folder, phase 3's long3 by default), for issue 81's levers at equal minutes from a trained model (each NAME=FLAGS, flags
-# joined by commas, trains runs/branch-NAME side by side, on the machine's GPUs in turn,
-# with the BRANCH schedule; then all are scored by tests/gpu/liquid_table.py on
-# 12 splash scenes of the long run's training split and on the unseen scenes, and packed
-# into $RET/branches.tgz):
+# Branches from a phase's latest weights (FROM: its run folder, phase 3's long3 by default,
+# whose network flags they keep), for issue 81's levers at equal minutes from a trained
+# model (each NAME=FLAGS, flags joined by commas, trains runs/branch-NAME side by side, on
+# the machine's GPUs in turn, with the BRANCH schedule; then all are scored by
+# tests/gpu/liquid_table.py on 12 splash scenes of the long run's training split and on
+# the unseen scenes, and packed into $RET/branches.tgz):
 #
 #   tests/gpu/long.sh branch MINUTES plain= push4=--pushforward,4 mp2=--interaction,2
 #
@@ -56,7 +57,9 @@
 # DEVICE=cpu SCENES=4 FRAMES=24 SCHEDULE="..." BRANCH="..." (tiny epochs).
 set -uo pipefail
 RET=${RET:-${OUT:-/tmp/minflow-gpu}}
-# BIN (unpacked from BIN.xz where needed), DATA, CUDA_PATH and NCCL.
+# BIN (unpacked from BIN.xz where needed: not for keep or the usage), DATA, CUDA_PATH and
+# NCCL.
+case "${1:-}" in keep | "") NO_UNPACK=1 ;; esac
 . "$(dirname "$0")/common.sh"
 DEVICE=${DEVICE:-cuda}
 # The run trains on every GPU of the machine, data-parallel at the same global batch
@@ -72,11 +75,13 @@ FRAMES=${FRAMES:-200}
 read -r -a NET <<<"${NET:---grid 32 --unet-width 16 --levels 3 --latent 32 --hidden 32 \
     --head-hidden 64 --bundle 4 --rollout-steps 4 --model mingru}"
 PHASE=${PHASE:-3}
+# PHASE_NET: the phase's network flags beyond NET (its branches take them too).
+PHASE_NET=()
 case "$PHASE" in
 1) RUN=long BATCH=(--epochs 50 --batch-size 128 --lr 1e-3) ;;
 2) RUN=long2 BATCH=(--epochs 42 --batch-size 512 --lr 1e-3) ;;
 # Phase 2's cosine from 1e-3 at its epoch 8 of 42: 1e-5 + 0.495e-3 (1 + cos(pi 8 / 42)).
-3) RUN=long3 BATCH=(--epochs 34 --batch-size 512 --lr 9.1e-4 --box-grid 256) ;;
+3) RUN=long3 BATCH=(--epochs 34 --batch-size 512 --lr 9.1e-4) PHASE_NET=(--box-grid 256) ;;
 *) echo "PHASE must be 1, 2 or 3" >&2; exit 2 ;;
 esac
 # Phase 3 starts from phase 2's epoch 8 as shipped; its ledger up to there, in earlier.json.
@@ -151,7 +156,8 @@ train() {
     fi
     echo "training on $TRAIN_DEVICE"
     "$BIN" train --device "$TRAIN_DEVICE" --data "$DATA/long/fluid" "$DATA/long/multi" \
-        --out "runs/$RUN" "${NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" "${start[@]}" \
+        --out "runs/$RUN" "${NET[@]}" "${PHASE_NET[@]}" "${SCHEDULE[@]}" --call-minutes "$1" \
+        "${start[@]}" \
         2>&1 | tr '\r' '\n' | grep -v "^\s*$" | tail -n 6
     # Phase 1's ledger goes with phase 2's folder (and archive): its curve counts both.
     if [ "$RUN" = long2 ] && [ ! -f runs/long2/phase1.json ]; then
@@ -230,8 +236,10 @@ PY
 # Trains each NAME=FLAGS of "$@" (after MINUTES, $1) from FROM's latest weights, side by
 # side, into runs/branch-NAME; on a machine of several GPUs they take the GPUs in turn.
 branch() {
-    local minutes=$1 from=${FROM:-$RUN} pids=() lever name flags device
+    local minutes=$1 from=${FROM:-$RUN} pids=() lever name flags device net=()
     shift
+    # A branch of this phase keeps its network flags.
+    [ "$from" = "$RUN" ] && net=("${PHASE_NET[@]}")
     from_run "$from" || return 1
     for lever in "$@"; do
         name=branch-${lever%%=*}
@@ -239,8 +247,8 @@ branch() {
         device=$DEVICE
         [ "${GPUS:-0}" -gt 1 ] && device=cuda:$((${#pids[@]} % GPUS))
         "$BIN" train --device "$device" --data "$DATA/long/fluid" "$DATA/long/multi" \
-            --out "runs/$name" --init-from "/tmp/from/$from" "${NET[@]}" "${BRANCH[@]}" \
-            --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
+            --out "runs/$name" --init-from "/tmp/from/$from" "${NET[@]}" "${net[@]}" \
+            "${BRANCH[@]}" --max-minutes "$minutes" "${flags[@]}" >"$RET/train-$name.log" 2>&1 &
         pids+=($!)
     done
     # The branches that trained, for `score`.
@@ -376,7 +384,7 @@ call)
     ls -la "$RET/$RUN-run.tgz"
     ;;
 *)
-    sed -n '2,56p' "$0"
+    sed -n '2,57p' "$0"
     exit 2
     ;;
 esac
