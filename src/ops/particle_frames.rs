@@ -37,4 +37,8 @@ pub struct ParticleFrames<B: Backend> {
     pub dv_scale: [f32; 2],
     /// See `vel_scale`.
     pub dv_mean: [f32; 2],
+    /// The box `(lo, hi)` the integrated positions are clamped into, domain units, both
+    /// axes ([`GridModel::integration_box`](crate::model::grid::GridModel::integration_box):
+    /// MPM's box on the grid of `--box-grid`, not necessarily the network's).
+    pub bounds: (f32, f32),
 }

@@ -17,7 +17,9 @@ unpack() {
 }
 BIN=${BIN:-gpu/minflow-cuda}
 unpack "$BIN"
-MODELS=(--model models/all-grid-mingru-small-k4-mixed --model models/scale-grid-mingru-small-k4)
+# MODELS ("--model DIR ..."): the models timed, by default the demo's former and the scale one.
+read -r -a MODELS <<<"${MODELS:---model models/all-grid-mingru-small-k4-mixed \
+    --model models/scale-grid-mingru-small-k4}"
 SIZES=${SIZES:-"--scenes 256 --batch 256|--grid 128 --scenes 256 --batch 256|--grid 256 --scenes 16 --batch 16"}
 IFS='|' read -r -a ALL <<<"$SIZES"
 run() {

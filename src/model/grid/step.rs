@@ -248,11 +248,7 @@ impl<B: NetOps> GridModel<B> {
         latent: &Latent<B>,
         memory: Option<&Tensor<B, 2>>,
     ) -> Option<Vec<StepOutput<B>>> {
-        // The kernel clamps into the network grid's box.
-        let plain = self.update == Update::Free
-            && self.rest_in.is_none()
-            && !self.advects()
-            && (self.box_grid == 0 || self.box_grid == self.n);
+        let plain = self.update == Update::Free && self.rest_in.is_none() && !self.advects();
         let grad = input.pos.is_require_grad()
             || vel.is_require_grad()
             || self.head_a.weight.val().is_require_grad();
@@ -281,6 +277,7 @@ impl<B: NetOps> GridModel<B> {
             vel_scale: self.vel_scale,
             dv_scale,
             dv_mean,
+            bounds: self.integration_box(),
         };
         let out = B::particle_frames(frames)?;
         if roofline::on() {

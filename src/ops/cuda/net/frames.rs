@@ -35,6 +35,8 @@ struct FramesOp {
     sizes: [usize; 3],
     /// The velocity normalisation, the velocity change's scale and mean, per axis.
     scales: [[f32; 2]; 3],
+    /// The integration's box `(lo, hi)`, domain units.
+    bounds: (f32, f32),
 }
 
 impl Operation<Runtime> for FramesOp {
@@ -91,6 +93,7 @@ impl Operation<Runtime> for FramesOp {
                 (vs[0], vs[1]),
                 (ds[0], ds[1]),
                 (dm[0], dm[1]),
+                self.bounds,
                 self.widths,
             )
         };
@@ -148,6 +151,7 @@ pub(crate) fn particle_frames(f: ParticleFrames<Cuda>) -> Option<FloatTensor<Cud
         widths,
         sizes: [f.n, f.bundle, channels],
         scales: [f.vel_scale, f.dv_scale, f.dv_mean],
+        bounds: f.bounds,
     };
     Some(
         client

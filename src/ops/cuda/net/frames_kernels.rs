@@ -102,8 +102,8 @@ impl Widths {
 /// channels]`, channels `k L..`), the head on `[gathered, window, material, position,
 /// memory]` (`wa` `[L + 2T + M + 2 + H, A]`, `wb` `[A, A']`, `wo` `[A', 2]`, SiLU between),
 /// `dv = dv_scale out + dv_mean`, `v' = v + dv`, `x' = x + dt (v + v') / 2` clamped into
-/// `[dx / 2, 1 - 1.5 dx]`; then the window moves on by `v' / vel_scale`. `out` `[K B N, 4]`
-/// (frame k's rows `k B N..`): position, velocity.
+/// `bounds` (MPM's `[dx / 2, 1 - 1.5 dx]` on the model's box grid); then the window moves on
+/// by `v' / vel_scale`. `out` `[K B N, 4]` (frame k's rows `k B N..`): position, velocity.
 #[cube(launch_unchecked)]
 #[allow(clippy::too_many_arguments)]
 pub(in crate::ops) fn frames_kernel(
@@ -127,6 +127,7 @@ pub(in crate::ops) fn frames_kernel(
     vel_scale: (f32, f32),
     dv_scale: (f32, f32),
     dv_mean: (f32, f32),
+    bounds: (f32, f32),
     #[comptime] w: Widths,
 ) {
     // The head's weights and biases in shared memory, read by every thread of the cube
@@ -159,6 +160,7 @@ pub(in crate::ops) fn frames_kernel(
             out,
             (particles, n, channels, bundle),
             (vel_scale, dv_scale, dv_mean),
+            bounds,
             w,
         );
     }
@@ -178,6 +180,7 @@ fn particle(
     out: &mut Tensor<f32>,
     sizes: (u32, u32, u32, u32),
     scales: ((f32, f32), (f32, f32), (f32, f32)),
+    bounds: (f32, f32),
     #[comptime] w: Widths,
 ) {
     let (particles, n, channels, bundle) = sizes;
@@ -186,9 +189,7 @@ fn particle(
     let p = ABSOLUTE_POS;
     let (nn, c) = (n as usize, channels as usize);
     let b = p / particles as usize;
-    let nf = f32::cast_from(n);
-    let dx = f32::new(1.0) / nf;
-    let (lo, hi) = (f32::new(0.5) * dx, f32::new(1.0) - f32::new(1.5) * dx);
+    let (lo, hi) = bounds;
     let step = dt[b] * f32::new(0.5);
     // The head's first layer's inputs, `u`: the gathered field (from 0), the window (`at_w`),
     // the material (`at_m`), the position (`at_p`), the memory (`at_h`). All are loaded before
