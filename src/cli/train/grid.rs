@@ -231,11 +231,19 @@ fn start_point(
         let saved = resumed.as_deref().unwrap_or(&args.out);
         check_resume(saved, &NetConfig::Grid(config.clone()))?;
     }
+    // Its model.json, read once for the constraints and the normalisation.
     let source = (args.grid_args.init_from.clone()).or(resumed);
+    let meta = (source.as_deref())
+        .map(|dir| {
+            (RunFolder::new(dir).meta())
+                .with_context(|| format!("the model to start from, {}", dir.display()))
+        })
+        .transpose()?;
     let mut opts = args.grid_options();
-    opts.constraints = training_constraints(args, source.as_deref())?;
-    let init = (source.as_deref())
-        .map(|dir| init_normalisation(dir, config))
+    let fitted = meta.as_ref().and_then(|m| m.constraints.clone());
+    opts.constraints = training_constraints(args, fitted);
+    let init = (source.zip(meta))
+        .map(|(dir, meta)| init_normalisation(&dir, meta, config))
         .transpose()?;
     Ok((opts, init))
 }
@@ -246,37 +254,28 @@ fn start_point(
 /// fallback) and its kept model's (runs checkpointed before checkpoints held one). None for
 /// a fresh run, and for a resumed one with none: that fits them again.
 fn resumed_from(args: &TrainArgs) -> Option<PathBuf> {
+    if !args.resume {
+        return None;
+    }
     let folder = RunFolder::new(&args.out);
     let candidates = [
         folder.checkpoint(),
         folder.checkpoint_old(),
         args.out.clone(),
     ];
-    (candidates.into_iter()).find(|dir| args.resume && RunFolder::new(dir).meta().is_ok())
+    (candidates.into_iter()).find(|dir| RunFolder::new(dir).meta().is_ok())
 }
 
 /// The constraints `--constraints` asks the training rollouts to project onto: the parts
-/// of `source`'s fitted ones (`--init-from`, or the resumed run's own), else of the
-/// defaults; None for `off`.
-fn training_constraints(
-    args: &TrainArgs,
-    source: Option<&std::path::Path>,
-) -> anyhow::Result<Option<Constraints>> {
+/// of `fitted` (those of `--init-from`'s `model.json`, or of the resumed run's own), else
+/// of the defaults; None for `off`.
+fn training_constraints(args: &TrainArgs, fitted: Option<Constraints>) -> Option<Constraints> {
     let parts = args.grid_args.constraints;
     if parts == Parts::NONE {
-        return Ok(None);
+        return None;
     }
-    let fitted = match source {
-        Some(dir) => {
-            RunFolder::new(dir)
-                .meta()
-                .with_context(|| format!("the constraints of {}", dir.display()))?
-                .constraints
-        }
-        None => None,
-    };
     let c = fitted.unwrap_or_else(Constraints::defaults).select(parts);
-    Ok((!c.is_empty()).then_some(c))
+    (!c.is_empty()).then_some(c)
 }
 
 /// The run's one-line summary on stderr (scenes: all, train, val, test; samples, the
@@ -328,19 +327,19 @@ fn print_summary(
     .into())
 }
 
-/// The normalisation (velocity statistics and min-max scaler) of the
-/// grid model in `dir` (`--init-from`), after checking that it is the architecture `config`
-/// describes.
+/// The normalisation (velocity statistics and min-max scaler) of the grid model `meta`
+/// (the `model.json` of `dir`: `--init-from`, or the resumed run's own), after checking that
+/// it is the architecture `config` describes.
 ///
 /// # Errors
-/// `dir` has no readable `model.json`, holds another architecture, or one whose
-/// hyper-parameters differ (each named, a usage error).
-fn init_normalisation(dir: &std::path::Path, config: &GridConfig) -> anyhow::Result<Normalisation> {
-    let folder = RunFolder::new(dir);
-    let path = folder.model_json();
-    let meta = folder
-        .meta()
-        .with_context(|| format!("the model to start from, {}", dir.display()))?;
+/// `meta` holds another architecture, or one whose hyper-parameters differ (each named, a
+/// usage error).
+fn init_normalisation(
+    dir: &std::path::Path,
+    meta: crate::model::store::ModelMeta,
+    config: &GridConfig,
+) -> anyhow::Result<Normalisation> {
+    let path = RunFolder::new(dir).model_json();
     // A model without reference channels may grow them (`GridModel::with_reference`), a
     // single-frame model its bundle (`GridModel::with_bundle`), a model without rest shape
     // or with the free update those (`model::grid::grow`), any model another grid.
