@@ -11,6 +11,7 @@ use std::thread::Scope;
 
 use burn::module::AutodiffModule;
 use burn::optim::Optimizer;
+use burn::record::{FullPrecisionSettings, Record};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::StreamId;
 
@@ -57,18 +58,23 @@ where
     {
         let group = Arc::new(group);
         let (done, values) = channel();
+        let (copied, ready) = channel::<()>();
         let (fresh, step) = (Arc::new(fresh), Arc::new(step));
         let jobs = (1..group.ranks())
             .map(|rank| {
                 let (send, jobs) = channel::<J>();
                 let (model, record) = (model.clone(), optim.to_record());
                 let (group, done, stream) = (Arc::clone(&group), done.clone(), streams[rank]);
-                let (fresh, step) = (Arc::clone(&fresh), Arc::clone(&step));
+                let (fresh, step, copied) = (Arc::clone(&fresh), Arc::clone(&step), copied.clone());
                 scope.spawn(move || {
                     stream.executes(|| {
                         let guard = FailGuard(&*group);
-                        let mut model = model.fork(group.device(rank));
-                        let mut optim = fresh().load_record(record);
+                        let (mut model, mut optim) =
+                            replica(model, record, fresh(), group.device(rank));
+                        // The sender goes with the message: a worker that panicked
+                        // before it drops its own, and the main thread's wait still ends.
+                        copied.send(()).ok();
+                        drop(copied);
                         for job in jobs {
                             let value;
                             (model, value) = step(model, &mut optim, job, rank, &group);
@@ -82,6 +88,9 @@ where
                 send
             })
             .collect();
+        // The main thread's next step waits for every replica's copies (see `replica`).
+        drop(copied);
+        while ready.recv().is_ok() {}
         Self {
             jobs,
             values,
@@ -119,6 +128,27 @@ where
             .map(|_| (self.values.recv()).expect("a data-parallel worker failed"))
             .sum()
     }
+}
+
+/// A replica of `model` on `device` and `optim` loaded with `record` moved there, made on
+/// a worker's thread while the main thread waits for it ([`Workers::start`]).
+///
+/// Everything read from the main device is read here, before the main thread takes its next
+/// step, while it still holds every tensor. Left to the worker's first step (where Adam
+/// moves its moments lazily), the worker's copy of a moment could be its last reference;
+/// burn-fusion then lets the worker's read take the tensor's handle while an operation of the
+/// main thread's stream that reads it still waits in its queue, which then panics ("Should
+/// have handle for tensor": 3 runs of 5 of the small shape on 4 H200, issue 82). The moments
+/// go through host memory (`Record::into_item` at full precision, exact for f32).
+fn replica<A, M, O>(model: M, record: O::Record, optim: O, device: &A::Device) -> (M, O)
+where
+    A: AutodiffBackend,
+    M: AutodiffModule<A>,
+    O: Optimizer<M, A>,
+{
+    let item = record.into_item::<FullPrecisionSettings>();
+    let record = <O::Record as Record<A>>::from_item::<FullPrecisionSettings>(item, device);
+    (model.fork(device), optim.load_record(record))
 }
 
 /// Marks the group failed if its rank's thread unwinds before it is forgotten, so that the
