@@ -155,6 +155,27 @@ impl Scaler {
         }
     }
 
+    /// [`Scaler::scale_into`] into `out`, `[N, 5]`, instead of appending (the same values).
+    /// Panics when `out` is shorter than `5 N`.
+    pub fn scale_to(&self, state: &[f32], material: &[u8], out: &mut [f32]) {
+        let rows = state.chunks_exact(4).zip(material);
+        for ((row, &m), to) in rows.zip(out.chunks_exact_mut(5)) {
+            for (f, &v) in row.iter().enumerate() {
+                to[f] = self.scale(f, v);
+            }
+            to[4] = self.scale(4, f32::from(m));
+        }
+    }
+
+    /// [`Scaler::scale_state_into`] into `out`, `[N, 4]`, instead of appending.
+    pub fn scale_state_to(&self, state: &[f32], out: &mut [f32]) {
+        for (row, to) in state.chunks_exact(4).zip(out.chunks_exact_mut(4)) {
+            for (f, &v) in row.iter().enumerate() {
+                to[f] = self.scale(f, v);
+            }
+        }
+    }
+
     /// Appends the scaled `[N, 4]` (x, y, vx, vy) of a physical `[N, 4]` state to `out`.
     pub fn scale_state_into(&self, state: &[f32], out: &mut Vec<f32>) {
         out.reserve(state.len());

@@ -20,6 +20,7 @@ use std::ops::Range;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 
 use super::{DataError, Scaler, Trajectory};
 
@@ -55,34 +56,44 @@ pub struct Batch {
 }
 
 impl Batch {
-    /// The batch cut into at most `parts` batches of consecutive windows, as even as can be
-    /// (the first ones one window larger): a data-parallel step's shares, one per device.
-    /// Fewer parts than asked when the batch has fewer windows; none when it is empty.
+    /// The batch cut into at most `parts` batches of consecutive windows
+    /// ([`Batch::share_ranges`]): a data-parallel step's shares, one per device.
     pub fn shards(&self, parts: usize) -> Vec<Batch> {
-        let parts = parts.max(1).min(self.b);
         let (t, n) = (self.t, self.n);
-        let mut out = Vec::with_capacity(parts);
+        (self.share_ranges(parts).into_iter())
+            .map(|Range { start, end }| {
+                let rows = |per: usize| start * per..end * per;
+                Batch {
+                    b: end - start,
+                    t,
+                    n,
+                    inputs: self.inputs[rows(t * n * 5)].to_vec(),
+                    targets: self.targets[rows(n * 4)].to_vec(),
+                    last: self.last[rows(n * 4)].to_vec(),
+                    target_phys: self.target_phys[rows(n * 4)].to_vec(),
+                    dt: self.dt[rows(1)].to_vec(),
+                    material: self.material[rows(n)].to_vec(),
+                    ids: self.ids[rows(1)].to_vec(),
+                    first_pos: self.first_pos[rows(n * 2)].to_vec(),
+                    solver_grid: self.solver_grid[rows(1)].to_vec(),
+                }
+            })
+            .collect()
+    }
+
+    /// The windows of at most `parts` shares of consecutive windows, as even as can be (the
+    /// first ones one window larger). Fewer than asked when the batch has fewer windows;
+    /// none when it is empty.
+    pub fn share_ranges(&self, parts: usize) -> Vec<Range<usize>> {
+        let parts = parts.max(1).min(self.b);
         let mut start = 0;
-        for k in 0..parts {
-            let b = self.b / parts + usize::from(k < self.b % parts);
-            let rows = |per: usize| start * per..(start + b) * per;
-            out.push(Batch {
-                b,
-                t,
-                n,
-                inputs: self.inputs[rows(t * n * 5)].to_vec(),
-                targets: self.targets[rows(n * 4)].to_vec(),
-                last: self.last[rows(n * 4)].to_vec(),
-                target_phys: self.target_phys[rows(n * 4)].to_vec(),
-                dt: self.dt[rows(1)].to_vec(),
-                material: self.material[rows(n)].to_vec(),
-                ids: self.ids[rows(1)].to_vec(),
-                first_pos: self.first_pos[rows(n * 2)].to_vec(),
-                solver_grid: self.solver_grid[rows(1)].to_vec(),
-            });
-            start += b;
-        }
-        out
+        (0..parts)
+            .map(|k| {
+                let b = self.b / parts + usize::from(k < self.b % parts);
+                start += b;
+                start - b..start
+            })
+            .collect()
     }
 }
 
@@ -229,48 +240,73 @@ impl WindowIndex {
         plan
     }
 
-    /// The batch of the windows at positions `windows` (all of one N).
+    /// The batch of the windows at positions `windows` (all of one N), assembled on rayon's
+    /// threads, each window into its own rows: a batch of the demo's shape (1,024 windows of
+    /// 17 frames of 2,500 particles) is 0.9 GB, which one thread wrote slower than two H200
+    /// trained on it (docs/training.md, "Several GPUs").
     pub(crate) fn batch(&self, windows: &[u32]) -> Batch {
         let (t, b) = (self.t, windows.len());
         let n = windows
             .first()
             .map_or(0, |&w| self.trajs[self.windows[w as usize].0 as usize].n);
-        let mut batch = Batch {
+        let at = |w: &u32| {
+            let (i, start) = self.windows[*w as usize];
+            let traj = &self.trajs[i as usize];
+            debug_assert_eq!(traj.n, n, "a batch mixes particle counts");
+            (traj, start as usize)
+        };
+        let rows = |per: usize| vec![0.0f32; b * n * per];
+        let (mut inputs, mut targets, mut last) = (rows(t * 5), rows(4), rows(4));
+        let (mut target_phys, mut first_pos) = (rows(4), rows(2));
+        let mut material = vec![0u8; b * n];
+        let each = |out: &mut Vec<f32>,
+                    per: usize,
+                    f: &(dyn Fn(&Trajectory, usize, &mut [f32]) + Sync)| {
+            (out.par_chunks_mut((n * per).max(1)).zip(windows.par_iter())).for_each(|(rows, w)| {
+                let (traj, start) = at(w);
+                f(traj, start, rows)
+            })
+        };
+        each(&mut inputs, t * 5, &|traj, s, rows| {
+            for (k, rows) in rows.chunks_exact_mut((n * 5).max(1)).enumerate() {
+                self.scaler
+                    .scale_to(traj.state(s + k), &traj.material, rows);
+            }
+        });
+        each(&mut targets, 4, &|traj, s, rows| {
+            self.scaler.scale_state_to(traj.state(s + t), rows)
+        });
+        each(&mut last, 4, &|traj, s, rows| {
+            rows.copy_from_slice(traj.state(s + t - 1))
+        });
+        each(&mut target_phys, 4, &|traj, s, rows| {
+            rows.copy_from_slice(traj.state(s + t))
+        });
+        each(&mut first_pos, 2, &|traj, _, rows| {
+            for (to, row) in rows.chunks_exact_mut(2).zip(traj.state(0).chunks_exact(4)) {
+                to.copy_from_slice(&row[..2]);
+            }
+        });
+        for (rows, w) in material.chunks_exact_mut(n.max(1)).zip(windows) {
+            rows.copy_from_slice(&at(w).0.material);
+        }
+        Batch {
             b,
             t,
             n,
-            inputs: Vec::with_capacity(b * t * n * 5),
-            targets: Vec::with_capacity(b * n * 4),
-            last: Vec::with_capacity(b * n * 4),
-            target_phys: Vec::with_capacity(b * n * 4),
-            dt: Vec::with_capacity(b),
-            material: Vec::with_capacity(b * n),
-            ids: Vec::with_capacity(b),
-            first_pos: Vec::with_capacity(b * n * 2),
-            solver_grid: Vec::with_capacity(b),
-        };
-        for &w in windows {
-            let (i, start) = self.windows[w as usize];
-            let traj = &self.trajs[i as usize];
-            debug_assert_eq!(traj.n, n, "a batch mixes particle counts");
-            let Range { start: s, end: e } = start as usize..start as usize + t;
-            for k in s..e {
-                self.scaler
-                    .scale_into(traj.state(k), &traj.material, &mut batch.inputs);
-            }
-            self.scaler
-                .scale_state_into(traj.state(e), &mut batch.targets);
-            batch.last.extend_from_slice(traj.state(e - 1));
-            batch.target_phys.extend_from_slice(traj.state(e));
-            batch.dt.push(traj.dt);
-            batch.material.extend_from_slice(&traj.material);
-            batch.ids.push((self.ids[i as usize], start));
-            batch.solver_grid.push(traj.solver_grid);
-            for row in traj.state(0).chunks_exact(4) {
-                batch.first_pos.extend_from_slice(&row[..2]);
-            }
+            inputs,
+            targets,
+            last,
+            target_phys,
+            dt: windows.iter().map(|w| at(w).0.dt).collect(),
+            material,
+            ids: (windows.iter())
+                .map(|&w| self.windows[w as usize])
+                .map(|(i, start)| (self.ids[i as usize], start))
+                .collect(),
+            first_pos,
+            solver_grid: windows.iter().map(|w| at(w).0.solver_grid).collect(),
         }
-        batch
     }
 }
 

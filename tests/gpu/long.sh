@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The long run (issues 81 and 82: at least 10 million samples on at least 2,000 scenes,
-# accumulated over device calls and sessions; docs/training.md, "The long run"). One call:
+# accumulated over device calls and sessions; docs/long_run.md). One call:
 #
 #   tests/gpu/long.sh call MINUTES
 #
@@ -11,7 +11,7 @@
 #    has two phases, each a run folder with its own fixed schedule:
 #    - phase 1, runs/long (gpu/long-run.tgz): fresh weights, 50 epochs of 200,000 samples at
 #      batch 128; stopped at 1,622,208 samples (a step at batch 128 is partly bound by the
-#      host's recording of its kernels; docs/training.md, "Why phase 2");
+#      host's recording of its kernels; docs/long_run.md, "Why phase 2");
 #    - phase 2, runs/long2 (gpu/long2-run.tgz): from phase 1's latest weights
 #      (`--init-from`, its split and normalisation), 42 epochs of 200,000 samples at batch
 #      512; its archive was lost at 4,029,120 samples (a new checkout does not keep gpu/);
@@ -166,7 +166,7 @@ train() {
     # Phase 3's start: phase 1 (1,622,208 samples, 0.62 device-hours) and phase 2's first 8
     # epochs of 200,192 samples; phase 2's ledger was lost with its archive, so its hours
     # to epoch 8 are read off the two points around it (2,243,136 samples at 0.80 hours,
-    # 3,608,384 at 1.40, docs/training.md).
+    # 3,608,384 at 1.40, docs/long_run.md).
     if [ "$RUN" = long3 ] && [ ! -f runs/long3/earlier.json ]; then
         echo '{"samples": 3223744, "device_hours": 1.23, "from": "'"$SHIPPED"'",' \
             '"note": "phase 1 and phase 2 to its epoch 8; hours interpolated"}' \

@@ -343,3 +343,24 @@ fn bench_train_takes_the_small_shape() {
     let (small, full) = (params("small"), params("full"));
     assert!(small < full, "small {small} against full {full} parameters");
 }
+
+/// `bench train --arch grid --feed` times the batch feed instead of training: one row for
+/// each of 1, 2 and 4 shares with a positive rate, and no training row.
+#[test]
+fn bench_train_feed_times_the_feed_alone() {
+    let o = bench_grid(&["--feed"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for shares in ["1", "2", "4"] {
+        let row = (stdout.lines())
+            .find(|l| l.split_whitespace().next() == Some(shares))
+            .unwrap_or_else(|| panic!("no row for {shares} shares: {stdout}"));
+        let rate: f64 = row.split_whitespace().nth(2).unwrap().parse().unwrap();
+        assert!(rate > 0.0, "{row}");
+    }
+    assert!(!stdout.contains("mingru"), "trained: {stdout}");
+}

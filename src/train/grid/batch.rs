@@ -4,8 +4,11 @@
 //! ([`BatchTensors`]). Prepared on the host by [`prepare_batch`] (the trainer's prefetch
 //! thread), then uploaded ([`HostBatch::upload`]). Read by `rollout_loss.rs`.
 
+use std::ops::Range;
+
 use burn::tensor::backend::Backend;
 use burn::tensor::Tensor;
+use rayon::prelude::*;
 
 use crate::data::Batch;
 use crate::model::grid::{mirror_rows, one_hot, GridConfig, NeighbourTensors, Neighbourhood};
@@ -84,31 +87,45 @@ pub(super) fn upload_batch<B: Backend>(
     needs: Needs,
     device: &B::Device,
 ) -> BatchTensors<B> {
-    prepare_batch(batch, mirror, needs).upload(device)
+    prepare_batch(&batch, 0..batch.b, mirror, needs).upload(device)
 }
 
-/// The host's part of a batch's tensors: the frames packed and mirrored (the windows `w`
-/// with `mirror[w]`, [`mirror_rows`]), the neighbourhoods `needs` asks for built.
-pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> HostBatch {
-    let (b, t, n) = (batch.b, batch.t, batch.n);
-    let mut frames = Vec::with_capacity(b * (t + 1) * n * 4);
-    let mut first_pos = batch.first_pos;
-    for w in 0..b {
-        let start = frames.len();
-        for k in 0..t {
-            let start = ((w * t + k) * n) * 5;
-            for row in batch.inputs[start..start + n * 5].chunks_exact(5) {
-                frames.extend_from_slice(&row[..4]);
-            }
+/// The host's part of the tensors of the windows `windows` of `batch` (all of them, or one
+/// data-parallel share): the frames packed and mirrored (the share's window `w` where
+/// `mirror[w]`, [`mirror_rows`]) on rayon's threads, a window each, the neighbourhoods
+/// `needs` asks for built.
+pub(super) fn prepare_batch(
+    batch: &Batch,
+    windows: Range<usize>,
+    mirror: &[bool],
+    needs: Needs,
+) -> HostBatch {
+    let (b, t, n) = (windows.len(), batch.t, batch.n);
+    let rows = |per: usize| windows.start * per..windows.end * per;
+    let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
+    let mut first_pos = batch.first_pos[rows(n * 2)].to_vec();
+    let (inputs, targets) = (
+        &batch.inputs[rows(t * n * 5)],
+        &batch.target_phys[rows(n * 4)],
+    );
+    let per_window = frames.par_chunks_mut(((t + 1) * n * 4).max(1));
+    (per_window
+        .zip(first_pos.par_chunks_mut((n * 2).max(1)))
+        .enumerate())
+    .for_each(|(w, (packed, first))| {
+        let input = &inputs[w * t * n * 5..(w + 1) * t * n * 5];
+        for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
+            to.copy_from_slice(&row[..4]);
         }
-        frames.extend_from_slice(&batch.target_phys[w * n * 4..(w + 1) * n * 4]);
+        packed[t * n * 4..].copy_from_slice(&targets[w * n * 4..(w + 1) * n * 4]);
         if mirror.get(w).copied().unwrap_or(false) {
-            mirror_rows(&mut frames[start..], 4);
-            mirror_rows(&mut first_pos[w * n * 2..(w + 1) * n * 2], 2);
+            mirror_rows(packed, 4);
+            mirror_rows(first, 2);
         }
-    }
+    });
+    let material = &batch.material[rows(n)];
     let rest = needs.rest.then(|| {
-        let nb = Neighbourhood::build(&first_pos, &batch.material, [b, n], |m| m != 0);
+        let nb = Neighbourhood::build(&first_pos, material, [b, n], |m| m != 0);
         let pairs = nb.weight.iter().sum::<f32>();
         (nb, pairs.max(1.0))
     });
@@ -122,7 +139,7 @@ pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> Host
                     .collect::<Vec<f32>>()
             })
             .collect();
-        let nb = Neighbourhood::build(&pos, &batch.material, [b, n], |m| m == 0);
+        let nb = Neighbourhood::build(&pos, material, [b, n], |m| m == 0);
         let particles = nb.inv_d0.iter().filter(|&&v| v > 0.0).count() as f32;
         (nb, particles.max(1.0))
     });
@@ -134,9 +151,9 @@ pub(super) fn prepare_batch(batch: Batch, mirror: &[bool], needs: Needs) -> Host
         liquid,
         host: HostRows {
             first_pos,
-            material: batch.material,
-            dt: batch.dt,
-            solver_grid: batch.solver_grid,
+            material: material.to_vec(),
+            dt: batch.dt[rows(1)].to_vec(),
+            solver_grid: batch.solver_grid[rows(1)].to_vec(),
         },
     }
 }
@@ -230,6 +247,57 @@ mod tests {
         assert_eq!(p[..n * 2], m[..n * 2]);
         for (i, (x, y)) in p.iter().zip(&m).enumerate().skip(n * 2) {
             assert_eq!(*y, if i % 2 == 0 { 1.0 - x } else { *x }, "reference {i}");
+        }
+    }
+
+    /// A data-parallel share prepared in place from the whole batch's rows (the feed's way)
+    /// is the share cut out first (`Batch::shards`) and prepared whole: the same frames,
+    /// mirroring, rows and neighbourhoods.
+    #[test]
+    fn a_share_prepared_in_place_is_the_shard_prepared() {
+        let (b, t, n) = (5, 2, 4);
+        let value = |i: usize| ((i * 37) % 101) as f32 * 0.009 + 0.02;
+        let batch = Batch {
+            b,
+            t,
+            n,
+            inputs: (0..b * t * n * 5).map(value).collect(),
+            targets: vec![0.0; b * n * 4],
+            last: vec![0.0; b * n * 4],
+            target_phys: (0..b * n * 4).map(|i| value(i + 11)).collect(),
+            dt: (0..b).map(|w| 0.01 * (w + 1) as f32).collect(),
+            material: (0..b * n).map(|i| (i % 3) as u8).collect(),
+            ids: (0..b as u32).map(|w| (w, w)).collect(),
+            first_pos: (0..b * n * 2).map(|i| value(i + 5)).collect(),
+            solver_grid: (0..b as u32).map(Some).collect(),
+        };
+        let needs = Needs {
+            rest: true,
+            liquid_at: Some(1),
+            materials: 4,
+        };
+        let mirror = [true, false, true, true, false];
+        let ranges = batch.share_ranges(2);
+        assert_eq!(ranges, [0..3, 3..5]);
+        for (range, shard) in ranges.into_iter().zip(batch.shards(2)) {
+            let flips = &mirror[range.clone()];
+            let in_place = prepare_batch(&batch, range, flips, needs);
+            let cut = prepare_batch(&shard, 0..shard.b, flips, needs);
+            assert_eq!(in_place.dims, cut.dims);
+            assert_eq!(in_place.frames, cut.frames);
+            let (a, c) = (&in_place.host, &cut.host);
+            assert_eq!(
+                (&a.first_pos, &a.material, &a.dt),
+                (&c.first_pos, &c.material, &c.dt)
+            );
+            assert_eq!(a.solver_grid, c.solver_grid);
+            for (x, y) in [(&in_place.rest, &cut.rest), (&in_place.liquid, &cut.liquid)] {
+                let (x, y) = (x.as_ref().unwrap(), y.as_ref().unwrap());
+                assert_eq!(
+                    (&x.0.index, &x.0.weight, x.1),
+                    (&y.0.index, &y.0.weight, y.1)
+                );
+            }
         }
     }
 }

@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::batch::{prepare_batch, HostBatch, Needs};
-use crate::data::{Batch, DataError};
+use crate::data::{Batch, DataError, WindowIndex};
 
 /// The mirroring draws of a run's batches: batch `g` of the run (counted over all epochs
 /// from 0) draws its windows' flips from stream `g` of a ChaCha8 generator seeded from
@@ -78,17 +78,15 @@ impl BatchFeed {
                         .map(|_| mirror && rng.random_bool(0.5))
                         .collect();
                     if shares <= 1 {
-                        return vec![prepare_batch(batch, &flips, needs)];
+                        return vec![prepare_batch(&batch, 0..batch.b, &flips, needs)];
                     }
-                    // One thread a share: a data-parallel step takes the shares' windows
-                    // as fast as one GPU each.
-                    let mut start = 0;
+                    // One thread a share (its neighbourhoods are built serially), each
+                    // reading its windows' rows of the whole batch.
                     std::thread::scope(|each| {
-                        let handles: Vec<_> = (batch.shards(shares).into_iter())
+                        let handles: Vec<_> = (batch.share_ranges(shares).into_iter())
                             .map(|share| {
-                                let mirrored = &flips[start..start + share.b];
-                                start += share.b;
-                                each.spawn(move || prepare_batch(share, mirrored, needs))
+                                let (batch, mirrored) = (&batch, &flips[share.clone()]);
+                                each.spawn(move || prepare_batch(batch, share, mirrored, needs))
                             })
                             .collect();
                         (handles.into_iter())
@@ -116,4 +114,24 @@ impl BatchFeed {
         }
         self.prepared.recv().ok()
     }
+}
+
+/// Samples per second at which the trainer's feed prepares an epoch of `index` in batches of
+/// `batch_size` cut into `shares` (one per device of a data-parallel run), the windows
+/// mirrored half the time and no neighbourhoods built, with nothing taking its batches but a
+/// loop that drops them: the rate a training step cannot beat (`minflow bench train --arch
+/// grid --feed`). Batches are assembled as training assembles resident ones
+/// ([`WindowIndex::batch`]).
+pub fn feed_rate(index: &WindowIndex, batch_size: usize, shares: usize) -> f64 {
+    let plan = index.plan(batch_size, None);
+    let started = std::time::Instant::now();
+    std::thread::scope(|scope| {
+        let batches = plan.iter().map(|windows| Ok(index.batch(windows)));
+        let flips = Flips { seed: 1, first: 0 };
+        let feed = BatchFeed::start(scope, batches, flips, (true, shares), Needs::default());
+        while let Some(batch) = feed.next() {
+            drop(batch.expect("resident batches do not fail"));
+        }
+    });
+    index.len() as f64 / started.elapsed().as_secs_f64().max(1e-9)
 }

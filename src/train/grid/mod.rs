@@ -43,6 +43,7 @@ mod rollout_loss;
 mod schedule;
 mod validate;
 
+pub use feed::feed_rate;
 pub use options::GridTrainOptions;
 pub use schedule::{fit_stats, learning_rate, StatsFit, VelocityStats};
 pub use validate::validation_rollout;

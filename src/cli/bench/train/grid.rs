@@ -7,7 +7,8 @@
 //! (rollout loss over P steps, clipping, Adam) on one fixed synthetic dataset; with `--stages`,
 //! the time of one forward + backward pass of each stage of a step (stencil, P2G, U-Net, G2P,
 //! memory, the whole step) at the same batch size, each synchronised with the device, to show
-//! where a step's time goes.
+//! where a step's time goes; with `--feed`, instead of training, the rate at which the
+//! trainer's feed prepares the same batches for 1, 2 and 4 devices.
 
 use std::time::Instant;
 
@@ -23,7 +24,7 @@ use crate::model::grid::{
     one_hot, transfer, GridConfig, Memory, MemoryKind, MemoryState, StepInput, UNetConfig,
 };
 use crate::ops::NetOps;
-use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer};
+use crate::train::grid::{feed_rate, fit_stats, GridTrainOptions, GridTrainer};
 use crate::train::Quiet;
 
 /// The grid table on backend `B` over `devices` (data-parallel when more than one, the
@@ -53,6 +54,17 @@ where
         args.shape, args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
         devices.len(), B::name(&device)
     );
+    if args.feed {
+        println!("{:<7} {:>10} {:>10}", "shares", "s/epoch", "samples/s");
+        // One untimed epoch first: the allocator's first pages of a batch cost more.
+        feed_rate(&index, args.micro_batch, 1);
+        for shares in [1, 2, 4] {
+            let rate = feed_rate(&index, args.micro_batch, shares);
+            let seconds = index.len() as f64 / rate;
+            println!("{shares:<7} {seconds:>10.3} {rate:>10.1}");
+        }
+        return Ok(Outcome::Done);
+    }
     println!(
         "{:<8} {:<7} {:>9} {:>10} {:>10} {:>10} {:>7} {:>7} {:>9} {:>12}",
         "core",

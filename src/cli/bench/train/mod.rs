@@ -53,6 +53,11 @@ pub struct TrainBenchArgs {
     /// Also time each stage of one step, forward + backward (grid).
     #[arg(long)]
     pub(super) stages: bool,
+    /// Time the batch feed alone instead of training (grid): the samples/s at which the host
+    /// assembles and packs batches for 1, 2 and 4 shares (devices), which no training step on
+    /// any number of GPUs can beat.
+    #[arg(long)]
+    pub(super) feed: bool,
     /// Latent and core width W.
     #[arg(long, default_value_t = 1250)]
     width: usize,
