@@ -312,9 +312,9 @@ evaluate() {
 # scores branches, into $RET/pick and $RET/pick.tgz: the epoch to ship is picked by whole
 # scenes, and the ones to average (`minflow average`), not by the 20-frame validation loss.
 # PROJECTION=DIR scores them as the demo runs them: copies of the epochs with DIR's
-# constraints (`constraints copy`), beside DIR itself.
+# constraints (`constraints copy`), beside DIR itself; EPOCHS="0010 0011" scores only those.
 pick() {
-    local models=() names=() dir out=$RET/pick
+    local models=() names=() dir out=$RET/pick kept=0
     unpack "$RUN"
     if [ -n "${PROJECTION:-}" ]; then
         names+=("$(basename "$PROJECTION")")
@@ -322,6 +322,8 @@ pick() {
     fi
     for dir in runs/"$RUN"/epochs/*/; do
         [ -f "$dir/model.mpk" ] || continue
+        # EPOCHS="0010 0011": only those kept epochs.
+        [ -z "${EPOCHS:-}" ] || [[ " $EPOCHS " == *" $(basename "$dir") "* ]] || continue
         if [ -n "${PROJECTION:-}" ]; then
             rm -rf "/tmp/pick/$(basename "$dir")" && mkdir -p /tmp/pick &&
                 cp -r "${dir%/}" /tmp/pick/ && dir=/tmp/pick/$(basename "$dir")/ &&
@@ -330,8 +332,13 @@ pick() {
         fi
         names+=("$(basename "$dir")")
         models+=(--model "${dir%/}")
+        kept=$((kept + 1))
     done
-    [ "${#names[@]}" -gt 0 ] || { echo "no kept epochs in runs/$RUN/epochs" >&2; return 1; }
+    [ "$kept" -gt 0 ] || {
+        echo "no kept epochs in runs/$RUN/epochs${EPOCHS:+ among $EPOCHS} (runs/$RUN unpacked" \
+            "from an archive without them? remove it to unpack gpu/$RUN-run.tgz)" >&2
+        return 1
+    }
     rm -rf "$out" && mkdir -p "$out"
     evaluate "$out" unseen:unseen
     tar czf "$RET/pick.tgz" -C "$RET" pick

@@ -10,6 +10,8 @@
 #                                   # the full shape on grids 32 and 64 and the small one
 #                                   # (SHAPES), global batches 64 to 1024 (BATCHES)
 #   tests/gpu/training.sh equal     # two GPUs against one: the same losses
+#   tests/gpu/training.sh feed      # the batch feed alone (bench train --feed), both shapes,
+#                                   # batch 1024: the rate no step on any GPU count can beat
 #
 # Parts run in the order given; logs and tables go to $OUT (default /tmp/minflow-gpu).
 set -uo pipefail
@@ -78,6 +80,16 @@ parallel() {
                     grep -E "^mingru|grid architecture|rror|panic"
             done
         done
+    done
+}
+
+# The batch feed alone for 1, 2 and 4 shares, on this machine's cores, both shapes.
+feed() {
+    local shape
+    for shape in small full; do
+        echo "== $shape shape, grid 32, batch 1024"
+        "$BIN" bench train --arch grid --shape "$shape" --grid 32 --micro-batch 1024 \
+            --samples 8192 --rollout-steps 4 --feed 2>&1 | tail -n 4
     done
 }
 
