@@ -156,8 +156,14 @@ impl Scaler {
     }
 
     /// [`Scaler::scale_into`] into `out`, `[N, 5]`, instead of appending (the same values).
-    /// Panics when `out` is shorter than `5 N`.
+    /// Panics when `out` is not `5 N` long.
     pub fn scale_to(&self, state: &[f32], material: &[u8], out: &mut [f32]) {
+        debug_assert_eq!(state.len(), 4 * material.len());
+        assert_eq!(
+            out.len(),
+            5 * material.len(),
+            "rows of 5 features for every particle"
+        );
         let rows = state.chunks_exact(4).zip(material);
         for ((row, &m), to) in rows.zip(out.chunks_exact_mut(5)) {
             for (f, &v) in row.iter().enumerate() {
@@ -167,8 +173,10 @@ impl Scaler {
         }
     }
 
-    /// [`Scaler::scale_state_into`] into `out`, `[N, 4]`, instead of appending.
+    /// [`Scaler::scale_state_into`] into `out`, `[N, 4]`, instead of appending. Panics when
+    /// `out` is not as long as `state`.
     pub fn scale_state_to(&self, state: &[f32], out: &mut [f32]) {
+        assert_eq!(out.len(), state.len(), "a scaled row for every particle");
         for (row, to) in state.chunks_exact(4).zip(out.chunks_exact_mut(4)) {
             for (f, &v) in row.iter().enumerate() {
                 to[f] = self.scale(f, v);

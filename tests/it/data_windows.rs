@@ -101,6 +101,15 @@ fn batches_hold_the_scaled_frames_at_the_right_indices() {
                 assert!(same_bits(&batch.last[span], &state_of(last)));
                 assert_eq!(batch.dt[b], target.dt);
                 assert_eq!(&batch.material[b * n..(b + 1) * n], &target.material[..]);
+                // The reference positions: the segment's first frame.
+                let at_start = state_of(frame(traj.start_index));
+                let pos0: Vec<f32> = (at_start.chunks_exact(4))
+                    .flat_map(|r| [r[0], r[1]])
+                    .collect();
+                assert!(same_bits(
+                    &batch.first_pos[b * n * 2..(b + 1) * n * 2],
+                    &pos0
+                ));
             }
         }
     }

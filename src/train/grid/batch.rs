@@ -66,6 +66,9 @@ pub(super) struct HostBatch {
     frames: Vec<f32>,
     /// B, the window's input frames T, and N.
     dims: [usize; 3],
+    /// The windows that count toward the batch: B, or 0 for a padding share
+    /// ([`HostBatch::padding`]).
+    counted: usize,
     /// The model's material one-hot width.
     materials: usize,
     /// The solids' rest neighbourhoods and the liquid's, with their counts (see
@@ -146,6 +149,7 @@ pub(super) fn prepare_batch(
     HostBatch {
         frames,
         dims: [b, t, n],
+        counted: b,
         materials: needs.materials,
         rest,
         liquid,
@@ -159,9 +163,18 @@ pub(super) fn prepare_batch(
 }
 
 impl HostBatch {
-    /// The batch's windows, B.
+    /// The windows that count toward the batch: B, or 0 for a padding share.
     pub(super) fn b(&self) -> usize {
-        self.dims[0]
+        self.counted
+    }
+
+    /// This share as a padding share: a data-parallel rank whose batch had fewer windows
+    /// than devices still takes the step (every rank must, for the all-reduce and to keep the
+    /// replicas equal), on a copy of a window of the batch whose loss counts 0 (its gradient
+    /// is zero); the samples seen and the batch's size leave it out.
+    pub(super) fn padding(mut self) -> Self {
+        self.counted = 0;
+        self
     }
 
     /// The batch on `device` (see [`BatchTensors`]).

@@ -30,9 +30,10 @@ impl Flips {
 
 /// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
 /// packed, mirrored where [`Flips`] draws so, neighbourhoods built) one batch ahead of the
-/// step that uses them (the thread holds the one it prepared until it is taken). Each step reads its loss back at its end, so whatever the host did
-/// between two steps, the GPU and burn's fusion and launch threads waited for (docs/train_speed.md,
-/// "Where a training step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
+/// step that uses them (the thread holds the one it prepared until it is taken). Each step
+/// reads its loss back at its end, so whatever the host did between two steps, the GPU and
+/// burn's fusion and launch threads waited for (docs/train_speed.md, "Where a training
+/// step's host time goes"). `MINFLOW_TRAIN_PREFETCH=off` has the thread
 /// read and prepare each batch only when [`BatchFeed::next`] asks for it, as the loop did
 /// itself before, to compare the two in one binary. The thread ends when the feed is
 /// dropped, after the last batch, or after a batch that could not be read.
@@ -47,7 +48,8 @@ pub(super) struct BatchFeed {
 impl BatchFeed {
     /// Starts the thread in `scope` over `batches`; `mirror` draws a window's mirroring
     /// from `flips`; each batch comes as `shares` host batches of consecutive windows (one
-    /// per device of a data-parallel run; [`Batch::shards`]).
+    /// per device of a data-parallel run; [`Batch::share_ranges`], padded with shares that
+    /// count 0 where the batch has fewer windows than devices: [`HostBatch::padding`]).
     pub(super) fn start<'scope, I>(
         scope: &'scope std::thread::Scope<'scope, '_>,
         batches: I,
@@ -81,12 +83,23 @@ impl BatchFeed {
                         return vec![prepare_batch(&batch, 0..batch.b, &flips, needs)];
                     }
                     // One thread a share (its neighbourhoods are built serially), each
-                    // reading its windows' rows of the whole batch.
+                    // reading its windows' rows of the whole batch; a batch of fewer
+                    // windows than devices padded with shares that count 0.
+                    let mut ranges = batch.share_ranges(shares);
+                    let real = ranges.len();
+                    ranges.resize(shares, 0..batch.b.min(1));
                     std::thread::scope(|each| {
-                        let handles: Vec<_> = (batch.share_ranges(shares).into_iter())
-                            .map(|share| {
+                        let handles: Vec<_> = (ranges.into_iter().enumerate())
+                            .map(|(k, share)| {
                                 let (batch, mirrored) = (&batch, &flips[share.clone()]);
-                                each.spawn(move || prepare_batch(batch, share, mirrored, needs))
+                                each.spawn(move || {
+                                    let host = prepare_batch(batch, share, mirrored, needs);
+                                    if k < real {
+                                        host
+                                    } else {
+                                        host.padding()
+                                    }
+                                })
                             })
                             .collect();
                         (handles.into_iter())

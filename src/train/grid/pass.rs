@@ -221,6 +221,8 @@ where
             .wrapping_add((rank as u64) << 32);
         B::seed(device, seed);
         let chunks = self.opts.chunks();
+        // The share's weight counts its windows as the batch does (0 for a padding share).
+        let counted = host.b();
         let mut rollout = Rollout::new(&self.config, &self.opts, host.upload::<B>(device));
         rollout.pushforward(&model);
         let (mut value, mut wait) = (0.0, 0.0);
@@ -230,7 +232,7 @@ where
             }
             let mut loss = rollout.chunk_loss(&model);
             if let Some((_, total, _)) = reduce {
-                loss = loss.mul_scalar(rollout.windows() as f32 / total.max(1) as f32);
+                loss = loss.mul_scalar(counted as f32 / total.max(1) as f32);
             }
             let mut grads = GradientsParams::from_grads(loss.backward(), &model);
             if let Some((rank, _, group)) = reduce {

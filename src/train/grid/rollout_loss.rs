@@ -102,11 +102,6 @@ impl<'a, B: NetOps> Rollout<'a, B> {
         }
     }
 
-    /// B, the windows of its batch.
-    pub(super) fn windows(&self) -> usize {
-        self.batch.host.dt.len()
-    }
-
     /// A predicted frame (`pos`, `vel`: `[B, N, 2]`) projected onto the options' constraints
     /// with a straight-through gradient (`x + (P(x) - x)` with the move a constant): on the
     /// device with the batch's plan where there is one (one H100, `-small-k4`: 165 samples/s
