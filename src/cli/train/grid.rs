@@ -21,7 +21,7 @@ use crate::data::{
 };
 use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
-use crate::model::store::{NetConfig, RunFolder};
+use crate::model::store::{ModelMeta, NetConfig, RunFolder};
 use crate::ops::NetOps;
 use crate::train::grid::{fit_stats, GridTrainOptions, GridTrainer, StatsFit, VelocityStats};
 use crate::train::{BatchSource, CallShare, DatasetInfo, EpochRecord, Observer, TrainError};
@@ -228,32 +228,36 @@ fn start_point(
     // and its flags are checked against its checkpoint's, written from the first step on.
     let resumed = resumed_from(args);
     if args.resume {
-        let saved = resumed.as_deref().unwrap_or(&args.out);
+        let saved = resumed.as_ref().map_or(args.out.as_path(), |(dir, _)| dir);
         check_resume(saved, &NetConfig::Grid(config.clone()))?;
     }
     // Its model.json, read once for the constraints and the normalisation.
-    let source = (args.grid_args.init_from.clone()).or(resumed);
-    let meta = (source.as_deref())
-        .map(|dir| {
+    let start = match &args.grid_args.init_from {
+        Some(dir) => Some((
+            dir.clone(),
             (RunFolder::new(dir).meta())
-                .with_context(|| format!("the model to start from, {}", dir.display()))
-        })
-        .transpose()?;
+                .with_context(|| format!("the model to start from, {}", dir.display()))?,
+        )),
+        None => resumed,
+    };
     let mut opts = args.grid_options();
-    let fitted = meta.as_ref().and_then(|m| m.constraints.clone());
+    let fitted = start
+        .as_ref()
+        .and_then(|(_, meta)| meta.constraints.clone());
     opts.constraints = training_constraints(args, fitted);
-    let init = (source.zip(meta))
+    let init = start
         .map(|(dir, meta)| init_normalisation(&dir, meta, config))
         .transpose()?;
     Ok((opts, init))
 }
 
 /// The folder whose `model.json` a resumed run (`--resume`) keeps its normalisation and
-/// training constraints from, as its start fixed them (fitted, or `--init-from`'s): the first
-/// that reads of its checkpoint's, the previous checkpoint's (a damaged checkpoint's
-/// fallback) and its kept model's (runs checkpointed before checkpoints held one). None for
-/// a fresh run, and for a resumed one with none: that fits them again.
-fn resumed_from(args: &TrainArgs) -> Option<PathBuf> {
+/// training constraints from, as its start fixed them (fitted, or `--init-from`'s), with
+/// that `model.json`: the first that reads of its checkpoint's, the previous checkpoint's
+/// (a damaged checkpoint's fallback) and its kept model's (runs checkpointed before
+/// checkpoints held one). None for a fresh run, and for a resumed one with none: that fits
+/// them again.
+fn resumed_from(args: &TrainArgs) -> Option<(PathBuf, ModelMeta)> {
     if !args.resume {
         return None;
     }
@@ -263,7 +267,7 @@ fn resumed_from(args: &TrainArgs) -> Option<PathBuf> {
         folder.checkpoint_old(),
         args.out.clone(),
     ];
-    (candidates.into_iter()).find(|dir| RunFolder::new(dir).meta().is_ok())
+    (candidates.into_iter()).find_map(|dir| Some((dir.clone(), RunFolder::new(&dir).meta().ok()?)))
 }
 
 /// The constraints `--constraints` asks the training rollouts to project onto: the parts
@@ -336,7 +340,7 @@ fn print_summary(
 /// usage error).
 fn init_normalisation(
     dir: &std::path::Path,
-    meta: crate::model::store::ModelMeta,
+    meta: ModelMeta,
     config: &GridConfig,
 ) -> anyhow::Result<Normalisation> {
     let path = RunFolder::new(dir).model_json();
