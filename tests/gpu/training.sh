@@ -11,7 +11,8 @@
 #                                   # (SHAPES), global batches 64 to 1024 (BATCHES)
 #   tests/gpu/training.sh equal     # two GPUs against one: the same losses
 #   tests/gpu/training.sh feed      # the batch feed alone (bench train --feed), both shapes,
-#                                   # batch 1024: the rate no step on any GPU count can beat
+#                                   # batch 1024, on 2, 8 and all cores: the rate no step
+#                                   # on any GPU count can beat
 #
 # Parts run in the order given; logs and tables go to $OUT (default /tmp/minflow-gpu).
 set -uo pipefail
@@ -83,13 +84,21 @@ parallel() {
     done
 }
 
-# The batch feed alone for 1, 2 and 4 shares, on this machine's cores, both shapes.
+# The batch feed alone for 1, 2 and 4 shares, both shapes, on 2 and 8 of this machine's
+# cores and on all of them (rayon's RAYON_NUM_THREADS; FEED_THREADS="2 8 all"): on a 2 x
+# H200 machine's 32 cores it ran 2-3x slower than on a 2-core one (docs/training.md).
 feed() {
-    local shape
-    for shape in small full; do
-        echo "== $shape shape, grid 32, batch 1024"
-        "$BIN" bench train --arch grid --shape "$shape" --grid 32 --micro-batch 1024 \
-            --samples 8192 --rollout-steps 4 --feed 2>&1 | tail -n 4
+    local shape threads pool
+    echo "$(nproc) cores; cgroup CPU quota: $(cat /sys/fs/cgroup/cpu.max 2>/dev/null || echo none)"
+    for threads in ${FEED_THREADS:-2 8 all}; do
+        pool=$threads
+        [ "$threads" = all ] && pool=
+        for shape in small full; do
+            echo "== $shape shape, grid 32, batch 1024, $threads threads"
+            RAYON_NUM_THREADS=$pool /usr/bin/time -f "%e s wall, %U s user, %S s sys" \
+                "$BIN" bench train --arch grid --shape "$shape" --grid 32 --micro-batch 1024 \
+                --samples 8192 --rollout-steps 4 --feed 2>&1 | tail -n 4
+        done
     done
 }
 
