@@ -39,7 +39,7 @@ pub use scaler::{Scaler, ScalerFit, FEATURES, FEATURE_NAMES};
 pub use split::{Part, Split, SplitFractions};
 pub use streaming::{EpochBatches, StreamingLoader};
 pub use trajectory::{Gap, LoadReport, Trajectory};
-pub use windows::{Batch, WindowIndex};
+pub use windows::{Batch, Layout, WindowIndex};
 
 use crate::bag::BagError;
 

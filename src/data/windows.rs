@@ -6,7 +6,9 @@
 //! segment, so no window spans missing frames. A trajectory of F frames gives `F - T` windows.
 //! A [`Batch`] carries the scaled inputs `[B, T, N, 5]` (x, y, vx, vy, m) and targets
 //! `[B, N, 4]`, plus the physical last input frame and target (domain units, domain units per
-//! time unit) for integration and metrics, `dt` (time units) and the materials.
+//! time unit) for integration and metrics, `dt` (time units) and the materials. In the
+//! grid trainer's [`Layout::Frames`] it carries instead the window's frames, inputs and
+//! target, physical and unscaled `[B, T + 1, N, 4]`: a copy of consecutive frames a window.
 //!
 //! Order: without a seed, windows in (trajectory, start) order; with one, shuffled by
 //! `ChaCha8Rng` seeded from (seed, epoch), so a resumed run sees the same order for the same
@@ -24,7 +26,21 @@ use rayon::prelude::*;
 
 use super::{DataError, Scaler, Trajectory};
 
-/// One batch of windows, all with the same particle count N. Arrays are row-major.
+/// What a [`WindowIndex`]'s batches carry beside the materials, `dt`, ids, reference
+/// positions and solver grids.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Layout {
+    /// The paper's architecture's: [`Batch::inputs`] scaled by the index's [`Scaler`],
+    /// [`Batch::targets`], [`Batch::last`] and [`Batch::target_phys`]; `frames` empty.
+    #[default]
+    Scaled,
+    /// The grid trainer's: [`Batch::frames`] only (the four vectors above empty), about half
+    /// the bytes written a batch and no scaling (`train --arch grid`, its `bench train`).
+    Frames,
+}
+
+/// One batch of windows, all with the same particle count N. Arrays are row-major; which of
+/// them are filled, the [`Layout`] of the index that made it says.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Batch {
     /// B, windows in this batch.
@@ -41,6 +57,9 @@ pub struct Batch {
     pub last: Vec<f32>,
     /// `[B, N, 4]`: physical x, y, vx, vy of the target frame.
     pub target_phys: Vec<f32>,
+    /// `[B, T + 1, N, 4]`: physical x, y, vx, vy of the input frames and the target
+    /// ([`Layout::Frames`]; empty otherwise).
+    pub frames: Vec<f32>,
     /// `[B]`: frame spacing of each window's trajectory, time units.
     pub dt: Vec<f32>,
     /// `[B, N]`: material ids.
@@ -71,6 +90,11 @@ impl Batch {
                     targets: self.targets[rows(n * 4)].to_vec(),
                     last: self.last[rows(n * 4)].to_vec(),
                     target_phys: self.target_phys[rows(n * 4)].to_vec(),
+                    frames: self
+                        .frames
+                        .get(rows((t + 1) * n * 4))
+                        .unwrap_or(&[])
+                        .to_vec(),
                     dt: self.dt[rows(1)].to_vec(),
                     material: self.material[rows(n)].to_vec(),
                     ids: self.ids[rows(1)].to_vec(),
@@ -105,6 +129,7 @@ pub struct WindowIndex {
     /// The id each trajectory carries in [`Batch::ids`].
     ids: Vec<u32>,
     scaler: Scaler,
+    layout: Layout,
     t: usize,
     /// (position in `trajs`, start).
     windows: Vec<(u32, u32)>,
@@ -117,6 +142,7 @@ impl std::fmt::Debug for WindowIndex {
             .field("t", &self.t)
             .field("windows", &self.windows.len())
             .field("scaler", &self.scaler)
+            .field("layout", &self.layout)
             .finish()
     }
 }
@@ -147,9 +173,16 @@ impl WindowIndex {
             trajs,
             ids,
             scaler,
+            layout: Layout::Scaled,
             t,
             windows,
         })
+    }
+
+    /// The index with its batches in `layout` ([`Layout::Scaled`] by default).
+    pub fn with_layout(mut self, layout: Layout) -> Self {
+        self.layout = layout;
+        self
     }
 
     /// Number of windows.
@@ -243,7 +276,8 @@ impl WindowIndex {
     /// The batch of the windows at positions `windows` (all of one N), assembled on rayon's
     /// threads, each window into its own rows: a batch of the demo's shape (1,024 windows of
     /// 17 frames of 2,500 particles) is 0.9 GB, which one thread wrote slower than two H200
-    /// trained on it (docs/training.md, "Several GPUs").
+    /// trained on it (docs/training.md, "Several GPUs"). The index's [`Layout`] says which
+    /// rows are written.
     pub(crate) fn batch(&self, windows: &[u32]) -> Batch {
         let (t, b) = (self.t, windows.len());
         let n = windows
@@ -256,9 +290,27 @@ impl WindowIndex {
             (traj, start as usize)
         };
         let rows = |per: usize| vec![0.0f32; b * n * per];
-        let (mut inputs, mut targets, mut last) = (rows(t * 5), rows(4), rows(4));
-        let (mut target_phys, mut first_pos) = (rows(4), rows(2));
-        let mut material = vec![0u8; b * n];
+        let scaled = self.layout == Layout::Scaled;
+        let rows_if = |on: bool, per: usize| if on { rows(per) } else { Vec::new() };
+        let mut batch = Batch {
+            b,
+            t,
+            n,
+            inputs: rows_if(scaled, t * 5),
+            targets: rows_if(scaled, 4),
+            last: rows_if(scaled, 4),
+            target_phys: rows_if(scaled, 4),
+            frames: rows_if(!scaled, (t + 1) * 4),
+            dt: windows.iter().map(|w| at(w).0.dt).collect(),
+            material: vec![0u8; b * n],
+            ids: (windows.iter())
+                .map(|&w| self.windows[w as usize])
+                .map(|(i, start)| (self.ids[i as usize], start))
+                .collect(),
+            first_pos: rows(2),
+            solver_grid: windows.iter().map(|w| at(w).0.solver_grid).collect(),
+        };
+        // Rows of `per` values a particle, a window each; an empty vector is left empty.
         let each = |out: &mut Vec<f32>,
                     per: usize,
                     f: &(dyn Fn(&Trajectory, usize, &mut [f32]) + Sync)| {
@@ -267,46 +319,34 @@ impl WindowIndex {
                 f(traj, start, rows)
             })
         };
-        each(&mut inputs, t * 5, &|traj, s, rows| {
+        let frames = |k: usize| {
+            move |traj: &Trajectory, s: usize, rows: &mut [f32]| {
+                for (j, rows) in rows.chunks_exact_mut((n * 4).max(1)).enumerate() {
+                    rows.copy_from_slice(traj.state(s + k + j));
+                }
+            }
+        };
+        each(&mut batch.inputs, t * 5, &|traj, s, rows| {
             for (k, rows) in rows.chunks_exact_mut((n * 5).max(1)).enumerate() {
                 self.scaler
                     .scale_to(traj.state(s + k), &traj.material, rows);
             }
         });
-        each(&mut targets, 4, &|traj, s, rows| {
+        each(&mut batch.targets, 4, &|traj, s, rows| {
             self.scaler.scale_state_to(traj.state(s + t), rows)
         });
-        each(&mut last, 4, &|traj, s, rows| {
-            rows.copy_from_slice(traj.state(s + t - 1))
-        });
-        each(&mut target_phys, 4, &|traj, s, rows| {
-            rows.copy_from_slice(traj.state(s + t))
-        });
-        each(&mut first_pos, 2, &|traj, _, rows| {
+        each(&mut batch.last, 4, &frames(t - 1));
+        each(&mut batch.target_phys, 4, &frames(t));
+        each(&mut batch.frames, (t + 1) * 4, &frames(0));
+        each(&mut batch.first_pos, 2, &|traj, _, rows| {
             for (to, row) in rows.chunks_exact_mut(2).zip(traj.state(0).chunks_exact(4)) {
                 to.copy_from_slice(&row[..2]);
             }
         });
-        for (rows, w) in material.chunks_exact_mut(n.max(1)).zip(windows) {
+        for (rows, w) in batch.material.chunks_exact_mut(n.max(1)).zip(windows) {
             rows.copy_from_slice(&at(w).0.material);
         }
-        Batch {
-            b,
-            t,
-            n,
-            inputs,
-            targets,
-            last,
-            target_phys,
-            dt: windows.iter().map(|w| at(w).0.dt).collect(),
-            material,
-            ids: (windows.iter())
-                .map(|&w| self.windows[w as usize])
-                .map(|(i, start)| (self.ids[i as usize], start))
-                .collect(),
-            first_pos,
-            solver_grid: windows.iter().map(|w| at(w).0.solver_grid).collect(),
-        }
+        batch
     }
 }
 

@@ -1,11 +1,12 @@
 //! Windows and batches: counts per segment, batch contents equal to the scaled (and physical)
 //! frames at the right frame indices for T = 1, 2, 3, no window across a gap, deterministic
-//! shuffling per (seed, epoch), and mixed particle counts batched separately.
+//! shuffling per (seed, epoch), mixed particle counts batched separately, and the grid
+//! trainer's layout of physical frames.
 
 use std::collections::HashMap;
 
 use crate::data_support::{same_bits, simulate, state_of, synthetic, write_bag};
-use minflow::data::{self, DataError, Scaler, Trajectory, WindowIndex};
+use minflow::data::{self, DataError, Layout, Scaler, Trajectory, WindowIndex};
 use minflow::msgs::ParticleFrame;
 
 /// Scene 6 whole (12 frames) and scene 7 without frame 6 (segments of 6 and 5 frames), loaded
@@ -109,6 +110,52 @@ fn batches_hold_the_scaled_frames_at_the_right_indices() {
                 assert!(same_bits(
                     &batch.first_pos[b * n * 2..(b + 1) * n * 2],
                     &pos0
+                ));
+            }
+        }
+    }
+}
+
+/// `Layout::Frames` (the grid trainer's): each window's input frames and target, physical,
+/// written frame by frame, where the scaled layout has them only as scaled inputs, `last` and
+/// `target_phys`; the rest of the batch is the scaled layout's, in the same order.
+#[test]
+fn the_frames_layout_holds_the_physical_frames_of_each_window() {
+    let (trajs, written) = dataset();
+    for t in 1..=3 {
+        let scaled = index(&trajs, t);
+        let framed = index(&trajs, t).with_layout(Layout::Frames);
+        for (a, b) in scaled
+            .batches(5, Some(3), 1)
+            .zip(framed.batches(5, Some(3), 1))
+        {
+            let (n, per) = (b.n, (t + 1) * b.n * 4);
+            assert_eq!(b.frames.len(), b.b * per);
+            assert!(b.inputs.is_empty() && b.targets.is_empty());
+            assert!(b.last.is_empty() && b.target_phys.is_empty() && a.frames.is_empty());
+            assert_eq!(
+                (&a.ids, &a.dt, &a.material, &a.first_pos, &a.solver_grid),
+                (&b.ids, &b.dt, &b.material, &b.first_pos, &b.solver_grid)
+            );
+            for (w, &(traj, start)) in b.ids.iter().enumerate() {
+                let traj = &trajs[traj as usize];
+                for k in 0..=t {
+                    let f = &written[&(traj.scene.clone(), traj.start_index + start + k as u32)];
+                    let at = w * per + k * n * 4;
+                    assert!(
+                        same_bits(&b.frames[at..at + n * 4], &state_of(f)),
+                        "frame {k}"
+                    );
+                }
+                let span = w * n * 4..(w + 1) * n * 4;
+                let last = w * per + (t - 1) * n * 4;
+                assert!(same_bits(
+                    &b.frames[last..last + n * 4],
+                    &a.last[span.clone()]
+                ));
+                assert!(same_bits(
+                    &b.frames[last + n * 4..(w + 1) * per],
+                    &a.target_phys[span]
                 ));
             }
         }

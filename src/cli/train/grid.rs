@@ -17,7 +17,7 @@ use crate::cli::run_folder::{
 };
 use crate::cli::Outcome;
 use crate::data::{
-    Part, Scaler, ScalerFit, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+    Layout, Part, Scaler, ScalerFit, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
 };
 use crate::model::constraints::{Constraints, Parts};
 use crate::model::grid::{GridConfig, Update};
@@ -147,7 +147,9 @@ impl RunData {
         Ok(Self {
             train_scenes: count_scenes(&train),
             test_scenes: count_scenes(&test),
-            train: TrainWindows::Resident(WindowIndex::new(train, frames, Scaler::default())?),
+            train: TrainWindows::Resident(
+                WindowIndex::new(train, frames, Scaler::default())?.with_layout(Layout::Frames),
+            ),
             val,
             normalisation,
         })
@@ -188,13 +190,10 @@ impl RunData {
         Ok(Self {
             train_scenes: train.len(),
             test_scenes: split.select_infos(Part::Test, &infos).len(),
-            train: TrainWindows::Streamed(StreamingLoader::new(
-                train,
-                topic,
-                frames,
-                Scaler::default(),
-                budget,
-            )?),
+            train: TrainWindows::Streamed(
+                StreamingLoader::new(train, topic, frames, Scaler::default(), budget)?
+                    .with_layout(Layout::Frames),
+            ),
             val,
             normalisation,
         })

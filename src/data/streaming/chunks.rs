@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use crate::data::{load_scenes, DataError, Scaler, SceneInfo, Trajectory, WindowIndex};
+use crate::data::{load_scenes, DataError, Layout, Scaler, SceneInfo, Trajectory, WindowIndex};
 
 /// Frames held by loaded chunks now, and the most held at once.
 #[derive(Debug, Default)]
@@ -61,6 +61,8 @@ pub(super) struct ChunkReader {
     pub(super) topic: Option<String>,
     pub(super) t: usize,
     pub(super) scaler: Scaler,
+    /// What the chunks' batches carry.
+    pub(super) layout: Layout,
     pub(super) residency: Arc<Residency>,
 }
 
@@ -68,7 +70,8 @@ impl ChunkReader {
     /// Reads the scenes at `positions` into a counted window index with global ids.
     pub(super) fn read(&self, positions: &[usize]) -> Result<Loaded, DataError> {
         let (trajs, ids) = load_chunk(&self.scenes, positions, self.topic.as_deref())?;
-        let index = WindowIndex::with_ids(trajs, ids, self.t, self.scaler)?;
+        let index =
+            WindowIndex::with_ids(trajs, ids, self.t, self.scaler)?.with_layout(self.layout);
         Ok(Loaded::new(index, self.residency.clone()))
     }
 }

@@ -26,7 +26,7 @@ mod epoch;
 
 use std::sync::{Arc, Mutex};
 
-use super::{DataError, Scaler, ScalerFit, SceneInfo, Trajectory};
+use super::{DataError, Layout, Scaler, ScalerFit, SceneInfo, Trajectory};
 use chunks::{load_chunk, pack, ChunkReader, Loaded};
 pub use epoch::EpochBatches;
 use epoch::Parked;
@@ -74,6 +74,7 @@ impl StreamingLoader {
                 topic: topic.map(str::to_owned),
                 t,
                 scaler,
+                layout: Layout::Scaled,
                 residency: Arc::default(),
             },
             budget: max_resident_frames,
@@ -81,6 +82,12 @@ impl StreamingLoader {
             parked: Mutex::new(None),
         })
     }
+    /// The loader with its batches in `layout` ([`Layout::Scaled`] by default).
+    pub fn with_layout(mut self, layout: Layout) -> Self {
+        self.reader.layout = layout;
+        self
+    }
+
     /// Fits a [`Scaler`] on `scenes` (the training scenes only) reading them chunk by chunk
     /// under the same budget.
     pub fn fit_scaler(

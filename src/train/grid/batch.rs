@@ -107,20 +107,32 @@ pub(super) fn prepare_batch(
     let rows = |per: usize| windows.start * per..windows.end * per;
     let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
     let mut first_pos = batch.first_pos[rows(n * 2)].to_vec();
-    let (inputs, targets) = (
-        &batch.inputs[rows(t * n * 5)],
-        &batch.target_phys[rows(n * 4)],
-    );
-    let per_window = frames.par_chunks_mut(((t + 1) * n * 4).max(1));
+    // A batch of `Layout::Frames` holds the rows packed; a `Layout::Scaled` one (the
+    // identity scaler's) its inputs' first four columns, then the target.
+    let (packed_rows, per) = (&batch.frames, (t + 1) * n * 4);
+    let (inputs, targets) = match packed_rows.is_empty() {
+        true => (
+            &batch.inputs[rows(t * n * 5)],
+            &batch.target_phys[rows(n * 4)],
+        ),
+        false => (&[][..], &[][..]),
+    };
+    let per_window = frames.par_chunks_mut(per.max(1));
     (per_window
         .zip(first_pos.par_chunks_mut((n * 2).max(1)))
         .enumerate())
     .for_each(|(w, (packed, first))| {
-        let input = &inputs[w * t * n * 5..(w + 1) * t * n * 5];
-        for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
-            to.copy_from_slice(&row[..4]);
+        if let Some(rows) =
+            packed_rows.get((windows.start + w) * per..(windows.start + w + 1) * per)
+        {
+            packed.copy_from_slice(rows);
+        } else {
+            let input = &inputs[w * t * n * 5..(w + 1) * t * n * 5];
+            for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
+                to.copy_from_slice(&row[..4]);
+            }
+            packed[t * n * 4..].copy_from_slice(&targets[w * n * 4..(w + 1) * n * 4]);
         }
-        packed[t * n * 4..].copy_from_slice(&targets[w * n * 4..(w + 1) * n * 4]);
         if mirror.get(w).copied().unwrap_or(false) {
             mirror_rows(packed, 4);
             mirror_rows(first, 2);
@@ -230,6 +242,7 @@ mod tests {
             targets: vec![0.0; b * n * 4],
             last: vec![0.0; b * n * 4],
             target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
+            frames: Vec::new(),
             dt: vec![0.016; b],
             material: vec![0; b * n],
             ids: vec![(0, 0); b],
@@ -265,7 +278,8 @@ mod tests {
 
     /// A data-parallel share prepared in place from the whole batch's rows (the feed's way)
     /// is the share cut out first (`Batch::shards`) and prepared whole: the same frames,
-    /// mirroring, rows and neighbourhoods.
+    /// mirroring, rows and neighbourhoods; and a batch of `Layout::Frames`, the same windows
+    /// packed, gives the same frames.
     #[test]
     fn a_share_prepared_in_place_is_the_shard_prepared() {
         let (b, t, n) = (5, 2, 4);
@@ -278,6 +292,7 @@ mod tests {
             targets: vec![0.0; b * n * 4],
             last: vec![0.0; b * n * 4],
             target_phys: (0..b * n * 4).map(|i| value(i + 11)).collect(),
+            frames: Vec::new(),
             dt: (0..b).map(|w| 0.01 * (w + 1) as f32).collect(),
             material: (0..b * n).map(|i| (i % 3) as u8).collect(),
             ids: (0..b as u32).map(|w| (w, w)).collect(),
@@ -290,14 +305,26 @@ mod tests {
             materials: 4,
         };
         let mirror = [true, false, true, true, false];
+        let mut framed = batch.clone();
+        framed.frames = (0..b)
+            .flat_map(|w| {
+                let input = &batch.inputs[w * t * n * 5..(w + 1) * t * n * 5];
+                let target = &batch.target_phys[w * n * 4..(w + 1) * n * 4];
+                (input.chunks_exact(5).flat_map(|r| r[..4].to_vec())).chain(target.to_vec())
+            })
+            .collect();
+        (framed.inputs, framed.target_phys) = (Vec::new(), Vec::new());
         let ranges = batch.share_ranges(2);
         assert_eq!(ranges, [0..3, 3..5]);
         for (range, shard) in ranges.into_iter().zip(batch.shards(2)) {
             let flips = &mirror[range.clone()];
-            let in_place = prepare_batch(&batch, range, flips, needs);
+            let in_place = prepare_batch(&batch, range.clone(), flips, needs);
             let cut = prepare_batch(&shard, 0..shard.b, flips, needs);
+            let packed = prepare_batch(&framed, range, flips, needs);
             assert_eq!(in_place.dims, cut.dims);
             assert_eq!(in_place.frames, cut.frames);
+            assert_eq!(in_place.frames, packed.frames);
+            assert_eq!(in_place.host.first_pos, packed.host.first_pos);
             let (a, c) = (&in_place.host, &cut.host);
             assert_eq!(
                 (&a.first_pos, &a.material, &a.dt),

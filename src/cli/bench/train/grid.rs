@@ -19,7 +19,7 @@ use burn::tensor::{Distribution, Tensor};
 use super::{kernels, TrainBenchArgs};
 use crate::cli::bench::common::{peak_mib, synthetic, EpochMeans};
 use crate::cli::Outcome;
-use crate::data::{Scaler, WindowIndex};
+use crate::data::{Layout, Scaler, WindowIndex};
 use crate::model::grid::{
     one_hot, transfer, GridConfig, Memory, MemoryKind, MemoryState, StepInput, UNetConfig,
 };
@@ -48,7 +48,7 @@ where
     let span = t + p * shaped(GridConfig::new(MemoryKind::None), &args.shape).bundle - 1;
     let traj = synthetic(args.particles, args.samples + span);
     let stats = fit_stats(&[&traj]);
-    let index = WindowIndex::new(vec![traj], span, Scaler::default())?;
+    let index = WindowIndex::new(vec![traj], span, Scaler::default())?.with_layout(Layout::Frames);
     println!(
         "grid architecture ({} shape): N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {} x {}",
         args.shape, args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
