@@ -6,7 +6,8 @@
 #
 # 1. makes the dataset (deterministic for its seeds, apart from the evaluation seeds 1 and
 #    7; a warm machine keeps it from its last call): 1,000 `fluid` scenes (seed 11) and
-#    1,000 `multi` scenes (seed 12) of 200 frames, and the 16 unseen scenes of seed 7;
+#    1,000 `multi` scenes (seed 12) of 200 frames (side by side on the first two GPUs of a
+#    machine of several), and the 16 unseen scenes of seed 7;
 # 2. trains the run for MINUTES with `--call-minutes` (`--resume` after its first call). It
 #    has two phases, each a run folder with its own fixed schedule:
 #    - phase 1, runs/long (gpu/long-run.tgz): fresh weights, 50 epochs of 200,000 samples at
@@ -99,12 +100,22 @@ data() {
         echo "dataset kept from the last call: $DATA/long"
         return
     fi
-    local sim=("$BIN" simulate --device "$DEVICE" --frames "$FRAMES")
+    local sim=("$BIN" simulate --frames "$FRAMES") fluid=$DEVICE multi=$DEVICE made
+    # On a machine of several GPUs the two families are made side by side, one a GPU.
+    [ "${GPUS:-0}" -gt 1 ] && fluid=cuda:0 multi=cuda:1
     # The marker below is written only when every scene was made.
-    "${sim[@]}" --family fluid --seed 11 --scenes "0..$SCENES" --out "$DATA/long/fluid" |
-        tail -n 1 || return 1
-    "${sim[@]}" --family multi --seed 12 --scenes "0..$SCENES" --out "$DATA/long/multi" |
-        tail -n 1 || return 1
+    (
+        "${sim[@]}" --device "$fluid" --family fluid --seed 11 --scenes "0..$SCENES" \
+            --out "$DATA/long/fluid" | tail -n 1
+    ) &
+    made=$!
+    if [ "$fluid" = "$multi" ]; then
+        wait "$made" || return 1
+        made=
+    fi
+    "${sim[@]}" --device "$multi" --family multi --seed 12 --scenes "0..$SCENES" \
+        --out "$DATA/long/multi" | tail -n 1 || return 1
+    [ -z "$made" ] || wait "$made" || return 1
     unseen || return 1
     du -sh "$DATA/long"/*
     touch "$DATA/long/done-$SCENES-$FRAMES"
