@@ -82,19 +82,20 @@ impl Batch {
         (self.share_ranges(parts).into_iter())
             .map(|Range { start, end }| {
                 let rows = |per: usize| start * per..end * per;
+                // The rows of a vector the batch's layout fills; an empty one stays empty.
+                let part = |v: &[f32], per: usize| match v.is_empty() {
+                    true => Vec::new(),
+                    false => v[rows(per)].to_vec(),
+                };
                 Batch {
                     b: end - start,
                     t,
                     n,
-                    inputs: self.inputs[rows(t * n * 5)].to_vec(),
-                    targets: self.targets[rows(n * 4)].to_vec(),
-                    last: self.last[rows(n * 4)].to_vec(),
-                    target_phys: self.target_phys[rows(n * 4)].to_vec(),
-                    frames: self
-                        .frames
-                        .get(rows((t + 1) * n * 4))
-                        .unwrap_or(&[])
-                        .to_vec(),
+                    inputs: part(&self.inputs, t * n * 5),
+                    targets: part(&self.targets, n * 4),
+                    last: part(&self.last, n * 4),
+                    target_phys: part(&self.target_phys, n * 4),
+                    frames: part(&self.frames, (t + 1) * n * 4),
                     dt: self.dt[rows(1)].to_vec(),
                     material: self.material[rows(n)].to_vec(),
                     ids: self.ids[rows(1)].to_vec(),

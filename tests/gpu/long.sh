@@ -113,8 +113,12 @@ data() {
         wait "$made" || return 1
         made=
     fi
-    "${sim[@]}" --device "$multi" --family multi --seed 12 --scenes "0..$SCENES" \
-        --out "$DATA/long/multi" | tail -n 1 || return 1
+    if ! "${sim[@]}" --device "$multi" --family multi --seed 12 --scenes "0..$SCENES" \
+        --out "$DATA/long/multi" | tail -n 1; then
+        # The other family stops too: a later call on this machine makes both again.
+        [ -z "$made" ] || { pkill -P "$made"; kill "$made"; wait "$made"; } 2>/dev/null
+        return 1
+    fi
     [ -z "$made" ] || wait "$made" || return 1
     unseen || return 1
     du -sh "$DATA/long"/*

@@ -2,7 +2,7 @@
 //! binary: burn's CPU random generator is one per process, and two runs can only start from
 //! the same initial weights when no other test draws from it at the same time.
 
-use minflow::data::{Scaler, WindowIndex};
+use minflow::data::{Layout, Scaler, WindowIndex};
 use minflow::model::CoreKind;
 use minflow::train::{EpochRecord, TrainOptions, Trainer};
 
@@ -97,7 +97,10 @@ fn grid_data_parallel_equals_one_device_alone() {
         seed: 4,
         ..GridTrainOptions::default()
     };
-    let index = WindowIndex::new(vec![traj], 2 + 2 * 2 - 1, Scaler::default()).unwrap();
+    // The grid trainer's layout, as `train --arch grid` builds it.
+    let index = WindowIndex::new(vec![traj], 2 + 2 * 2 - 1, Scaler::default())
+        .unwrap()
+        .with_layout(Layout::Frames);
     let run = |replicas: Vec<_>| {
         let dir = crate::tmp::tempdir().unwrap();
         let trainer = GridTrainer::<B> {

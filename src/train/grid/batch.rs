@@ -279,7 +279,7 @@ mod tests {
     /// A data-parallel share prepared in place from the whole batch's rows (the feed's way)
     /// is the share cut out first (`Batch::shards`) and prepared whole: the same frames,
     /// mirroring, rows and neighbourhoods; and a batch of `Layout::Frames`, the same windows
-    /// packed, gives the same frames.
+    /// packed, gives the same frames, in place and cut.
     #[test]
     fn a_share_prepared_in_place_is_the_shard_prepared() {
         let (b, t, n) = (5, 2, 4);
@@ -316,7 +316,10 @@ mod tests {
         (framed.inputs, framed.target_phys) = (Vec::new(), Vec::new());
         let ranges = batch.share_ranges(2);
         assert_eq!(ranges, [0..3, 3..5]);
-        for (range, shard) in ranges.into_iter().zip(batch.shards(2)) {
+        let framed_shards = framed.shards(2);
+        for ((range, shard), framed_shard) in
+            ranges.into_iter().zip(batch.shards(2)).zip(framed_shards)
+        {
             let flips = &mirror[range.clone()];
             let in_place = prepare_batch(&batch, range.clone(), flips, needs);
             let cut = prepare_batch(&shard, 0..shard.b, flips, needs);
@@ -324,6 +327,8 @@ mod tests {
             assert_eq!(in_place.dims, cut.dims);
             assert_eq!(in_place.frames, cut.frames);
             assert_eq!(in_place.frames, packed.frames);
+            let framed_cut = prepare_batch(&framed_shard, 0..framed_shard.b, flips, needs);
+            assert_eq!(in_place.frames, framed_cut.frames);
             assert_eq!(in_place.host.first_pos, packed.host.first_pos);
             let (a, c) = (&in_place.host, &cut.host);
             assert_eq!(
