@@ -107,31 +107,24 @@ pub(super) fn prepare_batch(
     let rows = |per: usize| windows.start * per..windows.end * per;
     let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
     let mut first_pos = batch.first_pos[rows(n * 2)].to_vec();
-    // A batch of `Layout::Frames` holds the rows packed; a `Layout::Scaled` one (the
-    // identity scaler's) its inputs' first four columns, then the target.
-    let (packed_rows, per) = (&batch.frames, (t + 1) * n * 4);
-    let (inputs, targets) = match packed_rows.is_empty() {
-        true => (
-            &batch.inputs[rows(t * n * 5)],
-            &batch.target_phys[rows(n * 4)],
-        ),
-        false => (&[][..], &[][..]),
-    };
+    // A batch of `Layout::Frames` holds each window's rows packed; a `Layout::Scaled` one
+    // (the identity scaler's) its inputs' first four columns, then the target.
+    let (framed, per) = (!batch.frames.is_empty(), (t + 1) * n * 4);
     let per_window = frames.par_chunks_mut(per.max(1));
     (per_window
         .zip(first_pos.par_chunks_mut((n * 2).max(1)))
         .enumerate())
     .for_each(|(w, (packed, first))| {
-        if let Some(rows) =
-            packed_rows.get((windows.start + w) * per..(windows.start + w + 1) * per)
-        {
-            packed.copy_from_slice(rows);
+        // The window's place in the whole batch.
+        let at = windows.start + w;
+        if framed {
+            packed.copy_from_slice(&batch.frames[at * per..(at + 1) * per]);
         } else {
-            let input = &inputs[w * t * n * 5..(w + 1) * t * n * 5];
+            let input = &batch.inputs[at * t * n * 5..(at + 1) * t * n * 5];
             for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
                 to.copy_from_slice(&row[..4]);
             }
-            packed[t * n * 4..].copy_from_slice(&targets[w * n * 4..(w + 1) * n * 4]);
+            packed[t * n * 4..].copy_from_slice(&batch.target_phys[at * n * 4..(at + 1) * n * 4]);
         }
         if mirror.get(w).copied().unwrap_or(false) {
             mirror_rows(packed, 4);
