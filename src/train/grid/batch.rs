@@ -104,9 +104,8 @@ pub(super) fn prepare_batch(
     needs: Needs,
 ) -> HostBatch {
     let (b, t, n) = (windows.len(), batch.t, batch.n);
-    let rows = |per: usize| windows.start * per..windows.end * per;
     let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
-    let mut first_pos = batch.first_pos[rows(n * 2)].to_vec();
+    let mut first_pos = batch.first_pos[windows.start * n * 2..windows.end * n * 2].to_vec();
     // A batch of `Layout::Frames` holds each window's rows packed; a `Layout::Scaled` one
     // (the identity scaler's) its inputs' first four columns, then the target.
     let (framed, per) = (!batch.frames.is_empty(), (t + 1) * n * 4);
@@ -131,6 +130,42 @@ pub(super) fn prepare_batch(
             mirror_rows(first, 2);
         }
     });
+    finish(batch, windows, frames, first_pos, needs)
+}
+
+/// The whole of `batch` prepared as [`prepare_batch`] prepares `0..batch.b` (the feed's one
+/// share, one device), its frames moved rather than copied where it holds them packed
+/// ([`crate::data::Layout::Frames`]): the flagged windows mirrored in place.
+pub(super) fn prepare_whole(mut batch: Batch, mirror: &[bool], needs: Needs) -> HostBatch {
+    if batch.frames.is_empty() {
+        return prepare_batch(&batch, 0..batch.b, mirror, needs);
+    }
+    let (t, n) = (batch.t, batch.n);
+    let mut frames = std::mem::take(&mut batch.frames);
+    let mut first_pos = std::mem::take(&mut batch.first_pos);
+    (frames.par_chunks_mut(((t + 1) * n * 4).max(1)))
+        .zip(first_pos.par_chunks_mut((n * 2).max(1)))
+        .enumerate()
+        .filter(|(w, _)| mirror.get(*w).copied().unwrap_or(false))
+        .for_each(|(_, (packed, first))| {
+            mirror_rows(packed, 4);
+            mirror_rows(first, 2);
+        });
+    finish(&batch, 0..batch.b, frames, first_pos, needs)
+}
+
+/// The rest of a [`HostBatch`] of the windows `windows` of `batch`, given their packed
+/// `frames` `[B, T + 1, N, 4]` and reference positions `first_pos` `[B, N, 2]`: the
+/// neighbourhoods `needs` asks for and the rows the projection reads.
+fn finish(
+    batch: &Batch,
+    windows: Range<usize>,
+    frames: Vec<f32>,
+    first_pos: Vec<f32>,
+    needs: Needs,
+) -> HostBatch {
+    let (b, t, n) = (windows.len(), batch.t, batch.n);
+    let rows = |per: usize| windows.start * per..windows.end * per;
     let material = &batch.material[rows(n)];
     let rest = needs.rest.then(|| {
         let nb = Neighbourhood::build(&first_pos, material, [b, n], |m| m != 0);
@@ -272,7 +307,7 @@ mod tests {
     /// A data-parallel share prepared in place from the whole batch's rows (the feed's way)
     /// is the share cut out first (`Batch::shards`) and prepared whole: the same frames,
     /// mirroring, rows and neighbourhoods; and a batch of `Layout::Frames`, the same windows
-    /// packed, gives the same frames, in place and cut.
+    /// packed, gives the same frames, in place, cut and moved whole.
     #[test]
     fn a_share_prepared_in_place_is_the_shard_prepared() {
         let (b, t, n) = (5, 2, 4);
@@ -323,19 +358,31 @@ mod tests {
             let framed_cut = prepare_batch(&framed_shard, 0..framed_shard.b, flips, needs);
             assert_eq!(in_place.frames, framed_cut.frames);
             assert_eq!(in_place.host.first_pos, packed.host.first_pos);
-            let (a, c) = (&in_place.host, &cut.host);
+            assert_same(&in_place, &cut);
+        }
+        // The whole batch with its packed frames moved (one share, `prepare_whole`) is the
+        // whole batch prepared from its rows.
+        let whole = prepare_whole(framed, &mirror, needs);
+        let rows = prepare_batch(&batch, 0..b, &mirror, needs);
+        assert_eq!(whole.frames, rows.frames);
+        assert_same(&whole, &rows);
+    }
+
+    /// `a` and `c` have the same dimensions, host rows and neighbourhoods.
+    fn assert_same(a: &HostBatch, c: &HostBatch) {
+        assert_eq!(a.dims, c.dims);
+        let (a_rows, c_rows) = (&a.host, &c.host);
+        assert_eq!(
+            (&a_rows.first_pos, &a_rows.material, &a_rows.dt),
+            (&c_rows.first_pos, &c_rows.material, &c_rows.dt)
+        );
+        assert_eq!(a_rows.solver_grid, c_rows.solver_grid);
+        for (x, y) in [(&a.rest, &c.rest), (&a.liquid, &c.liquid)] {
+            let (x, y) = (x.as_ref().unwrap(), y.as_ref().unwrap());
             assert_eq!(
-                (&a.first_pos, &a.material, &a.dt),
-                (&c.first_pos, &c.material, &c.dt)
+                (&x.0.index, &x.0.weight, x.1),
+                (&y.0.index, &y.0.weight, y.1)
             );
-            assert_eq!(a.solver_grid, c.solver_grid);
-            for (x, y) in [(&in_place.rest, &cut.rest), (&in_place.liquid, &cut.liquid)] {
-                let (x, y) = (x.as_ref().unwrap(), y.as_ref().unwrap());
-                assert_eq!(
-                    (&x.0.index, &x.0.weight, x.1),
-                    (&y.0.index, &y.0.weight, y.1)
-                );
-            }
         }
     }
 }

@@ -5,7 +5,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::batch::{prepare_batch, HostBatch, Needs};
+use super::batch::{prepare_batch, prepare_whole, HostBatch, Needs};
 use crate::data::{Batch, DataError, WindowIndex};
 
 /// The mirroring draws of a run's batches: batch `g` of the run (counted over all epochs
@@ -80,7 +80,7 @@ impl BatchFeed {
                         .map(|_| mirror && rng.random_bool(0.5))
                         .collect();
                     if shares <= 1 {
-                        return vec![prepare_batch(&batch, 0..batch.b, &flips, needs)];
+                        return vec![prepare_whole(batch, &flips, needs)];
                     }
                     // One thread a share (its neighbourhoods are built serially), each
                     // reading its windows' rows of the whole batch; a batch of fewer
