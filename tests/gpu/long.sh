@@ -21,7 +21,8 @@
 #      3,223,744 samples), phase 2's other 34 epochs with its cosine begun again from where
 #      epoch 8 left it (lr 9.1e-4), and the model's box wide (`--box-grid 256`,
 #      docs/splash.md, "The model's box");
-# 3. appends a point of the learning curve to the phase's curve.csv (samples seen and
+# 3. appends a point of the learning curve to the phase's curve.csv (not with CURVE=0, which
+#    leaves the call's last 50 s to training; samples seen and
 #    device-hours, the earlier phases' included; the latest weights' avg20 on the unseen
 #    scenes from 5 starts and their whole scenes' MSE, beside `constvel`'s avg20 and
 #    `persist`'s whole scenes; from phase 2 on also the liquid's area, energy and surge
@@ -400,7 +401,8 @@ call)
     echo "dataset: $((SECONDS - start)) s"
     train "$2"
     echo "dataset and training: $((SECONDS - start)) s"
-    curve
+    # CURVE=0: no curve point this call (about 50 s more of training in a call's 10 minutes).
+    [ "${CURVE:-1}" = 0 ] || curve
     echo "call: $((SECONDS - start)) s"
     tar czf "$RET/$RUN-run.tgz" -C runs "$RUN"
     ls -la "$RET/$RUN-run.tgz"
