@@ -8,7 +8,8 @@
 //! `[B, N, 4]`, plus the physical last input frame and target (domain units, domain units per
 //! time unit) for integration and metrics, `dt` (time units) and the materials. In the
 //! grid trainer's [`Layout::Frames`] it carries instead the window's frames, inputs and
-//! target, physical and unscaled `[B, T + 1, N, 4]`: a copy of consecutive frames a window.
+//! target, physical and unscaled `[B, T + 1, N, 4]`: a copy of consecutive frames a window;
+//! in [`Layout::Shares`] the same, written straight into the data-parallel shares' vectors.
 //!
 //! Order: without a seed, windows in (trajectory, start) order; with one, shuffled by
 //! `ChaCha8Rng` seeded from (seed, epoch), so a resumed run sees the same order for the same
@@ -37,6 +38,21 @@ pub enum Layout {
     /// The grid trainer's: [`Batch::frames`] only (the four vectors above empty), about half
     /// the bytes written a batch and no scaling (`train --arch grid`, its `bench train`).
     Frames,
+    /// The grid trainer's on k devices: as `Frames`, the frames written straight into the
+    /// batch's shares ([`Batch::share_ranges`]`(k)`), one vector each in
+    /// [`Batch::frame_shares`] (`frames` empty), so that no share copies its rows again.
+    Shares(usize),
+}
+
+impl Layout {
+    /// The grid trainer's layout for `devices` devices: `Frames` for one, `Shares` beyond.
+    pub fn frames_for(devices: usize) -> Self {
+        if devices > 1 {
+            Layout::Shares(devices)
+        } else {
+            Layout::Frames
+        }
+    }
 }
 
 /// One batch of windows, all with the same particle count N. Arrays are row-major; which of
@@ -60,6 +76,9 @@ pub struct Batch {
     /// `[B, T + 1, N, 4]`: physical x, y, vx, vy of the input frames and the target
     /// ([`Layout::Frames`]; empty otherwise).
     pub frames: Vec<f32>,
+    /// `frames` cut into the batch's shares, `[B_s, T + 1, N, 4]` each, B_s the windows of
+    /// [`Batch::share_ranges`]`(k)`'s s-th range ([`Layout::Shares`]`(k)`; empty otherwise).
+    pub frame_shares: Vec<Vec<f32>>,
     /// `[B]`: frame spacing of each window's trajectory, time units.
     pub dt: Vec<f32>,
     /// `[B, N]`: material ids.
@@ -79,6 +98,13 @@ impl Batch {
     /// ([`Batch::share_ranges`]): a data-parallel step's shares, one per device.
     pub fn shards(&self, parts: usize) -> Vec<Batch> {
         let (t, n) = (self.t, self.n);
+        // A batch of `Layout::Shares` is cut from its frames put back in one piece.
+        let whole = self.frame_shares.concat();
+        let frames = if self.frames.is_empty() {
+            &whole
+        } else {
+            &self.frames
+        };
         (self.share_ranges(parts).into_iter())
             .map(|Range { start, end }| {
                 let rows = |per: usize| start * per..end * per;
@@ -95,7 +121,8 @@ impl Batch {
                     targets: part(&self.targets, n * 4),
                     last: part(&self.last, n * 4),
                     target_phys: part(&self.target_phys, n * 4),
-                    frames: part(&self.frames, (t + 1) * n * 4),
+                    frames: part(frames, (t + 1) * n * 4),
+                    frame_shares: Vec::new(),
                     dt: self.dt[rows(1)].to_vec(),
                     material: self.material[rows(n)].to_vec(),
                     ids: self.ids[rows(1)].to_vec(),
@@ -110,16 +137,21 @@ impl Batch {
     /// first ones one window larger). Fewer than asked when the batch has fewer windows;
     /// none when it is empty.
     pub fn share_ranges(&self, parts: usize) -> Vec<Range<usize>> {
-        let parts = parts.max(1).min(self.b);
-        let mut start = 0;
-        (0..parts)
-            .map(|k| {
-                let b = self.b / parts + usize::from(k < self.b % parts);
-                start += b;
-                start - b..start
-            })
-            .collect()
+        share_ranges(self.b, parts)
     }
+}
+
+/// [`Batch::share_ranges`] of a batch of `b` windows.
+fn share_ranges(b: usize, parts: usize) -> Vec<Range<usize>> {
+    let parts = parts.max(1).min(b);
+    let mut start = 0;
+    (0..parts)
+        .map(|k| {
+            let size = b / parts + usize::from(k < b % parts);
+            start += size;
+            start - size..start
+        })
+        .collect()
 }
 
 /// Every window of a set of trajectories, and the batches made from them. (`Debug` prints
@@ -280,43 +312,15 @@ impl WindowIndex {
     /// trained on it (docs/training.md, "Several GPUs"). The index's [`Layout`] says which
     /// rows are written.
     pub(crate) fn batch(&self, windows: &[u32]) -> Batch {
-        let (t, b) = (self.t, windows.len());
-        let n = windows
-            .first()
-            .map_or(0, |&w| self.trajs[self.windows[w as usize].0 as usize].n);
-        let at = |w: &u32| {
-            let (i, start) = self.windows[*w as usize];
-            let traj = &self.trajs[i as usize];
-            debug_assert_eq!(traj.n, n, "a batch mixes particle counts");
-            (traj, start as usize)
-        };
-        let rows = |per: usize| vec![0.0f32; b * n * per];
-        let scaled = self.layout == Layout::Scaled;
-        let rows_if = |on: bool, per: usize| if on { rows(per) } else { Vec::new() };
-        let mut batch = Batch {
-            b,
-            t,
-            n,
-            inputs: rows_if(scaled, t * 5),
-            targets: rows_if(scaled, 4),
-            last: rows_if(scaled, 4),
-            target_phys: rows_if(scaled, 4),
-            frames: rows_if(!scaled, (t + 1) * 4),
-            dt: windows.iter().map(|w| at(w).0.dt).collect(),
-            material: vec![0u8; b * n],
-            ids: (windows.iter())
-                .map(|&w| self.windows[w as usize])
-                .map(|(i, start)| (self.ids[i as usize], start))
-                .collect(),
-            first_pos: rows(2),
-            solver_grid: windows.iter().map(|w| at(w).0.solver_grid).collect(),
-        };
-        // Rows of `per` values a particle, a window each; an empty vector is left empty.
-        let each = |out: &mut Vec<f32>,
+        let mut batch = self.allocate(windows);
+        let (t, n) = (self.t, batch.n);
+        // Rows of `per` values a particle, a window of `ws` each; an empty vector stays empty.
+        let each = |out: &mut [f32],
                     per: usize,
+                    ws: &[u32],
                     f: &(dyn Fn(&Trajectory, usize, &mut [f32]) + Sync)| {
-            (out.par_chunks_mut((n * per).max(1)).zip(windows.par_iter())).for_each(|(rows, w)| {
-                let (traj, start) = at(w);
+            (out.par_chunks_mut((n * per).max(1)).zip(ws.par_iter())).for_each(|(rows, &w)| {
+                let (traj, start) = self.at(w);
                 f(traj, start, rows)
             })
         };
@@ -327,27 +331,82 @@ impl WindowIndex {
                 }
             }
         };
-        each(&mut batch.inputs, t * 5, &|traj, s, rows| {
+        each(&mut batch.inputs, t * 5, windows, &|traj, s, rows| {
             for (k, rows) in rows.chunks_exact_mut((n * 5).max(1)).enumerate() {
                 self.scaler
                     .scale_to(traj.state(s + k), &traj.material, rows);
             }
         });
-        each(&mut batch.targets, 4, &|traj, s, rows| {
+        each(&mut batch.targets, 4, windows, &|traj, s, rows| {
             self.scaler.scale_state_to(traj.state(s + t), rows)
         });
-        each(&mut batch.last, 4, &frames(t - 1));
-        each(&mut batch.target_phys, 4, &frames(t));
-        each(&mut batch.frames, (t + 1) * 4, &frames(0));
-        each(&mut batch.first_pos, 2, &|traj, _, rows| {
+        each(&mut batch.last, 4, windows, &frames(t - 1));
+        each(&mut batch.target_phys, 4, windows, &frames(t));
+        each(&mut batch.frames, (t + 1) * 4, windows, &frames(0));
+        let mut first = 0;
+        for share in batch.frame_shares.iter_mut() {
+            let count = share.len() / ((t + 1) * n * 4).max(1);
+            each(
+                share,
+                (t + 1) * 4,
+                &windows[first..first + count],
+                &frames(0),
+            );
+            first += count;
+        }
+        each(&mut batch.first_pos, 2, windows, &|traj, _, rows| {
             for (to, row) in rows.chunks_exact_mut(2).zip(traj.state(0).chunks_exact(4)) {
                 to.copy_from_slice(&row[..2]);
             }
         });
-        for (rows, w) in batch.material.chunks_exact_mut(n.max(1)).zip(windows) {
-            rows.copy_from_slice(&at(w).0.material);
+        for (rows, &w) in batch.material.chunks_exact_mut(n.max(1)).zip(windows) {
+            rows.copy_from_slice(&self.at(w).0.material);
         }
         batch
+    }
+
+    /// The trajectory of the window at position `w` and the window's first frame in it.
+    fn at(&self, w: u32) -> (&Trajectory, usize) {
+        let (i, start) = self.windows[w as usize];
+        (&self.trajs[i as usize], start as usize)
+    }
+
+    /// The batch of `windows` with the rows its [`Layout`] fills allocated (zeros) and the
+    /// values of each window (dt, ids, solver grid) set.
+    fn allocate(&self, windows: &[u32]) -> Batch {
+        let (t, b) = (self.t, windows.len());
+        let n = windows.first().map_or(0, |&w| self.at(w).0.n);
+        debug_assert!(
+            windows.iter().all(|&w| self.at(w).0.n == n),
+            "a batch mixes particle counts"
+        );
+        let rows = |per: usize| vec![0.0f32; b * n * per];
+        let scaled = self.layout == Layout::Scaled;
+        let rows_if = |on: bool, per: usize| if on { rows(per) } else { Vec::new() };
+        Batch {
+            b,
+            t,
+            n,
+            inputs: rows_if(scaled, t * 5),
+            targets: rows_if(scaled, 4),
+            last: rows_if(scaled, 4),
+            target_phys: rows_if(scaled, 4),
+            frames: rows_if(self.layout == Layout::Frames, (t + 1) * 4),
+            frame_shares: match self.layout {
+                Layout::Shares(k) => (share_ranges(b, k).into_iter())
+                    .map(|range| vec![0.0f32; range.len() * n * (t + 1) * 4])
+                    .collect(),
+                _ => Vec::new(),
+            },
+            dt: windows.iter().map(|&w| self.at(w).0.dt).collect(),
+            material: vec![0u8; b * n],
+            ids: (windows.iter())
+                .map(|&w| self.windows[w as usize])
+                .map(|(i, start)| (self.ids[i as usize], start))
+                .collect(),
+            first_pos: rows(2),
+            solver_grid: windows.iter().map(|&w| self.at(w).0.solver_grid).collect(),
+        }
     }
 }
 

@@ -162,6 +162,43 @@ fn the_frames_layout_holds_the_physical_frames_of_each_window() {
     }
 }
 
+/// `Layout::Shares(k)` (the grid trainer's on k devices): each share's vector holds the
+/// `Layout::Frames` batch's rows of the windows of its range, bit for bit, and nothing else of
+/// the batch differs.
+#[test]
+fn the_shares_layout_cuts_the_frames_into_the_shares() {
+    let (trajs, _) = dataset();
+    let t = 2;
+    let framed = index(&trajs, t).with_layout(Layout::Frames);
+    for k in [2, 3, 8] {
+        let shared = index(&trajs, t).with_layout(Layout::frames_for(k));
+        for (a, b) in framed
+            .batches(5, Some(3), 1)
+            .zip(shared.batches(5, Some(3), 1))
+        {
+            let per = (t + 1) * a.n * 4;
+            let ranges = a.share_ranges(k);
+            assert!(b.frames.is_empty() && b.inputs.is_empty());
+            assert_eq!(b.frame_shares.len(), ranges.len());
+            for (range, share) in ranges.into_iter().zip(&b.frame_shares) {
+                assert!(same_bits(
+                    share,
+                    &a.frames[range.start * per..range.end * per]
+                ));
+            }
+            assert_eq!(
+                (&a.ids, &a.dt, &a.material, &a.first_pos, &a.solver_grid),
+                (&b.ids, &b.dt, &b.material, &b.first_pos, &b.solver_grid)
+            );
+            let cut = |x: &data::Batch| x.shards(k).into_iter().map(|s| s.frames);
+            assert!(
+                cut(&a).eq(cut(&b)),
+                "a Shares batch cuts as its Frames batch does"
+            );
+        }
+    }
+}
+
 #[test]
 fn no_window_spans_the_gap() {
     let (trajs, _) = dataset();

@@ -97,11 +97,15 @@ fn grid_data_parallel_equals_one_device_alone() {
         seed: 4,
         ..GridTrainOptions::default()
     };
-    // The grid trainer's layout, as `train --arch grid` builds it.
-    let index = WindowIndex::new(vec![traj], 2 + 2 * 2 - 1, Scaler::default())
-        .unwrap()
-        .with_layout(Layout::Frames);
+    // The grid trainer's layout, as `train --arch grid` builds it for the devices: two
+    // devices' batches written straight into their shares.
+    let index = |devices| {
+        WindowIndex::new(vec![traj.clone()], 2 + 2 * 2 - 1, Scaler::default())
+            .unwrap()
+            .with_layout(Layout::frames_for(devices))
+    };
     let run = |replicas: Vec<_>| {
+        let index = index(replicas.len() + 1);
         let dir = crate::tmp::tempdir().unwrap();
         let trainer = GridTrainer::<B> {
             config: config.clone(),

@@ -48,15 +48,21 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let train_infos = split.select_infos(Part::Train, &infos);
     let (budget, streamed) = super::resident_budget(&args, &infos, &train_infos);
     let dataset = super::dataset_info(&args, &train_infos, streamed);
+    // The batches written straight into one share a device (`Layout::Shares`).
+    let devices = match args.device.parse()? {
+        crate::cli::device::Device::Cuda(ids) => ids.len(),
+        crate::cli::device::Device::Cpu => 1,
+    };
+    let layout = Layout::frames_for(devices);
     let mut data = match streamed {
-        true => RunData::streamed(&args, budget, infos, &split, frames, init)?,
+        true => RunData::streamed(&args, budget, infos, &split, (frames, layout), init)?,
         false => {
             let trajs = match resident {
                 Some(trajs) => trajs,
                 // Bags without summary statistics fit after all: read them once more.
                 None => super::load(&args.data, topic)?.0,
             };
-            RunData::resident(trajs, &split, frames, init)?
+            RunData::resident(trajs, &split, (frames, layout), init)?
         }
     };
     if data.train_scenes == 0 {
@@ -128,11 +134,12 @@ struct RunData {
 }
 
 impl RunData {
-    /// Every scene in memory (`trajs`), parted by `split`, windows of `frames` frames.
+    /// Every scene in memory (`trajs`), parted by `split`, windows of `frames` frames
+    /// batched in `layout`.
     fn resident(
         trajs: Vec<Trajectory>,
         split: &Split,
-        frames: usize,
+        (frames, layout): (usize, Layout),
         init: Option<Normalisation>,
     ) -> anyhow::Result<Self> {
         let (train, val, test) = split.partition(trajs);
@@ -148,7 +155,7 @@ impl RunData {
             train_scenes: count_scenes(&train),
             test_scenes: count_scenes(&test),
             train: TrainWindows::Resident(
-                WindowIndex::new(train, frames, Scaler::default())?.with_layout(Layout::Frames),
+                WindowIndex::new(train, frames, Scaler::default())?.with_layout(layout),
             ),
             val,
             normalisation,
@@ -163,7 +170,7 @@ impl RunData {
         budget: usize,
         infos: Vec<SceneInfo>,
         split: &Split,
-        frames: usize,
+        (frames, layout): (usize, Layout),
         init: Option<Normalisation>,
     ) -> anyhow::Result<Self> {
         let topic = Some(args.topic.as_str());
@@ -192,7 +199,7 @@ impl RunData {
             test_scenes: split.select_infos(Part::Test, &infos).len(),
             train: TrainWindows::Streamed(
                 StreamingLoader::new(train, topic, frames, Scaler::default(), budget)?
-                    .with_layout(Layout::Frames),
+                    .with_layout(layout),
             ),
             val,
             normalisation,

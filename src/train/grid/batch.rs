@@ -104,6 +104,10 @@ pub(super) fn prepare_batch(
     needs: Needs,
 ) -> HostBatch {
     let (b, t, n) = (windows.len(), batch.t, batch.n);
+    assert!(
+        batch.frame_shares.is_empty(),
+        "a batch of Layout::Shares is prepared share by share (prepare_packed)"
+    );
     let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
     let mut first_pos = batch.first_pos[windows.start * n * 2..windows.end * n * 2].to_vec();
     // A batch of `Layout::Frames` holds each window's rows packed; a `Layout::Scaled` one
@@ -135,14 +139,33 @@ pub(super) fn prepare_batch(
 
 /// The whole of `batch` prepared as [`prepare_batch`] prepares `0..batch.b` (the feed's one
 /// share, one device), its frames moved rather than copied where it holds them packed
-/// ([`crate::data::Layout::Frames`]): the flagged windows mirrored in place.
+/// ([`crate::data::Layout::Frames`]).
 pub(super) fn prepare_whole(mut batch: Batch, mirror: &[bool], needs: Needs) -> HostBatch {
     if batch.frames.is_empty() {
         return prepare_batch(&batch, 0..batch.b, mirror, needs);
     }
+    let frames = std::mem::take(&mut batch.frames);
+    prepare_packed(&batch, 0..batch.b, frames, mirror, needs)
+}
+
+/// The windows `windows` of `batch` prepared as [`prepare_batch`] prepares them, from their
+/// frames already packed `[B_s, T + 1, N, 4]` (a share of [`Batch::frame_shares`], or the
+/// whole [`Batch::frames`]), which it takes: the flagged windows (`mirror[w]`) mirrored in
+/// place.
+pub(super) fn prepare_packed(
+    batch: &Batch,
+    windows: Range<usize>,
+    mut frames: Vec<f32>,
+    mirror: &[bool],
+    needs: Needs,
+) -> HostBatch {
     let (t, n) = (batch.t, batch.n);
-    let mut frames = std::mem::take(&mut batch.frames);
-    let mut first_pos = std::mem::take(&mut batch.first_pos);
+    assert_eq!(
+        frames.len(),
+        windows.len() * (t + 1) * n * 4,
+        "packed frames of the windows"
+    );
+    let mut first_pos = batch.first_pos[windows.start * n * 2..windows.end * n * 2].to_vec();
     (frames.par_chunks_mut(((t + 1) * n * 4).max(1)))
         .zip(first_pos.par_chunks_mut((n * 2).max(1)))
         .enumerate()
@@ -151,7 +174,7 @@ pub(super) fn prepare_whole(mut batch: Batch, mirror: &[bool], needs: Needs) -> 
             mirror_rows(packed, 4);
             mirror_rows(first, 2);
         });
-    finish(&batch, 0..batch.b, frames, first_pos, needs)
+    finish(batch, windows, frames, first_pos, needs)
 }
 
 /// The rest of a [`HostBatch`] of the windows `windows` of `batch`, given their packed
@@ -271,6 +294,7 @@ mod tests {
             last: vec![0.0; b * n * 4],
             target_phys: (0..b * n * 4).map(|i| value(i + 7)).collect(),
             frames: Vec::new(),
+            frame_shares: Vec::new(),
             dt: vec![0.016; b],
             material: vec![0; b * n],
             ids: vec![(0, 0); b],
@@ -307,7 +331,8 @@ mod tests {
     /// A data-parallel share prepared in place from the whole batch's rows (the feed's way)
     /// is the share cut out first (`Batch::shards`) and prepared whole: the same frames,
     /// mirroring, rows and neighbourhoods; and a batch of `Layout::Frames`, the same windows
-    /// packed, gives the same frames, in place, cut and moved whole.
+    /// packed, gives the same frames, in place, cut, from each share's own packed frames and
+    /// moved whole.
     #[test]
     fn a_share_prepared_in_place_is_the_shard_prepared() {
         let (b, t, n) = (5, 2, 4);
@@ -321,6 +346,7 @@ mod tests {
             last: vec![0.0; b * n * 4],
             target_phys: (0..b * n * 4).map(|i| value(i + 11)).collect(),
             frames: Vec::new(),
+            frame_shares: Vec::new(),
             dt: (0..b).map(|w| 0.01 * (w + 1) as f32).collect(),
             material: (0..b * n).map(|i| (i % 3) as u8).collect(),
             ids: (0..b as u32).map(|w| (w, w)).collect(),
@@ -333,6 +359,7 @@ mod tests {
             materials: 4,
         };
         let mirror = [true, false, true, true, false];
+        let per = (t + 1) * n * 4;
         let mut framed = batch.clone();
         framed.frames = (0..b)
             .flat_map(|w| {
@@ -360,8 +387,16 @@ mod tests {
             assert_eq!(in_place.host.first_pos, packed.host.first_pos);
             assert_same(&in_place, &cut);
         }
-        // The whole batch with its packed frames moved (one share, `prepare_whole`) is the
-        // whole batch prepared from its rows.
+        // Each share from its own packed frames (`Layout::Shares`), and the whole batch with
+        // its packed frames moved (one share, `prepare_whole`): the same again.
+        for range in batch.share_ranges(2) {
+            let frames = framed.frames[range.start * per..range.end * per].to_vec();
+            let flips = &mirror[range.clone()];
+            let share = prepare_packed(&batch, range.clone(), frames, flips, needs);
+            let rows = prepare_batch(&batch, range, flips, needs);
+            assert_eq!(share.frames, rows.frames);
+            assert_same(&share, &rows);
+        }
         let whole = prepare_whole(framed, &mirror, needs);
         let rows = prepare_batch(&batch, 0..b, &mirror, needs);
         assert_eq!(whole.frames, rows.frames);

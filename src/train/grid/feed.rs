@@ -5,7 +5,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::batch::{prepare_batch, prepare_whole, HostBatch, Needs};
+use super::batch::{prepare_batch, prepare_packed, prepare_whole, HostBatch, Needs};
 use crate::data::{Batch, DataError, WindowIndex};
 
 /// The mirroring draws of a run's batches: batch `g` of the run (counted over all epochs
@@ -82,30 +82,7 @@ impl BatchFeed {
                     if shares <= 1 {
                         return vec![prepare_whole(batch, &flips, needs)];
                     }
-                    // One thread a share (its neighbourhoods are built serially), each
-                    // reading its windows' rows of the whole batch; a batch of fewer
-                    // windows than devices padded with shares that count 0.
-                    let mut ranges = batch.share_ranges(shares);
-                    let real = ranges.len();
-                    ranges.resize(shares, 0..batch.b.min(1));
-                    std::thread::scope(|each| {
-                        let handles: Vec<_> = (ranges.into_iter().enumerate())
-                            .map(|(k, share)| {
-                                let (batch, mirrored) = (&batch, &flips[share.clone()]);
-                                each.spawn(move || {
-                                    let host = prepare_batch(batch, share, mirrored, needs);
-                                    if k < real {
-                                        host
-                                    } else {
-                                        host.padding()
-                                    }
-                                })
-                            })
-                            .collect();
-                        (handles.into_iter())
-                            .map(|h| h.join().expect("a batch share's preparation panicked"))
-                            .collect()
-                    })
+                    prepare_shares(batch, &flips, shares, needs)
                 });
                 // After an error the epoch ends: nothing more is read.
                 if ready.send(host).is_err() || failed {
@@ -129,12 +106,58 @@ impl BatchFeed {
     }
 }
 
+/// The `shares` shares of `batch` (one a device), prepared on a thread each (a share's
+/// neighbourhoods are built serially): from their own vectors where the batch was written
+/// in them ([`crate::data::Layout::Shares`]), else from their windows' rows of the whole batch. A batch
+/// of fewer windows than devices is padded with shares of its first window that count 0.
+fn prepare_shares(mut batch: Batch, flips: &[bool], shares: usize, needs: Needs) -> Vec<HostBatch> {
+    let mut ranges = batch.share_ranges(shares);
+    let real = ranges.len();
+    ranges.resize(shares, 0..batch.b.min(1));
+    let mut packed: Vec<Option<Vec<f32>>> = (std::mem::take(&mut batch.frame_shares))
+        .into_iter()
+        .map(Some)
+        .collect();
+    if !packed.is_empty() {
+        assert_eq!(packed.len(), real, "the batch's shares are the feed's");
+        let first = (batch.t + 1) * batch.n * 4;
+        let pad = packed[0].as_ref().map(|share| share[..first].to_vec());
+        packed.resize(shares, pad);
+    }
+    let batch = &batch;
+    std::thread::scope(|each| {
+        let handles: Vec<_> = (ranges.into_iter().enumerate())
+            .map(|(k, share)| {
+                let (mirrored, frames) = (
+                    &flips[share.clone()],
+                    packed.get_mut(k).and_then(Option::take),
+                );
+                each.spawn(move || {
+                    let host = match frames {
+                        Some(frames) => prepare_packed(batch, share, frames, mirrored, needs),
+                        None => prepare_batch(batch, share, mirrored, needs),
+                    };
+                    if k < real {
+                        host
+                    } else {
+                        host.padding()
+                    }
+                })
+            })
+            .collect();
+        (handles.into_iter())
+            .map(|h| h.join().expect("a batch share's preparation panicked"))
+            .collect()
+    })
+}
+
 /// Samples per second at which the trainer's feed prepares an epoch of `index` in batches of
 /// `batch_size` cut into `shares` (one per device of a data-parallel run), the windows
 /// mirrored half the time and no neighbourhoods built, with nothing taking its batches but a
 /// loop that drops them: the rate a training step cannot beat (`minflow bench train --arch
 /// grid --feed`). Batches are assembled as training assembles resident ones
-/// ([`WindowIndex::batch`]).
+/// ([`WindowIndex::batch`], in the index's layout: `Layout::frames_for(shares)` as `train`
+/// sets it).
 pub fn feed_rate(index: &WindowIndex, batch_size: usize, shares: usize) -> f64 {
     let plan = index.plan(batch_size, None);
     let started = std::time::Instant::now();

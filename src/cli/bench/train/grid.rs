@@ -48,7 +48,9 @@ where
     let span = t + p * shaped(GridConfig::new(MemoryKind::None), &args.shape).bundle - 1;
     let traj = synthetic(args.particles, args.samples + span);
     let stats = fit_stats(&[&traj]);
-    let index = WindowIndex::new(vec![traj], span, Scaler::default())?.with_layout(Layout::Frames);
+    // Batches as `train` writes them for this many devices.
+    let mut index = WindowIndex::new(vec![traj], span, Scaler::default())?
+        .with_layout(Layout::frames_for(devices.len()));
     println!(
         "grid architecture ({} shape): N = {}, n = {}, T = {t}, P = {p}, batch {}, {} samples/epoch, {} epochs (+{} warm-up), {} x {}",
         args.shape, args.particles, args.grid, args.micro_batch, index.len(), args.epochs, args.warmup_epochs,
@@ -59,6 +61,7 @@ where
         // One untimed epoch first: the allocator's first pages of a batch cost more.
         feed_rate(&index, args.micro_batch, 1);
         for shares in [1, 2, 4] {
+            index = index.with_layout(Layout::frames_for(shares));
             let rate = feed_rate(&index, args.micro_batch, shares);
             let seconds = index.len() as f64 / rate;
             println!("{shares:<7} {seconds:>10.3} {rate:>10.1}");

@@ -32,6 +32,7 @@ fn sample(calls: usize) -> (Batch, GridConfig) {
         last: vec![0.0; n * 4],
         target_phys: (0..n).flat_map(|i| row(frames - 1, i)).collect(),
         frames: Vec::new(),
+        frame_shares: Vec::new(),
         dt: vec![0.016],
         material: (0..n).map(|i| (i % 2) as u8).collect(),
         ids: vec![(0, 0)],
