@@ -35,8 +35,9 @@ pub enum Layout {
     /// [`Batch::targets`], [`Batch::last`] and [`Batch::target_phys`]; `frames` empty.
     #[default]
     Scaled,
-    /// The grid trainer's: [`Batch::frames`] only (the four vectors above empty), about half
-    /// the bytes written a batch and no scaling (`train --arch grid`, its `bench train`).
+    /// The grid trainer's on one device: [`Batch::frames`] only (the four vectors above
+    /// empty), about half the bytes written a batch and no scaling (`train --arch grid`, its
+    /// `bench train`).
     Frames,
     /// The grid trainer's on k devices: as `Frames`, the frames written straight into the
     /// batch's shares ([`Batch::share_ranges`]`(k)`), one vector each in
@@ -343,16 +344,9 @@ impl WindowIndex {
         each(&mut batch.last, 4, windows, &frames(t - 1));
         each(&mut batch.target_phys, 4, windows, &frames(t));
         each(&mut batch.frames, (t + 1) * 4, windows, &frames(0));
-        let mut first = 0;
-        for share in batch.frame_shares.iter_mut() {
-            let count = share.len() / ((t + 1) * n * 4).max(1);
-            each(
-                share,
-                (t + 1) * 4,
-                &windows[first..first + count],
-                &frames(0),
-            );
-            first += count;
+        let ranges = share_ranges(batch.b, batch.frame_shares.len());
+        for (share, range) in batch.frame_shares.iter_mut().zip(ranges) {
+            each(share, (t + 1) * 4, &windows[range], &frames(0));
         }
         each(&mut batch.first_pos, 2, windows, &|traj, _, rows| {
             for (to, row) in rows.chunks_exact_mut(2).zip(traj.state(0).chunks_exact(4)) {

@@ -49,7 +49,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<Outcome> {
     let (budget, streamed) = super::resident_budget(&args, &infos, &train_infos);
     let dataset = super::dataset_info(&args, &train_infos, streamed);
     // The batches written straight into one share a device (`Layout::Shares`).
-    let devices = match args.device.parse()? {
+    let devices = match &device {
         crate::cli::device::Device::Cuda(ids) => ids.len(),
         crate::cli::device::Device::Cpu => 1,
     };

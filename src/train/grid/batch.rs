@@ -1,8 +1,9 @@
 //! A batch of training windows on the device for the grid architecture's loss: the frames
 //! as physical values (mirrored where drawn so), the material one-hot, the time steps, the
 //! reference positions and the neighbourhoods the model and the structure terms need
-//! ([`BatchTensors`]). Prepared on the host by [`prepare_batch`] (the trainer's prefetch
-//! thread), then uploaded ([`HostBatch::upload`]). Read by `rollout_loss.rs`.
+//! ([`BatchTensors`]). Prepared on the host by [`prepare_whole`], [`prepare_packed`] or
+//! [`prepare_batch`] (the trainer's prefetch thread), then uploaded ([`HostBatch::upload`]).
+//! Read by `rollout_loss.rs`.
 
 use std::ops::Range;
 
@@ -47,7 +48,7 @@ pub(super) struct HostRows {
     pub(super) solver_grid: Vec<Option<u32>>,
 }
 
-/// Which neighbourhoods [`prepare_batch`] builds.
+/// Which neighbourhoods [`prepare_batch`] and [`prepare_packed`] build.
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Needs {
     /// The solids' rest neighbourhoods (rest-shape features, strain loss).
@@ -59,8 +60,9 @@ pub(super) struct Needs {
 }
 
 /// A batch of windows prepared on the host, ready to upload ([`HostBatch::upload`]): the
-/// frames packed and mirrored, the neighbourhoods built. Made by [`prepare_batch`], on the
-/// trainer's prefetch thread while the previous batch's step runs (`train_epoch`).
+/// frames packed and mirrored, the neighbourhoods built. Made by [`prepare_whole`],
+/// [`prepare_packed`] or [`prepare_batch`], on the trainer's prefetch thread while the
+/// previous batch's step runs (`train_epoch`).
 pub(super) struct HostBatch {
     /// `[B, S, N, 4]` frames, the target last, physical units.
     frames: Vec<f32>,
@@ -336,39 +338,10 @@ mod tests {
     #[test]
     fn a_share_prepared_in_place_is_the_shard_prepared() {
         let (b, t, n) = (5, 2, 4);
-        let value = |i: usize| ((i * 37) % 101) as f32 * 0.009 + 0.02;
-        let batch = Batch {
-            b,
-            t,
-            n,
-            inputs: (0..b * t * n * 5).map(value).collect(),
-            targets: vec![0.0; b * n * 4],
-            last: vec![0.0; b * n * 4],
-            target_phys: (0..b * n * 4).map(|i| value(i + 11)).collect(),
-            frames: Vec::new(),
-            frame_shares: Vec::new(),
-            dt: (0..b).map(|w| 0.01 * (w + 1) as f32).collect(),
-            material: (0..b * n).map(|i| (i % 3) as u8).collect(),
-            ids: (0..b as u32).map(|w| (w, w)).collect(),
-            first_pos: (0..b * n * 2).map(|i| value(i + 5)).collect(),
-            solver_grid: (0..b as u32).map(Some).collect(),
-        };
-        let needs = Needs {
-            rest: true,
-            liquid_at: Some(1),
-            materials: 4,
-        };
+        let (batch, framed) = sample(b, t, n);
+        let needs = NEEDS;
         let mirror = [true, false, true, true, false];
         let per = (t + 1) * n * 4;
-        let mut framed = batch.clone();
-        framed.frames = (0..b)
-            .flat_map(|w| {
-                let input = &batch.inputs[w * t * n * 5..(w + 1) * t * n * 5];
-                let target = &batch.target_phys[w * n * 4..(w + 1) * n * 4];
-                (input.chunks_exact(5).flat_map(|r| r[..4].to_vec())).chain(target.to_vec())
-            })
-            .collect();
-        (framed.inputs, framed.target_phys) = (Vec::new(), Vec::new());
         let ranges = batch.share_ranges(2);
         assert_eq!(ranges, [0..3, 3..5]);
         let framed_shards = framed.shards(2);
@@ -401,6 +374,74 @@ mod tests {
         let rows = prepare_batch(&batch, 0..b, &mirror, needs);
         assert_eq!(whole.frames, rows.frames);
         assert_same(&whole, &rows);
+    }
+
+    /// Every neighbourhood and the model's one-hot width of 4.
+    const NEEDS: Needs = Needs {
+        rest: true,
+        liquid_at: Some(1),
+        materials: 4,
+    };
+
+    /// A batch of `b` windows of `t` frames of `n` particles in the scaled layout (the
+    /// identity scaler's: the inputs' first four columns physical), and the same windows in
+    /// `Layout::Frames`.
+    fn sample(b: usize, t: usize, n: usize) -> (Batch, Batch) {
+        let value = |i: usize| ((i * 37) % 101) as f32 * 0.009 + 0.02;
+        let batch = Batch {
+            b,
+            t,
+            n,
+            inputs: (0..b * t * n * 5).map(value).collect(),
+            targets: vec![0.0; b * n * 4],
+            last: vec![0.0; b * n * 4],
+            target_phys: (0..b * n * 4).map(|i| value(i + 11)).collect(),
+            frames: Vec::new(),
+            frame_shares: Vec::new(),
+            dt: (0..b).map(|w| 0.01 * (w + 1) as f32).collect(),
+            material: (0..b * n).map(|i| (i % 3) as u8).collect(),
+            ids: (0..b as u32).map(|w| (w, w)).collect(),
+            first_pos: (0..b * n * 2).map(|i| value(i + 5)).collect(),
+            solver_grid: (0..b as u32).map(Some).collect(),
+        };
+        let mut framed = batch.clone();
+        framed.frames = (0..b)
+            .flat_map(|w| {
+                let input = &batch.inputs[w * t * n * 5..(w + 1) * t * n * 5];
+                let target = &batch.target_phys[w * n * 4..(w + 1) * n * 4];
+                (input.chunks_exact(5).flat_map(|r| r[..4].to_vec())).chain(target.to_vec())
+            })
+            .collect();
+        (framed.inputs, framed.target_phys) = (Vec::new(), Vec::new());
+        (batch, framed)
+    }
+
+    /// The feed's shares of a `Layout::Shares` batch (`prepare_shares`: each share's own
+    /// packed frames, its windows' flips) are the scaled batch's shares prepared from its
+    /// rows; a batch of fewer windows than devices gets padding shares of its first window,
+    /// which count 0.
+    #[test]
+    fn the_feeds_shares_are_the_rows_prepared() {
+        let (t, n) = (2, 4);
+        for (b, devices) in [(5, 2), (7, 3), (1, 2), (2, 4)] {
+            let (batch, mut shared) = sample(b, t, n);
+            let per = (t + 1) * n * 4;
+            let ranges = batch.share_ranges(devices);
+            shared.frame_shares = (ranges.iter())
+                .map(|r| shared.frames[r.start * per..r.end * per].to_vec())
+                .collect();
+            shared.frames = Vec::new();
+            let flips: Vec<bool> = (0..b).map(|w| w % 3 != 1).collect();
+            let hosts = super::super::feed::prepare_shares(shared, &flips, devices, NEEDS);
+            assert_eq!(hosts.len(), devices);
+            for (k, host) in hosts.iter().enumerate() {
+                let range = ranges.get(k).cloned().unwrap_or(0..1);
+                let rows = prepare_batch(&batch, range.clone(), &flips[range], NEEDS);
+                assert_eq!(host.frames, rows.frames, "share {k} of {b} windows");
+                assert_same(host, &rows);
+                assert_eq!(host.b(), if k < ranges.len() { rows.b() } else { 0 });
+            }
+        }
     }
 
     /// `a` and `c` have the same dimensions, host rows and neighbourhoods.

@@ -28,7 +28,7 @@ impl Flips {
     }
 }
 
-/// The batches of an epoch, prepared on a thread of their own ([`prepare_batch`]: read,
+/// The batches of an epoch, prepared on a thread of their own ([`prepare_shares`]: read,
 /// packed, mirrored where [`Flips`] draws so, neighbourhoods built) one batch ahead of the
 /// step that uses them (the thread holds the one it prepared until it is taken). Each step
 /// reads its loss back at its end, so whatever the host did between two steps, the GPU and
@@ -108,9 +108,16 @@ impl BatchFeed {
 
 /// The `shares` shares of `batch` (one a device), prepared on a thread each (a share's
 /// neighbourhoods are built serially): from their own vectors where the batch was written
-/// in them ([`crate::data::Layout::Shares`]), else from their windows' rows of the whole batch. A batch
-/// of fewer windows than devices is padded with shares of its first window that count 0.
-fn prepare_shares(mut batch: Batch, flips: &[bool], shares: usize, needs: Needs) -> Vec<HostBatch> {
+/// in them ([`crate::data::Layout::Shares`]`(shares)`, the index's layout for this many
+/// devices: another share count is a panic), else from their windows' rows of the whole
+/// batch. A batch of fewer windows than devices is padded with shares of its first window
+/// that count 0.
+pub(super) fn prepare_shares(
+    mut batch: Batch,
+    flips: &[bool],
+    shares: usize,
+    needs: Needs,
+) -> Vec<HostBatch> {
     let mut ranges = batch.share_ranges(shares);
     let real = ranges.len();
     ranges.resize(shares, 0..batch.b.min(1));

@@ -59,6 +59,7 @@ where
     if args.feed {
         println!("{:<7} {:>10} {:>10}", "shares", "s/epoch", "samples/s");
         // One untimed epoch first: the allocator's first pages of a batch cost more.
+        index = index.with_layout(Layout::Frames);
         feed_rate(&index, args.micro_batch, 1);
         for shares in [1, 2, 4] {
             index = index.with_layout(Layout::frames_for(shares));
