@@ -44,7 +44,7 @@ fn bag_bytes(
     let mut w = BagWriter::create(&path).expect("create");
     for (k, f) in frames.iter().enumerate() {
         w.write(TOPIC, f).expect("write");
-        if (k as u32 + 1) % per_chunk == 0 {
+        if (k as u32 + 1).is_multiple_of(per_chunk) {
             w.flush().expect("flush");
         }
     }

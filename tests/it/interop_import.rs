@@ -34,7 +34,7 @@ fn lb_position(traj: usize, t: usize, i: usize) -> [f64; 2] {
 
 /// LagrangeBench's particle type of particle `i`: every third particle is type 1.
 fn lb_type(i: usize) -> i32 {
-    i32::from(i % 3 == 0)
+    i32::from(i.is_multiple_of(3))
 }
 
 /// Writes `split.h5` with one group per trajectory id in `trajs`.

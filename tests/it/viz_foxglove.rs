@@ -273,7 +273,7 @@ fn node_colours_its_predictions_by_their_error_against_the_truth() {
         assert_eq!(cloud["points"].as_u64(), Some(n as u64));
         let first: Vec<f64> = serde_json::from_value(cloud["first"].clone()).unwrap();
         let error = first[2] as f32;
-        assert!(error >= 0.0 && error < 0.1, "error {error}");
+        assert!((0.0..0.1).contains(&error), "error {error}");
         let colour = minflow::viz::cloud::error_colour(error).map(f64::from);
         assert_eq!(&first[3..7], &colour, "coloured by error, not material");
         errors.push(error);
