@@ -86,7 +86,8 @@ parallel() {
 
 # The batch feed alone for 1, 2 and 4 shares, both shapes, on 2 and 8 of this machine's
 # cores and on all of them (rayon's RAYON_NUM_THREADS; FEED_THREADS="2 8 all"): on a 2 x
-# H200 machine's 32 cores it ran 2-3x slower than on a 2-core one (docs/training.md).
+# H200 machine's 32 cores it ran 2-3x slower than on a 2-core one, bound by the host's memory
+# (docs/training.md).
 feed() {
     local shape threads pool
     echo "$(nproc) cores; cgroup CPU quota: $(cat /sys/fs/cgroup/cpu.max 2>/dev/null || echo none)"
@@ -95,9 +96,11 @@ feed() {
         [ "$threads" = all ] && pool=
         for shape in small full; do
             echo "== $shape shape, grid 32, batch 1024, $threads threads"
-            RAYON_NUM_THREADS=$pool /usr/bin/time -f "%e s wall, %U s user, %S s sys" \
-                "$BIN" bench train --arch grid --shape "$shape" --grid 32 --micro-batch 1024 \
-                --samples 8192 --rollout-steps 4 --feed 2>&1 | tail -n 4
+            # bash's own `time`: a bare machine may have no /usr/bin/time.
+            TIMEFORMAT="%R s wall, %U s user, %S s sys"
+            time (RAYON_NUM_THREADS=$pool "$BIN" bench train --arch grid --shape "$shape" \
+                --grid 32 --micro-batch 1024 --samples 8192 --rollout-steps 4 --feed 2>&1 |
+                tail -n 3)
         done
     done
 }
