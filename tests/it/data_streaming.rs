@@ -9,7 +9,8 @@ use std::path::{Path, PathBuf};
 
 use crate::data_support::{same_bits, simulate, write_bag};
 use minflow::data::{
-    self, Batch, DataError, Scaler, SceneInfo, Split, StreamingLoader, Trajectory, WindowIndex,
+    self, Batch, DataError, Layout, Scaler, SceneInfo, Split, StreamingLoader, Trajectory,
+    WindowIndex,
 };
 
 const T: usize = 2;
@@ -119,16 +120,25 @@ fn when_everything_fits_it_behaves_like_the_window_index() {
     let (trajs, _) = data::load(&inputs, None).expect("load");
     let scaler = fit(&trajs);
     let memory = WindowIndex::new(trajs, T, scaler).expect("index");
-    let mut loader = StreamingLoader::new(infos, None, T, scaler, 71).expect("loader");
-    assert!(loader.fits());
-    for epoch in 0..2 {
-        let streamed: Vec<Batch> = (loader.epoch(4, Some(3), epoch).expect("epoch"))
-            .collect::<Result<_, _>>()
-            .expect("batches");
-        let direct: Vec<Batch> = memory.batches(4, Some(3), epoch).collect();
-        assert!(streamed == direct, "epoch {epoch}: batches differ");
+    // In each layout: the paper's, and the grid trainer's on one device and on two.
+    for layout in [Layout::Scaled, Layout::Frames, Layout::Shares(2)] {
+        let memory = memory.clone().with_layout(layout);
+        let mut loader = (StreamingLoader::new(infos.clone(), None, T, scaler, 71))
+            .expect("loader")
+            .with_layout(layout);
+        assert!(loader.fits());
+        for epoch in 0..2 {
+            let streamed: Vec<Batch> = (loader.epoch(4, Some(3), epoch).expect("epoch"))
+                .collect::<Result<_, _>>()
+                .expect("batches");
+            let direct: Vec<Batch> = memory.batches(4, Some(3), epoch).collect();
+            assert!(
+                streamed == direct,
+                "{layout:?}, epoch {epoch}: batches differ"
+            );
+        }
+        assert_eq!(loader.peak_resident_frames(), 71);
     }
-    assert_eq!(loader.peak_resident_frames(), 71);
 }
 
 #[test]
