@@ -98,7 +98,8 @@ pub(super) fn upload_batch<B: Backend>(
 /// The host's part of the tensors of the windows `windows` of `batch` (all of them, or one
 /// data-parallel share): the frames packed and mirrored (the share's window `w` where
 /// `mirror[w]`, [`mirror_rows`]) on rayon's threads, a window each, the neighbourhoods
-/// `needs` asks for built.
+/// `needs` asks for built. A `Layout::Frames` batch's rows are copied out and go to
+/// [`prepare_packed`].
 pub(super) fn prepare_batch(
     batch: &Batch,
     windows: Range<usize>,
@@ -110,11 +111,16 @@ pub(super) fn prepare_batch(
         batch.frame_shares.is_empty(),
         "a batch of Layout::Shares is prepared share by share (prepare_packed)"
     );
-    let mut frames = vec![0.0f32; b * (t + 1) * n * 4];
+    let per = (t + 1) * n * 4;
+    // A batch of `Layout::Frames` holds each window's rows packed already.
+    if !batch.frames.is_empty() {
+        let frames = batch.frames[windows.start * per..windows.end * per].to_vec();
+        return prepare_packed(batch, windows, frames, mirror, needs);
+    }
+    let mut frames = vec![0.0f32; b * per];
     let mut first_pos = batch.first_pos[windows.start * n * 2..windows.end * n * 2].to_vec();
-    // A batch of `Layout::Frames` holds each window's rows packed; a `Layout::Scaled` one
-    // (the identity scaler's) its inputs' first four columns, then the target.
-    let (framed, per) = (!batch.frames.is_empty(), (t + 1) * n * 4);
+    // A `Layout::Scaled` batch (the identity scaler's) holds its inputs' first four columns,
+    // then the target.
     let per_window = frames.par_chunks_mut(per.max(1));
     (per_window
         .zip(first_pos.par_chunks_mut((n * 2).max(1)))
@@ -122,15 +128,11 @@ pub(super) fn prepare_batch(
     .for_each(|(w, (packed, first))| {
         // The window's place in the whole batch.
         let at = windows.start + w;
-        if framed {
-            packed.copy_from_slice(&batch.frames[at * per..(at + 1) * per]);
-        } else {
-            let input = &batch.inputs[at * t * n * 5..(at + 1) * t * n * 5];
-            for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
-                to.copy_from_slice(&row[..4]);
-            }
-            packed[t * n * 4..].copy_from_slice(&batch.target_phys[at * n * 4..(at + 1) * n * 4]);
+        let input = &batch.inputs[at * t * n * 5..(at + 1) * t * n * 5];
+        for (to, row) in packed.chunks_exact_mut(4).zip(input.chunks_exact(5)) {
+            to.copy_from_slice(&row[..4]);
         }
+        packed[t * n * 4..].copy_from_slice(&batch.target_phys[at * n * 4..(at + 1) * n * 4]);
         if mirror.get(w).copied().unwrap_or(false) {
             mirror_rows(packed, 4);
             mirror_rows(first, 2);
